@@ -1,0 +1,1 @@
+import sys; from lunarloc.cli import main; sys.exit(main())

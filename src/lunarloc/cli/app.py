@@ -1,0 +1,54 @@
+"""The `lunarloc` Typer application and its single error handler."""
+
+from __future__ import annotations
+
+import logging
+import sys
+
+import typer
+
+from lunarloc.errors import LunarLocError
+
+app = typer.Typer(
+    name="lunarloc",
+    help="Rock-landmark global localization for planetary rovers (LunarLoc).",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+
+def _register_commands() -> None:
+    # Each command group lives in its own module; importing registers it on `app`.
+    from lunarloc.cli import commands_core  # noqa: F401
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point: run the app, turning library errors into one-line messages."""
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    _register_commands()
+    try:
+        app(args=argv, standalone_mode=False)
+    except LunarLocError as exc:
+        typer.secho(f"error: {exc}", err=True, fg=typer.colors.RED)
+        return 2
+    except FileNotFoundError as exc:
+        typer.secho(f"error: file not found: {exc.filename or exc}", err=True, fg=typer.colors.RED)
+        return 2
+    except (typer.Abort, KeyboardInterrupt):
+        typer.secho("aborted", err=True)
+        return 130
+    except typer.Exit as exc:
+        return exc.exit_code
+    except Exception as exc:  # click usage errors
+        import click
+
+        if isinstance(exc, click.exceptions.ClickException):
+            exc.show()
+            return exc.exit_code
+        raise
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
