@@ -1,0 +1,1 @@
+"""Data: traverse CSVs, `.lac` archives, playback agent, simulated site."""

@@ -1,0 +1,1 @@
+"""Perception front end: camera model, segmentation, mask filtering, stereo, detection."""
