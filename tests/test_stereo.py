@@ -1,0 +1,81 @@
+"""SGBM depth on synthetic rectified pairs with a known disparity."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lunarloc.errors import ConfigError, InputError
+from lunarloc.perception.camera import PinholeCamera
+from lunarloc.perception.stereo import StereoConfig, StereoMatcher, depth_at, to_gray_u8
+
+
+def _textured_pair(disp: int, h: int = 240, w: int = 480, seed: int = 0):
+    """Random texture (blurred noise); right image = left shifted by `disp` px (x_r = x_l - d)."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    tex = rng.uniform(0, 255, size=(h, w + disp)).astype(np.float32)
+    tex = cv2.GaussianBlur(tex, (0, 0), 1.2)
+    tex = cv2.normalize(tex, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    left = tex[:, :w]  # texture column c appears at x_l = c in the left image
+    right = tex[:, disp : disp + w]  # and at x_r = c - disp in the right image
+    return np.ascontiguousarray(left), np.ascontiguousarray(right)
+
+
+@pytest.mark.parametrize("disp", [20, 47])
+def test_sgbm_recovers_known_disparity_and_depth(disp):
+    cam = PinholeCamera(width=480, height=240, hfov_deg=70.0)
+    left, right = _textured_pair(disp)
+    m = StereoMatcher(StereoConfig(), camera=cam, baseline_m=0.162)
+    d = m.disparity(left, right)
+    core = d[20:-20, 160:-20]
+    valid = np.isfinite(core)
+    assert valid.mean() > 0.9
+    assert np.median(core[valid]) == pytest.approx(disp, abs=0.25)
+    z = m.depth(left, right)
+    expected = cam.fx * 0.162 / disp
+    assert np.nanmedian(z[20:-20, 160:-20]) == pytest.approx(expected, rel=0.01)
+    # the median in a window at an interior pixel
+    assert depth_at(z, 300, 120, half_window=3) == pytest.approx(expected, rel=0.01)
+
+
+def test_sgbm_downscaled_is_close():
+    cam = PinholeCamera(width=480, height=240, hfov_deg=70.0)
+    left, right = _textured_pair(40)
+    m = StereoMatcher(StereoConfig(downscale=2), camera=cam)
+    d = m.disparity(left, right)
+    assert np.nanmedian(d[20:-20, 160:-20]) == pytest.approx(40, abs=1.0)
+
+
+def test_left_band_without_search_range_is_invalid():
+    cam = PinholeCamera(width=480, height=240)
+    left, right = _textured_pair(20)
+    d = StereoMatcher(camera=cam).disparity(left, right)
+    assert np.isnan(d[:, :100]).mean() > 0.9  # no match possible left of numDisparities
+
+
+def test_depth_at_window_mask_and_invalid():
+    z = np.full((20, 20), np.nan, dtype=np.float32)
+    assert np.isnan(depth_at(z, 10, 10))
+    z[8:13, 8:13] = 2.0
+    z[8:13, 11:13] = 5.0  # background on the right of the window
+    assert depth_at(z, 10, 10, half_window=2) == pytest.approx(2.0)
+    mask = np.zeros_like(z, dtype=bool)
+    mask[8:13, 11:13] = True
+    assert depth_at(z, 10, 10, half_window=2, mask=mask) == pytest.approx(5.0)
+    assert np.isnan(depth_at(z, 100, 100))
+
+
+def test_config_and_input_errors():
+    with pytest.raises(ConfigError):
+        StereoConfig(num_disparities=100)
+    with pytest.raises(ConfigError):
+        StereoConfig(block_size=10)
+    assert StereoConfig().P1 == 8 * 3 * 121 and StereoConfig().P2 == 32 * 3 * 121
+    m = StereoMatcher()
+    with pytest.raises(InputError):
+        m.disparity(np.zeros((10, 10), np.uint8), np.zeros((10, 12), np.uint8))
+    with pytest.raises(InputError):
+        to_gray_u8(np.zeros((2, 3, 5)))
+    assert to_gray_u8(np.ones((4, 4), dtype=np.float32)).max() == 255
