@@ -169,6 +169,7 @@ class _IndexedGzipReader(io.RawIOBase):
         super().__init__()
         self._f = fileobj
         self._spacing = int(spacing)
+        self._chunk = min(_CHUNK, max(1024, self._spacing // 4))  # input granularity of checkpoints
         # checkpoints: parallel lists sorted by decompressed offset
         self._ck_out: list[int] = [0]
         self._ck_in: list[int] = [0]
@@ -197,7 +198,7 @@ class _IndexedGzipReader(io.RawIOBase):
             if self._dec.eof:
                 data = self._dec.unused_data + self._tail
                 if not data:
-                    data = self._f.read(_CHUNK)
+                    data = self._f.read(self._chunk)
                     self._in_pos += len(data)
                 if not data or not data.startswith(b"\x1f\x8b"):
                     # end of the last gzip member (trailing zero padding is ignored)
@@ -209,7 +210,7 @@ class _IndexedGzipReader(io.RawIOBase):
             if self._tail:
                 data, self._tail = self._tail, b""
             else:
-                data = self._f.read(_CHUNK)
+                data = self._f.read(self._chunk)
                 if not data:
                     raise _GzipIndexError(
                         f"truncated gzip stream (ends at compressed byte {self._in_pos}, "
