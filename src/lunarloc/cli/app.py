@@ -22,6 +22,7 @@ def _register_commands() -> None:
     # Each command group lives in its own module; importing registers it on `app`.
     from lunarloc.cli import commands_core  # noqa: F401
     from lunarloc.cli import commands_data  # noqa: F401
+    from lunarloc.cli import commands_sim  # noqa: F401
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,62 @@
+"""`lunarloc simulate`: a procedural site, its ground-truth rocks and traverse archives."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from lunarloc.cli.app import app
+
+
+@app.command("simulate")
+def simulate(
+    out: Path = typer.Option(..., "--out", help="Output folder (rocks.csv, traverse_<i>.lac)."),
+    seed: int = typer.Option(0, "--seed", help="Site seed (same seed, same site)."),
+    traverses: int = typer.Option(1, "--traverses", min=0, help="Number of traverse archives."),
+    duration: float = typer.Option(120.0, "--duration", help="Traverse length in seconds."),
+    width: int = typer.Option(1280, "--width", help="Image width in pixels."),
+    height: int = typer.Option(720, "--height", help="Image height in pixels."),
+    image_rate: float = typer.Option(2.0, "--image-rate", help="Camera rate in Hz (divides 20 Hz, at most 10)."),
+    sun_elevation: float = typer.Option(12.0, "--sun-elevation", help="Sun elevation in degrees (5-30 typical)."),
+    sun_azimuth: float = typer.Option(135.0, "--sun-azimuth", help="Sun azimuth in degrees from the site +x axis."),
+    front_only: bool = typer.Option(False, "--front-only", help="Record only the front stereo pair."),
+    no_semantic: bool = typer.Option(False, "--no-semantic", help="Do not store semantic images."),
+    example_images: Path | None = typer.Option(
+        None, "--example-images", help="Only write the two example images (FrontLeft grayscale + semantic) here."
+    ),
+) -> None:
+    """Simulate a lunar site: write its ground-truth rock map and N traverse archives."""
+    from dataclasses import replace
+
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from lunarloc.data.render import RenderConfig
+    from lunarloc.data.simulate import ALL_CAMERAS, SimulationConfig, simulate_dataset, write_example_images
+
+    cfg = SimulationConfig(
+        duration_s=duration,
+        image_rate_hz=image_rate,
+        width=width,
+        height=height,
+        cameras=("FrontLeft", "FrontRight") if front_only else ALL_CAMERAS,
+        semantic=not no_semantic,
+        render=replace(RenderConfig(), sun_elevation_deg=sun_elevation, sun_azimuth_deg=sun_azimuth),
+    )
+    if example_images is not None:
+        for p in write_example_images(example_images, seed, config=cfg):
+            typer.echo(f"wrote {p}")
+        return
+    n_frames = int(round(duration * cfg.rover.rate_hz)) + 1
+    with Progress(
+        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn()
+    ) as bar:
+        tasks = [bar.add_task(f"traverse_{i}.lac", total=n_frames) for i in range(traverses)]
+
+        def on_progress(i: int, n: int) -> None:
+            bar.update(tasks[i], completed=n)
+
+        paths = simulate_dataset(seed, traverses, out, cfg, progress=on_progress)
+    typer.echo(f"wrote {out / 'rocks.csv'}")
+    for p in paths:
+        typer.echo(f"wrote {p} ({p.stat().st_size / 1e6:.1f} MB)")

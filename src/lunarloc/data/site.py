@@ -1,0 +1,386 @@
+"""Seeded procedural lunar site: terrain heightfield, craters, rocks and a lander.
+
+Frames and units
+----------------
+* Site (world / map) frame: x east, y north, z up, metres. The lander stands at
+  the origin; the site spans ``[-size_m/2, size_m/2]`` in x and y. The terrain
+  extends ``terrain_margin_m`` beyond the site (without rocks) so cameras near
+  the edge still see ground, not the void.
+* Rocks are slightly irregular ellipsoids. The ground-truth record of a rock is
+  ``id, x, y, z, radius``: (x, y, z) is the centre of the ellipsoid (it can lie
+  below the ground for deeply buried rocks) and ``radius`` the nominal radius in
+  metres (the horizontal semi-axes are within about 0.75-1.2 x radius, the
+  vertical one 0.55-0.85 x radius).
+
+Everything is a pure function of the seed and the :class:`SiteConfig`; the mesh
+construction needs the optional ``sim`` extra (trimesh) and is imported lazily.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lunarloc.errors import ConfigError, require
+
+__all__ = ["SiteConfig", "Rocks", "Site", "generate_site", "load_rocks_csv", "sample_power_law"]
+
+logger = logging.getLogger(__name__)
+logger.addHandler(logging.NullHandler())
+
+ROCK_CSV_COLUMNS = ("id", "x", "y", "z", "radius")
+
+
+@dataclass(frozen=True)
+class SiteConfig:
+    """Parameters of the procedural site (defaults mimic the LAC map used in the paper)."""
+
+    size_m: float = 27.0  # side of the square site (LAC: 27 m x 27 m)
+    terrain_margin_m: float = 12.0  # rock-free terrain beyond the site edge, for the view
+    resolution_m: float = 0.1  # heightfield grid spacing
+    relief_m: float = 1.0  # peak-to-peak height of the rolling terrain inside the site
+    n_craters: int = 6  # number of craters inside the site
+    crater_radius_m: tuple[float, float] = (0.8, 3.5)  # crater rim radius range
+    crater_depth_ratio: float = 0.12  # depth / radius of a (degraded) crater
+    n_rocks: int = 386  # LAC: 386 rocks
+    rock_radius_m: tuple[float, float] = (0.03, 1.0)  # nominal radius range (truncated power law)
+    rock_size_exponent: float = 1.6  # N(>r) ~ r^-exponent (cumulative power law)
+    rock_burial: tuple[float, float] = (0.15, 0.55)  # fraction of the rock height below ground
+    lander_radius_m: float = 1.6  # lander footprint radius (legs)
+    lander_height_m: float = 2.6  # lander total height
+    lander_keepout_m: float = 1.2  # no rocks / rover within lander_radius + keepout
+    flatten_radius_m: float = 3.0  # terrain levelled under the lander within this radius
+    rover_start_xy: tuple[float, float] = (4.0, -2.0)  # every traverse starts here (metres)
+
+    def validate(self) -> None:
+        if self.size_m <= 4.0 * (self.lander_radius_m + self.lander_keepout_m) / 2:
+            raise ConfigError(f"site size_m={self.size_m} is too small for the lander")
+        if not 0.01 <= self.resolution_m <= 1.0:
+            raise ConfigError(f"resolution_m={self.resolution_m} must be in [0.01, 1]")
+        lo, hi = self.rock_radius_m
+        if not 0 < lo < hi:
+            raise ConfigError(f"rock_radius_m={self.rock_radius_m} must satisfy 0 < min < max")
+        if self.n_rocks < 0 or self.n_craters < 0:
+            raise ConfigError("n_rocks and n_craters must be >= 0")
+        if self.rock_size_exponent <= 0:
+            raise ConfigError("rock_size_exponent must be > 0")
+        b0, b1 = self.rock_burial
+        if not 0.0 <= b0 <= b1 < 1.0:
+            raise ConfigError(f"rock_burial={self.rock_burial} must satisfy 0 <= min <= max < 1")
+        half = self.size_m / 2
+        if max(abs(self.rover_start_xy[0]), abs(self.rover_start_xy[1])) > half - 1.0:
+            raise ConfigError(f"rover_start_xy={self.rover_start_xy} is outside the site")
+
+
+@dataclass
+class Rocks:
+    """Ground-truth rocks (arrays of length N, site frame, metres)."""
+
+    ids: np.ndarray  # (N,) int, 0..N-1
+    centers: np.ndarray  # (N, 3) ellipsoid centres
+    radii: np.ndarray  # (N,) nominal radius
+    axes: np.ndarray  # (N, 3) semi-axes (x, y, z) before the yaw rotation
+    yaws: np.ndarray  # (N,) rotation about z, radians
+    shape_seeds: np.ndarray  # (N,) seeds of the surface irregularity
+
+    def __len__(self) -> int:
+        return int(self.ids.shape[0])
+
+    def table(self) -> np.ndarray:
+        """(N, 5) array ``id, x, y, z, radius``."""
+        return np.column_stack([self.ids, self.centers, self.radii])
+
+
+@dataclass
+class Site:
+    """A generated site. Create with :func:`generate_site`.
+
+    Attributes
+    ----------
+    config, seed : what generated it.
+    grid_x, grid_y : (nx,), (ny,) coordinates of the heightfield grid (metres).
+    heights : (ny, nx) terrain height ``heights[j, i]`` at ``(grid_x[i], grid_y[j])``.
+    rocks : ground-truth rocks.
+    lander_xyz : lander base centre on the ground (metres).
+    """
+
+    config: SiteConfig
+    seed: int
+    grid_x: np.ndarray
+    grid_y: np.ndarray
+    heights: np.ndarray
+    rocks: Rocks
+    lander_xyz: np.ndarray
+    _grad: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def half_size(self) -> float:
+        return self.config.size_m / 2.0
+
+    @property
+    def lander_pose(self) -> list[float]:
+        """Lander pose [x, y, z, roll, pitch, yaw] (metres, radians)."""
+        return [float(v) for v in self.lander_xyz] + [0.0, 0.0, 0.0]
+
+    @property
+    def rover_start_xy(self) -> np.ndarray:
+        return np.asarray(self.config.rover_start_xy, dtype=float)
+
+    def _interp(self, grid: np.ndarray, x, y) -> np.ndarray:
+        x = np.asarray(x, dtype=float)
+        y = np.asarray(y, dtype=float)
+        res = self.config.resolution_m
+        fx = np.clip((x - self.grid_x[0]) / res, 0.0, len(self.grid_x) - 1.000001)
+        fy = np.clip((y - self.grid_y[0]) / res, 0.0, len(self.grid_y) - 1.000001)
+        i = np.floor(fx).astype(np.intp)
+        j = np.floor(fy).astype(np.intp)
+        tx = fx - i
+        ty = fy - j
+        h00 = grid[j, i]
+        h01 = grid[j, i + 1]
+        h10 = grid[j + 1, i]
+        h11 = grid[j + 1, i + 1]
+        return (h00 * (1 - tx) + h01 * tx) * (1 - ty) + (h10 * (1 - tx) + h11 * tx) * ty
+
+    def terrain_height(self, x, y) -> np.ndarray:
+        """Terrain height (metres) at site coordinates x, y (scalars or arrays; bilinear)."""
+        return self._interp(self.heights, x, y)
+
+    def terrain_gradient(self, x, y) -> tuple[np.ndarray, np.ndarray]:
+        """Smooth terrain slope (dz/dx, dz/dy) at x, y (bilinear in the grid gradient)."""
+        if self._grad is None:
+            gy, gx = np.gradient(self.heights, self.config.resolution_m)
+            self._grad = (gx, gy)
+        gx, gy = self._grad
+        return self._interp(gx, x, y), self._interp(gy, x, y)
+
+    def terrain_normal(self, x, y) -> np.ndarray:
+        """Unit upward terrain normal(s), shape (..., 3)."""
+        gx, gy = self.terrain_gradient(x, y)
+        n = np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
+        return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+    def inside(self, x, y, margin: float = 0.0) -> np.ndarray:
+        """True where (x, y) lies inside the site shrunk by `margin` metres."""
+        h = self.half_size - margin
+        return (np.abs(np.asarray(x)) <= h) & (np.abs(np.asarray(y)) <= h)
+
+    # ------------------------------------------------------------------ export
+    def rocks_table(self) -> np.ndarray:
+        """(N, 5) array ``id, x, y, z, radius`` (site frame, metres)."""
+        return self.rocks.table()
+
+    def write_rocks_csv(self, path: str | Path) -> Path:
+        """Write the ground-truth rock list as CSV with header ``id,x,y,z,radius``."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with path.open("w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(ROCK_CSV_COLUMNS)
+            for row in self.rocks_table():
+                w.writerow([int(row[0])] + [f"{v:.5f}" for v in row[1:]])
+        logger.info("wrote %d rocks to %s", len(self.rocks), path)
+        return path
+
+    def config_dict(self) -> dict:
+        return {"seed": self.seed, **asdict(self.config)}
+
+    # ------------------------------------------------------------------ meshes
+    def terrain_mesh(self):
+        """Terrain heightfield as a trimesh.Trimesh (two triangles per grid cell)."""
+        trimesh = require("trimesh", "sim")
+        nx, ny = len(self.grid_x), len(self.grid_y)
+        X, Y = np.meshgrid(self.grid_x, self.grid_y)
+        V = np.column_stack([X.ravel(), Y.ravel(), self.heights.ravel()])
+        I, J = np.meshgrid(np.arange(nx - 1), np.arange(ny - 1))
+        a = (J * nx + I).ravel()
+        b, c = a + 1, a + nx
+        d = c + 1
+        F = np.concatenate([np.column_stack([a, b, d]), np.column_stack([a, d, c])])
+        return trimesh.Trimesh(V, F, process=False)
+
+    def rock_meshes(self) -> list:
+        """One irregular-ellipsoid trimesh.Trimesh per rock, in rock id order (site frame)."""
+        trimesh = require("trimesh", "sim")
+        bases = {s: trimesh.creation.icosphere(subdivisions=s) for s in (1, 2, 3)}
+        meshes = []
+        r = self.rocks
+        for k in range(len(r)):
+            sub = 1 if r.radii[k] < 0.06 else (2 if r.radii[k] < 0.25 else 3)
+            unit = bases[sub].vertices
+            rng = np.random.default_rng(int(r.shape_seeds[k]))
+            # smooth radial irregularity: random low-order lobes (about +-20 %)
+            dirs = rng.normal(size=(8, 3))
+            dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+            amp = rng.uniform(0.03, 0.09, size=8)
+            freq = rng.uniform(1.5, 4.0, size=8)
+            bump = 1.0 + (np.cos(unit @ dirs.T * freq) * amp).sum(1)
+            bump = np.clip(bump / bump.mean(), 0.8, 1.2)
+            # a few planar fractures: vertices beyond a random plane are pushed onto it
+            V0 = unit * bump[:, None]
+            for _cut in range(int(rng.integers(3, 7))):
+                nrm = rng.normal(size=3)
+                nrm[2] = abs(nrm[2]) * 0.5 + 0.2 * np.sign(rng.uniform(-1, 1))
+                nrm /= np.linalg.norm(nrm)
+                excess = np.clip(V0 @ nrm - rng.uniform(0.6, 0.9), 0.0, None)
+                V0 = V0 - excess[:, None] * nrm
+            bump = np.linalg.norm(V0, axis=1)
+            V = unit * bump[:, None] * r.axes[k]
+            c, s = np.cos(r.yaws[k]), np.sin(r.yaws[k])
+            Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            V = V @ Rz.T + r.centers[k]
+            meshes.append(trimesh.Trimesh(V, bases[sub].faces, process=False))
+        return meshes
+
+    def lander_mesh(self):
+        """A simple lander: a cylindrical body on four legs with foot pads (site frame)."""
+        trimesh = require("trimesh", "sim")
+        cfg = self.config
+        base = self.lander_xyz
+        parts = []
+        body_h = 0.55 * cfg.lander_height_m
+        clearance = cfg.lander_height_m - body_h
+        body = trimesh.creation.cylinder(radius=0.75 * cfg.lander_radius_m, height=body_h, sections=24)
+        body.apply_translation(base + [0.0, 0.0, clearance + body_h / 2])
+        parts.append(body)
+        deck = trimesh.creation.box(extents=[1.3 * cfg.lander_radius_m] * 2 + [0.25])
+        deck.apply_translation(base + [0.0, 0.0, clearance + body_h + 0.125])
+        parts.append(deck)
+        for ang in np.arange(4) * np.pi / 2 + np.pi / 4:
+            foot = base + cfg.lander_radius_m * np.array([np.cos(ang), np.sin(ang), 0.0])
+            top = base + 0.7 * cfg.lander_radius_m * np.array([np.cos(ang), np.sin(ang), 0.0])
+            top[2] += clearance + 0.2
+            leg = trimesh.creation.cylinder(radius=0.06, segment=[foot + [0, 0, 0.05], top], sections=8)
+            parts.append(leg)
+            pad = trimesh.creation.cylinder(radius=0.22, height=0.08, sections=12)
+            pad.apply_translation(foot + [0.0, 0.0, 0.02])
+            parts.append(pad)
+        return trimesh.util.concatenate(parts)
+
+
+# ---------------------------------------------------------------------- generation
+def _smooth_noise(rng: np.random.Generator, shape, sigma_cells: float) -> np.ndarray:
+    from scipy.ndimage import gaussian_filter
+
+    n = gaussian_filter(rng.normal(size=shape), sigma_cells, mode="reflect")
+    return n / (n.std() + 1e-12)
+
+
+def _crater_profile(r: np.ndarray, R: float, depth: float) -> np.ndarray:
+    """Height change of a bowl crater with a raised rim at distance r (metres)."""
+    rim = 0.25 * depth
+    inside = -depth * (1.0 - (r / R) ** 2) + rim
+    outside = rim * np.clip(R / np.maximum(r, 1e-9), 0, 1) ** 4
+    return np.where(r < R, inside, outside)
+
+
+def sample_power_law(rng: np.random.Generator, n: int, r_min: float, r_max: float, exponent: float) -> np.ndarray:
+    """Radii from a truncated power law with cumulative count N(>r) ~ r^-exponent (inverse CDF)."""
+    u = rng.uniform(size=n)
+    a = exponent
+    return r_min * (1.0 - u * (1.0 - (r_min / r_max) ** a)) ** (-1.0 / a)
+
+
+def generate_site(seed: int = 0, config: SiteConfig | None = None) -> Site:
+    """Generate the site for `seed` (deterministic: same seed and config, same site)."""
+    cfg = config or SiteConfig()
+    cfg.validate()
+    rng = np.random.default_rng([int(seed), 0x5173])
+    half = cfg.size_m / 2.0
+    ext = half + cfg.terrain_margin_m
+    n = int(round(2 * ext / cfg.resolution_m)) + 1
+    grid = np.linspace(-ext, ext, n)
+    X, Y = np.meshgrid(grid, grid)
+
+    # rolling terrain: broad + medium undulations, scaled to `relief_m` peak-to-peak in the site
+    broad = _smooth_noise(rng, X.shape, 4.0 / cfg.resolution_m)
+    medium = _smooth_noise(rng, X.shape, 1.0 / cfg.resolution_m)
+    fine = _smooth_noise(rng, X.shape, 0.15 / cfg.resolution_m)
+    Z = broad + 0.25 * medium + 0.015 * fine
+    ins = (np.abs(X) <= half) & (np.abs(Y) <= half)
+    Z = Z * (0.8 * cfg.relief_m / max(np.ptp(Z[ins]), 1e-9))
+
+    # craters, kept away from the lander and the rover start
+    start = np.asarray(cfg.rover_start_xy, float)
+    for _ in range(cfg.n_craters):
+        for _try in range(100):
+            R = rng.uniform(*cfg.crater_radius_m)
+            c = rng.uniform(-half + 1.0, half - 1.0, size=2)
+            if np.hypot(*c) > cfg.lander_radius_m + cfg.flatten_radius_m + R and np.hypot(*(c - start)) > R + 1.0:
+                break
+        Z = Z + _crater_profile(np.hypot(X - c[0], Y - c[1]), R, cfg.crater_depth_ratio * R)
+
+    # level the ground under the lander (smooth blend)
+    rr = np.hypot(X, Y)
+    w = np.clip((rr - cfg.flatten_radius_m) / 2.0, 0.0, 1.0)
+    w = w * w * (3 - 2 * w)
+    Z0 = float(np.mean(Z[rr < cfg.flatten_radius_m])) if np.any(rr < cfg.flatten_radius_m) else 0.0
+    Z = w * Z + (1 - w) * Z0
+    Z = Z - Z0  # lander base at z = 0
+
+    site = Site(cfg, int(seed), grid, grid.copy(), Z, _empty_rocks(), np.zeros(3))
+
+    # rocks: power-law radii, placed without overlap, outside the lander keep-out
+    radii = np.sort(sample_power_law(rng, cfg.n_rocks, *cfg.rock_radius_m, cfg.rock_size_exponent))[::-1]
+    keep_r = cfg.lander_radius_m + cfg.lander_keepout_m
+    xy = np.zeros((0, 2))
+    rad = np.zeros(0)
+    for r in radii:
+        for _try in range(200):
+            p = rng.uniform(-half + r, half - r, size=2)
+            if np.hypot(*p) < keep_r + r:
+                continue
+            if np.hypot(*(p - start)) < 1.5 + 1.4 * r:  # the rover must start in the clear
+                continue
+            if len(rad) and np.any(np.hypot(*(xy - p).T) < 1.1 * (rad + r)):
+                continue
+            break
+        else:
+            continue  # site too crowded for this rock; skip it
+        xy = np.vstack([xy, p])
+        rad = np.append(rad, r)
+    if len(rad) < cfg.n_rocks:
+        logger.warning("placed only %d of %d rocks (site too crowded)", len(rad), cfg.n_rocks)
+    # shuffle so ids are not ordered by size
+    order = rng.permutation(len(rad))
+    xy, rad = xy[order], rad[order]
+    m = len(rad)
+    axes = np.column_stack(
+        [rad * rng.uniform(0.85, 1.2, m), rad * rng.uniform(0.75, 1.1, m), rad * rng.uniform(0.55, 0.85, m)]
+    )
+    burial = rng.uniform(*cfg.rock_burial, size=m)
+    ground = site.terrain_height(xy[:, 0], xy[:, 1]) if m else np.zeros(0)
+    z = ground + axes[:, 2] * (1.0 - 2.0 * burial)
+    site.rocks = Rocks(
+        ids=np.arange(m),
+        centers=np.column_stack([xy, z]) if m else np.zeros((0, 3)),
+        radii=rad,
+        axes=axes,
+        yaws=rng.uniform(0, 2 * np.pi, m),
+        shape_seeds=rng.integers(0, 2**31 - 1, m),
+    )
+    logger.debug("site seed=%d: %d rocks, relief %.2f m", seed, m, float(np.ptp(Z[ins])))
+    return site
+
+
+def _empty_rocks() -> Rocks:
+    return Rocks(np.zeros(0, int), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0, int))
+
+
+def load_rocks_csv(path: str | Path) -> np.ndarray:
+    """Read a ``id,x,y,z,radius`` CSV back as an (N, 5) float array."""
+    from lunarloc.errors import FileFormatError
+
+    path = Path(path)
+    with path.open(newline="") as fh:
+        reader = csv.reader(fh)
+        header = next(reader, None)
+        if header is None or tuple(h.strip() for h in header) != ROCK_CSV_COLUMNS:
+            raise FileFormatError(f"{path}: expected header {','.join(ROCK_CSV_COLUMNS)}, got {header}")
+        rows = [[float(v) for v in row] for row in reader if row]
+    return np.asarray(rows, dtype=float).reshape(-1, 5)
