@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import typer
 
 from lunarloc.cli.app import app
@@ -46,11 +47,14 @@ def _plot(archive, out: Path) -> None:
     from matplotlib.patches import Circle
 
     fig, ax = plt.subplots(figsize=(7, 7))
+    xy = [archive.positions()[:, :2]]
     if "rocks" in archive.custom_records:
         rocks = archive.custom("rocks")
         if all(c in rocks for c in ("x", "y", "radius")):
             circles = [Circle((x, y), r) for x, y, r in zip(rocks["x"], rocks["y"], rocks["radius"])]
-            ax.add_collection(PatchCollection(circles, facecolor="0.55", edgecolor="0.3", linewidth=0.3, label="rocks"))
+            ax.add_collection(PatchCollection(circles, facecolor="0.55", edgecolor="0.3", linewidth=0.3))
+            r = rocks["radius"][:, None]
+            xy += [np.stack([rocks["x"], rocks["y"]], axis=1) - r, np.stack([rocks["x"], rocks["y"]], axis=1) + r]
             ax.plot([], [], "o", color="0.55", label=f"rocks ({rocks.n_rows})")
     p = archive.positions()
     if len(p):
@@ -64,12 +68,16 @@ def _plot(archive, out: Path) -> None:
     lander = archive.initial.get("lander")
     if lander is not None and len(lander) >= 2:
         ax.plot(lander[0], lander[1], "^", color="k", ms=9, label="lander")
+    pts = np.concatenate([p for p in xy if len(p)]) if any(len(p) for p in xy) else np.zeros((1, 2))
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    pad = 0.05 * max(float(np.max(hi - lo)), 1.0)
+    ax.set_xlim(lo[0] - pad, hi[0] + pad)
+    ax.set_ylim(lo[1] - pad, hi[1] + pad)
     ax.set_aspect("equal")
-    ax.autoscale_view()
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_title(archive.path.name)
-    ax.legend(loc="best", fontsize=8)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     ax.grid(alpha=0.3)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=120, bbox_inches="tight")
