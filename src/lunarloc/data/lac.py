@@ -43,7 +43,16 @@ reader of ``Robaire/lac-data`` and its copy in ``mit-acl/lunarloc-data``)
   enabled *and* produced an image, and writes a camera CSV only for cameras
   with at least one row. The published reader's ``input_data`` therefore fails
   on a row without a grayscale file name (or, for a ``use_semantic`` camera,
-  without a semantic one); :class:`LacWriter` refuses to write such rows.
+  without a semantic one); :class:`LacWriter` refuses to write such rows for
+  an enabled camera (it accepts image-less rows only with ``enable=False``,
+  which the LAC recorder never writes; avoid them if the archive must replay
+  in the published reader).
+* The published reader uses pandas and the ``toml`` package (TOML 0.5), which
+  rejects arrays mixing ints and floats: the writer stores ``lander`` and
+  ``rover`` as floats. Checked offline: archives from :class:`LacWriter` load in
+  ``lac_data``'s FrameDataReader / CameraDataReader / PlaybackAgent with
+  identical poses and pixels, and archives made by ``lac_data``'s Recorder
+  (PNG and JPEG options) load here unchanged.
 * ``initial.toml``: ``fiducials`` is a *boolean* (``use_fiducials()``), not a
   pose as the issue text suggests; ``lander`` and ``rover`` are
   ``[x, y, z, roll, pitch, yaw]``; camera tables keep whatever types the agent
@@ -73,8 +82,13 @@ so random access costs O(spacing), not O(archive). Reads that move forward
 continue the live decompressor, so sequential iteration is linear in the archive
 length. This needs no extra dependency (``indexed_gzip`` would do the same in C)
 and no temporary disk copy (decompressing to a temporary tar would cost a full
-extra write of the archive, gigabytes for long traverses). Figures measured on
-this machine are in the project notes / tests' docstrings.
+extra write of the archive, gigabytes for long traverses).
+
+Measured on the 2-core dev machine with a 200 MB archive (300 frames, 450
+1280x720 PNGs): open + index 0.15-0.2 s; random access to one image member
+~5 ms (plus ~15-20 ms PNG decode), against 56-107 ms for ``tarfile`` r:gz, whose
+cost grows with the archive length; sequential ``iter_frames`` 65-83 images/s,
+bound by PNG decoding.
 """
 
 from __future__ import annotations
