@@ -76,7 +76,7 @@ images, so the first open must decompress the whole archive once. During that
 single pass we record the tar member index (name -> offset into the
 decompressed stream) and, every ``checkpoint_spacing`` decompressed bytes
 (4 MiB), a snapshot of the zlib decompressor (``zlib.Decompress.copy()``: about
-the 32 KiB window plus state, ~45 KiB each). Reading a member later restores the
+the 32 KiB window plus state, ~40 KiB each (measured)). Reading a member later restores the
 nearest checkpoint at or before it and decompresses at most one spacing forward,
 so random access costs O(spacing), not O(archive). Reads that move forward
 continue the live decompressor, so sequential iteration is linear in the archive
@@ -498,7 +498,7 @@ class LacArchive:
     ----------
     path : the `.lac` file.
     checkpoint_spacing : decompressed bytes between random-access checkpoints
-        (memory ~45 KiB per checkpoint; random access decompresses at most this much).
+        (memory ~40 KiB per checkpoint; random access decompresses at most this much).
     """
 
     def __init__(self, path: str | os.PathLike, *, checkpoint_spacing: int = DEFAULT_CHECKPOINT_SPACING):
