@@ -54,7 +54,7 @@ class SiteConfig:
     lander_height_m: float = 2.6  # lander total height
     lander_keepout_m: float = 1.2  # no rocks / rover within lander_radius + keepout
     flatten_radius_m: float = 3.0  # terrain levelled under the lander within this radius
-    rover_start_xy: tuple[float, float] = (4.0, -2.0)  # every traverse starts here (metres)
+    rover_start_xy: tuple[float, float] = (-4.0, -3.0)  # every traverse starts here (metres)
 
     def validate(self) -> None:
         if self.size_m <= 4.0 * (self.lander_radius_m + self.lander_keepout_m) / 2:

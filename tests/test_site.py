@@ -1,0 +1,81 @@
+"""Procedural site: determinism, rock sizes, burial, lander keep-out, CSV export."""
+
+import numpy as np
+import pytest
+
+from lunarloc.data.site import SiteConfig, generate_site, load_rocks_csv
+from lunarloc.errors import ConfigError
+
+
+@pytest.fixture(scope="module")
+def site():
+    return generate_site(3)
+
+
+def test_seeded_determinism(site):
+    again = generate_site(3)
+    np.testing.assert_array_equal(site.heights, again.heights)
+    np.testing.assert_array_equal(site.rocks_table(), again.rocks_table())
+    other = generate_site(4)
+    assert not np.allclose(site.rocks_table()[:, 1:3], other.rocks_table()[:, 1:3])
+
+
+def test_terrain_relief_and_lander_flat(site):
+    X, Y = np.meshgrid(site.grid_x, site.grid_y)
+    inside = site.inside(X, Y)
+    relief = np.ptp(site.heights[inside])
+    assert 0.6 < relief < 2.0
+    assert abs(float(site.terrain_height(0.0, 0.0))) < 1e-6  # lander base at z = 0
+    # bilinear query reproduces grid nodes
+    i, j = 100, 200
+    assert np.isclose(site.terrain_height(site.grid_x[i], site.grid_y[j]), site.heights[j, i])
+
+
+def test_rock_count_and_heavy_tailed_sizes(site):
+    cfg = site.config
+    r = site.rocks.radii
+    assert len(r) == cfg.n_rocks == 386
+    assert r.min() >= cfg.rock_radius_m[0] and r.max() <= cfg.rock_radius_m[1]
+    # heavy tail: many small rocks, a few large ones
+    assert np.median(r) < 0.07
+    assert r.max() / np.median(r) > 5
+    assert 5 <= np.sum(r > 0.2) <= 60
+    # cumulative count N(>r) ~ r^-a: log-log slope close to the configured exponent
+    rs = np.sort(r)[::-1]
+    n = np.arange(1, len(rs) + 1)
+    sel = rs < 0.3
+    slope = np.polyfit(np.log(rs[sel]), np.log(n[sel]), 1)[0]
+    assert -2.2 < slope < -1.1
+
+
+def test_rocks_partly_buried_and_outside_keepout(site):
+    rk = site.rocks
+    ground = site.terrain_height(rk.centers[:, 0], rk.centers[:, 1])
+    top = rk.centers[:, 2] + rk.axes[:, 2]
+    bottom = rk.centers[:, 2] - rk.axes[:, 2]
+    assert np.all(top > ground) and np.all(bottom < ground)
+    d = np.hypot(rk.centers[:, 0], rk.centers[:, 1])
+    assert np.all(d > site.config.lander_radius_m + site.config.lander_keepout_m)
+    assert np.all(site.inside(rk.centers[:, 0], rk.centers[:, 1]))
+
+
+def test_rocks_csv_round_trip(site, tmp_path):
+    p = site.write_rocks_csv(tmp_path / "rocks.csv")
+    assert p.read_text().splitlines()[0] == "id,x,y,z,radius"
+    table = load_rocks_csv(p)
+    np.testing.assert_allclose(table, site.rocks_table(), atol=1e-5)
+
+
+def test_config_validation():
+    with pytest.raises(ConfigError):
+        generate_site(0, SiteConfig(rock_radius_m=(0.5, 0.1)))
+    with pytest.raises(ConfigError):
+        generate_site(0, SiteConfig(resolution_m=0.0))
+
+
+def test_rock_meshes_match_records(site):
+    meshes = site.rock_meshes()
+    assert len(meshes) == len(site.rocks)
+    k = int(np.argmax(site.rocks.radii))
+    c = meshes[k].vertices.mean(axis=0)
+    assert np.linalg.norm(c[:2] - site.rocks.centers[k, :2]) < 0.3 * site.rocks.radii[k]
