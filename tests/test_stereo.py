@@ -79,3 +79,14 @@ def test_config_and_input_errors():
     with pytest.raises(InputError):
         to_gray_u8(np.zeros((2, 3, 5)))
     assert to_gray_u8(np.ones((4, 4), dtype=np.float32)).max() == 255
+
+
+def test_row_band_matches_full_image_inside_band():
+    cam = PinholeCamera(width=480, height=240)
+    left, right = _textured_pair(30)
+    m = StereoMatcher(camera=cam)
+    full = m.disparity(left, right)
+    band = m.disparity(left, right, rows=(100, 140))
+    assert np.all(np.isnan(band[:50])) and np.all(np.isnan(band[-50:]))
+    inner = band[100:140, 160:-20]
+    assert np.nanmedian(np.abs(inner - full[100:140, 160:-20])) < 0.1

@@ -34,6 +34,7 @@ __all__ = [
     "mask_stats",
     "masks_from_labels",
     "size_from_sigma",
+    "image_reject_reason",
     "classify_mask",
 ]
 
@@ -200,6 +201,7 @@ class RejectReason(str, Enum):
     BORDER = "border"
     ELONGATED = "elongated"
     NO_DEPTH = "no_depth"
+    TOO_NEAR = "too_near"
     TOO_FAR = "too_far"
     TOO_SMALL = "too_small"
     TOO_LARGE = "too_large"
@@ -229,7 +231,10 @@ class MaskFilterConfig:
     tau_elong: float = 4.0
     # Maximum range (depth along the optical axis, metres): stereo depth error grows
     # with range^2 (at 0.162 m baseline, ~0.25 px matching error gives ~4 cm at 5 m).
-    max_range_m: float = 8.0
+    max_range_m: float = 6.0
+    # Minimum range (metres): SGBM with 128 disparities cannot measure closer than
+    # fx * B / 128 ~ 1.16 m, and depths at that limit are clipped, hence wrong.
+    min_range_m: float = 1.3
 
     def __post_init__(self) -> None:
         if self.min_area_px < 1:
@@ -240,8 +245,19 @@ class MaskFilterConfig:
             raise ConfigError(f"need 0 <= s_min_m < s_max_m, got {self.s_min_m}, {self.s_max_m}")
         if not self.tau_elong >= 1.0:
             raise ConfigError("tau_elong must be >= 1")
-        if not self.max_range_m > 0.0:
-            raise ConfigError("max_range_m must be > 0")
+        if not 0.0 <= self.min_range_m < self.max_range_m:
+            raise ConfigError("need 0 <= min_range_m < max_range_m")
+
+
+def image_reject_reason(stats: MaskStats, cfg: MaskFilterConfig) -> RejectReason | None:
+    """The filters that need no depth (pixel count, border, elongation), in that order."""
+    if stats.area < cfg.min_area_px:
+        return RejectReason.TOO_FEW_PIXELS
+    if stats.touches_border:
+        return RejectReason.BORDER
+    if stats.eig_ratio > cfg.tau_elong:
+        return RejectReason.ELONGATED
+    return None
 
 
 def classify_mask(
@@ -251,19 +267,18 @@ def classify_mask(
 
     Returns (reason, s_i): reason is None when the mask is kept, otherwise the first
     filter that rejects it, in the order: pixel count, border, elongation, depth
-    (missing), range, size. s_i (metres) is NaN when there is no depth.
+    (missing), range (far, near), size. s_i (metres) is NaN when there is no depth.
     """
-    if stats.area < cfg.min_area_px:
-        return RejectReason.TOO_FEW_PIXELS, float("nan")
-    if stats.touches_border:
-        return RejectReason.BORDER, float("nan")
-    if stats.eig_ratio > cfg.tau_elong:
-        return RejectReason.ELONGATED, float("nan")
+    reason = image_reject_reason(stats, cfg)
+    if reason is not None:
+        return reason, float("nan")
     if depth_m is None or not np.isfinite(depth_m) or depth_m <= 0:
         return RejectReason.NO_DEPTH, float("nan")
     s = size_from_sigma(stats.sigma_px, depth_m, alpha)
     if depth_m > cfg.max_range_m:
         return RejectReason.TOO_FAR, s
+    if depth_m < cfg.min_range_m:
+        return RejectReason.TOO_NEAR, s
     if s < cfg.s_min_m:
         return RejectReason.TOO_SMALL, s
     if s > cfg.s_max_m:

@@ -124,13 +124,30 @@ class StereoMatcher:
             speckleRange=c.speckle_range,
         )
 
-    def disparity(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
-        """Disparity of the left image in full-resolution pixels (float32, NaN = invalid)."""
+    def disparity(
+        self, left: np.ndarray, right: np.ndarray, rows: tuple[int, int] | None = None
+    ) -> np.ndarray:
+        """Disparity of the left image in full-resolution pixels (float32, NaN = invalid).
+
+        rows : optional (v0, v1) band of image rows that is needed; matching then runs
+            on that band plus a margin (SGBM cost is proportional to the rows matched)
+            and rows outside the band are NaN.
+        """
         import cv2
 
         L, R = to_gray_u8(left), to_gray_u8(right)
         if L.shape != R.shape:
             raise InputError(f"left and right images differ in shape: {L.shape} vs {R.shape}")
+        if rows is not None:
+            H = L.shape[0]
+            margin = 2 * self.config.block_size + 8 * self.config.downscale
+            v0 = max(int(rows[0]) - margin, 0)
+            v1 = min(int(rows[1]) + margin, H)
+            if v1 <= v0:
+                return np.full(L.shape, np.nan, np.float32)
+            out = np.full(L.shape, np.nan, np.float32)
+            out[v0:v1] = self.disparity(L[v0:v1], R[v0:v1])
+            return out
         k = self.config.downscale
         if k > 1:
             size = (L.shape[1] // k, L.shape[0] // k)
@@ -149,9 +166,12 @@ class StereoMatcher:
         with np.errstate(divide="ignore", invalid="ignore"):
             return (self.camera.fx * self.baseline_m / disparity).astype(np.float32)
 
-    def depth(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
-        """(H, W) float32 depth z of the left image's optical frame, metres; NaN = invalid."""
-        return self.depth_from_disparity(self.disparity(left, right))
+    def depth(self, left: np.ndarray, right: np.ndarray, rows: tuple[int, int] | None = None) -> np.ndarray:
+        """(H, W) float32 depth z of the left image's optical frame, metres; NaN = invalid.
+
+        rows : optional band of needed rows, as in :meth:`disparity`.
+        """
+        return self.depth_from_disparity(self.disparity(left, right, rows))
 
 
 def depth_at(

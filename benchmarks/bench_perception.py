@@ -1,0 +1,259 @@
+"""Benchmark of the perception front end on simulated traverses (ground truth known).
+
+Usage
+-----
+    python benchmarks/bench_perception.py ARCHIVE.lac [ARCHIVE.lac ...] [--every N]
+        [--segmenter classical|fastsam --weights PATH] [--no-centre-correction]
+        [--json OUT.json]
+    python benchmarks/bench_perception.py --simulate SEED [--duration S] ...   # renders first
+
+Archives must come from `lunarloc simulate` (they hold ``custom/rocks.csv`` and the
+semantic images). Detections use the ground-truth rover pose, so the errors measured
+are those of perception alone.
+
+Metrics
+-------
+* A ground-truth rock is *visible* in a left image when it covers at least
+  ``--min-gt-px`` pixels there and none of them is within 2 px of the border (the
+  method rejects masks cut by the border by design). Its range is the distance from
+  the camera to its centre.
+* A detection matches a rock when its 3D centroid is within max(0.15 m, rock radius)
+  of the rock's centre; matching is one-to-one per frame, greedy by distance; a
+  detection may match any rock (visible or not, e.g. one occluded at the border).
+* Recall by size band (true radius) and range band, over visible rocks; precision by
+  estimated-radius band and range band (detection depth), over detections.
+* Centroid error of matched detections: 3D and horizontal (median, p90), for the
+  visible-surface centroid and the centre-corrected one.
+* Time per frame per stage (segment, filter, stereo), both left images of a frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from lunarloc.geometry import transform_points
+from lunarloc.perception.camera import STEREO_PAIRS
+from lunarloc.perception.detector import Detector, DetectorConfig, detect_archive
+
+SIZE_BANDS = [(0.0, 0.1), (0.1, 0.2), (0.2, 0.4), (0.4, 10.0)]
+RANGE_BANDS = [(0.0, 2.5), (2.5, 5.0), (5.0, 8.0)]
+
+
+def _band(x: float, bands) -> int:
+    for i, (lo, hi) in enumerate(bands):
+        if lo <= x < hi:
+            return i
+    return -1
+
+
+def _rock_ids(sem: np.ndarray) -> np.ndarray:
+    from lunarloc.data.render import semantic_to_rock_id
+
+    return semantic_to_rock_id(sem)
+
+
+def match(det_xyz: np.ndarray, rock_xyz: np.ndarray, rock_r: np.ndarray, min_tol: float = 0.15):
+    """Greedy one-to-one matching. Returns list of (det index, rock index, distance)."""
+    if len(det_xyz) == 0 or len(rock_xyz) == 0:
+        return []
+    d = np.linalg.norm(det_xyz[:, None, :] - rock_xyz[None, :, :], axis=2)
+    tol = np.maximum(min_tol, rock_r)[None, :]
+    pairs = np.argwhere(d <= tol)
+    order = np.argsort(d[pairs[:, 0], pairs[:, 1]])
+    used_d, used_r, out = set(), set(), []
+    for k in order:
+        i, j = pairs[k]
+        if i in used_d or j in used_r:
+            continue
+        used_d.add(i)
+        used_r.add(j)
+        out.append((int(i), int(j), float(d[i, j])))
+    return out
+
+
+class Accumulator:
+    def __init__(self) -> None:
+        self.rec = np.zeros((len(SIZE_BANDS), len(RANGE_BANDS), 2), int)  # [hit, total]
+        self.prec = np.zeros((len(SIZE_BANDS), len(RANGE_BANDS), 2), int)  # [tp, total]
+        self.err3d: list[float] = []
+        self.err_xy: list[float] = []
+        self.err3d_surface: list[float] = []
+        self.err_target: list[float] = []  # r >= 0.1, range <= 5
+        self.times: dict[str, list[float]] = {}
+        self.n_frames = 0
+        self.n_det = 0
+
+    def add_frame(self, fd, semantics: dict, rocks: np.ndarray, detector: Detector, mounts) -> None:
+        self.n_frames += 1
+        for k, v in fd.timings.items():
+            self.times.setdefault(k, []).append(v)
+        T_map_rover = fd.T_map_rover
+        ids, centres, radii = rocks[:, 0].astype(int), rocks[:, 1:4], rocks[:, 4]
+        id_to_idx = {int(i): k for k, i in enumerate(ids)}
+        dets = fd.detections
+        self.n_det += len(dets)
+        det_xyz = np.array([d.p_map for d in dets]).reshape(-1, 3)
+        m = match(det_xyz, centres, radii)
+        matched_rock = {j: (i, dist) for i, j, dist in m}
+        matched_det = {i: j for i, j, _ in m}
+        # recall over visible rocks of every left camera
+        for pair in fd.pairs:
+            sem = semantics.get(pair.camera)
+            if sem is None:
+                continue
+            rid = _rock_ids(sem)
+            H, W = rid.shape
+            inner = np.zeros_like(rid, bool)
+            inner[2 : H - 2, 2 : W - 2] = True
+            vis_ids, counts = np.unique(rid[rid >= 0], return_counts=True)
+            edge_ids = set(np.unique(rid[(rid >= 0) & ~inner]).tolist())
+            cam_pos = (T_map_rover @ mounts[pair.camera].T_rover_optical)[:3, 3]
+            for r, c in zip(vis_ids.tolist(), counts.tolist()):
+                if c < self.min_gt_px or r in edge_ids or r not in id_to_idx:
+                    continue
+                j = id_to_idx[r]
+                rng = float(np.linalg.norm(centres[j] - cam_pos))
+                sb, rb = _band(radii[j], SIZE_BANDS), _band(rng, RANGE_BANDS)
+                if sb < 0 or rb < 0:
+                    continue
+                self.rec[sb, rb, 1] += 1
+                if j in matched_rock:
+                    self.rec[sb, rb, 0] += 1
+                    i, dist = matched_rock[j]
+                    self.err3d.append(dist)
+                    self.err_xy.append(float(np.linalg.norm(det_xyz[i, :2] - centres[j, :2])))
+                    if radii[j] >= 0.1 and rng <= 5.0:
+                        self.err_target.append(dist)
+        for i, d in enumerate(dets):
+            sb, rb = _band(d.radius_m, SIZE_BANDS), _band(d.depth_m, RANGE_BANDS)
+            if sb < 0 or rb < 0:
+                continue
+            self.prec[sb, rb, 1] += 1
+            if i in matched_det:
+                self.prec[sb, rb, 0] += 1
+            # surface (uncorrected) centroid error, for comparison
+            if i in matched_det and detector.config.centre_correction:
+                p = d.p_optical - d.p_optical / np.linalg.norm(d.p_optical) * d.radius_m
+                pm = transform_points(T_map_rover @ mounts[d.camera].T_rover_optical, p[None])[0]
+                self.err3d_surface.append(float(np.linalg.norm(pm - centres[matched_det[i]])))
+
+    min_gt_px = 50
+
+    def summary(self) -> dict:
+        def pct(a, q):
+            return float(np.percentile(a, q)) if len(a) else float("nan")
+
+        rec_t = self.rec[1:, :2].sum(axis=(0, 1))
+        prec_t = self.prec[1:, :2].sum(axis=(0, 1))
+        # precision over all detections within 5 m (any estimated size)
+        prec_5 = self.prec[:, :2].sum(axis=(0, 1))
+        return {
+            "frames": self.n_frames,
+            "detections": self.n_det,
+            "target_recall_r>=0.1_range<=5": float(rec_t[0] / max(rec_t[1], 1)),
+            "target_recall_counts": rec_t.tolist(),
+            "target_precision_est_r>=0.1_range<=5": float(prec_t[0] / max(prec_t[1], 1)),
+            "precision_range<=5": float(prec_5[0] / max(prec_5[1], 1)),
+            "precision_counts_range<=5": prec_5.tolist(),
+            "centroid_err_target_median_m": pct(self.err_target, 50),
+            "centroid_err_target_p90_m": pct(self.err_target, 90),
+            "centroid_err3d_median_m": pct(self.err3d, 50),
+            "centroid_err3d_p90_m": pct(self.err3d, 90),
+            "centroid_err_xy_median_m": pct(self.err_xy, 50),
+            "centroid_err_xy_p90_m": pct(self.err_xy, 90),
+            "surface_centroid_err3d_median_m": pct(self.err3d_surface, 50),
+            "surface_centroid_err3d_p90_m": pct(self.err3d_surface, 90),
+            "recall_by_size_range": self.rec.tolist(),
+            "precision_by_estsize_range": self.prec.tolist(),
+            "time_per_frame_s": {k: float(np.mean(v)) for k, v in self.times.items()},
+        }
+
+
+def print_summary(s: dict) -> None:
+    def band(b):
+        return f"{b[0]:g}-{b[1]:g}" if b[1] < 10 else f">={b[0]:g}"
+
+    print(f"frames {s['frames']}, detections {s['detections']}")
+    print("recall (hit/visible) by true radius [m] x range [m]")
+    print("radius \\ range " + "".join(f"{band(r):>16}" for r in RANGE_BANDS))
+    for i, sb in enumerate(SIZE_BANDS):
+        row = s["recall_by_size_range"][i]
+        print(f"{band(sb):>14} " + "".join(f"{(h / t if t else float('nan')):>8.2f} ({h:>3}/{t:>3})" for h, t in row))
+    print("precision (tp/detections) by estimated radius [m] x depth [m]")
+    for i, sb in enumerate(SIZE_BANDS):
+        row = s["precision_by_estsize_range"][i]
+        print(f"{band(sb):>14} " + "".join(f"{(h / t if t else float('nan')):>8.2f} ({h:>3}/{t:>3})" for h, t in row))
+    for k, v in s.items():
+        if k not in ("recall_by_size_range", "precision_by_estsize_range"):
+            print(f"{k}: {v}")
+
+
+def run_archive(path: Path, cfg: DetectorConfig, every: int, acc: Accumulator, detector: Detector | None = None):
+    from lunarloc.data.lac import LacArchive
+    from lunarloc.perception.detector import mounts_from_archive_row
+
+    with LacArchive(path) as ar:
+        t = ar.custom("rocks")
+        rocks = np.column_stack([t["id"], t["x"], t["y"], t["z"], t["radius"]])
+        frames = [int(f) for f in ar.frame_numbers if ar.camera_row(STEREO_PAIRS[0][0], int(f)) is not None][::every]
+        det = detector or Detector(cfg)
+        for fd in detect_archive(ar, cfg, "ground-truth", detector=det, frames=frames):
+            sem = {left: ar.semantic(left, fd.frame) for left, _ in cfg.pairs}
+            rows = {c: ar.camera_row(c, fd.frame) for c in ar.cameras}
+            mounts = mounts_from_archive_row({k: v for k, v in rows.items() if v}, det.camera)
+            acc.add_frame(fd, sem, rocks, det, mounts)
+    return det
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("archives", nargs="*", type=Path)
+    ap.add_argument("--simulate", type=int, nargs="*", default=[], help="site seeds to render first")
+    ap.add_argument("--duration", type=float, default=80.0, help="seconds per simulated traverse")
+    ap.add_argument("--image-rate", type=float, default=0.5, help="simulated camera rate, Hz")
+    ap.add_argument("--out-dir", type=Path, default=Path("bench-output/perception"))
+    ap.add_argument("--every", type=int, default=1, help="use every N-th camera frame")
+    ap.add_argument("--segmenter", default="classical")
+    ap.add_argument("--weights", default=None)
+    ap.add_argument("--no-centre-correction", action="store_true")
+    ap.add_argument("--min-gt-px", type=int, default=50)
+    ap.add_argument("--json", type=Path, default=None)
+    a = ap.parse_args(argv)
+    archives = list(a.archives)
+    for seed in a.simulate:
+        from lunarloc.data.simulate import SimulationConfig, simulate_site, simulate_traverse
+
+        sc = SimulationConfig(duration_s=a.duration, image_rate_hz=a.image_rate)
+        p = a.out_dir / f"site{seed}_traverse0.lac"
+        if not p.exists():
+            a.out_dir.mkdir(parents=True, exist_ok=True)
+            t0 = time.time()
+            simulate_traverse(simulate_site(seed, sc), p, 0, sc)
+            print(f"rendered {p} in {time.time() - t0:.0f} s", file=sys.stderr)
+        archives.append(p)
+    if not archives:
+        ap.error("give archives or --simulate SEED")
+    cfg = DetectorConfig(segmenter=a.segmenter, weights=a.weights, centre_correction=not a.no_centre_correction)
+    acc = Accumulator()
+    acc.min_gt_px = a.min_gt_px
+    det = None
+    for p in archives:
+        det = run_archive(p, cfg, a.every, acc, det)
+    s = acc.summary()
+    s["archives"] = [str(p) for p in archives]
+    s["config"] = cfg.to_dict()
+    print_summary(s)
+    if a.json:
+        a.json.parent.mkdir(parents=True, exist_ok=True)
+        a.json.write_text(json.dumps(s, indent=2, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

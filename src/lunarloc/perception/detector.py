@@ -1,0 +1,490 @@
+"""Frame -> 3D rock detections (LunarLoc "Open-Set Object-Based Mapping").
+
+For each stereo pair (front and rear, same pass): segment the left image, compute
+mask statistics, drop masks that fail the image-only filters (pixel count, border,
+elongation), compute SGBM depth for the rows the survivors occupy, read the depth
+at each centroid (median of valid depths in a small window), apply the size and
+range filters (``s_i = sigma_i * D_i * alpha``), back-project the centroid into the
+left optical frame, optionally move it from the visible surface to the estimated
+centre of the rock (the paper assumes spherical objects), then into the rover frame
+(camera pose from the archive's camera table or the IPEx rig) and the map frame
+(rover pose: ground truth or odometry, the caller's choice).
+
+Frames: ``p_optical`` (OpenCV optical frame of the left camera), ``p_rover`` (rover
+body: x forward, y left, z up), ``p_map`` (site / world frame). Metres throughout.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import time
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import asdict, dataclass, field
+from enum import Enum
+from pathlib import Path
+
+import numpy as np
+
+from lunarloc.errors import ConfigError, InputError
+from lunarloc.geometry import pose_to_matrix, transform_points
+from lunarloc.perception.camera import STEREO_PAIRS, CameraMount, PinholeCamera, ipex_rig
+from lunarloc.perception.masks import (
+    InstanceMasks,
+    MaskFilterConfig,
+    MaskStats,
+    RejectReason,
+    classify_mask,
+    image_reject_reason,
+    mask_stats,
+)
+from lunarloc.perception.segment import ClassicalConfig, Segmenter, SegmenterKind, make_segmenter
+from lunarloc.perception.stereo import StereoConfig, StereoMatcher, depth_at, to_gray_u8
+
+__all__ = [
+    "PoseSource",
+    "DetectorConfig",
+    "Detection",
+    "MaskRecord",
+    "PairResult",
+    "FrameDetections",
+    "Detector",
+    "mounts_from_archive_row",
+    "detect_archive",
+    "write_traverse_csv",
+    "format_boulders",
+    "debug_overlay",
+]
+
+logger = logging.getLogger(__name__)
+logger.addHandler(logging.NullHandler())
+
+
+class PoseSource(str, Enum):
+    """Which rover pose places detections in the map frame."""
+
+    GROUND_TRUTH = "ground-truth"
+    ODOMETRY = "odometry"
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """Everything the detector depends on; defaults follow the paper's intent."""
+
+    # Segmentation backend; `weights` is the checkpoint path for fastsam.
+    segmenter: SegmenterKind = SegmenterKind.CLASSICAL
+    weights: str | None = None
+    classical: ClassicalConfig = field(default_factory=ClassicalConfig)
+    # Mask filters (size, elongation, border, range); see MaskFilterConfig.
+    filters: MaskFilterConfig = field(default_factory=MaskFilterConfig)
+    # SGBM parameters (LAC reference agent).
+    stereo: StereoConfig = field(default_factory=StereoConfig)
+    # Depth at the centroid: median of valid depths in a (2h+1)^2 window, h pixels.
+    depth_half_window_px: int = 3
+    # When the window has too few valid depths (textureless shadow), fall back to the
+    # median of the valid depths inside the whole mask (nearest-surface estimate).
+    depth_fallback_mask: bool = True
+    # Move the 3D centroid from the visible surface along the viewing ray by the
+    # estimated radius, to the centre of a sphere (LunarLoc assumes spherical rocks).
+    centre_correction: bool = True
+    # Radius estimate from the physical size: R = radius_per_size * s_i. A disc of
+    # radius r pixels has sigma = r / 2, so a whole sphere gives R = 2 s_i.
+    radius_per_size: float = 2.0
+    # (left, right) camera names processed each frame (front and rear pairs).
+    pairs: tuple[tuple[str, str], ...] = STEREO_PAIRS
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "segmenter", SegmenterKind(self.segmenter))
+        if self.depth_half_window_px < 0:
+            raise ConfigError("depth_half_window_px must be >= 0")
+        if self.radius_per_size <= 0:
+            raise ConfigError("radius_per_size must be > 0")
+        if self.segmenter is SegmenterKind.FASTSAM and not self.weights:
+            raise ConfigError("the fastsam segmenter needs weights (a FastSAM .pt path)")
+
+    def to_dict(self) -> dict:
+        """Plain dict (Enums as values) to write next to results."""
+        d = asdict(self)
+        d["segmenter"] = self.segmenter.value
+        return d
+
+
+@dataclass(frozen=True)
+class Detection:
+    """One kept mask lifted to 3D.
+
+    camera : left camera name; uv : image centroid (pixels); depth_m : depth z at the
+    centroid (optical frame, metres); size_m : s_i; radius_m : estimated rock radius;
+    p_optical / p_rover / p_map : (3,) centroid (centre-corrected if configured) in
+    each frame; p_map is None when no rover pose was given.
+    """
+
+    camera: str
+    uv: tuple[float, float]
+    depth_m: float
+    sigma_px: float
+    eig_ratio: float
+    area_px: int
+    size_m: float
+    radius_m: float
+    p_optical: np.ndarray
+    p_rover: np.ndarray
+    p_map: np.ndarray | None
+
+
+@dataclass
+class MaskRecord:
+    """A mask with its statistics and the filter outcome (for debugging and overlays)."""
+
+    mask_index: int
+    stats: MaskStats
+    depth_m: float
+    size_m: float
+    reason: RejectReason | None
+
+
+@dataclass
+class PairResult:
+    """Everything computed for one stereo pair in one frame."""
+
+    camera: str
+    masks: InstanceMasks
+    records: list[MaskRecord]
+    detections: list[Detection]
+    depth: np.ndarray | None
+
+
+@dataclass
+class FrameDetections:
+    """Detections of one frame over all pairs, with per-stage timings (seconds)."""
+
+    frame: int
+    T_map_rover: np.ndarray | None
+    pairs: list[PairResult] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def detections(self) -> list[Detection]:
+        return [d for p in self.pairs for d in p.detections]
+
+    def positions_map(self) -> np.ndarray:
+        """(N, 3) map-frame centroids (empty if no pose)."""
+        pts = [d.p_map for d in self.detections if d.p_map is not None]
+        return np.array(pts, dtype=float).reshape(-1, 3)
+
+
+class Detector:
+    """Detect rocks in stereo frames. Build once; call :meth:`detect_frame` per frame.
+
+    Parameters
+    ----------
+    config : DetectorConfig.
+    camera : intrinsics shared by the cameras (LAC: 1280x720, 70 deg HFOV).
+    segmenter : an already-built segmenter (overrides ``config.segmenter``).
+    """
+
+    def __init__(
+        self,
+        config: DetectorConfig | None = None,
+        camera: PinholeCamera | None = None,
+        segmenter: Segmenter | None = None,
+    ) -> None:
+        self.config = config or DetectorConfig()
+        self.camera = camera or PinholeCamera()
+        self.segmenter = segmenter or make_segmenter(
+            self.config.segmenter, weights=self.config.weights, classical=self.config.classical
+        )
+        self.stereo = StereoMatcher(self.config.stereo, self.camera)
+
+    # ------------------------------------------------------------------ one pair
+    def detect_pair(
+        self,
+        left: np.ndarray,
+        right: np.ndarray | None,
+        T_rover_optical: np.ndarray,
+        T_map_rover: np.ndarray | None = None,
+        camera_name: str = "left",
+        *,
+        keep_depth: bool = False,
+        timings: dict[str, float] | None = None,
+    ) -> PairResult:
+        """Detections from one rectified stereo pair.
+
+        left / right : (H, W) grayscale images (right may be None: no depth, so every
+        mask is rejected as NO_DEPTH). T_rover_optical : 4x4 pose of the left optical
+        frame in the rover frame. T_map_rover : 4x4 rover pose in the map, or None.
+        """
+        cfg = self.config
+        fc = cfg.filters
+        tm = timings if timings is not None else {}
+        L = to_gray_u8(left)
+        if L.shape != (self.camera.height, self.camera.width):
+            raise InputError(
+                f"{camera_name}: image {L.shape} does not match the camera "
+                f"({self.camera.height}, {self.camera.width})"
+            )
+        t0 = time.perf_counter()
+        masks = self.segmenter.segment(L)
+        t1 = time.perf_counter()
+        records: list[MaskRecord] = []
+        pending: list[MaskRecord] = []
+        for i, m in enumerate(masks):
+            st = mask_stats(m, masks.image_shape, border_px=fc.border_px)
+            rec = MaskRecord(i, st, float("nan"), float("nan"), None)
+            rec.reason = image_reject_reason(st, fc)  # no stereo needed for these
+            if rec.reason is None:
+                pending.append(rec)
+            records.append(rec)
+        t2 = time.perf_counter()
+        depth = None
+        if pending and right is not None:
+            v0 = min(masks[r.mask_index].bbox[1] for r in pending)
+            v1 = max(masks[r.mask_index].bbox[3] for r in pending)
+            depth = self.stereo.depth(L, right, rows=(v0, v1))
+        t3 = time.perf_counter()
+        dets: list[Detection] = []
+        alpha = self.camera.alpha
+        for rec in pending:
+            m = masks[rec.mask_index]
+            cu, cv = rec.stats.centroid_uv
+            D = (
+                _mask_depth(depth, m, cu, cv, cfg.depth_half_window_px, cfg.depth_fallback_mask)
+                if depth is not None
+                else float("nan")
+            )
+            reason, s = classify_mask(rec.stats, D, alpha, fc)
+            rec.depth_m, rec.size_m, rec.reason = D, s, reason
+            if reason is not None:
+                continue
+            p = self.camera.backproject(np.array([[cu, cv]]), np.array([D]))[0]
+            R_est = cfg.radius_per_size * s
+            if cfg.centre_correction:
+                p = p + p / np.linalg.norm(p) * R_est
+            p_rover = transform_points(T_rover_optical, p[None])[0]
+            p_map = transform_points(T_map_rover, p_rover[None])[0] if T_map_rover is not None else None
+            dets.append(
+                Detection(
+                    camera=camera_name,
+                    uv=(cu, cv),
+                    depth_m=D,
+                    sigma_px=rec.stats.sigma_px,
+                    eig_ratio=rec.stats.eig_ratio,
+                    area_px=rec.stats.area,
+                    size_m=s,
+                    radius_m=R_est,
+                    p_optical=p,
+                    p_rover=p_rover,
+                    p_map=p_map,
+                )
+            )
+        t4 = time.perf_counter()
+        for k, v in (("segment", t1 - t0), ("filter", (t2 - t1) + (t4 - t3)), ("stereo", t3 - t2)):
+            tm[k] = tm.get(k, 0.0) + v
+        return PairResult(camera_name, masks, records, dets, depth if keep_depth else None)
+
+    # ------------------------------------------------------------------ one frame
+    def detect_frame(
+        self,
+        images: Mapping[str, np.ndarray],
+        mounts: Mapping[str, CameraMount] | None = None,
+        T_map_rover: np.ndarray | None = None,
+        frame: int = 0,
+        *,
+        keep_depth: bool = False,
+    ) -> FrameDetections:
+        """Detections of all configured pairs whose left image is in `images`.
+
+        mounts : camera name -> CameraMount (defaults to the IPEx rig).
+        """
+        mounts = mounts if mounts is not None else ipex_rig(self.camera)
+        out = FrameDetections(frame, T_map_rover)
+        for left_name, right_name in self.config.pairs:
+            if left_name not in images:
+                continue
+            if left_name not in mounts:
+                raise InputError(f"no camera pose for {left_name}")
+            out.pairs.append(
+                self.detect_pair(
+                    images[left_name],
+                    images.get(right_name),
+                    mounts[left_name].T_rover_optical,
+                    T_map_rover,
+                    left_name,
+                    keep_depth=keep_depth,
+                    timings=out.timings,
+                )
+            )
+        return out
+
+
+def _mask_depth(depth: np.ndarray, m, cu: float, cv: float, h: int, fallback: bool, min_valid: int = 3) -> float:
+    """Depth of a mask: median of the valid depths in the (2h+1)^2 window at the
+    centroid that belong to the mask, when at least `min_valid` are valid; otherwise the
+    median of the valid depths of the whole mask (`fallback`) or of the whole window
+    (not `fallback`). NaN when too few depths are valid."""
+    u0, v0, u1, v1 = m.bbox
+    ui, vi = int(round(cu)), int(round(cv))
+    a0, a1 = max(ui - h, u0), min(ui + h + 1, u1)
+    b0, b1 = max(vi - h, v0), min(vi + h + 1, v1)
+    if a0 < a1 and b0 < b1:
+        win = depth[b0:b1, a0:a1]
+        inside = np.isfinite(win) & m.crop[b0 - v0 : b1 - v0, a0 - u0 : a1 - u0]
+        if np.count_nonzero(inside) >= min_valid:
+            return float(np.median(win[inside]))
+    if not fallback:
+        return depth_at(depth, cu, cv, h, min_valid=min_valid)
+    vals = depth[v0:v1, u0:u1][m.crop]
+    vals = vals[np.isfinite(vals)]
+    return float(np.median(vals)) if vals.size >= max(min_valid, 5) else float("nan")
+
+
+# ---------------------------------------------------------------------- archives
+def mounts_from_archive_row(rows: Mapping[str, Mapping], camera: PinholeCamera) -> dict[str, CameraMount]:
+    """Camera mounts from an archive frame's camera-table rows (camera_x..camera_yaw,
+    the camera body pose in the rover frame); cameras without a pose use the IPEx rig."""
+    rig = ipex_rig(camera)
+    out = dict(rig)
+    for name, row in rows.items():
+        try:
+            pose = [float(row[f"camera_{k}"]) for k in ("x", "y", "z", "roll", "pitch", "yaw")]
+        except (KeyError, TypeError, ValueError):
+            continue
+        if np.all(np.isfinite(pose)):
+            out[name] = CameraMount(name, pose_to_matrix(*pose), camera)
+    return out
+
+
+def _camera_from_archive(archive) -> PinholeCamera:
+    cams = archive.configured_cameras
+    for left, _ in STEREO_PAIRS:
+        c = cams.get(left)
+        if c:
+            try:
+                w, h = int(c.get("width", 1280)), int(c.get("height", 720))
+                fov = float(c.get("fov", c.get("hfov_deg", 70.0)))
+                return PinholeCamera(w, h, fov)
+            except (TypeError, ValueError):
+                break
+    return PinholeCamera()
+
+
+def detect_archive(
+    archive,
+    config: DetectorConfig | None = None,
+    pose: PoseSource | str = PoseSource.GROUND_TRUTH,
+    *,
+    detector: Detector | None = None,
+    frames: Iterable[int] | None = None,
+    keep_depth: bool = False,
+) -> Iterator[FrameDetections]:
+    """Run the detector over the frames of a LacArchive that have left images.
+
+    pose : ground truth (frames.csv) or odometry (custom/odometry.csv) for the map frame.
+    frames : optional subset of frame numbers.
+    """
+    pose = PoseSource(pose)
+    camera = _camera_from_archive(archive)
+    det = detector or Detector(config, camera)
+    odo = None
+    if pose is PoseSource.ODOMETRY:
+        if "odometry" not in archive.custom_records:
+            raise InputError(f"{archive.path}: no odometry record; use --pose ground-truth")
+        t = archive.custom("odometry")
+        odo = {int(f): r for f, r in zip(t["frame"], t.to_array(("x", "y", "z", "roll", "pitch", "yaw")))}
+    wanted = None if frames is None else {int(f) for f in frames}
+    lefts = {left for left, _ in det.config.pairs}
+    for rec in archive.iter_frames(semantic=False):
+        if wanted is not None and rec.frame not in wanted:
+            continue
+        if not any(c in rec.grayscale for c in lefts):
+            continue
+        if odo is not None:
+            if rec.frame not in odo:
+                raise InputError(f"{archive.path}: no odometry pose at frame {rec.frame}")
+            T = pose_to_matrix(*odo[rec.frame])
+        else:
+            s = rec.state
+            T = pose_to_matrix(s["x"], s["y"], s["z"], s["roll"], s["pitch"], s["yaw"])
+        mounts = mounts_from_archive_row(rec.cameras, det.camera)
+        yield det.detect_frame(rec.grayscale, mounts, T, rec.frame, keep_depth=keep_depth)
+
+
+# ---------------------------------------------------------------------- CSV output
+def format_boulders(points: np.ndarray) -> str:
+    """Python-literal list of (x, y, z) tuples, as in the LunarLoc dataset CSVs."""
+    pts = np.asarray(points, dtype=float).reshape(-1, 3)
+    return "[" + ", ".join(f"({x!r}, {y!r}, {z!r})" for x, y, z in pts.tolist()) + "]"
+
+
+def write_traverse_csv(path: str | Path, frames: Iterable[FrameDetections]) -> int:
+    """Write ``frame,x,y,z,detections,boulders`` (the LunarLoc dataset format).
+
+    x, y, z is the rover position of the pose used; boulders are map-frame centroids.
+    Returns the number of rows written. Frames without a pose raise InputError.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    n = 0
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["frame", "x", "y", "z", "detections", "boulders"])
+        for fd in frames:
+            if fd.T_map_rover is None:
+                raise InputError(f"frame {fd.frame} has no rover pose: cannot write map-frame boulders")
+            pts = fd.positions_map()
+            x, y, z = (float(v) for v in fd.T_map_rover[:3, 3])
+            w.writerow([fd.frame, repr(x), repr(y), repr(z), len(pts), format_boulders(pts)])
+            n += 1
+    return n
+
+
+# ---------------------------------------------------------------------- debug output
+REASON_COLOURS_BGR = {
+    RejectReason.TOO_FEW_PIXELS: (128, 128, 128),
+    RejectReason.BORDER: (255, 0, 255),
+    RejectReason.ELONGATED: (0, 0, 255),
+    RejectReason.NO_DEPTH: (255, 255, 0),
+    RejectReason.TOO_NEAR: (255, 128, 128),
+    RejectReason.TOO_FAR: (255, 0, 0),
+    RejectReason.TOO_SMALL: (0, 255, 255),
+    RejectReason.TOO_LARGE: (0, 128, 255),
+}
+KEPT_COLOUR_BGR = (0, 255, 0)
+
+
+def debug_overlay(image: np.ndarray, pair: PairResult, depth_max_m: float = 10.0) -> np.ndarray:
+    """BGR picture: left, the image with kept masks green and rejected masks coloured
+    by the rejecting filter (legend drawn in the corner); right, the depth map (near =
+    bright, invalid = black), when the pair kept it."""
+    import cv2
+
+    g = to_gray_u8(image)
+    vis = cv2.cvtColor(g, cv2.COLOR_GRAY2BGR)
+    colour = np.zeros_like(vis)
+    painted = np.zeros(g.shape, bool)
+    for rec in pair.records:
+        m = pair.masks[rec.mask_index]
+        u0, v0, u1, v1 = m.bbox
+        col = KEPT_COLOUR_BGR if rec.reason is None else REASON_COLOURS_BGR[rec.reason]
+        colour[v0:v1, u0:u1][m.crop] = col
+        painted[v0:v1, u0:u1] |= m.crop
+    vis[painted] = (0.45 * vis[painted] + 0.55 * colour[painted]).astype(np.uint8)
+    for d in pair.detections:
+        cv2.drawMarker(vis, (int(round(d.uv[0])), int(round(d.uv[1]))), (255, 255, 255), cv2.MARKER_CROSS, 12, 2)
+        cv2.putText(
+            vis, f"{d.depth_m:.1f}m r{d.radius_m:.2f}", (int(d.uv[0]) + 6, int(d.uv[1]) - 6),
+            cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA,
+        )
+    y = 18
+    for name, col in [("kept", KEPT_COLOUR_BGR)] + [(r.value, c) for r, c in REASON_COLOURS_BGR.items()]:
+        cv2.rectangle(vis, (8, y - 10), (20, y + 2), col, -1)
+        cv2.putText(vis, name, (26, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+        y += 18
+    if pair.depth is None:
+        return vis
+    z = pair.depth
+    dz = np.where(np.isfinite(z), np.clip(255.0 * (1.0 - z / depth_max_m), 0, 255), 0).astype(np.uint8)
+    dvis = cv2.applyColorMap(dz, cv2.COLORMAP_INFERNO)
+    dvis[~np.isfinite(z)] = 0
+    cv2.putText(dvis, f"depth 0-{depth_max_m:g} m", (8, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1)
+    return np.hstack([vis, dvis])

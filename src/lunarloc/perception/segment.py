@@ -1,0 +1,201 @@
+"""Instance segmentation of rocks in a grayscale image: interface, backends, factory.
+
+Backends (:class:`SegmenterKind`):
+
+* ``classical`` (default, weight-free, real time on a CPU): local-contrast
+  thresholding of the shading structure of rocks under a low sun. See
+  :class:`ClassicalSegmenter`.
+* ``fastsam``: FastSAM through ultralytics, prompted by a uniform 32x32 point grid
+  as in LunarLoc (optional extra; see :mod:`lunarloc.perception.fastsam`).
+
+Every backend returns :class:`~lunarloc.perception.masks.InstanceMasks` in the
+pixel frame of the input image.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from enum import Enum
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from lunarloc.errors import ConfigError, InputError
+from lunarloc.perception.masks import InstanceMask, InstanceMasks
+from lunarloc.perception.stereo import to_gray_u8
+
+__all__ = [
+    "SegmenterKind",
+    "Segmenter",
+    "ClassicalConfig",
+    "ClassicalSegmenter",
+    "make_segmenter",
+]
+
+logger = logging.getLogger(__name__)
+logger.addHandler(logging.NullHandler())
+
+
+class SegmenterKind(str, Enum):
+    """Which segmentation backend to use."""
+
+    CLASSICAL = "classical"
+    FASTSAM = "fastsam"
+
+
+@runtime_checkable
+class Segmenter(Protocol):
+    """Anything that turns a grayscale (H, W) uint8 image into instance masks."""
+
+    def segment(self, image: np.ndarray) -> InstanceMasks:  # pragma: no cover - protocol
+        ...
+
+
+@dataclass(frozen=True)
+class ClassicalConfig:
+    """Parameters of the classical segmenter (tuned on simulated site seed 0).
+
+    Intensities are relative to a robust local background level ``bg`` (a median over
+    ``bg_median_px`` pixels) and to the robust spread ``sigma`` of ground pixels
+    around it (MAD), so they do not depend on exposure.
+    """
+
+    # Pixels darker than this (0-255) are sky / void (the sky is black on the Moon).
+    sky_level: int = 6
+    # The background is a median over a window of about this many pixels (computed
+    # on a 1/8-scale image): several times the size of the rocks to be found.
+    bg_median_px: int = 120
+    # Seed threshold: a lit rock face has pixels brighter than bg + hi * sigma.
+    bright_hi_sigma: float = 3.0
+    # Region threshold (hysteresis): the rock region grows over pixels brighter than
+    # bg + lo * sigma that are connected to a seed.
+    bright_lo_sigma: float = 1.5
+    # Shadow level: pixels darker than dark_ratio * bg are in shadow (self-shadowed
+    # rock sides and cast shadows; the ambient term is a few percent of the sun).
+    dark_ratio: float = 0.45
+    # A lit region absorbs adjacent shadow pixels up to grow * its equivalent radius
+    # away (the rock's own dark side); cast shadows reach further and are cut.
+    grow: float = 0.8
+    # Shadow regions not attached to a lit region are candidates too (rocks seen
+    # against the sun); False keeps lit regions only.
+    dark_candidates: bool = True
+    # Smallest region kept, pixels (smaller ones are texture noise).
+    min_area_px: int = 40
+
+    def __post_init__(self) -> None:
+        if not self.bright_hi_sigma >= self.bright_lo_sigma > 0:
+            raise ConfigError("need bright_hi_sigma >= bright_lo_sigma > 0")
+        if not 0 < self.dark_ratio < 1:
+            raise ConfigError("dark_ratio must be in (0, 1)")
+        if self.bg_median_px < 16:
+            raise ConfigError("bg_median_px must be >= 16")
+        if self.grow < 0 or self.min_area_px < 1:
+            raise ConfigError("grow must be >= 0 and min_area_px >= 1")
+
+
+class ClassicalSegmenter:
+    """Weight-free rock segmentation from shading and shadow under a low sun.
+
+    1. Background level: median of a 1/8-scale image over ~``bg_median_px`` pixels,
+       upsampled; the ground spread ``sigma`` is the MAD of the residual.
+    2. Lit rock faces: hysteresis threshold of the residual (seeds above
+       ``hi * sigma``, regions above ``lo * sigma``), connected components.
+    3. Each lit region absorbs the shadow pixels (below ``dark_ratio * bg``) within
+       ``grow`` x its equivalent radius: the rock's self-shadowed side.
+    4. Shadow regions that touch no lit region become candidates of their own.
+
+    The mask filters (size, elongation, border) are applied by the detector.
+    """
+
+    def __init__(self, config: ClassicalConfig | None = None) -> None:
+        self.config = config or ClassicalConfig()
+
+    def labels(self, image: np.ndarray) -> np.ndarray:
+        """(H, W) int32 label image: 0 background, 1..N regions."""
+        import cv2
+
+        c = self.config
+        I8 = to_gray_u8(image)
+        H, W = I8.shape
+        if H < 16 or W < 16:
+            raise InputError(f"image too small to segment: {I8.shape}")
+        If = I8.astype(np.float32)
+        sky = I8 < c.sky_level
+        k = 8
+        small = cv2.resize(I8, (max(W // k, 1), max(H // k, 1)), interpolation=cv2.INTER_AREA)
+        ksize = max(3, int(round(c.bg_median_px / k)) | 1)
+        bg = cv2.resize(cv2.medianBlur(small, ksize), (W, H), interpolation=cv2.INTER_LINEAR).astype(np.float32)
+        dark = (If < c.dark_ratio * bg) & ~sky
+        ground = ~sky & ~dark
+        resid = (If - bg)[ground][::7]
+        if resid.size == 0:
+            return np.zeros((H, W), np.int32)
+        sigma = 1.4826 * float(np.median(np.abs(resid - np.median(resid)))) + 1.0
+        hi = (If > bg + c.bright_hi_sigma * sigma) & ~sky
+        lo = ((If > bg + c.bright_lo_sigma * sigma) & ~sky).astype(np.uint8)
+        lo = cv2.morphologyEx(lo, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+        n, lab, st, _ = cv2.connectedComponentsWithStats(lo, connectivity=8)
+        keep = np.bincount(lab[hi], minlength=n) > 0
+        keep &= st[:, cv2.CC_STAT_AREA] >= c.min_area_px
+        keep[0] = False
+        lab = np.where(keep[lab], lab, 0).astype(np.int32)
+        if c.grow > 0 and keep.any():
+            # nearest lit pixel of every pixel (Voronoi labels of the lit pixels)
+            dist, vor = cv2.distanceTransformWithLabels(
+                (lab == 0).astype(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+            )
+            lit = lab.ravel()[np.flatnonzero(lab.ravel())]
+            lut = np.zeros(int(vor.max()) + 1, np.int32)
+            lut[1 : lit.size + 1] = lit
+            nearest = lut[vor]
+            radius = np.sqrt(st[:, cv2.CC_STAT_AREA] / np.pi).astype(np.float32)
+            add = dark & (nearest > 0) & (dist <= c.grow * radius[nearest])
+            lab = np.where(add, nearest, lab)
+        if c.dark_candidates:
+            dk = (dark & (lab == 0)).astype(np.uint8)
+            dk = cv2.morphologyEx(dk, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+            nd, labd = cv2.connectedComponents(dk, connectivity=8)
+            if nd > 1:
+                touch = cv2.dilate((lab > 0).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+                bad = np.bincount(labd[touch], minlength=nd) > 0
+                bad[0] = True
+                labd = np.where(bad[labd], 0, labd + int(lab.max()))
+                lab = np.where(labd > 0, labd, lab)
+        return lab
+
+    def segment(self, image: np.ndarray) -> InstanceMasks:
+        """Instance masks of the rocks in a grayscale image (H, W)."""
+        from scipy import ndimage
+
+        lab = self.labels(image)
+        out = InstanceMasks((int(lab.shape[0]), int(lab.shape[1])))
+        for idx, sl in enumerate(ndimage.find_objects(lab), start=1):
+            if sl is None:
+                continue
+            crop = lab[sl] == idx
+            if np.count_nonzero(crop) < self.config.min_area_px:
+                continue
+            out.masks.append(InstanceMask(int(sl[1].start), int(sl[0].start), crop))
+        return out
+
+
+def make_segmenter(
+    kind: SegmenterKind | str = SegmenterKind.CLASSICAL,
+    *,
+    weights: str | None = None,
+    classical: ClassicalConfig | None = None,
+    **fastsam_kwargs,
+) -> Segmenter:
+    """Build a segmenter by kind. `weights` is required (and must exist) for fastsam."""
+    try:
+        kind = SegmenterKind(kind)
+    except ValueError:
+        raise ConfigError(f"unknown segmenter {kind!r}; choose one of {[k.value for k in SegmenterKind]}") from None
+    if kind is SegmenterKind.CLASSICAL:
+        return ClassicalSegmenter(classical)
+    from lunarloc.perception.fastsam import FastSamSegmenter
+
+    if weights is None:
+        raise ConfigError("the fastsam segmenter needs a weights file (--weights PATH)")
+    return FastSamSegmenter(weights, **fastsam_kwargs)
