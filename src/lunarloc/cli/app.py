@@ -23,6 +23,7 @@ def _register_commands() -> None:
     from lunarloc.cli import commands_core  # noqa: F401
     from lunarloc.cli import commands_data  # noqa: F401
     from lunarloc.cli import commands_sim  # noqa: F401
+    from lunarloc.cli import commands_perception  # noqa: F401
 
 
 def main(argv: list[str] | None = None) -> int:
