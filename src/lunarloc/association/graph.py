@@ -1,0 +1,325 @@
+"""Sparse consistency graphs between putative associations (compiled with numba).
+
+A putative association u = (i, a) pairs vehicle landmark i with reference landmark a.
+Two associations u = (i, a), v = (j, b) are *consistent* when the pair preserves the
+distance between its landmarks (CLIPPER, Lusk et al. ICRA 2021, eq. 3):
+
+    c = | ||p_i - p_j|| - ||q_a - q_b|| | < epsilon,   weight s(c) = exp(-c^2 / (2 sigma^2)).
+
+The graph is never formed as an m x m matrix: one map's pairwise distances are sorted
+and each pair of the other map range-searches them, so work and memory scale with
+the number of consistent pairs (edges), not with m^2.
+
+Gravity-aware graphs (rover maps whose "down" is known from the IMU) replace the 3D
+distance by two invariants, the horizontal distance and the signed height difference
+(allowing a residual tilt), and additionally split the graph by *relative yaw*: each
+edge implies a rotation about the vertical, atan2 of the reference pair's horizontal
+direction minus the vehicle pair's. A correct inlier set shares one yaw, so the search
+runs on one sparse graph per yaw bin. A mirror image (reflection) of the vehicle map
+cannot form a yaw-consistent set, because a reflection reverses angles.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+__all__ = ["graph_3d", "RefPairIndex", "yaw_bin_chunks", "vehicle_pairs"]
+
+
+@njit(cache=True)
+def _grow(arr, n):
+    out = np.empty(max(2 * arr.shape[0], n), dtype=arr.dtype)
+    out[: arr.shape[0]] = arr
+    return out
+
+
+@njit(cache=True)
+def _graph_3d(pxyz, qxyz, node_of, eps, sigma, max_edges):
+    nv = pxyz.shape[0]
+    nr = qxyz.shape[0]
+    npr = nr * (nr - 1) // 2
+    rd = np.empty(npr, dtype=np.float64)
+    ra = np.empty(npr, dtype=np.int32)
+    rb = np.empty(npr, dtype=np.int32)
+    k = 0
+    for a in range(nr):
+        for b in range(a + 1, nr):
+            dx = qxyz[a, 0] - qxyz[b, 0]
+            dy = qxyz[a, 1] - qxyz[b, 1]
+            dz = qxyz[a, 2] - qxyz[b, 2]
+            rd[k] = math.sqrt(dx * dx + dy * dy + dz * dz)
+            ra[k] = a
+            rb[k] = b
+            k += 1
+    o = np.argsort(rd)
+    rd = rd[o]
+    ra = ra[o]
+    rb = rb[o]
+    cap = 1024
+    eu = np.empty(cap, dtype=np.int32)
+    ev = np.empty(cap, dtype=np.int32)
+    ew = np.empty(cap, dtype=np.float32)
+    ne = 0
+    inv2s2 = 1.0 / (2.0 * sigma * sigma)
+    for i in range(nv):
+        for j in range(i + 1, nv):
+            dx = pxyz[i, 0] - pxyz[j, 0]
+            dy = pxyz[i, 1] - pxyz[j, 1]
+            dz = pxyz[i, 2] - pxyz[j, 2]
+            d = math.sqrt(dx * dx + dy * dy + dz * dz)
+            lo = np.searchsorted(rd, d - eps)
+            hi = np.searchsorted(rd, d + eps)
+            for t in range(lo, hi):
+                c = abs(d - rd[t])
+                if c >= eps:
+                    continue
+                w = math.exp(-c * c * inv2s2)
+                a = ra[t]
+                b = rb[t]
+                for orient in range(2):
+                    if orient == 0:
+                        u = node_of[i, a]
+                        v = node_of[j, b]
+                    else:
+                        u = node_of[i, b]
+                        v = node_of[j, a]
+                    if u < 0 or v < 0:
+                        continue
+                    if ne >= cap:
+                        if ne >= max_edges:
+                            return eu[:0], ev[:0], ew[:0], -1
+                        cap = 2 * cap
+                        eu = _grow(eu, cap)
+                        ev = _grow(ev, cap)
+                        ew = _grow(ew, cap)
+                    eu[ne] = u
+                    ev[ne] = v
+                    ew[ne] = w
+                    ne += 1
+    return eu[:ne].copy(), ev[:ne].copy(), ew[:ne].copy(), ne
+
+
+def graph_3d(veh_xyz, ref_xyz, node_of, epsilon: float, sigma: float, max_edges: int):
+    """6-DoF consistency graph: edges (eu, ev) between association ids in `node_of`
+    (n_veh x n_ref int32, -1 where not a putative association) with weights ew.
+
+    Returns None when the graph would exceed `max_edges` (memory bound)."""
+    eu, ev, ew, ne = _graph_3d(
+        np.ascontiguousarray(veh_xyz, dtype=np.float64),
+        np.ascontiguousarray(ref_xyz, dtype=np.float64),
+        np.ascontiguousarray(node_of, dtype=np.int32),
+        float(epsilon),
+        float(sigma),
+        int(max_edges),
+    )
+    if ne < 0:
+        return None
+    return eu, ev, ew
+
+
+def vehicle_pairs(xyz: np.ndarray):
+    """Horizontal distance, azimuth (rad), height difference and 3D distance of every
+    pair i < j of an (n, 3) array, as arrays (pi, pj, dh, phi, dz, d3)."""
+    n = len(xyz)
+    pi, pj = np.triu_indices(n, 1)
+    d = xyz[pj] - xyz[pi]
+    dh = np.hypot(d[:, 0], d[:, 1])
+    return (
+        pi.astype(np.int32),
+        pj.astype(np.int32),
+        dh,
+        np.arctan2(d[:, 1], d[:, 0]),
+        d[:, 2].copy(),
+        np.linalg.norm(d, axis=1),
+    )
+
+
+class RefPairIndex:
+    """Ordered pairs (a, b), a != b, of the reference map, bucketed on a grid of
+    (horizontal distance, azimuth) cells for range search by the yaw-bin generator."""
+
+    def __init__(self, ref_xyz: np.ndarray, dist_cell_m: float, angle_cell_rad: float):
+        q = np.ascontiguousarray(ref_xyz, dtype=np.float64)
+        n = len(q)
+        a, b = np.nonzero(~np.eye(n, dtype=bool))
+        d = q[b] - q[a]
+        dh = np.hypot(d[:, 0], d[:, 1])
+        phi = np.arctan2(d[:, 1], d[:, 0])
+        self.dist_cell = float(dist_cell_m)
+        self.n_angle = max(1, int(math.ceil(2 * math.pi / angle_cell_rad)))
+        self.angle_cell = 2 * math.pi / self.n_angle
+        self.n_dist = int(dh.max() / self.dist_cell) + 2 if len(dh) else 1
+        dbin = np.minimum((dh / self.dist_cell).astype(np.int64), self.n_dist - 1)
+        abin = np.minimum(((phi + math.pi) / self.angle_cell).astype(np.int64), self.n_angle - 1)
+        cell = dbin * self.n_angle + abin
+        o = np.argsort(cell, kind="stable")
+        self.a = a[o].astype(np.int32)
+        self.b = b[o].astype(np.int32)
+        self.dh = dh[o]
+        self.phi = phi[o]
+        self.dz = d[o, 2].copy()
+        counts = np.bincount(cell, minlength=self.n_dist * self.n_angle)
+        self.cell_ptr = np.zeros(len(counts) + 1, dtype=np.int64)
+        np.cumsum(counts, out=self.cell_ptr[1:])
+
+
+@njit(cache=True)
+def _wrap(x):
+    return (x + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@njit(cache=True, fastmath=True, boundscheck=False)
+def _yaw_chunk_incidences(
+    pi, pj, pdh, pphi, pdz,
+    qa, qb, qdh, qphi, qdz, cell_ptr, n_dist, n_angle, dist_cell, angle_cell,
+    node_of, bin0, nb, n_bins, eps_h, eps_z, tan_tilt, k_yaw, sigma, want_w,
+):
+    """Edges of every yaw bin in [bin0, bin0 + nb), as incidences (u, v, w, bin - bin0).
+
+    Bin b is centred on theta_b = -pi + (b + 0.5) * step; an edge of yaw theta_e and
+    tolerance tol belongs to every bin whose centre is within half_step + tol of it."""
+    step = 2.0 * math.pi / n_bins
+    half_step = 0.5 * step
+    cap = 1 << 16
+    iu = np.empty(cap, dtype=np.int32)
+    iv = np.empty(cap, dtype=np.int32)
+    iw = np.empty(cap, dtype=np.float32)
+    ib = np.empty(cap, dtype=np.int16)
+    ni = 0
+    inv2s2 = 1.0 / (2.0 * sigma * sigma)
+    lo_theta = -math.pi + bin0 * step  # chunk spans [lo_theta, lo_theta + nb * step)
+    two_pi = 2.0 * math.pi
+    for p in range(pi.shape[0]):
+        i = pi[p]
+        j = pj[p]
+        dh = pdh[p]
+        dzp = pdz[p]
+        dmin = dh - eps_h
+        # yaw tolerance of this pair, conservative over its candidates (their distance >= dmin)
+        if dmin > k_yaw * eps_h:
+            tol = half_step + math.asin(k_yaw * eps_h / dmin) + tan_tilt * abs(dzp) / dmin
+        else:
+            tol = math.pi
+        d_lo = int(max(0.0, dh - eps_h) / dist_cell)
+        d_hi = min(n_dist - 1, int((dh + eps_h) / dist_cell))
+        if tol >= math.pi or nb * step + 2 * tol >= two_pi:
+            a_lo = 0
+            a_n = n_angle
+        else:
+            # reference azimuths that can fall in this chunk: phi_p + [lo - tol, hi + tol]
+            start = pphi[p] + lo_theta - tol
+            a_lo = int(math.floor((start + math.pi) / angle_cell))
+            a_n = min(n_angle, int(math.ceil((nb * step + 2 * tol) / angle_cell)) + 1)
+        ztol = eps_z + tan_tilt * dh
+        row_u = node_of[i]
+        row_v = node_of[j]
+        base_yaw = pphi[p] + lo_theta
+        a_lo = a_lo % n_angle
+        a_end = a_lo + a_n  # exclusive; may wrap past n_angle
+        for db in range(d_lo, d_hi + 1):
+            base = db * n_angle
+            for seg in range(2):
+                # angle cells of one distance row are contiguous in the index: scan them as
+                # one range (two when the window wraps around +-pi)
+                if seg == 0:
+                    t0 = cell_ptr[base + a_lo]
+                    t1 = cell_ptr[base + min(a_end, n_angle)]
+                else:
+                    if a_end <= n_angle:
+                        break
+                    t0 = cell_ptr[base]
+                    t1 = cell_ptr[base + a_end - n_angle]
+                for t in range(t0, t1):
+                    ch = abs(qdh[t] - dh)
+                    if ch >= eps_h:
+                        continue
+                    if abs(qdz[t] - dzp) >= ztol:
+                        continue
+                    u = row_u[qa[t]]
+                    v = row_v[qb[t]]
+                    if u < 0 or v < 0:
+                        continue
+                    if tol >= math.pi:
+                        k_lo = 0
+                        k_hi = nb - 1
+                    else:
+                        # offset of the edge yaw from the chunk start, wrapped to [0, 2pi)
+                        off = qphi[t] - base_yaw
+                        while off < 0.0:
+                            off += two_pi
+                        while off >= two_pi:
+                            off -= two_pi
+                        # bins k with |theta_k - yaw| <= tol, theta_k = lo_theta + (k + 0.5) step
+                        k_lo = int(math.ceil((off - tol) / step - 0.5))
+                        k_hi = int(math.floor((off + tol) / step - 0.5))
+                        if k_hi >= n_bins:  # wrapped around past the chunk start
+                            k_lo2 = k_lo - n_bins
+                            k_hi2 = k_hi - n_bins
+                            if k_hi2 >= 0:
+                                k_lo = max(k_lo2, 0)
+                                k_hi = k_hi2
+                        if k_lo < 0:
+                            k_lo = 0
+                        if k_hi > nb - 1:
+                            k_hi = nb - 1
+                    if k_hi < k_lo:
+                        continue
+                    w = math.exp(-ch * ch * inv2s2) if want_w else 1.0
+                    for k in range(k_lo, k_hi + 1):
+                        if ni >= cap:
+                            cap *= 2
+                            iu = _grow(iu, cap)
+                            iv = _grow(iv, cap)
+                            iw = _grow(iw, cap)
+                            ib = _grow(ib, cap)
+                        iu[ni] = u
+                        iv[ni] = v
+                        iw[ni] = w
+                        ib[ni] = k
+                        ni += 1
+    # bucket incidences by bin (counting sort)
+    ptr = np.zeros(nb + 1, dtype=np.int64)
+    for t in range(ni):
+        ptr[ib[t] + 1] += 1
+    for k in range(nb):
+        ptr[k + 1] += ptr[k]
+    fill = ptr[:-1].copy()
+    su = np.empty(ni, dtype=np.int32)
+    sv = np.empty(ni, dtype=np.int32)
+    sw = np.empty(ni, dtype=np.float32)
+    for t in range(ni):
+        k = ib[t]
+        f = fill[k]
+        su[f] = iu[t]
+        sv[f] = iv[t]
+        sw[f] = iw[t]
+        fill[k] = f + 1
+    return ptr, su, sv, sw
+
+
+def yaw_bin_chunks(vpairs, index: RefPairIndex, node_of, n_bins: int, chunk_bins: int,
+                   eps_h, eps_z, tan_tilt, k_yaw, sigma, weights: bool = True,
+                   bin_start: int = 0, bin_count: int | None = None):
+    """Iterate over relative-yaw bins, yielding ``(bin, theta, eu, ev, ew)`` with edges
+    between association ids (from `node_of`). Bins are generated `chunk_bins` at a
+    time, so memory is bounded by one chunk's edges, not the whole graph.
+    `bin_start`/`bin_count` restrict the sweep to a range of bins (wrapping)."""
+    pi, pj, pdh, pphi, pdz, _ = vpairs
+    step = 2 * math.pi / n_bins
+    bin_count = n_bins if bin_count is None else min(bin_count, n_bins)
+    for b0 in range(bin_start, bin_start + bin_count, chunk_bins):
+        nb = min(chunk_bins, bin_start + bin_count - b0)
+        ptr, su, sv, sw = _yaw_chunk_incidences(
+            pi, pj, pdh, pphi, pdz,
+            index.a, index.b, index.dh, index.phi, index.dz, index.cell_ptr,
+            index.n_dist, index.n_angle, index.dist_cell, index.angle_cell,
+            node_of, b0, nb, n_bins, float(eps_h), float(eps_z), float(tan_tilt), float(k_yaw), float(sigma),
+            bool(weights),
+        )
+        for k in range(nb):
+            sl = slice(ptr[k], ptr[k + 1])
+            b = (b0 + k) % n_bins
+            yield b, -math.pi + (b + 0.5) * step, su[sl], sv[sl], sw[sl]

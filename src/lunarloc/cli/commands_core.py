@@ -1,0 +1,175 @@
+"""`lunarloc map`, `lunarloc localize`, `lunarloc bench pairs`."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from lunarloc.cli.app import app
+
+bench_app = typer.Typer(help="Benchmarks that reproduce the published figures.", no_args_is_help=True)
+app.add_typer(bench_app, name="bench")
+
+
+def _agg(radius: Optional[float], min_sightings: Optional[int]):
+    from lunarloc.maps import AggregationConfig
+
+    d = AggregationConfig()
+    return AggregationConfig(
+        radius_m=radius if radius is not None else d.radius_m,
+        min_sightings=min_sightings if min_sightings is not None else d.min_sightings,
+    )
+
+
+RADIUS_OPT = typer.Option(None, "--radius", help="Clustering radius in metres (default from AggregationConfig).")
+SIGHT_OPT = typer.Option(None, "--min-sightings", help="Detections needed per landmark.")
+
+
+@app.command("map")
+def map_cmd(
+    traverse: Path = typer.Argument(..., help="Traverse CSV (frame,x,y,z,detections,boulders)."),
+    out: Path = typer.Option(..., "-o", "--out", help="Output landmark map (.csv or .npz)."),
+    radius: Optional[float] = RADIUS_OPT,
+    min_sightings: Optional[int] = SIGHT_OPT,
+) -> None:
+    """Build a landmark map (one landmark per rock) from a traverse's detections."""
+    from lunarloc.maps import load_traverse, save_map, traverse_map
+
+    trav = load_traverse(traverse)
+    lm = traverse_map(trav, _agg(radius, min_sightings))
+    save_map(lm, out)
+    typer.echo(
+        f"{traverse.name}: {len(trav.detections_xyz)} detections in {len(trav.frames)} frames "
+        f"-> {len(lm)} landmarks -> {out}"
+    )
+
+
+@app.command("localize")
+def localize_cmd(
+    reference: Path = typer.Argument(..., help="Reference map: landmark CSV/.npz or traverse CSV."),
+    vehicle: Path = typer.Argument(..., help="Vehicle map: landmark CSV/.npz or traverse CSV."),
+    as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
+    mode: str = typer.Option("gravity", help="gravity (IMU-levelled maps, default) or 6dof."),
+    solver: str = typer.Option("exact", help="exact (maximum clique, default) or clipper."),
+    epsilon: float = typer.Option(0.05, help="Pairwise distance tolerance in metres."),
+    radius: Optional[float] = RADIUS_OPT,
+    min_sightings: Optional[int] = SIGHT_OPT,
+) -> None:
+    """Localize VEHICLE in REFERENCE. Exit code 0 whether or not it localized."""
+    from lunarloc.localize import LocalizationConfig, Mode, Solver, localize
+    from lunarloc.errors import ConfigError
+    from lunarloc.maps import load_map
+
+    try:
+        cfg = LocalizationConfig(mode=Mode(mode), solver=Solver(solver), epsilon_m=epsilon)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+    agg = _agg(radius, min_sightings)
+    ref = load_map(reference, agg)
+    veh = load_map(vehicle, agg)
+    res = localize(ref, veh, cfg)
+    if as_json:
+        typer.echo(json.dumps(res.to_dict()))
+        return
+    from rich.console import Console
+
+    con = Console()
+    status = "[green]localized[/green]" if res.success else f"[red]not localized[/red]: {res.reason}"
+    con.print(f"{vehicle.name} ({len(veh)} landmarks) in {reference.name} ({len(ref)} landmarks): {status}")
+    con.print(
+        f"inliers {res.num_inliers} (needed {res.required_inliers}, competitor {res.competitor_size}), "
+        f"RMSE {res.residual_rmse_m * 100:.2f} cm, yaw {res.yaw_deg:.2f} deg, tilt {res.tilt_deg:.2f} deg, "
+        f"{res.time_s * 1000:.0f} ms"
+    )
+    if math.isfinite(res.T_ref_veh[0, 0]):
+        con.print("T_ref_veh =")
+        for row in res.T_ref_veh:
+            con.print("  " + " ".join(f"{v:+.6f}" for v in row))
+
+
+@bench_app.command("pairs")
+def bench_pairs_cmd(
+    data: Path = typer.Option(..., "--data", help="lunarloc-data folder (with csv/traverse_N.csv)."),
+    out: Path = typer.Option(Path("bench-output"), "--out", help="Folder for pairs.csv and pairs.json."),
+    only_paper: bool = typer.Option(False, "--paper", help="Only the paper's five pairs."),
+    seed: int = typer.Option(0, help="Seed of the random vehicle transforms."),
+    drift: float = typer.Option(0.0, help="Simulated heading drift, degrees per metre travelled."),
+    scale_error: float = typer.Option(0.0, help="Simulated odometry scale error (0.01 = 1%)."),
+    mode: str = typer.Option("gravity", help="gravity or 6dof."),
+    solver: str = typer.Option("exact", help="exact or clipper."),
+    check: bool = typer.Option(False, "--check", help="Exit 1 unless the acceptance targets are met."),
+) -> None:
+    """Localize traverse pairs of the LunarLoc dataset; table on screen, CSV + JSON in --out."""
+    from rich.console import Console
+    from rich.progress import Progress
+    from rich.table import Table
+
+    from lunarloc.evaluation import PAPER_PAIRS, DriftModel, bench_pairs, find_traverses
+    from lunarloc.localize import LocalizationConfig
+
+    import itertools
+
+    paths = find_traverses(data)
+    pairs = list(PAPER_PAIRS) if only_paper else list(PAPER_PAIRS) + [
+        p for p in itertools.combinations(sorted(paths), 2) if p not in PAPER_PAIRS
+    ]
+    cfg = LocalizationConfig(mode=mode, solver=solver)
+    con = Console()
+    with Progress(console=con, transient=True) as prog:
+        task = prog.add_task("localizing pairs", total=len(pairs))
+        summary = bench_pairs(
+            data, pairs, seed=seed, loc_config=cfg, drift=DriftModel(drift, scale_error),
+            progress=lambda r: prog.update(task, advance=1, description=f"pair {r.reference}-{r.vehicle}"),
+        )
+    res = summary.results
+    table = Table(title="LunarLoc traverse pairs (reference - vehicle)")
+    for col in ("pair", "segs ref", "segs veh", "inliers", "err@origin cm", "err@rover cm", "rot deg",
+                "success", "correct", "time s"):
+        table.add_column(col, justify="right")
+    paper = [r for r in res if (r.reference, r.vehicle) in PAPER_PAIRS]
+    others = [r for r in res if (r.reference, r.vehicle) not in PAPER_PAIRS]
+    shown = paper + [r for r in others if not (r.success and r.correct)]
+    for r in shown:
+        table.add_row(
+            f"{r.reference}-{r.vehicle}", str(r.segs_ref), str(r.segs_veh), str(r.inliers),
+            f"{r.err_origin_m * 100:.2f}", f"{r.err_rover_m * 100:.2f}", f"{r.rot_err_deg:.3f}",
+            "yes" if r.success else "[red]no[/red]", "yes" if r.correct else "[red]no[/red]", f"{r.time_s:.3f}",
+        )
+    con.print(table)
+    d = summary.to_dict()
+    con.print(
+        f"pairs {d['pairs']}: correct {d['correct']}, success claimed {d['success']} "
+        f"(of which correct {d['success_and_correct']}), confident-wrong {d['confident_wrong']}; "
+        f"time median {d['median_time_s']:.3f} s, max {d['max_time_s']:.3f} s"
+    )
+    big = max(res, key=lambda r: r.segs_ref * r.segs_veh)
+    con.print(f"largest pair {big.reference}-{big.vehicle} ({big.segs_ref}x{big.segs_veh} landmarks): {big.time_s:.3f} s")
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "pairs.json").write_text(json.dumps(d, indent=1))
+    import csv
+
+    with open(out / "pairs.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        keys = list(d["results"][0].keys()) if d["results"] else []
+        w.writerow(keys)
+        for row in d["results"]:
+            w.writerow([row[k] for k in keys])
+    con.print(f"wrote {out / 'pairs.csv'} and {out / 'pairs.json'}")
+    if check:
+        bad = []
+        for r in paper:
+            if not (r.success and r.err_origin_m < 0.02):
+                bad.append(f"paper pair {r.reference}-{r.vehicle}: success={r.success} err={r.err_origin_m * 100:.2f} cm")
+        if not only_paper and d["success_and_correct"] < 130:
+            bad.append(f"only {d['success_and_correct']} of {d['pairs']} pairs localized correctly (need 130)")
+        if d["confident_wrong"]:
+            bad.append(f"{d['confident_wrong']} confident-wrong pairs")
+        if bad:
+            for b in bad:
+                con.print(f"[red]CHECK FAILED[/red] {b}")
+            raise typer.Exit(1)
+        con.print("[green]checks passed[/green]")

@@ -1,0 +1,248 @@
+"""Benchmarks over the LunarLoc traverse pairs: the paper's table and all 136 pairs.
+
+For each pair (reference = first traverse, vehicle = second), the vehicle's
+detections are moved into a "vehicle frame" by a seeded random SE(3) (any yaw,
+roll/pitch up to 1 degree as in an IMU-levelled odometry frame, translation up to
+100 m) and optionally distorted by simulated odometry drift; the vehicle map is then
+localized in the reference map and compared with the truth.
+
+Metrics (E = T_est * T_true^-1, an error transform acting on reference-frame points):
+* ``err_origin_m``: ||E(0) - 0||, the paper's metric (error at the reference origin);
+* ``err_rover_m``: error at the vehicle's last position (where the rover is now);
+* ``rot_err_deg``: rotation angle of E;
+* ``correct``: err_rover_m < 0.10 and rot_err_deg < 1;
+* ``confident_wrong``: success claimed but not correct (must never happen).
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+
+from lunarloc.errors import InputError
+from lunarloc.geometry import (
+    euler_to_rotation,
+    invert_transform,
+    make_transform,
+    rot_z,
+    rotation_angle,
+    transform_points,
+)
+from lunarloc.localize import LocalizationConfig, localize
+from lunarloc.maps import AggregationConfig, Traverse, aggregate_detections, load_traverse
+
+log = logging.getLogger(__name__)
+
+PAPER_PAIRS = ((3, 5), (3, 7), (5, 7), (5, 12), (7, 12))
+SUCCESS_TRANSLATION_M = 0.10
+SUCCESS_ROTATION_DEG = 1.0
+
+
+@dataclass(frozen=True)
+class DriftModel:
+    """Simulated odometry drift applied to a traverse's detections, frame by frame.
+
+    heading_drift_deg_per_m : heading error accumulated per metre travelled (bias).
+    scale_error : relative error of travelled distance (0.01 = 1 % too long).
+    """
+
+    heading_drift_deg_per_m: float = 0.0
+    scale_error: float = 0.0
+
+    @property
+    def is_zero(self) -> bool:
+        return self.heading_drift_deg_per_m == 0 and self.scale_error == 0
+
+
+def random_vehicle_transform(rng: np.random.Generator, max_tilt_deg: float = 1.0, max_translation_m: float = 100.0):
+    """A random T_veh_world: any yaw, roll/pitch within +-max_tilt_deg, translation in a ball."""
+    roll, pitch = np.radians(rng.uniform(-max_tilt_deg, max_tilt_deg, 2))
+    yaw = rng.uniform(-math.pi, math.pi)
+    t = rng.normal(size=3)
+    t *= rng.uniform(0, max_translation_m) / max(np.linalg.norm(t), 1e-12)
+    return make_transform(euler_to_rotation(roll, pitch, yaw), t)
+
+
+def drifted_detections(trav: Traverse, drift: DriftModel):
+    """Detections and rover positions as seen by drifting odometry (world-aligned at start).
+
+    Odometry integrates the true displacement with a scale error and a heading error
+    that grows with distance; each frame's detections move with that frame's pose error.
+    Returns (detections (D, 3), rover positions (F, 3), T_odo_world at the last frame).
+    """
+    g = trav.rover_xyz
+    step = np.diff(g, axis=0, prepend=g[:1])
+    dist = np.cumsum(np.linalg.norm(step[:, :2], axis=1))
+    psi = np.radians(drift.heading_drift_deg_per_m) * dist
+    c, s = np.cos(psi), np.sin(psi)
+    rot_step = np.stack([c * step[:, 0] - s * step[:, 1], s * step[:, 0] + c * step[:, 1], step[:, 2]], axis=1)
+    o = g[0] + np.cumsum((1.0 + drift.scale_error) * rot_step, axis=0)
+    frame_pos = {int(f): k for k, f in enumerate(trav.frames)}
+    idx = np.array([frame_pos[int(f)] for f in trav.detection_frame], dtype=np.int64)
+    rel = trav.detections_xyz - g[idx]
+    cd, sd = np.cos(psi[idx]), np.sin(psi[idx])
+    det = o[idx] + np.stack([cd * rel[:, 0] - sd * rel[:, 1], sd * rel[:, 0] + cd * rel[:, 1], rel[:, 2]], axis=1)
+    T_last = make_transform(rot_z(psi[-1]), o[-1] - rot_z(psi[-1]) @ g[-1])
+    return det, o, T_last
+
+
+@dataclass
+class PairResult:
+    reference: int
+    vehicle: int
+    segs_ref: int
+    segs_veh: int
+    inliers: int
+    success: bool
+    correct: bool
+    err_origin_m: float
+    err_rover_m: float
+    rot_err_deg: float
+    time_s: float
+    reason: str
+    competitor: int = 0
+    required: int = 0
+
+    @property
+    def confident_wrong(self) -> bool:
+        return self.success and not self.correct
+
+
+@dataclass
+class BenchSummary:
+    results: list[PairResult] = field(default_factory=list)
+
+    @property
+    def n_pairs(self) -> int:
+        return len(self.results)
+
+    @property
+    def n_correct(self) -> int:
+        return sum(r.correct for r in self.results)
+
+    @property
+    def n_success(self) -> int:
+        return sum(r.success for r in self.results)
+
+    @property
+    def n_success_and_correct(self) -> int:
+        return sum(r.success and r.correct for r in self.results)
+
+    @property
+    def n_confident_wrong(self) -> int:
+        return sum(r.confident_wrong for r in self.results)
+
+    def to_dict(self) -> dict:
+        times = [r.time_s for r in self.results]
+        return {
+            "pairs": self.n_pairs,
+            "correct": self.n_correct,
+            "success": self.n_success,
+            "success_and_correct": self.n_success_and_correct,
+            "confident_wrong": self.n_confident_wrong,
+            "median_time_s": float(np.median(times)) if times else None,
+            "max_time_s": float(np.max(times)) if times else None,
+            "results": [asdict(r) for r in self.results],
+        }
+
+
+def traverse_path(data_dir: Path, k: int) -> Path:
+    return Path(data_dir) / "csv" / f"traverse_{k}.csv"
+
+
+def find_traverses(data_dir: str | Path) -> dict[int, Path]:
+    """Traverse number -> CSV path under DATA/csv (or DATA itself)."""
+    d = Path(data_dir)
+    csv_dir = d / "csv" if (d / "csv").is_dir() else d
+    out = {}
+    for p in csv_dir.glob("traverse_*.csv"):
+        try:
+            out[int(p.stem.split("_")[1])] = p
+        except (IndexError, ValueError):
+            continue
+    if not out:
+        raise InputError(f"{data_dir}: no traverse_<N>.csv files found (expected the lunarloc-data layout)")
+    return dict(sorted(out.items()))
+
+
+def run_pair(
+    ref_trav: Traverse,
+    veh_trav: Traverse,
+    rng: np.random.Generator,
+    loc_config: LocalizationConfig | None = None,
+    agg_config: AggregationConfig | None = None,
+    drift: DriftModel | None = None,
+    ref_map=None,
+) -> PairResult:
+    """Localize one traverse pair (see module docstring)."""
+    drift = drift or DriftModel()
+    ref = ref_map if ref_map is not None else aggregate_detections(
+        ref_trav.detections_xyz, ref_trav.detection_frame, agg_config, frame=ref_trav.name
+    )
+    if drift.is_zero:
+        det, rover, T_odo_world = veh_trav.detections_xyz, veh_trav.rover_xyz, np.eye(4)
+    else:
+        det, rover, T_odo_world = drifted_detections(veh_trav, drift)
+    T_veh_odo = random_vehicle_transform(rng)
+    det_v = transform_points(T_veh_odo, det)
+    veh = aggregate_detections(det_v, veh_trav.detection_frame, agg_config, frame=veh_trav.name)
+    T_true = invert_transform(T_veh_odo @ T_odo_world)  # world <- vehicle, exact at the last frame
+    last_v = transform_points(T_veh_odo, rover[-1:])[0]
+    t0 = time.perf_counter()
+    if len(ref) < 3 or len(veh) < 3:
+        return PairResult(0, 0, len(ref), len(veh), 0, False, False, math.nan, math.nan, math.nan, 0.0, "too few landmarks")
+    res = localize(ref, veh, loc_config)
+    dt = time.perf_counter() - t0
+    if np.all(np.isfinite(res.T_ref_veh)):
+        E = res.T_ref_veh @ invert_transform(T_true)
+        err0 = float(np.linalg.norm(E[:3, 3]))
+        err_rover = float(np.linalg.norm(transform_points(res.T_ref_veh, last_v[None])[0] - veh_trav.rover_xyz[-1]))
+        rot = math.degrees(rotation_angle(E[:3, :3]))
+    else:
+        err0 = err_rover = rot = math.nan
+    correct = bool(err_rover < SUCCESS_TRANSLATION_M and rot < SUCCESS_ROTATION_DEG)
+    return PairResult(0, 0, len(ref), len(veh), res.num_inliers, bool(res.success), correct, err0, err_rover, rot,
+                      dt, res.reason, res.competitor_size, res.required_inliers)
+
+
+def bench_pairs(
+    data_dir: str | Path,
+    pairs: Iterable[tuple[int, int]] | None = None,
+    seed: int = 0,
+    loc_config: LocalizationConfig | None = None,
+    agg_config: AggregationConfig | None = None,
+    drift: DriftModel | None = None,
+    progress: Callable[[PairResult], None] | None = None,
+) -> BenchSummary:
+    """Run :func:`run_pair` over `pairs` (default: all unordered pairs of traverses)."""
+    paths = find_traverses(data_dir)
+    if pairs is None:
+        pairs = list(itertools.combinations(sorted(paths), 2))
+    pairs = list(pairs)
+    for a, b in pairs:
+        for k in (a, b):
+            if k not in paths:
+                raise InputError(f"traverse {k} not found in {data_dir}")
+    travs: dict[int, Traverse] = {}
+    maps = {}
+    summary = BenchSummary()
+    for a, b in pairs:
+        for k in (a, b):
+            if k not in travs:
+                travs[k] = load_traverse(paths[k])
+        if a not in maps:
+            maps[a] = aggregate_detections(travs[a].detections_xyz, travs[a].detection_frame, agg_config, frame=travs[a].name)
+        rng = np.random.default_rng([seed, a, b])
+        r = run_pair(travs[a], travs[b], rng, loc_config, agg_config, drift, ref_map=maps[a])
+        r.reference, r.vehicle = a, b
+        summary.results.append(r)
+        if progress:
+            progress(r)
+    return summary

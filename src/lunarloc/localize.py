@@ -1,0 +1,460 @@
+"""One-shot global localization of a vehicle landmark map in a reference map.
+
+``localize(reference, vehicle, config) -> LocalizationResult``:
+
+1. putative associations (all-to-all, optionally pruned by size);
+2. sparse consistency graph(s) (:mod:`lunarloc.association.graph`);
+3. densest consistent set: exact maximum clique (default) or CLIPPER relaxation;
+4. registration: Arun's SVD on the inliers, then optional refinement with the
+   mutual nearest neighbours under the estimate;
+5. verification: inliers vs. what chance produces at this map size, residual RMSE,
+   spread of the inliers, fitted tilt and handedness (gravity mode), and the margin
+   over the best competing hypothesis. ``success`` is False, with a reason, when the
+   answer cannot be trusted.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from lunarloc.association.clique import max_clique
+from lunarloc.association.clipper import clipper_clique
+from lunarloc.association.graph import RefPairIndex, graph_3d, vehicle_pairs, yaw_bin_chunks
+from lunarloc.association.putative import putative_associations
+from lunarloc.errors import ConfigError, DegenerateGeometryError, InputError
+from lunarloc.geometry import arun, arun_yaw, collinearity, tilt_angle, transform_points, yaw_of
+from lunarloc.maps import LandmarkMap
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Mode", "Solver", "LocalizationConfig", "LocalizationResult", "localize", "chance_clique_size"]
+
+
+class Mode(str, enum.Enum):
+    """Which invariants the consistency graph uses."""
+
+    GRAVITY = "gravity"  # horizontal distance + height difference + common yaw (rover maps, IMU-levelled)
+    SIX_DOF = "6dof"  # 3D distance only: any relative rotation
+
+
+class Solver(str, enum.Enum):
+    """How the densest consistent set is found."""
+
+    EXACT = "exact"  # exact maximum clique (robust; default)
+    CLIPPER = "clipper"  # CLIPPER relaxation + rounding (the paper's solver)
+
+
+def chance_clique_size(num_associations: int, mode: "Mode" = Mode.GRAVITY) -> float:
+    """Upper envelope of the largest consistent set found between UNRELATED maps with
+    `num_associations` putative associations (measured; see README "Acceptance rule").
+
+    Model ``a + b * log10(m)`` fitted to the maximum over seeded trials of real and
+    synthetic unrelated map pairs at the default epsilon.
+    """
+    a, b = _CHANCE_MODEL[Mode(mode)]
+    return a + b * math.log10(max(num_associations, 1))
+
+
+# (intercept, slope per decade of associations); measured by benchmarks/chance_cliques.py
+_CHANCE_MODEL = {Mode.GRAVITY: (-1.0, 1.5), Mode.SIX_DOF: (-1.0, 2.0)}
+
+
+@dataclass
+class LocalizationConfig:
+    """Parameters of :func:`localize`. Distances in metres, angles in degrees."""
+
+    mode: Mode = Mode.GRAVITY
+    solver: Solver = Solver.EXACT
+    epsilon_m: float = 0.05  # max disagreement of a pairwise (horizontal) distance for consistency
+    sigma_m: float | None = None  # CLIPPER weight scale exp(-c^2/2sigma^2); None -> epsilon/2
+    epsilon_z_m: float = 0.05  # gravity: max disagreement of a height difference (plus tilt allowance)
+    max_tilt_deg: float = 1.5  # gravity: residual tilt of the vehicle map after IMU levelling
+    yaw_step_deg: float = 2.0  # gravity: spacing of the relative-yaw bins
+    yaw_noise_factor: float = 2.0  # gravity: yaw tolerance of a pair at distance d is asin(k*eps/d)
+    max_size_ratio: float | None = None  # prune associations whose size ratio exceeds this (needs sizes)
+    max_edges: int = 30_000_000  # 6-DoF memory bound on the consistency graph
+    refine: bool = True  # re-fit with mutual nearest neighbours under the estimate
+    refine_radius_m: float = 0.10  # max residual of a nearest-neighbour pair kept by refinement
+    # --- acceptance (verification) ---
+    min_inliers: int = 6  # absolute floor on the inlier count
+    chance_factor: float = 1.5  # inliers must exceed chance_factor * chance_clique_size(m) ...
+    chance_margin: int = 2  # ... + chance_margin
+    max_rmse_m: float = 0.05  # residual RMSE of the inliers after registration
+    min_extent_m: float = 1.0  # inliers must spread at least this far (largest principal std x 2)
+    min_planarity: float = 0.05  # second/first principal std of the inliers (0 = collinear)
+    min_handedness: float = 0.9  # gravity: share of inlier triangles with matching orientation
+    competitor_ratio: float = 1.5  # best must be this many times the best competing hypothesis
+    competitor_yaw_sep_deg: float = 10.0  # hypotheses whose yaws differ more than this compete
+    seed: int = 0  # CLIPPER initialisation
+
+    def __post_init__(self) -> None:
+        self.mode = Mode(self.mode)
+        self.solver = Solver(self.solver)
+        for name in ("epsilon_m", "epsilon_z_m", "yaw_step_deg", "refine_radius_m", "max_rmse_m"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.sigma_m is not None and not self.sigma_m > 0:
+            raise ConfigError("sigma_m must be positive")
+        if not 0 <= self.max_tilt_deg < 45:
+            raise ConfigError("max_tilt_deg must be in [0, 45)")
+        if self.max_size_ratio is not None and not self.max_size_ratio >= 1:
+            raise ConfigError("max_size_ratio must be >= 1")
+        if self.min_inliers < 3:
+            raise ConfigError("min_inliers must be >= 3")
+
+    @property
+    def sigma(self) -> float:
+        return self.sigma_m if self.sigma_m is not None else self.epsilon_m / 2.0
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["mode"] = self.mode.value
+        d["solver"] = self.solver.value
+        return d
+
+
+@dataclass
+class LocalizationResult:
+    """Outcome of :func:`localize`.
+
+    T_ref_veh : 4x4 transform mapping vehicle-map points into the reference frame
+        (the best hypothesis; all NaN when there is none). Trust it only if `success`.
+    inliers : (k, 2) int rows ``[vehicle_index, reference_index]``.
+    """
+
+    success: bool
+    T_ref_veh: np.ndarray
+    inliers: np.ndarray
+    residual_rmse_m: float
+    reason: str
+    clique_size: int = 0
+    competitor_size: int = 0
+    required_inliers: int = 0
+    num_associations: int = 0
+    num_edges: int = 0
+    yaw_deg: float = float("nan")
+    tilt_deg: float = float("nan")
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def num_inliers(self) -> int:
+        return int(len(self.inliers))
+
+    @property
+    def time_s(self) -> float:
+        return float(sum(self.timings.values()))
+
+    def to_dict(self) -> dict:
+        """JSON-ready dictionary (NaN becomes None)."""
+
+        def clean(x):
+            return None if isinstance(x, float) and not math.isfinite(x) else x
+
+        T = [[clean(float(v)) for v in row] for row in self.T_ref_veh]
+        return {
+            "success": bool(self.success),
+            "T_ref_veh": T,
+            "num_inliers": self.num_inliers,
+            "inliers": self.inliers.astype(int).tolist(),
+            "residual_rmse_m": clean(float(self.residual_rmse_m)),
+            "time_s": round(self.time_s, 6),
+            "reason": self.reason,
+            "clique_size": self.clique_size,
+            "competitor_size": self.competitor_size,
+            "required_inliers": self.required_inliers,
+            "num_associations": self.num_associations,
+            "num_edges": self.num_edges,
+            "yaw_deg": clean(float(self.yaw_deg)),
+            "tilt_deg": clean(float(self.tilt_deg)),
+            "timings_s": {k: round(v, 6) for k, v in self.timings.items()},
+        }
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _check_map(m: LandmarkMap, name: str) -> np.ndarray:
+    if not isinstance(m, LandmarkMap):
+        raise InputError(f"{name} must be a LandmarkMap, got {type(m).__name__}")
+    P = m.positions_xyz
+    if len(P) == 0:
+        raise InputError(f"{name} map is empty: no landmarks to localize with")
+    if len(P) < 3:
+        raise InputError(f"{name} map has {len(P)} landmark(s); at least 3 are needed to fix a pose")
+    spread = np.linalg.svd(P - P.mean(axis=0), compute_uv=False)
+    if spread[0] < 1e-6:
+        raise DegenerateGeometryError(f"{name} landmarks all coincide: the pose is undetermined")
+    if spread[1] < 1e-6 * max(1.0, spread[0]) or spread[1] / spread[0] < 1e-4:
+        raise DegenerateGeometryError(
+            f"{name} landmarks are collinear: the rotation about their line is undetermined"
+        )
+    return P
+
+
+def _solve(solver: Solver, n: int, eu, ev, ew, lower_bound: int, seed: int, scratch=None) -> np.ndarray:
+    if solver is Solver.EXACT:
+        return max_clique(n, eu, ev, lower_bound, scratch)
+    c = clipper_clique(n, eu, ev, ew, seed=seed)
+    return c if len(c) > lower_bound else np.empty(0, dtype=np.int32)
+
+
+def _register(P: np.ndarray, Q: np.ndarray, cfg: LocalizationConfig) -> np.ndarray:
+    """Arun's SVD; in gravity mode the yaw-only fit when too few points fix a tilt."""
+    if cfg.mode is Mode.GRAVITY and len(P) < 4:
+        return arun_yaw(P, Q)
+    return arun(P, Q)
+
+
+def _residuals(T, P, Q):
+    return np.linalg.norm(transform_points(T, P) - Q, axis=1)
+
+
+def _refine(T, Pv, Pr, inl, cfg):
+    """Mutual nearest neighbours within refine_radius under T, re-fitted (3 rounds)."""
+    tree = cKDTree(Pr)
+    best_T, best_inl = T, inl
+    for _ in range(3):
+        Pt = transform_points(best_T, Pv)
+        d, j = tree.query(Pt, distance_upper_bound=cfg.refine_radius_m)
+        ok = np.isfinite(d)
+        vi = np.flatnonzero(ok)
+        ri = j[ok]
+        # mutual: each reference landmark keeps its closest vehicle landmark
+        order = np.argsort(d[ok])
+        _, first = np.unique(ri[order], return_index=True)
+        keep = order[first]
+        pairs = np.stack([vi[keep], ri[keep]], axis=1)
+        if len(pairs) < len(best_inl):
+            break
+        try:
+            T_new = _register(Pv[pairs[:, 0]], Pr[pairs[:, 1]], cfg)
+        except DegenerateGeometryError:
+            break
+        same = len(pairs) == len(best_inl) and np.array_equal(np.sort(pairs[:, 0]), np.sort(best_inl[:, 0]))
+        best_T, best_inl = T_new, pairs
+        if same:
+            break
+    return best_T, best_inl
+
+
+def _handedness(P: np.ndarray, Q: np.ndarray, rng: np.random.Generator) -> float:
+    """Share of inlier triangles whose horizontal orientation (sign of the signed area)
+    agrees between the vehicle and reference maps (1.0 = same handedness; a mirror
+    image gives ~0). Triangles with tiny area are ignored."""
+    k = len(P)
+    if k < 3:
+        return 1.0
+    tri = rng.integers(0, k, size=(min(2000, 20 * k), 3))
+    tri = tri[(tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 0] != tri[:, 2])]
+
+    def area(X):
+        a = X[tri[:, 1], :2] - X[tri[:, 0], :2]
+        b = X[tri[:, 2], :2] - X[tri[:, 0], :2]
+        return a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+
+    av, ar = area(P), area(Q)
+    big = (np.abs(av) > 0.05) & (np.abs(ar) > 0.05)
+    if not np.any(big):
+        return 1.0
+    return float(np.mean(np.sign(av[big]) == np.sign(ar[big])))
+
+
+def _nan_T() -> np.ndarray:
+    return np.full((4, 4), np.nan)
+
+
+# --------------------------------------------------------------------------- main entry
+
+
+def localize(
+    reference: LandmarkMap, vehicle: LandmarkMap, config: LocalizationConfig | None = None
+) -> LocalizationResult:
+    """Find ``T_ref_veh`` aligning `vehicle` to `reference`, or say why it can't be trusted.
+
+    Raises InputError / DegenerateGeometryError for unusable input (empty maps, fewer
+    than 3 landmarks, coincident or collinear landmarks). A failed localization is not
+    an error: it returns ``success=False`` with a reason.
+    """
+    cfg = config or LocalizationConfig()
+    Pr = _check_map(reference, "reference")
+    Pv = _check_map(vehicle, "vehicle")
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    assoc, node_of = putative_associations(
+        len(Pv), len(Pr), vehicle.sizes, reference.sizes, cfg.max_size_ratio
+    )
+    m = len(assoc)
+    timings["associations"] = time.perf_counter() - t0
+    required = max(cfg.min_inliers, int(math.ceil(cfg.chance_factor * chance_clique_size(m, cfg.mode) + cfg.chance_margin)))
+    if m == 0:
+        return LocalizationResult(False, _nan_T(), np.zeros((0, 2), int), float("nan"),
+                                  "no putative associations (size pruning removed all)", required_inliers=required,
+                                  timings=timings)
+
+    t0 = time.perf_counter()
+    if cfg.mode is Mode.GRAVITY:
+        best, competitor, best_yaw, num_edges = _search_yaw_bins(Pv, Pr, node_of, cfg)
+    else:
+        best, competitor, num_edges = _search_3d(Pv, Pr, node_of, assoc, cfg)
+        best_yaw = None
+    timings["search"] = time.perf_counter() - t0
+    base = dict(required_inliers=required, num_associations=m, num_edges=num_edges, timings=timings)
+
+    if len(best) < 3:
+        return LocalizationResult(False, _nan_T(), np.zeros((0, 2), int), float("nan"),
+                                  f"no consistent set of 3 or more associations (largest: {len(best)})",
+                                  clique_size=len(best), **base)
+
+    t0 = time.perf_counter()
+    inl = assoc[best]
+    try:
+        T = _register(Pv[inl[:, 0]], Pr[inl[:, 1]], cfg)
+    except DegenerateGeometryError as exc:
+        timings["registration"] = time.perf_counter() - t0
+        return LocalizationResult(False, _nan_T(), inl, float("nan"), f"inliers are degenerate: {exc}",
+                                  clique_size=len(best), **base)
+    if cfg.refine:
+        T, inl = _refine(T, Pv, Pr, inl, cfg)
+    timings["registration"] = time.perf_counter() - t0
+
+    # competitor in 6-DoF mode: best set among associations the winner does not explain
+    t0 = time.perf_counter()
+    if cfg.mode is Mode.SIX_DOF:
+        competitor = _competitor_3d(T, Pv, Pr, node_of, assoc, cfg)
+    else:
+        competitor = max(competitor, _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw))
+    timings["verification"] = time.perf_counter() - t0
+
+    res = _residuals(T, Pv[inl[:, 0]], Pr[inl[:, 1]])
+    rmse = float(np.sqrt(np.mean(res**2)))
+    R = T[:3, :3]
+    out = LocalizationResult(
+        False, T, inl, rmse, "", clique_size=len(best), competitor_size=int(competitor),
+        yaw_deg=math.degrees(yaw_of(R)), tilt_deg=math.degrees(tilt_angle(R)), **base,
+    )
+    Q = Pr[inl[:, 1]]
+    s = np.linalg.svd(Q - Q.mean(axis=0), compute_uv=False) / math.sqrt(len(Q))
+    k = len(inl)
+    if rmse > cfg.max_rmse_m:
+        out.reason = f"residual RMSE {rmse * 100:.1f} cm exceeds {cfg.max_rmse_m * 100:.1f} cm"
+    elif 2 * s[0] < cfg.min_extent_m:
+        out.reason = f"inliers are clustered (extent {2 * s[0]:.2f} m < {cfg.min_extent_m} m)"
+    elif s[1] / max(s[0], 1e-12) < cfg.min_planarity:
+        out.reason = "inliers are nearly collinear: rotation about their line is poorly fixed"
+    elif cfg.mode is Mode.GRAVITY and out.tilt_deg > cfg.max_tilt_deg + 0.5:
+        out.reason = f"fitted tilt {out.tilt_deg:.2f} deg exceeds the allowed {cfg.max_tilt_deg} deg (mirror or wrong match)"
+    elif cfg.mode is Mode.GRAVITY and _handedness(Pv[inl[:, 0]], Q, np.random.default_rng(0)) < cfg.min_handedness:
+        out.reason = "inliers are a mirror image of the reference (triangle orientations disagree)"
+    elif k < required:
+        out.reason = (
+            f"{k} inliers is too few to beat chance at {m} associations (need {required}; "
+            f"unrelated maps of this size give up to ~{chance_clique_size(m, cfg.mode):.0f})"
+        )
+    elif k < cfg.competitor_ratio * competitor:
+        out.reason = f"ambiguous: {k} inliers vs a competing hypothesis with {competitor}"
+    else:
+        out.success = True
+        out.reason = "ok"
+    log.info("localize: %s (%d inliers, rmse %.3f m)", out.reason, k, rmse)
+    return out
+
+
+def _search_3d(Pv, Pr, node_of, assoc, cfg):
+    g = graph_3d(Pv, Pr, node_of, cfg.epsilon_m, cfg.sigma, cfg.max_edges)
+    if g is None:
+        raise InputError(
+            f"the 6-DoF consistency graph of {len(assoc)} associations exceeds {cfg.max_edges} edges; "
+            "use the gravity-aware mode, a smaller epsilon, size pruning, or raise max_edges"
+        )
+    eu, ev, ew = g
+    best = _solve(cfg.solver, len(assoc), eu, ev, ew, 0, cfg.seed)
+    return best, 0, len(eu)
+
+
+def _explained(T, Pv, Pr, assoc, radius):
+    """Associations consistent with T (their landmarks land within `radius`)."""
+    d = np.linalg.norm(transform_points(T, Pv[assoc[:, 0]]) - Pr[assoc[:, 1]], axis=1)
+    return d < radius
+
+
+def _competitor_3d(T, Pv, Pr, node_of, assoc, cfg):
+    explained = _explained(T, Pv, Pr, assoc, 3 * cfg.epsilon_m)
+    node2 = node_of.copy()
+    node2[assoc[explained, 0], assoc[explained, 1]] = -1
+    keep = node2[assoc[:, 0], assoc[:, 1]] >= 0
+    g = graph_3d(Pv, Pr, node2, cfg.epsilon_m, cfg.sigma, cfg.max_edges)
+    if g is None or not np.any(keep):
+        return 0
+    eu, ev, ew = g
+    return len(_solve(cfg.solver, len(assoc), eu, ev, ew, 0, cfg.seed))
+
+
+def _n_bins(cfg) -> int:
+    return max(1, int(round(360.0 / cfg.yaw_step_deg)))
+
+
+def _yaw_bins(Pv, Pr, node_of, cfg, bin_start: int = 0, bin_count: int | None = None):
+    step = math.radians(cfg.yaw_step_deg)
+    n_bins = _n_bins(cfg)
+    index = RefPairIndex(Pr, dist_cell_m=max(cfg.epsilon_m / 2, 0.01), angle_cell_rad=math.radians(1.0))
+    return yaw_bin_chunks(
+        vehicle_pairs(Pv), index, node_of, n_bins, max(1, n_bins // 8), cfg.epsilon_m, cfg.epsilon_z_m,
+        math.tan(math.radians(cfg.max_tilt_deg)), cfg.yaw_noise_factor, cfg.sigma,
+        weights=cfg.solver is Solver.CLIPPER, bin_start=bin_start, bin_count=bin_count,
+    )
+
+
+def _search_yaw_bins(Pv, Pr, node_of, cfg):
+    """Max consistent set over relative-yaw bins; also the best set whose yaw differs
+    by more than competitor_yaw_sep_deg (the competing hypothesis)."""
+    n_assoc = int(node_of.size)
+    sep = math.radians(cfg.competitor_yaw_sep_deg)
+    best = np.empty(0, dtype=np.int32)
+    best_yaw = None
+    second = 0
+    total_edges = 0
+    scratch = np.full(n_assoc, -1, dtype=np.int32)
+    for _, theta, eu, ev, ew in _yaw_bins(Pv, Pr, node_of, cfg):
+        total_edges += len(eu)
+        lb = second  # a clique must beat the competitor to change anything
+        if len(eu) < lb * (lb + 1) // 2:
+            continue
+        c = _solve(cfg.solver, n_assoc, eu, ev, ew, lb, cfg.seed, scratch)
+        if len(c) <= lb:
+            continue
+        far = best_yaw is None or abs((theta - best_yaw + math.pi) % (2 * math.pi) - math.pi) > sep
+        if len(c) > len(best):
+            if far and len(best):
+                second = max(second, len(best))
+            best, best_yaw = c, theta
+        elif far:
+            second = max(second, len(c))
+    return best, second, best_yaw, total_edges
+
+
+def _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw):
+    """Best set near the winner's yaw among associations the winner does not explain
+    (a shifted copy of the pattern at the same heading)."""
+    if best_yaw is None:
+        return 0
+    explained = _explained(T, Pv, Pr, assoc, 3 * cfg.epsilon_m)
+    node2 = node_of.copy()
+    node2[assoc[explained, 0], assoc[explained, 1]] = -1
+    n_bins = _n_bins(cfg)
+    step = 2 * math.pi / n_bins
+    centre = int(math.floor((best_yaw + math.pi) / step))
+    reach = int(math.ceil(math.radians(cfg.competitor_yaw_sep_deg) / step))
+    best = 0
+    scratch = np.full(node_of.size, -1, dtype=np.int32)
+    for _, _theta, eu, ev, ew in _yaw_bins(Pv, Pr, node2, cfg, centre - reach, 2 * reach + 1):
+        if len(eu):
+            c = _solve(cfg.solver, int(node_of.size), eu, ev, ew, best, cfg.seed, scratch)
+            best = max(best, len(c))
+    return best
