@@ -71,7 +71,7 @@ def test_masks_from_labels():
 
 
 def test_size_and_filters_in_order():
-    cfg = MaskFilterConfig(s_min_m=0.04, s_max_m=0.5, tau_elong=4.0, max_range_m=8.0)
+    cfg = MaskFilterConfig(s_min_m=0.04, s_max_m=0.5, tau_elong=4.0, max_range_m=8.0, min_range_m=1.3)
     alpha = 1.0 / 914.0
     shape = (720, 1280)
     s = mask_stats(InstanceMask.from_full(_disc(shape, 640, 400, 20)), shape)
@@ -81,6 +81,7 @@ def test_size_and_filters_in_order():
     assert classify_mask(s, 3.0, alpha, cfg)[0] is RejectReason.TOO_SMALL
     assert classify_mask(s, 100.0, alpha, MaskFilterConfig(max_range_m=200))[0] is RejectReason.TOO_LARGE
     assert classify_mask(s, 9.0, alpha, cfg)[0] is RejectReason.TOO_FAR
+    assert classify_mask(s, 1.2, alpha, MaskFilterConfig(s_min_m=0.001))[0] is RejectReason.TOO_NEAR
     assert classify_mask(s, float("nan"), alpha, cfg)[0] is RejectReason.NO_DEPTH
     assert classify_mask(s, None, alpha, cfg)[0] is RejectReason.NO_DEPTH
     edge = mask_stats(InstanceMask.from_full(_disc(shape, 5, 400, 20)), shape)
@@ -95,4 +96,4 @@ def test_config_validation():
     with pytest.raises(ConfigError):
         MaskFilterConfig(tau_elong=0.5)
     with pytest.raises(ConfigError):
-        MaskFilterConfig(max_range_m=0)
+        MaskFilterConfig(max_range_m=1.0, min_range_m=1.3)

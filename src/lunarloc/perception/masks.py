@@ -219,16 +219,17 @@ class MaskFilterConfig:
     min_area_px: int = 30
     # "Fully visible": reject masks with a pixel within this many pixels of the border.
     border_px: int = 2
-    # Smallest physical size kept, metres of s_i (~ radius / 2): 0.04 keeps rocks of
-    # radius >= ~8 cm, which are large enough to be re-observed across sessions.
-    s_min_m: float = 0.04
+    # Smallest physical size kept, metres of s_i (~ radius / 2): 0.03 keeps rocks of
+    # radius >= ~6 cm, large enough to be re-observed across sessions (tuned on
+    # simulated site seed 0: 0.04 loses half-buried domes, whose s_i is small).
+    s_min_m: float = 0.03
     # Largest physical size kept, metres of s_i: beyond ~1 m radius a "mask" is more
     # likely a crater wall, a ridge or a merged region than one rock.
     s_max_m: float = 0.5
-    # tau_elong: lambda_max / lambda_min of the pixel covariance. A sphere seen from a
-    # low camera projects to a roughly round blob (ratio <~ 2-3); shadows cast by a
-    # low sun and terrain edges are long and thin.
-    tau_elong: float = 4.0
+    # tau_elong: lambda_max / lambda_min of the pixel covariance. A whole sphere gives
+    # 1, a half-buried dome seen from a low camera 3-8 (a half disc is 3.5); shadows
+    # cast by a low sun and terrain edges are long and thin (ratios of 10-1000).
+    tau_elong: float = 8.0
     # Maximum range (depth along the optical axis, metres): stereo depth error grows
     # with range^2 (at 0.162 m baseline, ~0.25 px matching error gives ~4 cm at 5 m).
     max_range_m: float = 6.0

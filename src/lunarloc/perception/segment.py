@@ -82,6 +82,12 @@ class ClassicalConfig:
     dark_candidates: bool = True
     # Smallest region kept, pixels (smaller ones are texture noise).
     min_area_px: int = 40
+    # Shadow regions are opened with a disc of this radius (pixels) before becoming
+    # candidates: thin cast-shadow strips and rims vanish, round shadowed rock sides stay.
+    dark_open_px: int = 0
+    # Keep opened shadow regions even when they touch a lit region (a rock seen
+    # against the sun: a thin lit rim beside a large shadowed body).
+    dark_touching: bool = False
 
     def __post_init__(self) -> None:
         if not self.bright_hi_sigma >= self.bright_lo_sigma > 0:
@@ -154,11 +160,15 @@ class ClassicalSegmenter:
             lab = np.where(add, nearest, lab)
         if c.dark_candidates:
             dk = (dark & (lab == 0)).astype(np.uint8)
-            dk = cv2.morphologyEx(dk, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+            r = max(1, int(c.dark_open_px))
+            kern = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+            dk = cv2.morphologyEx(dk, cv2.MORPH_OPEN, kern)
             nd, labd = cv2.connectedComponents(dk, connectivity=8)
             if nd > 1:
-                touch = cv2.dilate((lab > 0).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-                bad = np.bincount(labd[touch], minlength=nd) > 0
+                bad = np.zeros(nd, bool)
+                if not c.dark_touching:
+                    touch = cv2.dilate((lab > 0).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+                    bad = np.bincount(labd[touch], minlength=nd) > 0
                 bad[0] = True
                 labd = np.where(bad[labd], 0, labd + int(lab.max()))
                 lab = np.where(labd > 0, labd, lab)

@@ -1,0 +1,132 @@
+"""Detector on a synthetic stereo pair with a known rock depth and rover pose; CSV format."""
+
+from __future__ import annotations
+
+import ast
+import csv
+
+import numpy as np
+import pytest
+
+from lunarloc.errors import ConfigError, InputError
+from lunarloc.geometry import pose_to_matrix, transform_points
+from lunarloc.perception.camera import PinholeCamera, ipex_rig
+from lunarloc.perception.detector import (
+    Detector,
+    DetectorConfig,
+    FrameDetections,
+    debug_overlay,
+    format_boulders,
+    write_traverse_csv,
+)
+from lunarloc.perception.masks import MaskFilterConfig, RejectReason
+
+CAM = PinholeCamera()
+B = 0.162
+
+
+def stereo_scene(rock_uv=(640, 420), rock_depth=3.0, rock_r_px=40, ground_depth=6.0, seed=0):
+    """Fronto-parallel textured ground at ground_depth and a bright textured disc at rock_depth."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    H, W = CAM.height, CAM.width
+    d_g = np.float32(CAM.fx * B / ground_depth)
+    d_r = np.float32(CAM.fx * B / rock_depth)
+    pad = int(d_r) + 4
+    tex = 150 + cv2.GaussianBlur(rng.normal(0, 14, (H, W + pad)).astype(np.float32), (0, 0), 1.3)
+    rock_tex = 215 + cv2.GaussianBlur(rng.normal(0, 8, (H, W + pad)).astype(np.float32), (0, 0), 1.3)
+    v, u = np.mgrid[:H, :W].astype(np.float32)
+
+    def view(shift_sign):
+        # right view: a point at left column x appears at x - d
+        mx_g = u + (d_g if shift_sign else 0.0)
+        img = cv2.remap(tex, mx_g, v, cv2.INTER_LINEAR)
+        cu = rock_uv[0] - (d_r if shift_sign else 0.0)
+        disc = (u - cu) ** 2 + (v - rock_uv[1]) ** 2 <= rock_r_px**2
+        mx_r = u + (d_r if shift_sign else 0.0)
+        rimg = cv2.remap(rock_tex, mx_r, v, cv2.INTER_LINEAR)
+        img[disc] = rimg[disc]
+        img[:120] = 0  # sky
+        return np.clip(img, 0, 255).astype(np.uint8)
+
+    return view(False), view(True)
+
+
+def test_detects_rock_at_known_depth_and_places_it_in_map():
+    left, right = stereo_scene()
+    rig = ipex_rig(CAM)
+    T_map_rover = pose_to_matrix(2.0, -1.0, 0.3, 0.0, 0.0, np.radians(30))
+    cfg = DetectorConfig(filters=MaskFilterConfig(s_min_m=0.01, s_max_m=1.0), centre_correction=False)
+    det = Detector(cfg, CAM)
+    fd = det.detect_frame({"FrontLeft": left, "FrontRight": right}, rig, T_map_rover, frame=7, keep_depth=True)
+    assert fd.frame == 7 and fd.pairs[0].depth is not None
+    kept = [d for d in fd.detections if abs(d.uv[0] - 640) < 3 and abs(d.uv[1] - 420) < 3]
+    assert len(kept) == 1
+    d = kept[0]
+    assert d.depth_m == pytest.approx(3.0, rel=0.02)
+    assert d.size_m == pytest.approx(20 * 3.0 / CAM.fx, rel=0.1)  # sigma = r/2 = 20 px
+    expect_opt = CAM.backproject(np.array([[640.0, 420.0]]), np.array([3.0]))[0]
+    assert np.allclose(d.p_optical, expect_opt, atol=0.06)
+    assert np.allclose(d.p_rover, transform_points(rig["FrontLeft"].T_rover_optical, d.p_optical[None])[0])
+    assert np.allclose(d.p_map, transform_points(T_map_rover, d.p_rover[None])[0])
+    # the rock is in front of the rover, the optical axis is the rover's x axis
+    assert d.p_rover[0] == pytest.approx(0.28 + 3.0, abs=0.1)
+    # the debug overlay has the image and the depth side by side
+    img = debug_overlay(left, fd.pairs[0])
+    assert img.shape == (CAM.height, 2 * CAM.width, 3)
+
+
+def test_centre_correction_moves_along_the_ray():
+    left, right = stereo_scene()
+    base = DetectorConfig(filters=MaskFilterConfig(s_min_m=0.01, s_max_m=1.0))
+    a = Detector(DetectorConfig(**{**base.__dict__, "centre_correction": False}), CAM)
+    b = Detector(base, CAM)
+    pa = [d for d in a.detect_pair(left, right, np.eye(4)).detections if abs(d.uv[0] - 640) < 3][0]
+    pb = [d for d in b.detect_pair(left, right, np.eye(4)).detections if abs(d.uv[0] - 640) < 3][0]
+    shift = pb.p_optical - pa.p_optical
+    assert np.linalg.norm(shift) == pytest.approx(pb.radius_m, rel=1e-6)
+    assert np.allclose(np.cross(shift, pa.p_optical), 0, atol=1e-9)
+
+
+def test_filters_reject_with_reasons():
+    left, right = stereo_scene(rock_depth=3.0)
+    det = Detector(DetectorConfig(filters=MaskFilterConfig(s_min_m=0.2, s_max_m=1.0)), CAM)
+    pr = det.detect_pair(left, right, np.eye(4))
+    rock = [r for r in pr.records if np.hypot(r.stats.centroid_uv[0] - 640, r.stats.centroid_uv[1] - 420) < 3][0]
+    assert rock.reason is RejectReason.TOO_SMALL
+    pr = Detector(DetectorConfig(), CAM).detect_pair(left, None, np.eye(4))  # no right image: no depth
+    assert all(r.reason is not None for r in pr.records) and not pr.detections
+
+
+def test_bad_inputs_and_config():
+    det = Detector(DetectorConfig(), CAM)
+    with pytest.raises(InputError):
+        det.detect_pair(np.zeros((100, 100), np.uint8), None, np.eye(4))
+    with pytest.raises(ConfigError):
+        DetectorConfig(segmenter="fastsam")
+    with pytest.raises(ValueError):
+        DetectorConfig(segmenter="nope")
+
+
+def test_traverse_csv_format(tmp_path):
+    pts = np.array([[1.5, -2.25, 0.125], [3.0, 4.0, -0.5]])
+    assert ast.literal_eval(format_boulders(pts)) == [tuple(p) for p in pts.tolist()]
+    assert format_boulders(np.zeros((0, 3))) == "[]"
+
+    class FakeDet:
+        def __init__(self, p):
+            self.p_map = p
+
+    fd = FrameDetections(3, pose_to_matrix(1.0, 2.0, 3.0, 0, 0, 0))
+    fd.positions_map = lambda: pts  # type: ignore[method-assign]
+    empty = FrameDetections(4, pose_to_matrix(1.0, 2.5, 3.0, 0, 0, 0))
+    out = tmp_path / "d.csv"
+    assert write_traverse_csv(out, [fd, empty]) == 2
+    rows = list(csv.reader(out.open()))
+    assert rows[0] == ["frame", "x", "y", "z", "detections", "boulders"]
+    assert rows[1][:5] == ["3", "1.0", "2.0", "3.0", "2"]
+    assert ast.literal_eval(rows[1][5]) == [tuple(p) for p in pts.tolist()]
+    assert rows[2][4:] == ["0", "[]"]
+    with pytest.raises(InputError):
+        write_traverse_csv(tmp_path / "x.csv", [FrameDetections(1, None)])
