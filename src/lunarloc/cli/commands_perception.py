@@ -30,6 +30,7 @@ def detect(
     from lunarloc.data.lac import LacArchive
     from lunarloc.perception.camera import STEREO_PAIRS
     from lunarloc.perception.detector import (
+        Detector,
         DetectorConfig,
         PoseSource,
         debug_overlay,
@@ -50,6 +51,9 @@ def detect(
     if debug_dir is not None:
         debug_dir.mkdir(parents=True, exist_ok=True)
     with LacArchive(archive) as ar:
+        from lunarloc.perception.detector import _camera_from_archive
+
+        detector = Detector(cfg, _camera_from_archive(ar))  # fails early (e.g. missing weights)
         lefts = [left for left, _ in cfg.pairs]
         frames = sorted(
             {int(f) for f in ar.frame_numbers for c in lefts if c in ar.cameras and ar.camera_row(c, int(f))}
@@ -59,7 +63,7 @@ def detect(
 
         def frames_iter():
             bar = tqdm(total=len(frames), unit="frame", desc="detect", dynamic_ncols=True)
-            for fd in detect_archive(ar, cfg, pose_src, frames=frames, keep_depth=debug_dir is not None):
+            for fd in detect_archive(ar, cfg, pose_src, detector=detector, frames=frames, keep_depth=debug_dir is not None):
                 stats["frames"] += 1
                 stats["detections"] += len(fd.detections)
                 for k, v in fd.timings.items():
