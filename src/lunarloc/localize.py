@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lunarloc.association.clique import max_clique
+from lunarloc.association.clique import max_clique, peel
 from lunarloc.association.clipper import clipper_clique
 from lunarloc.association.graph import RefPairIndex, graph_3d, vehicle_pairs, yaw_bin_chunks
 from lunarloc.association.putative import putative_associations
@@ -55,15 +55,17 @@ def chance_clique_size(num_associations: int, mode: "Mode" = Mode.GRAVITY) -> fl
     """Upper envelope of the largest consistent set found between UNRELATED maps with
     `num_associations` putative associations (measured; see README "Acceptance rule").
 
-    Model ``a + b * log10(m)`` fitted to the maximum over seeded trials of real and
-    synthetic unrelated map pairs at the default epsilon.
+    Envelope ``a + b * log10(m)`` over the largest chance cliques of 187 unrelated map
+    pairs at the default epsilon: 127 real traverse pairs with every shared rock removed
+    and 60 synthetic uniform rock fields of 20-450 landmarks
+    (``python benchmarks/chance_cliques.py``; largest seen: 6 real, 9 synthetic).
     """
     a, b = _CHANCE_MODEL[Mode(mode)]
     return a + b * math.log10(max(num_associations, 1))
 
 
 # (intercept, slope per decade of associations); measured by benchmarks/chance_cliques.py
-_CHANCE_MODEL = {Mode.GRAVITY: (-1.0, 1.5), Mode.SIX_DOF: (-1.0, 2.0)}
+_CHANCE_MODEL = {Mode.GRAVITY: (-0.52, 1.87), Mode.SIX_DOF: (-1.0, 2.0)}
 
 
 @dataclass
@@ -82,14 +84,16 @@ class LocalizationConfig:
     max_edges: int = 30_000_000  # 6-DoF memory bound on the consistency graph
     refine: bool = True  # re-fit with mutual nearest neighbours under the estimate
     refine_radius_m: float = 0.10  # max residual of a nearest-neighbour pair kept by refinement
+    robust_scale_m: float = 0.02  # Cauchy scale of the robust (IRLS) re-weighting in refinement
     # --- acceptance (verification) ---
     min_inliers: int = 6  # absolute floor on the inlier count
-    chance_factor: float = 1.5  # inliers must exceed chance_factor * chance_clique_size(m) ...
-    chance_margin: int = 2  # ... + chance_margin
+    chance_margin: float = 2.5  # inliers must exceed the chance envelope at this map size by this many
     max_rmse_m: float = 0.05  # residual RMSE of the inliers after registration
     min_extent_m: float = 1.0  # inliers must spread at least this far (largest principal std x 2)
     min_planarity: float = 0.05  # second/first principal std of the inliers (0 = collinear)
     min_handedness: float = 0.9  # gravity: share of inlier triangles with matching orientation
+    max_predicted_error_m: float = 0.15  # predicted 1-sigma error (x predicted_error_sigmas) anywhere on the vehicle map
+    predicted_error_sigmas: float = 1.0
     competitor_ratio: float = 1.5  # best must be this many times the best competing hypothesis
     competitor_yaw_sep_deg: float = 10.0  # hypotheses whose yaws differ more than this compete
     seed: int = 0  # CLIPPER initialisation
@@ -139,6 +143,7 @@ class LocalizationResult:
     required_inliers: int = 0
     num_associations: int = 0
     num_edges: int = 0
+    predicted_error_m: float = float("nan")
     yaw_deg: float = float("nan")
     tilt_deg: float = float("nan")
     timings: dict = field(default_factory=dict)
@@ -171,6 +176,7 @@ class LocalizationResult:
             "required_inliers": self.required_inliers,
             "num_associations": self.num_associations,
             "num_edges": self.num_edges,
+            "predicted_error_m": clean(float(self.predicted_error_m)),
             "yaw_deg": clean(float(self.yaw_deg)),
             "tilt_deg": clean(float(self.tilt_deg)),
             "timings_s": {k: round(v, 6) for k, v in self.timings.items()},
@@ -201,6 +207,11 @@ def _check_map(m: LandmarkMap, name: str) -> np.ndarray:
 def _solve(solver: Solver, n: int, eu, ev, ew, lower_bound: int, seed: int, scratch=None) -> np.ndarray:
     if solver is Solver.EXACT:
         return max_clique(n, eu, ev, lower_bound, scratch)
+    if lower_bound > 0 and len(eu):
+        keep = peel(eu, ev, lower_bound, scratch)  # vertices of degree < lb cannot beat lb
+        eu, ev, ew = eu[keep], ev[keep], ew[keep]
+        if len(eu) < lower_bound * (lower_bound + 1) // 2:
+            return np.empty(0, dtype=np.int32)
     c = clipper_clique(n, eu, ev, ew, seed=seed)
     return c if len(c) > lower_bound else np.empty(0, dtype=np.int32)
 
@@ -214,6 +225,22 @@ def _register(P: np.ndarray, Q: np.ndarray, cfg: LocalizationConfig) -> np.ndarr
 
 def _residuals(T, P, Q):
     return np.linalg.norm(transform_points(T, P) - Q, axis=1)
+
+
+def _register_robust(P, Q, cfg, T=None):
+    """Registration re-weighted by a Cauchy loss (IRLS, 5 rounds): correspondences with
+    residuals well above `robust_scale_m` lose influence. Returns (T, weights)."""
+    if T is None:
+        T = _register(P, Q, cfg)
+    w = np.ones(len(P))
+    for _ in range(5):
+        r = _residuals(T, P, Q)
+        w = 1.0 / (1.0 + (r / cfg.robust_scale_m) ** 2)
+        try:
+            T = arun_yaw(P, Q, w) if (cfg.mode is Mode.GRAVITY and len(P) < 4) else arun(P, Q, w)
+        except DegenerateGeometryError:
+            break
+    return T, w
 
 
 def _refine(T, Pv, Pr, inl, cfg):
@@ -234,7 +261,7 @@ def _refine(T, Pv, Pr, inl, cfg):
         if len(pairs) < len(best_inl):
             break
         try:
-            T_new = _register(Pv[pairs[:, 0]], Pr[pairs[:, 1]], cfg)
+            T_new, _ = _register_robust(Pv[pairs[:, 0]], Pr[pairs[:, 1]], cfg)
         except DegenerateGeometryError:
             break
         same = len(pairs) == len(best_inl) and np.array_equal(np.sort(pairs[:, 0]), np.sort(best_inl[:, 0]))
@@ -242,6 +269,41 @@ def _refine(T, Pv, Pr, inl, cfg):
         if same:
             break
     return best_T, best_inl
+
+
+def predicted_error(T, P, Q, weights, query_xyz, sigma_floor: float = 0.005) -> np.ndarray:
+    """1-sigma position error (m) of the registration T at each vehicle-frame query point.
+
+    Linearised weighted least squares: residual r_i = dt + dtheta x p_i + noise, with the
+    noise scale estimated from the weighted residuals (floored at `sigma_floor`);
+    covariance of (dt, dtheta) is sigma^2 (sum_i w_i J_i^T J_i)^-1 with J_i = [I, -[p_i]x].
+    The error at q has covariance A C A^T with A = [I, -[q]x].
+    """
+    Pt = transform_points(T, P)
+    r2 = np.sum((Pt - Q) ** 2, axis=1)
+    w = np.asarray(weights, float)
+    dof = max(3 * w.sum() - 6, 1.0)
+    sigma2 = max(float(w @ r2) / dof, sigma_floor**2)
+    c = (w @ Pt) / w.sum()
+    X = Pt - c  # linearise about the weighted centroid (reference frame)
+
+    def skew(v):
+        return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+    H = np.zeros((6, 6))
+    for wi, x in zip(w, X):
+        J = np.hstack([np.eye(3), -skew(x)])
+        H += wi * J.T @ J
+    try:
+        C = sigma2 * np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return np.full(len(query_xyz), np.inf)
+    Y = transform_points(T, query_xyz) - c
+    out = np.empty(len(Y))
+    for k, y in enumerate(Y):
+        A = np.hstack([np.eye(3), -skew(y)])
+        out[k] = math.sqrt(max(np.trace(A @ C @ A.T), 0.0))
+    return out
 
 
 def _handedness(P: np.ndarray, Q: np.ndarray, rng: np.random.Generator) -> float:
@@ -292,7 +354,7 @@ def localize(
     )
     m = len(assoc)
     timings["associations"] = time.perf_counter() - t0
-    required = max(cfg.min_inliers, int(math.ceil(cfg.chance_factor * chance_clique_size(m, cfg.mode) + cfg.chance_margin)))
+    required = max(cfg.min_inliers, int(math.ceil(chance_clique_size(m, cfg.mode) + cfg.chance_margin)))
     if m == 0:
         return LocalizationResult(False, _nan_T(), np.zeros((0, 2), int), float("nan"),
                                   "no putative associations (size pruning removed all)", required_inliers=required,
@@ -322,6 +384,12 @@ def localize(
                                   clique_size=len(best), **base)
     if cfg.refine:
         T, inl = _refine(T, Pv, Pr, inl, cfg)
+    try:
+        T_w, w = _register_robust(Pv[inl[:, 0]], Pr[inl[:, 1]], cfg, T) if cfg.refine else (T, np.ones(len(inl)))
+        T = T_w
+    except DegenerateGeometryError:
+        w = np.ones(len(inl))
+    pred = predicted_error(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, Pv)
     timings["registration"] = time.perf_counter() - t0
 
     # competitor in 6-DoF mode: best set among associations the winner does not explain
@@ -337,6 +405,7 @@ def localize(
     R = T[:3, :3]
     out = LocalizationResult(
         False, T, inl, rmse, "", clique_size=len(best), competitor_size=int(competitor),
+        predicted_error_m=float(pred.max()),
         yaw_deg=math.degrees(yaw_of(R)), tilt_deg=math.degrees(tilt_angle(R)), **base,
     )
     Q = Pr[inl[:, 1]]
@@ -352,6 +421,11 @@ def localize(
         out.reason = f"fitted tilt {out.tilt_deg:.2f} deg exceeds the allowed {cfg.max_tilt_deg} deg (mirror or wrong match)"
     elif cfg.mode is Mode.GRAVITY and _handedness(Pv[inl[:, 0]], Q, np.random.default_rng(0)) < cfg.min_handedness:
         out.reason = "inliers are a mirror image of the reference (triangle orientations disagree)"
+    elif cfg.predicted_error_sigmas * pred.max() > cfg.max_predicted_error_m:
+        out.reason = (
+            f"pose too uncertain over the vehicle map: predicted error up to "
+            f"{cfg.predicted_error_sigmas:g} x {pred.max() * 100:.1f} cm (allowed {cfg.max_predicted_error_m * 100:.0f} cm)"
+        )
     elif k < required:
         out.reason = (
             f"{k} inliers is too few to beat chance at {m} associations (need {required}; "

@@ -204,8 +204,8 @@ class AggregationConfig:
     (README, "Landmark aggregation").
     """
 
-    radius_m: float = 0.15  # DBSCAN eps: neighbours within this distance belong to one rock
-    min_sightings: int = 3  # DBSCAN min_samples: detections needed to make a landmark (drops one-off noise)
+    radius_m: float = 0.10  # DBSCAN eps: neighbours within this distance belong to one rock
+    min_sightings: int = 5  # DBSCAN min_samples: detections needed to make a landmark (drops one-off noise)
     min_frames: int = 2  # a landmark must be seen in at least this many distinct frames
 
     def __post_init__(self) -> None:

@@ -36,6 +36,10 @@ def clipper_clique(
         return np.empty(0, dtype=np.int32)
     if len(eu) == 0:
         return np.array([0], dtype=np.int32)
+    # work on the vertices that have edges only (relabelled 0..n'-1)
+    used, inv = np.unique(np.r_[eu, ev], return_inverse=True)
+    eu, ev = inv[: len(eu)], inv[len(eu) :]
+    n = len(used)
     W = sp.coo_matrix((np.r_[ew, ew].astype(float), (np.r_[eu, ev], np.r_[ev, eu])), shape=(n, n)).tocsr()
     A = W.copy()
     A.data[:] = 1.0
@@ -87,4 +91,4 @@ def clipper_clique(
         row = Acsr.indices[Acsr.indptr[idx] : Acsr.indptr[idx + 1]]
         if all(c in row for c in chosen):
             chosen.append(int(idx))
-    return np.sort(np.asarray(chosen, dtype=np.int32))
+    return np.sort(used[np.asarray(chosen, dtype=np.int64)].astype(np.int32))

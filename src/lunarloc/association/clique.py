@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["max_clique", "csr_from_edges", "core_numbers"]
+__all__ = ["max_clique", "peel", "csr_from_edges", "core_numbers"]
 
 
 @njit(cache=True)
@@ -297,15 +297,11 @@ def _compact(eu, ev, keep, scratch):
 
 
 @njit(cache=True)
-def _peeled_max_clique(eu: np.ndarray, ev: np.ndarray, lb: int, scratch: np.ndarray):
-    """Relabel compactly, drop vertices of degree < lb (they cannot be in a clique
-    larger than lb) by repeated sequential passes over the edge list, then search.
-    Cheap on the sparse, mostly random consistency graphs."""
-    keep = np.ones(eu.shape[0], dtype=np.bool_)
-    m, su, sv, oldid = _compact(eu, ev, keep, scratch)
+def _peel(su, sv, m, lb):
+    """Keep-mask of edges after repeatedly dropping vertices of degree < lb (they cannot
+    be in a clique larger than lb). Sequential passes over the edge list."""
     keep = np.ones(su.shape[0], dtype=np.bool_)
     deg = np.zeros(m, dtype=np.int32)
-    ne = su.shape[0]
     while True:
         deg[:] = 0
         for k in range(su.shape[0]):
@@ -322,7 +318,24 @@ def _peeled_max_clique(eu: np.ndarray, ev: np.ndarray, lb: int, scratch: np.ndar
                 else:
                     ne += 1
         if not changed or ne == 0:
-            break
+            return keep, ne
+
+
+@njit(cache=True)
+def _peeled_graph(eu, ev, lb, scratch):
+    """Compact relabelling + peeling at lb. Returns (m, su, sv, oldid, keep-mask over
+    the original edges)."""
+    keep_all = np.ones(eu.shape[0], dtype=np.bool_)
+    m, su, sv, oldid = _compact(eu, ev, keep_all, scratch)
+    keep, ne = _peel(su, sv, m, lb)
+    return m, su, sv, oldid, keep, ne
+
+
+@njit(cache=True)
+def _peeled_max_clique(eu: np.ndarray, ev: np.ndarray, lb: int, scratch: np.ndarray):
+    """Relabel compactly, peel at lb, then search. Cheap on the sparse, mostly random
+    consistency graphs."""
+    m, su, sv, oldid, keep, ne = _peeled_graph(eu, ev, lb, scratch)
     if ne == 0 or ne < lb * (lb + 1) // 2:
         return np.empty(0, dtype=np.int32)
     m2, tu, tv, old2 = _compact(su, sv, keep, scratch)
@@ -332,6 +345,21 @@ def _peeled_max_clique(eu: np.ndarray, ev: np.ndarray, lb: int, scratch: np.ndar
     for k in range(c.shape[0]):
         out[k] = oldid[old2[c[k]]]
     return out
+
+
+def peel(eu: np.ndarray, ev: np.ndarray, lower_bound: int, scratch: np.ndarray | None = None) -> np.ndarray:
+    """Boolean mask of the edges that survive removing, repeatedly, every vertex of
+    degree < lower_bound: only those can belong to a clique larger than lower_bound."""
+    eu = np.ascontiguousarray(eu, dtype=np.int32)
+    ev = np.ascontiguousarray(ev, dtype=np.int32)
+    if eu.shape[0] == 0:
+        return np.zeros(0, dtype=bool)
+    n = int(max(eu.max(), ev.max())) + 1
+    if scratch is None or scratch.shape[0] < n:
+        scratch = np.full(n, -1, dtype=np.int32)
+    m, su, sv, oldid, keep, ne = _peeled_graph(eu, ev, int(lower_bound), scratch)
+    # su/sv are in the same order as eu/ev (compaction keeps every edge), so keep aligns
+    return keep
 
 
 def max_clique(n: int, eu: np.ndarray, ev: np.ndarray, lower_bound: int = 0, scratch: np.ndarray | None = None) -> np.ndarray:

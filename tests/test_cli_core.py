@@ -1,0 +1,79 @@
+import json
+
+import numpy as np
+import pytest
+
+from conftest import make_pair
+from lunarloc.cli import main
+from lunarloc.maps import LandmarkMap, load_map, save_map
+
+
+def write_traverse_csv(path, world_rocks, rng, n_frames=12):
+    """A traverse CSV whose every frame re-detects the rocks with 5 mm noise."""
+    lines = ["frame,x,y,z,detections,boulders"]
+    for f in range(n_frames):
+        det = world_rocks + rng.normal(0, 0.005, world_rocks.shape)
+        b = "[" + ", ".join(f"({x:.6f}, {y:.6f}, {z:.6f})" for x, y, z in det) + "]"
+        lines.append(f'{f},{0.1 * f},0,0,{len(det)},"{b}"')
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.fixture
+def maps(tmp_path, rng):
+    ref, veh, T, _ = make_pair(rng, n_ref=80, n_common=25, n_outliers=5)
+    ref_p = save_map(ref, tmp_path / "ref.csv")
+    veh_p = save_map(veh, tmp_path / "veh.npz")
+    return ref_p, veh_p, T
+
+
+def test_localize_json(maps, capsys):
+    ref_p, veh_p, T = maps
+    assert main(["localize", str(ref_p), str(veh_p), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["success"] is True
+    veh = load_map(veh_p).positions_xyz
+    est = veh @ np.array(d["T_ref_veh"])[:3, :3].T + np.array(d["T_ref_veh"])[:3, 3]
+    true = veh @ T[:3, :3].T + T[:3, 3]
+    assert np.max(np.linalg.norm(est - true, axis=1)) < 0.05
+    for key in ("num_inliers", "inliers", "residual_rmse_m", "time_s", "reason"):
+        assert key in d
+
+
+def test_localize_human_output_and_failure_exit_zero(tmp_path, rng, capsys):
+    a = save_map(LandmarkMap(rng.uniform(-10, 10, (40, 3))), tmp_path / "a.csv")
+    b = save_map(LandmarkMap(rng.uniform(-10, 10, (30, 3))), tmp_path / "b.csv")
+    assert main(["localize", str(a), str(b)]) == 0
+    assert "not localized" in capsys.readouterr().out
+
+
+def test_map_from_traverse_then_localize(tmp_path, rng, capsys):
+    ref, veh, T, common = make_pair(rng, n_ref=60, n_common=25, n_outliers=0)
+    t_ref = write_traverse_csv(tmp_path / "traverse_ref.csv", ref.positions_xyz, rng)
+    assert main(["map", str(t_ref), "-o", str(tmp_path / "ref_map.csv")]) == 0
+    lm = load_map(tmp_path / "ref_map.csv")
+    assert len(lm) == 60
+    save_map(veh, tmp_path / "veh.csv")
+    # a traverse CSV is accepted directly as the reference argument
+    assert main(["localize", str(t_ref), str(tmp_path / "veh.csv"), "--json"]) == 0
+    out = capsys.readouterr().out.strip().splitlines()[-1]
+    assert json.loads(out)["success"]
+
+
+def test_errors_are_one_line_and_nonzero(tmp_path, capsys):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("x,y\n1,2\n")
+    assert main(["localize", str(bad), str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error:") and "missing column 'z'" in err and len(err.splitlines()) == 1
+    assert main(["localize", str(tmp_path / "nope.csv"), str(bad)]) == 2
+    assert "no such file" in capsys.readouterr().err
+    empty = save_map(LandmarkMap(np.zeros((0, 3))), tmp_path / "empty.csv")
+    assert main(["localize", str(empty), str(empty)]) == 2
+    assert "empty" in capsys.readouterr().err
+    assert main(["localize", str(empty), str(empty), "--mode", "sideways"]) == 2
+
+
+def test_bench_requires_data(tmp_path, capsys):
+    assert main(["bench", "pairs", "--data", str(tmp_path)]) == 2
+    assert "no traverse" in capsys.readouterr().err

@@ -1,0 +1,133 @@
+import json
+
+import numpy as np
+import pytest
+
+from conftest import make_pair, random_T, rock_field
+from lunarloc import LandmarkMap, LocalizationConfig, localize
+from lunarloc.errors import ConfigError, DegenerateGeometryError, InputError
+from lunarloc.geometry import invert_transform, rotation_angle, transform_points
+from lunarloc.localize import Mode, Solver
+
+
+def pose_error(T_est, T_true):
+    E = T_est @ invert_transform(T_true)
+    return float(np.linalg.norm(E[:3, 3])), float(np.degrees(rotation_angle(E[:3, :3])))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_round_trip_gravity_exact(seed):
+    rng = np.random.default_rng(seed)
+    ref, veh, T, common = make_pair(rng, n_ref=200, n_common=35, n_outliers=25, noise=0.01)
+    r = localize(ref, veh)
+    assert r.success, r.reason
+    dt, dr = pose_error(r.T_ref_veh, T)
+    assert dt < 0.05 and dr < 0.2
+    # every inlier is a true correspondence
+    mapped = transform_points(T, veh.positions_xyz[r.inliers[:, 0]])
+    assert np.all(np.linalg.norm(mapped - ref.positions_xyz[r.inliers[:, 1]], axis=1) < 0.1)
+    assert r.num_inliers >= 30
+
+
+@pytest.mark.parametrize("mode,solver", [(Mode.SIX_DOF, Solver.EXACT), (Mode.GRAVITY, Solver.CLIPPER), (Mode.SIX_DOF, Solver.CLIPPER)])
+def test_round_trip_other_modes(rng, mode, solver):
+    ref, veh, T, _ = make_pair(rng, n_ref=80, n_common=25, n_outliers=10, noise=0.01)
+    r = localize(ref, veh, LocalizationConfig(mode=mode, solver=solver))
+    assert r.success, r.reason
+    dt, dr = pose_error(r.T_ref_veh, T)
+    assert dt < 0.05 and dr < 0.2
+
+
+def test_six_dof_handles_large_tilt(rng):
+    ref, veh, T, _ = make_pair(rng, n_ref=60, n_common=25, n_outliers=5, max_tilt_deg=40)
+    r6 = localize(ref, veh, LocalizationConfig(mode=Mode.SIX_DOF))
+    assert r6.success and pose_error(r6.T_ref_veh, T)[0] < 0.05
+    # gravity mode must not claim a pose for a map tilted far beyond its allowance
+    rg = localize(ref, veh)
+    assert not rg.success or pose_error(rg.T_ref_veh, T)[0] < 0.05
+
+
+def test_unrelated_maps_are_not_localized():
+    for seed in range(4):
+        rng = np.random.default_rng(100 + seed)
+        ref = LandmarkMap(rock_field(rng, 300))
+        veh = LandmarkMap(rock_field(rng, 120))
+        r = localize(ref, veh)
+        assert not r.success, r.reason
+        assert r.reason
+
+
+def test_mirror_image_is_rejected(rng):
+    ref, veh, T, _ = make_pair(rng, n_ref=120, n_common=40, n_outliers=0, max_tilt_deg=0.0)
+    mirrored = LandmarkMap(veh.positions_xyz * np.array([1.0, -1.0, 1.0]))
+    r = localize(ref, mirrored)
+    assert not r.success
+    # in 6-DoF mode a near-planar mirror image can be matched by flipping it upside down;
+    # that is a wrong pose too and must not be claimed as a levelled solution
+    r6 = localize(ref, mirrored, LocalizationConfig(mode=Mode.SIX_DOF))
+    if r6.success:
+        assert r6.tilt_deg > 90
+
+
+def test_clustered_inliers_are_not_trusted(rng):
+    ref_xyz = rock_field(rng, 100)
+    ref_xyz[:6] = ref_xyz[0] + rng.normal(0, 0.2, (6, 3))  # six rocks within a few dm
+    T = random_T(rng)
+    veh = LandmarkMap(transform_points(invert_transform(T), ref_xyz[:6]))
+    r = localize(LandmarkMap(ref_xyz), veh)
+    assert not r.success
+
+
+def test_partial_overlap_with_many_outliers(rng):
+    ref, veh, T, _ = make_pair(rng, n_ref=400, n_common=30, n_outliers=120, noise=0.015)
+    r = localize(ref, veh)
+    assert r.success, r.reason
+    assert pose_error(r.T_ref_veh, T)[0] < 0.05
+
+
+@pytest.mark.parametrize(
+    "ref_xyz,match,exc",
+    [
+        (np.zeros((0, 3)), "empty", InputError),
+        (np.zeros((1, 3)), "at least 3", InputError),
+        (np.c_[np.arange(10.0), 2 * np.arange(10.0), np.zeros(10)], "collinear", DegenerateGeometryError),
+        (np.ones((5, 3)), "coincide", DegenerateGeometryError),
+    ],
+)
+def test_degenerate_inputs_raise_clear_errors(rng, ref_xyz, match, exc):
+    good = LandmarkMap(rock_field(rng, 20))
+    with pytest.raises(exc, match=match):
+        localize(LandmarkMap(ref_xyz), good)
+    with pytest.raises(exc, match=match):
+        localize(good, LandmarkMap(ref_xyz))
+
+
+def test_nan_and_wrong_types():
+    with pytest.raises(InputError, match="NaN"):
+        LandmarkMap(np.array([[0, 0, np.nan], [1, 1, 1], [2, 0, 0]]))
+    with pytest.raises(InputError, match="LandmarkMap"):
+        localize(np.zeros((5, 3)), np.zeros((5, 3)))
+
+
+def test_config_validation():
+    with pytest.raises(ConfigError):
+        LocalizationConfig(epsilon_m=0)
+    with pytest.raises(ValueError):
+        LocalizationConfig(mode="sideways")
+    with pytest.raises(ConfigError):
+        LocalizationConfig(min_inliers=2)
+
+
+def test_result_json_round_trip(rng):
+    ref, veh, T, _ = make_pair(rng, n_ref=60, n_common=20, n_outliers=5)
+    d = json.loads(json.dumps(localize(ref, veh).to_dict()))
+    assert d["success"] and len(d["T_ref_veh"]) == 4 and d["num_inliers"] == len(d["inliers"])
+    failed = localize(LandmarkMap(rock_field(rng, 50)), LandmarkMap(rock_field(rng, 30)))
+    d = json.loads(json.dumps(failed.to_dict()))
+    assert d["success"] is False and d["reason"]
+
+
+def test_six_dof_edge_budget_is_enforced(rng):
+    ref, veh, _, _ = make_pair(rng, n_ref=100, n_common=20)
+    with pytest.raises(InputError, match="exceeds"):
+        localize(ref, veh, LocalizationConfig(mode=Mode.SIX_DOF, max_edges=1000))
