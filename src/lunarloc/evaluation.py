@@ -180,8 +180,11 @@ def run_pair(
     agg_config: AggregationConfig | None = None,
     drift: DriftModel | None = None,
     ref_map=None,
+    window_m: float | None = None,
 ) -> PairResult:
-    """Localize one traverse pair (see module docstring)."""
+    """Localize one traverse pair (see module docstring). With `window_m`, the vehicle map
+    holds only detections from the last `window_m` metres of the path (what an online
+    rover localizes, where drift inside the window is small)."""
     drift = drift or DriftModel()
     ref = ref_map if ref_map is not None else aggregate_detections(
         ref_trav.detections_xyz, ref_trav.detection_frame, agg_config, frame=ref_trav.name
@@ -191,8 +194,14 @@ def run_pair(
     else:
         det, rover, T_odo_world = drifted_detections(veh_trav, drift)
     T_veh_odo = random_vehicle_transform(rng)
+    det_frame = veh_trav.detection_frame
+    if window_m is not None:
+        travelled = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(veh_trav.rover_xyz, axis=0), axis=1))]
+        first = veh_trav.frames[np.searchsorted(travelled, travelled[-1] - window_m)]
+        keep = det_frame >= first
+        det, det_frame = det[keep], det_frame[keep]
     det_v = transform_points(T_veh_odo, det)
-    veh = aggregate_detections(det_v, veh_trav.detection_frame, agg_config, frame=veh_trav.name)
+    veh = aggregate_detections(det_v, det_frame, agg_config, frame=veh_trav.name)
     T_true = invert_transform(T_veh_odo @ T_odo_world)  # world <- vehicle, exact at the last frame
     last_v = transform_points(T_veh_odo, rover[-1:])[0]
     t0 = time.perf_counter()
@@ -220,6 +229,7 @@ def bench_pairs(
     agg_config: AggregationConfig | None = None,
     drift: DriftModel | None = None,
     progress: Callable[[PairResult], None] | None = None,
+    window_m: float | None = None,
 ) -> BenchSummary:
     """Run :func:`run_pair` over `pairs` (default: all unordered pairs of traverses)."""
     paths = find_traverses(data_dir)
@@ -240,7 +250,7 @@ def bench_pairs(
         if a not in maps:
             maps[a] = aggregate_detections(travs[a].detections_xyz, travs[a].detection_frame, agg_config, frame=travs[a].name)
         rng = np.random.default_rng([seed, a, b])
-        r = run_pair(travs[a], travs[b], rng, loc_config, agg_config, drift, ref_map=maps[a])
+        r = run_pair(travs[a], travs[b], rng, loc_config, agg_config, drift, ref_map=maps[a], window_m=window_m)
         r.reference, r.vehicle = a, b
         summary.results.append(r)
         if progress:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import enum
 import logging
 import math
+import os
 import time
 from dataclasses import asdict, dataclass, field
 
@@ -97,6 +98,7 @@ class LocalizationConfig:
     competitor_ratio: float = 1.5  # best must be this many times the best competing hypothesis
     competitor_yaw_sep_deg: float = 10.0  # hypotheses whose yaws differ more than this compete
     seed: int = 0  # CLIPPER initialisation
+    threads: int = field(default_factory=lambda: min(4, os.cpu_count() or 1))  # graph-building threads
 
     def __post_init__(self) -> None:
         self.mode = Mode(self.mode)
@@ -397,7 +399,7 @@ def localize(
     if cfg.mode is Mode.SIX_DOF:
         competitor = _competitor_3d(T, Pv, Pr, node_of, assoc, cfg)
     else:
-        competitor = max(competitor, _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw))
+        competitor = max(competitor, _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw, competitor))
     timings["verification"] = time.perf_counter() - t0
 
     res = _residuals(T, Pv[inl[:, 0]], Pr[inl[:, 1]])
@@ -481,7 +483,7 @@ def _yaw_bins(Pv, Pr, node_of, cfg, bin_start: int = 0, bin_count: int | None = 
     return yaw_bin_chunks(
         vehicle_pairs(Pv), index, node_of, n_bins, max(1, n_bins // 8), cfg.epsilon_m, cfg.epsilon_z_m,
         math.tan(math.radians(cfg.max_tilt_deg)), cfg.yaw_noise_factor, cfg.sigma,
-        weights=cfg.solver is Solver.CLIPPER, bin_start=bin_start, bin_count=bin_count,
+        weights=cfg.solver is Solver.CLIPPER, bin_start=bin_start, bin_count=bin_count, workers=cfg.threads,
     )
 
 
@@ -513,7 +515,7 @@ def _search_yaw_bins(Pv, Pr, node_of, cfg):
     return best, second, best_yaw, total_edges
 
 
-def _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw):
+def _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw, floor: int = 0):
     """Best set near the winner's yaw among associations the winner does not explain
     (a shifted copy of the pattern at the same heading)."""
     if best_yaw is None:
@@ -525,7 +527,7 @@ def _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw):
     step = 2 * math.pi / n_bins
     centre = int(math.floor((best_yaw + math.pi) / step))
     reach = int(math.ceil(math.radians(cfg.competitor_yaw_sep_deg) / step))
-    best = 0
+    best = floor  # only a set larger than the competitor already known matters
     scratch = np.full(node_of.size, -1, dtype=np.int32)
     for _, _theta, eu, ev, ew in _yaw_bins(Pv, Pr, node2, cfg, centre - reach, 2 * reach + 1):
         if len(eu):

@@ -99,6 +99,9 @@ def bench_pairs_cmd(
     seed: int = typer.Option(0, help="Seed of the random vehicle transforms."),
     drift: float = typer.Option(0.0, help="Simulated heading drift, degrees per metre travelled."),
     scale_error: float = typer.Option(0.0, help="Simulated odometry scale error (0.01 = 1%)."),
+    window: Optional[float] = typer.Option(
+        None, help="Vehicle map from the last WINDOW metres of the path only (use with drift)."
+    ),
     mode: str = typer.Option("gravity", help="gravity or 6dof."),
     solver: str = typer.Option("exact", help="exact or clipper."),
     check: bool = typer.Option(False, "--check", help="Exit 1 unless the acceptance targets are met."),
@@ -117,19 +120,21 @@ def bench_pairs_cmd(
     pairs = list(PAPER_PAIRS) if only_paper else list(PAPER_PAIRS) + [
         p for p in itertools.combinations(sorted(paths), 2) if p not in PAPER_PAIRS
     ]
+    import sys
+
     cfg = LocalizationConfig(mode=mode, solver=solver)
-    con = Console()
+    con = Console(width=None if sys.stdout.isatty() else 130)
     with Progress(console=con, transient=True) as prog:
         task = prog.add_task("localizing pairs", total=len(pairs))
         summary = bench_pairs(
-            data, pairs, seed=seed, loc_config=cfg, drift=DriftModel(drift, scale_error),
+            data, pairs, seed=seed, loc_config=cfg, drift=DriftModel(drift, scale_error), window_m=window,
             progress=lambda r: prog.update(task, advance=1, description=f"pair {r.reference}-{r.vehicle}"),
         )
     res = summary.results
     table = Table(title="LunarLoc traverse pairs (reference - vehicle)")
     for col in ("pair", "segs ref", "segs veh", "inliers", "err@origin cm", "err@rover cm", "rot deg",
-                "success", "correct", "time s"):
-        table.add_column(col, justify="right")
+                "success", "correct", "time s", "reason"):
+        table.add_column(col, justify="right" if col != "reason" else "left")
     paper = [r for r in res if (r.reference, r.vehicle) in PAPER_PAIRS]
     others = [r for r in res if (r.reference, r.vehicle) not in PAPER_PAIRS]
     shown = paper + [r for r in others if not (r.success and r.correct)]
@@ -138,6 +143,7 @@ def bench_pairs_cmd(
             f"{r.reference}-{r.vehicle}", str(r.segs_ref), str(r.segs_veh), str(r.inliers),
             f"{r.err_origin_m * 100:.2f}", f"{r.err_rover_m * 100:.2f}", f"{r.rot_err_deg:.3f}",
             "yes" if r.success else "[red]no[/red]", "yes" if r.correct else "[red]no[/red]", f"{r.time_s:.3f}",
+            "" if r.success else r.reason[:60],
         )
     con.print(table)
     d = summary.to_dict()
