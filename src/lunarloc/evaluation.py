@@ -109,6 +109,12 @@ class PairResult:
     reason: str
     competitor: int = 0
     required: int = 0
+    lever_m: float = math.nan  # distance from the rover's last position to the inliers' centroid
+
+    @property
+    def rotation_part_m(self) -> float:
+        """Error at the rover explained by the rotation error times the lever arm."""
+        return math.radians(self.rot_err_deg) * self.lever_m
 
     @property
     def confident_wrong(self) -> bool:
@@ -217,8 +223,12 @@ def run_pair(
     else:
         err0 = err_rover = rot = math.nan
     correct = bool(err_rover < SUCCESS_TRANSLATION_M and rot < SUCCESS_ROTATION_DEG)
+    lever = math.nan
+    if res.num_inliers:
+        centre = ref.positions_xyz[res.inliers[:, 1]].mean(axis=0)
+        lever = float(np.linalg.norm(veh_trav.rover_xyz[-1] - centre))
     return PairResult(0, 0, len(ref), len(veh), res.num_inliers, bool(res.success), correct, err0, err_rover, rot,
-                      dt, res.reason, res.competitor_size, res.required_inliers)
+                      dt, res.reason, res.competitor_size, res.required_inliers, lever)
 
 
 def bench_pairs(

@@ -19,6 +19,7 @@ import enum
 import logging
 import math
 import os
+import threading
 import time
 from dataclasses import asdict, dataclass, field
 
@@ -27,7 +28,7 @@ from scipy.spatial import cKDTree
 
 from lunarloc.association.clique import max_clique, peel
 from lunarloc.association.clipper import clipper_clique
-from lunarloc.association.graph import RefPairIndex, graph_3d, vehicle_pairs, yaw_bin_chunks
+from lunarloc.association.graph import RefPairIndex, graph_3d, sweep_yaw_bins, vehicle_pairs
 from lunarloc.association.putative import putative_associations
 from lunarloc.errors import ConfigError, DegenerateGeometryError, InputError
 from lunarloc.geometry import arun, arun_yaw, collinearity, tilt_angle, transform_points, yaw_of
@@ -476,15 +477,23 @@ def _n_bins(cfg) -> int:
     return max(1, int(round(360.0 / cfg.yaw_step_deg)))
 
 
-def _yaw_bins(Pv, Pr, node_of, cfg, bin_start: int = 0, bin_count: int | None = None):
+def _sweep(Pv, Pr, node_of, cfg, visit, bin_start: int = 0, bin_count: int | None = None) -> int:
+    """Run `visit(bin, theta, eu, ev, ew)` on the consistency graph of every yaw bin."""
     step = math.radians(cfg.yaw_step_deg)
     n_bins = _n_bins(cfg)
     index = RefPairIndex(Pr, dist_cell_m=max(cfg.epsilon_m / 2, 0.01), angle_cell_rad=math.radians(1.0))
-    return yaw_bin_chunks(
+    return sweep_yaw_bins(
         vehicle_pairs(Pv), index, node_of, n_bins, max(1, n_bins // 8), cfg.epsilon_m, cfg.epsilon_z_m,
-        math.tan(math.radians(cfg.max_tilt_deg)), cfg.yaw_noise_factor, cfg.sigma,
+        math.tan(math.radians(cfg.max_tilt_deg)), cfg.yaw_noise_factor, cfg.sigma, visit,
         weights=cfg.solver is Solver.CLIPPER, bin_start=bin_start, bin_count=bin_count, workers=cfg.threads,
     )
+
+
+class _Scratch(threading.local):
+    """Per-thread scratch array for the clique solver (int32, filled with -1)."""
+
+    def __init__(self, n: int):
+        self.arr = np.full(n, -1, dtype=np.int32)
 
 
 def _search_yaw_bins(Pv, Pr, node_of, cfg):
@@ -492,27 +501,29 @@ def _search_yaw_bins(Pv, Pr, node_of, cfg):
     by more than competitor_yaw_sep_deg (the competing hypothesis)."""
     n_assoc = int(node_of.size)
     sep = math.radians(cfg.competitor_yaw_sep_deg)
-    best = np.empty(0, dtype=np.int32)
-    best_yaw = None
-    second = 0
-    total_edges = 0
-    scratch = np.full(n_assoc, -1, dtype=np.int32)
-    for _, theta, eu, ev, ew in _yaw_bins(Pv, Pr, node_of, cfg):
-        total_edges += len(eu)
-        lb = second  # a clique must beat the competitor to change anything
+    state = {"best": np.empty(0, dtype=np.int32), "yaw": None, "second": 0}
+    lock = threading.Lock()
+    scratch = _Scratch(n_assoc)
+
+    def visit(_b, theta, eu, ev, ew):
+        lb = state["second"]  # a clique must beat the competitor to change anything
         if len(eu) < lb * (lb + 1) // 2:
-            continue
-        c = _solve(cfg.solver, n_assoc, eu, ev, ew, lb, cfg.seed, scratch)
-        if len(c) <= lb:
-            continue
-        far = best_yaw is None or abs((theta - best_yaw + math.pi) % (2 * math.pi) - math.pi) > sep
-        if len(c) > len(best):
-            if far and len(best):
-                second = max(second, len(best))
-            best, best_yaw = c, theta
-        elif far:
-            second = max(second, len(c))
-    return best, second, best_yaw, total_edges
+            return
+        c = _solve(cfg.solver, n_assoc, eu, ev, ew, lb, cfg.seed, scratch.arr)
+        if len(c) == 0:
+            return
+        with lock:
+            best, best_yaw = state["best"], state["yaw"]
+            far = best_yaw is None or abs((theta - best_yaw + math.pi) % (2 * math.pi) - math.pi) > sep
+            if len(c) > len(best) or (len(c) == len(best) and best_yaw is not None and theta < best_yaw and not far):
+                if far and len(best):
+                    state["second"] = max(state["second"], len(best))
+                state["best"], state["yaw"] = c, theta
+            elif far:
+                state["second"] = max(state["second"], len(c))
+
+    total_edges = _sweep(Pv, Pr, node_of, cfg, visit)
+    return state["best"], state["second"], state["yaw"], total_edges
 
 
 def _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw, floor: int = 0):
@@ -527,10 +538,15 @@ def _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw, floor: int = 
     step = 2 * math.pi / n_bins
     centre = int(math.floor((best_yaw + math.pi) / step))
     reach = int(math.ceil(math.radians(cfg.competitor_yaw_sep_deg) / step))
-    best = floor  # only a set larger than the competitor already known matters
-    scratch = np.full(node_of.size, -1, dtype=np.int32)
-    for _, _theta, eu, ev, ew in _yaw_bins(Pv, Pr, node2, cfg, centre - reach, 2 * reach + 1):
+    state = {"best": floor}  # only a set larger than the competitor already known matters
+    lock = threading.Lock()
+    scratch = _Scratch(int(node_of.size))
+
+    def visit(_b, _theta, eu, ev, ew):
         if len(eu):
-            c = _solve(cfg.solver, int(node_of.size), eu, ev, ew, best, cfg.seed, scratch)
-            best = max(best, len(c))
-    return best
+            c = _solve(cfg.solver, int(node_of.size), eu, ev, ew, state["best"], cfg.seed, scratch.arr)
+            with lock:
+                state["best"] = max(state["best"], len(c))
+
+    _sweep(Pv, Pr, node2, cfg, visit, centre - reach, 2 * reach + 1)
+    return state["best"]

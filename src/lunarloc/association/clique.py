@@ -24,7 +24,7 @@ from numba import njit
 __all__ = ["max_clique", "peel", "csr_from_edges", "core_numbers"]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def csr_from_edges(n: int, eu: np.ndarray, ev: np.ndarray):
     """Symmetric CSR adjacency (indptr, indices) of an undirected edge list on n vertices."""
     deg = np.zeros(n + 1, dtype=np.int64)
@@ -48,7 +48,7 @@ def csr_from_edges(n: int, eu: np.ndarray, ev: np.ndarray):
     return indptr, indices
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def core_numbers(n: int, indptr: np.ndarray, indices: np.ndarray):
     """Core number of each vertex and a degeneracy order (Batagelj & Zaversnik 2003)."""
     deg = np.empty(n, dtype=np.int64)
@@ -93,7 +93,7 @@ def core_numbers(n: int, indptr: np.ndarray, indices: np.ndarray):
     return deg, vert  # deg now holds core numbers; vert is the degeneracy order
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _colour_sort(cand, nc, adj, order_out, colour_out):
     """Greedy sequential colouring of cand[:nc] (Tomita & Seki 2003): writes vertices in
     non-decreasing colour order and their colour numbers (1-based). Returns nothing."""
@@ -125,7 +125,7 @@ def _colour_sort(cand, nc, adj, order_out, colour_out):
     _ = s
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _dense_max_clique(adj: np.ndarray, lb: int):
     """Largest clique of a small dense graph (boolean s x s adjacency) larger than lb.
 
@@ -177,7 +177,7 @@ def _dense_max_clique(adj: np.ndarray, lb: int):
     return found, best_set[:found].copy()
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _max_clique_csr(n: int, indptr: np.ndarray, indices: np.ndarray, lb: int):
     core, order = core_numbers(n, indptr, indices)
     rank = np.empty(n, dtype=np.int64)
@@ -263,7 +263,7 @@ def _max_clique_csr(n: int, indptr: np.ndarray, indices: np.ndarray, lb: int):
     return best_set
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _compact(eu, ev, keep, scratch):
     """Relabel the kept edges' endpoints 0..m-1 (scratch: int32 array of -1, restored)."""
     ne = 0
@@ -296,7 +296,7 @@ def _compact(eu, ev, keep, scratch):
     return m, su, sv, oldid[:m].copy()
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _peel(su, sv, m, lb):
     """Keep-mask of edges after repeatedly dropping vertices of degree < lb (they cannot
     be in a clique larger than lb). Sequential passes over the edge list."""
@@ -321,7 +321,7 @@ def _peel(su, sv, m, lb):
             return keep, ne
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _peeled_graph(eu, ev, lb, scratch):
     """Compact relabelling + peeling at lb. Returns (m, su, sv, oldid, keep-mask over
     the original edges)."""
@@ -331,7 +331,7 @@ def _peeled_graph(eu, ev, lb, scratch):
     return m, su, sv, oldid, keep, ne
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _peeled_max_clique(eu: np.ndarray, ev: np.ndarray, lb: int, scratch: np.ndarray):
     """Relabel compactly, peel at lb, then search. Cheap on the sparse, mostly random
     consistency graphs."""

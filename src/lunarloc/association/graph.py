@@ -27,7 +27,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from numba import njit
 
-__all__ = ["graph_3d", "RefPairIndex", "yaw_bin_chunks", "vehicle_pairs"]
+__all__ = ["graph_3d", "RefPairIndex", "sweep_yaw_bins", "vehicle_pairs"]
 
 
 @njit(cache=True)
@@ -301,40 +301,39 @@ def _yaw_chunk_incidences(
     return ptr, su, sv, sw
 
 
-def yaw_bin_chunks(vpairs, index: RefPairIndex, node_of, n_bins: int, chunk_bins: int,
-                   eps_h, eps_z, tan_tilt, k_yaw, sigma, weights: bool = True,
-                   bin_start: int = 0, bin_count: int | None = None, workers: int = 2):
-    """Iterate over relative-yaw bins, yielding ``(bin, theta, eu, ev, ew)`` with edges
-    between association ids (from `node_of`). Bins are generated `chunk_bins` at a
-    time, so memory is bounded by one chunk's edges, not the whole graph.
-    `bin_start`/`bin_count` restrict the sweep to a range of bins (wrapping)."""
+def sweep_yaw_bins(vpairs, index: RefPairIndex, node_of, n_bins: int, chunk_bins: int,
+                   eps_h, eps_z, tan_tilt, k_yaw, sigma, visit, *, weights: bool = True,
+                   bin_start: int = 0, bin_count: int | None = None, workers: int = 2) -> int:
+    """Build the consistency graph of every relative-yaw bin and hand it to
+    ``visit(bin, theta, eu, ev, ew)`` (edges between association ids from `node_of`).
+
+    Bins are generated `chunk_bins` at a time on `workers` threads (the compiled
+    generator releases the GIL), so memory is bounded by `workers` chunks, not the whole
+    graph; `visit` runs on the worker threads and must be thread-safe.
+    `bin_start`/`bin_count` restrict the sweep to a range of bins (wrapping).
+    Returns the number of edges generated over all bins."""
     pi, pj, pdh, pphi, pdz, _ = vpairs
     step = 2 * math.pi / n_bins
     bin_count = n_bins if bin_count is None else min(bin_count, n_bins)
     starts = list(range(bin_start, bin_start + bin_count, chunk_bins))
 
-    def chunk(b0):
+    def run_chunk(b0):
         nb = min(chunk_bins, bin_start + bin_count - b0)
-        return b0, nb, _yaw_chunk_incidences(
+        ptr, su, sv, sw = _yaw_chunk_incidences(
             pi, pj, pdh, pphi, pdz,
             index.a, index.b, index.dh, index.phi, index.dz, index.cell_ptr,
             index.n_dist, index.n_angle, index.dist_cell, index.angle_cell,
             node_of, b0, nb, n_bins, float(eps_h), float(eps_z), float(tan_tilt), float(k_yaw), float(sigma),
             bool(weights),
         )
+        for k in range(nb):
+            sl = slice(ptr[k], ptr[k + 1])
+            b = (b0 + k) % n_bins
+            visit(b, -math.pi + (b + 0.5) * step, su[sl], sv[sl], sw[sl])
+        return len(su)
 
-    # the compiled generator releases the GIL: build chunks on worker threads (one per
-    # core, at most `workers` chunks in flight) while the caller solves earlier ones
     workers = max(1, min(workers, len(starts)))
+    if workers == 1:
+        return sum(run_chunk(b0) for b0 in starts)
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        pending = [pool.submit(chunk, b0) for b0 in starts[:workers]]
-        nxt = workers
-        while pending:
-            b0, nb, (ptr, su, sv, sw) = pending.pop(0).result()
-            if nxt < len(starts):
-                pending.append(pool.submit(chunk, starts[nxt]))
-                nxt += 1
-            for k in range(nb):
-                sl = slice(ptr[k], ptr[k + 1])
-                b = (b0 + k) % n_bins
-                yield b, -math.pi + (b + 0.5) * step, su[sl], sv[sl], sw[sl]
+        return sum(pool.map(run_chunk, starts))
