@@ -20,6 +20,10 @@ from lunarloc.perception.detector import (
     write_traverse_csv,
 )
 from lunarloc.perception.masks import MaskFilterConfig, RejectReason
+from lunarloc.perception.segment import ClassicalConfig
+
+# the shading-only segmenter and the paper's ray-shift centre (no height map)
+LEGACY = dict(classical=ClassicalConfig(use_height=False), centre_method="ray-shift")
 
 CAM = PinholeCamera()
 B = 0.162
@@ -57,7 +61,7 @@ def test_detects_rock_at_known_depth_and_places_it_in_map():
     left, right = stereo_scene()
     rig = ipex_rig(CAM)
     T_map_rover = pose_to_matrix(2.0, -1.0, 0.3, 0.0, 0.0, np.radians(30))
-    cfg = DetectorConfig(filters=MaskFilterConfig(s_min_m=0.01, s_max_m=1.0), centre_correction=False)
+    cfg = DetectorConfig(filters=MaskFilterConfig(s_min_m=0.01, s_max_m=1.0), centre_correction=False, **LEGACY)
     det = Detector(cfg, CAM)
     fd = det.detect_frame({"FrontLeft": left, "FrontRight": right}, rig, T_map_rover, frame=7, keep_depth=True)
     assert fd.frame == 7 and fd.pairs[0].depth is not None
@@ -79,7 +83,7 @@ def test_detects_rock_at_known_depth_and_places_it_in_map():
 
 def test_centre_correction_moves_along_the_ray():
     left, right = stereo_scene()
-    base = DetectorConfig(filters=MaskFilterConfig(s_min_m=0.01, s_max_m=1.0))
+    base = DetectorConfig(filters=MaskFilterConfig(s_min_m=0.01, s_max_m=1.0), **LEGACY)
     a = Detector(DetectorConfig(**{**base.__dict__, "centre_correction": False}), CAM)
     b = Detector(base, CAM)
     pa = [d for d in a.detect_pair(left, right, np.eye(4)).detections if abs(d.uv[0] - 640) < 3][0]
@@ -91,12 +95,65 @@ def test_centre_correction_moves_along_the_ray():
 
 def test_filters_reject_with_reasons():
     left, right = stereo_scene(rock_depth=3.0)
-    det = Detector(DetectorConfig(filters=MaskFilterConfig(s_min_m=0.2, s_max_m=1.0)), CAM)
+    det = Detector(DetectorConfig(filters=MaskFilterConfig(s_min_m=0.2, s_max_m=1.0), **LEGACY), CAM)
     pr = det.detect_pair(left, right, np.eye(4))
     rock = [r for r in pr.records if np.hypot(r.stats.centroid_uv[0] - 640, r.stats.centroid_uv[1] - 420) < 3][0]
     assert rock.reason is RejectReason.TOO_SMALL
     pr = Detector(DetectorConfig(), CAM).detect_pair(left, None, np.eye(4))  # no right image: no depth
     assert all(r.reason is not None for r in pr.records) and not pr.detections
+
+
+def ground_scene(centre=(3.28, 0.1, -0.15), radius=0.15, seed=1):
+    """Left/right images of the FrontLeft pair over flat textured ground (rover frame
+    z = -0.2, the body 0.2 m up) with one textured sphere, by analytic ray casting."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    res = 0.01  # texture cell, metres
+    tex = 130 + cv2.GaussianBlur(rng.normal(0, 40, (1800, 1600)).astype(np.float32), (0, 0), 1.2)
+    c = np.asarray(centre, float)
+    rig = ipex_rig(CAM)
+    rays = CAM.rays_optical().reshape(-1, 3)
+    out = []
+    for name in ("FrontLeft", "FrontRight"):
+        T = rig[name].T_rover_optical
+        o, d = T[:3, 3], rays @ T[:3, :3].T
+        t_g = np.where(d[:, 2] < -1e-6, (-0.2 - o[2]) / np.minimum(d[:, 2], -1e-6), np.inf)
+        oc = o - c
+        b = d @ oc
+        disc = b * b - (oc @ oc - radius**2)
+        t_s = np.where(disc > 0, -b - np.sqrt(np.maximum(disc, 0)), np.inf)
+        t = np.minimum(t_g, t_s)
+        p = o + d * np.where(np.isfinite(t), t, 0)[:, None]
+        on_rock = t_s < t_g
+        # texture from the hit point (fixed in the world, so consistent across views)
+        a = np.where(on_rock, p[:, 0] + 0.7 * p[:, 2], p[:, 0]) / res
+        e = np.where(on_rock, p[:, 1] + 0.7 * p[:, 2], p[:, 1]) / res + 800
+        val = cv2.remap(tex, a.reshape(CAM.height, CAM.width).astype(np.float32),
+                        e.reshape(CAM.height, CAM.width).astype(np.float32), cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_REFLECT).ravel()
+        val = np.where(on_rock, val + 50, val)
+        val = np.where(np.isfinite(t), val, 0)  # black sky
+        out.append(np.clip(val, 0, 255).astype(np.uint8).reshape(CAM.height, CAM.width))
+    return out[0], out[1], rig
+
+
+def test_height_segmenter_finds_rock_on_ground_and_its_centre():
+    c = np.array([3.28, 0.1, -0.15])
+    left, right, rig = ground_scene(tuple(c), 0.15)
+    det = Detector(DetectorConfig(), CAM)
+    assert det.uses_height
+    pr = det.detect_pair(left, right, rig["FrontLeft"].T_rover_optical, keep_depth=True)
+    assert pr.height is not None
+    # flat ground: heights near zero away from the rock
+    g = pr.height.height[np.isfinite(pr.height.height)]
+    assert np.median(np.abs(g)) < 0.01
+    near = [d for d in pr.detections if np.linalg.norm(d.p_rover[:2] - c[:2]) < 0.3]
+    assert len(near) == 1 and len(pr.detections) == 1  # the rock, nothing else
+    d = near[0]
+    assert np.linalg.norm(d.p_rover[:2] - c[:2]) < 0.06
+    assert abs(d.p_rover[2] - c[2]) < 0.08
+    assert d.radius_m == pytest.approx(0.15, rel=0.35)
 
 
 def test_bad_inputs_and_config():

@@ -73,3 +73,28 @@ def test_classical_speed_full_resolution():
         seg.segment(img)
     per = (time.perf_counter() - t0) / 3
     assert per < 0.5  # generous: the CPU is shared; the benchmark measures the real figure
+
+
+def test_height_blobs_become_full_resolution_masks():
+    """Blobs standing above the ground in a (low-resolution) HeightMap are segmented
+    with hysteresis; low bumps without a seed, tiny blobs and blobs in the columns
+    SGBM cannot match are dropped."""
+    from lunarloc.perception.stereo import HeightMap
+
+    h, w, k = 180, 320, 2
+    H = np.zeros((h, w), np.float32)
+    v, u = np.mgrid[:h, :w]
+    H[(u - 200) ** 2 + (v - 100) ** 2 <= 64] = 0.08  # a rock: seed and region
+    H[(u - 200) ** 2 + (v - 100) ** 2 <= 16] = 0.12
+    H[(u - 100) ** 2 + (v - 120) ** 2 <= 64] = 0.02  # a low bump: no seed
+    H[5:7, 300:302] = 0.1  # tiny
+    H[(u - 20) ** 2 + (v - 100) ** 2 <= 64] = 0.1  # in the unmatched strip
+    depth = np.full((h, w), 3.0, np.float32)
+    hm = HeightMap(H, depth, np.zeros((h, w, 3), np.float32), H, k, 64, np.eye(4))
+    seg = ClassicalSegmenter()
+    assert seg.uses_stereo
+    masks = seg.segment(np.full((2 * h, 2 * w), 100, np.uint8), height=hm)
+    assert len(masks) == 1
+    st = mask_stats(masks[0], masks.image_shape)
+    assert np.hypot(st.centroid_uv[0] - 400.5, st.centroid_uv[1] - 200.5) < 2.0
+    assert masks.image_shape == (2 * h, 2 * w)

@@ -90,3 +90,48 @@ def test_row_band_matches_full_image_inside_band():
     assert np.all(np.isnan(band[:50])) and np.all(np.isnan(band[-50:]))
     inner = band[100:140, 160:-20]
     assert np.nanmedian(np.abs(inner - full[100:140, 160:-20])) < 0.1
+
+
+def test_ground_height_map_flat_plane_and_a_box():
+    """Disparity of a flat ground plane (camera 0.331 m up) gives ~zero heights; a
+    raised patch stands at its height."""
+    from lunarloc.perception.camera import ipex_rig
+    from lunarloc.perception.stereo import GroundConfig, ground_height_map
+
+    cam = PinholeCamera()
+    T = ipex_rig(cam)["FrontLeft"].T_rover_optical
+    k = 2
+    h, w = cam.height // k, cam.width // k
+    fx = cam.fx / k
+    cy = (cam.cy - (k - 1) / 2.0) / k
+    v = np.arange(h, dtype=np.float32)[:, None].repeat(w, 1)
+    hc = 0.331
+    z = np.where(v > cy + 1, fx * hc / np.maximum(v - cy, 1e-3), np.inf)  # flat ground depth
+    disp = (fx * 0.162 / z).astype(np.float32)
+    disp[~np.isfinite(z) | (z > 12)] = np.nan
+    # a 5 cm step: rows of a patch seen as if 5 cm higher -> depth of a plane at hc - 0.05
+    patch = (slice(230, 240), slice(300, 330))
+    disp[patch] = fx * 0.162 / (fx * (hc - 0.05) / (v[patch] - cy))
+    hm = ground_height_map(disp, k, cam, 0.162, T, GroundConfig())
+    H = hm.height
+    ok = np.isfinite(H)
+    ok[patch] = False
+    assert np.nanmedian(np.abs(H[ok])) < 0.005
+    assert np.nanmedian(H[patch]) == pytest.approx(0.05, abs=0.015)
+
+
+def test_refine_disparity_recovers_subpixel_shift():
+    import cv2
+
+    from lunarloc.perception.stereo import refine_disparity
+
+    rng = np.random.default_rng(3)
+    base = cv2.GaussianBlur(rng.normal(128, 40, (80, 400)).astype(np.float32), (0, 0), 1.5)
+    d_true = 20.4
+    u = np.arange(400, dtype=np.float32)[None].repeat(80, 0)
+    vv = np.arange(80, dtype=np.float32)[:, None].repeat(400, 1)
+    left = np.clip(base, 0, 255).astype(np.uint8)
+    right = np.clip(cv2.remap(base, u + d_true, vv, cv2.INTER_CUBIC), 0, 255).astype(np.uint8)
+    crop = np.ones((40, 60), bool)
+    d = refine_disparity(left, right, crop, 200, 20, 19.0, search_px=3, erode_px=1)
+    assert d == pytest.approx(d_true, abs=0.15)

@@ -39,10 +39,21 @@ from lunarloc.perception.masks import (
     mask_stats,
 )
 from lunarloc.perception.segment import ClassicalConfig, Segmenter, SegmenterKind, make_segmenter
-from lunarloc.perception.stereo import StereoConfig, StereoMatcher, depth_at, to_gray_u8
+from lunarloc.perception.stereo import (
+    GroundConfig,
+    HeightMap,
+    StereoConfig,
+    StereoMatcher,
+    depth_at,
+    first_ground_row,
+    ground_height_map,
+    refine_disparity,
+    to_gray_u8,
+)
 
 __all__ = [
     "PoseSource",
+    "CentreMethod",
     "DetectorConfig",
     "Detection",
     "MaskRecord",
@@ -65,6 +76,29 @@ class PoseSource(str, Enum):
 
     GROUND_TRUTH = "ground-truth"
     ODOMETRY = "odometry"
+
+
+class CentreMethod(str, Enum):
+    """How a kept mask becomes a 3D rock centre."""
+
+    # Depth at the image centroid, back-projected, then pushed along the viewing ray
+    # by the radius estimated from s_i (the paper's spherical-object assumption).
+    RAY_SHIFT = "ray-shift"
+    # From the mask's stereo points in the rover frame (low-resolution height map):
+    # lateral centre = mean lateral offset; range = median range of the visible
+    # surface + centre_range_factor * R; height = ground + visible top height -
+    # centre_height_factor * R, with R = 2 x the lateral standard deviation.
+    STEREO_POINTS = "stereo-points"
+
+
+def _height_stereo_default() -> StereoConfig:
+    return StereoConfig(
+        num_disparities=192, block_size=5, downscale=2, speckle_window_size=50, three_way=True, p1=8 * 25, p2=32 * 25
+    )
+
+
+def _height_filters_default() -> MaskFilterConfig:
+    return MaskFilterConfig(tau_elong=20.0)
 
 
 @dataclass(frozen=True)
@@ -92,9 +126,40 @@ class DetectorConfig:
     radius_per_size: float = 2.0
     # (left, right) camera names processed each frame (front and rear pairs).
     pairs: tuple[tuple[str, str], ...] = STEREO_PAIRS
+    # How masks become 3D centres (see CentreMethod). STEREO_POINTS needs the
+    # low-resolution stereo height map, which the classical segmenter uses anyway.
+    centre_method: CentreMethod = CentreMethod.STEREO_POINTS
+    # Low-resolution SGBM for the height map (1/2 resolution: 64 disparities there =
+    # the reference agent's 128 at full resolution, block 5 ~ its 11; 3-way mode).
+    height_stereo: StereoConfig = field(default_factory=_height_stereo_default)
+    # Mask filters for masks segmented from the height map (no cast shadows there,
+    # so elongation only has to stop wide flat domes from being dropped: a dome
+    # buried to 55 % seen from 0.3 m up has an eigenvalue ratio of ~10-15).
+    height_filters: MaskFilterConfig = field(default_factory=_height_filters_default)
+    # Ground surface fit for heights above the local ground.
+    ground: GroundConfig = field(default_factory=GroundConfig)
+    # STEREO_POINTS: the centre lies this many radii beyond the median range of the
+    # visible surface (a sphere's visible hemisphere averages 2/3 R in front of its
+    # centre). Tuned on simulated site seed 0.
+    centre_range_factor: float = 0.3
+    # STEREO_POINTS: the centre lies this many radii below the visible top
+    # (simulated rocks: vertical semi-axis 0.55-0.85 x radius). Tuned on site 0.
+    centre_height_factor: float = 0.5
+    # STEREO_POINTS: refine each kept mask's disparity at full resolution by masked
+    # template matching within this many pixels of the low-resolution value (0 = off).
+    refine_disparity_px: int = 0
+    # Pixels eroded from the mask before the match (SGBM fattens silhouettes by about
+    # half a block, ~4 full-resolution pixels here; background must not vote).
+    refine_erode_px: int = 4
+    # STEREO_POINTS: quantile of the mask's heights taken as its visible top (a high
+    # quantile, not the maximum: SGBM fattens silhouettes by a few pixels).
+    top_quantile: float = 0.9
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "segmenter", SegmenterKind(self.segmenter))
+        object.__setattr__(self, "centre_method", CentreMethod(self.centre_method))
+        if not 0.0 < self.top_quantile <= 1.0:
+            raise ConfigError("top_quantile must be in (0, 1]")
         if self.depth_half_window_px < 0:
             raise ConfigError("depth_half_window_px must be >= 0")
         if self.radius_per_size <= 0:
@@ -106,6 +171,7 @@ class DetectorConfig:
         """Plain dict (Enums as values) to write next to results."""
         d = asdict(self)
         d["segmenter"] = self.segmenter.value
+        d["centre_method"] = self.centre_method.value
         return d
 
 
@@ -152,6 +218,7 @@ class PairResult:
     records: list[MaskRecord]
     detections: list[Detection]
     depth: np.ndarray | None
+    height: HeightMap | None = None
 
 
 @dataclass
@@ -195,6 +262,27 @@ class Detector:
             self.config.segmenter, weights=self.config.weights, classical=self.config.classical
         )
         self.stereo = StereoMatcher(self.config.stereo, self.camera)
+        self.height_stereo = StereoMatcher(self.config.height_stereo, self.camera)
+
+    @property
+    def uses_height(self) -> bool:
+        """True when each pair needs the low-resolution stereo height map."""
+        return self.config.centre_method is CentreMethod.STEREO_POINTS or bool(
+            getattr(self.segmenter, "uses_stereo", False)
+        )
+
+    def height_map(self, left: np.ndarray, right: np.ndarray, T_rover_optical: np.ndarray) -> HeightMap:
+        """Low-resolution disparity, rover-frame points and heights above the local ground."""
+        sky = self.config.classical.sky_level
+        v0 = first_ground_row(left, sky)
+        disp = self.height_stereo.disparity_lowres(left, right, v_start=v0, sky_level=sky)
+        k = self.config.height_stereo.downscale
+        nd = self.height_stereo.num_disparities_lowres
+        hm = ground_height_map(
+            disp, k, self.camera, self.height_stereo.baseline_m, T_rover_optical, self.config.ground, nd - 1.0
+        )
+        hm.valid_u0 = nd * k
+        return hm
 
     # ------------------------------------------------------------------ one pair
     def detect_pair(
@@ -223,6 +311,8 @@ class Detector:
                 f"{camera_name}: image {L.shape} does not match the camera "
                 f"({self.camera.height}, {self.camera.width})"
             )
+        if self.uses_height and right is not None:
+            return self._detect_pair_height(L, right, T_rover_optical, T_map_rover, camera_name, keep_depth, tm)
         t0 = time.perf_counter()
         masks = self.segmenter.segment(L)
         t1 = time.perf_counter()
@@ -282,6 +372,96 @@ class Detector:
             tm[k] = tm.get(k, 0.0) + v
         return PairResult(camera_name, masks, records, dets, depth if keep_depth else None)
 
+    def _detect_pair_height(
+        self,
+        L: np.ndarray,
+        right: np.ndarray,
+        T_rover_optical: np.ndarray,
+        T_map_rover: np.ndarray | None,
+        camera_name: str,
+        keep_depth: bool,
+        tm: dict[str, float],
+    ) -> PairResult:
+        """detect_pair with the low-resolution stereo height map computed first (it feeds
+        the segmenter when it uses stereo, and the centre estimate)."""
+        cfg = self.config
+        fc = cfg.filters
+        t0 = time.perf_counter()
+        hm = self.height_map(L, right, T_rover_optical)
+        t1 = time.perf_counter()
+        if getattr(self.segmenter, "uses_stereo", False):
+            masks = self.segmenter.segment(L, height=hm)
+            fc = cfg.height_filters
+        else:
+            masks = self.segmenter.segment(L)
+        t2 = time.perf_counter()
+        records: list[MaskRecord] = []
+        dets: list[Detection] = []
+        alpha = self.camera.alpha
+        T_optical_rover = np.linalg.inv(T_rover_optical)
+        for i, m in enumerate(masks):
+            st = mask_stats(m, masks.image_shape, border_px=fc.border_px)
+            rec = MaskRecord(i, st, float("nan"), float("nan"), None)
+            records.append(rec)
+            rec.reason = image_reject_reason(st, fc)
+            if rec.reason is not None:
+                continue
+            rows, cols = hm.lowres_index(m)
+            z = hm.depth[rows, cols]
+            ok = np.isfinite(z)
+            D = float(np.median(z[ok])) if np.count_nonzero(ok) >= 3 else float("nan")
+            reason, s = classify_mask(st, D, alpha, fc)
+            rec.depth_m, rec.size_m, rec.reason = D, s, reason
+            if reason is not None:
+                continue
+            if cfg.centre_method is CentreMethod.STEREO_POINTS:
+                P_rov = hm.points_rover[rows[ok], cols[ok]].astype(float)
+                if cfg.refine_disparity_px > 0:
+                    # full-resolution masked template match rescales the points' depths
+                    d_lr = float(np.median(hm.disparity[rows[ok], cols[ok]])) * hm.scale
+                    d_ref = refine_disparity(
+                        L, right, m.crop, m.u0, m.v0, d_lr, cfg.refine_disparity_px, cfg.refine_erode_px
+                    )
+                    if np.isfinite(d_ref) and d_ref > 0:
+                        P_opt = transform_points(T_optical_rover, P_rov) * (d_lr / d_ref)
+                        P_rov = transform_points(T_rover_optical, P_opt)
+                        D = D * d_lr / d_ref
+                        rec.depth_m = D
+                p_rover, R_est = _centre_from_points(P_rov, hm.height[rows[ok], cols[ok]], T_rover_optical[:3, 3], cfg)
+                p = transform_points(T_optical_rover, p_rover[None])[0]
+            else:
+                cu, cv = st.centroid_uv
+                p = self.camera.backproject(np.array([[cu, cv]]), np.array([D]))[0]
+                R_est = cfg.radius_per_size * s
+                if cfg.centre_correction:
+                    p = p + p / np.linalg.norm(p) * R_est
+                p_rover = transform_points(T_rover_optical, p[None])[0]
+            p_map = transform_points(T_map_rover, p_rover[None])[0] if T_map_rover is not None else None
+            dets.append(
+                Detection(
+                    camera=camera_name,
+                    uv=st.centroid_uv,
+                    depth_m=D,
+                    sigma_px=st.sigma_px,
+                    eig_ratio=st.eig_ratio,
+                    area_px=st.area,
+                    size_m=s,
+                    radius_m=R_est,
+                    p_optical=p,
+                    p_rover=p_rover,
+                    p_map=p_map,
+                )
+            )
+        t3 = time.perf_counter()
+        for k, v in (("segment", t2 - t1), ("filter", t3 - t2), ("stereo", t1 - t0)):
+            tm[k] = tm.get(k, 0.0) + v
+        depth = None
+        if keep_depth:
+            import cv2
+
+            depth = cv2.resize(hm.depth, (L.shape[1], L.shape[0]), interpolation=cv2.INTER_NEAREST)
+        return PairResult(camera_name, masks, records, dets, depth, hm if keep_depth else None)
+
     # ------------------------------------------------------------------ one frame
     def detect_frame(
         self,
@@ -315,6 +495,36 @@ class Detector:
                 )
             )
         return out
+
+
+def _centre_from_points(
+    P: np.ndarray, h: np.ndarray, cam_rover: np.ndarray, cfg: DetectorConfig
+) -> tuple[np.ndarray, float]:
+    """Rock centre (rover frame) and radius from the stereo points of its mask.
+
+    P : (n, 3) rover-frame points of the visible surface; h : (n,) their heights above
+    the local ground; cam_rover : camera position in the rover frame. The radius is
+    twice the lateral standard deviation (a disc or half-disc of radius R has a
+    lateral std of R / 2), the centre lies centre_range_factor * R beyond the median
+    range of the visible points and centre_height_factor * R below their top.
+    """
+    P = np.asarray(P, float)
+    m = np.median(P, axis=0)
+    d = m[:2] - cam_rover[:2]
+    n = float(np.hypot(d[0], d[1]))
+    fwd = d / n if n > 1e-9 else np.array([1.0, 0.0])
+    perp = np.array([-fwd[1], fwd[0]])
+    rel = P[:, :2] - cam_rover[:2]
+    lat = rel @ perp
+    rng = rel @ fwd
+    R = max(2.0 * float(np.std(lat)), 1e-3)
+    ground = float(np.median(P[:, 2] - h))
+    top = float(np.quantile(h, cfg.top_quantile))
+    r_c = float(np.median(rng)) + cfg.centre_range_factor * R
+    l_c = float(np.mean(lat))
+    xy = cam_rover[:2] + fwd * r_c + perp * l_c
+    z = ground + top - cfg.centre_height_factor * R
+    return np.array([xy[0], xy[1], z]), R
 
 
 def _mask_depth(depth: np.ndarray, m, cu: float, cv: float, h: int, fallback: bool, min_valid: int = 3) -> float:

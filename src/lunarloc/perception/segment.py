@@ -23,7 +23,7 @@ import numpy as np
 
 from lunarloc.errors import ConfigError, InputError
 from lunarloc.perception.masks import InstanceMask, InstanceMasks
-from lunarloc.perception.stereo import to_gray_u8
+from lunarloc.perception.stereo import HeightMap, to_gray_u8
 
 __all__ = [
     "SegmenterKind",
@@ -88,6 +88,24 @@ class ClassicalConfig:
     # Keep opened shadow regions even when they touch a lit region (a rock seen
     # against the sun: a thin lit rim beside a large shadowed body).
     dark_touching: bool = False
+    # --- stereo height cue (used when the caller passes a HeightMap; see
+    # lunarloc.perception.stereo.ground_height_map). Rocks stick up from the ground;
+    # cast shadows and albedo texture do not. The shading cues above are the
+    # fallback when no stereo is given.
+    # Use the height cue when a HeightMap is given (False: shading only).
+    use_height: bool = True
+    # Seed threshold, metres above the local ground: the visible top of a rock of
+    # radius >= 0.1 m stands >= ~5 cm above the ground (burial <= 55 % of its
+    # height, vertical semi-axis >= 0.55 R); ground height noise is ~1 cm to 5 m.
+    height_seed_m: float = 0.04
+    # Region threshold (hysteresis), metres: the blob grows over connected pixels
+    # higher than this (rock flanks down to near the ground line).
+    height_region_m: float = 0.015
+    # Smallest blob kept, in low-resolution (height-map) pixels.
+    height_min_area_px: int = 10
+    # Blobs whose stereo points are farther than this (median optical depth, metres)
+    # are dropped: stereo heights and shapes degrade with range^2.
+    height_max_range_m: float = 8.0
 
     def __post_init__(self) -> None:
         if not self.bright_hi_sigma >= self.bright_lo_sigma > 0:
@@ -116,6 +134,39 @@ class ClassicalSegmenter:
 
     def __init__(self, config: ClassicalConfig | None = None) -> None:
         self.config = config or ClassicalConfig()
+
+    @property
+    def uses_stereo(self) -> bool:
+        """True when :meth:`segment` wants a HeightMap (the detector then computes one)."""
+        return self.config.use_height
+
+    def height_labels(self, height: HeightMap) -> np.ndarray:
+        """(h, w) int32 labels of blobs standing above the local ground, low resolution."""
+        import cv2
+
+        c = self.config
+        H = np.nan_to_num(height.height, nan=-1.0)
+        region = (H > c.height_region_m).astype(np.uint8)
+        # 2x2 opening drops one-pixel streaks (mismatches along image rows); the
+        # erosion and the dilation use opposite anchors so the blob does not shift.
+        k2 = np.ones((2, 2), np.uint8)
+        region = cv2.dilate(cv2.erode(region, k2, anchor=(0, 0)), k2, anchor=(1, 1))
+        n, lab, st, _ = cv2.connectedComponentsWithStats(region, connectivity=8)
+        if n <= 1:
+            return np.zeros(H.shape, np.int32)
+        seeds = np.bincount(lab[H > c.height_seed_m], minlength=n) > 0
+        keep = seeds & (st[:, cv2.CC_STAT_AREA] >= c.height_min_area_px)
+        # blobs cut by the columns where SGBM cannot match are not fully visible
+        u_min = height.valid_u0 // height.scale + 1
+        keep &= st[:, cv2.CC_STAT_LEFT] > u_min
+        if c.height_max_range_m > 0:
+            z = height.depth
+            zz = np.where(np.isfinite(z), z, 0.0)
+            cnt = np.bincount(lab.ravel(), np.isfinite(z).ravel(), minlength=n)
+            mean_z = np.bincount(lab.ravel(), zz.ravel(), minlength=n) / np.maximum(cnt, 1)
+            keep &= mean_z <= c.height_max_range_m
+        keep[0] = False
+        return np.where(keep[lab], lab, 0).astype(np.int32)
 
     def labels(self, image: np.ndarray) -> np.ndarray:
         """(H, W) int32 label image: 0 background, 1..N regions."""
@@ -174,10 +225,19 @@ class ClassicalSegmenter:
                 lab = np.where(labd > 0, labd, lab)
         return lab
 
-    def segment(self, image: np.ndarray) -> InstanceMasks:
-        """Instance masks of the rocks in a grayscale image (H, W)."""
+    def segment(self, image: np.ndarray, height: HeightMap | None = None) -> InstanceMasks:
+        """Instance masks of the rocks in a grayscale image (H, W).
+
+        height : optional stereo height map of this image (low resolution); when given
+        (and ``use_height``), rocks are the blobs standing above the local ground.
+        """
         from scipy import ndimage
 
+        if height is not None and self.config.use_height:
+            I8 = to_gray_u8(image)
+            if I8.shape[0] < 16 or I8.shape[1] < 16:
+                raise InputError(f"image too small to segment: {I8.shape}")
+            return self._segment_height(I8.shape, height)
         lab = self.labels(image)
         out = InstanceMasks((int(lab.shape[0]), int(lab.shape[1])))
         for idx, sl in enumerate(ndimage.find_objects(lab), start=1):
@@ -187,6 +247,23 @@ class ClassicalSegmenter:
             if np.count_nonzero(crop) < self.config.min_area_px:
                 continue
             out.masks.append(InstanceMask(int(sl[1].start), int(sl[0].start), crop))
+        return out
+
+
+    def _segment_height(self, shape: tuple[int, int], height: HeightMap) -> InstanceMasks:
+        import cv2
+        from scipy import ndimage
+
+        lab = self.height_labels(height)
+        k = height.scale
+        out = InstanceMasks((int(shape[0]), int(shape[1])))
+        for idx, sl in enumerate(ndimage.find_objects(lab), start=1):
+            if sl is None:
+                continue
+            crop = (lab[sl] == idx).astype(np.uint8)
+            if k > 1:
+                crop = cv2.resize(crop, (crop.shape[1] * k, crop.shape[0] * k), interpolation=cv2.INTER_NEAREST)
+            out.masks.append(InstanceMask(int(sl[1].start) * k, int(sl[0].start) * k, crop.astype(bool)))
         return out
 
 
