@@ -38,6 +38,24 @@ def test_round_trip_other_modes(rng, mode, solver):
     assert dt < 0.05 and dr < 0.2
 
 
+def test_yaw_only_registration_and_size_pruning(rng):
+    ref, veh, T, common = make_pair(rng, n_ref=80, n_common=25, n_outliers=0, max_tilt_deg=0.0)
+    r = localize(ref, veh, LocalizationConfig(registration="yaw"))
+    assert r.success and pose_error(r.T_ref_veh, T)[0] < 0.05
+    assert r.tilt_deg < 1e-6  # a pure rotation about the vertical
+    with pytest.raises(ConfigError):
+        LocalizationConfig(mode="6dof", registration="yaw")
+    # sizes: true pairs have equal sizes; pruning keeps them and drops most other pairs
+    sizes = rng.uniform(0.05, 1.0, len(ref))
+    ref_s = LandmarkMap(ref.positions_xyz, sizes=sizes)
+    veh_sizes = np.ones(len(veh))
+    mapped = transform_points(T, veh.positions_xyz)
+    nearest = np.argmin(np.linalg.norm(mapped[:, None] - ref.positions_xyz[None], axis=2), axis=1)
+    veh_s = LandmarkMap(veh.positions_xyz, sizes=sizes[nearest] * veh_sizes)
+    r2 = localize(ref_s, veh_s, LocalizationConfig(max_size_ratio=1.3))
+    assert r2.success and r2.num_associations < 0.5 * len(ref) * len(veh)
+
+
 def test_six_dof_handles_large_tilt(rng):
     ref, veh, T, _ = make_pair(rng, n_ref=60, n_common=25, n_outliers=5, max_tilt_deg=40)
     r6 = localize(ref, veh, LocalizationConfig(mode=Mode.SIX_DOF))

@@ -36,7 +36,7 @@ from lunarloc.maps import LandmarkMap
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Mode", "Solver", "LocalizationConfig", "LocalizationResult", "localize", "chance_clique_size"]
+__all__ = ["Mode", "Registration", "Solver", "LocalizationConfig", "LocalizationResult", "localize", "chance_clique_size"]
 
 
 class Mode(str, enum.Enum):
@@ -44,6 +44,13 @@ class Mode(str, enum.Enum):
 
     GRAVITY = "gravity"  # horizontal distance + height difference + common yaw (rover maps, IMU-levelled)
     SIX_DOF = "6dof"  # 3D distance only: any relative rotation
+
+
+class Registration(str, enum.Enum):
+    """Which rigid transform is fitted to the inliers."""
+
+    SE3 = "se3"  # Arun's SVD, full rotation (allows the residual tilt of an IMU-levelled map)
+    YAW = "yaw"  # 4-DoF: rotation about the vertical only (maps levelled exactly)
 
 
 class Solver(str, enum.Enum):
@@ -76,6 +83,7 @@ class LocalizationConfig:
 
     mode: Mode = Mode.GRAVITY
     solver: Solver = Solver.EXACT
+    registration: Registration = Registration.SE3
     epsilon_m: float = 0.05  # max disagreement of a pairwise (horizontal) distance for consistency
     sigma_m: float | None = None  # CLIPPER weight scale exp(-c^2/2sigma^2); None -> epsilon/2
     epsilon_z_m: float = 0.05  # gravity: max disagreement of a height difference (plus tilt allowance)
@@ -104,6 +112,9 @@ class LocalizationConfig:
     def __post_init__(self) -> None:
         self.mode = Mode(self.mode)
         self.solver = Solver(self.solver)
+        self.registration = Registration(self.registration)
+        if self.registration is Registration.YAW and self.mode is not Mode.GRAVITY:
+            raise ConfigError("yaw-only registration needs the gravity-aware mode")
         for name in ("epsilon_m", "epsilon_z_m", "yaw_step_deg", "refine_radius_m", "max_rmse_m"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name} must be positive, got {getattr(self, name)}")
@@ -124,6 +135,7 @@ class LocalizationConfig:
         d = asdict(self)
         d["mode"] = self.mode.value
         d["solver"] = self.solver.value
+        d["registration"] = self.registration.value
         return d
 
 
@@ -219,11 +231,14 @@ def _solve(solver: Solver, n: int, eu, ev, ew, lower_bound: int, seed: int, scra
     return c if len(c) > lower_bound else np.empty(0, dtype=np.int32)
 
 
-def _register(P: np.ndarray, Q: np.ndarray, cfg: LocalizationConfig) -> np.ndarray:
-    """Arun's SVD; in gravity mode the yaw-only fit when too few points fix a tilt."""
-    if cfg.mode is Mode.GRAVITY and len(P) < 4:
-        return arun_yaw(P, Q)
-    return arun(P, Q)
+def _yaw_only(cfg: LocalizationConfig, k: int) -> bool:
+    return cfg.registration is Registration.YAW or (cfg.mode is Mode.GRAVITY and k < 4)
+
+
+def _register(P: np.ndarray, Q: np.ndarray, cfg: LocalizationConfig, w=None) -> np.ndarray:
+    """Arun's SVD; the yaw-only fit when asked for, or in gravity mode when too few
+    points fix a tilt."""
+    return arun_yaw(P, Q, w) if _yaw_only(cfg, len(P)) else arun(P, Q, w)
 
 
 def _residuals(T, P, Q):
@@ -240,7 +255,7 @@ def _register_robust(P, Q, cfg, T=None):
         r = _residuals(T, P, Q)
         w = 1.0 / (1.0 + (r / cfg.robust_scale_m) ** 2)
         try:
-            T = arun_yaw(P, Q, w) if (cfg.mode is Mode.GRAVITY and len(P) < 4) else arun(P, Q, w)
+            T = _register(P, Q, cfg, w)
         except DegenerateGeometryError:
             break
     return T, w

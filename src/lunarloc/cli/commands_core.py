@@ -56,6 +56,10 @@ def localize_cmd(
     mode: str = typer.Option("gravity", help="gravity (IMU-levelled maps, default) or 6dof."),
     solver: str = typer.Option("exact", help="exact (maximum clique, default) or clipper."),
     epsilon: float = typer.Option(0.05, help="Pairwise distance tolerance in metres."),
+    registration: str = typer.Option("se3", help="se3 (default) or yaw (4-DoF, exactly levelled maps)."),
+    max_size_ratio: Optional[float] = typer.Option(
+        None, help="Prune associations whose size ratio exceeds this (maps with a size column)."
+    ),
     radius: Optional[float] = RADIUS_OPT,
     min_sightings: Optional[int] = SIGHT_OPT,
 ) -> None:
@@ -65,7 +69,10 @@ def localize_cmd(
     from lunarloc.maps import load_map
 
     try:
-        cfg = LocalizationConfig(mode=Mode(mode), solver=Solver(solver), epsilon_m=epsilon)
+        cfg = LocalizationConfig(
+            mode=Mode(mode), solver=Solver(solver), epsilon_m=epsilon, registration=registration,
+            max_size_ratio=max_size_ratio,
+        )
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
     agg = _agg(radius, min_sightings)
