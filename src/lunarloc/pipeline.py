@@ -103,6 +103,15 @@ class LoopConfig:
         if self.min_window_landmarks < 3:
             raise ConfigError("min_window_landmarks must be >= 3")
 
+    @classmethod
+    def for_images(cls, **overrides) -> "LoopConfig":
+        """Settings for detections from simulated stereo images (noisier than the real
+        dataset's): 8 cm consistency tolerance and residual RMSE, an 8 m window (less odometry
+        distortion inside it before the first fix), predicted error up to 15 cm."""
+        loc = LocalizationConfig(epsilon_m=0.08, epsilon_z_m=0.08, max_rmse_m=0.08, refine_radius_m=0.16,
+                                 max_predicted_error_m=0.15)  # fmt: skip
+        return cls(**{"window_m": 8.0, "localization": loc, **overrides})
+
     def to_dict(self) -> dict:
         d = asdict(self)
         d["localization"] = self.localization.to_dict()
@@ -593,6 +602,7 @@ def run_online(
     """Run the online loop over a `.lac` archive (needs its ``odometry`` record).
 
     reference : map in the ``ref`` frame (see :func:`load_reference`).
+    config : default :meth:`LoopConfig.for_images`.
     detector_config : default scales :class:`DetectorConfig` to the archive's image width.
     """
     from lunarloc.data.lac import LacArchive
@@ -600,7 +610,7 @@ def run_online(
     from lunarloc.perception.camera import CameraMount
     from lunarloc.perception.detector import Detector
 
-    cfg = config or LoopConfig()
+    cfg = config or LoopConfig.for_images()
     loop = OnlineLocalizer(reference, cfg)
     t_io = 0.0
     t0 = time.perf_counter()

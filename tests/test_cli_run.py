@@ -1,0 +1,62 @@
+"""CLI smoke runs: lunarloc run / plot / bench loop, and their errors (exit 2, one line)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from _loop_data import synthetic_traverse
+from lunarloc.cli import main
+
+
+@pytest.fixture(scope="module")
+def tiny_archive(tmp_path_factory):
+    from lunarloc.data.simulate import SimulationConfig, simulate_dataset
+
+    out = tmp_path_factory.mktemp("sim")
+    cfg = SimulationConfig(duration_s=6.0, image_rate_hz=2.0, width=320, height=180,
+                           cameras=("FrontLeft", "FrontRight"), semantic=False)
+    simulate_dataset(0, 1, out, cfg)
+    return out
+
+
+def test_run_and_plot(tiny_archive, tmp_path, capsys):
+    out = tmp_path / "run"
+    rc = main(["run", str(tiny_archive / "traverse_0.lac"), "--reference", str(tiny_archive / "rocks.csv"),
+               "-o", str(out)])
+    assert rc == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["image_frames"] == 13 and "ate_corrected" in s
+    assert (out / "trajectory.tum").is_file() and (out / "map.png").is_file()
+    assert main(["plot", str(out), "--figdir", str(tmp_path / "figs")]) == 0
+    assert (tmp_path / "figs" / "error.png").is_file()
+
+
+def test_run_errors(tiny_archive, tmp_path, capsys):
+    bad = tmp_path / "bad.lac"
+    bad.write_bytes(b"garbage")
+    assert main(["run", str(bad), "--reference", str(tiny_archive / "rocks.csv"), "-o", str(tmp_path / "o")]) == 2
+    empty = tmp_path / "empty.csv"
+    empty.write_text("x,y,z\n")
+    assert main(["run", str(tiny_archive / "traverse_0.lac"), "--reference", str(empty), "-o", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "error:" in err and "at least 3" in err
+    assert main(["plot", str(tmp_path)]) == 2
+
+
+def test_bench_loop(tmp_path, capsys):
+    from lunarloc.perception.detector import format_boulders
+
+    data = tmp_path / "data" / "csv"
+    data.mkdir(parents=True)
+    for k, seed in ((1, 0), (2, 0)):
+        rocks, trav = synthetic_traverse(seed=seed, length_m=10.0 if k == 1 else 14.0)
+        with open(data / f"traverse_{k}.csv", "w") as fh:
+            fh.write("frame,x,y,z,detections,boulders\n")
+            for f, p in zip(trav.frames, trav.rover_xyz):
+                d = trav.detections_xyz[trav.detection_frame == f]
+                fh.write(f'{f},{p[0]},{p[1]},{p[2]},{len(d)},"{format_boulders(d)}"\n')
+    out = tmp_path / "bench"
+    assert main(["bench", "loop", "--data", str(tmp_path / "data"), "--out", str(out)]) == 0
+    rows = json.loads((out / "loop.json").read_text())
+    assert len(rows) == 2 and all(r["fixes"] > 0 for r in rows)

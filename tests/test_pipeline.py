@@ -1,0 +1,115 @@
+"""The online loop on synthetic (and, when present, real) traverses; reference-map inputs."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from _loop_data import synthetic_traverse
+from lunarloc.errors import FileFormatError, InputError
+from lunarloc.evaluation import DriftModel
+from lunarloc.maps import LandmarkMap, save_map
+from lunarloc.pipeline import (
+    LoopConfig,
+    OnlineLocalizer,
+    load_reference,
+    read_tum,
+    rocks_to_reference,
+    run_online,
+    run_traverse_csv,
+    write_outputs,
+)
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "lunarloc-data"
+
+
+@pytest.fixture(scope="module")
+def loop_run():
+    rocks, trav = synthetic_traverse(length_m=20.0)
+    ref = LandmarkMap(rocks, frame="ref")
+    return run_traverse_csv(trav, ref, DriftModel(0.1, 0.03))
+
+
+def test_loop_reduces_drift(loop_run):
+    s = loop_run.summary()
+    assert s["ate_odometry"]["max_m"] > 0.3
+    assert s["fixes"] >= 5
+    assert s["ate_corrected"]["rmse_m"] < 0.05
+    assert s["ate_corrected"]["rmse_m"] < s["ate_odometry"]["rmse_m"] / 5
+    assert s["max_accepted_fix_error_m"] < 0.2
+    assert s["real_time_fraction"] < 1.0
+
+
+def test_outputs_are_written(loop_run, tmp_path):
+    s = write_outputs(loop_run, tmp_path)
+    for name in ("trajectory.tum", "trajectory_online.tum", "trajectory_odometry.tum", "trajectory_groundtruth.tum",
+                 "attempts.csv", "attempts.json", "vehicle_map.csv", "config.json", "summary.json"):
+        assert (tmp_path / name).is_file(), name
+    t, poses = read_tum(tmp_path / "trajectory.tum")
+    assert len(t) == len(loop_run.frames) and poses.shape[1] == 6
+    line = (tmp_path / "trajectory.tum").read_text().splitlines()[0].split()
+    assert len(line) == 8  # timestamp tx ty tz qx qy qz qw
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert set(summary["time_per_image_frame_ms"]) >= {"detection", "mapping", "association", "fusion"}
+    attempts = json.loads((tmp_path / "attempts.json").read_text())
+    assert len(attempts) == summary["attempts"] and {"success", "inliers", "reason", "correction_m"} <= set(attempts[0])
+    assert json.loads((tmp_path / "config.json").read_text())["loop"]["fix_kind"] == "landmarks"
+
+
+def test_wrong_reference_gives_no_fixes():
+    rocks, trav = synthetic_traverse(length_m=8.0)
+    other, _ = synthetic_traverse(seed=5)
+    res = run_traverse_csv(trav, LandmarkMap(other), DriftModel(0.1, 0.03), LoopConfig(localize_every_m=3.0))
+    s = res.summary()
+    assert s["fixes"] == 0 or s["max_accepted_fix_error_m"] < 0.2
+
+
+def test_rocks_reference(tmp_path):
+    rows = np.array([[0, 1.0, 2.0, -0.1, 0.3], [1, 3.0, 1.0, 0.0, 0.02], [2, 0.0, 5.0, 0.1, 0.2], [3, 4.0, 4.0, 0.0, 0.1]])
+    ref = rocks_to_reference(rows)
+    assert len(ref) == 3  # the 2 cm rock is too small to be detected
+    assert ref.positions_xyz[0, 2] == pytest.approx(-0.1 + 0.1 * 0.3)
+    p = tmp_path / "rocks.csv"
+    np.savetxt(p, rows, delimiter=",", header="id,x,y,z,radius", comments="")
+    assert len(load_reference(p)) == 3
+
+
+def test_empty_or_missing_reference(tmp_path):
+    p = tmp_path / "empty.csv"
+    save_map(LandmarkMap(np.zeros((0, 3))), p)
+    with pytest.raises(InputError, match="at least 3"):
+        load_reference(p)
+    with pytest.raises(FileFormatError):
+        load_reference(tmp_path / "nope.csv")
+    with pytest.raises(InputError):
+        OnlineLocalizer(LandmarkMap(np.zeros((0, 3))))
+
+
+def test_bad_archive(tmp_path):
+    bad = tmp_path / "bad.lac"
+    bad.write_bytes(b"not an archive")
+    with pytest.raises(FileFormatError):
+        run_online(bad, LandmarkMap(np.random.default_rng(0).uniform(size=(5, 3))))
+
+
+def test_config_validation():
+    from lunarloc.errors import ConfigError
+
+    with pytest.raises(ConfigError):
+        LoopConfig(window_m=0)
+    with pytest.raises(ValueError):
+        LoopConfig(fix_kind="nonsense")
+
+
+@pytest.mark.realdata
+@pytest.mark.skipif(not (DATA / "csv" / "traverse_9.csv").is_file(), reason="LunarLoc data not present")
+def test_real_traverse_loop():
+    from lunarloc.maps import aggregate_detections, load_traverse
+
+    veh = load_traverse(DATA / "csv" / "traverse_6.csv")
+    ref_t = load_traverse(DATA / "csv" / "traverse_9.csv")
+    ref = aggregate_detections(ref_t.detections_xyz, ref_t.detection_frame, frame="ref")
+    s = run_traverse_csv(veh, ref, DriftModel(0.05, 0.02)).summary()
+    assert s["fixes"] > 0
+    assert s["ate_corrected"]["rmse_m"] < s["ate_odometry"]["rmse_m"]

@@ -1,0 +1,31 @@
+"""Figures of a loop run (synthetic traverse, no images; plus an example frame)."""
+
+import numpy as np
+import pytest
+
+from _loop_data import synthetic_traverse
+from lunarloc.errors import FileFormatError
+from lunarloc.evaluation import DriftModel
+from lunarloc.maps import LandmarkMap
+from lunarloc.pipeline import run_traverse_csv, write_outputs
+from lunarloc.viz import plot_run
+
+
+def test_plot_run_writes_figures(tmp_path):
+    rocks, trav = synthetic_traverse(length_m=10.0)
+    res = run_traverse_csv(trav, LandmarkMap(rocks), DriftModel(0.1, 0.03))
+    res.rocks = np.column_stack([np.arange(len(rocks)), rocks, np.full(len(rocks), 0.1)])
+    res.example = {"image": (np.random.default_rng(0).uniform(0, 255, (90, 160))).astype(np.uint8),
+                   "uv": np.array([[40.0, 50.0]]), "radius_px": np.array([5.0]), "depth_m": np.array([3.2]),
+                   "frame": 10, "camera": "FrontLeft"}
+    write_outputs(res, tmp_path)
+    paths = plot_run(tmp_path, tmp_path / "fig")
+    assert sorted(p.name for p in paths) == ["error.png", "frame.png", "map.png"]
+    for p in paths:
+        assert p.stat().st_size > 10_000
+        assert p.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_plot_run_rejects_other_folders(tmp_path):
+    with pytest.raises(FileFormatError, match="not a lunarloc run folder"):
+        plot_run(tmp_path)
