@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import pytest
@@ -64,15 +63,16 @@ def test_classical_blank_and_bad_inputs():
     assert SegmenterKind("classical") is SegmenterKind.CLASSICAL
 
 
-def test_classical_speed_full_resolution():
-    img, _ = scene(720, 1280)
-    seg = ClassicalSegmenter()
-    seg.segment(img)
-    t0 = time.perf_counter()
-    for _ in range(3):
-        seg.segment(img)
-    per = (time.perf_counter() - t0) / 3
-    assert per < 0.5  # generous: the CPU is shared; the benchmark measures the real figure
+def test_classical_full_resolution_frame():
+    """A 1280x720 frame (the LAC size) segments with the rocks found where they are.
+    Speed is measured by benchmarks/bench_perception.py, not asserted here."""
+    img, rocks = scene(720, 1280)
+    masks = ClassicalSegmenter().segment(img)
+    assert masks.image_shape == (720, 1280)
+    stats = [mask_stats(m, masks.image_shape) for m in masks]
+    for cu, cv, r in rocks:
+        best = min(stats, key=lambda s: np.hypot(s.centroid_uv[0] - cu, s.centroid_uv[1] - cv))
+        assert np.hypot(best.centroid_uv[0] - cu, best.centroid_uv[1] - cv) < 2.0
 
 
 def test_height_blobs_become_full_resolution_masks():

@@ -90,7 +90,7 @@ class LocalizationConfig:
     epsilon_z_m: float = 0.05  # gravity: max disagreement of a height difference (plus tilt allowance)
     max_tilt_deg: float = 1.5  # gravity: residual tilt of the vehicle map after IMU levelling
     yaw_step_deg: float = 2.0  # gravity: spacing of the relative-yaw bins
-    yaw_noise_factor: float = 2.0  # gravity: yaw tolerance of a pair at distance d is asin(k*eps/d)
+    yaw_noise_factor: float = 1.5  # gravity: yaw tolerance of a pair at distance d is asin(k*eps/d)
     max_size_ratio: float | None = None  # prune associations whose size ratio exceeds this (needs sizes)
     max_edges: int = 30_000_000  # 6-DoF memory bound on the consistency graph
     refine: bool = True  # re-fit with mutual nearest neighbours under the estimate
