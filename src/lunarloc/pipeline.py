@@ -41,7 +41,7 @@ import numpy as np
 
 from lunarloc.errors import FileFormatError, InputError, LunarLocError
 from lunarloc.fusion import FusionConfig, PoseGraph, wrap_angle
-from lunarloc.geometry import invert_transform, matrix_to_pose, pose_to_matrix, transform_points, yaw_of
+from lunarloc.geometry import matrix_to_pose, pose_to_matrix, transform_points, yaw_of
 from lunarloc.localize import LocalizationConfig, localize
 from lunarloc.maps import AggregationConfig, LandmarkMap, aggregate_detections, load_map
 

@@ -64,8 +64,6 @@ def run_cmd(
     plot: bool = typer.Option(True, "--plot/--no-plot", help="Write the figures into OUT."),
 ) -> None:
     """Online localization over a traverse: detect, map, localize against REFERENCE, fuse."""
-    from dataclasses import replace
-
     from tqdm import tqdm
 
     from lunarloc.pipeline import load_reference, run_online, scaled_detector_config, write_outputs
@@ -98,7 +96,6 @@ def run_cmd(
         for p in plot_run(out):
             typer.echo(f"wrote {p}")
     typer.echo(f"wrote {out}/ (trajectory.tum, attempts.csv, summary.json, ...)")
-    del replace
 
 
 @app.command("plot")
@@ -218,6 +215,7 @@ def bench_loop_cmd(
 ) -> None:
     """The online loop on the real LunarLoc traverses (world-frame detections, no images) with
     simulated odometry drift; each traverse is localized against a map of all the others."""
+    import numpy as np
     from rich.console import Console
     from rich.table import Table
 
@@ -243,7 +241,7 @@ def bench_loop_cmd(
         others = [k for k in trav if k != v]
         D = [trav[k].detections_xyz for k in others]
         F = [trav[k].detection_frame + 1_000_000 * k for k in others]
-        ref = aggregate_detections(__import__("numpy").concatenate(D), __import__("numpy").concatenate(F), frame="ref")
+        ref = aggregate_detections(np.concatenate(D), np.concatenate(F), frame="ref")
         res = run_traverse_csv(trav[v], ref, drift)
         s = write_outputs(res, out / f"traverse_{v}")
         s["vehicle"] = v
