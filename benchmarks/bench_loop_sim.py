@@ -4,6 +4,7 @@ Usage
 -----
     python benchmarks/bench_loop_sim.py --out bench-output/loop-sim [--seeds 13 15 16]
         [--duration 470] [--width 640] [--image-rate 2] [--rocks 800] [--reference rocks|images]
+        [--heading-bias-std 1.5e-3]
 
 For each seed: simulate a site and one vehicle traverse (front stereo pair, default
 odometry drift: 3 % scale error + random-walk gyro bias), then run ``run_online``
@@ -40,6 +41,8 @@ def main() -> None:
     ap.add_argument("--image-rate", type=float, default=2.0)
     ap.add_argument("--rocks", type=int, default=800)
     ap.add_argument("--reference", choices=["rocks", "images"], default="rocks")
+    ap.add_argument("--heading-bias-std", type=float, default=None,
+                    help="std of the odometry's initial gyro bias, rad/s (default OdometryConfig: 5e-4)")
     a = ap.parse_args()
     rows = []
     for seed in a.seeds:
@@ -48,6 +51,8 @@ def main() -> None:
         cfg = SimulationConfig(site=SiteConfig(n_rocks=a.rocks), duration_s=a.duration, image_rate_hz=a.image_rate,
                                width=a.width, height=a.width * 9 // 16, cameras=("FrontLeft", "FrontRight"),
                                semantic=False)  # fmt: skip
+        if a.heading_bias_std is not None:
+            cfg = replace(cfg, odometry=replace(cfg.odometry, heading_bias_rad_s=a.heading_bias_std))
         site = simulate_site(seed, cfg.site)
         site.write_rocks_csv(d / "rocks.csv")
         renderer = SiteRenderer(site, cfg.render)
