@@ -598,8 +598,12 @@ def run_online(
     *,
     max_frames: int | None = None,
     progress: Callable[[int, int], None] | None = None,
+    odometry: np.ndarray | None = None,
 ) -> LoopResult:
     """Run the online loop over a `.lac` archive (needs its ``odometry`` record).
+
+    odometry : optional (F, 6) odometry poses (x, y, z, roll, pitch, yaw), one per archive
+        frame in order, replacing the recorded ones (to replay the images with another drift).
 
     reference : map in the ``ref`` frame (see :func:`load_reference`).
     config : default :meth:`LoopConfig.for_images`.
@@ -616,10 +620,16 @@ def run_online(
     t0 = time.perf_counter()
     ar = LacArchive(archive)
     with PlaybackAgent(ar) as agent:
-        if "odometry" not in ar.custom_records:
-            raise FileFormatError(f"{archive}: no custom/odometry.csv record: the loop needs the rover's odometry")
-        od = ar.custom("odometry")
-        odo = {int(f): r for f, r in zip(od["frame"], od.to_array(("x", "y", "z", "roll", "pitch", "yaw")))}
+        if odometry is not None:
+            od_arr = np.asarray(odometry, float)
+            if od_arr.shape != (len(ar.frame_numbers), 6):
+                raise InputError(f"odometry override must be ({len(ar.frame_numbers)}, 6), got {od_arr.shape}")
+            odo = {int(f): r for f, r in zip(ar.frame_numbers, od_arr)}
+        else:
+            if "odometry" not in ar.custom_records:
+                raise FileFormatError(f"{archive}: no custom/odometry.csv record: the loop needs the rover's odometry")
+            od = ar.custom("odometry")
+            odo = {int(f): r for f, r in zip(od["frame"], od.to_array(("x", "y", "z", "roll", "pitch", "yaw")))}
         cam = _camera_of(ar.configured_cameras)
         det_cfg = detector_config or scaled_detector_config(cam.width)
         detector = Detector(det_cfg, cam)
