@@ -117,7 +117,7 @@ def demo_cmd(
     duration: float = typer.Option(90.0, "--duration", help="Vehicle traverse length, seconds."),
     reference_duration: float = typer.Option(100.0, "--reference-duration", help="Reference traverse length, seconds."),
     width: int = typer.Option(640, "--width", help="Image width (height = 9/16 of it)."),
-    image_rate: float = typer.Option(2.0, "--image-rate", help="Vehicle camera rate, Hz (reference: half of it)."),
+    image_rate: float = typer.Option(2.0, "--image-rate", help="Camera rate of both traverses, Hz."),
     n_rocks: int = typer.Option(800, "--rocks", help="Rocks on the site (LAC map: 386; the demo uses a rock-rich site)."),
 ) -> None:
     """End to end on generated data: simulate a site, a reference and a drifting vehicle
@@ -179,11 +179,11 @@ def _run_demo(out: Path, seed: int, duration: float, reference_duration: float, 
         site = simulate_site(seed, base.site)
         site.write_rocks_csv(data / "rocks.csv")
         renderer = SiteRenderer(site, base.render)
-    with _stage(f"simulate reference traverse ({reference_duration:g} s, {width}x{height} front pair at {image_rate / 2:g} Hz)"):
+    with _stage(f"simulate reference traverse ({reference_duration:g} s, {width}x{height} front pair at {image_rate:g} Hz)"):
         ref_arch, _ = simulate_traverse(site, data / "reference.lac", 0,
-                                        replace(base, duration_s=reference_duration, image_rate_hz=image_rate / 2),
+                                        replace(base, duration_s=reference_duration),
                                         renderer=renderer)  # fmt: skip
-    with _stage(f"simulate vehicle traverse ({duration:g} s, drifting odometry)"):
+    with _stage(f"simulate vehicle traverse ({duration:g} s, drifting odometry: 3 % scale error, gyro bias)"):
         veh_arch, traj = simulate_traverse(site, data / "vehicle.lac", 1, replace(base, duration_s=duration),
                                            renderer=renderer)  # fmt: skip
     cfg = LoopConfig.for_images()
