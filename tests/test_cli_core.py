@@ -77,3 +77,9 @@ def test_errors_are_one_line_and_nonzero(tmp_path, capsys):
 def test_bench_requires_data(tmp_path, capsys):
     assert main(["bench", "pairs", "--data", str(tmp_path)]) == 2
     assert "no traverse" in capsys.readouterr().err
+
+
+def test_usage_errors_exit_2(capsys):
+    assert main(["localize", "--bogus"]) == 2
+    assert "No such option" in capsys.readouterr().err
+    assert main(["no-such-command"]) == 2
