@@ -84,3 +84,18 @@ def test_odometry_drifts(traj):
                               heading_noise_rad=0, tilt_noise_rad=0),
     )  # fmt: skip
     np.testing.assert_allclose(perfect[:, :3], traj.xyz, atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [3, 14])
+def test_long_traverse_stays_on_site(site, seed):
+    # Regression: the in-place turn stopped within 1e-3 rad but a waypoint only
+    # counted within 1 mm, so the rover could miss one by millimetres and drive
+    # straight off the site (site 5: seed 14 left it at ~350 s, seed 3 at ~330 s).
+    traj = plan_traverse(site, 400.0, seed=seed)
+    cfg = RoverConfig()
+    assert np.all(site.inside(traj.xyz[:, 0], traj.xyz[:, 1], margin=cfg.edge_margin_m - 0.01))
+    assert traj.path_length() > 0.5 * cfg.speed_mps * 400.0
+    # the waypoints the rover got to are passed within a centimetre
+    xy = traj.xyz[:, :2]
+    reached = [w for w in traj.waypoints[1:] if np.linalg.norm(xy - w, axis=1).min() < 0.01]
+    assert len(reached) >= 0.5 * (len(traj.waypoints) - 1)

@@ -117,6 +117,11 @@ class Trajectory:
         return float(np.linalg.norm(np.diff(self.xyz, axis=0), axis=1).sum()) if len(self) > 1 else 0.0
 
 
+_AIM_TOL_RAD = 1e-3  # turn in place until the heading error is below this
+_REACHED_M = 1e-3  # a waypoint is reached when its along-track distance is below this
+_REAIM_MIN_DIST_M = 0.05  # heading corrections while driving stop this close to the waypoint
+
+
 def _wrap(a):
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
@@ -198,8 +203,9 @@ def plan_traverse(
 ) -> Trajectory:
     """Drive from the site's rover start between random obstacle-free waypoints.
 
-    The rover turns in place toward each waypoint, then drives straight with a
-    speed ramp; states are sampled at ``rate_hz`` for ``duration_s`` seconds.
+    The rover turns in place toward each waypoint, then drives toward it with a
+    speed ramp, correcting its heading on the way and stopping at the waypoint's
+    along-track position (it never drives past a waypoint); states are sampled at ``rate_hz`` for ``duration_s`` seconds.
     The same site always starts at the same place; `seed` picks the waypoints.
     """
     cfg = config or RoverConfig()
@@ -224,18 +230,28 @@ def plan_traverse(
         delta = target - (x, y)
         dist = float(np.hypot(*delta))
         err = float(_wrap(np.arctan2(delta[1], delta[0]) - yaw))
-        if v == 0.0 and abs(err) > 1e-3 and dist > 1e-3:
+        if v == 0.0 and abs(err) > _AIM_TOL_RAD and dist > _REACHED_M:
             w = float(np.clip(err / dt, -cfg.yaw_rate_rad_s, cfg.yaw_rate_rad_s))
             yaw = float(_wrap(yaw + w * dt))
             ws[i] = w
             continue
-        ws[i] = 0.0
-        v_new = min(cfg.speed_mps, v + cfg.accel_mps2 * dt, np.sqrt(2 * cfg.accel_mps2 * dist))
-        step = min(v_new * dt, dist)
+        # Re-aim while driving: the in-place turn stops within _AIM_TOL_RAD, which
+        # alone would miss a waypoint 8 m away by up to 8 mm. Close to the waypoint
+        # the bearing is ill-conditioned, so the heading is held there.
+        w = 0.0
+        if dist > _REAIM_MIN_DIST_M:
+            w = float(np.clip(err / dt, -cfg.yaw_rate_rad_s, cfg.yaw_rate_rad_s))
+            yaw = float(_wrap(yaw + w * dt))
+        ws[i] = w
+        # Drive only up to the waypoint's along-track position: the rover never
+        # passes it, so a lateral miss cannot turn into driving off the site.
+        along = max(float(delta @ (np.cos(yaw), np.sin(yaw))), 0.0)
+        v_new = min(cfg.speed_mps, v + cfg.accel_mps2 * dt, np.sqrt(2 * cfg.accel_mps2 * along))
+        step = min(v_new * dt, along)
         x += step * np.cos(yaw)
         y += step * np.sin(yaw)
         v = v_new
-        if dist - step < 1e-3:
+        if along - step < _REACHED_M:
             k_wp += 1
             v = 0.0
     xyz, rpy = terrain_pose(site, xs, ys, yaws, cfg)
