@@ -135,3 +135,42 @@ def test_refine_disparity_recovers_subpixel_shift():
     crop = np.ones((40, 60), bool)
     d = refine_disparity(left, right, crop, 200, 20, 19.0, search_px=3, erode_px=1)
     assert d == pytest.approx(d_true, abs=0.15)
+
+
+def test_tiny_images_clamp_the_search_range():
+    # Regression: at 160x90 the detector's SGBM (192 disparities at half resolution:
+    # 96 on an 80 px wide image) failed with an OpenCV allocation of absurd size.
+    from lunarloc.perception.detector import DetectorConfig
+    from lunarloc.perception.stereo import max_num_disparities
+
+    assert max_num_disparities(80, 5) == 64 and max_num_disparities(1280, 11) == 1264
+    cam = PinholeCamera(width=160, height=90, hfov_deg=70.0)
+    left, right = _textured_pair(10, h=90, w=160)
+    full = StereoMatcher(StereoConfig(), camera=cam)
+    assert full.num_disparities_lowres == 128
+    d = full.disparity(left, right)
+    assert np.nanmedian(d[15:-15, 130:150]) == pytest.approx(10, abs=0.5)
+    half = StereoMatcher(DetectorConfig().height_stereo, camera=cam)
+    assert half.num_disparities_lowres == 64  # clamped from 96
+    low = half.disparity_lowres(left, right)
+    assert low.shape == (45, 80)
+    assert np.nanmedian(low[8:-8, 66:76]) == pytest.approx(5, abs=0.5)
+    # an image narrower than the camera's narrows the range again instead of failing
+    assert np.isfinite(full.disparity(left[:, :100], right[:, :100])).any()
+    # too small for any search range: a clear error naming the size
+    with pytest.raises(InputError, match="24x16"):
+        StereoMatcher(StereoConfig(), camera=PinholeCamera(width=24, height=16))
+    with pytest.raises(InputError, match="20x90"):
+        full.disparity(left[:, :20], right[:, :20])
+
+
+def test_detector_runs_on_160x90_pairs():
+    from lunarloc.perception.camera import ipex_rig
+    from lunarloc.perception.detector import Detector
+    from lunarloc.pipeline import scaled_detector_config
+
+    cam = PinholeCamera(width=160, height=90)
+    left, right = _textured_pair(6, h=90, w=160)
+    det = Detector(scaled_detector_config(160), cam)
+    pr = det.detect_pair(left, right, ipex_rig(cam)["FrontLeft"].T_rover_optical)
+    assert isinstance(pr.detections, list)

@@ -22,6 +22,7 @@ from lunarloc.perception.camera import IPEX_STEREO_BASELINE_M, PinholeCamera
 __all__ = [
     "StereoConfig",
     "StereoMatcher",
+    "max_num_disparities",
     "depth_at",
     "to_gray_u8",
     "GroundConfig",
@@ -81,6 +82,16 @@ class StereoConfig:
         return self.p2 if self.p2 is not None else 32 * 3 * self.block_size**2
 
 
+def max_num_disparities(width: int, block_size: int) -> int:
+    """Largest SGBM search range (a multiple of 16, pixels) OpenCV can run on images
+    `width` pixels wide with a `block_size` block: ``(width - block_size) // 16 * 16``.
+
+    Measured with OpenCV 5.0: a larger range fails with an out-of-memory error of
+    absurd size (or crashes) once it approaches the width. Below 16 no range works.
+    """
+    return max(int(width) - int(block_size), 0) // 16 * 16
+
+
 def to_gray_u8(image: np.ndarray) -> np.ndarray:
     """Grayscale uint8 view of an image (H, W), (H, W, 1) or (H, W, 3/4 RGB[A]).
 
@@ -125,19 +136,62 @@ class StereoMatcher:
         nd = c.num_disparities
         if c.downscale > 1:
             nd = max(16, int(np.ceil(nd / c.downscale / 16.0)) * 16)
+        # The search range cannot exceed the matched image's width (OpenCV then fails
+        # with an absurd allocation, or crashes): clamp it to the camera's width.
+        w = self.camera.width // c.downscale
+        nd_max = max_num_disparities(w, c.block_size)
+        if nd_max < 16:
+            raise InputError(
+                f"images of {self.camera.width}x{self.camera.height} px are too small for stereo matching: "
+                f"SGBM needs a matched width of at least {16 + c.block_size} px (block {c.block_size}, "
+                f"downscale {c.downscale}), got {w} px"
+            )
+        if nd > nd_max:
+            logger.info(
+                "SGBM numDisparities %d clamped to %d for %dx%d images (downscale %d)",
+                nd, nd_max, self.camera.width, self.camera.height, c.downscale,
+            )  # fmt: skip
+            nd = nd_max
         self.num_disparities_lowres = nd
-        self._sgbm = cv2.StereoSGBM_create(
-            minDisparity=0,
-            numDisparities=nd,
-            blockSize=c.block_size,
-            P1=c.P1,
-            P2=c.P2,
-            disp12MaxDiff=c.disp12_max_diff,
-            uniquenessRatio=c.uniqueness_ratio,
-            speckleWindowSize=c.speckle_window_size,
-            speckleRange=c.speckle_range,
-            mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY if c.three_way else cv2.STEREO_SGBM_MODE_SGBM,
-        )
+        self._matchers: dict[int, object] = {}
+        self._sgbm = self._matcher(nd)
+
+    def _matcher(self, num_disparities: int):
+        """The OpenCV SGBM object for a search range (cached)."""
+        m = self._matchers.get(num_disparities)
+        if m is None:
+            import cv2
+
+            c = self.config
+            m = cv2.StereoSGBM_create(
+                minDisparity=0,
+                numDisparities=num_disparities,
+                blockSize=c.block_size,
+                P1=c.P1,
+                P2=c.P2,
+                disp12MaxDiff=c.disp12_max_diff,
+                uniquenessRatio=c.uniqueness_ratio,
+                speckleWindowSize=c.speckle_window_size,
+                speckleRange=c.speckle_range,
+                mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY if c.three_way else cv2.STEREO_SGBM_MODE_SGBM,
+            )
+            self._matchers[num_disparities] = m
+        return m
+
+    def _compute(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+        """Raw SGBM disparity (int16, x16) of a pair at the matching resolution; the
+        search range is narrowed for images narrower than the camera's."""
+        h, w = left.shape
+        nd = self.num_disparities_lowres
+        nd_max = max_num_disparities(w, self.config.block_size)
+        if nd > nd_max:
+            if nd_max < 16:
+                raise InputError(
+                    f"a {w}x{h} px image (at matching resolution) is too small for stereo matching: "
+                    f"SGBM needs a width of at least {16 + self.config.block_size} px (block {self.config.block_size})"
+                )
+            nd = nd_max
+        return self._matcher(nd).compute(left, right)
 
     def disparity(
         self, left: np.ndarray, right: np.ndarray, rows: tuple[int, int] | None = None
@@ -168,11 +222,11 @@ class StereoMatcher:
             size = (L.shape[1] // k, L.shape[0] // k)
             Ls = cv2.resize(L, size, interpolation=cv2.INTER_AREA)
             Rs = cv2.resize(R, size, interpolation=cv2.INTER_AREA)
-            d = self._sgbm.compute(Ls, Rs).astype(np.float32) / 16.0
+            d = self._compute(Ls, Rs).astype(np.float32) / 16.0
             d[d <= 0] = np.nan
             d = cv2.resize(d, (L.shape[1], L.shape[0]), interpolation=cv2.INTER_NEAREST) * k
         else:
-            d = self._sgbm.compute(L, R).astype(np.float32) / 16.0
+            d = self._compute(L, R).astype(np.float32) / 16.0
         d[~(d >= self.config.min_valid_disparity_px)] = np.nan
         return d
 
@@ -203,7 +257,7 @@ class StereoMatcher:
             Rs = cv2.resize(R, (w, h), interpolation=cv2.INTER_AREA)[r0:]
         else:
             Ls, Rs = L[r0:], R[r0:]
-        d = self._sgbm.compute(Ls, Rs).astype(np.float32) / 16.0
+        d = self._compute(Ls, Rs).astype(np.float32) / 16.0
         d[~(d >= self.config.min_valid_disparity_px / k)] = np.nan
         if sky_level is not None:
             d[Ls < sky_level] = np.nan
