@@ -5,10 +5,13 @@ Usage
     python benchmarks/bench_perception.py ARCHIVE.lac [ARCHIVE.lac ...] [--every N]
         [--segmenter classical|fastsam --weights PATH] [--no-centre-correction]
         [--json OUT.json]
-    python benchmarks/bench_perception.py --simulate SEED [--duration S] ...   # renders first
+    python benchmarks/bench_perception.py --simulate SEED [--duration S] [--width W --height H] ...
+                                                                   # renders first
 
 Archives must come from `lunarloc simulate` (they hold ``custom/rocks.csv`` and the
-semantic images). Detections use the ground-truth rover pose, so the errors measured
+semantic images). The image size and field of view are read from each archive
+(``initial.toml``); the detector's pixel-sized parameters, tuned at 1280x720, are
+scaled to the archive's width (``lunarloc.pipeline.scaled_detector_config``). Detections use the ground-truth rover pose, so the errors measured
 are those of perception alone.
 
 Metrics
@@ -203,16 +206,24 @@ def print_summary(s: dict) -> None:
 
 
 def run_archive(path: Path, cfg: DetectorConfig, every: int, acc: Accumulator, detector: Detector | None = None):
+    """Accumulate one archive's metrics. The camera (image size, field of view) is read
+    from the archive and `cfg`'s pixel-sized parameters (tuned at 1280 px) are scaled
+    to its width; `detector` is reused when it was built for the same camera."""
     from lunarloc.data.lac import LacArchive
     from lunarloc.perception.detector import mounts_from_archive_row
+    from lunarloc.pipeline import _camera_of, scaled_detector_config
 
     with LacArchive(path) as ar:
         t = ar.custom("rocks")
         rocks = np.column_stack([t["id"], t["x"], t["y"], t["z"], t["radius"]])
         frames = [int(f) for f in ar.frame_numbers if ar.camera_row(STEREO_PAIRS[0][0], int(f)) is not None][::every]
-        det = detector or Detector(cfg)
-        for fd in detect_archive(ar, cfg, "ground-truth", detector=det, frames=frames):
-            sem = {left: ar.semantic(left, fd.frame) for left, _ in cfg.pairs}
+        cam = _camera_of(ar.configured_cameras)
+        det = detector if detector is not None and detector.camera == cam else None
+        if det is None:
+            det = Detector(scaled_detector_config(cam.width, base=cfg), cam)
+        print(f"{path}: {cam.width}x{cam.height} px, hfov {cam.hfov_deg:g} deg", file=sys.stderr)
+        for fd in detect_archive(ar, det.config, "ground-truth", detector=det, frames=frames):
+            sem = {left: ar.semantic(left, fd.frame) for left, _ in det.config.pairs}
             rows = {c: ar.camera_row(c, fd.frame) for c in ar.cameras}
             mounts = mounts_from_archive_row({k: v for k, v in rows.items() if v}, det.camera)
             acc.add_frame(fd, sem, rocks, det, mounts)
@@ -225,6 +236,8 @@ def main(argv=None) -> int:
     ap.add_argument("--simulate", type=int, nargs="*", default=[], help="site seeds to render first")
     ap.add_argument("--duration", type=float, default=80.0, help="seconds per simulated traverse")
     ap.add_argument("--image-rate", type=float, default=0.5, help="simulated camera rate, Hz")
+    ap.add_argument("--width", type=int, default=1280, help="simulated image width, px")
+    ap.add_argument("--height", type=int, default=720, help="simulated image height, px")
     ap.add_argument("--out-dir", type=Path, default=Path("bench-output/perception"))
     ap.add_argument("--every", type=int, default=1, help="use every N-th camera frame")
     ap.add_argument("--segmenter", default="classical")
@@ -237,8 +250,9 @@ def main(argv=None) -> int:
     for seed in a.simulate:
         from lunarloc.data.simulate import SimulationConfig, simulate_site, simulate_traverse
 
-        sc = SimulationConfig(duration_s=a.duration, image_rate_hz=a.image_rate)
-        p = a.out_dir / f"site{seed}_traverse0.lac"
+        sc = SimulationConfig(duration_s=a.duration, image_rate_hz=a.image_rate, width=a.width, height=a.height)
+        size = "" if (a.width, a.height) == (1280, 720) else f"_{a.width}x{a.height}"
+        p = a.out_dir / f"site{seed}_traverse0{size}.lac"
         if not p.exists():
             a.out_dir.mkdir(parents=True, exist_ok=True)
             t0 = time.time()
@@ -251,11 +265,13 @@ def main(argv=None) -> int:
     acc = Accumulator()
     acc.min_gt_px = a.min_gt_px
     det = None
+    configs = {}  # the detector config used at each image size (pixel parameters scaled)
     for p in archives:
         det = run_archive(p, cfg, a.every, acc, det)
+        configs[f"{det.camera.width}x{det.camera.height}"] = det.config.to_dict()
     s = acc.summary()
     s["archives"] = [str(p) for p in archives]
-    s["config"] = cfg.to_dict()
+    s["config"] = configs[next(iter(configs))] if len(configs) == 1 else configs
     print_summary(s)
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)
