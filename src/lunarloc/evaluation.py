@@ -70,6 +70,19 @@ def random_vehicle_transform(rng: np.random.Generator, max_tilt_deg: float = 1.0
     return make_transform(euler_to_rotation(roll, pitch, yaw), t)
 
 
+def drifted_path(rover_xyz: np.ndarray, drift: DriftModel) -> tuple[np.ndarray, np.ndarray]:
+    """Odometry positions (F, 3) and heading errors psi (F,) in radians for a true path:
+    each step is scaled by (1 + scale_error) and rotated by the heading error accumulated
+    so far (heading_drift_deg_per_m times the horizontal distance travelled)."""
+    g = np.asarray(rover_xyz, dtype=float)
+    step = np.diff(g, axis=0, prepend=g[:1])
+    dist = np.cumsum(np.linalg.norm(step[:, :2], axis=1))
+    psi = np.radians(drift.heading_drift_deg_per_m) * dist
+    c, s = np.cos(psi), np.sin(psi)
+    rot_step = np.stack([c * step[:, 0] - s * step[:, 1], s * step[:, 0] + c * step[:, 1], step[:, 2]], axis=1)
+    return g[0] + np.cumsum((1.0 + drift.scale_error) * rot_step, axis=0), psi
+
+
 def drifted_detections(trav: Traverse, drift: DriftModel):
     """Detections and rover positions as seen by drifting odometry (world-aligned at start).
 
@@ -78,12 +91,7 @@ def drifted_detections(trav: Traverse, drift: DriftModel):
     Returns (detections (D, 3), rover positions (F, 3), T_odo_world at the last frame).
     """
     g = trav.rover_xyz
-    step = np.diff(g, axis=0, prepend=g[:1])
-    dist = np.cumsum(np.linalg.norm(step[:, :2], axis=1))
-    psi = np.radians(drift.heading_drift_deg_per_m) * dist
-    c, s = np.cos(psi), np.sin(psi)
-    rot_step = np.stack([c * step[:, 0] - s * step[:, 1], s * step[:, 0] + c * step[:, 1], step[:, 2]], axis=1)
-    o = g[0] + np.cumsum((1.0 + drift.scale_error) * rot_step, axis=0)
+    o, psi = drifted_path(g, drift)
     frame_pos = {int(f): k for k, f in enumerate(trav.frames)}
     idx = np.array([frame_pos[int(f)] for f in trav.detection_frame], dtype=np.int64)
     rel = trav.detections_xyz - g[idx]

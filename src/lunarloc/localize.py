@@ -31,7 +31,7 @@ from lunarloc.association.clipper import clipper_clique
 from lunarloc.association.graph import RefPairIndex, graph_3d, sweep_yaw_bins, vehicle_pairs
 from lunarloc.association.putative import putative_associations
 from lunarloc.errors import ConfigError, DegenerateGeometryError, InputError
-from lunarloc.geometry import arun, arun_yaw, collinearity, tilt_angle, transform_points, yaw_of
+from lunarloc.geometry import arun, arun_yaw, tilt_angle, transform_points, yaw_of
 from lunarloc.maps import LandmarkMap
 
 log = logging.getLogger(__name__)
@@ -497,7 +497,6 @@ def _n_bins(cfg) -> int:
 
 def _sweep(Pv, Pr, node_of, cfg, visit, bin_start: int = 0, bin_count: int | None = None) -> int:
     """Run `visit(bin, theta, eu, ev, ew)` on the consistency graph of every yaw bin."""
-    step = math.radians(cfg.yaw_step_deg)
     n_bins = _n_bins(cfg)
     index = RefPairIndex(Pr, dist_cell_m=max(cfg.epsilon_m / 2, 0.01), angle_cell_rad=math.radians(1.0))
     return sweep_yaw_bins(

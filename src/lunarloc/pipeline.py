@@ -704,19 +704,14 @@ def run_traverse_csv(
     Keyframes are frames with detections, at least ``keyframe_every_s`` apart, plus one at
     least every 2 s. Frame time is frame number / `rate_hz`.
     """
-    from lunarloc.evaluation import DriftModel
+    from lunarloc.evaluation import DriftModel, drifted_path
     from lunarloc.maps import Traverse, load_traverse
 
     trav: Traverse = traverse if isinstance(traverse, Traverse) else load_traverse(traverse)
     drift = drift or DriftModel(0.05, 0.02)
     cfg = config or LoopConfig()
     g = trav.rover_xyz
-    step = np.diff(g, axis=0, prepend=g[:1])
-    dist = np.cumsum(np.linalg.norm(step[:, :2], axis=1))
-    psi = np.radians(drift.heading_drift_deg_per_m) * dist
-    c, s = np.cos(psi), np.sin(psi)
-    rot_step = np.stack([c * step[:, 0] - s * step[:, 1], s * step[:, 0] + c * step[:, 1], step[:, 2]], axis=1)
-    o = g[0] + np.cumsum((1.0 + drift.scale_error) * rot_step, axis=0)
+    o, psi = drifted_path(g, drift)
     order = np.argsort(trav.detection_frame, kind="stable")
     df = trav.detection_frame[order]
     dx = trav.detections_xyz[order]

@@ -285,6 +285,16 @@ class Detector:
         return hm
 
     # ------------------------------------------------------------------ one pair
+    def _lift_centroid(self, cu: float, cv: float, D: float, s: float, T_rover_optical: np.ndarray):
+        """Back-project a mask centroid at depth D (m) and, with centre correction, move it
+        along the viewing ray by the estimated radius (the paper's spherical-rock model).
+        Returns (p_optical, p_rover, radius_m)."""
+        p = self.camera.backproject(np.array([[cu, cv]]), np.array([D]))[0]
+        R_est = self.config.radius_per_size * s
+        if self.config.centre_correction:
+            p = p + p / np.linalg.norm(p) * R_est
+        return p, transform_points(T_rover_optical, p[None])[0], R_est
+
     def detect_pair(
         self,
         left: np.ndarray,
@@ -346,27 +356,8 @@ class Detector:
             rec.depth_m, rec.size_m, rec.reason = D, s, reason
             if reason is not None:
                 continue
-            p = self.camera.backproject(np.array([[cu, cv]]), np.array([D]))[0]
-            R_est = cfg.radius_per_size * s
-            if cfg.centre_correction:
-                p = p + p / np.linalg.norm(p) * R_est
-            p_rover = transform_points(T_rover_optical, p[None])[0]
-            p_map = transform_points(T_map_rover, p_rover[None])[0] if T_map_rover is not None else None
-            dets.append(
-                Detection(
-                    camera=camera_name,
-                    uv=(cu, cv),
-                    depth_m=D,
-                    sigma_px=rec.stats.sigma_px,
-                    eig_ratio=rec.stats.eig_ratio,
-                    area_px=rec.stats.area,
-                    size_m=s,
-                    radius_m=R_est,
-                    p_optical=p,
-                    p_rover=p_rover,
-                    p_map=p_map,
-                )
-            )
+            p, p_rover, R_est = self._lift_centroid(cu, cv, D, s, T_rover_optical)
+            dets.append(_detection(camera_name, rec.stats, D, s, R_est, p, p_rover, T_map_rover))
         t4 = time.perf_counter()
         for k, v in (("segment", t1 - t0), ("filter", (t2 - t1) + (t4 - t3)), ("stereo", t3 - t2)):
             tm[k] = tm.get(k, 0.0) + v
@@ -430,28 +421,8 @@ class Detector:
                 p_rover, R_est = _centre_from_points(P_rov, hm.height[rows[ok], cols[ok]], T_rover_optical[:3, 3], cfg)
                 p = transform_points(T_optical_rover, p_rover[None])[0]
             else:
-                cu, cv = st.centroid_uv
-                p = self.camera.backproject(np.array([[cu, cv]]), np.array([D]))[0]
-                R_est = cfg.radius_per_size * s
-                if cfg.centre_correction:
-                    p = p + p / np.linalg.norm(p) * R_est
-                p_rover = transform_points(T_rover_optical, p[None])[0]
-            p_map = transform_points(T_map_rover, p_rover[None])[0] if T_map_rover is not None else None
-            dets.append(
-                Detection(
-                    camera=camera_name,
-                    uv=st.centroid_uv,
-                    depth_m=D,
-                    sigma_px=st.sigma_px,
-                    eig_ratio=st.eig_ratio,
-                    area_px=st.area,
-                    size_m=s,
-                    radius_m=R_est,
-                    p_optical=p,
-                    p_rover=p_rover,
-                    p_map=p_map,
-                )
-            )
+                p, p_rover, R_est = self._lift_centroid(*st.centroid_uv, D, s, T_rover_optical)
+            dets.append(_detection(camera_name, st, D, s, R_est, p, p_rover, T_map_rover))
         t3 = time.perf_counter()
         for k, v in (("segment", t2 - t1), ("filter", t3 - t2), ("stereo", t1 - t0)):
             tm[k] = tm.get(k, 0.0) + v
@@ -495,6 +466,24 @@ class Detector:
                 )
             )
         return out
+
+
+def _detection(camera_name, stats, D, s, R_est, p, p_rover, T_map_rover) -> Detection:
+    """A Detection from a kept mask's statistics and its lifted centre."""
+    p_map = transform_points(T_map_rover, p_rover[None])[0] if T_map_rover is not None else None
+    return Detection(
+        camera=camera_name,
+        uv=tuple(stats.centroid_uv),
+        depth_m=D,
+        sigma_px=stats.sigma_px,
+        eig_ratio=stats.eig_ratio,
+        area_px=stats.area,
+        size_m=s,
+        radius_m=R_est,
+        p_optical=p,
+        p_rover=p_rover,
+        p_map=p_map,
+    )
 
 
 def _centre_from_points(
