@@ -149,3 +149,15 @@ def test_six_dof_edge_budget_is_enforced(rng):
     ref, veh, _, _ = make_pair(rng, n_ref=100, n_common=20)
     with pytest.raises(InputError, match="exceeds"):
         localize(ref, veh, LocalizationConfig(mode=Mode.SIX_DOF, max_edges=1000))
+
+
+def test_scaled_vehicle_map_is_not_trusted(rng):
+    """Odometry scale drift makes a map that no rigid transform fits: say so."""
+    ref, veh, T, _ = make_pair(rng, n_ref=150, n_common=40, n_outliers=0, noise=0.005)
+    c = veh.positions_xyz.mean(axis=0)
+    scaled = LandmarkMap(c + 1.02 * (veh.positions_xyz - c))
+    loose = LocalizationConfig(epsilon_m=0.15, max_rmse_m=0.2)  # isolate the scale check from the RMSE check
+    r = localize(ref, scaled, loose)
+    assert not r.success
+    assert "not rigid" in r.reason and r.scale_error > 0.015
+    assert localize(ref, veh, loose).success

@@ -107,6 +107,8 @@ class LocalizationConfig:
     min_handedness: float = 0.9  # gravity: share of inlier triangles with matching orientation
     max_predicted_error_m: float = 0.15  # predicted 1-sigma error (x predicted_error_sigmas) anywhere on the vehicle map
     predicted_error_sigmas: float = 1.0
+    max_scale_error: float = 0.005  # a rigid map's inliers match the reference's scale within 0.5 % ...
+    scale_sigmas: float = 3.0  # ... or within this many standard errors of the fitted scale
     competitor_ratio: float = 1.5  # best must be this many times the best competing hypothesis
     competitor_yaw_sep_deg: float = 10.0  # hypotheses whose yaws differ more than this compete
     seed: int = 0  # CLIPPER initialisation
@@ -162,6 +164,7 @@ class LocalizationResult:
     num_associations: int = 0
     num_edges: int = 0
     predicted_error_m: float = float("nan")
+    scale_error: float = float("nan")
     yaw_deg: float = float("nan")
     tilt_deg: float = float("nan")
     timings: dict = field(default_factory=dict)
@@ -195,6 +198,7 @@ class LocalizationResult:
             "num_associations": self.num_associations,
             "num_edges": self.num_edges,
             "predicted_error_m": clean(float(self.predicted_error_m)),
+            "scale_error": clean(float(self.scale_error)),
             "yaw_deg": clean(float(self.yaw_deg)),
             "tilt_deg": clean(float(self.tilt_deg)),
             "timings_s": {k: round(v, 6) for k, v in self.timings.items()},
@@ -290,6 +294,28 @@ def _refine(T, Pv, Pr, inl, cfg):
         if same:
             break
     return best_T, best_inl
+
+
+def scale_check(T, P, Q, weights, sigma_floor: float = 0.005) -> tuple[float, float]:
+    """Relative size of the vehicle map's inliers against their reference landmarks, and
+    its standard error: ``(1/s - 1, se)`` with s the scale taking vehicle to reference. A rigid map gives s = 1 within noise; odometry
+    scale drift inside the vehicle map shows up as s != 1 (the weighted least-squares
+    scale of Umeyama 1991, eq. 42, about the weighted centroids)."""
+    w = np.asarray(weights, float)
+    Pt = transform_points(T, P)
+    cp = (w @ Pt) / w.sum()
+    cq = (w @ Q) / w.sum()
+    X = Pt - cp
+    Y = Q - cq
+    sxx = float(w @ np.sum(X * X, axis=1))
+    if sxx <= 0:
+        return 0.0, float("inf")
+    scale = float(w @ np.sum(X * Y, axis=1)) / sxx
+    r2 = np.sum((scale * X - Y) ** 2, axis=1)
+    sigma2 = max(float(w @ r2) / max(3 * w.sum() - 7, 1.0), sigma_floor**2)
+    if scale <= 0:
+        return float("inf"), 0.0
+    return 1.0 / scale - 1.0, float(np.sqrt(sigma2 / sxx)) / scale**2
 
 
 def predicted_error(T, P, Q, weights, query_xyz, sigma_floor: float = 0.005) -> np.ndarray:
@@ -411,6 +437,7 @@ def localize(
     except DegenerateGeometryError:
         w = np.ones(len(inl))
     pred = predicted_error(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, Pv)
+    dscale, scale_se = scale_check(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w)
     timings["registration"] = time.perf_counter() - t0
 
     # competitor in 6-DoF mode: best set among associations the winner does not explain
@@ -426,7 +453,7 @@ def localize(
     R = T[:3, :3]
     out = LocalizationResult(
         False, T, inl, rmse, "", clique_size=len(best), competitor_size=int(competitor),
-        predicted_error_m=float(pred.max()),
+        predicted_error_m=float(pred.max()), scale_error=dscale,
         yaw_deg=math.degrees(yaw_of(R)), tilt_deg=math.degrees(tilt_angle(R)), **base,
     )
     Q = Pr[inl[:, 1]]
@@ -442,6 +469,11 @@ def localize(
         out.reason = f"fitted tilt {out.tilt_deg:.2f} deg exceeds the allowed {cfg.max_tilt_deg} deg (mirror or wrong match)"
     elif cfg.mode is Mode.GRAVITY and _handedness(Pv[inl[:, 0]], Q, np.random.default_rng(0)) < cfg.min_handedness:
         out.reason = "inliers are a mirror image of the reference (triangle orientations disagree)"
+    elif abs(dscale) > max(cfg.max_scale_error, cfg.scale_sigmas * scale_se):
+        out.reason = (
+            f"vehicle map is not rigid: its inliers are {dscale * 100:+.1f} % larger than the reference "
+            f"(+-{scale_se * 100:.1f} %), as odometry scale drift makes them"
+        )
     elif cfg.predicted_error_sigmas * pred.max() > cfg.max_predicted_error_m:
         out.reason = (
             f"pose too uncertain over the vehicle map: predicted error up to "
