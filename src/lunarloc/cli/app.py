@@ -18,6 +18,16 @@ app = typer.Typer(
 )
 
 
+def console():
+    """A rich console for command output; 130 columns when not a terminal (CI logs,
+    files), so that tables are not squeezed to the 80-column default."""
+    import sys
+
+    from rich.console import Console
+
+    return Console(width=None if sys.stdout.isatty() else 130)
+
+
 def _register_commands() -> None:
     # Each command group lives in its own module; importing registers it on `app`.
     from lunarloc.cli import commands_core  # noqa: F401

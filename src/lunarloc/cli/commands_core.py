@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from lunarloc.cli.app import app
+from lunarloc.cli.app import app, console
 
 bench_app = typer.Typer(help="Benchmarks that reproduce the published figures.", no_args_is_help=True)
 app.add_typer(bench_app, name="bench")
@@ -82,9 +82,8 @@ def localize_cmd(
     if as_json:
         typer.echo(json.dumps(res.to_dict()))
         return
-    from rich.console import Console
 
-    con = Console()
+    con = console()
     status = "[green]localized[/green]" if res.success else f"[red]not localized[/red]: {res.reason}"
     con.print(f"{vehicle.name} ({len(veh)} landmarks) in {reference.name} ({len(ref)} landmarks): {status}")
     con.print(
@@ -114,7 +113,6 @@ def bench_pairs_cmd(
     check: bool = typer.Option(False, "--check", help="Exit 1 unless the acceptance targets are met."),
 ) -> None:
     """Localize traverse pairs of the LunarLoc dataset; table on screen, CSV + JSON in --out."""
-    from rich.console import Console
     from rich.progress import Progress
     from rich.table import Table
 
@@ -127,10 +125,8 @@ def bench_pairs_cmd(
     pairs = list(PAPER_PAIRS) if only_paper else list(PAPER_PAIRS) + [
         p for p in itertools.combinations(sorted(paths), 2) if p not in PAPER_PAIRS
     ]
-    import sys
-
     cfg = LocalizationConfig(mode=mode, solver=solver)
-    con = Console(width=None if sys.stdout.isatty() else 130)
+    con = console()
     with Progress(console=con, transient=True) as prog:
         task = prog.add_task("localizing pairs", total=len(pairs))
         summary = bench_pairs(

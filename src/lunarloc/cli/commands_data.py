@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from lunarloc.cli.app import app
+from lunarloc.cli.app import app, console
 
 
 def _summary(archive) -> dict:
@@ -90,30 +90,29 @@ def info(
     plot: Path | None = typer.Option(None, "--plot", help="Write a top-down plot of the trajectory (and rocks) to this PNG."),
 ) -> None:
     """Summarise a .lac archive: frames, duration, cameras, image counts, path length, custom records."""
-    from rich.console import Console
     from rich.table import Table as RichTable
 
     from lunarloc.data.lac import LacArchive
 
-    console = Console()
+    con = console()
     with LacArchive(archive_path) as archive:
         s = _summary(archive)
         md = archive.metadata
-        console.print(f"[bold]{archive_path}[/bold]")
+        con.print(f"[bold]{archive_path}[/bold]")
         if md.get("description"):
-            console.print(f"  description : {md['description']}")
-        console.print(f"  data_spec   : {md.get('data_spec', '?')}   recorded {md.get('start_time', '?')} .. {md.get('end_time', '?')}")
+            con.print(f"  description : {md['description']}")
+        con.print(f"  data_spec   : {md.get('data_spec', '?')}   recorded {md.get('start_time', '?')} .. {md.get('end_time', '?')}")
         frames = s["frames"]
         span = f" ({s['first_frame']}..{s['last_frame']})" if frames else ""
-        console.print(f"  frames      : {frames}{span}")
-        console.print(f"  duration    : {s['duration_s']:.2f} s")
-        console.print(f"  path length : {s['path_length_m']:.2f} m")
+        con.print(f"  frames      : {frames}{span}")
+        con.print(f"  duration    : {s['duration_s']:.2f} s")
+        con.print(f"  path length : {s['path_length_m']:.2f} m")
         cam_table = RichTable(title="cameras", show_edge=False)
         for col in ("camera", "active", "size", "rows", "grayscale", "semantic"):
             cam_table.add_column(col, justify="left" if col == "camera" else "right")
         for c in s["cameras"]:
             cam_table.add_row(c["name"], "yes" if c["active"] else "no", c["size"], str(c["rows"]), str(c["grayscale"]), str(c["semantic"]))
-        console.print(cam_table)
+        con.print(cam_table)
         if s["custom"]:
             rec_table = RichTable(title="custom records", show_edge=False)
             rec_table.add_column("record")
@@ -121,10 +120,10 @@ def info(
             rec_table.add_column("columns")
             for r in s["custom"]:
                 rec_table.add_row(r["name"], str(r["rows"]), ",".join(r["columns"]))
-            console.print(rec_table)
+            con.print(rec_table)
         else:
-            console.print("  custom records: none")
+            con.print("  custom records: none")
         if plot is not None:
             _plot(archive, plot)
-            console.print(f"plot written to {plot}")
+            con.print(f"plot written to {plot}")
 

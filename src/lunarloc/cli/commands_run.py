@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from lunarloc.cli.app import app
+from lunarloc.cli.app import app, console
 from lunarloc.cli.commands_core import bench_app
 
 
@@ -24,7 +24,6 @@ def _loop_config(every_m: float, every_s: float, window_m: float, fix: str = "la
 
 
 def _print_summary(s: dict, title: str) -> None:
-    from rich.console import Console
     from rich.table import Table
 
     t = Table(title=title)
@@ -36,7 +35,7 @@ def _print_summary(s: dict, title: str) -> None:
         for key, lab in (("rmse_m", "ATE RMSE (m)"), ("max_m", "ATE max (m)")):
             t.add_row(lab, *(f"{s[f'ate_{n}'][key]:.3f}" for n in ("odometry", "corrected", "online")))
         t.add_row("final error (m)", f"{s['final_error_odometry_m']:.3f}", f"{s['final_error_corrected_m']:.3f}", "")
-    con = Console()
+    con = console()
     con.print(t)
     mx = s.get("max_accepted_fix_error_m")
     con.print(
@@ -216,7 +215,6 @@ def bench_loop_cmd(
     """The online loop on the real LunarLoc traverses (world-frame detections, no images) with
     simulated odometry drift; each traverse is localized against a map of all the others."""
     import numpy as np
-    from rich.console import Console
     from rich.table import Table
 
     from lunarloc.evaluation import DriftModel, find_traverses
@@ -227,7 +225,7 @@ def bench_loop_cmd(
     trav = {k: load_traverse(p) for k, p in paths.items()}
     wanted = [int(x) for x in traverses.split(",")] if traverses else sorted(trav)
     drift = DriftModel(heading_drift, scale_error)
-    con = Console()
+    con = console()
     table = Table(title=f"online loop on real traverses (drift {heading_drift} deg/m, scale {scale_error:+.1%})")
     for col in ("vehicle", "length m", "ref lm", "attempts", "fixes", "odo RMSE m", "odo max m", "corr RMSE m",
                 "corr max m", "worst fix cm", "RT fraction"):  # fmt: skip
