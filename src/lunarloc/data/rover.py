@@ -205,7 +205,9 @@ def plan_traverse(
 
     The rover turns in place toward each waypoint, then drives toward it with a
     speed ramp, correcting its heading on the way and stopping at the waypoint's
-    along-track position (it never drives past a waypoint); states are sampled at ``rate_hz`` for ``duration_s`` seconds.
+    along-track position (it never drives past a waypoint, so it stays inside the
+    convex hull of its waypoints); states are sampled at ``rate_hz`` for
+    ``duration_s`` seconds.
     The same site always starts at the same place; `seed` picks the waypoints.
     """
     cfg = config or RoverConfig()
