@@ -125,8 +125,6 @@ class StereoMatcher:
         camera: PinholeCamera | None = None,
         baseline_m: float = IPEX_STEREO_BASELINE_M,
     ) -> None:
-        import cv2
-
         self.config = config or StereoConfig()
         self.camera = camera or PinholeCamera()
         if not baseline_m > 0:
