@@ -11,8 +11,9 @@ Usage
 Archives must come from `lunarloc simulate` (they hold ``custom/rocks.csv`` and the
 semantic images). The image size and field of view are read from each archive
 (``initial.toml``); the detector's pixel-sized parameters, tuned at 1280x720, are
-scaled to the archive's width (``lunarloc.pipeline.scaled_detector_config``). Detections use the ground-truth rover pose, so the errors measured
-are those of perception alone.
+scaled to the archive's width (``lunarloc.pipeline.scaled_detector_config``).
+Detections use the ground-truth rover pose, so the errors measured are those of
+perception alone.
 
 Metrics
 -------
