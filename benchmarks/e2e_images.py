@@ -1,0 +1,306 @@
+"""End-to-end check from images (issue 4): maps built from the stereo images of two
+simulated traverses of one site localize against each other with `lunarloc localize`.
+
+Usage
+-----
+    python benchmarks/e2e_images.py --out DIR [--seed 21] [--traverses 2] [--duration 150]
+        [--image-rate 1] [--width 1280 --height 720] [--rocks N] [--all-cameras]
+        [--min-sightings 5 2] [--epsilon 0.05 0.08] [--json OUT.json]
+
+Steps (each runs the project's own command line; outputs already in DIR are reused):
+
+1. ``lunarloc simulate --seed S --traverses N --out DIR --duration D --image-rate R
+   --front-only --no-semantic`` (with ``--rocks N`` the site is simulated through the
+   Python API instead, ``SiteConfig(n_rocks=N)``: the command has no such option).
+2. ``lunarloc detect DIR/traverse_i.lac -o DIR/det_i_<pose>.csv --pose <pose>`` for
+   pose = ground-truth and odometry.
+3. ``lunarloc map det_i_<pose>.csv -o map_i_<pose>_ms<M>.csv --min-sightings M``.
+4. ``lunarloc localize map_0_<pose>.csv map_i_<pose>.csv --json --epsilon E`` for
+   every traverse i > 0, every min-sightings M and epsilon E, and three pose pairs:
+
+   * ``gt/gt``: both maps from ground-truth poses, so both are in the site (world)
+     frame and the true ``T_ref_veh`` is the identity. Errors: ``|T p - p|`` at the
+     origin, at the vehicle map's landmarks (median and max) and at the vehicle's
+     last true position; rotation angle of ``T``.
+   * ``odo/odo``: both maps from their odometry (each starts at the true first pose,
+     so its frame is the world frame up to drift). The true relation is not rigid;
+     the error reported is ``|T p_odo_last - p_gt_last|`` (the vehicle's last
+     odometry position mapped into the reference map against its true position;
+     it includes the reference map's own drift), next to the odometry-only error
+     ``|p_odo_last - p_gt_last|``.
+   * ``gt/odo``: a world-frame reference (ground-truth poses) and a drifting vehicle
+     map (odometry): the same last-position error, with an exact reference.
+
+Map quality: landmarks per map and how many lie within max(0.15 m, radius) of a
+ground-truth rock centre (``rocks.csv``), with the median distance; an odometry
+map's landmarks are placed by the same detections with ground-truth poses (the
+detector output is the same, only the pose differs). Each result also counts the
+inliers that pair landmarks of the same true rock ("good").
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+POSES = {"gt": "ground-truth", "odo": "odometry"}
+PAIRS = [("gt", "gt"), ("odo", "odo"), ("gt", "odo")]
+
+
+def _run(cmd: list[str], log: list[str]) -> str:
+    shown = " ".join(shlex.quote(c) for c in cmd)
+    print(f"$ {shown}", file=sys.stderr, flush=True)
+    log.append(shown)
+    t0 = time.perf_counter()
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    if r.returncode != 0:
+        sys.stderr.write(r.stdout + r.stderr)
+        raise SystemExit(f"command failed ({r.returncode}): {shown}")
+    print(f"  ({time.perf_counter() - t0:.0f} s) {r.stdout.strip().splitlines()[-1] if r.stdout.strip() else ''}",
+          file=sys.stderr, flush=True)  # fmt: skip
+    return r.stdout
+
+
+def _lunarloc() -> list[str]:
+    return [sys.executable, "-m", "lunarloc"]
+
+
+def simulate(a, log: list[str]) -> list[Path]:
+    paths = [a.out / f"traverse_{i}.lac" for i in range(a.traverses)]
+    if all(p.exists() for p in paths):
+        return paths
+    if a.rocks is None:
+        cmd = _lunarloc() + [
+            "simulate", "--seed", str(a.seed), "--traverses", str(a.traverses), "--out", str(a.out),
+            "--duration", f"{a.duration:g}", "--image-rate", f"{a.image_rate:g}", "--width", str(a.width),
+            "--height", str(a.height), "--no-semantic",
+        ] + ([] if a.all_cameras else ["--front-only"])  # fmt: skip
+        _run(cmd, log)
+    else:
+        from dataclasses import replace
+
+        from lunarloc.data.simulate import ALL_CAMERAS, SimulationConfig, simulate_dataset
+        from lunarloc.data.site import SiteConfig
+
+        cfg = SimulationConfig(
+            site=replace(SiteConfig(), n_rocks=a.rocks), duration_s=a.duration, image_rate_hz=a.image_rate,
+            width=a.width, height=a.height, semantic=False,
+            cameras=ALL_CAMERAS if a.all_cameras else ("FrontLeft", "FrontRight"),
+        )  # fmt: skip
+        log.append(f"python: simulate_dataset({a.seed}, {a.traverses}, {str(a.out)!r}, SimulationConfig("
+                   f"site=SiteConfig(n_rocks={a.rocks}), duration_s={a.duration:g}, image_rate_hz={a.image_rate:g}, "
+                   f"width={a.width}, height={a.height}, semantic=False, cameras=...))")  # fmt: skip
+        print(f"$ {log[-1]}", file=sys.stderr, flush=True)
+        t0 = time.perf_counter()
+        simulate_dataset(a.seed, a.traverses, a.out, cfg)
+        print(f"  ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+    return paths
+
+
+def _truth(archive: Path) -> dict:
+    """Last ground-truth and odometry positions of a traverse (site frame, metres)."""
+    from lunarloc.data.lac import LacArchive
+
+    with LacArchive(archive) as ar:
+        gt = ar.positions()
+        odo = ar.custom("odometry").to_array(("x", "y", "z"))
+        frames = ar.frame_numbers
+        odo_frames = ar.custom("odometry")["frame"]
+    last = int(frames[-1])
+    k = int(np.flatnonzero(odo_frames == last)[0])
+    return {"gt_last": gt[-1], "odo_last": odo[k], "path_m": float(np.linalg.norm(np.diff(gt, axis=0), axis=1).sum())}
+
+
+def _landmark_rocks(map_path: Path, det_path: Path, gt_det_path: Path, rocks: np.ndarray, radius_m: float = 0.10):
+    """Ground-truth rock of each landmark of a map (-1: none within max(0.15 m, r)) and
+    its distance, by the landmark's detections seen with ground-truth poses.
+
+    `det_path` and `gt_det_path` hold the same detections (the same images run through
+    the same detector) with the map's poses and with ground-truth poses: a landmark's
+    world position is the median of the ground-truth-pose twins of the detections
+    within `radius_m` (the clustering radius) of it. For a ground-truth-pose map both
+    files are the same.
+    """
+    from lunarloc.maps import load_map, load_traverse
+
+    P = load_map(map_path).positions_xyz
+    D = load_traverse(det_path).detections_xyz
+    G = load_traverse(gt_det_path).detections_xyz
+    if len(D) != len(G):
+        raise SystemExit(f"{det_path} and {gt_det_path} do not hold the same detections")
+    ids = np.full(len(P), -1)
+    dist = np.full(len(P), np.nan)
+    for k, p in enumerate(P):
+        near = np.linalg.norm(D - p, axis=1) <= radius_m
+        w = np.median(G[near], axis=0) if near.any() else p
+        d = np.linalg.norm(rocks[:, :3] - w, axis=1)
+        j = int(d.argmin())
+        dist[k] = d[j]
+        if d[j] <= max(0.15, rocks[j, 3]):
+            ids[k] = j
+    return ids, dist
+
+
+def _map_quality(ids: np.ndarray, dist: np.ndarray) -> dict:
+    ok = ids >= 0
+    return {"landmarks": int(len(ids)), "on_rock": int(ok.sum()),
+            "median_err_m": float(np.median(dist[ok])) if ok.any() else float("nan")}  # fmt: skip
+
+
+def _errors(T: np.ndarray | None, veh_map: Path, truth_veh: dict, ref_pose: str, veh_pose: str) -> dict:
+    from lunarloc.maps import load_map
+
+    nan = float("nan")
+    out = {"err_origin_m": nan, "err_landmarks_median_m": nan, "err_landmarks_max_m": nan,
+           "rot_deg": nan, "err_last_m": nan, "odometry_only_err_last_m": nan, "t_norm_m": nan}  # fmt: skip
+    p_veh_last = truth_veh["gt_last"] if veh_pose == "gt" else truth_veh["odo_last"]
+    if veh_pose == "odo":
+        out["odometry_only_err_last_m"] = float(np.linalg.norm(truth_veh["odo_last"] - truth_veh["gt_last"]))
+    if T is None:
+        return out
+    R, t = T[:3, :3], T[:3, 3]
+    out["rot_deg"] = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+    out["err_last_m"] = float(np.linalg.norm(R @ p_veh_last + t - truth_veh["gt_last"]))
+    if ref_pose == veh_pose == "gt":  # both in the world frame: the truth is the identity
+        P = load_map(veh_map).positions_xyz
+        e = np.linalg.norm(P @ R.T + t - P, axis=1)
+        out["err_origin_m"] = float(np.linalg.norm(t))
+        out["err_landmarks_median_m"] = float(np.median(e))
+        out["err_landmarks_max_m"] = float(np.max(e))
+    # with odometry maps the truth is not rigid (drift): |t| only says how far T is from
+    # the identity at the origin, it is not an error
+    out["t_norm_m"] = float(np.linalg.norm(t))
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", type=Path, required=True, help="working folder (archives, detections, maps)")
+    ap.add_argument("--seed", type=int, default=21)
+    ap.add_argument("--traverses", type=int, default=2)
+    ap.add_argument("--duration", type=float, default=150.0)
+    ap.add_argument("--image-rate", type=float, default=1.0)
+    ap.add_argument("--width", type=int, default=1280)
+    ap.add_argument("--height", type=int, default=720)
+    ap.add_argument("--rocks", type=int, default=None, help="rocks on the site (default: the site's 386)")
+    ap.add_argument("--all-cameras", action="store_true", help="record the rear pair too (default: front only)")
+    ap.add_argument("--min-sightings", type=int, nargs="+", default=[5, 2])
+    ap.add_argument("--epsilon", type=float, nargs="+", default=[0.05, 0.08])
+    ap.add_argument("--poses", nargs="+", default=[f"{r}/{v}" for r, v in PAIRS],
+                    help="reference/vehicle pose pairs among gt/gt odo/odo gt/odo")  # fmt: skip
+    ap.add_argument("--json", type=Path, default=None)
+    a = ap.parse_args(argv)
+    a.out.mkdir(parents=True, exist_ok=True)
+    pairs = [tuple(p.split("/")) for p in a.poses]
+    log: list[str] = []
+    t_start = time.perf_counter()
+    archives = simulate(a, log)
+    rocks_t = np.genfromtxt(a.out / "rocks.csv", delimiter=",", names=True)
+    rocks = np.column_stack([rocks_t["x"], rocks_t["y"], rocks_t["z"], rocks_t["radius"]])
+    needed = ["gt"] + sorted({p for pr in pairs for p in pr} - {"gt"})  # gt first: odo maps are judged by it
+    rock_of: dict[Path, np.ndarray] = {}
+    # detections and maps
+    maps: dict[tuple[int, str, int], Path] = {}
+    quality: dict[str, dict] = {}
+    for i, arch in enumerate(archives):
+        for pose in needed:
+            det = a.out / f"det_{i}_{pose}.csv"
+            if not det.exists():
+                _run(_lunarloc() + ["detect", str(arch), "-o", str(det), "--pose", POSES[pose]], log)
+            for ms in a.min_sightings:
+                m = a.out / f"map_{i}_{pose}_ms{ms}.csv"
+                if not m.exists():
+                    _run(_lunarloc() + ["map", str(det), "-o", str(m), "--min-sightings", str(ms)], log)
+                maps[i, pose, ms] = m
+                ids, dist = _landmark_rocks(m, det, a.out / f"det_{i}_gt.csv", rocks)
+                rock_of[m] = ids
+                quality[m.name] = _map_quality(ids, dist)
+    truth = [_truth(p) for p in archives]
+    rows = []
+    for i in range(1, len(archives)):
+        for rp, vp in pairs:
+            for ms in a.min_sightings:
+                ref, veh = maps[0, rp, ms], maps[i, vp, ms]
+                for eps in a.epsilon:
+                    out = _run(_lunarloc() + ["localize", str(ref), str(veh), "--json", "--epsilon", f"{eps:g}"], log)
+                    res = json.loads(out.strip().splitlines()[-1])
+                    T = np.array([[math.nan if v is None else v for v in r] for r in res["T_ref_veh"]], float)
+                    T = T if np.all(np.isfinite(T)) else None
+                    inl = np.asarray(res["inliers"], int).reshape(-1, 2)  # [vehicle, reference]
+                    rv, rr = rock_of[veh][inl[:, 0]], rock_of[ref][inl[:, 1]]
+                    correct = int(np.count_nonzero((rv >= 0) & (rv == rr)))
+                    row = {
+                        "ref": f"0:{rp}", "veh": f"{i}:{vp}", "min_sightings": ms, "epsilon_m": eps,
+                        "ref_landmarks": quality[ref.name]["landmarks"],
+                        "veh_landmarks": quality[veh.name]["landmarks"],
+                        "inliers": res["num_inliers"], "correct_inliers": correct, "required": res["required_inliers"],
+                        "success": res["success"], "reason": res["reason"],
+                        "rmse_m": res["residual_rmse_m"],
+                        **_errors(T, veh, truth[i], rp, vp),
+                    }  # fmt: skip
+                    rows.append(row)
+    summary = {
+        "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(a).items()},
+        "commands": log,
+        "traverses": [{"archive": str(p), "path_m": t["path_m"],
+                       "odometry_err_last_m": float(np.linalg.norm(t["odo_last"] - t["gt_last"]))}
+                      for p, t in zip(archives, truth)],  # fmt: skip
+        "maps": quality,
+        "results": rows,
+        "wall_s": time.perf_counter() - t_start,
+    }
+    print_table(summary)
+    if a.json:
+        a.json.parent.mkdir(parents=True, exist_ok=True)
+        a.json.write_text(json.dumps(summary, indent=1, default=float))
+    return 0
+
+
+LEGEND = (
+    "errors in cm, rotation of T in degrees. inl: inliers; good: inliers pairing landmarks of the same true rock;"
+    " req: inliers required; rmse: residual at the inliers; e_orig, e_lm50, e_lmMx: |T p - p| at the origin and"
+    " at the vehicle map's landmarks (median, max), gt/gt only (true T = identity); e_last: at the vehicle's last"
+    " position against its true position; odo: the odometry-only error there; |t|: translation of T (with"
+    " odometry maps not an error: drift)"
+)
+
+
+def print_table(s: dict) -> None:
+    def cm(x):
+        return "-" if x is None or not math.isfinite(x) else f"{100 * x:.1f}"
+
+    for t in s["traverses"]:
+        err = 100 * t["odometry_err_last_m"]
+        print(f"{t['archive']}: path {t['path_m']:.1f} m, odometry error at the end {err:.1f} cm")
+    print("maps: landmarks; within max(0.15 m, r) of a true rock (odometry maps: judged by the same detections"
+          " with ground-truth poses), median distance:")  # fmt: skip
+    for name, q in s["maps"].items():
+        print(f"  {name}: {q['landmarks']}, {q['on_rock']} on a rock, median {cm(q['median_err_m'])} cm")
+    cols = [  # (header, width, cell)
+        ("ref", 6, lambda r: r["ref"]), ("veh", 6, lambda r: r["veh"]), ("ms", 3, lambda r: r["min_sightings"]),
+        ("eps", 5, lambda r: f"{r['epsilon_m']:.2f}"), ("L_ref", 5, lambda r: r["ref_landmarks"]),
+        ("L_veh", 5, lambda r: r["veh_landmarks"]), ("inl", 4, lambda r: r["inliers"]),
+        ("good", 4, lambda r: r["correct_inliers"]), ("req", 4, lambda r: r["required"]),
+        ("ok", 3, lambda r: "yes" if r["success"] else "no"), ("rmse", 5, lambda r: cm(r["rmse_m"])),
+        ("e_orig", 6, lambda r: cm(r["err_origin_m"])), ("e_lm50", 6, lambda r: cm(r["err_landmarks_median_m"])),
+        ("e_lmMx", 6, lambda r: cm(r["err_landmarks_max_m"])), ("e_last", 6, lambda r: cm(r["err_last_m"])),
+        ("odo", 6, lambda r: cm(r["odometry_only_err_last_m"])), ("|t|", 6, lambda r: cm(r["t_norm_m"])),
+        ("rot", 5, lambda r: "-" if not math.isfinite(r["rot_deg"]) else f"{r['rot_deg']:.2f}"),
+    ]  # fmt: skip
+    print(LEGEND)
+    print(" ".join(f"{h:>{w}}" for h, w, _ in cols) + "  reason")
+    for r in s["results"]:
+        print(" ".join(f"{str(f(r)):>{w}}" for _, w, f in cols) + f"  {r['reason']}")
+    print(f"wall time {s['wall_s']:.0f} s")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
