@@ -137,7 +137,10 @@ def bench_pairs_cmd(
     table = Table(title="LunarLoc traverse pairs (reference - vehicle)")
     for col in ("pair", "segs ref", "segs veh", "inliers", "err@origin cm", "err@rover cm", "rot deg",
                 "success", "correct", "time s", "reason"):
-        table.add_column(col, justify="right" if col != "reason" else "left")
+        if col == "reason":
+            table.add_column(col, no_wrap=True, overflow="ellipsis", max_width=48)
+        else:
+            table.add_column(col, justify="right")
     paper = [r for r in res if (r.reference, r.vehicle) in PAPER_PAIRS]
     others = [r for r in res if (r.reference, r.vehicle) not in PAPER_PAIRS]
     shown = paper + [r for r in others if not (r.success and r.correct)]
