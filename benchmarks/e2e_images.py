@@ -237,10 +237,11 @@ def main(argv=None) -> int:
                     inl = np.asarray(res["inliers"], int).reshape(-1, 2)  # [vehicle, reference]
                     rv, rr = rock_of[veh][inl[:, 0]], rock_of[ref][inl[:, 1]]
                     correct = int(np.count_nonzero((rv >= 0) & (rv == rr)))
+                    shared = len((set(rock_of[veh].tolist()) & set(rock_of[ref].tolist())) - {-1})
                     row = {
                         "ref": f"0:{rp}", "veh": f"{i}:{vp}", "min_sightings": ms, "epsilon_m": eps,
                         "ref_landmarks": quality[ref.name]["landmarks"],
-                        "veh_landmarks": quality[veh.name]["landmarks"],
+                        "veh_landmarks": quality[veh.name]["landmarks"], "shared_rocks": shared,
                         "inliers": res["num_inliers"], "correct_inliers": correct, "required": res["required_inliers"],
                         "success": res["success"], "reason": res["reason"],
                         "rmse_m": res["residual_rmse_m"],
@@ -265,7 +266,7 @@ def main(argv=None) -> int:
 
 
 LEGEND = (
-    "errors in cm, rotation of T in degrees. inl: inliers; good: inliers pairing landmarks of the same true rock;"
+    "errors in cm, rotation of T in degrees. shared: true rocks with a landmark in both maps; inl: inliers; good: inliers pairing landmarks of the same true rock;"
     " req: inliers required; rmse: residual at the inliers; e_orig, e_lm50, e_lmMx: |T p - p| at the origin and"
     " at the vehicle map's landmarks (median, max), gt/gt only (true T = identity); e_last: at the vehicle's last"
     " position against its true position; odo: the odometry-only error there; |t|: translation of T (with"
@@ -287,7 +288,8 @@ def print_table(s: dict) -> None:
     cols = [  # (header, width, cell)
         ("ref", 6, lambda r: r["ref"]), ("veh", 6, lambda r: r["veh"]), ("ms", 3, lambda r: r["min_sightings"]),
         ("eps", 5, lambda r: f"{r['epsilon_m']:.2f}"), ("L_ref", 5, lambda r: r["ref_landmarks"]),
-        ("L_veh", 5, lambda r: r["veh_landmarks"]), ("inl", 4, lambda r: r["inliers"]),
+        ("L_veh", 5, lambda r: r["veh_landmarks"]), ("shared", 6, lambda r: r["shared_rocks"]),
+        ("inl", 4, lambda r: r["inliers"]),
         ("good", 4, lambda r: r["correct_inliers"]), ("req", 4, lambda r: r["required"]),
         ("ok", 3, lambda r: "yes" if r["success"] else "no"), ("rmse", 5, lambda r: cm(r["rmse_m"])),
         ("e_orig", 6, lambda r: cm(r["err_origin_m"])), ("e_lm50", 6, lambda r: cm(r["err_landmarks_median_m"])),
