@@ -266,8 +266,8 @@ def main(argv=None) -> int:
 
 
 LEGEND = (
-    "errors in cm, rotation of T in degrees. shared: true rocks with a landmark in both maps; inl: inliers; good: inliers pairing landmarks of the same true rock;"
-    " req: inliers required; rmse: residual at the inliers; e_orig, e_lm50, e_lmMx: |T p - p| at the origin and"
+    "errors in cm, rotation of T in degrees. shared: true rocks with a landmark in both maps; inl: inliers;"
+    " good: inliers pairing landmarks of the same true rock; req: inliers required; rmse: residual at the inliers; e_orig, e_lm50, e_lmMx: |T p - p| at the origin and"
     " at the vehicle map's landmarks (median, max), gt/gt only (true T = identity); e_last: at the vehicle's last"
     " position against its true position; odo: the odometry-only error there; |t|: translation of T (with"
     " odometry maps not an error: drift)"
