@@ -52,8 +52,11 @@ def detect(
         debug_dir.mkdir(parents=True, exist_ok=True)
     with LacArchive(archive) as ar:
         from lunarloc.perception.detector import _camera_from_archive
+        from lunarloc.pipeline import scaled_detector_config
 
-        detector = Detector(cfg, _camera_from_archive(ar))  # fails early (e.g. missing weights)
+        camera = _camera_from_archive(ar)
+        cfg = scaled_detector_config(camera.width, cfg)  # pixel parameters are tuned at 1280 px
+        detector = Detector(cfg, camera)  # fails early (e.g. missing weights)
         lefts = [left for left, _ in cfg.pairs]
         frames = sorted(
             {int(f) for f in ar.frame_numbers for c in lefts if c in ar.cameras and ar.camera_row(c, int(f))}
