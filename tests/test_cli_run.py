@@ -60,3 +60,21 @@ def test_bench_loop(tmp_path, capsys):
     assert main(["bench", "loop", "--data", str(tmp_path / "data"), "--out", str(out)]) == 0
     rows = json.loads((out / "loop.json").read_text())
     assert len(rows) == 2 and all(r["fixes"] > 0 for r in rows)
+
+
+def test_detect_then_map(tiny_archive, tmp_path, capsys):
+    """`lunarloc detect` on a 320x180 archive writes the dataset CSV that `lunarloc map` reads,
+    with debug overlays, and records the (resolution-scaled) detector config it used."""
+    from lunarloc.maps import load_traverse
+
+    det = tmp_path / "det.csv"
+    rc = main(["detect", str(tiny_archive / "traverse_0.lac"), "-o", str(det), "--debug-dir", str(tmp_path / "dbg")])
+    assert rc == 0
+    t = load_traverse(det)
+    assert len(t.frames) > 0 and np.all(np.isfinite(t.detections_xyz))
+    assert any((tmp_path / "dbg").iterdir())
+    cfg = json.loads(det.with_name("det.csv.config.json").read_text())
+    assert cfg["detector"]["stereo"]["num_disparities"] < 128  # scaled down from the 1280 px default
+    assert main(["map", str(det), "-o", str(tmp_path / "m.csv"), "--min-sightings", "1"]) == 0
+    assert main(["detect", str(tiny_archive / "traverse_0.lac"), "-o", str(det), "--segmenter", "fastsam",
+                 "--weights", str(tmp_path / "missing.pt")]) == 2
