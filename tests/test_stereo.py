@@ -174,3 +174,20 @@ def test_detector_runs_on_160x90_pairs():
     det = Detector(scaled_detector_config(160), cam)
     pr = det.detect_pair(left, right, ipex_rig(cam)["FrontLeft"].T_rover_optical)
     assert isinstance(pr.detections, list)
+
+
+def test_mask_disparity_fullres_recovers_shift_in_narrow_band():
+    from lunarloc.perception.stereo import mask_disparity_fullres
+
+    rng = np.random.default_rng(3)
+    base = (rng.random((200, 400)) * 255).astype(np.uint8)
+    import cv2
+
+    left = cv2.GaussianBlur(base, (3, 3), 0)
+    right = np.roll(left, -24, axis=1)  # true disparity 24 px everywhere
+    crop = np.ones((40, 50), bool)
+    d = mask_disparity_fullres(left, right, crop, 200, 80, d0=22.6, span_px=16, block_size=5)
+    assert d is not None and d.shape == crop.shape
+    assert abs(float(np.nanmedian(d)) - 24.0) < 0.2
+    # a band that would leave the image gives None
+    assert mask_disparity_fullres(left, right, crop, 5, 80, d0=22.6) is None
