@@ -42,7 +42,9 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     _register_commands()
     try:
-        app(args=argv, standalone_mode=False)
+        # standalone_mode=False makes click *return* the code of a `typer.Exit` raised by a
+        # command instead of calling sys.exit; dropping it turned every failed check into 0
+        rv = app(args=argv, standalone_mode=False)
     except LunarLocError as exc:
         typer.secho(f"error: {exc}", err=True, fg=typer.colors.RED)
         return 2
@@ -61,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
             exc.show()
             return exc.exit_code
         raise
-    return 0
+    return rv if isinstance(rv, int) else 0
 
 
 if __name__ == "__main__":  # pragma: no cover
