@@ -187,11 +187,12 @@ class RenderConfig:
     lunar_lambert_L: float = 0.6  # limb-darkening mix of the Lunar-Lambert law
     ambient: float = 0.025  # light in sun shadows, fraction of the direct sun (none at night)
     exposure: float = 1.0  # scale before the gamma curve
+    highlight_knee: float = 0.75  # radiance above this is compressed smoothly toward 1 (lamp-lit near field)
     gamma: float = 1.8  # display gamma
     texture_seed: int = 0  # seed of the albedo texture
     lighting: Lighting = Lighting.SUN_LAMPS  # sun, lamps or both (a str is parsed)
     lamp_intensity: float = 1.0  # LAC light_intensity of every lamp, 0-1 (what the archive records)
-    lamp_power: float = 0.6  # on-axis irradiance at 1 m of one lamp at intensity 1, in units of the sun's
+    lamp_power: float = 1.0  # on-axis irradiance at 1 m of one lamp at intensity 1, in units of the sun's
     lamp_cone_deg: tuple[float, float] = (35.0, 65.0)  # full power inside, none beyond (half-angles)
     rover_shadow: bool = True  # the rover body (ROVER_BOXES) occludes the sun in render_rover
 
@@ -221,6 +222,8 @@ class RenderConfig:
             raise ConfigError(f"lamp_power={self.lamp_power} must be >= 0")
         if len(self.lamp_cone_deg) != 2 or not 0.0 <= self.lamp_cone_deg[0] < self.lamp_cone_deg[1] <= 90.0:
             raise ConfigError(f"lamp_cone_deg={self.lamp_cone_deg} must be (inner, outer) with 0 <= inner < outer <= 90")
+        if not 0.0 < self.highlight_knee <= 1.0:
+            raise ConfigError(f"highlight_knee={self.highlight_knee} must be in (0, 1] (1: hard clip)")
         if not 0.0 <= self.rock_albedo_spread < 1.0:
             raise ConfigError(f"rock_albedo_spread={self.rock_albedo_spread} must be in [0, 1)")
 
@@ -314,9 +317,9 @@ class _ValueNoise:
     def __init__(
         self,
         seed: int,
-        scales_m=(0.012, 0.04, 0.15, 0.6, 2.5),
-        weights=(0.3, 0.3, 0.2, 0.12, 0.08),
-        bumps_m=(0.0004, 0.0015, 0.007, 0.012, 0.0),
+        scales_m=(0.004, 0.012, 0.04, 0.15, 0.6, 2.5),
+        weights=(0.15, 0.3, 0.3, 0.2, 0.12, 0.08),
+        bumps_m=(0.0002, 0.0004, 0.0015, 0.007, 0.012, 0.0),
     ):
         rng = np.random.default_rng([int(seed), 0xA1B])
         self.tables = rng.uniform(-1.0, 1.0, size=(len(scales_m), 256, 256)).astype(np.float32)
@@ -816,8 +819,12 @@ class SiteRenderer:
                     shaded |= self._rover_occludes(shadow_origin[lit], sun, T_world_rover)
                 direct[lit[shaded]] = 0.0
         ambient = np.float32(cfg.ambient if cfg.sun_on else 0.0)
-        radiance = direct + lamp + albedo * ambient
-        val = np.clip(radiance * np.float32(cfg.exposure), 0.0, 1.0) ** np.float32(1.0 / cfg.gamma)
+        radiance = (direct + lamp + albedo * ambient) * np.float32(cfg.exposure)
+        knee = np.float32(cfg.highlight_knee)
+        if knee < 1.0:  # soft shoulder: x above the knee -> knee + (1 - knee) (1 - exp(-(x - knee) / (1 - knee)))
+            over = radiance > knee
+            radiance[over] = knee + (1 - knee) * -np.expm1(-(radiance[over] - knee) / (1 - knee))
+        val = np.clip(radiance, 0.0, 1.0) ** np.float32(1.0 / cfg.gamma)
         gray_all = np.zeros(n_cam * npx, np.uint8)
         gray_all[hit] = (val * 255.0 + 0.5).astype(np.uint8)
         sem_all = np.zeros(n_cam * npx, np.uint16)
