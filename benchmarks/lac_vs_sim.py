@@ -62,8 +62,7 @@ def main() -> int:
         ("lunarloc, sun only", replace(base, lighting=Lighting.SUN)),
         ("lunarloc, lamps only at night (sun -5 deg)", replace(base, lighting=Lighting.LAMPS, sun_elevation_deg=-5.0)),
     ):
-        renderer.config = cfg
-        gray, sem = renderer.render_rover(rover, [mount])["FrontLeft"]
+        gray, sem = renderer.with_config(cfg).render_rover(rover, [mount])["FrontLeft"]
         panels.append((title, gray))
         if cfg is base and args.semantic_out is not None:
             args.semantic_out.parent.mkdir(parents=True, exist_ok=True)

@@ -489,7 +489,7 @@ def _shade_kernel_py(
             nx_ = nfx
             ny_ = nfy
             nz_ = nfz
-            albedo = lander_albedo * face_albedo[f] * (0.05 + 0.95 * panel_bits[pid, cv, cu])
+            albedo = lander_albedo * face_albedo[f] * (0.02 + 0.98 * panel_bits[pid, cv, cu])
         else:  # lander
             nx_ = nfx
             ny_ = nfy
@@ -677,12 +677,7 @@ class SiteRenderer:
         self.face_normals = (n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)).astype(np.float32)
         self.face_v0 = tri[:, 0].astype(np.float32)
         n_rocks = len(site.rocks)
-        rng = np.random.default_rng([int(site.seed), 0x40C])
-        spread = self.config.rock_albedo_spread
-        self.rock_albedo = (
-            self.config.rock_albedo * rng.uniform(1.0 - spread, 1.0 + spread, max(n_rocks, 1))
-        ).astype(np.float32)
-        self.texture = _ValueNoise(self.config.texture_seed + 1000 * int(site.seed))
+        self._materials()
         self.face_normals = np.ascontiguousarray(self.face_normals)
         # Embree works in float32: shift to the scene centre for precision
         self._origin = self.vertices.mean(axis=0)
@@ -697,6 +692,25 @@ class SiteRenderer:
         self._panel_origin_f32 = np.ascontiguousarray(self._panel_origin, np.float32)  # site frame
         self._rays_cache: dict[PinholeCamera, np.ndarray] = {}
         logger.debug("renderer: %d triangles (%d rocks)", len(self.faces), n_rocks)
+
+    def _materials(self) -> None:
+        """Per-rock albedo and the texture tables (they depend on the config and the site seed)."""
+        site = self.site
+        rng = np.random.default_rng([int(site.seed), 0x40C])
+        spread = self.config.rock_albedo_spread
+        self.rock_albedo = (
+            self.config.rock_albedo * rng.uniform(1.0 - spread, 1.0 + spread, max(len(site.rocks), 1))
+        ).astype(np.float32)
+        self.texture = _ValueNoise(self.config.texture_seed + 1000 * int(site.seed))
+
+    def with_config(self, config: RenderConfig) -> SiteRenderer:
+        """A renderer of the same site with another config, sharing this one's scene (no BVH rebuild)."""
+        config.validate()
+        other = SiteRenderer.__new__(SiteRenderer)
+        other.__dict__.update(self.__dict__)
+        other.config = config
+        other._materials()
+        return other
 
     # --------------------------------------------------------------- ray casts
     def _cast(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
