@@ -193,7 +193,7 @@ class RenderConfig:
     lighting: Lighting = Lighting.SUN_LAMPS  # sun, lamps or both (a str is parsed)
     lamp_intensity: float = 1.0  # LAC light_intensity of every lamp, 0-1 (what the archive records)
     lamp_power: float = 1.0  # on-axis irradiance at 1 m of one lamp at intensity 1, in units of the sun's
-    lamp_cone_deg: tuple[float, float] = (35.0, 65.0)  # full power inside, none beyond (half-angles)
+    lamp_cone_deg: tuple[float, float] = (20.0, 50.0)  # full power inside, none beyond (half-angles)
     rover_shadow: bool = True  # the rover body (ROVER_BOXES) occludes the sun in render_rover
 
     def __post_init__(self) -> None:
