@@ -13,7 +13,7 @@ Frames and units
   vertical one 0.55-0.85 x radius).
 
 * The lander stands at the origin (yaw 0): an octagonal body, a deck, tanks, a
-  solar panel, four legs, and 16 AprilTag-like fiducial panels in four groups of
+  solar array, four legs, and 16 AprilTag-like fiducial panels in four groups of
   2 x 2 on the body's diagonal faces, at the positions and size of the LAC
   lander's fiducials (``LAC_FIDUCIALS``: lander frame, metres).
 
@@ -303,8 +303,8 @@ class Site:
 
     def lander_parts(self) -> list:
         """The lander's parts as ``(trimesh.Trimesh, albedo scale)`` pairs (site frame): an
-        octagonal body whose diagonal faces carry the fiducial panels, a deck, two tanks, a
-        solar panel and four legs with foot pads (sizes from ``lander_radius_m`` /
+        octagonal body whose diagonal faces carry the fiducial panels, a deck, two banded
+        tanks, a gridded solar array and four legs with foot pads (sizes from ``lander_radius_m`` /
         ``lander_height_m``; the body's size from the LAC fiducial layout)."""
         trimesh = require("trimesh", "sim")
         cfg = self.config
@@ -328,9 +328,23 @@ class Site:
             tank = trimesh.creation.capsule(height=h, radius=tank_r, count=[12, 12])
             tank.apply_translation(base + [x, y, body_z[1] + 0.08 + tank_r + h / 2])
             parts.append((tank, 1.1))
-        panel = trimesh.creation.box(extents=[0.04, 1.2, top - body_z[1] - 0.2])
-        panel.apply_translation(base + [-0.6, 0.0, (top + body_z[1]) / 2 + 0.05])
-        parts.append((panel, 0.2))
+            band = trimesh.creation.cylinder(radius=tank_r + 0.01, height=0.07, sections=16)
+            band.apply_translation(base + [x, y, body_z[1] + 0.08 + tank_r + 0.6 * h])
+            parts.append((band, 0.05))
+        # solar array: a dark panel with a light frame and grid (3 x 4 cells)
+        p_h = top - body_z[1] - 0.2
+        p_z = (top + body_z[1]) / 2 + 0.05
+        panel = trimesh.creation.box(extents=[0.04, 1.2, p_h])
+        panel.apply_translation(base + [-0.6, 0.0, p_z])
+        parts.append((panel, 0.08))
+        for yb in np.linspace(-0.6, 0.6, 4):
+            bar = trimesh.creation.box(extents=[0.06, 0.04, p_h])
+            bar.apply_translation(base + [-0.6, yb, p_z])
+            parts.append((bar, 0.9))
+        for zb in np.linspace(p_z - p_h / 2, p_z + p_h / 2, 5):
+            bar = trimesh.creation.box(extents=[0.06, 1.24, 0.04])
+            bar.apply_translation(base + [-0.6, 0.0, zb])
+            parts.append((bar, 0.9))
         for ang in np.arange(4) * np.pi / 2:  # legs on the flat faces, clear of the fiducials
             radial = np.array([np.cos(ang), np.sin(ang), 0.0])
             foot = base + cfg.lander_radius_m * radial
