@@ -171,23 +171,21 @@ rover body in the sun's shadow rays; the cameras and lamps lie outside them."""
 
 @dataclass(frozen=True)
 class RenderConfig:
-    """Lighting, material and exposure of the renderer."""
+    """Lighting, material and exposure of the renderer (fields added later come last, so
+    positional construction keeps working)."""
 
     sun_elevation_deg: float = 12.0  # LAC / lunar south pole: low sun, 5-30 deg; <= 0: no sun
     sun_azimuth_deg: float = 135.0  # counter-clockwise from the site +x axis
     shadows: bool = True  # hard cast shadows (shadow rays)
     ground_albedo: float = 0.55  # relative regolith albedo (before exposure)
     rock_albedo: float = 0.6  # relative rock albedo: close to the regolith's (LAC look)
-    rock_albedo_spread: float = 0.12  # each rock's albedo within rock_albedo * (1 +- spread)
     lander_albedo: float = 1.2  # foil and paint
     albedo_texture: float = 0.35  # strength of the regolith albedo texture (0 = flat)
     bump_strength: float = 1.0  # scale of the small-scale regolith roughness (normal bumps)
-    rock_bump: float = 3.0  # scale of the rock surface roughness (normal bumps)
     rock_facet: float = 0.35  # 0 = smooth rock shading, 1 = flat facets
     lunar_lambert_L: float = 0.6  # limb-darkening mix of the Lunar-Lambert law
     ambient: float = 0.025  # light in sun shadows, fraction of the direct sun (none at night)
     exposure: float = 1.0  # scale before the gamma curve
-    highlight_knee: float = 0.75  # radiance above this is compressed smoothly toward 1 (lamp-lit near field)
     gamma: float = 1.8  # display gamma
     texture_seed: int = 0  # seed of the albedo texture
     lighting: Lighting = Lighting.SUN_LAMPS  # sun, lamps or both (a str is parsed)
@@ -195,6 +193,9 @@ class RenderConfig:
     lamp_power: float = 1.0  # on-axis irradiance at 1 m of one lamp at intensity 1, in units of the sun's
     lamp_cone_deg: tuple[float, float] = (20.0, 50.0)  # full power inside, none beyond (half-angles)
     rover_shadow: bool = True  # the rover body (ROVER_BOXES) occludes the sun in render_rover
+    rock_albedo_spread: float = 0.12  # each rock's albedo within rock_albedo * (1 +- spread)
+    rock_bump: float = 3.0  # scale of the rock surface roughness (normal bumps)
+    highlight_knee: float = 0.75  # radiance above this is compressed smoothly toward 1 (lamp-lit near field)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "lighting", Lighting.parse(self.lighting))
