@@ -319,3 +319,14 @@ def test_archive_palette_semantics_and_light_intensity(tmp_path):
         assert a.camera_row("FrontLeft", 0)["light_intensity"] == 0.0
     with pytest.raises(ConfigError):
         SimulationConfig(**base, semantic_format="rgb")
+
+
+def test_bad_rover_pose_is_an_input_error(renderer, traj):
+    rig = ipex_rig(CAM)
+    T = pose_to_matrix(*traj.poses[0]) @ rig["FrontLeft"].T_rover_optical
+    bad = np.eye(4)
+    bad[0, 3] = np.nan
+    with pytest.raises(InputError, match="T_world_rover"):
+        renderer.render([T], CAM, T_world_rover=bad)
+    with pytest.raises(InputError, match="light_intensity"):
+        renderer.render([T], CAM, T_world_rover=pose_to_matrix(*traj.poses[0]), light_intensity=-0.1)
