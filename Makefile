@@ -12,6 +12,7 @@ $(BIN)/python:
 
 $(STAMP): $(BIN)/python pyproject.toml
 	$(BIN)/python -m pip install --quiet -e ".[test,sim,campaign]"
+	$(BIN)/lunarloc warm-up
 	touch $(STAMP)
 
 venv: $(STAMP)
