@@ -256,6 +256,8 @@ def _run_distributed(todo, jobs_dir, rows, total, scheduler, workers, progress) 
     require("dask.distributed", "campaign", "pip install 'lunarloc[campaign]'")
     from dask.distributed import Client, LocalCluster, as_completed
 
+    # distributed logs every connection at INFO; a campaign's output is its own table
+    logging.getLogger("distributed").setLevel(logging.WARNING)
     cluster = None
     if scheduler:
         client = Client(scheduler, timeout="30s")
@@ -265,7 +267,8 @@ def _run_distributed(todo, jobs_dir, rows, total, scheduler, workers, progress) 
 
         n = workers or os.cpu_count() or 1
         # one single-threaded process per worker: the jobs are CPU-bound numpy/numba/OpenCV
-        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None)
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+                               silence_logs=logging.WARNING)
         client = Client(cluster)
         used = f"dask local cluster ({n} worker processes)"
     try:
