@@ -11,7 +11,8 @@ $(BIN)/python:
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
 $(STAMP): $(BIN)/python pyproject.toml
-	$(BIN)/python -m pip install --quiet -e ".[test,sim]"
+	$(BIN)/python -m pip install --quiet -e ".[test,sim,campaign]"
+	$(BIN)/lunarloc warm-up
 	touch $(STAMP)
 
 venv: $(STAMP)

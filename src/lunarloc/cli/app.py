@@ -35,6 +35,8 @@ def _register_commands() -> None:
     from lunarloc.cli import commands_sim  # noqa: F401
     from lunarloc.cli import commands_perception  # noqa: F401
     from lunarloc.cli import commands_run  # noqa: F401
+    from lunarloc.cli import commands_campaign  # noqa: F401
+    from lunarloc.cli import commands_setup  # noqa: F401
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -121,86 +121,18 @@ def demo_cmd(
 ) -> None:
     """End to end on generated data: simulate a site, a reference and a drifting vehicle
     traverse, build the reference map from images, run the loop, print a table, write figures."""
+    from lunarloc.scenario import ScenarioConfig, run_scenario, scenario_problems
+
     t0 = time.perf_counter()
-    s = _run_demo(out, seed, duration, reference_duration, width, image_rate, n_rocks)
+    cfg = ScenarioConfig(seed=seed, n_rocks=n_rocks, duration_s=duration, reference_duration_s=reference_duration,
+                         width=width, image_rate_hz=image_rate)  # fmt: skip
+    s = run_scenario(cfg, out, log=lambda msg: typer.echo(f"[demo] {msg}"))
     _print_summary(s, "demo: vehicle traverse localized in the image-built reference map")
     typer.echo(f"demo finished in {time.perf_counter() - t0:.0f} s; outputs and figures in {out}/")
-    problems = []
-    if s["fixes"] == 0:
-        problems.append("no localization fix was accepted")
-    elif s["ate_corrected"]["rmse_m"] >= s["ate_odometry"]["rmse_m"]:
-        problems.append("the corrected trajectory is not better than odometry")
+    problems = scenario_problems(s)
     if problems:
-        from lunarloc.errors import LunarLocError
-
-        raise LunarLocError("demo check failed: " + "; ".join(problems))
-
-
-def _stage(name: str):
-    """Context manager: echo a stage and turn any failure into a loud, named error."""
-    import contextlib
-
-    from lunarloc.errors import LunarLocError
-
-    @contextlib.contextmanager
-    def cm():
-        t0 = time.perf_counter()
-        typer.echo(f"[demo] {name} ...")
-        try:
-            yield
-        except LunarLocError as exc:
-            raise LunarLocError(f"demo stage '{name}' failed: {exc}") from exc
-        except Exception as exc:  # any crash is a failed stage, loudly
-            raise LunarLocError(f"demo stage '{name}' failed: {type(exc).__name__}: {exc}") from exc
-        typer.echo(f"[demo] {name}: done in {time.perf_counter() - t0:.1f} s")
-
-    return cm()
-
-
-def _run_demo(out: Path, seed: int, duration: float, reference_duration: float, width: int, image_rate: float,
-              n_rocks: int) -> dict:  # fmt: skip
-    from lunarloc.data.simulate import SimulationConfig, simulate_site, simulate_traverse
-    from lunarloc.data.render import SiteRenderer
-    from lunarloc.data.site import SiteConfig
-    from lunarloc.maps import save_map
-    from lunarloc.pipeline import LoopConfig, build_reference_map, run_online, write_outputs
-    from lunarloc.viz import plot_run
-
-    out = Path(out)
-    data = out / "data"
-    data.mkdir(parents=True, exist_ok=True)
-    height = int(round(width * 9 / 16))
-    base = SimulationConfig(site=SiteConfig(n_rocks=n_rocks), image_rate_hz=image_rate, width=width, height=height,
-                            cameras=("FrontLeft", "FrontRight"), semantic=False)  # fmt: skip
-    from dataclasses import replace
-
-    with _stage(f"simulate site (seed {seed}, {n_rocks} rocks)"):
-        site = simulate_site(seed, base.site)
-        site.write_rocks_csv(data / "rocks.csv")
-        renderer = SiteRenderer(site, base.render)
-    with _stage(f"simulate reference traverse ({reference_duration:g} s, {width}x{height} front pair at {image_rate:g} Hz)"):
-        ref_arch, _ = simulate_traverse(site, data / "reference.lac", 0,
-                                        replace(base, duration_s=reference_duration),
-                                        renderer=renderer)  # fmt: skip
-    with _stage(f"simulate vehicle traverse ({duration:g} s, drifting odometry: 3 % scale error, gyro bias)"):
-        veh_arch, traj = simulate_traverse(site, data / "vehicle.lac", 1, replace(base, duration_s=duration),
-                                           renderer=renderer)  # fmt: skip
-    cfg = LoopConfig.for_images()
-    with _stage("build the reference map from the reference traverse's images"):
-        ref = build_reference_map(ref_arch, aggregation=cfg.aggregation)
-        save_map(ref, data / "reference_map.csv")
-        typer.echo(f"[demo] reference map: {len(ref)} landmarks")
-        if len(ref) < 3:
-            from lunarloc.errors import LunarLocError
-
-            raise LunarLocError(f"the reference map has only {len(ref)} landmarks")
-    with _stage("online localization of the vehicle traverse"):
-        res = run_online(veh_arch, ref, cfg)
-        s = write_outputs(res, out)
-    with _stage("figures"):
-        for p in plot_run(out):
-            typer.echo(f"[demo] wrote {p}")
-    return s
+        typer.secho("demo check failed: " + "; ".join(problems), err=True, fg=typer.colors.RED)
+        raise typer.Exit(1)
 
 
 @bench_app.command("loop")
