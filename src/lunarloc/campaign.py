@@ -333,7 +333,8 @@ def _summary_figure(rows: list[dict], path: Path, title: str) -> Path | None:
     for i, r in enumerate(rows):
         note = r["status"] if r["status"] != "ok" else ("" if r.get("check") == "pass" else "check failed")
         if note:
-            ax.annotate(note, (i, 0.5), rotation=90, va="bottom", ha="center", color="tab:red", fontsize=8)
+            ax.text(i, 0.03, note, rotation=90, va="bottom", ha="center", color="tab:red", fontsize=8,
+                    transform=ax.get_xaxis_transform())  # x in data, y in axes fraction (log axis)
     ax.set_yscale("log")
     ax.set_ylabel("trajectory RMSE (cm, log)")
     ax.set_xticks(list(x))
