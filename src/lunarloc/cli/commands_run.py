@@ -98,7 +98,8 @@ def run_cmd(
     res = run_online(archive, ref, cfg, det_cfg, progress=prog, odometry_source=odometry)
     bar.close()
     s = write_outputs(res, out)
-    _print_summary(s, f"{archive.name} in {reference.name} ({len(ref)} landmarks), odometry: {res.config['odometry_source']}")
+    _print_summary(s, f"{archive.name} in {reference.name} ({len(ref)} landmarks)")
+    typer.echo(f"odometry: {res.config['odometry_source']}")
     if plot:
         from lunarloc.viz import plot_run
 

@@ -208,6 +208,12 @@ def _bridge(n: int, T0: np.ndarray, imu_rel: np.ndarray, measured: dict[int, np.
 
 
 def _visual(archive, frames, times, T0, imu_rel, progress, visual_config) -> OdometryTrajectory:
+    pair_frames = _front_pair_frames(archive)
+    if not pair_frames:
+        raise InputError(
+            f"{archive.path}: no frame has both {FRONT_PAIR[0]} and {FRONT_PAIR[1]} images: "
+            "visual odometry needs the front stereo pair (use --odometry imu)"
+        )
     if not visual_available():
         raise DependencyError(
             "visual odometry is not available in this installation (lunarloc.odometry.visual); "
@@ -217,12 +223,6 @@ def _visual(archive, frames, times, T0, imu_rel, progress, visual_config) -> Odo
     from lunarloc.perception.camera import ipex_rig
     from lunarloc.perception.detector import _camera_from_archive
 
-    pair_frames = _front_pair_frames(archive)
-    if not pair_frames:
-        raise InputError(
-            f"{archive.path}: no frame has both {FRONT_PAIR[0]} and {FRONT_PAIR[1]} images: "
-            "visual odometry needs the front stereo pair (use --odometry imu)"
-        )
     camera = _camera_from_archive(archive)
     rig = ipex_rig(camera)
     mounts = {}
