@@ -31,7 +31,13 @@ import numpy as np
 
 from lunarloc.errors import ConfigError, DependencyError, InputError
 from lunarloc.geometry import invert_transform, matrix_to_pose, pose_to_matrix, yaw_of
-from lunarloc.odometry.imu import ImuOdometryConfig, imu_samples_from_archive, integrate_imu, relative_motions
+from lunarloc.odometry.imu import (
+    ImuOdometryConfig,
+    imu_odometry,
+    imu_samples_from_archive,
+    integrate_imu,
+    relative_motions,
+)
 
 __all__ = [
     "OdometrySource",
@@ -165,7 +171,7 @@ def archive_odometry(
     if not np.all(np.isfinite(T0)):
         raise InputError(f"{archive.path}: initial.toml 'rover' is not finite")
     if src is OdometrySource.IMU:
-        T = integrate_imu(imu_samples_from_archive(archive), T0, imu_config)
+        _, T = imu_odometry(archive, imu_config)
         return OdometryTrajectory(frames, times, T, src.value, False, np.ones(len(frames), bool))
     # record and visual: measured poses at some frames, IMU in between
     imu_rel = relative_motions(integrate_imu(imu_samples_from_archive(archive), T0, imu_config))
@@ -220,17 +226,15 @@ def _visual(archive, frames, times, T0, imu_rel, progress, visual_config) -> Odo
             "use --odometry imu or record:NAME"
         )
     from lunarloc.odometry.visual import StereoVisualOdometry
-    from lunarloc.perception.camera import ipex_rig
-    from lunarloc.perception.detector import _camera_from_archive
+    from lunarloc.perception.detector import _camera_from_archive, mounts_from_archive_row
 
     camera = _camera_from_archive(archive)
-    rig = ipex_rig(camera)
-    mounts = {}
-    for cam in FRONT_PAIR:
-        row = archive.camera_row(cam, pair_frames[0])
-        pose = [float(row[f"camera_{k}"]) for k in ("x", "y", "z", "roll", "pitch", "yaw")]
-        mounts[cam] = pose_to_matrix(*pose) if np.all(np.isfinite(pose)) else rig[cam].T_rover_cam
-    vo = StereoVisualOdometry(camera, mounts[FRONT_PAIR[0]], mounts[FRONT_PAIR[1]], visual_config)
+    # camera body poses from the first pair's rows (the IPEx rig where a row has none), as
+    # optical-frame mounts (OpenCV axes), which the visual odometry takes
+    rows = {cam: archive.camera_row(cam, pair_frames[0]) for cam in FRONT_PAIR}
+    mounts = mounts_from_archive_row(rows, camera)
+    vo = StereoVisualOdometry(camera, mounts[FRONT_PAIR[0]].T_rover_optical, mounts[FRONT_PAIR[1]].T_rover_optical,
+                              visual_config)  # fmt: skip
     index = {int(f): i for i, f in enumerate(frames)}
     pair_idx = sorted(index[f] for f in pair_frames if f in index)
     n = len(frames)

@@ -31,7 +31,8 @@ import numpy as np
 
 from lunarloc.errors import ConfigError, InputError
 
-__all__ = ["ImuOdometryConfig", "ImuSamples", "integrate_imu", "relative_motions", "imu_samples_from_archive"]
+__all__ = ["ImuOdometryConfig", "ImuSamples", "integrate_imu", "relative_motions", "imu_samples_from_archive",
+           "imu_odometry"]
 
 logger = logging.getLogger(__name__)
 logger.addHandler(logging.NullHandler())
@@ -178,3 +179,10 @@ def relative_motions(T_map_rover: np.ndarray) -> np.ndarray:
     out[:, :3, 3] = np.einsum("nji,nj->ni", Rp, T[1:, :3, 3] - T[:-1, :3, 3])
     out[:, 3, 3] = 1.0
     return out
+
+
+def imu_odometry(archive, config: ImuOdometryConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(frames (F,), T_map_rover (F, 4, 4)): dead reckoning over an open archive from its
+    initial rover pose (the ``imu`` source of :func:`lunarloc.odometry.archive_odometry`)."""
+    T = integrate_imu(imu_samples_from_archive(archive), archive.initial_rover_pose(), config)
+    return np.asarray(archive.frame_numbers), T
