@@ -314,3 +314,21 @@ def test_default_visual_without_the_module_is_a_clear_error(bare_image_archive, 
     bare, rocks = bare_image_archive
     assert main(["run", str(bare), "--reference", str(rocks), "-o", str(tmp_path / "r")]) == 2
     assert "visual odometry is not available" in capsys.readouterr().err
+
+
+def test_a_record_with_every_frame_needs_no_imu(arc, tmp_path):
+    path, _ = arc
+
+    def nan_gyro(name, data):
+        if name != "frames.csv":
+            return data
+        lines = data.decode().split("\n")
+        cells = lines[3].split(",")
+        cells[10] = ""  # gyro_x
+        lines[3] = ",".join(cells)
+        return "\n".join(lines).encode()
+
+    with LacArchive(_rewrite(path, tmp_path / "g.lac", nan_gyro)) as a:
+        np.testing.assert_allclose(archive_odometry(a, "record:shifted").T_map_rover, ground_truth_poses(a), atol=1e-9)
+        with pytest.raises(InputError, match="'gyro_x' is not a finite number at frame 2"):
+            archive_odometry(a, "record:orbslam")  # every 10th frame: the IMU bridges the others
