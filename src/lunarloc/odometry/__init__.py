@@ -1,0 +1,1 @@
+"""Odometry from what the rover senses (visual, IMU, recorded poses)."""
