@@ -40,7 +40,7 @@ import numpy as np
 
 from lunarloc.errors import ConfigError, InputError
 from lunarloc.geometry import invert_transform, make_transform, rotation_angle
-from lunarloc.perception.camera import T_CAM_OPTICAL, PinholeCamera
+from lunarloc.perception.camera import PinholeCamera
 
 __all__ = [
     "VisualOdometryConfig",
@@ -437,32 +437,25 @@ def front_pair_setup(archive) -> tuple[PinholeCamera, np.ndarray, np.ndarray, st
     """Intrinsics and optical-frame mounts of an archive's front stereo pair.
 
     `archive` is a :class:`~lunarloc.data.lac.LacArchive` or a
-    :class:`~lunarloc.data.playback.PlaybackAgent`. The image size comes from
-    ``initial.toml``, the field of view is the LAC's 70 degrees, the camera poses
-    from the first row of each camera table. Returns ``(camera, T_rover_left,
+    :class:`~lunarloc.data.playback.PlaybackAgent`. Intrinsics from ``initial.toml``,
+    camera poses from each camera's first table row (the IPEx rig where a row has
+    none), as the detector reads them. Returns ``(camera, T_rover_left,
     T_rover_right, left_name, right_name)``.
     """
-    from lunarloc.geometry import pose_to_matrix
     from lunarloc.perception.camera import STEREO_PAIRS
+    from lunarloc.perception.detector import _camera_from_archive, mounts_from_archive_row
 
     archive = getattr(archive, "archive", archive)
     left_name, right_name = STEREO_PAIRS[0]
-    cams = archive.initial.get("cameras", {})
-    mounts = []
+    rows = {}
     for name in (left_name, right_name):
-        table = archive.camera_frames(name) if name in cams or name in archive.cameras else None
+        table = archive.camera_frames(name) if name in archive.cameras else None
         if table is None or len(table) == 0:
             raise InputError(f"{archive.path}: no {name} images, visual odometry needs the front stereo pair")
-        row = table.row(0)
-        pose = [row[k] for k in ("camera_x", "camera_y", "camera_z", "camera_roll", "camera_pitch", "camera_yaw")]
-        mounts.append(pose_to_matrix(*(float(v) for v in pose)) @ T_CAM_OPTICAL)
-    cfg = cams.get(left_name, {})
-    try:
-        width, height = int(float(cfg["width"])), int(float(cfg["height"]))
-    except (KeyError, TypeError, ValueError):
-        image = archive.grayscale(left_name, int(archive.camera_frames(left_name)["frame"][0]))
-        height, width = image.shape[:2]
-    return PinholeCamera(width, height), mounts[0], mounts[1], left_name, right_name
+        rows[name] = table.row(0)
+    camera = _camera_from_archive(archive)
+    mounts = mounts_from_archive_row(rows, camera)
+    return camera, mounts[left_name].T_rover_optical, mounts[right_name].T_rover_optical, left_name, right_name
 
 
 def visual_odometry_frames(
