@@ -23,8 +23,9 @@ def tiny_archive(tmp_path_factory):
 def test_run_and_plot(tiny_archive, tmp_path, capsys):
     out = tmp_path / "run"
     rc = main(["run", str(tiny_archive / "traverse_0.lac"), "--reference", str(tiny_archive / "rocks.csv"),
-               "-o", str(out)])
+               "-o", str(out), "--odometry", "record:odometry"])  # fmt: skip
     assert rc == 0
+    assert json.loads((out / "config.json").read_text())["odometry_source"] == "record:odometry"
     s = json.loads((out / "summary.json").read_text())
     assert s["image_frames"] == 13 and "ate_corrected" in s
     assert (out / "trajectory.tum").is_file() and (out / "map.png").is_file()

@@ -12,10 +12,12 @@ import pytest
 
 from lunarloc.data.lac import (
     CAMERA_COLUMNS,
+    DATA_SPEC,
     FRAME_COLUMNS,
     LacArchive,
     LacWriter,
     _IndexedGzipReader,
+    float_text,
 )
 from lunarloc.errors import ArchiveError, InputError
 
@@ -87,9 +89,13 @@ def test_round_trip_exact(tmp_path):
         assert a.frame_numbers.tolist() == list(range(1, 9))
         for i, f in enumerate(a.frame_numbers.tolist()):
             for k in FRAME_COLUMNS[1:]:
-                assert a.frames[k][i] == states[f].get(k, 0.0), (f, k)  # bit-exact floats, missing -> 0.0
+                v = states[f].get(k, 0.0)  # missing -> 0.0
+                # what float_text wrote, bit-exact; the value itself within 15 significant digits
+                assert a.frames[k][i] == float(float_text(v)), (f, k)
+                assert a.frames[k][i] == pytest.approx(v, rel=5e-15, abs=1e-22)
+        assert a.frames["x"][a.frame_numbers.tolist().index(1)] == 0.1  # shortest repr kept when pandas-exact
         assert a.metadata["frames"] == 8
-        assert a.metadata["data_spec"] == "lunarloc-sim"
+        assert a.metadata["data_spec"] == DATA_SPEC and not a.lander_stored_in_map_frame
         assert a.metadata["description"] == "unit test"
         assert a.metadata["start_time"] and a.metadata["end_time"]
         assert a.initial["rover"] == [1.0, 2.0, 0.0, 0.0, 0.0, 0.5]
@@ -362,7 +368,7 @@ def test_image_listed_but_absent(tmp_path):
 
 def test_malformed_numbers(tmp_path):
     m = _good_members(tmp_path)
-    text = m["frames.csv"].decode().replace("0.30000000000000004", "0.3.3", 1)
+    text = m["frames.csv"].decode().replace("1.33333333333333", "0.3.3", 1)
     assert "0.3.3" in text
     m["frames.csv"] = text.encode()
     _raises(tar_gz(tmp_path / "n.lac", m), "frames.csv", "0.3.3", "line")

@@ -5,11 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lunarloc.data.lac import LacArchive, LacWriter, _IndexedGzipReader
+from lunarloc.data.lac import LacArchive, LacWriter, _IndexedGzipReader, float_text
 from lunarloc.data.playback import PlaybackAgent, Transform
 from lunarloc.errors import InputError
 from lunarloc.geometry import pose_to_matrix
-from lunarloc.perception.camera import ipex_rig
 
 W, H = 32, 24
 FL_POSE = [0.28, 0.081, 0.131, 0.0, 0.0, 0.0]
@@ -25,7 +24,7 @@ def _write(path, n_frames=10, first_image=3, every=2):
     poses, images = {}, {}
     with LacWriter(path, init) as w:
         for f in range(n_frames):
-            pose = rng.normal(size=6)
+            pose = np.array([float(float_text(v)) for v in rng.normal(size=6)])  # as stored
             poses[f] = pose
             w.add_frame(
                 f, x=pose[0], y=pose[1], z=pose[2], roll=pose[3], pitch=pose[4], yaw=pose[5],
@@ -61,18 +60,21 @@ def test_round_trip_poses_and_images(archive):
             assert (t.location.x, t.rotation.yaw) == (poses[f][0], poses[f][5])
             np.testing.assert_array_equal(agent.get_transform_matrix(), pose_to_matrix(*poses[f]))
             np.testing.assert_array_equal(t.matrix(), pose_to_matrix(*poses[f]))
-            assert agent.get_imu_data() == [0.1 * f, 0.2, 1.62, 0.01, 0.02, 0.03 * f]
-            assert agent.get_mission_time() == 0.05 * f
+            imu = agent.get_imu_data()
+            assert isinstance(imu, np.ndarray) and imu.shape == (6,) and imu.dtype == np.float64
+            np.testing.assert_allclose(imu, [0.1 * f, 0.2, 1.62, 0.01, 0.02, 0.03 * f], rtol=5e-15)
+            assert agent.get_mission_time() == pytest.approx(0.05 * f, rel=5e-15)
             assert agent.get_linear_speed() == 0.3 and agent.get_angular_speed() == -0.1
             assert agent.get_current_power() == 300.0 - f and agent.get_radiator_cover_angle() == 0.7
             data = agent.input_data()
             assert set(data) == {"Grayscale", "Semantic"}
             if f in images:
-                assert list(data["Grayscale"]) == ["FrontLeft"] and list(data["Semantic"]) == ["FrontLeft"]
+                assert list(data["Grayscale"]) == ["FrontLeft", "BackLeft"] and list(data["Semantic"]) == ["FrontLeft"]
+                assert data["Grayscale"]["BackLeft"] is None
                 np.testing.assert_array_equal(data["Grayscale"]["FrontLeft"], images[f][0])
                 np.testing.assert_array_equal(data["Semantic"]["FrontLeft"], images[f][1])
-            else:
-                assert data == {"Grayscale": {}, "Semantic": {}}
+            else:  # every configured camera, None without an image (as published)
+                assert data == {"Grayscale": {"FrontLeft": None, "BackLeft": None}, "Semantic": {"FrontLeft": None}}
             if agent.at_end():
                 break
             assert agent.step_frame() == f + 1
@@ -94,31 +96,21 @@ def test_constants(archive):
 def test_camera_state_follows_last_row(archive):
     path, _, _ = archive
     with PlaybackAgent(path) as agent:
-        # before the first camera row: initial.toml values and the IPEx rig mount
+        # before the first camera row, as published: False, a zero pose, initial.toml's light
         assert agent.frame == 0
-        assert agent.get_camera_state("FrontLeft") is True and agent.get_light_state("FrontLeft") == 0.25
+        assert agent.get_camera_state("FrontLeft") is False and agent.get_light_state("FrontLeft") == 0.25
+        assert agent.get_camera_position("FrontLeft").as_tuple() == (0.0,) * 6
         assert agent.get_camera_state("BackLeft") is False and agent.get_light_state("BackLeft") == 0.0
-        rig = ipex_rig()
-        np.testing.assert_allclose(agent.get_camera_position("BackLeft").matrix(), rig["BackLeft"].T_rover_cam, atol=1e-12)
+        agent.set_frame(3)
+        assert agent.get_camera_state("FrontLeft") is True
         agent.set_frame(4)  # last row is frame 3
         assert agent.get_light_state("FrontLeft") == 0.5
         assert agent.get_camera_position("FrontLeft").as_tuple() == tuple(FL_POSE)
         agent.set_frame(7)
         assert agent.get_light_state("FrontLeft") == 1.0
-        with pytest.raises(InputError):
-            agent.get_camera_state("Nope")
-
-
-def test_input_data_include_empty_follows_lac_convention(archive):
-    path, _, images = archive
-    with PlaybackAgent(path) as agent:
-        agent.set_frame(4)  # FrontLeft active, no image this tick; BackLeft inactive
-        data = agent.input_data(include_empty=True)
-        assert data == {"Grayscale": {"FrontLeft": None}, "Semantic": {"FrontLeft": None}}
-        agent.set_frame(5)
-        data = agent.input_data(include_empty=True)
-        np.testing.assert_array_equal(data["Grayscale"]["FrontLeft"], images[5][0])
-        assert "BackLeft" not in data["Grayscale"]
+        assert agent.get_camera_state("Nope") is False  # as published
+        with pytest.raises(KeyError, match="Nope"):
+            agent.get_light_state("Nope")
 
 
 def test_set_frame_and_random_access(archive):
@@ -129,8 +121,11 @@ def test_set_frame_and_random_access(archive):
             assert agent.get_transform().as_tuple() == tuple(poses[f])
             if f in images:
                 np.testing.assert_array_equal(agent.input_data()["Grayscale"]["FrontLeft"], images[f][0])
-        with pytest.raises(ValueError, match="frame 42"):  # InputError is a ValueError, as in lac_data
+        with pytest.raises(ValueError, match="frame 42"):  # past the end: ValueError, as in lac_data
             agent.set_frame(42)
+        with pytest.raises(IndexError, match="3.5"):  # not a recorded frame: IndexError, as in lac_data
+            agent.set_frame(3.5)
+        assert agent.set_frame(4.0) == 4
         agent.set_frame(0)
         assert list(agent) == list(range(10))
 
@@ -144,7 +139,7 @@ def test_full_playback_is_forward_only(tmp_path, monkeypatch):
         monkeypatch.setattr(_IndexedGzipReader, "_restore", lambda self, k: (restores.append(k), orig(self, k)))
         n = 0
         for _ in agent:
-            n += len(agent.input_data()["Grayscale"])
+            n += sum(v is not None for v in agent.input_data()["Grayscale"].values())
         assert n == 60
         assert len(restores) <= 1  # one jump back to the first image, then forward only
     assert archive._file is None or archive._file.closed is False  # agent does not close a borrowed archive

@@ -3,7 +3,8 @@
 ``run_online(archive, reference)`` reads like its table of contents:
 
 1. play the `.lac` archive frame by frame through :class:`~lunarloc.data.playback.PlaybackAgent`
-   (odometry pose from the archive's ``odometry`` record, ground truth only for evaluation);
+   (odometry from :func:`lunarloc.odometry.archive_odometry`: visual, IMU or a record;
+   ground truth only for evaluation);
 2. **detection**: on frames with stereo images, rocks in the rover frame
    (:class:`~lunarloc.perception.detector.Detector`); each image frame is a keyframe of
    the pose graph;
@@ -602,11 +603,15 @@ def run_online(
     max_frames: int | None = None,
     progress: Callable[[int, int], None] | None = None,
     odometry: np.ndarray | None = None,
+    odometry_source: str | None = None,
 ) -> LoopResult:
-    """Run the online loop over a `.lac` archive (needs its ``odometry`` record).
+    """Run the online loop over a `.lac` archive.
 
+    odometry_source : where the odometry comes from (:class:`lunarloc.odometry.OdometrySource`:
+        ``visual``, ``imu``, ``record:NAME``, ``ground-truth``); default ``visual`` when the
+        archive has front stereo pairs, else ``imu``. The run's config names it.
     odometry : optional (F, 6) odometry poses (x, y, z, roll, pitch, yaw), one per archive
-        frame in order, replacing the recorded ones (to replay the images with another drift).
+        frame in order, replacing the source (to replay the images with another drift).
 
     reference : map in the ``ref`` frame (see :func:`load_reference`).
     config : default :meth:`LoopConfig.for_images`.
@@ -628,11 +633,17 @@ def run_online(
             if od_arr.shape != (len(ar.frame_numbers), 6):
                 raise InputError(f"odometry override must be ({len(ar.frame_numbers)}, 6), got {od_arr.shape}")
             odo = {int(f): r for f, r in zip(ar.frame_numbers, od_arr)}
+            odo_label = "override"
         else:
-            if "odometry" not in ar.custom_records:
-                raise FileFormatError(f"{archive}: no custom/odometry.csv record: the loop needs the rover's odometry")
-            od = ar.custom("odometry")
-            odo = {int(f): r for f, r in zip(od["frame"], od.to_array(("x", "y", "z", "roll", "pitch", "yaw")))}
+            from lunarloc.odometry import archive_odometry, default_odometry_source
+
+            ta = time.perf_counter()
+            t_io += ta - t0
+            odo_traj = archive_odometry(ar, odometry_source or default_odometry_source(ar))
+            loop.timings["odometry"] = time.perf_counter() - ta
+            odo = {int(f): r for f, r in zip(odo_traj.frames, odo_traj.poses6())}
+            odo_label = odo_traj.label
+            t0 = time.perf_counter()  # the odometry's time is counted apart from I/O
         cam = _camera_of(ar.configured_cameras)
         det_cfg = detector_config or scaled_detector_config(cam.width)
         detector = Detector(det_cfg, cam)
@@ -659,7 +670,7 @@ def run_online(
             t_io += time.perf_counter() - ta
             if frame in image_frames:
                 ta = time.perf_counter()
-                images = agent.input_data()["Grayscale"]
+                images = {k: v for k, v in agent.input_data().get("Grayscale", {}).items() if v is not None}
                 mounts = {name: CameraMount(name, agent.get_camera_position(name).matrix(), cam)
                           for name in images}  # fmt: skip
                 t_io += time.perf_counter() - ta
@@ -684,7 +695,7 @@ def run_online(
     if n_img == 0:
         raise InputError(f"{archive}: no image frames were played; nothing to localize")
     loop.timings["io"] = t_io
-    extra = {"archive": str(archive), "detector": det_cfg.to_dict(), "camera": asdict(cam)}
+    extra = {"archive": str(archive), "odometry_source": odo_label, "detector": det_cfg.to_dict(), "camera": asdict(cam)}
     return loop.finish(n_img, str(archive), rocks, best_example, extra)
 
 

@@ -47,6 +47,9 @@ class ScenarioConfig:
     sun_elevation_deg: float | None = None  # None: the renderer's default
     sun_azimuth_deg: float | None = None
     min_reference_landmarks: int = 3  # fewer in the reference map is a failed stage
+    # the vehicle's odometry (lunarloc.odometry.OdometrySource text): the simulator's drifting
+    # record by default; "visual" or "imu" for what a LAC rover really has
+    odometry: str = "record:odometry"
 
     def __post_init__(self) -> None:
         for name in ("duration_s", "reference_duration_s", "image_rate_hz"):
@@ -59,6 +62,9 @@ class ScenarioConfig:
             raise ConfigError(f"n_rocks={self.n_rocks!r} must be an integer in [3, 100000]")
         if not isinstance(self.seed, int) or self.seed < 0:
             raise ConfigError(f"seed={self.seed!r} must be a non-negative integer")
+        from lunarloc.odometry import parse_odometry_source
+
+        parse_odometry_source(self.odometry)  # ConfigError/InputError naming the valid sources
 
     @property
     def height(self) -> int:
@@ -146,7 +152,7 @@ def run_scenario(config: ScenarioConfig, out: str | Path, *, log: Callable[[str]
         if len(ref) < c.min_reference_landmarks:
             raise ScenarioError(f"the reference map has only {len(ref)} landmarks")
     with stage("online localization of the vehicle traverse"):
-        res = run_online(veh_arch, ref, loop_cfg)
+        res = run_online(veh_arch, ref, loop_cfg, odometry_source=c.odometry)
         summary = write_outputs(res, out)
     if figures:
         from lunarloc.viz import plot_run

@@ -37,6 +37,7 @@ def _register_commands() -> None:
     from lunarloc.cli import commands_run  # noqa: F401
     from lunarloc.cli import commands_campaign  # noqa: F401
     from lunarloc.cli import commands_setup  # noqa: F401
+    from lunarloc.cli import commands_odometry  # noqa: F401
 
 
 def main(argv: list[str] | None = None) -> int:

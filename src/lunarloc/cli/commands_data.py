@@ -65,9 +65,9 @@ def _plot(archive, out: Path) -> None:
         odo = archive.custom("odometry")
         if "x" in odo and "y" in odo:
             ax.plot(odo["x"], odo["y"], "--", color="tab:orange", lw=1.0, label="odometry")
-    lander = archive.initial.get("lander")
-    if lander is not None and len(lander) >= 2:
-        ax.plot(lander[0], lander[1], "^", color="k", ms=9, label="lander")
+    lander = archive.lander_pose_map()  # initial.toml's lander is rover-relative
+    ax.plot(lander[0], lander[1], "^", color="k", ms=9, label="lander")
+    xy.append(np.array([lander[:2]]))
     pts = np.concatenate([p for p in xy if len(p)]) if any(len(p) for p in xy) else np.zeros((1, 2))
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     pad = 0.05 * max(float(np.max(hi - lo)), 1.0)

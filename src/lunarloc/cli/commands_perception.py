@@ -18,6 +18,11 @@ def detect(
     segmenter: str = typer.Option("classical", "--segmenter", help="classical | fastsam"),
     weights: Path = typer.Option(None, "--weights", help="FastSAM checkpoint (.pt) for --segmenter fastsam"),
     pose: str = typer.Option("ground-truth", "--pose", help="rover pose for the map frame: ground-truth | odometry"),
+    odometry: str = typer.Option(
+        None, "--odometry",
+        help="place detections with this odometry source instead of --pose: "
+        "visual | imu | record:NAME | ground-truth (evaluation only)",
+    ),  # fmt: skip
     debug_dir: Path = typer.Option(None, "--debug-dir", help="write overlay images (masks by filter, depth) here"),
     every: int = typer.Option(1, "--every", min=1, help="process every N-th camera frame"),
     no_centre_correction: bool = typer.Option(
@@ -39,10 +44,14 @@ def detect(
     )
     from lunarloc.errors import ConfigError
 
+    from lunarloc.odometry import archive_odometry, parse_odometry_source
+
     try:
         pose_src = PoseSource(pose)
     except ValueError:
         raise ConfigError(f"--pose must be one of {[p.value for p in PoseSource]}, got {pose!r}") from None
+    if odometry is not None:
+        parse_odometry_source(odometry)  # a bad name fails before any work
     cfg = DetectorConfig(
         segmenter=segmenter,
         weights=str(weights) if weights else None,
@@ -63,10 +72,17 @@ def detect(
         )[::every]
         stats = {"frames": 0, "detections": 0, "time": {}}
         t_start = time.perf_counter()
+        poses, pose_label = None, pose_src.value
+        if odometry is not None:
+            traj = archive_odometry(ar, odometry)
+            poses = dict(zip(traj.frames.tolist(), traj.T_map_rover))
+            pose_label = traj.label
+            stats["time"]["odometry"] = time.perf_counter() - t_start
 
         def frames_iter():
             bar = tqdm(total=len(frames), unit="frame", desc="detect", dynamic_ncols=True)
-            for fd in detect_archive(ar, cfg, pose_src, detector=detector, frames=frames, keep_depth=debug_dir is not None):
+            for fd in detect_archive(ar, cfg, pose_src, detector=detector, frames=frames,
+                                     keep_depth=debug_dir is not None, poses=poses):  # fmt: skip
                 stats["frames"] += 1
                 stats["detections"] += len(fd.detections)
                 for k, v in fd.timings.items():
@@ -86,11 +102,11 @@ def detect(
     wall = time.perf_counter() - t_start
     config_path = output.with_suffix(output.suffix + ".config.json")
     config_path.write_text(
-        json.dumps({"archive": str(archive), "pose": pose_src.value, "detector": cfg.to_dict()}, indent=2, default=str)
+        json.dumps({"archive": str(archive), "pose": pose_label, "detector": cfg.to_dict()}, indent=2, default=str)
     )
     per = {k: v / max(stats["frames"], 1) for k, v in stats["time"].items()}
     typer.echo(
-        f"{n} frames, {stats['detections']} detections -> {output} "
+        f"{n} frames, {stats['detections']} detections placed with {pose_label} poses -> {output} "
         f"({n / wall if wall > 0 else 0:.2f} frames/s; per frame: "
         + ", ".join(f"{k} {1000 * v:.0f} ms" for k, v in per.items())
         + f"; {len(STEREO_PAIRS)} pairs max)"

@@ -50,7 +50,7 @@ def _print_summary(s: dict, title: str) -> None:
 
 @app.command("run")
 def run_cmd(
-    archive: Path = typer.Argument(..., help="Vehicle traverse .lac archive (images + odometry record)."),
+    archive: Path = typer.Argument(..., help="Vehicle traverse .lac archive (stereo images; any custom records)."),
     reference: Path = typer.Option(..., "--reference", "-r",
                                    help="Reference map: landmark CSV/.npz, traverse CSV, or rocks.csv (id,x,y,z,radius)."),  # fmt: skip
     out: Path = typer.Option(..., "-o", "--out", help="Output folder."),
@@ -61,6 +61,11 @@ def run_cmd(
     window_m: float = typer.Option(8.0, "--window-m", help="Local map: detections of the last N metres."),
     fix: str = typer.Option("landmarks", "--fix", help="How fixes enter the pose graph: landmarks | pose."),
     plot: bool = typer.Option(True, "--plot/--no-plot", help="Write the figures into OUT."),
+    odometry: Optional[str] = typer.Option(
+        None, "--odometry",
+        help="Odometry source: visual | imu | record:NAME | ground-truth (evaluation only). "
+        "Default: visual when the archive has front stereo pairs, else imu.",
+    ),  # fmt: skip
 ) -> None:
     """Online localization over a traverse: detect, map, localize against REFERENCE, fuse."""
     from tqdm import tqdm
@@ -68,6 +73,10 @@ def run_cmd(
     from lunarloc.pipeline import load_reference, run_online, scaled_detector_config, write_outputs
     from lunarloc.perception.detector import DetectorConfig
 
+    from lunarloc.odometry import default_odometry_source, parse_odometry_source
+
+    if odometry is not None:
+        parse_odometry_source(odometry)  # fail on a bad name before any work
     cfg = _loop_config(every_m, every_s, window_m, fix)
     ref = load_reference(reference, cfg.aggregation)
     base = DetectorConfig(segmenter=segmenter, weights=str(weights) if weights else None)
@@ -76,6 +85,7 @@ def run_cmd(
 
     with LacArchive(archive) as ar:
         width = _camera_of(ar.configured_cameras).width
+        odometry = odometry or default_odometry_source(ar)
     det_cfg = scaled_detector_config(width, base)
     bar = tqdm(unit="frame", desc="run", dynamic_ncols=True)
 
@@ -85,10 +95,11 @@ def run_cmd(
         if n % 50 == 0 or n == total:
             bar.refresh()
 
-    res = run_online(archive, ref, cfg, det_cfg, progress=prog)
+    res = run_online(archive, ref, cfg, det_cfg, progress=prog, odometry_source=odometry)
     bar.close()
     s = write_outputs(res, out)
     _print_summary(s, f"{archive.name} in {reference.name} ({len(ref)} landmarks)")
+    typer.echo(f"odometry: {res.config['odometry_source']}")
     if plot:
         from lunarloc.viz import plot_run
 

@@ -20,7 +20,12 @@ Units: positions in metres, angles in radians (Euler roll/pitch/yaw with
 in m/s^2, angular rates in rad/s, ``mission_time`` in seconds, ``power`` in Wh,
 ``linear_speed`` in m/s, ``angular_speed`` in rad/s, ``cover_angle`` in radians.
 Rover poses are in the map (world) frame; camera poses (``camera_*``) are
-relative to the rover (as the LAC's ``get_camera_position`` returns them).
+relative to the rover (as the LAC's ``get_camera_position`` returns them), and so is
+initial.toml's ``lander`` (as ``get_initial_lander_position`` returns it; in real LAC
+archives the initial rover pose composed with it puts the lander at the site centre).
+:func:`lander_pose_map` gives the map-frame lander pose. Archives lunarloc wrote before
+``data_spec = "lunarloc-2"`` (:data:`DATA_SPEC`) stored a map-frame ``lander``; they carry
+``data_spec = "lunarloc-sim"`` and the reader converts their ``lander`` on opening.
 
 Compatibility with the published LAC code (verified against the recorder and
 reader of ``Robaire/lac-data`` and its copy in ``mit-acl/lunarloc-data``)
@@ -41,7 +46,12 @@ reader of ``Robaire/lac-data`` and its copy in ``mit-acl/lunarloc-data``)
 * ``enable`` is written as ``True``/``False`` (pandas' bool spelling).
 * The recorder writes a camera row only for frames where the camera was
   enabled *and* produced an image, and writes a camera CSV only for cameras
-  with at least one row. The published reader's ``input_data`` therefore fails
+  with at least one row. Earlier generations (the MAPLE recorder, April 2025)
+  wrote a 1-byte table (``"\n"``, an empty DataFrame) for a camera without
+  images, and the first of them put tables and images under ``images/<Name>/``,
+  stored the member path (``images/<Name>/grayscale/...png``) in the
+  ``grayscale`` column, wrote a row for every frame (empty file name when no
+  image) and extra ``light_*`` columns: all read here (empty table = no images). The published reader's ``input_data`` therefore fails
   on a row without a grayscale file name (or, for a ``use_semantic`` camera,
   without a semantic one); :class:`LacWriter` refuses to write such rows for
   an enabled camera (it accepts image-less rows only with ``enable=False``,
@@ -53,11 +63,14 @@ reader of ``Robaire/lac-data`` and its copy in ``mit-acl/lunarloc-data``)
   ``lac_data``'s FrameDataReader / CameraDataReader / PlaybackAgent with
   identical poses and pixels, and archives made by ``lac_data``'s Recorder
   (PNG and JPEG options) load here unchanged.
-* ``initial.toml``: ``fiducials`` is a *boolean* (``use_fiducials()``), not a
-  pose as the issue text suggests; ``lander`` and ``rover`` are
-  ``[x, y, z, roll, pitch, yaw]``; camera tables keep whatever types the agent
-  gave (the LAC example agent gives ``width``/``height`` as strings, e.g.
-  ``"1280"``); readers here accept both.
+* ``initial.toml``: ``fiducials`` is a *boolean* (``use_fiducials()``);
+  ``lander`` and ``rover`` are ``[x, y, z, roll, pitch, yaw]``; camera tables
+  keep whatever types the agent gave (the LAC example agent gives
+  ``width``/``height`` as strings, e.g. ``"1280"``). Older recorder generations
+  passed numpy scalars to the ``toml`` package, which writes them as strings
+  (``"1.5"``, or ``"np.float64(1.5)"`` under numpy 2). :attr:`LacArchive.initial`
+  holds numbers (``initial_raw`` the text as stored); a value that is not a
+  number raises ArchiveError naming the key.
 * ``metadata.toml``: the LAC recorder writes ``data_spec = "0.1"``, times as
   ``"%Y-%m-%d %H:%M:%S"`` wall-clock strings and ``frames`` = number of rows
   of ``frames.csv``. Ours writes the same keys and formats, with our own
@@ -66,8 +79,11 @@ reader of ``Robaire/lac-data`` and its copy in ``mit-acl/lunarloc-data``)
   ignore it when reading. Its custom records always begin with a ``frame``
   column; ours need not (e.g. ``rocks``). Record names must not contain a dot
   (their reader cuts the name at the first one).
-* Floats are written with the shortest round-trip repr, so values read back
-  bit-exact (pandas reads them with its default, round-trip-safe parser too).
+* Floats are written by :func:`float_text` so that this reader and pandas'
+  default C parser (pandas 2.2, what lac-data pins) read the *same* value: the
+  shortest repr when pandas reads it exactly (then bit-exact), else rounded to
+  15 significant digits (relative change < 5e-15). The plain repr is not enough:
+  pandas' parser keeps 17 digits, leading zeros included, and rounds twice.
 
 Reading strategy (random access into a gzip stream)
 ---------------------------------------------------
@@ -96,6 +112,7 @@ from __future__ import annotations
 import csv
 import io
 import logging
+import math
 import os
 import re
 import tarfile
@@ -129,6 +146,11 @@ __all__ = [
     "FrameRecord",
     "LacArchive",
     "LacWriter",
+    "DATA_SPEC",
+    "LEGACY_MAP_LANDER_SPECS",
+    "float_text",
+    "lander_pose_map",
+    "lander_pose_relative",
 ]
 
 FRAME_COLUMNS: tuple[str, ...] = (
@@ -156,6 +178,16 @@ _TIME_FORMAT = "%Y-%m-%d %H:%M:%S"
 _RECORD_NAME = re.compile(r"^[A-Za-z0-9_-]+$")
 _CAMERA_NAME = re.compile(r"^[A-Za-z0-9_-]+$")
 _INT_TEXT = re.compile(r"^\s*[-+]?\d+\s*$")
+_NUMPY_SCALAR_TEXT = re.compile(r"^\s*(?:np|numpy)\.(?:float|int)\d*\((.*)\)\s*$")
+_CAMERA_ROOTS = ("cameras", "images")  # the recorder's layout; the first MAPLE recorder's
+
+DATA_SPEC = "lunarloc-2"
+"""``data_spec`` :class:`LacWriter` writes: ``lander`` in initial.toml is relative to the
+rover (as the LAC recorder stores it)."""
+
+LEGACY_MAP_LANDER_SPECS: tuple[str, ...] = ("lunarloc-sim",)
+"""``data_spec`` values of archives lunarloc wrote before :data:`DATA_SPEC`, whose
+``lander`` is a map-frame pose; the reader converts it to rover-relative."""
 
 _CHUNK = 256 * 1024  # compressed bytes read per step
 _MAX_OUT = 1024 * 1024  # cap on decompressed bytes per zlib call (bounds memory)
@@ -407,9 +439,12 @@ def _parse_csv(
     bools: Sequence[str] = (),
     floats: Sequence[str] = (),
     strings: Sequence[str] = (),
+    allow_empty: bool = False,
 ) -> Table:
     """Parse CSV bytes into a Table. Columns not named are inferred (float, else str).
 
+    `allow_empty`: a file without a header (pandas writes an empty DataFrame as ``"\\n"``,
+    the 1-byte camera tables of older recorders) gives an empty Table instead of an error.
     Raises ArchiveError naming `where` (archive: member) on any problem.
     """
     try:
@@ -419,7 +454,7 @@ def _parse_csv(
     rows = list(csv.reader(io.StringIO(text)))
     rows = [r for r in rows if r]  # tolerate a trailing blank line
     if not rows:
-        if required:
+        if required and not allow_empty:
             raise ArchiveError(f"{where}: empty file, expected columns {', '.join(required)}")
         return Table({}, where)
     header = [h.strip() for h in rows[0]]
@@ -548,13 +583,14 @@ class LacArchive:
                 self._members = {
                     n[len(self._prefix) :]: m for n, m in self._members.items() if n.startswith(self._prefix)
                 }
-        self.initial = self._read_toml("initial.toml", _INITIAL_KEYS)
+        self.initial_raw = self._read_toml("initial.toml", _INITIAL_KEYS)
         self.metadata = self._read_toml("metadata.toml", ())
         missing = [k for k in _METADATA_KEYS if k not in self.metadata]
         if missing:
             logger.warning("%s: metadata.toml lacks %s", self.path, ", ".join(missing))
-        if not isinstance(self.initial.get("cameras"), dict):
+        if not isinstance(self.initial_raw.get("cameras"), dict):
             raise self._err("initial.toml", "'cameras' must be a table")
+        self.initial = self._normalized_initial(self.initial_raw)
         self.frames = _parse_csv(
             self._read_member("frames.csv"),
             f"{self.path}: frames.csv",
@@ -565,10 +601,13 @@ class LacArchive:
         self._frame_index = self._index_frames(self.frames["frame"], "frames.csv")
         self._camera_tables: dict[str, Table] = {}
         self._camera_index: dict[str, dict[int, int]] = {}
+        self._camera_root: dict[str, str] = {}
         for name in self.initial["cameras"]:
-            member = f"cameras/{name}/{name}_frames.csv"
-            if member not in self._members:
+            # `cameras/` (the recorder) or `images/` (the first MAPLE recorder, the READMEs)
+            root = next((r for r in _CAMERA_ROOTS if f"{r}/{name}/{name}_frames.csv" in self._members), None)
+            if root is None:
                 continue  # the recorder writes no table for cameras that never produced an image
+            member = f"{root}/{name}/{name}_frames.csv"
             table = _parse_csv(
                 self._read_member(member),
                 f"{self.path}: {member}",
@@ -577,7 +616,13 @@ class LacArchive:
                 bools=("enable",),
                 floats=_CAMERA_FLOAT_COLUMNS,
                 strings=_CAMERA_STRING_COLUMNS,
+                allow_empty=True,
             )
+            if not table.columns:
+                # older recorders wrote a 1-byte table ("\n") for a camera without images
+                logger.debug("%s: %s is empty: no images from %s", self.path, member, name)
+                continue
+            self._camera_root[name] = root
             for kind in _IMAGE_KINDS:  # empty / "nan" (pandas NaN) means no image
                 col = table[kind]
                 for i, v in enumerate(col):
@@ -603,12 +648,104 @@ class LacArchive:
                 if fname and self._image_member(camera, kind, fname) not in self._members:
                     raise self._err(
                         self._image_member(camera, kind, fname),
-                        f"image listed in {member} (frame {int(table['frame'][i])}) is absent from the archive",
+                        f"image listed in {member} line {i + 2} (frame {int(table['frame'][i])}) "
+                        "is absent from the archive",
                     )
 
-    @staticmethod
-    def _image_member(camera: str, kind: str, fname: str) -> str:
-        return fname if "/" in fname else f"cameras/{camera}/{kind}/{fname}"
+    def _image_member(self, camera: str, kind: str, fname: str) -> str:
+        """Member of an image named in a camera table: a bare file name (the recorder) is
+        resolved in the table's folder; the first recorders stored the member path itself."""
+        if "/" in fname:
+            return fname
+        root = self._camera_root.get(camera, _CAMERA_ROOTS[0])
+        member = f"{root}/{camera}/{kind}/{fname}"
+        if member not in self._members:  # images in the other layout than the table
+            other = next((f"{r}/{camera}/{kind}/{fname}" for r in _CAMERA_ROOTS if r != root), member)
+            if other in self._members:
+                return other
+        return member
+
+    # -- initial.toml ----------------------------------------------------------------
+    def _number(self, value: Any, key: str, kind: type = float) -> Any:
+        """A TOML number, or a number stored as a string (older recorder generations: the
+        ``toml`` package writes numpy scalars as strings, e.g. ``"1.5"`` or ``"np.float64(1.5)"``)."""
+        if isinstance(value, bool):
+            raise self._err("initial.toml", f"'{key}' must be a number, got {value!r}")
+        if isinstance(value, (int, float)):
+            return kind(value)
+        if isinstance(value, str):
+            text = value.strip()
+            m = _NUMPY_SCALAR_TEXT.match(text)
+            text = m.group(1).strip() if m else text
+            try:
+                v = float(text)
+            except ValueError:
+                pass
+            else:
+                if kind is float:
+                    return v
+                if np.isfinite(v) and v == int(v):
+                    return int(v)
+        raise self._err("initial.toml", f"'{key}' must be a number, got {value!r}")
+
+    def _flag(self, value: Any, key: str) -> bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.strip().lower() in ("true", "false", "1", "0"):
+            return value.strip().lower() in ("true", "1")
+        if isinstance(value, (int, float)) and value in (0, 1):
+            return bool(value)
+        raise self._err("initial.toml", f"'{key}' must be a boolean, got {value!r}")
+
+    def _normalized_initial(self, raw: dict) -> dict:
+        """initial.toml with numbers stored as strings parsed, and ``lander`` relative to the
+        rover (converted from the map frame for archives lunarloc wrote before DATA_SPEC)."""
+        out = dict(raw)
+        for key in ("lander", "rover"):
+            v = raw[key]
+            if not isinstance(v, (list, tuple)) or len(v) != 6:
+                raise self._err("initial.toml", f"'{key}' must be [x, y, z, roll, pitch, yaw], got {v!r}")
+            out[key] = [self._number(x, f"{key}[{i}]") for i, x in enumerate(v)]
+        if "fiducials" in raw:
+            out["fiducials"] = self._flag(raw["fiducials"], "fiducials")
+        cams = {}
+        for name, cfg in raw["cameras"].items():
+            if not isinstance(cfg, dict):
+                raise self._err("initial.toml", f"[cameras.{name}] must be a table")
+            c = dict(cfg)
+            for k, kind in (("width", int), ("height", int), ("light_intensity", float)):
+                if k in c:
+                    c[k] = self._number(c[k], f"cameras.{name}.{k}", kind)
+            for k in ("camera_active", "use_semantic"):
+                if k in c:
+                    c[k] = self._flag(c[k], f"cameras.{name}.{k}")
+            cams[name] = c
+        out["cameras"] = cams
+        if self.lander_stored_in_map_frame:
+            from lunarloc.geometry import invert_transform, matrix_to_pose, pose_to_matrix
+
+            T_map_lander = pose_to_matrix(*out["lander"])
+            T_map_rover = pose_to_matrix(*out["rover"])
+            out["lander"] = [float(v) for v in matrix_to_pose(invert_transform(T_map_rover) @ T_map_lander)]
+        return out
+
+    @property
+    def lander_stored_in_map_frame(self) -> bool:
+        """True for archives lunarloc wrote before :data:`DATA_SPEC` (``data_spec`` in
+        :data:`LEGACY_MAP_LANDER_SPECS`), whose initial.toml ``lander`` is a map-frame pose.
+        ``initial["lander"]`` is rover-relative either way (``initial_raw`` keeps the text)."""
+        return str(self.metadata.get("data_spec", "")) in LEGACY_MAP_LANDER_SPECS
+
+    def initial_rover_pose(self) -> np.ndarray:
+        """``T_map_rover`` (4x4) at the start: initial.toml ``rover`` (LAC ``get_initial_position``)."""
+        from lunarloc.geometry import pose_to_matrix
+
+        return pose_to_matrix(*self.initial["rover"])
+
+    def lander_pose_map(self) -> list[float]:
+        """The lander's pose in the map frame, [x, y, z, roll, pitch, yaw] (m, rad): the initial
+        rover pose composed with the rover-relative ``lander`` of initial.toml."""
+        return lander_pose_map(self.initial)
 
     def _read_member(self, name: str) -> bytes:
         info = self._members.get(name)
@@ -815,15 +952,84 @@ class LacArchive:
 
 
 def _fmt(v: Any) -> str:
-    """CSV text of one value: shortest round-trip float repr, ints as ints, bools as True/False."""
+    """CSV text of one value: floats by :func:`float_text`, ints as ints, bools as True/False."""
     if isinstance(v, (bool, np.bool_)):
         return "True" if v else "False"
     if isinstance(v, (int, np.integer)):
         return str(int(v))
     if isinstance(v, (float, np.floating)):
-        f = float(v)
-        return "" if np.isnan(f) else repr(f)
+        return float_text(v)
     return str(v)
+
+
+def _pandas_exact(text: str) -> bool:
+    """True when pandas' default C float parser (``precise_xstrtod``, pandas 2.x) reads
+    `text` as the correctly rounded double, i.e. the value Python's ``float`` reads.
+
+    That parser accumulates up to 17 digits (leading zeros included) into a double and
+    then multiplies or divides once by a power of ten from a table: exact when the digit
+    string is below 2**53 and the power is an exact double (10**0 .. 10**22).
+    """
+    mant, _, ex = text.partition("e")
+    mant = mant.lstrip("+-")
+    whole, _, frac = mant.partition(".")
+    digits = whole + frac
+    try:
+        exponent = int(ex or 0) - len(frac)
+    except ValueError:
+        return False
+    return digits.isdigit() and len(digits) <= 17 and int(digits) < 2**53 and -22 <= exponent <= 22
+
+
+def float_text(value: float) -> str:
+    """CSV text of a float that Python's ``float`` and pandas' default parser read identically.
+
+    The shortest round-trip ``repr`` when pandas reads it exactly (most values: the value
+    round-trips bit-exact); otherwise the value rounded to 15 significant digits (fewer
+    below 1e-7, so the decimal exponent stays within pandas' exact range), a relative change
+    below 5e-15 and an absolute one below 1e-22. NaN is written as an empty field (pandas'
+    spelling). Measured with pandas 2.2.3: 0 of 127,006 random values read back differently
+    (the plain ``repr`` gave 33,780 of 76,000).
+    """
+    f = float(value)
+    if math.isnan(f):
+        return ""
+    if math.isinf(f) or f == 0.0:
+        return repr(f)
+    text = repr(f)
+    if _pandas_exact(text):
+        return text
+    n = min(15, 23 + math.floor(math.log10(abs(f))))
+    if n < 1:
+        return "0.0"  # |value| < 1e-22
+    g = float(f"{f:.{n}g}")
+    text = repr(g)
+    if _pandas_exact(text):
+        return text
+    mant, _, ex = f"{g:.{n - 1}e}".partition("e")
+    if "." in mant:
+        mant = mant.rstrip("0").rstrip(".")
+    return f"{mant}e{ex}"
+
+
+def lander_pose_map(initial: dict) -> list[float]:
+    """Map-frame lander pose [x, y, z, roll, pitch, yaw] from an initial.toml dict whose
+    ``lander`` is relative to the rover and ``rover`` is the rover's map-frame pose:
+    ``T_map_lander = T_map_rover @ T_rover_lander``."""
+    from lunarloc.geometry import matrix_to_pose, pose_to_matrix
+
+    T = pose_to_matrix(*(float(v) for v in initial["rover"])) @ pose_to_matrix(*(float(v) for v in initial["lander"]))
+    return [float(v) for v in matrix_to_pose(T)]
+
+
+def lander_pose_relative(rover_pose_map, lander_pose_map_) -> list[float]:
+    """The rover-relative lander pose initial.toml stores (LAC ``get_initial_lander_position``)
+    from map-frame rover and lander poses: ``T_rover_lander = T_map_rover^-1 @ T_map_lander``."""
+    from lunarloc.geometry import invert_transform, matrix_to_pose, pose_to_matrix
+
+    T_map_rover = pose_to_matrix(*(float(v) for v in rover_pose_map))
+    T_map_lander = pose_to_matrix(*(float(v) for v in lander_pose_map_))
+    return [float(v) for v in matrix_to_pose(invert_transform(T_map_rover) @ T_map_lander)]
 
 
 def _to_toml_value(v: Any) -> Any:
@@ -853,11 +1059,14 @@ class LacWriter:
     Parameters
     ----------
     path : output `.lac` file (parent folder is created).
-    initial : dict for initial.toml: ``fiducials`` (bool), ``lander`` and ``rover``
-        ([x, y, z, roll, pitch, yaw], m and rad), ``cameras`` ({Name: {camera_active,
-        light_intensity, width, height, use_semantic}}).
+    initial : dict for initial.toml: ``fiducials`` (bool), ``rover`` (map-frame pose) and
+        ``lander`` (pose *relative to the rover*, as the LAC's ``get_initial_lander_position``
+        returns it; see :func:`lander_pose_relative`), both [x, y, z, roll, pitch, yaw] in m
+        and rad, ``cameras`` ({Name: {camera_active, light_intensity, width, height,
+        use_semantic}}).
     description : free text stored in metadata.toml.
-    data_spec : format tag stored in metadata.toml.
+    data_spec : format tag stored in metadata.toml (:data:`DATA_SPEC`; the legacy tags of
+        :data:`LEGACY_MAP_LANDER_SPECS` are refused: readers would take ``lander`` as map-frame).
     compresslevel : gzip level 0-9 (PNG data barely compresses; 1 is fastest).
     """
 
@@ -866,12 +1075,14 @@ class LacWriter:
         path: str | os.PathLike,
         initial: dict,
         description: str = "",
-        data_spec: str = "lunarloc-sim",
+        data_spec: str = DATA_SPEC,
         *,
         compresslevel: int = 1,
         png_compress_level: int = 3,
     ):
         self.path = Path(path)
+        if str(data_spec) in LEGACY_MAP_LANDER_SPECS:
+            raise InputError(f"data_spec {data_spec!r} marks a map-frame lander; this writer stores it rover-relative")
         missing = [k for k in ("lander", "rover", "cameras") if k not in initial]
         if missing:
             raise InputError(f"initial dict lacks {', '.join(missing)}")

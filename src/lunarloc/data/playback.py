@@ -2,26 +2,39 @@
 
 :class:`PlaybackAgent` answers the same queries an agent makes in the Lunar
 Autonomy Challenge (``get_transform()``, ``get_imu_data()``, ``input_data()``
-...), from the recorded frame under the cursor. Method names follow the LAC
-``AutonomousAgent`` and the published ``lac_data.PlaybackAgent``; the cursor is
-moved with ``set_frame(n)`` / ``step_frame()`` and ``at_end()`` tells when the
-recording is exhausted.
+...), from the recorded frame under the cursor, and behaves as the published
+``lac_data.PlaybackAgent`` (``Robaire/lac-data``; the same in
+``mit-acl/lunarloc-data``) member by member; where that one is silent or differs
+from the LAC agent API, as the LAC API. ``tests/test_playback_parity.py`` lists
+every member and its behaviour.
 
 Semantics (as the LAC recorder stores data)
 -------------------------------------------
 * Poses are in metres and radians. ``get_transform()`` is the rover's
   ground-truth pose in the map frame; ``get_camera_position(name)`` is the
-  camera's pose relative to the rover.
+  camera's pose relative to the rover; ``get_initial_lander_position()`` is the
+  lander's pose relative to the rover at the start (as the LAC returns it; see
+  :func:`lunarloc.data.lac.lander_pose_map` for the map-frame pose).
 * Camera tables only have rows for frames where a camera produced an image, so
   camera state (enable, light, pose) at a frame is taken from the camera's last
-  row at or before that frame; before its first row, from ``initial.toml``
-  (``camera_active``, ``light_intensity``) and, for the pose, the IPEx rig of
-  :func:`lunarloc.perception.camera.ipex_rig` (zeros for unknown cameras).
-* ``input_data()`` returns ``{"Grayscale": {name: image}, "Semantic": {...}}``
-  with images only for cameras that have an image at the current frame. With
-  ``include_empty=True`` it follows the LAC simulator's convention instead:
-  every camera active at this frame is a key, ``None`` when it has no image
-  this tick.
+  row at or before that frame. Before its first row (or for a camera that never
+  recorded), as published: ``get_camera_state`` is ``False``,
+  ``get_camera_position`` a zero pose, ``get_light_state`` initial.toml's
+  ``light_intensity``.
+* ``input_data()`` is ``{"Grayscale": {name: image or None}, "Semantic": {...}}``
+  with *every* configured camera under ``"Grayscale"`` and every ``use_semantic``
+  camera under ``"Semantic"``, ``None`` when it has no image at this frame (the
+  published agent; the LAC gives ``None`` to an active camera on ticks without an
+  image). Grayscale images are (H, W) uint8; semantic images as stored: the LAC's
+  (H, W, 3) uint8 palette (rocks (42, 59, 108), lander (160, 190, 110), fiducials
+  (30, 170, 250)) or lunarloc's simulated uint16 ids.
+* ``get_imu_data()`` is an ndarray ``[ax, ay, az, gx, gy, gz]`` as the LAC returns
+  it (the published agent returns a list). Getters the recorder does not record
+  (``get_consumed_power``, arm angles, drum speeds, ``get_light_position``) raise
+  ``NotImplementedError`` as published.
+* ``set_frame(f)``: a frame after the last raises a ValueError, one that is not
+  recorded (``3.5``, a gap, a negative number) an IndexError, as published (both
+  are :class:`~lunarloc.errors.InputError` too).
 
 Stepping is O(1) and image reads move forward through the archive, so replaying
 a whole archive frame by frame is linear in its length.
@@ -43,7 +56,24 @@ from lunarloc.geometry import matrix_to_pose, pose_to_matrix
 logger = logging.getLogger(__name__)
 logger.addHandler(logging.NullHandler())
 
-__all__ = ["Location", "Rotation", "Transform", "PlaybackAgent"]
+__all__ = ["Location", "Rotation", "Transform", "PlaybackAgent", "FrameNotRecordedError", "FrameOutOfRangeError",
+           "UnknownCameraError"]
+
+
+class FrameOutOfRangeError(InputError):
+    """``set_frame`` past the last recorded frame (a ValueError, as in the published agent)."""
+
+
+class FrameNotRecordedError(InputError, IndexError):
+    """``set_frame`` to a frame number that is not recorded (an IndexError, as in the published agent)."""
+
+
+class UnknownCameraError(InputError, KeyError):
+    """A camera that initial.toml does not configure (a KeyError, as in the published agent)."""
+
+    def __str__(self) -> str:  # KeyError would quote the message
+        return str(self.args[0]) if self.args else ""
+
 
 
 @dataclass(frozen=True)
@@ -139,11 +169,25 @@ class PlaybackAgent:
         return self._i
 
     def set_frame(self, frame: int) -> int:
-        """Jump to frame number `frame` (must be a recorded frame); returns it."""
-        i = self._index_of.get(int(frame))
+        """Jump to frame number `frame` (must be a recorded frame); returns it.
+
+        Raises FrameOutOfRangeError (a ValueError) past the last frame and
+        FrameNotRecordedError (an IndexError) for a frame that is not recorded, as published.
+        """
+        lo, hi = self._frame_list[0], self._frame_list[-1]
+        try:
+            past_end = frame > hi
+        except TypeError:
+            raise FrameNotRecordedError(f"frame {frame!r} is not a frame number") from None
+        if past_end:
+            raise FrameOutOfRangeError(f"frame {frame} is out of range: the last frame of {self.archive.path} is {hi}")
+        i = None
+        if isinstance(frame, (int, np.integer)) and not isinstance(frame, bool):
+            i = self._index_of.get(int(frame))
+        elif isinstance(frame, (float, np.floating)) and float(frame).is_integer():
+            i = self._index_of.get(int(frame))  # pandas compares 3.0 == 3, as the published agent does
         if i is None:
-            lo, hi = self._frame_list[0], self._frame_list[-1]
-            raise InputError(f"frame {frame} is not in {self.archive.path} (frames {lo}..{hi})")
+            raise FrameNotRecordedError(f"frame {frame} is not in {self.archive.path} (frames {lo}..{hi})")
         self._i = i
         self._row = self.archive.frame_state(i)
         return self.frame
@@ -172,7 +216,8 @@ class PlaybackAgent:
         return bool(self.archive.initial.get("fiducials", False))
 
     def sensors(self) -> dict[str, dict]:
-        """Camera configuration {name: {camera_active, light_intensity, width, height, use_semantic}}."""
+        """Camera configuration {name: {camera_active, light_intensity, width, height, use_semantic}}
+        (numbers stored as strings by older recorders are numbers here)."""
         return self.archive.initial["cameras"]
 
     def get_initial_position(self) -> Transform:
@@ -180,7 +225,7 @@ class PlaybackAgent:
         return Transform.from_xyzrpy(self.archive.initial["rover"])
 
     def get_initial_lander_position(self) -> Transform:
-        """Lander pose in the map frame (m, rad)."""
+        """Lander pose relative to the rover at the start (m, rad), as the LAC returns it."""
         return Transform.from_xyzrpy(self.archive.initial["lander"])
 
     # -- per-frame state -----------------------------------------------------------------
@@ -193,10 +238,11 @@ class PlaybackAgent:
         """4x4 ``T_map_rover`` at the current frame."""
         return self.get_transform().matrix()
 
-    def get_imu_data(self) -> list[float]:
-        """[accel_x, accel_y, accel_z (m/s^2), gyro_x, gyro_y, gyro_z (rad/s)]."""
+    def get_imu_data(self) -> np.ndarray:
+        """(6,) float64 ndarray [accel_x, accel_y, accel_z (m/s^2), gyro_x, gyro_y, gyro_z (rad/s)],
+        body frame, specific force including gravity (as the LAC returns it)."""
         r = self._row
-        return [r["accel_x"], r["accel_y"], r["accel_z"], r["gyro_x"], r["gyro_y"], r["gyro_z"]]
+        return np.array([r["accel_x"], r["accel_y"], r["accel_z"], r["gyro_x"], r["gyro_y"], r["gyro_z"]], float)
 
     def get_mission_time(self) -> float:
         """Mission time, seconds."""
@@ -222,11 +268,29 @@ class PlaybackAgent:
         """The whole frames.csv row of the current frame."""
         return dict(self._row)
 
+    # -- not recorded (the published agent raises NotImplementedError) ---------------------
+    def get_consumed_power(self) -> float:
+        raise NotImplementedError("get_consumed_power not implemented")
+
+    def get_front_arm_angle(self) -> float:
+        raise NotImplementedError("get_front_arm_angle not implemented")
+
+    def get_back_arm_angle(self) -> float:
+        raise NotImplementedError("get_back_arm_angle not implemented")
+
+    def get_front_drums_speed(self) -> float:
+        raise NotImplementedError("get_front_drums_speed not implemented")
+
+    def get_back_drums_speed(self) -> float:
+        raise NotImplementedError("get_back_drums_speed not implemented")
+
+    def get_light_position(self, name: str) -> Transform:
+        raise NotImplementedError("get_light_position not implemented")
+
     # -- cameras ---------------------------------------------------------------------------
     def _camera_row(self, name: str) -> dict[str, Any] | None:
-        """Last camera-table row at or before the current frame, or None."""
-        if name not in self.archive.initial["cameras"]:
-            raise InputError(f"no camera named {name!r} in {self.archive.path}")
+        """Last camera-table row at or before the current frame, or None (none yet, or a
+        camera that never recorded / is not configured)."""
         frames = self._cam_frames.get(name)
         if frames is None or len(frames) == 0:
             return None
@@ -234,47 +298,43 @@ class PlaybackAgent:
         return None if k < 0 else self.archive.camera_frames(name).row(k)
 
     def get_camera_state(self, name: str) -> bool:
-        """Whether camera `name` is enabled at the current frame."""
+        """Whether camera `name` is enabled at the current frame (False before its first row)."""
         row = self._camera_row(name)
-        if row is None:
-            return bool(self.archive.initial["cameras"][name].get("camera_active", False))
-        return bool(row["enable"])
+        return False if row is None else bool(row["enable"])
 
     def get_light_state(self, name: str) -> float:
-        """Lamp intensity (0-1) of camera `name` at the current frame."""
+        """Lamp intensity (0-1) of camera `name` at the current frame; before its first row
+        initial.toml's value. UnknownCameraError (a KeyError) for a camera not configured."""
         row = self._camera_row(name)
         if row is None:
-            return float(self.archive.initial["cameras"][name].get("light_intensity", 0.0))
+            cfg = self.archive.initial["cameras"].get(name)
+            if cfg is None:
+                raise UnknownCameraError(f"no camera named {name!r} in {self.archive.path}")
+            return float(cfg.get("light_intensity", 0.0))
         return float(row["light_intensity"])
 
     def get_camera_position(self, name: str) -> Transform:
-        """Pose of camera `name` relative to the rover (m, rad)."""
+        """Pose of camera `name` relative to the rover (m, rad); a zero pose before its first row."""
         row = self._camera_row(name)
-        if row is not None:
-            return Transform.from_xyzrpy(
-                [row[k] for k in ("camera_x", "camera_y", "camera_z", "camera_roll", "camera_pitch", "camera_yaw")]
-            )
-        from lunarloc.perception.camera import ipex_rig
+        if row is None:
+            return Transform()
+        return Transform.from_xyzrpy(
+            [row[k] for k in ("camera_x", "camera_y", "camera_z", "camera_roll", "camera_pitch", "camera_yaw")]
+        )
 
-        mount = ipex_rig().get(name)
-        return Transform() if mount is None else Transform.from_matrix(mount.T_rover_cam)
+    def input_data(self) -> dict[str, dict[str, np.ndarray | None]]:
+        """``{"Grayscale": {name: (H, W) uint8 | None}, "Semantic": {name: image | None}}``.
 
-    def input_data(self, *, include_empty: bool = False) -> dict[str, dict[str, np.ndarray | None]]:
-        """``{"Grayscale": {name: (H, W) uint8}, "Semantic": {name: image}}`` at the current frame.
-
-        Only cameras with an image at this frame appear, unless `include_empty` (LAC
-        convention: every camera active now is a key, None without an image this tick).
+        Every configured camera is a ``"Grayscale"`` key and every ``use_semantic`` camera a
+        ``"Semantic"`` key, ``None`` without an image at this frame; a group with no camera is
+        left out (as published).
         """
         a, f = self.archive, self.frame
         requests = [(c, f, k) for c in a.cameras for k in ("grayscale", "semantic")]
         images = a.read_images(requests)
-        out: dict[str, dict[str, np.ndarray | None]] = {"Grayscale": {}, "Semantic": {}}
-        if include_empty:
-            for name, cfg in a.initial["cameras"].items():
-                if self.get_camera_state(name):
-                    out["Grayscale"][name] = None
-                    if cfg.get("use_semantic", False):
-                        out["Semantic"][name] = None
-        for (cam, _, kind), img in images.items():
-            out["Grayscale" if kind == "grayscale" else "Semantic"][cam] = img
+        out: dict[str, dict[str, np.ndarray | None]] = {}
+        for name, cfg in a.initial["cameras"].items():
+            out.setdefault("Grayscale", {})[name] = images.get((name, f, "grayscale"))
+            if cfg.get("use_semantic", False):
+                out.setdefault("Semantic", {})[name] = images.get((name, f, "semantic"))
         return out

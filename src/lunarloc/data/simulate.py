@@ -149,7 +149,7 @@ def simulate_traverse(
     with images with the number of rover frames done so far. Returns the archive
     path and the ground-truth trajectory.
     """
-    from lunarloc.data.lac import LacWriter
+    from lunarloc.data.lac import LacWriter, lander_pose_relative
 
     cfg = config or SimulationConfig()
     cfg.validate()
@@ -163,7 +163,7 @@ def simulate_traverse(
     cam_poses = {m.name: [float(v) for v in matrix_to_pose(m.T_rover_cam)] for m in mounts}
     initial = {
         "fiducials": False,
-        "lander": site.lander_pose,
+        "lander": lander_pose_relative(traj.poses[0], site.lander_pose),  # rover-relative, as the LAC stores it
         "rover": [float(v) for v in traj.poses[0]],
         "cameras": _camera_config(cfg),
     }

@@ -620,17 +620,20 @@ def detect_archive(
     detector: Detector | None = None,
     frames: Iterable[int] | None = None,
     keep_depth: bool = False,
+    poses: Mapping[int, np.ndarray] | None = None,
 ) -> Iterator[FrameDetections]:
     """Run the detector over the frames of a LacArchive that have left images.
 
     pose : ground truth (frames.csv) or odometry (custom/odometry.csv) for the map frame.
     frames : optional subset of frame numbers.
+    poses : optional {frame: T_map_rover (4x4)} placing detections instead of `pose`
+        (e.g. :func:`lunarloc.odometry.archive_odometry`'s trajectory).
     """
     pose = PoseSource(pose)
     camera = _camera_from_archive(archive)
     det = detector or Detector(config, camera)
     odo = None
-    if pose is PoseSource.ODOMETRY:
+    if pose is PoseSource.ODOMETRY and poses is None:
         if "odometry" not in archive.custom_records:
             raise InputError(f"{archive.path}: no odometry record; use --pose ground-truth")
         t = archive.custom("odometry")
@@ -642,7 +645,11 @@ def detect_archive(
             continue
         if not any(c in rec.grayscale for c in lefts):
             continue
-        if odo is not None:
+        if poses is not None:
+            if rec.frame not in poses:
+                raise InputError(f"{archive.path}: no rover pose at frame {rec.frame}")
+            T = np.asarray(poses[rec.frame], float)
+        elif odo is not None:
             if rec.frame not in odo:
                 raise InputError(f"{archive.path}: no odometry pose at frame {rec.frame}")
             T = pose_to_matrix(*odo[rec.frame])

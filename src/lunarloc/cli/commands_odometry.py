@@ -1,0 +1,67 @@
+"""`lunarloc odometry`: an archive's odometry from one source, as TUM, with its drift."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from lunarloc.cli.app import app, console
+
+
+@app.command("odometry")
+def odometry_cmd(
+    archive: Path = typer.Argument(..., help="A .lac archive.", exists=True, dir_okay=False),
+    source: Optional[str] = typer.Option(
+        None, "--source", "-s",
+        help="visual | imu | record:NAME | ground-truth (evaluation only). "
+        "Default: visual when the archive has front stereo pairs, else imu.",
+    ),  # fmt: skip
+    out: Optional[Path] = typer.Option(None, "-o", "--out", help="Write the trajectory here (TUM: t x y z qx qy qz qw)."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the drift figures here (JSON)."),
+) -> None:
+    """Odometry of ARCHIVE from SOURCE, and its drift against the archive's ground truth."""
+    from tqdm import tqdm
+
+    from lunarloc.data.lac import LacArchive
+    from lunarloc.odometry import archive_odometry, default_odometry_source, ground_truth_poses, odometry_drift
+    from lunarloc.odometry import parse_odometry_source
+    from lunarloc.pipeline import _write_tum
+
+    if source is not None:
+        parse_odometry_source(source)
+    con = console()
+    with LacArchive(archive) as ar:
+        source = source or default_odometry_source(ar)
+        bar = tqdm(unit="pair", desc=f"odometry {source}", dynamic_ncols=True, disable=None)
+
+        def prog(n, total):
+            bar.total = total
+            bar.n = n
+            if n % 20 == 0 or n == total:
+                bar.refresh()
+
+        traj = archive_odometry(ar, source, progress=prog)
+        bar.close()
+        drift = odometry_drift(traj.T_map_rover, ground_truth_poses(ar))
+    drift = {"archive": str(archive), "source": traj.label, "evaluation_only": traj.evaluation_only,
+             "measured_frames": int(traj.measured.sum()) if traj.measured is not None else None,
+             "failures": traj.failures, **drift}  # fmt: skip
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        _write_tum(out, traj.times_s, traj.poses6())
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps(drift, indent=2))
+    pct = "-" if drift["final_error_pct"] is None else f"{drift['final_error_pct']:.2f} %"
+    con.print(f"[bold]{archive.name}[/bold]: odometry {traj.label}, {drift['frames']} frames, "
+              f"path {drift['path_length_m']:.2f} m (ground truth)")  # fmt: skip
+    con.print(f"  final error   : {drift['final_error_m']:.3f} m ({pct} of the path)")
+    con.print(f"  heading error : {drift['heading_error_deg']:.3f} deg at the end (max {drift['max_heading_error_deg']:.3f} deg)")
+    con.print(f"  RMSE          : {drift['rmse_m']:.3f} m (max {drift['max_error_m']:.3f} m)")
+    if traj.failures:
+        con.print(f"  visual odometry fell back to the IMU prior on {traj.failures} image pair(s)")
+    if out is not None:
+        con.print(f"wrote {out}")

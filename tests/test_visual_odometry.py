@@ -1,0 +1,216 @@
+"""Stereo visual odometry: known-motion recovery on a small simulated traverse,
+fallback to the prior on frames without usable texture, and input validation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("cv2")
+
+from lunarloc.errors import ConfigError, InputError  # noqa: E402
+from lunarloc.geometry import invert_transform, pose_to_matrix, rotation_angle  # noqa: E402
+from lunarloc.odometry.visual import (  # noqa: E402
+    StereoVisualOdometry,
+    VisualOdometryConfig,
+    front_pair_setup,
+    visual_odometry_frames,
+)
+from lunarloc.perception.camera import PinholeCamera, ipex_rig  # noqa: E402
+
+W, H = 320, 180
+CAMERA = PinholeCamera(W, H)
+RIG = ipex_rig(CAMERA)
+T_LEFT = RIG["FrontLeft"].T_rover_optical
+T_RIGHT = RIG["FrontRight"].T_rover_optical
+
+
+@pytest.fixture(scope="module")
+def traverse(tmp_path_factory):
+    """A 12 s traverse (turn in place, then driving) at 320x180 and 2 Hz, as an archive."""
+    pytest.importorskip("embreex")
+    from lunarloc.data.lac import LacArchive
+    from lunarloc.data.simulate import SimulationConfig, simulate_site, simulate_traverse
+    from lunarloc.data.site import SiteConfig
+
+    site_cfg = SiteConfig(size_m=14.0, terrain_margin_m=3.0, resolution_m=0.2, n_rocks=80, rover_start_xy=(-3.0, -2.0))
+    cfg = SimulationConfig(
+        site=site_cfg, duration_s=12.0, image_rate_hz=2.0, width=W, height=H,
+        cameras=("FrontLeft", "FrontRight"), semantic=False,
+    )  # fmt: skip
+    site = simulate_site(3, cfg)
+    path, _ = simulate_traverse(site, tmp_path_factory.mktemp("vo") / "t.lac", 0, cfg)
+    with LacArchive(path) as a:
+        frames = a.camera_frames("FrontLeft")["frame"].astype(int)
+        index = {int(f): i for i, f in enumerate(a.frame_numbers)}
+        poses = a.poses()
+        truth = np.stack([pose_to_matrix(*poses[index[f]]) for f in frames])
+        left = [a.grayscale("FrontLeft", f) for f in frames]
+        right = [a.grayscale("FrontRight", f) for f in frames]
+    return {"path": path, "frames": frames, "truth": truth, "left": left, "right": right}
+
+
+def _relative(T):
+    return np.einsum("ij,njk->nik", invert_transform(T[0]), T)
+
+
+def _errors(T_est, T_true):
+    est, tru = _relative(T_est), _relative(T_true)
+    length = float(np.linalg.norm(np.diff(tru[:, :3, 3], axis=0), axis=1).sum())
+    final_m = float(np.linalg.norm(est[-1, :3, 3] - tru[-1, :3, 3]))
+    rot_deg = float(np.degrees(rotation_angle(est[-1, :3, :3].T @ tru[-1, :3, :3])))
+    steps = [
+        np.linalg.norm((invert_transform(est[i - 1]) @ est[i])[:3, 3] - (invert_transform(tru[i - 1]) @ tru[i])[:3, 3])
+        for i in range(1, len(est))
+    ]
+    return length, final_m, rot_deg, max(steps)
+
+
+def test_recovers_simulated_motion(traverse):
+    vo = StereoVisualOdometry(CAMERA, T_LEFT, T_RIGHT)
+    T = np.stack([vo.update(l, r) for l, r in zip(traverse["left"], traverse["right"])])
+    length, final_m, rot_deg, worst_step_m = _errors(T, traverse["truth"])
+    true_rot = np.degrees(rotation_angle(_relative(traverse["truth"])[-1, :3, :3]))
+    assert length > 1.0 and true_rot > 5.0  # the traverse both drives and turns
+    assert final_m < 0.05 * length + 0.02
+    assert rot_deg < 1.0
+    assert worst_step_m < 0.05
+    assert vo.last_ok
+
+
+def test_archive_convenience_matches_direct_use(traverse):
+    frames, T = visual_odometry_frames(traverse["path"])
+    assert np.array_equal(frames, traverse["frames"])
+    assert T.shape == (len(frames), 4, 4)
+    np.testing.assert_allclose(T[0], np.eye(4))
+    _, final_m, _, _ = _errors(T, traverse["truth"])
+    vo = StereoVisualOdometry(CAMERA, T_LEFT, T_RIGHT)
+    T_direct = np.stack([vo.update(l, r) for l, r in zip(traverse["left"], traverse["right"])])
+    np.testing.assert_allclose(T, T_direct, atol=1e-9)
+    from lunarloc.data.playback import PlaybackAgent
+
+    with PlaybackAgent(traverse["path"]) as agent:
+        frames2, T2 = visual_odometry_frames(agent)
+    assert np.array_equal(frames2, frames)
+    np.testing.assert_allclose(T2, T, atol=1e-9)
+
+
+def _open(path):
+    from lunarloc.data.lac import LacArchive
+
+    return LacArchive(path)
+
+
+def test_front_pair_setup_reads_the_rig(traverse):
+    with _open(traverse["path"]) as a:
+        camera, T_l, T_r, left, right = front_pair_setup(a)
+    assert (camera.width, camera.height) == (W, H) and (left, right) == ("FrontLeft", "FrontRight")
+    np.testing.assert_allclose(T_l, T_LEFT, atol=1e-9)
+    np.testing.assert_allclose(T_r, T_RIGHT, atol=1e-9)
+
+
+def test_black_and_sky_frames_fall_back_to_the_prior(traverse):
+    left, right, truth = traverse["left"], traverse["right"], traverse["truth"]
+    vo = StereoVisualOdometry(CAMERA, T_LEFT, T_RIGHT)
+    for k in range(3):
+        T_prev = vo.update(left[k], right[k])
+        assert vo.last_ok
+    prior = invert_transform(truth[2]) @ truth[3]
+    black = np.zeros((H, W), np.uint8)
+    T = vo.update(black, black, prior)
+    assert not vo.last_ok
+    np.testing.assert_allclose(T, T_prev @ prior, atol=1e-12)
+    # sky with a distant bright textured object (the lander far away: no disparity)
+    sky = np.zeros((H, W), np.uint8)
+    sky[60:100, 200:260] = np.random.default_rng(0).integers(40, 255, (40, 60), dtype=np.uint8)
+    T2 = vo.update(sky, sky.copy(), prior)
+    assert not vo.last_ok
+    np.testing.assert_allclose(T2, T @ prior, atol=1e-12)
+    # no prior: the pose holds
+    T3 = vo.update(black, black)
+    assert not vo.last_ok
+    np.testing.assert_allclose(T3, T2, atol=1e-12)
+    # vision comes back on textured frames
+    oks = []
+    for k in range(4, 8):
+        vo.update(left[k], right[k])
+        oks.append(vo.last_ok)
+    assert oks[-1]
+
+
+def test_prior_guides_tracking_and_is_checked(traverse):
+    left, right, truth = traverse["left"], traverse["right"], traverse["truth"]
+    vo = StereoVisualOdometry(CAMERA, T_LEFT, T_RIGHT)
+    vo.update(left[0], right[0])
+    # a prior whose rotation is far from the truth makes the visual step fail the check
+    wrong = invert_transform(truth[0]) @ truth[1] @ pose_to_matrix(0, 0, 0, 0, 0, np.radians(20))
+    T = vo.update(left[1], right[1], wrong)
+    assert not vo.last_ok
+    np.testing.assert_allclose(T, wrong, atol=1e-12)
+    # an accurate prior is accepted and the estimate stays visual
+    vo.reset()
+    T_est = [vo.update(left[0], right[0])]
+    for k in range(1, len(left)):
+        T_est.append(vo.update(left[k], right[k], invert_transform(truth[k - 1]) @ truth[k]))
+        assert vo.last_ok
+    length, final_m, rot_deg, _ = _errors(np.stack(T_est), truth)
+    assert final_m < 0.05 * length + 0.02 and rot_deg < 1.0
+
+
+def test_bad_inputs_raise_input_error(traverse):
+    vo = StereoVisualOdometry(CAMERA, T_LEFT, T_RIGHT)
+    img = traverse["left"][0]
+    with pytest.raises(InputError, match="shape"):
+        vo.update(img[:-1], traverse["right"][0][:-1])
+    with pytest.raises(InputError, match="shape"):
+        vo.update(img, traverse["right"][0][:, :-1])
+    with pytest.raises(InputError, match="uint8"):
+        vo.update(img.astype(np.float32), traverse["right"][0])
+    with pytest.raises(InputError, match="shape"):
+        vo.update(np.dstack([img] * 3), traverse["right"][0])
+    with pytest.raises(InputError, match="numpy"):
+        vo.update(img.tolist(), traverse["right"][0])
+    vo.update(img, traverse["right"][0])
+    prior = np.eye(4)
+    prior[0, 3] = np.nan
+    with pytest.raises(InputError, match="NaN"):
+        vo.update(img, traverse["right"][0], prior)
+    with pytest.raises(InputError, match="4x4"):
+        vo.update(img, traverse["right"][0], np.eye(3))
+    with pytest.raises(InputError, match="rigid"):
+        vo.update(img, traverse["right"][0], 2 * np.eye(4))
+    assert vo.n_frames == 1  # rejected calls change nothing
+
+
+def test_rig_must_be_rectified():
+    with pytest.raises(InputError, match="rectified"):
+        StereoVisualOdometry(CAMERA, T_LEFT, T_LEFT)
+    tilted = T_RIGHT @ pose_to_matrix(0, 0, 0, 0, np.radians(2), 0)
+    with pytest.raises(InputError, match="rectified"):
+        StereoVisualOdometry(CAMERA, T_LEFT, tilted)
+    with pytest.raises(InputError, match="rectified"):
+        StereoVisualOdometry(CAMERA, T_RIGHT, T_LEFT)  # swapped: negative baseline
+    with pytest.raises(InputError):
+        StereoVisualOdometry((W, H), T_LEFT, T_RIGHT)
+
+
+def test_config_round_trip_and_validation():
+    cfg = VisualOdometryConfig(max_features=300, lk_window_px=11)
+    assert VisualOdometryConfig.from_dict(cfg.to_dict()) == cfg
+    with pytest.raises(ConfigError, match="unknown"):
+        VisualOdometryConfig.from_dict({"max_featurez": 3})
+    with pytest.raises(ConfigError, match="min_inliers"):
+        VisualOdometryConfig(min_inliers=2)
+    with pytest.raises(ConfigError, match="max_depth_m"):
+        VisualOdometryConfig(max_depth_m=0.1, min_depth_m=0.3)
+
+
+def test_archive_without_front_images_is_refused(tmp_path):
+    from lunarloc.data.lac import LacArchive, LacWriter
+
+    cams = {n: {"camera_active": False, "width": W, "height": H} for n in ("FrontLeft", "FrontRight")}
+    path = tmp_path / "noimg.lac"
+    with LacWriter(path, {"lander": [0.0] * 6, "rover": [0.0] * 6, "cameras": cams}) as w:
+        w.add_frame(0, x=0.0, y=0.0, z=0.0, roll=0.0, pitch=0.0, yaw=0.0)
+    with LacArchive(path) as a, pytest.raises(InputError, match="FrontLeft"):
+        visual_odometry_frames(a)
