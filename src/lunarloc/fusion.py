@@ -28,6 +28,14 @@ Roll and pitch are observable from gravity and are taken from odometry as they a
 * Fix at keyframe ``j`` (from :func:`lunarloc.localize.localize`): ``p_j = p_fix`` and
   ``psi_j = psi_fix`` with the fix's sigmas.
 
+Code shape: the graph keeps one :class:`Keyframe` record per keyframe (time, odometry
+pose, estimate, bias, and the loop's frame, roll/pitch and detections), the fixes and the
+landmark observations. A solve builds the factors touching the free keyframes, one small
+class per kind (:class:`OdometryFactor`, :class:`BiasWalkFactor`, :class:`PriorFactor`,
+:class:`PoseFixFactor`, :class:`LandmarkFactor`), each vectorised over its instances and
+giving its residual and the state columns it reads (:class:`StateLayout`); the Jacobian
+sparsity is derived from those columns (:func:`jacobian_sparsity`), never written by hand.
+
 Estimating ``k`` and ``b`` is what keeps the trajectory right *between* fixes: after a
 few fixes the odometry is calibrated and the dead-reckoned prediction drifts far less.
 
@@ -51,7 +59,11 @@ from lunarloc.errors import ConfigError, InputError
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
-__all__ = ["OdometryNoise", "GateConfig", "FusionConfig", "Fix", "GateResult", "PoseGraph", "wrap_angle"]
+__all__ = [
+    "OdometryNoise", "GateConfig", "FusionConfig", "Fix", "GateResult", "Keyframe", "LandmarkObservation",
+    "StateLayout", "Factor", "OdometryFactor", "BiasWalkFactor", "PriorFactor", "PoseFixFactor", "LandmarkFactor",
+    "jacobian_sparsity", "stacked_residual", "PoseGraph", "wrap_angle",
+]  # fmt: skip
 
 
 def wrap_angle(a):
@@ -136,95 +148,326 @@ class GateResult:
     predicted_sigma_yaw_rad: float
 
 
+@dataclass(eq=False)
+class Keyframe:
+    """One keyframe: the record the loop and the pose graph share.
+
+    Set by the graph: ``index``, ``t_s``, ``odo_pose4`` (odometry x, y, z m and yaw rad in the
+    odometry frame), ``moving_time_s`` (time moving since the previous keyframe),
+    ``distance_m`` (odometry distance from keyframe 0, summed keyframe to keyframe) and the
+    current estimate ``estimate_pose4`` (x, y, z, yaw in the map = reference frame) with the
+    heading bias ``bias_rad_s``, both rewritten by :meth:`PoseGraph.solve`.
+    Carried for the loop, unused by the graph: ``frame`` (its frame number),
+    ``roll_pitch_rad`` (odometry roll and pitch; gravity-fixed), ``detections_rover``
+    ((N, 3) rock centres in the rover frame) and ``path_m`` (the loop's odometry path
+    length, summed frame to frame, which differs from ``distance_m``).
+    """
+
+    index: int
+    t_s: float
+    odo_pose4: np.ndarray
+    estimate_pose4: np.ndarray
+    moving_time_s: float = 0.0
+    distance_m: float = 0.0
+    bias_rad_s: float = 0.0
+    frame: int | None = None
+    roll_pitch_rad: tuple[float, float] = (0.0, 0.0)
+    detections_rover: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    path_m: float | None = None
+
+    @property
+    def odo_pose6(self) -> np.ndarray:
+        """Odometry pose (x, y, z, roll, pitch, yaw) of the keyframe."""
+        x, y, z, yaw = self.odo_pose4
+        return np.array([x, y, z, self.roll_pitch_rad[0], self.roll_pitch_rad[1], yaw])
+
+    @property
+    def T_map_odo(self) -> np.ndarray:
+        """(4, 4) correction near this keyframe: maps odometry-frame points to the map frame
+        (rotation about z by the yaw correction about the origin, then the translation that
+        puts the odometry position on the estimate)."""
+        dpsi = float(wrap_angle(self.estimate_pose4[3] - self.odo_pose4[3]))
+        c, s = math.cos(dpsi), math.sin(dpsi)
+        T = np.eye(4)
+        T[:2, :2] = [[c, -s], [s, c]]
+        T[:3, 3] = self.estimate_pose4[:3] - T[:3, :3] @ self.odo_pose4[:3]
+        return T
+
+
+@dataclass
+class LandmarkObservation:
+    """Detection ``p_rover`` (rover frame, m) made at keyframe ``keyframe`` is the reference
+    landmark ``target_xyz`` (map frame, m); ``roll_pitch_rad`` is the keyframe's odometry
+    roll and pitch."""
+
+    keyframe: int
+    p_rover: np.ndarray
+    roll_pitch_rad: np.ndarray
+    target_xyz: np.ndarray
+    sigma_m: float
+
+
+# ---------------------------------------------------------------------------- factors
+class StateLayout:
+    """Indices into the full state vector ``z`` of a graph of ``K`` keyframes:
+    ``[x_0, y_0, z_0, psi_0, ..., x_{K-1}, ..., psi_{K-1}, b_0, ..., b_{K-1}, k]``."""
+
+    def __init__(self, num_keyframes: int):
+        self.K = int(num_keyframes)
+        self.size = 5 * self.K + 1
+        self.scale = 5 * self.K
+
+    def pose(self, i) -> np.ndarray:
+        """(n, 4) indices of (x, y, z, yaw) of keyframes ``i`` (n,)."""
+        return 4 * np.asarray(i, int).reshape(-1, 1) + np.arange(4)
+
+    def bias(self, i) -> np.ndarray:
+        """(n,) indices of the heading biases of keyframes ``i``."""
+        return 4 * self.K + np.asarray(i, int).reshape(-1)
+
+    def active(self, first: int, calibrate: bool) -> np.ndarray:
+        """Indices optimised when keyframes ``first..K-1`` are free (the rest held fixed)."""
+        idx = np.arange(4 * first, 4 * self.K)
+        if calibrate:
+            idx = np.r_[idx, np.arange(4 * self.K + first, 5 * self.K), self.scale]
+        return idx
+
+
+class Factor:
+    """``n`` factors of one kind. ``columns`` (n, m) are the state indices factor ``i`` reads;
+    :meth:`residual` maps their values ``z[columns]`` (n, m) to (n, dim) residuals in sigmas.
+    The residual sees nothing but its columns, so the Jacobian sparsity derived from them
+    (:func:`jacobian_sparsity`) cannot miss a dependency. ``reads`` (dim, m), optional,
+    narrows which of the columns each residual row reads (fewer finite-difference groups);
+    ``tests/test_fusion.py`` checks it against a numerical Jacobian."""
+
+    dim: int = 0
+    reads: np.ndarray | None = None  # (dim, m) bool; None: every row reads every column
+    columns: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.columns)
+
+    def residual(self, v: np.ndarray) -> np.ndarray:  # pragma: no cover - interface
+        raise NotImplementedError
+
+
+def _rotate_z(psi: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    """Rotate (n, 3) vectors by yaw ``psi`` (n,) about z."""
+    c, s = np.cos(psi), np.sin(psi)
+    return np.stack([c * xyz[:, 0] - s * xyz[:, 1], s * xyz[:, 0] + c * xyz[:, 1], xyz[:, 2]], axis=1)
+
+
+class OdometryFactor(Factor):
+    """Edge ``i -> j``: ``Rz(-psi_i)(p_j - p_i) = k d`` and ``psi_j - psi_i = dpsi - b_i tau``.
+    Columns: pose i (4), pose j (4), ``b_i``, ``k``."""
+
+    dim = 4
+    #                  x_i y_i z_i psi_i x_j y_j z_j psi_j b_i k
+    reads = np.array([[1, 1, 0, 1, 1, 1, 0, 0, 0, 1],  # along-track (heading frame of i)
+                      [1, 1, 0, 1, 1, 1, 0, 0, 0, 1],  # cross-track
+                      [0, 0, 1, 0, 0, 0, 1, 0, 0, 1],  # vertical
+                      [0, 0, 0, 1, 0, 0, 0, 1, 1, 0]], bool)  # yaw  # fmt: skip
+
+    def __init__(self, layout: StateLayout, i, odo_pose4: np.ndarray, moving_time_s, noise: OdometryNoise):
+        i = np.asarray(i, int).reshape(-1)
+        a, b = odo_pose4[i], odo_pose4[i + 1]
+        self.d = _rotate_z(-a[:, 3], b[:, :3] - a[:, :3])  # odometry step in the heading frame of i
+        self.dpsi = wrap_angle(b[:, 3] - a[:, 3])
+        self.tau = np.asarray(moving_time_s, float).reshape(-1)
+        self.sigma_m = np.sqrt(noise.trans_floor_m**2 + (noise.trans_rel * np.linalg.norm(self.d, axis=1)) ** 2)[:, None]
+        self.sigma_yaw = np.sqrt(noise.yaw_floor_rad**2 + noise.yaw_noise_rad_sqrt_s**2 * self.tau)
+        self.columns = np.column_stack([layout.pose(i), layout.pose(i + 1), layout.bias(i), np.full(len(i), layout.scale)])
+
+    def residual(self, v):
+        local = _rotate_z(-v[:, 3], v[:, 4:7] - v[:, 0:3])
+        k, bias = v[:, 9:10], v[:, 8]
+        dyaw = wrap_angle(v[:, 7] - v[:, 3] - (self.dpsi - bias * self.tau)) / self.sigma_yaw
+        return np.column_stack([(local - k * self.d) / self.sigma_m, dyaw])
+
+
+class BiasWalkFactor(Factor):
+    """Heading-bias random walk ``b_{i+1} - b_i ~ N(0, walk^2 tau)``. Columns: ``b_i``, ``b_{i+1}``."""
+
+    dim = 1
+
+    def __init__(self, layout: StateLayout, i, moving_time_s, noise: OdometryNoise):
+        i = np.asarray(i, int).reshape(-1)
+        self.sigma = noise.bias_walk_rad_s_sqrt_s * np.sqrt(np.maximum(np.asarray(moving_time_s, float), 1e-3))
+        self.columns = np.column_stack([layout.bias(i), layout.bias(i + 1)])
+
+    def residual(self, v):
+        return ((v[:, 1] - v[:, 0]) / self.sigma)[:, None]
+
+
+class PriorFactor(Factor):
+    """Gaussian prior ``z[c] ~ N(mean, sigma^2)`` on single state values (calibration priors:
+    the odometry scale, the first heading bias). Columns: the one value."""
+
+    dim = 1
+
+    def __init__(self, columns, mean, sigma):
+        self.columns = np.asarray(columns, int).reshape(-1, 1)
+        self.mean = np.asarray(mean, float).reshape(-1)
+        self.sigma = np.asarray(sigma, float).reshape(-1)
+
+    def residual(self, v):
+        return ((v[:, 0] - self.mean) / self.sigma)[:, None]
+
+
+class PoseFixFactor(Factor):
+    """Keyframe pose = a known (x, y, z, yaw) with position and yaw sigmas: a global fix, or
+    the anchor of the first keyframe at the start pose. Columns: the keyframe's pose (4)."""
+
+    dim = 4
+    reads = np.eye(4, dtype=bool)  # x, y, z, yaw each against its own value
+
+    def __init__(self, layout: StateLayout, keyframes, pose4, sigma_m, sigma_yaw_rad):
+        kf = np.asarray(keyframes, int).reshape(-1)
+        self.pose4 = np.asarray(pose4, float).reshape(-1, 4)
+        self.sigma_m = np.asarray(sigma_m, float).reshape(-1, 1)
+        self.sigma_yaw = np.asarray(sigma_yaw_rad, float).reshape(-1)
+        self.columns = layout.pose(kf)
+
+    def residual(self, v):
+        return np.column_stack([(v[:, :3] - self.pose4[:, :3]) / self.sigma_m,
+                                wrap_angle(v[:, 3] - self.pose4[:, 3]) / self.sigma_yaw])  # fmt: skip
+
+
+class LandmarkFactor(Factor):
+    """Detection ``p_rover`` at keyframe ``k`` is reference landmark ``target``:
+    ``p_k + Rz(psi_k) R_rp p_rover = target`` (``R_rp`` the keyframe's odometry roll/pitch,
+    applied once here). Columns: the keyframe's pose (4)."""
+
+    dim = 3
+    reads = np.array([[1, 0, 0, 1], [0, 1, 0, 1], [0, 0, 1, 0]], bool)  # x and y turn with yaw; z does not
+
+    def __init__(self, layout: StateLayout, keyframes, p_rover, roll_pitch_rad, targets, sigma_m):
+        kf = np.asarray(keyframes, int).reshape(-1)
+        p = np.asarray(p_rover, float).reshape(-1, 3)
+        rp = np.asarray(roll_pitch_rad, float).reshape(-1, 2)
+        # level the detection by roll and pitch: R = Rz(yaw) Ry(pitch) Rx(roll)
+        cr, sr, cp, sp = np.cos(rp[:, 0]), np.sin(rp[:, 0]), np.cos(rp[:, 1]), np.sin(rp[:, 1])
+        y1 = cr * p[:, 1] - sr * p[:, 2]
+        z1 = sr * p[:, 1] + cr * p[:, 2]
+        self.p_level = np.stack([cp * p[:, 0] + sp * z1, y1, -sp * p[:, 0] + cp * z1], axis=1)
+        self.targets = np.asarray(targets, float).reshape(-1, 3)
+        self.sigma_m = np.asarray(sigma_m, float).reshape(-1, 1)
+        self.columns = layout.pose(kf)
+
+    def residual(self, v):
+        return (_rotate_z(v[:, 3], self.p_level) + v[:, :3] - self.targets) / self.sigma_m
+
+
+def jacobian_sparsity(factors: list[Factor], active: np.ndarray, state_size: int):
+    """(rows, len(active)) CSR pattern: residual row ``c`` of factor ``i`` depends on the
+    active ones of ``columns[i]`` (those ``reads[c]`` selects), nothing else."""
+    from scipy.sparse import coo_matrix
+
+    col_of = np.full(state_size, -1)
+    col_of[active] = np.arange(len(active))
+    rows, cols, r0 = [], [], 0
+    for f in factors:
+        n, m = f.columns.shape
+        reads = np.ones((f.dim, m), bool) if f.reads is None else f.reads
+        c, j = np.nonzero(reads)  # row within the factor, column it reads
+        rows.append((r0 + f.dim * np.arange(n)[:, None] + c).ravel())
+        cols.append(col_of[f.columns[:, j]].ravel())
+        r0 += n * f.dim
+    rr, cc = np.concatenate(rows), np.concatenate(cols)
+    keep = cc >= 0
+    S = coo_matrix((np.ones(int(keep.sum())), (rr[keep], cc[keep])), shape=(r0, len(active))).tocsr()
+    S.data[:] = 1.0
+    return S
+
+
+def stacked_residual(factors: list[Factor], z: np.ndarray) -> np.ndarray:
+    """All factors' residuals at full state ``z``, factor by factor, row-major."""
+    return np.concatenate([f.residual(z[f.columns]).ravel() for f in factors])
+
+
+# ---------------------------------------------------------------------------- the graph
 class PoseGraph:
     """Incremental 4-DoF pose graph (see module docstring).
 
     Use: ``add_keyframe`` for every keyframe (odometry pose, time), ``gate`` and
-    ``add_fix`` when a localization succeeds, ``solve`` to re-optimise; ``poses()``
-    gives the current (x, y, z, yaw) of every keyframe.
+    ``add_fix`` when a localization succeeds (or ``add_landmark_observations``), ``solve``
+    to re-optimise; ``keyframes`` holds one :class:`Keyframe` record each, ``poses()`` the
+    current (x, y, z, yaw) of every keyframe as an array.
     """
 
     def __init__(self, config: FusionConfig | None = None):
         self.config = config or FusionConfig()
-        self._odo: list[np.ndarray] = []  # odometry (x, y, z, yaw)
-        self._t: list[float] = []
-        self._tau: list[float] = []  # time moving between keyframe i-1 and i
-        self._est = np.zeros((0, 4))
-        self._bias = np.zeros(0)
+        self.keyframes: list[Keyframe] = []
         self.scale = 1.0
         self.fixes: list[Fix] = []
+        self.observations: dict = {}  # key -> LandmarkObservation
         self._last_fix_dist = 0.0
         self._last_fix_time = 0.0
-        self._dist: list[float] = []  # odometry distance travelled at each keyframe
         self.num_solves = 0
-        self._obs: dict = {}  # key -> (keyframe, p_rover, roll_pitch, target, sigma)
 
     # ------------------------------------------------------------------ building
     def __len__(self) -> int:
-        return len(self._odo)
+        return len(self.keyframes)
 
-    def add_keyframe(self, t: float, odo_pose4, moving_time_s: float | None = None) -> int:
+    def add_keyframe(self, t: float, odo_pose4, moving_time_s: float | None = None, *, frame: int | None = None,
+                     roll_pitch_rad=(0.0, 0.0), detections_rover=None, path_m: float | None = None) -> int:  # fmt: skip
         """Add a keyframe at time `t` (s) with odometry pose (x, y, z, yaw); returns its index.
 
         The new keyframe's estimate is the last estimate propagated by the calibrated
         odometry increment. `moving_time_s` is the time spent moving since the previous
-        keyframe (default: the elapsed time).
+        keyframe (default: the elapsed time). `frame`, `roll_pitch_rad`, `detections_rover`
+        and `path_m` are carried in the :class:`Keyframe` record for the loop.
         """
-        q = np.asarray(odo_pose4, float).reshape(4)
+        q = np.array(odo_pose4, float).reshape(4)
         if not np.all(np.isfinite(q)):
             raise InputError("odometry pose must be finite")
-        n = len(self._odo)
-        if n and t < self._t[-1]:
-            raise InputError(f"keyframe time {t} is before the previous one {self._t[-1]}")
-        tau = 0.0 if n == 0 else float(t - self._t[-1] if moving_time_s is None else moving_time_s)
-        self._odo.append(q)
-        self._t.append(float(t))
-        self._tau.append(tau)
-        if n == 0:
-            self._est = q[None].copy()
-            self._bias = np.zeros(1)
-            self._dist.append(0.0)
+        n = len(self.keyframes)
+        prev = self.keyframes[-1] if n else None
+        if prev is not None and t < prev.t_s:
+            raise InputError(f"keyframe time {t} is before the previous one {prev.t_s}")
+        det = np.zeros((0, 3)) if detections_rover is None else np.asarray(detections_rover, float).reshape(-1, 3)
+        rp = (float(roll_pitch_rad[0]), float(roll_pitch_rad[1]))
+        if prev is None:
+            kf = Keyframe(0, float(t), q, q.copy(), 0.0, 0.0, 0.0, frame, rp, det, path_m)
         else:
-            d, dpsi = self._odo_increment(n - 1)
-            prev = self._est[-1]
-            b = self._bias[-1]
-            new = np.empty(4)
-            c, s = math.cos(prev[3]), math.sin(prev[3])
+            tau = float(t - prev.t_s if moving_time_s is None else moving_time_s)
+            c, s = math.cos(prev.odo_pose4[3]), math.sin(prev.odo_pose4[3])
+            dx, dy, dz = q[:3] - prev.odo_pose4[:3]
+            d = np.array([c * dx + s * dy, -s * dx + c * dy, dz])  # odometry step in the heading frame
+            dpsi = float(wrap_angle(q[3] - prev.odo_pose4[3]))
+            e, b = prev.estimate_pose4, prev.bias_rad_s
+            c, s = math.cos(e[3]), math.sin(e[3])
             kd = self.scale * d
-            new[:3] = prev[:3] + np.array([c * kd[0] - s * kd[1], s * kd[0] + c * kd[1], kd[2]])
-            new[3] = float(wrap_angle(prev[3] + dpsi - b * tau))
-            self._est = np.vstack([self._est, new])
-            self._bias = np.append(self._bias, b)
-            self._dist.append(self._dist[-1] + float(np.linalg.norm(d)))
+            new = np.empty(4)
+            new[:3] = e[:3] + np.array([c * kd[0] - s * kd[1], s * kd[0] + c * kd[1], kd[2]])
+            new[3] = float(wrap_angle(e[3] + dpsi - b * tau))
+            dist = prev.distance_m + float(np.linalg.norm(d))
+            kf = Keyframe(n, float(t), q, new, tau, dist, b, frame, rp, det, path_m)
+        self.keyframes.append(kf)
         return n
-
-    def _odo_increment(self, i: int) -> tuple[np.ndarray, float]:
-        a, b = self._odo[i], self._odo[i + 1]
-        c, s = math.cos(a[3]), math.sin(a[3])
-        dx, dy, dz = b[:3] - a[:3]
-        return np.array([c * dx + s * dy, -s * dx + c * dy, dz]), float(wrap_angle(b[3] - a[3]))
 
     # ------------------------------------------------------------------ queries
     def poses(self) -> np.ndarray:
-        """(K, 4) current estimates (x, y, z, yaw) of all keyframes (ref frame)."""
-        return self._est.copy()
+        """(K, 4) current estimates (x, y, z, yaw) of all keyframes (map frame)."""
+        return np.array([kf.estimate_pose4 for kf in self.keyframes]).reshape(-1, 4)
 
     def pose(self, i: int) -> np.ndarray:
-        return self._est[i].copy()
+        return self.keyframes[i].estimate_pose4.copy()
 
     @property
     def biases(self) -> np.ndarray:
-        return self._bias.copy()
+        return np.array([kf.bias_rad_s for kf in self.keyframes])
 
     def distance(self, i: int) -> float:
         """Odometry distance travelled (m) up to keyframe i."""
-        return self._dist[i]
+        return self.keyframes[i].distance_m
 
     def predicted_sigma(self, i: int) -> tuple[float, float]:
         """Gate model: (position sigma m, yaw sigma rad) of keyframe i's prediction."""
         g = self.config.gate
-        dd = max(self._dist[i] - self._last_fix_dist, 0.0)
-        dt = max(self._t[i] - self._last_fix_time, 0.0)
+        dd = max(self.keyframes[i].distance_m - self._last_fix_dist, 0.0)
+        dt = max(self.keyframes[i].t_s - self._last_fix_time, 0.0)
         yaw = math.radians(math.hypot(g.base_sigma_yaw_deg, g.yaw_rate_deg_per_s * dt + g.yaw_rate_deg_per_m * dd))
         # heading uncertainty swings the position sideways by about yaw * distance / 2
         pos = math.sqrt(g.base_sigma_m**2 + (g.rate_m_per_m * dd) ** 2 + (0.5 * yaw * dd) ** 2)
@@ -240,7 +483,7 @@ class PoseGraph:
         q = np.asarray(pose4, float).reshape(4)
         sm, sy = self._fix_sigmas(sigma_m, sigma_yaw_rad)
         pm, py = self.predicted_sigma(i)
-        innov = q - self._est[i]
+        innov = q - self.keyframes[i].estimate_pose4
         innov[3] = float(wrap_angle(innov[3]))
         var = np.array([pm**2 + sm**2] * 3 + [py**2 + sy**2])
         d2 = float(np.sum(innov**2 / var))
@@ -248,19 +491,23 @@ class PoseGraph:
         ok = (d2 <= thr) or not self.config.gate.enabled
         return GateResult(bool(ok), d2, thr, innov, pm, py)
 
+    def _fixed_at(self, i: int) -> None:
+        """A fix or observation at keyframe i restarts the gate's drift model there."""
+        kf = self.keyframes[i]
+        if kf.distance_m >= self._last_fix_dist:
+            self._last_fix_dist, self._last_fix_time = kf.distance_m, kf.t_s
+
     def add_fix(self, i: int, pose4, sigma_m: float, sigma_yaw_rad: float) -> None:
         """Add a (gated) fix of keyframe i; call :meth:`solve` afterwards."""
         if not 0 <= i < len(self):
             raise InputError(f"no keyframe {i}")
         sm, sy = self._fix_sigmas(sigma_m, sigma_yaw_rad)
         self.fixes.append(Fix(i, np.asarray(pose4, float).reshape(4), sm, sy))
-        if self._dist[i] >= self._last_fix_dist:
-            self._last_fix_dist = self._dist[i]
-            self._last_fix_time = self._t[i]
+        self._fixed_at(i)
 
     def add_landmark_observations(self, keys, keyframes, p_rover, roll_pitch, targets, sigma_m: float) -> None:
         """Landmark fixes: detection ``p_rover`` (rover frame) made at keyframe ``k`` is the
-        reference landmark ``target`` (ref frame). Residual ``T_k(p_rover) - target`` with
+        reference landmark ``target`` (map frame). Residual ``T_k(p_rover) - target`` with
         ``T_k`` = (x, y, z, yaw) of the keyframe and its odometry roll/pitch. `keys` (hashable,
         one per observation) de-duplicate: a detection re-associated by a later window
         replaces its earlier constraint. Call :meth:`solve` afterwards.
@@ -274,194 +521,104 @@ class PoseGraph:
         if len(kf) and (kf.min() < 0 or kf.max() >= len(self)):
             raise InputError("landmark observation of an unknown keyframe")
         for key, k, p, rp, q in zip(keys, kf, P, RP, Q):
-            self._obs[key] = (int(k), p, rp, q, float(sigma_m))
+            self.observations[key] = LandmarkObservation(int(k), p, rp, q, float(sigma_m))
         if len(kf):
-            k = int(kf.max())
-            if self._dist[k] >= self._last_fix_dist:
-                self._last_fix_dist = self._dist[k]
-                self._last_fix_time = self._t[k]
+            self._fixed_at(int(kf.max()))
 
     @property
     def num_observations(self) -> int:
-        return len(self._obs)
+        return len(self.observations)
 
     # ------------------------------------------------------------------ optimisation
+    def first_active(self, active_window_m: float | None) -> int:
+        """First keyframe free in a solve over the last `active_window_m` metres (None: all)."""
+        if active_window_m is None:
+            return 0
+        dist = np.array([kf.distance_m for kf in self.keyframes])
+        return min(int(np.searchsorted(dist, dist[-1] - active_window_m)), len(self) - 1)
+
+    def factors(self, first: int = 0) -> list[Factor]:
+        """The factors touching keyframes ``first..K-1`` (older ones are held fixed)."""
+        K, nz, calib = len(self), self.config.noise, self.config.calibrate
+        L = StateLayout(K)
+        kfs = self.keyframes
+        e = np.arange(max(first - 1, 0), K - 1)  # odometry edges e -> e+1 touching a free keyframe
+        odo = np.array([kf.odo_pose4 for kf in kfs])
+        tau = np.array([kfs[i + 1].moving_time_s for i in e])
+        out: list[Factor] = [OdometryFactor(L, e, odo, tau, nz)]
+        if first == 0:
+            out.append(PoseFixFactor(L, [0], odo[0], nz.start_sigma_m, nz.start_sigma_yaw_rad))
+        fixes = [f for f in self.fixes if f.keyframe >= first]
+        if fixes:
+            out.append(PoseFixFactor(L, [f.keyframe for f in fixes], [f.pose4 for f in fixes],
+                                     [f.sigma_m for f in fixes], [f.sigma_yaw_rad for f in fixes]))  # fmt: skip
+        obs = [o for o in self.observations.values() if o.keyframe >= first]
+        if obs:
+            out.append(LandmarkFactor(L, [o.keyframe for o in obs], [o.p_rover for o in obs],
+                                      [o.roll_pitch_rad for o in obs], [o.target_xyz for o in obs],
+                                      [o.sigma_m for o in obs]))  # fmt: skip
+        if calib:
+            out.append(BiasWalkFactor(L, e, tau, nz))
+            out.append(PriorFactor([L.scale], 1.0, nz.scale_sigma))
+            if first == 0:
+                out.append(PriorFactor(L.bias([0]), 0.0, nz.bias_sigma_rad_s))
+        return out
+
+    def state(self) -> np.ndarray:
+        """Full state vector (see :class:`StateLayout`); without calibration the biases are 0
+        and the scale 1."""
+        calib = self.config.calibrate
+        b = [kf.bias_rad_s if calib else 0.0 for kf in self.keyframes]
+        return np.r_[self.poses().ravel(), b, self.scale if calib else 1.0]
+
     def solve(self, active_window_m: float | None = None) -> float:
         """Re-optimise the keyframes (all, or those within `active_window_m` metres of
         travel of the newest; older ones are held fixed). Returns the final cost; a no-op
         without fixes or landmark observations."""
-        if (not self.fixes and not self._obs) or len(self) < 2:
+        if (not self.fixes and not self.observations) or len(self) < 2:
             return 0.0
         from scipy.optimize import least_squares
-        from scipy.sparse import coo_matrix
 
-        K = len(self)
         cfg = self.config
-        nz = cfg.noise
-        calib = cfg.calibrate
-        dist = np.asarray(self._dist)
-        a = 0 if active_window_m is None else int(np.searchsorted(dist, dist[-1] - active_window_m))
-        a = min(a, K - 1)
-        odo = np.asarray(self._odo)
-        c, s = np.cos(odo[:-1, 3]), np.sin(odo[:-1, 3])
-        dxyz = odo[1:, :3] - odo[:-1, :3]
-        d = np.stack([c * dxyz[:, 0] + s * dxyz[:, 1], -s * dxyz[:, 0] + c * dxyz[:, 1], dxyz[:, 2]], axis=1)
-        dpsi = wrap_angle(odo[1:, 3] - odo[:-1, 3])
-        tau = np.asarray(self._tau[1:])
-        e0 = max(a - 1, 0)  # first odometry edge touching an active keyframe
-        d, dpsi, tau = d[e0:], dpsi[e0:], tau[e0:]
-        ei = np.arange(e0, K - 1)
-        sig_t = np.sqrt(nz.trans_floor_m**2 + (nz.trans_rel * np.linalg.norm(d, axis=1)) ** 2)[:, None]
-        sig_y = np.sqrt(nz.yaw_floor_rad**2 + nz.yaw_noise_rad_sqrt_s**2 * tau)
-        sig_b = nz.bias_walk_rad_s_sqrt_s * np.sqrt(np.maximum(tau, 1e-3))
-        fixes = [f for f in self.fixes if f.keyframe >= a]
-        fk = np.array([f.keyframe for f in fixes], int)
-        fp = np.array([f.pose4 for f in fixes]).reshape(-1, 4)
-        fsm = np.array([f.sigma_m for f in fixes]).reshape(-1, 1)
-        fsy = np.array([f.sigma_yaw_rad for f in fixes])
-        obs = [o for o in self._obs.values() if o[0] >= a]
-        ok_ = np.array([o[0] for o in obs], int)
-        op = np.array([o[1] for o in obs]).reshape(-1, 3)
-        orp = np.array([o[2] for o in obs]).reshape(-1, 2)
-        oq = np.array([o[3] for o in obs]).reshape(-1, 3)
-        osg = np.array([o[4] for o in obs]).reshape(-1, 1)
-        # rotate observations by roll/pitch once: R = Rz(yaw) Ry(pitch) Rx(roll)
-        cr, sr, cp, sp = np.cos(orp[:, 0]), np.sin(orp[:, 0]), np.cos(orp[:, 1]), np.sin(orp[:, 1])
-        y1 = cr * op[:, 1] - sr * op[:, 2]
-        z1 = sr * op[:, 1] + cr * op[:, 2]
-        x2 = cp * op[:, 0] + sp * z1
-        z2 = -sp * op[:, 0] + cp * z1
-        op_level = np.stack([x2, y1, z2], axis=1)
-        start = odo[0]
-        full_P = self._est.copy()
-        full_b = self._bias.copy()
-
-        # variable layout over active keyframes a..K-1: 4 pose values each, then biases, then k
-        Ka = K - a
-
-        def unpack(x):
-            P = np.vstack([full_P[:a], x[: 4 * Ka].reshape(Ka, 4)])
-            b = np.r_[full_b[:a], x[4 * Ka : 5 * Ka]] if calib else np.zeros(K)
-            k = x[5 * Ka] if calib else 1.0
-            return P, b, k
+        first = self.first_active(active_window_m)
+        layout = StateLayout(len(self))
+        factors = self.factors(first)
+        active = layout.active(first, cfg.calibrate)
+        z = self.state()
 
         def fun(x):
-            P, b, k = unpack(x)
-            p, psi = P[:, :3], P[:, 3]
-            i0, i1 = ei, ei + 1
-            cc, ss = np.cos(psi[i0]), np.sin(psi[i0])
-            dp = p[i1] - p[i0]
-            local = np.stack([cc * dp[:, 0] + ss * dp[:, 1], -ss * dp[:, 0] + cc * dp[:, 1], dp[:, 2]], axis=1)
-            parts = [((local - k * d) / sig_t).ravel(),
-                     wrap_angle(psi[i1] - psi[i0] - (dpsi - b[i0] * tau)) / sig_y]  # fmt: skip
-            if a == 0:
-                parts.append(np.r_[(p[0] - start[:3]) / nz.start_sigma_m, wrap_angle(psi[0] - start[3]) / nz.start_sigma_yaw_rad])
-            if len(fk):
-                parts.append(np.r_[((p[fk] - fp[:, :3]) / fsm).ravel(), wrap_angle(psi[fk] - fp[:, 3]) / fsy])
-            if len(ok_):
-                co, so = np.cos(psi[ok_]), np.sin(psi[ok_])
-                w = np.stack([co * op_level[:, 0] - so * op_level[:, 1], so * op_level[:, 0] + co * op_level[:, 1],
-                              op_level[:, 2]], axis=1) + p[ok_]  # fmt: skip
-                parts.append(((w - oq) / osg).ravel())
-            if calib:
-                parts.append((b[i1] - b[i0]) / sig_b)
-                parts.append([(b[0] / nz.bias_sigma_rad_s) if a == 0 else 0.0, (k - 1.0) / nz.scale_sigma])
-            return np.concatenate(parts)
+            z[active] = x
+            return stacked_residual(factors, z)
 
-        # Jacobian sparsity in full indexing, then restricted to the active variables
-        rows, cols = [], []
-        r = 0
-
-        def block(n_rows, var_lists):
-            nonlocal r
-            rr = r + np.arange(n_rows)
-            for v in var_lists:
-                rows.append(rr)
-                cols.append(np.broadcast_to(np.asarray(v), (n_rows,)))
-            r += n_rows
-
-        def pv(i, comp):  # full index of pose component of keyframe i
-            return 4 * i + comp
-
-        KB, KS = 4 * K, 5 * K  # full offsets of biases and scale (virtual)
-        ne = len(ei)
-        for comp in range(3):
-            rr_vars = [pv(ei, j) for j in range(4)] + [pv(ei + 1, j) for j in range(3)]
-            if calib:
-                rr_vars.append(np.full(ne, KS))
-            rows_here = r + 3 * np.arange(ne) + comp
-            for v in rr_vars:
-                rows.append(rows_here)
-                cols.append(np.asarray(v))
-        r += 3 * ne
-        block(ne, [pv(ei, 3), pv(ei + 1, 3)] + ([KB + ei] if calib else []))
-        if a == 0:
-            block(4, [np.arange(4)])
-        nf = len(fk)
-        if nf:
-            for comp in range(3):
-                rows.append(r + 3 * np.arange(nf) + comp)
-                cols.append(pv(fk, comp))
-            r += 3 * nf
-            block(nf, [pv(fk, 3)])
-        no = len(ok_)
-        if no:
-            for comp in range(3):
-                rr_o = r + 3 * np.arange(no) + comp
-                for j in range(4):
-                    rows.append(rr_o)
-                    cols.append(pv(ok_, j))
-            r += 3 * no
-        if calib:
-            block(ne, [KB + ei, KB + ei + 1])
-            rows.append(np.array([r, r + 1]))
-            cols.append(np.array([KB, KS]))
-            r += 2
-        rr, cc = np.concatenate(rows), np.concatenate(cols).astype(int)
-        # map full variable index -> active index (or -1 when held fixed)
-        n_full = 5 * K + 1
-        amap = np.full(n_full, -1)
-        amap[4 * a : 4 * K] = np.arange(4 * Ka)
-        if calib:
-            amap[KB + a : KB + K] = 4 * Ka + np.arange(Ka)
-            amap[KS] = 5 * Ka
-        n_var = 5 * Ka + 1 if calib else 4 * Ka
-        m = amap[cc]
-        keep = m >= 0
-        S = coo_matrix((np.ones(keep.sum()), (rr[keep], m[keep])), shape=(r, n_var)).tocsr()
-        S.data[:] = 1.0
-        x0 = full_P[a:].ravel()
-        if calib:
-            x0 = np.r_[x0, full_b[a:], self.scale]
-        res = least_squares(fun, x0, jac_sparsity=S, method="trf", x_scale="jac", max_nfev=cfg.max_nfev,
-                            loss=cfg.loss, f_scale=cfg.loss_scale, ftol=1e-8, xtol=1e-8, gtol=1e-8)  # fmt: skip
-        P, b, k = unpack(res.x)
-        P = P.copy()
-        P[:, 3] = wrap_angle(P[:, 3])
-        self._est = P
-        if calib:
-            self._bias = np.asarray(b, float).copy()
-            self.scale = float(k)
+        res = least_squares(fun, z[active].copy(), jac_sparsity=jacobian_sparsity(factors, active, layout.size),
+                            method="trf", x_scale="jac", max_nfev=cfg.max_nfev, loss=cfg.loss,
+                            f_scale=cfg.loss_scale, ftol=1e-8, xtol=1e-8, gtol=1e-8)  # fmt: skip
+        z[active] = res.x
+        self._write_back(z, layout)
         self.num_solves += 1
-        log.debug("pose graph: %d keyframes (%d active), %d fixes, %d observations, cost %.3g, scale %.4f",
-                  K, Ka, len(fixes), len(obs), res.cost, self.scale)  # fmt: skip
+        log.debug("pose graph: %d keyframes (%d active), %d factors (%s), cost %.3g, scale %.4f",
+                  len(self), len(self) - first, sum(len(f) for f in factors),
+                  ", ".join(f"{type(f).__name__} {len(f)}" for f in factors), res.cost, self.scale)  # fmt: skip
         return float(res.cost)
+
+    def _write_back(self, z: np.ndarray, layout: StateLayout) -> None:
+        P = z[: 4 * layout.K].reshape(-1, 4).copy()
+        P[:, 3] = wrap_angle(P[:, 3])
+        calib = self.config.calibrate
+        B = z[layout.bias(np.arange(layout.K))]
+        for kf, p, b in zip(self.keyframes, P, B):
+            kf.estimate_pose4 = p
+            if calib:
+                kf.bias_rad_s = float(b)
+        if calib:
+            self.scale = float(z[layout.scale])
 
     # ------------------------------------------------------------------ interpolation
     def corrections(self) -> np.ndarray:
         """(K, 4) per-keyframe correction ``estimate - odometry`` as (dx, dy, dz, dyaw) applied
-        about the odometry position: see :meth:`apply_correction`."""
-        return np.asarray(self._est) - np.asarray(self._odo)
+        about the odometry position: see :meth:`correction_transforms`."""
+        return np.array([kf.estimate_pose4 - kf.odo_pose4 for kf in self.keyframes]).reshape(-1, 4)
 
     def correction_transforms(self) -> np.ndarray:
-        """(K, 4, 4) ``T_est_odo`` per keyframe: maps odometry-frame points near keyframe i to the
-        estimate (reference) frame (rotation about z by the yaw correction, then translation)."""
-        est = self._est
-        odo = np.asarray(self._odo)
-        dpsi = wrap_angle(est[:, 3] - odo[:, 3])
-        c, s = np.cos(dpsi), np.sin(dpsi)
-        T = np.tile(np.eye(4), (len(est), 1, 1))
-        T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -s, s, c
-        rot_o = np.einsum("kij,kj->ki", T[:, :3, :3], odo[:, :3])
-        T[:, :3, 3] = est[:, :3] - rot_o
-        return T
+        """(K, 4, 4) ``T_map_odo`` per keyframe (:attr:`Keyframe.T_map_odo`)."""
+        return np.array([kf.T_map_odo for kf in self.keyframes]).reshape(-1, 4, 4)
