@@ -37,7 +37,24 @@ def _plt():
     return plt
 
 
+def _save(fig, path: Path) -> None:
+    """savefig to a temporary name in the same folder, renamed into place."""
+    from lunarloc.outputs import atomic_path
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp)
+
+
 def _load_run(outdir: Path) -> dict:
+    try:
+        return _read_run(outdir)
+    except (ValueError, IndexError) as exc:  # json, TUM or CSV contents; LunarLocErrors pass through
+        if isinstance(exc, FileFormatError):
+            raise
+        raise FileFormatError(f"{outdir}: damaged run folder ({type(exc).__name__}: {str(exc)[:120]})") from None
+
+
+def _read_run(outdir: Path) -> dict:
     from lunarloc.maps import load_map
     from lunarloc.pipeline import read_tum
 
@@ -104,7 +121,7 @@ def plot_map(run: dict, path: Path, title: str = "") -> Path:
     ax.set_title(title or "Online localization: top-down map")
     ax.legend(loc="upper left", fontsize=7, framealpha=0.85, markerscale=1.2)
     fig.tight_layout()
-    fig.savefig(path)
+    _save(fig, path)
     plt.close(fig)
     return path
 
@@ -137,7 +154,7 @@ def plot_error(run: dict, path: Path, title: str = "") -> Path:
     ax.legend(fontsize=8, loc="upper left")
     ax.set_title(title or "Position error vs ground truth")
     fig.tight_layout()
-    fig.savefig(path)
+    _save(fig, path)
     plt.close(fig)
     return path
 
@@ -158,7 +175,7 @@ def plot_frame(npz_path: Path, path: Path) -> Path:
     ax.set_axis_off()
     ax.set_title(f"{cam}, frame {frame}: {len(uv)} rock detections (circle: estimated radius)", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path)
+    _save(fig, path)
     plt.close(fig)
     return path
 

@@ -9,6 +9,7 @@ from pathlib import Path
 import typer
 
 from lunarloc.cli.app import app
+from lunarloc.cli.checks import OVERWRITE_OPT, choice
 
 
 @app.command("detect")
@@ -19,10 +20,11 @@ def detect(
     weights: Path = typer.Option(None, "--weights", help="FastSAM checkpoint (.pt) for --segmenter fastsam"),
     pose: str = typer.Option("ground-truth", "--pose", help="rover pose for the map frame: ground-truth | odometry"),
     debug_dir: Path = typer.Option(None, "--debug-dir", help="write overlay images (masks by filter, depth) here"),
-    every: int = typer.Option(1, "--every", min=1, help="process every N-th camera frame"),
+    every: int = typer.Option(1, "--every", min=1, max=1_000_000, help="process every N-th camera frame"),
     no_centre_correction: bool = typer.Option(
         False, "--no-centre-correction", help="keep the visible-surface centroid (no sphere-centre shift)"
     ),
+    overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """Segment rocks in the left images, lift them to 3D with stereo, write the traverse CSV."""
     from tqdm import tqdm
@@ -37,19 +39,27 @@ def detect(
         detect_archive,
         write_traverse_csv,
     )
-    from lunarloc.errors import ConfigError
+    from lunarloc.inputs import check_input_file
+    from lunarloc.outputs import atomic_open, check_output_dir, check_output_file, make_dir
+    from lunarloc.perception.segment import SegmenterKind
 
-    try:
-        pose_src = PoseSource(pose)
-    except ValueError:
-        raise ConfigError(f"--pose must be one of {[p.value for p in PoseSource]}, got {pose!r}") from None
+    pose_src = PoseSource(choice(pose, PoseSource, "--pose"))
+    choice(segmenter, SegmenterKind, "--segmenter")
+    if weights is not None:
+        check_input_file(weights, None, "FastSAM weights")
+    check_input_file(archive, None, ".lac archive")
+    config_path = output.with_suffix(output.suffix + ".config.json")
+    check_output_file(output, overwrite, "detections CSV")  # all output checks before any work
+    check_output_file(config_path, overwrite, "detection config")
+    if debug_dir is not None:
+        check_output_dir(debug_dir, True, ())
     cfg = DetectorConfig(
         segmenter=segmenter,
         weights=str(weights) if weights else None,
         centre_correction=not no_centre_correction,
     )
     if debug_dir is not None:
-        debug_dir.mkdir(parents=True, exist_ok=True)
+        make_dir(debug_dir)
     with LacArchive(archive) as ar:
         from lunarloc.perception.detector import _camera_from_archive
         from lunarloc.pipeline import scaled_detector_config
@@ -84,10 +94,9 @@ def detect(
 
         n = write_traverse_csv(output, frames_iter())
     wall = time.perf_counter() - t_start
-    config_path = output.with_suffix(output.suffix + ".config.json")
-    config_path.write_text(
-        json.dumps({"archive": str(archive), "pose": pose_src.value, "detector": cfg.to_dict()}, indent=2, default=str)
-    )
+    with atomic_open(config_path, "w") as fh:
+        fh.write(json.dumps({"archive": str(archive), "pose": pose_src.value, "detector": cfg.to_dict()},
+                            indent=2, default=str))  # fmt: skip
     per = {k: v / max(stats["frames"], 1) for k, v in stats["time"].items()}
     typer.echo(
         f"{n} frames, {stats['detections']} detections -> {output} "

@@ -10,13 +10,18 @@ from typing import Optional
 import typer
 
 from lunarloc.cli.app import app, console
+from lunarloc.cli.checks import OVERWRITE_OPT, choice, number, positive
 from lunarloc.cli.commands_core import bench_app
 
 
 def _loop_config(every_m: float, every_s: float, window_m: float, fix: str = "landmarks"):
     from lunarloc.errors import ConfigError
-    from lunarloc.pipeline import LoopConfig
+    from lunarloc.pipeline import FixKind, LoopConfig
 
+    positive(every_m, "--every-m", 1e6, "m")
+    positive(every_s, "--every-s", 1e7, "s")
+    positive(window_m, "--window-m", 1e6, "m")
+    choice(fix, FixKind, "--fix")
     try:
         return LoopConfig.for_images(localize_every_m=every_m, localize_every_s=every_s, window_m=window_m, fix_kind=fix)
     except ValueError as exc:
@@ -61,14 +66,23 @@ def run_cmd(
     window_m: float = typer.Option(8.0, "--window-m", help="Local map: detections of the last N metres."),
     fix: str = typer.Option("landmarks", "--fix", help="How fixes enter the pose graph: landmarks | pose."),
     plot: bool = typer.Option(True, "--plot/--no-plot", help="Write the figures into OUT."),
+    overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """Online localization over a traverse: detect, map, localize against REFERENCE, fuse."""
     from tqdm import tqdm
 
+    from lunarloc.inputs import check_input_file
+    from lunarloc.outputs import check_output_dir
     from lunarloc.pipeline import load_reference, run_online, scaled_detector_config, write_outputs
     from lunarloc.perception.detector import DetectorConfig
+    from lunarloc.perception.segment import SegmenterKind
 
+    choice(segmenter, SegmenterKind, "--segmenter")
+    if weights is not None:
+        check_input_file(weights, None, "FastSAM weights")
+    check_input_file(archive, None, ".lac archive")
     cfg = _loop_config(every_m, every_s, window_m, fix)
+    check_output_dir(out, overwrite)  # a previous run is refused, or cleared with --overwrite
     ref = load_reference(reference, cfg.aggregation)
     base = DetectorConfig(segmenter=segmenter, weights=str(weights) if weights else None)
     from lunarloc.data.lac import LacArchive
@@ -102,8 +116,12 @@ def plot_cmd(
     outdir: Path = typer.Argument(..., help="A run folder written by `lunarloc run` or `lunarloc demo`."),
     figdir: Optional[Path] = typer.Option(None, "--figdir", help="Where to write the PNGs (default: OUTDIR)."),
 ) -> None:
-    """Regenerate the figures (map.png, error.png, frame.png) of a run."""
+    """Regenerate the figures (map.png, error.png, frame.png) of a run (replacing earlier ones:
+    regenerating them is this command's purpose)."""
+    from lunarloc.outputs import check_output_dir
     from lunarloc.viz import plot_run
+
+    check_output_dir(figdir if figdir is not None else outdir, True, ())
 
     for p in plot_run(outdir, figdir):
         typer.echo(f"wrote {p}")
@@ -117,10 +135,20 @@ def demo_cmd(
     reference_duration: float = typer.Option(100.0, "--reference-duration", help="Reference traverse length, seconds."),
     width: int = typer.Option(640, "--width", help="Image width (height = 9/16 of it)."),
     image_rate: float = typer.Option(2.0, "--image-rate", help="Camera rate of both traverses, Hz."),
-    n_rocks: int = typer.Option(800, "--rocks", help="Rocks on the site (LAC map: 386; the demo uses a rock-rich site)."),
+    n_rocks: int = typer.Option(800, "--rocks", min=0, max=100_000,
+                                help="Rocks on the site (LAC map: 386; the demo uses a rock-rich site)."),  # fmt: skip
+    overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """End to end on generated data: simulate a site, a reference and a drifting vehicle
     traverse, build the reference map from images, run the loop, print a table, write figures."""
+    from lunarloc.outputs import check_output_dir
+
+    positive(duration, "--duration", 3600.0, "s")
+    positive(reference_duration, "--reference-duration", 3600.0, "s")
+    number(width, "--width", 64, 4096, unit="px")
+    positive(image_rate, "--image-rate", 10.0, "Hz")
+    check_output_dir(out, overwrite)
+    check_output_dir(Path(out) / "data", overwrite, DEMO_DATA_FILES, marker=None)
     t0 = time.perf_counter()
     s = _run_demo(out, seed, duration, reference_duration, width, image_rate, n_rocks)
     _print_summary(s, "demo: vehicle traverse localized in the image-built reference map")
@@ -131,9 +159,12 @@ def demo_cmd(
     elif s["ate_corrected"]["rmse_m"] >= s["ate_odometry"]["rmse_m"]:
         problems.append("the corrected trajectory is not better than odometry")
     if problems:
-        from lunarloc.errors import LunarLocError
+        from lunarloc.errors import CheckFailedError
 
-        raise LunarLocError("demo check failed: " + "; ".join(problems))
+        raise CheckFailedError("demo: " + "; ".join(problems))
+
+
+DEMO_DATA_FILES = ("rocks.csv", "reference.lac", "vehicle.lac", "reference_map.csv")
 
 
 def _stage(name: str):
@@ -211,6 +242,7 @@ def bench_loop_cmd(
     scale_error: float = typer.Option(0.02, "--scale-error", help="Simulated odometry scale error (0.02 = 2%)."),
     traverses: Optional[str] = typer.Option(None, "--traverses", help="Comma-separated vehicle traverses (default all)."),
     min_length: float = typer.Option(5.0, "--min-length", help="Skip vehicle traverses shorter than this (m)."),
+    overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """The online loop on the real LunarLoc traverses (world-frame detections, no images) with
     simulated odometry drift; each traverse is localized against a map of all the others."""
@@ -219,11 +251,23 @@ def bench_loop_cmd(
 
     from lunarloc.evaluation import DriftModel, find_traverses
     from lunarloc.maps import aggregate_detections, load_traverse
+    from lunarloc.errors import ConfigError
+    from lunarloc.outputs import atomic_open, check_output_dir
     from lunarloc.pipeline import run_traverse_csv, write_outputs
 
+    number(heading_drift, "--heading-drift", 0.0, 10.0, unit="deg/m")
+    number(scale_error, "--scale-error", -0.5, 0.5)
+    number(min_length, "--min-length", 0.0, 1e6, unit="m")
+    try:
+        wanted_arg = [int(x) for x in traverses.split(",")] if traverses else None
+    except ValueError:
+        raise ConfigError(f"--traverses must be comma-separated traverse numbers, got {traverses!r}") from None
     paths = find_traverses(data)
+    check_output_dir(out, overwrite, ("loop.json",), marker=None)
+    for k in wanted_arg or paths:
+        check_output_dir(out / f"traverse_{k}", overwrite)
     trav = {k: load_traverse(p) for k, p in paths.items()}
-    wanted = [int(x) for x in traverses.split(",")] if traverses else sorted(trav)
+    wanted = wanted_arg or sorted(trav)
     drift = DriftModel(heading_drift, scale_error)
     con = console()
     table = Table(title=f"online loop on real traverses (drift {heading_drift} deg/m, scale {scale_error:+.1%})")
@@ -233,7 +277,7 @@ def bench_loop_cmd(
     rows = []
     for v in wanted:
         if v not in trav:
-            raise typer.BadParameter(f"traverse {v} not in {data}")
+            raise ConfigError(f"--traverses: traverse {v} not in {data} (have {', '.join(map(str, trav))})")
         if trav[v].path_length < min_length:
             continue
         others = [k for k in trav if k != v]
@@ -252,6 +296,6 @@ def bench_loop_cmd(
         con.print(f"traverse {v}: corrected RMSE {s['ate_corrected']['rmse_m']:.3f} m "
                   f"(odometry {s['ate_odometry']['rmse_m']:.3f} m), {s['fixes']} fixes")  # fmt: skip
     con.print(table)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "loop.json").write_text(json.dumps(rows, indent=1))
+    with atomic_open(out / "loop.json", "w") as fh:
+        fh.write(json.dumps(rows, indent=1))
     con.print(f"wrote {out / 'loop.json'}")
