@@ -154,7 +154,8 @@ def load_npz_arrays(path: str | os.PathLike, max_member_bytes: int = MAX_NPZ_MEM
                     )
                 out[name[:-4]] = _read_npy_member(p, zf, info)
         return out
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, ValueError, OSError) as exc:
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, ValueError, OSError, NotImplementedError,
+            RuntimeError) as exc:  # zipfile: unsupported compression/encryption flags, passwords
         if isinstance(exc, (FileFormatError, LimitError)):
             raise
         if isinstance(exc, OSError) and exc.errno is not None:

@@ -178,7 +178,7 @@ def load_traverse(path: str | Path) -> Traverse:
     """
     path = Path(path)
     with _inputs.open_text(path, what="traverse CSV") as fh, _inputs.csv_field_limit():
-        reader = csv.reader(fh)
+        reader = csv.reader(fh, strict=True)  # strict: a quote left open at the end of the file is an error
         try:
             return _read_traverse_rows(path, reader)
         except UnicodeDecodeError as exc:
@@ -428,12 +428,15 @@ def read_numeric_csv(path: str | Path, required: tuple[str, ...], what: str = "C
 def _load_map_csv(path: Path) -> LandmarkMap:
     frame, header, table = read_numeric_csv(path, ("x", "y", "z"), "landmark map CSV")
     idx = {name: header.index(name) for name in header}
-    return LandmarkMap(
-        table[:, [idx["x"], idx["y"], idx["z"]]],
-        table[:, idx["size"]] if "size" in idx else None,
-        table[:, idx["sightings"]] if "sightings" in idx else None,
-        frame=frame or path.stem,
-    )
+    try:
+        return LandmarkMap(
+            table[:, [idx["x"], idx["y"], idx["z"]]],
+            table[:, idx["size"]] if "size" in idx else None,
+            table[:, idx["sightings"]] if "sightings" in idx else None,
+            frame=frame or path.stem,
+        )
+    except InputError as exc:
+        raise FileFormatError(f"{path}: {exc}") from None
 
 
 def load_map(path: str | Path, config: AggregationConfig | None = None) -> LandmarkMap:

@@ -29,7 +29,7 @@ def _agg(radius: Optional[float], min_sightings: Optional[int]):
 
 RADIUS_OPT = typer.Option(None, "--radius", help="Clustering radius in metres (default from AggregationConfig).")
 SIGHT_OPT = typer.Option(None, "--min-sightings", min=1, max=1_000_000, help="Detections needed per landmark.")
-MAX_EPSILON_M = 1.0
+MAX_EPSILON_M = 0.3
 """Largest --epsilon accepted: beyond it nearly every pair of associations is 'consistent' and
 the consistency graph grows quadratically in memory (issue 13: 6.5 GB at 5 m)."""
 

@@ -75,7 +75,10 @@ def detect(
         t_start = time.perf_counter()
 
         def frames_iter():
-            bar = tqdm(total=len(frames), unit="frame", desc="detect", dynamic_ncols=True)
+            with tqdm(total=len(frames), unit="frame", desc="detect", dynamic_ncols=True) as bar:  # closed before an error prints
+                yield from _frames(bar)
+
+        def _frames(bar):
             for fd in detect_archive(ar, cfg, pose_src, detector=detector, frames=frames, keep_depth=debug_dir is not None):
                 stats["frames"] += 1
                 stats["detections"] += len(fd.detections)
@@ -90,9 +93,12 @@ def detect(
                 bar.update(1)
                 bar.set_postfix(det=stats["detections"])
                 yield fd
-            bar.close()
 
-        n = write_traverse_csv(output, frames_iter())
+        gen = frames_iter()
+        try:
+            n = write_traverse_csv(output, gen)
+        finally:
+            gen.close()  # closes the progress bar before an error message is printed
     wall = time.perf_counter() - t_start
     with atomic_open(config_path, "w") as fh:
         fh.write(json.dumps({"archive": str(archive), "pose": pose_src.value, "detector": cfg.to_dict()},

@@ -91,16 +91,15 @@ def run_cmd(
     with LacArchive(archive) as ar:
         width = _camera_of(ar.configured_cameras).width
     det_cfg = scaled_detector_config(width, base)
-    bar = tqdm(unit="frame", desc="run", dynamic_ncols=True)
+    with tqdm(unit="frame", desc="run", dynamic_ncols=True) as bar:  # closed before an error prints
 
-    def prog(n, total):
-        bar.total = total
-        bar.n = n
-        if n % 50 == 0 or n == total:
-            bar.refresh()
+        def prog(n, total):
+            bar.total = total
+            bar.n = n
+            if n % 50 == 0 or n == total:
+                bar.refresh()
 
-    res = run_online(archive, ref, cfg, det_cfg, progress=prog)
-    bar.close()
+        res = run_online(archive, ref, cfg, det_cfg, progress=prog)
     s = write_outputs(res, out)
     _print_summary(s, f"{archive.name} in {reference.name} ({len(ref)} landmarks)")
     if plot:
