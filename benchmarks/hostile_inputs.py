@@ -31,6 +31,7 @@ def main() -> None:
     ap.add_argument("--no-slow", action="store_true", help="leave out the few slow cases")
     ap.add_argument("--max-gib", type=float, default=12.0, help="address-space cap (GiB)")
     ap.add_argument("--only", default="", help="run only cases whose name contains this")
+    ap.add_argument("--case-timeout", type=int, default=60, help="seconds before a case counts as a hang")
     args = ap.parse_args()
     sys.path.insert(0, str(args.src.resolve()))
     sys.path.insert(0, str(ROOT / "tests"))
@@ -48,7 +49,7 @@ def main() -> None:
         for i, case in enumerate(cases):
             ts = time.perf_counter()
             try:
-                o = run_case(case, Path(tmp) / f"c{i:03d}", cli_main)
+                o = run_case(case, Path(tmp) / f"c{i:03d}", cli_main, args.case_timeout)
             except MemoryError:
                 from _hostile import Outcome
 

@@ -27,7 +27,11 @@ from typing import Callable
 
 import numpy as np
 
-OUTCOMES = ("clear error", "correct result", "traceback", "silent garbage", "internal error", "other")
+OUTCOMES = ("clear error", "correct result", "traceback", "silent garbage", "internal error", "hang", "other")
+
+
+class CaseTimeout(BaseException):
+    """Raised by the alarm of :func:`run_case` (a BaseException: no handler may swallow it)."""
 
 
 @dataclass
@@ -446,13 +450,13 @@ def _lac_cases() -> list[Case]:
     lac("huge-toml", lambda: lac_bytes(with_member("metadata.toml", 'description = "' + "x" * (2 * 1024**2) + '"\n')))
     lac("cameras-not-table", lambda: lac_bytes(with_member("initial.toml", "fiducials = false\nlander = [0.0]\nrover = [0.0]\ncameras = 3\n")))
     ini = M()["initial.toml"].decode()
-    lac("width-abc", lambda: lac_bytes(M(initial=ini.replace(f"width = {W}", 'width = "abc"', 1))))
-    lac("width-negative", lambda: lac_bytes(M(initial=ini.replace(f"width = {W}", "width = -5", 1))))
-    lac("width-float", lambda: lac_bytes(M(initial=ini.replace(f"width = {W}", "width = 64.5", 1))))
-    lac("width-bool", lambda: lac_bytes(M(initial=ini.replace(f"width = {W}", "width = true", 1))))
-    lac("fov-180", lambda: lac_bytes(M(initial=ini.replace("use_semantic = false", "use_semantic = false\nfov = 180.0", 1))))
-    lac("fov-nan", lambda: lac_bytes(M(initial=ini.replace("use_semantic = false", "use_semantic = false\nfov = nan", 1))))
-    lac("fov-text", lambda: lac_bytes(M(initial=ini.replace("use_semantic = false", 'use_semantic = false\nfov = "wide"', 1))))
+    lac("width-abc", lambda: lac_bytes(M(initial=ini.replace(f"width = {W}", 'width = "abc"', 1))), cmd="detect")
+    lac("width-negative", lambda: lac_bytes(M(initial=ini.replace(f"width = {W}", "width = -5", 1))), cmd="detect")
+    lac("width-float", lambda: lac_bytes(M(initial=ini.replace(f"width = {W}", "width = 64.5", 1))), cmd="detect")
+    lac("width-bool", lambda: lac_bytes(M(initial=ini.replace(f"width = {W}", "width = true", 1))), cmd="detect")
+    lac("fov-180", lambda: lac_bytes(M(initial=ini.replace("use_semantic = false", "use_semantic = false\nfov = 180.0", 1))), cmd="detect")
+    lac("fov-nan", lambda: lac_bytes(M(initial=ini.replace("use_semantic = false", "use_semantic = false\nfov = nan", 1))), cmd="detect")
+    lac("fov-text", lambda: lac_bytes(M(initial=ini.replace("use_semantic = false", 'use_semantic = false\nfov = "wide"', 1))), cmd="detect")
     frames = M()["frames.csv"].decode()
     fl = frames.splitlines()
     lac("frame-1e30", lambda: lac_bytes(with_member("frames.csv", frames.replace("\n5,", "\n1e30,", 1))))
@@ -760,8 +764,10 @@ def _clear_error(err: str) -> bool:
     return any(l.startswith("Usage:") for l in lines) and any(l.startswith("Error:") for l in lines)
 
 
-def run_case(case: Case, folder: Path, main=None) -> Outcome:
-    """Build and run `case` in `folder` (in-process) and classify the outcome."""
+def run_case(case: Case, folder: Path, main=None, timeout_s: int = 0) -> Outcome:
+    """Build and run `case` in `folder` (in-process) and classify the outcome; with
+    `timeout_s`, a case still running after that many seconds is stopped and called a hang."""
+    import signal
     if main is None:
         from lunarloc.cli.app import main
     folder.mkdir(parents=True, exist_ok=True)
@@ -770,18 +776,33 @@ def run_case(case: Case, folder: Path, main=None) -> Outcome:
     rc, escaped = None, None
     cwd = os.getcwd()
     os.chdir(folder)  # nothing may be written outside the case folder
+
+    def alarm(signum, frame):
+        raise CaseTimeout()
+
+    old = signal.signal(signal.SIGALRM, alarm) if timeout_s else None
+    hung = False
     try:
+        if timeout_s:
+            signal.alarm(timeout_s)
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             try:
                 rc = main(argv)
             except SystemExit as exc:
                 rc = exc.code if isinstance(exc.code, int) else 1
+            except CaseTimeout:
+                hung = True
             except BaseException as exc:  # noqa: BLE001 - an exception escaping main is the finding
                 escaped = exc
                 traceback.print_exc(file=err)
     finally:
+        if timeout_s:
+            signal.alarm(0)
+            signal.signal(signal.SIGALRM, old)
         os.chdir(cwd)
     so, se = out.getvalue(), err.getvalue()
+    if hung:
+        return Outcome(case.name, case.kind, "hang", None, f"still running after {timeout_s} s")
     msg = (_lines(se) or [""])[-1][:300]
     if escaped is not None or "Traceback (most recent call last)" in so + se:
         return Outcome(case.name, case.kind, "traceback", rc, f"{type(escaped).__name__ if escaped else ''} {msg}".strip())

@@ -122,13 +122,15 @@ def csv_error(path, line: int, exc: csv.Error) -> FileFormatError:
 _REAL_KINDS = "fiub"  # float, signed int, unsigned int, bool
 
 
-def load_npz_arrays(path: str | os.PathLike, max_member_bytes: int = MAX_NPZ_MEMBER_BYTES) -> dict[str, np.ndarray]:
+def load_npz_arrays(path: str | os.PathLike, max_member_bytes: int | None = None) -> dict[str, np.ndarray]:
     """All arrays of an `.npz` file, each checked before it is allocated: the file must be a
     zip of ``.npy`` members (at most :data:`MAX_NPZ_MEMBERS`), each header must declare a
     real (float, int, bool) or string dtype, a shape whose byte size is within
     `max_member_bytes` and equal to the member's uncompressed size (a compression bomb or
     a header lying about its shape is refused without decompressing it). Pickles are
-    never loaded. Raises FileFormatError / LimitError naming the file and member."""
+    never loaded. Raises FileFormatError / LimitError naming the file and member.
+    `max_member_bytes` defaults to :data:`MAX_NPZ_MEMBER_BYTES`."""
+    max_member_bytes = MAX_NPZ_MEMBER_BYTES if max_member_bytes is None else max_member_bytes
     p = check_input_file(path, None, ".npz")
     if p.stat().st_size == 0:
         raise FileFormatError(f"{p}: empty file, expected a .npz archive")
@@ -152,7 +154,7 @@ def load_npz_arrays(path: str | os.PathLike, max_member_bytes: int = MAX_NPZ_MEM
                         f"{p}: member {name} is {info.file_size / 1024**2:.0f} MiB uncompressed, over the "
                         f"{max_member_bytes / 1024**2:.0f} MiB limit"
                     )
-                out[name[:-4]] = _read_npy_member(p, zf, info)
+                out[name[:-4]] = _read_npy_member(p, zf, info, max_member_bytes)
         return out
     except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, ValueError, OSError, NotImplementedError,
             RuntimeError) as exc:  # zipfile: unsupported compression/encryption flags, passwords
@@ -163,7 +165,7 @@ def load_npz_arrays(path: str | os.PathLike, max_member_bytes: int = MAX_NPZ_MEM
         raise FileFormatError(f"{p}: corrupt or truncated .npz archive ({type(exc).__name__}: {exc})") from None
 
 
-def _read_npy_member(p: Path, zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> np.ndarray:
+def _read_npy_member(p: Path, zf: zipfile.ZipFile, info: zipfile.ZipInfo, max_bytes: int) -> np.ndarray:
     name = info.filename
     with zf.open(info) as fh:
         try:
@@ -183,7 +185,7 @@ def _read_npy_member(p: Path, zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> np.
             )
         nbytes = math.prod(shape) * dtype.itemsize
         header_len = fh.tell()
-        if nbytes > MAX_NPZ_MEMBER_BYTES:
+        if nbytes > max_bytes:
             raise LimitError(f"{p}: member {name} declares shape {shape} ({nbytes / 1024**3:.1f} GiB), over the limit")
         if nbytes + header_len != info.file_size:
             raise FileFormatError(

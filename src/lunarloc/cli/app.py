@@ -119,6 +119,8 @@ def _run(argv: list[str] | None) -> int:
             exc.show()
             return exc.exit_code
         return _internal(exc)
+    if rv == EXIT_INTERRUPTED:  # typer turns KeyboardInterrupt into Exit(130), returned here
+        return _fail("interrupted; partial outputs removed", EXIT_INTERRUPTED)
     return rv if isinstance(rv, int) else 0
 
 

@@ -453,14 +453,26 @@ def _is_float_text(v) -> bool:
     return True
 
 
-def _csv_rows(text: str, where: str) -> list[list[str]]:
-    """Non-blank CSV rows of `text`, blank lines skipped while reading (a member of a
+def _utf8_lines(data: bytes, where: str):
+    """Decoded lines of `data`, one at a time (no full-text copy: io.StringIO would hold 4
+    bytes per character); a UTF-8 BOM is dropped; ArchiveError names the bad line."""
+    for k, line in enumerate(io.BytesIO(data), start=1):
+        if k == 1 and line.startswith(b"\xef\xbb\xbf"):
+            line = line[3:]
+        try:
+            yield line.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise ArchiveError(f"{where}: line {k}: not UTF-8 text (byte 0x{line[exc.start]:02x})") from None
+
+
+def _csv_rows(data: bytes, where: str) -> list[list[str]]:
+    """Non-blank CSV rows of `data` (UTF-8), blank lines skipped while reading (a member of a
     million newlines costs nothing), at most MAX_TABLE_CELLS cells, fields of at most
     MAX_CSV_FIELD characters."""
     rows: list[list[str]] = []
     cells = 0
     old = csv.field_size_limit(MAX_CSV_FIELD)
-    reader = csv.reader(io.StringIO(text))
+    reader = csv.reader(_utf8_lines(data, where))
     try:
         for r in reader:
             if not r:
@@ -491,11 +503,7 @@ def _parse_csv(
 
     Raises ArchiveError naming `where` (archive: member) on any problem.
     """
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise ArchiveError(f"{where}: not UTF-8 text ({exc})") from None
-    rows = _csv_rows(text, where)  # tolerates blank lines
+    rows = _csv_rows(data, where)  # decodes UTF-8 line by line, skips blank lines
     if not rows:
         if required:
             raise ArchiveError(f"{where}: empty file, expected columns {', '.join(required)}")
