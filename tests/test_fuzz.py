@@ -225,3 +225,19 @@ def test_traverse_csv_memory_is_proportional_to_its_content(tmp_path):
     peak = _peak_mib(lambda: load_traverse(p))
     assert size_mib > 2
     assert peak < 2.0 * size_mib + 8, f"{peak:.1f} MiB for a {size_mib:.1f} MiB file"
+
+
+def test_library_writer_never_replaces_a_device_or_folder(tmp_path):
+    from lunarloc.errors import OutputError
+    from lunarloc.maps import LandmarkMap, save_map
+
+    lm = LandmarkMap(H.rocks(5))
+    with pytest.raises(OutputError, match="not a regular file"):
+        save_map(lm, (tmp_path / "m.csv").mkdir() or tmp_path / "m.csv")  # a folder named like a map
+    if os.path.exists("/dev/null"):
+        from lunarloc.outputs import atomic_open
+
+        with pytest.raises(OutputError, match="not a regular file"):
+            with atomic_open("/dev/null") as fh:
+                fh.write("x")
+        assert not Path("/dev/null").is_file()

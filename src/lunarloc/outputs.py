@@ -106,6 +106,9 @@ def atomic_path(path: str | os.PathLike):
     """Yield a temporary path next to `path`; on success rename it to `path` (replacing it),
     on any exception remove it. The parent folder is created if needed."""
     target = Path(path)
+    if target.is_dir() or (target.exists() and not target.is_file()):
+        # renaming over it would replace a folder or a device node (/dev/null as root)
+        raise OutputError(f"{target}: exists and is not a regular file")
     make_dir(target.parent if str(target.parent) else Path("."))
     try:
         fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.tmp-", suffix=target.suffix, dir=target.parent)
