@@ -161,9 +161,14 @@ def plot_error(run: dict, path: Path, title: str = "") -> Path:
 
 def plot_frame(npz_path: Path, path: Path) -> Path:
     plt = _plt()
-    with np.load(npz_path, allow_pickle=False) as z:
+    from lunarloc.inputs import load_npz_arrays
+
+    z = load_npz_arrays(npz_path)  # checked before allocating; FileFormatError naming the file
+    try:
         img, uv, rad, depth = z["image"], z["uv"], z["radius_px"], z["depth_m"]
         frame, cam = int(z["frame"]), str(z["camera"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise FileFormatError(f"{npz_path}: not an example frame ({type(exc).__name__}: {exc})") from None
     h, w = img.shape[:2]
     fig, ax = plt.subplots(figsize=(9, 9 * h / w + 0.4), dpi=100)
     ax.imshow(img, cmap="gray", vmin=0, vmax=255)
