@@ -188,7 +188,10 @@ def load_traverse(path: str | Path) -> Traverse:
 
 
 def _read_traverse_rows(path: Path, reader) -> Traverse:
-    frames, rover, dets, det_frame = [], [], [], []
+    import array
+
+    # typed arrays, 8 bytes per value: memory follows the file's content, not its row count
+    frames, rover, dets, det_frame = array.array("q"), array.array("d"), array.array("d"), array.array("q")
     try:
         header = next(reader)
     except StopIteration:
@@ -230,17 +233,17 @@ def _read_traverse_rows(path: Path, reader) -> Traverse:
         ):
             raise FileFormatError(f"{path}:{line}: coordinate beyond +-{_inputs.MAX_ABS_COORD_M:g} m")
         frames.append(frame)
-        rover.append(xyz)
+        rover.extend(xyz)
         if count:
-            dets.append(values)
-            det_frame.append(np.full(count, frame))
+            dets.frombytes(np.ascontiguousarray(values, dtype=np.float64).tobytes())
+            det_frame.frombytes(np.full(count, frame, dtype=np.int64).tobytes())
     if not frames:
         raise FileFormatError(f"{path}: no data rows")
     return Traverse(
-        frames=np.asarray(frames, dtype=np.int64),
-        rover_xyz=np.asarray(rover, dtype=float),
-        detections_xyz=np.concatenate(dets) if dets else np.zeros((0, 3)),
-        detection_frame=np.concatenate(det_frame) if det_frame else np.zeros(0, dtype=np.int64),
+        frames=np.frombuffer(frames, dtype=np.int64),  # views of the typed arrays (writable, no copy)
+        rover_xyz=np.frombuffer(rover, dtype=np.float64).reshape(-1, 3),
+        detections_xyz=np.frombuffer(dets, dtype=np.float64).reshape(-1, 3),
+        detection_frame=np.frombuffer(det_frame, dtype=np.int64),
         name=path.stem,
     )
 
