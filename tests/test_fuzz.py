@@ -224,7 +224,7 @@ def test_traverse_csv_memory_is_proportional_to_its_content(tmp_path):
     size_mib = p.stat().st_size / 1024**2
     peak = _peak_mib(lambda: load_traverse(p))
     assert size_mib > 2
-    assert peak < 2.0 * size_mib + 8, f"{peak:.1f} MiB for a {size_mib:.1f} MiB file"
+    assert peak < size_mib + 4, f"{peak:.1f} MiB for a {size_mib:.1f} MiB file"  # Python lists: ~3.5x
 
 
 def test_library_writer_never_replaces_a_device_or_folder(tmp_path):
