@@ -18,13 +18,13 @@ $(STAMP): $(BIN)/python pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/lunarloc demo --out demo-output
+	$(BIN)/lunarloc demo --out demo-output --overwrite
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)
-	$(BIN)/lunarloc bench pairs --data ../shared/data/lunarloc-data --out bench-output
+	$(BIN)/lunarloc bench pairs --data ../shared/data/lunarloc-data --out bench-output --overwrite
 
 clean:
 	rm -rf $(VENV) demo-output bench-output build *.egg-info src/*.egg-info

@@ -10,9 +10,13 @@ The one-call API::
 
 import logging
 
-from lunarloc.errors import LunarLocError
-from lunarloc.localize import LocalizationConfig, LocalizationResult, Mode, Solver, localize
-from lunarloc.maps import AggregationConfig, LandmarkMap, load_map, load_traverse, save_map
+from lunarloc._runtime import ensure_numba_cache_dir
+
+ensure_numba_cache_dir()  # before numba is imported (read-only installs, unwritable $HOME)
+
+from lunarloc.errors import LunarLocError  # noqa: E402
+from lunarloc.localize import LocalizationConfig, LocalizationResult, Mode, Solver, localize  # noqa: E402
+from lunarloc.maps import AggregationConfig, LandmarkMap, load_map, load_traverse, save_map  # noqa: E402
 
 __version__ = "0.1.0"
 __all__ = [

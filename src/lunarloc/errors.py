@@ -34,6 +34,60 @@ class DependencyError(LunarLocError, ImportError):
     """An optional dependency is missing; the message says what to install."""
 
 
+class MissingFileError(FileFormatError, FileNotFoundError):
+    """An input path does not exist (still a FileNotFoundError for callers that catch that)."""
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if len(self.args) == 1 else super().__str__()
+
+
+class NotAFileError(FileFormatError):
+    """An input path is a directory (or a device, a socket) where a regular file is expected."""
+
+
+class UnreadableFileError(FileFormatError):
+    """An input file exists but cannot be read (permissions, I/O error)."""
+
+
+class LimitError(InputError):
+    """An input exceeds a stated size limit (member, field, row, shape); see docs/robustness.md."""
+
+
+class MissingColumnError(FileFormatError, KeyError):
+    """A table lacks a column (still a KeyError for callers that catch that)."""
+
+    def __str__(self) -> str:  # KeyError would quote the message
+        return str(self.args[0]) if self.args else ""
+
+
+class CheckFailedError(LunarLocError):
+    """A check or gate did not pass (the CLI exits 1, not 2)."""
+
+
+class OutputError(LunarLocError):
+    """An output path cannot be written: exists (without overwrite), is a folder, has no
+    writable parent folder, or the disk is full."""
+
+
+def file_error(path, exc: OSError, action: str = "read") -> LunarLocError:
+    """Our error for an OSError raised while `action`-ing `path` (one line, names the path)."""
+    import errno
+
+    if isinstance(exc, FileNotFoundError):
+        return MissingFileError(f"{path}: no such file")
+    if isinstance(exc, IsADirectoryError):
+        return NotAFileError(f"{path}: is a folder, expected a file")
+    if isinstance(exc, NotADirectoryError):
+        return MissingFileError(f"{path}: a parent of this path is a file, not a folder")
+    if isinstance(exc, PermissionError):
+        cls = OutputError if action == "write" else UnreadableFileError
+        return cls(f"{path}: permission denied ({action})")
+    if exc.errno == errno.ENOSPC:
+        return OutputError(f"{path}: no space left on device")
+    cls = OutputError if action == "write" else UnreadableFileError
+    return cls(f"{path}: cannot {action} ({exc.strerror or exc})")
+
+
 def require(module: str, extra: str, hint: str | None = None):
     """Import an optional dependency lazily, or raise DependencyError with an install hint."""
     import importlib

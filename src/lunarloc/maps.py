@@ -17,14 +17,16 @@ from __future__ import annotations
 
 import csv
 import logging
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from lunarloc.errors import FileFormatError, InputError
+from lunarloc.errors import FileFormatError, InputError, LimitError
 from lunarloc.geometry import as_points, transform_points
+from lunarloc import inputs as _inputs
 
 log = logging.getLogger(__name__)
 
@@ -41,7 +43,27 @@ __all__ = [
 ]
 
 TRAVERSE_COLUMNS = ("frame", "x", "y", "z", "detections", "boulders")
-_FLOAT = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|nan|inf", re.IGNORECASE)
+# The boulders field: a Python-literal list of 3-tuples of plain decimal numbers, nothing else
+# (no names, calls, dicts, nesting, underscores, nan/inf). Checked as a whole by one regular
+# expression (no recursion, linear time), then the numbers are read.
+_NUM = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+_VAL = rf"(?:{_NUM}|[-+]?(?:nan|inf))"  # nan/inf are read, then refused as non-finite
+_NUMBER = re.compile(_VAL, re.IGNORECASE)
+_TUPLE = rf"\(\s*{_VAL}\s*,\s*{_VAL}\s*,\s*{_VAL}\s*,?\s*\)"
+_BOULDERS = re.compile(rf"\[\s*(?:{_TUPLE}(?:\s*,\s*{_TUPLE})*\s*,?\s*)?\]", re.IGNORECASE)
+
+
+def parse_boulders(text: str) -> np.ndarray:
+    """(N, 3) float array from a boulders field ``[(x, y, z), ...]`` (the LunarLoc dataset
+    format). Anything else (other nesting, names, dicts, ``1_000``, tuples of 2 or 4) raises
+    ValueError; the caller adds file and line. Values may still be non-finite (``1e999``)."""
+    t = text.strip()
+    if len(t) > _inputs.MAX_CSV_FIELD_CHARS:
+        raise ValueError(f"boulders field longer than {_inputs.MAX_CSV_FIELD_CHARS:,} characters")
+    if not _BOULDERS.fullmatch(t):
+        raise ValueError("boulders must be a list like [(x, y, z), ...] of plain numbers")
+    vals = np.array(_NUMBER.findall(t), dtype=float)
+    return vals.reshape(-1, 3)
 
 
 @dataclass
@@ -63,6 +85,7 @@ class LandmarkMap:
 
     def __post_init__(self) -> None:
         self.positions_xyz = as_points(self.positions_xyz, "landmark positions")
+        _check_coordinates(self.positions_xyz, "landmark positions")
         n = len(self.positions_xyz)
         for name in ("sizes", "sightings"):
             val = getattr(self, name)
@@ -93,6 +116,13 @@ class LandmarkMap:
         return LandmarkMap(
             transform_points(T_new_frame, self.positions_xyz), self.sizes, self.sightings, frame or self.frame
         )
+
+
+def _check_coordinates(xyz: np.ndarray, name: str) -> None:
+    """Refuse absurd coordinates (beyond +-MAX_ABS_COORD_M): they overflow distance sums."""
+    if xyz.size and float(np.max(np.abs(xyz))) > _inputs.MAX_ABS_COORD_M:
+        bad = int(np.flatnonzero(np.any(np.abs(xyz) > _inputs.MAX_ABS_COORD_M, axis=1))[0])
+        raise InputError(f"{name}: coordinate beyond +-{_inputs.MAX_ABS_COORD_M:g} m (row {bad}); not a map in metres")
 
 
 @dataclass
@@ -127,9 +157,17 @@ class Traverse:
 
 def is_traverse_csv(path: str | Path) -> bool:
     """True if the file's header is the LunarLoc traverse header."""
-    with open(path, newline="") as fh:
-        header = fh.readline().strip().lower().replace(" ", "")
-    return header.split(",")[:6] == list(TRAVERSE_COLUMNS)
+    return _first_line(path).split(",")[:6] == list(TRAVERSE_COLUMNS)
+
+
+def _first_line(path: str | Path) -> str:
+    """The first line of a text file, lower case without spaces (checked: exists, is a file, UTF-8)."""
+    with _inputs.open_text(path) as fh:
+        try:
+            line = fh.readline(_inputs.MAX_CSV_FIELD_CHARS)
+        except UnicodeDecodeError as exc:
+            raise _inputs.decode_error(path, exc, 1) from None
+    return line.strip().lower().replace(" ", "")
 
 
 def load_traverse(path: str | Path) -> Traverse:
@@ -139,56 +177,94 @@ def load_traverse(path: str | Path) -> Traverse:
     a malformed boulder list, or a detection count that disagrees with the list.
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileFormatError(f"{path}: no such file")
-    frames, rover, dets, det_frame = [], [], [], []
-    with open(path, newline="") as fh:
-        reader = csv.reader(fh)
+    with _inputs.open_text(path, what="traverse CSV") as fh, _inputs.csv_field_limit():
+        reader = csv.reader(fh, strict=True)  # strict: a quote left open at the end of the file is an error
         try:
-            header = next(reader)
-        except StopIteration:
-            raise FileFormatError(f"{path}: empty file") from None
-        header = [h.strip().lower() for h in header]
-        if header[:6] != list(TRAVERSE_COLUMNS):
+            return _read_traverse_rows(path, reader)
+        except UnicodeDecodeError as exc:
+            raise _inputs.decode_error(path, exc, reader.line_num + 1) from None
+        except csv.Error as exc:
+            raise _inputs.csv_error(path, reader.line_num, exc) from None
+
+
+def _read_traverse_rows(path: Path, reader) -> Traverse:
+    import array
+
+    # typed arrays, 8 bytes per value: memory follows the file's content, not its row count
+    frames, rover, dets, det_frame = array.array("q"), array.array("d"), array.array("d"), array.array("q")
+    try:
+        header = next(reader)
+    except StopIteration:
+        raise FileFormatError(f"{path}: empty file") from None
+    header = [h.strip().lower() for h in header]
+    if header[:6] != list(TRAVERSE_COLUMNS):
+        raise FileFormatError(
+            f"{path}:1: expected traverse columns {','.join(TRAVERSE_COLUMNS)}, got {','.join(header)}"
+        )
+    for row in reader:
+        line = reader.line_num
+        if not row or (len(row) == 1 and not row[0].strip()):
+            continue
+        if len(row) != 6:
+            raise FileFormatError(f"{path}:{line}: expected 6 fields, got {len(row)}")
+        if len(frames) >= _inputs.MAX_CSV_ROWS:
+            raise LimitError(f"{path}:{line}: more than {_inputs.MAX_CSV_ROWS:,} data rows")
+        try:
+            frame = _int_field(row[0], "frame")
+            xyz = [_float_field(v) for v in row[1:4]]
+            count = _int_field(row[4], "detections")
+        except ValueError as exc:
+            raise FileFormatError(f"{path}:{line}: {exc}") from None
+        text = row[5].strip()
+        if not (text.startswith("[") and text.endswith("]")):
+            raise FileFormatError(f"{path}:{line}: boulders must be a list like [(x, y, z), ...]")
+        try:
+            values = parse_boulders(text)
+        except ValueError as exc:
+            raise FileFormatError(f"{path}:{line}: {exc}") from None
+        if len(values) != count:
             raise FileFormatError(
-                f"{path}:1: expected traverse columns {','.join(TRAVERSE_COLUMNS)}, got {','.join(header)}"
+                f"{path}:{line}: detections says {count} but the boulder list has {len(values)} points"
             )
-        for row in reader:
-            line = reader.line_num
-            if not row or (len(row) == 1 and not row[0].strip()):
-                continue
-            if len(row) != 6:
-                raise FileFormatError(f"{path}:{line}: expected 6 fields, got {len(row)}")
-            try:
-                frame = int(row[0])
-                xyz = [float(v) for v in row[1:4]]
-                count = int(row[4])
-            except ValueError as exc:
-                raise FileFormatError(f"{path}:{line}: {exc}") from None
-            text = row[5].strip()
-            if not (text.startswith("[") and text.endswith("]")):
-                raise FileFormatError(f"{path}:{line}: boulders must be a list like [(x, y, z), ...]")
-            values = [float(v) for v in _FLOAT.findall(text)]
-            if len(values) != 3 * count:
-                raise FileFormatError(
-                    f"{path}:{line}: detections says {count} but the boulder list has {len(values) / 3:g} points"
-                )
-            if not np.all(np.isfinite(xyz)) or not np.all(np.isfinite(values)):
-                raise FileFormatError(f"{path}:{line}: non-finite value")
-            frames.append(frame)
-            rover.append(xyz)
-            if count:
-                dets.append(np.asarray(values).reshape(count, 3))
-                det_frame.append(np.full(count, frame))
+        if not np.all(np.isfinite(xyz)) or not np.all(np.isfinite(values)):
+            raise FileFormatError(f"{path}:{line}: non-finite value")
+        if max(map(abs, xyz)) > _inputs.MAX_ABS_COORD_M or (
+            values.size and np.max(np.abs(values)) > _inputs.MAX_ABS_COORD_M
+        ):
+            raise FileFormatError(f"{path}:{line}: coordinate beyond +-{_inputs.MAX_ABS_COORD_M:g} m")
+        frames.append(frame)
+        rover.extend(xyz)
+        if count:
+            dets.frombytes(np.ascontiguousarray(values, dtype=np.float64).tobytes())
+            det_frame.frombytes(np.full(count, frame, dtype=np.int64).tobytes())
     if not frames:
         raise FileFormatError(f"{path}: no data rows")
     return Traverse(
-        frames=np.asarray(frames, dtype=np.int64),
-        rover_xyz=np.asarray(rover, dtype=float),
-        detections_xyz=np.concatenate(dets) if dets else np.zeros((0, 3)),
-        detection_frame=np.concatenate(det_frame) if det_frame else np.zeros(0, dtype=np.int64),
+        frames=np.frombuffer(frames, dtype=np.int64),  # views of the typed arrays (writable, no copy)
+        rover_xyz=np.frombuffer(rover, dtype=np.float64).reshape(-1, 3),
+        detections_xyz=np.frombuffer(dets, dtype=np.float64).reshape(-1, 3),
+        detection_frame=np.frombuffer(det_frame, dtype=np.int64),
         name=path.stem,
     )
+
+
+_PLAIN_FLOAT = re.compile(rf"\s*(?:{_NUM}|[-+]?(?:nan|inf|infinity))\s*", re.IGNORECASE)
+
+
+def _float_field(text: str) -> float:
+    """A plain decimal number (``float()`` would also take ``1_000``); nan/inf are read (and
+    refused by the caller as non-finite)."""
+    if not _PLAIN_FLOAT.fullmatch(text):
+        raise ValueError(f"not a number: {text[:40]!r}")
+    return float(text)
+
+
+def _int_field(text: str, name: str) -> int:
+    """A plain decimal integer (``int()`` would also take ``1_000`` and spaces inside)."""
+    t = text.strip()
+    if not re.fullmatch(r"[-+]?\d{1,18}", t):
+        raise ValueError(f"{name} must be an integer, got {text[:40]!r}")
+    return int(t)
 
 
 # --------------------------------------------------------------------------- aggregation
@@ -276,7 +352,10 @@ def save_map(landmarks: LandmarkMap, path: str | Path) -> Path:
             extra["sizes"] = landmarks.sizes
         if landmarks.sightings is not None:
             extra["sightings"] = landmarks.sightings
-        np.savez(path, positions_xyz=landmarks.positions_xyz, frame=np.array(landmarks.frame), **extra)
+        from lunarloc.outputs import atomic_path
+
+        with atomic_path(path) as tmp:
+            np.savez(tmp, positions_xyz=landmarks.positions_xyz, frame=np.array(landmarks.frame), **extra)
         return path
     if suffix != ".csv":
         raise InputError(f"{path}: unknown map format '{suffix}' (use .csv or .npz)")
@@ -289,7 +368,9 @@ def save_map(landmarks: LandmarkMap, path: str | Path) -> Path:
         cols.append("sightings")
         data.append(landmarks.sightings[:, None])
     table = np.hstack(data) if data else np.zeros((0, 3))
-    with open(path, "w", newline="") as fh:
+    from lunarloc.outputs import atomic_open
+
+    with atomic_open(path, "w", newline="") as fh:
         fh.write(f"# frame: {landmarks.frame}\n")
         fh.write(",".join(cols) + "\n")
         for row in table:
@@ -297,46 +378,68 @@ def save_map(landmarks: LandmarkMap, path: str | Path) -> Path:
     return path
 
 
-def _load_map_csv(path: Path) -> LandmarkMap:
-    frame = path.stem
-    with open(path, newline="") as fh:
-        lines = fh.read().splitlines()
-    start = 0
-    while start < len(lines) and lines[start].startswith("#"):
-        m = re.match(r"#\s*frame:\s*(.+)", lines[start])
-        if m:
-            frame = m.group(1).strip()
-        start += 1
-    if start >= len(lines):
-        raise FileFormatError(f"{path}: no header line")
-    header = [h.strip().lower() for h in lines[start].split(",")]
-    for required in ("x", "y", "z"):
-        if required not in header:
-            raise FileFormatError(
-                f"{path}:{start + 1}: missing column '{required}' (landmark maps need x,y,z; got {','.join(header)})"
-            )
-    idx = {name: header.index(name) for name in header}
-    rows = []
-    for k, line in enumerate(lines[start + 1 :], start=start + 2):
-        if not line.strip() or line.startswith("#"):
-            continue
-        parts = line.split(",")
-        if len(parts) != len(header):
-            raise FileFormatError(f"{path}:{k}: expected {len(header)} fields, got {len(parts)}")
+def read_numeric_csv(path: str | Path, required: tuple[str, ...], what: str = "CSV") -> tuple[str | None, list[str], np.ndarray]:
+    """Stream a numeric CSV (``#`` comment lines first, a header, rows of plain numbers) into
+    an (N, columns) float64 array: (frame name from ``# frame: NAME`` or None, header, table).
+
+    Memory is the table itself (8 bytes per value) plus one line; file size, line length and
+    row count are bounded (:mod:`lunarloc.inputs`). FileFormatError names the file and line
+    of a missing column, a bad or non-finite number, or an absurd coordinate."""
+    import array
+
+    path = Path(path)
+    frame, header, values, k = None, None, array.array("d"), 0
+    with _inputs.open_text(path, what=what) as fh:
         try:
-            vals = [float(p) for p in parts]
-        except ValueError as exc:
-            raise FileFormatError(f"{path}:{k}: {exc}") from None
-        if not np.all(np.isfinite(vals)):
-            raise FileFormatError(f"{path}:{k}: non-finite value")
-        rows.append(vals)
-    table = np.asarray(rows, dtype=float).reshape(-1, len(header))
-    return LandmarkMap(
-        table[:, [idx["x"], idx["y"], idx["z"]]],
-        table[:, idx["size"]] if "size" in idx else None,
-        table[:, idx["sightings"]] if "sightings" in idx else None,
-        frame=frame,
-    )
+            for k, line in enumerate(fh, start=1):
+                if len(line) > _inputs.MAX_CSV_FIELD_CHARS:
+                    raise LimitError(f"{path}:{k}: line longer than {_inputs.MAX_CSV_FIELD_CHARS:,} characters")
+                if line.startswith("#"):
+                    m = re.match(r"#\s*frame:\s*(.+)", line)
+                    if m and header is None:
+                        frame = m.group(1).strip()
+                    continue
+                if not line.strip():
+                    continue
+                parts = line.rstrip("\r\n").split(",")
+                if header is None:
+                    header = [h.strip().lower() for h in parts]
+                    for col in required:
+                        if col not in header:
+                            raise FileFormatError(f"{path}:{k}: missing column '{col}' (need {','.join(required)}; got {','.join(header)})")
+                    continue
+                if len(parts) != len(header):
+                    raise FileFormatError(f"{path}:{k}: expected {len(header)} fields, got {len(parts)}")
+                if len(values) >= _inputs.MAX_CSV_ROWS * len(header):
+                    raise LimitError(f"{path}:{k}: more than {_inputs.MAX_CSV_ROWS:,} rows")
+                try:
+                    vals = [_float_field(p) for p in parts]
+                except ValueError as exc:
+                    raise FileFormatError(f"{path}:{k}: {exc}") from None
+                if not all(math.isfinite(v) for v in vals):
+                    raise FileFormatError(f"{path}:{k}: non-finite value")
+                if max(map(abs, vals)) > _inputs.MAX_ABS_COORD_M:
+                    raise FileFormatError(f"{path}:{k}: value beyond +-{_inputs.MAX_ABS_COORD_M:g}")
+                values.extend(vals)
+        except UnicodeDecodeError as exc:
+            raise _inputs.decode_error(path, exc, k + 1) from None
+    if header is None:
+        raise FileFormatError(f"{path}: no header line")
+    return frame, header, np.frombuffer(values, dtype=np.float64).reshape(-1, len(header)).copy()
+
+
+def _load_map_csv(path: Path) -> LandmarkMap:
+    frame, header, table = read_numeric_csv(path, ("x", "y", "z"), "landmark map CSV")
+    idx = {name: header.index(name) for name in header}
+    try:
+        return LandmarkMap(
+            table[:, [idx["x"], idx["y"], idx["z"]]],
+            table[:, idx["size"]] if "size" in idx else None,
+            table[:, idx["sightings"]] if "sightings" in idx else None,
+            frame=frame or path.stem,
+        )
+    except InputError as exc:
+        raise FileFormatError(f"{path}: {exc}") from None
 
 
 def load_map(path: str | Path, config: AggregationConfig | None = None) -> LandmarkMap:
@@ -345,20 +448,27 @@ def load_map(path: str | Path, config: AggregationConfig | None = None) -> Landm
     Raises FileFormatError naming the file (and line) when it cannot be read.
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileFormatError(f"{path}: no such file")
     if path.suffix.lower() == ".npz":
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                pos = z["positions_xyz"]
-                return LandmarkMap(
-                    pos,
-                    z["sizes"] if "sizes" in z else None,
-                    z["sightings"] if "sightings" in z else None,
-                    str(z["frame"]) if "frame" in z else path.stem,
-                )
-        except (OSError, ValueError, KeyError) as exc:
-            raise FileFormatError(f"{path}: not a lunarloc .npz map ({exc})") from None
+        return _load_map_npz(path)
     if is_traverse_csv(path):
         return traverse_map(load_traverse(path), config)
     return _load_map_csv(path)
+
+
+def _load_map_npz(path: Path) -> LandmarkMap:
+    """A `.npz` landmark map, every array checked before it is allocated
+    (:func:`lunarloc.inputs.load_npz_arrays`)."""
+    z = _inputs.load_npz_arrays(path)
+    if "positions_xyz" not in z:
+        raise FileFormatError(f"{path}: not a lunarloc .npz map (no 'positions_xyz' array; has {', '.join(z) or 'none'})")
+    for name, arr in z.items():
+        if name != "frame" and arr.dtype.kind not in "fiub":
+            raise FileFormatError(f"{path}: array '{name}' holds {arr.dtype} values, expected numbers")
+    frame = z.get("frame")
+    if frame is not None and (frame.ndim != 0 or frame.dtype.kind != "U"):
+        raise FileFormatError(f"{path}: 'frame' must be a single string, got {frame.dtype} of shape {frame.shape}")
+    try:
+        return LandmarkMap(z["positions_xyz"], z.get("sizes"), z.get("sightings"),
+                           str(frame) if frame is not None else path.stem)  # fmt: skip
+    except InputError as exc:
+        raise FileFormatError(f"{path}: {exc}") from None

@@ -98,8 +98,8 @@ class LoopConfig:
     def __post_init__(self) -> None:
         from lunarloc.errors import ConfigError
 
-        if self.localize_every_m <= 0 or self.localize_every_s <= 0 or self.window_m <= 0:
-            raise ConfigError("localize_every_m, localize_every_s and window_m must be positive")
+        if not all(0 < v < math.inf for v in (self.localize_every_m, self.localize_every_s, self.window_m)):
+            raise ConfigError("localize_every_m, localize_every_s and window_m must be positive and finite")
         object.__setattr__(self, "fix_kind", FixKind(self.fix_kind))
         if self.min_window_landmarks < 3:
             raise ConfigError("min_window_landmarks must be >= 3")
@@ -146,28 +146,32 @@ def rocks_to_reference(rocks: np.ndarray, min_radius_m: float = 0.05, top_offset
 
 
 def _is_rock_csv(path: Path) -> bool:
-    with open(path, newline="") as fh:
-        head = fh.readline().strip().lower().replace(" ", "")
-    return head.split(",")[:5] == ROCK_COLUMNS
+    from lunarloc.maps import _first_line
+
+    return _first_line(path).split(",")[:5] == ROCK_COLUMNS
 
 
 def load_reference(path: str | Path, config: AggregationConfig | None = None, min_radius_m: float = 0.05) -> LandmarkMap:
     """A reference map from a landmark CSV/.npz, a traverse CSV, or a rock list (``rocks.csv``:
     ``id,x,y,z,radius``, converted by :func:`rocks_to_reference`). Raises InputError when empty."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileFormatError(f"{path}: no such file")
+    from lunarloc.inputs import check_input_file
+
+    path = check_input_file(path, None, "reference map")
     if path.suffix.lower() == ".csv" and _is_rock_csv(path):
-        try:
-            table = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
-        except ValueError as exc:
-            raise FileFormatError(f"{path}: bad rock list ({exc})") from None
-        ref = rocks_to_reference(table.reshape(-1, 5) if table.size else np.zeros((0, 5)), min_radius_m)
+        ref = rocks_to_reference(_load_rock_csv(path), min_radius_m)
     else:
         ref = load_map(path, config)
     if len(ref) < 3:
         raise InputError(f"{path}: reference map has {len(ref)} landmark(s); at least 3 are needed")
     return ref
+
+
+def _load_rock_csv(path: Path) -> np.ndarray:
+    """(N, 5) id, x, y, z, radius from a rock list CSV; FileFormatError naming file and line."""
+    from lunarloc.maps import read_numeric_csv
+
+    _, header, table = read_numeric_csv(path, tuple(ROCK_COLUMNS), "rock list CSV")
+    return table[:, [header.index(c) for c in ROCK_COLUMNS]]
 
 
 def scaled_detector_config(width: int, base=None):
@@ -756,8 +760,10 @@ def run_traverse_csv(
 def _write_tum(path: Path, times: np.ndarray, poses: np.ndarray) -> None:
     from scipy.spatial.transform import Rotation
 
+    from lunarloc.outputs import atomic_open
+
     q = Rotation.from_euler("ZYX", poses[:, [5, 4, 3]]).as_quat()  # x, y, z, w; R = Rz Ry Rx
-    with open(path, "w") as fh:
+    with atomic_open(path, "w") as fh:
         for t, p, qq in zip(times, poses, q):
             fh.write(f"{t:.6f} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} {qq[0]:.8f} {qq[1]:.8f} {qq[2]:.8f} {qq[3]:.8f}\n")
 
@@ -780,11 +786,15 @@ def write_outputs(result: LoopResult, outdir: str | Path) -> dict:
     (corrected frame), ``vehicle_map_odometry.csv``, ``reference_map.csv``, ``rocks.csv`` (if
     known), ``config.json``, ``summary.json``, ``example_frame.npz`` (one camera frame with
     its detections, when images were used).
+
+    Every file is written to a temporary name and renamed (:mod:`lunarloc.outputs`), so an
+    interrupted run leaves no truncated file; ``summary.json``, written last, marks a
+    complete run.
     """
     from lunarloc.maps import save_map
+    from lunarloc.outputs import atomic_open, atomic_path, make_dir, write_text
 
-    out = Path(outdir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_dir(outdir)
     _write_tum(out / "trajectory.tum", result.times, result.corrected)
     _write_tum(out / "trajectory_online.tum", result.times, result.online)
     _write_tum(out / "trajectory_odometry.tum", result.times, result.odometry)
@@ -792,25 +802,27 @@ def write_outputs(result: LoopResult, outdir: str | Path) -> dict:
         _write_tum(out / "trajectory_groundtruth.tum", result.times, result.ground_truth)
     rows = [a.row() for a in result.attempts]
     keys = list(Attempt(0, 0.0, 0, 0, 0, False, False).row().keys())
-    with open(out / "attempts.csv", "w", newline="") as fh:
+    with atomic_open(out / "attempts.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=keys)
         w.writeheader()
         for r in rows:
             w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
-    (out / "attempts.json").write_text(json.dumps([_clean(asdict(a)) for a in result.attempts], indent=1))
+    write_text(out / "attempts.json", json.dumps([_clean(asdict(a)) for a in result.attempts], indent=1))
     save_map(result.vehicle_map, out / "vehicle_map.csv")
     save_map(result.vehicle_map_odometry, out / "vehicle_map_odometry.csv")
     save_map(result.reference, out / "reference_map.csv")
     if result.rocks is not None:
-        np.savetxt(out / "rocks.csv", result.rocks, delimiter=",", header=",".join(ROCK_COLUMNS), comments="",
-                   fmt=["%d", "%.5f", "%.5f", "%.5f", "%.5f"])  # fmt: skip
+        with atomic_path(out / "rocks.csv") as tmp:
+            np.savetxt(tmp, result.rocks, delimiter=",", header=",".join(ROCK_COLUMNS), comments="",
+                       fmt=["%d", "%.5f", "%.5f", "%.5f", "%.5f"])  # fmt: skip
     if result.example is not None:
         ex = result.example
-        np.savez_compressed(out / "example_frame.npz", image=ex["image"], uv=ex["uv"], radius_px=ex["radius_px"],
-                            depth_m=ex["depth_m"], frame=ex["frame"], camera=ex["camera"])  # fmt: skip
-    (out / "config.json").write_text(json.dumps(_clean(result.config), indent=2, default=str))
+        with atomic_path(out / "example_frame.npz") as tmp:
+            np.savez_compressed(tmp, image=ex["image"], uv=ex["uv"], radius_px=ex["radius_px"],
+                                depth_m=ex["depth_m"], frame=ex["frame"], camera=ex["camera"])  # fmt: skip
+    write_text(out / "config.json", json.dumps(_clean(result.config), indent=2, default=str))
     summary = result.summary()
-    (out / "summary.json").write_text(json.dumps(_clean(summary), indent=2))
+    write_text(out / "summary.json", json.dumps(_clean(summary), indent=2))
     return summary
 
 

@@ -37,7 +37,24 @@ def _plt():
     return plt
 
 
+def _save(fig, path: Path) -> None:
+    """savefig to a temporary name in the same folder, renamed into place."""
+    from lunarloc.outputs import atomic_path
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp)
+
+
 def _load_run(outdir: Path) -> dict:
+    try:
+        return _read_run(outdir)
+    except (ValueError, IndexError) as exc:  # json, TUM or CSV contents; LunarLocErrors pass through
+        if isinstance(exc, FileFormatError):
+            raise
+        raise FileFormatError(f"{outdir}: damaged run folder ({type(exc).__name__}: {str(exc)[:120]})") from None
+
+
+def _read_run(outdir: Path) -> dict:
     from lunarloc.maps import load_map
     from lunarloc.pipeline import read_tum
 
@@ -104,7 +121,7 @@ def plot_map(run: dict, path: Path, title: str = "") -> Path:
     ax.set_title(title or "Online localization: top-down map")
     ax.legend(loc="upper left", fontsize=7, framealpha=0.85, markerscale=1.2)
     fig.tight_layout()
-    fig.savefig(path)
+    _save(fig, path)
     plt.close(fig)
     return path
 
@@ -137,16 +154,21 @@ def plot_error(run: dict, path: Path, title: str = "") -> Path:
     ax.legend(fontsize=8, loc="upper left")
     ax.set_title(title or "Position error vs ground truth")
     fig.tight_layout()
-    fig.savefig(path)
+    _save(fig, path)
     plt.close(fig)
     return path
 
 
 def plot_frame(npz_path: Path, path: Path) -> Path:
     plt = _plt()
-    with np.load(npz_path, allow_pickle=False) as z:
+    from lunarloc.inputs import load_npz_arrays
+
+    z = load_npz_arrays(npz_path)  # checked before allocating; FileFormatError naming the file
+    try:
         img, uv, rad, depth = z["image"], z["uv"], z["radius_px"], z["depth_m"]
         frame, cam = int(z["frame"]), str(z["camera"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise FileFormatError(f"{npz_path}: not an example frame ({type(exc).__name__}: {exc})") from None
     h, w = img.shape[:2]
     fig, ax = plt.subplots(figsize=(9, 9 * h / w + 0.4), dpi=100)
     ax.imshow(img, cmap="gray", vmin=0, vmax=255)
@@ -158,7 +180,7 @@ def plot_frame(npz_path: Path, path: Path) -> Path:
     ax.set_axis_off()
     ax.set_title(f"{cam}, frame {frame}: {len(uv)} rock detections (circle: estimated radius)", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path)
+    _save(fig, path)
     plt.close(fig)
     return path
 

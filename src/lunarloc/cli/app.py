@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import errno
 import logging
+import os
 import sys
 
 import typer
@@ -40,33 +42,94 @@ def _register_commands() -> None:
     from lunarloc.cli import commands_odometry  # noqa: F401
 
 
+_STATE = {"debug": False}
+
+EXIT_OK, EXIT_CHECK_FAILED, EXIT_USAGE, EXIT_INTERNAL, EXIT_INTERRUPTED = 0, 1, 2, 70, 130
+"""Exit codes: 0 success, 1 a check or gate failed, 2 usage or input error, 70 internal
+error (a bug: EX_SOFTWARE of sysexits.h), 130 interrupted (Ctrl-C, SIGTERM)."""
+
+
+@app.callback()
+def _root(
+    debug: bool = typer.Option(False, "--debug", help="Show the Python traceback of any error (for bug reports)."),
+) -> None:
+    """Rock-landmark global localization for planetary rovers (LunarLoc)."""
+    _STATE["debug"] = debug
+
+
+def _one_line(text: str, limit: int = 400) -> str:
+    line = " ".join(str(text).split())
+    return line if len(line) <= limit else line[: limit - 3] + "..."
+
+
+def _fail(msg: str, code: int, exc: BaseException | None = None) -> int:
+    if exc is not None and (_STATE["debug"] or os.environ.get("LUNARLOC_DEBUG")):
+        import traceback
+
+        traceback.print_exception(type(exc), exc, exc.__traceback__, file=sys.stderr)
+    typer.secho(_one_line(msg), err=True, fg=typer.colors.RED if code != EXIT_INTERRUPTED else None)
+    return code
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Entry point: run the app, turning library errors into one-line messages."""
+    """Entry point: run the app; every failure becomes one line on stderr and an exit code
+    (see EXIT_*); a traceback only with ``--debug`` (or LUNARLOC_DEBUG=1).
+
+    SIGTERM keeps its default (immediate) action: a Python handler would wait for a long
+    numba kernel to return. Outputs are written atomically, so a killed run leaves at most
+    a hidden ``.NAME.tmp-*`` file, never a truncated output under its real name."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    _STATE["debug"] = False
     _register_commands()
+    return _run(argv)
+
+
+def _run(argv: list[str] | None) -> int:
+    from lunarloc.errors import CheckFailedError, file_error
+
     try:
         # standalone_mode=False makes click *return* the code of a `typer.Exit` raised by a
         # command instead of calling sys.exit; dropping it turned every failed check into 0
         rv = app(args=argv, standalone_mode=False)
+    except CheckFailedError as exc:
+        return _fail(f"check failed: {exc}", EXIT_CHECK_FAILED, exc)
     except LunarLocError as exc:
-        typer.secho(f"error: {exc}", err=True, fg=typer.colors.RED)
-        return 2
-    except FileNotFoundError as exc:
-        typer.secho(f"error: file not found: {exc.filename or exc}", err=True, fg=typer.colors.RED)
-        return 2
-    except (typer.Abort, KeyboardInterrupt):
-        typer.secho("aborted", err=True)
-        return 130
+        return _fail(f"error: {exc}", EXIT_USAGE, exc)
+    except KeyboardInterrupt as exc:
+        return _fail("interrupted; partial outputs removed", EXIT_INTERRUPTED, exc)
+    except typer.Abort as exc:
+        # click turns KeyboardInterrupt *and* EOFError into Abort; only the first is an interruption
+        cause = exc.__cause__ or exc.__context__
+        if isinstance(cause, KeyboardInterrupt) or cause is None:
+            return _fail("interrupted; partial outputs removed", EXIT_INTERRUPTED, exc)
+        return _internal(cause)
     except typer.Exit as exc:
         return exc.exit_code
+    except OSError as exc:
+        if exc.errno is None:
+            return _internal(exc)
+        write = exc.errno in (errno.ENOSPC, errno.EROFS, errno.EDQUOT)
+        return _fail(f"error: {file_error(exc.filename or '(unnamed file)', exc, 'write' if write else 'read')}",
+                     EXIT_USAGE, exc)  # fmt: skip
+    except MemoryError as exc:
+        return _fail("error: out of memory (the input is larger than this machine can hold)", EXIT_INTERNAL, exc)
+    except SystemExit as exc:
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else EXIT_USAGE)
     except Exception as exc:
         # usage errors (bad option, unknown command): click's ClickException, which newer
         # typer releases vendor; recognised by its interface rather than its module
         if callable(getattr(exc, "show", None)) and isinstance(getattr(exc, "exit_code", None), int):
             exc.show()
             return exc.exit_code
-        raise
+        return _internal(exc)
+    if rv == EXIT_INTERRUPTED:  # typer turns KeyboardInterrupt into Exit(130), returned here
+        return _fail("interrupted; partial outputs removed", EXIT_INTERRUPTED)
     return rv if isinstance(rv, int) else 0
+
+
+def _internal(exc: BaseException) -> int:
+    return _fail(f"internal error: {type(exc).__name__}: {exc} (rerun with --debug for the traceback)",
+                 EXIT_INTERNAL, exc)  # fmt: skip
 
 
 if __name__ == "__main__":  # pragma: no cover

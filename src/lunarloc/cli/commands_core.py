@@ -10,6 +10,7 @@ from typing import Optional
 import typer
 
 from lunarloc.cli.app import app, console
+from lunarloc.cli.checks import OVERWRITE_OPT, choice, number, positive
 
 bench_app = typer.Typer(help="Benchmarks that reproduce the published figures.", no_args_is_help=True)
 app.add_typer(bench_app, name="bench")
@@ -18,6 +19,7 @@ app.add_typer(bench_app, name="bench")
 def _agg(radius: Optional[float], min_sightings: Optional[int]):
     from lunarloc.maps import AggregationConfig
 
+    positive(radius, "--radius", 10.0, "m")
     d = AggregationConfig()
     return AggregationConfig(
         radius_m=radius if radius is not None else d.radius_m,
@@ -26,7 +28,17 @@ def _agg(radius: Optional[float], min_sightings: Optional[int]):
 
 
 RADIUS_OPT = typer.Option(None, "--radius", help="Clustering radius in metres (default from AggregationConfig).")
-SIGHT_OPT = typer.Option(None, "--min-sightings", help="Detections needed per landmark.")
+SIGHT_OPT = typer.Option(None, "--min-sightings", min=1, max=1_000_000, help="Detections needed per landmark.")
+MAX_EPSILON_M = 0.3
+"""Largest --epsilon accepted: beyond it nearly every pair of associations is 'consistent' and
+the consistency graph grows quadratically in memory (issue 13: 6.5 GB at 5 m)."""
+
+
+def _map_suffix(out: Path) -> None:
+    from lunarloc.errors import ConfigError
+
+    if out.suffix.lower() not in (".csv", ".npz"):
+        raise ConfigError(f"{out}: unknown map format {out.suffix!r} (use .csv or .npz)")
 
 
 @app.command("map")
@@ -35,12 +47,17 @@ def map_cmd(
     out: Path = typer.Option(..., "-o", "--out", help="Output landmark map (.csv or .npz)."),
     radius: Optional[float] = RADIUS_OPT,
     min_sightings: Optional[int] = SIGHT_OPT,
+    overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """Build a landmark map (one landmark per rock) from a traverse's detections."""
     from lunarloc.maps import load_traverse, save_map, traverse_map
+    from lunarloc.outputs import check_output_file
 
+    _map_suffix(out)
+    check_output_file(out, overwrite, "landmark map")  # before the computation, not after
+    agg = _agg(radius, min_sightings)
     trav = load_traverse(traverse)
-    lm = traverse_map(trav, _agg(radius, min_sightings))
+    lm = traverse_map(trav, agg)
     save_map(lm, out)
     typer.echo(
         f"{traverse.name}: {len(trav.detections_xyz)} detections in {len(trav.frames)} frames "
@@ -55,7 +72,7 @@ def localize_cmd(
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
     mode: str = typer.Option("gravity", help="gravity (IMU-levelled maps, default) or 6dof."),
     solver: str = typer.Option("exact", help="exact (maximum clique, default) or clipper."),
-    epsilon: float = typer.Option(0.05, help="Pairwise distance tolerance in metres."),
+    epsilon: float = typer.Option(0.05, help=f"Pairwise distance tolerance in metres, in (0, {MAX_EPSILON_M:g}]."),
     registration: str = typer.Option("se3", help="se3 (default) or yaw (4-DoF, exactly levelled maps)."),
     max_size_ratio: Optional[float] = typer.Option(
         None, help="Prune associations whose size ratio exceeds this (maps with a size column)."
@@ -64,10 +81,15 @@ def localize_cmd(
     min_sightings: Optional[int] = SIGHT_OPT,
 ) -> None:
     """Localize VEHICLE in REFERENCE. Exit code 0 whether or not it localized."""
-    from lunarloc.localize import LocalizationConfig, Mode, Solver, localize
+    from lunarloc.localize import LocalizationConfig, Mode, Registration, Solver, localize
     from lunarloc.errors import ConfigError
     from lunarloc.maps import load_map
 
+    choice(mode, Mode, "--mode")
+    choice(solver, Solver, "--solver")
+    choice(registration, Registration, "--registration")
+    positive(epsilon, "--epsilon", MAX_EPSILON_M, "m")
+    number(max_size_ratio, "--max-size-ratio", 1.0, 1e6)
     try:
         cfg = LocalizationConfig(
             mode=Mode(mode), solver=Solver(solver), epsilon_m=epsilon, registration=registration,
@@ -111,15 +133,24 @@ def bench_pairs_cmd(
     mode: str = typer.Option("gravity", help="gravity or 6dof."),
     solver: str = typer.Option("exact", help="exact or clipper."),
     check: bool = typer.Option(False, "--check", help="Exit 1 unless the acceptance targets are met."),
+    overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """Localize traverse pairs of the LunarLoc dataset; table on screen, CSV + JSON in --out."""
     from rich.progress import Progress
     from rich.table import Table
 
     from lunarloc.evaluation import PAPER_PAIRS, DriftModel, bench_pairs, find_traverses
-    from lunarloc.localize import LocalizationConfig
+    from lunarloc.localize import LocalizationConfig, Mode, Solver
+    from lunarloc.outputs import atomic_open, check_output_dir, write_text
 
     import itertools
+
+    choice(mode, Mode, "--mode")
+    choice(solver, Solver, "--solver")
+    number(drift, "--drift", 0.0, 10.0, unit="deg/m")
+    number(scale_error, "--scale-error", -0.5, 0.5)
+    positive(window, "--window", 1e6, "m")
+    check_output_dir(out, overwrite, ("pairs.csv", "pairs.json"), marker=None)
 
     paths = find_traverses(data)
     pairs = list(PAPER_PAIRS) if only_paper else list(PAPER_PAIRS) + [
@@ -160,11 +191,10 @@ def bench_pairs_cmd(
     )
     big = max(res, key=lambda r: r.segs_ref * r.segs_veh)
     con.print(f"largest pair {big.reference}-{big.vehicle} ({big.segs_ref}x{big.segs_veh} landmarks): {big.time_s:.3f} s")
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "pairs.json").write_text(json.dumps(d, indent=1))
+    write_text(out / "pairs.json", json.dumps(d, indent=1))
     import csv
 
-    with open(out / "pairs.csv", "w", newline="") as fh:
+    with atomic_open(out / "pairs.csv", "w", newline="") as fh:
         w = csv.writer(fh)
         keys = list(d["results"][0].keys()) if d["results"] else []
         w.writerow(keys)

@@ -8,6 +8,9 @@ import numpy as np
 import typer
 
 from lunarloc.cli.app import app, console
+from lunarloc.cli.checks import OVERWRITE_OPT
+
+PLOT_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
 
 
 def _summary(archive) -> dict:
@@ -79,20 +82,30 @@ def _plot(archive, out: Path) -> None:
     ax.set_title(archive.path.name)
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     ax.grid(alpha=0.3)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=120, bbox_inches="tight")
+    from lunarloc.outputs import atomic_path
+
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, dpi=120, bbox_inches="tight")
     plt.close(fig)
 
 
 @app.command("info")
 def info(
-    archive_path: Path = typer.Argument(..., help="A .lac archive.", exists=True, dir_okay=False),
+    archive_path: Path = typer.Argument(..., help="A .lac archive."),
     plot: Path | None = typer.Option(None, "--plot", help="Write a top-down plot of the trajectory (and rocks) to this PNG."),
+    overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """Summarise a .lac archive: frames, duration, cameras, image counts, path length, custom records."""
     from rich.table import Table as RichTable
 
     from lunarloc.data.lac import LacArchive
+    from lunarloc.errors import ConfigError
+    from lunarloc.outputs import check_output_file
+
+    if plot is not None:
+        if plot.suffix.lower() not in PLOT_SUFFIXES:
+            raise ConfigError(f"--plot {plot}: unknown image format {plot.suffix!r} (use {', '.join(PLOT_SUFFIXES)})")
+        check_output_file(plot, overwrite, "plot")
 
     con = console()
     with LacArchive(archive_path) as archive:

@@ -9,6 +9,7 @@ from pathlib import Path
 import typer
 
 from lunarloc.cli.app import app
+from lunarloc.cli.checks import OVERWRITE_OPT, choice
 
 
 @app.command("detect")
@@ -24,10 +25,11 @@ def detect(
         "visual | imu | record:NAME | ground-truth (evaluation only)",
     ),  # fmt: skip
     debug_dir: Path = typer.Option(None, "--debug-dir", help="write overlay images (masks by filter, depth) here"),
-    every: int = typer.Option(1, "--every", min=1, help="process every N-th camera frame"),
+    every: int = typer.Option(1, "--every", min=1, max=1_000_000, help="process every N-th camera frame"),
     no_centre_correction: bool = typer.Option(
         False, "--no-centre-correction", help="keep the visible-surface centroid (no sphere-centre shift)"
     ),
+    overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """Segment rocks in the left images, lift them to 3D with stereo, write the traverse CSV."""
     from tqdm import tqdm
@@ -42,14 +44,22 @@ def detect(
         detect_archive,
         write_traverse_csv,
     )
-    from lunarloc.errors import ConfigError
+    from lunarloc.inputs import check_input_file
+    from lunarloc.outputs import atomic_open, check_output_dir, check_output_file, make_dir
+    from lunarloc.perception.segment import SegmenterKind
 
+    pose_src = PoseSource(choice(pose, PoseSource, "--pose"))
+    choice(segmenter, SegmenterKind, "--segmenter")
+    if weights is not None:
+        check_input_file(weights, None, "FastSAM weights")
+    check_input_file(archive, None, ".lac archive")
+    config_path = output.with_suffix(output.suffix + ".config.json")
+    check_output_file(output, overwrite, "detections CSV")  # all output checks before any work
+    check_output_file(config_path, overwrite, "detection config")
+    if debug_dir is not None:
+        check_output_dir(debug_dir, True, ())
     from lunarloc.odometry import archive_odometry, parse_odometry_source
 
-    try:
-        pose_src = PoseSource(pose)
-    except ValueError:
-        raise ConfigError(f"--pose must be one of {[p.value for p in PoseSource]}, got {pose!r}") from None
     if odometry is not None:
         parse_odometry_source(odometry)  # a bad name fails before any work
     cfg = DetectorConfig(
@@ -58,7 +68,7 @@ def detect(
         centre_correction=not no_centre_correction,
     )
     if debug_dir is not None:
-        debug_dir.mkdir(parents=True, exist_ok=True)
+        make_dir(debug_dir)
     with LacArchive(archive) as ar:
         from lunarloc.perception.detector import _camera_from_archive
         from lunarloc.pipeline import scaled_detector_config
@@ -80,7 +90,10 @@ def detect(
             stats["time"]["odometry"] = time.perf_counter() - t_start
 
         def frames_iter():
-            bar = tqdm(total=len(frames), unit="frame", desc="detect", dynamic_ncols=True)
+            with tqdm(total=len(frames), unit="frame", desc="detect", dynamic_ncols=True) as bar:  # closed before an error prints
+                yield from _frames(bar)
+
+        def _frames(bar):
             for fd in detect_archive(ar, cfg, pose_src, detector=detector, frames=frames,
                                      keep_depth=debug_dir is not None, poses=poses):  # fmt: skip
                 stats["frames"] += 1
@@ -96,14 +109,16 @@ def detect(
                 bar.update(1)
                 bar.set_postfix(det=stats["detections"])
                 yield fd
-            bar.close()
 
-        n = write_traverse_csv(output, frames_iter())
+        gen = frames_iter()
+        try:
+            n = write_traverse_csv(output, gen)
+        finally:
+            gen.close()  # closes the progress bar before an error message is printed
     wall = time.perf_counter() - t_start
-    config_path = output.with_suffix(output.suffix + ".config.json")
-    config_path.write_text(
-        json.dumps({"archive": str(archive), "pose": pose_label, "detector": cfg.to_dict()}, indent=2, default=str)
-    )
+    with atomic_open(config_path, "w") as fh:
+        fh.write(json.dumps({"archive": str(archive), "pose": pose_label, "detector": cfg.to_dict()},
+                            indent=2, default=str))  # fmt: skip
     per = {k: v / max(stats["frames"], 1) for k, v in stats["time"].items()}
     typer.echo(
         f"{n} frames, {stats['detections']} detections placed with {pose_label} poses -> {output} "

@@ -10,13 +10,18 @@ from typing import Optional
 import typer
 
 from lunarloc.cli.app import app, console
+from lunarloc.cli.checks import OVERWRITE_OPT, choice, number, positive
 from lunarloc.cli.commands_core import bench_app
 
 
 def _loop_config(every_m: float, every_s: float, window_m: float, fix: str = "landmarks"):
     from lunarloc.errors import ConfigError
-    from lunarloc.pipeline import LoopConfig
+    from lunarloc.pipeline import FixKind, LoopConfig
 
+    positive(every_m, "--every-m", 1e6, "m")
+    positive(every_s, "--every-s", 1e7, "s")
+    positive(window_m, "--window-m", 1e6, "m")
+    choice(fix, FixKind, "--fix")
     try:
         return LoopConfig.for_images(localize_every_m=every_m, localize_every_s=every_s, window_m=window_m, fix_kind=fix)
     except ValueError as exc:
@@ -66,18 +71,27 @@ def run_cmd(
         help="Odometry source: visual | imu | record:NAME | ground-truth (evaluation only). "
         "Default: visual when the archive has front stereo pairs, else imu.",
     ),  # fmt: skip
+    overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """Online localization over a traverse: detect, map, localize against REFERENCE, fuse."""
     from tqdm import tqdm
 
+    from lunarloc.inputs import check_input_file
+    from lunarloc.outputs import check_output_dir
     from lunarloc.pipeline import load_reference, run_online, scaled_detector_config, write_outputs
     from lunarloc.perception.detector import DetectorConfig
+    from lunarloc.perception.segment import SegmenterKind
 
+    choice(segmenter, SegmenterKind, "--segmenter")
+    if weights is not None:
+        check_input_file(weights, None, "FastSAM weights")
+    check_input_file(archive, None, ".lac archive")
     from lunarloc.odometry import default_odometry_source, parse_odometry_source
 
     if odometry is not None:
         parse_odometry_source(odometry)  # fail on a bad name before any work
     cfg = _loop_config(every_m, every_s, window_m, fix)
+    check_output_dir(out, overwrite)  # a previous run is refused, or cleared with --overwrite
     ref = load_reference(reference, cfg.aggregation)
     base = DetectorConfig(segmenter=segmenter, weights=str(weights) if weights else None)
     from lunarloc.data.lac import LacArchive
@@ -87,16 +101,15 @@ def run_cmd(
         width = _camera_of(ar.configured_cameras).width
         odometry = odometry or default_odometry_source(ar)
     det_cfg = scaled_detector_config(width, base)
-    bar = tqdm(unit="frame", desc="run", dynamic_ncols=True)
+    with tqdm(unit="frame", desc="run", dynamic_ncols=True) as bar:  # closed before an error prints
 
-    def prog(n, total):
-        bar.total = total
-        bar.n = n
-        if n % 50 == 0 or n == total:
-            bar.refresh()
+        def prog(n, total):
+            bar.total = total
+            bar.n = n
+            if n % 50 == 0 or n == total:
+                bar.refresh()
 
-    res = run_online(archive, ref, cfg, det_cfg, progress=prog, odometry_source=odometry)
-    bar.close()
+        res = run_online(archive, ref, cfg, det_cfg, progress=prog, odometry_source=odometry)
     s = write_outputs(res, out)
     _print_summary(s, f"{archive.name} in {reference.name} ({len(ref)} landmarks)")
     typer.echo(f"odometry: {res.config['odometry_source']}")
@@ -113,8 +126,12 @@ def plot_cmd(
     outdir: Path = typer.Argument(..., help="A run folder written by `lunarloc run` or `lunarloc demo`."),
     figdir: Optional[Path] = typer.Option(None, "--figdir", help="Where to write the PNGs (default: OUTDIR)."),
 ) -> None:
-    """Regenerate the figures (map.png, error.png, frame.png) of a run."""
+    """Regenerate the figures (map.png, error.png, frame.png) of a run (replacing earlier ones:
+    regenerating them is this command's purpose)."""
+    from lunarloc.outputs import check_output_dir
     from lunarloc.viz import plot_run
+
+    check_output_dir(figdir if figdir is not None else outdir, True, ())
 
     for p in plot_run(outdir, figdir):
         typer.echo(f"wrote {p}")
@@ -128,10 +145,21 @@ def demo_cmd(
     reference_duration: float = typer.Option(100.0, "--reference-duration", help="Reference traverse length, seconds."),
     width: int = typer.Option(640, "--width", help="Image width (height = 9/16 of it)."),
     image_rate: float = typer.Option(2.0, "--image-rate", help="Camera rate of both traverses, Hz."),
-    n_rocks: int = typer.Option(800, "--rocks", help="Rocks on the site (LAC map: 386; the demo uses a rock-rich site)."),
+    n_rocks: int = typer.Option(800, "--rocks", min=0, max=100_000,
+                                help="Rocks on the site (LAC map: 386; the demo uses a rock-rich site)."),  # fmt: skip
+    overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """End to end on generated data: simulate a site, a reference and a drifting vehicle
     traverse, build the reference map from images, run the loop, print a table, write figures."""
+    from lunarloc.outputs import check_output_dir
+
+    positive(duration, "--duration", 3600.0, "s")
+    positive(reference_duration, "--reference-duration", 3600.0, "s")
+    number(width, "--width", 64, 4096, unit="px")
+    positive(image_rate, "--image-rate", 10.0, "Hz")
+    check_output_dir(out, overwrite)
+    check_output_dir(Path(out) / "data", overwrite, DEMO_DATA_FILES, marker=None)
+
     from lunarloc.scenario import ScenarioConfig, run_scenario, scenario_problems
 
     t0 = time.perf_counter()
@@ -142,8 +170,12 @@ def demo_cmd(
     typer.echo(f"demo finished in {time.perf_counter() - t0:.0f} s; outputs and figures in {out}/")
     problems = scenario_problems(s)
     if problems:
-        typer.secho("demo check failed: " + "; ".join(problems), err=True, fg=typer.colors.RED)
-        raise typer.Exit(1)
+        from lunarloc.errors import CheckFailedError
+
+        raise CheckFailedError("demo: " + "; ".join(problems))
+
+
+DEMO_DATA_FILES = ("rocks.csv", "reference.lac", "vehicle.lac", "reference_map.csv")
 
 
 @bench_app.command("loop")
@@ -154,6 +186,7 @@ def bench_loop_cmd(
     scale_error: float = typer.Option(0.02, "--scale-error", help="Simulated odometry scale error (0.02 = 2%)."),
     traverses: Optional[str] = typer.Option(None, "--traverses", help="Comma-separated vehicle traverses (default all)."),
     min_length: float = typer.Option(5.0, "--min-length", help="Skip vehicle traverses shorter than this (m)."),
+    overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """The online loop on the real LunarLoc traverses (world-frame detections, no images) with
     simulated odometry drift; each traverse is localized against a map of all the others."""
@@ -162,11 +195,23 @@ def bench_loop_cmd(
 
     from lunarloc.evaluation import DriftModel, find_traverses
     from lunarloc.maps import aggregate_detections, load_traverse
+    from lunarloc.errors import ConfigError
+    from lunarloc.outputs import atomic_open, check_output_dir
     from lunarloc.pipeline import run_traverse_csv, write_outputs
 
+    number(heading_drift, "--heading-drift", 0.0, 10.0, unit="deg/m")
+    number(scale_error, "--scale-error", -0.5, 0.5)
+    number(min_length, "--min-length", 0.0, 1e6, unit="m")
+    try:
+        wanted_arg = [int(x) for x in traverses.split(",")] if traverses else None
+    except ValueError:
+        raise ConfigError(f"--traverses must be comma-separated traverse numbers, got {traverses!r}") from None
     paths = find_traverses(data)
+    check_output_dir(out, overwrite, ("loop.json",), marker=None)
+    for k in wanted_arg or paths:
+        check_output_dir(out / f"traverse_{k}", overwrite)
     trav = {k: load_traverse(p) for k, p in paths.items()}
-    wanted = [int(x) for x in traverses.split(",")] if traverses else sorted(trav)
+    wanted = wanted_arg or sorted(trav)
     drift = DriftModel(heading_drift, scale_error)
     con = console()
     table = Table(title=f"online loop on real traverses (drift {heading_drift} deg/m, scale {scale_error:+.1%})")
@@ -176,7 +221,7 @@ def bench_loop_cmd(
     rows = []
     for v in wanted:
         if v not in trav:
-            raise typer.BadParameter(f"traverse {v} not in {data}")
+            raise ConfigError(f"--traverses: traverse {v} not in {data} (have {', '.join(map(str, trav))})")
         if trav[v].path_length < min_length:
             continue
         others = [k for k in trav if k != v]
@@ -195,6 +240,6 @@ def bench_loop_cmd(
         con.print(f"traverse {v}: corrected RMSE {s['ate_corrected']['rmse_m']:.3f} m "
                   f"(odometry {s['ate_odometry']['rmse_m']:.3f} m), {s['fixes']} fixes")  # fmt: skip
     con.print(table)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "loop.json").write_text(json.dumps(rows, indent=1))
+    with atomic_open(out / "loop.json", "w") as fh:
+        fh.write(json.dumps(rows, indent=1))
     con.print(f"wrote {out / 'loop.json'}")

@@ -8,13 +8,14 @@ import typer
 
 from lunarloc.cli.app import app
 from lunarloc.data.render import Lighting, SemanticFormat
+from lunarloc.cli.checks import OVERWRITE_OPT, number, positive
 
 
 @app.command("simulate")
 def simulate(
     out: Path = typer.Option(..., "--out", help="Output folder (rocks.csv, traverse_<i>.lac)."),
     seed: int = typer.Option(0, "--seed", help="Site seed (same seed, same site)."),
-    traverses: int = typer.Option(1, "--traverses", min=0, help="Number of traverse archives."),
+    traverses: int = typer.Option(1, "--traverses", min=0, max=1000, help="Number of traverse archives."),
     duration: float = typer.Option(120.0, "--duration", help="Traverse length in seconds."),
     width: int = typer.Option(1280, "--width", help="Image width in pixels."),
     height: int = typer.Option(720, "--height", help="Image height in pixels."),
@@ -38,8 +39,21 @@ def simulate(
     example_images: Path | None = typer.Option(
         None, "--example-images", help="Only write the two example images (FrontLeft grayscale + semantic) here."
     ),
+    overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """Simulate a lunar site: write its ground-truth rock map and N traverse archives."""
+    from lunarloc.outputs import check_output_dir
+
+    positive(duration, "--duration", 24 * 3600.0, "s")
+    number(width, "--width", 16, 8192, unit="px")
+    number(height, "--height", 16, 8192, unit="px")
+    positive(image_rate, "--image-rate", 10.0, "Hz")
+    number(sun_elevation, "--sun-elevation", -90.0, 90.0, unit="deg")
+    number(sun_azimuth, "--sun-azimuth", -360.0, 360.0, unit="deg")
+    if example_images is not None:
+        check_output_dir(example_images, True, ())
+    else:
+        check_output_dir(out, overwrite, ("rocks.csv", "simulation.json", *(f"traverse_{i}.lac" for i in range(traverses))), marker=None)
     from dataclasses import replace
 
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn

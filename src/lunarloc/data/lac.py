@@ -128,7 +128,7 @@ from typing import Any
 
 import numpy as np
 
-from lunarloc.errors import ArchiveError, InputError
+from lunarloc.errors import ArchiveError, InputError, LimitError, MissingColumnError
 
 try:  # Python >= 3.11
     import tomllib
@@ -192,6 +192,30 @@ LEGACY_MAP_LANDER_SPECS: tuple[str, ...] = ("lunarloc-sim",)
 _CHUNK = 256 * 1024  # compressed bytes read per step
 _MAX_OUT = 1024 * 1024  # cap on decompressed bytes per zlib call (bounds memory)
 DEFAULT_CHECKPOINT_SPACING = 4 * 1024 * 1024  # decompressed bytes between checkpoints
+
+# Limits on what an archive may make us allocate, checked before reading (docs/robustness.md).
+MAX_TABLE_BYTES = 256 * 1024**2  # one CSV member (frames.csv of a 20 Hz traverse: ~400 B/row, ~180 h)
+MAX_TABLE_CELLS = 5_000_000  # rows x columns of one CSV member (frames.csv: 18 columns, 277 k rows = 3.9 h at 20 Hz)
+MAX_TOML_BYTES = 1024**2  # initial.toml / metadata.toml
+MAX_IMAGE_BYTES = 64 * 1024**2  # one encoded image member
+MAX_IMAGE_PIXELS = 64_000_000  # decoded image size (a 2x2 mosaic of 4K frames); PIL's bomb check is 179 M
+MAX_TAR_HEADER_BYTES = 1024**2  # a GNU long-name or pax extended header
+MAX_MEMBERS = 1_000_000  # tar members (a 1 h traverse, 8 cameras at 10 Hz with semantics: ~600 k)
+MAX_CSV_FIELD = 1024**2  # characters in one CSV field of an archive table
+
+
+class _BoundedTarInfo(tarfile.TarInfo):
+    """TarInfo that refuses oversized long-name / pax headers (tarfile would read them
+    whole into memory) and archives with more than MAX_MEMBERS members."""
+
+    def _proc_member(self, tf):
+        if self.type in (tarfile.GNUTYPE_LONGNAME, tarfile.GNUTYPE_LONGLINK, tarfile.XHDTYPE, tarfile.XGLTYPE,
+                         tarfile.SOLARIS_XHDTYPE) and self.size > MAX_TAR_HEADER_BYTES:  # fmt: skip
+            raise LimitError(f"tar header at byte {self.offset} is {self.size:,} bytes, over the "
+                             f"{MAX_TAR_HEADER_BYTES:,}-byte limit for a long-name/pax header")  # fmt: skip
+        if len(tf.members) >= MAX_MEMBERS:
+            raise LimitError(f"more than {MAX_MEMBERS:,} members")
+        return super()._proc_member(tf)
 
 
 # --------------------------------------------------------------------------------------
@@ -375,7 +399,10 @@ class Table:
         return list(self._cols)
 
     def __getitem__(self, key: str) -> np.ndarray:
-        return self._cols[key]
+        try:
+            return self._cols[key]
+        except KeyError:
+            raise MissingColumnError(f"{self.name or 'table'}: no column {key!r} (have {', '.join(self._cols) or 'none'})") from None
 
     def __iter__(self):
         return iter(self._cols)
@@ -398,10 +425,30 @@ class Table:
         return {k: v[i].item() if isinstance(v[i], np.generic) else v[i] for k, v in self._cols.items()}
 
     def to_array(self, columns: Sequence[str]) -> np.ndarray:
-        """(N, len(columns)) float64 array of the named numeric columns."""
-        return np.stack([np.asarray(self._cols[c], dtype=float) for c in columns], axis=1).reshape(
-            self._n, len(columns)
-        )
+        """(N, len(columns)) float64 array of the named numeric columns (ArchiveError naming
+        the table, column and line when a column is missing or holds text)."""
+        arrays = []
+        for c in columns:
+            col = self[c]
+            if col.dtype == object:
+                bad = next((i for i, v in enumerate(col) if not _is_float_text(v)), 0)
+                raise ArchiveError(f"{self.name or 'table'}: column '{c}' holds text ({str(col[bad])[:40]!r} at line {bad + 2}), expected numbers")
+            arrays.append(np.asarray(col, dtype=float))
+        return np.stack(arrays, axis=1).reshape(self._n, len(columns)) if arrays else np.zeros((self._n, 0))
+
+    def int_column(self, name: str) -> np.ndarray:
+        """Column `name` as int64; ArchiveError naming the table and line when a value is
+        missing, text, fractional or beyond +-2**53."""
+        col = self[name]
+        if col.dtype.kind in "iu":
+            return col.astype(np.int64)
+        out = np.empty(len(col), dtype=np.int64)
+        for i, v in enumerate(col):
+            try:
+                out[i] = _parse_int(str(v))
+            except ValueError:
+                raise ArchiveError(f"{self.name or 'table'}: column '{name}' at line {i + 2}: {str(v)[:40]!r} is not an integer") from None
+        return out
 
     def __repr__(self) -> str:
         return f"Table({self.name!r}, rows={self._n}, columns={self.columns})"
@@ -425,9 +472,53 @@ def _parse_bool(text: str) -> bool:
 
 def _parse_int(text: str) -> int:
     v = float(text)
-    if not np.isfinite(v) or v != int(v):
-        raise ValueError(f"not an integer: {text!r}")
+    if not np.isfinite(v) or v != int(v) or abs(v) > 2**53:
+        raise ValueError(f"not an integer (or beyond +-2**53): {text!r}")
     return int(v)
+
+
+def _is_float_text(v) -> bool:
+    try:
+        float(v)
+    except (TypeError, ValueError):
+        return False
+    return True
+
+
+def _utf8_lines(data: bytes, where: str):
+    """Decoded lines of `data`, one at a time (no full-text copy: io.StringIO would hold 4
+    bytes per character); a UTF-8 BOM is dropped; ArchiveError names the bad line."""
+    for k, line in enumerate(io.BytesIO(data), start=1):
+        if k == 1 and line.startswith(b"\xef\xbb\xbf"):
+            line = line[3:]
+        try:
+            yield line.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise ArchiveError(f"{where}: line {k}: not UTF-8 text (byte 0x{line[exc.start]:02x})") from None
+
+
+def _csv_rows(data: bytes, where: str) -> list[list[str]]:
+    """Non-blank CSV rows of `data` (UTF-8), blank lines skipped while reading (a member of a
+    million newlines costs nothing), at most MAX_TABLE_CELLS cells, fields of at most
+    MAX_CSV_FIELD characters."""
+    rows: list[list[str]] = []
+    cells = 0
+    old = csv.field_size_limit(MAX_CSV_FIELD)
+    reader = csv.reader(_utf8_lines(data, where))
+    try:
+        for r in reader:
+            if not r:
+                continue
+            cells += len(r)
+            if cells > MAX_TABLE_CELLS:
+                raise LimitError(f"{where}: more than {MAX_TABLE_CELLS:,} cells (line {reader.line_num})")
+            rows.append(r)
+    except csv.Error as exc:
+        msg = f"a field is longer than {MAX_CSV_FIELD:,} characters" if "field limit" in str(exc) else f"malformed CSV ({exc})"
+        raise ArchiveError(f"{where}: line {reader.line_num}: {msg}") from None
+    finally:
+        csv.field_size_limit(old)
+    return rows
 
 
 def _parse_csv(
@@ -447,12 +538,7 @@ def _parse_csv(
     the 1-byte camera tables of older recorders) gives an empty Table instead of an error.
     Raises ArchiveError naming `where` (archive: member) on any problem.
     """
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise ArchiveError(f"{where}: not UTF-8 text ({exc})") from None
-    rows = list(csv.reader(io.StringIO(text)))
-    rows = [r for r in rows if r]  # tolerate a trailing blank line
+    rows = _csv_rows(data, where)  # decodes UTF-8 line by line, skips blank lines
     if not rows:
         if required and not allow_empty:
             raise ArchiveError(f"{where}: empty file, expected columns {', '.join(required)}")
@@ -479,8 +565,8 @@ def _parse_csv(
         elif name in bools:
             parser, dtype = _parse_bool, bool
         elif name not in floats:
-            if raw and all(_INT_TEXT.match(v) for v in raw):  # inferred integer column
-                cols[name] = np.array([int(v) for v in raw], dtype=np.int64)
+            if raw and all(_INT_TEXT.match(v) for v in raw) and all(len(v.strip()) < 16 for v in raw):
+                cols[name] = np.array([int(v) for v in raw], dtype=np.int64)  # inferred integer column
                 continue
             try:  # inferred column: numeric if every value parses
                 cols[name] = np.array([_parse_float(v) for v in raw], dtype=np.float64)
@@ -537,9 +623,15 @@ class LacArchive:
     """
 
     def __init__(self, path: str | os.PathLike, *, checkpoint_spacing: int = DEFAULT_CHECKPOINT_SPACING):
-        self.path = Path(path)
+        from lunarloc.errors import file_error
+        from lunarloc.inputs import check_input_file
+
+        self.path = check_input_file(path, None, ".lac archive")
         t0 = time.perf_counter()
-        self._file = open(self.path, "rb")  # noqa: SIM115 - closed in close()
+        try:
+            self._file = open(self.path, "rb")  # noqa: SIM115 - closed in close()
+        except OSError as exc:
+            raise file_error(self.path, exc) from None
         try:
             self._open(checkpoint_spacing)
         except BaseException:
@@ -562,13 +654,15 @@ class LacArchive:
             raise self._err(None, "not a gzip file (a .lac archive is a gzip-compressed tar)")
         self._stream = _IndexedGzipReader(self._file, spacing)
         try:
-            self._tar = tarfile.open(fileobj=self._stream, mode="r:")
+            self._tar = tarfile.open(fileobj=self._stream, mode="r:", tarinfo=_BoundedTarInfo)
             members = self._tar.getmembers()
             self._stream.read_to_end()  # verify the gzip trailer (CRC, length)
         except _GzipIndexError as exc:
             raise self._err(None, str(exc)) from None
         except tarfile.TarError as exc:
             raise self._err(None, f"not a valid tar archive ({exc})") from None
+        except LimitError as exc:
+            raise self._err(None, str(exc)) from None
         self._members: dict[str, tarfile.TarInfo] = {}
         for m in members:
             if m.isfile():
@@ -591,6 +685,7 @@ class LacArchive:
         if not isinstance(self.initial_raw.get("cameras"), dict):
             raise self._err("initial.toml", "'cameras' must be a table")
         self.initial = self._normalized_initial(self.initial_raw)
+        self._check_camera_configs()
         self.frames = _parse_csv(
             self._read_member("frames.csv"),
             f"{self.path}: frames.csv",
@@ -631,6 +726,31 @@ class LacArchive:
             self._camera_tables[name] = table
             self._camera_index[name] = self._index_frames(table["frame"], member)
             self._check_images(name, table, member)
+
+    def _check_camera_configs(self) -> None:
+        """Camera tables of initial.toml: width/height positive integers (numbers or numeric
+        strings, as LAC agents write them), fov finite in (0, 180) degrees."""
+        for name, cfg in self.initial["cameras"].items():
+            if not isinstance(cfg, dict):
+                raise self._err("initial.toml", f"[cameras.{name}] must be a table")
+            for key in ("width", "height"):
+                if key in cfg:
+                    v = cfg[key]
+                    try:
+                        n = _parse_int(str(v)) if not isinstance(v, bool) else -1
+                    except ValueError:
+                        n = -1
+                    if not 0 < n <= 100_000:
+                        raise self._err("initial.toml", f"[cameras.{name}] {key} = {str(v)[:40]!r}: expected a positive integer (pixels)")
+            for key in ("fov", "hfov_deg"):
+                if key in cfg:
+                    v = cfg[key]
+                    try:
+                        f = float(v) if not isinstance(v, bool) else float("nan")
+                    except (TypeError, ValueError):
+                        f = float("nan")
+                    if not 0.0 < f < 180.0:
+                        raise self._err("initial.toml", f"[cameras.{name}] {key} = {str(v)[:40]!r}: expected degrees in (0, 180)")
 
     def _index_frames(self, frames: np.ndarray, member: str) -> dict[int, int]:
         index: dict[int, int] = {}
@@ -751,6 +871,9 @@ class LacArchive:
         info = self._members.get(name)
         if info is None:
             raise self._err(name, "member is missing")
+        limit = MAX_TOML_BYTES if name.endswith(".toml") else MAX_TABLE_BYTES if name.endswith(".csv") else MAX_IMAGE_BYTES
+        if info.size > limit:
+            raise self._err(name, f"member is {info.size:,} bytes, over the {limit:,}-byte limit for this kind of member")
         try:
             fobj = self._tar.extractfile(info)
             data = fobj.read() if fobj is not None else b""
@@ -766,6 +889,8 @@ class LacArchive:
             doc = tomllib.loads(data.decode("utf-8"))
         except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
             raise self._err(name, f"invalid TOML ({exc})") from None
+        except RecursionError:
+            raise self._err(name, "invalid TOML (nested too deeply)") from None
         missing = [k for k in required if k not in doc]
         if missing:
             raise self._err(name, f"missing key(s) {', '.join(missing)}")
@@ -869,8 +994,13 @@ class LacArchive:
         data = self._read_member(member)
         try:
             with Image.open(io.BytesIO(data)) as img:
+                w, h = img.size  # from the header, before decoding
+                if w * h > MAX_IMAGE_PIXELS:
+                    raise self._err(member, f"image is {w}x{h} pixels, over the {MAX_IMAGE_PIXELS:,}-pixel limit")
                 return np.array(img)
-        except (UnidentifiedImageError, OSError, ValueError) as exc:
+        except (UnidentifiedImageError, OSError, ValueError, Image.DecompressionBombError) as exc:
+            if isinstance(exc, ArchiveError):
+                raise
             raise self._err(member, f"cannot decode image ({exc})") from None
 
     def image(self, camera: str, frame: int, kind: str = "grayscale") -> np.ndarray | None:

@@ -673,15 +673,18 @@ def write_traverse_csv(path: str | Path, frames: Iterable[FrameDetections]) -> i
     x, y, z is the rover position of the pose used; boulders are map-frame centroids.
     Returns the number of rows written. Frames without a pose raise InputError.
     """
+    from lunarloc.outputs import atomic_open
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     n = 0
-    with path.open("w", newline="") as fh:
+    with atomic_open(path, "w", newline="") as fh:  # no truncated CSV after an interruption
         w = csv.writer(fh)
         w.writerow(["frame", "x", "y", "z", "detections", "boulders"])
         for fd in frames:
             if fd.T_map_rover is None:
                 raise InputError(f"frame {fd.frame} has no rover pose: cannot write map-frame boulders")
+            if not np.all(np.isfinite(fd.T_map_rover)):
+                raise InputError(f"frame {fd.frame}: the rover pose is not finite (NaN in frames.csv or odometry)")
             pts = fd.positions_map()
             x, y, z = (float(v) for v in fd.T_map_rover[:3, 3])
             w.writerow([fd.frame, repr(x), repr(y), repr(z), len(pts), format_boulders(pts)])

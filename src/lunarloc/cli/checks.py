@@ -1,0 +1,42 @@
+"""Option checks shared by the commands: enum choices that list the valid values, numbers
+that must be finite and inside a stated range. Each failure is a ConfigError (exit 2)."""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Iterable
+
+import typer
+
+from lunarloc.errors import ConfigError
+
+OVERWRITE_OPT = typer.Option(False, "--overwrite", help="Replace existing outputs (refused otherwise).")
+
+
+def choice(value: str, valid: type[enum.Enum] | Iterable[str], option: str) -> str:
+    """`value` if it is one of `valid` (an Enum's values or strings), else ConfigError listing them."""
+    values = [m.value for m in valid] if isinstance(valid, type) and issubclass(valid, enum.Enum) else list(valid)
+    if value not in values:
+        raise ConfigError(f"{option} must be one of {', '.join(map(str, values))}; got {value!r}")
+    return value
+
+
+def number(value: float | None, option: str, lo: float | None = None, hi: float | None = None, *,
+           lo_open: bool = False, hi_open: bool = False, unit: str = "") -> float | None:  # fmt: skip
+    """`value` if finite and within [lo, hi] (open ends with lo_open / hi_open); None passes."""
+    if value is None:
+        return None
+    u = f" {unit}" if unit else ""
+    if not math.isfinite(value):
+        raise ConfigError(f"{option} must be a finite number; got {value}")
+    if lo is not None and (value < lo or (lo_open and value == lo)):
+        raise ConfigError(f"{option} must be {'>' if lo_open else '>='} {lo:g}{u}; got {value:g}")
+    if hi is not None and (value > hi or (hi_open and value == hi)):
+        raise ConfigError(f"{option} must be {'<' if hi_open else '<='} {hi:g}{u}; got {value:g}")
+    return value
+
+
+def positive(value: float | None, option: str, hi: float | None = None, unit: str = "") -> float | None:
+    """Finite, > 0 and (when given) <= hi."""
+    return number(value, option, 0.0, hi, lo_open=True, unit=unit)
