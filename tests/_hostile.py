@@ -415,14 +415,14 @@ def _npz_cases() -> list[Case]:
 def _lac_cases() -> list[Case]:
     C: list[Case] = []
 
-    def lac(name, data_fn, expect="error", check=None, cmd="info", slow=False):
+    def lac(name, data_fn, expect="error", check=None, cmd="info", slow=False, extra=()):
         def build(d: Path) -> list[str]:
             p = write(d, "a.lac", data_fn())
             if cmd == "info":
                 return ["info", str(p)]
             if cmd == "run":
                 r = write(d, "rocks.csv", "id,x,y,z,radius\n" + "".join(f"{i},{a!r},{b!r},{c!r},0.2\n" for i, (a, b, c) in enumerate(rocks(12).tolist())))
-                return ["run", str(p), "--reference", str(r), "-o", str(d / "run"), "--no-plot"]
+                return ["run", str(p), "--reference", str(r), "-o", str(d / "run"), "--no-plot", *extra]
             return ["detect", str(p), "-o", str(d / "det.csv")]
 
         C.append(Case(f"lac/{name}", "lac", build, expect, check, slow))
@@ -501,10 +501,16 @@ def _lac_cases() -> list[Case]:
     lac("detect-nan-pose", lambda: lac_bytes(with_member("frames.csv", frames.replace("\n0,0.0,0.0,0.0", "\n0,,0.0,0.0", 1))), cmd="detect")
     lac("detect-valid", lambda: lac_bytes(M()), "ok", lambda d, s: (d / "det.csv").is_file(), cmd="detect", slow=True)
     odo = M()["custom/odometry.csv"].decode()
-    lac("run-odometry-text", lambda: lac_bytes(with_member("custom/odometry.csv", odo.replace("\n5,0.25", "\n5,fast", 1))), cmd="run")
-    lac("run-odometry-no-frame", lambda: lac_bytes(with_member("custom/odometry.csv", "\n".join(l.split(",", 1)[1] for l in odo.splitlines()) + "\n")), cmd="run")
-    lac("run-odometry-frame-text", lambda: lac_bytes(with_member("custom/odometry.csv", odo.replace("\n5,", "\nfive,", 1))), cmd="run")
-    lac("run-no-odometry", lambda: lac_bytes(with_member("custom/odometry.csv", None)), cmd="run")
+    # a broken odometry record is an error when the run is told to use it; by default `run`
+    # uses visual odometry and never reads the record (issue 9: bare LAC archives run)
+    rec = ("--odometry", "record:odometry")
+    lac("run-odometry-text", lambda: lac_bytes(with_member("custom/odometry.csv", odo.replace("\n5,0.25", "\n5,fast", 1))), cmd="run", extra=rec)
+    lac("run-odometry-no-frame", lambda: lac_bytes(with_member("custom/odometry.csv", "\n".join(l.split(",", 1)[1] for l in odo.splitlines()) + "\n")), cmd="run", extra=rec)
+    lac("run-odometry-frame-text", lambda: lac_bytes(with_member("custom/odometry.csv", odo.replace("\n5,", "\nfive,", 1))), cmd="run", extra=rec)
+    lac("run-no-odometry", lambda: lac_bytes(with_member("custom/odometry.csv", None)), cmd="run", extra=rec)
+    lac("run-bad-odometry-source", lambda: lac_bytes(M()), cmd="run", extra=("--odometry", "wheels"))
+    lac("run-no-odometry-default-visual", lambda: lac_bytes(with_member("custom/odometry.csv", None)), "ok",
+        lambda d, s: (d / "run" / "summary.json").is_file(), cmd="run", slow=True)
     lac("run-width-abc", lambda: lac_bytes(M(initial=ini.replace(f"width = {W}", 'width = "abc"', 1))), cmd="run")
     C.append(Case("lac/detect-directory", "lac", lambda d: ["detect", str(d), "-o", str(d / "det.csv")]))
     C.append(Case("lac/run-directory", "lac", lambda d: ["run", str(d), "--reference", str(write(d, "b.csv", map_text())), "-o", str(d / "run")]))

@@ -149,10 +149,11 @@ def test_full_disk_is_a_clear_error(tmp_path, monkeypatch, capsys):
 
 def test_demo_check_failure_exits_1(monkeypatch, tmp_path):
     import lunarloc.cli.commands_run as cr
+    import lunarloc.scenario as scenario
 
     fake = {"fixes": 0, "ate_odometry": {"rmse_m": 1.0, "max_m": 1.0}, "ate_corrected": {"rmse_m": 1.0, "max_m": 1.0},
             "ate_online": {"rmse_m": 1.0, "max_m": 1.0}}  # fmt: skip
-    monkeypatch.setattr(cr, "_run_demo", lambda *a, **k: fake)
+    monkeypatch.setattr(scenario, "run_scenario", lambda *a, **k: fake)
     monkeypatch.setattr(cr, "_print_summary", lambda *a, **k: None)
     assert main(["demo", "--out", str(tmp_path / "d")]) == 1
 

@@ -277,7 +277,8 @@ def test_run_on_a_bare_archive_names_its_odometry(bare_image_archive, tmp_path, 
     assert main(["run", str(bare), "--reference", str(rocks), "-o", str(out), "--odometry", "imu", "--no-plot"]) == 0
     assert json.loads((out / "config.json").read_text())["odometry_source"] == "imu"
     assert "odometry: imu" in capsys.readouterr().out
-    assert main(["run", str(bare), "--reference", str(rocks), "-o", str(out), "--odometry", "record:odometry"]) == 2
+    assert main(["run", str(bare), "--reference", str(rocks), "-o", str(tmp_path / "run2"), "--odometry",
+                 "record:odometry"]) == 2  # fmt: skip
     assert "no custom record 'odometry'" in capsys.readouterr().err
 
 

@@ -792,7 +792,12 @@ class LacArchive:
         if isinstance(value, bool):
             raise self._err("initial.toml", f"'{key}' must be a number, got {value!r}")
         if isinstance(value, (int, float)):
-            return kind(value)
+            v = float(value)
+            if kind is float:
+                return v
+            if np.isfinite(v) and v == int(v):
+                return int(v)  # 640 or 640.0, never a silently truncated 64.5
+            raise self._err("initial.toml", f"'{key}' must be a whole number, got {value!r}")
         if isinstance(value, str):
             text = value.strip()
             m = _NUMPY_SCALAR_TEXT.match(text)
