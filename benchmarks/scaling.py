@@ -8,7 +8,8 @@ landmarks, any yaw, tilt up to 0.5 deg). At 100 rocks the window is 60 landmarks
 
 Two searches, each size in a fresh subprocess (the compiled kernels warmed first, so
 compile time is not counted; peak memory is the rise of the process's peak RSS over
-its level before the call, via /proc/self/clear_refs):
+its level before the call, via /proc/self/clear_refs; the process's own level, Python with
+numpy, scipy and the loaded kernels, is reported as ``rss_before_mb``):
 
 * ``full``: :func:`lunarloc.localize.localize` on the whole reference (before);
   sizes whose N^2 reference-pair index would exceed the memory limit are skipped
@@ -16,7 +17,10 @@ its level before the call, via /proc/self/clear_refs):
 * ``indexed``: :func:`lunarloc.localize_large.localize_large` (after). Its time is
   split into building the reference index (once per reference map) and the query.
 
-Right = success and the pose within 0.2 m and 1 deg of the known transform.
+Per size also ``--null-trials`` windows cut from an UNRELATED field of the same size: each
+must be refused ("unrelated accepted" counts confident answers there).
+Right = success, every vehicle landmark placed within 0.2 m of where the known transform
+puts it, and the rotation within 1 deg.
 The fitted exponent is the least-squares slope of log(time) on log(N_ref) over the
 sizes from 1,000 rocks.
 
@@ -33,7 +37,7 @@ import subprocess
 import sys
 import time
 
-SIZES = [100, 300, 1000, 3000, 10000, 30000, 100000]
+SIZES = [100, 300, 1000, 3000, 10000, 20000, 30000, 100000]
 
 
 def _rss_mb(field: str) -> float:
@@ -53,12 +57,12 @@ def _reset_peak() -> bool:
         return False
 
 
-def child(n: int, method: str, trials: int, seed: int) -> dict:
+def child(n: int, method: str, trials: int, seed: int, null_trials: int = 0) -> dict:
     import numpy as np
 
     from lunarloc.data.fields import uniform_rock_field, vehicle_window
     from lunarloc.evaluation import _warm_up
-    from lunarloc.geometry import invert_transform, rotation_angle
+    from lunarloc.geometry import rotation_angle, transform_points
     from lunarloc.localize import LocalizationConfig, localize
     from lunarloc.localize_large import build_index, localize_large
 
@@ -68,7 +72,11 @@ def child(n: int, method: str, trials: int, seed: int) -> dict:
     ref = uniform_rock_field(rng, n)
     n_win = 150 if n >= 300 else 60
     wins = [vehicle_window(rng, ref, n_win) for _ in range(trials)]
-    out = {"n_ref": n, "method": method, "n_veh": n_win, "trials": []}
+    # null trials: windows cut from an unrelated field of the same size must be refused
+    other = uniform_rock_field(np.random.default_rng(seed + 1000), n)
+    nulls = [vehicle_window(rng, other, n_win) for _ in range(null_trials)]
+    out = {"n_ref": n, "method": method, "n_veh": n_win, "trials": [], "null_accepted": 0,
+           "null_trials": null_trials, "rss_before_mb": _rss_mb("VmRSS")}
     index = None
     if method == "indexed":
         _reset_peak()
@@ -81,6 +89,10 @@ def child(n: int, method: str, trials: int, seed: int) -> dict:
         out["index_triangles"] = index.num_triangles
         out["index_mb"] = index.nbytes / 2**20
         out["max_side_m"] = index.max_side_m
+    for w in nulls:
+        r = (localize(ref, w.vehicle, cfg) if method == "full"
+             else localize_large(ref, w.vehicle, cfg, index=index, search="indexed"))
+        out["null_accepted"] += bool(r.success)
     for w in wins:
         _reset_peak()
         before = _rss_mb("VmRSS")
@@ -94,8 +106,10 @@ def child(n: int, method: str, trials: int, seed: int) -> dict:
         dt, cpu = time.perf_counter() - t0, time.process_time() - c0
         peak = _rss_mb("VmHWM") - before
         if np.all(np.isfinite(r.T_ref_veh)):
-            E = r.T_ref_veh @ invert_transform(w.T_ref_veh)
-            err_m, err_deg = float(np.linalg.norm(E[:3, 3])), math.degrees(rotation_angle(E[:3, :3]))
+            # error where it matters: at the vehicle map's landmarks (not the far-away origin)
+            P = w.vehicle.positions_xyz
+            err_m = float(np.max(np.linalg.norm(transform_points(r.T_ref_veh, P) - transform_points(w.T_ref_veh, P), axis=1)))
+            err_deg = math.degrees(rotation_angle(r.T_ref_veh[:3, :3] @ w.T_ref_veh[:3, :3].T))
         else:
             err_m = err_deg = float("nan")
         right = bool(r.success and err_m < 0.2 and err_deg < 1.0)
@@ -106,9 +120,9 @@ def child(n: int, method: str, trials: int, seed: int) -> dict:
     return out
 
 
-def run_size(n: int, method: str, trials: int, seed: int, timeout_s: float) -> dict:
+def run_size(n: int, method: str, trials: int, seed: int, timeout_s: float, null_trials: int = 0) -> dict:
     cmd = [sys.executable, __file__, "--child", str(n), "--method", method, "--trials", str(trials),
-           "--seed", str(seed)]
+           "--seed", str(seed), "--null-trials", str(null_trials)]
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
     except subprocess.TimeoutExpired:
@@ -143,7 +157,9 @@ def summarise(r: dict) -> dict:
          "time_s": _median([x["time_s"] for x in t]), "cpu_s": _median([x["cpu_s"] for x in t]), "peak_mb": max(x["peak_mb"] for x in t),
          "right": sum(x["right"] for x in t), "trials": len(t),
          "wrong_accepted": sum(x["success"] and not x["right"] for x in t),
-         "reasons": sorted({x["reason"] for x in t if not x["right"]})}
+         "reasons": sorted({x["reason"] for x in t if not x["right"]}),
+         "null_accepted": r.get("null_accepted", 0), "null_trials": r.get("null_trials", 0),
+         "rss_before_mb": r.get("rss_before_mb")}
     for k in ("index_s", "index_cpu_s", "index_peak_mb", "index_triangles", "index_mb", "max_side_m"):
         if k in r:
             s[k] = r[k]
@@ -152,16 +168,17 @@ def summarise(r: dict) -> dict:
 
 def table(rows: list) -> str:
     lines = ["| method | reference rocks | associations considered | wall time (s, median) | CPU time (s) | "
-             "index build (s, once per map) | peak memory (MB) | right |", "|---|---:|---:|---:|---:|---:|---:|---|"]
+             "index build (s, once per map) | peak memory (MB) | right | unrelated accepted |",
+             "|---|---:|---:|---:|---:|---:|---:|---|---|"]
     for r in rows:
         if "skipped" in r:
-            lines.append(f"| {r['method']} | {r['n_ref']:,} | - | - | - | - | - | skipped: {r['skipped']} |")
+            lines.append(f"| {r['method']} | {r['n_ref']:,} | - | - | - | - | - | skipped: {r['skipped']} | - |")
             continue
         idx = f"{r['index_s']:.2f}" if "index_s" in r else "-"
         cpu = f"{r['cpu_s']:.3f}"
         mem = max(r["peak_mb"], r.get("index_peak_mb", 0.0))
         lines.append(f"| {r['method']} | {r['n_ref']:,} | {r['considered']:,} | {r['time_s']:.3f} | {cpu} | {idx} | "
-                     f"{mem:.0f} | {r['right']}/{r['trials']} |")
+                     f"{mem:.0f} | {r['right']}/{r['trials']} | {r['null_accepted']}/{r['null_trials']} |")
     return "\n".join(lines)
 
 
@@ -170,6 +187,7 @@ def main() -> None:
     ap.add_argument("--sizes", default=",".join(map(str, SIZES)))
     ap.add_argument("--methods", default="full,indexed")
     ap.add_argument("--trials", type=int, default=3)
+    ap.add_argument("--null-trials", type=int, default=2, help="unrelated windows per size (must be refused)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--time-limit", type=float, default=120.0, help="stop a method's larger sizes past this (s)")
     ap.add_argument("--memory-limit-gb", type=float, default=4.0, help="skip full searches estimated above this")
@@ -178,7 +196,7 @@ def main() -> None:
     ap.add_argument("--method", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        print(json.dumps(child(args.child, args.method, args.trials, args.seed)))
+        print(json.dumps(child(args.child, args.method, args.trials, args.seed, args.null_trials)))
         return
     sizes = [int(s) for s in args.sizes.split(",")]
     rows = []
@@ -189,11 +207,12 @@ def main() -> None:
             est_gb = 40.0 * n * n / 1e9
             if stop:
                 r = {"n_ref": n, "method": method, "skipped": stop}
-            elif method == "full" and est_gb > args.memory_limit_gb:
+            elif method == "full" and est_gb >= args.memory_limit_gb:
                 r = {"n_ref": n, "method": method,
                      "skipped": f"N^2 pair index ~{est_gb:.0f} GB > {args.memory_limit_gb:g} GB"}
             else:
-                r = summarise(run_size(n, method, args.trials, args.seed, args.time_limit * (args.trials + 2)))
+                r = summarise(run_size(n, method, args.trials, args.seed, args.time_limit * (args.trials + 2 + args.null_trials),
+                                       args.null_trials))
                 if "skipped" not in r and r["time_s"] > args.time_limit:
                     stop = f"{n:,} rocks already took {r['time_s']:.0f} s > {args.time_limit:g} s"
             print(json.dumps(r), flush=True)
@@ -203,12 +222,14 @@ def main() -> None:
               "exponents": {m: fit_exponent([r for r in rows if r["method"] == m])
                             for m in args.methods.split(",")},
               "cpu_exponents": {m: fit_exponent([r for r in rows if r["method"] == m], "cpu_s")
-                                for m in args.methods.split(",")}}
+                                for m in args.methods.split(",")},
+              "index_build_exponent": fit_exponent([r for r in rows if r["method"] == "indexed"], "index_s")}
     with open(args.out, "w") as f:
         json.dump(result, f, indent=1)
     print(table(rows))
     print("fitted exponent of wall time (N_ref >= 1000): " + ", ".join(f"{m} {e:.2f}" for m, e in result["exponents"].items()))
     print("fitted exponent of CPU time (N_ref >= 1000): " + ", ".join(f"{m} {e:.2f}" for m, e in result["cpu_exponents"].items()))
+    print(f"fitted exponent of the index build time: {result['index_build_exponent']:.2f}")
 
 
 if __name__ == "__main__":

@@ -10,7 +10,7 @@ import pytest
 from lunarloc.association.index import IndexConfig, ReferenceIndex, triangles
 from lunarloc.data.fields import uniform_rock_field, vehicle_window
 from lunarloc.errors import ConfigError, DegenerateGeometryError, InputError
-from lunarloc.geometry import invert_transform, rotation_angle
+from lunarloc.geometry import rotation_angle, transform_points
 from lunarloc.localize import LocalizationConfig, Mode
 from lunarloc.localize_large import Search, build_index, localize_large
 from lunarloc.maps import LandmarkMap
@@ -23,9 +23,10 @@ def field5k():
     return ref, build_index(ref)
 
 
-def _pose_error(T_est, T_true):
-    E = T_est @ invert_transform(T_true)
-    return float(np.linalg.norm(E[:3, 3])), math.degrees(rotation_angle(E[:3, :3]))
+def _pose_error(T_est, T_true, P):
+    """Largest position error over the (vehicle-frame) points P, and rotation error (deg)."""
+    d = np.linalg.norm(transform_points(T_est, P) - transform_points(T_true, P), axis=1)
+    return float(d.max()), math.degrees(rotation_angle(T_est[:3, :3] @ T_true[:3, :3].T))
 
 
 def test_triangles_match_brute_force():
@@ -49,7 +50,7 @@ def test_indexed_search_finds_the_pose_in_5000_rocks(field5k, seed):
     res = localize_large(ref, win.vehicle, index=index, search="indexed")
     assert res.success, res.reason
     assert res.search == "indexed" and res.winner >= 0
-    dt, drot = _pose_error(res.T_ref_veh, win.T_ref_veh)
+    dt, drot = _pose_error(res.T_ref_veh, win.T_ref_veh, win.vehicle.positions_xyz)
     assert dt < 0.1 and drot < 0.5
     # inliers pair vehicle landmarks with the reference rocks they were cut from
     assert np.mean(win.ref_index[res.inliers[:, 0]] == res.inliers[:, 1]) > 0.95
@@ -91,7 +92,7 @@ def test_auto_uses_full_search_for_small_maps():
     win = vehicle_window(rng, ref, 100)
     res = localize_large(ref, win.vehicle)
     assert res.search == "full" and res.success
-    assert _pose_error(res.T_ref_veh, win.T_ref_veh)[0] < 0.1
+    assert _pose_error(res.T_ref_veh, win.T_ref_veh, win.vehicle.positions_xyz)[0] < 0.1
 
 
 def test_bad_inputs_give_clear_errors(field5k):
@@ -129,5 +130,5 @@ def test_cli_localize_uses_the_index_for_a_large_reference(tmp_path, capsys):
     assert main(["localize", str(ref_p), str(veh_p), "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
     assert d["search"] == "indexed" and d["success"] is True
-    assert _pose_error(np.array(d["T_ref_veh"]), win.T_ref_veh)[0] < 0.1
+    assert _pose_error(np.array(d["T_ref_veh"]), win.T_ref_veh, win.vehicle.positions_xyz)[0] < 0.1
     assert main(["localize", str(ref_p), str(veh_p), "--search", "fast"]) == 2
