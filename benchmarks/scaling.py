@@ -24,7 +24,11 @@ puts it, and the rotation within 1 deg.
 The fitted exponent is the least-squares slope of log(time) on log(N_ref) over the
 sizes from 1,000 rocks.
 
+``--stress N`` instead runs the indexed search on harder windows (50 % / 30 % of the rocks
+detected, 40 % outliers, 60 landmarks, 2.5 cm noise) against one N-rock field.
+
 Usage: python benchmarks/scaling.py [--sizes 100,300,...] [--trials 3] [--out scaling.json]
+       python benchmarks/scaling.py --stress 20000 --trials 3
 """
 
 from __future__ import annotations
@@ -120,6 +124,42 @@ def child(n: int, method: str, trials: int, seed: int, null_trials: int = 0) -> 
     return out
 
 
+# harder vehicle windows: (detection probability, outlier fraction, landmarks, noise per axis m)
+STRESS = [(0.5, 0.15, 150, 0.015), (0.85, 0.4, 150, 0.015), (0.85, 0.15, 60, 0.015),
+          (0.85, 0.15, 150, 0.025), (0.3, 0.15, 80, 0.015)]
+
+
+def stress(n: int, trials: int, seed: int) -> None:
+    """The indexed search on harder windows (missed detections, more outliers, fewer
+    landmarks, more noise) against an n-rock field; prints right/accepted per variant."""
+    import numpy as np
+
+    from lunarloc.data.fields import uniform_rock_field, vehicle_window
+    from lunarloc.evaluation import _warm_up
+    from lunarloc.geometry import transform_points
+    from lunarloc.localize_large import build_index, localize_large
+
+    _warm_up(None)
+    ref = uniform_rock_field(np.random.default_rng(seed), n)
+    index = build_index(ref)
+    print("| detected | outliers | landmarks | noise (m) | right | accepted | median time (s) |")
+    print("|---:|---:|---:|---:|---|---|---:|")
+    for dp, of, nv, noise in STRESS:
+        right = accepted = 0
+        times = []
+        for t in range(trials):
+            w = vehicle_window(np.random.default_rng([seed, t]), ref, nv, outlier_fraction=of, detect_prob=dp,
+                               noise_m=noise)
+            t0 = time.perf_counter()
+            r = localize_large(ref, w.vehicle, index=index, search="indexed")
+            times.append(time.perf_counter() - t0)
+            P = w.vehicle.positions_xyz
+            err = np.max(np.linalg.norm(transform_points(r.T_ref_veh, P) - transform_points(w.T_ref_veh, P), axis=1))
+            accepted += r.success
+            right += bool(r.success and err < 0.2)
+        print(f"| {dp:.0%} | {of:.0%} | {nv} | {noise} | {right}/{trials} | {accepted}/{trials} | {_median(times):.2f} |")
+
+
 def run_size(n: int, method: str, trials: int, seed: int, timeout_s: float, null_trials: int = 0) -> dict:
     cmd = [sys.executable, __file__, "--child", str(n), "--method", method, "--trials", str(trials),
            "--seed", str(seed), "--null-trials", str(null_trials)]
@@ -192,11 +232,15 @@ def main() -> None:
     ap.add_argument("--time-limit", type=float, default=120.0, help="stop a method's larger sizes past this (s)")
     ap.add_argument("--memory-limit-gb", type=float, default=4.0, help="skip full searches estimated above this")
     ap.add_argument("--out", default="scaling.json")
+    ap.add_argument("--stress", type=int, metavar="N", help="only the harder-window variants on an N-rock field")
     ap.add_argument("--child", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--method", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         print(json.dumps(child(args.child, args.method, args.trials, args.seed, args.null_trials)))
+        return
+    if args.stress:
+        stress(args.stress, args.trials, args.seed)
         return
     sizes = [int(s) for s in args.sizes.split(",")]
     rows = []
