@@ -50,6 +50,7 @@ def test_indexed_search_finds_the_pose_in_5000_rocks(field5k, seed):
     res = localize_large(ref, win.vehicle, index=index, search="indexed")
     assert res.success, res.reason
     assert res.search == "indexed" and res.winner >= 0
+    assert set(res.timings) == {"index", "vote", "exact"}  # stages, each counted once in time_s
     dt, drot = _pose_error(res.T_ref_veh, win.T_ref_veh, win.vehicle.positions_xyz)
     assert dt < 0.1 and drot < 0.5
     # inliers pair vehicle landmarks with the reference rocks they were cut from
@@ -73,6 +74,14 @@ def test_mirror_image_is_refused(field5k):
     win = vehicle_window(np.random.default_rng(3), ref, 150)
     mirrored = LandmarkMap(win.vehicle.positions_xyz * np.array([-1.0, 1.0, 1.0]))
     assert not localize_large(ref, mirrored, index=index, search="indexed").success
+
+
+def test_vehicle_map_without_triangles_is_refused(field5k):
+    ref, index = field5k
+    sparse = LandmarkMap(np.array([[0.0, 0, 0], [10, 0, 0], [0, 10, 0], [10, 10, 0.1]]))
+    res = localize_large(ref, sparse, index=index, search="indexed")
+    assert not res.success and "no candidate region" in res.reason
+    assert not np.any(np.isfinite(res.T_ref_veh))
 
 
 def test_repeated_pattern_is_ambiguous():

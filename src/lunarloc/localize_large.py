@@ -166,8 +166,6 @@ def localize_large(
     for i, r in done:
         if i != w and not _same_pose(r, best, cfg):
             competitor = max(competitor, r.clique_size)
-    for k, v in best.timings.items():
-        timings["exact_" + k] = v
     out = _from(best, search="indexed", candidates=rows, winner=w, considered=considered)
     out.timings = timings
     out.required_inliers = max(required, best.required_inliers)
