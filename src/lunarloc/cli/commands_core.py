@@ -79,12 +79,18 @@ def localize_cmd(
     ),
     radius: Optional[float] = RADIUS_OPT,
     min_sightings: Optional[int] = SIGHT_OPT,
+    search: str = typer.Option(
+        "auto", help="full (every association), indexed (rock-triangle index, for large references) "
+        "or auto (indexed from 2,000 reference rocks)."
+    ),
 ) -> None:
     """Localize VEHICLE in REFERENCE. Exit code 0 whether or not it localized."""
-    from lunarloc.localize import LocalizationConfig, Mode, Registration, Solver, localize
+    from lunarloc.localize import LocalizationConfig, Mode, Registration, Solver
+    from lunarloc.localize_large import Search, localize_large
     from lunarloc.errors import ConfigError
     from lunarloc.maps import load_map
 
+    choice(search, Search, "--search")
     choice(mode, Mode, "--mode")
     choice(solver, Solver, "--solver")
     choice(registration, Registration, "--registration")
@@ -100,7 +106,7 @@ def localize_cmd(
     agg = _agg(radius, min_sightings)
     ref = load_map(reference, agg)
     veh = load_map(vehicle, agg)
-    res = localize(ref, veh, cfg)
+    res = localize_large(ref, veh, cfg, search=search)
     if as_json:
         typer.echo(json.dumps(res.to_dict()))
         return
@@ -113,6 +119,8 @@ def localize_cmd(
         f"RMSE {res.residual_rmse_m * 100:.2f} cm, yaw {res.yaw_deg:.2f} deg, tilt {res.tilt_deg:.2f} deg, "
         f"{res.time_s * 1000:.0f} ms"
     )
+    if res.search == "indexed":
+        con.print(f"indexed search: {len(res.candidates)} candidate region(s), answer from candidate {res.winner + 1}")
     if math.isfinite(res.T_ref_veh[0, 0]):
         con.print("T_ref_veh =")
         for row in res.T_ref_veh:
