@@ -62,10 +62,13 @@ def read_record_poses(archive, name: str) -> tuple[np.ndarray, np.ndarray]:
             i = int(np.flatnonzero(frames != np.round(frames))[0])
             raise ArchiveError(f"{member}: frame {table['frame'][i]!r} at line {i + 2} is not an integer")
         frames = frames.astype(np.int64)
+    elif table.n_rows == archive.n_frames:
+        logger.warning("%s: no 'frame' column; rows taken as frames.csv's frames in order", member)
+        frames = np.asarray(archive.frame_numbers, np.int64)
     else:
-        # the recorder writes `frame` first in every custom record; guessing the alignment
-        # from the row count could shift every pose by a frame without a word
-        raise ArchiveError(f"{member}: no 'frame' column (custom records start with frame, as the LAC recorder writes them)")
+        raise ArchiveError(
+            f"{member}: no 'frame' column and {table.n_rows} rows for {archive.n_frames} frames: cannot align the poses"
+        )
     values = np.column_stack([_numbers(table, c, member) for c in layout])
     if layout == POSE_COLUMNS:
         T = np.stack([pose_to_matrix(*row) for row in values])
