@@ -35,6 +35,7 @@ def _register_commands() -> None:
     from lunarloc.cli import commands_sim  # noqa: F401
     from lunarloc.cli import commands_perception  # noqa: F401
     from lunarloc.cli import commands_run  # noqa: F401
+    from lunarloc.cli import commands_overhead  # noqa: F401
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -32,25 +32,43 @@ SIGHT_OPT = typer.Option(None, "--min-sightings", help="Detections needed per la
 @app.command("map")
 def map_cmd(
     traverse: Path = typer.Argument(..., help="Traverse CSV (frame,x,y,z,detections,boulders)."),
-    out: Path = typer.Option(..., "-o", "--out", help="Output landmark map (.csv or .npz)."),
+    out: Optional[Path] = typer.Option(None, "-o", "--out", help="Output landmark map (.csv or .npz)."),
+    lac_grid: Optional[Path] = typer.Option(
+        None, "--lac-grid", help="Also write the rocks as a LAC geometric map (.npy, 180 x 180 cells of 0.15 m)."
+    ),
     radius: Optional[float] = RADIUS_OPT,
     min_sightings: Optional[int] = SIGHT_OPT,
 ) -> None:
     """Build a landmark map (one landmark per rock) from a traverse's detections."""
+    from lunarloc.errors import InputError
     from lunarloc.maps import load_traverse, save_map, traverse_map
 
+    if out is None and lac_grid is None:
+        raise InputError("nothing to write: give -o/--out MAP (.csv/.npz) and/or --lac-grid GRID.npy")
     trav = load_traverse(traverse)
     lm = traverse_map(trav, _agg(radius, min_sightings))
-    save_map(lm, out)
+    written = []
+    if out is not None:
+        save_map(lm, out)
+        written.append(str(out))
+    if lac_grid is not None:
+        import numpy as np
+
+        from lunarloc.overhead import landmarks_to_lac_grid
+
+        np.save(lac_grid, landmarks_to_lac_grid(lm))
+        written.append(str(lac_grid))
     typer.echo(
         f"{traverse.name}: {len(trav.detections_xyz)} detections in {len(trav.frames)} frames "
-        f"-> {len(lm)} landmarks -> {out}"
+        f"-> {len(lm)} landmarks -> {', '.join(written)}"
     )
 
 
 @app.command("localize")
 def localize_cmd(
-    reference: Path = typer.Argument(..., help="Reference map: landmark CSV/.npz or traverse CSV."),
+    reference: Path = typer.Argument(
+        ..., help="Reference map: landmark CSV/.npz, traverse CSV, rocks.csv, LAC geometric map (.npy) or rock catalogue CSV."
+    ),
     vehicle: Path = typer.Argument(..., help="Vehicle map: landmark CSV/.npz or traverse CSV."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
     mode: str = typer.Option("gravity", help="gravity (IMU-levelled maps, default) or 6dof."),
@@ -60,6 +78,7 @@ def localize_cmd(
     max_size_ratio: Optional[float] = typer.Option(
         None, help="Prune associations whose size ratio exceeds this (maps with a size column)."
     ),
+    dem: Optional[Path] = typer.Option(None, "--dem", help="LAC geometric map giving heights to a catalogue without z."),
     radius: Optional[float] = RADIUS_OPT,
     min_sightings: Optional[int] = SIGHT_OPT,
 ) -> None:
@@ -75,8 +94,10 @@ def localize_cmd(
         )
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
+    from lunarloc.pipeline import load_reference
+
     agg = _agg(radius, min_sightings)
-    ref = load_map(reference, agg)
+    ref = load_reference(reference, agg, dem=dem)
     veh = load_map(vehicle, agg)
     res = localize(ref, veh, cfg)
     if as_json:
@@ -110,6 +131,10 @@ def bench_pairs_cmd(
     ),
     mode: str = typer.Option("gravity", help="gravity or 6dof."),
     solver: str = typer.Option("exact", help="exact or clipper."),
+    odometry_bounds: bool = typer.Option(
+        True, "--odometry-bounds/--no-odometry-bounds",
+        help="Tell the localizer the simulated drift as its odometry's bounds (scale, heading drift).",
+    ),
     check: bool = typer.Option(False, "--check", help="Exit 1 unless the acceptance targets are met."),
 ) -> None:
     """Localize traverse pairs of the LunarLoc dataset; table on screen, CSV + JSON in --out."""
@@ -125,7 +150,11 @@ def bench_pairs_cmd(
     pairs = list(PAPER_PAIRS) if only_paper else list(PAPER_PAIRS) + [
         p for p in itertools.combinations(sorted(paths), 2) if p not in PAPER_PAIRS
     ]
-    cfg = LocalizationConfig(mode=mode, solver=solver)
+    cfg = LocalizationConfig(
+        mode=mode, solver=solver,
+        odometry_scale_error=abs(scale_error) if odometry_bounds else 0.0,
+        odometry_heading_drift_deg_per_m=abs(drift) if odometry_bounds else 0.0,
+    )
     con = console()
     with Progress(console=con, transient=True) as prog:
         task = prog.add_task("localizing pairs", total=len(pairs))
