@@ -58,6 +58,7 @@ __all__ = [
     "is_rock_catalogue",
     "empty_lac_grid",
     "site_geometric_map",
+    "write_site_geometric_map",
     "landmarks_to_lac_grid",
     "score_geometric_map",
 ]
@@ -309,6 +310,13 @@ def site_geometric_map(site, cell_m: float = LAC_CELL_M) -> np.ndarray:
         flag[i0:i1, j0:j1][above] = 1.0
     grid[:, :, 2], grid[:, :, 3] = h, flag
     return grid
+
+
+def write_site_geometric_map(site, path: str | Path) -> Path:
+    """Write the site's ground-truth LAC geometric map (:func:`site_geometric_map`) as ``.npy``."""
+    path = Path(path)
+    np.save(path, site_geometric_map(site))
+    return path
 
 
 def landmarks_to_lac_grid(landmarks: LandmarkMap, size_m: float = LAC_CELL_M * LAC_CELLS,
