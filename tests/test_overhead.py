@@ -245,3 +245,20 @@ def test_simulate_writes_the_ground_truth_geometric_map(tmp_path, monkeypatch):
     assert g.shape == (80, 80, 4)  # 12 m in 0.15 m cells
     assert g[:, :, 3].sum() > 0 and np.ptp(g[:, :, 2]) > 0
     assert np.allclose(g[1, 0, :2] - g[0, 0, :2], [LAC_CELL_M, 0]) and np.allclose(g[0, 1, :2] - g[0, 0, :2], [0, LAC_CELL_M])
+
+
+def test_online_loop_with_a_geometric_map_reference(tmp_path):
+    """`run` takes its reference through load_reference: a LAC geometric map works as one."""
+    from _loop_data import synthetic_traverse
+    from lunarloc.evaluation import DriftModel
+    from lunarloc.pipeline import run_traverse_csv
+
+    rocks, trav = synthetic_traverse(length_m=20.0)
+    keep = np.all(np.abs(rocks[:, :2]) < 13.3, axis=1)
+    np.save(tmp_path / "map.npy", landmarks_to_lac_grid(LandmarkMap(rocks[keep], sizes=np.full(keep.sum(), 0.1))))
+    ref = load_reference(tmp_path / "map.npy")
+    assert ref.sigma_xy_m is not None and len(ref) > 0.8 * keep.sum()
+    s = run_traverse_csv(trav, ref, DriftModel(0.1, 0.03)).summary()
+    assert s["fixes"] >= 3
+    assert s["max_accepted_fix_error_m"] < 0.2
+    assert s["ate_corrected"]["rmse_m"] < s["ate_odometry"]["rmse_m"] / 2

@@ -513,10 +513,28 @@ def near_miss_excess(T, Pv, Pr, inlier_veh: np.ndarray, inner_m: float, outer_m:
     tree = cKDTree(Pr)
     d, _ = tree.query(Pt[rest])
     observed = int(np.sum((d > inner_m) & (d < outer_m)))
-    counts = tree.query_ball_point(Pt[rest], density_radius_m, return_length=True)
+    return observed, float(_chance_in_band(tree, Pt[rest], inner_m, outer_m, density_radius_m).sum())
+
+
+def _chance_in_band(tree: cKDTree, points: np.ndarray, inner_m: float, outer_m: float,
+                    density_radius_m: float = 1.5) -> np.ndarray:
+    """Probability that the nearest reference landmark of each point lies between inner_m
+    and outer_m by chance, from the local reference density (rocks within
+    `density_radius_m`, a horizontal Poisson model)."""
+    counts = tree.query_ball_point(points, density_radius_m, return_length=True)
     lam = np.asarray(counts, float) / (math.pi * density_radius_m**2)
-    p = np.exp(-lam * math.pi * inner_m**2) * (1 - np.exp(-lam * math.pi * (outer_m**2 - inner_m**2)))
-    return observed, float(p.sum())
+    return np.exp(-lam * math.pi * inner_m**2) * (1 - np.exp(-lam * math.pi * (outer_m**2 - inner_m**2)))
+
+
+def chance_refined(T, Pv, Pr, core_veh: np.ndarray, radius_m: float) -> float:
+    """Expected number of vehicle landmarks outside the consistent core that refinement
+    pairs with a reference landmark within `radius_m` by chance under T: the refined
+    inlier count exceeds the core by about this much even for unrelated maps."""
+    rest = np.ones(len(Pv), dtype=bool)
+    rest[np.asarray(core_veh, dtype=np.int64)] = False
+    if not np.any(rest):
+        return 0.0
+    return float(_chance_in_band(cKDTree(Pr), transform_points(T, Pv[rest]), 0.0, radius_m).sum())
 
 
 def _handedness(P: np.ndarray, Q: np.ndarray, rng: np.random.Generator) -> float:
@@ -627,6 +645,11 @@ def localize(
     pred = pred_fit + distortion  # the distortion is a bound (a bias), not a random error: added, not in quadrature
     rot_sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(C_c[3:, 3:]))), 0.0)) if np.all(np.isfinite(C_c)) else math.inf
     pred_rot_deg = math.degrees(rot_sigma + float(distortion_rot.max()))
+    # the chance envelope was measured on consistent cores: refinement's chance additions
+    # (more of them with a wider refinement radius) do not count towards beating it
+    core = len(best)
+    chance_gain = chance_refined(T, Pv, Pr, assoc[best][:, 0], cfg.refine_radius_m) if cfg.refine else 0.0
+    k_chance = min(len(inl), core + max(0.0, len(inl) - core - chance_gain))
     near_outer = max(cfg.near_miss_outer_m, 3 * cfg.refine_radius_m)
     near, near_exp = near_miss_excess(T, Pv, Pr, inl[:, 0], cfg.refine_radius_m, near_outer)
     dscale, scale_se = scale_check(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w)
@@ -691,9 +714,10 @@ def localize(
             f"(allowed {cfg.max_predicted_rotation_deg:g} deg; odometry heading drift up to "
             f"{math.degrees(float(distortion_rot.max())):.2f} deg)"
         )
-    elif k < required:
+    elif k_chance < required:
         out.reason = (
-            f"{k} inliers is too few to beat chance at {m} associations (need {required}; "
+            f"{k} inliers ({k_chance:.1f} beyond what refinement adds by chance) is too few to beat chance "
+            f"at {m} associations (need {required}; "
             f"unrelated maps of this size give up to ~{chance_clique_size(m, cfg.mode):.0f})"
         )
     elif k < cfg.competitor_ratio * competitor:

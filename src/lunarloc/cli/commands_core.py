@@ -112,6 +112,11 @@ def localize_cmd(
         f"RMSE {res.residual_rmse_m * 100:.2f} cm, yaw {res.yaw_deg:.2f} deg, tilt {res.tilt_deg:.2f} deg, "
         f"{res.time_s * 1000:.0f} ms"
     )
+    if math.isfinite(res.predicted_error_m):
+        con.print(
+            f"predicted 1-sigma error {res.predicted_error_m * 100:.1f} cm, {res.predicted_rotation_deg:.2f} deg; "
+            f"near misses {res.near_misses} (chance {res.near_misses_expected:.1f})"
+        )
     if math.isfinite(res.T_ref_veh[0, 0]):
         con.print("T_ref_veh =")
         for row in res.T_ref_veh:
