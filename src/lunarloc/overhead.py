@@ -228,27 +228,30 @@ def load_rock_catalogue(path: str | Path, dem=None, config: OverheadConfig | Non
         if unknown:
             raise FileFormatError(f"{path}:1: unknown column(s) {', '.join(unknown)} (catalogue: x, y[, z], radius[, sigma_m])")
         col = {c: header.index(c) for c in header}
-        rows = []
+        lines, rows = [], []
         for row in reader:
-            line = reader.line_num
-            if not row or all(not v.strip() for v in row):
-                continue
-            if len(row) != len(header):
-                raise FileFormatError(f"{path}:{line}: expected {len(header)} fields, got {len(row)}")
-            try:
-                vals = [float(v) for v in row]
-            except ValueError as exc:
-                raise FileFormatError(f"{path}:{line}: {exc}") from None
-            if not all(math.isfinite(v) for v in vals):
-                raise FileFormatError(f"{path}:{line}: non-finite value")
-            if vals[col["radius"]] < 0:
-                raise FileFormatError(f"{path}:{line}: negative radius {vals[col['radius']]:g}")
-            if "sigma_m" in col and vals[col["sigma_m"]] < 0:
-                raise FileFormatError(f"{path}:{line}: negative sigma_m {vals[col['sigma_m']]:g}")
-            rows.append(vals)
+            if row and any(v.strip() for v in row):
+                lines.append(reader.line_num)
+                rows.append(row)
+    for line, row in zip(lines, rows):
+        if len(row) != len(header):
+            raise FileFormatError(f"{path}:{line}: expected {len(header)} fields, got {len(row)}")
+    t = np.empty((len(rows), len(header)))
+    for r, (line, row) in enumerate(zip(lines, rows)):
+        try:
+            t[r] = [float(v) for v in row]
+        except ValueError as exc:
+            raise FileFormatError(f"{path}:{line}: {exc}") from None
+    checks = [(~np.isfinite(t).all(axis=1), lambda r: "non-finite value")]
+    for name in ("radius", "sigma_m"):
+        if name in col:
+            checks.append((t[:, col[name]] < 0, lambda r, name=name: f"negative {name} {t[r, col[name]]:g}"))
+    for bad, message in checks:
+        if np.any(bad):
+            r = int(np.argmax(bad))
+            raise FileFormatError(f"{path}:{lines[r]}: {message(r)}")
     if not rows:
         raise FileFormatError(f"{path}: no rocks")
-    t = np.asarray(rows, dtype=float)
     t = t[t[:, col["radius"]] >= cfg.min_radius_m]
     xy = t[:, [col["x"], col["y"]]]
     sig_xy = t[:, col["sigma_m"]] if "sigma_m" in col else None
