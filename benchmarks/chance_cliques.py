@@ -48,9 +48,12 @@ def synthetic_field(rng, n, size=27.0):
 FALSE_ACCEPTS: list[str] = []
 
 
+EPSILON_M = 0.05
+
+
 def chance_size(ref, veh, mode, label=""):
     """(associations, largest consistent set) of an unrelated pair; records false accepts."""
-    r = localize(ref, veh, LocalizationConfig(mode=mode))
+    r = localize(ref, veh, LocalizationConfig(mode=mode, epsilon_m=EPSILON_M, epsilon_z_m=EPSILON_M))
     if r.success:
         FALSE_ACCEPTS.append(label)
     return len(ref) * len(veh), r.clique_size
@@ -66,7 +69,10 @@ def main() -> None:
     ap.add_argument("--skip-real", action="store_true", help="synthetic null model only")
     ap.add_argument("--overhead", type=int, default=0, help="simulated sites whose LAC map is the reference")
     ap.add_argument("--per-site", type=int, default=10, help="unrelated vehicle maps per overhead site")
+    ap.add_argument("--epsilon", type=float, default=0.05, help="consistency tolerance (m) of the search")
     args = ap.parse_args()
+    global EPSILON_M
+    EPSILON_M = args.epsilon
     mode = Mode(args.mode)
     rows = []
     if Path(args.data).exists() and not args.skip_real:

@@ -60,7 +60,8 @@ class Solver(str, enum.Enum):
     CLIPPER = "clipper"  # CLIPPER relaxation + rounding (the paper's solver)
 
 
-def chance_clique_size(num_associations: int, mode: "Mode" = Mode.GRAVITY) -> float:
+def chance_clique_size(num_associations: int, mode: "Mode" = Mode.GRAVITY, epsilon_m: float = 0.05,
+                       epsilon_z_m: float = 0.05) -> float:
     """Upper envelope of the largest consistent set found between UNRELATED maps with
     `num_associations` putative associations (measured; see README "Acceptance rule").
 
@@ -71,13 +72,20 @@ def chance_clique_size(num_associations: int, mode: "Mode" = Mode.GRAVITY) -> fl
     the full acceptance rule, 0 of these and of 136 mirrored real pairs were accepted).
     6-DoF mode: envelope over 40 synthetic pairs of 20-160 landmarks
     (``--mode 6dof --skip-real --synthetic 40 --synthetic-max 160``; largest seen 6).
+    Wider search tolerances make chance sets larger: the envelope is scaled by
+    ``rho ** gamma``, rho = sqrt(eps_h eps_z) / 5 cm (>= 1), gamma measured with
+    ``--epsilon 0.08 / 0.15`` (see _TOLERANCE_EXPONENT).
     """
     a, b = _CHANCE_MODEL[Mode(mode)]
-    return a + b * math.log10(max(num_associations, 1))
+    rho = max(1.0, math.sqrt(max(epsilon_m, 1e-9) * max(epsilon_z_m if Mode(mode) is Mode.GRAVITY else epsilon_m, 1e-9))
+              / _CHANCE_EPSILON_M)
+    return (a + b * math.log10(max(num_associations, 1))) * rho**_TOLERANCE_EXPONENT
 
 
 # (intercept, slope per decade of associations); measured by benchmarks/chance_cliques.py
 _CHANCE_MODEL = {Mode.GRAVITY: (-0.30, 1.83), Mode.SIX_DOF: (-3.69, 2.35)}
+_CHANCE_EPSILON_M = 0.05  # the search tolerance (horizontal and vertical) the envelope was measured at
+_TOLERANCE_EXPONENT = 0.65  # measured: largest ratio of chance sets 2.0 at 3x the tolerance, 1.33 at 1.6x (gamma 0.63, 0.61)
 
 
 @dataclass
@@ -600,7 +608,8 @@ def localize(
     )
     m = len(assoc)
     timings["associations"] = time.perf_counter() - t0
-    required = max(cfg.min_inliers, int(math.ceil(chance_clique_size(m, cfg.mode) + cfg.chance_margin)))
+    chance = chance_clique_size(m, cfg.mode, cfg.epsilon_m, cfg.epsilon_z_m)
+    required = max(cfg.min_inliers, int(math.ceil(chance + cfg.chance_margin)))
     if m == 0:
         return LocalizationResult(False, _nan_T(), np.zeros((0, 2), int), float("nan"),
                                   "no putative associations (size pruning removed all)", required_inliers=required,
@@ -718,7 +727,7 @@ def localize(
         out.reason = (
             f"{k} inliers ({k_chance:.1f} beyond what refinement adds by chance) is too few to beat chance "
             f"at {m} associations (need {required}; "
-            f"unrelated maps of this size give up to ~{chance_clique_size(m, cfg.mode):.0f})"
+            f"unrelated maps of this size give up to ~{chance:.0f})"
         )
     elif k < cfg.competitor_ratio * competitor:
         out.reason = f"ambiguous: {k} inliers vs a competing hypothesis with {competitor}"
