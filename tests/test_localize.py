@@ -253,3 +253,15 @@ def test_real_scaled_vehicle_map_is_refused(real_data):
         if r.success:
             assert np.linalg.norm(transform_points(r.T_ref_veh, c[None])[0] - c) < 0.10
     assert localize(ref, veh).success
+
+
+def test_chance_envelope_grows_with_the_search_tolerance():
+    from lunarloc.localize import chance_clique_size
+
+    m = 90_000
+    base = chance_clique_size(m)
+    assert chance_clique_size(m, epsilon_m=0.03, epsilon_z_m=0.03) == base  # never below the measured one
+    wide = chance_clique_size(m, epsilon_m=0.15, epsilon_z_m=0.15)
+    # measured: chance sets up to 2.0x larger at 3x the tolerance (benchmarks/chance_cliques.py --epsilon)
+    assert wide >= 2.0 * base
+    assert chance_clique_size(m, epsilon_m=0.08, epsilon_z_m=0.08) >= 1.33 * base
