@@ -713,7 +713,7 @@ def localize(
         )
     elif cfg.predicted_error_sigmas * pred.max() > cfg.max_predicted_error_m:
         out.reason = (
-            f"pose too uncertain over the vehicle map: predicted error up to "
+            f"pose too uncertain where it is used: predicted error up to "
             f"{cfg.predicted_error_sigmas:g} x {pred.max() * 100:.1f} cm (allowed {cfg.max_predicted_error_m * 100:.0f} cm"
             f"{'' if distortion.max() == 0 else f'; odometry distortion up to {distortion.max() * 100:.1f} cm'})"
         )
