@@ -53,7 +53,7 @@ def test_grid_rocks_follow_the_grouping_rule(rng):
     assert len(lm) == 40
     d = np.linalg.norm(lm.positions_xyz[:, None, :2] - centres[None], axis=2).min(axis=1)
     assert np.all(d < 1e-9)  # centroid of the cell centres
-    assert np.allclose(lm.sigma_xy_m, LAC_CELL_M / math.sqrt(12))
+    assert np.allclose(lm.sigma_xy_m, LAC_CELL_M / np.sqrt(12 * lm.sightings))  # sightings = cells
     # height halfway between the ground around the rock and the rock's cells (0.2 m higher)
     ground = 0.02 * lm.positions_xyz[:, 0] + 0.01 * lm.positions_xyz[:, 1]
     assert np.allclose(lm.positions_xyz[:, 2] - ground, 0.1, atol=0.01)

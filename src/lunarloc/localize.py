@@ -289,13 +289,14 @@ def combined_sigma(reference: LandmarkMap, vehicle: LandmarkMap, cfg: "Localizat
 
 def rmse_limit(cfg: "LocalizationConfig", sigma_h: float, sigma_z: float, k: int) -> float:
     """Largest residual RMSE of k inliers the chi-square test accepts: the sum of squared
-    3D residuals over sigma_r^2 = 2 sigma_h^2 + sigma_z^2 stays below its `rmse_confidence`
-    quantile with 3k - 6 degrees of freedom. Never below cfg.max_rmse_m (the floor)."""
+    3D residuals over the per-axis variance (sigma_r^2 / 3, sigma_r^2 = 2 sigma_h^2 +
+    sigma_z^2) stays below its `rmse_confidence` quantile with 3k - 6 degrees of freedom,
+    i.e. RMSE <= sigma_r sqrt(q / 3k). Never below cfg.max_rmse_m (the floor)."""
     from scipy.stats import chi2
 
     dof = max(3 * k - 6, 1)
     sr = math.sqrt(2 * sigma_h**2 + sigma_z**2)
-    return max(cfg.max_rmse_m, sr * math.sqrt(chi2.ppf(cfg.rmse_confidence, dof) / max(k, 1)))
+    return max(cfg.max_rmse_m, sr * math.sqrt(chi2.ppf(cfg.rmse_confidence, dof) / (3 * max(k, 1))))
 
 
 def _flattened(m: LandmarkMap) -> LandmarkMap:
@@ -725,7 +726,7 @@ def localize(
         )
     elif k_chance < required:
         out.reason = (
-            f"{k} inliers ({k_chance:.1f} beyond what refinement adds by chance) is too few to beat chance "
+            f"{k} inliers ({k_chance:.1f} when refinement's chance matches are discounted) is too few to beat chance "
             f"at {m} associations (need {required}; "
             f"unrelated maps of this size give up to ~{chance:.0f})"
         )

@@ -16,8 +16,8 @@ non-rock cells that border it (the rock's own mean height if none do); its landm
 height is halfway between that ground level and the mean height of its cells (a camera
 sees the part above ground, and a vision detection lands near that part's middle); its
 size is the diameter of the disc of the same area. Uncertainty: horizontal
-``cell / sqrt(12)`` (quantisation), vertical a quarter of the rock's visible height
-combined with ``cell / sqrt(12)``.
+``cell / sqrt(12 n)`` (quantisation of the centroid of n cells), vertical a quarter of the
+rock's visible height combined with 1 cm.
 
 A map whose heights are all equal (a rock map without heights) gives landmarks without
 heights (:data:`NO_HEIGHT_SIGMA_M`): the localizer then associates in 2D + yaw.
@@ -66,6 +66,7 @@ __all__ = [
 LAC_CELL_M = 0.15
 LAC_CELLS = 180
 _CATALOGUE_COLUMNS = ("x", "y", "z", "radius", "sigma_m")
+_HEIGHT_SIGMA_M = 0.01  # a grid rock's height: not quantised, but its cells' heights vary
 
 
 @dataclass(frozen=True)
@@ -173,12 +174,12 @@ def grid_landmarks(grid, config: OverheadConfig | None = None, frame: str = "lac
     visible = np.maximum(top - ground, 0.0)
     heights = has_heights(g)
     z = (ground + 0.5 * visible) if heights else np.zeros(n)
-    sigma_z = np.hypot(0.25 * visible, q) if heights else np.full(n, NO_HEIGHT_SIGMA_M)
+    sigma_z = np.hypot(0.25 * visible, _HEIGHT_SIGMA_M) if heights else np.full(n, NO_HEIGHT_SIGMA_M)
     size = 2.0 * np.sqrt(count * cell * cell / math.pi)
     log.info("geometric map: %d rock cells in %d rocks (%d kept)", int(rock.sum()), n, int(keep.sum()))
     return LandmarkMap(
         np.c_[cx, cy, z][keep], sizes=size[keep], sightings=count[keep].astype(float), frame=frame,
-        sigma_xy_m=np.full(int(keep.sum()), q), sigma_z_m=sigma_z[keep],
+        sigma_xy_m=(q / np.sqrt(count))[keep], sigma_z_m=sigma_z[keep],
     )
 
 

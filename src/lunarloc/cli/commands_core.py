@@ -79,6 +79,10 @@ def localize_cmd(
         None, help="Prune associations whose size ratio exceeds this (maps with a size column)."
     ),
     dem: Optional[Path] = typer.Option(None, "--dem", help="LAC geometric map giving heights to a catalogue without z."),
+    odometry_scale_error: float = typer.Option(
+        0.0, help="Bound on the vehicle map's relative scale error (its odometry's spec, 0.03 = 3 %)."
+    ),
+    odometry_drift: float = typer.Option(0.0, help="Bound on the odometry's heading drift, degrees per metre."),
     radius: Optional[float] = RADIUS_OPT,
     min_sightings: Optional[int] = SIGHT_OPT,
 ) -> None:
@@ -90,7 +94,8 @@ def localize_cmd(
     try:
         cfg = LocalizationConfig(
             mode=Mode(mode), solver=Solver(solver), epsilon_m=epsilon, registration=registration,
-            max_size_ratio=max_size_ratio,
+            max_size_ratio=max_size_ratio, odometry_scale_error=odometry_scale_error,
+            odometry_heading_drift_deg_per_m=odometry_drift,
         )
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
