@@ -118,6 +118,8 @@ class PairResult:
     competitor: int = 0
     required: int = 0
     lever_m: float = math.nan  # distance from the rover's last position to the inliers' centroid
+    predicted_error_m: float = math.nan  # the localizer's 1-sigma position error at the rover
+    predicted_rotation_deg: float = math.nan  # ... and rotation error
 
     @property
     def rotation_part_m(self) -> float:
@@ -153,6 +155,17 @@ class BenchSummary:
     def n_confident_wrong(self) -> int:
         return sum(r.confident_wrong for r in self.results)
 
+    def coverage(self) -> dict:
+        """Share of localized pairs (success claimed) whose true error at the rover lies
+        within 1 and 3 predicted sigmas (position; rotation), and how many were counted."""
+        ok = [r for r in self.results if r.success and math.isfinite(r.predicted_error_m)]
+        if not ok:
+            return {"n": 0}
+        e = np.array([r.err_rover_m / max(r.predicted_error_m, 1e-9) for r in ok])
+        a = np.array([r.rot_err_deg / max(r.predicted_rotation_deg, 1e-9) for r in ok])
+        return {"n": len(ok), "position_1sigma": float(np.mean(e <= 1)), "position_3sigma": float(np.mean(e <= 3)),
+                "rotation_1sigma": float(np.mean(a <= 1)), "rotation_3sigma": float(np.mean(a <= 3))}
+
     def to_dict(self) -> dict:
         times = [r.time_s for r in self.results]
         return {
@@ -163,6 +176,7 @@ class BenchSummary:
             "confident_wrong": self.n_confident_wrong,
             "median_time_s": float(np.median(times)) if times else None,
             "max_time_s": float(np.max(times)) if times else None,
+            "coverage": self.coverage(),
             "results": [asdict(r) for r in self.results],
         }
 
@@ -186,23 +200,24 @@ def find_traverses(data_dir: str | Path) -> dict[int, Path]:
     return dict(sorted(out.items()))
 
 
-def run_pair(
-    ref_trav: Traverse,
+def vehicle_map(
     veh_trav: Traverse,
     rng: np.random.Generator,
-    loc_config: LocalizationConfig | None = None,
     agg_config: AggregationConfig | None = None,
     drift: DriftModel | None = None,
-    ref_map=None,
     window_m: float | None = None,
-) -> PairResult:
-    """Localize one traverse pair (see module docstring). With `window_m`, the vehicle map
-    holds only detections from the last `window_m` metres of the path (what an online
-    rover localizes, where drift inside the window is small)."""
+    scale_about_centroid: float = 1.0,
+):
+    """The vehicle map of a traverse as :func:`run_pair` builds it: detections seen by
+    drifting odometry (optionally only the last `window_m` metres), moved into a random
+    vehicle frame, aggregated into landmarks. ``scale_about_centroid`` additionally scales
+    the detections about their centroid (a map whose size is wrong, e.g. from a scale error
+    of the odometry that built it; the rover's last position scales with it).
+
+    Returns ``(vehicle LandmarkMap, T_true (world <- vehicle, exact at the last frame),
+    rover's last position in the vehicle frame, the rover's path (F, 3) in the vehicle frame
+    over the frames the map holds)``."""
     drift = drift or DriftModel()
-    ref = ref_map if ref_map is not None else aggregate_detections(
-        ref_trav.detections_xyz, ref_trav.detection_frame, agg_config, frame=ref_trav.name
-    )
     if drift.is_zero:
         det, rover, T_odo_world = veh_trav.detections_xyz, veh_trav.rover_xyz, np.eye(4)
     else:
@@ -214,14 +229,44 @@ def run_pair(
         first = veh_trav.frames[np.searchsorted(travelled, travelled[-1] - window_m)]
         keep = det_frame >= first
         det, det_frame = det[keep], det_frame[keep]
+        rover = rover[veh_trav.frames >= first]
+    last = rover[-1]
+    if scale_about_centroid != 1.0 and len(det):
+        c = det.mean(axis=0)
+        det = c + scale_about_centroid * (det - c)
+        last = c + scale_about_centroid * (last - c)
+        # exact at the last position: the scaled map's last rover position maps to the true one
+        T_odo_world = make_transform(np.eye(3), last - rover[-1]) @ T_odo_world
+        rover = c + scale_about_centroid * (rover - c)
     det_v = transform_points(T_veh_odo, det)
     veh = aggregate_detections(det_v, det_frame, agg_config, frame=veh_trav.name)
     T_true = invert_transform(T_veh_odo @ T_odo_world)  # world <- vehicle, exact at the last frame
-    last_v = transform_points(T_veh_odo, rover[-1:])[0]
+    last_v = transform_points(T_veh_odo, last[None])[0]
+    return veh, T_true, last_v, transform_points(T_veh_odo, rover)
+
+
+def run_pair(
+    ref_trav: Traverse,
+    veh_trav: Traverse,
+    rng: np.random.Generator,
+    loc_config: LocalizationConfig | None = None,
+    agg_config: AggregationConfig | None = None,
+    drift: DriftModel | None = None,
+    ref_map=None,
+    window_m: float | None = None,
+    scale_about_centroid: float = 1.0,
+) -> PairResult:
+    """Localize one traverse pair (see module docstring). With `window_m`, the vehicle map
+    holds only detections from the last `window_m` metres of the path (what an online
+    rover localizes, where drift inside the window is small)."""
+    ref = ref_map if ref_map is not None else aggregate_detections(
+        ref_trav.detections_xyz, ref_trav.detection_frame, agg_config, frame=ref_trav.name
+    )
+    veh, T_true, last_v, path_v = vehicle_map(veh_trav, rng, agg_config, drift, window_m, scale_about_centroid)
     t0 = time.perf_counter()
     if len(ref) < 3 or len(veh) < 3:
         return PairResult(0, 0, len(ref), len(veh), 0, False, False, math.nan, math.nan, math.nan, 0.0, "too few landmarks")
-    res = localize(ref, veh, loc_config)
+    res = localize(ref, veh, loc_config, query_xyz=last_v[None], path_xyz=path_v)  # judged where the rover is
     dt = time.perf_counter() - t0
     if np.all(np.isfinite(res.T_ref_veh)):
         E = res.T_ref_veh @ invert_transform(T_true)
@@ -236,7 +281,8 @@ def run_pair(
         centre = ref.positions_xyz[res.inliers[:, 1]].mean(axis=0)
         lever = float(np.linalg.norm(veh_trav.rover_xyz[-1] - centre))
     return PairResult(0, 0, len(ref), len(veh), res.num_inliers, bool(res.success), correct, err0, err_rover, rot,
-                      dt, res.reason, res.competitor_size, res.required_inliers, lever)
+                      dt, res.reason, res.competitor_size, res.required_inliers, lever,
+                      res.predicted_error_m, res.predicted_rotation_deg)
 
 
 def _warm_up(loc_config: LocalizationConfig | None) -> None:
@@ -257,6 +303,7 @@ def bench_pairs(
     drift: DriftModel | None = None,
     progress: Callable[[PairResult], None] | None = None,
     window_m: float | None = None,
+    scale_about_centroid: float = 1.0,
 ) -> BenchSummary:
     """Run :func:`run_pair` over `pairs` (default: all unordered pairs of traverses)."""
     paths = find_traverses(data_dir)
@@ -278,7 +325,8 @@ def bench_pairs(
         if a not in maps:
             maps[a] = aggregate_detections(travs[a].detections_xyz, travs[a].detection_frame, agg_config, frame=travs[a].name)
         rng = np.random.default_rng([seed, a, b])
-        r = run_pair(travs[a], travs[b], rng, loc_config, agg_config, drift, ref_map=maps[a], window_m=window_m)
+        r = run_pair(travs[a], travs[b], rng, loc_config, agg_config, drift, ref_map=maps[a], window_m=window_m,
+                     scale_about_centroid=scale_about_centroid)
         r.reference, r.vehicle = a, b
         summary.results.append(r)
         if progress:

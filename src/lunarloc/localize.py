@@ -21,7 +21,7 @@ import math
 import os
 import threading
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -31,7 +31,7 @@ from lunarloc.association.clipper import clipper_clique
 from lunarloc.association.graph import RefPairIndex, graph_3d, sweep_yaw_bins, vehicle_pairs
 from lunarloc.association.putative import putative_associations
 from lunarloc.errors import ConfigError, DegenerateGeometryError, InputError
-from lunarloc.geometry import arun, arun_yaw, tilt_angle, transform_points, yaw_of
+from lunarloc.geometry import arun, arun_yaw, as_points, invert_transform, tilt_angle, transform_points, yaw_of
 from lunarloc.maps import LandmarkMap
 
 log = logging.getLogger(__name__)
@@ -60,7 +60,8 @@ class Solver(str, enum.Enum):
     CLIPPER = "clipper"  # CLIPPER relaxation + rounding (the paper's solver)
 
 
-def chance_clique_size(num_associations: int, mode: "Mode" = Mode.GRAVITY) -> float:
+def chance_clique_size(num_associations: int, mode: "Mode" = Mode.GRAVITY, epsilon_m: float = 0.05,
+                       epsilon_z_m: float = 0.05) -> float:
     """Upper envelope of the largest consistent set found between UNRELATED maps with
     `num_associations` putative associations (measured; see README "Acceptance rule").
 
@@ -71,13 +72,20 @@ def chance_clique_size(num_associations: int, mode: "Mode" = Mode.GRAVITY) -> fl
     the full acceptance rule, 0 of these and of 136 mirrored real pairs were accepted).
     6-DoF mode: envelope over 40 synthetic pairs of 20-160 landmarks
     (``--mode 6dof --skip-real --synthetic 40 --synthetic-max 160``; largest seen 6).
+    Wider search tolerances make chance sets larger: the envelope is scaled by
+    ``rho ** gamma``, rho = sqrt(eps_h eps_z) / 5 cm (>= 1), gamma measured with
+    ``--epsilon 0.08 / 0.15`` (see _TOLERANCE_EXPONENT).
     """
     a, b = _CHANCE_MODEL[Mode(mode)]
-    return a + b * math.log10(max(num_associations, 1))
+    rho = max(1.0, math.sqrt(max(epsilon_m, 1e-9) * max(epsilon_z_m if Mode(mode) is Mode.GRAVITY else epsilon_m, 1e-9))
+              / _CHANCE_EPSILON_M)
+    return (a + b * math.log10(max(num_associations, 1))) * rho**_TOLERANCE_EXPONENT
 
 
 # (intercept, slope per decade of associations); measured by benchmarks/chance_cliques.py
 _CHANCE_MODEL = {Mode.GRAVITY: (-0.30, 1.83), Mode.SIX_DOF: (-3.69, 2.35)}
+_CHANCE_EPSILON_M = 0.05  # the search tolerance (horizontal and vertical) the envelope was measured at
+_TOLERANCE_EXPONENT = 0.65  # measured: largest ratio of chance sets 2.0 at 3x the tolerance, 1.33 at 1.6x (gamma 0.63, 0.61)
 
 
 @dataclass
@@ -105,10 +113,21 @@ class LocalizationConfig:
     min_extent_m: float = 1.0  # inliers must spread at least this far (largest principal std x 2)
     min_planarity: float = 0.05  # second/first principal std of the inliers (0 = collinear)
     min_handedness: float = 0.9  # gravity: share of inlier triangles with matching orientation
-    max_predicted_error_m: float = 0.15  # predicted 1-sigma error (x predicted_error_sigmas) anywhere on the vehicle map
+    max_predicted_error_m: float = 0.10  # predicted 1-sigma error (x predicted_error_sigmas) at the query points
     predicted_error_sigmas: float = 1.0
+    max_predicted_rotation_deg: float = 1.0  # predicted 1-sigma rotation error (x predicted_error_sigmas)
     max_scale_error: float = 0.005  # a rigid map's inliers match the reference's scale within 0.5 % ...
     scale_sigmas: float = 3.0  # ... or within this many standard errors of the fitted scale
+    # --- uncertainty of the maps (tolerances above are floors; the maps' own sigma raises them) ---
+    landmark_sigma_m: float = 0.0083  # horizontal 1-sigma per axis of a landmark whose map states none; added in quadrature to stated ones
+    landmark_sigma_z_m: float = 0.0083  # vertical, likewise
+    rmse_confidence: float = 0.999  # chi-square acceptance of the inlier residuals at this confidence
+    # --- distortion (non-rigid vehicle maps: odometry scale error, heading drift) ---
+    near_miss_outer_m: float = 0.30  # vehicle landmarks landing refine_radius_m..this far from a reference rock are "near misses"
+    max_near_miss_z: float = 3.0  # refuse when near misses exceed chance by this many standard deviations ...
+    min_near_misses: int = 5  # ... and there are at least this many of them
+    odometry_scale_error: float = 0.0  # bound on the vehicle map's relative scale error (its odometry's spec)
+    odometry_heading_drift_deg_per_m: float = 0.0  # bound on the heading drift of the odometry that built it
     competitor_ratio: float = 1.5  # best must be this many times the best competing hypothesis
     competitor_yaw_sep_deg: float = 10.0  # hypotheses whose yaws differ more than this compete
     seed: int = 0  # CLIPPER initialisation
@@ -131,10 +150,32 @@ class LocalizationConfig:
             raise ConfigError("max_size_ratio must be >= 1")
         if self.min_inliers < 3:
             raise ConfigError("min_inliers must be >= 3")
+        if not self.near_miss_outer_m > 0 or not self.landmark_sigma_m > 0 or not self.landmark_sigma_z_m > 0:
+            raise ConfigError("near_miss_outer_m, landmark_sigma_m and landmark_sigma_z_m must be positive")
+        if self.odometry_scale_error < 0 or self.odometry_heading_drift_deg_per_m < 0:
+            raise ConfigError("odometry_scale_error and odometry_heading_drift_deg_per_m must be >= 0")
 
     @property
     def sigma(self) -> float:
         return self.sigma_m if self.sigma_m is not None else self.epsilon_m / 2.0
+
+    def for_maps(self, reference: LandmarkMap, vehicle: LandmarkMap) -> "LocalizationConfig":
+        """This config with its refinement and acceptance tolerances raised to what the
+        maps' stated uncertainty needs (:func:`combined_sigma`): refinement radius
+        ``3 sigma_r`` and robust scale ``sigma_r``, sigma_r = sqrt(2 sigma_h^2 + sigma_z^2)
+        the 3D offset of a landmark from its partner; the residual RMSE limit follows from
+        a chi-square test (:func:`rmse_limit`). The consistency search keeps the configured
+        epsilon_m / epsilon_z_m: it only has to find a consistent core of the inliers
+        (refinement gathers the rest), it stays fast, and the chance envelope was measured
+        at those tolerances. The fixed values stay as floors: at the default landmark sigma
+        they are what the rule gives."""
+        sh, sz = combined_sigma(reference, vehicle, self)
+        sr = math.sqrt(2 * sh**2 + sz**2)
+        refine = max(self.refine_radius_m, 3 * sr)
+        return replace(
+            self, refine_radius_m=refine, robust_scale_m=max(self.robust_scale_m, sr),
+            near_miss_outer_m=max(self.near_miss_outer_m, 3 * refine),
+        )
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -151,6 +192,16 @@ class LocalizationResult:
     T_ref_veh : 4x4 transform mapping vehicle-map points into the reference frame
         (the best hypothesis; all NaN when there is none). Trust it only if `success`.
     inliers : (k, 2) int rows ``[vehicle_index, reference_index]``.
+    predicted_error_m : 1-sigma position error of the pose at the query points (default:
+        every vehicle landmark), largest over them: the registration's own uncertainty and
+        the distortion allowance (``distortion_error_m``) of the odometry bounds in the config.
+    covariance : 6x6 covariance of the pose error ``xi = (rho, phi)`` (metres, radians), a
+        left perturbation in the reference frame: ``T_true = exp(xi) T_ref_veh``, i.e. a
+        reference point p is off by ``rho + phi x p``. From the inlier residuals
+        (registration only; the distortion allowance is not in it).
+    near_misses : vehicle landmarks that land just outside the inlier radius of a reference
+        rock (``refine_radius_m`` .. ``near_miss_outer_m``), against ``near_misses_expected``
+        by chance (local reference density): an excess means the map is not rigid.
     """
 
     success: bool
@@ -167,6 +218,11 @@ class LocalizationResult:
     scale_error: float = float("nan")
     yaw_deg: float = float("nan")
     tilt_deg: float = float("nan")
+    distortion_error_m: float = float("nan")
+    predicted_rotation_deg: float = float("nan")
+    near_misses: int = 0
+    near_misses_expected: float = float("nan")
+    covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
     timings: dict = field(default_factory=dict)
 
     @property
@@ -201,11 +257,53 @@ class LocalizationResult:
             "scale_error": clean(float(self.scale_error)),
             "yaw_deg": clean(float(self.yaw_deg)),
             "tilt_deg": clean(float(self.tilt_deg)),
+            "distortion_error_m": clean(float(self.distortion_error_m)),
+            "predicted_rotation_deg": clean(float(self.predicted_rotation_deg)),
+            "near_misses": int(self.near_misses),
+            "near_misses_expected": clean(float(self.near_misses_expected)),
+            "covariance": [[clean(float(v)) for v in row] for row in self.covariance],
             "timings_s": {k: round(v, 6) for k, v in self.timings.items()},
         }
 
 
 # --------------------------------------------------------------------------- helpers
+
+
+def landmark_sigmas(m: LandmarkMap, cfg: "LocalizationConfig") -> tuple[np.ndarray, np.ndarray]:
+    """Per-landmark (horizontal per axis, vertical) 1-sigma of a map: its stated sigma with
+    the configured landmark sigma added in quadrature (unmodelled session-to-session error),
+    or the configured sigma alone where the map states none."""
+    n = len(m)
+    h = np.zeros(n) if m.sigma_xy_m is None else m.sigma_xy_m
+    z = np.zeros(n) if m.sigma_z_m is None else m.sigma_z_m
+    return np.hypot(h, cfg.landmark_sigma_m), np.hypot(z, cfg.landmark_sigma_z_m)
+
+
+def combined_sigma(reference: LandmarkMap, vehicle: LandmarkMap, cfg: "LocalizationConfig") -> tuple[float, float]:
+    """1-sigma per axis of the offset between a vehicle landmark and its reference landmark
+    (horizontal, vertical): the maps' median landmark sigmas combined in quadrature."""
+    rh, rz = landmark_sigmas(reference, cfg)
+    vh, vz = landmark_sigmas(vehicle, cfg)
+    return float(np.hypot(np.median(rh), np.median(vh))), float(np.hypot(np.median(rz), np.median(vz)))
+
+
+def rmse_limit(cfg: "LocalizationConfig", sigma_h: float, sigma_z: float, k: int) -> float:
+    """Largest residual RMSE of k inliers the chi-square test accepts: the sum of squared
+    3D residuals over the per-axis variance (sigma_r^2 / 3, sigma_r^2 = 2 sigma_h^2 +
+    sigma_z^2) stays below its `rmse_confidence` quantile with 3k - 6 degrees of freedom,
+    i.e. RMSE <= sigma_r sqrt(q / 3k). Never below cfg.max_rmse_m (the floor)."""
+    from scipy.stats import chi2
+
+    dof = max(3 * k - 6, 1)
+    sr = math.sqrt(2 * sigma_h**2 + sigma_z**2)
+    return max(cfg.max_rmse_m, sr * math.sqrt(chi2.ppf(cfg.rmse_confidence, dof) / (3 * max(k, 1))))
+
+
+def _flattened(m: LandmarkMap) -> LandmarkMap:
+    """The map with every height 0 and no vertical uncertainty (2D association)."""
+    P = m.positions_xyz.copy()
+    P[:, 2] = 0.0
+    return LandmarkMap(P, m.sizes, m.sightings, m.frame, m.sigma_xy_m, None)
 
 
 def _check_map(m: LandmarkMap, name: str) -> np.ndarray:
@@ -318,39 +416,134 @@ def scale_check(T, P, Q, weights, sigma_floor: float = 0.005) -> tuple[float, fl
     return 1.0 / scale - 1.0, float(np.sqrt(sigma2 / sxx)) / scale**2
 
 
-def predicted_error(T, P, Q, weights, query_xyz, sigma_floor: float = 0.005) -> np.ndarray:
-    """1-sigma position error (m) of the registration T at each vehicle-frame query point.
+def _skew(v) -> np.ndarray:
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
 
-    Linearised weighted least squares: residual r_i = dt + dtheta x p_i + noise, with the
-    noise scale estimated from the weighted residuals (floored at `sigma_floor`);
-    covariance of (dt, dtheta) is sigma^2 (sum_i w_i J_i^T J_i)^-1 with J_i = [I, -[p_i]x].
-    The error at q has covariance A C A^T with A = [I, -[q]x].
-    """
+
+def pose_covariance(T, P, Q, weights, sigma_floor: float = 0.005) -> tuple[np.ndarray, np.ndarray]:
+    """Covariance (6x6) of the registration error ``(dt, dtheta)`` about the weighted inlier
+    centroid ``c`` (reference frame), and ``c``.
+
+    Linearised weighted least squares: residual r_i = dt + dtheta x (p_i - c) + noise, the
+    noise scale estimated from the weighted residuals (floored at `sigma_floor`); the
+    covariance is sigma^2 (sum_i w_i J_i^T J_i)^-1 with J_i = [I, -[p_i - c]x]. Infinite
+    when the inliers do not fix the pose."""
     Pt = transform_points(T, P)
     r2 = np.sum((Pt - Q) ** 2, axis=1)
     w = np.asarray(weights, float)
     dof = max(3 * w.sum() - 6, 1.0)
     sigma2 = max(float(w @ r2) / dof, sigma_floor**2)
     c = (w @ Pt) / w.sum()
-    X = Pt - c  # linearise about the weighted centroid (reference frame)
-
-    def skew(v):
-        return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-
     H = np.zeros((6, 6))
-    for wi, x in zip(w, X):
-        J = np.hstack([np.eye(3), -skew(x)])
+    for wi, x in zip(w, Pt - c):
+        J = np.hstack([np.eye(3), -_skew(x)])
         H += wi * J.T @ J
     try:
-        C = sigma2 * np.linalg.inv(H)
+        return sigma2 * np.linalg.inv(H), c
     except np.linalg.LinAlgError:
+        return np.full((6, 6), np.inf), c
+
+
+def covariance_at_origin(C_c: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Re-express a pose-error covariance about point c as one about the frame origin:
+    an error dt + dtheta x (p - c) is (dt - dtheta x c) + dtheta x p."""
+    A = np.eye(6)
+    A[:3, 3:] = _skew(c)
+    return A @ C_c @ A.T
+
+
+def predicted_error(T, P, Q, weights, query_xyz, sigma_floor: float = 0.005) -> np.ndarray:
+    """1-sigma position error (m) of the registration T at each vehicle-frame query point:
+    the error at q has covariance A C A^T with A = [I, -[q - c]x] (see :func:`pose_covariance`)."""
+    C, c = pose_covariance(T, P, Q, weights, sigma_floor)
+    if not np.all(np.isfinite(C)):
         return np.full(len(query_xyz), np.inf)
-    Y = transform_points(T, query_xyz) - c
+    Y = transform_points(T, np.asarray(query_xyz, float).reshape(-1, 3)) - c
     out = np.empty(len(Y))
     for k, y in enumerate(Y):
-        A = np.hstack([np.eye(3), -skew(y)])
+        A = np.hstack([np.eye(3), -_skew(y)])
         out[k] = math.sqrt(max(np.trace(A @ C @ A.T), 0.0))
     return out
+
+
+def _arc_length_at(path_xyz: np.ndarray, points_xyz: np.ndarray) -> np.ndarray:
+    """Distance travelled along `path_xyz` (F, 3) to its point nearest (horizontally) to
+    each of `points_xyz`: when the odometry was there."""
+    path = np.asarray(path_xyz, float)
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))]
+    _, j = cKDTree(path[:, :2]).query(np.asarray(points_xyz, float)[:, :2])
+    return s[j]
+
+
+def distortion_allowance(query_xyz, inliers_xyz, weights, scale_error: float, heading_drift_rad_per_m: float,
+                         path_xyz: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Position (m) and rotation (rad) error a non-rigid vehicle map can add at each query
+    point beyond what the rigid fit sees, from bounds on its odometry's distortion.
+
+    The fit is right where the inliers are (their weighted centroid, vehicle frame). A
+    relative scale error moves a point at horizontal lever L from there by scale_error * L.
+    A heading drift turns the map by drift * D between where the inliers were seen and
+    the query point, D the distance travelled between them, and so moves the query point
+    by about drift * D * L. With the vehicle's path (vehicle frame) D is measured along it
+    (from the query to the farthest inlier, each placed at the path point nearest to it);
+    without it D = L (the path was at least that long: an underestimate for winding paths)."""
+    q = np.asarray(query_xyz, float).reshape(-1, 3)
+    w = np.asarray(weights, float)
+    centre = (w @ inliers_xyz) / w.sum()
+    L = np.linalg.norm(q[:, :2] - centre[:2], axis=1)
+    if path_xyz is not None and len(path_xyz) >= 2:
+        # the fit's heading is a weighted mean of the inliers' local headings: it differs
+        # from the query's by at most the drift over the longest stretch between them
+        s_inl = _arc_length_at(path_xyz, inliers_xyz)
+        s_q = _arc_length_at(path_xyz, q)
+        D = np.maximum(np.abs(s_q - s_inl.min()), np.abs(s_q - s_inl.max()))
+    else:
+        D = L
+    rot = heading_drift_rad_per_m * D
+    return scale_error * L + rot * L, rot
+
+
+def near_miss_excess(T, Pv, Pr, inlier_veh: np.ndarray, inner_m: float, outer_m: float,
+                     density_radius_m: float = 1.5) -> tuple[int, float]:
+    """(observed, expected by chance) number of non-inlier vehicle landmarks whose nearest
+    reference landmark under T lies between `inner_m` and `outer_m`.
+
+    Under a right pose of a rigid map a landmark either has its rock within the noise
+    (an inlier) or nothing nearby but chance neighbours; the chance count follows the local
+    reference density lambda (rocks within `density_radius_m`): the nearest neighbour is in
+    the band with probability exp(-lambda pi r_in^2) (1 - exp(-lambda pi (r_out^2 - r_in^2))).
+    A map that is scaled or bent away from its inliers puts its true rocks a little further
+    off, in the band: an excess there is the signature of a non-rigid map."""
+    Pt = transform_points(T, Pv)
+    rest = np.ones(len(Pt), dtype=bool)
+    rest[np.asarray(inlier_veh, dtype=np.int64)] = False
+    if not np.any(rest):
+        return 0, 0.0
+    tree = cKDTree(Pr)
+    d, _ = tree.query(Pt[rest])
+    observed = int(np.sum((d > inner_m) & (d < outer_m)))
+    return observed, float(_chance_in_band(tree, Pt[rest], inner_m, outer_m, density_radius_m).sum())
+
+
+def _chance_in_band(tree: cKDTree, points: np.ndarray, inner_m: float, outer_m: float,
+                    density_radius_m: float = 1.5) -> np.ndarray:
+    """Probability that the nearest reference landmark of each point lies between inner_m
+    and outer_m by chance, from the local reference density (rocks within
+    `density_radius_m`, a horizontal Poisson model)."""
+    counts = tree.query_ball_point(points, density_radius_m, return_length=True)
+    lam = np.asarray(counts, float) / (math.pi * density_radius_m**2)
+    return np.exp(-lam * math.pi * inner_m**2) * (1 - np.exp(-lam * math.pi * (outer_m**2 - inner_m**2)))
+
+
+def chance_refined(T, Pv, Pr, core_veh: np.ndarray, radius_m: float) -> float:
+    """Expected number of vehicle landmarks outside the consistent core that refinement
+    pairs with a reference landmark within `radius_m` by chance under T: the refined
+    inlier count exceeds the core by about this much even for unrelated maps."""
+    rest = np.ones(len(Pv), dtype=bool)
+    rest[np.asarray(core_veh, dtype=np.int64)] = False
+    if not np.any(rest):
+        return 0.0
+    return float(_chance_in_band(cKDTree(Pr), transform_points(T, Pv[rest]), 0.0, radius_m).sum())
 
 
 def _handedness(P: np.ndarray, Q: np.ndarray, rng: np.random.Generator) -> float:
@@ -383,17 +576,32 @@ def _nan_T() -> np.ndarray:
 
 
 def localize(
-    reference: LandmarkMap, vehicle: LandmarkMap, config: LocalizationConfig | None = None
+    reference: LandmarkMap, vehicle: LandmarkMap, config: LocalizationConfig | None = None,
+    query_xyz: np.ndarray | None = None, path_xyz: np.ndarray | None = None,
 ) -> LocalizationResult:
     """Find ``T_ref_veh`` aligning `vehicle` to `reference`, or say why it can't be trusted.
+
+    `query_xyz` (k, 3), vehicle frame: where the pose will be used (e.g. the rover's current
+    position); the predicted error is judged there. Default: every vehicle landmark.
+    `path_xyz` (F, 3), vehicle frame: the odometry path that built the vehicle map, to
+    measure how far the rover travelled between the inliers and the query points (heading
+    drift accumulates with it; see :func:`distortion_allowance`).
 
     Raises InputError / DegenerateGeometryError for unusable input (empty maps, fewer
     than 3 landmarks, coincident or collinear landmarks). A failed localization is not
     an error: it returns ``success=False`` with a reason.
     """
-    cfg = config or LocalizationConfig()
+    if isinstance(reference, LandmarkMap) and isinstance(vehicle, LandmarkMap) and not (
+        reference.has_heights and vehicle.has_heights
+    ):
+        # a map without heights (a rock catalogue from above): associate and register in
+        # 2D + yaw; the pose's height, roll and pitch are not determined (left 0)
+        reference, vehicle = _flattened(reference), _flattened(vehicle)
+        config = replace(config or LocalizationConfig(), mode=Mode.GRAVITY, registration=Registration.YAW)
     Pr = _check_map(reference, "reference")
     Pv = _check_map(vehicle, "vehicle")
+    cfg = (config or LocalizationConfig()).for_maps(reference, vehicle)
+    sigma_h, sigma_z = combined_sigma(reference, vehicle, cfg)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     assoc, node_of = putative_associations(
@@ -401,7 +609,8 @@ def localize(
     )
     m = len(assoc)
     timings["associations"] = time.perf_counter() - t0
-    required = max(cfg.min_inliers, int(math.ceil(chance_clique_size(m, cfg.mode) + cfg.chance_margin)))
+    chance = chance_clique_size(m, cfg.mode, cfg.epsilon_m, cfg.epsilon_z_m)
+    required = max(cfg.min_inliers, int(math.ceil(chance + cfg.chance_margin)))
     if m == 0:
         return LocalizationResult(False, _nan_T(), np.zeros((0, 2), int), float("nan"),
                                   "no putative associations (size pruning removed all)", required_inliers=required,
@@ -436,7 +645,23 @@ def localize(
         T = T_w
     except DegenerateGeometryError:
         w = np.ones(len(inl))
-    pred = predicted_error(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, Pv)
+    query = Pv if query_xyz is None else as_points(query_xyz, "query points")
+    C_c, centre_ref = pose_covariance(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w)
+    pred_fit = predicted_error(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, query)
+    distortion, distortion_rot = distortion_allowance(
+        query, Pv[inl[:, 0]], w, cfg.odometry_scale_error, math.radians(cfg.odometry_heading_drift_deg_per_m),
+        None if path_xyz is None else as_points(path_xyz, "vehicle path"),
+    )
+    pred = pred_fit + distortion  # the distortion is a bound (a bias), not a random error: added, not in quadrature
+    rot_sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(C_c[3:, 3:]))), 0.0)) if np.all(np.isfinite(C_c)) else math.inf
+    pred_rot_deg = math.degrees(rot_sigma + float(distortion_rot.max()))
+    # the chance envelope was measured on consistent cores: refinement's chance additions
+    # (more of them with a wider refinement radius) do not count towards beating it
+    core = len(best)
+    chance_gain = chance_refined(T, Pv, Pr, assoc[best][:, 0], cfg.refine_radius_m) if cfg.refine else 0.0
+    k_chance = min(len(inl), core + max(0.0, len(inl) - core - chance_gain))
+    near_outer = max(cfg.near_miss_outer_m, 3 * cfg.refine_radius_m)
+    near, near_exp = near_miss_excess(T, Pv, Pr, inl[:, 0], cfg.refine_radius_m, near_outer)
     dscale, scale_se = scale_check(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w)
     timings["registration"] = time.perf_counter() - t0
 
@@ -454,13 +679,20 @@ def localize(
     out = LocalizationResult(
         False, T, inl, rmse, "", clique_size=len(best), competitor_size=int(competitor),
         predicted_error_m=float(pred.max()), scale_error=dscale,
-        yaw_deg=math.degrees(yaw_of(R)), tilt_deg=math.degrees(tilt_angle(R)), **base,
+        yaw_deg=math.degrees(yaw_of(R)), tilt_deg=math.degrees(tilt_angle(R)),
+        distortion_error_m=float(distortion.max()), predicted_rotation_deg=pred_rot_deg, near_misses=near, near_misses_expected=near_exp,
+        covariance=covariance_at_origin(C_c, centre_ref), **base,
     )
+    near_z = (near - near_exp) / math.sqrt(max(near_exp, 1.0))
     Q = Pr[inl[:, 1]]
     s = np.linalg.svd(Q - Q.mean(axis=0), compute_uv=False) / math.sqrt(len(Q))
     k = len(inl)
-    if rmse > cfg.max_rmse_m:
-        out.reason = f"residual RMSE {rmse * 100:.1f} cm exceeds {cfg.max_rmse_m * 100:.1f} cm"
+    rmse_max = rmse_limit(cfg, sigma_h, sigma_z, k)
+    if rmse > rmse_max:
+        out.reason = (
+            f"residual RMSE {rmse * 100:.1f} cm exceeds {rmse_max * 100:.1f} cm (what landmarks of "
+            f"{sigma_h * 100:.1f} cm horizontal / {sigma_z * 100:.1f} cm vertical uncertainty allow)"
+        )
     elif 2 * s[0] < cfg.min_extent_m:
         out.reason = f"inliers are clustered (extent {2 * s[0]:.2f} m < {cfg.min_extent_m} m)"
     elif s[1] / max(s[0], 1e-12) < cfg.min_planarity:
@@ -474,15 +706,29 @@ def localize(
             f"vehicle map is not rigid: its inliers are {dscale * 100:+.1f} % larger than the reference "
             f"(+-{scale_se * 100:.1f} %), as odometry scale drift makes them"
         )
+    elif near >= cfg.min_near_misses and near_z > cfg.max_near_miss_z:
+        out.reason = (
+            f"vehicle map is not rigid: {near} of its landmarks land {cfg.refine_radius_m * 100:.0f}-"
+            f"{near_outer * 100:.0f} cm from a reference rock where chance gives {near_exp:.1f} "
+            "(scaled or bent by odometry drift away from the inliers)"
+        )
     elif cfg.predicted_error_sigmas * pred.max() > cfg.max_predicted_error_m:
         out.reason = (
-            f"pose too uncertain over the vehicle map: predicted error up to "
-            f"{cfg.predicted_error_sigmas:g} x {pred.max() * 100:.1f} cm (allowed {cfg.max_predicted_error_m * 100:.0f} cm)"
+            f"pose too uncertain where it is used: predicted error up to "
+            f"{cfg.predicted_error_sigmas:g} x {pred.max() * 100:.1f} cm (allowed {cfg.max_predicted_error_m * 100:.0f} cm"
+            f"{'' if distortion.max() == 0 else f'; odometry distortion up to {distortion.max() * 100:.1f} cm'})"
         )
-    elif k < required:
+    elif cfg.predicted_error_sigmas * pred_rot_deg > cfg.max_predicted_rotation_deg:
         out.reason = (
-            f"{k} inliers is too few to beat chance at {m} associations (need {required}; "
-            f"unrelated maps of this size give up to ~{chance_clique_size(m, cfg.mode):.0f})"
+            f"heading too uncertain: predicted rotation error {cfg.predicted_error_sigmas:g} x {pred_rot_deg:.2f} deg "
+            f"(allowed {cfg.max_predicted_rotation_deg:g} deg; odometry heading drift up to "
+            f"{math.degrees(float(distortion_rot.max())):.2f} deg)"
+        )
+    elif k_chance < required:
+        out.reason = (
+            f"{k} inliers ({k_chance:.1f} when refinement's chance matches are discounted) is too few to beat chance "
+            f"at {m} associations (need {required}; "
+            f"unrelated maps of this size give up to ~{chance:.0f})"
         )
     elif k < cfg.competitor_ratio * competitor:
         out.reason = f"ambiguous: {k} inliers vs a competing hypothesis with {competitor}"

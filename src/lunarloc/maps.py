@@ -3,11 +3,11 @@ loader, and aggregation of per-frame rock detections into landmarks.
 
 File formats
 ------------
-* Landmark-map CSV: header ``x,y,z`` with optional ``size`` (m) and ``sightings``
-  columns, one landmark per row; a first comment line ``# frame: NAME`` keeps the
+* Landmark-map CSV: header ``x,y,z`` with optional ``size`` (m), ``sightings``,
+  ``sigma_xy`` and ``sigma_z`` (1-sigma position uncertainty, m) columns, one landmark per row; a first comment line ``# frame: NAME`` keeps the
   frame name.
-* Binary: NumPy ``.npz`` with arrays ``positions_xyz``, optional ``sizes`` and
-  ``sightings``, and a 0-d string ``frame``.
+* Binary: NumPy ``.npz`` with arrays ``positions_xyz``, optional ``sizes``,
+  ``sightings``, ``sigma_xy_m`` and ``sigma_z_m``, and a 0-d string ``frame``.
 * Traverse CSV (the LunarLoc dataset, ``mit-acl/lunarloc-data``):
   ``frame,x,y,z,detections,boulders`` where ``boulders`` is a Python-literal list
   of ``(x, y, z)`` rock centroids in the map frame.
@@ -40,6 +40,8 @@ __all__ = [
     "save_map",
     "is_traverse_csv",
     "TRAVERSE_COLUMNS",
+    "sighting_sigma",
+    "NO_HEIGHT_SIGMA_M",
 ]
 
 TRAVERSE_COLUMNS = ("frame", "x", "y", "z", "detections", "boulders")
@@ -65,6 +67,10 @@ def parse_boulders(text: str) -> np.ndarray:
     vals = np.array(_NUMBER.findall(t), dtype=float)
     return vals.reshape(-1, 3)
 
+#: a landmark's vertical sigma at or above this means "height unknown" (e.g. a rock catalogue
+#: without heights): the localizer then associates in 2D + yaw
+NO_HEIGHT_SIGMA_M = 1.0e6
+
 
 @dataclass
 class LandmarkMap:
@@ -76,18 +82,24 @@ class LandmarkMap:
     sizes : optional (N,) rock size estimates in metres (diameter-like; same unit in both maps).
     sightings : optional (N,) number of detections (or frames) supporting each landmark.
     frame : name of the frame the positions are expressed in.
+    sigma_xy_m : optional (N,) 1-sigma horizontal position uncertainty per axis (m); a grid
+        gives its quantisation cell / sqrt(12), an image-built map its sighting spread.
+    sigma_z_m : optional (N,) 1-sigma vertical position uncertainty (m).
+    Unknown uncertainty stays None: the localizer then uses its configured defaults.
     """
 
     positions_xyz: np.ndarray
     sizes: np.ndarray | None = None
     sightings: np.ndarray | None = None
     frame: str = "map"
+    sigma_xy_m: np.ndarray | None = None
+    sigma_z_m: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.positions_xyz = as_points(self.positions_xyz, "landmark positions")
         _check_coordinates(self.positions_xyz, "landmark positions")
         n = len(self.positions_xyz)
-        for name in ("sizes", "sightings"):
+        for name in ("sizes", "sightings", "sigma_xy_m", "sigma_z_m"):
             val = getattr(self, name)
             if val is None:
                 continue
@@ -101,6 +113,11 @@ class LandmarkMap:
     def __len__(self) -> int:
         return len(self.positions_xyz)
 
+    @property
+    def has_heights(self) -> bool:
+        """False when the map states that its heights are unknown (NO_HEIGHT_SIGMA_M)."""
+        return self.sigma_z_m is None or not bool(np.all(self.sigma_z_m >= NO_HEIGHT_SIGMA_M))
+
     def subset(self, index) -> "LandmarkMap":
         """Landmarks selected by an index array or boolean mask."""
         idx = np.asarray(index)
@@ -109,12 +126,15 @@ class LandmarkMap:
             None if self.sizes is None else self.sizes[idx],
             None if self.sightings is None else self.sightings[idx],
             self.frame,
+            None if self.sigma_xy_m is None else self.sigma_xy_m[idx],
+            None if self.sigma_z_m is None else self.sigma_z_m[idx],
         )
 
     def transformed(self, T_new_frame: np.ndarray, frame: str | None = None) -> "LandmarkMap":
         """Copy with positions mapped by `T_new_frame` (4x4) into a new frame."""
         return LandmarkMap(
-            transform_points(T_new_frame, self.positions_xyz), self.sizes, self.sightings, frame or self.frame
+            transform_points(T_new_frame, self.positions_xyz), self.sizes, self.sightings, frame or self.frame,
+            self.sigma_xy_m, self.sigma_z_m,
         )
 
 
@@ -319,16 +339,30 @@ def aggregate_detections(
     starts = np.flatnonzero(np.r_[True, lab_sorted[1:] != lab_sorted[:-1]])
     groups = np.split(np.arange(len(lab_sorted)), starts[1:])
     frames_sorted = None if detection_frame is None else np.asarray(detection_frame)[keep][order]
-    centres, counts = [], []
+    centres, counts, spreads = [], [], []
     for g in groups:
         n = len(np.unique(frames_sorted[g])) if frames_sorted is not None else len(g)
         if n < cfg.min_frames and frames_sorted is not None:
             continue
         centres.append(np.median(pts_sorted[g], axis=0))
         counts.append(n)
+        spreads.append(sighting_sigma(pts_sorted[g], n))
     if not centres:
         return LandmarkMap(np.zeros((0, 3)), sightings=np.zeros(0), frame=frame)
-    return LandmarkMap(np.asarray(centres), sightings=np.asarray(counts, dtype=float), frame=frame)
+    sig = np.asarray(spreads, dtype=float).reshape(-1, 2)
+    return LandmarkMap(np.asarray(centres), sightings=np.asarray(counts, dtype=float), frame=frame,
+                       sigma_xy_m=sig[:, 0], sigma_z_m=sig[:, 1])
+
+
+def sighting_sigma(points_xyz: np.ndarray, n_independent: int) -> tuple[float, float]:
+    """1-sigma (horizontal per axis, vertical) uncertainty of a landmark's median from the
+    spread of its sightings: the robust spread (1.4826 x median absolute deviation) over
+    sqrt(n_independent) (distinct frames: sightings within a frame share its pose error),
+    times 1.25 for the median's efficiency."""
+    P = np.asarray(points_xyz, dtype=float)
+    mad = 1.4826 * np.median(np.abs(P - np.median(P, axis=0)), axis=0)
+    k = 1.25 / np.sqrt(max(int(n_independent), 1))
+    return float(k * np.sqrt(0.5 * (mad[0] ** 2 + mad[1] ** 2))), float(k * mad[2])
 
 
 def traverse_map(traverse: Traverse, config: AggregationConfig | None = None) -> LandmarkMap:
@@ -352,6 +386,9 @@ def save_map(landmarks: LandmarkMap, path: str | Path) -> Path:
             extra["sizes"] = landmarks.sizes
         if landmarks.sightings is not None:
             extra["sightings"] = landmarks.sightings
+        for name in _SIGMA_COLUMNS.values():
+            if getattr(landmarks, name) is not None:
+                extra[name] = getattr(landmarks, name)
         from lunarloc.outputs import atomic_path
 
         with atomic_path(path) as tmp:
@@ -367,6 +404,10 @@ def save_map(landmarks: LandmarkMap, path: str | Path) -> Path:
     if landmarks.sightings is not None:
         cols.append("sightings")
         data.append(landmarks.sightings[:, None])
+    for col, name in _SIGMA_COLUMNS.items():
+        if getattr(landmarks, name) is not None:
+            cols.append(col)
+            data.append(getattr(landmarks, name)[:, None])
     table = np.hstack(data) if data else np.zeros((0, 3))
     from lunarloc.outputs import atomic_open
 
@@ -376,6 +417,10 @@ def save_map(landmarks: LandmarkMap, path: str | Path) -> Path:
         for row in table:
             fh.write(",".join(f"{v:.6f}" for v in row) + "\n")
     return path
+
+
+# optional per-landmark uncertainty: CSV column -> LandmarkMap attribute (and .npz array)
+_SIGMA_COLUMNS = {"sigma_xy": "sigma_xy_m", "sigma_z": "sigma_z_m"}
 
 
 def read_numeric_csv(path: str | Path, required: tuple[str, ...], what: str = "CSV") -> tuple[str | None, list[str], np.ndarray]:
@@ -437,6 +482,7 @@ def _load_map_csv(path: Path) -> LandmarkMap:
             table[:, idx["size"]] if "size" in idx else None,
             table[:, idx["sightings"]] if "sightings" in idx else None,
             frame=frame or path.stem,
+            **{name: table[:, idx[col]] for col, name in _SIGMA_COLUMNS.items() if col in idx},
         )
     except InputError as exc:
         raise FileFormatError(f"{path}: {exc}") from None
@@ -469,6 +515,7 @@ def _load_map_npz(path: Path) -> LandmarkMap:
         raise FileFormatError(f"{path}: 'frame' must be a single string, got {frame.dtype} of shape {frame.shape}")
     try:
         return LandmarkMap(z["positions_xyz"], z.get("sizes"), z.get("sightings"),
-                           str(frame) if frame is not None else path.stem)  # fmt: skip
+                           str(frame) if frame is not None else path.stem,
+                           **{name: z[name] for name in _SIGMA_COLUMNS.values() if name in z})  # fmt: skip
     except InputError as exc:
         raise FileFormatError(f"{path}: {exc}") from None

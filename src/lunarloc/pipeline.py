@@ -151,13 +151,23 @@ def _is_rock_csv(path: Path) -> bool:
     return _first_line(path).split(",")[:5] == ROCK_COLUMNS
 
 
-def load_reference(path: str | Path, config: AggregationConfig | None = None, min_radius_m: float = 0.05) -> LandmarkMap:
-    """A reference map from a landmark CSV/.npz, a traverse CSV, or a rock list (``rocks.csv``:
-    ``id,x,y,z,radius``, converted by :func:`rocks_to_reference`). Raises InputError when empty."""
+def load_reference(path: str | Path, config: AggregationConfig | None = None, min_radius_m: float = 0.05,
+                   dem: str | Path | None = None) -> LandmarkMap:
+    """A reference map from a landmark CSV/.npz, a traverse CSV, a rock list (``rocks.csv``:
+    ``id,x,y,z,radius``, converted by :func:`rocks_to_reference`), a LAC geometric map
+    (``.npy``, rocks grouped by :func:`lunarloc.overhead.grid_landmarks`) or a rock catalogue
+    (``x,y[,z],radius[,sigma_m]``; heights from the LAC map `dem` when it has no ``z``).
+    Raises InputError when empty."""
+    from lunarloc import overhead
+
     from lunarloc.inputs import check_input_file
 
     path = check_input_file(path, None, "reference map")
-    if path.suffix.lower() == ".csv" and _is_rock_csv(path):
+    if path.suffix.lower() == ".npy":
+        ref = overhead.grid_landmarks(overhead.load_lac_grid(path), frame=path.stem)
+    elif path.suffix.lower() == ".csv" and overhead.is_rock_catalogue(path):
+        ref = overhead.load_rock_catalogue(path, dem)
+    elif path.suffix.lower() == ".csv" and _is_rock_csv(path):
         ref = rocks_to_reference(_load_rock_csv(path), min_radius_m)
     else:
         ref = load_map(path, config)

@@ -40,6 +40,7 @@ def _register_commands() -> None:
     from lunarloc.cli import commands_campaign  # noqa: F401
     from lunarloc.cli import commands_setup  # noqa: F401
     from lunarloc.cli import commands_odometry  # noqa: F401
+    from lunarloc.cli import commands_overhead  # noqa: F401
 
 
 _STATE = {"debug": False}

@@ -44,30 +44,55 @@ def _map_suffix(out: Path) -> None:
 @app.command("map")
 def map_cmd(
     traverse: Path = typer.Argument(..., help="Traverse CSV (frame,x,y,z,detections,boulders)."),
-    out: Path = typer.Option(..., "-o", "--out", help="Output landmark map (.csv or .npz)."),
+    out: Optional[Path] = typer.Option(None, "-o", "--out", help="Output landmark map (.csv or .npz)."),
+    lac_grid: Optional[Path] = typer.Option(
+        None, "--lac-grid", help="Also write the rocks as a LAC geometric map (.npy, 180 x 180 cells of 0.15 m)."
+    ),
     radius: Optional[float] = RADIUS_OPT,
     min_sightings: Optional[int] = SIGHT_OPT,
     overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """Build a landmark map (one landmark per rock) from a traverse's detections."""
+    from lunarloc.errors import InputError
     from lunarloc.maps import load_traverse, save_map, traverse_map
     from lunarloc.outputs import check_output_file
 
-    _map_suffix(out)
-    check_output_file(out, overwrite, "landmark map")  # before the computation, not after
-    agg = _agg(radius, min_sightings)
+    if out is None and lac_grid is None:
+        raise InputError("nothing to write: give -o/--out MAP (.csv/.npz) and/or --lac-grid GRID.npy")
+    if out is not None:
+        _map_suffix(out)
+        check_output_file(out, overwrite, "landmark map")  # before the computation, not after
+    if lac_grid is not None:
+        if lac_grid.suffix.lower() != ".npy":
+            raise InputError(f"{lac_grid}: a LAC geometric map is written as .npy")
+        check_output_file(lac_grid, overwrite, "LAC geometric map")
     trav = load_traverse(traverse)
-    lm = traverse_map(trav, agg)
-    save_map(lm, out)
+    lm = traverse_map(trav, _agg(radius, min_sightings))
+    written = []
+    if out is not None:
+        save_map(lm, out)
+        written.append(str(out))
+    if lac_grid is not None:
+        import numpy as np
+
+        from lunarloc.outputs import atomic_path
+        from lunarloc.overhead import landmarks_to_lac_grid
+
+        grid = landmarks_to_lac_grid(lm)
+        with atomic_path(lac_grid) as tmp:
+            np.save(tmp, grid)
+        written.append(str(lac_grid))
     typer.echo(
         f"{traverse.name}: {len(trav.detections_xyz)} detections in {len(trav.frames)} frames "
-        f"-> {len(lm)} landmarks -> {out}"
+        f"-> {len(lm)} landmarks -> {', '.join(written)}"
     )
 
 
 @app.command("localize")
 def localize_cmd(
-    reference: Path = typer.Argument(..., help="Reference map: landmark CSV/.npz or traverse CSV."),
+    reference: Path = typer.Argument(
+        ..., help="Reference map: landmark CSV/.npz, traverse CSV, rocks.csv, LAC geometric map (.npy) or rock catalogue CSV."
+    ),
     vehicle: Path = typer.Argument(..., help="Vehicle map: landmark CSV/.npz or traverse CSV."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
     mode: str = typer.Option("gravity", help="gravity (IMU-levelled maps, default) or 6dof."),
@@ -77,6 +102,11 @@ def localize_cmd(
     max_size_ratio: Optional[float] = typer.Option(
         None, help="Prune associations whose size ratio exceeds this (maps with a size column)."
     ),
+    dem: Optional[Path] = typer.Option(None, "--dem", help="LAC geometric map giving heights to a catalogue without z."),
+    odometry_scale_error: float = typer.Option(
+        0.0, help="Bound on the vehicle map's relative scale error (its odometry's spec, 0.03 = 3 %)."
+    ),
+    odometry_drift: float = typer.Option(0.0, help="Bound on the odometry's heading drift, degrees per metre."),
     radius: Optional[float] = RADIUS_OPT,
     min_sightings: Optional[int] = SIGHT_OPT,
     search: str = typer.Option(
@@ -99,12 +129,15 @@ def localize_cmd(
     try:
         cfg = LocalizationConfig(
             mode=Mode(mode), solver=Solver(solver), epsilon_m=epsilon, registration=registration,
-            max_size_ratio=max_size_ratio,
+            max_size_ratio=max_size_ratio, odometry_scale_error=odometry_scale_error,
+            odometry_heading_drift_deg_per_m=odometry_drift,
         )
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
+    from lunarloc.pipeline import load_reference
+
     agg = _agg(radius, min_sightings)
-    ref = load_map(reference, agg)
+    ref = load_reference(reference, agg, dem=dem)
     veh = load_map(vehicle, agg)
     res = localize_large(ref, veh, cfg, search=search)
     if as_json:
@@ -121,6 +154,11 @@ def localize_cmd(
     )
     if res.search == "indexed":
         con.print(f"indexed search: {len(res.candidates)} candidate region(s), answer from candidate {res.winner + 1}")
+    if math.isfinite(res.predicted_error_m):
+        con.print(
+            f"predicted 1-sigma error {res.predicted_error_m * 100:.1f} cm, {res.predicted_rotation_deg:.2f} deg; "
+            f"near misses {res.near_misses} (chance {res.near_misses_expected:.1f})"
+        )
     if math.isfinite(res.T_ref_veh[0, 0]):
         con.print("T_ref_veh =")
         for row in res.T_ref_veh:
@@ -140,6 +178,10 @@ def bench_pairs_cmd(
     ),
     mode: str = typer.Option("gravity", help="gravity or 6dof."),
     solver: str = typer.Option("exact", help="exact or clipper."),
+    odometry_bounds: bool = typer.Option(
+        True, "--odometry-bounds/--no-odometry-bounds",
+        help="Tell the localizer the simulated drift as its odometry's bounds (scale, heading drift).",
+    ),
     check: bool = typer.Option(False, "--check", help="Exit 1 unless the acceptance targets are met."),
     overwrite: bool = OVERWRITE_OPT,
 ) -> None:
@@ -164,7 +206,11 @@ def bench_pairs_cmd(
     pairs = list(PAPER_PAIRS) if only_paper else list(PAPER_PAIRS) + [
         p for p in itertools.combinations(sorted(paths), 2) if p not in PAPER_PAIRS
     ]
-    cfg = LocalizationConfig(mode=mode, solver=solver)
+    cfg = LocalizationConfig(
+        mode=mode, solver=solver,
+        odometry_scale_error=abs(scale_error) if odometry_bounds else 0.0,
+        odometry_heading_drift_deg_per_m=abs(drift) if odometry_bounds else 0.0,
+    )
     con = console()
     with Progress(console=con, transient=True) as prog:
         task = prog.add_task("localizing pairs", total=len(pairs))

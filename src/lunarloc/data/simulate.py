@@ -237,6 +237,9 @@ def simulate_dataset(
     out.mkdir(parents=True, exist_ok=True)
     site = simulate_site(seed, cfg.site)
     site.write_rocks_csv(out / "rocks.csv")
+    from lunarloc.overhead import write_site_geometric_map  # the LAC ground-truth map (x, y, height, rock)
+
+    write_site_geometric_map(site, out / "geometric_map.npy")
     (out / "simulation.json").write_text(json.dumps({"seed": int(seed), **cfg.to_dict()}, indent=2))
     renderer = SiteRenderer(site, cfg.render)
     paths = []
