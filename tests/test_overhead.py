@@ -262,3 +262,22 @@ def test_online_loop_with_a_geometric_map_reference(tmp_path):
     assert s["fixes"] >= 3
     assert s["max_accepted_fix_error_m"] < 0.2
     assert s["ate_corrected"]["rmse_m"] < s["ate_odometry"]["rmse_m"] / 2
+
+
+def test_grid_header_checked_before_allocating(tmp_path):
+    """A .npy whose header declares a huge grid, or more data than the file holds, is refused
+    from its header alone."""
+    from lunarloc.errors import FileFormatError
+    from lunarloc.overhead import load_lac_grid
+
+    huge = tmp_path / "huge.npy"
+    with open(huge, "wb") as fh:
+        np.lib.format.write_array_header_1_0(fh, {"descr": "<f8", "fortran_order": False, "shape": (100000, 100000, 4)})
+    with pytest.raises(FileFormatError, match="outside"):
+        load_lac_grid(huge)
+    short = tmp_path / "short.npy"
+    with open(short, "wb") as fh:
+        np.lib.format.write_array_header_1_0(fh, {"descr": "<f8", "fortran_order": False, "shape": (180, 180, 4)})
+        fh.write(b"\0" * 1000)
+    with pytest.raises(FileFormatError, match="truncated"):
+        load_lac_grid(short)

@@ -160,7 +160,7 @@ def _check_npy_header(path: Path) -> None:
         raise FileFormatError(f"{path}: not a NumPy .npy array ({exc})") from None
     if dtype.kind not in "fiub" or len(shape) != 3 or shape[2] != 4 or shape[0] != shape[1]:
         raise FileFormatError(f"{path}: expected an (N, N, 4) array of numbers (x, y, height, rock flag), "
-                              f"got {dtype} of shape {shape}")  # fmt: skip
+                              f"got dtype {dtype} of shape {shape}")  # fmt: skip
     if not 1 <= shape[0] <= MAX_GRID_CELLS:
         raise FileFormatError(f"{path}: a {shape[0]} x {shape[1]} grid is outside 1..{MAX_GRID_CELLS} cells a side")
     need = int(np.prod(shape)) * dtype.itemsize
