@@ -187,3 +187,40 @@ def test_traverse_csv_format(tmp_path):
     assert rows[2][4:] == ["0", "[]"]
     with pytest.raises(InputError):
         write_traverse_csv(tmp_path / "x.csv", [FrameDetections(1, None)])
+
+
+def test_rock_at_the_left_edge_is_found_with_full_width_stereo():
+    # 1.5 m ahead and 0.6 m left: image column ~170 px, disparity ~100 px, inside the
+    # band SGBM leaves unmatched without padding
+    c = np.array([1.8, 0.75, -0.12])
+    left, right, rig = ground_scene(tuple(c), 0.1)
+    det = Detector(DetectorConfig(), CAM)
+    pr = det.detect_pair(left, right, rig["FrontLeft"].T_rover_optical)
+    assert min(d.uv[0] for d in pr.detections) < 250
+    near = [d for d in pr.detections if np.linalg.norm(d.p_rover[:2] - c[:2]) < 0.1]
+    assert len(near) == 1
+
+
+def test_too_tall_and_lander_footprint_are_rejected():
+    rig_T = ipex_rig(CAM)["FrontLeft"].T_rover_optical
+    # a 0.4 m sphere standing 0.8 m high: a rock by default, not one when rocks are
+    # at most 0.3 m high or 0.2 m in radius (a large object lifts the ground fit under
+    # it, so its measured height, ~0.4 m here, is low: the check is a coarse guard)
+    left, right, _ = ground_scene((4.0, 0.0, 0.2), 0.4)
+    assert len(Detector(DetectorConfig(), CAM).detect_pair(left, right, rig_T).detections) == 1
+    for cfg in (DetectorConfig(max_rock_height_m=0.3), DetectorConfig(max_rock_radius_m=0.2)):
+        pr = Detector(cfg, CAM).detect_pair(left, right, rig_T)
+        assert not pr.detections
+        assert any(r.reason is RejectReason.NOT_A_ROCK for r in pr.records)
+    # a rock on the ground is kept, unless the lander's footprint covers it
+    c = np.array([3.28, 0.1, -0.15])
+    left, right, _ = ground_scene(tuple(c), 0.15)
+    T_map_rover = pose_to_matrix(10.0, -4.0, 1.0, 0.0, 0.0, 0.5)
+    det = Detector(DetectorConfig(), CAM)
+    kept = det.detect_pair(left, right, rig_T, T_map_rover)
+    assert len(kept.detections) == 1
+    lander_xy = transform_points(T_map_rover, (c + [1.5, 0.0, 0.0])[None])[0, :2]  # 1.5 m beyond the rock
+    pr = det.detect_pair(left, right, rig_T, T_map_rover, lander_xy=lander_xy)
+    assert not pr.detections and any(r.reason is RejectReason.ON_LANDER for r in pr.records)
+    far = det.detect_pair(left, right, rig_T, T_map_rover, lander_xy=lander_xy + [3.0, 3.0])
+    assert len(far.detections) == 1
