@@ -91,6 +91,7 @@ class Accumulator:
         self.err_xy: list[float] = []
         self.err3d_surface: list[float] = []
         self.err_target: list[float] = []  # r >= 0.1, range <= 5
+        self.small_near = np.zeros(2, int)  # [hit, visible]: 0.05 <= r < 0.1 within 3 m
         self.times: dict[str, list[float]] = {}
         self.n_frames = 0
         self.n_det = 0
@@ -129,6 +130,8 @@ class Accumulator:
                 if sb < 0 or rb < 0:
                     continue
                 self.rec[sb, rb, 1] += 1
+                small_near = 0.05 <= radii[j] < 0.1 and rng <= 3.0
+                self.small_near += [int(small_near and j in matched_rock), int(small_near)]
                 if j in matched_rock:
                     self.rec[sb, rb, 0] += 1
                     i, dist = matched_rock[j]
@@ -165,6 +168,9 @@ class Accumulator:
             "target_recall_r>=0.1_range<=5": float(rec_t[0] / max(rec_t[1], 1)),
             "target_recall_counts": rec_t.tolist(),
             "target_precision_est_r>=0.1_range<=5": float(prec_t[0] / max(prec_t[1], 1)),
+            "recall_0.05<=r<0.1_range<=3": float(self.small_near[0] / max(self.small_near[1], 1)),
+            "recall_0.05<=r<0.1_range<=3_counts": self.small_near.tolist(),
+            "frames_per_s": float(1.0 / max(sum(float(np.mean(v)) for v in self.times.values()), 1e-9)),
             "precision_range<=5": float(prec_5[0] / max(prec_5[1], 1)),
             "precision_counts_range<=5": prec_5.tolist(),
             "centroid_err_target_median_m": pct(self.err_target, 50),
@@ -203,7 +209,8 @@ def print_summary(s: dict) -> None:
         print(f"{band(sb):>14} " + "".join(f"{(h / t if t else float('nan')):>8.2f} ({h:>3}/{t:>3})" for h, t in row))
     for k, v in s.items():
         if k not in ("recall_by_size_range", "precision_by_estsize_range"):
-            print(f"{k}: {v}")
+            if k != "by_lighting":
+                print(f"{k}: {v}")
 
 
 def run_archive(path: Path, cfg: DetectorConfig, every: int, acc: Accumulator, detector: Detector | None = None):
@@ -229,6 +236,34 @@ def run_archive(path: Path, cfg: DetectorConfig, every: int, acc: Accumulator, d
             mounts = mounts_from_archive_row({k: v for k, v in rows.items() if v}, det.camera)
             acc.add_frame(fd, sem, rocks, det, mounts)
     return det
+
+
+def lighting_label(path: Path) -> str:
+    """The lighting an archive was rendered with, from its description ("lighting
+    sun+lamps", else "sun elevation E deg" -> "sun E")."""
+    import re
+
+    from lunarloc.data.lac import LacArchive
+
+    with LacArchive(path) as ar:
+        desc = str(ar.metadata.get("description", ""))
+    m = re.search(r"lighting[ =:]+([\w+]+)", desc)
+    el = re.search(r"sun elevation (-?[\d.]+) deg", desc)
+    if m and m.group(1) != "sun":
+        return m.group(1) + (f" (sun {el.group(1)})" if el and "sun" in m.group(1) else "")
+    return f"sun {el.group(1)}" if el else "unknown"
+
+
+def print_groups(groups: dict[str, dict]) -> None:
+    """One row per lighting: the issue's targets side by side."""
+    hdr = ("lighting", "frames", "P(<=5m)", "R(r>=.1,<=5m)", "R(.05-.1,<=3m)", "err50 cm", "err90 cm", "frames/s")
+    print(" | ".join(hdr))
+    for name, s in groups.items():
+        print(" | ".join([
+            name, str(s["frames"]), f"{s['precision_range<=5']:.2f}", f"{s['target_recall_r>=0.1_range<=5']:.2f}",
+            f"{s['recall_0.05<=r<0.1_range<=3']:.2f}", f"{100 * s['centroid_err_target_median_m']:.1f}",
+            f"{100 * s['centroid_err_target_p90_m']:.1f}", f"{s['frames_per_s']:.1f}",
+        ]))  # fmt: skip
 
 
 def main(argv=None) -> int:
@@ -267,13 +302,28 @@ def main(argv=None) -> int:
     acc.min_gt_px = a.min_gt_px
     det = None
     configs = {}  # the detector config used at each image size (pixel parameters scaled)
+    groups: dict[str, Accumulator] = {}
     for p in archives:
-        det = run_archive(p, cfg, a.every, acc, det)
+        g = groups.setdefault(lighting_label(p), Accumulator())
+        g.min_gt_px = a.min_gt_px
+        det = run_archive(p, cfg, a.every, g, det)
         configs[f"{det.camera.width}x{det.camera.height}"] = det.config.to_dict()
+    for g in groups.values():  # the total over all archives
+        acc.rec += g.rec
+        acc.prec += g.prec
+        acc.small_near += g.small_near
+        for k in ("err3d", "err_xy", "err3d_surface", "err_target"):
+            getattr(acc, k).extend(getattr(g, k))
+        for k, v in g.times.items():
+            acc.times.setdefault(k, []).extend(v)
+        acc.n_frames += g.n_frames
+        acc.n_det += g.n_det
     s = acc.summary()
+    s["by_lighting"] = {k: g.summary() for k, g in groups.items()}
     s["archives"] = [str(p) for p in archives]
     s["config"] = configs[next(iter(configs))] if len(configs) == 1 else configs
     print_summary(s)
+    print_groups({**s["by_lighting"], "all": s})
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)
         a.json.write_text(json.dumps(s, indent=2, default=str))

@@ -462,6 +462,7 @@ class Detector:
         dets: list[Detection] = []
         alpha = self.camera.alpha
         T_optical_rover = np.linalg.inv(T_rover_optical)
+        ground_pts = None  # stereo points for the not-a-rock check, on first use
         for i, m in enumerate(masks):
             st = mask_stats(m, masks.image_shape, border_px=fc.border_px)
             rec = MaskRecord(i, st, float("nan"), float("nan"), None)
@@ -499,7 +500,14 @@ class Detector:
                         P_rov, h_pts = fr, fr[:, 2] - ground
                 p_rover, R_est = _centre_from_points(P_rov, h_pts, T_rover_optical[:3, 3], cfg)
                 p = transform_points(T_optical_rover, p_rover[None])[0]
-                if _visible_height(P_rov[:, 2], h_pts, cfg.top_quantile) > cfg.max_rock_height_m or R_est > cfg.max_rock_radius_m:
+                if ground_pts is None:
+                    ok_all = np.isfinite(hm.depth)
+                    ground_pts = hm.points_rover[ok_all][::4].astype(float)
+                vis_h = _visible_height(P_rov[:, 2], h_pts, cfg.top_quantile)
+                h_sur = _height_above_surroundings(P_rov, p_rover, R_est, ground_pts, T_rover_optical[:3, 3], cfg.top_quantile)
+                if np.isfinite(h_sur):
+                    vis_h = max(vis_h, h_sur)
+                if vis_h > cfg.max_rock_height_m or R_est > cfg.max_rock_radius_m:
                     rec.reason = RejectReason.NOT_A_ROCK
                     continue
             else:
@@ -613,6 +621,24 @@ def _visible_height(z: np.ndarray, h: np.ndarray, q: float) -> float:
     top = float(np.quantile(h, q))
     extent = float(np.quantile(z, q) - np.quantile(z, 1.0 - q))
     return max(top, extent)
+
+
+def _height_above_surroundings(
+    P: np.ndarray, centre: np.ndarray, R: float, pts: np.ndarray, cam: np.ndarray, q: float,
+    inner_m: float = 0.3, outer_m: float = 1.5, min_points: int = 20,
+) -> float:
+    """Visible top of an object (rover-frame points P, centre, radius R) above the
+    ground in front of it: the lower quartile of the heights of the stereo points `pts`
+    in an annulus R + inner_m .. R + outer_m around its centre that are nearer to the
+    camera `cam` than it (behind it the ground is hidden). Unlike the local ground fit,
+    this does not rise under an object larger than a ground cell (the lander). NaN
+    when too few points surround it."""
+    d = np.hypot(pts[:, 0] - centre[0], pts[:, 1] - centre[1])
+    near = np.hypot(pts[:, 0] - cam[0], pts[:, 1] - cam[1]) < np.hypot(centre[0] - cam[0], centre[1] - cam[1])
+    sel = (d > R + inner_m) & (d < R + outer_m) & near
+    if np.count_nonzero(sel) < min_points:
+        return float("nan")
+    return float(np.quantile(P[:, 2], q) - np.quantile(pts[sel, 2], 0.25))
 
 
 def _mask_depth(depth: np.ndarray, m, cu: float, cv: float, h: int, fallback: bool, min_valid: int = 3) -> float:
