@@ -79,3 +79,52 @@ def test_rock_meshes_match_records(site):
     k = int(np.argmax(site.rocks.radii))
     c = meshes[k].vertices.mean(axis=0)
     assert np.linalg.norm(c[:2] - site.rocks.centers[k, :2]) < 0.3 * site.rocks.radii[k]
+
+
+def test_rocks_are_irregular_not_ellipsoids(site):
+    """Knobs and fractures: a rock's surface departs from its ellipsoid by several percent,
+    differently from rock to rock."""
+    meshes = site.rock_meshes()
+    rk = site.rocks
+    devs = []
+    for k in np.argsort(-rk.radii)[:10]:
+        c, s = np.cos(rk.yaws[k]), np.sin(rk.yaws[k])
+        local = (meshes[k].vertices - rk.centers[k]) @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        r_ell = np.linalg.norm(local / rk.axes[k], axis=1)  # 1 on the ellipsoid
+        devs.append(np.std(r_ell))
+        assert r_ell.max() < 1.3 and r_ell.min() > 0.5
+    assert np.median(devs) > 0.04
+    assert np.ptp(devs) > 0.005
+
+
+def test_lander_fiducial_panels_follow_the_lac_layout(site):
+    from lunarloc.data.site import LAC_FIDUCIALS
+
+    p = site.fiducial_panels()
+    assert len(p) == 16
+    lac = np.array([r[:3] for r in LAC_FIDUCIALS])
+    np.testing.assert_allclose(p.centers - 0.01 * p.normals, site.lander_xyz + lac, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(p.normals, axis=1), 1.0)
+    assert np.all(np.abs(p.normals[:, 2]) < 1e-12)
+    # outward: the normal points away from the lander's axis
+    assert np.all(np.einsum("ij,ij->i", p.normals[:, :2], p.centers[:, :2] - site.lander_xyz[:2]) > 0)
+    # u right, v down, both in the panel's plane
+    np.testing.assert_allclose(np.einsum("ij,ij->i", p.u_axes, p.normals), 0.0, atol=1e-12)
+    np.testing.assert_allclose(p.v_axes, np.broadcast_to([0.0, 0.0, -1.0], p.v_axes.shape))
+    # tag pattern: white outer ring, black inner ring, a mix of both inside; all tags differ
+    assert np.all(p.bits[:, 0, :] == 1) and np.all(p.bits[:, :, -1] == 1)
+    assert np.all(p.bits[:, 1, 1:-1] == 0) and np.all(p.bits[:, 1:-1, 1] == 0)
+    inner = p.bits[:, 2:-2, 2:-2].reshape(16, -1)
+    assert np.all((inner.mean(1) > 0.1) & (inner.mean(1) < 0.9))
+    assert len({row.tobytes() for row in inner}) == 16
+
+
+def test_lander_parts_within_its_footprint(site):
+    pytest.importorskip("trimesh")
+    cfg = site.config
+    for mesh, albedo in site.lander_parts():
+        v = mesh.vertices - site.lander_xyz
+        assert np.hypot(v[:, 0], v[:, 1]).max() <= cfg.lander_radius_m + 0.25
+        assert v[:, 2].min() >= -0.05 and v[:, 2].max() <= cfg.lander_height_m + 0.01
+        assert albedo > 0
+    assert len(site.lander_mesh().faces) > 100

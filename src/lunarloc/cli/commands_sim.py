@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from lunarloc.cli.app import app
+from lunarloc.data.render import Lighting, SemanticFormat
 
 
 @app.command("simulate")
@@ -18,8 +19,20 @@ def simulate(
     width: int = typer.Option(1280, "--width", help="Image width in pixels."),
     height: int = typer.Option(720, "--height", help="Image height in pixels."),
     image_rate: float = typer.Option(2.0, "--image-rate", help="Camera rate in Hz (divides 20 Hz, at most 10)."),
-    sun_elevation: float = typer.Option(12.0, "--sun-elevation", help="Sun elevation in degrees (5-30 typical)."),
+    sun_elevation: float = typer.Option(
+        12.0, "--sun-elevation", min=-90.0, max=90.0,
+        help="Sun elevation in degrees (5-30 typical; <= 0: below the horizon, night).",
+    ),
     sun_azimuth: float = typer.Option(135.0, "--sun-azimuth", help="Sun azimuth in degrees from the site +x axis."),
+    lighting: Lighting = typer.Option(
+        Lighting.SUN_LAMPS, "--lighting", help="What lights the scene: the sun, the rover's lamps, or both."
+    ),
+    lamp_intensity: float = typer.Option(
+        1.0, "--lamp-intensity", min=0.0, max=1.0, help="Lamp intensity 0-1 (the archive's light_intensity)."
+    ),
+    semantic_format: SemanticFormat = typer.Option(
+        SemanticFormat.IDS, "--semantic", help="Semantic images as per-rock ids (uint16) or in the LAC palette (RGB)."
+    ),
     front_only: bool = typer.Option(False, "--front-only", help="Record only the front stereo pair."),
     no_semantic: bool = typer.Option(False, "--no-semantic", help="Do not store semantic images."),
     example_images: Path | None = typer.Option(
@@ -41,7 +54,11 @@ def simulate(
         height=height,
         cameras=("FrontLeft", "FrontRight") if front_only else ALL_CAMERAS,
         semantic=not no_semantic,
-        render=replace(RenderConfig(), sun_elevation_deg=sun_elevation, sun_azimuth_deg=sun_azimuth),
+        semantic_format=semantic_format,
+        render=replace(
+            RenderConfig(), sun_elevation_deg=sun_elevation, sun_azimuth_deg=sun_azimuth, lighting=lighting,
+            lamp_intensity=lamp_intensity,
+        ),
     )
     if example_images is not None:
         for p in write_example_images(example_images, seed, config=cfg):

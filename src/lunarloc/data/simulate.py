@@ -9,8 +9,11 @@ What an archive holds (see :mod:`lunarloc.data.lac` for the layout)
   time, speeds, at the rover rate (20 Hz); frames numbered from 0.
 * Camera tables and images for the IPEx rig (FrontLeft/FrontRight/BackLeft/
   BackRight) every ``rate_hz / image_rate_hz`` frames; camera poses are relative
-  to the rover. Grayscale ``uint8``; semantic ``uint16`` (0 sky, 1 ground,
-  2 lander, 10 + rock id; see :mod:`lunarloc.data.render`).
+  to the rover. Grayscale ``uint8``; semantic ``uint16`` ids (0 sky, 1 ground,
+  2 lander, 3 fiducial, 10 + rock id) or, with ``semantic_format="palette"``,
+  ``(H, W, 3) uint8`` in the LAC palette (see :mod:`lunarloc.data.render`).
+  ``light_intensity`` (initial.toml and camera tables) is the lamps' intensity
+  when the lighting has lamps, else 0.
 * ``custom/rocks.csv`` (``id,x,y,z,radius``: ground-truth rocks, site frame) and
   ``custom/odometry.csv`` (``frame,x,y,z,roll,pitch,yaw``: the drifting odometry
   estimate, site frame).
@@ -25,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lunarloc.data.render import RenderConfig, SiteRenderer, colorize_semantic
+from lunarloc.data.render import RenderConfig, SemanticFormat, SiteRenderer, colorize_semantic, semantic_to_palette
 from lunarloc.data.rover import (
     ImuConfig,
     OdometryConfig,
@@ -70,10 +73,20 @@ class SimulationConfig:
     height: int = 720
     cameras: tuple[str, ...] = ALL_CAMERAS  # cameras that record
     semantic: bool = True  # also store semantic images
+    semantic_format: SemanticFormat = SemanticFormat.IDS  # per-rock ids (uint16) or the LAC palette (RGB)
     initial_power_wh: float = 283.0  # battery charge at the start
     power_draw_w: float = 30.0  # constant draw (power column falls linearly)
 
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "semantic_format", SemanticFormat.parse(self.semantic_format))
+
+    @property
+    def light_intensity(self) -> float:
+        """The LAC ``light_intensity`` the archive records (0 when the lighting has no lamps)."""
+        return float(self.render.lamp_intensity) if self.render.lighting.has_lamps else 0.0
+
     def validate(self) -> None:
+        self.render.validate()
         if self.duration_s <= 0:
             raise ConfigError(f"duration_s={self.duration_s} must be > 0")
         if not 0 < self.image_rate_hz <= 10.0:
@@ -111,7 +124,7 @@ def _camera_config(cfg: SimulationConfig) -> dict:
     return {
         name: {
             "camera_active": name in cfg.cameras,
-            "light_intensity": 0.0,
+            "light_intensity": cfg.light_intensity,
             "width": int(cfg.width),
             "height": int(cfg.height),
             "use_semantic": bool(cfg.semantic and name in cfg.cameras),
@@ -157,7 +170,8 @@ def simulate_traverse(
     desc = (
         f"lunarloc simulated traverse {index} of site seed {site.seed}: {cfg.duration_s:g} s, "
         f"images {cfg.width}x{cfg.height} at {cfg.image_rate_hz:g} Hz, sun elevation "
-        f"{cfg.render.sun_elevation_deg:g} deg azimuth {cfg.render.sun_azimuth_deg:g} deg"
+        f"{cfg.render.sun_elevation_deg:g} deg azimuth {cfg.render.sun_azimuth_deg:g} deg, "
+        f"lighting {cfg.render.lighting}"
     )
     step = cfg.frames_per_image
     power = cfg.initial_power_wh - cfg.power_draw_w * traj.t / 3600.0
@@ -177,9 +191,12 @@ def simulate_traverse(
                 images = renderer.render_rover(traj.poses[k], mounts)
                 for m in mounts:
                     gray, sem = images[m.name]
+                    if cfg.semantic and cfg.semantic_format is SemanticFormat.PALETTE:
+                        sem = semantic_to_palette(sem)
                     w.add_camera_frame(
-                        m.name, k, cam_poses[m.name], grayscale=gray, semantic=sem if cfg.semantic else None
-                    )
+                        m.name, k, cam_poses[m.name], light_intensity=cfg.light_intensity, grayscale=gray,
+                        semantic=sem if cfg.semantic else None,
+                    )  # fmt: skip
                 if progress is not None:
                     progress(k + 1)
         w.add_custom("rocks", ["id", "x", "y", "z", "radius"], _rock_rows(site))

@@ -6,11 +6,16 @@ Frames and units
   the origin; the site spans ``[-size_m/2, size_m/2]`` in x and y. The terrain
   extends ``terrain_margin_m`` beyond the site (without rocks) so cameras near
   the edge still see ground, not the void.
-* Rocks are slightly irregular ellipsoids. The ground-truth record of a rock is
+* Rocks are irregular ellipsoids (low-order lobes, knobs, planar fractures). The ground-truth record of a rock is
   ``id, x, y, z, radius``: (x, y, z) is the centre of the ellipsoid (it can lie
   below the ground for deeply buried rocks) and ``radius`` the nominal radius in
   metres (the horizontal semi-axes are within about 0.75-1.2 x radius, the
   vertical one 0.55-0.85 x radius).
+
+* The lander stands at the origin (yaw 0): an octagonal body, a deck, tanks, a
+  solar panel, four legs, and 16 AprilTag-like fiducial panels in four groups of
+  2 x 2 on the body's diagonal faces, at the positions and size of the LAC
+  lander's fiducials (``LAC_FIDUCIALS``: lander frame, metres).
 
 Everything is a pure function of the seed and the :class:`SiteConfig`; the mesh
 construction needs the optional ``sim`` extra (trimesh) and is imported lazily.
@@ -27,12 +32,65 @@ import numpy as np
 
 from lunarloc.errors import ConfigError, require
 
-__all__ = ["SiteConfig", "Rocks", "Site", "generate_site", "load_rocks_csv", "sample_power_law"]
+__all__ = [
+    "SiteConfig",
+    "Rocks",
+    "Site",
+    "FiducialPanels",
+    "LAC_FIDUCIALS",
+    "generate_site",
+    "load_rocks_csv",
+    "sample_power_law",
+]
 
 logger = logging.getLogger(__name__)
 logger.addHandler(logging.NullHandler())
 
 ROCK_CSV_COLUMNS = ("id", "x", "y", "z", "radius")
+
+LAC_FIDUCIALS: tuple[tuple[float, float, float, int], ...] = (
+    # x, y, z (lander frame, metres) and tag id of the LAC lander's fiducials, groups A-D,
+    # each a 2 x 2 block on one diagonal face (top left, top right, lower left, lower right)
+    (0.691, -1.033, 0.894, 243), (1.033, -0.691, 0.894, 71), (0.691, -1.033, 0.412, 462), (1.033, -0.691, 0.412, 37),
+    (1.033, 0.691, 0.894, 0), (0.691, 1.033, 0.894, 3), (1.033, 0.691, 0.412, 2), (0.691, 1.033, 0.412, 1),
+    (-0.691, 1.033, 0.894, 10), (-1.033, 0.691, 0.894, 11), (-0.691, 1.033, 0.412, 8), (-1.033, 0.691, 0.412, 9),
+    (-1.033, -0.691, 0.894, 464), (-0.691, -1.033, 0.894, 459), (-1.033, -0.691, 0.412, 258),
+    (-0.691, -1.033, 0.412, 5),
+)  # fmt: skip
+LAC_FIDUCIAL_SIZE_M = 0.339  # side of a fiducial panel
+_TAG_CELLS = 10  # tag pattern: white border, black border, 6 x 6 data cells
+
+
+@dataclass
+class FiducialPanels:
+    """Square fiducial panels on the lander (site frame, metres).
+
+    A panel spans ``centre + a * u_axis + b * v_axis`` for ``a, b`` in
+    ``[-size/2, size/2]``; ``u_axis`` points right and ``v_axis`` down in the tag
+    image as seen from the front (along ``-normal``). ``bits[i]`` is the pattern,
+    ``(cells, cells)`` with 1 white and 0 black, row 0 at the top.
+    """
+
+    centers: np.ndarray  # (P, 3)
+    normals: np.ndarray  # (P, 3) outward
+    u_axes: np.ndarray  # (P, 3)
+    v_axes: np.ndarray  # (P, 3)
+    size_m: np.ndarray  # (P,)
+    tag_ids: np.ndarray  # (P,)
+    bits: np.ndarray  # (P, cells, cells)
+
+    def __len__(self) -> int:
+        return int(self.centers.shape[0])
+
+
+def _tag_bits(tag_id: int) -> np.ndarray:
+    """An AprilTag-like pattern (not a decodable AprilTag): white ring, black ring, seeded data cells."""
+    n = _TAG_CELLS
+    rng = np.random.default_rng([int(tag_id), 0x7A6])
+    bits = np.ones((n, n))
+    bits[1:-1, 1:-1] = 0.0
+    bits[2:-2, 2:-2] = rng.integers(0, 2, size=(n - 4, n - 4))
+    return bits
 
 
 @dataclass(frozen=True)
@@ -221,6 +279,12 @@ class Site:
             freq = rng.uniform(1.5, 4.0, size=8)
             bump = 1.0 + (np.cos(unit @ dirs.T * freq) * amp).sum(1)
             bump = np.clip(bump / bump.mean(), 0.8, 1.2)
+            # knobs: higher-frequency lobes and a little vertex jitter (a rough, lumpy outline)
+            dirs2 = rng.normal(size=(12, 3))
+            dirs2 /= np.linalg.norm(dirs2, axis=1, keepdims=True)
+            knobs = np.cos(unit @ dirs2.T * rng.uniform(4.0, 9.0, 12) + rng.uniform(0, 2 * np.pi, 12))
+            bump = bump * (1.0 + knobs @ rng.uniform(0.008, 0.03, 12))
+            bump = bump * (1.0 + rng.uniform(-0.025, 0.025, len(bump)) * (sub >= 2))
             # a few planar fractures: vertices beyond a random plane are pushed onto it
             V0 = unit * bump[:, None]
             for _cut in range(int(rng.integers(3, 7))):
@@ -237,30 +301,70 @@ class Site:
             meshes.append(trimesh.Trimesh(V, bases[sub].faces, process=False))
         return meshes
 
-    def lander_mesh(self):
-        """A simple lander: a cylindrical body on four legs with foot pads (site frame)."""
+    def lander_parts(self) -> list:
+        """The lander's parts as ``(trimesh.Trimesh, albedo scale)`` pairs (site frame): an
+        octagonal body whose diagonal faces carry the fiducial panels, a deck, two tanks, a
+        solar panel and four legs with foot pads (sizes from ``lander_radius_m`` /
+        ``lander_height_m``; the body's size from the LAC fiducial layout)."""
         trimesh = require("trimesh", "sim")
         cfg = self.config
-        base = self.lander_xyz
+        base = np.asarray(self.lander_xyz, float)
         parts = []
-        body_h = 0.55 * cfg.lander_height_m
-        clearance = cfg.lander_height_m - body_h
-        body = trimesh.creation.cylinder(radius=0.75 * cfg.lander_radius_m, height=body_h, sections=24)
-        body.apply_translation(base + [0.0, 0.0, clearance + body_h / 2])
-        parts.append(body)
-        deck = trimesh.creation.box(extents=[1.3 * cfg.lander_radius_m] * 2 + [0.25])
-        deck.apply_translation(base + [0.0, 0.0, clearance + body_h + 0.125])
-        parts.append(deck)
-        for ang in np.arange(4) * np.pi / 2 + np.pi / 4:
-            foot = base + cfg.lander_radius_m * np.array([np.cos(ang), np.sin(ang), 0.0])
-            top = base + 0.7 * cfg.lander_radius_m * np.array([np.cos(ang), np.sin(ang), 0.0])
-            top[2] += clearance + 0.2
-            leg = trimesh.creation.cylinder(radius=0.06, segment=[foot + [0, 0, 0.05], top], sections=8)
-            parts.append(leg)
-            pad = trimesh.creation.cylinder(radius=0.22, height=0.08, sections=12)
+        apothem = np.hypot(0.862, 0.862)  # the diagonal faces hold the fiducial centres (LAC layout)
+        body_z = (0.1, 1.15)
+        body = trimesh.creation.cylinder(
+            radius=apothem / np.cos(np.pi / 8), height=body_z[1] - body_z[0], sections=8
+        )
+        body.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 8, [0, 0, 1]))
+        body.apply_translation(base + [0.0, 0.0, sum(body_z) / 2])
+        parts.append((body, 0.3))
+        deck = trimesh.creation.box(extents=[2.0, 2.0, 0.08])
+        deck.apply_translation(base + [0.0, 0.0, body_z[1] + 0.04])
+        parts.append((deck, 0.9))
+        top = max(cfg.lander_height_m, body_z[1] + 0.8)
+        tank_r = 0.3
+        for x, y in ((0.35, -0.35), (0.35, 0.45)):
+            h = top - body_z[1] - 0.08 - 2 * tank_r
+            tank = trimesh.creation.capsule(height=h, radius=tank_r, count=[12, 12])
+            tank.apply_translation(base + [x, y, body_z[1] + 0.08 + tank_r + h / 2])
+            parts.append((tank, 1.1))
+        panel = trimesh.creation.box(extents=[0.04, 1.2, top - body_z[1] - 0.2])
+        panel.apply_translation(base + [-0.6, 0.0, (top + body_z[1]) / 2 + 0.05])
+        parts.append((panel, 0.2))
+        for ang in np.arange(4) * np.pi / 2:  # legs on the flat faces, clear of the fiducials
+            radial = np.array([np.cos(ang), np.sin(ang), 0.0])
+            foot = base + cfg.lander_radius_m * radial
+            hip = base + 0.95 * apothem * radial + [0.0, 0.0, 0.8]
+            leg = trimesh.creation.cylinder(radius=0.05, segment=[foot + [0, 0, 0.05], hip], sections=8)
+            parts.append((leg, 0.9))
+            pad = trimesh.creation.cylinder(radius=0.2, height=0.06, sections=12)
             pad.apply_translation(foot + [0.0, 0.0, 0.02])
-            parts.append(pad)
-        return trimesh.util.concatenate(parts)
+            parts.append((pad, 0.9))
+        return parts
+
+    def lander_mesh(self):
+        """The lander's parts (:meth:`lander_parts`) as one trimesh.Trimesh (without the panels)."""
+        trimesh = require("trimesh", "sim")
+        return trimesh.util.concatenate([m for m, _ in self.lander_parts()])
+
+    def fiducial_panels(self) -> FiducialPanels:
+        """The lander's 16 fiducial panels (``LAC_FIDUCIALS``), 1 cm proud of its body."""
+        rows = np.array([r[:3] for r in LAC_FIDUCIALS], float)
+        normals = np.column_stack([np.sign(rows[:, 0]), np.sign(rows[:, 1]), np.zeros(len(rows))]) / np.sqrt(2)
+        centers = np.asarray(self.lander_xyz, float) + rows + 0.01 * normals
+        up = np.array([0.0, 0.0, 1.0])
+        u = np.cross(-normals, up)
+        v = np.broadcast_to(-up, u.shape).copy()
+        ids = np.array([r[3] for r in LAC_FIDUCIALS], int)
+        return FiducialPanels(
+            centers=centers,
+            normals=normals,
+            u_axes=u,
+            v_axes=v,
+            size_m=np.full(len(rows), LAC_FIDUCIAL_SIZE_M),
+            tag_ids=ids,
+            bits=np.stack([_tag_bits(i) for i in ids]),
+        )
 
 
 # ---------------------------------------------------------------------- generation
