@@ -266,6 +266,65 @@ def print_groups(groups: dict[str, dict]) -> None:
         ]))  # fmt: skip
 
 
+def lac_real_frame(folder: Path, figure: Path | None = None) -> list:
+    """Detect rocks on the real LAC frame (FrontLeft/FrontRight_99.png, pose_99.json; the
+    lander stands at the site centre, the map origin); print the detections and draw
+    them (kept masks green, rejected ones coloured by filter) into `figure`."""
+    import cv2
+
+    from lunarloc.geometry import pose_to_matrix
+    from lunarloc.perception.camera import PinholeCamera, ipex_rig
+    from lunarloc.perception.detector import debug_overlay
+
+    left = cv2.imread(str(folder / "FrontLeft_99.png"), cv2.IMREAD_GRAYSCALE)
+    right = cv2.imread(str(folder / "FrontRight_99.png"), cv2.IMREAD_GRAYSCALE)
+    if left is None or right is None:
+        raise SystemExit(f"no FrontLeft_99.png / FrontRight_99.png in {folder}")
+    p = json.loads((folder / "pose_99.json").read_text())
+    T = pose_to_matrix(*[float(p[k]) for k in ("x", "y", "z", "roll", "pitch", "yaw")])
+    det = Detector(DetectorConfig(), PinholeCamera(left.shape[1], left.shape[0], 70.0))
+    T_ro = ipex_rig(det.camera)["FrontLeft"].T_rover_optical
+    det.detect_pair(left, right, T_ro, T, "FrontLeft")  # warm-up (OpenCV allocations)
+    t0 = time.perf_counter()
+    pr = det.detect_pair(left, right, T_ro, T, "FrontLeft", keep_depth=True, lander_xy=np.zeros(2))
+    dt = time.perf_counter() - t0
+    print(f"real LAC frame 99: {len(pr.detections)} detections in {1000 * dt:.0f} ms (wall)")
+    for d in pr.detections:
+        print(f"  u,v {d.uv[0]:6.0f} {d.uv[1]:5.0f}  depth {d.depth_m:5.2f} m  radius {d.radius_m:5.3f} m  "
+              f"map {d.p_map[0]:6.2f} {d.p_map[1]:6.2f}")  # fmt: skip
+    counts: dict[str, int] = {}
+    for r in pr.records:
+        if r.reason is not None:
+            counts[r.reason.value] = counts.get(r.reason.value, 0) + 1
+    print("  rejected masks by filter:", counts)
+    if figure is not None:
+        figure.parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(figure), debug_overlay(left, pr)[:, : left.shape[1]])
+        print(f"  figure -> {figure}")
+    return pr.detections
+
+
+def speed(path: Path, repeats: int = 5) -> dict:
+    """Wall and process-CPU time of the detector on one 1280x720 front pair of an
+    archive (after a warm-up run): per stereo pair and per two-pair frame."""
+    from lunarloc.data.lac import LacArchive
+    from lunarloc.perception.camera import ipex_rig
+
+    with LacArchive(path) as ar:
+        f = next(int(f) for f in ar.frame_numbers if ar.camera_row("FrontLeft", int(f)) is not None)
+        L, R = ar.grayscale("FrontLeft", f), ar.grayscale("FrontRight", f)
+    det = Detector(DetectorConfig())
+    T = ipex_rig(det.camera)["FrontLeft"].T_rover_optical
+    det.detect_pair(L, R, T)
+    w0, c0 = time.perf_counter(), time.process_time()
+    for _ in range(repeats):
+        det.detect_pair(L, R, T)
+    wall = (time.perf_counter() - w0) / repeats
+    cpu = (time.process_time() - c0) / repeats
+    return {"pair_wall_ms": 1000 * wall, "pair_cpu_ms": 1000 * cpu, "pairs_per_s_wall": 1 / wall,
+            "pairs_per_s_cpu": 1 / cpu}  # fmt: skip
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("archives", nargs="*", type=Path)
@@ -281,7 +340,17 @@ def main(argv=None) -> int:
     ap.add_argument("--no-centre-correction", action="store_true")
     ap.add_argument("--min-gt-px", type=int, default=50)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--lac-real", type=Path, default=None, help="run the real LAC frame in this folder and stop")
+    ap.add_argument("--figure", type=Path, default=None, help="with --lac-real: draw the detections here")
+    ap.add_argument("--speed", action="store_true", help="time the detector on one front pair of each archive")
     a = ap.parse_args(argv)
+    if a.lac_real is not None:
+        lac_real_frame(a.lac_real, a.figure)
+        return 0
+    if a.speed:
+        for p in a.archives:
+            print(p, json.dumps({k: round(v, 1) for k, v in speed(p).items()}))
+        return 0
     archives = list(a.archives)
     for seed in a.simulate:
         from lunarloc.data.simulate import SimulationConfig, simulate_site, simulate_traverse
