@@ -224,3 +224,23 @@ def test_too_tall_and_lander_footprint_are_rejected():
     assert not pr.detections and any(r.reason is RejectReason.ON_LANDER for r in pr.records)
     far = det.detect_pair(left, right, rig_T, T_map_rover, lander_xy=lander_xy + [3.0, 3.0])
     assert len(far.detections) == 1
+
+
+def test_cli_detect_lander_xy_drops_detections_on_the_lander(tmp_path):
+    from lunarloc.cli.app import main
+    from lunarloc.data.simulate import SimulationConfig, simulate_dataset
+    from lunarloc.maps import load_traverse
+
+    cfg = SimulationConfig(duration_s=6.0, image_rate_hz=2.0, width=320, height=180,
+                           cameras=("FrontLeft", "FrontRight"), semantic=False)  # fmt: skip
+    simulate_dataset(0, 1, tmp_path, cfg)
+    arch = str(tmp_path / "traverse_0.lac")
+    assert main(["detect", arch, "-o", str(tmp_path / "a.csv")]) == 0
+    all_xyz = load_traverse(tmp_path / "a.csv").detections_xyz
+    assert len(all_xyz) > 0
+    xy = all_xyz[0, :2]
+    assert main(["detect", arch, "-o", str(tmp_path / "b.csv"), "--lander-xy", f"{xy[0]},{xy[1]}"]) == 0
+    kept = load_traverse(tmp_path / "b.csv").detections_xyz
+    assert len(kept) < len(all_xyz)
+    assert np.all(np.hypot(*(kept[:, :2] - xy).T) > DetectorConfig().lander_radius_m)
+    assert main(["detect", arch, "-o", str(tmp_path / "c.csv"), "--lander-xy", "1,2,3"]) == 2

@@ -23,6 +23,9 @@ def detect(
     no_centre_correction: bool = typer.Option(
         False, "--no-centre-correction", help="keep the visible-surface centroid (no sphere-centre shift)"
     ),
+    lander_xy: str = typer.Option(
+        None, "--lander-xy", help="X,Y: the lander's centre in the map frame (m); detections on it are dropped"
+    ),
 ) -> None:
     """Segment rocks in the left images, lift them to 3D with stereo, write the traverse CSV."""
     from tqdm import tqdm
@@ -48,6 +51,14 @@ def detect(
         weights=str(weights) if weights else None,
         centre_correction=not no_centre_correction,
     )
+    lander = None
+    if lander_xy is not None:
+        try:
+            lander = [float(v) for v in lander_xy.split(",")]
+        except ValueError:
+            lander = []
+        if len(lander) != 2:
+            raise ConfigError(f"--lander-xy takes X,Y in metres, got {lander_xy!r}")
     if debug_dir is not None:
         debug_dir.mkdir(parents=True, exist_ok=True)
     with LacArchive(archive) as ar:
@@ -66,7 +77,8 @@ def detect(
 
         def frames_iter():
             bar = tqdm(total=len(frames), unit="frame", desc="detect", dynamic_ncols=True)
-            for fd in detect_archive(ar, cfg, pose_src, detector=detector, frames=frames, keep_depth=debug_dir is not None):
+            for fd in detect_archive(ar, cfg, pose_src, detector=detector, frames=frames, keep_depth=debug_dir is not None,
+                                     lander_xy=lander):  # fmt: skip
                 stats["frames"] += 1
                 stats["detections"] += len(fd.detections)
                 for k, v in fd.timings.items():
