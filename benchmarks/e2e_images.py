@@ -196,6 +196,9 @@ def main(argv=None) -> int:
     ap.add_argument("--epsilon", type=float, nargs="+", default=[0.05, 0.08])
     ap.add_argument("--poses", nargs="+", default=[f"{r}/{v}" for r, v in PAIRS],
                     help="reference/vehicle pose pairs among gt/gt odo/odo gt/odo")  # fmt: skip
+    ap.add_argument("--online", action="store_true",
+                    help="also run `lunarloc run` on every vehicle traverse against the reference map built with "
+                         "ground-truth poses (each --min-sightings), and report the online trajectory's RMSE")  # fmt: skip
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
@@ -248,7 +251,23 @@ def main(argv=None) -> int:
                         **_errors(T, veh, truth[i], rp, vp),
                     }  # fmt: skip
                     rows.append(row)
+    online = []
+    if a.online:
+        for i in range(1, len(archives)):
+            for ms in a.min_sightings:
+                run_dir = a.out / f"run_{i}_ms{ms}"
+                if not (run_dir / "summary.json").exists():
+                    _run(_lunarloc() + ["run", str(archives[i]), "--reference", str(maps[0, "gt", ms]), "--out",
+                                        str(run_dir), "--no-plot"], log)  # fmt: skip
+                rs = json.loads((run_dir / "summary.json").read_text())
+                online.append({
+                    "veh": i, "min_sightings": ms, "ref_landmarks": rs["reference_landmarks"],
+                    "attempts": rs["attempts"], "localized": rs["localized"], "fixes": rs["fixes"],
+                    "online_rmse_m": rs["ate_online"]["rmse_m"], "corrected_rmse_m": rs["ate_corrected"]["rmse_m"],
+                    "odometry_rmse_m": rs["ate_odometry"]["rmse_m"], "path_m": rs["path_length_m"],
+                })  # fmt: skip
     summary = {
+        "online": online,
         "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(a).items()},
         "commands": log,
         "traverses": [{"archive": str(p), "path_m": t["path_m"],
@@ -301,6 +320,14 @@ def print_table(s: dict) -> None:
     print(" ".join(f"{h:>{w}}" for h, w, _ in cols) + "  reason")
     for r in s["results"]:
         print(" ".join(f"{str(f(r)):>{w}}" for _, w, f in cols) + f"  {r['reason']}")
+    if s.get("online"):
+        print("online (`lunarloc run` of the vehicle traverse against the ground-truth-pose reference map): "
+              "ATE RMSE of the online, corrected and odometry-only trajectories, cm")  # fmt: skip
+        print("veh ms L_ref attempts localized fixes online corrected odometry path_m")
+        for r in s["online"]:
+            print(f"{r['veh']:>3} {r['min_sightings']:>2} {r['ref_landmarks']:>5} {r['attempts']:>8} {r['localized']:>9} "
+                  f"{r['fixes']:>5} {cm(r['online_rmse_m']):>6} {cm(r['corrected_rmse_m']):>9} "
+                  f"{cm(r['odometry_rmse_m']):>8} {r['path_m']:>6.1f}")  # fmt: skip
     print(f"wall time {s['wall_s']:.0f} s")
 
 
