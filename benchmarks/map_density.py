@@ -14,7 +14,7 @@ map is built as ``lunarloc map`` builds it (``AggregationConfig``, radius unchan
 judged against the site's ground truth:
 
 * landmarks, and how many lie within max(0.15 m, r) of a true rock ("on rock");
-* coverage: the true rocks the traverse saw (within 5 m of a left camera, in its
+* coverage: the true rocks the traverse saw (within 6 m, the detector's range, of a left camera, in its
   70-degree field of view, at some image frame) by radius band, and how many of those
   have a landmark;
 * sightings per detected rock (how many frames see each true rock that has one).
@@ -37,7 +37,7 @@ import numpy as np
 BANDS = [(0.0, 0.05), (0.05, 0.1), (0.1, 0.2), (0.2, 10.0)]
 
 
-def _seen_rocks(archive: Path, rocks: np.ndarray, max_range_m: float = 5.0, hfov_deg: float = 70.0) -> np.ndarray:
+def _seen_rocks(archive: Path, rocks: np.ndarray, max_range_m: float = 6.0, hfov_deg: float = 70.0) -> np.ndarray:
     """Boolean (N,): rocks within max_range_m of the FrontLeft camera and inside its
     horizontal field of view at some image frame (occlusion ignored)."""
     from lunarloc.data.lac import LacArchive
@@ -113,7 +113,7 @@ def main(argv=None) -> int:
                 r["detector"] = name
                 rows.append(r)
     band_names = [f"{lo:g}-{hi:g}" for lo, hi in BANDS]
-    print("rocks seen within 5 m (by radius band " + ", ".join(band_names) + "): "
+    print("rocks seen within 6 m (by radius band " + ", ".join(band_names) + "): "
           + ", ".join(str(rows[0]["bands"][b]["seen"]) for b in band_names))  # fmt: skip
     print("detector | every | min_sightings | detections | landmarks | on rock | mapped/seen per band | frames per detected rock")
     for r in rows:

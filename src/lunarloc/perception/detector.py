@@ -502,7 +502,7 @@ class Detector:
                 p = transform_points(T_optical_rover, p_rover[None])[0]
                 if ground_pts is None:
                     ok_all = np.isfinite(hm.depth)
-                    ground_pts = hm.points_rover[ok_all][::4].astype(float)
+                    ground_pts = hm.points_rover[ok_all][::8]
                 vis_h = _visible_height(P_rov[:, 2], h_pts, cfg.top_quantile)
                 h_sur = _height_above_surroundings(P_rov, p_rover, R_est, ground_pts, T_rover_optical[:3, 3], cfg.top_quantile)
                 if np.isfinite(h_sur):
@@ -633,9 +633,11 @@ def _height_above_surroundings(
     camera `cam` than it (behind it the ground is hidden). Unlike the local ground fit,
     this does not rise under an object larger than a ground cell (the lander). NaN
     when too few points surround it."""
-    d = np.hypot(pts[:, 0] - centre[0], pts[:, 1] - centre[1])
-    near = np.hypot(pts[:, 0] - cam[0], pts[:, 1] - cam[1]) < np.hypot(centre[0] - cam[0], centre[1] - cam[1])
-    sel = (d > R + inner_m) & (d < R + outer_m) & near
+    dx, dy = pts[:, 0] - centre[0], pts[:, 1] - centre[1]
+    d2 = dx * dx + dy * dy
+    cx, cy = pts[:, 0] - cam[0], pts[:, 1] - cam[1]
+    near = cx * cx + cy * cy < (centre[0] - cam[0]) ** 2 + (centre[1] - cam[1]) ** 2
+    sel = (d2 > (R + inner_m) ** 2) & (d2 < (R + outer_m) ** 2) & near
     if np.count_nonzero(sel) < min_points:
         return float("nan")
     return float(np.quantile(P[:, 2], q) - np.quantile(pts[sel, 2], 0.25))
