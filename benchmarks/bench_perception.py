@@ -213,6 +213,15 @@ def print_summary(s: dict) -> None:
                 print(f"{k}: {v}")
 
 
+def _lander_xy(ar) -> np.ndarray:
+    """The lander's centre in the map frame: ``LacArchive.lander_pose_map()`` where the
+    archive reader has it (initial.toml ``lander`` is rover-relative in the LAC), else
+    initial.toml ``lander`` as this branch's simulator writes it (map frame)."""
+    f = getattr(ar, "lander_pose_map", None)
+    pose = f() if callable(f) else ar.initial["lander"]
+    return np.asarray([float(v) for v in pose[:2]])
+
+
 def run_archive(path: Path, cfg: DetectorConfig, every: int, acc: Accumulator, detector: Detector | None = None):
     """Accumulate one archive's metrics. The camera (image size, field of view) is read
     from the archive and `cfg`'s pixel-sized parameters (tuned at 1280 px) are scaled
@@ -230,7 +239,8 @@ def run_archive(path: Path, cfg: DetectorConfig, every: int, acc: Accumulator, d
         if det is None:
             det = Detector(scaled_detector_config(cam.width, base=cfg), cam)
         print(f"{path}: {cam.width}x{cam.height} px, hfov {cam.hfov_deg:g} deg", file=sys.stderr)
-        for fd in detect_archive(ar, det.config, "ground-truth", detector=det, frames=frames):
+        lander_xy = _lander_xy(ar)  # known to a LAC agent: detections on the lander are dropped
+        for fd in detect_archive(ar, det.config, "ground-truth", detector=det, frames=frames, lander_xy=lander_xy):
             sem = {left: ar.semantic(left, fd.frame) for left, _ in det.config.pairs}
             rows = {c: ar.camera_row(c, fd.frame) for c in ar.cameras}
             mounts = mounts_from_archive_row({k: v for k, v in rows.items() if v}, det.camera)

@@ -244,3 +244,17 @@ def test_cli_detect_lander_xy_drops_detections_on_the_lander(tmp_path):
     assert len(kept) < len(all_xyz)
     assert np.all(np.hypot(*(kept[:, :2] - xy).T) > DetectorConfig().lander_radius_m)
     assert main(["detect", arch, "-o", str(tmp_path / "c.csv"), "--lander-xy", "1,2,3"]) == 2
+
+
+def test_height_above_surroundings_sees_a_knob_on_a_large_object():
+    from lunarloc.perception.detector import _height_above_surroundings
+
+    rng = np.random.default_rng(0)
+    ground = np.c_[rng.uniform(0, 6, (4000, 2)) - [0, 3], rng.normal(0, 0.005, 4000)]  # flat, z = 0
+    cam = np.array([0.0, 0.0, 0.35])
+    knob = np.array([[4.0, 0.0, 0.6], [4.0, 0.02, 0.62], [4.02, 0.0, 0.58]])  # 0.6 m up, on a boulder
+    h = _height_above_surroundings(knob, knob.mean(0), 0.02, ground, cam, 0.9)
+    assert h == pytest.approx(0.61, abs=0.03)
+    cfg = DetectorConfig()
+    assert h > cfg.height_per_radius * 0.02 + cfg.height_margin_m  # perched: rejected
+    assert np.isnan(_height_above_surroundings(knob, knob.mean(0), 0.02, ground[:5], cam, 0.9))

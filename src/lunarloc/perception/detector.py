@@ -180,6 +180,12 @@ class DetectorConfig:
     # panels stand 1-3 m high. STEREO_POINTS only (the visible top needs heights).
     max_rock_height_m: float = 1.0
     max_rock_radius_m: float = 1.2
+    # A rock's top stands at most about one radius above the ground around it; one
+    # whose top is more than height_per_radius * R + height_margin_m above the ground
+    # in front of it is a knob on a larger object (a boulder's surface, the lander).
+    # The margin allows for slopes (the ground in front is 0.3-1.5 m nearer).
+    height_per_radius: float = 1.5
+    height_margin_m: float = 0.25
     # Detections within this horizontal distance (metres) of the lander's centre are
     # dropped when the lander's map position is given (LAC lander: legs and pads
     # ~1.9 m from its centre; fiducial panels and their shadows around it).
@@ -505,9 +511,13 @@ class Detector:
                     ground_pts = hm.points_rover[ok_all][::8]
                 vis_h = _visible_height(P_rov[:, 2], h_pts, cfg.top_quantile)
                 h_sur = _height_above_surroundings(P_rov, p_rover, R_est, ground_pts, T_rover_optical[:3, 3], cfg.top_quantile)
+                perched = False
                 if np.isfinite(h_sur):
                     vis_h = max(vis_h, h_sur)
-                if vis_h > cfg.max_rock_height_m or R_est > cfg.max_rock_radius_m:
+                    # a small blob standing far higher above the ground in front than its
+                    # size allows sits on something larger (a knob on a boulder)
+                    perched = h_sur > cfg.height_per_radius * R_est + cfg.height_margin_m
+                if vis_h > cfg.max_rock_height_m or R_est > cfg.max_rock_radius_m or perched:
                     rec.reason = RejectReason.NOT_A_ROCK
                     continue
             else:
