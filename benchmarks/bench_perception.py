@@ -5,8 +5,10 @@ Usage
     python benchmarks/bench_perception.py ARCHIVE.lac [ARCHIVE.lac ...] [--every N]
         [--segmenter classical|fastsam --weights PATH] [--no-centre-correction]
         [--json OUT.json]
-    python benchmarks/bench_perception.py --simulate SEED [--duration S] [--width W --height H] ...
-                                                                   # renders first
+    python benchmarks/bench_perception.py --simulate SEED [SEED ...] [--lighting sun|lamps|sun+lamps]
+        [--sun-elevation DEG] [--duration S] [--width W --height H] ...   # renders first (front pair)
+    python benchmarks/bench_perception.py --lac-real DIR [--figure PNG]  # the real LAC frame
+    python benchmarks/bench_perception.py --speed ARCHIVE.lac             # time one front pair
 
 Archives must come from `lunarloc simulate` (they hold ``custom/rocks.csv`` and the
 semantic images). The image size and field of view are read from each archive
@@ -339,10 +341,12 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("archives", nargs="*", type=Path)
     ap.add_argument("--simulate", type=int, nargs="*", default=[], help="site seeds to render first")
-    ap.add_argument("--duration", type=float, default=80.0, help="seconds per simulated traverse")
+    ap.add_argument("--duration", type=float, default=60.0, help="seconds per simulated traverse")
     ap.add_argument("--image-rate", type=float, default=0.5, help="simulated camera rate, Hz")
     ap.add_argument("--width", type=int, default=1280, help="simulated image width, px")
     ap.add_argument("--height", type=int, default=720, help="simulated image height, px")
+    ap.add_argument("--lighting", default="sun+lamps", help="simulated lighting: sun | lamps | sun+lamps")
+    ap.add_argument("--sun-elevation", type=float, default=12.0, help="simulated sun elevation, degrees (<= 0: night)")
     ap.add_argument("--out-dir", type=Path, default=Path("bench-output/perception"))
     ap.add_argument("--every", type=int, default=1, help="use every N-th camera frame")
     ap.add_argument("--segmenter", default="classical")
@@ -365,9 +369,14 @@ def main(argv=None) -> int:
     for seed in a.simulate:
         from lunarloc.data.simulate import SimulationConfig, simulate_site, simulate_traverse
 
-        sc = SimulationConfig(duration_s=a.duration, image_rate_hz=a.image_rate, width=a.width, height=a.height)
+        from lunarloc.data.render import RenderConfig
+
+        sc = SimulationConfig(duration_s=a.duration, image_rate_hz=a.image_rate, width=a.width, height=a.height,
+                              cameras=("FrontLeft", "FrontRight"),
+                              render=RenderConfig(sun_elevation_deg=a.sun_elevation, lighting=a.lighting))  # fmt: skip
         size = "" if (a.width, a.height) == (1280, 720) else f"_{a.width}x{a.height}"
-        p = a.out_dir / f"site{seed}_traverse0{size}.lac"
+        light = f"_{a.lighting.replace('+', '_')}_el{a.sun_elevation:g}"
+        p = a.out_dir / f"site{seed}{light}_traverse0{size}.lac"
         if not p.exists():
             a.out_dir.mkdir(parents=True, exist_ok=True)
             t0 = time.time()

@@ -4,8 +4,9 @@ simulated traverses of one site localize against each other with `lunarloc local
 Usage
 -----
     python benchmarks/e2e_images.py --out DIR [--seed 21] [--traverses 2] [--duration 150]
-        [--image-rate 1] [--width 1280 --height 720] [--rocks N] [--all-cameras]
-        [--min-sightings 5 2] [--epsilon 0.05 0.08] [--json OUT.json]
+        [--image-rate 1] [--vehicle-image-rate R] [--lighting sun|lamps|sun+lamps] [--sun-elevation DEG]
+        [--width 1280 --height 720] [--rocks N] [--all-cameras]
+        [--min-sightings 5 2] [--epsilon 0.05 0.08] [--poses gt/gt ...] [--online] [--json OUT.json]
 
 Steps (each runs the project's own command line; outputs already in DIR are reused):
 
@@ -77,30 +78,39 @@ def simulate(a, log: list[str]) -> list[Path]:
     paths = [a.out / f"traverse_{i}.lac" for i in range(a.traverses)]
     if all(p.exists() for p in paths):
         return paths
-    if a.rocks is None:
+    if a.rocks is None and a.vehicle_image_rate is None:
         cmd = _lunarloc() + [
             "simulate", "--seed", str(a.seed), "--traverses", str(a.traverses), "--out", str(a.out),
             "--duration", f"{a.duration:g}", "--image-rate", f"{a.image_rate:g}", "--width", str(a.width),
-            "--height", str(a.height), "--no-semantic",
+            "--height", str(a.height), "--no-semantic", "--lighting", a.lighting, "--sun-elevation", f"{a.sun_elevation:g}",
         ] + ([] if a.all_cameras else ["--front-only"])  # fmt: skip
         _run(cmd, log)
     else:
         from dataclasses import replace
 
-        from lunarloc.data.simulate import ALL_CAMERAS, SimulationConfig, simulate_dataset
+        from lunarloc.data.render import RenderConfig
+        from lunarloc.data.simulate import ALL_CAMERAS, SimulationConfig, simulate_site, simulate_traverse
         from lunarloc.data.site import SiteConfig
 
+        site_cfg = SiteConfig() if a.rocks is None else replace(SiteConfig(), n_rocks=a.rocks)
         cfg = SimulationConfig(
-            site=replace(SiteConfig(), n_rocks=a.rocks), duration_s=a.duration, image_rate_hz=a.image_rate,
+            site=site_cfg, duration_s=a.duration, image_rate_hz=a.image_rate,
             width=a.width, height=a.height, semantic=False,
             cameras=ALL_CAMERAS if a.all_cameras else ("FrontLeft", "FrontRight"),
+            render=RenderConfig(sun_elevation_deg=a.sun_elevation, lighting=a.lighting),
         )  # fmt: skip
-        log.append(f"python: simulate_dataset({a.seed}, {a.traverses}, {str(a.out)!r}, SimulationConfig("
-                   f"site=SiteConfig(n_rocks={a.rocks}), duration_s={a.duration:g}, image_rate_hz={a.image_rate:g}, "
-                   f"width={a.width}, height={a.height}, semantic=False, cameras=...))")  # fmt: skip
+        veh_rate = a.vehicle_image_rate or a.image_rate
+        log.append(f"python: simulate_traverse(simulate_site({a.seed}, cfg), traverse_i.lac, i, cfg) with SimulationConfig("
+                   f"site=SiteConfig(n_rocks={site_cfg.n_rocks}), duration_s={a.duration:g}, image_rate_hz={a.image_rate:g} "
+                   f"(vehicle traverses {veh_rate:g}), width={a.width}, height={a.height}, semantic=False, "
+                   f"render=RenderConfig(sun_elevation_deg={a.sun_elevation:g}, lighting={a.lighting!r}), cameras=...)")  # fmt: skip
         print(f"$ {log[-1]}", file=sys.stderr, flush=True)
         t0 = time.perf_counter()
-        simulate_dataset(a.seed, a.traverses, a.out, cfg)
+        site = simulate_site(a.seed, cfg)
+        site.write_rocks_csv(a.out / "rocks.csv")
+        for i, p in enumerate(paths):
+            if not p.exists():
+                simulate_traverse(site, p, i, cfg if i == 0 else replace(cfg, image_rate_hz=veh_rate))
         print(f"  ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
     return paths
 
@@ -191,6 +201,10 @@ def main(argv=None) -> int:
     ap.add_argument("--width", type=int, default=1280)
     ap.add_argument("--height", type=int, default=720)
     ap.add_argument("--rocks", type=int, default=None, help="rocks on the site (default: the site's 386)")
+    ap.add_argument("--lighting", default="sun+lamps", help="sun | lamps | sun+lamps")
+    ap.add_argument("--sun-elevation", type=float, default=12.0, help="degrees (<= 0: night)")
+    ap.add_argument("--vehicle-image-rate", type=float, default=None,
+                    help="camera rate of the vehicle traverses, Hz (default: --image-rate)")  # fmt: skip
     ap.add_argument("--all-cameras", action="store_true", help="record the rear pair too (default: front only)")
     ap.add_argument("--min-sightings", type=int, nargs="+", default=[5, 2])
     ap.add_argument("--epsilon", type=float, nargs="+", default=[0.05, 0.08])

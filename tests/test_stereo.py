@@ -206,3 +206,13 @@ def test_full_width_matches_the_left_band_where_the_match_exists():
     ok = np.isfinite(d)
     assert (d[ok] <= u[ok]).all()
     assert np.isnan(d[:, :15]).mean() > 0.9
+
+
+def test_scaled_config_scales_the_near_rock_pixel_size():
+    from lunarloc.perception.detector import DetectorConfig
+    from lunarloc.pipeline import scaled_detector_config
+
+    base = DetectorConfig()
+    half = scaled_detector_config(640)
+    assert half.height_filters.near_sigma_px == pytest.approx(base.height_filters.near_sigma_px / 2)
+    assert scaled_detector_config(1280) is base
