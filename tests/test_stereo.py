@@ -215,4 +215,4 @@ def test_scaled_config_scales_the_near_rock_pixel_size():
     base = DetectorConfig()
     half = scaled_detector_config(640)
     assert half.height_filters.near_sigma_px == pytest.approx(base.height_filters.near_sigma_px / 2)
-    assert scaled_detector_config(1280) is base
+    assert scaled_detector_config(1280) == base
