@@ -5,8 +5,10 @@ Usage
     python benchmarks/bench_perception.py ARCHIVE.lac [ARCHIVE.lac ...] [--every N]
         [--segmenter classical|fastsam --weights PATH] [--no-centre-correction]
         [--json OUT.json]
-    python benchmarks/bench_perception.py --simulate SEED [--duration S] [--width W --height H] ...
-                                                                   # renders first
+    python benchmarks/bench_perception.py --simulate SEED [SEED ...] [--lighting sun|lamps|sun+lamps]
+        [--sun-elevation DEG] [--duration S] [--width W --height H] ...   # renders first (front pair)
+    python benchmarks/bench_perception.py --lac-real DIR [--figure PNG]  # the real LAC frame
+    python benchmarks/bench_perception.py --speed ARCHIVE.lac             # time one front pair
 
 Archives must come from `lunarloc simulate` (they hold ``custom/rocks.csv`` and the
 semantic images). The image size and field of view are read from each archive
@@ -91,6 +93,7 @@ class Accumulator:
         self.err_xy: list[float] = []
         self.err3d_surface: list[float] = []
         self.err_target: list[float] = []  # r >= 0.1, range <= 5
+        self.small_near = np.zeros(2, int)  # [hit, visible]: 0.05 <= r < 0.1 within 3 m
         self.times: dict[str, list[float]] = {}
         self.n_frames = 0
         self.n_det = 0
@@ -129,6 +132,8 @@ class Accumulator:
                 if sb < 0 or rb < 0:
                     continue
                 self.rec[sb, rb, 1] += 1
+                small_near = 0.05 <= radii[j] < 0.1 and rng <= 3.0
+                self.small_near += [int(small_near and j in matched_rock), int(small_near)]
                 if j in matched_rock:
                     self.rec[sb, rb, 0] += 1
                     i, dist = matched_rock[j]
@@ -165,6 +170,9 @@ class Accumulator:
             "target_recall_r>=0.1_range<=5": float(rec_t[0] / max(rec_t[1], 1)),
             "target_recall_counts": rec_t.tolist(),
             "target_precision_est_r>=0.1_range<=5": float(prec_t[0] / max(prec_t[1], 1)),
+            "recall_0.05<=r<0.1_range<=3": float(self.small_near[0] / max(self.small_near[1], 1)),
+            "recall_0.05<=r<0.1_range<=3_counts": self.small_near.tolist(),
+            "frames_per_s": float(1.0 / max(sum(float(np.mean(v)) for v in self.times.values()), 1e-9)),
             "precision_range<=5": float(prec_5[0] / max(prec_5[1], 1)),
             "precision_counts_range<=5": prec_5.tolist(),
             "centroid_err_target_median_m": pct(self.err_target, 50),
@@ -203,7 +211,17 @@ def print_summary(s: dict) -> None:
         print(f"{band(sb):>14} " + "".join(f"{(h / t if t else float('nan')):>8.2f} ({h:>3}/{t:>3})" for h, t in row))
     for k, v in s.items():
         if k not in ("recall_by_size_range", "precision_by_estsize_range"):
-            print(f"{k}: {v}")
+            if k != "by_lighting":
+                print(f"{k}: {v}")
+
+
+def _lander_xy(ar) -> np.ndarray:
+    """The lander's centre in the map frame: ``LacArchive.lander_pose_map()`` where the
+    archive reader has it (initial.toml ``lander`` is rover-relative in the LAC), else
+    initial.toml ``lander`` as this branch's simulator writes it (map frame)."""
+    f = getattr(ar, "lander_pose_map", None)
+    pose = f() if callable(f) else ar.initial["lander"]
+    return np.asarray([float(v) for v in pose[:2]])
 
 
 def run_archive(path: Path, cfg: DetectorConfig, every: int, acc: Accumulator, detector: Detector | None = None):
@@ -223,7 +241,8 @@ def run_archive(path: Path, cfg: DetectorConfig, every: int, acc: Accumulator, d
         if det is None:
             det = Detector(scaled_detector_config(cam.width, base=cfg), cam)
         print(f"{path}: {cam.width}x{cam.height} px, hfov {cam.hfov_deg:g} deg", file=sys.stderr)
-        for fd in detect_archive(ar, det.config, "ground-truth", detector=det, frames=frames):
+        lander_xy = _lander_xy(ar)  # known to a LAC agent: detections on the lander are dropped
+        for fd in detect_archive(ar, det.config, "ground-truth", detector=det, frames=frames, lander_xy=lander_xy):
             sem = {left: ar.semantic(left, fd.frame) for left, _ in det.config.pairs}
             rows = {c: ar.camera_row(c, fd.frame) for c in ar.cameras}
             mounts = mounts_from_archive_row({k: v for k, v in rows.items() if v}, det.camera)
@@ -231,14 +250,103 @@ def run_archive(path: Path, cfg: DetectorConfig, every: int, acc: Accumulator, d
     return det
 
 
+def lighting_label(path: Path) -> str:
+    """The lighting an archive was rendered with, from its description ("lighting
+    sun+lamps", else "sun elevation E deg" -> "sun E")."""
+    import re
+
+    from lunarloc.data.lac import LacArchive
+
+    with LacArchive(path) as ar:
+        desc = str(ar.metadata.get("description", ""))
+    m = re.search(r"lighting[ =:]+([\w+]+)", desc)
+    el = re.search(r"sun elevation (-?[\d.]+) deg", desc)
+    if m and m.group(1) != "sun":
+        return m.group(1) + (f" (sun {el.group(1)})" if el and "sun" in m.group(1) else "")
+    return f"sun {el.group(1)}" if el else "unknown"
+
+
+def print_groups(groups: dict[str, dict]) -> None:
+    """One row per lighting: the issue's targets side by side."""
+    hdr = ("lighting", "frames", "P(<=5m)", "R(r>=.1,<=5m)", "R(.05-.1,<=3m)", "err50 cm", "err90 cm", "frames/s")
+    print(" | ".join(hdr))
+    for name, s in groups.items():
+        print(" | ".join([
+            name, str(s["frames"]), f"{s['precision_range<=5']:.2f}", f"{s['target_recall_r>=0.1_range<=5']:.2f}",
+            f"{s['recall_0.05<=r<0.1_range<=3']:.2f}", f"{100 * s['centroid_err_target_median_m']:.1f}",
+            f"{100 * s['centroid_err_target_p90_m']:.1f}", f"{s['frames_per_s']:.1f}",
+        ]))  # fmt: skip
+
+
+def lac_real_frame(folder: Path, figure: Path | None = None) -> list:
+    """Detect rocks on the real LAC frame (FrontLeft/FrontRight_99.png, pose_99.json; the
+    lander stands at the site centre, the map origin); print the detections and draw
+    them (kept masks green, rejected ones coloured by filter) into `figure`."""
+    import cv2
+
+    from lunarloc.geometry import pose_to_matrix
+    from lunarloc.perception.camera import PinholeCamera, ipex_rig
+    from lunarloc.perception.detector import debug_overlay
+
+    left = cv2.imread(str(folder / "FrontLeft_99.png"), cv2.IMREAD_GRAYSCALE)
+    right = cv2.imread(str(folder / "FrontRight_99.png"), cv2.IMREAD_GRAYSCALE)
+    if left is None or right is None:
+        raise SystemExit(f"no FrontLeft_99.png / FrontRight_99.png in {folder}")
+    p = json.loads((folder / "pose_99.json").read_text())
+    T = pose_to_matrix(*[float(p[k]) for k in ("x", "y", "z", "roll", "pitch", "yaw")])
+    det = Detector(DetectorConfig(), PinholeCamera(left.shape[1], left.shape[0], 70.0))
+    T_ro = ipex_rig(det.camera)["FrontLeft"].T_rover_optical
+    det.detect_pair(left, right, T_ro, T, "FrontLeft")  # warm-up (OpenCV allocations)
+    t0 = time.perf_counter()
+    pr = det.detect_pair(left, right, T_ro, T, "FrontLeft", keep_depth=True, lander_xy=np.zeros(2))
+    dt = time.perf_counter() - t0
+    print(f"real LAC frame 99: {len(pr.detections)} detections in {1000 * dt:.0f} ms (wall)")
+    for d in pr.detections:
+        print(f"  u,v {d.uv[0]:6.0f} {d.uv[1]:5.0f}  depth {d.depth_m:5.2f} m  radius {d.radius_m:5.3f} m  "
+              f"map {d.p_map[0]:6.2f} {d.p_map[1]:6.2f}")  # fmt: skip
+    counts: dict[str, int] = {}
+    for r in pr.records:
+        if r.reason is not None:
+            counts[r.reason.value] = counts.get(r.reason.value, 0) + 1
+    print("  rejected masks by filter:", counts)
+    if figure is not None:
+        figure.parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(figure), debug_overlay(left, pr)[:, : left.shape[1]])
+        print(f"  figure -> {figure}")
+    return pr.detections
+
+
+def speed(path: Path, repeats: int = 5) -> dict:
+    """Wall and process-CPU time of the detector on one 1280x720 front pair of an
+    archive (after a warm-up run): per stereo pair and per two-pair frame."""
+    from lunarloc.data.lac import LacArchive
+    from lunarloc.perception.camera import ipex_rig
+
+    with LacArchive(path) as ar:
+        f = next(int(f) for f in ar.frame_numbers if ar.camera_row("FrontLeft", int(f)) is not None)
+        L, R = ar.grayscale("FrontLeft", f), ar.grayscale("FrontRight", f)
+    det = Detector(DetectorConfig())
+    T = ipex_rig(det.camera)["FrontLeft"].T_rover_optical
+    det.detect_pair(L, R, T)
+    w0, c0 = time.perf_counter(), time.process_time()
+    for _ in range(repeats):
+        det.detect_pair(L, R, T)
+    wall = (time.perf_counter() - w0) / repeats
+    cpu = (time.process_time() - c0) / repeats
+    return {"pair_wall_ms": 1000 * wall, "pair_cpu_ms": 1000 * cpu, "pairs_per_s_wall": 1 / wall,
+            "pairs_per_s_cpu": 1 / cpu}  # fmt: skip
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("archives", nargs="*", type=Path)
     ap.add_argument("--simulate", type=int, nargs="*", default=[], help="site seeds to render first")
-    ap.add_argument("--duration", type=float, default=80.0, help="seconds per simulated traverse")
+    ap.add_argument("--duration", type=float, default=60.0, help="seconds per simulated traverse")
     ap.add_argument("--image-rate", type=float, default=0.5, help="simulated camera rate, Hz")
     ap.add_argument("--width", type=int, default=1280, help="simulated image width, px")
     ap.add_argument("--height", type=int, default=720, help="simulated image height, px")
+    ap.add_argument("--lighting", default="sun+lamps", help="simulated lighting: sun | lamps | sun+lamps")
+    ap.add_argument("--sun-elevation", type=float, default=12.0, help="simulated sun elevation, degrees (<= 0: night)")
     ap.add_argument("--out-dir", type=Path, default=Path("bench-output/perception"))
     ap.add_argument("--every", type=int, default=1, help="use every N-th camera frame")
     ap.add_argument("--segmenter", default="classical")
@@ -246,14 +354,29 @@ def main(argv=None) -> int:
     ap.add_argument("--no-centre-correction", action="store_true")
     ap.add_argument("--min-gt-px", type=int, default=50)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--lac-real", type=Path, default=None, help="run the real LAC frame in this folder and stop")
+    ap.add_argument("--figure", type=Path, default=None, help="with --lac-real: draw the detections here")
+    ap.add_argument("--speed", action="store_true", help="time the detector on one front pair of each archive")
     a = ap.parse_args(argv)
+    if a.lac_real is not None:
+        lac_real_frame(a.lac_real, a.figure)
+        return 0
+    if a.speed:
+        for p in a.archives:
+            print(p, json.dumps({k: round(v, 1) for k, v in speed(p).items()}))
+        return 0
     archives = list(a.archives)
     for seed in a.simulate:
         from lunarloc.data.simulate import SimulationConfig, simulate_site, simulate_traverse
 
-        sc = SimulationConfig(duration_s=a.duration, image_rate_hz=a.image_rate, width=a.width, height=a.height)
+        from lunarloc.data.render import RenderConfig
+
+        sc = SimulationConfig(duration_s=a.duration, image_rate_hz=a.image_rate, width=a.width, height=a.height,
+                              cameras=("FrontLeft", "FrontRight"),
+                              render=RenderConfig(sun_elevation_deg=a.sun_elevation, lighting=a.lighting))  # fmt: skip
         size = "" if (a.width, a.height) == (1280, 720) else f"_{a.width}x{a.height}"
-        p = a.out_dir / f"site{seed}_traverse0{size}.lac"
+        light = f"_{a.lighting.replace('+', '_')}_el{a.sun_elevation:g}"
+        p = a.out_dir / f"site{seed}{light}_traverse0{size}.lac"
         if not p.exists():
             a.out_dir.mkdir(parents=True, exist_ok=True)
             t0 = time.time()
@@ -267,13 +390,28 @@ def main(argv=None) -> int:
     acc.min_gt_px = a.min_gt_px
     det = None
     configs = {}  # the detector config used at each image size (pixel parameters scaled)
+    groups: dict[str, Accumulator] = {}
     for p in archives:
-        det = run_archive(p, cfg, a.every, acc, det)
+        g = groups.setdefault(lighting_label(p), Accumulator())
+        g.min_gt_px = a.min_gt_px
+        det = run_archive(p, cfg, a.every, g, det)
         configs[f"{det.camera.width}x{det.camera.height}"] = det.config.to_dict()
+    for g in groups.values():  # the total over all archives
+        acc.rec += g.rec
+        acc.prec += g.prec
+        acc.small_near += g.small_near
+        for k in ("err3d", "err_xy", "err3d_surface", "err_target"):
+            getattr(acc, k).extend(getattr(g, k))
+        for k, v in g.times.items():
+            acc.times.setdefault(k, []).extend(v)
+        acc.n_frames += g.n_frames
+        acc.n_det += g.n_det
     s = acc.summary()
+    s["by_lighting"] = {k: g.summary() for k, g in groups.items()}
     s["archives"] = [str(p) for p in archives]
     s["config"] = configs[next(iter(configs))] if len(configs) == 1 else configs
     print_summary(s)
+    print_groups({**s["by_lighting"], "all": s})
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)
         a.json.write_text(json.dumps(s, indent=2, default=str))

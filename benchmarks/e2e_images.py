@@ -4,8 +4,9 @@ simulated traverses of one site localize against each other with `lunarloc local
 Usage
 -----
     python benchmarks/e2e_images.py --out DIR [--seed 21] [--traverses 2] [--duration 150]
-        [--image-rate 1] [--width 1280 --height 720] [--rocks N] [--all-cameras]
-        [--min-sightings 5 2] [--epsilon 0.05 0.08] [--json OUT.json]
+        [--image-rate 1] [--vehicle-image-rate R] [--lighting sun|lamps|sun+lamps] [--sun-elevation DEG]
+        [--width 1280 --height 720] [--rocks N] [--all-cameras]
+        [--min-sightings 5 2] [--epsilon 0.05 0.08] [--poses gt/gt ...] [--online] [--json OUT.json]
 
 Steps (each runs the project's own command line; outputs already in DIR are reused):
 
@@ -77,30 +78,39 @@ def simulate(a, log: list[str]) -> list[Path]:
     paths = [a.out / f"traverse_{i}.lac" for i in range(a.traverses)]
     if all(p.exists() for p in paths):
         return paths
-    if a.rocks is None:
+    if a.rocks is None and a.vehicle_image_rate is None:
         cmd = _lunarloc() + [
             "simulate", "--seed", str(a.seed), "--traverses", str(a.traverses), "--out", str(a.out),
             "--duration", f"{a.duration:g}", "--image-rate", f"{a.image_rate:g}", "--width", str(a.width),
-            "--height", str(a.height), "--no-semantic",
+            "--height", str(a.height), "--no-semantic", "--lighting", a.lighting, "--sun-elevation", f"{a.sun_elevation:g}",
         ] + ([] if a.all_cameras else ["--front-only"])  # fmt: skip
         _run(cmd, log)
     else:
         from dataclasses import replace
 
-        from lunarloc.data.simulate import ALL_CAMERAS, SimulationConfig, simulate_dataset
+        from lunarloc.data.render import RenderConfig
+        from lunarloc.data.simulate import ALL_CAMERAS, SimulationConfig, simulate_site, simulate_traverse
         from lunarloc.data.site import SiteConfig
 
+        site_cfg = SiteConfig() if a.rocks is None else replace(SiteConfig(), n_rocks=a.rocks)
         cfg = SimulationConfig(
-            site=replace(SiteConfig(), n_rocks=a.rocks), duration_s=a.duration, image_rate_hz=a.image_rate,
+            site=site_cfg, duration_s=a.duration, image_rate_hz=a.image_rate,
             width=a.width, height=a.height, semantic=False,
             cameras=ALL_CAMERAS if a.all_cameras else ("FrontLeft", "FrontRight"),
+            render=RenderConfig(sun_elevation_deg=a.sun_elevation, lighting=a.lighting),
         )  # fmt: skip
-        log.append(f"python: simulate_dataset({a.seed}, {a.traverses}, {str(a.out)!r}, SimulationConfig("
-                   f"site=SiteConfig(n_rocks={a.rocks}), duration_s={a.duration:g}, image_rate_hz={a.image_rate:g}, "
-                   f"width={a.width}, height={a.height}, semantic=False, cameras=...))")  # fmt: skip
+        veh_rate = a.vehicle_image_rate or a.image_rate
+        log.append(f"python: simulate_traverse(simulate_site({a.seed}, cfg), traverse_i.lac, i, cfg) with SimulationConfig("
+                   f"site=SiteConfig(n_rocks={site_cfg.n_rocks}), duration_s={a.duration:g}, image_rate_hz={a.image_rate:g} "
+                   f"(vehicle traverses {veh_rate:g}), width={a.width}, height={a.height}, semantic=False, "
+                   f"render=RenderConfig(sun_elevation_deg={a.sun_elevation:g}, lighting={a.lighting!r}), cameras=...)")  # fmt: skip
         print(f"$ {log[-1]}", file=sys.stderr, flush=True)
         t0 = time.perf_counter()
-        simulate_dataset(a.seed, a.traverses, a.out, cfg)
+        site = simulate_site(a.seed, cfg)
+        site.write_rocks_csv(a.out / "rocks.csv")
+        for i, p in enumerate(paths):
+            if not p.exists():
+                simulate_traverse(site, p, i, cfg if i == 0 else replace(cfg, image_rate_hz=veh_rate))
         print(f"  ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
     return paths
 
@@ -191,11 +201,18 @@ def main(argv=None) -> int:
     ap.add_argument("--width", type=int, default=1280)
     ap.add_argument("--height", type=int, default=720)
     ap.add_argument("--rocks", type=int, default=None, help="rocks on the site (default: the site's 386)")
+    ap.add_argument("--lighting", default="sun+lamps", help="sun | lamps | sun+lamps")
+    ap.add_argument("--sun-elevation", type=float, default=12.0, help="degrees (<= 0: night)")
+    ap.add_argument("--vehicle-image-rate", type=float, default=None,
+                    help="camera rate of the vehicle traverses, Hz (default: --image-rate)")  # fmt: skip
     ap.add_argument("--all-cameras", action="store_true", help="record the rear pair too (default: front only)")
     ap.add_argument("--min-sightings", type=int, nargs="+", default=[5, 2])
     ap.add_argument("--epsilon", type=float, nargs="+", default=[0.05, 0.08])
     ap.add_argument("--poses", nargs="+", default=[f"{r}/{v}" for r, v in PAIRS],
                     help="reference/vehicle pose pairs among gt/gt odo/odo gt/odo")  # fmt: skip
+    ap.add_argument("--online", action="store_true",
+                    help="also run `lunarloc run` on every vehicle traverse against the reference map built with "
+                         "ground-truth poses (each --min-sightings), and report the online trajectory's RMSE")  # fmt: skip
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
@@ -248,7 +265,23 @@ def main(argv=None) -> int:
                         **_errors(T, veh, truth[i], rp, vp),
                     }  # fmt: skip
                     rows.append(row)
+    online = []
+    if a.online:
+        for i in range(1, len(archives)):
+            for ms in a.min_sightings:
+                run_dir = a.out / f"run_{i}_ms{ms}"
+                if not (run_dir / "summary.json").exists():
+                    _run(_lunarloc() + ["run", str(archives[i]), "--reference", str(maps[0, "gt", ms]), "--out",
+                                        str(run_dir), "--no-plot"], log)  # fmt: skip
+                rs = json.loads((run_dir / "summary.json").read_text())
+                online.append({
+                    "veh": i, "min_sightings": ms, "ref_landmarks": rs["reference_landmarks"],
+                    "attempts": rs["attempts"], "localized": rs["localized"], "fixes": rs["fixes"],
+                    "online_rmse_m": rs["ate_online"]["rmse_m"], "corrected_rmse_m": rs["ate_corrected"]["rmse_m"],
+                    "odometry_rmse_m": rs["ate_odometry"]["rmse_m"], "path_m": rs["path_length_m"],
+                })  # fmt: skip
     summary = {
+        "online": online,
         "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(a).items()},
         "commands": log,
         "traverses": [{"archive": str(p), "path_m": t["path_m"],
@@ -301,6 +334,14 @@ def print_table(s: dict) -> None:
     print(" ".join(f"{h:>{w}}" for h, w, _ in cols) + "  reason")
     for r in s["results"]:
         print(" ".join(f"{str(f(r)):>{w}}" for _, w, f in cols) + f"  {r['reason']}")
+    if s.get("online"):
+        print("online (`lunarloc run` of the vehicle traverse against the ground-truth-pose reference map): "
+              "ATE RMSE of the online, corrected and odometry-only trajectories, cm")  # fmt: skip
+        print("veh ms L_ref attempts localized fixes online corrected odometry path_m")
+        for r in s["online"]:
+            print(f"{r['veh']:>3} {r['min_sightings']:>2} {r['ref_landmarks']:>5} {r['attempts']:>8} {r['localized']:>9} "
+                  f"{r['fixes']:>5} {cm(r['online_rmse_m']):>6} {cm(r['corrected_rmse_m']):>9} "
+                  f"{cm(r['odometry_rmse_m']):>8} {r['path_m']:>6.1f}")  # fmt: skip
     print(f"wall time {s['wall_s']:.0f} s")
 
 

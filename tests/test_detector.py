@@ -187,3 +187,74 @@ def test_traverse_csv_format(tmp_path):
     assert rows[2][4:] == ["0", "[]"]
     with pytest.raises(InputError):
         write_traverse_csv(tmp_path / "x.csv", [FrameDetections(1, None)])
+
+
+def test_rock_at_the_left_edge_is_found_with_full_width_stereo():
+    # 1.5 m ahead and 0.6 m left: image column ~170 px, disparity ~100 px, inside the
+    # band SGBM leaves unmatched without padding
+    c = np.array([1.8, 0.75, -0.12])
+    left, right, rig = ground_scene(tuple(c), 0.1)
+    det = Detector(DetectorConfig(), CAM)
+    pr = det.detect_pair(left, right, rig["FrontLeft"].T_rover_optical)
+    assert min(d.uv[0] for d in pr.detections) < 250
+    near = [d for d in pr.detections if np.linalg.norm(d.p_rover[:2] - c[:2]) < 0.1]
+    assert len(near) == 1
+
+
+def test_too_tall_and_lander_footprint_are_rejected():
+    rig_T = ipex_rig(CAM)["FrontLeft"].T_rover_optical
+    # a 0.4 m sphere standing 0.8 m high: a rock by default, not one when rocks are
+    # at most 0.3 m high or 0.2 m in radius (a large object lifts the ground fit under
+    # it, so its measured height, ~0.4 m here, is low: the check is a coarse guard)
+    left, right, _ = ground_scene((4.0, 0.0, 0.2), 0.4)
+    assert len(Detector(DetectorConfig(), CAM).detect_pair(left, right, rig_T).detections) == 1
+    for cfg in (DetectorConfig(max_rock_height_m=0.3), DetectorConfig(max_rock_radius_m=0.2)):
+        pr = Detector(cfg, CAM).detect_pair(left, right, rig_T)
+        assert not pr.detections
+        assert any(r.reason is RejectReason.NOT_A_ROCK for r in pr.records)
+    # a rock on the ground is kept, unless the lander's footprint covers it
+    c = np.array([3.28, 0.1, -0.15])
+    left, right, _ = ground_scene(tuple(c), 0.15)
+    T_map_rover = pose_to_matrix(10.0, -4.0, 1.0, 0.0, 0.0, 0.5)
+    det = Detector(DetectorConfig(), CAM)
+    kept = det.detect_pair(left, right, rig_T, T_map_rover)
+    assert len(kept.detections) == 1
+    lander_xy = transform_points(T_map_rover, (c + [1.5, 0.0, 0.0])[None])[0, :2]  # 1.5 m beyond the rock
+    pr = det.detect_pair(left, right, rig_T, T_map_rover, lander_xy=lander_xy)
+    assert not pr.detections and any(r.reason is RejectReason.ON_LANDER for r in pr.records)
+    far = det.detect_pair(left, right, rig_T, T_map_rover, lander_xy=lander_xy + [3.0, 3.0])
+    assert len(far.detections) == 1
+
+
+def test_cli_detect_lander_xy_drops_detections_on_the_lander(tmp_path):
+    from lunarloc.cli.app import main
+    from lunarloc.data.simulate import SimulationConfig, simulate_dataset
+    from lunarloc.maps import load_traverse
+
+    cfg = SimulationConfig(duration_s=6.0, image_rate_hz=2.0, width=320, height=180,
+                           cameras=("FrontLeft", "FrontRight"), semantic=False)  # fmt: skip
+    simulate_dataset(0, 1, tmp_path, cfg)
+    arch = str(tmp_path / "traverse_0.lac")
+    assert main(["detect", arch, "-o", str(tmp_path / "a.csv")]) == 0
+    all_xyz = load_traverse(tmp_path / "a.csv").detections_xyz
+    assert len(all_xyz) > 0
+    xy = all_xyz[0, :2]
+    assert main(["detect", arch, "-o", str(tmp_path / "b.csv"), "--lander-xy", f"{xy[0]},{xy[1]}"]) == 0
+    kept = load_traverse(tmp_path / "b.csv").detections_xyz
+    assert len(kept) < len(all_xyz)
+    assert np.all(np.hypot(*(kept[:, :2] - xy).T) > DetectorConfig().lander_radius_m)
+    assert main(["detect", arch, "-o", str(tmp_path / "c.csv"), "--lander-xy", "1,2,3"]) == 2
+
+
+def test_height_above_surroundings_sees_a_knob_on_a_large_object():
+    from lunarloc.perception.detector import _height_above_surroundings
+
+    rng = np.random.default_rng(0)
+    ground = np.c_[rng.uniform(0, 6, (4000, 2)) - [0, 3], rng.normal(0, 0.005, 4000)]  # flat, z = 0
+    cam = np.array([0.0, 0.0, 0.35])
+    knob = np.array([[4.0, 0.0, 0.6], [4.0, 0.02, 0.62], [4.02, 0.0, 0.58]])  # 0.6 m up, on a boulder
+    h = _height_above_surroundings(knob, knob.mean(0), 0.02, ground, cam, 0.9)
+    assert h == pytest.approx(0.61, abs=0.03)
+    cfg = DetectorConfig()
+    assert h > cfg.height_per_radius * 0.02 + cfg.height_margin_m  # perched: rejected
+    assert np.isnan(_height_above_surroundings(knob, knob.mean(0), 0.02, ground[:5], cam, 0.9))

@@ -97,3 +97,18 @@ def test_config_validation():
         MaskFilterConfig(tau_elong=0.5)
     with pytest.raises(ConfigError):
         MaskFilterConfig(max_range_m=1.0, min_range_m=1.3)
+
+
+def test_small_rock_close_by_is_kept_when_its_mask_is_large():
+    alpha = 1.0 / 914.0
+    shape = (720, 1280)
+    big = mask_stats(InstanceMask.from_full(_disc(shape, 640, 400, 16)), shape)  # sigma 8 px
+    small = mask_stats(InstanceMask.from_full(_disc(shape, 640, 400, 8)), shape)  # sigma 4 px
+    off = MaskFilterConfig(s_min_m=0.03, min_range_m=0.5)
+    on = MaskFilterConfig(s_min_m=0.03, min_range_m=0.5, near_sigma_px=6.0, near_s_min_m=0.008)
+    # 8 px at 1.5 m: s = 0.013 m, below s_min but a large mask
+    assert classify_mask(big, 1.5, alpha, off)[0] is RejectReason.TOO_SMALL
+    assert classify_mask(big, 1.5, alpha, on)[0] is None
+    # the same physical size far away spans too few pixels; a tiny one near is still dropped
+    assert classify_mask(small, 3.0, alpha, on)[0] is RejectReason.TOO_SMALL
+    assert classify_mask(big, 0.6, alpha, on)[0] is RejectReason.TOO_SMALL  # s = 0.005 < near_s_min_m

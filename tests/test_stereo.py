@@ -191,3 +191,28 @@ def test_mask_disparity_fullres_recovers_shift_in_narrow_band():
     assert abs(float(np.nanmedian(d)) - 24.0) < 0.2
     # a band that would leave the image gives None
     assert mask_disparity_fullres(left, right, crop, 5, 80, d0=22.6) is None
+
+
+def test_full_width_matches_the_left_band_where_the_match_exists():
+    cam = PinholeCamera(width=480, height=240)
+    left, right = _textured_pair(20)
+    d = StereoMatcher(StereoConfig(full_width=True), camera=cam).disparity_lowres(left, right)
+    band = d[20:-20, 30:100]  # OpenCV alone leaves the first 128 columns unmatched
+    assert np.isfinite(band).mean() > 0.9
+    assert np.nanmedian(band) == pytest.approx(20, abs=0.25)
+    # a match never lies left of the right image (d <= u), so the first columns,
+    # left of the true disparity, are mostly invalid
+    u = np.arange(d.shape[1])[None, :].repeat(d.shape[0], 0)
+    ok = np.isfinite(d)
+    assert (d[ok] <= u[ok]).all()
+    assert np.isnan(d[:, :15]).mean() > 0.9
+
+
+def test_scaled_config_scales_the_near_rock_pixel_size():
+    from lunarloc.perception.detector import DetectorConfig
+    from lunarloc.pipeline import scaled_detector_config
+
+    base = DetectorConfig()
+    half = scaled_detector_config(640)
+    assert half.height_filters.near_sigma_px == pytest.approx(base.height_filters.near_sigma_px / 2)
+    assert scaled_detector_config(1280) == base

@@ -202,6 +202,7 @@ def scaled_detector_config(width: int, base=None):
         classical=replace(c, bg_median_px=max(16, int(c.bg_median_px * f)), min_area_px=max(4, int(c.min_area_px * f * f))),
         filters=replace(fl, min_area_px=max(4, int(fl.min_area_px * f * f)), max_range_m=min(fl.max_range_m, 5.0) if f < 1 else fl.max_range_m),
         stereo=replace(st, num_disparities=max(16, int(st.num_disparities * f) // 16 * 16), block_size=7 if f < 1 else st.block_size),
+        height_filters=replace(base.height_filters, near_sigma_px=base.height_filters.near_sigma_px * f),
     )  # fmt: skip
 
 

@@ -30,6 +30,10 @@ def detect(
         False, "--no-centre-correction", help="keep the visible-surface centroid (no sphere-centre shift)"
     ),
     overwrite: bool = OVERWRITE_OPT,
+    lander_xy: str = typer.Option(
+        None, "--lander-xy", help="X,Y: the lander's centre in the map frame (m); detections on it are dropped "
+        "(default: from the archive's initial.toml)"
+    ),
 ) -> None:
     """Segment rocks in the left images, lift them to 3D with stereo, write the traverse CSV."""
     from tqdm import tqdm
@@ -67,6 +71,18 @@ def detect(
         weights=str(weights) if weights else None,
         centre_correction=not no_centre_correction,
     )
+    lander = None
+    if lander_xy is not None:
+        import math
+
+        from lunarloc.errors import ConfigError
+
+        try:
+            lander = [float(v) for v in lander_xy.split(",")]
+        except ValueError:
+            lander = []
+        if len(lander) != 2 or not all(math.isfinite(v) and abs(v) < 1e7 for v in lander):
+            raise ConfigError(f"--lander-xy takes X,Y in metres (finite), got {lander_xy!r}")
     if debug_dir is not None:
         make_dir(debug_dir)
     with LacArchive(archive) as ar:
@@ -95,7 +111,7 @@ def detect(
 
         def _frames(bar):
             for fd in detect_archive(ar, cfg, pose_src, detector=detector, frames=frames,
-                                     keep_depth=debug_dir is not None, poses=poses):  # fmt: skip
+                                     keep_depth=debug_dir is not None, poses=poses, lander_xy=lander):  # fmt: skip
                 stats["frames"] += 1
                 stats["detections"] += len(fd.detections)
                 for k, v in fd.timings.items():

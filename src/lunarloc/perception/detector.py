@@ -94,12 +94,18 @@ class CentreMethod(str, Enum):
 
 def _height_stereo_default() -> StereoConfig:
     return StereoConfig(
-        num_disparities=192, block_size=5, downscale=2, speckle_window_size=50, three_way=True, p1=8 * 25, p2=32 * 25
+        num_disparities=192, block_size=5, downscale=2, speckle_window_size=50, three_way=True, p1=8 * 25, p2=32 * 25,
+        full_width=True,
     )
 
 
 def _height_filters_default() -> MaskFilterConfig:
-    return MaskFilterConfig(tau_elong=20.0)
+    # The height map's SGBM searches 192 full-resolution pixels: depths down to
+    # fx * B / 192 ~ 0.77 m are measured, so rocks from 0.9 m on are kept; small rocks
+    # near the rover are kept when their masks are large (near_sigma_px; tuned on
+    # simulated site seed 0: recall of r < 0.1 m within 2.5 m 0.02 -> 0.37, precision
+    # there 0.75 -> 0.92).
+    return MaskFilterConfig(tau_elong=20.0, min_range_m=0.9, near_sigma_px=6.0)
 
 
 @dataclass(frozen=True)
@@ -168,6 +174,22 @@ class DetectorConfig:
     # STEREO_POINTS: quantile of the mask's heights taken as its visible top (a high
     # quantile, not the maximum: SGBM fattens silhouettes by a few pixels).
     top_quantile: float = 0.9
+    # Nothing taller than this above the local ground (visible top, metres) or wider
+    # than max_rock_radius_m (estimated radius) is a rock: LAC rocks have radii up to
+    # ~1 m and vertical semi-axes up to 0.85 x radius; the lander's deck, tanks and
+    # panels stand 1-3 m high. STEREO_POINTS only (the visible top needs heights).
+    max_rock_height_m: float = 1.0
+    max_rock_radius_m: float = 1.2
+    # A rock's top stands at most about one radius above the ground around it; one
+    # whose top is more than height_per_radius * R + height_margin_m above the ground
+    # in front of it is a knob on a larger object (a boulder's surface, the lander).
+    # The margin allows for slopes (the ground in front is 0.3-1.5 m nearer).
+    height_per_radius: float = 1.5
+    height_margin_m: float = 0.25
+    # Detections within this horizontal distance (metres) of the lander's centre are
+    # dropped when the lander's map position is given (LAC lander: legs and pads
+    # ~1.9 m from its centre; fiducial panels and their shadows around it).
+    lander_radius_m: float = 2.2
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "segmenter", SegmenterKind(self.segmenter))
@@ -178,6 +200,8 @@ class DetectorConfig:
             raise ConfigError("depth_half_window_px must be >= 0")
         if self.radius_per_size <= 0:
             raise ConfigError("radius_per_size must be > 0")
+        if not (self.max_rock_height_m > 0 and self.max_rock_radius_m > 0 and self.lander_radius_m >= 0):
+            raise ConfigError("max_rock_height_m and max_rock_radius_m must be > 0, lander_radius_m >= 0")
         if self.segmenter is SegmenterKind.FASTSAM and not self.weights:
             raise ConfigError("the fastsam segmenter needs weights (a FastSAM .pt path)")
 
@@ -295,7 +319,7 @@ class Detector:
         hm = ground_height_map(
             disp, k, self.camera, self.height_stereo.baseline_m, T_rover_optical, self.config.ground, nd - 1.0
         )
-        hm.valid_u0 = nd * k
+        hm.valid_u0 = 0 if self.config.height_stereo.full_width else nd * k
         return hm
 
     def _fullres_points(self, L, right, m, d_lr: float, T_rover_optical: np.ndarray, min_points: int = 5):
@@ -322,6 +346,12 @@ class Detector:
         P = self.camera.backproject(uv, z.astype(float))
         return transform_points(T_rover_optical, P)
 
+    def _on_lander(self, det: Detection, lander_xy: np.ndarray | None) -> bool:
+        """True when the detection's map position lies in the lander's footprint."""
+        if lander_xy is None or det.p_map is None:
+            return False
+        return float(np.hypot(*(det.p_map[:2] - np.asarray(lander_xy, float)[:2]))) <= self.config.lander_radius_m
+
     # ------------------------------------------------------------------ one pair
     def _lift_centroid(self, cu: float, cv: float, D: float, s: float, T_rover_optical: np.ndarray):
         """Back-project a mask centroid at depth D (m) and, with centre correction, move it
@@ -343,12 +373,15 @@ class Detector:
         *,
         keep_depth: bool = False,
         timings: dict[str, float] | None = None,
+        lander_xy: np.ndarray | None = None,
     ) -> PairResult:
         """Detections from one rectified stereo pair.
 
         left / right : (H, W) grayscale images (right may be None: no depth, so every
         mask is rejected as NO_DEPTH). T_rover_optical : 4x4 pose of the left optical
         frame in the rover frame. T_map_rover : 4x4 rover pose in the map, or None.
+        lander_xy : (2,) the lander's centre in the map frame (metres), or None;
+        detections within config.lander_radius_m of it are rejected (needs T_map_rover).
         """
         cfg = self.config
         fc = cfg.filters
@@ -360,7 +393,9 @@ class Detector:
                 f"({self.camera.height}, {self.camera.width})"
             )
         if self.uses_height and right is not None:
-            return self._detect_pair_height(L, right, T_rover_optical, T_map_rover, camera_name, keep_depth, tm)
+            return self._detect_pair_height(
+                L, right, T_rover_optical, T_map_rover, camera_name, keep_depth, tm, lander_xy
+            )
         t0 = time.perf_counter()
         masks = self.segmenter.segment(L)
         t1 = time.perf_counter()
@@ -395,7 +430,11 @@ class Detector:
             if reason is not None:
                 continue
             p, p_rover, R_est = self._lift_centroid(cu, cv, D, s, T_rover_optical)
-            dets.append(_detection(camera_name, rec.stats, D, s, R_est, p, p_rover, T_map_rover))
+            det = _detection(camera_name, rec.stats, D, s, R_est, p, p_rover, T_map_rover)
+            if self._on_lander(det, lander_xy):
+                rec.reason = RejectReason.ON_LANDER
+                continue
+            dets.append(det)
         t4 = time.perf_counter()
         for k, v in (("segment", t1 - t0), ("filter", (t2 - t1) + (t4 - t3)), ("stereo", t3 - t2)):
             tm[k] = tm.get(k, 0.0) + v
@@ -410,6 +449,7 @@ class Detector:
         camera_name: str,
         keep_depth: bool,
         tm: dict[str, float],
+        lander_xy: np.ndarray | None = None,
     ) -> PairResult:
         """detect_pair with the low-resolution stereo height map computed first (it feeds
         the segmenter when it uses stereo, and the centre estimate)."""
@@ -428,6 +468,7 @@ class Detector:
         dets: list[Detection] = []
         alpha = self.camera.alpha
         T_optical_rover = np.linalg.inv(T_rover_optical)
+        ground_pts = None  # stereo points for the not-a-rock check, on first use
         for i, m in enumerate(masks):
             st = mask_stats(m, masks.image_shape, border_px=fc.border_px)
             rec = MaskRecord(i, st, float("nan"), float("nan"), None)
@@ -465,9 +506,27 @@ class Detector:
                         P_rov, h_pts = fr, fr[:, 2] - ground
                 p_rover, R_est = _centre_from_points(P_rov, h_pts, T_rover_optical[:3, 3], cfg)
                 p = transform_points(T_optical_rover, p_rover[None])[0]
+                if ground_pts is None:
+                    ok_all = np.isfinite(hm.depth)
+                    ground_pts = hm.points_rover[ok_all][::8]
+                vis_h = _visible_height(P_rov[:, 2], h_pts, cfg.top_quantile)
+                h_sur = _height_above_surroundings(P_rov, p_rover, R_est, ground_pts, T_rover_optical[:3, 3], cfg.top_quantile)
+                perched = False
+                if np.isfinite(h_sur):
+                    vis_h = max(vis_h, h_sur)
+                    # a small blob standing far higher above the ground in front than its
+                    # size allows sits on something larger (a knob on a boulder)
+                    perched = h_sur > cfg.height_per_radius * R_est + cfg.height_margin_m
+                if vis_h > cfg.max_rock_height_m or R_est > cfg.max_rock_radius_m or perched:
+                    rec.reason = RejectReason.NOT_A_ROCK
+                    continue
             else:
                 p, p_rover, R_est = self._lift_centroid(*st.centroid_uv, D, s, T_rover_optical)
-            dets.append(_detection(camera_name, st, D, s, R_est, p, p_rover, T_map_rover))
+            det = _detection(camera_name, st, D, s, R_est, p, p_rover, T_map_rover)
+            if self._on_lander(det, lander_xy):
+                rec.reason = RejectReason.ON_LANDER
+                continue
+            dets.append(det)
         t3 = time.perf_counter()
         for k, v in (("segment", t2 - t1), ("filter", t3 - t2), ("stereo", t1 - t0)):
             tm[k] = tm.get(k, 0.0) + v
@@ -487,10 +546,12 @@ class Detector:
         frame: int = 0,
         *,
         keep_depth: bool = False,
+        lander_xy: np.ndarray | None = None,
     ) -> FrameDetections:
         """Detections of all configured pairs whose left image is in `images`.
 
         mounts : camera name -> CameraMount (defaults to the IPEx rig).
+        lander_xy : the lander's centre in the map frame (detections on it are dropped).
         """
         mounts = mounts if mounts is not None else ipex_rig(self.camera)
         out = FrameDetections(frame, T_map_rover)
@@ -508,6 +569,7 @@ class Detector:
                     left_name,
                     keep_depth=keep_depth,
                     timings=out.timings,
+                    lander_xy=lander_xy,
                 )
             )
         return out
@@ -559,6 +621,36 @@ def _centre_from_points(
     xy = cam_rover[:2] + fwd * r_c + perp * l_c
     z = ground + top - cfg.centre_height_factor * R
     return np.array([xy[0], xy[1], z]), R
+
+
+def _visible_height(z: np.ndarray, h: np.ndarray, q: float) -> float:
+    """How high an object stands (metres): its visible top above the local ground, or
+    the vertical extent of its visible surface when larger (a large object fills the
+    ground cells it stands on, so the ground fit rises under it). Quantiles q and 1-q
+    keep stray silhouette pixels out."""
+    top = float(np.quantile(h, q))
+    extent = float(np.quantile(z, q) - np.quantile(z, 1.0 - q))
+    return max(top, extent)
+
+
+def _height_above_surroundings(
+    P: np.ndarray, centre: np.ndarray, R: float, pts: np.ndarray, cam: np.ndarray, q: float,
+    inner_m: float = 0.3, outer_m: float = 1.5, min_points: int = 20,
+) -> float:
+    """Visible top of an object (rover-frame points P, centre, radius R) above the
+    ground in front of it: the lower quartile of the heights of the stereo points `pts`
+    in an annulus R + inner_m .. R + outer_m around its centre that are nearer to the
+    camera `cam` than it (behind it the ground is hidden). Unlike the local ground fit,
+    this does not rise under an object larger than a ground cell (the lander). NaN
+    when too few points surround it."""
+    dx, dy = pts[:, 0] - centre[0], pts[:, 1] - centre[1]
+    d2 = dx * dx + dy * dy
+    cx, cy = pts[:, 0] - cam[0], pts[:, 1] - cam[1]
+    near = cx * cx + cy * cy < (centre[0] - cam[0]) ** 2 + (centre[1] - cam[1]) ** 2
+    sel = (d2 > (R + inner_m) ** 2) & (d2 < (R + outer_m) ** 2) & near
+    if np.count_nonzero(sel) < min_points:
+        return float("nan")
+    return float(np.quantile(P[:, 2], q) - np.quantile(pts[sel, 2], 0.25))
 
 
 def _mask_depth(depth: np.ndarray, m, cu: float, cv: float, h: int, fallback: bool, min_valid: int = 3) -> float:
@@ -621,6 +713,7 @@ def detect_archive(
     frames: Iterable[int] | None = None,
     keep_depth: bool = False,
     poses: Mapping[int, np.ndarray] | None = None,
+    lander_xy: np.ndarray | None = None,
 ) -> Iterator[FrameDetections]:
     """Run the detector over the frames of a LacArchive that have left images.
 
@@ -628,16 +721,22 @@ def detect_archive(
     frames : optional subset of frame numbers.
     poses : optional {frame: T_map_rover (4x4)} placing detections instead of `pose`
         (e.g. :func:`lunarloc.odometry.archive_odometry`'s trajectory).
+    lander_xy : the lander's centre in the map frame of `pose` (detections on it are
+        dropped); default: the archive's (initial.toml ``lander`` is relative to the
+        rover's initial pose, composed by :meth:`LacArchive.lander_pose_map`).
     """
     pose = PoseSource(pose)
     camera = _camera_from_archive(archive)
     det = detector or Detector(config, camera)
-    odo = None
     if pose is PoseSource.ODOMETRY and poses is None:
+        from lunarloc.odometry import archive_odometry
+
         if "odometry" not in archive.custom_records:
-            raise InputError(f"{archive.path}: no odometry record; use --pose ground-truth")
-        t = archive.custom("odometry")
-        odo = {int(f): r for f, r in zip(t["frame"], t.to_array(("x", "y", "z", "roll", "pitch", "yaw")))}
+            raise InputError(f"{archive.path}: no odometry record; use --pose ground-truth or --odometry SOURCE")
+        traj = archive_odometry(archive, "record:odometry")
+        poses = dict(zip(traj.frames.tolist(), traj.T_map_rover))
+    if lander_xy is None:  # the archive knows where the lander stands (initial.toml, rover-relative)
+        lander_xy = np.asarray(archive.lander_pose_map()[:2], float)
     wanted = None if frames is None else {int(f) for f in frames}
     lefts = {left for left, _ in det.config.pairs}
     for rec in archive.iter_frames(semantic=False):
@@ -649,15 +748,11 @@ def detect_archive(
             if rec.frame not in poses:
                 raise InputError(f"{archive.path}: no rover pose at frame {rec.frame}")
             T = np.asarray(poses[rec.frame], float)
-        elif odo is not None:
-            if rec.frame not in odo:
-                raise InputError(f"{archive.path}: no odometry pose at frame {rec.frame}")
-            T = pose_to_matrix(*odo[rec.frame])
         else:
             s = rec.state
             T = pose_to_matrix(s["x"], s["y"], s["z"], s["roll"], s["pitch"], s["yaw"])
         mounts = mounts_from_archive_row(rec.cameras, det.camera)
-        yield det.detect_frame(rec.grayscale, mounts, T, rec.frame, keep_depth=keep_depth)
+        yield det.detect_frame(rec.grayscale, mounts, T, rec.frame, keep_depth=keep_depth, lander_xy=lander_xy)
 
 
 # ---------------------------------------------------------------------- CSV output
@@ -702,6 +797,8 @@ REASON_COLOURS_BGR = {
     RejectReason.TOO_FAR: (255, 0, 0),
     RejectReason.TOO_SMALL: (0, 255, 255),
     RejectReason.TOO_LARGE: (0, 128, 255),
+    RejectReason.NOT_A_ROCK: (128, 0, 128),
+    RejectReason.ON_LANDER: (0, 200, 255),
 }
 KEPT_COLOUR_BGR = (0, 255, 0)
 

@@ -205,6 +205,10 @@ class RejectReason(str, Enum):
     TOO_FAR = "too_far"
     TOO_SMALL = "too_small"
     TOO_LARGE = "too_large"
+    # taller or wider than any rock (lander, rover parts, terrain walls)
+    NOT_A_ROCK = "not_a_rock"
+    # inside the lander's footprint (its pose in the map is known)
+    ON_LANDER = "on_lander"
 
 
 @dataclass(frozen=True)
@@ -236,6 +240,12 @@ class MaskFilterConfig:
     # Minimum range (metres): SGBM with 128 disparities cannot measure closer than
     # fx * B / 128 ~ 1.16 m, and depths at that limit are clipped, hence wrong.
     min_range_m: float = 1.3
+    # Small rocks close by: a mask below s_min_m is still kept when it spans at least
+    # near_sigma_px pixels (standard deviation) and s_i >= near_s_min_m. Near the
+    # rover a small rock covers hundreds of pixels and stereo measures it well; far
+    # away the same size is a handful of noisy pixels. 0 = off.
+    near_sigma_px: float = 0.0
+    near_s_min_m: float = 0.008
 
     def __post_init__(self) -> None:
         if self.min_area_px < 1:
@@ -280,7 +290,7 @@ def classify_mask(
         return RejectReason.TOO_FAR, s
     if depth_m < cfg.min_range_m:
         return RejectReason.TOO_NEAR, s
-    if s < cfg.s_min_m:
+    if s < cfg.s_min_m and not (cfg.near_sigma_px > 0 and stats.sigma_px >= cfg.near_sigma_px and s >= cfg.near_s_min_m):
         return RejectReason.TOO_SMALL, s
     if s > cfg.s_max_m:
         return RejectReason.TOO_LARGE, s

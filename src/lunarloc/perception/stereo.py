@@ -65,6 +65,11 @@ class StereoConfig:
     # OpenCV's 3-way SGBM (fewer paths, ~1.2-1.5x faster, about as accurate on the
     # simulated imagery); False = the reference agent's 5-path mode.
     three_way: bool = False
+    # Match the full image width: both images are padded on the left by the search
+    # range (black), so the leftmost num_disparities columns, which OpenCV leaves
+    # unmatched, get disparities wherever their match lies inside the right image
+    # (a point at column u with disparity d <= u). Costs (W + nd) / W of the time.
+    full_width: bool = False
 
     def __post_init__(self) -> None:
         if self.num_disparities <= 0 or self.num_disparities % 16:
@@ -192,6 +197,19 @@ class StereoMatcher:
             nd = nd_max
         return self._matcher(nd).compute(left, right)
 
+    def _compute_full_width(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+        """Disparity (float32 pixels, NaN invalid) of every column: the pair is padded
+        on the left by the search range, so columns u < nd are matched too; a disparity
+        larger than u (the match would lie in the padding) is invalid."""
+        import cv2
+
+        nd = self.num_disparities_lowres
+        pad = lambda im: cv2.copyMakeBorder(im, 0, 0, nd, 0, cv2.BORDER_CONSTANT, value=0)  # noqa: E731
+        d = self._compute(pad(left), pad(right))[:, nd:].astype(np.float32) / 16.0
+        u = np.arange(d.shape[1], dtype=np.float32)[None, :]
+        d[(d <= 0) | (d > u - self.config.block_size // 2)] = np.nan
+        return d
+
     def disparity(
         self, left: np.ndarray, right: np.ndarray, rows: tuple[int, int] | None = None
     ) -> np.ndarray:
@@ -256,7 +274,7 @@ class StereoMatcher:
             Rs = cv2.resize(R, (w, h), interpolation=cv2.INTER_AREA)[r0:]
         else:
             Ls, Rs = L[r0:], R[r0:]
-        d = self._compute(Ls, Rs).astype(np.float32) / 16.0
+        d = self._compute_full_width(Ls, Rs) if self.config.full_width else self._compute(Ls, Rs).astype(np.float32) / 16.0
         d[~(d >= self.config.min_valid_disparity_px / k)] = np.nan
         if sky_level is not None:
             d[Ls < sky_level] = np.nan
@@ -340,6 +358,8 @@ class GroundConfig:
     # The ground grid is fitted on every fit_stride-th point (heights are still
     # computed for all): halves the sort, the grid median barely changes.
     fit_stride: int = 2
+    # Extrapolate the ground linearly beyond the outer cell centres (False: constant).
+    extrapolate_edges: bool = True
 
     def __post_init__(self) -> None:
         if not (self.max_range_m > 0 and self.cell_m > 0):
@@ -456,6 +476,11 @@ def ground_height_map(
             W = np.where(fill, 1.0, W).astype(np.float32)
     # bilinear interpolation between cell centres
     Gp = np.pad(G, 1, mode="edge")
+    if cfg.extrapolate_edges and nx > 1 and ny > 1:
+        # linear extrapolation past the outer cell centres (the grid's edge cells are
+        # where the near field lies: a constant edge biases heights on slopes)
+        Gp[1:-1, 0], Gp[1:-1, -1] = 2 * G[:, 0] - G[:, 1], 2 * G[:, -1] - G[:, -2]
+        Gp[0, :], Gp[-1, :] = 2 * Gp[1, :] - Gp[2, :], 2 * Gp[-2, :] - Gp[-3, :]
     gx = np.clip(fxg + 0.5, 0.0, nx + 0.999)
     gy = np.clip(fyg + 0.5, 0.0, ny + 0.999)
     i0, j0 = gx.astype(np.int64), gy.astype(np.int64)
@@ -560,11 +585,12 @@ def mask_disparity_fullres(
     dmin = max(int(np.floor(d0)) - nd // 2, 0)
     b = min(u0 + w + pad_px, W)
     la = u0 - pad_px - nd - bs  # SGBM leaves the first nd columns unmatched
-    if la - dmin < 0 or b <= u0:
+    if b <= u0 or u0 - dmin < 0:
         return None
     r0, r1 = max(v0 - pad_px, 0), min(v0 + h + pad_px, H)
-    Lc = np.ascontiguousarray(L[r0:r1, la:b])
-    Rc = np.ascontiguousarray(R[r0:r1, la - dmin : b - dmin])
+    # columns left of the image (near the left edge) are black padding
+    Lc = _columns(L, r0, r1, la, b)
+    Rc = _columns(R, r0, r1, la - dmin, b - dmin)
     m = cv2.StereoSGBM_create(
         minDisparity=0, numDisparities=nd, blockSize=bs, P1=8 * bs * bs, P2=32 * bs * bs,
         disp12MaxDiff=1, uniquenessRatio=10, speckleWindowSize=0, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
@@ -572,3 +598,12 @@ def mask_disparity_fullres(
     d = m.compute(Lc, Rc).astype(np.float32)[v0 - r0 : v0 - r0 + h, u0 - la : u0 - la + w] / 16.0
     d[(d <= 0) | (d >= nd - 1)] = np.nan
     return d + dmin
+
+
+def _columns(image: np.ndarray, r0: int, r1: int, a: int, b: int) -> np.ndarray:
+    """Contiguous copy of image[r0:r1, a:b], black where a < 0 (left of the image)."""
+    if a >= 0:
+        return np.ascontiguousarray(image[r0:r1, a:b])
+    out = np.zeros((r1 - r0, b - a), image.dtype)
+    out[:, -a:] = image[r0:r1, 0:b]
+    return out
