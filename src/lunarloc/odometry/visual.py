@@ -62,6 +62,7 @@ class VisualOdometryConfig:
     feature_quality: float = 0.005  # goodFeaturesToTrack qualityLevel (fraction of the best corner)
     min_feature_distance_frac: float = 0.012  # min distance between corners, fraction of the image width
     border_px: int = 8  # corners closer than this to the image border are not used
+    detect_max_width_px: int = 640  # corners are detected on the image reduced to at most this width
     sky_threshold: int = 6  # pixels at or below this grey level are sky (or unlit void)
     sky_dilate_frac: float = 0.01  # grow the sky mask by this fraction of the width (horizon edge)
     body_mask_bottom_frac: float = 0.0  # rows hidden at the image bottom (rover body), fraction of height
@@ -101,6 +102,7 @@ class VisualOdometryConfig:
             "feature_quality": 0 < self.feature_quality < 1,
             "min_feature_distance_frac": 0 <= self.min_feature_distance_frac < 0.5,
             "border_px": self.border_px >= 0,
+            "detect_max_width_px": self.detect_max_width_px >= 64,
             "sky_threshold": 0 <= self.sky_threshold < 255,
             "sky_dilate_frac": 0 <= self.sky_dilate_frac < 0.5,
             "body_mask_bottom_frac": 0 <= self.body_mask_bottom_frac < 1,
@@ -153,6 +155,12 @@ def _as_transform(T, name: str) -> np.ndarray:
     if not np.allclose(R.T @ R, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0 or not np.allclose(arr[3], [0, 0, 0, 1]):
         raise InputError(f"{name} is not a rigid transform (rotation not orthonormal or bottom row not 0 0 0 1)")
     return arr
+
+
+def _orthonormal(R: np.ndarray) -> np.ndarray:
+    """Nearest rotation matrix (SVD)."""
+    U, _, Vt = np.linalg.svd(R)
+    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
 
 
 @dataclass
@@ -263,6 +271,7 @@ class StereoVisualOdometry:
                 > self.config.keyframe_max_translation_m
             ):
                 self._new_keyframe(left, right, pyr, T_new)
+        T_new = make_transform(_orthonormal(T_new[:3, :3]), T_new[:3, 3])  # no round-off build-up
         self._last_motion = invert_transform(T_prev) @ T_new
         self.T_odo_rover = T_new
         self._prev_pyr = pyr
@@ -282,17 +291,18 @@ class StereoVisualOdometry:
             out.append(np.ascontiguousarray(img))
         return out[0], out[1]
 
-    def _feature_mask(self, image: np.ndarray) -> np.ndarray:
+    def _feature_mask(self, image: np.ndarray, scale: int) -> np.ndarray:
+        """Where corners may be detected in `image` (the left image reduced `scale` times)."""
         cv2, c = self._cv2, self.config
         H, W = image.shape
         sky = (image <= c.sky_threshold).astype(np.uint8)
         r = int(round(c.sky_dilate_frac * W))
         if r > 0:
-            if self._dilate is None:
-                self._dilate = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+            if self._dilate is None or self._dilate.shape[0] != 2 * r + 1:
+                self._dilate = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1))
             sky = cv2.dilate(sky, self._dilate)
         mask = (sky == 0).astype(np.uint8) * 255
-        b = c.border_px
+        b = int(np.ceil(c.border_px / scale))
         if b > 0:
             mask[:b] = 0
             mask[-b:] = 0
@@ -303,18 +313,30 @@ class StereoVisualOdometry:
             mask[H - body :] = 0
         return mask
 
+    def _detect(self, left: np.ndarray) -> np.ndarray | None:
+        """(N, 2) float32 corners of the left image, detected at most `detect_max_width_px` wide
+        (where a corner lies matters little: LK follows the patch around it)."""
+        cv2, c = self._cv2, self.config
+        H, W = left.shape
+        scale = max(1, int(np.ceil(W / c.detect_max_width_px)))
+        small = left if scale == 1 else cv2.resize(left, (W // scale, H // scale), interpolation=cv2.INTER_AREA)
+        mask = self._feature_mask(small, scale)
+        corners = cv2.goodFeaturesToTrack(
+            small, c.max_features, c.feature_quality, max(1.0, c.min_feature_distance_frac * small.shape[1]), mask=mask
+        )
+        if corners is None:
+            return None
+        uv = corners.reshape(-1, 2).astype(np.float32)
+        return uv if scale == 1 else uv * scale + (scale - 1) / 2.0
+
     def _new_keyframe(self, left, right, pyr_left, T_odo_rover) -> bool:
         """Detect and triangulate keyframe points; False (and no keyframe) when too few."""
         cv2, c = self._cv2, self.config
         self.n_keyframes += 1
         self._kf = None
-        mask = self._feature_mask(left)
-        corners = cv2.goodFeaturesToTrack(
-            left, c.max_features, c.feature_quality, max(1.0, c.min_feature_distance_frac * left.shape[1]), mask=mask
-        )
-        if corners is None or len(corners) < c.min_inliers:
+        uv_l = self._detect(left)
+        if uv_l is None or len(uv_l) < c.min_inliers:
             return False
-        uv_l = corners.reshape(-1, 2).astype(np.float32)
         # Right image: same row, shifted left by the disparity; seed with a typical disparity.
         fx, b = self.camera.fx, self.baseline_m
         seed_disp = fx * b / 4.0  # a point 4 m ahead
