@@ -2,7 +2,7 @@
 
 Usage
 -----
-    python benchmarks/bench_odometry.py --out bench-output/odometry [--sources imu record:odometry]
+    python benchmarks/bench_odometry.py --out bench-output/odometry [--source imu record:odometry visual]
         [--seeds 13 15 16] [--duration 470] [--width 1280] [--image-rate 2]
         [--gyro-bias 0.0] [--keep-archives] [--distance 100] [--archives A.lac ...]
 
@@ -95,7 +95,7 @@ def visual_noprior(archive, T_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray, d
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=Path("bench-output/odometry"))
-    ap.add_argument("--sources", nargs="+", default=["imu", "record:odometry"])
+    ap.add_argument("--source", "--sources", dest="sources", nargs="+", default=["imu", "record:odometry"])
     ap.add_argument("--seeds", type=int, nargs="+", default=[13, 15, 16])
     ap.add_argument("--duration", type=float, default=470.0)
     ap.add_argument("--width", type=int, default=1280)

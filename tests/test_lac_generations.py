@@ -291,3 +291,27 @@ def test_float_text_against_pandas():
     back = pd.read_csv(io.StringIO(text))["v"].to_numpy()
     ours = np.array([float(s) for s in text.split("\n")[1:-1]])
     np.testing.assert_array_equal(back, ours)
+
+
+def test_readme_layout_images_folder_with_bare_names(tmp_path):
+    """The layout the READMEs draw: images/<Cam>/<Cam>_frames.csv with bare file names."""
+    path, _, images = g2_archive(tmp_path / "g2.lac")
+    moved = {(n.replace("cameras/", "images/", 1) if n.startswith("cameras/") else n): d for n, d in _members(path).items()}
+    with LacArchive(tar_members(tmp_path / "readme.lac", list(moved.items()))) as a:
+        assert a.cameras == ["FrontLeft", "FrontRight"]
+        for (cam, k), img in images.items():
+            np.testing.assert_array_equal(a.grayscale(cam, k), img)
+
+
+def test_empty_custom_record_reads_as_an_empty_table(tmp_path, capsys):
+    from lunarloc.cli.app import main
+
+    path, _, _ = g2_archive(tmp_path / "g2.lac", custom=False)
+    m = _members(path)
+    m["custom/estimate.csv"] = b"\n"  # pandas' empty DataFrame
+    p = tar_members(tmp_path / "e.lac", list(m.items()))
+    with LacArchive(p) as a:
+        t = a.custom("estimate")
+        assert a.custom_records == ["estimate"] and t.n_rows == 0 and t.columns == []
+    assert main(["info", str(p)]) == 0
+    assert "estimate" in capsys.readouterr().out

@@ -157,6 +157,22 @@ def _rewrite(src, dst, edit):
     return dst
 
 
+def _set_cell(line: int, column: str, text: str):
+    """An edit for _rewrite: frames.csv's `column` on (0-based text) line `line` set to `text`."""
+    from lunarloc.data.lac import FRAME_COLUMNS
+
+    def edit(name, data):
+        if name != "frames.csv":
+            return data
+        lines = data.decode().split("\n")
+        cells = lines[line].split(",")
+        cells[FRAME_COLUMNS.index(column)] = text
+        lines[line] = ",".join(cells)
+        return "\n".join(lines).encode()
+
+    return edit
+
+
 def test_missing_and_corrupt_records(arc, tmp_path):
     path, _ = arc
     with LacArchive(path) as a:
@@ -182,28 +198,10 @@ def test_missing_and_corrupt_records(arc, tmp_path):
 def test_imu_column_of_text_and_nan_speed(arc, tmp_path):
     path, _ = arc
 
-    def text_gyro(name, data):
-        if name != "frames.csv":
-            return data
-        lines = data.decode().split("\n")
-        cells = lines[5].split(",")
-        cells[12] = "n/a"  # gyro_z
-        lines[5] = ",".join(cells)
-        return "\n".join(lines).encode()
-
     with pytest.raises(ArchiveError, match=r"frames.csv.*'n/a'.*gyro_z.*line 6"):
-        LacArchive(_rewrite(path, tmp_path / "t.lac", text_gyro))
+        LacArchive(_rewrite(path, tmp_path / "t.lac", _set_cell(5, "gyro_z", "n/a")))
 
-    def nan_speed(name, data):
-        if name != "frames.csv":
-            return data
-        lines = data.decode().split("\n")
-        cells = lines[7].split(",")
-        cells[15] = ""  # linear_speed, as pandas writes NaN
-        lines[7] = ",".join(cells)
-        return "\n".join(lines).encode()
-
-    with LacArchive(_rewrite(path, tmp_path / "n.lac", nan_speed)) as a:
+    with LacArchive(_rewrite(path, tmp_path / "n.lac", _set_cell(7, "linear_speed", ""))) as a:
         with pytest.raises(InputError, match=r"'linear_speed' is not a finite number at frame 6 \(line 8"):
             archive_odometry(a, "imu")
         archive_odometry(a, "ground-truth")  # the pose columns are fine
@@ -314,3 +312,12 @@ def test_default_visual_without_the_module_is_a_clear_error(bare_image_archive, 
     bare, rocks = bare_image_archive
     assert main(["run", str(bare), "--reference", str(rocks), "-o", str(tmp_path / "r")]) == 2
     assert "visual odometry is not available" in capsys.readouterr().err
+
+
+def test_a_record_with_every_frame_needs_no_imu(arc, tmp_path):
+    path, _ = arc
+
+    with LacArchive(_rewrite(path, tmp_path / "g.lac", _set_cell(3, "gyro_x", ""))) as a:
+        np.testing.assert_allclose(archive_odometry(a, "record:shifted").T_map_rover, ground_truth_poses(a), atol=1e-9)
+        with pytest.raises(InputError, match="'gyro_x' is not a finite number at frame 2"):
+            archive_odometry(a, "record:orbslam")  # every 10th frame: the IMU bridges the others

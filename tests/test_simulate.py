@@ -27,7 +27,7 @@ def test_traverse_round_trip(tmp_path):
     path, traj = simulate_traverse(site, tmp_path / "t.lac", 0, cfg)
     with lac.LacArchive(path) as a:
         assert a.n_frames == len(traj) == 61
-        np.testing.assert_array_equal(a.poses(), traj.poses)
+        np.testing.assert_allclose(a.poses(), traj.poses, rtol=5e-15, atol=1e-22)  # 15-digit floats (pandas-safe)
         assert set(a.cameras) == {"FrontLeft", "FrontRight", "BackLeft", "BackRight"}
         assert a.image_count("FrontLeft") == 7  # frames 0, 10, ..., 60
         g = a.grayscale("FrontLeft", 10)
@@ -35,7 +35,7 @@ def test_traverse_round_trip(tmp_path):
         assert g.shape == (36, 64) and g.dtype == np.uint8
         assert s.shape == (36, 64) and s.dtype == np.uint16
         rocks = a.custom("rocks").to_array(["id", "x", "y", "z", "radius"])
-        np.testing.assert_array_equal(rocks, site.rocks_table())
+        np.testing.assert_allclose(rocks, site.rocks_table(), rtol=5e-15, atol=1e-22)
         odo = a.custom("odometry")
         assert odo.n_rows == len(traj)
         row = a.camera_row("BackLeft", 0)

@@ -56,7 +56,8 @@ from lunarloc.geometry import matrix_to_pose, pose_to_matrix
 logger = logging.getLogger(__name__)
 logger.addHandler(logging.NullHandler())
 
-__all__ = ["Location", "Rotation", "Transform", "PlaybackAgent", "FrameNotRecordedError", "FrameOutOfRangeError"]
+__all__ = ["Location", "Rotation", "Transform", "PlaybackAgent", "FrameNotRecordedError", "FrameOutOfRangeError",
+           "UnknownCameraError"]
 
 
 class FrameOutOfRangeError(InputError):

@@ -174,7 +174,9 @@ def archive_odometry(
         _, T = imu_odometry(archive, imu_config)
         return OdometryTrajectory(frames, times, T, src.value, False, np.ones(len(frames), bool))
     # record and visual: measured poses at some frames, IMU in between
-    imu_rel = relative_motions(integrate_imu(imu_samples_from_archive(archive), T0, imu_config))
+    def imu_rel() -> np.ndarray:
+        return relative_motions(integrate_imu(imu_samples_from_archive(archive), T0, imu_config))
+
     if src is OdometrySource.RECORD:
         from lunarloc.odometry.record import read_record_poses
 
@@ -189,14 +191,16 @@ def archive_odometry(
             raise InputError(f"{archive.path}: custom/{name}.csv shares no frame with frames.csv")
         rec_frames, T_rec = rec_frames[keep], T_rec[keep]
         measured = {index[int(f)]: T for f, T in zip(rec_frames, T_rec)}
-        T = _bridge(len(frames), T0, imu_rel, measured, anchor="first")
+        # a record with every frame needs no IMU (nor a clean IMU column)
+        rel = imu_rel() if len(measured) < len(frames) else np.tile(np.eye(4), (len(frames) - 1, 1, 1))
+        T = _bridge(len(frames), T0, rel, measured)
         mask = np.zeros(len(frames), bool)
         mask[list(measured)] = True
         return OdometryTrajectory(frames, times, T, f"record:{name}", False, mask)
-    return _visual(archive, frames, times, T0, imu_rel, progress, visual_config)
+    return _visual(archive, frames, times, T0, imu_rel, progress, visual_config)  # IMU once the pairs are known
 
 
-def _bridge(n: int, T0: np.ndarray, imu_rel: np.ndarray, measured: dict[int, np.ndarray], anchor: str) -> np.ndarray:
+def _bridge(n: int, T0: np.ndarray, imu_rel: np.ndarray, measured: dict[int, np.ndarray]) -> np.ndarray:
     """Per-frame poses: IMU propagation from `T0` up to the first measured frame, whose
     measured pose anchors the measurement frame there (``T_map_meas``); later measured
     frames are ``T_map_meas @ T_meas_rover``, frames in between propagate the last pose."""
@@ -213,7 +217,7 @@ def _bridge(n: int, T0: np.ndarray, imu_rel: np.ndarray, measured: dict[int, np.
     return out
 
 
-def _visual(archive, frames, times, T0, imu_rel, progress, visual_config) -> OdometryTrajectory:
+def _visual(archive, frames, times, T0, imu_motions, progress, visual_config) -> OdometryTrajectory:
     pair_frames = _front_pair_frames(archive)
     if not pair_frames:
         raise InputError(
@@ -227,6 +231,8 @@ def _visual(archive, frames, times, T0, imu_rel, progress, visual_config) -> Odo
         )
     from lunarloc.odometry.visual import StereoVisualOdometry
     from lunarloc.perception.detector import _camera_from_archive, mounts_from_archive_row
+
+    imu_rel = imu_motions()
 
     camera = _camera_from_archive(archive)
     # camera body poses from the first pair's rows (the IPEx rig where a row has none), as
