@@ -234,7 +234,7 @@ class StereoVisualOdometry:
         self.n_frames = 0
         self.n_keyframes = 0
         self._kf: _Keyframe | None = None
-        self._prev_pyr = None
+        self._prev_left = None
         self._last_motion = np.eye(4)  # rover motion of the last frame (constant-velocity model)
         self.last_inliers = 0
 
@@ -247,20 +247,19 @@ class StereoVisualOdometry:
         """
         left, right = self._check_images(left, right)
         prior = None if prior_T_prev_curr is None else _as_transform(prior_T_prev_curr, "prior_T_prev_curr")
-        pyr = left  # LK builds its pyramids (the Python binding takes no prebuilt ones)
         first = self.n_frames == 0
         self.n_frames += 1
         if first:
-            self.last_ok = self._new_keyframe(left, right, pyr, np.eye(4))
-            self._prev_pyr = pyr
+            self.last_ok = self._new_keyframe(left, right, np.eye(4))
+            self._prev_left = left
             return self.T_odo_rover.copy()
         T_prev = self.T_odo_rover
         predicted = prior if prior is not None else (self._last_motion if self.config.constant_velocity else np.eye(4))
-        T_new = self._track(pyr, T_prev @ predicted, prior)
+        T_new = self._track(left, T_prev @ predicted, prior)
         if T_new is None:
             T_new = T_prev @ (prior if prior is not None else np.eye(4))
             self.last_ok = False
-            self._new_keyframe(left, right, pyr, T_new)
+            self._new_keyframe(left, right, T_new)
         else:
             self.last_ok = True
             kf = self._kf
@@ -270,11 +269,11 @@ class StereoVisualOdometry:
                 or np.linalg.norm(invert_transform(kf.T_odo_rover)[:3, :3] @ (T_new[:3, 3] - kf.T_odo_rover[:3, 3]))
                 > self.config.keyframe_max_translation_m
             ):
-                self._new_keyframe(left, right, pyr, T_new)
+                self._new_keyframe(left, right, T_new)
         T_new = make_transform(_orthonormal(T_new[:3, :3]), T_new[:3, 3])  # no round-off build-up
         self._last_motion = invert_transform(T_prev) @ T_new
         self.T_odo_rover = T_new
-        self._prev_pyr = pyr
+        self._prev_left = left
         return T_new.copy()
 
     # -- steps -----------------------------------------------------------------------------
@@ -329,7 +328,7 @@ class StereoVisualOdometry:
         uv = corners.reshape(-1, 2).astype(np.float32)
         return uv if scale == 1 else uv * scale + (scale - 1) / 2.0
 
-    def _new_keyframe(self, left, right, pyr_left, T_odo_rover) -> bool:
+    def _new_keyframe(self, left, right, T_odo_rover) -> bool:
         """Detect and triangulate keyframe points; False (and no keyframe) when too few."""
         cv2, c = self._cv2, self.config
         self.n_keyframes += 1
@@ -342,12 +341,11 @@ class StereoVisualOdometry:
         seed_disp = fx * b / 4.0  # a point 4 m ahead
         guess = uv_l.copy()
         guess[:, 0] -= seed_disp
-        pyr_right = right
         uv_r, st, _ = cv2.calcOpticalFlowPyrLK(
-            pyr_left, pyr_right, uv_l, guess.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk_stereo
+            left, right, uv_l, guess.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk_stereo
         )
         back, st2, _ = cv2.calcOpticalFlowPyrLK(
-            pyr_right, pyr_left, uv_r, uv_l.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk_stereo
+            right, left, uv_r, uv_l.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk_stereo
         )
         disp = uv_l[:, 0] - uv_r[:, 0]
         ok = (
@@ -377,11 +375,11 @@ class StereoVisualOdometry:
         """Rover motion (rover frame a -> b) as the left camera's motion (optical a -> b)."""
         return self.T_left_rover @ T_rover_a_b @ self.T_rover_left
 
-    def _track(self, pyr, T_odo_pred: np.ndarray, prior: np.ndarray | None) -> np.ndarray | None:
+    def _track(self, image, T_odo_pred: np.ndarray, prior: np.ndarray | None) -> np.ndarray | None:
         """Track the keyframe points into the new image; the new T_odo_rover or None on failure."""
         cv2, c = self._cv2, self.config
         kf = self._kf
-        if kf is None or self._prev_pyr is None or len(kf.points_kf) < c.min_inliers:
+        if kf is None or self._prev_left is None or len(kf.points_kf) < c.min_inliers:
             return None
         # Predicted left-camera pose of the keyframe seen from the current frame.
         T_kf_cur_pred = self._rover_to_optical(invert_transform(kf.T_odo_rover) @ T_odo_pred)
@@ -393,10 +391,10 @@ class StereoVisualOdometry:
         shift = self._project(kf.points_kf, T_cur_kf_pred) - self._project(kf.points_kf, T_prev_kf)
         guess = (prev_uv + shift).astype(np.float32)
         uv, st, _ = cv2.calcOpticalFlowPyrLK(
-            self._prev_pyr, pyr, prev_uv, guess.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk
+            self._prev_left, image, prev_uv, guess.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk
         )
         back, st2, _ = cv2.calcOpticalFlowPyrLK(
-            pyr, self._prev_pyr, uv, prev_uv.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk
+            image, self._prev_left, uv, prev_uv.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk
         )
         H, W = self.camera.height, self.camera.width
         ok = (
