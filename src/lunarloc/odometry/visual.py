@@ -62,6 +62,7 @@ class VisualOdometryConfig:
     feature_quality: float = 0.005  # goodFeaturesToTrack qualityLevel (fraction of the best corner)
     min_feature_distance_frac: float = 0.012  # min distance between corners, fraction of the image width
     border_px: int = 8  # corners closer than this to the image border are not used
+    detect_max_width_px: int = 640  # corners are detected on the image reduced to at most this width
     sky_threshold: int = 6  # pixels at or below this grey level are sky (or unlit void)
     sky_dilate_frac: float = 0.01  # grow the sky mask by this fraction of the width (horizon edge)
     body_mask_bottom_frac: float = 0.0  # rows hidden at the image bottom (rover body), fraction of height
@@ -101,6 +102,7 @@ class VisualOdometryConfig:
             "feature_quality": 0 < self.feature_quality < 1,
             "min_feature_distance_frac": 0 <= self.min_feature_distance_frac < 0.5,
             "border_px": self.border_px >= 0,
+            "detect_max_width_px": self.detect_max_width_px >= 64,
             "sky_threshold": 0 <= self.sky_threshold < 255,
             "sky_dilate_frac": 0 <= self.sky_dilate_frac < 0.5,
             "body_mask_bottom_frac": 0 <= self.body_mask_bottom_frac < 1,
@@ -153,6 +155,12 @@ def _as_transform(T, name: str) -> np.ndarray:
     if not np.allclose(R.T @ R, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0 or not np.allclose(arr[3], [0, 0, 0, 1]):
         raise InputError(f"{name} is not a rigid transform (rotation not orthonormal or bottom row not 0 0 0 1)")
     return arr
+
+
+def _orthonormal(R: np.ndarray) -> np.ndarray:
+    """Nearest rotation matrix (SVD)."""
+    U, _, Vt = np.linalg.svd(R)
+    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
 
 
 @dataclass
@@ -226,7 +234,7 @@ class StereoVisualOdometry:
         self.n_frames = 0
         self.n_keyframes = 0
         self._kf: _Keyframe | None = None
-        self._prev_pyr = None
+        self._prev_left = None
         self._last_motion = np.eye(4)  # rover motion of the last frame (constant-velocity model)
         self.last_inliers = 0
 
@@ -239,20 +247,19 @@ class StereoVisualOdometry:
         """
         left, right = self._check_images(left, right)
         prior = None if prior_T_prev_curr is None else _as_transform(prior_T_prev_curr, "prior_T_prev_curr")
-        pyr = left  # LK builds its pyramids (the Python binding takes no prebuilt ones)
         first = self.n_frames == 0
         self.n_frames += 1
         if first:
-            self.last_ok = self._new_keyframe(left, right, pyr, np.eye(4))
-            self._prev_pyr = pyr
+            self.last_ok = self._new_keyframe(left, right, np.eye(4))
+            self._prev_left = left
             return self.T_odo_rover.copy()
         T_prev = self.T_odo_rover
         predicted = prior if prior is not None else (self._last_motion if self.config.constant_velocity else np.eye(4))
-        T_new = self._track(pyr, T_prev @ predicted, prior)
+        T_new = self._track(left, T_prev @ predicted, prior)
         if T_new is None:
             T_new = T_prev @ (prior if prior is not None else np.eye(4))
             self.last_ok = False
-            self._new_keyframe(left, right, pyr, T_new)
+            self._new_keyframe(left, right, T_new)
         else:
             self.last_ok = True
             kf = self._kf
@@ -262,10 +269,11 @@ class StereoVisualOdometry:
                 or np.linalg.norm(invert_transform(kf.T_odo_rover)[:3, :3] @ (T_new[:3, 3] - kf.T_odo_rover[:3, 3]))
                 > self.config.keyframe_max_translation_m
             ):
-                self._new_keyframe(left, right, pyr, T_new)
+                self._new_keyframe(left, right, T_new)
+        T_new = make_transform(_orthonormal(T_new[:3, :3]), T_new[:3, 3])  # no round-off build-up
         self._last_motion = invert_transform(T_prev) @ T_new
         self.T_odo_rover = T_new
-        self._prev_pyr = pyr
+        self._prev_left = left
         return T_new.copy()
 
     # -- steps -----------------------------------------------------------------------------
@@ -282,17 +290,18 @@ class StereoVisualOdometry:
             out.append(np.ascontiguousarray(img))
         return out[0], out[1]
 
-    def _feature_mask(self, image: np.ndarray) -> np.ndarray:
+    def _feature_mask(self, image: np.ndarray, scale: int) -> np.ndarray:
+        """Where corners may be detected in `image` (the left image reduced `scale` times)."""
         cv2, c = self._cv2, self.config
         H, W = image.shape
         sky = (image <= c.sky_threshold).astype(np.uint8)
         r = int(round(c.sky_dilate_frac * W))
         if r > 0:
-            if self._dilate is None:
-                self._dilate = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+            if self._dilate is None or self._dilate.shape[0] != 2 * r + 1:
+                self._dilate = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1))
             sky = cv2.dilate(sky, self._dilate)
         mask = (sky == 0).astype(np.uint8) * 255
-        b = c.border_px
+        b = int(np.ceil(c.border_px / scale))
         if b > 0:
             mask[:b] = 0
             mask[-b:] = 0
@@ -303,29 +312,40 @@ class StereoVisualOdometry:
             mask[H - body :] = 0
         return mask
 
-    def _new_keyframe(self, left, right, pyr_left, T_odo_rover) -> bool:
+    def _detect(self, left: np.ndarray) -> np.ndarray | None:
+        """(N, 2) float32 corners of the left image, detected at most `detect_max_width_px` wide
+        (where a corner lies matters little: LK follows the patch around it)."""
+        cv2, c = self._cv2, self.config
+        H, W = left.shape
+        scale = max(1, int(np.ceil(W / c.detect_max_width_px)))
+        small = left if scale == 1 else cv2.resize(left, (W // scale, H // scale), interpolation=cv2.INTER_AREA)
+        mask = self._feature_mask(small, scale)
+        corners = cv2.goodFeaturesToTrack(
+            small, c.max_features, c.feature_quality, max(1.0, c.min_feature_distance_frac * small.shape[1]), mask=mask
+        )
+        if corners is None:
+            return None
+        uv = corners.reshape(-1, 2).astype(np.float32)
+        return uv if scale == 1 else uv * scale + (scale - 1) / 2.0
+
+    def _new_keyframe(self, left, right, T_odo_rover) -> bool:
         """Detect and triangulate keyframe points; False (and no keyframe) when too few."""
         cv2, c = self._cv2, self.config
         self.n_keyframes += 1
         self._kf = None
-        mask = self._feature_mask(left)
-        corners = cv2.goodFeaturesToTrack(
-            left, c.max_features, c.feature_quality, max(1.0, c.min_feature_distance_frac * left.shape[1]), mask=mask
-        )
-        if corners is None or len(corners) < c.min_inliers:
+        uv_l = self._detect(left)
+        if uv_l is None or len(uv_l) < c.min_inliers:
             return False
-        uv_l = corners.reshape(-1, 2).astype(np.float32)
         # Right image: same row, shifted left by the disparity; seed with a typical disparity.
         fx, b = self.camera.fx, self.baseline_m
         seed_disp = fx * b / 4.0  # a point 4 m ahead
         guess = uv_l.copy()
         guess[:, 0] -= seed_disp
-        pyr_right = right
         uv_r, st, _ = cv2.calcOpticalFlowPyrLK(
-            pyr_left, pyr_right, uv_l, guess.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk_stereo
+            left, right, uv_l, guess.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk_stereo
         )
         back, st2, _ = cv2.calcOpticalFlowPyrLK(
-            pyr_right, pyr_left, uv_r, uv_l.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk_stereo
+            right, left, uv_r, uv_l.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk_stereo
         )
         disp = uv_l[:, 0] - uv_r[:, 0]
         ok = (
@@ -355,11 +375,11 @@ class StereoVisualOdometry:
         """Rover motion (rover frame a -> b) as the left camera's motion (optical a -> b)."""
         return self.T_left_rover @ T_rover_a_b @ self.T_rover_left
 
-    def _track(self, pyr, T_odo_pred: np.ndarray, prior: np.ndarray | None) -> np.ndarray | None:
+    def _track(self, image, T_odo_pred: np.ndarray, prior: np.ndarray | None) -> np.ndarray | None:
         """Track the keyframe points into the new image; the new T_odo_rover or None on failure."""
         cv2, c = self._cv2, self.config
         kf = self._kf
-        if kf is None or self._prev_pyr is None or len(kf.points_kf) < c.min_inliers:
+        if kf is None or self._prev_left is None or len(kf.points_kf) < c.min_inliers:
             return None
         # Predicted left-camera pose of the keyframe seen from the current frame.
         T_kf_cur_pred = self._rover_to_optical(invert_transform(kf.T_odo_rover) @ T_odo_pred)
@@ -371,10 +391,10 @@ class StereoVisualOdometry:
         shift = self._project(kf.points_kf, T_cur_kf_pred) - self._project(kf.points_kf, T_prev_kf)
         guess = (prev_uv + shift).astype(np.float32)
         uv, st, _ = cv2.calcOpticalFlowPyrLK(
-            self._prev_pyr, pyr, prev_uv, guess.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk
+            self._prev_left, image, prev_uv, guess.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk
         )
         back, st2, _ = cv2.calcOpticalFlowPyrLK(
-            pyr, self._prev_pyr, uv, prev_uv.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk
+            image, self._prev_left, uv, prev_uv.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk
         )
         H, W = self.camera.height, self.camera.width
         ok = (
