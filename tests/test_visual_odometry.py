@@ -27,19 +27,33 @@ T_RIGHT = RIG["FrontRight"].T_rover_optical
 
 @pytest.fixture(scope="module")
 def traverse(tmp_path_factory):
-    """A 12 s traverse (turn in place, then driving) at 320x180 and 2 Hz, as an archive."""
+    """A 12 s traverse (turn in place, then driving) at 320x180 and 2 Hz, as an archive,
+    lit by the sun alone (the lamp-lit LAC look is `traverse_lamps`)."""
+    return _simulate(tmp_path_factory, "sun")
+
+
+@pytest.fixture(scope="module")
+def traverse_lamps(tmp_path_factory):
+    """The same traverse in the default LAC look: sun plus the rover's lamps, whose light
+    moves with the camera (brightness constancy no longer holds for tracked patches)."""
+    return _simulate(tmp_path_factory, "sun+lamps")
+
+
+def _simulate(tmp_path_factory, lighting: str):
     pytest.importorskip("embreex")
     from lunarloc.data.lac import LacArchive
     from lunarloc.data.simulate import SimulationConfig, simulate_site, simulate_traverse
     from lunarloc.data.site import SiteConfig
 
     site_cfg = SiteConfig(size_m=14.0, terrain_margin_m=3.0, resolution_m=0.2, n_rocks=80, rover_start_xy=(-3.0, -2.0))
+    from lunarloc.data.render import RenderConfig
+
     cfg = SimulationConfig(
         site=site_cfg, duration_s=12.0, image_rate_hz=2.0, width=W, height=H,
-        cameras=("FrontLeft", "FrontRight"), semantic=False,
+        cameras=("FrontLeft", "FrontRight"), semantic=False, render=RenderConfig(lighting=lighting),
     )  # fmt: skip
     site = simulate_site(3, cfg)
-    path, _ = simulate_traverse(site, tmp_path_factory.mktemp("vo") / "t.lac", 0, cfg)
+    path, _ = simulate_traverse(site, tmp_path_factory.mktemp("vo") / f"t-{lighting.replace('+', '-')}.lac", 0, cfg)
     with LacArchive(path) as a:
         frames = a.camera_frames("FrontLeft")["frame"].astype(int)
         index = {int(f): i for i, f in enumerate(a.frame_numbers)}
@@ -76,6 +90,17 @@ def test_recovers_simulated_motion(traverse):
     assert rot_deg < 1.0
     assert worst_step_m < 0.05
     assert vo.last_ok
+
+
+def test_recovers_motion_under_the_rover_lamps(traverse_lamps):
+    """Measured: 1.22 deg of heading error over this clip under sun+lamps, against 0.93 deg
+    in sun alone (the lamp fall-off moves with the camera); bounded here, not hidden."""
+    vo = StereoVisualOdometry(CAMERA, T_LEFT, T_RIGHT)
+    T = np.stack([vo.update(l, r) for l, r in zip(traverse_lamps["left"], traverse_lamps["right"])])
+    length, final_m, rot_deg, worst_step_m = _errors(T, traverse_lamps["truth"])
+    assert final_m < 0.05 * length + 0.02
+    assert rot_deg < 1.5
+    assert worst_step_m < 0.05
 
 
 def test_archive_convenience_matches_direct_use(traverse):
