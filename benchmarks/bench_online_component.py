@@ -63,7 +63,7 @@ def rss_mb() -> float:
 def stats_ms(t: list[float]) -> dict:
     a = 1000 * np.asarray(t)
     return {"median_ms": round(float(np.median(a)), 3), "p99_ms": round(float(np.percentile(a, 99)), 3),
-            "max_ms": round(float(a.max()), 3), "n": int(len(a))}  # fmt: skip
+            "max_ms": round(float(a.max()), 3), "max_at_call": int(a.argmax()), "n": int(len(a))}  # fmt: skip
 
 
 def make_localizer(env, ref_path: Path, max_keyframes: int) -> OnlineLocalizer:

@@ -38,9 +38,8 @@ def _refuse_custom(self, *a, **k):
     raise AssertionError("the agent read a custom record")
 
 
-class SensorPosition(enum.Enum):  # the LAC's camera keys are members of such an enum
-    FrontLeft = 0
-    FrontRight = 1
+# the LAC's camera keys are members of such an enum
+SensorPosition = enum.Enum("SensorPosition", "Front FrontLeft FrontRight Left Right BackLeft BackRight Back")
 
 
 def _drive(archive, reference_path, keys=str):
