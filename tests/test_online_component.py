@@ -182,3 +182,26 @@ def test_calibration_rig():
     rig = CameraRig.from_sensors({SensorPosition.FrontLeft: {"width": "320", "height": "180"},
                                   "SensorPosition.FrontRight": {"width": 320, "height": 180}})  # fmt: skip
     assert rig.camera.width == 320 and "FrontLeft" in rig.T_rover_cam
+
+
+def test_history_stays_bounded_across_reanchors():
+    """With a small max_keyframes the pose graph is re-anchored again and again: it never
+    holds more keyframes than that, and the pose stays continuous (here, with no fix, the
+    caller's odometry exactly)."""
+    from dataclasses import replace
+
+    from lunarloc.online import OnlineConfig
+
+    rig = CameraRig.from_calibration(160, 90, fx=114.25)
+    rng = np.random.default_rng(3)
+    ref = LandmarkMap(np.c_[rng.uniform(-10, 10, (50, 2)), np.zeros(50)])
+    loc = OnlineLocalizer(ref, np.zeros(6), replace(OnlineConfig(), max_keyframes=50), rig=rig)
+    blank = np.zeros((90, 160), np.uint8)
+    held = []
+    for i in range(600):
+        T = pose_to_matrix(0.01 * i, 0.0, 0.0, 0.0, 0.0, 0.002 * i)
+        img = blank if i % 2 == 0 else None
+        e = loc.update(0.05 * i, {"Grayscale": {"FrontLeft": img, "FrontRight": img}}, IMU_REST, 0.2, 0.04, odometry=T)
+        held.append(len(loc.loop.kf_frame))
+        assert np.allclose(e.T_map_rover, T, atol=1e-6)
+    assert max(held) <= 50 and loc.reanchors >= 2
