@@ -24,6 +24,7 @@ Driving is not this example's subject: ``run_step`` returns a constant gentle co
 
 from __future__ import annotations
 
+import collections
 import logging
 
 from lunarloc import CameraRig, OnlineLocalizer, load_reference
@@ -42,7 +43,7 @@ class LunarLocAgent:
         self.width, self.height = width, height
         self.localizer: OnlineLocalizer | None = None
         self.estimate = None
-        self.poses: list = []  # (mission time s, T_map_rover) at every tick, for the caller
+        self.poses = collections.deque(maxlen=1200)  # (mission time s, T_map_rover) of the last minute: bounded
 
     # -- configuration ----------------------------------------------------------------------
     def use_fiducials(self) -> bool:
