@@ -12,7 +12,7 @@ from lunarloc.evaluation import DriftModel
 from lunarloc.maps import LandmarkMap, save_map
 from lunarloc.pipeline import (
     LoopConfig,
-    OnlineLocalizer,
+    LoopState,
     load_reference,
     read_tum,
     rocks_to_reference,
@@ -83,7 +83,7 @@ def test_empty_or_missing_reference(tmp_path):
     with pytest.raises(FileFormatError):
         load_reference(tmp_path / "nope.csv")
     with pytest.raises(InputError):
-        OnlineLocalizer(LandmarkMap(np.zeros((0, 3))))
+        LoopState(LandmarkMap(np.zeros((0, 3))))
 
 
 def test_bad_archive(tmp_path):

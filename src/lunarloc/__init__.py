@@ -1,5 +1,11 @@
 """lunarloc: rock-landmark global localization for planetary rovers.
 
+The per-tick component a rover agent calls (see docs/online-component.md)::
+
+    from lunarloc import OnlineLocalizer, load_reference
+    loc = OnlineLocalizer(load_reference("map.csv"), initial_pose=T_map_rover0)
+    est = loc.update(mission_time_s, input_data, imu, linear_speed, angular_speed)
+
 The one-call API::
 
     from lunarloc import load_map, localize
@@ -31,6 +37,29 @@ __all__ = [
     "load_traverse",
     "localize",
     "save_map",
+    "OnlineLocalizer",
+    "OnlineConfig",
+    "CameraRig",
+    "Estimate",
+    "PlaybackAgent",
+    "load_reference",
 ]
+
+_LAZY = {  # imported on first use: OpenCV and the detector stay out of `import lunarloc`
+    "OnlineLocalizer": "lunarloc.online",
+    "OnlineConfig": "lunarloc.online",
+    "CameraRig": "lunarloc.online",
+    "Estimate": "lunarloc.online",
+    "PlaybackAgent": "lunarloc.data.playback",
+    "load_reference": "lunarloc.pipeline",
+}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'lunarloc' has no attribute {name!r}")
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())

@@ -54,7 +54,7 @@ __all__ = [
     "LoopConfig",
     "Attempt",
     "LoopResult",
-    "OnlineLocalizer",
+    "LoopState",
     "rocks_to_reference",
     "load_reference",
     "scaled_detector_config",
@@ -354,8 +354,9 @@ def _path_length(P: np.ndarray) -> float:
 # --------------------------------------------------------------------------- the loop
 
 
-class OnlineLocalizer:
-    """The loop's state, fed frame by frame (see module docstring).
+class LoopState:
+    """The loop's state, fed frame by frame (see module docstring); the per-tick component an
+    agent calls is :class:`lunarloc.online.OnlineLocalizer`, built on this class.
 
     ``step(frame, t, odo_pose6, detections_rover=None, gt_pose6=None)``: every frame gives
     its odometry pose; keyframes (image frames) also give their detections in the rover
@@ -587,6 +588,9 @@ class OnlineLocalizer:
                           rocks, example, source)  # fmt: skip
 
 
+OnlineLocalizer = LoopState  # deprecated alias (the public OnlineLocalizer is lunarloc.online's)
+
+
 def _apply_corr(T_ref_odo: np.ndarray, q: np.ndarray) -> np.ndarray:
     T = T_ref_odo @ pose_to_matrix(*q)
     return np.asarray(matrix_to_pose(T), float)
@@ -638,7 +642,7 @@ def run_online(
     from lunarloc.perception.detector import Detector
 
     cfg = config or LoopConfig.for_images()
-    loop = OnlineLocalizer(reference, cfg)
+    loop = LoopState(reference, cfg)
     t_io = 0.0
     t0 = time.perf_counter()
     ar = LacArchive(archive)
@@ -744,7 +748,7 @@ def run_traverse_csv(
     order = np.argsort(trav.detection_frame, kind="stable")
     df = trav.detection_frame[order]
     dx = trav.detections_xyz[order]
-    loop = OnlineLocalizer(reference, cfg)
+    loop = LoopState(reference, cfg)
     times = trav.frames.astype(float) / rate_hz
     last_kf_t = -np.inf
     n_kf = 0
