@@ -588,7 +588,6 @@ class LoopState:
                           rocks, example, source)  # fmt: skip
 
 
-OnlineLocalizer = LoopState  # deprecated alias (the public OnlineLocalizer is lunarloc.online's)
 
 
 def _apply_corr(T_ref_odo: np.ndarray, q: np.ndarray) -> np.ndarray:
