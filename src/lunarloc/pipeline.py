@@ -588,8 +588,6 @@ class LoopState:
                           rocks, example, source)  # fmt: skip
 
 
-
-
 def _apply_corr(T_ref_odo: np.ndarray, q: np.ndarray) -> np.ndarray:
     T = T_ref_odo @ pose_to_matrix(*q)
     return np.asarray(matrix_to_pose(T), float)
