@@ -21,7 +21,6 @@ from lunarloc.odometry import (
     ground_truth_poses,
     odometry_drift,
     parse_odometry_source,
-    visual_available,
 )
 
 G = 1.622
@@ -135,9 +134,8 @@ def test_default_source_without_images_is_imu(arc):
     path, _ = arc
     with LacArchive(path) as a:
         assert default_odometry_source(a) == "imu"
-        if not visual_available():
-            with pytest.raises(InputError, match="front stereo pair"):
-                archive_odometry(a, "visual")
+        with pytest.raises(InputError, match="front stereo pair"):
+            archive_odometry(a, "visual")
 
 
 # ------------------------------------------------------------------------------ bad input
@@ -293,7 +291,6 @@ def test_detect_with_odometry(bare_image_archive, tmp_path, capsys):
     assert main(["detect", str(bare), "-o", str(csv), "--odometry", "wheels"]) == 2
 
 
-@pytest.mark.skipif(not visual_available(), reason="lunarloc.odometry.visual is not in this tree yet")
 def test_visual_dispatch_on_a_simulated_traverse(bare_image_archive):
     bare, _ = bare_image_archive
     with LacArchive(bare) as a:
@@ -304,15 +301,6 @@ def test_visual_dispatch_on_a_simulated_traverse(bare_image_archive):
         np.testing.assert_allclose(tr.T_map_rover[0], a.initial_rover_pose(), atol=1e-9)
         d = odometry_drift(tr.T_map_rover, ground_truth_poses(a))
     assert d["rmse_m"] < 0.1 and d["max_heading_error_deg"] < 2.0
-
-
-@pytest.mark.skipif(visual_available(), reason="visual odometry is present")
-def test_default_visual_without_the_module_is_a_clear_error(bare_image_archive, tmp_path, capsys):
-    from lunarloc.cli.app import main
-
-    bare, rocks = bare_image_archive
-    assert main(["run", str(bare), "--reference", str(rocks), "-o", str(tmp_path / "r")]) == 2
-    assert "visual odometry is not available" in capsys.readouterr().err
 
 
 def test_a_record_with_every_frame_needs_no_imu(arc, tmp_path):

@@ -261,10 +261,8 @@ class OnlineLocalizer:
         self._pairs = [p for p in self.detector.config.pairs if p[0] in self._mounts and p[1] in self._mounts]
         self._vo = None
         if cfg.visual_odometry:
-            from lunarloc.odometry import visual_available
-
             left, right = STEREO_PAIRS[0]
-            if visual_available() and left in self._mounts and right in self._mounts:
+            if left in self._mounts and right in self._mounts:
                 from lunarloc.odometry.visual import StereoVisualOdometry
 
                 self._vo = StereoVisualOdometry(self.rig.camera, self._mounts[left].T_rover_optical,

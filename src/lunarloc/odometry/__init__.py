@@ -20,7 +20,6 @@ as an :class:`OdometryTrajectory`. Frames: ``map`` (site frame of the ground tru
 
 from __future__ import annotations
 
-import importlib.util
 import logging
 import math
 from collections.abc import Callable
@@ -29,7 +28,7 @@ from enum import Enum
 
 import numpy as np
 
-from lunarloc.errors import ConfigError, DependencyError, InputError
+from lunarloc.errors import ConfigError, InputError
 from lunarloc.geometry import invert_transform, matrix_to_pose, pose_to_matrix, yaw_of
 from lunarloc.odometry.imu import (
     ImuOdometryConfig,
@@ -44,7 +43,6 @@ __all__ = [
     "OdometryTrajectory",
     "parse_odometry_source",
     "default_odometry_source",
-    "visual_available",
     "archive_odometry",
     "ground_truth_poses",
     "odometry_drift",
@@ -120,11 +118,6 @@ def parse_odometry_source(text: str | OdometrySource) -> tuple[OdometrySource, s
     return src, None
 
 
-def visual_available() -> bool:
-    """True when the stereo visual odometry module is installed in this tree."""
-    return importlib.util.find_spec("lunarloc.odometry.visual") is not None
-
-
 def _front_pair_frames(archive) -> list[int]:
     left, right = FRONT_PAIR
     if left not in archive.cameras or right not in archive.cameras:
@@ -156,8 +149,7 @@ def archive_odometry(
 
     `progress(done, total)` is called as image pairs are processed (``visual``).
     Raises InputError / ArchiveError for data the source cannot use (NaN IMU, a missing or
-    malformed record, no front stereo pairs for ``visual``), DependencyError when the
-    visual odometry module is absent.
+    malformed record, no front stereo pairs for ``visual``).
     """
     src, name = parse_odometry_source(source)
     if archive.n_frames == 0:
@@ -223,11 +215,6 @@ def _visual(archive, frames, times, T0, imu_motions, progress, visual_config) ->
         raise InputError(
             f"{archive.path}: no frame has both {FRONT_PAIR[0]} and {FRONT_PAIR[1]} images: "
             "visual odometry needs the front stereo pair (use --odometry imu)"
-        )
-    if not visual_available():
-        raise DependencyError(
-            "visual odometry is not available in this installation (lunarloc.odometry.visual); "
-            "use --odometry imu or record:NAME"
         )
     from lunarloc.odometry.visual import StereoVisualOdometry
     from lunarloc.perception.detector import _camera_from_archive, mounts_from_archive_row
