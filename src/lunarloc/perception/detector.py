@@ -20,7 +20,7 @@ import csv
 import logging
 import time
 from collections.abc import Iterable, Iterator, Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from enum import Enum
 from pathlib import Path
 
@@ -234,6 +234,11 @@ class Detection:
     p_optical: np.ndarray
     p_rover: np.ndarray
     p_map: np.ndarray | None
+    # how high it stands (visible top above the local ground or the ground in front,
+    # metres; NaN without stereo points) and its top above the ground in front alone
+    height_m: float = float("nan")
+    height_front_m: float = float("nan")
+    height_ring_m: float = float("nan")
 
 
 @dataclass
@@ -523,6 +528,9 @@ class Detector:
             else:
                 p, p_rover, R_est = self._lift_centroid(*st.centroid_uv, D, s, T_rover_optical)
             det = _detection(camera_name, st, D, s, R_est, p, p_rover, T_map_rover)
+            if cfg.centre_method is CentreMethod.STEREO_POINTS:
+                det = replace(det, height_m=float(np.quantile(h_pts, cfg.top_quantile)), height_front_m=h_sur,
+                              height_ring_m=_ring_height(hm.height, rows, cols))
             if self._on_lander(det, lander_xy):
                 rec.reason = RejectReason.ON_LANDER
                 continue
@@ -621,6 +629,22 @@ def _centre_from_points(
     xy = cam_rover[:2] + fwd * r_c + perp * l_c
     z = ground + top - cfg.centre_height_factor * R
     return np.array([xy[0], xy[1], z]), R
+
+
+def _ring_height(height: np.ndarray, rows: np.ndarray, cols: np.ndarray, width: int = 2) -> float:
+    """Median height above the local ground (low-resolution height map) of the ring of
+    pixels `width` wide just outside a blob (rows, cols); NaN when none is valid."""
+    import cv2
+
+    h, w = height.shape
+    r0, r1 = max(int(rows.min()) - width, 0), min(int(rows.max()) + width + 1, h)
+    c0, c1 = max(int(cols.min()) - width, 0), min(int(cols.max()) + width + 1, w)
+    blob = np.zeros((r1 - r0, c1 - c0), np.uint8)
+    blob[rows - r0, cols - c0] = 1
+    ring = (cv2.dilate(blob, np.ones((2 * width + 1, 2 * width + 1), np.uint8)) > 0) & (blob == 0)
+    vals = height[r0:r1, c0:c1][ring]
+    vals = vals[np.isfinite(vals)]
+    return float(np.median(vals)) if vals.size else float("nan")
 
 
 def _visible_height(z: np.ndarray, h: np.ndarray, q: float) -> float:
