@@ -106,10 +106,6 @@ class ClassicalConfig:
     height_region_m: float = 0.025
     # Smallest blob kept, in low-resolution (height-map) pixels.
     height_min_area_px: int = 10
-    # Blobs more elongated than this (eigenvalue ratio, as the mask filters measure
-    # it) or cut by the image border are opened with a 3x3 square and split into
-    # their pieces (0 = off); see ClassicalSegmenter._split_bridged.
-    split_elong: float = 20.0
     # Blobs whose stereo points are farther than this (median optical depth, metres)
     # are dropped: stereo heights and shapes degrade with range^2.
     height_max_range_m: float = 8.0
@@ -173,48 +169,7 @@ class ClassicalSegmenter:
             mean_z = np.bincount(lab.ravel(), zz.ravel(), minlength=n) / np.maximum(cnt, 1)
             keep &= mean_z <= c.height_max_range_m
         keep[0] = False
-        out = np.where(keep[lab], lab, 0).astype(np.int32)
-        if c.split_elong > 0:
-            out = self._split_bridged(out, H, st, keep, u_min)
-        return out
-
-    def _split_bridged(self, lab: np.ndarray, H: np.ndarray, st: np.ndarray, keep: np.ndarray, u_min: int) -> np.ndarray:
-        """Blobs that the mask filters would drop as elongated (eigenvalue ratio above
-        split_elong) or cut by the image border are often a rock joined to a streak of
-        mismatched or raised ground by a bridge a pixel or two thick (the dim far field
-        at night, a crest beside a rock). Each is opened with a 3x3 square and its pieces
-        that still hold a seed and height_min_area_px pixels replace it."""
-        import cv2
-
-        c = self.config
-        h, w = lab.shape
-        nxt = int(lab.max()) + 1
-        k3 = np.ones((3, 3), np.uint8)
-        for i in np.flatnonzero(keep):
-            x, y, bw, bh = (int(v) for v in st[i, :4])
-            crop = (lab[y : y + bh, x : x + bw] == i).astype(np.uint8)
-            mo = cv2.moments(crop, binaryImage=True)
-            n = mo["m00"]
-            a, b, d = mo["mu20"] / n + 1 / 12, mo["mu02"] / n + 1 / 12, mo["mu11"] / n
-            disc = np.sqrt(max((a - b) ** 2 / 4 + d * d, 0.0))
-            ratio = ((a + b) / 2 + disc) / max((a + b) / 2 - disc, 1e-12)
-            at_border = x <= 1 or y <= 1 or x + bw >= w - 1 or y + bh >= h - 1
-            if ratio <= c.split_elong and not at_border:
-                continue
-            opened = cv2.morphologyEx(crop, cv2.MORPH_OPEN, k3)
-            m, sub = cv2.connectedComponents(opened, connectivity=8)
-            region = lab[y : y + bh, x : x + bw]
-            region[crop > 0] = 0
-            Hc = H[y : y + bh, x : x + bw]
-            for j in range(1, m):
-                piece = sub == j
-                if np.count_nonzero(piece) < c.height_min_area_px or not np.any(Hc[piece] > c.height_seed_m):
-                    continue
-                if x + int(np.flatnonzero(piece.any(axis=0))[0]) <= u_min:
-                    continue
-                region[piece] = nxt
-                nxt += 1
-        return lab
+        return np.where(keep[lab], lab, 0).astype(np.int32)
 
     def labels(self, image: np.ndarray) -> np.ndarray:
         """(H, W) int32 label image: 0 background, 1..N regions."""
