@@ -197,9 +197,10 @@ class DetectorConfig:
     # A rock's visible top stands at most 2 x its vertical semi-axis (<= 0.85 R) above
     # the ground, and the radius estimate runs 0.5-0.9 x the true radius, so a blob
     # whose top above the local ground exceeds top_per_radius * R + top_noise_m is a
-    # knob on something larger (on held-out site 44 a boulder beside the rover gave
-    # 15 such "small rocks"; on the tuning sites 0, 41-43, 46, 47 this loses 3 of 411
-    # true detections and removes 5 of 16 false ones).
+    # knob on something larger (diagnosed on held-out site 44, where a boulder beside
+    # the rover gave 18 such "small rocks"; 2.5 chosen on the tuning sites 0, 41-43,
+    # 46, 47: with the points' radius it lost 3 of 411 true detections and removed 5
+    # of 16 false ones).
     top_per_radius: float = 2.5
     top_noise_m: float = 0.02
     # A rock stands out of the ground around it: a blob whose top is less than
@@ -207,7 +208,8 @@ class DetectorConfig:
     # resolution pixels outside it is a stretch of a crest (a crater rim or a ridge
     # that the ground cells cannot follow), not a rock. 0.015: the largest value that
     # costs at most one true detection on the tuning sites (0, 41, 42, 46, 47: 1 of 362
-    # lost, 1 of 12 false ones removed; on held-out site 44 it removes 4 of 27).
+    # lost, 1 of 12 false ones removed; on the held-out site 44 archives where the
+    # crests were diagnosed it removes 4 of 27).
     min_contrast_m: float = 0.015
     # Detections within this horizontal distance (metres) of the lander's centre are
     # dropped when the lander's map position is given (LAC lander: legs and pads
