@@ -289,16 +289,3 @@ def test_small_blob_standing_too_high_for_its_size_is_not_a_rock():
     assert np.isfinite(d.height_m) and d.height_m < DetectorConfig().top_per_radius * d.radius_m
     pr = Detector(DetectorConfig(top_per_radius=0.3, top_noise_m=0.0), CAM).detect_pair(left, right, T)
     assert not pr.detections and any(r.reason is RejectReason.NOT_A_ROCK for r in pr.records)
-
-
-def test_duplicate_blobs_of_one_rock_keep_the_larger():
-    from lunarloc.perception.detector import Detection, _duplicates
-
-    def det(x, y, r, area):
-        p = np.array([x, y, 0.0])
-        return Detection("FrontLeft", (0.0, 0.0), x, 5.0, 1.0, area, 0.1, r, p, p, None)
-
-    # two blobs 0.1 m apart of 0.15 m rocks: one rock; a third rock 0.5 m away is kept
-    ds = [det(3.0, 0.0, 0.15, 200), det(3.1, 0.0, 0.15, 900), det(3.0, 0.5, 0.15, 100)]
-    assert _duplicates(ds, 0.5) == {0}
-    assert _duplicates(ds, 0.0) == set()

@@ -211,10 +211,6 @@ class DetectorConfig:
     # lost, 1 of 12 false ones removed; on the held-out site 44 archives where the
     # crests were diagnosed it removes 4 of 27).
     min_contrast_m: float = 0.015
-    # Two detections of one pair whose centres lie within duplicate_overlap x the sum
-    # of their radii (horizontally) are one rock split into two blobs: the one with the
-    # smaller mask is dropped (0 = off).
-    duplicate_overlap: float = 0.5
     # Detections within this horizontal distance (metres) of the lander's centre are
     # dropped when the lander's map position is given (LAC lander: legs and pads
     # ~1.9 m from its centre; fiducial panels and their shadows around it).
@@ -504,7 +500,6 @@ class Detector:
         t2 = time.perf_counter()
         records: list[MaskRecord] = []
         dets: list[Detection] = []
-        kept: list[MaskRecord] = []  # the record of each detection
         alpha = self.camera.alpha
         T_optical_rover = np.linalg.inv(T_rover_optical)
         ground_pts = None  # stereo points for the not-a-rock check, on first use
@@ -577,12 +572,6 @@ class Detector:
                 rec.reason = RejectReason.ON_LANDER
                 continue
             dets.append(det)
-            kept.append(rec)
-        if cfg.duplicate_overlap > 0 and len(dets) > 1:
-            dup = _duplicates(dets, cfg.duplicate_overlap)
-            for i in dup:
-                kept[i].reason = RejectReason.DUPLICATE
-            dets = [d for i, d in enumerate(dets) if i not in dup]
         t3 = time.perf_counter()
         for k, v in (("segment", t2 - t1), ("filter", t3 - t2), ("stereo", t1 - t0)):
             tm[k] = tm.get(k, 0.0) + v
@@ -703,22 +692,6 @@ def _centre_from_points(
     xy = cam_rover[:2] + fwd * r_c + perp * l_c
     z = ground + top - cfg.centre_height_factor * R
     return np.array([xy[0], xy[1], z]), R
-
-
-def _duplicates(dets: list[Detection], overlap: float) -> set[int]:
-    """Indices of detections whose centre lies within overlap x (R_i + R_j) (horizontal,
-    rover frame) of a detection with a larger mask: one rock segmented as two blobs.
-    Rocks do not interpenetrate, so two rocks' centres are at least R_i + R_j apart."""
-    order = sorted(range(len(dets)), key=lambda i: -dets[i].area_px)
-    keep: list[int] = []
-    drop: set[int] = set()
-    for i in order:
-        pi, ri = dets[i].p_rover[:2], dets[i].radius_m
-        if any(np.hypot(*(pi - dets[j].p_rover[:2])) < overlap * (ri + dets[j].radius_m) for j in keep):
-            drop.add(i)
-        else:
-            keep.append(i)
-    return drop
 
 
 def _ring_height(height: np.ndarray, rows: np.ndarray, cols: np.ndarray, width: int = 4, gap: int = 1,
@@ -917,7 +890,6 @@ REASON_COLOURS_BGR = {
     RejectReason.TOO_LARGE: (0, 128, 255),
     RejectReason.NOT_A_ROCK: (128, 0, 128),
     RejectReason.ON_LANDER: (0, 200, 255),
-    RejectReason.DUPLICATE: (200, 200, 200),
 }
 KEPT_COLOUR_BGR = (0, 255, 0)
 

@@ -208,8 +208,6 @@ class RejectReason(str, Enum):
     NOT_A_ROCK = "not_a_rock"
     # inside the lander's footprint (its pose in the map is known)
     ON_LANDER = "on_lander"
-    # a second blob of a rock already detected (centres closer than the radii allow)
-    DUPLICATE = "duplicate"
 
 
 @dataclass(frozen=True)
