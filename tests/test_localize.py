@@ -144,6 +144,41 @@ def test_result_json_round_trip(rng):
     failed = localize(LandmarkMap(rock_field(rng, 50)), LandmarkMap(rock_field(rng, 30)))
     d = json.loads(json.dumps(failed.to_dict()))
     assert d["success"] is False and d["reason"]
+    bad = [c for c in d["checks"] if not c["passed"]]
+    assert bad and bad[0]["detail"] == d["reason"]
+
+
+def test_verify_is_a_table_of_named_checks(rng):
+    from dataclasses import replace
+
+    from lunarloc.localize import Evidence, verify
+
+    ref, veh, _, _ = make_pair(rng, n_ref=80, n_common=25, n_outliers=5)
+    r = localize(ref, veh)
+    names = [c.name for c in r.checks]
+    assert r.success and all(c.passed for c in r.checks)
+    for name in ("residual_rmse", "extent", "planarity", "tilt", "handedness", "scale", "near_misses",
+                 "predicted_error", "predicted_rotation", "inliers_vs_chance", "winner_margin"):
+        assert name in names
+    ev = Evidence(
+        inliers=12, rmse_m=0.01, rmse_limit_m=0.05, sigma_h_m=0.01, sigma_z_m=0.01, extent_m=5.0, planarity=0.5,
+        tilt_deg=0.1, handedness=1.0, scale_error=0.0, scale_se=0.001, near_misses=0, near_misses_expected=1.0,
+        near_inner_m=0.1, near_outer_m=0.3, predicted_error_m=0.02, distortion_error_m=0.0,
+        predicted_rotation_deg=0.1, distortion_rotation_deg=0.0, inliers_beyond_chance=12, required_inliers=9,
+        chance_inliers=6.0, num_associations=1000, competitor=4,
+    )
+    cfg = LocalizationConfig()
+    assert all(c.passed for c in verify(ev, cfg))
+    # two failures: both are in the table, the earlier one (scale) is the reason
+    checks = verify(replace(ev, scale_error=0.03, competitor=10), cfg)
+    failed = [c.name for c in checks if not c.passed]
+    assert failed == ["scale", "winner_margin"]
+    assert "not rigid" in next(c.detail for c in checks if not c.passed)
+    # a check fails exactly at its limit's far side, not at the limit
+    assert next(c for c in verify(replace(ev, rmse_m=0.05), cfg) if c.name == "residual_rmse").passed
+    assert not next(c for c in verify(replace(ev, rmse_m=0.0501), cfg) if c.name == "residual_rmse").passed
+    # outside the gravity-aware mode tilt and handedness are not tested
+    assert "tilt" not in [c.name for c in verify(replace(ev, tilt_deg=None, handedness=None), cfg)]
 
 
 def test_six_dof_edge_budget_is_enforced(rng):

@@ -36,7 +36,8 @@ from lunarloc.maps import LandmarkMap
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Mode", "Registration", "Solver", "LocalizationConfig", "LocalizationResult", "localize", "chance_clique_size"]
+__all__ = ["Mode", "Registration", "Solver", "LocalizationConfig", "LocalizationResult", "Check", "Evidence", "verify",
+           "localize", "chance_clique_size"]
 
 
 class Mode(str, enum.Enum):
@@ -224,6 +225,7 @@ class LocalizationResult:
     near_misses_expected: float = float("nan")
     covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
     timings: dict = field(default_factory=dict)
+    checks: list = field(default_factory=list)  # the acceptance tests (:class:`Check`) of :func:`verify`
 
     @property
     def num_inliers(self) -> int:
@@ -263,6 +265,7 @@ class LocalizationResult:
             "near_misses_expected": clean(float(self.near_misses_expected)),
             "covariance": [[clean(float(v)) for v in row] for row in self.covariance],
             "timings_s": {k: round(v, 6) for k, v in self.timings.items()},
+            "checks": [c.to_dict() for c in self.checks],
         }
 
 
@@ -572,6 +575,136 @@ def _nan_T() -> np.ndarray:
     return np.full((4, 4), np.nan)
 
 
+# --------------------------------------------------------------------------- verification
+
+
+@dataclass(frozen=True)
+class Check:
+    """One acceptance test of :func:`verify`: ``value`` must be ``relation`` (``"<="`` or
+    ``">="``) ``limit``. ``detail`` is one line: the reason of the refusal when it fails,
+    what was tested when it passes."""
+
+    name: str
+    value: float
+    limit: float
+    passed: bool
+    relation: str = "<="
+    detail: str = ""
+
+    def to_dict(self) -> dict:
+        def clean(x):
+            return None if not math.isfinite(x) else float(x)
+
+        return {"name": self.name, "value": clean(float(self.value)), "relation": self.relation,
+                "limit": clean(float(self.limit)), "passed": bool(self.passed), "detail": self.detail}
+
+
+def _at_most(name: str, value: float, limit: float, fail: str, ok: str) -> Check:
+    passed = not (value > limit)  # NaN passes: a quantity that could not be measured refuses nothing here
+    return Check(name, float(value), float(limit), passed, "<=", ok if passed else fail)
+
+
+def _at_least(name: str, value: float, limit: float, fail: str, ok: str) -> Check:
+    passed = not (value < limit)
+    return Check(name, float(value), float(limit), passed, ">=", ok if passed else fail)
+
+
+@dataclass
+class Evidence:
+    """What :func:`verify` judges: the quantities measured on the winning hypothesis.
+    ``tilt_deg`` / ``handedness`` are None outside the gravity-aware mode (not tested)."""
+
+    inliers: int
+    rmse_m: float
+    rmse_limit_m: float
+    sigma_h_m: float
+    sigma_z_m: float
+    extent_m: float
+    planarity: float
+    tilt_deg: float | None
+    handedness: float | None
+    scale_error: float
+    scale_se: float
+    near_misses: int
+    near_misses_expected: float
+    near_inner_m: float
+    near_outer_m: float
+    predicted_error_m: float
+    distortion_error_m: float
+    predicted_rotation_deg: float
+    distortion_rotation_deg: float
+    inliers_beyond_chance: float
+    required_inliers: int
+    chance_inliers: float
+    num_associations: int
+    competitor: int
+
+
+def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
+    """The acceptance tests of a hypothesis as a table of named checks, in the order their
+    reasons are reported (the first failing check is the reason of a refusal). Every check is
+    evaluated, so the table shows all that fail, not only the first. A pose is trusted only
+    when every check passes."""
+    out = [
+        _at_most("residual_rmse", ev.rmse_m, ev.rmse_limit_m,
+                 f"residual RMSE {ev.rmse_m * 100:.1f} cm exceeds {ev.rmse_limit_m * 100:.1f} cm (what landmarks of "
+                 f"{ev.sigma_h_m * 100:.1f} cm horizontal / {ev.sigma_z_m * 100:.1f} cm vertical uncertainty allow)",
+                 f"chi-square test of the inlier residuals at {cfg.rmse_confidence:g} confidence"),
+        _at_least("extent", ev.extent_m, cfg.min_extent_m,
+                  f"inliers are clustered (extent {ev.extent_m:.2f} m < {cfg.min_extent_m} m)",
+                  "inliers spread (2 x largest principal std, m)"),
+        _at_least("planarity", ev.planarity, cfg.min_planarity,
+                  "inliers are nearly collinear: rotation about their line is poorly fixed",
+                  "inliers not collinear (second / first principal std)"),
+    ]
+    if ev.tilt_deg is not None:
+        lim = cfg.max_tilt_deg + 0.5
+        out.append(_at_most("tilt", ev.tilt_deg, lim,
+                            f"fitted tilt {ev.tilt_deg:.2f} deg exceeds the allowed {cfg.max_tilt_deg} deg "
+                            "(mirror or wrong match)", "fitted tilt of the levelled map (deg)"))
+    if ev.handedness is not None:
+        out.append(_at_least("handedness", ev.handedness, cfg.min_handedness,
+                             "inliers are a mirror image of the reference (triangle orientations disagree)",
+                             "share of inlier triangles with the reference's orientation"))
+    scale_lim = max(cfg.max_scale_error, cfg.scale_sigmas * ev.scale_se)
+    out.append(_at_most("scale", abs(ev.scale_error), scale_lim,
+                        f"vehicle map is not rigid: its inliers are {ev.scale_error * 100:+.1f} % larger than the "
+                        f"reference (+-{ev.scale_se * 100:.1f} %), as odometry scale drift makes them",
+                        "relative scale of the inliers against the reference"))
+    near_z = (ev.near_misses - ev.near_misses_expected) / math.sqrt(max(ev.near_misses_expected, 1.0))
+    near_ok = not (ev.near_misses >= cfg.min_near_misses and near_z > cfg.max_near_miss_z)
+    out.append(Check(
+        "near_misses", near_z, cfg.max_near_miss_z, near_ok, "<=",
+        "excess of landmarks just outside the inlier radius over chance (standard deviations; "
+        f"{ev.near_misses} seen, {ev.near_misses_expected:.1f} expected)" if near_ok else
+        f"vehicle map is not rigid: {ev.near_misses} of its landmarks land {ev.near_inner_m * 100:.0f}-"
+        f"{ev.near_outer_m * 100:.0f} cm from a reference rock where chance gives {ev.near_misses_expected:.1f} "
+        "(scaled or bent by odometry drift away from the inliers)"))
+    out.append(_at_most(
+        "predicted_error", cfg.predicted_error_sigmas * ev.predicted_error_m, cfg.max_predicted_error_m,
+        f"pose too uncertain where it is used: predicted error up to {cfg.predicted_error_sigmas:g} x "
+        f"{ev.predicted_error_m * 100:.1f} cm (allowed {cfg.max_predicted_error_m * 100:.0f} cm"
+        f"{'' if ev.distortion_error_m == 0 else f'; odometry distortion up to {ev.distortion_error_m * 100:.1f} cm'})",
+        "predicted position error where the pose is used (m)"))
+    out.append(_at_most(
+        "predicted_rotation", cfg.predicted_error_sigmas * ev.predicted_rotation_deg, cfg.max_predicted_rotation_deg,
+        f"heading too uncertain: predicted rotation error {cfg.predicted_error_sigmas:g} x "
+        f"{ev.predicted_rotation_deg:.2f} deg (allowed {cfg.max_predicted_rotation_deg:g} deg; odometry heading "
+        f"drift up to {ev.distortion_rotation_deg:.2f} deg)",
+        "predicted rotation error (deg)"))
+    out.append(_at_least(
+        "inliers_vs_chance", ev.inliers_beyond_chance, ev.required_inliers,
+        f"{ev.inliers} inliers ({ev.inliers_beyond_chance:.1f} when refinement's chance matches are discounted) is "
+        f"too few to beat chance at {ev.num_associations} associations (need {ev.required_inliers}; "
+        f"unrelated maps of this size give up to ~{ev.chance_inliers:.0f})",
+        "inliers (refinement's chance matches discounted) against the chance envelope plus margin"))
+    out.append(_at_least(
+        "winner_margin", ev.inliers, cfg.competitor_ratio * ev.competitor,
+        f"ambiguous: {ev.inliers} inliers vs a competing hypothesis with {ev.competitor}",
+        f"inliers against {cfg.competitor_ratio:g} x the best competing hypothesis"))
+    return out
+
+
 # --------------------------------------------------------------------------- main entry
 
 
@@ -612,9 +745,9 @@ def localize(
     chance = chance_clique_size(m, cfg.mode, cfg.epsilon_m, cfg.epsilon_z_m)
     required = max(cfg.min_inliers, int(math.ceil(chance + cfg.chance_margin)))
     if m == 0:
-        return LocalizationResult(False, _nan_T(), np.zeros((0, 2), int), float("nan"),
-                                  "no putative associations (size pruning removed all)", required_inliers=required,
-                                  timings=timings)
+        why = "no putative associations (size pruning removed all)"
+        return LocalizationResult(False, _nan_T(), np.zeros((0, 2), int), float("nan"), why, required_inliers=required,
+                                  timings=timings, checks=[Check("associations", 0, 1, False, ">=", why)])
 
     t0 = time.perf_counter()
     if cfg.mode is Mode.GRAVITY:
@@ -626,9 +759,9 @@ def localize(
     base = dict(required_inliers=required, num_associations=m, num_edges=num_edges, timings=timings)
 
     if len(best) < 3:
-        return LocalizationResult(False, _nan_T(), np.zeros((0, 2), int), float("nan"),
-                                  f"no consistent set of 3 or more associations (largest: {len(best)})",
-                                  clique_size=len(best), **base)
+        why = f"no consistent set of 3 or more associations (largest: {len(best)})"
+        return LocalizationResult(False, _nan_T(), np.zeros((0, 2), int), float("nan"), why, clique_size=len(best),
+                                  checks=[Check("consistent_set", len(best), 3, False, ">=", why)], **base)
 
     t0 = time.perf_counter()
     inl = assoc[best]
@@ -636,8 +769,9 @@ def localize(
         T = _register(Pv[inl[:, 0]], Pr[inl[:, 1]], cfg)
     except DegenerateGeometryError as exc:
         timings["registration"] = time.perf_counter() - t0
-        return LocalizationResult(False, _nan_T(), inl, float("nan"), f"inliers are degenerate: {exc}",
-                                  clique_size=len(best), **base)
+        why = f"inliers are degenerate: {exc}"
+        return LocalizationResult(False, _nan_T(), inl, float("nan"), why, clique_size=len(best),
+                                  checks=[Check("registration", float("nan"), float("nan"), False, "<=", why)], **base)
     if cfg.refine:
         T, inl = _refine(T, Pv, Pr, inl, cfg)
     try:
@@ -683,58 +817,26 @@ def localize(
         distortion_error_m=float(distortion.max()), predicted_rotation_deg=pred_rot_deg, near_misses=near, near_misses_expected=near_exp,
         covariance=covariance_at_origin(C_c, centre_ref), **base,
     )
-    near_z = (near - near_exp) / math.sqrt(max(near_exp, 1.0))
     Q = Pr[inl[:, 1]]
     s = np.linalg.svd(Q - Q.mean(axis=0), compute_uv=False) / math.sqrt(len(Q))
     k = len(inl)
-    rmse_max = rmse_limit(cfg, sigma_h, sigma_z, k)
-    if rmse > rmse_max:
-        out.reason = (
-            f"residual RMSE {rmse * 100:.1f} cm exceeds {rmse_max * 100:.1f} cm (what landmarks of "
-            f"{sigma_h * 100:.1f} cm horizontal / {sigma_z * 100:.1f} cm vertical uncertainty allow)"
-        )
-    elif 2 * s[0] < cfg.min_extent_m:
-        out.reason = f"inliers are clustered (extent {2 * s[0]:.2f} m < {cfg.min_extent_m} m)"
-    elif s[1] / max(s[0], 1e-12) < cfg.min_planarity:
-        out.reason = "inliers are nearly collinear: rotation about their line is poorly fixed"
-    elif cfg.mode is Mode.GRAVITY and out.tilt_deg > cfg.max_tilt_deg + 0.5:
-        out.reason = f"fitted tilt {out.tilt_deg:.2f} deg exceeds the allowed {cfg.max_tilt_deg} deg (mirror or wrong match)"
-    elif cfg.mode is Mode.GRAVITY and _handedness(Pv[inl[:, 0]], Q, np.random.default_rng(0)) < cfg.min_handedness:
-        out.reason = "inliers are a mirror image of the reference (triangle orientations disagree)"
-    elif abs(dscale) > max(cfg.max_scale_error, cfg.scale_sigmas * scale_se):
-        out.reason = (
-            f"vehicle map is not rigid: its inliers are {dscale * 100:+.1f} % larger than the reference "
-            f"(+-{scale_se * 100:.1f} %), as odometry scale drift makes them"
-        )
-    elif near >= cfg.min_near_misses and near_z > cfg.max_near_miss_z:
-        out.reason = (
-            f"vehicle map is not rigid: {near} of its landmarks land {cfg.refine_radius_m * 100:.0f}-"
-            f"{near_outer * 100:.0f} cm from a reference rock where chance gives {near_exp:.1f} "
-            "(scaled or bent by odometry drift away from the inliers)"
-        )
-    elif cfg.predicted_error_sigmas * pred.max() > cfg.max_predicted_error_m:
-        out.reason = (
-            f"pose too uncertain where it is used: predicted error up to "
-            f"{cfg.predicted_error_sigmas:g} x {pred.max() * 100:.1f} cm (allowed {cfg.max_predicted_error_m * 100:.0f} cm"
-            f"{'' if distortion.max() == 0 else f'; odometry distortion up to {distortion.max() * 100:.1f} cm'})"
-        )
-    elif cfg.predicted_error_sigmas * pred_rot_deg > cfg.max_predicted_rotation_deg:
-        out.reason = (
-            f"heading too uncertain: predicted rotation error {cfg.predicted_error_sigmas:g} x {pred_rot_deg:.2f} deg "
-            f"(allowed {cfg.max_predicted_rotation_deg:g} deg; odometry heading drift up to "
-            f"{math.degrees(float(distortion_rot.max())):.2f} deg)"
-        )
-    elif k_chance < required:
-        out.reason = (
-            f"{k} inliers ({k_chance:.1f} when refinement's chance matches are discounted) is too few to beat chance "
-            f"at {m} associations (need {required}; "
-            f"unrelated maps of this size give up to ~{chance:.0f})"
-        )
-    elif k < cfg.competitor_ratio * competitor:
-        out.reason = f"ambiguous: {k} inliers vs a competing hypothesis with {competitor}"
-    else:
-        out.success = True
-        out.reason = "ok"
+    gravity = cfg.mode is Mode.GRAVITY
+    ev = Evidence(
+        inliers=k, rmse_m=rmse, rmse_limit_m=rmse_limit(cfg, sigma_h, sigma_z, k), sigma_h_m=sigma_h, sigma_z_m=sigma_z,
+        extent_m=2 * s[0], planarity=s[1] / max(s[0], 1e-12),
+        tilt_deg=out.tilt_deg if gravity else None,
+        handedness=_handedness(Pv[inl[:, 0]], Q, np.random.default_rng(0)) if gravity else None,
+        scale_error=dscale, scale_se=scale_se, near_misses=near, near_misses_expected=near_exp,
+        near_inner_m=cfg.refine_radius_m, near_outer_m=near_outer,
+        predicted_error_m=float(pred.max()), distortion_error_m=float(distortion.max()),
+        predicted_rotation_deg=pred_rot_deg, distortion_rotation_deg=math.degrees(float(distortion_rot.max())),
+        inliers_beyond_chance=k_chance, required_inliers=required, chance_inliers=chance, num_associations=m,
+        competitor=int(competitor),
+    )
+    out.checks = verify(ev, cfg)
+    failed = [c for c in out.checks if not c.passed]
+    out.success = not failed
+    out.reason = failed[0].detail if failed else "ok"
     log.info("localize: %s (%d inliers, rmse %.3f m)", out.reason, k, rmse)
     return out
 

@@ -159,6 +159,16 @@ def localize_cmd(
             f"predicted 1-sigma error {res.predicted_error_m * 100:.1f} cm, {res.predicted_rotation_deg:.2f} deg; "
             f"near misses {res.near_misses} (chance {res.near_misses_expected:.1f})"
         )
+    if res.checks:
+        from rich.table import Table
+
+        table = Table(title="checks (the first that fails is the reason)")
+        for col in ("check", "value", "", "limit", "passed"):
+            table.add_column(col, justify="left" if col == "check" else "right")
+        for c in res.checks:
+            table.add_row(c.name, f"{c.value:.4g}", c.relation, f"{c.limit:.4g}",
+                          "yes" if c.passed else "[red]no[/red]")
+        con.print(table)
     if math.isfinite(res.T_ref_veh[0, 0]):
         con.print("T_ref_veh =")
         for row in res.T_ref_veh:
