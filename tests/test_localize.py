@@ -11,6 +11,9 @@ from lunarloc.geometry import invert_transform, rotation_angle, transform_points
 from lunarloc.localize import Mode, Solver
 
 
+RIGID = LocalizationConfig(odometry_scale_error=0.0, odometry_heading_drift_deg_per_m=0.0)  # stated rigid
+
+
 def pose_error(T_est, T_true):
     E = T_est @ invert_transform(T_true)
     return float(np.linalg.norm(E[:3, 3])), float(np.degrees(rotation_angle(E[:3, :3])))
@@ -253,10 +256,10 @@ def test_distortion_allowance_and_odometry_bounds(rng):
     pos, rot = distortion_allowance(q, inl, np.ones(3), 0.0, math.radians(0.1), path)
     assert rot[0] == pytest.approx(math.radians(0.1) * 25.0, rel=0.05)
     assert pos[0] == pytest.approx(rot[0] * 10.0, rel=0.05)
-    # the same rigid pair: accepted without bounds, refused when the odometry may be 3 % off
+    # the same rigid pair: accepted when stated rigid, refused when the odometry may be 3 % off
     ref, veh, T, _ = make_pair(rng, n_ref=150, n_common=40, n_outliers=0)
     far = transform_points(invert_transform(T), ref.positions_xyz[:1] + np.array([[15.0, 0, 0]]))
-    assert localize(ref, veh, query_xyz=far).success
+    assert localize(ref, veh, RIGID, query_xyz=far).success
     r = localize(ref, veh, LocalizationConfig(odometry_scale_error=0.03), query_xyz=far)
     assert not r.success and "uncertain" in r.reason and r.distortion_error_m > 0.3
 
@@ -268,7 +271,7 @@ def test_covariance_covers_the_truth():
     for seed in range(40):
         rng = np.random.default_rng(200 + seed)
         ref, veh, T, _ = make_pair(rng, n_ref=120, n_common=30, n_outliers=5, noise=0.02)
-        r = localize(ref, veh)
+        r = localize(ref, veh, RIGID)  # the registration's covariance alone: the maps are rigid by construction
         assert r.success, r.reason
         E = r.T_ref_veh @ invert_transform(T)
         err = -E[:3, 3]  # T_true = exp(xi) T_est: xi's translation is minus E's (small angles)
@@ -300,3 +303,63 @@ def test_chance_envelope_grows_with_the_search_tolerance():
     # measured: chance sets up to 2.0x larger at 3x the tolerance (benchmarks/chance_cliques.py --epsilon)
     assert wide >= 2.0 * base
     assert chance_clique_size(m, epsilon_m=0.08, epsilon_z_m=0.08) >= 1.33 * base
+
+
+def _drifted_strip(rng, drift_deg_per_m, scale_error, length_m=30.0, n_rocks=70):
+    """Rocks along a gently curving 30 m drive seen by drifting odometry (the rover's frame at
+    each rock's nearest path point carries the heading error accumulated so far): returns
+    (reference map, vehicle map, vehicle path, true rover end, vehicle rover end)."""
+    from lunarloc.evaluation import DriftModel, drifted_path
+
+    s = np.linspace(0, length_m, 301)
+    g = np.c_[s, 2.0 * np.sin(s / 12.0), np.zeros_like(s)]
+    o, psi = drifted_path(g, DriftModel(drift_deg_per_m, scale_error))
+    j = rng.integers(0, len(s), n_rocks)
+    rel = np.c_[rng.uniform(-3, 3, (n_rocks, 2)), rng.normal(0, 0.2, n_rocks)]
+    ref = g[j] + rel
+    c, sn = np.cos(psi[j]), np.sin(psi[j])
+    veh = o[j] + np.c_[c * rel[:, 0] - sn * rel[:, 1], sn * rel[:, 0] + c * rel[:, 1], rel[:, 2]]
+    veh = veh + rng.normal(0, 0.005, veh.shape)
+    return LandmarkMap(ref), LandmarkMap(veh), o, g[-1], o[-1]
+
+
+def test_bending_fit_recovers_drift_and_scale():
+    from lunarloc.localize import bending_fit
+
+    rng = np.random.default_rng(3)
+    ref, veh, path, _, end_v = _drifted_strip(rng, 0.1, 0.01)
+    inl = np.c_[np.arange(len(veh)), np.arange(len(ref))]
+    from lunarloc.geometry import arun
+
+    T = arun(veh.positions_xyz, ref.positions_xyz)
+    b = bending_fit(T, veh.positions_xyz, ref.positions_xyz, inl, end_v[None], path, 0.01, 0.3)
+    assert abs(math.degrees(b.drift_rad_per_m) - 0.1) < max(3 * math.degrees(b.drift_se), 0.01)
+    assert abs(b.scale_error - 0.01) < max(3 * b.scale_se, 0.002)
+    assert b.chi2_drop > 100 and b.shift_m > 0.1  # the rigid fit is far off at the end of the drive
+    # a rigid map: no bend found, and the model is sure of it
+    ref, veh, path, _, end_v = _drifted_strip(rng, 0.0, 0.0)
+    T = arun(veh.positions_xyz, ref.positions_xyz)
+    b = bending_fit(T, veh.positions_xyz, ref.positions_xyz, inl, end_v[None], path, 0.01, 0.3)
+    assert abs(b.drift_rad_per_m) < 3 * b.drift_se + 1e-6 and b.shift_m < 0.03 and b.sigma_m < 0.03
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_bent_map_without_bounds_is_never_confidently_wrong(seed):
+    """A drifted map whose reference covers only the first 60 % of the drive, judged at the
+    rover's end: assumed rigid it is claimed and wrong (nothing in the maps contradicts the
+    rigid fit); with no bounds stated the fitted bend refuses it, or it is right."""
+    rng = np.random.default_rng(10 + seed)
+    ref, veh, path, end_true, end_v = _drifted_strip(rng, 0.03, 0.005)
+    seen = ref.positions_xyz[:, 0] < 18.0
+    part = LandmarkMap(np.vstack([ref.positions_xyz[seen], rock_field(rng, 60) + [0, 20, 0]]))
+    rigid = localize(part, veh, RIGID, query_xyz=end_v[None], path_xyz=path)
+    r = localize(part, veh, query_xyz=end_v[None], path_xyz=path)
+    err = np.linalg.norm(transform_points(r.T_ref_veh, end_v[None])[0] - end_true)
+    assert rigid.success and err > 0.10  # what the rigid assumption gives: confident and wrong
+    assert not r.success, (r.reason, err)
+    assert r.distortion_fit["path_given"] and "fitted from the maps" in r.reason
+    # a rigid drive without bounds: still localized where the data fix the bend
+    ref, veh, path, end_true, end_v = _drifted_strip(rng, 0.0, 0.0)
+    r = localize(ref, veh, query_xyz=end_v[None], path_xyz=path)
+    assert r.success, r.reason
+    assert np.linalg.norm(transform_points(r.T_ref_veh, end_v[None])[0] - end_true) < 0.05

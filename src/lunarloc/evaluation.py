@@ -305,7 +305,9 @@ def bench_pairs(
     window_m: float | None = None,
     scale_about_centroid: float = 1.0,
 ) -> BenchSummary:
-    """Run :func:`run_pair` over `pairs` (default: all unordered pairs of traverses)."""
+    """Run :func:`run_pair` over `pairs` (default: all unordered pairs of traverses). Without
+    `loc_config` the localizer is told the simulated distortion as its odometry bounds (0 for
+    the ground-truth-posed maps); pass a config with no bounds to have it fitted from the maps."""
     paths = find_traverses(data_dir)
     if pairs is None:
         pairs = list(itertools.combinations(sorted(paths), 2))
@@ -314,6 +316,11 @@ def bench_pairs(
         for k in (a, b):
             if k not in paths:
                 raise InputError(f"traverse {k} not found in {data_dir}")
+    if loc_config is None:  # the maps' odometry bounds are known here: the simulated drift (0: ground-truth poses)
+        d = drift or DriftModel()
+        loc_config = LocalizationConfig(odometry_scale_error=abs(d.scale_error) if scale_about_centroid == 1.0 else
+                                        max(abs(d.scale_error), abs(scale_about_centroid - 1.0)),
+                                        odometry_heading_drift_deg_per_m=abs(d.heading_drift_deg_per_m))
     travs: dict[int, Traverse] = {}
     maps = {}
     summary = BenchSummary()

@@ -31,7 +31,9 @@ from lunarloc.association.clipper import clipper_clique
 from lunarloc.association.graph import RefPairIndex, graph_3d, sweep_yaw_bins, vehicle_pairs
 from lunarloc.association.putative import putative_associations
 from lunarloc.errors import ConfigError, DegenerateGeometryError, InputError
-from lunarloc.geometry import arun, arun_yaw, as_points, invert_transform, tilt_angle, transform_points, yaw_of
+from lunarloc.geometry import (
+    arun, arun_yaw, as_points, invert_transform, make_transform, rot_z, tilt_angle, transform_points, yaw_of,
+)
 from lunarloc.maps import LandmarkMap
 
 log = logging.getLogger(__name__)
@@ -127,8 +129,15 @@ class LocalizationConfig:
     near_miss_outer_m: float = 0.30  # vehicle landmarks landing refine_radius_m..this far from a reference rock are "near misses"
     max_near_miss_z: float = 3.0  # refuse when near misses exceed chance by this many standard deviations ...
     min_near_misses: int = 5  # ... and there are at least this many of them
-    odometry_scale_error: float = 0.0  # bound on the vehicle map's relative scale error (its odometry's spec)
-    odometry_heading_drift_deg_per_m: float = 0.0  # bound on the heading drift of the odometry that built it
+    # Bounds on the distortion of the odometry that built the vehicle map (its specification):
+    # relative scale error and heading drift. None (both): not stated, the distortion is fitted
+    # from the maps (:func:`bending_fit`) and its effect where the pose is used is added to the
+    # predicted error. 0 states a rigid map (e.g. built from ground-truth poses).
+    odometry_scale_error: float | None = None
+    odometry_heading_drift_deg_per_m: float | None = None
+    distortion_fit_sigmas: float = 2.0  # no bounds stated: allowance = fitted bend's shift (when significant) + this many sigmas
+    distortion_fit_confidence: float = 0.999  # the bend is significant when its chi-square drop exceeds this quantile (2 dof)
+    min_inliers_distortion_fit: int = 6  # fewer inliers cannot fix the 8 parameters of the bent model: no allowance, refused
     competitor_ratio: float = 1.5  # best must be this many times the best competing hypothesis
     competitor_yaw_sep_deg: float = 10.0  # hypotheses whose yaws differ more than this compete
     seed: int = 0  # CLIPPER initialisation
@@ -153,8 +162,13 @@ class LocalizationConfig:
             raise ConfigError("min_inliers must be >= 3")
         if not self.near_miss_outer_m > 0 or not self.landmark_sigma_m > 0 or not self.landmark_sigma_z_m > 0:
             raise ConfigError("near_miss_outer_m, landmark_sigma_m and landmark_sigma_z_m must be positive")
-        if self.odometry_scale_error < 0 or self.odometry_heading_drift_deg_per_m < 0:
+        if (self.odometry_scale_error or 0.0) < 0 or (self.odometry_heading_drift_deg_per_m or 0.0) < 0:
             raise ConfigError("odometry_scale_error and odometry_heading_drift_deg_per_m must be >= 0")
+
+    @property
+    def odometry_bounds_stated(self) -> bool:
+        """Whether the odometry's distortion bounds are given (else they are fitted from the maps)."""
+        return self.odometry_scale_error is not None or self.odometry_heading_drift_deg_per_m is not None
 
     @property
     def sigma(self) -> float:
@@ -226,6 +240,7 @@ class LocalizationResult:
     covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
     timings: dict = field(default_factory=dict)
     checks: list = field(default_factory=list)  # the acceptance tests (:class:`Check`) of :func:`verify`
+    distortion_fit: dict = field(default_factory=dict)  # :class:`BendFit` when no odometry bounds were stated
 
     @property
     def num_inliers(self) -> int:
@@ -266,6 +281,7 @@ class LocalizationResult:
             "covariance": [[clean(float(v)) for v in row] for row in self.covariance],
             "timings_s": {k: round(v, 6) for k, v in self.timings.items()},
             "checks": [c.to_dict() for c in self.checks],
+            "distortion_fit": {k: clean(v) for k, v in self.distortion_fit.items()},
         }
 
 
@@ -506,6 +522,183 @@ def distortion_allowance(query_xyz, inliers_xyz, weights, scale_error: float, he
     return scale_error * L + rot * L, rot
 
 
+@dataclass
+class BendFit:
+    """A non-rigid model of the vehicle map fitted to its inliers (:func:`bending_fit`): the
+    odometry that built it drifted in heading by ``drift_rad_per_m`` per metre travelled and
+    mis-scaled its path by ``scale_error``, each with its standard error.
+
+    ``shift_m`` : largest distance, over the query points, between where the rigid fit and the
+        bent model put them (what the rigid pose gets wrong if the map is bent as fitted);
+    ``sigma_m`` : largest 1-sigma position uncertainty of the bent model there (how well the
+        data fix the bending as seen from the query points: large when the inliers cover little
+        of the path);
+    ``rotation_shift_deg`` / ``rotation_sigma_deg`` : the same for the heading at the query points;
+    ``chi2_drop`` : decrease of the inliers' chi-square from the rigid fit to the bent model
+        (2 extra parameters: above ~13.8 the bend is real at 0.999 confidence);
+    ``inliers`` : inlier pairs the bent model gathers; ``path_given`` : False when the path
+        was not given and a straight path along the map's principal axis stood in for it."""
+
+    drift_rad_per_m: float
+    drift_se: float
+    scale_error: float
+    scale_se: float
+    shift_m: float
+    sigma_m: float
+    rotation_shift_deg: float
+    rotation_sigma_deg: float
+    chi2_drop: float
+    inliers: int
+    path_given: bool
+
+
+def _straight_path(points_xyz: np.ndarray, step_m: float = 0.25) -> np.ndarray:
+    """A stand-in odometry path: a straight line along the horizontal principal axis of the
+    points, over their extent (a traverse that drove straight through its map)."""
+    P = np.asarray(points_xyz, float)
+    c = P.mean(axis=0)
+    _, _, Vt = np.linalg.svd(P[:, :2] - c[:2], full_matrices=False)
+    a = np.r_[Vt[0], 0.0]
+    u = (P - c) @ a
+    t = np.arange(u.min(), u.max() + step_m, step_m)
+    return c + t[:, None] * a
+
+
+class _Unbender:
+    """Undo a heading drift ``delta`` (rad per metre travelled) and a path scale error
+    ``kappa`` in vehicle-frame points, each placed at its nearest (horizontally) point of the
+    odometry path: the path is re-integrated with every step turned back by -delta * s (s its
+    distance travelled) and shrunk by 1 / (1 + kappa); a point keeps its offset from its path
+    point (a stereo measurement, not odometry), turned back with it."""
+
+    def __init__(self, path_xyz: np.ndarray, spacing_m: float = 0.25):
+        path = np.asarray(path_xyz, float)
+        arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(path[:, :2], axis=0), axis=1))]
+        keep = np.unique(np.r_[np.searchsorted(arc, np.arange(0.0, arc[-1], spacing_m)), len(path) - 1])
+        self.path = path[keep]  # one point every spacing_m: the model's cost does not grow with the frame rate
+        self.steps = np.diff(self.path, axis=0)
+        self.s = np.r_[0.0, np.cumsum(np.linalg.norm(self.steps[:, :2], axis=1))]
+        self.tree = cKDTree(self.path[:, :2])
+
+    def index(self, points_xyz: np.ndarray) -> np.ndarray:
+        return self.tree.query(np.asarray(points_xyz, float)[:, :2])[1]
+
+    def __call__(self, points_xyz: np.ndarray, idx: np.ndarray, delta: float, kappa: float) -> np.ndarray:
+        a = -delta * self.s[1:]
+        c, sn = np.cos(a), np.sin(a)
+        st = self.steps
+        turned = np.stack([c * st[:, 0] - sn * st[:, 1], sn * st[:, 0] + c * st[:, 1], st[:, 2]], axis=1)
+        path = self.path[0] + np.vstack([np.zeros((1, 3)), np.cumsum(turned / (1.0 + kappa), axis=0)])
+        rel = np.asarray(points_xyz, float) - self.path[idx]
+        b = -delta * self.s[idx]
+        cb, sb = np.cos(b), np.sin(b)
+        return path[idx] + np.stack([cb * rel[:, 0] - sb * rel[:, 1], sb * rel[:, 0] + cb * rel[:, 1], rel[:, 2]], axis=1)
+
+    def heading(self, idx: np.ndarray, delta: float) -> np.ndarray:
+        """Heading correction (rad) the model applies at path points `idx`."""
+        return -delta * self.s[idx]
+
+
+def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius_m: float) -> BendFit:
+    """Fit a bent (heading drift) and scaled (path scale error) model of the vehicle map to
+    its inliers, starting from the rigid fit T: parameters rotation vector, translation, drift
+    per metre and scale error, by least squares on the 3D residuals over `sigma_axis_m` (the
+    landmarks' per-axis noise; the residuals' own scale when larger). Inliers are gathered
+    again under the model (mutual nearest neighbours within `radius_m`, 2 rounds), so the
+    part of a bent map the rigid fit left out can show its bend. Covariance from the Jacobian;
+    the query points' positions and headings under the model, with their uncertainty, are
+    compared with the rigid fit's. Without `path_xyz` a straight path along the map's
+    principal axis stands in (a rough proxy for a winding traverse)."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    q = np.asarray(query_xyz, float).reshape(-1, 3)
+    given = path_xyz is not None and len(path_xyz) >= 2
+    unb = _Unbender(path_xyz if given else _straight_path(np.vstack([Pv, q])))
+    idx_all = unb.index(Pv)
+    idx_q = unb.index(q)
+    tree = cKDTree(Pr)
+    R0 = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+
+    def model_T(x):
+        return make_transform(Rotation.from_rotvec(x[:3]).as_matrix(), x[3:6])
+
+    def apply(x, P, idx):
+        return transform_points(model_T(x), unb(P, idx, x[6], x[7]))
+
+    x = np.r_[R0, T[:3, 3], 0.0, 0.0]
+    pairs = np.asarray(inl)
+    chi2_rigid = chi2_bent = 0.0
+    first_round = True
+    for _ in range(3):
+        v, r = pairs[:, 0], pairs[:, 1]
+        used = len(pairs)
+
+        def resid(xx):
+            return ((apply(xx, Pv[v], idx_all[v]) - Pr[r]) / sigma_axis_m).ravel()
+
+        sol = least_squares(resid, x, x_scale=np.r_[np.full(3, 1e-3), np.full(3, 1e-2), 1e-4, 1e-3], method="lm",
+                            max_nfev=200)
+        if first_round:  # on the rigid fit's own inliers
+            chi2_rigid, chi2_bent = float(np.sum(resid(x) ** 2)), float(np.sum(sol.fun**2))
+            first_round = False
+        x = sol.x
+        d, j = tree.query(apply(x, Pv, idx_all), distance_upper_bound=radius_m)
+        ok = np.flatnonzero(np.isfinite(d))
+        order = ok[np.argsort(d[ok])]
+        _, first = np.unique(j[order], return_index=True)
+        new = np.stack([order[first], j[order[first]]], axis=1)
+        if len(new) <= len(pairs):
+            break
+        pairs = new
+    J = sol.jac
+    dof = max(J.shape[0] - 8, 1)
+    s2 = max(1.0, float(np.sum(sol.fun**2)) / dof)  # residuals noisier than the stated sigma widen the covariance
+    try:
+        C = s2 * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        C = np.full((8, 8), np.inf)
+
+    def at_query(xx):  # positions (3 per query point), then the map's local heading at each
+        R = model_T(xx)[:3, :3]
+        return np.r_[apply(xx, q, idx_q).ravel(), [yaw_of(R @ rot_z(h)) for h in unb.heading(idx_q, xx[6])]]
+
+    f0 = at_query(x)
+    Jq = np.empty((len(f0), 8))
+    for i in range(8):
+        h = 1e-6 if i == 6 else 1e-5
+        dx = np.zeros(8)
+        dx[i] = h
+        Jq[:, i] = (at_query(x + dx) - at_query(x - dx)) / (2 * h)
+    n = len(q)
+    var = np.einsum("ij,jk,ik->i", Jq, C, Jq) if np.all(np.isfinite(C)) else np.full(len(f0), np.inf)
+    pos_var = var[: 3 * n].reshape(-1, 3).sum(axis=1)
+    shift = np.linalg.norm(f0[: 3 * n].reshape(-1, 3) - transform_points(T, q), axis=1)
+    dyaw = np.abs((f0[3 * n:] - yaw_of(T[:3, :3]) + math.pi) % (2 * math.pi) - math.pi)
+    return BendFit(
+        drift_rad_per_m=float(x[6]), drift_se=float(math.sqrt(max(C[6, 6], 0.0))), scale_error=float(x[7]),
+        scale_se=float(math.sqrt(max(C[7, 7], 0.0))), shift_m=float(shift.max()),
+        sigma_m=float(math.sqrt(max(pos_var.max(), 0.0))), rotation_shift_deg=math.degrees(float(dyaw.max())),
+        rotation_sigma_deg=math.degrees(math.sqrt(max(float(var[3 * n:].max()), 0.0))), chi2_drop=chi2_rigid - chi2_bent,
+        inliers=int(used), path_given=bool(given),
+    )
+
+
+def fitted_allowance(bend: BendFit, cfg: "LocalizationConfig") -> tuple[float, float]:
+    """Position (m) and rotation (rad) allowance at the query points from a fitted bend when no
+    odometry bounds are stated: the bent model's shift from the rigid fit where it is
+    significant (chi-square drop beyond its `distortion_fit_confidence` quantile, 2 dof),
+    plus `distortion_fit_sigmas` times the bent model's own uncertainty there (the bend the
+    data cannot exclude). Not finite when the fit is not."""
+    from scipy.stats import chi2
+
+    significant = bend.chi2_drop > chi2.ppf(cfg.distortion_fit_confidence, 2)
+    k = cfg.distortion_fit_sigmas
+    pos = (bend.shift_m if significant else 0.0) + k * bend.sigma_m
+    rot = (bend.rotation_shift_deg if significant else 0.0) + k * bend.rotation_sigma_deg
+    return (pos, math.radians(rot)) if math.isfinite(pos) and math.isfinite(rot) else (math.inf, math.inf)
+
+
 def near_miss_excess(T, Pv, Pr, inlier_veh: np.ndarray, inner_m: float, outer_m: float,
                      density_radius_m: float = 1.5) -> tuple[int, float]:
     """(observed, expected by chance) number of non-inlier vehicle landmarks whose nearest
@@ -638,6 +831,7 @@ class Evidence:
     chance_inliers: float
     num_associations: int
     competitor: int
+    distortion_fitted: bool = False  # the distortion allowance was fitted from the maps, not from stated bounds
 
 
 def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
@@ -680,17 +874,18 @@ def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
         f"vehicle map is not rigid: {ev.near_misses} of its landmarks land {ev.near_inner_m * 100:.0f}-"
         f"{ev.near_outer_m * 100:.0f} cm from a reference rock where chance gives {ev.near_misses_expected:.1f} "
         "(scaled or bent by odometry drift away from the inliers)"))
+    source = "fitted from the maps, no odometry bounds stated" if ev.distortion_fitted else "from the odometry bounds"
     out.append(_at_most(
         "predicted_error", cfg.predicted_error_sigmas * ev.predicted_error_m, cfg.max_predicted_error_m,
         f"pose too uncertain where it is used: predicted error up to {cfg.predicted_error_sigmas:g} x "
         f"{ev.predicted_error_m * 100:.1f} cm (allowed {cfg.max_predicted_error_m * 100:.0f} cm"
-        f"{'' if ev.distortion_error_m == 0 else f'; odometry distortion up to {ev.distortion_error_m * 100:.1f} cm'})",
+        f"{'' if ev.distortion_error_m == 0 else f'; odometry distortion up to {ev.distortion_error_m * 100:.1f} cm, {source}'})",
         "predicted position error where the pose is used (m)"))
     out.append(_at_most(
         "predicted_rotation", cfg.predicted_error_sigmas * ev.predicted_rotation_deg, cfg.max_predicted_rotation_deg,
         f"heading too uncertain: predicted rotation error {cfg.predicted_error_sigmas:g} x "
         f"{ev.predicted_rotation_deg:.2f} deg (allowed {cfg.max_predicted_rotation_deg:g} deg; odometry heading "
-        f"drift up to {ev.distortion_rotation_deg:.2f} deg)",
+        f"drift up to {ev.distortion_rotation_deg:.2f} deg, {source})",
         "predicted rotation error (deg)"))
     out.append(_at_least(
         "inliers_vs_chance", ev.inliers_beyond_chance, ev.required_inliers,
@@ -782,10 +977,19 @@ def localize(
     query = Pv if query_xyz is None else as_points(query_xyz, "query points")
     C_c, centre_ref = pose_covariance(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w)
     pred_fit = predicted_error(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, query)
-    distortion, distortion_rot = distortion_allowance(
-        query, Pv[inl[:, 0]], w, cfg.odometry_scale_error, math.radians(cfg.odometry_heading_drift_deg_per_m),
-        None if path_xyz is None else as_points(path_xyz, "vehicle path"),
-    )
+    path = None if path_xyz is None else as_points(path_xyz, "vehicle path")
+    bend = None
+    if cfg.odometry_bounds_stated:
+        distortion, distortion_rot = distortion_allowance(
+            query, Pv[inl[:, 0]], w, cfg.odometry_scale_error or 0.0,
+            math.radians(cfg.odometry_heading_drift_deg_per_m or 0.0), path,
+        )
+    else:  # no bounds stated: what the maps show of a bend or scale error, and how unsure that is
+        distortion, distortion_rot = np.array([math.inf]), np.array([math.inf])
+        if len(inl) >= cfg.min_inliers_distortion_fit:
+            bend = bending_fit(T, Pv, Pr, inl, query, path, math.sqrt((2 * sigma_h**2 + sigma_z**2) / 3),
+                               cfg.refine_radius_m)
+            distortion[0], distortion_rot[0] = fitted_allowance(bend, cfg)
     pred = pred_fit + distortion  # the distortion is a bound (a bias), not a random error: added, not in quadrature
     rot_sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(C_c[3:, 3:]))), 0.0)) if np.all(np.isfinite(C_c)) else math.inf
     pred_rot_deg = math.degrees(rot_sigma + float(distortion_rot.max()))
@@ -815,7 +1019,7 @@ def localize(
         predicted_error_m=float(pred.max()), scale_error=dscale,
         yaw_deg=math.degrees(yaw_of(R)), tilt_deg=math.degrees(tilt_angle(R)),
         distortion_error_m=float(distortion.max()), predicted_rotation_deg=pred_rot_deg, near_misses=near, near_misses_expected=near_exp,
-        covariance=covariance_at_origin(C_c, centre_ref), **base,
+        covariance=covariance_at_origin(C_c, centre_ref), distortion_fit={} if bend is None else asdict(bend), **base,
     )
     Q = Pr[inl[:, 1]]
     s = np.linalg.svd(Q - Q.mean(axis=0), compute_uv=False) / math.sqrt(len(Q))
@@ -831,7 +1035,7 @@ def localize(
         predicted_error_m=float(pred.max()), distortion_error_m=float(distortion.max()),
         predicted_rotation_deg=pred_rot_deg, distortion_rotation_deg=math.degrees(float(distortion_rot.max())),
         inliers_beyond_chance=k_chance, required_inliers=required, chance_inliers=chance, num_associations=m,
-        competitor=int(competitor),
+        competitor=int(competitor), distortion_fitted=bend is not None,
     )
     out.checks = verify(ev, cfg)
     failed = [c for c in out.checks if not c.passed]

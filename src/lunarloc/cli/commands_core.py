@@ -103,10 +103,13 @@ def localize_cmd(
         None, help="Prune associations whose size ratio exceeds this (maps with a size column)."
     ),
     dem: Optional[Path] = typer.Option(None, "--dem", help="LAC geometric map giving heights to a catalogue without z."),
-    odometry_scale_error: float = typer.Option(
-        0.0, help="Bound on the vehicle map's relative scale error (its odometry's spec, 0.03 = 3 %)."
+    odometry_scale_error: Optional[float] = typer.Option(
+        None, help="Bound on the vehicle map's relative scale error (its odometry's spec, 0.03 = 3 %; 0: a rigid "
+        "map). Without either bound the distortion is fitted from the maps."
     ),
-    odometry_drift: float = typer.Option(0.0, help="Bound on the odometry's heading drift, degrees per metre."),
+    odometry_drift: Optional[float] = typer.Option(
+        None, help="Bound on the odometry's heading drift, degrees per metre (0: a rigid map)."
+    ),
     radius: Optional[float] = RADIUS_OPT,
     min_sightings: Optional[int] = SIGHT_OPT,
     search: str = typer.Option(
@@ -218,8 +221,8 @@ def bench_pairs_cmd(
     ]
     cfg = LocalizationConfig(
         mode=mode, solver=solver,
-        odometry_scale_error=abs(scale_error) if odometry_bounds else 0.0,
-        odometry_heading_drift_deg_per_m=abs(drift) if odometry_bounds else 0.0,
+        odometry_scale_error=abs(scale_error) if odometry_bounds else None,
+        odometry_heading_drift_deg_per_m=abs(drift) if odometry_bounds else None,
     )
     con = console()
     with Progress(console=con, transient=True) as prog:
