@@ -363,3 +363,19 @@ def test_bent_map_without_bounds_is_never_confidently_wrong(seed):
     r = localize(ref, veh, query_xyz=end_v[None], path_xyz=path)
     assert r.success, r.reason
     assert np.linalg.norm(transform_points(r.T_ref_veh, end_v[None])[0] - end_true) < 0.05
+
+
+def test_bench_coverage_counts_errors_inside_the_predicted_sigmas():
+    from lunarloc.evaluation import BenchSummary, PairResult, covariance_d2
+
+    E = np.eye(4)
+    E[:3, 3] = [0.03, 0.0, 0.0]
+    assert covariance_d2(E, np.diag([0.01**2] * 3 + [1e-6] * 3)) == pytest.approx(9.0)
+    rows = [PairResult(1, 2, 10, 10, 8, True, True, 0.01, e, 0.1, 0.0, "ok", predicted_error_m=0.02,
+                       predicted_rotation_deg=0.2, covariance_d2=d2)
+            for e, d2 in ((0.01, 1.0), (0.03, 5.0), (0.07, 20.0))]
+    rows.append(PairResult(1, 3, 10, 10, 0, False, False, math.nan, math.nan, math.nan, 0.0, "refused"))
+    c = BenchSummary(rows).coverage()
+    assert c["n"] == 3
+    assert c["position_1sigma"] == pytest.approx(1 / 3) and c["position_3sigma"] == pytest.approx(2 / 3)
+    assert c["covariance_1sigma"] == pytest.approx(1 / 3) and c["covariance_3sigma"] == pytest.approx(2 / 3)
