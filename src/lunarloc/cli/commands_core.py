@@ -162,6 +162,13 @@ def localize_cmd(
             f"predicted 1-sigma error {res.predicted_error_m * 100:.1f} cm, {res.predicted_rotation_deg:.2f} deg; "
             f"near misses {res.near_misses} (chance {res.near_misses_expected:.1f})"
         )
+    if res.distortion_fit:
+        f = res.distortion_fit
+        con.print(
+            f"no odometry bounds stated: fitted heading drift {math.degrees(f['drift_rad_per_m']):+.3f} "
+            f"+- {math.degrees(f['drift_se']):.3f} deg/m, scale error {f['scale_error'] * 100:+.2f} "
+            f"+- {f['scale_se'] * 100:.2f} % ({'along the given path' if f['path_given'] else 'path unknown: straight stand-in'})"
+        )
     if res.checks:
         from rich.table import Table
 
