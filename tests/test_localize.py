@@ -379,3 +379,15 @@ def test_bench_coverage_counts_errors_inside_the_predicted_sigmas():
     assert c["n"] == 3
     assert c["position_1sigma"] == pytest.approx(1 / 3) and c["position_3sigma"] == pytest.approx(2 / 3)
     assert c["covariance_1sigma"] == pytest.approx(1 / 3) and c["covariance_3sigma"] == pytest.approx(2 / 3)
+
+
+def test_distortion_covariance_moves_the_allowance_to_the_origin():
+    from lunarloc.localize import distortion_covariance
+
+    assert not distortion_covariance(np.array([10.0, 0, 0]), 0.0, 0.0).any()
+    assert not distortion_covariance(np.array([10.0, 0, 0]), math.inf, 0.01).any()
+    C = distortion_covariance(np.array([10.0, 0, 0]), 0.02, 0.01)
+    # a yaw error of 0.01 rad about a point 10 m out moves the origin by 0.1 m sideways
+    assert C[1, 1] == pytest.approx(0.02**2 / 2 + (10 * 0.01) ** 2)
+    assert C[0, 0] == pytest.approx(0.02**2 / 2) and C[5, 5] == pytest.approx(1e-4)
+    assert np.allclose(C, C.T) and np.all(np.linalg.eigvalsh(C) >= -1e-12)

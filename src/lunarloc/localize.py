@@ -212,8 +212,10 @@ class LocalizationResult:
         the distortion allowance (``distortion_error_m``) of the odometry bounds in the config.
     covariance : 6x6 covariance of the pose error ``xi = (rho, phi)`` (metres, radians), a
         left perturbation in the reference frame: ``T_true = exp(xi) T_ref_veh``, i.e. a
-        reference point p is off by ``rho + phi x p``. From the inlier residuals
-        (registration only; the distortion allowance is not in it).
+        reference point p is off by ``rho + phi x p``. From the inlier residuals, plus the
+        distortion allowance (when there is one) taken as one sigma of horizontal position
+        and yaw at the query point where the predicted error is largest
+        (:func:`distortion_covariance`).
     near_misses : vehicle landmarks that land just outside the inlier radius of a reference
         rock (``refine_radius_m`` .. ``near_miss_outer_m``), against ``near_misses_expected``
         by chance (local reference density): an excess means the map is not rigid.
@@ -469,6 +471,19 @@ def covariance_at_origin(C_c: np.ndarray, c: np.ndarray) -> np.ndarray:
     A = np.eye(6)
     A[:3, 3:] = _skew(c)
     return A @ C_c @ A.T
+
+
+def distortion_covariance(point_ref: np.ndarray, position_m: float, rotation_rad: float) -> np.ndarray:
+    """6x6 pose-error covariance about the reference origin of a distortion allowance at a
+    reference-frame point: `position_m` as one sigma of horizontal position there (split
+    over x and y) and `rotation_rad` as one sigma of yaw. Zero when there is no allowance,
+    and when it is not finite (the pose is refused then)."""
+    C = np.zeros((6, 6))
+    if not (position_m > 0 or rotation_rad > 0) or not (math.isfinite(position_m) and math.isfinite(rotation_rad)):
+        return C
+    C[0, 0] = C[1, 1] = position_m**2 / 2
+    C[5, 5] = rotation_rad**2
+    return covariance_at_origin(C, np.asarray(point_ref, float))
 
 
 def predicted_error(T, P, Q, weights, query_xyz, sigma_floor: float = 0.005) -> np.ndarray:
@@ -1019,7 +1034,10 @@ def localize(
         predicted_error_m=float(pred.max()), scale_error=dscale,
         yaw_deg=math.degrees(yaw_of(R)), tilt_deg=math.degrees(tilt_angle(R)),
         distortion_error_m=float(distortion.max()), predicted_rotation_deg=pred_rot_deg, near_misses=near, near_misses_expected=near_exp,
-        covariance=covariance_at_origin(C_c, centre_ref), distortion_fit={} if bend is None else asdict(bend), **base,
+        covariance=covariance_at_origin(C_c, centre_ref) + distortion_covariance(
+            transform_points(T, query[int(np.argmax(pred_fit + distortion))][None])[0],
+            float(distortion.max()), float(distortion_rot.max())),
+        distortion_fit={} if bend is None else asdict(bend), **base,
     )
     Q = Pr[inl[:, 1]]
     s = np.linalg.svd(Q - Q.mean(axis=0), compute_uv=False) / math.sqrt(len(Q))
