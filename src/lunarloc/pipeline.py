@@ -92,7 +92,10 @@ class LoopConfig:
     active_window_m: float = 40.0  # each solve re-optimises keyframes of the last active_window_m metres
     keyframe_every_s: float = 0.5  # traverse-CSV variant: keyframe period (frames with detections)
     aggregation: AggregationConfig = field(default_factory=lambda: AggregationConfig(min_sightings=2, min_frames=2))
-    localization: LocalizationConfig = field(default_factory=LocalizationConfig)
+    # windows stated rigid (odometry bounds 0), as before the fitted distortion: the loop passes
+    # no path or rover position to localize() yet, and its pose graph and fix gate model the drift
+    localization: LocalizationConfig = field(default_factory=lambda: LocalizationConfig(
+        odometry_scale_error=0.0, odometry_heading_drift_deg_per_m=0.0))
     fusion: FusionConfig = field(default_factory=FusionConfig)
 
     def __post_init__(self) -> None:
@@ -110,7 +113,8 @@ class LoopConfig:
         dataset's): 8 cm consistency tolerance and residual RMSE, an 8 m window (less odometry
         distortion inside it before the first fix), predicted error up to 15 cm."""
         loc = LocalizationConfig(epsilon_m=0.08, epsilon_z_m=0.08, max_rmse_m=0.08, refine_radius_m=0.16,
-                                 max_predicted_error_m=0.15)  # fmt: skip
+                                 max_predicted_error_m=0.15, odometry_scale_error=0.0,
+                                 odometry_heading_drift_deg_per_m=0.0)  # fmt: skip
         return cls(**{"window_m": 8.0, "localization": loc, **overrides})
 
     def to_dict(self) -> dict:

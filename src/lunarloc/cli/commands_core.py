@@ -103,10 +103,13 @@ def localize_cmd(
         None, help="Prune associations whose size ratio exceeds this (maps with a size column)."
     ),
     dem: Optional[Path] = typer.Option(None, "--dem", help="LAC geometric map giving heights to a catalogue without z."),
-    odometry_scale_error: float = typer.Option(
-        0.0, help="Bound on the vehicle map's relative scale error (its odometry's spec, 0.03 = 3 %)."
+    odometry_scale_error: Optional[float] = typer.Option(
+        None, help="Bound on the vehicle map's relative scale error (its odometry's spec, 0.03 = 3 %; 0: a rigid "
+        "map). Without either bound the distortion is fitted from the maps."
     ),
-    odometry_drift: float = typer.Option(0.0, help="Bound on the odometry's heading drift, degrees per metre."),
+    odometry_drift: Optional[float] = typer.Option(
+        None, help="Bound on the odometry's heading drift, degrees per metre (0: a rigid map)."
+    ),
     radius: Optional[float] = RADIUS_OPT,
     min_sightings: Optional[int] = SIGHT_OPT,
     search: str = typer.Option(
@@ -159,6 +162,23 @@ def localize_cmd(
             f"predicted 1-sigma error {res.predicted_error_m * 100:.1f} cm, {res.predicted_rotation_deg:.2f} deg; "
             f"near misses {res.near_misses} (chance {res.near_misses_expected:.1f})"
         )
+    if res.distortion_fit:
+        f = res.distortion_fit
+        con.print(
+            f"no odometry bounds stated: fitted heading drift {math.degrees(f['drift_rad_per_m']):+.3f} "
+            f"+- {math.degrees(f['drift_se']):.3f} deg/m, scale error {f['scale_error'] * 100:+.2f} "
+            f"+- {f['scale_se'] * 100:.2f} % ({'along the given path' if f['path_given'] else 'path unknown: straight stand-in'})"
+        )
+    if res.checks:
+        from rich.table import Table
+
+        table = Table(title="checks (the first that fails is the reason)")
+        for col in ("check", "value", "", "limit", "passed"):
+            table.add_column(col, justify="left" if col == "check" else "right")
+        for c in res.checks:
+            table.add_row(c.name, f"{c.value:.4g}", c.relation, f"{c.limit:.4g}",
+                          "yes" if c.passed else "[red]no[/red]")
+        con.print(table)
     if math.isfinite(res.T_ref_veh[0, 0]):
         con.print("T_ref_veh =")
         for row in res.T_ref_veh:
@@ -208,8 +228,8 @@ def bench_pairs_cmd(
     ]
     cfg = LocalizationConfig(
         mode=mode, solver=solver,
-        odometry_scale_error=abs(scale_error) if odometry_bounds else 0.0,
-        odometry_heading_drift_deg_per_m=abs(drift) if odometry_bounds else 0.0,
+        odometry_scale_error=abs(scale_error) if odometry_bounds else None,
+        odometry_heading_drift_deg_per_m=abs(drift) if odometry_bounds else None,
     )
     con = console()
     with Progress(console=con, transient=True) as prog:
