@@ -351,7 +351,9 @@ class LoopState:
             return att
         t0 = time.perf_counter()
         try:
-            res = localize(ref, veh, self.localization)
+            # the pose is judged where it is used (the rover now, keyframe k) and the distance
+            # travelled between inliers and rover is measured along the window's path
+            res = localize(ref, veh, self.localization, query_xyz=poses[k, :3], path_xyz=poses[win, :3])
         except LunarLocError as exc:
             att.time_association_s = time.perf_counter() - t0
             self.timings["association"] += att.time_association_s

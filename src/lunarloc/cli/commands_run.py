@@ -201,6 +201,11 @@ def bench_loop_cmd(
     scale_error: Optional[float] = typer.Option(None, "--scale-error", help="Simulated odometry scale error (default 0.02 = 2%)."),
     traverses: Optional[str] = typer.Option(None, "--traverses", help="Comma-separated vehicle traverses (default all)."),
     min_length: float = typer.Option(5.0, "--min-length", help="Skip vehicle traverses shorter than this (m)."),
+    odometry_bounds: bool = typer.Option(
+        False, "--odometry-bounds/--no-odometry-bounds",
+        help="Tell the localizer the simulated drift as its odometry's bounds (localization.odometry_scale_error, "
+        "odometry_heading_drift_deg_per_m), as bench pairs does.",
+    ),  # fmt: skip
     overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """The online loop on the real LunarLoc traverses (world-frame detections, no images) with
@@ -222,6 +227,9 @@ def bench_loop_cmd(
         raise ConfigError(f"--traverses must be comma-separated traverse numbers, got {traverses!r}") from None
     cfg, _ = _run_config(config, RunConfig.for_detections())
     cfg = cfg.with_options(odometry__heading_drift_deg_per_m=heading_drift, odometry__scale_error=scale_error)
+    if odometry_bounds:
+        cfg = cfg.with_options(localization__odometry_scale_error=abs(cfg.odometry.scale_error),
+                               localization__odometry_heading_drift_deg_per_m=cfg.odometry.heading_drift_deg_per_m)  # fmt: skip
     check_output_dir(out, overwrite, ("loop.json",), marker=None)
     for k in wanted or find_traverses(data):
         check_output_dir(out / f"traverse_{k}", overwrite)
