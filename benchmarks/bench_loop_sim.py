@@ -33,6 +33,7 @@ import numpy as np
 from lunarloc.data.render import SiteRenderer
 from lunarloc.data.simulate import SimulationConfig, simulate_site, simulate_traverse
 from lunarloc.data.site import SiteConfig
+from lunarloc.geometry import pose_to_matrix
 from lunarloc.config import RunConfig
 from lunarloc.pipeline import run
 from lunarloc.reference import build_reference_map, load_reference
@@ -98,7 +99,7 @@ def main() -> None:
         if a.heading_bias_std is not None:  # replay the same images with the stronger drift
             odometry = replay_odometry(veh, seed, cfg.odometry)
         t0 = time.perf_counter()
-        res = run(ArchiveSource(veh, run_cfg.odometry, odometry_poses=odometry), ref, run_cfg)
+        res = run(ArchiveSource(veh, run_cfg.odometry, odometry_poses=None if odometry is None else np.stack([pose_to_matrix(*p) for p in odometry])), ref, run_cfg)
         wall = time.perf_counter() - t0
         s = write_run(res, d / f"run_{a.reference}{sfx}")
         s.update(seed=seed, simulate_s=round(t_sim, 1), loop_wall_s=round(wall, 1), reference=a.reference)

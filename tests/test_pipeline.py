@@ -114,3 +114,24 @@ def test_real_traverse_loop():
     s = run(TraverseCsvSource(veh, DriftModel(0.05, 0.02)), ref, RunConfig.for_detections()).summary()
     assert s["fixes"] > 0
     assert s["ate_corrected"]["rmse_m"] < s["ate_odometry"]["rmse_m"]
+
+
+def test_loop_judges_the_pose_at_the_rover(monkeypatch):
+    """Each attempt hands localize() the rover's position (query_xyz, 1 x 3) and the window's
+    path (path_xyz), both in the local map's frame: the pose is judged where it is used."""
+    import lunarloc.loop as loop_mod
+
+    seen = []
+    real = loop_mod.localize
+
+    def spy(ref, veh, cfg, query_xyz=None, path_xyz=None):
+        seen.append((np.asarray(query_xyz), np.asarray(path_xyz)))
+        return real(ref, veh, cfg, query_xyz=query_xyz, path_xyz=path_xyz)
+
+    monkeypatch.setattr(loop_mod, "localize", spy)
+    rocks, trav = synthetic_traverse(length_m=8.0)
+    res = run(TraverseCsvSource(trav, DriftModel(0.1, 0.03)), LandmarkMap(rocks), RunConfig.for_detections())
+    assert seen and len(seen) == sum(a.landmarks >= 6 and a.reference_landmarks >= 3 for a in res.attempts)
+    for q, path in seen:
+        assert q.shape == (1, 3) and path.ndim == 2 and path.shape[1] == 3 and len(path) >= 2
+        assert np.allclose(q[0], path[-1])  # the rover is at the window's newest keyframe

@@ -244,10 +244,12 @@ class LoopState:
         self.T_map_odo = np.eye(4)  # the latest keyframe's correction
 
     # -------------------------------------------------------------- per frame
-    def step(self, frame: int, t: float, odo_pose6, detections_rover: np.ndarray | None = None,
-             gt_pose6=None, keyframe: bool | None = None) -> Attempt | None:  # fmt: skip
-        """Feed one frame; returns the localization attempt made at it, if any."""
-        q = np.asarray(odo_pose6, float).reshape(6)
+    def step(self, frame: int, t: float, T_odo_rover: np.ndarray, detections_rover: np.ndarray | None = None,
+             T_map_rover_true: np.ndarray | None = None, keyframe: bool | None = None) -> Attempt | None:  # fmt: skip
+        """Feed one frame (its odometry pose, 4x4); returns the localization attempt made at it,
+        if any. The frame's results (odometry, online estimate, ground truth) are kept as
+        (x, y, z, roll, pitch, yaw) rows, the run's trajectory format."""
+        q = np.asarray(matrix_to_pose(T_odo_rover), float)
         if self.odo:
             step = float(np.linalg.norm(q[:3] - self.odo[-1][:3]))
             if step > 1e-6 or abs(float(wrap_angle(q[5] - self.odo[-1][5]))) > 1e-6:
@@ -256,7 +258,7 @@ class LoopState:
         self.frames.append(int(frame))
         self.times.append(float(t))
         self.odo.append(q)
-        self.gt.append(None if gt_pose6 is None else np.asarray(gt_pose6, float).reshape(6))
+        self.gt.append(None if T_map_rover_true is None else np.asarray(matrix_to_pose(T_map_rover_true), float))
         is_kf = (detections_rover is not None) if keyframe is None else keyframe
         attempt = None
         if is_kf or not self.kf_frame:
@@ -353,7 +355,7 @@ class LoopState:
         try:
             # the pose is judged where it is used (the rover now, keyframe k) and the distance
             # travelled between inliers and rover is measured along the window's path
-            res = localize(ref, veh, self.localization, query_xyz=poses[k, :3], path_xyz=poses[win, :3])
+            res = localize(ref, veh, self.localization, query_xyz=poses[k : k + 1, :3], path_xyz=poses[win, :3])
         except LunarLocError as exc:
             att.time_association_s = time.perf_counter() - t0
             self.timings["association"] += att.time_association_s

@@ -277,7 +277,7 @@ class OnlineLocalizer:
         self._T_map_imu = self.T_map_rover0.copy()  # IMU dead reckoning
         self._T_map_odo = self.T_map_rover0.copy()  # odometry (visual / IMU / caller), odo == map at start
         self._vo_anchor = None  # (T_map_odo at the last VO pair, T_map_imu there, T_map_vo)
-        self._caller_anchor = None  # T_odo_callerodo
+        self._T_odo_caller = None  # T_odo_caller: the caller's odometry frame in ours
         self._T_loop_odo = np.eye(4)  # the loop's odometry frame <- odo (changes at re-anchors)
         self._last_kf = None  # (t, T_odo_rover) of the last keyframe
         self._fixes = 0
@@ -349,9 +349,9 @@ class OnlineLocalizer:
             T_imu = integrate_imu(s, self._T_map_imu, self.config.imu)[1]
         pair = self._stereo_pair(images)
         if T_caller is not None:
-            if self._caller_anchor is None:
-                self._caller_anchor = self._T_map_odo @ invert_transform(T_caller)
-            T_odo = self._caller_anchor @ T_caller
+            if self._T_odo_caller is None:
+                self._T_odo_caller = self._T_map_odo @ invert_transform(T_caller)
+            T_odo = self._T_odo_caller @ T_caller
         elif self._vo is not None and pair is not None and pair[0] == STEREO_PAIRS[0][0]:
             T_odo = self._visual(images, T_imu)
         elif self._vo_anchor is not None:  # bridge with the IMU since the last VO pair
@@ -369,8 +369,7 @@ class OnlineLocalizer:
             det = self._detect(images)
             if len(self.loop.kf_frame) >= self.config.max_keyframes:
                 self._reanchor()
-            q = matrix_to_pose(self._T_loop_odo @ T_odo)
-            attempt = self.loop.step(self._tick, t, q, det, None, keyframe=True)
+            attempt = self.loop.step(self._tick, t, self._T_loop_odo @ T_odo, det, None, keyframe=True)
             self._last_kf = (t, T_odo)
             k = len(self.loop.kf_frame) - 1
             self._sigmas = self.loop.graph.predicted_sigma(k)
@@ -506,7 +505,7 @@ class OnlineLocalizer:
         for k, t in zip(keep, kf_t):
             x, y, z, yaw = poses[k]
             roll, pitch = old.kf_rp[k]
-            new.step(old.kf_frame[k], float(t), (x, y, z, roll, pitch, yaw), old.kf_det[k], None, keyframe=True)
+            new.step(old.kf_frame[k], float(t), pose_to_matrix(x, y, z, roll, pitch, yaw), old.kf_det[k], None, keyframe=True)
         g_old, g_new = old.graph, new.graph
         # the gate's drift model continues from the last fix (distance and time since it)
         g_new._last_fix_dist = g_new.keyframes[-1].distance_m - (g_old.keyframes[-1].distance_m - g_old._last_fix_dist)

@@ -57,7 +57,7 @@ def run(source, reference: LandmarkMap, config: RunConfig | None = None, *,
                 detections = np.array([d.p_rover for d in fd.detections], float).reshape(-1, 3)
                 example.offer(fd, frame, source.camera)
             n_kf += frame.keyframe
-            loop.step(frame.frame, frame.time_s, frame.odometry_pose, detections, frame.ground_truth_pose,
+            loop.step(frame.frame, frame.time_s, frame.T_odo_rover, detections, frame.T_map_rover_true,
                       keyframe=frame.keyframe)  # fmt: skip
             if progress:
                 progress(n, total)

@@ -27,22 +27,23 @@ from pathlib import Path
 import numpy as np
 
 from lunarloc.errors import FileFormatError, InputError
+from lunarloc.geometry import pose_to_matrix
 
 __all__ = ["Frame", "ArchiveSource", "TraverseCsvSource"]
 
 
 @dataclass(frozen=True)
 class Frame:
-    """One frame of a source. Poses are (6,) x, y, z, roll, pitch, yaw."""
+    """One frame of a source. Poses are 4x4 transforms ``T_a_b`` (b's pose in a)."""
 
     frame: int
     time_s: float
-    odometry_pose: np.ndarray  # the rover in ``odo``
+    T_odo_rover: np.ndarray  # odometry
     keyframe: bool  # detections (or images to detect in) belong to this frame
     images: Mapping[str, np.ndarray] | None = None  # {camera: grayscale image} (archive sources)
     mounts: Mapping | None = None  # {camera: CameraMount} of those images
     detections_rover: np.ndarray | None = None  # (N, 3) rover-frame detections (sources without images)
-    ground_truth_pose: np.ndarray | None = None  # the rover in ``map`` (evaluation only)
+    T_map_rover_true: np.ndarray | None = None  # ground truth (evaluation only)
 
 
 class ArchiveSource:
@@ -51,7 +52,7 @@ class ArchiveSource:
     odometry : :class:`lunarloc.config.OdometryConfig` (source, IMU and VO settings); its
         ``source`` None means ``visual`` when the archive has front stereo pairs, else ``imu``.
     pairs : stereo pairs whose left camera marks an image frame (the detector's pairs).
-    odometry_poses : optional (F, 6) odometry poses, one per archive frame in order,
+    odometry_poses : optional (F, 4, 4) odometry poses ``T_odo_rover``, one per archive frame in order,
         replacing the odometry source (to replay the images with another drift).
     max_frames : stop after this many frames.
     """
@@ -108,8 +109,8 @@ class ArchiveSource:
 
     def _odometry_poses(self, ar) -> dict[int, np.ndarray]:
         if self._override is not None:
-            if self._override.shape != (len(ar.frame_numbers), 6):
-                raise InputError(f"odometry override must be ({len(ar.frame_numbers)}, 6), got {self._override.shape}")
+            if self._override.shape != (len(ar.frame_numbers), 4, 4):
+                raise InputError(f"odometry override must be ({len(ar.frame_numbers)}, 4, 4), got {self._override.shape}")
             self.odometry_label = "override"
             return {int(f): r for f, r in zip(ar.frame_numbers, self._override)}
         from lunarloc.odometry import archive_odometry, default_odometry_source
@@ -117,7 +118,7 @@ class ArchiveSource:
         c = self.odometry_config
         traj = archive_odometry(ar, c.source or default_odometry_source(ar), imu_config=c.imu, visual_config=c.visual)
         self.odometry_label = traj.label
-        return {int(f): r for f, r in zip(traj.frames, traj.poses6())}
+        return {int(f): T for f, T in zip(traj.frames, traj.T_map_rover)}  # odo == map at the start
 
     # -------------------------------------------------------------- frames
     @property
@@ -140,7 +141,7 @@ class ArchiveSource:
                 t0 = time.perf_counter()
                 if frame not in self._odometry:
                     raise FileFormatError(f"{self.path}: no odometry pose at frame {frame}")
-                gt = np.asarray(agent.get_transform().as_tuple(), float)
+                gt = agent.get_transform().matrix()
                 t = agent.get_mission_time()
                 images = mounts = None
                 if frame in self._image_frames:
@@ -210,9 +211,9 @@ class TraverseCsvSource:
             is_kf = (dets is not None and t - last_kf_t >= self.keyframe_every_s) or t - last_kf_t >= self.keyframe_max_interval_s
             if is_kf:
                 last_kf_t = t
-            yield Frame(int(f), t, np.array([o[i, 0], o[i, 1], o[i, 2], 0.0, 0.0, psi[i]]), bool(is_kf),
+            yield Frame(int(f), t, pose_to_matrix(o[i, 0], o[i, 1], o[i, 2], 0.0, 0.0, psi[i]), bool(is_kf),
                         detections_rover=(np.zeros((0, 3)) if dets is None else dets.copy()) if is_kf else None,
-                        ground_truth_pose=np.array([g[i, 0], g[i, 1], g[i, 2], 0.0, 0.0, 0.0]))  # fmt: skip
+                        T_map_rover_true=pose_to_matrix(g[i, 0], g[i, 1], g[i, 2], 0.0, 0.0, 0.0))  # fmt: skip
 
     def info(self) -> dict:
         return {"traverse": self.name, "drift": asdict(self.drift), "rate_hz": self.rate_hz}
