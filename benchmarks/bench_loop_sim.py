@@ -7,7 +7,7 @@ Usage
         [--heading-bias-std 1.5e-3]
 
 For each seed: simulate a site and one vehicle traverse (front stereo pair, default
-odometry drift: 3 % scale error + random-walk gyro bias), then run ``run_online``
+odometry drift: 3 % scale error + random-walk gyro bias), then run ``lunarloc.pipeline.run``
 against the site's ground-truth rock list (``--reference rocks``) or a map built from
 the images of a reference traverse of the same site (``--reference images``). Writes
 each run's outputs and ``bench_loop_sim.json``; prints one line per traverse.

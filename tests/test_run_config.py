@@ -117,3 +117,32 @@ def test_bench_loop_repeated_from_its_config_gives_the_same_outputs(tmp_path, ca
     bad.write_text(json.dumps({"loop": {"window_m": "wide"}}))
     assert main(["bench", "loop", "--data", str(tmp_path / "data"), "--out", str(tmp_path / "x"), "--config", str(bad)]) == 2
     assert "loop.window_m" in capsys.readouterr().err
+
+
+def test_localize_takes_and_reports_its_config(tmp_path, capsys):
+    from lunarloc.cli import main
+    from lunarloc.maps import LandmarkMap, save_map
+
+    rng = np.random.default_rng(3)
+    ref = rng.uniform(0, 20, (60, 3)) * [1, 1, 0.02]
+    save_map(LandmarkMap(ref), tmp_path / "ref.csv")
+    save_map(LandmarkMap(ref[:25] + [0.3, -0.2, 0.0]), tmp_path / "veh.csv")
+    cfg = tmp_path / "cfg.json"
+    cfg.write_text(json.dumps({"localization": {"epsilon_m": 0.04, "min_inliers": 7}}))
+    assert main(["localize", str(tmp_path / "ref.csv"), str(tmp_path / "veh.csv"), "--json", "--config", str(cfg),
+                 "--epsilon", "0.06"]) == 0  # fmt: skip
+    out = json.loads(capsys.readouterr().out)
+    assert out["success"] and out["config"]["localization"]["epsilon_m"] == 0.06  # the option wins
+    assert out["config"]["localization"]["min_inliers"] == 7  # the file's setting is kept
+    cfg.write_text(json.dumps({"localization": {"epsilon": 0.04}}))
+    assert main(["localize", str(tmp_path / "ref.csv"), str(tmp_path / "veh.csv"), "--config", str(cfg)]) == 2
+    assert "localization.epsilon" in capsys.readouterr().err
+
+
+def test_demo_config_errors_before_any_work(tmp_path, capsys):
+    from lunarloc.cli import main
+
+    cfg = tmp_path / "config.json"
+    cfg.write_text(json.dumps({**RunConfig().to_dict(), "scenario": {"seed": 1, "rocks": 5}}))
+    assert main(["demo", "--out", str(tmp_path / "d"), "--config", str(cfg)]) == 2
+    assert "rocks" in capsys.readouterr().err and not (tmp_path / "d" / "data").exists()
