@@ -13,7 +13,7 @@ Usage
 Archives must come from `lunarloc simulate` (they hold ``custom/rocks.csv`` and the
 semantic images). The image size and field of view are read from each archive
 (``initial.toml``); the detector's pixel-sized parameters, tuned at 1280x720, are
-scaled to the archive's width (``lunarloc.pipeline.scaled_detector_config``).
+scaled to the archive's width (``lunarloc.config.scaled_detector_config``).
 Detections use the ground-truth rover pose, so the errors measured are those of
 perception alone.
 
@@ -264,13 +264,14 @@ def run_archive(path: Path, cfg: DetectorConfig, every: int, acc: Accumulator, d
     to its width; `detector` is reused when it was built for the same camera."""
     from lunarloc.data.lac import LacArchive
     from lunarloc.perception.detector import mounts_from_archive_row
-    from lunarloc.pipeline import _camera_of, scaled_detector_config
+    from lunarloc.config import scaled_detector_config
+    from lunarloc.perception.detector import _camera_from_archive
 
     with LacArchive(path) as ar:
         t = ar.custom("rocks")
         rocks = np.column_stack([t["id"], t["x"], t["y"], t["z"], t["radius"]])
         frames = [int(f) for f in ar.frame_numbers if ar.camera_row(STEREO_PAIRS[0][0], int(f)) is not None][::every]
-        cam = _camera_of(ar.configured_cameras)
+        cam = _camera_from_archive(ar)
         det = detector if detector is not None and detector.camera == cam else None
         if det is None:
             det = Detector(scaled_detector_config(cam.width, base=cfg), cam)

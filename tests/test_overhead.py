@@ -24,7 +24,7 @@ from lunarloc.overhead import (
     site_geometric_map,
     validate_lac_grid,
 )
-from lunarloc.pipeline import load_reference
+from lunarloc.reference import load_reference
 
 # the vehicle maps below are true rock positions (no odometry): stated rigid. Without bounds the
 # localizer fits a bend along a straight stand-in path and, against a grid's 4 cm quantisation,
@@ -89,7 +89,7 @@ def test_localize_vehicle_map_in_a_lac_grid(rng):
 
 def test_site_geometric_map_and_its_rocks():
     from lunarloc.data.simulate import simulate_site
-    from lunarloc.pipeline import rocks_to_reference
+    from lunarloc.reference import rocks_to_reference
 
     site = simulate_site(0)
     g = site_geometric_map(site)
@@ -257,14 +257,16 @@ def test_online_loop_with_a_geometric_map_reference(tmp_path):
     """`run` takes its reference through load_reference: a LAC geometric map works as one."""
     from _loop_data import synthetic_traverse
     from lunarloc.evaluation import DriftModel
-    from lunarloc.pipeline import run_traverse_csv
+    from lunarloc.config import RunConfig
+    from lunarloc.pipeline import run
+    from lunarloc.sources import TraverseCsvSource
 
     rocks, trav = synthetic_traverse(length_m=20.0)
     keep = np.all(np.abs(rocks[:, :2]) < 13.3, axis=1)
     np.save(tmp_path / "map.npy", landmarks_to_lac_grid(LandmarkMap(rocks[keep], sizes=np.full(keep.sum(), 0.1))))
     ref = load_reference(tmp_path / "map.npy")
     assert ref.sigma_xy_m is not None and len(ref) > 0.8 * keep.sum()
-    s = run_traverse_csv(trav, ref, DriftModel(0.1, 0.03)).summary()
+    s = run(TraverseCsvSource(trav, DriftModel(0.1, 0.03)), ref, RunConfig.for_detections()).summary()
     assert s["fixes"] >= 3
     assert s["max_accepted_fix_error_m"] < 0.2
     assert s["ate_corrected"]["rmse_m"] < s["ate_odometry"]["rmse_m"] / 2
