@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["max_clique", "peel", "csr_from_edges", "core_numbers"]
+__all__ = ["max_clique", "peel", "csr_from_edges", "core_numbers", "bin_clique_bounds"]
 
 
 @njit(cache=True, nogil=True)
@@ -377,3 +377,102 @@ def max_clique(n: int, eu: np.ndarray, ev: np.ndarray, lower_bound: int = 0, scr
     if scratch is None or scratch.shape[0] < n:
         scratch = np.full(n, -1, dtype=np.int32)
     return np.sort(_peeled_max_clique(eu, ev, int(lower_bound), scratch))
+
+
+@njit(cache=True, nogil=True)
+def _bin_bounds(ptr: np.ndarray, su: np.ndarray, sv: np.ndarray, scratch: np.ndarray):
+    """Upper and lower bounds on the maximum clique of each of the graphs whose edges are
+    su/sv[ptr[k]:ptr[k+1]] (the yaw bins of one chunk): degeneracy + 1 (a clique of size s
+    lies in the (s-1)-core) and the size of a greedy clique grown from the vertex of highest
+    core number. A graph with no edge gives (0, 0); its caller knows whether it has vertices."""
+    nb = ptr.shape[0] - 1
+    upper = np.zeros(nb, dtype=np.int64)
+    lower = np.zeros(nb, dtype=np.int64)
+    ne_max = 0
+    for k in range(nb):
+        ne_max = max(ne_max, ptr[k + 1] - ptr[k])
+    n_max = 2 * ne_max
+    oldid = np.empty(n_max, dtype=np.int32)
+    tu = np.empty(ne_max, dtype=np.int32)
+    tv = np.empty(ne_max, dtype=np.int32)
+    indptr = np.empty(n_max + 1, dtype=np.int64)
+    fill = np.empty(n_max, dtype=np.int64)
+    indices = np.empty(2 * ne_max, dtype=np.int32)
+    stamp = np.zeros(n_max, dtype=np.int64)
+    cand = np.empty(n_max, dtype=np.int32)
+    for k in range(nb):
+        e0 = ptr[k]
+        ne = ptr[k + 1] - e0
+        if ne <= 0:
+            continue
+        # compact relabelling 0..m-1
+        m = 0
+        for t in range(ne):
+            a = su[e0 + t]
+            b = sv[e0 + t]
+            if scratch[a] < 0:
+                scratch[a] = m
+                oldid[m] = a
+                m += 1
+            if scratch[b] < 0:
+                scratch[b] = m
+                oldid[m] = b
+                m += 1
+            tu[t] = scratch[a]
+            tv[t] = scratch[b]
+        for t in range(m):
+            scratch[oldid[t]] = -1
+        # CSR (rows unsorted)
+        indptr[: m + 1] = 0
+        for t in range(ne):
+            indptr[tu[t] + 1] += 1
+            indptr[tv[t] + 1] += 1
+        for t in range(m):
+            indptr[t + 1] += indptr[t]
+            fill[t] = indptr[t]
+        for t in range(ne):
+            a = tu[t]
+            b = tv[t]
+            indices[fill[a]] = b
+            fill[a] += 1
+            indices[fill[b]] = a
+            fill[b] += 1
+        core, order = core_numbers(m, indptr[: m + 1], indices[: indptr[m]])
+        top = order[m - 1]
+        upper[k] = core[top] + 1
+        # greedy clique from the top vertex: keep the candidates adjacent to every member,
+        # taking the candidate of highest core number each time
+        nc = 0
+        for t in range(indptr[top], indptr[top + 1]):
+            cand[nc] = indices[t]
+            nc += 1
+        size = 1
+        run = 0
+        while nc > 0:
+            pick = 0
+            for t in range(1, nc):
+                if core[cand[t]] > core[cand[pick]]:
+                    pick = t
+            u = cand[pick]
+            size += 1
+            run += 1
+            for t in range(indptr[u], indptr[u + 1]):
+                stamp[indices[t]] = run
+            keep = 0
+            for t in range(nc):
+                w = cand[t]
+                if w != u and stamp[w] == run:
+                    cand[keep] = w
+                    keep += 1
+            nc = keep
+        stamp[:m] = 0
+        lower[k] = size
+    return upper, lower
+
+
+def bin_clique_bounds(ptr: np.ndarray, su: np.ndarray, sv: np.ndarray, scratch: np.ndarray):
+    """(upper, lower) bounds on the maximum clique of each bin's graph of one chunk
+    (edges su/sv[ptr[k]:ptr[k+1]], association ids < len(scratch); scratch: int32 filled
+    with -1, restored). Bins without edges give (0, 0)."""
+    return _bin_bounds(np.asarray(ptr, dtype=np.int64), np.ascontiguousarray(su, dtype=np.int32),
+                       np.ascontiguousarray(sv, dtype=np.int32), scratch)
