@@ -107,4 +107,6 @@ def test_reference_pair_index_matches_a_sort(rng):
     o = np.argsort(dbin * idx.n_angle + abin, kind="stable")
     assert np.array_equal(idx.a, a[o]) and np.array_equal(idx.b, b[o])
     assert np.array_equal(idx.dh, dh[o]) and np.array_equal(idx.phi, phi[o]) and np.array_equal(idx.dz, d[o, 2])
-    assert idx.cell_ptr[-1] == len(a)
+    cells = dbin * idx.n_angle + abin
+    assert np.array_equal(idx.abin, abin[o]) and idx.row_ptr[-1] == len(a)
+    assert np.array_equal(idx.row_ptr[:-1], np.searchsorted(cells[o], np.arange(idx.n_dist) * idx.n_angle))

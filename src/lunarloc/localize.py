@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import enum
+import functools
 import logging
 import math
 import os
@@ -799,6 +800,15 @@ def _graph_args(cfg) -> tuple:
     return (cfg.epsilon_m, cfg.epsilon_z_m, math.tan(math.radians(cfg.max_tilt_deg)), cfg.yaw_noise_factor, cfg.sigma)
 
 
+_PARALLEL_MIN_WORK = 2e8  # vehicle pairs x reference pairs below which a sweep runs on the calling thread
+
+
+def _workers(cfg, vp, index: RefPairIndex, share: float = 1.0) -> int:
+    """Threads for a sweep over `share` of the yaw circle: one when the work is small
+    (handing chunks to other threads then costs more than it saves)."""
+    return cfg.threads if len(vp[0]) * len(index.a) * share >= _PARALLEL_MIN_WORK else 1
+
+
 def _ref_index(Pr, cfg) -> RefPairIndex:
     return RefPairIndex(Pr, dist_cell_m=max(cfg.epsilon_m / 2, 0.01), angle_cell_rad=math.radians(1.0))
 
@@ -853,7 +863,7 @@ def _bin_bounds(Pv, vp, index, node_of, cfg) -> tuple[np.ndarray, np.ndarray, in
                 np.maximum.at(lower, bins, lb)
 
         edges += sweep_bin_chunks(vpg, index, node_of, n_bins, chunks, *_graph_args(cfg), visit_chunk,
-                                  weights=False, workers=cfg.threads)
+                                  weights=False, workers=_workers(cfg, vpg, index))
     return upper, lower, edges
 
 
@@ -869,13 +879,18 @@ class _BestYaw(float):
 def _far_pairs_floor(values: np.ndarray, n_bins: int, sep_bins: float) -> int:
     """Largest min(v_x, v_y) over bins x, y more than 2 * sep apart: whatever the winning
     yaw, one of the two is more than sep from it, so the competitor is at least this."""
+    far = _far_mask(n_bins, 2 * sep_bins)
+    if not far.any():
+        return 0
+    return int(np.minimum(values[:, None], values[None, :])[far].max())
+
+
+@functools.lru_cache(maxsize=8)
+def _far_mask(n_bins: int, min_sep_bins: float) -> np.ndarray:
+    """Boolean (n_bins, n_bins): bins more than `min_sep_bins` apart around the circle."""
     b = np.arange(n_bins)
     d = np.abs(b[:, None] - b[None, :])
-    d = np.minimum(d, n_bins - d)
-    far = d > 2 * sep_bins
-    if not np.any(far):
-        return 0
-    return int(np.max(np.where(far, np.minimum(values[:, None], values[None, :]), 0)))
+    return np.minimum(d, n_bins - d) > min_sep_bins
 
 
 def _search_yaw_bins(Pv, Pr, node_of, cfg):
@@ -927,13 +942,15 @@ def _search_yaw_bins(Pv, Pr, node_of, cfg):
     def sweep(bins) -> int:
         chunks = yaw_bin_chunks(n_bins, _chunk_bins(cfg), bins)
         chunks.sort(key=lambda c: -int(upper[c[0] + c[1]: c[0] + c[2] + 1].max()))
+        share = sum(c[2] - c[1] + 1 for c in chunks) / n_bins
         return sweep_bin_chunks(vp, index, node_of, n_bins, chunks, *_graph_args(cfg), visit_chunk,
-                                weights=cfg.solver is Solver.CLIPPER, workers=cfg.threads)
+                                weights=cfg.solver is Solver.CLIPPER, workers=_workers(cfg, vp, index, share))
 
     top = int(np.argmax(upper))
     if upper[top] < np.iinfo(np.int64).max:
         total_edges += sweep([top])  # the most promising bin first: its clique raises lb for the rest
-    rest = [b for b in range(n_bins) if upper[b] > lb_now() and b not in found]
+    lb = lb_now()
+    rest = [b for b in np.flatnonzero(upper > lb).tolist() if b not in found]
     total_edges += sweep(rest)
 
     if not found:
@@ -941,12 +958,8 @@ def _search_yaw_bins(Pv, Pr, node_of, cfg):
     size = max(len(c) for c in found.values())
     b_best = min(b for b, c in found.items() if len(c) == size)
 
-    def far(b):
-        d = abs(b - b_best)
-        return min(d, n_bins - d) * step > math.radians(cfg.competitor_yaw_sep_deg)
-
-    second = max([state["floor"]] + [len(c) for b, c in found.items() if far(b)]
-                 + [int(lower[b]) for b in range(n_bins) if far(b)])
+    far = _far_mask(n_bins, sep_bins)[b_best]
+    second = max([state["floor"], int(lower[far].max(initial=0))] + [len(c) for b, c in found.items() if far[b]])
     best_yaw = _BestYaw(-math.pi + (b_best + 0.5) * step)
     best_yaw.index, best_yaw.upper, best_yaw.best_size = index, upper, size
     return found[b_best], int(second), best_yaw, total_edges
@@ -987,7 +1000,9 @@ def _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw, floor: int = 
                 with lock:
                     state["best"] = max(state["best"], len(c))
 
-    sweep_bin_chunks(vehicle_pairs(Pv), index if index is not None else _ref_index(Pr, cfg), node2, n_bins,
-                     yaw_bin_chunks(n_bins, _chunk_bins(cfg), bins), *_graph_args(cfg), visit_chunk,
-                     weights=cfg.solver is Solver.CLIPPER, workers=cfg.threads)
+    vp = vehicle_pairs(Pv)
+    index = index if index is not None else _ref_index(Pr, cfg)
+    sweep_bin_chunks(vp, index, node2, n_bins, yaw_bin_chunks(n_bins, _chunk_bins(cfg), bins), *_graph_args(cfg),
+                     visit_chunk, weights=cfg.solver is Solver.CLIPPER,
+                     workers=_workers(cfg, vp, index, len(bins) / n_bins))
     return state["best"] if state["best"] > lb0 else floor

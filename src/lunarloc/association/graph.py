@@ -22,6 +22,7 @@ cannot form a yaw-consistent set, because a reflection reverses angles.
 from __future__ import annotations
 
 import math
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -152,49 +153,79 @@ class RefPairIndex:
         self.n_angle = max(1, int(math.ceil(2 * math.pi / angle_cell_rad)))
         self.angle_cell = 2 * math.pi / self.n_angle
         self.n_dist = int(dh.max() / self.dist_cell) + 2 if n > 1 else 1
-        self.a, self.b, self.dh, self.phi, self.dz, self.cell_ptr = _bucket_pairs(
+        self.a, self.b, self.dh, self.phi, self.dz, self.abin, self.row_ptr = _bucket_pairs(
             n, dh, phi, np.ascontiguousarray(d[:, 2]), self.dist_cell, self.n_dist, self.angle_cell, self.n_angle)
 
 
 @njit(cache=True)
 def _bucket_pairs(n, dh, phi, dz, dist_cell, n_dist, angle_cell, n_angle):
     """Ordered pairs a != b (row-major a * n + b in the inputs) sorted, stably, by their
-    (distance, azimuth) cell: a counting sort. Returns a, b, dh, phi, dz and the cell pointers."""
-    n_cells = n_dist * n_angle
-    cell = np.empty(n * n, dtype=np.int64)
-    counts = np.zeros(n_cells + 1, dtype=np.int64)
+    (distance, azimuth) cell: a two-pass radix sort (azimuth cell, then distance row).
+    Returns a, b, dh, phi, dz, the azimuth cell of each pair and the start of each
+    distance row (a row is sorted by azimuth cell)."""
+    m = n * (n - 1)
+    dbin = np.empty(m, dtype=np.int64)
+    abin = np.empty(m, dtype=np.int64)
+    src = np.empty(m, dtype=np.int64)
+    a_count = np.zeros(n_angle + 1, dtype=np.int64)
+    k = 0
     for a in range(n):
         for b in range(n):
-            t = a * n + b
             if a == b:
-                cell[t] = -1
                 continue
-            dbin = min(int(dh[t] / dist_cell), n_dist - 1)
-            abin = min(int((phi[t] + math.pi) / angle_cell), n_angle - 1)
-            c = dbin * n_angle + abin
-            cell[t] = c
-            counts[c + 1] += 1
-    for c in range(n_cells):
-        counts[c + 1] += counts[c]
-    cell_ptr = counts.copy()
-    m = n * (n - 1)
+            t = a * n + b
+            dbin[k] = min(int(dh[t] / dist_cell), n_dist - 1)
+            abin[k] = min(int((phi[t] + math.pi) / angle_cell), n_angle - 1)
+            src[k] = t
+            a_count[abin[k] + 1] += 1
+            k += 1
+    for c in range(n_angle):
+        a_count[c + 1] += a_count[c]
+    by_angle = np.empty(m, dtype=np.int64)  # pass 1: stable by azimuth cell
+    for k in range(m):
+        c = abin[k]
+        by_angle[a_count[c]] = k
+        a_count[c] += 1
+    row_ptr = np.zeros(n_dist + 1, dtype=np.int64)
+    for k in range(m):
+        row_ptr[dbin[k] + 1] += 1
+    for r in range(n_dist):
+        row_ptr[r + 1] += row_ptr[r]
+    fill = row_ptr[:-1].copy()
     oa = np.empty(m, dtype=np.int32)
     ob = np.empty(m, dtype=np.int32)
     odh = np.empty(m, dtype=np.float64)
     ophi = np.empty(m, dtype=np.float64)
     odz = np.empty(m, dtype=np.float64)
-    for t in range(n * n):
-        c = cell[t]
-        if c < 0:
-            continue
-        k = counts[c]
-        counts[c] = k + 1
-        oa[k] = t // n
-        ob[k] = t % n
-        odh[k] = dh[t]
-        ophi[k] = phi[t]
-        odz[k] = dz[t]
-    return oa, ob, odh, ophi, odz, cell_ptr
+    oab = np.empty(m, dtype=np.int16)
+    for s in range(m):  # pass 2: stable by distance row
+        k = by_angle[s]
+        r = dbin[k]
+        o = fill[r]
+        fill[r] = o + 1
+        t = src[k]
+        oa[o] = t // n
+        ob[o] = t % n
+        odh[o] = dh[t]
+        ophi[o] = phi[t]
+        odz[o] = dz[t]
+        oab[o] = abin[k]
+    return oa, ob, odh, ophi, odz, oab, row_ptr
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _row_pos(abin, row_ptr, row, a):
+    """Position in the index of the first pair of distance row `row` whose azimuth cell is
+    >= a (binary search: the row is sorted by azimuth cell)."""
+    lo = row_ptr[row]
+    hi = row_ptr[row + 1]
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if abin[mid] < a:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
 
 
 @njit(cache=True)
@@ -205,7 +236,7 @@ def _wrap(x):
 @njit(cache=True, nogil=True, boundscheck=False)
 def _yaw_chunk_incidences(
     pi, pj, pdh, pphi, pdz,
-    qa, qb, qdh, qphi, qdz, cell_ptr, n_dist, n_angle, dist_cell, angle_cell,
+    qa, qb, qdh, qphi, qdz, abin, row_ptr, n_dist, n_angle, dist_cell, angle_cell,
     node_of, bin0, k_first, k_last, n_bins, eps_h, eps_z, tan_tilt, k_yaw, sigma, want_w,
 ):
     """Edges of the yaw bins bin0 + k, k in [k_first, k_last], bucketed by bin: (ptr, u, v, w)
@@ -256,18 +287,19 @@ def _yaw_chunk_incidences(
         a_lo = a_lo % n_angle
         a_end = a_lo + a_n  # exclusive; may wrap past n_angle
         for db in range(d_lo, d_hi + 1):
-            base = db * n_angle
+            if row_ptr[db + 1] == row_ptr[db]:
+                continue
             for seg in range(2):
                 # angle cells of one distance row are contiguous in the index: scan them as
                 # one range (two when the window wraps around +-pi)
                 if seg == 0:
-                    t0 = cell_ptr[base + a_lo]
-                    t1 = cell_ptr[base + min(a_end, n_angle)]
+                    t0 = _row_pos(abin, row_ptr, db, a_lo)
+                    t1 = _row_pos(abin, row_ptr, db, min(a_end, n_angle))
                 else:
                     if a_end <= n_angle:
                         break
-                    t0 = cell_ptr[base]
-                    t1 = cell_ptr[base + a_end - n_angle]
+                    t0 = row_ptr[db]
+                    t1 = _row_pos(abin, row_ptr, db, a_end - n_angle)
                 for t in range(t0, t1):
                     ch = abs(qdh[t] - dh)
                     if ch >= eps_h:
@@ -363,7 +395,7 @@ def sweep_bin_chunks(vpairs, index: RefPairIndex, node_of, n_bins: int, chunks, 
         b0, k_first, k_last = c
         ptr, su, sv, sw = _yaw_chunk_incidences(
             pi, pj, pdh, pphi, pdz,
-            index.a, index.b, index.dh, index.phi, index.dz, index.cell_ptr,
+            index.a, index.b, index.dh, index.phi, index.dz, index.abin, index.row_ptr,
             index.n_dist, index.n_angle, index.dist_cell, index.angle_cell,
             node_of, b0, k_first, k_last, n_bins, float(eps_h), float(eps_z), float(tan_tilt), float(k_yaw),
             float(sigma), bool(weights),
@@ -375,8 +407,21 @@ def sweep_bin_chunks(vpairs, index: RefPairIndex, node_of, n_bins: int, chunks, 
     workers = max(1, min(workers, len(chunks)))
     if workers == 1:
         return sum(run_chunk(c) for c in chunks)
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        return sum(pool.map(run_chunk, chunks))
+    return sum(_thread_pool(workers).map(run_chunk, chunks))
+
+
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+_POOLS_LOCK = threading.Lock()
+
+
+def _thread_pool(workers: int) -> ThreadPoolExecutor:
+    """A process-wide pool of `workers` threads, started once (starting threads for every
+    sweep cost more than a small sweep's work)."""
+    with _POOLS_LOCK:
+        pool = _POOLS.get(workers)
+        if pool is None:
+            pool = _POOLS[workers] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="lunarloc-yaw")
+        return pool
 
 
 def sweep_yaw_bins(vpairs, index: RefPairIndex, node_of, n_bins: int, chunk_bins: int,
