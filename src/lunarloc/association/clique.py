@@ -299,26 +299,49 @@ def _compact(eu, ev, keep, scratch):
 @njit(cache=True, nogil=True)
 def _peel(su, sv, m, lb):
     """Keep-mask of edges after repeatedly dropping vertices of degree < lb (they cannot
-    be in a clique larger than lb). Sequential passes over the edge list."""
-    keep = np.ones(su.shape[0], dtype=np.bool_)
-    deg = np.zeros(m, dtype=np.int32)
-    while True:
-        deg[:] = 0
-        for k in range(su.shape[0]):
-            if keep[k]:
-                deg[su[k]] += 1
-                deg[sv[k]] += 1
-        changed = False
-        ne = 0
-        for k in range(su.shape[0]):
-            if keep[k]:
-                if deg[su[k]] < lb or deg[sv[k]] < lb:
-                    keep[k] = False
-                    changed = True
-                else:
-                    ne += 1
-        if not changed or ne == 0:
-            return keep, ne
+    be in a clique larger than lb): the lb-core, found in O(E) with a stack of the
+    vertices to drop (unique, whatever the order)."""
+    ne = su.shape[0]
+    deg = np.zeros(m, dtype=np.int64)
+    for k in range(ne):
+        deg[su[k]] += 1
+        deg[sv[k]] += 1
+    ptr = np.zeros(m + 1, dtype=np.int64)
+    for v in range(m):
+        ptr[v + 1] = ptr[v] + deg[v]
+    fill = ptr[:-1].copy()
+    inc = np.empty(2 * ne, dtype=np.int64)  # edge ids incident to each vertex
+    for k in range(ne):
+        inc[fill[su[k]]] = k
+        fill[su[k]] += 1
+        inc[fill[sv[k]]] = k
+        fill[sv[k]] += 1
+    keep = np.ones(ne, dtype=np.bool_)
+    dropped = np.zeros(m, dtype=np.bool_)
+    stack = np.empty(m, dtype=np.int64)
+    top = 0
+    for v in range(m):
+        if deg[v] < lb:
+            dropped[v] = True
+            stack[top] = v
+            top += 1
+    kept = ne
+    while top > 0:
+        top -= 1
+        v = stack[top]
+        for t in range(ptr[v], ptr[v + 1]):
+            k = inc[t]
+            if not keep[k]:
+                continue
+            keep[k] = False
+            kept -= 1
+            w = sv[k] if su[k] == v else su[k]
+            deg[w] -= 1
+            if not dropped[w] and deg[w] < lb:
+                dropped[w] = True
+                stack[top] = w
+                top += 1
+    return keep, kept
 
 
 @njit(cache=True, nogil=True)
