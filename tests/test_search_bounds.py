@@ -110,3 +110,24 @@ def test_reference_pair_index_matches_a_sort(rng):
     cells = dbin * idx.n_angle + abin
     assert np.array_equal(idx.abin, abin[o]) and idx.row_ptr[-1] == len(a)
     assert np.array_equal(idx.row_ptr[:-1], np.searchsorted(cells[o], np.arange(idx.n_dist) * idx.n_angle))
+
+
+def test_search_tolerance_follows_the_maps_sigma(rng):
+    from lunarloc.maps import LandmarkMap
+
+    ref, veh, _, _ = make_pair(rng, n_ref=60, n_common=20, n_outliers=5)
+    cfg = L.LocalizationConfig()
+    plain = cfg.for_maps(ref, veh)  # default landmark sigma: the fixed tolerances are the floors
+    assert plain.epsilon_m == cfg.epsilon_m and plain.epsilon_z_m == cfg.epsilon_z_m
+    q = 0.15 / math.sqrt(12)  # a LAC grid's quantisation
+    grid = LandmarkMap(ref.positions_xyz, sigma_xy_m=np.full(len(ref), q), sigma_z_m=np.full(len(ref), q))
+    wide = cfg.for_maps(grid, veh)
+    sh, sz = L.combined_sigma(grid, veh, cfg)
+    assert math.isclose(wide.epsilon_m, cfg.search_sigmas * math.sqrt(2) * sh)
+    assert math.isclose(wide.epsilon_z_m, cfg.search_sigmas * math.sqrt(2) * sz)
+    assert wide.epsilon_m > 0.1
+    # chance sets grow with the tolerance, and the envelope with them
+    m = len(ref) * len(veh)
+    assert L.chance_clique_size(m, cfg.mode, wide.epsilon_m, wide.epsilon_z_m) > L.chance_clique_size(m, cfg.mode)
+    fixed = L.LocalizationConfig(search_sigmas=0).for_maps(grid, veh)
+    assert fixed.epsilon_m == cfg.epsilon_m

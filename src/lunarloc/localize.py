@@ -125,6 +125,7 @@ class LocalizationConfig:
     landmark_sigma_m: float = 0.0083  # horizontal 1-sigma per axis of a landmark whose map states none; added in quadrature to stated ones
     landmark_sigma_z_m: float = 0.0083  # vertical, likewise
     rmse_confidence: float = 0.999  # chi-square acceptance of the inlier residuals at this confidence
+    search_sigmas: float = 2.0  # search tolerances >= this many sigma of a pairwise difference (sqrt(2) x combined sigma)
     # --- distortion (non-rigid vehicle maps: odometry scale error, heading drift) ---
     near_miss_outer_m: float = 0.30  # vehicle landmarks landing refine_radius_m..this far from a reference rock are "near misses"
     max_near_miss_z: float = 3.0  # refuse when near misses exceed chance by this many standard deviations ...
@@ -155,6 +156,8 @@ class LocalizationConfig:
             raise ConfigError("min_inliers must be >= 3")
         if not self.near_miss_outer_m > 0 or not self.landmark_sigma_m > 0 or not self.landmark_sigma_z_m > 0:
             raise ConfigError("near_miss_outer_m, landmark_sigma_m and landmark_sigma_z_m must be positive")
+        if not self.search_sigmas >= 0:
+            raise ConfigError(f"search_sigmas must be >= 0, got {self.search_sigmas}")
         if self.odometry_scale_error < 0 or self.odometry_heading_drift_deg_per_m < 0:
             raise ConfigError("odometry_scale_error and odometry_heading_drift_deg_per_m must be >= 0")
 
@@ -167,17 +170,25 @@ class LocalizationConfig:
         maps' stated uncertainty needs (:func:`combined_sigma`): refinement radius
         ``3 sigma_r`` and robust scale ``sigma_r``, sigma_r = sqrt(2 sigma_h^2 + sigma_z^2)
         the 3D offset of a landmark from its partner; the residual RMSE limit follows from
-        a chi-square test (:func:`rmse_limit`). The consistency search keeps the configured
-        epsilon_m / epsilon_z_m: it only has to find a consistent core of the inliers
-        (refinement gathers the rest), it stays fast, and the chance envelope was measured
-        at those tolerances. The fixed values stay as floors: at the default landmark sigma
-        they are what the rule gives."""
+        a chi-square test (:func:`rmse_limit`). The consistency search tolerances become
+        ``search_sigmas`` standard deviations of the difference between a vehicle pair's
+        distance and its reference pair's (four landmarks: sqrt(2) sigma_h horizontally,
+        sqrt(2) sigma_z vertically; one degree of freedom each): 2 sigma keeps a true pair
+        consistent with 95 % probability. Wider tolerances also make chance sets larger (the
+        envelope scales with them, :func:`chance_clique_size`), so small vehicle maps need
+        more inliers: 2 sigma, not 2.5 or 3, keeps a 13-landmark map localizable against a
+        LAC grid (docs/scaling.md). The fixed values stay as floors: at the default
+        landmark sigma, and on the real traverse maps (sigma_h 1.2 cm: 3.4 cm), they are
+        what the rule gives; against a LAC grid (sigma_h about 4.4 cm) the search runs at
+        about 12 cm horizontally."""
         sh, sz = combined_sigma(reference, vehicle, self)
         sr = math.sqrt(2 * sh**2 + sz**2)
         refine = max(self.refine_radius_m, 3 * sr)
         return replace(
             self, refine_radius_m=refine, robust_scale_m=max(self.robust_scale_m, sr),
             near_miss_outer_m=max(self.near_miss_outer_m, 3 * refine),
+            epsilon_m=max(self.epsilon_m, self.search_sigmas * math.sqrt(2) * sh),
+            epsilon_z_m=max(self.epsilon_z_m, self.search_sigmas * math.sqrt(2) * sz),
         )
 
     def to_dict(self) -> dict:
