@@ -24,9 +24,9 @@ import time
 
 import numpy as np
 
-from lunarloc.evaluation import _warm_up, find_traverses, vehicle_map
+import lunarloc.evaluation as evaluation
+from lunarloc.evaluation import bench_pairs, find_traverses
 from lunarloc.localize import LocalizationConfig, localize
-from lunarloc.maps import aggregate_detections, load_traverse
 
 
 def main() -> None:
@@ -38,26 +38,30 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=1, help="calls per pair; the fastest is kept")
     ap.add_argument("--compare", help="earlier JSON of this script: list pairs whose answer differs")
     args = ap.parse_args()
-    paths = find_traverses(args.data)
     pairs = ([tuple(int(x) for x in p.split("-")) for p in args.pairs] if args.pairs
-             else list(itertools.combinations(sorted(paths), 2)))
+             else list(itertools.combinations(sorted(find_traverses(args.data)), 2)))
     cfg = LocalizationConfig() if args.threads is None else LocalizationConfig(threads=args.threads)
-    _warm_up(cfg)
-    travs, maps, rows = {}, {}, []
-    for a, b in pairs:
-        for k in (a, b):
-            if k not in travs:
-                travs[k] = load_traverse(paths[k])
-        if a not in maps:
-            maps[a] = aggregate_detections(travs[a].detections_xyz, travs[a].detection_frame, None, frame=travs[a].name)
-        veh, _, last_v, path_v = vehicle_map(travs[b], np.random.default_rng([0, a, b]), None, None, None, 1.0)
+    calls = []
+
+    def timed_localize(*a, **k):  # bench_pairs' own loop, with each call's CPU and wall time kept
         cpus, walls = [], []
         for _ in range(args.repeat):
             c0, w0 = time.process_time(), time.perf_counter()
-            r = localize(maps[a], veh, cfg, query_xyz=last_v[None], path_xyz=path_v)
+            r = localize(*a, **k)
             cpus.append(time.process_time() - c0)
             walls.append(time.perf_counter() - w0)
-        rows.append(dict(pair=f"{a}-{b}", n_ref=len(maps[a]), n_veh=len(veh), cpu_s=min(cpus), wall_s=min(walls),
+        calls.append((r, min(cpus), min(walls), len(a[0]), len(a[1])))
+        return r
+
+    evaluation.localize = timed_localize
+    try:
+        summary = bench_pairs(args.data, pairs, loc_config=cfg)
+    finally:
+        evaluation.localize = localize
+    calls = calls[1:]  # the first call is bench_pairs' warm-up
+    rows = []
+    for p, (r, cpu_s, wall_s, n_ref, n_veh) in zip(summary.results, calls):
+        rows.append(dict(pair=f"{p.reference}-{p.vehicle}", n_ref=n_ref, n_veh=n_veh, cpu_s=cpu_s, wall_s=wall_s,
                          success=bool(r.success), inliers=sorted(map(list, r.inliers.tolist())), clique=r.clique_size,
                          competitor=r.competitor_size, reason=r.reason, timings=r.timings))
     cpu = np.array([r["cpu_s"] for r in rows])

@@ -25,24 +25,32 @@ __all__ = ["max_clique", "peel", "csr_from_edges", "core_numbers", "bin_clique_b
 
 
 @njit(cache=True, nogil=True)
-def csr_from_edges(n: int, eu: np.ndarray, ev: np.ndarray):
-    """Symmetric CSR adjacency (indptr, indices) of an undirected edge list on n vertices."""
-    deg = np.zeros(n + 1, dtype=np.int64)
-    for k in range(eu.shape[0]):
-        deg[eu[k] + 1] += 1
-        deg[ev[k] + 1] += 1
-    for i in range(n):
-        deg[i + 1] += deg[i]
-    indptr = deg.copy()
-    fill = deg[:-1].copy()
-    indices = np.empty(indptr[n], dtype=np.int32)
-    for k in range(eu.shape[0]):
-        a = eu[k]
-        b = ev[k]
+def _csr_into(m, tu, tv, ne, indptr, fill, indices):
+    """Symmetric CSR adjacency of the first `ne` edges (tu, tv) on m vertices, written into
+    indptr (m + 1), fill (m) and indices (2 ne); rows in edge order."""
+    indptr[: m + 1] = 0
+    for t in range(ne):
+        indptr[tu[t] + 1] += 1
+        indptr[tv[t] + 1] += 1
+    for t in range(m):
+        indptr[t + 1] += indptr[t]
+        fill[t] = indptr[t]
+    for t in range(ne):
+        a = tu[t]
+        b = tv[t]
         indices[fill[a]] = b
         fill[a] += 1
         indices[fill[b]] = a
         fill[b] += 1
+
+
+@njit(cache=True, nogil=True)
+def csr_from_edges(n: int, eu: np.ndarray, ev: np.ndarray):
+    """Symmetric CSR adjacency (indptr, indices) of an undirected edge list on n vertices."""
+    indptr = np.empty(n + 1, dtype=np.int64)
+    fill = np.empty(n, dtype=np.int64)
+    indices = np.empty(2 * eu.shape[0], dtype=np.int32)
+    _csr_into(n, eu, ev, eu.shape[0], indptr, fill, indices)
     for i in range(n):
         indices[indptr[i] : indptr[i + 1]].sort()
     return indptr, indices
@@ -264,15 +272,9 @@ def _max_clique_csr(n: int, indptr: np.ndarray, indices: np.ndarray, lb: int):
 
 
 @njit(cache=True, nogil=True)
-def _compact(eu, ev, keep, scratch):
-    """Relabel the kept edges' endpoints 0..m-1 (scratch: int32 array of -1, restored)."""
-    ne = 0
-    for k in range(eu.shape[0]):
-        if keep[k]:
-            ne += 1
-    su = np.empty(ne, dtype=np.int32)
-    sv = np.empty(ne, dtype=np.int32)
-    oldid = np.empty(2 * ne, dtype=np.int32)
+def _relabel_into(eu, ev, keep, scratch, su, sv, oldid):
+    """Relabel the kept edges' endpoints 0..m-1 in order of appearance, into su/sv (edges)
+    and oldid (old id of each new one); scratch (int32 of -1) is restored. Returns m."""
     m = 0
     t = 0
     for k in range(eu.shape[0]):
@@ -293,6 +295,20 @@ def _compact(eu, ev, keep, scratch):
         t += 1
     for k in range(m):
         scratch[oldid[k]] = -1
+    return m
+
+
+@njit(cache=True, nogil=True)
+def _compact(eu, ev, keep, scratch):
+    """Relabel the kept edges' endpoints 0..m-1 (scratch: int32 array of -1, restored)."""
+    ne = 0
+    for k in range(eu.shape[0]):
+        if keep[k]:
+            ne += 1
+    su = np.empty(ne, dtype=np.int32)
+    sv = np.empty(ne, dtype=np.int32)
+    oldid = np.empty(2 * ne, dtype=np.int32)
+    m = _relabel_into(eu, ev, keep, scratch, su, sv, oldid)
     return m, su, sv, oldid[:m].copy()
 
 
@@ -423,43 +439,14 @@ def _bin_bounds(ptr: np.ndarray, su: np.ndarray, sv: np.ndarray, scratch: np.nda
     indices = np.empty(2 * ne_max, dtype=np.int32)
     stamp = np.zeros(n_max, dtype=np.int64)
     cand = np.empty(n_max, dtype=np.int32)
+    keep_all = np.ones(ne_max, dtype=np.bool_)
     for k in range(nb):
         e0 = ptr[k]
         ne = ptr[k + 1] - e0
         if ne <= 0:
             continue
-        # compact relabelling 0..m-1
-        m = 0
-        for t in range(ne):
-            a = su[e0 + t]
-            b = sv[e0 + t]
-            if scratch[a] < 0:
-                scratch[a] = m
-                oldid[m] = a
-                m += 1
-            if scratch[b] < 0:
-                scratch[b] = m
-                oldid[m] = b
-                m += 1
-            tu[t] = scratch[a]
-            tv[t] = scratch[b]
-        for t in range(m):
-            scratch[oldid[t]] = -1
-        # CSR (rows unsorted)
-        indptr[: m + 1] = 0
-        for t in range(ne):
-            indptr[tu[t] + 1] += 1
-            indptr[tv[t] + 1] += 1
-        for t in range(m):
-            indptr[t + 1] += indptr[t]
-            fill[t] = indptr[t]
-        for t in range(ne):
-            a = tu[t]
-            b = tv[t]
-            indices[fill[a]] = b
-            fill[a] += 1
-            indices[fill[b]] = a
-            fill[b] += 1
+        m = _relabel_into(su[e0:e0 + ne], sv[e0:e0 + ne], keep_all[:ne], scratch, tu, tv, oldid)
+        _csr_into(m, tu, tv, ne, indptr, fill, indices)
         core, order = core_numbers(m, indptr[: m + 1], indices[: indptr[m]])
         top = order[m - 1]
         upper[k] = core[top] + 1

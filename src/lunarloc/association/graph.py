@@ -157,6 +157,18 @@ class RefPairIndex:
             n, dh, phi, np.ascontiguousarray(d[:, 2]), self.dist_cell, self.n_dist, self.angle_cell, self.n_angle)
 
 
+@njit(cache=True, nogil=True)
+def _bucket_starts(keys, n_keys):
+    """Start of each key's bucket in a counting sort of `keys` (ints in [0, n_keys)):
+    ptr (n_keys + 1), bucket k at ptr[k]:ptr[k + 1]."""
+    ptr = np.zeros(n_keys + 1, dtype=np.int64)
+    for t in range(keys.shape[0]):
+        ptr[keys[t] + 1] += 1
+    for k in range(n_keys):
+        ptr[k + 1] += ptr[k]
+    return ptr
+
+
 @njit(cache=True)
 def _bucket_pairs(n, dh, phi, dz, dist_cell, n_dist, angle_cell, n_angle):
     """Ordered pairs a != b (row-major a * n + b in the inputs) sorted, stably, by their
@@ -167,7 +179,6 @@ def _bucket_pairs(n, dh, phi, dz, dist_cell, n_dist, angle_cell, n_angle):
     dbin = np.empty(m, dtype=np.int64)
     abin = np.empty(m, dtype=np.int64)
     src = np.empty(m, dtype=np.int64)
-    a_count = np.zeros(n_angle + 1, dtype=np.int64)
     k = 0
     for a in range(n):
         for b in range(n):
@@ -177,20 +188,14 @@ def _bucket_pairs(n, dh, phi, dz, dist_cell, n_dist, angle_cell, n_angle):
             dbin[k] = min(int(dh[t] / dist_cell), n_dist - 1)
             abin[k] = min(int((phi[t] + math.pi) / angle_cell), n_angle - 1)
             src[k] = t
-            a_count[abin[k] + 1] += 1
             k += 1
-    for c in range(n_angle):
-        a_count[c + 1] += a_count[c]
+    a_count = _bucket_starts(abin, n_angle)
     by_angle = np.empty(m, dtype=np.int64)  # pass 1: stable by azimuth cell
     for k in range(m):
         c = abin[k]
         by_angle[a_count[c]] = k
         a_count[c] += 1
-    row_ptr = np.zeros(n_dist + 1, dtype=np.int64)
-    for k in range(m):
-        row_ptr[dbin[k] + 1] += 1
-    for r in range(n_dist):
-        row_ptr[r + 1] += row_ptr[r]
+    row_ptr = _bucket_starts(dbin, n_dist)
     fill = row_ptr[:-1].copy()
     oa = np.empty(m, dtype=np.int32)
     ob = np.empty(m, dtype=np.int32)
@@ -349,11 +354,7 @@ def _yaw_chunk_incidences(
                         ib[ni] = k - k_first
                         ni += 1
     # bucket incidences by bin (counting sort)
-    ptr = np.zeros(nb + 1, dtype=np.int64)
-    for t in range(ni):
-        ptr[ib[t] + 1] += 1
-    for k in range(nb):
-        ptr[k + 1] += ptr[k]
+    ptr = _bucket_starts(ib[:ni], nb)
     fill = ptr[:-1].copy()
     su = np.empty(ni, dtype=np.int32)
     sv = np.empty(ni, dtype=np.int32)
