@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import enum
+import functools
 import logging
 import math
 import os
@@ -26,9 +27,11 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lunarloc.association.clique import max_clique, peel
+from lunarloc.association.clique import bin_clique_bounds, max_clique, peel
 from lunarloc.association.clipper import clipper_clique
-from lunarloc.association.graph import RefPairIndex, graph_3d, sweep_yaw_bins, vehicle_pairs
+from lunarloc.association.graph import (
+    RefPairIndex, graph_3d, sweep_bin_chunks, sweep_yaw_bins, vehicle_pairs, yaw_bin_chunks,
+)
 from lunarloc.association.putative import putative_associations
 from lunarloc.errors import ConfigError, DegenerateGeometryError, InputError
 from lunarloc.geometry import (
@@ -125,6 +128,7 @@ class LocalizationConfig:
     landmark_sigma_m: float = 0.0083  # horizontal 1-sigma per axis of a landmark whose map states none; added in quadrature to stated ones
     landmark_sigma_z_m: float = 0.0083  # vertical, likewise
     rmse_confidence: float = 0.999  # chi-square acceptance of the inlier residuals at this confidence
+    search_sigmas: float = 2.0  # search tolerances >= this many sigma of a pairwise difference (sqrt(2) x combined sigma)
     # --- distortion (non-rigid vehicle maps: odometry scale error, heading drift) ---
     near_miss_outer_m: float = 0.30  # vehicle landmarks landing refine_radius_m..this far from a reference rock are "near misses"
     max_near_miss_z: float = 3.0  # refuse when near misses exceed chance by this many standard deviations ...
@@ -161,6 +165,8 @@ class LocalizationConfig:
             raise ConfigError("min_inliers must be >= 3")
         if not self.near_miss_outer_m > 0 or not self.landmark_sigma_m > 0 or not self.landmark_sigma_z_m > 0:
             raise ConfigError("near_miss_outer_m, landmark_sigma_m and landmark_sigma_z_m must be positive")
+        if not self.search_sigmas >= 0:
+            raise ConfigError(f"search_sigmas must be >= 0, got {self.search_sigmas}")
         if (self.odometry_scale_error or 0.0) < 0 or (self.odometry_heading_drift_deg_per_m or 0.0) < 0:
             raise ConfigError("odometry_scale_error and odometry_heading_drift_deg_per_m must be >= 0")
 
@@ -178,17 +184,25 @@ class LocalizationConfig:
         maps' stated uncertainty needs (:func:`combined_sigma`): refinement radius
         ``3 sigma_r`` and robust scale ``sigma_r``, sigma_r = sqrt(2 sigma_h^2 + sigma_z^2)
         the 3D offset of a landmark from its partner; the residual RMSE limit follows from
-        a chi-square test (:func:`rmse_limit`). The consistency search keeps the configured
-        epsilon_m / epsilon_z_m: it only has to find a consistent core of the inliers
-        (refinement gathers the rest), it stays fast, and the chance envelope was measured
-        at those tolerances. The fixed values stay as floors: at the default landmark sigma
-        they are what the rule gives."""
+        a chi-square test (:func:`rmse_limit`). The consistency search tolerances become
+        ``search_sigmas`` standard deviations of the difference between a vehicle pair's
+        distance and its reference pair's (four landmarks: sqrt(2) sigma_h horizontally,
+        sqrt(2) sigma_z vertically; one degree of freedom each): 2 sigma keeps a true pair
+        consistent with 95 % probability. Wider tolerances also make chance sets larger (the
+        envelope scales with them, :func:`chance_clique_size`), so small vehicle maps need
+        more inliers: 2 sigma, not 2.5 or 3, keeps a 13-landmark map localizable against a
+        LAC grid (docs/scaling.md). The fixed values stay as floors: at the default
+        landmark sigma, and on the real traverse maps (sigma_h 1.2 cm: 3.4 cm), they are
+        what the rule gives; against a LAC grid (sigma_h about 4.4 cm) the search runs at
+        about 12 cm horizontally."""
         sh, sz = combined_sigma(reference, vehicle, self)
         sr = math.sqrt(2 * sh**2 + sz**2)
         refine = max(self.refine_radius_m, 3 * sr)
         return replace(
             self, refine_radius_m=refine, robust_scale_m=max(self.robust_scale_m, sr),
             near_miss_outer_m=max(self.near_miss_outer_m, 3 * refine),
+            epsilon_m=max(self.epsilon_m, self.search_sigmas * math.sqrt(2) * sh),
+            epsilon_z_m=max(self.epsilon_z_m, self.search_sigmas * math.sqrt(2) * sz),
         )
 
     def to_dict(self) -> dict:
@@ -312,11 +326,17 @@ def rmse_limit(cfg: "LocalizationConfig", sigma_h: float, sigma_z: float, k: int
     3D residuals over the per-axis variance (sigma_r^2 / 3, sigma_r^2 = 2 sigma_h^2 +
     sigma_z^2) stays below its `rmse_confidence` quantile with 3k - 6 degrees of freedom,
     i.e. RMSE <= sigma_r sqrt(q / 3k). Never below cfg.max_rmse_m (the floor)."""
-    from scipy.stats import chi2
-
     dof = max(3 * k - 6, 1)
     sr = math.sqrt(2 * sigma_h**2 + sigma_z**2)
-    return max(cfg.max_rmse_m, sr * math.sqrt(chi2.ppf(cfg.rmse_confidence, dof) / (3 * max(k, 1))))
+    return max(cfg.max_rmse_m, sr * math.sqrt(_chi2_ppf(cfg.rmse_confidence, dof) / (3 * max(k, 1))))
+
+
+def _chi2_ppf(q: float, dof: int) -> float:
+    """Chi-square quantile, as scipy.stats.chi2.ppf computes it (2 gammaincinv(dof/2, q)),
+    without importing scipy.stats (about 0.4 s at start-up)."""
+    from scipy.special import gammaincinv
+
+    return float(2.0 * gammaincinv(dof / 2.0, q))
 
 
 def _flattened(m: LandmarkMap) -> LandmarkMap:
@@ -1099,12 +1119,32 @@ def _n_bins(cfg) -> int:
 def _sweep(Pv, Pr, node_of, cfg, visit, bin_start: int = 0, bin_count: int | None = None) -> int:
     """Run `visit(bin, theta, eu, ev, ew)` on the consistency graph of every yaw bin."""
     n_bins = _n_bins(cfg)
-    index = RefPairIndex(Pr, dist_cell_m=max(cfg.epsilon_m / 2, 0.01), angle_cell_rad=math.radians(1.0))
     return sweep_yaw_bins(
-        vehicle_pairs(Pv), index, node_of, n_bins, max(1, n_bins // 8), cfg.epsilon_m, cfg.epsilon_z_m,
-        math.tan(math.radians(cfg.max_tilt_deg)), cfg.yaw_noise_factor, cfg.sigma, visit,
+        vehicle_pairs(Pv), _ref_index(Pr, cfg), node_of, n_bins, _chunk_bins(cfg), *_graph_args(cfg), visit,
         weights=cfg.solver is Solver.CLIPPER, bin_start=bin_start, bin_count=bin_count, workers=cfg.threads,
     )
+
+
+def _chunk_bins(cfg) -> int:
+    return max(1, _n_bins(cfg) // 8)
+
+
+def _graph_args(cfg) -> tuple:
+    """(eps_h, eps_z, tan_tilt, k_yaw, sigma) of the yaw-bin consistency graphs."""
+    return (cfg.epsilon_m, cfg.epsilon_z_m, math.tan(math.radians(cfg.max_tilt_deg)), cfg.yaw_noise_factor, cfg.sigma)
+
+
+_PARALLEL_MIN_WORK = 2e8  # vehicle pairs x reference pairs below which a sweep runs on the calling thread
+
+
+def _workers(cfg, vp, index: RefPairIndex, share: float = 1.0) -> int:
+    """Threads for a sweep over `share` of the yaw circle: one when the work is small
+    (handing chunks to other threads then costs more than it saves)."""
+    return cfg.threads if len(vp[0]) * len(index.a) * share >= _PARALLEL_MIN_WORK else 1
+
+
+def _ref_index(Pr, cfg) -> RefPairIndex:
+    return RefPairIndex(Pr, dist_cell_m=max(cfg.epsilon_m / 2, 0.01), angle_cell_rad=math.radians(1.0))
 
 
 class _Scratch(threading.local):
@@ -1114,39 +1154,155 @@ class _Scratch(threading.local):
         self.arr = np.full(n, -1, dtype=np.int32)
 
 
+# Bin bounds: the vehicle landmarks are split into groups (round robin) and the graphs of
+# the pairs inside each group are built for every yaw bin (1/groups of the work); a clique
+# of the whole graph splits into cliques of the group graphs, so the sum over the groups of
+# (degeneracy + 1) bounds each bin's maximum clique. More groups cost less but bound less
+# tightly; measured on the 136 real pairs (benchmarks/pair_speed.py), by association count:
+_BOUND_GROUPS = ((2_500, 1), (10_000, 2), (50_000, 4))  # (fewer associations than, groups); else 8
+
+
+def _bound_groups(n_assoc: int) -> int:
+    for limit, groups in _BOUND_GROUPS:
+        if n_assoc < limit:
+            return groups
+    return 8
+
+
+def _bin_bounds(Pv, vp, index, node_of, cfg) -> tuple[np.ndarray, np.ndarray, int]:
+    """(upper, lower) bound on the maximum clique of every yaw bin's consistency graph, and
+    the edges generated to find them. Upper: sum over groups of vehicle landmarks of the
+    group graph's degeneracy + 1 (any clique of the bin puts at most that many of its
+    members in each group); lower: the largest greedy clique of a group graph (a clique of
+    the bin's graph too). Without groups (small vehicle maps): (inf, 0)."""
+    n_bins = _n_bins(cfg)
+    groups = min(_bound_groups(int(np.count_nonzero(node_of >= 0))), max(1, len(Pv) // 8))
+    if groups == 1:
+        return np.full(n_bins, np.iinfo(np.int64).max, dtype=np.int64), np.zeros(n_bins, dtype=np.int64), 0
+    upper = np.zeros(n_bins, dtype=np.int64)
+    lower = np.ones(n_bins, dtype=np.int64)
+    scratch = _Scratch(int(node_of.size))
+    lock = threading.Lock()
+    chunks = yaw_bin_chunks(n_bins, _chunk_bins(cfg), range(n_bins))
+    pi, pj = vp[0], vp[1]
+    edges = 0
+    for g in range(groups):
+        sel = (pi % groups == g) & (pj % groups == g)
+        vpg = tuple(x[sel] for x in vp)
+
+        def visit_chunk(bins, ptr, su, sv, _sw):
+            ub, lb = bin_clique_bounds(ptr, su, sv, scratch.arr)
+            with lock:
+                upper[bins] += np.maximum(ub, 1)  # a group with no edge in a bin still holds one member
+                np.maximum.at(lower, bins, lb)
+
+        edges += sweep_bin_chunks(vpg, index, node_of, n_bins, chunks, *_graph_args(cfg), visit_chunk,
+                                  weights=False, workers=_workers(cfg, vpg, index))
+    return upper, lower, edges
+
+
+class _BestYaw(float):
+    """The winning relative yaw (rad), carrying what the search learnt (reference pair index,
+    per-bin clique bounds, winning size) so that the same-yaw competitor search reuses it."""
+
+    index: RefPairIndex
+    upper: np.ndarray
+    best_size: int
+
+
+def _far_pairs_floor(values: np.ndarray, n_bins: int, sep_bins: float) -> int:
+    """Largest min(v_x, v_y) over bins x, y more than 2 * sep apart: whatever the winning
+    yaw, one of the two is more than sep from it, so the competitor is at least this."""
+    far = _far_mask(n_bins, 2 * sep_bins)
+    if not far.any():
+        return 0
+    return int(np.minimum(values[:, None], values[None, :])[far].max())
+
+
+@functools.lru_cache(maxsize=8)
+def _far_mask(n_bins: int, min_sep_bins: float) -> np.ndarray:
+    """Boolean (n_bins, n_bins): bins more than `min_sep_bins` apart around the circle."""
+    b = np.arange(n_bins)
+    d = np.abs(b[:, None] - b[None, :])
+    return np.minimum(d, n_bins - d) > min_sep_bins
+
+
 def _search_yaw_bins(Pv, Pr, node_of, cfg):
     """Max consistent set over relative-yaw bins; also the best set whose yaw differs
-    by more than competitor_yaw_sep_deg (the competing hypothesis)."""
+    by more than competitor_yaw_sep_deg (the competing hypothesis).
+
+    Exact, bin by bin, but only where a bin can matter: cheap per-bin clique bounds
+    (:func:`_bin_bounds`) order the bins; the most promising bin is solved first, and
+    then only bins whose bound exceeds ``lb = max(floor(best / competitor_ratio), known
+    competitor floor)`` are built and searched, each for a clique larger than lb. Hence:
+    the winner is the largest clique of any bin (ties: smallest yaw), found exactly; the
+    competitor is exact whenever it exceeds best / competitor_ratio (when it can decide
+    the ambiguity test, as the inlier count is at least the clique size), otherwise a
+    lower bound on it (a clique found in a far bin)."""
     n_assoc = int(node_of.size)
-    sep = math.radians(cfg.competitor_yaw_sep_deg)
-    state = {"best": np.empty(0, dtype=np.int32), "yaw": None, "second": 0}
+    n_bins = _n_bins(cfg)
+    step = 2 * math.pi / n_bins
+    sep_bins = math.radians(cfg.competitor_yaw_sep_deg) / step
+    index = _ref_index(Pr, cfg)
+    vp = vehicle_pairs(Pv)
+    upper, lower, total_edges = _bin_bounds(Pv, vp, index, node_of, cfg)
+    found: dict[int, np.ndarray] = {}
+    state = {"best": 0, "floor": _far_pairs_floor(lower, n_bins, sep_bins)}
     lock = threading.Lock()
     scratch = _Scratch(n_assoc)
 
-    def visit(_b, theta, eu, ev, ew):
-        lb = state["second"]  # a clique must beat the competitor to change anything
-        if len(eu) < lb * (lb + 1) // 2:
-            return
-        c = _solve(cfg.solver, n_assoc, eu, ev, ew, lb, cfg.seed, scratch.arr)
-        if len(c) == 0:
-            return
-        with lock:
-            best, best_yaw = state["best"], state["yaw"]
-            far = best_yaw is None or abs((theta - best_yaw + math.pi) % (2 * math.pi) - math.pi) > sep
-            if len(c) > len(best) or (len(c) == len(best) and best_yaw is not None and theta < best_yaw and not far):
-                if far and len(best):
-                    state["second"] = max(state["second"], len(best))
-                state["best"], state["yaw"] = c, theta
-            elif far:
-                state["second"] = max(state["second"], len(c))
+    def lb_now() -> int:
+        return max(int(state["best"] // cfg.competitor_ratio), state["floor"])
 
-    total_edges = _sweep(Pv, Pr, node_of, cfg, visit)
-    return state["best"], state["second"], state["yaw"], total_edges
+    def visit_chunk(bins, ptr, su, sv, sw):
+        for t in sorted(range(len(bins)), key=lambda t: -upper[bins[t]]):
+            b = bins[t]
+            with lock:
+                lb = lb_now()
+            if upper[b] <= lb or ptr[t + 1] - ptr[t] < lb * (lb + 1) // 2:
+                continue
+            sl = slice(ptr[t], ptr[t + 1])
+            c = _solve(cfg.solver, n_assoc, su[sl], sv[sl], sw[sl], lb, cfg.seed, scratch.arr)
+            if len(c) == 0:
+                continue
+            with lock:
+                found[b] = c
+                state["best"] = max(state["best"], len(c))
+                for b2, c2 in found.items():
+                    d = abs(b - b2)
+                    if min(d, n_bins - d) > 2 * sep_bins:
+                        state["floor"] = max(state["floor"], min(len(c), len(c2)))
+
+    def sweep(bins) -> int:
+        chunks = yaw_bin_chunks(n_bins, _chunk_bins(cfg), bins)
+        chunks.sort(key=lambda c: -int(upper[c[0] + c[1]: c[0] + c[2] + 1].max()))
+        share = sum(c[2] - c[1] + 1 for c in chunks) / n_bins
+        return sweep_bin_chunks(vp, index, node_of, n_bins, chunks, *_graph_args(cfg), visit_chunk,
+                                weights=cfg.solver is Solver.CLIPPER, workers=_workers(cfg, vp, index, share))
+
+    top = int(np.argmax(upper))
+    if upper[top] < np.iinfo(np.int64).max:
+        total_edges += sweep([top])  # the most promising bin first: its clique raises lb for the rest
+    lb = lb_now()
+    rest = [b for b in np.flatnonzero(upper > lb).tolist() if b not in found]
+    total_edges += sweep(rest)
+
+    if not found:
+        return np.empty(0, dtype=np.int32), 0, None, total_edges
+    size = max(len(c) for c in found.values())
+    b_best = min(b for b, c in found.items() if len(c) == size)
+
+    far = _far_mask(n_bins, sep_bins)[b_best]
+    second = max([state["floor"], int(lower[far].max(initial=0))] + [len(c) for b, c in found.items() if far[b]])
+    best_yaw = _BestYaw(-math.pi + (b_best + 0.5) * step)
+    best_yaw.index, best_yaw.upper, best_yaw.best_size = index, upper, size
+    return found[b_best], int(second), best_yaw, total_edges
 
 
 def _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw, floor: int = 0):
     """Best set near the winner's yaw among associations the winner does not explain
-    (a shifted copy of the pattern at the same heading)."""
+    (a shifted copy of the pattern at the same heading). Like the main search, exact when
+    it exceeds best / competitor_ratio (or `floor`), otherwise `floor` is returned."""
     if best_yaw is None:
         return 0
     explained = _explained(T, Pv, Pr, assoc, 3 * cfg.epsilon_m)
@@ -1156,15 +1312,31 @@ def _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw, floor: int = 
     step = 2 * math.pi / n_bins
     centre = int(math.floor((best_yaw + math.pi) / step))
     reach = int(math.ceil(math.radians(cfg.competitor_yaw_sep_deg) / step))
-    state = {"best": floor}  # only a set larger than the competitor already known matters
+    bins = [(centre + t) % n_bins for t in range(-reach, reach + 1)]
+    lb0 = floor
+    index = None
+    if isinstance(best_yaw, _BestYaw):  # reuse the main search's index and bounds
+        index = best_yaw.index
+        lb0 = max(floor, int(best_yaw.best_size // cfg.competitor_ratio))
+        bins = [b for b in bins if best_yaw.upper[b] > lb0]  # removing associations only lowers the bound
+    if not bins:
+        return floor
+    state = {"best": lb0}  # only a set larger than this can matter
     lock = threading.Lock()
     scratch = _Scratch(int(node_of.size))
+    n_assoc = int(node_of.size)
 
-    def visit(_b, _theta, eu, ev, ew):
-        if len(eu):
-            c = _solve(cfg.solver, int(node_of.size), eu, ev, ew, state["best"], cfg.seed, scratch.arr)
-            with lock:
-                state["best"] = max(state["best"], len(c))
+    def visit_chunk(bins_, ptr, su, sv, sw):
+        for t in range(len(bins_)):
+            if ptr[t + 1] > ptr[t]:
+                sl = slice(ptr[t], ptr[t + 1])
+                c = _solve(cfg.solver, n_assoc, su[sl], sv[sl], sw[sl], state["best"], cfg.seed, scratch.arr)
+                with lock:
+                    state["best"] = max(state["best"], len(c))
 
-    _sweep(Pv, Pr, node2, cfg, visit, centre - reach, 2 * reach + 1)
-    return state["best"]
+    vp = vehicle_pairs(Pv)
+    index = index if index is not None else _ref_index(Pr, cfg)
+    sweep_bin_chunks(vp, index, node2, n_bins, yaw_bin_chunks(n_bins, _chunk_bins(cfg), bins), *_graph_args(cfg),
+                     visit_chunk, weights=cfg.solver is Solver.CLIPPER,
+                     workers=_workers(cfg, vp, index, len(bins) / n_bins))
+    return state["best"] if state["best"] > lb0 else floor

@@ -126,7 +126,9 @@ def localize_large(
     timings["vote"] = time.perf_counter() - t0
 
     m_full = len(Pr) * len(Pv)
-    required = max(cfg.min_inliers, int(math.ceil(chance_clique_size(m_full, cfg.mode) + cfg.chance_margin)))
+    fm = cfg.for_maps(reference, vehicle)  # the crops' search runs at the maps' tolerances: so does chance
+    required = max(cfg.min_inliers, int(math.ceil(
+        chance_clique_size(m_full, cfg.mode, fm.epsilon_m, fm.epsilon_z_m) + cfg.chance_margin)))
     considered = votes.lookups
     results: list[LocalizationResult] = []
     rows: list[dict] = []

@@ -30,9 +30,11 @@ def warm_up(force: bool = False) -> float:
 
     t0 = time.perf_counter()
     rng = np.random.default_rng(0)
-    ref_xyz = np.c_[rng.uniform(-6, 6, (40, 2)), rng.normal(0, 0.2, 40)]
+    # 80 x 40 = 3,200 associations: large enough for the search's per-bin bounds (their
+    # kernels compile too), small enough to take a moment once compiled
+    ref_xyz = np.c_[rng.uniform(-8, 8, (80, 2)), rng.normal(0, 0.2, 80)]
     T = make_transform(euler_to_rotation(0.0, 0.0, 0.7), np.array([3.0, -2.0, 0.1]))
-    veh_xyz = transform_points(np.linalg.inv(T), ref_xyz[:25]) + rng.normal(0, 0.005, (25, 3))
+    veh_xyz = transform_points(np.linalg.inv(T), ref_xyz[:40]) + rng.normal(0, 0.005, (40, 3))
     ref, veh = LandmarkMap(ref_xyz, frame="ref"), LandmarkMap(veh_xyz, frame="veh")
     for mode in Mode:
         for solver in Solver:

@@ -21,28 +21,36 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["max_clique", "peel", "csr_from_edges", "core_numbers"]
+__all__ = ["max_clique", "peel", "csr_from_edges", "core_numbers", "bin_clique_bounds"]
+
+
+@njit(cache=True, nogil=True)
+def _csr_into(m, tu, tv, ne, indptr, fill, indices):
+    """Symmetric CSR adjacency of the first `ne` edges (tu, tv) on m vertices, written into
+    indptr (m + 1), fill (m) and indices (2 ne); rows in edge order."""
+    indptr[: m + 1] = 0
+    for t in range(ne):
+        indptr[tu[t] + 1] += 1
+        indptr[tv[t] + 1] += 1
+    for t in range(m):
+        indptr[t + 1] += indptr[t]
+        fill[t] = indptr[t]
+    for t in range(ne):
+        a = tu[t]
+        b = tv[t]
+        indices[fill[a]] = b
+        fill[a] += 1
+        indices[fill[b]] = a
+        fill[b] += 1
 
 
 @njit(cache=True, nogil=True)
 def csr_from_edges(n: int, eu: np.ndarray, ev: np.ndarray):
     """Symmetric CSR adjacency (indptr, indices) of an undirected edge list on n vertices."""
-    deg = np.zeros(n + 1, dtype=np.int64)
-    for k in range(eu.shape[0]):
-        deg[eu[k] + 1] += 1
-        deg[ev[k] + 1] += 1
-    for i in range(n):
-        deg[i + 1] += deg[i]
-    indptr = deg.copy()
-    fill = deg[:-1].copy()
-    indices = np.empty(indptr[n], dtype=np.int32)
-    for k in range(eu.shape[0]):
-        a = eu[k]
-        b = ev[k]
-        indices[fill[a]] = b
-        fill[a] += 1
-        indices[fill[b]] = a
-        fill[b] += 1
+    indptr = np.empty(n + 1, dtype=np.int64)
+    fill = np.empty(n, dtype=np.int64)
+    indices = np.empty(2 * eu.shape[0], dtype=np.int32)
+    _csr_into(n, eu, ev, eu.shape[0], indptr, fill, indices)
     for i in range(n):
         indices[indptr[i] : indptr[i + 1]].sort()
     return indptr, indices
@@ -264,15 +272,9 @@ def _max_clique_csr(n: int, indptr: np.ndarray, indices: np.ndarray, lb: int):
 
 
 @njit(cache=True, nogil=True)
-def _compact(eu, ev, keep, scratch):
-    """Relabel the kept edges' endpoints 0..m-1 (scratch: int32 array of -1, restored)."""
-    ne = 0
-    for k in range(eu.shape[0]):
-        if keep[k]:
-            ne += 1
-    su = np.empty(ne, dtype=np.int32)
-    sv = np.empty(ne, dtype=np.int32)
-    oldid = np.empty(2 * ne, dtype=np.int32)
+def _relabel_into(eu, ev, keep, scratch, su, sv, oldid):
+    """Relabel the kept edges' endpoints 0..m-1 in order of appearance, into su/sv (edges)
+    and oldid (old id of each new one); scratch (int32 of -1) is restored. Returns m."""
     m = 0
     t = 0
     for k in range(eu.shape[0]):
@@ -293,32 +295,69 @@ def _compact(eu, ev, keep, scratch):
         t += 1
     for k in range(m):
         scratch[oldid[k]] = -1
+    return m
+
+
+@njit(cache=True, nogil=True)
+def _compact(eu, ev, keep, scratch):
+    """Relabel the kept edges' endpoints 0..m-1 (scratch: int32 array of -1, restored)."""
+    ne = 0
+    for k in range(eu.shape[0]):
+        if keep[k]:
+            ne += 1
+    su = np.empty(ne, dtype=np.int32)
+    sv = np.empty(ne, dtype=np.int32)
+    oldid = np.empty(2 * ne, dtype=np.int32)
+    m = _relabel_into(eu, ev, keep, scratch, su, sv, oldid)
     return m, su, sv, oldid[:m].copy()
 
 
 @njit(cache=True, nogil=True)
 def _peel(su, sv, m, lb):
     """Keep-mask of edges after repeatedly dropping vertices of degree < lb (they cannot
-    be in a clique larger than lb). Sequential passes over the edge list."""
-    keep = np.ones(su.shape[0], dtype=np.bool_)
-    deg = np.zeros(m, dtype=np.int32)
-    while True:
-        deg[:] = 0
-        for k in range(su.shape[0]):
-            if keep[k]:
-                deg[su[k]] += 1
-                deg[sv[k]] += 1
-        changed = False
-        ne = 0
-        for k in range(su.shape[0]):
-            if keep[k]:
-                if deg[su[k]] < lb or deg[sv[k]] < lb:
-                    keep[k] = False
-                    changed = True
-                else:
-                    ne += 1
-        if not changed or ne == 0:
-            return keep, ne
+    be in a clique larger than lb): the lb-core, found in O(E) with a stack of the
+    vertices to drop (unique, whatever the order)."""
+    ne = su.shape[0]
+    deg = np.zeros(m, dtype=np.int64)
+    for k in range(ne):
+        deg[su[k]] += 1
+        deg[sv[k]] += 1
+    ptr = np.zeros(m + 1, dtype=np.int64)
+    for v in range(m):
+        ptr[v + 1] = ptr[v] + deg[v]
+    fill = ptr[:-1].copy()
+    inc = np.empty(2 * ne, dtype=np.int64)  # edge ids incident to each vertex
+    for k in range(ne):
+        inc[fill[su[k]]] = k
+        fill[su[k]] += 1
+        inc[fill[sv[k]]] = k
+        fill[sv[k]] += 1
+    keep = np.ones(ne, dtype=np.bool_)
+    dropped = np.zeros(m, dtype=np.bool_)
+    stack = np.empty(m, dtype=np.int64)
+    top = 0
+    for v in range(m):
+        if deg[v] < lb:
+            dropped[v] = True
+            stack[top] = v
+            top += 1
+    kept = ne
+    while top > 0:
+        top -= 1
+        v = stack[top]
+        for t in range(ptr[v], ptr[v + 1]):
+            k = inc[t]
+            if not keep[k]:
+                continue
+            keep[k] = False
+            kept -= 1
+            w = sv[k] if su[k] == v else su[k]
+            deg[w] -= 1
+            if not dropped[w] and deg[w] < lb:
+                dropped[w] = True
+                stack[top] = w
+                top += 1
+    return keep, kept
 
 
 @njit(cache=True, nogil=True)
@@ -377,3 +416,73 @@ def max_clique(n: int, eu: np.ndarray, ev: np.ndarray, lower_bound: int = 0, scr
     if scratch is None or scratch.shape[0] < n:
         scratch = np.full(n, -1, dtype=np.int32)
     return np.sort(_peeled_max_clique(eu, ev, int(lower_bound), scratch))
+
+
+@njit(cache=True, nogil=True)
+def _bin_bounds(ptr: np.ndarray, su: np.ndarray, sv: np.ndarray, scratch: np.ndarray):
+    """Upper and lower bounds on the maximum clique of each of the graphs whose edges are
+    su/sv[ptr[k]:ptr[k+1]] (the yaw bins of one chunk): degeneracy + 1 (a clique of size s
+    lies in the (s-1)-core) and the size of a greedy clique grown from the vertex of highest
+    core number. A graph with no edge gives (0, 0); its caller knows whether it has vertices."""
+    nb = ptr.shape[0] - 1
+    upper = np.zeros(nb, dtype=np.int64)
+    lower = np.zeros(nb, dtype=np.int64)
+    ne_max = 0
+    for k in range(nb):
+        ne_max = max(ne_max, ptr[k + 1] - ptr[k])
+    n_max = 2 * ne_max
+    oldid = np.empty(n_max, dtype=np.int32)
+    tu = np.empty(ne_max, dtype=np.int32)
+    tv = np.empty(ne_max, dtype=np.int32)
+    indptr = np.empty(n_max + 1, dtype=np.int64)
+    fill = np.empty(n_max, dtype=np.int64)
+    indices = np.empty(2 * ne_max, dtype=np.int32)
+    stamp = np.zeros(n_max, dtype=np.int64)
+    cand = np.empty(n_max, dtype=np.int32)
+    keep_all = np.ones(ne_max, dtype=np.bool_)
+    for k in range(nb):
+        e0 = ptr[k]
+        ne = ptr[k + 1] - e0
+        if ne <= 0:
+            continue
+        m = _relabel_into(su[e0:e0 + ne], sv[e0:e0 + ne], keep_all[:ne], scratch, tu, tv, oldid)
+        _csr_into(m, tu, tv, ne, indptr, fill, indices)
+        core, order = core_numbers(m, indptr[: m + 1], indices[: indptr[m]])
+        top = order[m - 1]
+        upper[k] = core[top] + 1
+        # greedy clique from the top vertex: keep the candidates adjacent to every member,
+        # taking the candidate of highest core number each time
+        nc = 0
+        for t in range(indptr[top], indptr[top + 1]):
+            cand[nc] = indices[t]
+            nc += 1
+        size = 1
+        run = 0
+        while nc > 0:
+            pick = 0
+            for t in range(1, nc):
+                if core[cand[t]] > core[cand[pick]]:
+                    pick = t
+            u = cand[pick]
+            size += 1
+            run += 1
+            for t in range(indptr[u], indptr[u + 1]):
+                stamp[indices[t]] = run
+            keep = 0
+            for t in range(nc):
+                w = cand[t]
+                if w != u and stamp[w] == run:
+                    cand[keep] = w
+                    keep += 1
+            nc = keep
+        stamp[:m] = 0
+        lower[k] = size
+    return upper, lower
+
+
+def bin_clique_bounds(ptr: np.ndarray, su: np.ndarray, sv: np.ndarray, scratch: np.ndarray):
+    """(upper, lower) bounds on the maximum clique of each bin's graph of one chunk
+    (edges su/sv[ptr[k]:ptr[k+1]], association ids < len(scratch); scratch: int32 filled
+    with -1, restored). Bins without edges give (0, 0)."""
+    return _bin_bounds(np.asarray(ptr, dtype=np.int64), np.ascontiguousarray(su, dtype=np.int32),
+                       np.ascontiguousarray(sv, dtype=np.int32), scratch)

@@ -1,0 +1,131 @@
+"""Cold and warm start of ``lunarloc localize REF VEH --json``, and where a warm call's time goes.
+
+* **warm**: numba's cache already holds the compiled kernels (``make`` runs ``lunarloc
+  warm-up`` after installing); each run is a fresh process.
+* **cold**: every run gets an empty ``NUMBA_CACHE_DIR`` (a new temporary folder), so the
+  kernels are compiled in that process, as on a first call after installing without the
+  warm-up step.
+
+Each run is timed from outside (wall clock, and the child's CPU time, user + system, from
+``resource.getrusage(RUSAGE_CHILDREN)``): CPU time hardly depends on how loaded the
+machine is, wall time does. ``--split`` also times the stages of one warm call inside one
+process (imports, map loading, the first localization, which loads the cached kernels,
+and a second one).
+
+The pair: the landmark map of real traverse 3 as the reference and traverse 7's map moved
+into a vehicle frame by a fixed rigid transform (both built from ``--data`` into a
+temporary folder).
+
+Usage::
+
+    python benchmarks/start_time.py --data ../shared/data/lunarloc-data [--runs 5] [--cold-runs 5] [--split]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+SPLIT = r"""
+import sys, time
+t0, c0 = time.perf_counter(), time.process_time()
+rows = []
+def mark(label, s={"t": t0, "c": c0}):
+    t, c = time.perf_counter(), time.process_time()
+    rows.append((label, t - s["t"], c - s["c"]))
+    s["t"], s["c"] = t, c
+import numpy; mark("import numpy")
+import typer, rich.console; mark("import typer, rich")
+import numba; mark("import numba")
+import scipy.spatial; mark("import scipy.spatial")
+import lunarloc.localize, lunarloc.localize_large; mark("import lunarloc.localize")
+from lunarloc.cli.app import _register_commands; _register_commands(); mark("import the CLI commands")
+from pathlib import Path
+from lunarloc.pipeline import load_reference
+from lunarloc.maps import load_map
+ref, veh = load_reference(Path(sys.argv[1])), load_map(sys.argv[2]); mark("load the two maps")
+from lunarloc.localize_large import localize_large
+localize_large(ref, veh); mark("first localize (loads cached kernels)")
+localize_large(ref, veh); mark("second localize")
+for label, w, c in rows:
+    print(f"  {label:40s} wall {w:6.3f} s  CPU {c:6.3f} s")
+"""
+
+
+def _pair(data: Path, out: Path) -> tuple[Path, Path]:
+    import numpy as np
+
+    from lunarloc.geometry import euler_to_rotation, make_transform, transform_points
+    from lunarloc.maps import AggregationConfig, LandmarkMap, aggregate_detections, load_traverse, save_map
+
+    maps = []
+    for k in (3, 7):
+        t = load_traverse(data / "csv" / f"traverse_{k}.csv")
+        maps.append(aggregate_detections(t.detections_xyz, t.detection_frame, AggregationConfig(), frame=t.name))
+    ref, m = maps
+    T = make_transform(euler_to_rotation(0.004, -0.006, 1.9), np.array([37.0, -12.0, 0.4]))
+    veh = LandmarkMap(transform_points(T, m.positions_xyz), m.sizes, m.sightings, "vehicle", m.sigma_xy_m, m.sigma_z_m)
+    paths = out / "reference.csv", out / "vehicle.csv"
+    save_map(ref, paths[0])
+    save_map(veh, paths[1])
+    return paths
+
+
+def _run(cmd: list[str], env: dict) -> tuple[float, float]:
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if proc.returncode != 0 or '"success": true' not in proc.stdout:
+        raise SystemExit(f"run failed ({proc.returncode}): {proc.stderr.strip()[-400:]}")
+    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+
+
+def _report(name: str, runs: list[tuple[float, float]]) -> None:
+    walls = [w for w, _ in runs]
+    cpus = [c for _, c in runs]
+    print(f"{name}: {len(runs)} runs; wall median {statistics.median(walls):.2f} s (min {min(walls):.2f}, "
+          f"max {max(walls):.2f}); CPU median {statistics.median(cpus):.2f} s (min {min(cpus):.2f}, max {max(cpus):.2f})")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, required=True, help="lunarloc-data folder (csv/traverse_N.csv)")
+    ap.add_argument("--runs", type=int, default=5, help="warm runs")
+    ap.add_argument("--cold-runs", type=int, default=5, help="cold runs (each compiles every kernel)")
+    ap.add_argument("--split", action="store_true", help="also time the stages of one warm call in one process")
+    ap.add_argument("--src", type=Path, help="run the lunarloc found in this source folder (PYTHONPATH), e.g. an "
+                    "older commit unpacked with `git archive REV src | tar -x -C DIR` (pass DIR/src)")
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory(prefix="lunarloc-start-") as tmp:
+        ref, veh = _pair(args.data, Path(tmp))
+        cmd = [sys.executable, "-m", "lunarloc", "localize", str(ref), str(veh), "--json"]
+        env = dict(os.environ)
+        env.pop("NUMBA_CACHE_DIR", None)
+        if args.src is not None:
+            env["PYTHONPATH"] = str(args.src.resolve())
+        _run(cmd, env)  # make sure the ordinary cache is warm
+        print(f"load average {os.getloadavg()[0]:.1f} at start")
+        _report("warm", [_run(cmd, env) for _ in range(args.runs)])
+        cold = []
+        for _ in range(args.cold_runs):
+            with tempfile.TemporaryDirectory(prefix="numba-cold-") as cache:
+                cold.append(_run(cmd, dict(env, NUMBA_CACHE_DIR=cache)))
+        if cold:
+            _report("cold (empty numba cache)", cold)
+        if args.split:
+            print("one warm call, by stage:")
+            subprocess.run([sys.executable, "-c", SPLIT, str(ref), str(veh)], env=env, check=True)
+        print(f"load average {os.getloadavg()[0]:.1f} at end")
+
+
+if __name__ == "__main__":
+    main()
