@@ -56,7 +56,8 @@ class LunarLocAgent:
     def setup(self, path_to_conf_file: str | None = None) -> None:
         env = self.env
         rig = CameraRig.from_sensors(self.sensors(), {c: env.get_camera_position(c) for c in CAMERAS})
-        self.localizer = OnlineLocalizer(load_reference(self.reference_path), env.get_initial_position(), rig=rig)
+        self.localizer = OnlineLocalizer(load_reference(self.reference_path), env.get_initial_position(), rig=rig,
+                                         lander_pose=env.get_initial_lander_position())  # no rock fixes on the lander
         self.localizer.warm_up()  # before the mission clock matters
 
     # -- every tick ---------------------------------------------------------------------------

@@ -205,3 +205,28 @@ def test_history_stays_bounded_across_reanchors():
         held.append(len(loc.loop.kf_frame))
         assert np.allclose(e.T_map_rover, T, atol=1e-6)
     assert max(held) <= 50 and loc.reanchors >= 2
+
+
+def test_detections_on_the_lander_are_dropped(sim, monkeypatch):
+    """With the lander's initial rover-relative pose given, detections on it never reach the loop."""
+    archive, _ = sim
+    with PlaybackAgent(archive) as env:
+        T_rover_lander = env.get_initial_lander_position().matrix()
+    loc, _ = _component(sim, lander_pose=T_rover_lander)
+    on_lander = T_rover_lander[:, 3]  # the lander's centre in the rover frame at the start
+    rock = np.array([3.0, 0.5, 0.1])
+    monkeypatch.setattr(loc, "_detect", lambda images: np.array([on_lander[:3], rock]))
+    seen = []
+    step = loc.loop.step
+    monkeypatch.setattr(loc.loop, "step", lambda *a, **k: (seen.append(a[3].copy()), step(*a, **k))[1])
+    img = np.zeros((H, W), np.uint8)
+    loc.update(0.0, {"Grayscale": {"FrontLeft": img, "FrontRight": img}}, IMU_REST, 0.0, 0.0)
+    assert len(seen) == 1 and np.allclose(seen[0], [rock])
+    # without the lander's pose nothing is dropped
+    loc2, _ = _component(sim)
+    monkeypatch.setattr(loc2, "_detect", lambda images: np.array([on_lander[:3], rock]))
+    seen2 = []
+    step2 = loc2.loop.step
+    monkeypatch.setattr(loc2.loop, "step", lambda *a, **k: (seen2.append(a[3].copy()), step2(*a, **k))[1])
+    loc2.update(0.0, {"Grayscale": {"FrontLeft": img, "FrontRight": img}}, IMU_REST, 0.0, 0.0)
+    assert len(seen2[0]) == 2

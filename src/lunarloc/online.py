@@ -233,10 +233,13 @@ class OnlineLocalizer:
     rig : :class:`CameraRig` (intrinsics and mounts); default the LAC's IPEx rig at 1280x720,
         or :meth:`CameraRig.from_sensors` / :meth:`CameraRig.from_calibration`.
     detector_config : default :func:`lunarloc.config.scaled_detector_config` at the rig's width.
+    lander_pose : the lander's pose relative to the rover at the first tick (the LAC's
+        ``get_initial_lander_position()``, in any form `initial_pose` takes); detections on
+        the lander are then dropped. None: no lander exclusion.
     """
 
     def __init__(self, reference: LandmarkMap, initial_pose, config: OnlineConfig | None = None,
-                 rig: CameraRig | None = None, detector_config=None):  # fmt: skip
+                 rig: CameraRig | None = None, detector_config=None, lander_pose=None):  # fmt: skip
         from lunarloc.perception.detector import Detector
         from lunarloc.config import scaled_detector_config
 
@@ -247,6 +250,8 @@ class OnlineLocalizer:
         if not isinstance(self.rig, CameraRig):
             raise InputError(f"rig must be a CameraRig, got {type(self.rig).__name__}")
         self.T_map_rover0 = _as_T(initial_pose, "initial_pose")
+        # the lander's centre in map (= odometry at the start), for dropping detections on it
+        self._lander_xy = None if lander_pose is None else (self.T_map_rover0 @ _as_T(lander_pose, "lander_pose"))[:2, 3]
         self.reference = reference
         if len(reference) >= 1:
             d = np.linalg.norm(reference.positions_xyz[:, :2] - self.T_map_rover0[:2, 3], axis=1)
@@ -367,6 +372,10 @@ class OnlineLocalizer:
         if pair is not None and self._is_keyframe(t, T_odo):
             is_kf = True
             det = self._detect(images)
+            if self._lander_xy is not None:
+                from lunarloc.perception.detector import on_lander
+
+                det = det[~on_lander(det, T_odo, self._lander_xy)]
             if len(self.loop.kf_frame) >= self.config.max_keyframes:
                 self._reanchor()
             attempt = self.loop.step(self._tick, t, self._T_loop_odo @ T_odo, det, None, keyframe=True)

@@ -55,6 +55,10 @@ def run(source, reference: LandmarkMap, config: RunConfig | None = None, *,
                 fd = detector.detect_frame(frame.images, frame.mounts, None, frame.frame)
                 loop.timings["detection"] += time.perf_counter() - t0
                 detections = np.array([d.p_rover for d in fd.detections], float).reshape(-1, 3)
+                if source.lander_xy is not None:  # the lander is no rock: drop detections on it
+                    from lunarloc.perception.detector import on_lander
+
+                    detections = detections[~on_lander(detections, frame.T_odo_rover, source.lander_xy)]
                 example.offer(fd, frame, source.camera)
             n_kf += frame.keyframe
             loop.step(frame.frame, frame.time_s, frame.T_odo_rover, detections, frame.T_map_rover_true,

@@ -70,6 +70,7 @@ class ArchiveSource:
         self.max_frames = max_frames
         self.camera = None
         self.rocks: np.ndarray | None = None
+        self.lander_xy: np.ndarray | None = None  # the lander's centre in map (initial.toml), if recorded
         self.odometry_label = ""
         self.timings: dict[str, float] = {}
         self._ar = None
@@ -91,6 +92,8 @@ class ArchiveSource:
             if not self._lefts:
                 raise FileFormatError(f"{self.path}: no left stereo camera recorded images (have: {', '.join(ar.cameras) or 'none'})")
             self._image_frames = {int(f) for c in self._lefts for f in ar.camera_frames(c)["frame"]}
+            if ar.initial.get("lander") is not None:
+                self.lander_xy = np.asarray(ar.lander_pose_map()[:2], float)
             if "rocks" in ar.custom_records:
                 self.rocks = ar.custom("rocks").to_array(tuple(ROCK_COLUMNS))
         except BaseException:
@@ -181,6 +184,7 @@ class TraverseCsvSource:
         self.keyframe_max_interval_s = float(keyframe_max_interval_s)
         self.camera = None
         self.rocks = None
+        self.lander_xy = None  # detections of the dataset are already rocks
         self.timings: dict[str, float] = {}
 
     def __enter__(self) -> TraverseCsvSource:
