@@ -55,9 +55,11 @@ def _print_summary(s: dict, title: str) -> None:
 
 @app.command("run")
 def run_cmd(
-    archive: Path = typer.Argument(..., help="Vehicle traverse .lac archive (stereo images; any custom records)."),
-    reference: Path = typer.Option(..., "--reference", "-r",
-                                   help="Reference map: landmark CSV/.npz, traverse CSV, or rocks.csv (id,x,y,z,radius)."),  # fmt: skip
+    archives: list[Path] = typer.Argument(..., help="Vehicle traverse .lac archive (stereo images; any custom records); "
+                                          "several: rovers of one site on one clock (docs/multi-rover.md)."),  # fmt: skip
+    reference: Optional[Path] = typer.Option(None, "--reference", "-r",
+                                             help="Reference map: landmark CSV/.npz, traverse CSV, or rocks.csv (id,x,y,z,radius)."),  # fmt: skip
+    share_maps: bool = typer.Option(False, "--share-maps", help="Several archives: also localize against the other rovers' live maps."),
     out: Path = typer.Option(..., "-o", "--out", help="Output folder."),
     segmenter: str = typer.Option("classical", "--segmenter", help="classical | fastsam"),
     weights: Optional[Path] = typer.Option(None, "--weights", help="FastSAM checkpoint for --segmenter fastsam."),
@@ -73,7 +75,18 @@ def run_cmd(
     ),  # fmt: skip
     overwrite: bool = OVERWRITE_OPT,
 ) -> None:
-    """Online localization over a traverse: detect, map, localize against REFERENCE, fuse."""
+    """Online localization over a traverse: detect, map, localize against REFERENCE, fuse.
+    Several archives play on one mission clock, each rover also using the others' maps with --share-maps."""
+    if len(archives) > 1 or share_maps:
+        from lunarloc.cli.commands_multirover import run_several
+
+        return run_several(archives, reference, out, share_maps, segmenter, weights,
+                           _loop_config(every_m, every_s, window_m, fix), odometry, plot, overwrite)  # fmt: skip
+    archive = archives[0]
+    if reference is None:
+        from lunarloc.errors import ConfigError
+
+        raise ConfigError("--reference is required with one archive (several archives can use --share-maps instead)")
     from tqdm import tqdm
 
     from lunarloc.inputs import check_input_file

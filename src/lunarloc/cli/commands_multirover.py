@@ -1,0 +1,72 @@
+"""`lunarloc run A.lac B.lac [--reference MAP] [--share-maps] -o OUT`: several rovers on one
+clock (the driver is :mod:`lunarloc.multirover`; this module checks arguments and prints)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from lunarloc.cli.app import console
+
+
+def run_several(archives: list[Path], reference: Path | None, out: Path, share_maps: bool, segmenter: str,
+                weights: Path | None, loop_config, odometry: str | None, plot: bool, overwrite: bool) -> None:  # fmt: skip
+    from rich.table import Table
+    from tqdm import tqdm
+
+    from lunarloc.cli.checks import choice
+    from lunarloc.errors import ConfigError
+    from lunarloc.inputs import check_input_file
+    from lunarloc.multirover import MultiRoverConfig, check_archives, run_rovers, write_rover_outputs, rover_names
+    from lunarloc.odometry import parse_odometry_source
+    from lunarloc.outputs import check_output_dir
+    from lunarloc.perception.detector import DetectorConfig
+    from lunarloc.perception.segment import SegmenterKind
+    from lunarloc.pipeline import load_reference, scaled_detector_config
+
+    if len(archives) < 2:
+        raise ConfigError("--share-maps needs several archives (rovers) to share maps between")
+    if reference is None and not share_maps:
+        raise ConfigError("several archives need --reference MAP, --share-maps, or both")
+    choice(segmenter, SegmenterKind, "--segmenter")
+    if weights is not None:
+        check_input_file(weights, None, "FastSAM weights")
+    if odometry is not None:
+        parse_odometry_source(odometry)  # fail on a bad name before any work
+    cfg = MultiRoverConfig(loop=loop_config, share_maps=share_maps)
+    paths = check_archives(archives, cfg)
+    check_output_dir(out, overwrite, ("rovers.json", "map_all.png"), marker="rovers.json")
+    for name in rover_names(paths):
+        check_output_dir(out / name, overwrite)
+    ref = load_reference(reference, loop_config.aggregation) if reference is not None else None
+    from lunarloc.data.lac import LacArchive
+    from lunarloc.pipeline import _camera_of
+
+    with LacArchive(paths[0]) as ar:
+        width = _camera_of(ar.configured_cameras).width
+    det_cfg = scaled_detector_config(width, DetectorConfig(segmenter=segmenter, weights=str(weights) if weights else None))
+    with tqdm(unit="tick", desc=f"{len(paths)} rovers", dynamic_ncols=True) as bar:
+
+        def prog(n, total):
+            bar.total = total
+            bar.n = n
+            if n % 200 == 0 or n == total:
+                bar.refresh()
+
+        res = run_rovers(paths, ref, cfg, det_cfg, odometry_source=odometry, progress=prog)
+    written = write_rover_outputs(res, out, plot=plot)
+    t = Table(title=f"{len(paths)} rovers on one clock" + (f" in {reference.name}" if reference else "")
+              + (", sharing maps" if share_maps else ""))  # fmt: skip
+    for col in ("rover", "path m", "fixes", "of them shared", "odometry RMSE m", "corrected RMSE m", "online RMSE m",
+                "worst shared fix cm"):  # fmt: skip
+        t.add_column(col, justify="right")
+    for r in res.summary()["rovers"]:
+        mx = r["max_shared_fix_error_m"]
+        t.add_row(r["name"], f"{r['path_length_m']:.1f}", str(r["fixes"]), str(r["shared_fixes"]),
+                  *(f"{r[k]['rmse_m']:.3f}" if k in r else "-" for k in ("ate_odometry", "ate_corrected", "ate_online")),
+                  "-" if mx is None else f"{mx * 100:.1f}")  # fmt: skip
+    console().print(t)
+    for p in written:
+        typer.echo(f"wrote {p}")
+    typer.echo(f"wrote {out}/<rover>/ for {', '.join(r.name for r in res.rovers)} (the layout of one `lunarloc run`)")
