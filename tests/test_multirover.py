@@ -1,0 +1,159 @@
+"""Several rovers on one clock (lunarloc.multirover, `lunarloc run A.lac B.lac`): per-rover run
+folders, the combined figure, mission-time order, sharing that never makes a rover worse
+than a failing bound, and clear errors for bad input."""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from lunarloc.cli import main
+from lunarloc.errors import ConfigError, InputError
+
+W, H = 320, 180
+
+
+def _sim(out, seed, n, duration, width=W, rover=None):
+    from lunarloc.data.rover import RoverConfig
+    from lunarloc.data.simulate import SimulationConfig, simulate_dataset
+    from lunarloc.data.site import SiteConfig
+
+    cfg = SimulationConfig(site=SiteConfig(n_rocks=800), duration_s=duration, image_rate_hz=2.0, width=width,
+                           height=width * 9 // 16, cameras=("FrontLeft", "FrontRight"), semantic=False,
+                           rover=rover or RoverConfig())  # fmt: skip
+    return simulate_dataset(seed, n, out, cfg)
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """Two 8 s traverses of site 3 (they start at one place), 320x180 front pair at 2 Hz."""
+    out = tmp_path_factory.mktemp("rovers")
+    paths = _sim(out, 3, 2, 8.0)
+    return out, paths
+
+
+def test_two_rovers_write_one_run_folder_each(tiny, tmp_path, capsys):
+    out_dir, (a, b) = tiny
+    out = tmp_path / "out"
+    rc = main(["run", str(a), str(b), "--reference", str(out_dir / "rocks.csv"), "--share-maps", "-o", str(out),
+               "--odometry", "record:odometry"])  # fmt: skip
+    assert rc == 0, capsys.readouterr().err
+    doc = json.loads((out / "rovers.json").read_text())
+    assert [r["name"] for r in doc["rovers"]] == ["traverse_0", "traverse_1"]
+    assert (out / "map_all.png").is_file()
+    for name, lac in (("traverse_0", a), ("traverse_1", b)):
+        d = out / name
+        for f in ("trajectory.tum", "trajectory_odometry.tum", "trajectory_groundtruth.tum", "attempts.csv",
+                  "summary.json", "config.json", "map.png"):  # fmt: skip
+            assert (d / f).is_file(), f
+        s = json.loads((d / "summary.json").read_text())
+        assert s["frames"] == 161 and s["image_frames"] == 17  # every tick of its archive, images at 2 Hz
+        assert json.loads((d / "config.json").read_text())["archive"] == str(lac)
+        # the failing bound: whatever the fixes, a rover ends no worse than its odometry + 5 cm
+        assert s["ate_corrected"]["rmse_m"] <= s["ate_odometry"]["rmse_m"] + 0.05
+    # a second run into the same folder is refused without --overwrite
+    assert main(["run", str(a), str(b), "--share-maps", "-o", str(out)]) == 2
+    assert "previous run" in capsys.readouterr().err
+
+
+def test_mission_time_order_and_names(tiny):
+    """Ticks of both rovers interleave in mission time; equal stems get distinct names."""
+    from lunarloc.multirover import rover_names
+
+    from pathlib import Path
+
+    assert rover_names([Path("a/t.lac"), Path("b/t.lac"), Path("c/t x.lac")]) == ["t", "t_2", "t_x"]
+    import lunarloc.multirover as mr
+
+    order = []
+    orig = mr._Rover.tick
+
+    def spy(self):
+        order.append((float(self.agent.get_mission_time()), self.name))
+        return orig(self)
+
+    out_dir, paths = tiny
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(mr._Rover, "tick", spy)
+        res = mr.run_rovers(paths, None, mr.MultiRoverConfig(share_maps=True), odometry_source="record:odometry")
+    times = [t for t, _ in order]
+    assert times == sorted(times) and len(order) == 2 * 161
+    assert [n for _, n in order[:4]] == ["traverse_0", "traverse_1"] * 2
+    # no reference: attempts against the (absent) reference are not reported, only shared ones
+    for r in res.rovers:
+        assert all(a.reason.startswith("map of") for a in r.result.attempts)
+        assert len(r.result.reference) == 0
+
+
+def test_live_map_uncertainty_grows_with_the_owner_drift(tiny):
+    """A rover's live map carries, per landmark, the owner's sigma where it placed it; with no
+    fix that is the drift model since the start: non-decreasing along the traverse."""
+    import lunarloc.multirover as mr
+
+    out_dir, paths = tiny
+    cfg = mr.MultiRoverConfig(share_maps=True)
+    r = mr._Rover("a", paths[0], None, cfg, None, "record:odometry")
+    try:
+        while True:
+            r.tick()
+            if r.agent.at_end():
+                break
+            r.agent.step_frame()
+        s_m, s_yaw = r.owner_sigmas()
+        assert len(s_m) == len(r.loc.loop.kf_frame) > 5
+        assert np.all(np.diff(s_m) >= -1e-12) and s_m[-1] > s_m[0]
+        r.anchor = (0.3, 0.01)  # its last fix was a shared one of 30 cm: every landmark inherits it
+        s2, _ = r.owner_sigmas()
+        assert np.all(s2 >= 0.3) and np.allclose(s2, np.hypot(s_m, 0.3))
+        live = r.live_map(1e9, 0.0)
+        if live is not None and len(live.landmarks):
+            assert live.owner_sigma_m.shape == (len(live.landmarks),) and np.all(live.owner_sigma_m >= 0.3)
+    finally:
+        r.close()
+
+
+def test_bad_input_is_a_clear_error(tiny, tmp_path, capsys):
+    from lunarloc.data.rover import RoverConfig
+    from lunarloc.multirover import MultiRoverConfig, check_archives, run_rovers
+
+    out_dir, (a, b) = tiny
+    with pytest.raises(InputError, match="given twice"):
+        check_archives([a, out_dir / ".." / out_dir.name / a.name])
+    copy = tmp_path / "copy.lac"
+    copy.write_bytes(a.read_bytes())
+    with pytest.raises(InputError, match="same traverse"):
+        check_archives([a, copy])
+    other_site = _sim(tmp_path / "site4", 4, 1, 2.0)[0]
+    with pytest.raises(InputError, match="site seed 4.*site seed 3"):
+        check_archives([a, other_site])
+    other_clock = _sim(tmp_path / "clock", 3, 1, 2.0, rover=RoverConfig(rate_hz=10.0))[0]
+    with pytest.raises(InputError, match="different clocks"):
+        check_archives([a, other_clock])
+    with pytest.raises(ConfigError, match="share_maps"):
+        run_rovers([a, b], None, MultiRoverConfig(share_maps=False))
+    bad = tmp_path / "bad.lac"
+    bad.write_bytes(b"not an archive")
+    o = str(tmp_path / "o")
+    for argv, msg in (
+        (["run", str(a), str(bad), "--share-maps"], "bad.lac"),
+        (["run", str(a), str(a), "--share-maps"], "given twice"),
+        (["run", str(a), str(other_site), "--share-maps"], "site seed"),
+        (["run", str(a), str(b)], "--reference MAP, --share-maps"),
+        (["run", str(a), "--share-maps"], "several archives"),
+        (["run", str(a)], "--reference is required"),
+    ):
+        assert main([*argv, "-o", o]) == 2, argv
+        err = capsys.readouterr().err
+        assert msg in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "o").exists()  # nothing written before the inputs were checked
+
+
+def test_config_is_checked_and_serialised():
+    from lunarloc.multirover import MultiRoverConfig
+
+    c = MultiRoverConfig(share_maps=True, share_refresh_s=2.0)
+    d = c.to_dict()
+    assert d["share_maps"] is True and d["loop"]["window_m"] == c.loop.window_m
+    with pytest.raises(ConfigError):
+        replace(c, share_refresh_s=0.0)
