@@ -50,7 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from lunarloc.errors import ConfigError, InputError, LunarLocError
-from lunarloc.geometry import matrix_to_pose, pose_to_matrix, yaw_of
+from lunarloc.geometry import invert_transform, matrix_to_pose, pose_to_matrix, yaw_of
 from lunarloc.maps import LandmarkMap, aggregate_detections
 from lunarloc.pipeline import Attempt, LoopConfig, LoopResult
 
@@ -73,14 +73,13 @@ class MultiRoverConfig:
     clock_tolerance: float = 0.01  # relative difference of the archives' tick periods allowed
 
     def __post_init__(self) -> None:
-        for name in ("share_refresh_s", "site_tolerance_m", "site_tolerance_deg", "clock_tolerance"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"{name}={getattr(self, name)} must be > 0")
+        bad = [f"{n}={getattr(self, n)}" for n in ("share_refresh_s", "site_tolerance_m", "site_tolerance_deg",
+                                                   "clock_tolerance") if not getattr(self, n) > 0]  # fmt: skip
+        if bad:
+            raise ConfigError(f"{', '.join(bad)}: must be > 0")
 
     def to_dict(self) -> dict:
-        d = asdict(self)
-        d["loop"] = self.loop.to_dict()
-        return d
+        return {**asdict(self), "loop": self.loop.to_dict()}
 
 
 @dataclass
@@ -232,10 +231,13 @@ class _Rover:
         t0 = time.perf_counter()
         source = odometry_source or default_odometry_source(ar)
         od = archive_odometry(ar, source)
-        self.odometry = {int(f): T for f, T in zip(od.frames, od.T_map_rover)}
+        T0 = agent.get_initial_position().matrix()
+        # odometry starts at the initial pose (as the component anchors it), so the odometry
+        # written to the run folder is the one the rover's corrections apply to
+        A = T0 @ invert_transform(od.T_map_rover[0]) if len(od.frames) else np.eye(4)
+        self.odometry = {int(f): A @ T for f, T in zip(od.frames, od.T_map_rover)}
         self.odometry_label = od.label
         self.timings["odometry"] = time.perf_counter() - t0
-        T0 = agent.get_initial_position().matrix()
         rig = CameraRig.from_sensors(agent.sensors(), {c: agent.get_camera_position(c) for c in ar.cameras})
         # the run folder holds the whole history, so the pose graph is never re-anchored
         online = OnlineConfig(loop=cfg.loop, max_keyframes=10**9,

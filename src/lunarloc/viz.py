@@ -110,14 +110,7 @@ def plot_map(run: dict, path: Path, title: str = "") -> Path:
         ax.scatter(fx[:, 0], fx[:, 1], s=14, c="tab:green", edgecolors="k", lw=0.5, zorder=5, label="fixes")
     # frame the trajectories (plus a margin), not the whole site
     P = np.vstack([run["odometry"][:, :2], run["corrected"][:, :2]] + ([run["gt"][:, :2]] if run["gt"] is not None else []))
-    lo, hi = P.min(axis=0) - 3.0, P.max(axis=0) + 3.0
-    c, h = (lo + hi) / 2, max(hi - lo) / 2
-    ax.set_xlim(c[0] - h, c[0] + h)
-    ax.set_ylim(c[1] - h, c[1] + h)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.grid(alpha=0.3)
+    _frame_square(ax, P)
     ax.set_title(title or "Online localization: top-down map")
     ax.legend(loc="upper left", fontsize=7, framealpha=0.85, markerscale=1.2)
     fig.tight_layout()
@@ -240,14 +233,7 @@ def plot_rovers(outdirs: list[str | Path], path: str | Path, names: list[str] | 
     ax.scatter([], [], s=10, c="0.3", marker="+", label="rover landmarks (corrected)")
     ax.scatter([], [], s=16, c="0.3", edgecolors="k", lw=0.5, label="accepted fixes")
     P = np.vstack(pts)
-    lo, hi = P.min(axis=0) - 3.0, P.max(axis=0) + 3.0
-    c, h = (lo + hi) / 2, max(hi - lo) / 2
-    ax.set_xlim(c[0] - h, c[0] + h)
-    ax.set_ylim(c[1] - h, c[1] + h)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.grid(alpha=0.3)
+    _frame_square(ax, P)
     ax.set_title(title or f"{len(runs)} rovers on one clock: ground truth, odometry and corrected")
     ax.legend(loc="upper left", fontsize=7, framealpha=0.85)
     fig.tight_layout()
@@ -255,3 +241,15 @@ def plot_rovers(outdirs: list[str | Path], path: str | Path, names: list[str] | 
     _save(fig, path)
     plt.close(fig)
     return path
+
+
+def _frame_square(ax, P: np.ndarray, margin_m: float = 3.0) -> None:
+    """Square, equal-aspect axes around the points P (N, 2) plus a margin; labelled, gridded."""
+    lo, hi = P.min(axis=0) - margin_m, P.max(axis=0) + margin_m
+    c, h = (lo + hi) / 2, max(hi - lo) / 2
+    ax.set_xlim(c[0] - h, c[0] + h)
+    ax.set_ylim(c[1] - h, c[1] + h)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.grid(alpha=0.3)

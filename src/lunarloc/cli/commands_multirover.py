@@ -46,15 +46,14 @@ def run_several(archives: list[Path], reference: Path | None, out: Path, share_m
     with LacArchive(paths[0]) as ar:
         width = _camera_of(ar.configured_cameras).width
     det_cfg = scaled_detector_config(width, DetectorConfig(segmenter=segmenter, weights=str(weights) if weights else None))
-    with tqdm(unit="tick", desc=f"{len(paths)} rovers", dynamic_ncols=True) as bar:
+    with tqdm(unit="tick", desc=f"{len(paths)} rovers", dynamic_ncols=True, mininterval=1.0) as bar:
 
-        def prog(n, total):
-            bar.total = total
-            bar.n = n
-            if n % 200 == 0 or n == total:
-                bar.refresh()
+        def ticked(done: int, total: int) -> None:
+            if bar.total != total:
+                bar.reset(total)
+            bar.update(done - bar.n)
 
-        res = run_rovers(paths, ref, cfg, det_cfg, odometry_source=odometry, progress=prog)
+        res = run_rovers(paths, ref, cfg, det_cfg, odometry_source=odometry, progress=ticked)
     written = write_rover_outputs(res, out, plot=plot)
     t = Table(title=f"{len(paths)} rovers on one clock" + (f" in {reference.name}" if reference else "")
               + (", sharing maps" if share_maps else ""))  # fmt: skip
