@@ -2,7 +2,7 @@
 reference, with the reference alone, and with both, against its own odometry.
 
     python benchmarks/bench_multirover.py --data DIR [--traverses 0 1] [--odometry visual]
-        [--modes share ref ref+share] [--out OUT]
+        [--modes share ref ref+share ref0+share] [--out OUT]
 
 DIR holds a simulated site (``rocks.csv``, ``traverse_<i>.lac``), e.g. from
 ``simulate_dataset(3, 3, DIR, SimulationConfig(site=SiteConfig(n_rocks=800), duration_s=240,
@@ -25,7 +25,8 @@ def main() -> None:
     ap.add_argument("--data", type=Path, required=True)
     ap.add_argument("--traverses", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--odometry", default=None, help="odometry source (default: visual)")
-    ap.add_argument("--modes", nargs="+", default=["share", "ref", "ref+share"], choices=["share", "ref", "ref+share"])
+    ap.add_argument("--modes", nargs="+", default=["share", "ref", "ref+share"], choices=["share", "ref", "ref+share", "ref0+share"],
+                    help="ref0+share: only the first rover has the reference")
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args()
 
@@ -36,6 +37,8 @@ def main() -> None:
     rows: dict[str, dict] = {}
     for mode in a.modes:
         ref = load_reference(a.data / "rocks.csv") if mode.startswith("ref") else None
+        if mode == "ref0+share":
+            ref = [ref] + [None] * (len(archives) - 1)
         t0, c0 = time.perf_counter(), time.process_time()
         res = run_rovers(archives, ref, MultiRoverConfig(share_maps="share" in mode), odometry_source=a.odometry)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0

@@ -446,7 +446,7 @@ class _Rover:
 
 def run_rovers(
     archives: Sequence[str | os.PathLike],
-    reference: LandmarkMap | None = None,
+    reference: LandmarkMap | Sequence[LandmarkMap | None] | None = None,
     config: MultiRoverConfig | None = None,
     detector_config=None,
     *,
@@ -456,21 +456,24 @@ def run_rovers(
     """Play `archives` on one mission clock (see the module docstring).
 
     reference : map in the ``map`` frame for every rover, or None (then ``share_maps`` must
-        be on: the rovers can only align to each other).
+        be on: the rovers can only align to each other), or one map or None per archive.
     odometry_source : as ``lunarloc run --odometry`` (default per archive: ``visual`` when it
         has front stereo pairs, else ``imu``).
     progress(done, total) : ticks played over all rovers.
     """
     cfg = config or MultiRoverConfig()
-    if reference is None and not cfg.share_maps:
-        raise ConfigError("several rovers without a reference map need share_maps (--share-maps): "
+    refs = list(reference) if isinstance(reference, (list, tuple)) else [reference] * len(archives)
+    if len(refs) != len(archives):
+        raise ConfigError(f"{len(refs)} reference maps for {len(archives)} archives: give one, or one per archive")
+    if any(r is None for r in refs) and not cfg.share_maps:
+        raise ConfigError("a rover without a reference map needs share_maps (--share-maps): "
                           "there is nothing else to localize against")  # fmt: skip
     paths = check_archives(archives, cfg)
     names = rover_names(paths)
     rovers: list[_Rover] = []
     try:
-        for name, p in zip(names, paths):
-            rovers.append(_Rover(name, p, reference, cfg, detector_config, odometry_source))
+        for name, p, ref in zip(names, paths, refs):
+            rovers.append(_Rover(name, p, ref, cfg, detector_config, odometry_source))
         total = sum(len(r.archive.frame_numbers) for r in rovers)
         heap = [(r.mission_time, i) for i, r in enumerate(rovers)]
         heapq.heapify(heap)
@@ -490,7 +493,7 @@ def run_rovers(
         for r in rovers:
             if r.n_image == 0:
                 raise InputError(f"{r.path}: no image frames were played; nothing to localize")
-        runs = [r.finish(reference, cfg) for r in rovers]
+        runs = [r.finish(ref, cfg) for r, ref in zip(rovers, refs)]
     finally:
         for r in rovers:
             r.close()
