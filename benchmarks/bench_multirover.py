@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 
 
@@ -27,6 +28,7 @@ def main() -> None:
     ap.add_argument("--odometry", default=None, help="odometry source (default: visual)")
     ap.add_argument("--modes", nargs="+", default=["share", "ref", "ref+share"], choices=["share", "ref", "ref+share", "ref0+share"],
                     help="ref0+share: only the first rover has the reference")
+    ap.add_argument("--max-shared-sigma-ratio", type=float, default=None, help="MultiRoverConfig.max_shared_sigma_ratio")
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args()
 
@@ -40,7 +42,10 @@ def main() -> None:
         if mode == "ref0+share":
             ref = [ref] + [None] * (len(archives) - 1)
         t0, c0 = time.perf_counter(), time.process_time()
-        res = run_rovers(archives, ref, MultiRoverConfig(share_maps="share" in mode), odometry_source=a.odometry)
+        cfg = MultiRoverConfig(share_maps="share" in mode)
+        if a.max_shared_sigma_ratio is not None:
+            cfg = replace(cfg, max_shared_sigma_ratio=a.max_shared_sigma_ratio)
+        res = run_rovers(archives, ref, cfg, odometry_source=a.odometry)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         if a.out is not None:
             write_rover_outputs(res, a.out / mode.replace("+", "_"), plot=True)

@@ -44,7 +44,7 @@ import os
 import re
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -68,13 +68,14 @@ class MultiRoverConfig:
     loop: LoopConfig = field(default_factory=LoopConfig.for_images)  # each rover's loop (as `lunarloc run`)
     share_maps: bool = False  # localize against the other rovers' live maps too
     share_refresh_s: float = 5.0  # a rover's live map is rebuilt at most this often (mission time) ...
+    max_shared_sigma_ratio: float = 0.75  # a shared fix is used only if its sigma < this x the rover's own prediction
     site_tolerance_m: float = 0.5  # the archives' landers must agree this well in the map frame
     site_tolerance_deg: float = 5.0  # ... and in heading
     clock_tolerance: float = 0.01  # relative difference of the archives' tick periods allowed
 
     def __post_init__(self) -> None:
-        bad = [f"{n}={getattr(self, n)}" for n in ("share_refresh_s", "site_tolerance_m", "site_tolerance_deg",
-                                                   "clock_tolerance") if not getattr(self, n) > 0]  # fmt: skip
+        bad = [f"{n}={getattr(self, n)}" for n in ("share_refresh_s", "max_shared_sigma_ratio", "site_tolerance_m",
+                                                   "site_tolerance_deg", "clock_tolerance") if not getattr(self, n) > 0]  # fmt: skip
         if bad:
             raise ConfigError(f"{', '.join(bad)}: must be > 0")
 
@@ -240,8 +241,9 @@ class _Rover:
         self.timings["odometry"] = time.perf_counter() - t0
         rig = CameraRig.from_sensors(agent.sensors(), {c: agent.get_camera_position(c) for c in ar.cameras})
         # the run folder holds the whole history, so the pose graph is never re-anchored
-        online = OnlineConfig(loop=cfg.loop, max_keyframes=10**9,
-                              reference_max_distance_m=OnlineConfig().reference_max_distance_m if reference else math.inf)  # fmt: skip
+        online = OnlineConfig(loop=cfg.loop, max_keyframes=10**9)
+        if reference is None:
+            online = replace(online, reference_max_distance_m=math.inf)
         self.has_reference = reference is not None
         if reference is None:
             # OnlineLocalizer wants a reference of >= 3 landmarks; a rover without one is given
@@ -331,7 +333,7 @@ class _Rover:
         return self.live
 
     # ------------------------------------------------------------------ shared attempt
-    def try_shared(self, others: Sequence[_Rover], refresh_s: float) -> SharedAttempt | None:
+    def try_shared(self, others: Sequence[_Rover], refresh_s: float, max_ratio: float = 0.75) -> SharedAttempt | None:
         """Localize the newest keyframe's local map in the other rovers' live maps; the first
         accepted fix enters the pose graph. Returns the last attempt made (None: no local map)."""
         from lunarloc.localize import localize
@@ -389,9 +391,9 @@ class _Rover:
             att.owner_sigma_m, att.owner_sigma_yaw_deg = om, math.degrees(oy)
             att.fix_sigma_m, att.fix_sigma_yaw_deg = sig_m, math.degrees(sig_yaw)
             att.fix_error_m = float(np.linalg.norm(fix4[:3] - self.gt[-1][:3]))
-            if sig_m >= own_m:
+            if sig_m >= max_ratio * own_m:
                 att.reason = (f"not informative: the fix ({sig_m * 100:.0f} cm, {other.name}'s estimate "
-                              f"{om * 100:.0f} cm) is less certain than the rover's own prediction ({own_m * 100:.0f} cm)")  # fmt: skip
+                              f"{om * 100:.0f} cm) is not below {max_ratio:g} x the rover's own prediction ({own_m * 100:.0f} cm)")  # fmt: skip
                 continue
             g = loop.graph.gate(k, fix4, sig_m, sig_yaw)
             att.gate_d2, att.correction_m = g.d2, float(np.linalg.norm(g.innovation[:3]))
@@ -483,7 +485,7 @@ def run_rovers(
             r = rovers[i]
             est = r.tick()
             if cfg.share_maps and est.attempt is not None and not est.attempt.accepted:
-                r.try_shared([o for o in rovers if o is not r], cfg.share_refresh_s)
+                r.try_shared([o for o in rovers if o is not r], cfg.share_refresh_s, cfg.max_shared_sigma_ratio)
             done += 1
             if progress:
                 progress(done, total)
