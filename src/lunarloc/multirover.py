@@ -412,10 +412,11 @@ class _Rover:
 
     @staticmethod
     def _as_attempt(s: SharedAttempt, k: int, fix4) -> Attempt:
-        """A shared attempt as a row of the run's attempts (``reason`` names the owner)."""
+        """A shared attempt as a row of the run's attempts (``reason`` names the owner; with
+        several owners, the accepted or last one; rovers.json has them all)."""
         a = Attempt(s.frame, s.time_s, k, s.landmarks, s.owner_landmarks, s.success, s.accepted, s.inliers,
                     f"map of {s.owner}: {s.reason}" if s.reason else f"map of {s.owner}", s.correction_m,
-                    float("nan"), s.gate_d2, s.fix_sigma_m, s.fix_error_m)  # fmt: skip
+                    float("nan"), s.gate_d2, s.predicted_error_m, s.fix_error_m)  # fmt: skip
         if fix4 is not None:
             a.fix_xyz = [float(v) for v in fix4[:3]]
         return a
