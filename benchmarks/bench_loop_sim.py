@@ -7,7 +7,7 @@ Usage
         [--heading-bias-std 1.5e-3]
 
 For each seed: simulate a site and one vehicle traverse (front stereo pair, default
-odometry drift: 3 % scale error + random-walk gyro bias), then run ``run_online``
+odometry drift: 3 % scale error + random-walk gyro bias), then run ``lunarloc.pipeline.run``
 against the site's ground-truth rock list (``--reference rocks``) or a map built from
 the images of a reference traverse of the same site (``--reference images``). Writes
 each run's outputs and ``bench_loop_sim.json``; prints one line per traverse.
@@ -33,7 +33,12 @@ import numpy as np
 from lunarloc.data.render import SiteRenderer
 from lunarloc.data.simulate import SimulationConfig, simulate_site, simulate_traverse
 from lunarloc.data.site import SiteConfig
-from lunarloc.pipeline import LoopConfig, build_reference_map, load_reference, run_online, write_outputs
+from lunarloc.geometry import pose_to_matrix
+from lunarloc.config import RunConfig
+from lunarloc.pipeline import run
+from lunarloc.reference import build_reference_map, load_reference
+from lunarloc.runio import write_run
+from lunarloc.sources import ArchiveSource
 
 
 def replay_odometry(archive: Path, seed: int, odo_cfg) -> np.ndarray:
@@ -82,21 +87,21 @@ def main() -> None:
         if not veh.is_file():
             simulate_traverse(site, veh, 1, cfg, renderer=renderer)
         t_sim = time.perf_counter() - t0
-        loop_cfg = LoopConfig.for_images()
+        run_cfg = RunConfig()
         if a.reference == "rocks":
             ref = load_reference(d / "rocks.csv")
         else:
             ref_arch = d / "reference.lac"
             if not ref_arch.is_file():
                 simulate_traverse(site, ref_arch, 0, cfg, renderer=renderer)
-            ref = build_reference_map(ref_arch, aggregation=loop_cfg.aggregation)
+            ref = build_reference_map(ref_arch, run_cfg)
         odometry = None
         if a.heading_bias_std is not None:  # replay the same images with the stronger drift
             odometry = replay_odometry(veh, seed, cfg.odometry)
         t0 = time.perf_counter()
-        res = run_online(veh, ref, loop_cfg, odometry=odometry)
+        res = run(ArchiveSource(veh, run_cfg.odometry, odometry_poses=None if odometry is None else np.stack([pose_to_matrix(*p) for p in odometry])), ref, run_cfg)
         wall = time.perf_counter() - t0
-        s = write_outputs(res, d / f"run_{a.reference}{sfx}")
+        s = write_run(res, d / f"run_{a.reference}{sfx}")
         s.update(seed=seed, simulate_s=round(t_sim, 1), loop_wall_s=round(wall, 1), reference=a.reference)
         rows.append(s)
         print(f"seed {seed}: {s['path_length_m']:.1f} m, odometry RMSE {s['ate_odometry']['rmse_m']:.3f} m "

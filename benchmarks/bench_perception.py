@@ -13,7 +13,7 @@ Usage
 Archives must come from `lunarloc simulate` (they hold ``custom/rocks.csv`` and the
 semantic images). The image size and field of view are read from each archive
 (``initial.toml``); the detector's pixel-sized parameters, tuned at 1280x720, are
-scaled to the archive's width (``lunarloc.pipeline.scaled_detector_config``).
+scaled to the archive's width (``lunarloc.config.scaled_detector_config``).
 Detections use the ground-truth rover pose, so the errors measured are those of
 perception alone.
 
@@ -85,6 +85,33 @@ def match(det_xyz: np.ndarray, rock_xyz: np.ndarray, rock_r: np.ndarray, min_tol
     return out
 
 
+FP_CAUSES = ("terrain", "lander", "rock-duplicate", "rock-part", "small-rock-offcentre", "rock-offcentre")
+
+
+def fp_cause(d, semantic: np.ndarray, id_to_idx: dict, centres: np.ndarray, radii: np.ndarray, matched_rock: dict) -> str:
+    """Why an unmatched detection is false, from the semantic label that dominates a
+    7x7 window at its image centroid: terrain (no rock there: a ridge, a crater rim, a
+    stereo error), lander, or a rock that is already matched by another detection
+    (duplicate), much larger than the detection (a part of it: a knob, a split mask),
+    or whose centre is beyond the match tolerance (off-centre; 'small' when its radius
+    is under 0.1 m, below the target band)."""
+    from lunarloc.data.render import semantic_lander_mask
+
+    u, v = int(round(d.uv[0])), int(round(d.uv[1]))
+    win = np.asarray(semantic)[max(v - 3, 0) : v + 4, max(u - 3, 0) : u + 4]
+    rid = _rock_ids(win)
+    if np.count_nonzero(rid >= 0) * 2 < rid.size:
+        return "lander" if np.count_nonzero(semantic_lander_mask(win)) * 2 >= win.size else "terrain"
+    j = id_to_idx.get(int(np.bincount(rid[rid >= 0]).argmax()))
+    if j is None:
+        return "terrain"
+    if j in matched_rock:
+        return "rock-duplicate"
+    if radii[j] > 2.0 * max(d.radius_m, 0.02) and radii[j] >= 0.2:
+        return "rock-part"
+    return "small-rock-offcentre" if radii[j] < 0.1 else "rock-offcentre"
+
+
 class Accumulator:
     def __init__(self) -> None:
         self.rec = np.zeros((len(SIZE_BANDS), len(RANGE_BANDS), 2), int)  # [hit, total]
@@ -95,6 +122,8 @@ class Accumulator:
         self.err_target: list[float] = []  # r >= 0.1, range <= 5
         self.small_near = np.zeros(2, int)  # [hit, visible]: 0.05 <= r < 0.1 within 3 m
         self.times: dict[str, list[float]] = {}
+        # false positives within 5 m by what lies under the detection's image centroid
+        self.fp_causes: dict[str, int] = {k: 0 for k in FP_CAUSES}
         self.n_frames = 0
         self.n_det = 0
 
@@ -142,6 +171,8 @@ class Accumulator:
                     if radii[j] >= 0.1 and rng <= 5.0:
                         self.err_target.append(dist)
         for i, d in enumerate(dets):
+            if i not in matched_det and d.depth_m < 5.0 and semantics.get(d.camera) is not None:
+                self.fp_causes[fp_cause(d, semantics[d.camera], id_to_idx, centres, radii, matched_rock)] += 1
             sb, rb = _band(d.radius_m, SIZE_BANDS), _band(d.depth_m, RANGE_BANDS)
             if sb < 0 or rb < 0:
                 continue
@@ -172,7 +203,9 @@ class Accumulator:
             "target_precision_est_r>=0.1_range<=5": float(prec_t[0] / max(prec_t[1], 1)),
             "recall_0.05<=r<0.1_range<=3": float(self.small_near[0] / max(self.small_near[1], 1)),
             "recall_0.05<=r<0.1_range<=3_counts": self.small_near.tolist(),
-            "frames_per_s": float(1.0 / max(sum(float(np.mean(v)) for v in self.times.values()), 1e-9)),
+            "frames_per_s": float(1.0 / max(sum(float(np.mean(v)) for k, v in self.times.items() if k != "cpu"), 1e-9)),
+            # process CPU time per frame (all threads), when the detector reports it
+            "cpu_ms_per_frame": float(1000.0 * np.mean(self.times["cpu"])) if "cpu" in self.times else float("nan"),
             "precision_range<=5": float(prec_5[0] / max(prec_5[1], 1)),
             "precision_counts_range<=5": prec_5.tolist(),
             "centroid_err_target_median_m": pct(self.err_target, 50),
@@ -185,12 +218,13 @@ class Accumulator:
             "surface_centroid_err3d_p90_m": pct(self.err3d_surface, 90),
             "recall_by_size_range": self.rec.tolist(),
             "precision_by_estsize_range": self.prec.tolist(),
+            "false_positives_within_5m_by_cause": dict(self.fp_causes),
             "time_per_frame_s": {k: float(np.mean(v)) for k, v in self.times.items()},
             # left images per second through segmentation + filtering, counting the
             # low-resolution stereo height map ("stereo") that the classical segmenter
             # needs; two left images per frame
             "images_per_s_segment_filter_stereo": float(
-                2.0 / max(sum(float(np.mean(v)) for v in self.times.values()), 1e-9)
+                2.0 / max(sum(float(np.mean(v)) for k, v in self.times.items() if k != "cpu"), 1e-9)
             ),
         }
 
@@ -230,13 +264,14 @@ def run_archive(path: Path, cfg: DetectorConfig, every: int, acc: Accumulator, d
     to its width; `detector` is reused when it was built for the same camera."""
     from lunarloc.data.lac import LacArchive
     from lunarloc.perception.detector import mounts_from_archive_row
-    from lunarloc.pipeline import _camera_of, scaled_detector_config
+    from lunarloc.config import scaled_detector_config
+    from lunarloc.perception.detector import _camera_from_archive
 
     with LacArchive(path) as ar:
         t = ar.custom("rocks")
         rocks = np.column_stack([t["id"], t["x"], t["y"], t["z"], t["radius"]])
         frames = [int(f) for f in ar.frame_numbers if ar.camera_row(STEREO_PAIRS[0][0], int(f)) is not None][::every]
-        cam = _camera_of(ar.configured_cameras)
+        cam = _camera_from_archive(ar)
         det = detector if detector is not None and detector.camera == cam else None
         if det is None:
             det = Detector(scaled_detector_config(cam.width, base=cfg), cam)
@@ -268,14 +303,19 @@ def lighting_label(path: Path) -> str:
 
 def print_groups(groups: dict[str, dict]) -> None:
     """One row per lighting: the issue's targets side by side."""
-    hdr = ("lighting", "frames", "P(<=5m)", "R(r>=.1,<=5m)", "R(.05-.1,<=3m)", "err50 cm", "err90 cm", "frames/s")
+    hdr = ("lighting", "frames", "P(<=5m)", "R(r>=.1,<=5m)", "R(.05-.1,<=3m)", "err50 cm", "err90 cm", "frames/s",
+           "CPU ms/frame")
     print(" | ".join(hdr))
     for name, s in groups.items():
         print(" | ".join([
             name, str(s["frames"]), f"{s['precision_range<=5']:.2f}", f"{s['target_recall_r>=0.1_range<=5']:.2f}",
             f"{s['recall_0.05<=r<0.1_range<=3']:.2f}", f"{100 * s['centroid_err_target_median_m']:.1f}",
-            f"{100 * s['centroid_err_target_p90_m']:.1f}", f"{s['frames_per_s']:.1f}",
+            f"{100 * s['centroid_err_target_p90_m']:.1f}", f"{s['frames_per_s']:.1f}", f"{s['cpu_ms_per_frame']:.0f}",
         ]))  # fmt: skip
+    print("false positives within 5 m by cause: " + ", ".join(FP_CAUSES))
+    for name, s in groups.items():
+        c = s.get("false_positives_within_5m_by_cause", {})
+        print(f"{name}: " + " ".join(str(c.get(k, 0)) for k in FP_CAUSES))
 
 
 def lac_real_frame(folder: Path, figure: Path | None = None) -> list:
@@ -400,6 +440,8 @@ def main(argv=None) -> int:
         acc.rec += g.rec
         acc.prec += g.prec
         acc.small_near += g.small_near
+        for k, v in g.fp_causes.items():
+            acc.fp_causes[k] += v
         for k in ("err3d", "err_xy", "err3d_surface", "err_target"):
             getattr(acc, k).extend(getattr(g, k))
         for k, v in g.times.items():

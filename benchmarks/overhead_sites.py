@@ -26,7 +26,7 @@ from lunarloc.geometry import invert_transform, transform_points
 from lunarloc.localize import localize
 from lunarloc.maps import LandmarkMap
 from lunarloc.overhead import grid_landmarks, site_geometric_map
-from lunarloc.pipeline import rocks_to_reference
+from lunarloc.reference import rocks_to_reference
 
 
 def main() -> None:

@@ -25,12 +25,19 @@ def test_run_and_plot(tiny_archive, tmp_path, capsys):
     rc = main(["run", str(tiny_archive / "traverse_0.lac"), "--reference", str(tiny_archive / "rocks.csv"),
                "-o", str(out), "--odometry", "record:odometry"])  # fmt: skip
     assert rc == 0
-    assert json.loads((out / "config.json").read_text())["odometry_source"] == "record:odometry"
+    cfg = json.loads((out / "config.json").read_text())
+    assert cfg["info"]["odometry_source"] == "record:odometry" and cfg["odometry"]["source"] == "record:odometry"
     s = json.loads((out / "summary.json").read_text())
     assert s["image_frames"] == 13 and "ate_corrected" in s
     assert (out / "trajectory.tum").is_file() and (out / "map.png").is_file()
     assert main(["plot", str(out), "--figdir", str(tmp_path / "figs")]) == 0
     assert (tmp_path / "figs" / "error.png").is_file()
+    # the run repeated from its own config.json gives the same outputs
+    again = tmp_path / "again"
+    assert main(["run", str(tiny_archive / "traverse_0.lac"), "--reference", str(tiny_archive / "rocks.csv"),
+                 "-o", str(again), "--config", str(out / "config.json"), "--no-plot"]) == 0  # fmt: skip
+    for name in ("trajectory.tum", "trajectory_online.tum", "trajectory_odometry.tum", "vehicle_map.csv", "config.json"):
+        assert (out / name).read_bytes() == (again / name).read_bytes(), name
 
 
 def test_run_errors(tiny_archive, tmp_path, capsys):
@@ -75,7 +82,11 @@ def test_detect_then_map(tiny_archive, tmp_path, capsys):
     assert len(t.frames) > 0 and np.all(np.isfinite(t.detections_xyz))
     assert any((tmp_path / "dbg").iterdir())
     cfg = json.loads(det.with_name("det.csv.config.json").read_text())
-    assert cfg["detector"]["stereo"]["num_disparities"] < 128  # scaled down from the 1280 px default
+    assert cfg["info"]["detector_scaled"]["stereo"]["num_disparities"] < cfg["detector"]["stereo"]["num_disparities"]  # scaled to 320 px
+    det2 = tmp_path / "det2.csv"
+    assert main(["detect", str(tiny_archive / "traverse_0.lac"), "-o", str(det2), "--config",
+                 str(det.with_name("det.csv.config.json"))]) == 0  # fmt: skip
+    assert det2.read_bytes() == det.read_bytes()
     assert main(["map", str(det), "-o", str(tmp_path / "m.csv"), "--min-sightings", "1"]) == 0
     assert main(["detect", str(tiny_archive / "traverse_0.lac"), "-o", str(det), "--segmenter", "fastsam",
                  "--weights", str(tmp_path / "missing.pt")]) == 2

@@ -258,3 +258,34 @@ def test_height_above_surroundings_sees_a_knob_on_a_large_object():
     cfg = DetectorConfig()
     assert h > cfg.height_per_radius * 0.02 + cfg.height_margin_m  # perched: rejected
     assert np.isnan(_height_above_surroundings(knob, knob.mean(0), 0.02, ground[:5], cam, 0.9))
+
+
+def test_on_lander_in_any_frame_and_bad_input():
+    from lunarloc.perception.detector import on_lander
+
+    # rover at (10, -4) facing +y (yaw 90 deg); points 1 m and 5 m ahead of it
+    T = pose_to_matrix(10.0, -4.0, 0.0, 0.0, 0.0, np.pi / 2)
+    p_rover = np.array([[1.0, 0.0, 0.0], [5.0, 0.0, 0.2]])
+    lander = [10.0, -2.0]  # 2 m ahead of the rover: the first point is 1 m from it
+    assert on_lander(p_rover, T, lander, 2.2).tolist() == [True, False]
+    assert on_lander(p_rover, T, lander, 0.5).tolist() == [False, False]
+    assert on_lander(p_rover, T, None).tolist() == [False, False]
+    assert on_lander(np.zeros((0, 3)), T, lander).shape == (0,)
+    with pytest.raises(InputError):
+        on_lander(p_rover, np.eye(3), lander)
+    with pytest.raises(InputError):
+        on_lander(p_rover, T, [np.nan, 0.0])
+
+
+def test_small_blob_standing_too_high_for_its_size_is_not_a_rock():
+    # a 0.15 m rock is kept; the same scene is rejected when a rock's top may stand at
+    # most 0.3 x its radius above the ground (the knob-on-a-boulder rule, scaled down)
+    c = np.array([3.28, 0.1, -0.15])
+    left, right, rig = ground_scene(tuple(c), 0.15)
+    T = rig["FrontLeft"].T_rover_optical
+    pr = Detector(DetectorConfig(), CAM).detect_pair(left, right, T)
+    assert len(pr.detections) == 1
+    d = pr.detections[0]
+    assert np.isfinite(d.height_m) and d.height_m < DetectorConfig().top_per_radius * d.radius_m
+    pr = Detector(DetectorConfig(top_per_radius=0.3, top_noise_m=0.0), CAM).detect_pair(left, right, T)
+    assert not pr.detections and any(r.reason is RejectReason.NOT_A_ROCK for r in pr.records)

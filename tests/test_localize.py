@@ -11,6 +11,9 @@ from lunarloc.geometry import invert_transform, rotation_angle, transform_points
 from lunarloc.localize import Mode, Solver
 
 
+RIGID = LocalizationConfig(odometry_scale_error=0.0, odometry_heading_drift_deg_per_m=0.0)  # stated rigid
+
+
 def pose_error(T_est, T_true):
     E = T_est @ invert_transform(T_true)
     return float(np.linalg.norm(E[:3, 3])), float(np.degrees(rotation_angle(E[:3, :3])))
@@ -144,6 +147,41 @@ def test_result_json_round_trip(rng):
     failed = localize(LandmarkMap(rock_field(rng, 50)), LandmarkMap(rock_field(rng, 30)))
     d = json.loads(json.dumps(failed.to_dict()))
     assert d["success"] is False and d["reason"]
+    bad = [c for c in d["checks"] if not c["passed"]]
+    assert bad and bad[0]["detail"] == d["reason"]
+
+
+def test_verify_is_a_table_of_named_checks(rng):
+    from dataclasses import replace
+
+    from lunarloc.localize import Evidence, verify
+
+    ref, veh, _, _ = make_pair(rng, n_ref=80, n_common=25, n_outliers=5)
+    r = localize(ref, veh)
+    names = [c.name for c in r.checks]
+    assert r.success and all(c.passed for c in r.checks)
+    for name in ("residual_rmse", "extent", "planarity", "tilt", "handedness", "scale", "near_misses",
+                 "predicted_error", "predicted_rotation", "inliers_vs_chance", "winner_margin"):
+        assert name in names
+    ev = Evidence(
+        inliers=12, rmse_m=0.01, rmse_limit_m=0.05, sigma_h_m=0.01, sigma_z_m=0.01, extent_m=5.0, planarity=0.5,
+        tilt_deg=0.1, handedness=1.0, scale_error=0.0, scale_se=0.001, near_misses=0, near_misses_expected=1.0,
+        near_inner_m=0.1, near_outer_m=0.3, predicted_error_m=0.02, distortion_error_m=0.0,
+        predicted_rotation_deg=0.1, distortion_rotation_deg=0.0, inliers_beyond_chance=12, required_inliers=9,
+        chance_inliers=6.0, num_associations=1000, competitor=4,
+    )
+    cfg = LocalizationConfig()
+    assert all(c.passed for c in verify(ev, cfg))
+    # two failures: both are in the table, the earlier one (scale) is the reason
+    checks = verify(replace(ev, scale_error=0.03, competitor=10), cfg)
+    failed = [c.name for c in checks if not c.passed]
+    assert failed == ["scale", "winner_margin"]
+    assert "not rigid" in next(c.detail for c in checks if not c.passed)
+    # a check fails exactly at its limit's far side, not at the limit
+    assert next(c for c in verify(replace(ev, rmse_m=0.05), cfg) if c.name == "residual_rmse").passed
+    assert not next(c for c in verify(replace(ev, rmse_m=0.0501), cfg) if c.name == "residual_rmse").passed
+    # outside the gravity-aware mode tilt and handedness are not tested
+    assert "tilt" not in [c.name for c in verify(replace(ev, tilt_deg=None, handedness=None), cfg)]
 
 
 def test_six_dof_edge_budget_is_enforced(rng):
@@ -218,10 +256,10 @@ def test_distortion_allowance_and_odometry_bounds(rng):
     pos, rot = distortion_allowance(q, inl, np.ones(3), 0.0, math.radians(0.1), path)
     assert rot[0] == pytest.approx(math.radians(0.1) * 25.0, rel=0.05)
     assert pos[0] == pytest.approx(rot[0] * 10.0, rel=0.05)
-    # the same rigid pair: accepted without bounds, refused when the odometry may be 3 % off
+    # the same rigid pair: accepted when stated rigid, refused when the odometry may be 3 % off
     ref, veh, T, _ = make_pair(rng, n_ref=150, n_common=40, n_outliers=0)
     far = transform_points(invert_transform(T), ref.positions_xyz[:1] + np.array([[15.0, 0, 0]]))
-    assert localize(ref, veh, query_xyz=far).success
+    assert localize(ref, veh, RIGID, query_xyz=far).success
     r = localize(ref, veh, LocalizationConfig(odometry_scale_error=0.03), query_xyz=far)
     assert not r.success and "uncertain" in r.reason and r.distortion_error_m > 0.3
 
@@ -233,7 +271,7 @@ def test_covariance_covers_the_truth():
     for seed in range(40):
         rng = np.random.default_rng(200 + seed)
         ref, veh, T, _ = make_pair(rng, n_ref=120, n_common=30, n_outliers=5, noise=0.02)
-        r = localize(ref, veh)
+        r = localize(ref, veh, RIGID)  # the registration's covariance alone: the maps are rigid by construction
         assert r.success, r.reason
         E = r.T_ref_veh @ invert_transform(T)
         err = -E[:3, 3]  # T_true = exp(xi) T_est: xi's translation is minus E's (small angles)
@@ -265,3 +303,91 @@ def test_chance_envelope_grows_with_the_search_tolerance():
     # measured: chance sets up to 2.0x larger at 3x the tolerance (benchmarks/chance_cliques.py --epsilon)
     assert wide >= 2.0 * base
     assert chance_clique_size(m, epsilon_m=0.08, epsilon_z_m=0.08) >= 1.33 * base
+
+
+def _drifted_strip(rng, drift_deg_per_m, scale_error, length_m=30.0, n_rocks=70):
+    """Rocks along a gently curving 30 m drive seen by drifting odometry (the rover's frame at
+    each rock's nearest path point carries the heading error accumulated so far): returns
+    (reference map, vehicle map, vehicle path, true rover end, vehicle rover end)."""
+    from lunarloc.evaluation import DriftModel, drifted_path
+
+    s = np.linspace(0, length_m, 301)
+    g = np.c_[s, 2.0 * np.sin(s / 12.0), np.zeros_like(s)]
+    o, psi = drifted_path(g, DriftModel(drift_deg_per_m, scale_error))
+    j = rng.integers(0, len(s), n_rocks)
+    rel = np.c_[rng.uniform(-3, 3, (n_rocks, 2)), rng.normal(0, 0.2, n_rocks)]
+    ref = g[j] + rel
+    c, sn = np.cos(psi[j]), np.sin(psi[j])
+    veh = o[j] + np.c_[c * rel[:, 0] - sn * rel[:, 1], sn * rel[:, 0] + c * rel[:, 1], rel[:, 2]]
+    veh = veh + rng.normal(0, 0.005, veh.shape)
+    return LandmarkMap(ref), LandmarkMap(veh), o, g[-1], o[-1]
+
+
+def test_bending_fit_recovers_drift_and_scale():
+    from lunarloc.localize import bending_fit
+
+    rng = np.random.default_rng(3)
+    ref, veh, path, _, end_v = _drifted_strip(rng, 0.1, 0.01)
+    inl = np.c_[np.arange(len(veh)), np.arange(len(ref))]
+    from lunarloc.geometry import arun
+
+    T = arun(veh.positions_xyz, ref.positions_xyz)
+    b = bending_fit(T, veh.positions_xyz, ref.positions_xyz, inl, end_v[None], path, 0.01, 0.3)
+    assert abs(math.degrees(b.drift_rad_per_m) - 0.1) < max(3 * math.degrees(b.drift_se), 0.01)
+    assert abs(b.scale_error - 0.01) < max(3 * b.scale_se, 0.002)
+    assert b.chi2_drop > 100 and b.shift_m > 0.1  # the rigid fit is far off at the end of the drive
+    # a rigid map: no bend found, and the model is sure of it
+    ref, veh, path, _, end_v = _drifted_strip(rng, 0.0, 0.0)
+    T = arun(veh.positions_xyz, ref.positions_xyz)
+    b = bending_fit(T, veh.positions_xyz, ref.positions_xyz, inl, end_v[None], path, 0.01, 0.3)
+    assert abs(b.drift_rad_per_m) < 3 * b.drift_se + 1e-6 and b.shift_m < 0.03 and b.sigma_m < 0.03
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_bent_map_without_bounds_is_never_confidently_wrong(seed):
+    """A drifted map whose reference covers only the first 60 % of the drive, judged at the
+    rover's end: assumed rigid it is claimed and wrong (nothing in the maps contradicts the
+    rigid fit); with no bounds stated the fitted bend refuses it, or it is right."""
+    rng = np.random.default_rng(10 + seed)
+    ref, veh, path, end_true, end_v = _drifted_strip(rng, 0.03, 0.005)
+    seen = ref.positions_xyz[:, 0] < 18.0
+    part = LandmarkMap(np.vstack([ref.positions_xyz[seen], rock_field(rng, 60) + [0, 20, 0]]))
+    rigid = localize(part, veh, RIGID, query_xyz=end_v[None], path_xyz=path)
+    r = localize(part, veh, query_xyz=end_v[None], path_xyz=path)
+    err = np.linalg.norm(transform_points(r.T_ref_veh, end_v[None])[0] - end_true)
+    assert rigid.success and err > 0.10  # what the rigid assumption gives: confident and wrong
+    assert not r.success, (r.reason, err)
+    assert r.distortion_fit["path_given"] and "fitted from the maps" in r.reason
+    # a rigid drive without bounds: still localized where the data fix the bend
+    ref, veh, path, end_true, end_v = _drifted_strip(rng, 0.0, 0.0)
+    r = localize(ref, veh, query_xyz=end_v[None], path_xyz=path)
+    assert r.success, r.reason
+    assert np.linalg.norm(transform_points(r.T_ref_veh, end_v[None])[0] - end_true) < 0.05
+
+
+def test_bench_coverage_counts_errors_inside_the_predicted_sigmas():
+    from lunarloc.evaluation import BenchSummary, PairResult, covariance_d2
+
+    E = np.eye(4)
+    E[:3, 3] = [0.03, 0.0, 0.0]
+    assert covariance_d2(E, np.diag([0.01**2] * 3 + [1e-6] * 3)) == pytest.approx(9.0)
+    rows = [PairResult(1, 2, 10, 10, 8, True, True, 0.01, e, 0.1, 0.0, "ok", predicted_error_m=0.02,
+                       predicted_rotation_deg=0.2, covariance_d2=d2)
+            for e, d2 in ((0.01, 1.0), (0.03, 5.0), (0.07, 20.0))]
+    rows.append(PairResult(1, 3, 10, 10, 0, False, False, math.nan, math.nan, math.nan, 0.0, "refused"))
+    c = BenchSummary(rows).coverage()
+    assert c["n"] == 3
+    assert c["position_1sigma"] == pytest.approx(1 / 3) and c["position_3sigma"] == pytest.approx(2 / 3)
+    assert c["covariance_1sigma"] == pytest.approx(1 / 3) and c["covariance_3sigma"] == pytest.approx(2 / 3)
+
+
+def test_distortion_covariance_moves_the_allowance_to_the_origin():
+    from lunarloc.localize import distortion_covariance
+
+    assert not distortion_covariance(np.array([10.0, 0, 0]), 0.0, 0.0).any()
+    assert not distortion_covariance(np.array([10.0, 0, 0]), math.inf, 0.01).any()
+    C = distortion_covariance(np.array([10.0, 0, 0]), 0.02, 0.01)
+    # a yaw error of 0.01 rad about a point 10 m out moves the origin by 0.1 m sideways
+    assert C[1, 1] == pytest.approx(0.02**2 / 2 + (10 * 0.01) ** 2)
+    assert C[0, 0] == pytest.approx(0.02**2 / 2) and C[5, 5] == pytest.approx(1e-4)
+    assert np.allclose(C, C.T) and np.all(np.linalg.eigvalsh(C) >= -1e-12)

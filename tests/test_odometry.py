@@ -273,7 +273,7 @@ def test_run_on_a_bare_archive_names_its_odometry(bare_image_archive, tmp_path, 
         assert a.custom_records == [] and default_odometry_source(a) == "visual"
     out = tmp_path / "run"
     assert main(["run", str(bare), "--reference", str(rocks), "-o", str(out), "--odometry", "imu", "--no-plot"]) == 0
-    assert json.loads((out / "config.json").read_text())["odometry_source"] == "imu"
+    assert json.loads((out / "config.json").read_text())["info"]["odometry_source"] == "imu"
     assert "odometry: imu" in capsys.readouterr().out
     assert main(["run", str(bare), "--reference", str(rocks), "-o", str(tmp_path / "run2"), "--odometry",
                  "record:odometry"]) == 2  # fmt: skip
@@ -286,7 +286,7 @@ def test_detect_with_odometry(bare_image_archive, tmp_path, capsys):
     bare, _ = bare_image_archive
     csv = tmp_path / "det.csv"
     assert main(["detect", str(bare), "-o", str(csv), "--odometry", "imu"]) == 0
-    assert json.loads(csv.with_suffix(".csv.config.json").read_text())["pose"] == "imu"
+    assert json.loads(csv.with_suffix(".csv.config.json").read_text())["info"]["pose"] == "imu"
     assert "placed with imu poses" in capsys.readouterr().out
     assert main(["detect", str(bare), "-o", str(csv), "--odometry", "wheels"]) == 2
 

@@ -10,16 +10,12 @@ from _loop_data import synthetic_traverse
 from lunarloc.errors import FileFormatError, InputError
 from lunarloc.evaluation import DriftModel
 from lunarloc.maps import LandmarkMap, save_map
-from lunarloc.pipeline import (
-    LoopConfig,
-    LoopState,
-    load_reference,
-    read_tum,
-    rocks_to_reference,
-    run_online,
-    run_traverse_csv,
-    write_outputs,
-)
+from lunarloc.config import RunConfig
+from lunarloc.loop import LoopConfig, LoopState
+from lunarloc.pipeline import run
+from lunarloc.reference import load_reference, rocks_to_reference
+from lunarloc.runio import read_run, read_tum, write_run
+from lunarloc.sources import ArchiveSource, TraverseCsvSource
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "lunarloc-data"
 
@@ -27,8 +23,8 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "lunarloc-data"
 @pytest.fixture(scope="module")
 def loop_run():
     rocks, trav = synthetic_traverse(length_m=20.0)
-    ref = LandmarkMap(rocks, frame="ref")
-    return run_traverse_csv(trav, ref, DriftModel(0.1, 0.03))
+    ref = LandmarkMap(rocks, frame="map")
+    return run(TraverseCsvSource(trav, DriftModel(0.1, 0.03)), ref, RunConfig.for_detections())
 
 
 def test_loop_reduces_drift(loop_run):
@@ -42,7 +38,7 @@ def test_loop_reduces_drift(loop_run):
 
 
 def test_outputs_are_written(loop_run, tmp_path):
-    s = write_outputs(loop_run, tmp_path)
+    s = write_run(loop_run, tmp_path)
     for name in ("trajectory.tum", "trajectory_online.tum", "trajectory_odometry.tum", "trajectory_groundtruth.tum",
                  "attempts.csv", "attempts.json", "vehicle_map.csv", "config.json", "summary.json"):
         assert (tmp_path / name).is_file(), name
@@ -55,12 +51,17 @@ def test_outputs_are_written(loop_run, tmp_path):
     attempts = json.loads((tmp_path / "attempts.json").read_text())
     assert len(attempts) == summary["attempts"] and {"success", "inliers", "reason", "correction_m"} <= set(attempts[0])
     assert json.loads((tmp_path / "config.json").read_text())["loop"]["fix_kind"] == "landmarks"
+    back = read_run(tmp_path)
+    assert back.summary == summary and len(back.attempts) == len(attempts)
+    assert np.allclose(back.corrected[:, :3], loop_run.corrected[:, :3], atol=1e-6)
+    assert back.ground_truth is not None and RunConfig.from_dict(back.config) == RunConfig.for_detections()
 
 
 def test_wrong_reference_gives_no_fixes():
     rocks, trav = synthetic_traverse(length_m=8.0)
     other, _ = synthetic_traverse(seed=5)
-    res = run_traverse_csv(trav, LandmarkMap(other), DriftModel(0.1, 0.03), LoopConfig(localize_every_m=3.0))
+    cfg = RunConfig.for_detections(loop=LoopConfig(localize_every_m=3.0))
+    res = run(TraverseCsvSource(trav, DriftModel(0.1, 0.03)), LandmarkMap(other), cfg)
     s = res.summary()
     assert s["fixes"] == 0 or s["max_accepted_fix_error_m"] < 0.2
 
@@ -90,7 +91,7 @@ def test_bad_archive(tmp_path):
     bad = tmp_path / "bad.lac"
     bad.write_bytes(b"not an archive")
     with pytest.raises(FileFormatError):
-        run_online(bad, LandmarkMap(np.random.default_rng(0).uniform(size=(5, 3))))
+        run(ArchiveSource(bad), LandmarkMap(np.random.default_rng(0).uniform(size=(5, 3))))
 
 
 def test_config_validation():
@@ -98,7 +99,7 @@ def test_config_validation():
 
     with pytest.raises(ConfigError):
         LoopConfig(window_m=0)
-    with pytest.raises(ValueError):
+    with pytest.raises(ConfigError, match="fix_kind"):
         LoopConfig(fix_kind="nonsense")
 
 
@@ -109,7 +110,28 @@ def test_real_traverse_loop():
 
     veh = load_traverse(DATA / "csv" / "traverse_6.csv")
     ref_t = load_traverse(DATA / "csv" / "traverse_9.csv")
-    ref = aggregate_detections(ref_t.detections_xyz, ref_t.detection_frame, frame="ref")
-    s = run_traverse_csv(veh, ref, DriftModel(0.05, 0.02)).summary()
+    ref = aggregate_detections(ref_t.detections_xyz, ref_t.detection_frame, frame="map")
+    s = run(TraverseCsvSource(veh, DriftModel(0.05, 0.02)), ref, RunConfig.for_detections()).summary()
     assert s["fixes"] > 0
     assert s["ate_corrected"]["rmse_m"] < s["ate_odometry"]["rmse_m"]
+
+
+def test_loop_judges_the_pose_at_the_rover(monkeypatch):
+    """Each attempt hands localize() the rover's position (query_xyz, 1 x 3) and the window's
+    path (path_xyz), both in the local map's frame: the pose is judged where it is used."""
+    import lunarloc.loop as loop_mod
+
+    seen = []
+    real = loop_mod.localize
+
+    def spy(ref, veh, cfg, query_xyz=None, path_xyz=None):
+        seen.append((np.asarray(query_xyz), np.asarray(path_xyz)))
+        return real(ref, veh, cfg, query_xyz=query_xyz, path_xyz=path_xyz)
+
+    monkeypatch.setattr(loop_mod, "localize", spy)
+    rocks, trav = synthetic_traverse(length_m=8.0)
+    res = run(TraverseCsvSource(trav, DriftModel(0.1, 0.03)), LandmarkMap(rocks), RunConfig.for_detections())
+    assert seen and len(seen) == sum(a.landmarks >= 6 and a.reference_landmarks >= 3 for a in res.attempts)
+    for q, path in seen:
+        assert q.shape == (1, 3) and path.ndim == 2 and path.shape[1] == 3 and len(path) >= 2
+        assert np.allclose(q[0], path[-1])  # the rover is at the window's newest keyframe

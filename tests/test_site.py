@@ -128,3 +128,20 @@ def test_lander_parts_within_its_footprint(site):
         assert v[:, 2].min() >= -0.05 and v[:, 2].max() <= cfg.lander_height_m + 0.01
         assert albedo > 0
     assert len(site.lander_mesh().faces) > 100
+
+
+def test_rocks_csv_write_is_atomic(site, tmp_path, monkeypatch):
+    """A failure half-way through writing leaves the previous file intact, never a truncated one."""
+    path = tmp_path / "rocks.csv"
+    site.write_rocks_csv(path)
+    before = path.read_text()
+
+    def broken_table():
+        yield site.rocks_table()[0]
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(site, "rocks_table", broken_table)
+    with pytest.raises(Exception):
+        site.write_rocks_csv(path)
+    assert path.read_text() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["rocks.csv"]

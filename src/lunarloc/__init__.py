@@ -51,7 +51,7 @@ _LAZY = {  # imported on first use: OpenCV and the detector stay out of `import 
     "CameraRig": "lunarloc.online",
     "Estimate": "lunarloc.online",
     "PlaybackAgent": "lunarloc.data.playback",
-    "load_reference": "lunarloc.pipeline",
+    "load_reference": "lunarloc.reference",
 }
 
 

@@ -31,12 +31,15 @@ from lunarloc.association.clipper import clipper_clique
 from lunarloc.association.graph import RefPairIndex, graph_3d, sweep_yaw_bins, vehicle_pairs
 from lunarloc.association.putative import putative_associations
 from lunarloc.errors import ConfigError, DegenerateGeometryError, InputError
-from lunarloc.geometry import arun, arun_yaw, as_points, invert_transform, tilt_angle, transform_points, yaw_of
+from lunarloc.geometry import (
+    arun, arun_yaw, as_points, invert_transform, make_transform, rot_z, tilt_angle, transform_points, yaw_of,
+)
 from lunarloc.maps import LandmarkMap
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Mode", "Registration", "Solver", "LocalizationConfig", "LocalizationResult", "localize", "chance_clique_size"]
+__all__ = ["Mode", "Registration", "Solver", "LocalizationConfig", "LocalizationResult", "Check", "Evidence", "verify",
+           "localize", "chance_clique_size"]
 
 
 class Mode(str, enum.Enum):
@@ -126,8 +129,14 @@ class LocalizationConfig:
     near_miss_outer_m: float = 0.30  # vehicle landmarks landing refine_radius_m..this far from a reference rock are "near misses"
     max_near_miss_z: float = 3.0  # refuse when near misses exceed chance by this many standard deviations ...
     min_near_misses: int = 5  # ... and there are at least this many of them
-    odometry_scale_error: float = 0.0  # bound on the vehicle map's relative scale error (its odometry's spec)
-    odometry_heading_drift_deg_per_m: float = 0.0  # bound on the heading drift of the odometry that built it
+    # Bounds on the distortion of the odometry that built the vehicle map (its specification):
+    # relative scale error and heading drift. None (both): not stated, the distortion is fitted
+    # from the maps (:func:`bending_fit`) and its effect where the pose is used is added to the
+    # predicted error. 0 states a rigid map (e.g. built from ground-truth poses).
+    odometry_scale_error: float | None = None
+    odometry_heading_drift_deg_per_m: float | None = None
+    distortion_fit_sigmas: float = 2.0  # no bounds stated: allowance = fitted bend's shift + this many sigmas
+    min_inliers_distortion_fit: int = 6  # fewer inliers cannot fix the 8 parameters of the bent model: no allowance, refused
     competitor_ratio: float = 1.5  # best must be this many times the best competing hypothesis
     competitor_yaw_sep_deg: float = 10.0  # hypotheses whose yaws differ more than this compete
     seed: int = 0  # CLIPPER initialisation
@@ -152,8 +161,13 @@ class LocalizationConfig:
             raise ConfigError("min_inliers must be >= 3")
         if not self.near_miss_outer_m > 0 or not self.landmark_sigma_m > 0 or not self.landmark_sigma_z_m > 0:
             raise ConfigError("near_miss_outer_m, landmark_sigma_m and landmark_sigma_z_m must be positive")
-        if self.odometry_scale_error < 0 or self.odometry_heading_drift_deg_per_m < 0:
+        if (self.odometry_scale_error or 0.0) < 0 or (self.odometry_heading_drift_deg_per_m or 0.0) < 0:
             raise ConfigError("odometry_scale_error and odometry_heading_drift_deg_per_m must be >= 0")
+
+    @property
+    def odometry_bounds_stated(self) -> bool:
+        """Whether the odometry's distortion bounds are given (else they are fitted from the maps)."""
+        return self.odometry_scale_error is not None or self.odometry_heading_drift_deg_per_m is not None
 
     @property
     def sigma(self) -> float:
@@ -197,8 +211,10 @@ class LocalizationResult:
         the distortion allowance (``distortion_error_m``) of the odometry bounds in the config.
     covariance : 6x6 covariance of the pose error ``xi = (rho, phi)`` (metres, radians), a
         left perturbation in the reference frame: ``T_true = exp(xi) T_ref_veh``, i.e. a
-        reference point p is off by ``rho + phi x p``. From the inlier residuals
-        (registration only; the distortion allowance is not in it).
+        reference point p is off by ``rho + phi x p``. From the inlier residuals, plus the
+        distortion allowance (when there is one) taken as one sigma of horizontal position
+        and yaw at the query point where the predicted error is largest
+        (:func:`distortion_covariance`).
     near_misses : vehicle landmarks that land just outside the inlier radius of a reference
         rock (``refine_radius_m`` .. ``near_miss_outer_m``), against ``near_misses_expected``
         by chance (local reference density): an excess means the map is not rigid.
@@ -224,6 +240,8 @@ class LocalizationResult:
     near_misses_expected: float = float("nan")
     covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
     timings: dict = field(default_factory=dict)
+    checks: list = field(default_factory=list)  # the acceptance tests (:class:`Check`) of :func:`verify`
+    distortion_fit: dict = field(default_factory=dict)  # :class:`BendFit` when no odometry bounds were stated
 
     @property
     def num_inliers(self) -> int:
@@ -263,6 +281,8 @@ class LocalizationResult:
             "near_misses_expected": clean(float(self.near_misses_expected)),
             "covariance": [[clean(float(v)) for v in row] for row in self.covariance],
             "timings_s": {k: round(v, 6) for k, v in self.timings.items()},
+            "checks": [c.to_dict() for c in self.checks],
+            "distortion_fit": {k: clean(v) for k, v in self.distortion_fit.items()},
         }
 
 
@@ -452,6 +472,19 @@ def covariance_at_origin(C_c: np.ndarray, c: np.ndarray) -> np.ndarray:
     return A @ C_c @ A.T
 
 
+def distortion_covariance(point_ref: np.ndarray, position_m: float, rotation_rad: float) -> np.ndarray:
+    """6x6 pose-error covariance about the reference origin of a distortion allowance at a
+    reference-frame point: `position_m` as one sigma of horizontal position there (split
+    over x and y) and `rotation_rad` as one sigma of yaw. Zero when there is no allowance,
+    and when it is not finite (the pose is refused then)."""
+    C = np.zeros((6, 6))
+    if not (position_m > 0 or rotation_rad > 0) or not (math.isfinite(position_m) and math.isfinite(rotation_rad)):
+        return C
+    C[0, 0] = C[1, 1] = position_m**2 / 2
+    C[5, 5] = rotation_rad**2
+    return covariance_at_origin(C, np.asarray(point_ref, float))
+
+
 def predicted_error(T, P, Q, weights, query_xyz, sigma_floor: float = 0.005) -> np.ndarray:
     """1-sigma position error (m) of the registration T at each vehicle-frame query point:
     the error at q has covariance A C A^T with A = [I, -[q - c]x] (see :func:`pose_covariance`)."""
@@ -501,6 +534,183 @@ def distortion_allowance(query_xyz, inliers_xyz, weights, scale_error: float, he
         D = L
     rot = heading_drift_rad_per_m * D
     return scale_error * L + rot * L, rot
+
+
+@dataclass
+class BendFit:
+    """A non-rigid model of the vehicle map fitted to its inliers (:func:`bending_fit`): the
+    odometry that built it drifted in heading by ``drift_rad_per_m`` per metre travelled and
+    mis-scaled its path by ``scale_error``, each with its standard error.
+
+    ``shift_m`` : largest distance, over the query points, between where the rigid fit and the
+        bent model put them (what the rigid pose gets wrong if the map is bent as fitted);
+    ``sigma_m`` : largest 1-sigma position uncertainty of the bent model there (how well the
+        data fix the bending as seen from the query points: large when the inliers cover little
+        of the path);
+    ``rotation_shift_deg`` / ``rotation_sigma_deg`` : the same for the heading at the query points;
+    ``chi2_drop`` : decrease of the inliers' chi-square from the rigid fit to the bent model
+        (2 extra parameters: above ~13.8 the bend is real at 0.999 confidence);
+    ``inliers`` : inlier pairs the bent model gathers; ``path_given`` : False when the path
+        was not given and a straight path along the map's principal axis stood in for it."""
+
+    drift_rad_per_m: float
+    drift_se: float
+    scale_error: float
+    scale_se: float
+    shift_m: float
+    sigma_m: float
+    rotation_shift_deg: float
+    rotation_sigma_deg: float
+    chi2_drop: float
+    inliers: int
+    path_given: bool
+
+
+def _straight_path(points_xyz: np.ndarray, step_m: float = 0.25) -> np.ndarray:
+    """A stand-in odometry path: a straight line along the horizontal principal axis of the
+    points, over their extent (a traverse that drove straight through its map)."""
+    P = np.asarray(points_xyz, float)
+    c = P.mean(axis=0)
+    _, _, Vt = np.linalg.svd(P[:, :2] - c[:2], full_matrices=False)
+    a = np.r_[Vt[0], 0.0]
+    u = (P - c) @ a
+    t = np.arange(u.min(), u.max() + step_m, step_m)
+    return c + t[:, None] * a
+
+
+class _Unbender:
+    """Undo a heading drift ``delta`` (rad per metre travelled) and a path scale error
+    ``kappa`` in vehicle-frame points, each placed at its nearest (horizontally) point of the
+    odometry path: the path is re-integrated with every step turned back by -delta * s (s its
+    distance travelled) and shrunk by 1 / (1 + kappa); a point keeps its offset from its path
+    point (a stereo measurement, not odometry), turned back with it."""
+
+    def __init__(self, path_xyz: np.ndarray, spacing_m: float = 0.25):
+        path = np.asarray(path_xyz, float)
+        arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(path[:, :2], axis=0), axis=1))]
+        keep = np.unique(np.r_[np.searchsorted(arc, np.arange(0.0, arc[-1], spacing_m)), len(path) - 1])
+        self.path = path[keep]  # one point every spacing_m: the model's cost does not grow with the frame rate
+        self.steps = np.diff(self.path, axis=0)
+        self.s = np.r_[0.0, np.cumsum(np.linalg.norm(self.steps[:, :2], axis=1))]
+        self.tree = cKDTree(self.path[:, :2])
+
+    def index(self, points_xyz: np.ndarray) -> np.ndarray:
+        return self.tree.query(np.asarray(points_xyz, float)[:, :2])[1]
+
+    def __call__(self, points_xyz: np.ndarray, idx: np.ndarray, delta: float, kappa: float) -> np.ndarray:
+        a = -delta * self.s[1:]
+        c, sn = np.cos(a), np.sin(a)
+        st = self.steps
+        turned = np.stack([c * st[:, 0] - sn * st[:, 1], sn * st[:, 0] + c * st[:, 1], st[:, 2]], axis=1)
+        path = self.path[0] + np.vstack([np.zeros((1, 3)), np.cumsum(turned / (1.0 + kappa), axis=0)])
+        rel = np.asarray(points_xyz, float) - self.path[idx]
+        b = -delta * self.s[idx]
+        cb, sb = np.cos(b), np.sin(b)
+        return path[idx] + np.stack([cb * rel[:, 0] - sb * rel[:, 1], sb * rel[:, 0] + cb * rel[:, 1], rel[:, 2]], axis=1)
+
+    def heading(self, idx: np.ndarray, delta: float) -> np.ndarray:
+        """Heading correction (rad) the model applies at path points `idx`."""
+        return -delta * self.s[idx]
+
+
+def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius_m: float) -> BendFit:
+    """Fit a bent (heading drift) and scaled (path scale error) model of the vehicle map to
+    its inliers, starting from the rigid fit T: parameters rotation vector, translation, drift
+    per metre and scale error, by least squares on the 3D residuals over `sigma_axis_m` (the
+    landmarks' per-axis noise; the residuals' own scale when larger). Inliers are gathered
+    again under the model (mutual nearest neighbours within `radius_m`, 2 rounds), so the
+    part of a bent map the rigid fit left out can show its bend. Covariance from the Jacobian;
+    the query points' positions and headings under the model, with their uncertainty, are
+    compared with the rigid fit's. Without `path_xyz` a straight path along the map's
+    principal axis stands in (a rough proxy for a winding traverse)."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    q = np.asarray(query_xyz, float).reshape(-1, 3)
+    given = path_xyz is not None and len(path_xyz) >= 2
+    unb = _Unbender(path_xyz if given else _straight_path(np.vstack([Pv, q])))
+    idx_all = unb.index(Pv)
+    idx_q = unb.index(q)
+    tree = cKDTree(Pr)
+    R0 = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+
+    def model_T(x):
+        return make_transform(Rotation.from_rotvec(x[:3]).as_matrix(), x[3:6])
+
+    def apply(x, P, idx):
+        return transform_points(model_T(x), unb(P, idx, x[6], x[7]))
+
+    x = np.r_[R0, T[:3, 3], 0.0, 0.0]
+    pairs = np.asarray(inl)
+    chi2_rigid = chi2_bent = 0.0
+    first_round = True
+    for _ in range(3):
+        v, r = pairs[:, 0], pairs[:, 1]
+        used = len(pairs)
+
+        def resid(xx):
+            return ((apply(xx, Pv[v], idx_all[v]) - Pr[r]) / sigma_axis_m).ravel()
+
+        sol = least_squares(resid, x, x_scale=np.r_[np.full(3, 1e-3), np.full(3, 1e-2), 1e-4, 1e-3], method="lm",
+                            max_nfev=200)
+        if first_round:  # on the rigid fit's own inliers
+            chi2_rigid, chi2_bent = float(np.sum(resid(x) ** 2)), float(np.sum(sol.fun**2))
+            first_round = False
+        x = sol.x
+        d, j = tree.query(apply(x, Pv, idx_all), distance_upper_bound=radius_m)
+        ok = np.flatnonzero(np.isfinite(d))
+        order = ok[np.argsort(d[ok])]
+        _, first = np.unique(j[order], return_index=True)
+        new = np.stack([order[first], j[order[first]]], axis=1)
+        if len(new) <= len(pairs):
+            break
+        pairs = new
+    J = sol.jac
+    dof = max(J.shape[0] - 8, 1)
+    s2 = max(1.0, float(np.sum(sol.fun**2)) / dof)  # residuals noisier than the stated sigma widen the covariance
+    try:
+        C = s2 * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        C = np.full((8, 8), np.inf)
+
+    def at_query(xx):  # positions (3 per query point), then the map's local heading at each
+        R = model_T(xx)[:3, :3]
+        return np.r_[apply(xx, q, idx_q).ravel(), [yaw_of(R @ rot_z(h)) for h in unb.heading(idx_q, xx[6])]]
+
+    f0 = at_query(x)
+    Jq = np.empty((len(f0), 8))
+    for i in range(8):
+        h = 1e-6 if i == 6 else 1e-5
+        dx = np.zeros(8)
+        dx[i] = h
+        Jq[:, i] = (at_query(x + dx) - at_query(x - dx)) / (2 * h)
+    n = len(q)
+    var = np.einsum("ij,jk,ik->i", Jq, C, Jq) if np.all(np.isfinite(C)) else np.full(len(f0), np.inf)
+    pos_var = var[: 3 * n].reshape(-1, 3).sum(axis=1)
+    shift = np.linalg.norm(f0[: 3 * n].reshape(-1, 3) - transform_points(T, q), axis=1)
+    dyaw = np.abs((f0[3 * n:] - yaw_of(T[:3, :3]) + math.pi) % (2 * math.pi) - math.pi)
+    return BendFit(
+        drift_rad_per_m=float(x[6]), drift_se=float(math.sqrt(max(C[6, 6], 0.0))), scale_error=float(x[7]),
+        scale_se=float(math.sqrt(max(C[7, 7], 0.0))), shift_m=float(shift.max()),
+        sigma_m=float(math.sqrt(max(pos_var.max(), 0.0))), rotation_shift_deg=math.degrees(float(dyaw.max())),
+        rotation_sigma_deg=math.degrees(math.sqrt(max(float(var[3 * n:].max()), 0.0))), chi2_drop=chi2_rigid - chi2_bent,
+        inliers=int(used), path_given=bool(given),
+    )
+
+
+def fitted_allowance(bend: BendFit, cfg: "LocalizationConfig") -> tuple[float, float]:
+    """Position (m) and rotation (rad) allowance at the query points from a fitted bend when no
+    odometry bounds are stated: the bent model's shift from the rigid fit, plus
+    `distortion_fit_sigmas` times the bent model's own uncertainty there (the bend the data
+    cannot exclude). The shift counts even when the bend is not significant: the model
+    under-estimates real drift (a landmark is placed at its nearest path point, not where it
+    was seen from), and gating it on a chi-square test let a 2.3-sigma bend through (pair
+    4-9, 0.025 deg/m, 60 m window: 10.3 cm / 1.03 deg off, predicted 5.5 cm). Not finite
+    when the fit is not."""
+    k = cfg.distortion_fit_sigmas
+    pos = bend.shift_m + k * bend.sigma_m
+    rot = bend.rotation_shift_deg + k * bend.rotation_sigma_deg
+    return (pos, math.radians(rot)) if math.isfinite(pos) and math.isfinite(rot) else (math.inf, math.inf)
 
 
 def near_miss_excess(T, Pv, Pr, inlier_veh: np.ndarray, inner_m: float, outer_m: float,
@@ -572,6 +782,138 @@ def _nan_T() -> np.ndarray:
     return np.full((4, 4), np.nan)
 
 
+# --------------------------------------------------------------------------- verification
+
+
+@dataclass(frozen=True)
+class Check:
+    """One acceptance test of :func:`verify`: ``value`` must be ``relation`` (``"<="`` or
+    ``">="``) ``limit``. ``detail`` is one line: the reason of the refusal when it fails,
+    what was tested when it passes."""
+
+    name: str
+    value: float
+    limit: float
+    passed: bool
+    relation: str = "<="
+    detail: str = ""
+
+    def to_dict(self) -> dict:
+        def clean(x):
+            return None if not math.isfinite(x) else float(x)
+
+        return {"name": self.name, "value": clean(float(self.value)), "relation": self.relation,
+                "limit": clean(float(self.limit)), "passed": bool(self.passed), "detail": self.detail}
+
+
+def _at_most(name: str, value: float, limit: float, fail: str, ok: str) -> Check:
+    passed = not (value > limit)  # NaN passes: a quantity that could not be measured refuses nothing here
+    return Check(name, float(value), float(limit), passed, "<=", ok if passed else fail)
+
+
+def _at_least(name: str, value: float, limit: float, fail: str, ok: str) -> Check:
+    passed = not (value < limit)
+    return Check(name, float(value), float(limit), passed, ">=", ok if passed else fail)
+
+
+@dataclass
+class Evidence:
+    """What :func:`verify` judges: the quantities measured on the winning hypothesis.
+    ``tilt_deg`` / ``handedness`` are None outside the gravity-aware mode (not tested)."""
+
+    inliers: int
+    rmse_m: float
+    rmse_limit_m: float
+    sigma_h_m: float
+    sigma_z_m: float
+    extent_m: float
+    planarity: float
+    tilt_deg: float | None
+    handedness: float | None
+    scale_error: float
+    scale_se: float
+    near_misses: int
+    near_misses_expected: float
+    near_inner_m: float
+    near_outer_m: float
+    predicted_error_m: float
+    distortion_error_m: float
+    predicted_rotation_deg: float
+    distortion_rotation_deg: float
+    inliers_beyond_chance: float
+    required_inliers: int
+    chance_inliers: float
+    num_associations: int
+    competitor: int
+    distortion_fitted: bool = False  # the distortion allowance was fitted from the maps, not from stated bounds
+
+
+def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
+    """The acceptance tests of a hypothesis as a table of named checks, in the order their
+    reasons are reported (the first failing check is the reason of a refusal). Every check is
+    evaluated, so the table shows all that fail, not only the first. A pose is trusted only
+    when every check passes."""
+    out = [
+        _at_most("residual_rmse", ev.rmse_m, ev.rmse_limit_m,
+                 f"residual RMSE {ev.rmse_m * 100:.1f} cm exceeds {ev.rmse_limit_m * 100:.1f} cm (what landmarks of "
+                 f"{ev.sigma_h_m * 100:.1f} cm horizontal / {ev.sigma_z_m * 100:.1f} cm vertical uncertainty allow)",
+                 f"chi-square test of the inlier residuals at {cfg.rmse_confidence:g} confidence"),
+        _at_least("extent", ev.extent_m, cfg.min_extent_m,
+                  f"inliers are clustered (extent {ev.extent_m:.2f} m < {cfg.min_extent_m} m)",
+                  "inliers spread (2 x largest principal std, m)"),
+        _at_least("planarity", ev.planarity, cfg.min_planarity,
+                  "inliers are nearly collinear: rotation about their line is poorly fixed",
+                  "inliers not collinear (second / first principal std)"),
+    ]
+    if ev.tilt_deg is not None:
+        lim = cfg.max_tilt_deg + 0.5
+        out.append(_at_most("tilt", ev.tilt_deg, lim,
+                            f"fitted tilt {ev.tilt_deg:.2f} deg exceeds the allowed {cfg.max_tilt_deg} deg "
+                            "(mirror or wrong match)", "fitted tilt of the levelled map (deg)"))
+    if ev.handedness is not None:
+        out.append(_at_least("handedness", ev.handedness, cfg.min_handedness,
+                             "inliers are a mirror image of the reference (triangle orientations disagree)",
+                             "share of inlier triangles with the reference's orientation"))
+    scale_lim = max(cfg.max_scale_error, cfg.scale_sigmas * ev.scale_se)
+    out.append(_at_most("scale", abs(ev.scale_error), scale_lim,
+                        f"vehicle map is not rigid: its inliers are {ev.scale_error * 100:+.1f} % larger than the "
+                        f"reference (+-{ev.scale_se * 100:.1f} %), as odometry scale drift makes them",
+                        "relative scale of the inliers against the reference"))
+    near_z = (ev.near_misses - ev.near_misses_expected) / math.sqrt(max(ev.near_misses_expected, 1.0))
+    near_ok = not (ev.near_misses >= cfg.min_near_misses and near_z > cfg.max_near_miss_z)
+    out.append(Check(
+        "near_misses", near_z, cfg.max_near_miss_z, near_ok, "<=",
+        "excess of landmarks just outside the inlier radius over chance (standard deviations; "
+        f"{ev.near_misses} seen, {ev.near_misses_expected:.1f} expected)" if near_ok else
+        f"vehicle map is not rigid: {ev.near_misses} of its landmarks land {ev.near_inner_m * 100:.0f}-"
+        f"{ev.near_outer_m * 100:.0f} cm from a reference rock where chance gives {ev.near_misses_expected:.1f} "
+        "(scaled or bent by odometry drift away from the inliers)"))
+    source = "fitted from the maps, no odometry bounds stated" if ev.distortion_fitted else "from the odometry bounds"
+    out.append(_at_most(
+        "predicted_error", cfg.predicted_error_sigmas * ev.predicted_error_m, cfg.max_predicted_error_m,
+        f"pose too uncertain where it is used: predicted error up to {cfg.predicted_error_sigmas:g} x "
+        f"{ev.predicted_error_m * 100:.1f} cm (allowed {cfg.max_predicted_error_m * 100:.0f} cm"
+        f"{'' if ev.distortion_error_m == 0 else f'; odometry distortion up to {ev.distortion_error_m * 100:.1f} cm, {source}'})",
+        "predicted position error where the pose is used (m)"))
+    out.append(_at_most(
+        "predicted_rotation", cfg.predicted_error_sigmas * ev.predicted_rotation_deg, cfg.max_predicted_rotation_deg,
+        f"heading too uncertain: predicted rotation error {cfg.predicted_error_sigmas:g} x "
+        f"{ev.predicted_rotation_deg:.2f} deg (allowed {cfg.max_predicted_rotation_deg:g} deg; odometry heading "
+        f"drift up to {ev.distortion_rotation_deg:.2f} deg, {source})",
+        "predicted rotation error (deg)"))
+    out.append(_at_least(
+        "inliers_vs_chance", ev.inliers_beyond_chance, ev.required_inliers,
+        f"{ev.inliers} inliers ({ev.inliers_beyond_chance:.1f} when refinement's chance matches are discounted) is "
+        f"too few to beat chance at {ev.num_associations} associations (need {ev.required_inliers}; "
+        f"unrelated maps of this size give up to ~{ev.chance_inliers:.0f})",
+        "inliers (refinement's chance matches discounted) against the chance envelope plus margin"))
+    out.append(_at_least(
+        "winner_margin", ev.inliers, cfg.competitor_ratio * ev.competitor,
+        f"ambiguous: {ev.inliers} inliers vs a competing hypothesis with {ev.competitor}",
+        f"inliers against {cfg.competitor_ratio:g} x the best competing hypothesis"))
+    return out
+
+
 # --------------------------------------------------------------------------- main entry
 
 
@@ -612,9 +954,9 @@ def localize(
     chance = chance_clique_size(m, cfg.mode, cfg.epsilon_m, cfg.epsilon_z_m)
     required = max(cfg.min_inliers, int(math.ceil(chance + cfg.chance_margin)))
     if m == 0:
-        return LocalizationResult(False, _nan_T(), np.zeros((0, 2), int), float("nan"),
-                                  "no putative associations (size pruning removed all)", required_inliers=required,
-                                  timings=timings)
+        why = "no putative associations (size pruning removed all)"
+        return LocalizationResult(False, _nan_T(), np.zeros((0, 2), int), float("nan"), why, required_inliers=required,
+                                  timings=timings, checks=[Check("associations", 0, 1, False, ">=", why)])
 
     t0 = time.perf_counter()
     if cfg.mode is Mode.GRAVITY:
@@ -626,9 +968,9 @@ def localize(
     base = dict(required_inliers=required, num_associations=m, num_edges=num_edges, timings=timings)
 
     if len(best) < 3:
-        return LocalizationResult(False, _nan_T(), np.zeros((0, 2), int), float("nan"),
-                                  f"no consistent set of 3 or more associations (largest: {len(best)})",
-                                  clique_size=len(best), **base)
+        why = f"no consistent set of 3 or more associations (largest: {len(best)})"
+        return LocalizationResult(False, _nan_T(), np.zeros((0, 2), int), float("nan"), why, clique_size=len(best),
+                                  checks=[Check("consistent_set", len(best), 3, False, ">=", why)], **base)
 
     t0 = time.perf_counter()
     inl = assoc[best]
@@ -636,8 +978,9 @@ def localize(
         T = _register(Pv[inl[:, 0]], Pr[inl[:, 1]], cfg)
     except DegenerateGeometryError as exc:
         timings["registration"] = time.perf_counter() - t0
-        return LocalizationResult(False, _nan_T(), inl, float("nan"), f"inliers are degenerate: {exc}",
-                                  clique_size=len(best), **base)
+        why = f"inliers are degenerate: {exc}"
+        return LocalizationResult(False, _nan_T(), inl, float("nan"), why, clique_size=len(best),
+                                  checks=[Check("registration", float("nan"), float("nan"), False, "<=", why)], **base)
     if cfg.refine:
         T, inl = _refine(T, Pv, Pr, inl, cfg)
     try:
@@ -648,10 +991,19 @@ def localize(
     query = Pv if query_xyz is None else as_points(query_xyz, "query points")
     C_c, centre_ref = pose_covariance(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w)
     pred_fit = predicted_error(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, query)
-    distortion, distortion_rot = distortion_allowance(
-        query, Pv[inl[:, 0]], w, cfg.odometry_scale_error, math.radians(cfg.odometry_heading_drift_deg_per_m),
-        None if path_xyz is None else as_points(path_xyz, "vehicle path"),
-    )
+    path = None if path_xyz is None else as_points(path_xyz, "vehicle path")
+    bend = None
+    if cfg.odometry_bounds_stated:
+        distortion, distortion_rot = distortion_allowance(
+            query, Pv[inl[:, 0]], w, cfg.odometry_scale_error or 0.0,
+            math.radians(cfg.odometry_heading_drift_deg_per_m or 0.0), path,
+        )
+    else:  # no bounds stated: what the maps show of a bend or scale error, and how unsure that is
+        distortion, distortion_rot = np.array([math.inf]), np.array([math.inf])
+        if len(inl) >= cfg.min_inliers_distortion_fit:
+            bend = bending_fit(T, Pv, Pr, inl, query, path, math.sqrt((2 * sigma_h**2 + sigma_z**2) / 3),
+                               cfg.refine_radius_m)
+            distortion[0], distortion_rot[0] = fitted_allowance(bend, cfg)
     pred = pred_fit + distortion  # the distortion is a bound (a bias), not a random error: added, not in quadrature
     rot_sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(C_c[3:, 3:]))), 0.0)) if np.all(np.isfinite(C_c)) else math.inf
     pred_rot_deg = math.degrees(rot_sigma + float(distortion_rot.max()))
@@ -681,60 +1033,31 @@ def localize(
         predicted_error_m=float(pred.max()), scale_error=dscale,
         yaw_deg=math.degrees(yaw_of(R)), tilt_deg=math.degrees(tilt_angle(R)),
         distortion_error_m=float(distortion.max()), predicted_rotation_deg=pred_rot_deg, near_misses=near, near_misses_expected=near_exp,
-        covariance=covariance_at_origin(C_c, centre_ref), **base,
+        covariance=covariance_at_origin(C_c, centre_ref) + distortion_covariance(
+            transform_points(T, query[int(np.argmax(pred_fit + distortion))][None])[0],
+            float(distortion.max()), float(distortion_rot.max())),
+        distortion_fit={} if bend is None else asdict(bend), **base,
     )
-    near_z = (near - near_exp) / math.sqrt(max(near_exp, 1.0))
     Q = Pr[inl[:, 1]]
     s = np.linalg.svd(Q - Q.mean(axis=0), compute_uv=False) / math.sqrt(len(Q))
     k = len(inl)
-    rmse_max = rmse_limit(cfg, sigma_h, sigma_z, k)
-    if rmse > rmse_max:
-        out.reason = (
-            f"residual RMSE {rmse * 100:.1f} cm exceeds {rmse_max * 100:.1f} cm (what landmarks of "
-            f"{sigma_h * 100:.1f} cm horizontal / {sigma_z * 100:.1f} cm vertical uncertainty allow)"
-        )
-    elif 2 * s[0] < cfg.min_extent_m:
-        out.reason = f"inliers are clustered (extent {2 * s[0]:.2f} m < {cfg.min_extent_m} m)"
-    elif s[1] / max(s[0], 1e-12) < cfg.min_planarity:
-        out.reason = "inliers are nearly collinear: rotation about their line is poorly fixed"
-    elif cfg.mode is Mode.GRAVITY and out.tilt_deg > cfg.max_tilt_deg + 0.5:
-        out.reason = f"fitted tilt {out.tilt_deg:.2f} deg exceeds the allowed {cfg.max_tilt_deg} deg (mirror or wrong match)"
-    elif cfg.mode is Mode.GRAVITY and _handedness(Pv[inl[:, 0]], Q, np.random.default_rng(0)) < cfg.min_handedness:
-        out.reason = "inliers are a mirror image of the reference (triangle orientations disagree)"
-    elif abs(dscale) > max(cfg.max_scale_error, cfg.scale_sigmas * scale_se):
-        out.reason = (
-            f"vehicle map is not rigid: its inliers are {dscale * 100:+.1f} % larger than the reference "
-            f"(+-{scale_se * 100:.1f} %), as odometry scale drift makes them"
-        )
-    elif near >= cfg.min_near_misses and near_z > cfg.max_near_miss_z:
-        out.reason = (
-            f"vehicle map is not rigid: {near} of its landmarks land {cfg.refine_radius_m * 100:.0f}-"
-            f"{near_outer * 100:.0f} cm from a reference rock where chance gives {near_exp:.1f} "
-            "(scaled or bent by odometry drift away from the inliers)"
-        )
-    elif cfg.predicted_error_sigmas * pred.max() > cfg.max_predicted_error_m:
-        out.reason = (
-            f"pose too uncertain where it is used: predicted error up to "
-            f"{cfg.predicted_error_sigmas:g} x {pred.max() * 100:.1f} cm (allowed {cfg.max_predicted_error_m * 100:.0f} cm"
-            f"{'' if distortion.max() == 0 else f'; odometry distortion up to {distortion.max() * 100:.1f} cm'})"
-        )
-    elif cfg.predicted_error_sigmas * pred_rot_deg > cfg.max_predicted_rotation_deg:
-        out.reason = (
-            f"heading too uncertain: predicted rotation error {cfg.predicted_error_sigmas:g} x {pred_rot_deg:.2f} deg "
-            f"(allowed {cfg.max_predicted_rotation_deg:g} deg; odometry heading drift up to "
-            f"{math.degrees(float(distortion_rot.max())):.2f} deg)"
-        )
-    elif k_chance < required:
-        out.reason = (
-            f"{k} inliers ({k_chance:.1f} when refinement's chance matches are discounted) is too few to beat chance "
-            f"at {m} associations (need {required}; "
-            f"unrelated maps of this size give up to ~{chance:.0f})"
-        )
-    elif k < cfg.competitor_ratio * competitor:
-        out.reason = f"ambiguous: {k} inliers vs a competing hypothesis with {competitor}"
-    else:
-        out.success = True
-        out.reason = "ok"
+    gravity = cfg.mode is Mode.GRAVITY
+    ev = Evidence(
+        inliers=k, rmse_m=rmse, rmse_limit_m=rmse_limit(cfg, sigma_h, sigma_z, k), sigma_h_m=sigma_h, sigma_z_m=sigma_z,
+        extent_m=2 * s[0], planarity=s[1] / max(s[0], 1e-12),
+        tilt_deg=out.tilt_deg if gravity else None,
+        handedness=_handedness(Pv[inl[:, 0]], Q, np.random.default_rng(0)) if gravity else None,
+        scale_error=dscale, scale_se=scale_se, near_misses=near, near_misses_expected=near_exp,
+        near_inner_m=cfg.refine_radius_m, near_outer_m=near_outer,
+        predicted_error_m=float(pred.max()), distortion_error_m=float(distortion.max()),
+        predicted_rotation_deg=pred_rot_deg, distortion_rotation_deg=math.degrees(float(distortion_rot.max())),
+        inliers_beyond_chance=k_chance, required_inliers=required, chance_inliers=chance, num_associations=m,
+        competitor=int(competitor), distortion_fitted=bend is not None,
+    )
+    out.checks = verify(ev, cfg)
+    failed = [c for c in out.checks if not c.passed]
+    out.success = not failed
+    out.reason = failed[0].detail if failed else "ok"
     log.info("localize: %s (%d inliers, rmse %.3f m)", out.reason, k, rmse)
     return out
 

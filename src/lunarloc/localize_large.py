@@ -33,7 +33,9 @@ import numpy as np
 from lunarloc.association.index import IndexConfig, ReferenceIndex
 from lunarloc.errors import ConfigError
 from lunarloc.geometry import yaw_of
-from lunarloc.localize import LocalizationConfig, LocalizationResult, Mode, _check_map, chance_clique_size, localize
+from lunarloc.localize import (
+    Check, LocalizationConfig, LocalizationResult, Mode, _check_map, chance_clique_size, localize,
+)
 from lunarloc.maps import LandmarkMap
 
 log = logging.getLogger(__name__)
@@ -172,13 +174,20 @@ def localize_large(
     out.num_associations = m_full
     out.competitor_size = int(competitor)
     k = out.num_inliers
-    if out.success and k < out.required_inliers:
+    ok_chance, ok_margin = k >= out.required_inliers, k >= cfg.competitor_ratio * competitor
+    whole = [  # the chance and margin checks again, against the whole reference
+        Check("inliers_vs_chance_whole_reference", k, out.required_inliers, ok_chance, ">=",
+              "inliers against the chance envelope of the whole reference" if ok_chance else
+              f"{k} inliers is too few to beat chance in the whole reference ({m_full} associations; "
+              f"need {out.required_inliers})"),
+        Check("winner_margin_regions", k, cfg.competitor_ratio * competitor, ok_margin, ">=",
+              "inliers against the best competing candidate region" if ok_margin else
+              f"ambiguous: {k} inliers vs a competing candidate region with {competitor}"),
+    ]
+    out.checks = list(out.checks) + whole
+    if out.success and not all(c.passed for c in whole):
         out.success = False
-        out.reason = (f"{k} inliers is too few to beat chance in the whole reference ({m_full} associations; "
-                      f"need {out.required_inliers})")
-    elif out.success and k < cfg.competitor_ratio * competitor:
-        out.success = False
-        out.reason = f"ambiguous: {k} inliers vs a competing candidate region with {competitor}"
+        out.reason = next(c.detail for c in whole if not c.passed)
     log.info("localize_large: %s (candidate %d of %d)", out.reason, w, len(rows))
     return out
 

@@ -24,7 +24,7 @@ Per tick (:meth:`OnlineLocalizer.update`):
    since the last one (or ``keyframe_max_interval_s`` passed); only keyframes run the rock
    detector (:class:`~lunarloc.perception.detector.Detector`).
 3. **localization and fusion**: the keyframe goes to the loop state
-   (:class:`lunarloc.pipeline.LoopState`: local map, association with the reference, gated
+   (:class:`lunarloc.loop.LoopState`: local map, association with the reference, gated
    fixes in the pose graph); the estimate is ``T_map_odo @ T_odo_rover`` with the newest
    keyframe's correction ``T_map_odo``.
 
@@ -54,7 +54,8 @@ from lunarloc.geometry import invert_transform, matrix_to_pose, pose_to_matrix
 from lunarloc.maps import LandmarkMap
 from lunarloc.odometry.imu import ImuOdometryConfig, ImuSamples, integrate_imu
 from lunarloc.perception.camera import IPEX_STEREO_BASELINE_M, STEREO_PAIRS, CameraMount, PinholeCamera, ipex_rig
-from lunarloc.pipeline import Attempt, LoopConfig, LoopState
+from lunarloc.localize import LocalizationConfig
+from lunarloc.loop import IMAGE_WINDOW_M, Attempt, LoopConfig, LoopState, image_localization_config
 
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
@@ -171,7 +172,8 @@ class CameraRig:
 class OnlineConfig:
     """Settings of the component (metres, seconds, degrees as named)."""
 
-    loop: LoopConfig = field(default_factory=LoopConfig.for_images)
+    loop: LoopConfig = field(default_factory=lambda: LoopConfig(window_m=IMAGE_WINDOW_M))
+    localization: LocalizationConfig = field(default_factory=image_localization_config)
     imu: ImuOdometryConfig = field(default_factory=ImuOdometryConfig)
     visual_odometry: bool = True  # stereo VO on image ticks (else IMU only) when no odometry is passed
     keyframe_min_travel_m: float = 0.05  # an image tick is a keyframe after this much travel ...
@@ -193,9 +195,9 @@ class OnlineConfig:
                 raise ConfigError(f"{name}={getattr(self, name)} must be > 0")
 
     def to_dict(self) -> dict:
-        d = asdict(self)
-        d["loop"] = self.loop.to_dict()
-        return d
+        from lunarloc.config import config_to_dict
+
+        return config_to_dict(self)
 
 
 @dataclass(frozen=True)
@@ -230,13 +232,13 @@ class OnlineLocalizer:
     config : :class:`OnlineConfig`.
     rig : :class:`CameraRig` (intrinsics and mounts); default the LAC's IPEx rig at 1280x720,
         or :meth:`CameraRig.from_sensors` / :meth:`CameraRig.from_calibration`.
-    detector_config : default :func:`lunarloc.pipeline.scaled_detector_config` at the rig's width.
+    detector_config : default :func:`lunarloc.config.scaled_detector_config` at the rig's width.
     """
 
     def __init__(self, reference: LandmarkMap, initial_pose, config: OnlineConfig | None = None,
                  rig: CameraRig | None = None, detector_config=None):  # fmt: skip
         from lunarloc.perception.detector import Detector
-        from lunarloc.pipeline import scaled_detector_config
+        from lunarloc.config import scaled_detector_config
 
         if not isinstance(reference, LandmarkMap):
             raise InputError(f"reference must be a LandmarkMap (see lunarloc.load_reference), got {type(reference).__name__}")
@@ -255,7 +257,7 @@ class OnlineLocalizer:
         noise = replace(cfg.loop.fusion.noise, start_sigma_m=cfg.initial_sigma_m,
                         start_sigma_yaw_rad=math.radians(cfg.initial_sigma_yaw_deg))  # fmt: skip
         self._loop_config = replace(cfg.loop, fusion=replace(cfg.loop.fusion, noise=noise))
-        self.loop = LoopState(reference, self._loop_config)  # checks the reference (>= 3 landmarks)
+        self.loop = LoopState(reference, self._loop_config, cfg.localization)  # checks the reference (>= 3 landmarks)
         self.detector = Detector(detector_config or scaled_detector_config(self.rig.camera.width), self.rig.camera)
         self._mounts = self.rig.mounts()
         self._pairs = [p for p in self.detector.config.pairs if p[0] in self._mounts and p[1] in self._mounts]
@@ -275,7 +277,7 @@ class OnlineLocalizer:
         self._T_map_imu = self.T_map_rover0.copy()  # IMU dead reckoning
         self._T_map_odo = self.T_map_rover0.copy()  # odometry (visual / IMU / caller), odo == map at start
         self._vo_anchor = None  # (T_map_odo at the last VO pair, T_map_imu there, T_map_vo)
-        self._caller_anchor = None  # T_odo_callerodo
+        self._T_odo_caller = None  # T_odo_caller: the caller's odometry frame in ours
         self._T_loop_odo = np.eye(4)  # the loop's odometry frame <- odo (changes at re-anchors)
         self._last_kf = None  # (t, T_odo_rover) of the last keyframe
         self._fixes = 0
@@ -347,9 +349,9 @@ class OnlineLocalizer:
             T_imu = integrate_imu(s, self._T_map_imu, self.config.imu)[1]
         pair = self._stereo_pair(images)
         if T_caller is not None:
-            if self._caller_anchor is None:
-                self._caller_anchor = self._T_map_odo @ invert_transform(T_caller)
-            T_odo = self._caller_anchor @ T_caller
+            if self._T_odo_caller is None:
+                self._T_odo_caller = self._T_map_odo @ invert_transform(T_caller)
+            T_odo = self._T_odo_caller @ T_caller
         elif self._vo is not None and pair is not None and pair[0] == STEREO_PAIRS[0][0]:
             T_odo = self._visual(images, T_imu)
         elif self._vo_anchor is not None:  # bridge with the IMU since the last VO pair
@@ -367,15 +369,14 @@ class OnlineLocalizer:
             det = self._detect(images)
             if len(self.loop.kf_frame) >= self.config.max_keyframes:
                 self._reanchor()
-            q = matrix_to_pose(self._T_loop_odo @ T_odo)
-            attempt = self.loop.step(self._tick, t, q, det, None, keyframe=True)
+            attempt = self.loop.step(self._tick, t, self._T_loop_odo @ T_odo, det, None, keyframe=True)
             self._last_kf = (t, T_odo)
             k = len(self.loop.kf_frame) - 1
             self._sigmas = self.loop.graph.predicted_sigma(k)
             if attempt is not None:
                 self.recent_attempts.append(attempt)
                 self._fixes += int(attempt.accepted)
-        T = self.loop._T_corr @ self._T_loop_odo @ T_odo
+        T = self.loop.T_map_odo @ self._T_loop_odo @ T_odo
         return Estimate(t, T, self._covariance(), self.localized, self._fixes, is_kf, attempt)
 
     # -------------------------------------------------------------- checks
@@ -496,7 +497,7 @@ class OnlineLocalizer:
         sm, sy = old.graph.predicted_sigma(int(keep[0]))
         noise = replace(cfg.fusion.noise, start_sigma_m=max(sm, cfg.fusion.noise.start_sigma_m),
                         start_sigma_yaw_rad=max(sy, cfg.fusion.noise.start_sigma_yaw_rad))  # fmt: skip
-        new = LoopState(self.reference, replace(cfg, fusion=replace(cfg.fusion, noise=noise)))
+        new = LoopState(self.reference, replace(cfg, fusion=replace(cfg.fusion, noise=noise)), self.config.localization)
         new._last_attempt_dist = new._last_attempt_t = math.inf  # no attempts while the window is re-fed
         times = np.asarray(old.times)
         frames = np.asarray(old.frames)
@@ -504,7 +505,7 @@ class OnlineLocalizer:
         for k, t in zip(keep, kf_t):
             x, y, z, yaw = poses[k]
             roll, pitch = old.kf_rp[k]
-            new.step(old.kf_frame[k], float(t), (x, y, z, roll, pitch, yaw), old.kf_det[k], None, keyframe=True)
+            new.step(old.kf_frame[k], float(t), pose_to_matrix(x, y, z, roll, pitch, yaw), old.kf_det[k], None, keyframe=True)
         g_old, g_new = old.graph, new.graph
         # the gate's drift model continues from the last fix (distance and time since it)
         g_new._last_fix_dist = g_new.keyframes[-1].distance_m - (g_old.keyframes[-1].distance_m - g_old._last_fix_dist)

@@ -346,8 +346,11 @@ def site_geometric_map(site, cell_m: float = LAC_CELL_M) -> np.ndarray:
 
 def write_site_geometric_map(site, path: str | Path) -> Path:
     """Write the site's ground-truth LAC geometric map (:func:`site_geometric_map`) as ``.npy``."""
+    from lunarloc.outputs import atomic_open
+
     path = Path(path)
-    np.save(path, site_geometric_map(site))
+    with atomic_open(path, "wb") as fh:
+        np.save(fh, site_geometric_map(site))
     return path
 
 

@@ -112,15 +112,24 @@ class _Stages:
 
 
 def run_scenario(config: ScenarioConfig, out: str | Path, *, log: Callable[[str], None] | None = None,
-                 figures: bool = True) -> dict:  # fmt: skip
+                 figures: bool = True, run_config=None) -> dict:  # fmt: skip
     """Run one scenario into the folder ``out`` (``out/data`` holds the generated site,
     archives and reference map; ``out`` the run folder of the vehicle traverse). Returns the
-    run's summary with ``scenario`` (the config) and ``stage_seconds`` added."""
+    run's summary with ``scenario`` (the config) and ``stage_seconds`` added.
+
+    run_config : :class:`lunarloc.config.RunConfig` of the reference map and the loop (default
+        ``RunConfig()``); its odometry source is the scenario's ``odometry``. The run folder's
+        ``config.json`` holds it with a ``scenario`` section: ``lunarloc demo --config`` repeats
+        the run."""
     from lunarloc.data.render import SiteRenderer
     from lunarloc.data.simulate import SimulationConfig, simulate_site, simulate_traverse
     from lunarloc.data.site import SiteConfig
     from lunarloc.maps import save_map
-    from lunarloc.pipeline import LoopConfig, build_reference_map, run_online, write_outputs
+    from lunarloc.config import RunConfig
+    from lunarloc.pipeline import run
+    from lunarloc.reference import build_reference_map
+    from lunarloc.runio import write_run
+    from lunarloc.sources import ArchiveSource
 
     c = config
     out = Path(out)
@@ -144,16 +153,18 @@ def run_scenario(config: ScenarioConfig, out: str | Path, *, log: Callable[[str]
     with stage(f"simulate vehicle traverse ({c.duration_s:g} s, drifting odometry)"):
         veh_arch, _ = simulate_traverse(site, data / "vehicle.lac", 1, replace(base, duration_s=c.duration_s),
                                         renderer=renderer)  # fmt: skip
-    loop_cfg = LoopConfig.for_images()
+    rc = run_config or RunConfig()
+    rc = replace(rc, odometry=replace(rc.odometry, source=c.odometry))
     with stage("build the reference map from the reference traverse's images"):
-        ref = build_reference_map(ref_arch, aggregation=loop_cfg.aggregation)
+        ref = build_reference_map(ref_arch, rc)
         save_map(ref, data / "reference_map.csv")
         stage.log(f"reference map: {len(ref)} landmarks")
         if len(ref) < c.min_reference_landmarks:
             raise ScenarioError(f"the reference map has only {len(ref)} landmarks")
     with stage("online localization of the vehicle traverse"):
-        res = run_online(veh_arch, ref, loop_cfg, odometry_source=c.odometry)
-        summary = write_outputs(res, out)
+        res = run(ArchiveSource(veh_arch, rc.odometry, rc.detector.pairs), ref, rc)
+        res.config["scenario"] = c.to_dict()
+        summary = write_run(res, out)
     if figures:
         from lunarloc.viz import plot_run
 

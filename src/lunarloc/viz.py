@@ -1,9 +1,9 @@
 """Figures of an online-localization run (matplotlib, Agg backend, imported lazily).
 
-All figures read a run's output folder (see :func:`lunarloc.pipeline.write_outputs`), so
+All figures read a run's output folder (see :mod:`lunarloc.runio`), so
 ``lunarloc plot OUTDIR`` regenerates them without re-running anything:
 
-* ``map.png``: top-down map (ref frame, metres): ground-truth rocks, reference landmarks,
+* ``map.png``: top-down map (``map`` frame, metres): ground-truth rocks, reference landmarks,
   vehicle landmarks before (raw odometry) and after alignment (corrected poses), inlier
   association lines of accepted fixes (from the landmark's position before the fix to its
   reference landmark), trajectories (ground truth, odometry, corrected).
@@ -14,13 +14,16 @@ All figures read a run's output folder (see :func:`lunarloc.pipeline.write_outpu
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lunarloc.errors import FileFormatError
+
+if TYPE_CHECKING:
+    from lunarloc.runio import RunFolder
 
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
@@ -45,55 +48,23 @@ def _save(fig, path: Path) -> None:
         fig.savefig(tmp)
 
 
-def _load_run(outdir: Path) -> dict:
-    try:
-        return _read_run(outdir)
-    except (ValueError, IndexError) as exc:  # json, TUM or CSV contents; LunarLocErrors pass through
-        if isinstance(exc, FileFormatError):
-            raise
-        raise FileFormatError(f"{outdir}: damaged run folder ({type(exc).__name__}: {str(exc)[:120]})") from None
-
-
-def _read_run(outdir: Path) -> dict:
-    from lunarloc.maps import load_map
-    from lunarloc.pipeline import read_tum
-
-    outdir = Path(outdir)
-    need = ["trajectory.tum", "trajectory_odometry.tum", "attempts.json", "summary.json"]
-    missing = [n for n in need if not (outdir / n).is_file()]
-    if missing:
-        raise FileFormatError(f"{outdir}: not a lunarloc run folder (missing {', '.join(missing)})")
-    run: dict = {}
-    run["t"], run["corrected"] = read_tum(outdir / "trajectory.tum")
-    _, run["odometry"] = read_tum(outdir / "trajectory_odometry.tum")
-    for name, key in (("trajectory_online.tum", "online"), ("trajectory_groundtruth.tum", "gt")):
-        run[key] = read_tum(outdir / name)[1] if (outdir / name).is_file() else None
-    run["attempts"] = json.loads((outdir / "attempts.json").read_text())
-    run["summary"] = json.loads((outdir / "summary.json").read_text())
-    for name, key in (("reference_map.csv", "ref"), ("vehicle_map.csv", "veh"), ("vehicle_map_odometry.csv", "veh_odo")):
-        run[key] = load_map(outdir / name).positions_xyz if (outdir / name).is_file() else np.zeros((0, 3))
-    rocks = outdir / "rocks.csv"
-    run["rocks"] = np.loadtxt(rocks, delimiter=",", skiprows=1, ndmin=2) if rocks.is_file() else None
-    return run
-
-
-def plot_map(run: dict, path: Path, title: str = "") -> Path:
+def plot_map(run: RunFolder, path: Path, title: str = "") -> Path:
     plt = _plt()
     fig, ax = plt.subplots(figsize=(8, 8), dpi=100)
-    if run["rocks"] is not None and len(run["rocks"]):
-        r = run["rocks"]
+    if run.rocks is not None and len(run.rocks):
+        r = run.rocks
         ax.scatter(r[:, 1], r[:, 2], s=np.clip(r[:, 4] * 120, 1, 60), c="0.75", marker="o", lw=0, label="ground-truth rocks")
-    if len(run["ref"]):
-        ax.scatter(run["ref"][:, 0], run["ref"][:, 1], s=22, facecolors="none", edgecolors="tab:blue", lw=0.9,
+    if len(run.reference_xyz):
+        ax.scatter(run.reference_xyz[:, 0], run.reference_xyz[:, 1], s=22, facecolors="none", edgecolors="tab:blue", lw=0.9,
                    label="reference landmarks")  # fmt: skip
-    if len(run["veh_odo"]):
-        ax.scatter(run["veh_odo"][:, 0], run["veh_odo"][:, 1], s=10, c="tab:red", marker="x", lw=0.8,
+    if len(run.vehicle_odometry_xyz):
+        ax.scatter(run.vehicle_odometry_xyz[:, 0], run.vehicle_odometry_xyz[:, 1], s=10, c="tab:red", marker="x", lw=0.8,
                    label="vehicle landmarks, odometry (before)")  # fmt: skip
-    if len(run["veh"]):
-        ax.scatter(run["veh"][:, 0], run["veh"][:, 1], s=9, c="tab:green", marker="+", lw=0.9,
+    if len(run.vehicle_xyz):
+        ax.scatter(run.vehicle_xyz[:, 0], run.vehicle_xyz[:, 1], s=9, c="tab:green", marker="+", lw=0.9,
                    label="vehicle landmarks, corrected (after)")  # fmt: skip
     first = True
-    for a in run["attempts"]:
+    for a in run.attempts:
         if not a.get("accepted") or not a.get("inlier_vehicle_xyz"):
             continue
         V = np.asarray(a["inlier_vehicle_xyz"])
@@ -101,15 +72,15 @@ def plot_map(run: dict, path: Path, title: str = "") -> Path:
         for v, q in zip(V, R):
             ax.plot([v[0], q[0]], [v[1], q[1]], c="orange", lw=0.6, alpha=0.7, label="inlier associations" if first else None)
             first = False
-    if run["gt"] is not None:
-        ax.plot(run["gt"][:, 0], run["gt"][:, 1], c="k", lw=1.6, label="ground truth")
-    ax.plot(run["odometry"][:, 0], run["odometry"][:, 1], c="tab:red", lw=1.2, ls="--", label="odometry")
-    ax.plot(run["corrected"][:, 0], run["corrected"][:, 1], c="tab:green", lw=1.2, label="corrected")
-    fx = np.array([a["fix_xyz"] for a in run["attempts"] if a.get("accepted") and a.get("fix_xyz")]).reshape(-1, 3)
+    if run.ground_truth is not None:
+        ax.plot(run.ground_truth[:, 0], run.ground_truth[:, 1], c="k", lw=1.6, label="ground truth")
+    ax.plot(run.odometry[:, 0], run.odometry[:, 1], c="tab:red", lw=1.2, ls="--", label="odometry")
+    ax.plot(run.corrected[:, 0], run.corrected[:, 1], c="tab:green", lw=1.2, label="corrected")
+    fx = np.array([a["fix_xyz"] for a in run.attempts if a.get("accepted") and a.get("fix_xyz")]).reshape(-1, 3)
     if len(fx):
         ax.scatter(fx[:, 0], fx[:, 1], s=14, c="tab:green", edgecolors="k", lw=0.5, zorder=5, label="fixes")
     # frame the trajectories (plus a margin), not the whole site
-    P = np.vstack([run["odometry"][:, :2], run["corrected"][:, :2]] + ([run["gt"][:, :2]] if run["gt"] is not None else []))
+    P = np.vstack([run.odometry[:, :2], run.corrected[:, :2]] + ([run.ground_truth[:, :2]] if run.ground_truth is not None else []))
     _frame_square(ax, P)
     ax.set_title(title or "Online localization: top-down map")
     ax.legend(loc="upper left", fontsize=7, framealpha=0.85, markerscale=1.2)
@@ -119,22 +90,22 @@ def plot_map(run: dict, path: Path, title: str = "") -> Path:
     return path
 
 
-def plot_error(run: dict, path: Path, title: str = "") -> Path:
+def plot_error(run: RunFolder, path: Path, title: str = "") -> Path:
     plt = _plt()
-    if run["gt"] is None:
+    if run.ground_truth is None:
         raise FileFormatError("no ground-truth trajectory in the run folder: cannot plot the error")
-    t = run["t"] - run["t"][0]
-    gt = run["gt"]
+    t = run.times - run.times[0]
+    gt = run.ground_truth
     fig, ax = plt.subplots(figsize=(9, 4), dpi=100)
     for key, col, lab in (("odometry", "tab:red", "odometry"), ("online", "tab:blue", "online (causal)"),
                           ("corrected", "tab:green", "corrected (pose graph)")):  # fmt: skip
-        if run.get(key) is None:
+        if getattr(run, key) is None:
             continue
-        e = np.linalg.norm(run[key][:, :3] - gt[:, :3], axis=1)
+        e = np.linalg.norm(getattr(run, key)[:, :3] - gt[:, :3], axis=1)
         ax.plot(t, e, c=col, lw=1.2, label=lab)
-    t0 = run["t"][0]
-    acc = [a["time_s"] - t0 for a in run["attempts"] if a.get("accepted")]
-    rej = [a["time_s"] - t0 for a in run["attempts"] if a.get("success") and not a.get("accepted")]
+    t0 = run.times[0]
+    acc = [a["time_s"] - t0 for a in run.attempts if a.get("accepted")]
+    rej = [a["time_s"] - t0 for a in run.attempts if a.get("success") and not a.get("accepted")]
     for i, x in enumerate(acc):
         ax.axvline(x, c="tab:green", lw=0.5, alpha=0.35, label="fix" if i == 0 else None)
     for i, x in enumerate(rej):
@@ -184,11 +155,13 @@ def plot_run(outdir: str | Path, figdir: str | Path | None = None) -> list[Path]
     outdir = Path(outdir)
     figdir = Path(figdir) if figdir is not None else outdir
     figdir.mkdir(parents=True, exist_ok=True)
-    run = _load_run(outdir)
-    s = run["summary"]
+    from lunarloc.runio import read_run
+
+    run = read_run(outdir)
+    s = run.summary
     title = f"{Path(str(s.get('source', ''))).name}: {s.get('fixes', 0)} fixes over {s.get('path_length_m', 0):.0f} m"
     out = [plot_map(run, figdir / "map.png", title)]
-    if run["gt"] is not None:
+    if run.ground_truth is not None:
         out.append(plot_error(run, figdir / "error.png"))
     if (outdir / "example_frame.npz").is_file():
         out.append(plot_frame(outdir / "example_frame.npz", figdir / "frame.png"))
@@ -199,35 +172,37 @@ def plot_rovers(outdirs: list[str | Path], path: str | Path, names: list[str] | 
     """One top-down map of several rovers' run folders (``lunarloc run A.lac B.lac``): per
     rover (one colour each) ground truth (thin black-edged), odometry (dotted), corrected
     (solid), its landmarks (+) and accepted fixes; ground-truth rocks and the reference in grey."""
+    from lunarloc.runio import read_run
+
     plt = _plt()
-    runs = [_load_run(Path(d)) for d in outdirs]
+    runs = [read_run(d) for d in outdirs]
     names = names or [Path(d).name for d in outdirs]
     fig, ax = plt.subplots(figsize=(9, 9), dpi=100)
-    rocks = next((r["rocks"] for r in runs if r["rocks"] is not None and len(r["rocks"])), None)
+    rocks = next((r.rocks for r in runs if r.rocks is not None and len(r.rocks)), None)
     if rocks is not None:
         ax.scatter(rocks[:, 1], rocks[:, 2], s=np.clip(rocks[:, 4] * 120, 1, 60), c="0.8", lw=0, label="ground-truth rocks")
-    if len(runs[0]["ref"]):
-        ax.scatter(runs[0]["ref"][:, 0], runs[0]["ref"][:, 1], s=20, facecolors="none", edgecolors="0.45", lw=0.8,
+    if len(runs[0].reference_xyz):
+        ax.scatter(runs[0].reference_xyz[:, 0], runs[0].reference_xyz[:, 1], s=20, facecolors="none", edgecolors="0.45", lw=0.8,
                    label="reference landmarks")  # fmt: skip
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     pts = []
     for i, (run, name) in enumerate(zip(runs, names)):
         c = colors[i % len(colors)]
-        s = run["summary"]
+        s = run.summary
         lab = name
         if "ate_corrected" in s:
             lab += f" (RMSE odometry {s['ate_odometry']['rmse_m'] * 100:.1f} cm, corrected {s['ate_corrected']['rmse_m'] * 100:.1f} cm)"
-        if run["gt"] is not None:
-            ax.plot(run["gt"][:, 0], run["gt"][:, 1], c="k", lw=2.6, alpha=0.35)
-            pts.append(run["gt"][:, :2])
-        ax.plot(run["odometry"][:, 0], run["odometry"][:, 1], c=c, lw=1.0, ls=":")
-        ax.plot(run["corrected"][:, 0], run["corrected"][:, 1], c=c, lw=1.4, label=lab)
-        if len(run["veh"]):
-            ax.scatter(run["veh"][:, 0], run["veh"][:, 1], s=10, color=c, marker="+", lw=0.8)
-        fx = np.array([a["fix_xyz"] for a in run["attempts"] if a.get("accepted") and a.get("fix_xyz")]).reshape(-1, 3)
+        if run.ground_truth is not None:
+            ax.plot(run.ground_truth[:, 0], run.ground_truth[:, 1], c="k", lw=2.6, alpha=0.35)
+            pts.append(run.ground_truth[:, :2])
+        ax.plot(run.odometry[:, 0], run.odometry[:, 1], c=c, lw=1.0, ls=":")
+        ax.plot(run.corrected[:, 0], run.corrected[:, 1], c=c, lw=1.4, label=lab)
+        if len(run.vehicle_xyz):
+            ax.scatter(run.vehicle_xyz[:, 0], run.vehicle_xyz[:, 1], s=10, color=c, marker="+", lw=0.8)
+        fx = np.array([a["fix_xyz"] for a in run.attempts if a.get("accepted") and a.get("fix_xyz")]).reshape(-1, 3)
         if len(fx):
             ax.scatter(fx[:, 0], fx[:, 1], s=16, color=c, edgecolors="k", lw=0.5, zorder=5)
-        pts += [run["odometry"][:, :2], run["corrected"][:, :2]]
+        pts += [run.odometry[:, :2], run.corrected[:, :2]]
     ax.plot([], [], c="k", lw=2.6, alpha=0.35, label="ground truth")
     ax.plot([], [], c="0.3", lw=1.0, ls=":", label="odometry")
     ax.scatter([], [], s=10, c="0.3", marker="+", label="rover landmarks (corrected)")

@@ -3,7 +3,7 @@
 The association kernels are compiled with ``cache=True``: the first process that runs them
 compiles (seconds) and writes numba's cache; later processes load it (milliseconds).
 ``warm_up()`` runs them on a tiny synthetic pair so that this happens at a chosen moment:
-``make`` calls ``lunarloc warm-up`` after installing, and :class:`lunarloc.pipeline.LoopState` calls
+``make`` calls ``lunarloc warm-up`` after installing, and :class:`lunarloc.loop.LoopState` calls
 it before its stage timers start, so compile time is never counted as run time.
 """
 

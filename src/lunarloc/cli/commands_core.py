@@ -94,19 +94,25 @@ def localize_cmd(
         ..., help="Reference map: landmark CSV/.npz, traverse CSV, rocks.csv, LAC geometric map (.npy) or rock catalogue CSV."
     ),
     vehicle: Path = typer.Argument(..., help="Vehicle map: landmark CSV/.npz or traverse CSV."),
-    as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
-    mode: str = typer.Option("gravity", help="gravity (IMU-levelled maps, default) or 6dof."),
-    solver: str = typer.Option("exact", help="exact (maximum clique, default) or clipper."),
-    epsilon: float = typer.Option(0.05, help=f"Pairwise distance tolerance in metres, in (0, {MAX_EPSILON_M:g}]."),
-    registration: str = typer.Option("se3", help="se3 (default) or yaw (4-DoF, exactly levelled maps)."),
+    as_json: bool = typer.Option(False, "--json", help="Print one JSON object (with the configuration used)."),
+    config: Optional[Path] = typer.Option(
+        None, "--config", help="Run configuration (its localization section is used); options given override it."
+    ),
+    mode: Optional[str] = typer.Option(None, help="gravity (IMU-levelled maps, default) or 6dof."),
+    solver: Optional[str] = typer.Option(None, help="exact (maximum clique, default) or clipper."),
+    epsilon: Optional[float] = typer.Option(None, help=f"Pairwise distance tolerance in metres, in (0, {MAX_EPSILON_M:g}] (default 0.05)."),
+    registration: Optional[str] = typer.Option(None, help="se3 (default) or yaw (4-DoF, exactly levelled maps)."),
     max_size_ratio: Optional[float] = typer.Option(
         None, help="Prune associations whose size ratio exceeds this (maps with a size column)."
     ),
     dem: Optional[Path] = typer.Option(None, "--dem", help="LAC geometric map giving heights to a catalogue without z."),
-    odometry_scale_error: float = typer.Option(
-        0.0, help="Bound on the vehicle map's relative scale error (its odometry's spec, 0.03 = 3 %)."
+    odometry_scale_error: Optional[float] = typer.Option(
+        None, help="Bound on the vehicle map's relative scale error (its odometry's spec, 0.03 = 3 %; 0: a rigid "
+        "map). Without either bound the distortion is fitted from the maps."
     ),
-    odometry_drift: float = typer.Option(0.0, help="Bound on the odometry's heading drift, degrees per metre."),
+    odometry_drift: Optional[float] = typer.Option(
+        None, help="Bound on the odometry's heading drift, degrees per metre (0: a rigid map)."
+    ),
     radius: Optional[float] = RADIUS_OPT,
     min_sightings: Optional[int] = SIGHT_OPT,
     search: str = typer.Option(
@@ -115,33 +121,35 @@ def localize_cmd(
     ),
 ) -> None:
     """Localize VEHICLE in REFERENCE. Exit code 0 whether or not it localized."""
+    from lunarloc.config import RunConfig, load_config_file
     from lunarloc.localize import LocalizationConfig, Mode, Registration, Solver
     from lunarloc.localize_large import Search, localize_large
-    from lunarloc.errors import ConfigError
     from lunarloc.maps import load_map
+    from lunarloc.reference import load_reference
 
     choice(search, Search, "--search")
-    choice(mode, Mode, "--mode")
-    choice(solver, Solver, "--solver")
-    choice(registration, Registration, "--registration")
+    for value, enum_, opt in ((mode, Mode, "--mode"), (solver, Solver, "--solver"), (registration, Registration, "--registration")):
+        if value is not None:
+            choice(value, enum_, opt)
     positive(epsilon, "--epsilon", MAX_EPSILON_M, "m")
     number(max_size_ratio, "--max-size-ratio", 1.0, 1e6)
-    try:
-        cfg = LocalizationConfig(
-            mode=Mode(mode), solver=Solver(solver), epsilon_m=epsilon, registration=registration,
-            max_size_ratio=max_size_ratio, odometry_scale_error=odometry_scale_error,
-            odometry_heading_drift_deg_per_m=odometry_drift,
-        )
-    except ValueError as exc:
-        raise ConfigError(str(exc)) from None
-    from lunarloc.pipeline import load_reference
-
+    # one-shot: odometry bounds not stated unless given (the distortion is fitted from the maps)
+    run_cfg = load_config_file(config)[0] if config is not None else RunConfig.for_detections(localization=LocalizationConfig())
+    run_cfg = run_cfg.with_options(
+        localization__mode=mode, localization__solver=solver, localization__epsilon_m=epsilon,
+        localization__registration=registration, localization__max_size_ratio=max_size_ratio,
+        localization__odometry_scale_error=odometry_scale_error,
+        localization__odometry_heading_drift_deg_per_m=odometry_drift,
+    )  # fmt: skip
+    cfg: LocalizationConfig = run_cfg.localization
     agg = _agg(radius, min_sightings)
     ref = load_reference(reference, agg, dem=dem)
     veh = load_map(vehicle, agg)
     res = localize_large(ref, veh, cfg, search=search)
     if as_json:
-        typer.echo(json.dumps(res.to_dict()))
+        from lunarloc.runio import to_json_ready
+
+        typer.echo(json.dumps({**res.to_dict(), "config": to_json_ready(run_cfg.to_dict())}))
         return
 
     con = console()
@@ -159,6 +167,23 @@ def localize_cmd(
             f"predicted 1-sigma error {res.predicted_error_m * 100:.1f} cm, {res.predicted_rotation_deg:.2f} deg; "
             f"near misses {res.near_misses} (chance {res.near_misses_expected:.1f})"
         )
+    if res.distortion_fit:
+        f = res.distortion_fit
+        con.print(
+            f"no odometry bounds stated: fitted heading drift {math.degrees(f['drift_rad_per_m']):+.3f} "
+            f"+- {math.degrees(f['drift_se']):.3f} deg/m, scale error {f['scale_error'] * 100:+.2f} "
+            f"+- {f['scale_se'] * 100:.2f} % ({'along the given path' if f['path_given'] else 'path unknown: straight stand-in'})"
+        )
+    if res.checks:
+        from rich.table import Table
+
+        table = Table(title="checks (the first that fails is the reason)")
+        for col in ("check", "value", "", "limit", "passed"):
+            table.add_column(col, justify="left" if col == "check" else "right")
+        for c in res.checks:
+            table.add_row(c.name, f"{c.value:.4g}", c.relation, f"{c.limit:.4g}",
+                          "yes" if c.passed else "[red]no[/red]")
+        con.print(table)
     if math.isfinite(res.T_ref_veh[0, 0]):
         con.print("T_ref_veh =")
         for row in res.T_ref_veh:
@@ -189,11 +214,10 @@ def bench_pairs_cmd(
     from rich.progress import Progress
     from rich.table import Table
 
+    from lunarloc.bench import pairs_problems, pairs_to_run, write_pairs
     from lunarloc.evaluation import PAPER_PAIRS, DriftModel, bench_pairs, find_traverses
     from lunarloc.localize import LocalizationConfig, Mode, Solver
-    from lunarloc.outputs import atomic_open, check_output_dir, write_text
-
-    import itertools
+    from lunarloc.outputs import check_output_dir
 
     choice(mode, Mode, "--mode")
     choice(solver, Solver, "--solver")
@@ -202,14 +226,11 @@ def bench_pairs_cmd(
     positive(window, "--window", 1e6, "m")
     check_output_dir(out, overwrite, ("pairs.csv", "pairs.json"), marker=None)
 
-    paths = find_traverses(data)
-    pairs = list(PAPER_PAIRS) if only_paper else list(PAPER_PAIRS) + [
-        p for p in itertools.combinations(sorted(paths), 2) if p not in PAPER_PAIRS
-    ]
+    pairs = pairs_to_run(find_traverses(data), only_paper)
     cfg = LocalizationConfig(
         mode=mode, solver=solver,
-        odometry_scale_error=abs(scale_error) if odometry_bounds else 0.0,
-        odometry_heading_drift_deg_per_m=abs(drift) if odometry_bounds else 0.0,
+        odometry_scale_error=abs(scale_error) if odometry_bounds else None,
+        odometry_heading_drift_deg_per_m=abs(drift) if odometry_bounds else None,
     )
     con = console()
     with Progress(console=con, transient=True) as prog:
@@ -227,8 +248,7 @@ def bench_pairs_cmd(
         else:
             table.add_column(col, justify="right")
     paper = [r for r in res if (r.reference, r.vehicle) in PAPER_PAIRS]
-    others = [r for r in res if (r.reference, r.vehicle) not in PAPER_PAIRS]
-    shown = paper + [r for r in others if not (r.success and r.correct)]
+    shown = paper + [r for r in res if (r.reference, r.vehicle) not in PAPER_PAIRS and not (r.success and r.correct)]
     for r in shown:
         table.add_row(
             f"{r.reference}-{r.vehicle}", str(r.segs_ref), str(r.segs_veh), str(r.inliers),
@@ -245,25 +265,10 @@ def bench_pairs_cmd(
     )
     big = max(res, key=lambda r: r.segs_ref * r.segs_veh)
     con.print(f"largest pair {big.reference}-{big.vehicle} ({big.segs_ref}x{big.segs_veh} landmarks): {big.time_s:.3f} s")
-    write_text(out / "pairs.json", json.dumps(d, indent=1))
-    import csv
-
-    with atomic_open(out / "pairs.csv", "w", newline="") as fh:
-        w = csv.writer(fh)
-        keys = list(d["results"][0].keys()) if d["results"] else []
-        w.writerow(keys)
-        for row in d["results"]:
-            w.writerow([row[k] for k in keys])
-    con.print(f"wrote {out / 'pairs.csv'} and {out / 'pairs.json'}")
+    csv_path, json_path = write_pairs(summary, out)
+    con.print(f"wrote {csv_path} and {json_path}")
     if check:
-        bad = []
-        for r in paper:
-            if not (r.success and r.err_origin_m < 0.02):
-                bad.append(f"paper pair {r.reference}-{r.vehicle}: success={r.success} err={r.err_origin_m * 100:.2f} cm")
-        if not only_paper and d["success_and_correct"] < 130:
-            bad.append(f"only {d['success_and_correct']} of {d['pairs']} pairs localized correctly (need 130)")
-        if d["confident_wrong"]:
-            bad.append(f"{d['confident_wrong']} confident-wrong pairs")
+        bad = pairs_problems(summary, only_paper)
         if bad:
             for b in bad:
                 con.print(f"[red]CHECK FAILED[/red] {b}")

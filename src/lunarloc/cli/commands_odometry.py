@@ -28,7 +28,7 @@ def odometry_cmd(
     from lunarloc.data.lac import LacArchive
     from lunarloc.odometry import archive_odometry, default_odometry_source, ground_truth_poses, odometry_drift
     from lunarloc.odometry import parse_odometry_source
-    from lunarloc.pipeline import _write_tum
+    from lunarloc.runio import write_tum
 
     if source is not None:
         parse_odometry_source(source)
@@ -51,7 +51,7 @@ def odometry_cmd(
              "failures": traj.failures, **drift}  # fmt: skip
     if out is not None:
         out.parent.mkdir(parents=True, exist_ok=True)
-        _write_tum(out, traj.times_s, traj.poses6())
+        write_tum(out, traj.times_s, traj.poses6())
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(json.dumps(drift, indent=2))

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Optional
@@ -14,18 +13,16 @@ from lunarloc.cli.checks import OVERWRITE_OPT, choice, number, positive
 from lunarloc.cli.commands_core import bench_app
 
 
-def _loop_config(every_m: float, every_s: float, window_m: float, fix: str = "landmarks"):
-    from lunarloc.errors import ConfigError
-    from lunarloc.pipeline import FixKind, LoopConfig
+CONFIG_OPT = typer.Option(None, "--config", help="Run configuration (a run folder's config.json); options given override it.")
 
-    positive(every_m, "--every-m", 1e6, "m")
-    positive(every_s, "--every-s", 1e7, "s")
-    positive(window_m, "--window-m", 1e6, "m")
-    choice(fix, FixKind, "--fix")
-    try:
-        return LoopConfig.for_images(localize_every_m=every_m, localize_every_s=every_s, window_m=window_m, fix_kind=fix)
-    except ValueError as exc:
-        raise ConfigError(str(exc)) from None
+
+def _run_config(config: Optional[Path], default, extra_sections: tuple[str, ...] = ()):
+    """(RunConfig, extra sections) from --config FILE, or (`default`, {})."""
+    from lunarloc.config import load_config_file
+
+    if config is None:
+        return default, {}
+    return load_config_file(config, extra_sections)
 
 
 def _print_summary(s: dict, title: str) -> None:
@@ -58,15 +55,17 @@ def run_cmd(
     archives: list[Path] = typer.Argument(..., help="Vehicle traverse .lac archive (stereo images; any custom records); "
                                           "several: rovers of one site on one clock (docs/multi-rover.md)."),  # fmt: skip
     reference: Optional[Path] = typer.Option(None, "--reference", "-r",
-                                             help="Reference map: landmark CSV/.npz, traverse CSV, or rocks.csv (id,x,y,z,radius)."),  # fmt: skip
+                                             help="Reference map: landmark CSV/.npz, traverse CSV, rocks.csv (id,x,y,z,radius), "
+                                             "LAC geometric map (.npy) or rock catalogue CSV (required with one archive)."),  # fmt: skip
     share_maps: bool = typer.Option(False, "--share-maps", help="Several archives: also localize against the other rovers' live maps."),
     out: Path = typer.Option(..., "-o", "--out", help="Output folder."),
-    segmenter: str = typer.Option("classical", "--segmenter", help="classical | fastsam"),
+    config: Optional[Path] = CONFIG_OPT,
+    segmenter: Optional[str] = typer.Option(None, "--segmenter", help="classical | fastsam (default from the config: classical)."),
     weights: Optional[Path] = typer.Option(None, "--weights", help="FastSAM checkpoint for --segmenter fastsam."),
-    every_m: float = typer.Option(1.5, "--every-m", help="Localize after this many metres of travel ..."),
-    every_s: float = typer.Option(20.0, "--every-s", help="... or this many seconds."),
-    window_m: float = typer.Option(8.0, "--window-m", help="Local map: detections of the last N metres."),
-    fix: str = typer.Option("landmarks", "--fix", help="How fixes enter the pose graph: landmarks | pose."),
+    every_m: Optional[float] = typer.Option(None, "--every-m", help="Localize after this many metres of travel (default 1.5) ..."),
+    every_s: Optional[float] = typer.Option(None, "--every-s", help="... or this many seconds (default 20)."),
+    window_m: Optional[float] = typer.Option(None, "--window-m", help="Local map: detections of the last N metres (default 8)."),
+    fix: Optional[str] = typer.Option(None, "--fix", help="How fixes enter the pose graph: landmarks (default) | pose."),
     plot: bool = typer.Option(True, "--plot/--no-plot", help="Write the figures into OUT."),
     odometry: Optional[str] = typer.Option(
         None, "--odometry",
@@ -77,43 +76,43 @@ def run_cmd(
 ) -> None:
     """Online localization over a traverse: detect, map, localize against REFERENCE, fuse.
     Several archives play on one mission clock, each rover also using the others' maps with --share-maps."""
+    from tqdm import tqdm
+
+    from lunarloc.config import RunConfig
+    from lunarloc.inputs import check_input_file
+    from lunarloc.loop import FixKind
+    from lunarloc.outputs import check_output_dir
+    from lunarloc.perception.segment import SegmenterKind
+    from lunarloc.pipeline import run
+    from lunarloc.reference import load_reference
+    from lunarloc.runio import write_run
+    from lunarloc.sources import ArchiveSource
+
+    if segmenter is not None:
+        choice(segmenter, SegmenterKind, "--segmenter")
+    if fix is not None:
+        choice(fix, FixKind, "--fix")
+    positive(every_m, "--every-m", 1e6, "m")
+    positive(every_s, "--every-s", 1e7, "s")
+    positive(window_m, "--window-m", 1e6, "m")
+    if weights is not None:
+        check_input_file(weights, None, "FastSAM weights")
+    cfg, _ = _run_config(config, RunConfig())
+    cfg = cfg.with_options(detector__segmenter=segmenter, detector__weights=str(weights) if weights else None,
+                           loop__localize_every_m=every_m, loop__localize_every_s=every_s, loop__window_m=window_m,
+                           loop__fix_kind=fix, odometry__source=odometry)  # fmt: skip
     if len(archives) > 1 or share_maps:
         from lunarloc.cli.commands_multirover import run_several
 
-        return run_several(archives, reference, out, share_maps, segmenter, weights,
-                           _loop_config(every_m, every_s, window_m, fix), odometry, plot, overwrite)  # fmt: skip
+        return run_several(archives, reference, out, cfg, share_maps=share_maps, plot=plot, overwrite=overwrite)
     archive = archives[0]
     if reference is None:
         from lunarloc.errors import ConfigError
 
-        raise ConfigError("--reference is required with one archive (several archives can use --share-maps instead)")
-    from tqdm import tqdm
-
-    from lunarloc.inputs import check_input_file
-    from lunarloc.outputs import check_output_dir
-    from lunarloc.pipeline import load_reference, run_online, scaled_detector_config, write_outputs
-    from lunarloc.perception.detector import DetectorConfig
-    from lunarloc.perception.segment import SegmenterKind
-
-    choice(segmenter, SegmenterKind, "--segmenter")
-    if weights is not None:
-        check_input_file(weights, None, "FastSAM weights")
+        raise ConfigError("--reference MAP is required with one archive (several archives can use --share-maps instead)")
     check_input_file(archive, None, ".lac archive")
-    from lunarloc.odometry import default_odometry_source, parse_odometry_source
-
-    if odometry is not None:
-        parse_odometry_source(odometry)  # fail on a bad name before any work
-    cfg = _loop_config(every_m, every_s, window_m, fix)
     check_output_dir(out, overwrite)  # a previous run is refused, or cleared with --overwrite
-    ref = load_reference(reference, cfg.aggregation)
-    base = DetectorConfig(segmenter=segmenter, weights=str(weights) if weights else None)
-    from lunarloc.data.lac import LacArchive
-    from lunarloc.pipeline import _camera_of
-
-    with LacArchive(archive) as ar:
-        width = _camera_of(ar.configured_cameras).width
-        odometry = odometry or default_odometry_source(ar)
-    det_cfg = scaled_detector_config(width, base)
+    ref = load_reference(reference, cfg.loop.aggregation)
     with tqdm(unit="frame", desc="run", dynamic_ncols=True) as bar:  # closed before an error prints
 
         def prog(n, total):
@@ -122,16 +121,16 @@ def run_cmd(
             if n % 50 == 0 or n == total:
                 bar.refresh()
 
-        res = run_online(archive, ref, cfg, det_cfg, progress=prog, odometry_source=odometry)
-    s = write_outputs(res, out)
+        res = run(ArchiveSource(archive, cfg.odometry, cfg.detector.pairs), ref, cfg, progress=prog)
+    s = write_run(res, out)
     _print_summary(s, f"{archive.name} in {reference.name} ({len(ref)} landmarks)")
-    typer.echo(f"odometry: {res.config['odometry_source']}")
+    typer.echo(f"odometry: {res.config['info']['odometry_source']}")
     if plot:
         from lunarloc.viz import plot_run
 
         for p in plot_run(out):
             typer.echo(f"wrote {p}")
-    typer.echo(f"wrote {out}/ (trajectory.tum, attempts.csv, summary.json, ...)")
+    typer.echo(f"wrote {out}/ (trajectory.tum, attempts.csv, summary.json, config.json, ...)")
 
 
 @app.command("plot")
@@ -153,34 +152,48 @@ def plot_cmd(
 @app.command("demo")
 def demo_cmd(
     out: Path = typer.Option(Path("demo-output"), "--out", help="Output folder."),
-    seed: int = typer.Option(7, "--seed", help="Site seed."),
-    duration: float = typer.Option(90.0, "--duration", help="Vehicle traverse length, seconds."),
-    reference_duration: float = typer.Option(100.0, "--reference-duration", help="Reference traverse length, seconds."),
-    width: int = typer.Option(640, "--width", help="Image width (height = 9/16 of it)."),
-    image_rate: float = typer.Option(2.0, "--image-rate", help="Camera rate of both traverses, Hz."),
-    n_rocks: int = typer.Option(800, "--rocks", min=0, max=100_000,
-                                help="Rocks on the site (LAC map: 386; the demo uses a rock-rich site)."),  # fmt: skip
+    config: Optional[Path] = typer.Option(
+        None, "--config", help="A demo's config.json (run configuration and scenario); options given override it."
+    ),
+    seed: Optional[int] = typer.Option(None, "--seed", help="Site seed (default 7)."),
+    duration: Optional[float] = typer.Option(None, "--duration", help="Vehicle traverse length, seconds (default 90)."),
+    reference_duration: Optional[float] = typer.Option(None, "--reference-duration",
+                                                       help="Reference traverse length, seconds (default 100)."),  # fmt: skip
+    width: Optional[int] = typer.Option(None, "--width", help="Image width (height = 9/16 of it; default 640)."),
+    image_rate: Optional[float] = typer.Option(None, "--image-rate", help="Camera rate of both traverses, Hz (default 2)."),
+    n_rocks: Optional[int] = typer.Option(None, "--rocks", min=0, max=100_000,
+                                          help="Rocks on the site (LAC map: 386; the demo uses a rock-rich site: 800)."),  # fmt: skip
     overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """End to end on generated data: simulate a site, a reference and a drifting vehicle
     traverse, build the reference map from images, run the loop, print a table, write figures."""
+    from dataclasses import replace
+
+    from lunarloc.config import RunConfig
+    from lunarloc.errors import ConfigError
     from lunarloc.outputs import check_output_dir
+    from lunarloc.scenario import ScenarioConfig, run_scenario, scenario_problems
 
     positive(duration, "--duration", 3600.0, "s")
     positive(reference_duration, "--reference-duration", 3600.0, "s")
     number(width, "--width", 64, 4096, unit="px")
     positive(image_rate, "--image-rate", 10.0, "Hz")
+    run_cfg, extra = _run_config(config, RunConfig(), ("scenario",))
+    scen = ScenarioConfig.from_dict(extra["scenario"]) if "scenario" in extra else ScenarioConfig()
+    given = {"seed": seed, "n_rocks": n_rocks, "duration_s": duration, "reference_duration_s": reference_duration,
+             "width": width, "image_rate_hz": image_rate}  # fmt: skip
+    try:
+        scen = replace(scen, **{k: v for k, v in given.items() if v is not None})
+    except ConfigError as exc:
+        raise ConfigError(f"scenario: {exc}") from None
     check_output_dir(out, overwrite)
     check_output_dir(Path(out) / "data", overwrite, DEMO_DATA_FILES, marker=None)
 
-    from lunarloc.scenario import ScenarioConfig, run_scenario, scenario_problems
-
     t0 = time.perf_counter()
-    cfg = ScenarioConfig(seed=seed, n_rocks=n_rocks, duration_s=duration, reference_duration_s=reference_duration,
-                         width=width, image_rate_hz=image_rate)  # fmt: skip
-    s = run_scenario(cfg, out, log=lambda msg: typer.echo(f"[demo] {msg}"))
+    s = run_scenario(scen, out, log=lambda msg: typer.echo(f"[demo] {msg}"), run_config=run_cfg)
     _print_summary(s, "demo: vehicle traverse localized in the image-built reference map")
-    typer.echo(f"demo finished in {time.perf_counter() - t0:.0f} s; outputs and figures in {out}/")
+    typer.echo(f"demo finished in {time.perf_counter() - t0:.0f} s; outputs and figures in {out}/ "
+               f"(config.json repeats it: lunarloc demo --config {out}/config.json)")  # fmt: skip
     problems = scenario_problems(s)
     if problems:
         from lunarloc.errors import CheckFailedError
@@ -195,64 +208,59 @@ DEMO_DATA_FILES = ("rocks.csv", "reference.lac", "vehicle.lac", "reference_map.c
 def bench_loop_cmd(
     data: Path = typer.Option(..., "--data", help="lunarloc-data folder (csv/traverse_N.csv)."),
     out: Path = typer.Option(Path("bench-output/loop"), "--out", help="Folder for loop.json and per-traverse runs."),
-    heading_drift: float = typer.Option(0.05, "--heading-drift", help="Simulated heading drift, deg per metre."),
-    scale_error: float = typer.Option(0.02, "--scale-error", help="Simulated odometry scale error (0.02 = 2%)."),
+    config: Optional[Path] = CONFIG_OPT,
+    heading_drift: Optional[float] = typer.Option(None, "--heading-drift", help="Simulated heading drift, deg per metre (default 0.05)."),
+    scale_error: Optional[float] = typer.Option(None, "--scale-error", help="Simulated odometry scale error (default 0.02 = 2%)."),
     traverses: Optional[str] = typer.Option(None, "--traverses", help="Comma-separated vehicle traverses (default all)."),
     min_length: float = typer.Option(5.0, "--min-length", help="Skip vehicle traverses shorter than this (m)."),
+    odometry_bounds: bool = typer.Option(
+        False, "--odometry-bounds/--no-odometry-bounds",
+        help="Tell the localizer the simulated drift as its odometry's bounds (localization.odometry_scale_error, "
+        "odometry_heading_drift_deg_per_m), as bench pairs does.",
+    ),  # fmt: skip
     overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """The online loop on the real LunarLoc traverses (world-frame detections, no images) with
     simulated odometry drift; each traverse is localized against a map of all the others."""
-    import numpy as np
     from rich.table import Table
 
-    from lunarloc.evaluation import DriftModel, find_traverses
-    from lunarloc.maps import aggregate_detections, load_traverse
+    from lunarloc.bench import bench_loop
+    from lunarloc.config import RunConfig
     from lunarloc.errors import ConfigError
-    from lunarloc.outputs import atomic_open, check_output_dir
-    from lunarloc.pipeline import run_traverse_csv, write_outputs
+    from lunarloc.evaluation import find_traverses
+    from lunarloc.outputs import check_output_dir
 
     number(heading_drift, "--heading-drift", 0.0, 10.0, unit="deg/m")
     number(scale_error, "--scale-error", -0.5, 0.5)
     number(min_length, "--min-length", 0.0, 1e6, unit="m")
     try:
-        wanted_arg = [int(x) for x in traverses.split(",")] if traverses else None
+        wanted = [int(x) for x in traverses.split(",")] if traverses else None
     except ValueError:
         raise ConfigError(f"--traverses must be comma-separated traverse numbers, got {traverses!r}") from None
-    paths = find_traverses(data)
+    cfg, _ = _run_config(config, RunConfig.for_detections())
+    cfg = cfg.with_options(odometry__heading_drift_deg_per_m=heading_drift, odometry__scale_error=scale_error)
+    if odometry_bounds:
+        cfg = cfg.with_options(localization__odometry_scale_error=abs(cfg.odometry.scale_error),
+                               localization__odometry_heading_drift_deg_per_m=cfg.odometry.heading_drift_deg_per_m)  # fmt: skip
     check_output_dir(out, overwrite, ("loop.json",), marker=None)
-    for k in wanted_arg or paths:
+    for k in wanted or find_traverses(data):
         check_output_dir(out / f"traverse_{k}", overwrite)
-    trav = {k: load_traverse(p) for k, p in paths.items()}
-    wanted = wanted_arg or sorted(trav)
-    drift = DriftModel(heading_drift, scale_error)
     con = console()
-    table = Table(title=f"online loop on real traverses (drift {heading_drift} deg/m, scale {scale_error:+.1%})")
+    o = cfg.odometry
+    table = Table(title=f"online loop on real traverses (drift {o.heading_drift_deg_per_m} deg/m, scale {o.scale_error:+.1%})")
     for col in ("vehicle", "length m", "ref lm", "attempts", "fixes", "odo RMSE m", "odo max m", "corr RMSE m",
                 "corr max m", "worst fix cm", "RT fraction"):  # fmt: skip
         table.add_column(col, justify="right")
-    rows = []
-    for v in wanted:
-        if v not in trav:
-            raise ConfigError(f"--traverses: traverse {v} not in {data} (have {', '.join(map(str, trav))})")
-        if trav[v].path_length < min_length:
-            continue
-        others = [k for k in trav if k != v]
-        D = [trav[k].detections_xyz for k in others]
-        F = [trav[k].detection_frame + 1_000_000 * k for k in others]
-        ref = aggregate_detections(np.concatenate(D), np.concatenate(F), frame="ref")
-        res = run_traverse_csv(trav[v], ref, drift)
-        s = write_outputs(res, out / f"traverse_{v}")
-        s["vehicle"] = v
-        rows.append(s)
+
+    def row(s: dict) -> None:
         mx = s["max_accepted_fix_error_m"]
-        table.add_row(str(v), f"{s['path_length_m']:.1f}", str(len(ref)), str(s["attempts"]), str(s["fixes"]),
-                      f"{s['ate_odometry']['rmse_m']:.3f}", f"{s['ate_odometry']['max_m']:.3f}",
+        table.add_row(str(s["vehicle"]), f"{s['path_length_m']:.1f}", str(s["reference_landmarks"]), str(s["attempts"]),
+                      str(s["fixes"]), f"{s['ate_odometry']['rmse_m']:.3f}", f"{s['ate_odometry']['max_m']:.3f}",
                       f"{s['ate_corrected']['rmse_m']:.3f}", f"{s['ate_corrected']['max_m']:.3f}",
                       "-" if mx is None else f"{mx * 100:.1f}", f"{s['real_time_fraction']:.3f}")  # fmt: skip
-        con.print(f"traverse {v}: corrected RMSE {s['ate_corrected']['rmse_m']:.3f} m "
+        con.print(f"traverse {s['vehicle']}: corrected RMSE {s['ate_corrected']['rmse_m']:.3f} m "
                   f"(odometry {s['ate_odometry']['rmse_m']:.3f} m), {s['fixes']} fixes")  # fmt: skip
+
+    bench_loop(data, out, cfg, traverses=wanted, min_length_m=min_length, on_traverse=row)
     con.print(table)
-    with atomic_open(out / "loop.json", "w") as fh:
-        fh.write(json.dumps(rows, indent=1))
     con.print(f"wrote {out / 'loop.json'}")

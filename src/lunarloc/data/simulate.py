@@ -240,7 +240,9 @@ def simulate_dataset(
     from lunarloc.overhead import write_site_geometric_map  # the LAC ground-truth map (x, y, height, rock)
 
     write_site_geometric_map(site, out / "geometric_map.npy")
-    (out / "simulation.json").write_text(json.dumps({"seed": int(seed), **cfg.to_dict()}, indent=2))
+    from lunarloc.outputs import write_text
+
+    write_text(out / "simulation.json", json.dumps({"seed": int(seed), **cfg.to_dict()}, indent=2))
     renderer = SiteRenderer(site, cfg.render)
     paths = []
     for i in range(n_traverses):

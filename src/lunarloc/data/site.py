@@ -235,9 +235,10 @@ class Site:
 
     def write_rocks_csv(self, path: str | Path) -> Path:
         """Write the ground-truth rock list as CSV with header ``id,x,y,z,radius``."""
+        from lunarloc.outputs import atomic_open
+
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with path.open("w", newline="") as fh:
+        with atomic_open(path, "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(ROCK_CSV_COLUMNS)
             for row in self.rocks_table():

@@ -153,19 +153,18 @@ def mask_stats(mask: InstanceMask, image_shape: tuple[int, int], border_px: int 
     A one-pixel mask has zero covariance; its covariance gets the variance of a
     uniform pixel (1/12 per axis) so that the eigenvalue ratio stays finite.
     """
-    crop = mask.crop
-    vv, uu = np.nonzero(crop)
-    n = vv.size
+    import cv2
+
+    # image moments of the binary crop (same sums as over the pixel coordinates)
+    mo = cv2.moments(np.asarray(mask.crop, np.uint8), binaryImage=True)
+    n = int(round(mo["m00"]))
     if n == 0:
         raise InputError("empty mask")
-    u = uu.astype(np.float64) + mask.u0
-    v = vv.astype(np.float64) + mask.v0
-    cu, cv = u.mean(), v.mean()
-    du, dv = u - cu, v - cv
+    cu, cv = mo["m10"] / n + mask.u0, mo["m01"] / n + mask.v0
     # Pixel-area correction: each pixel is a unit square (variance 1/12 per axis).
-    suu = du @ du / n + 1.0 / 12.0
-    svv = dv @ dv / n + 1.0 / 12.0
-    suv = du @ dv / n
+    suu = mo["mu20"] / n + 1.0 / 12.0
+    svv = mo["mu02"] / n + 1.0 / 12.0
+    suv = mo["mu11"] / n
     cov = np.array([[suu, suv], [suv, svv]])
     tr, det = suu + svv, suu * svv - suv * suv
     disc = np.sqrt(max(tr * tr / 4.0 - det, 0.0))

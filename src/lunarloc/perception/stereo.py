@@ -417,6 +417,8 @@ def ground_height_map(
     bilinearly between cell centres; height = z - ground(x, y).
     max_disparity : disparities at or above it (saturated near the search limit) are dropped.
     """
+    import cv2
+
     cfg = config or GroundConfig()
     D = np.asarray(disparity, np.float32)
     h, w = D.shape
@@ -426,35 +428,41 @@ def ground_height_map(
     cx = (camera.cx - (k - 1) / 2.0) / k
     cy = (camera.cy - (k - 1) / 2.0) / k
     fb = fx * float(baseline_m)
-    ok = np.isfinite(D) & (D > fb / cfg.max_range_m)
-    if max_disparity is not None:
-        ok &= D < max_disparity
+    with np.errstate(invalid="ignore"):
+        ok = D > fb / cfg.max_range_m  # NaN compares False
+        if max_disparity is not None:
+            ok &= D < max_disparity
+    # dense arrays throughout (no gathers of the valid pixels): NaN where not ok
     depth = np.full((h, w), np.nan, np.float32)
-    pts = np.full((h, w, 3), np.nan, np.float32)
-    height = np.full((h, w), np.nan, np.float32)
-    out = HeightMap(D, depth, pts, height, k, 0, np.asarray(T_rover_optical, float))
-    vv, uu = np.nonzero(ok)
-    if vv.size < cfg.min_points:
+    np.divide(np.float32(fb), D, out=depth, where=ok)
+    T = np.asarray(T_rover_optical, float)
+    out = HeightMap(D, depth, np.empty((h, w, 3), np.float32), np.full((h, w), np.nan, np.float32), k, 0, T)
+    if np.count_nonzero(ok) < cfg.min_points:
+        out.points_rover[:] = np.nan
         return out
-    z = fb / D[vv, uu]
-    P = np.stack([(uu - cx) / fx * z, (vv - cy) / fx * z, z], axis=1)
-    Pr = (P @ out.T_rover_optical[:3, :3].T + out.T_rover_optical[:3, 3]).astype(np.float32)
-    depth[vv, uu] = z
-    pts[vv, uu] = Pr
-    X, Y, Z = Pr[:, 0], Pr[:, 1], Pr[:, 2]
-    c = cfg.cell_m
-    fxg = (X - X.min()) / c
-    fyg = (Y - Y.min()) / c
-    ix, iy = fxg.astype(np.int64), fyg.astype(np.int64)
-    nx, ny = int(ix.max()) + 1, int(iy.max()) + 1
-    idx = iy * nx + ix
+    ru = ((np.arange(w) - cx) / fx).astype(np.float32)[None, :]
+    rv = ((np.arange(h) - cy) / fx).astype(np.float32)[:, None]
+    for i in range(3):  # rover = R @ (ru z, rv z, z) + t, one coordinate at a time
+        ray = np.float32(T[i, 0]) * ru + np.float32(T[i, 1]) * rv + np.float32(T[i, 2])
+        np.multiply(depth, ray, out=out.points_rover[..., i])
+        out.points_rover[..., i] += np.float32(T[i, 3])
+    pts, height = out.points_rover, out.height
+    Xd, Yd, Zd = pts[..., 0], pts[..., 1], pts[..., 2]
     st = max(int(cfg.fit_stride), 1)
-    idx_f, Z_f = idx[::st], Z[::st]
+    okf = ok[:, ::st]
+    X, Y, Z = Xd[:, ::st][okf], Yd[:, ::st][okf], Zd[:, ::st][okf]
+    if Z.size < cfg.min_points:
+        return out
+    x_lo, y_lo = float(np.nanmin(Xd)), float(np.nanmin(Yd))
+    c = cfg.cell_m
+    nx = int((float(np.nanmax(Xd)) - x_lo) / c) + 1
+    ny = int((float(np.nanmax(Yd)) - y_lo) / c) + 1
+    idx_f = ((Y - y_lo) / c).astype(np.int64) * nx + ((X - x_lo) / c).astype(np.int64)
     cnt = np.bincount(idx_f, minlength=nx * ny)
     start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
     # one sort of (cell, height in mm) keys gives every cell's sorted heights
     z_lo = float(Z.min())
-    zq = np.minimum(np.rint((Z_f - z_lo) * 1000.0).astype(np.int64), (1 << 24) - 1)
+    zq = np.minimum(np.rint((Z - z_lo) * 1000.0).astype(np.int64), (1 << 24) - 1)
     keys = np.sort((idx_f << 24) | zq)
     good = cnt >= cfg.min_points
     g = np.zeros(nx * ny, np.float32)
@@ -463,8 +471,6 @@ def ground_height_map(
     G = g.reshape(ny, nx)
     W = good.reshape(ny, nx).astype(np.float32)
     if not good.all():
-        import cv2
-
         # normalized convolution fills holes from their neighbours (repeated for wide holes)
         for _ in range(3):
             Gs = cv2.blur(G * W, (3, 3), borderType=cv2.BORDER_CONSTANT)
@@ -481,16 +487,13 @@ def ground_height_map(
         # where the near field lies: a constant edge biases heights on slopes)
         Gp[1:-1, 0], Gp[1:-1, -1] = 2 * G[:, 0] - G[:, 1], 2 * G[:, -1] - G[:, -2]
         Gp[0, :], Gp[-1, :] = 2 * Gp[1, :] - Gp[2, :], 2 * Gp[-2, :] - Gp[-3, :]
-    gx = np.clip(fxg + 0.5, 0.0, nx + 0.999)
-    gy = np.clip(fyg + 0.5, 0.0, ny + 0.999)
-    i0, j0 = gx.astype(np.int64), gy.astype(np.int64)
-    i0 = np.minimum(i0, nx)
-    j0 = np.minimum(j0, ny)
-    ax, ay = gx - i0, gy - j0
-    Gf = Gp.ravel()
-    b = j0 * (nx + 2) + i0
-    gz = (Gf[b] * (1 - ax) + Gf[b + 1] * ax) * (1 - ay) + (Gf[b + nx + 2] * (1 - ax) + Gf[b + nx + 3] * ax) * ay
-    height[vv, uu] = Z - gz
+    # bilinear interpolation of the padded grid at every pixel's cell coordinates
+    gx = np.clip((Xd - np.float32(x_lo)) * np.float32(1.0 / c) + np.float32(0.5), 0.0, nx + 0.999)
+    gy = np.clip((Yd - np.float32(y_lo)) * np.float32(1.0 / c) + np.float32(0.5), 0.0, ny + 0.999)
+    gx[~ok] = 0.0
+    gy[~ok] = 0.0
+    gz = cv2.remap(Gp.astype(np.float32), gx, gy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    np.subtract(Zd, gz, out=height, where=ok)
     cols = np.flatnonzero(ok.any(axis=0))
     out.valid_u0 = int(cols[0]) * k if cols.size else camera.width
     return out

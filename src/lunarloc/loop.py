@@ -1,0 +1,471 @@
+"""The online loop's state, fed frame by frame: map, localize, fuse.
+
+:class:`LoopState` is the per-frame core shared by :func:`lunarloc.pipeline.run` (whole
+traverses) and :class:`lunarloc.online.OnlineLocalizer` (the per-tick component). Each
+``step`` gives a frame's odometry pose; keyframes also give their rock detections (rover
+frame). Then:
+
+1. **mapping**: every ``localize_every_m`` metres (or ``localize_every_s`` seconds) the
+   detections of the last ``window_m`` metres are placed with the current pose estimates
+   and aggregated into a local landmark map;
+2. **association**: the local map is localized in the reference map
+   (:func:`lunarloc.localize.localize`, gravity-aware), the reference cropped to the
+   region the predicted pose allows;
+3. **fusion**: a successful localization becomes a fix of the newest keyframe; fixes that
+   pass the chi-square gate enter the pose graph (:mod:`lunarloc.fusion`), which is
+   re-solved and also calibrates the odometry scale and heading bias.
+
+Frames: ``map`` (the reference map's frame, where ground truth lives), ``odo`` (the
+drifting odometry frame; equals ``map`` at the start), ``rover`` (body: x forward, y left,
+z up). Metres, radians, seconds.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from lunarloc.ate import ate, path_length
+from lunarloc.errors import ConfigError, InputError, LunarLocError
+from lunarloc.fusion import FusionConfig, PoseGraph, wrap_angle
+from lunarloc.geometry import matrix_to_pose, pose_to_matrix, transform_points, yaw_of
+from lunarloc.localize import LocalizationConfig, localize
+from lunarloc.maps import AggregationConfig, LandmarkMap, aggregate_detections
+
+log = logging.getLogger(__name__)
+log.addHandler(logging.NullHandler())
+
+__all__ = ["FixKind", "LoopConfig", "IMAGE_WINDOW_M", "image_localization_config", "Attempt", "LoopResult",
+           "LoopState"]  # fmt: skip
+
+
+# --------------------------------------------------------------------------- configuration
+
+
+class FixKind(str, enum.Enum):
+    """How an accepted localization enters the pose graph."""
+
+    LANDMARKS = "landmarks"  # each detection of an inlier rock is tied to its reference landmark (default)
+    POSE = "pose"  # one pose fix of the newest keyframe (extrapolates the rigid fit to the rover)
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """Parameters of the online loop (distances in metres, times in seconds). The
+    localization it runs is configured apart (:class:`~lunarloc.localize.LocalizationConfig`,
+    the ``localization`` section of a :class:`~lunarloc.config.RunConfig`)."""
+
+    localize_every_m: float = 1.5  # attempt a localization after this much odometry travel ...
+    localize_every_s: float = 20.0  # ... or this much time, whichever comes first
+    window_m: float = 12.0  # the local map holds detections of the last window_m metres of travel
+    min_window_landmarks: int = 6  # fewer landmarks than this: no attempt (recorded as skipped)
+    crop_reference: bool = True  # localize against the reference near the predicted window only
+    crop_sigmas: float = 3.0  # crop radius = window radius + crop_sigmas x predicted sigma ...
+    crop_margin_m: float = 2.0  # ... + this margin
+    fix_sigma_fallback_m: float = 0.05  # a fix's sigma when the localizer predicts none
+    fix_kind: FixKind = FixKind.LANDMARKS  # how fixes enter the pose graph
+    active_window_m: float = 40.0  # each solve re-optimises keyframes of the last active_window_m metres
+    keyframe_every_s: float = 0.5  # traverse-CSV source: keyframe period (frames with detections) ...
+    keyframe_max_interval_s: float = 2.0  # ... and a keyframe at least this often
+    aggregation: AggregationConfig = field(default_factory=lambda: AggregationConfig(min_sightings=2, min_frames=2))
+    fusion: FusionConfig = field(default_factory=FusionConfig)
+
+    def __post_init__(self) -> None:
+        for name in ("localize_every_m", "localize_every_s", "window_m", "crop_sigmas", "fix_sigma_fallback_m",
+                     "keyframe_every_s", "keyframe_max_interval_s"):  # fmt: skip
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and 0 < v < math.inf):
+                raise ConfigError(f"{name}={v!r} must be positive and finite")
+        if not (isinstance(self.crop_margin_m, (int, float)) and 0 <= self.crop_margin_m < math.inf):
+            raise ConfigError(f"crop_margin_m={self.crop_margin_m!r} must be >= 0 and finite")
+        try:
+            object.__setattr__(self, "fix_kind", FixKind(self.fix_kind))
+        except ValueError:
+            raise ConfigError(f"fix_kind={self.fix_kind!r}: use one of {', '.join(k.value for k in FixKind)}") from None
+        if not isinstance(self.min_window_landmarks, int) or self.min_window_landmarks < 3:
+            raise ConfigError(f"min_window_landmarks={self.min_window_landmarks!r} must be an integer >= 3")
+
+    def to_dict(self) -> dict:
+        from lunarloc.config import config_to_dict
+
+        return config_to_dict(self)
+
+
+IMAGE_WINDOW_M = 8.0
+"""Local-map window for detections from simulated stereo images: less odometry distortion
+inside it before the first fix than the real dataset's 12 m."""
+
+
+RIGID_WINDOW = {"odometry_scale_error": 0.0, "odometry_heading_drift_deg_per_m": 0.0}
+"""The loop states its windows rigid (odometry bounds 0): its pose graph and fix gate model the
+drift, and its windows are short; `localize()` fits the distortion only when no bound is stated."""
+
+
+def loop_localization_config(**overrides) -> LocalizationConfig:
+    """The default localization for the loop's windows (real-dataset detections): rigid windows."""
+    return LocalizationConfig(**{**RIGID_WINDOW, **overrides})
+
+
+def image_localization_config(**overrides) -> LocalizationConfig:
+    """Localization settings for detections from simulated stereo images (noisier than the
+    real dataset's): 8 cm consistency tolerance and residual RMSE, refinement radius 16 cm,
+    predicted error up to 15 cm."""
+    return LocalizationConfig(**{"epsilon_m": 0.08, "epsilon_z_m": 0.08, "max_rmse_m": 0.08, "refine_radius_m": 0.16,
+                                 "max_predicted_error_m": 0.15, **RIGID_WINDOW, **overrides})  # fmt: skip
+
+
+# --------------------------------------------------------------------------- results
+
+
+@dataclass
+class Attempt:
+    """One localization attempt of the local map (see module docstring for frames)."""
+
+    frame: int
+    time_s: float
+    keyframe: int
+    landmarks: int  # local-map landmarks
+    reference_landmarks: int  # reference landmarks after cropping
+    success: bool  # localize() trusted its answer
+    accepted: bool  # ... and the fix passed the gate
+    inliers: int = 0
+    reason: str = ""
+    correction_m: float = float("nan")  # |translation| of the fix relative to the prediction
+    correction_yaw_deg: float = float("nan")
+    gate_d2: float = float("nan")
+    predicted_error_m: float = float("nan")
+    fix_error_m: float = float("nan")  # |fix - ground truth| at the keyframe (evaluation only)
+    fix_xyz: list | None = None
+    inlier_vehicle_xyz: list | None = None  # inlier landmarks in the estimate frame, before the fix
+    inlier_reference_xyz: list | None = None
+    time_mapping_s: float = 0.0
+    time_association_s: float = 0.0
+
+    def row(self) -> dict:
+        d = asdict(self)
+        for k in ("inlier_vehicle_xyz", "inlier_reference_xyz", "fix_xyz"):
+            d.pop(k)
+        return d
+
+
+@dataclass
+class LoopResult:
+    """Everything a run produced (poses (F, 6): x, y, z, roll, pitch, yaw in ``map``)."""
+
+    frames: np.ndarray
+    times: np.ndarray
+    odometry: np.ndarray
+    online: np.ndarray  # causal estimate: what the rover knew at each frame
+    corrected: np.ndarray  # pose-graph estimate at the end of the run (continuous)
+    ground_truth: np.ndarray | None
+    attempts: list[Attempt]
+    vehicle_map: LandmarkMap  # all detections placed with the corrected poses
+    vehicle_map_odometry: LandmarkMap  # ... and with the raw odometry poses
+    reference: LandmarkMap
+    timings_s: dict[str, float]
+    num_image_frames: int
+    config: dict
+    scale: float = 1.0
+    rocks: np.ndarray | None = None
+    example: dict | None = None  # one camera frame: image + detections (for the figure)
+    source: str = ""
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.times[-1] - self.times[0]) if len(self.times) > 1 else 0.0
+
+    def summary(self) -> dict:
+        out: dict = {
+            "source": self.source,
+            "frames": int(len(self.frames)),
+            "image_frames": int(self.num_image_frames),
+            "duration_s": round(self.duration_s, 3),
+            "path_length_m": round(path_length(self.ground_truth if self.ground_truth is not None else self.odometry), 3),
+            "reference_landmarks": len(self.reference),
+            "vehicle_landmarks": len(self.vehicle_map),
+            "attempts": len(self.attempts),
+            "localized": sum(a.success for a in self.attempts),
+            "fixes": sum(a.accepted for a in self.attempts),
+            "rejected_by_gate": sum(a.success and not a.accepted for a in self.attempts),
+            "odometry_scale_estimate": round(self.scale, 5),
+        }
+        acc = [a.fix_error_m for a in self.attempts if a.accepted and math.isfinite(a.fix_error_m)]
+        out["max_accepted_fix_error_m"] = round(max(acc), 4) if acc else None
+        if self.ground_truth is not None:
+            for name, est in (("odometry", self.odometry), ("corrected", self.corrected), ("online", self.online)):
+                out[f"ate_{name}"] = ate(est, self.ground_truth)
+            out["final_error_odometry_m"] = round(float(np.linalg.norm(self.odometry[-1, :3] - self.ground_truth[-1, :3])), 4)
+            out["final_error_corrected_m"] = round(float(np.linalg.norm(self.corrected[-1, :3] - self.ground_truth[-1, :3])), 4)
+        total = sum(self.timings_s.values())
+        n = max(self.num_image_frames, 1)
+        out["time_total_s"] = round(total, 3)
+        out["time_per_image_frame_ms"] = {k: round(1000 * v / n, 2) for k, v in self.timings_s.items()}
+        out["time_stage_total_s"] = {k: round(v, 3) for k, v in self.timings_s.items()}
+        out["real_time_fraction"] = round(total / self.duration_s, 4) if self.duration_s > 0 else None
+        return out
+
+
+# --------------------------------------------------------------------------- the loop
+
+
+class LoopState:
+    """The loop's state, fed frame by frame (see module docstring); the per-tick component an
+    agent calls is :class:`lunarloc.online.OnlineLocalizer`, built on this class.
+
+    ``step(frame, t, odo_pose6, detections_rover=None, gt_pose6=None)``: every frame gives
+    its odometry pose; keyframes (image frames) also give their detections in the rover
+    frame, (N, 3). Ground truth, when given, is only used to score fixes.
+    """
+
+    def __init__(self, reference: LandmarkMap, config: LoopConfig | None = None,
+                 localization: LocalizationConfig | None = None):  # fmt: skip
+        from lunarloc.warmup import warm_up
+
+        warm_up()  # compile before any stage timer starts: compile time is not run time
+        if not isinstance(reference, LandmarkMap):
+            raise InputError("reference must be a LandmarkMap")
+        if len(reference) < 3:
+            raise InputError(f"reference map has {len(reference)} landmark(s); at least 3 are needed")
+        self.reference = reference
+        self.config = config or LoopConfig()
+        self.localization = localization or loop_localization_config()
+        self.graph = PoseGraph(self.config.fusion)
+        self.frames: list[int] = []
+        self.times: list[float] = []
+        self.odo: list[np.ndarray] = []
+        self.online: list[np.ndarray] = []
+        self.gt: list[np.ndarray] = []
+        self.kf_frame: list[int] = []
+        self.kf_rp: list[tuple[float, float]] = []  # odometry roll, pitch at keyframes
+        self.kf_det: list[np.ndarray] = []
+        self.kf_dist: list[float] = []
+        self._kf_odo: list[np.ndarray] = []
+        self.attempts: list[Attempt] = []
+        self.timings = {"detection": 0.0, "mapping": 0.0, "association": 0.0, "fusion": 0.0}
+        self._dist = 0.0
+        self._moving_since_kf = 0.0
+        self._last_attempt_dist = 0.0
+        self._last_attempt_t = None
+        self.T_map_odo = np.eye(4)  # the latest keyframe's correction
+
+    # -------------------------------------------------------------- per frame
+    def step(self, frame: int, t: float, T_odo_rover: np.ndarray, detections_rover: np.ndarray | None = None,
+             T_map_rover_true: np.ndarray | None = None, keyframe: bool | None = None) -> Attempt | None:  # fmt: skip
+        """Feed one frame (its odometry pose, 4x4); returns the localization attempt made at it,
+        if any. The frame's results (odometry, online estimate, ground truth) are kept as
+        (x, y, z, roll, pitch, yaw) rows, the run's trajectory format."""
+        q = np.asarray(matrix_to_pose(T_odo_rover), float)
+        if self.odo:
+            step = float(np.linalg.norm(q[:3] - self.odo[-1][:3]))
+            if step > 1e-6 or abs(float(wrap_angle(q[5] - self.odo[-1][5]))) > 1e-6:
+                self._moving_since_kf += t - self.times[-1]
+            self._dist += step
+        self.frames.append(int(frame))
+        self.times.append(float(t))
+        self.odo.append(q)
+        self.gt.append(None if T_map_rover_true is None else np.asarray(matrix_to_pose(T_map_rover_true), float))
+        is_kf = (detections_rover is not None) if keyframe is None else keyframe
+        attempt = None
+        if is_kf or not self.kf_frame:
+            attempt = self._keyframe(frame, t, q, np.zeros((0, 3)) if detections_rover is None else detections_rover)
+        self.online.append(_apply_corr(self.T_map_odo, q))
+        return attempt
+
+    def _keyframe(self, frame, t, q, det) -> Attempt | None:
+        t0 = time.perf_counter()
+        k = self.graph.add_keyframe(t, (q[0], q[1], q[2], q[5]), self._moving_since_kf if self.kf_frame else None)
+        self._moving_since_kf = 0.0
+        self.timings["fusion"] += time.perf_counter() - t0
+        self.kf_frame.append(int(frame))
+        self.kf_rp.append((float(q[3]), float(q[4])))
+        self._kf_odo.append(q)
+        self.kf_det.append(np.asarray(det, float).reshape(-1, 3))
+        self.kf_dist.append(self._dist)
+        if self._last_attempt_t is None:
+            self._last_attempt_t = t
+        attempt = None
+        cfg = self.config
+        if self._dist - self._last_attempt_dist >= cfg.localize_every_m or t - self._last_attempt_t >= cfg.localize_every_s:
+            self._last_attempt_dist, self._last_attempt_t = self._dist, t
+            attempt = self._attempt(k, frame, t)
+            self.attempts.append(attempt)
+        self.T_map_odo = self._correction(k)
+        return attempt
+
+    def _correction(self, k: int) -> np.ndarray:
+        est = self.graph.pose(k)
+        o = self.odo_at_keyframe(k)
+        d = float(wrap_angle(est[3] - o[5]))
+        c, s = math.cos(d), math.sin(d)
+        T = np.eye(4)
+        T[:2, :2] = [[c, -s], [s, c]]
+        T[:3, 3] = est[:3] - T[:3, :3] @ o[:3]
+        return T
+
+    def odo_at_keyframe(self, k: int) -> np.ndarray:
+        """Odometry pose (6,) of keyframe k."""
+        return self._kf_odo[k]
+
+    def _window_points(self, keyframes: np.ndarray, poses4: np.ndarray | None, with_index: bool = False):
+        """Detections of `keyframes` placed with `poses4` (estimate) or odometry (None):
+        (points (N, 3), keyframe of each (N,)[, index of each within its keyframe (N,)])."""
+        pts, fr, ix = [], [], []
+        for k in keyframes:
+            D = self.kf_det[k]
+            if len(D) == 0:
+                continue
+            roll, pitch = self.kf_rp[k]
+            if poses4 is None:
+                o = self._kf_odo[k]
+                T = pose_to_matrix(o[0], o[1], o[2], roll, pitch, o[5])
+            else:
+                x, y, z, yaw = poses4[k]
+                T = pose_to_matrix(x, y, z, roll, pitch, yaw)
+            pts.append(transform_points(T, D))
+            fr.append(np.full(len(D), k))
+            ix.append(np.arange(len(D)))
+        if not pts:
+            out = (np.zeros((0, 3)), np.zeros(0, int), np.zeros(0, int))
+        else:
+            out = (np.concatenate(pts), np.concatenate(fr), np.concatenate(ix))
+        return out if with_index else out[:2]
+
+    def _attempt(self, k: int, frame: int, t: float) -> Attempt:
+        cfg = self.config
+        t0 = time.perf_counter()
+        dist = np.asarray(self.kf_dist)
+        win = np.flatnonzero(dist >= dist[k] - cfg.window_m)
+        poses = self.graph.poses()
+        P, F, I = self._window_points(win, poses, with_index=True)
+        veh = aggregate_detections(P, F, cfg.aggregation, frame="estimate") if len(P) else LandmarkMap(np.zeros((0, 3)))
+        att = Attempt(frame, t, k, len(veh), 0, False, False)
+        ref = self.reference
+        if cfg.crop_reference and len(veh):
+            c = veh.positions_xyz[:, :2].mean(axis=0)
+            radius = float(np.max(np.linalg.norm(veh.positions_xyz[:, :2] - c, axis=1)))
+            sig, _ = self.graph.predicted_sigma(k)
+            R = radius + cfg.crop_sigmas * sig + cfg.crop_margin_m
+            near = np.linalg.norm(ref.positions_xyz[:, :2] - c, axis=1) <= R
+            ref = ref.subset(np.flatnonzero(near))
+        att.reference_landmarks = len(ref)
+        att.time_mapping_s = time.perf_counter() - t0
+        self.timings["mapping"] += att.time_mapping_s
+        if len(veh) < cfg.min_window_landmarks:
+            att.reason = f"too few local landmarks ({len(veh)} < {cfg.min_window_landmarks})"
+            return att
+        if len(ref) < 3:
+            att.reason = f"reference has {len(ref)} landmarks near the predicted position"
+            return att
+        t0 = time.perf_counter()
+        try:
+            # the pose is judged where it is used (the rover now, keyframe k) and the distance
+            # travelled between inliers and rover is measured along the window's path
+            res = localize(ref, veh, self.localization, query_xyz=poses[k : k + 1, :3], path_xyz=poses[win, :3])
+        except LunarLocError as exc:
+            att.time_association_s = time.perf_counter() - t0
+            self.timings["association"] += att.time_association_s
+            att.reason = f"{type(exc).__name__}: {exc}"
+            return att
+        att.time_association_s = time.perf_counter() - t0
+        self.timings["association"] += att.time_association_s
+        att.inliers, att.reason, att.success = res.num_inliers, res.reason, bool(res.success)
+        att.predicted_error_m = float(res.predicted_error_m)
+        if not res.success:
+            return att
+        t0 = time.perf_counter()
+        x, y, z, yaw = poses[k]
+        roll, pitch = self.kf_rp[k]
+        T_est = pose_to_matrix(x, y, z, roll, pitch, yaw)
+        T_fix = res.T_ref_veh @ T_est
+        fix4 = np.array([T_fix[0, 3], T_fix[1, 3], T_fix[2, 3], yaw_of(T_fix[:3, :3])])
+        inl = res.inliers
+        Vp = veh.positions_xyz[inl[:, 0]]
+        extent = max(float(np.max(np.linalg.norm(Vp[:, :2] - Vp[:, :2].mean(axis=0), axis=1))), 1.0)
+        sig_m = float(res.predicted_error_m) if math.isfinite(res.predicted_error_m) else cfg.fix_sigma_fallback_m
+        g = self.graph.gate(k, fix4, sig_m, sig_m / extent)
+        att.gate_d2 = g.d2
+        att.correction_m = float(np.linalg.norm(g.innovation[:3]))
+        att.correction_yaw_deg = math.degrees(float(g.innovation[3]))
+        att.fix_xyz = fix4[:3].tolist()
+        att.inlier_vehicle_xyz = Vp.round(4).tolist()
+        att.inlier_reference_xyz = ref.positions_xyz[inl[:, 1]].round(4).tolist()
+        gt = self.gt[-1]
+        if gt is not None:
+            att.fix_error_m = float(np.linalg.norm(fix4[:3] - gt[:3]))
+        if g.accepted:
+            if cfg.fix_kind is FixKind.POSE:
+                self.graph.add_fix(k, fix4, sig_m, sig_m / extent)
+            else:
+                self._add_observations(veh, inl, ref, P, F, I)
+            self.graph.solve(cfg.active_window_m)
+            att.accepted = True
+        else:
+            att.reason = f"fix rejected by the gate (d2 {g.d2:.1f} > {g.threshold:.1f}; correction {att.correction_m:.2f} m)"
+        self.timings["fusion"] += time.perf_counter() - t0
+        return att
+
+    def _add_observations(self, veh: LandmarkMap, inl: np.ndarray, ref: LandmarkMap, P, F, I) -> None:
+        """Tie every window detection of an inlier vehicle landmark to its reference landmark."""
+        from scipy.spatial import cKDTree
+
+        V = veh.positions_xyz[inl[:, 0]]
+        d, j = cKDTree(V).query(P, distance_upper_bound=self.config.aggregation.radius_m)
+        ok = np.isfinite(d)
+        if not np.any(ok):
+            return
+        kf, idx, lm = F[ok], I[ok], j[ok]
+        targets = ref.positions_xyz[inl[lm, 1]]
+        p_rover = np.array([self.kf_det[k][i] for k, i in zip(kf, idx)])
+        rp = np.array([self.kf_rp[k] for k in kf])
+        keys = list(zip(kf.tolist(), idx.tolist()))
+        self.graph.add_landmark_observations(keys, kf, p_rover, rp, targets, self.config.fusion.observation_sigma_m)
+
+    # -------------------------------------------------------------- end of run
+    def finish(self, num_image_frames: int, source: str = "", rocks=None, example=None,
+               config: dict | None = None) -> LoopResult:  # fmt: skip
+        """Final pose-graph solve and the smoothed (continuous) trajectory. `config`: the
+        run's full configuration as written to its run folder."""
+        t0 = time.perf_counter()
+        self.graph.solve()
+        T_kf = np.stack([self._correction(k) for k in range(len(self.kf_frame))])
+        self.timings["fusion"] += time.perf_counter() - t0
+        frames = np.asarray(self.frames)
+        times = np.asarray(self.times)
+        odo = np.asarray(self.odo)
+        kf_t = times[np.searchsorted(frames, np.asarray(self.kf_frame))]
+        corrected = _interpolate_corrections(T_kf, kf_t, times, odo)
+        poses = self.graph.poses()
+        all_kf = np.arange(len(self.kf_frame))
+        P, F = self._window_points(all_kf, poses)
+        Po, Fo = self._window_points(all_kf, None)
+        agg = self.config.aggregation
+        vmap = aggregate_detections(P, F, agg, frame="map") if len(P) else LandmarkMap(np.zeros((0, 3)), frame="map")
+        vodo = aggregate_detections(Po, Fo, agg, frame="odometry") if len(Po) else LandmarkMap(np.zeros((0, 3)), frame="odometry")
+        gt = None if any(g is None for g in self.gt) else np.asarray(self.gt)
+        return LoopResult(frames, times, odo, np.asarray(self.online), corrected, gt, self.attempts, vmap, vodo,
+                          self.reference, dict(self.timings), num_image_frames, config or {}, self.graph.scale,
+                          rocks, example, source)  # fmt: skip
+
+
+def _apply_corr(T_map_odo: np.ndarray, q: np.ndarray) -> np.ndarray:
+    T = T_map_odo @ pose_to_matrix(*q)
+    return np.asarray(matrix_to_pose(T), float)
+
+
+def _interpolate_corrections(T_kf: np.ndarray, kf_t: np.ndarray, times: np.ndarray, odo: np.ndarray) -> np.ndarray:
+    """Apply per-keyframe corrections T_map_odo, linearly interpolated in time (translation and
+    yaw), to every frame's odometry pose: a continuous trajectory."""
+    yaw = np.unwrap(np.arctan2(T_kf[:, 1, 0], T_kf[:, 0, 0]))
+    tx = [np.interp(times, kf_t, T_kf[:, i, 3]) for i in range(3)]
+    ya = np.interp(times, kf_t, yaw)
+    out = np.empty_like(odo)
+    for n in range(len(times)):
+        c, s = math.cos(ya[n]), math.sin(ya[n])
+        T = np.array([[c, -s, 0, tx[0][n]], [s, c, 0, tx[1][n]], [0, 0, 1, tx[2][n]], [0, 0, 0, 1.0]])
+        out[n] = _apply_corr(T, odo[n])
+    return out
