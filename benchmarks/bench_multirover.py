@@ -2,7 +2,7 @@
 reference, with the reference alone, and with both, against its own odometry.
 
     python benchmarks/bench_multirover.py --data DIR [--traverses 0 1] [--odometry visual]
-        [--modes share ref ref+share ref0+share] [--out OUT]
+        [--config RUN_CONFIG.json] [--modes share ref ref+share ref0+share] [--out OUT]
 
 DIR holds a simulated site (``rocks.csv``, ``traverse_<i>.lac``), e.g. from
 ``simulate_dataset(3, 3, DIR, SimulationConfig(site=SiteConfig(n_rocks=800), duration_s=240,
@@ -25,15 +25,20 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", type=Path, required=True)
     ap.add_argument("--traverses", type=int, nargs="+", default=[0, 1])
-    ap.add_argument("--odometry", default=None, help="odometry source (default: visual)")
+    ap.add_argument("--odometry", default=None, help="odometry source (default: the config's, else visual)")
+    ap.add_argument("--config", type=Path, default=None, help="every rover's RunConfig (a run folder's config.json)")
     ap.add_argument("--modes", nargs="+", default=["share", "ref", "ref+share"], choices=["share", "ref", "ref+share", "ref0+share"],
                     help="ref0+share: only the first rover has the reference")
     ap.add_argument("--max-shared-sigma-ratio", type=float, default=None, help="MultiRoverConfig.max_shared_sigma_ratio")
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args()
 
+    from lunarloc.config import RunConfig, load_config_file
     from lunarloc.multirover import MultiRoverConfig, run_rovers, write_rover_outputs
-    from lunarloc.pipeline import load_reference
+    from lunarloc.reference import load_reference
+
+    run_cfg = load_config_file(a.config)[0] if a.config is not None else RunConfig()
+    run_cfg = run_cfg.with_options(odometry__source=a.odometry)
 
     archives = [a.data / f"traverse_{i}.lac" for i in a.traverses]
     rows: dict[str, dict] = {}
@@ -42,10 +47,10 @@ def main() -> None:
         if mode == "ref0+share":
             ref = [ref] + [None] * (len(archives) - 1)
         t0, c0 = time.perf_counter(), time.process_time()
-        cfg = MultiRoverConfig(share_maps="share" in mode)
+        cfg = MultiRoverConfig(run=run_cfg, share_maps="share" in mode)
         if a.max_shared_sigma_ratio is not None:
             cfg = replace(cfg, max_shared_sigma_ratio=a.max_shared_sigma_ratio)
-        res = run_rovers(archives, ref, cfg, odometry_source=a.odometry)
+        res = run_rovers(archives, ref, cfg)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         if a.out is not None:
             write_rover_outputs(res, a.out / mode.replace("+", "_"), plot=True)

@@ -14,6 +14,14 @@ from lunarloc.errors import ConfigError, InputError
 W, H = 320, 180
 
 
+def _cfg(**kw):
+    """MultiRoverConfig with the archives' recorded odometry (as ``--odometry record:odometry``)."""
+    from lunarloc.config import RunConfig
+    from lunarloc.multirover import MultiRoverConfig
+
+    return MultiRoverConfig(run=RunConfig().with_options(odometry__source="record:odometry"), **kw)
+
+
 def _sim(out, seed, n, duration, width=W, rover=None):
     from lunarloc.data.rover import RoverConfig
     from lunarloc.data.simulate import SimulationConfig, simulate_dataset
@@ -35,9 +43,13 @@ def tiny(tmp_path_factory):
 
 def test_two_rovers_write_one_run_folder_each(tiny, tmp_path, capsys):
     out_dir, (a, b) = tiny
+    from lunarloc.config import RunConfig
+
     out = tmp_path / "out"
+    given = tmp_path / "given.json"  # --config applies to every rover; options given override it
+    given.write_text(json.dumps(RunConfig().with_options(loop__window_m=6.5, odometry__source="imu").to_dict()))
     rc = main(["run", str(a), str(b), "--reference", str(out_dir / "rocks.csv"), "--share-maps", "-o", str(out),
-               "--odometry", "record:odometry"])  # fmt: skip
+               "--config", str(given), "--odometry", "record:odometry"])  # fmt: skip
     assert rc == 0, capsys.readouterr().err
     doc = json.loads((out / "rovers.json").read_text())
     assert [r["name"] for r in doc["rovers"]] == ["traverse_0", "traverse_1"]
@@ -49,7 +61,10 @@ def test_two_rovers_write_one_run_folder_each(tiny, tmp_path, capsys):
             assert (d / f).is_file(), f
         s = json.loads((d / "summary.json").read_text())
         assert s["frames"] == 161 and s["image_frames"] == 17  # every tick of its archive, images at 2 Hz
-        assert json.loads((d / "config.json").read_text())["archive"] == str(lac)
+        cfg_doc = json.loads((d / "config.json").read_text())  # a single run's config.json: RunConfig + info
+        assert cfg_doc["info"]["archive"] == str(lac) and cfg_doc["info"]["multirover"]["share_maps"] is True
+        used = RunConfig.from_dict(cfg_doc)
+        assert used.loop.window_m == 6.5 and used.odometry.source == "record:odometry"
         # the failing bound: whatever the fixes, a rover ends no worse than its odometry + 5 cm
         assert s["ate_corrected"]["rmse_m"] <= s["ate_odometry"]["rmse_m"] + 0.05
     # a second run into the same folder is refused without --overwrite
@@ -76,7 +91,7 @@ def test_mission_time_order_and_names(tiny):
     out_dir, paths = tiny
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(mr._Rover, "tick", spy)
-        res = mr.run_rovers(paths, None, mr.MultiRoverConfig(share_maps=True), odometry_source="record:odometry")
+        res = mr.run_rovers(paths, None, _cfg(share_maps=True))
     times = [t for t, _ in order]
     assert times == sorted(times) and len(order) == 2 * 161
     assert [n for _, n in order[:4]] == ["traverse_0", "traverse_1"] * 2
@@ -92,8 +107,7 @@ def test_live_map_uncertainty_grows_with_the_owner_drift(tiny):
     import lunarloc.multirover as mr
 
     out_dir, paths = tiny
-    cfg = mr.MultiRoverConfig(share_maps=True)
-    r = mr._Rover("a", paths[0], None, cfg, None, "record:odometry")
+    r = mr._Rover("a", paths[0], None, _cfg(share_maps=True))
     try:
         while True:
             r.tick()
@@ -141,7 +155,7 @@ def test_bad_input_is_a_clear_error(tiny, tmp_path, capsys):
         (["run", str(a), str(other_site), "--share-maps"], "site seed"),
         (["run", str(a), str(b)], "--reference MAP, --share-maps"),
         (["run", str(a), "--share-maps"], "several archives"),
-        (["run", str(a)], "--reference is required"),
+        (["run", str(a)], "--reference MAP is required"),
     ):
         assert main([*argv, "-o", o]) == 2, argv
         err = capsys.readouterr().err
@@ -154,7 +168,10 @@ def test_config_is_checked_and_serialised():
 
     c = MultiRoverConfig(share_maps=True, share_refresh_s=2.0)
     d = c.to_dict()
-    assert d["share_maps"] is True and d["loop"]["window_m"] == c.loop.window_m
+    assert d["share_maps"] is True and d["run"]["loop"]["window_m"] == c.run.loop.window_m
+    assert MultiRoverConfig.from_dict(json.loads(json.dumps(d))) == c
+    with pytest.raises(ConfigError, match="run.loop.window_m"):
+        MultiRoverConfig.from_dict({**d, "run": {**d["run"], "loop": {"window_m": "x"}}})
     with pytest.raises(ConfigError):
         replace(c, share_refresh_s=0.0)
 
@@ -176,7 +193,7 @@ def _rock_detector(mp, rocks_csv, noise_m=0.05, max_range_m=6.0, hfov_deg=70.0):
     import lunarloc.multirover as mr
     from lunarloc.geometry import invert_transform, transform_points
     from lunarloc.online import OnlineLocalizer
-    from lunarloc.pipeline import rocks_to_reference
+    from lunarloc.reference import rocks_to_reference
 
     rocks = rocks_to_reference(np.loadtxt(rocks_csv, delimiter=",", skiprows=1)).positions_xyz
     rng = np.random.default_rng(0)
@@ -214,7 +231,7 @@ def _run(paths, rocks_csv, reference=None, shift_owner_m=None):
                 return mr._LiveMap(shifted, m.owner_sigma_m, m.owner_sigma_yaw_rad, m.key, m.built_t)
 
             mp.setattr(mr._Rover, "live_map", live_map)
-        return mr.run_rovers(paths, reference, mr.MultiRoverConfig(share_maps=True), odometry_source="record:odometry")
+        return mr.run_rovers(paths, reference, _cfg(share_maps=True))
 
 
 def test_shared_maps_align_rovers_without_a_reference(pair):

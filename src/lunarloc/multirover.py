@@ -1,7 +1,8 @@
 """Several rovers on one clock: archives played in mission-time order, each rover localizing
 against a reference map and/or the other rovers' live maps (LunarLoc's multi-agent playback).
 
-``run_rovers([a.lac, b.lac], reference=None, config=MultiRoverConfig(share_maps=True))``:
+``run_rovers([a.lac, b.lac], reference=None, config=MultiRoverConfig(share_maps=True))``
+(every rover runs with ``config.run``, the :class:`~lunarloc.config.RunConfig` of ``lunarloc run``):
 
 1. **one clock**: every archive is a :class:`~lunarloc.data.playback.PlaybackAgent`; at each
    step the rover whose next tick is earliest in mission time is played (ties: argument order);
@@ -13,8 +14,9 @@ against a reference map and/or the other rovers' live maps (LunarLoc's multi-age
    localized in each other rover's *live map*, the rock landmarks that rover has placed so
    far with its current pose estimates, by :func:`lunarloc.localize.localize` with the same
    configuration (so the same verification as a reference fix), then gated like any fix;
-4. **outputs**: one :class:`~lunarloc.pipeline.LoopResult` per rover (the run folder of
-   ``lunarloc run``) plus the shared attempts.
+4. **outputs**: one :class:`~lunarloc.loop.LoopResult` per rover (the run folder of
+   ``lunarloc run``, its ``config.json`` the RunConfig plus an ``info`` section) plus the
+   shared attempts.
 
 Frames: every LAC rover knows its initial pose in the site (``get_initial_position()``), so
 all rovers share the ``map`` frame up to their odometry drift; a rover's live map is in its
@@ -49,10 +51,11 @@ from pathlib import Path
 
 import numpy as np
 
+from lunarloc.config import RunConfig, config_from_dict, config_to_dict
 from lunarloc.errors import ConfigError, InputError, LunarLocError
 from lunarloc.geometry import invert_transform, matrix_to_pose, pose_to_matrix, yaw_of
+from lunarloc.loop import Attempt, LoopResult, _interpolate_corrections
 from lunarloc.maps import LandmarkMap, aggregate_detections
-from lunarloc.pipeline import Attempt, LoopConfig, LoopResult
 
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
@@ -65,7 +68,7 @@ __all__ = ["MultiRoverConfig", "SharedAttempt", "RoverRun", "MultiRoverResult", 
 class MultiRoverConfig:
     """Settings of a multi-rover playback (metres, seconds, degrees as named)."""
 
-    loop: LoopConfig = field(default_factory=LoopConfig.for_images)  # each rover's loop (as `lunarloc run`)
+    run: RunConfig = field(default_factory=RunConfig)  # each rover's run (as `lunarloc run`: loop, localization, ...)
     share_maps: bool = False  # localize against the other rovers' live maps too
     share_refresh_s: float = 5.0  # a rover's live map is rebuilt at most this often (mission time) ...
     max_shared_sigma_ratio: float = 0.75  # a shared fix is used only if its sigma < this x the rover's own prediction
@@ -80,7 +83,12 @@ class MultiRoverConfig:
             raise ConfigError(f"{', '.join(bad)}: must be > 0")
 
     def to_dict(self) -> dict:
-        return {**asdict(self), "loop": self.loop.to_dict()}
+        return config_to_dict(self)
+
+    @classmethod
+    def from_dict(cls, data) -> MultiRoverConfig:
+        """From :meth:`to_dict`'s output (ConfigError naming a bad key)."""
+        return config_from_dict(cls, data)
 
 
 @dataclass
@@ -217,8 +225,7 @@ class _LiveMap:
 
 
 class _Rover:
-    def __init__(self, name: str, path: Path, reference: LandmarkMap | None, cfg: MultiRoverConfig,
-                 detector_config, odometry_source: str | None):  # fmt: skip
+    def __init__(self, name: str, path: Path, reference: LandmarkMap | None, cfg: MultiRoverConfig):
         from lunarloc.data.lac import LacArchive
         from lunarloc.data.playback import PlaybackAgent
         from lunarloc.odometry import archive_odometry, default_odometry_source
@@ -230,8 +237,8 @@ class _Rover:
         ar, agent = self.archive, self.agent
         self.timings = {"odometry": 0.0, "update": 0.0, "sharing": 0.0, "io": 0.0}
         t0 = time.perf_counter()
-        source = odometry_source or default_odometry_source(ar)
-        od = archive_odometry(ar, source)
+        o = cfg.run.odometry
+        od = archive_odometry(ar, o.source or default_odometry_source(ar), imu_config=o.imu, visual_config=o.visual)
         T0 = agent.get_initial_position().matrix()
         # odometry starts at the initial pose (as the component anchors it), so the odometry
         # written to the run folder is the one the rover's corrections apply to
@@ -241,10 +248,11 @@ class _Rover:
         self.timings["odometry"] = time.perf_counter() - t0
         rig = CameraRig.from_sensors(agent.sensors(), {c: agent.get_camera_position(c) for c in ar.cameras})
         # the run folder holds the whole history, so the pose graph is never re-anchored
-        online = OnlineConfig(loop=cfg.loop, max_keyframes=10**9)
+        online = OnlineConfig(loop=cfg.run.loop, localization=cfg.run.localization, max_keyframes=10**9)
         if reference is None:
             online = replace(online, reference_max_distance_m=math.inf)
         self.has_reference = reference is not None
+        detector_config = cfg.run.detector_for(rig.camera.width)
         if reference is None:
             # OnlineLocalizer wants a reference of >= 3 landmarks; a rover without one is given
             # three far away and then an empty map, against which every attempt finds nothing
@@ -345,7 +353,8 @@ class _Rover:
         f, t = self.ticks[-1]
         dist = np.asarray(loop.kf_dist)
         poses = loop.graph.poses()
-        P, F = loop._window_points(np.flatnonzero(dist >= dist[k] - cfg.window_m), poses)
+        win = np.flatnonzero(dist >= dist[k] - cfg.window_m)
+        P, F = loop._window_points(win, poses)
         veh = aggregate_detections(P, F, cfg.aggregation, frame="estimate") if len(P) else None
         if veh is None or len(veh) < cfg.min_window_landmarks:
             self.timings["sharing"] += time.perf_counter() - t_start
@@ -369,7 +378,8 @@ class _Rover:
                 continue
             ref = live.landmarks.subset(near)
             try:
-                res = localize(ref, veh, cfg.localization)
+                # as the reference attempt: the pose judged at the rover now, along the window's path
+                res = localize(ref, veh, loop.localization, query_xyz=poses[k : k + 1, :3], path_xyz=poses[win, :3])
             except LunarLocError as exc:
                 att.reason = f"{type(exc).__name__}: {exc}"
                 continue
@@ -384,7 +394,7 @@ class _Rover:
             inl = res.inliers
             Vp = veh.positions_xyz[inl[:, 0]]
             extent = max(float(np.max(np.linalg.norm(Vp[:, :2] - Vp[:, :2].mean(axis=0), axis=1))), 1.0)
-            pred = float(res.predicted_error_m) if math.isfinite(res.predicted_error_m) else 0.05
+            pred = float(res.predicted_error_m) if math.isfinite(res.predicted_error_m) else cfg.fix_sigma_fallback_m
             om = float(np.max(live.owner_sigma_m[near[inl[:, 1]]]))
             oy = float(np.max(live.owner_sigma_yaw_rad[near[inl[:, 1]]]))
             sig_m, sig_yaw = math.hypot(pred, om), math.hypot(pred / extent, oy)
@@ -423,8 +433,6 @@ class _Rover:
 
     # ------------------------------------------------------------------ end
     def finish(self, reference: LandmarkMap | None, config: MultiRoverConfig) -> RoverRun:
-        from lunarloc.pipeline import _interpolate_corrections
-
         loop = self.loc.loop
         attempts = list(loop.attempts) if self.has_reference else []
         attempts = sorted(attempts + self.shared_att, key=lambda a: (a.time_s, a.reason.startswith("map of")))
@@ -434,13 +442,14 @@ class _Rover:
         times = np.array([t for _, t in self.ticks], float)
         odo = np.asarray(self.odo)
         corrected = _interpolate_corrections(T_kf, np.asarray(loop.times), times, odo)
-        extra = {"archive": str(self.path), "odometry_source": self.odometry_label,
-                 "detector": self.detector_config.to_dict(), "camera": asdict(self.camera),
-                 "multirover": {k: v for k, v in config.to_dict().items() if k != "loop"}}  # fmt: skip
+        # the run's configuration as a single run writes it (read back by `lunarloc run --config`)
+        info = {"archive": str(self.path), "odometry_source": self.odometry_label, "camera": asdict(self.camera),
+                "detector_scaled": self.detector_config.to_dict(),
+                "multirover": {k: v for k, v in config.to_dict().items() if k != "run"}}  # fmt: skip
         ref = reference if reference is not None else LandmarkMap(np.zeros((0, 3)), frame="map")
         res = LoopResult(frames, times, odo, np.asarray(self.online), corrected, np.asarray(self.gt), attempts,
                          kf.vehicle_map, kf.vehicle_map_odometry, ref, dict(self.timings), self.n_image,
-                         {"loop": config.loop.to_dict(), **extra}, kf.scale, self.rocks, None, str(self.path))  # fmt: skip
+                         {**config.run.to_dict(), "info": info}, kf.scale, self.rocks, None, str(self.path))  # fmt: skip
         return RoverRun(self.name, self.path, res, self.shared)
 
 
@@ -451,16 +460,15 @@ def run_rovers(
     archives: Sequence[str | os.PathLike],
     reference: LandmarkMap | Sequence[LandmarkMap | None] | None = None,
     config: MultiRoverConfig | None = None,
-    detector_config=None,
     *,
-    odometry_source: str | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> MultiRoverResult:
     """Play `archives` on one mission clock (see the module docstring).
 
     reference : map in the ``map`` frame for every rover, or None (then ``share_maps`` must
         be on: the rovers can only align to each other), or one map or None per archive.
-    odometry_source : as ``lunarloc run --odometry`` (default per archive: ``visual`` when it
+    config.run : each rover's :class:`~lunarloc.config.RunConfig` (the detector is scaled to
+        each archive's image width; odometry source default per archive: ``visual`` when it
         has front stereo pairs, else ``imu``).
     progress(done, total) : ticks played over all rovers.
     """
@@ -476,7 +484,7 @@ def run_rovers(
     rovers: list[_Rover] = []
     try:
         for name, p, ref in zip(names, paths, refs):
-            rovers.append(_Rover(name, p, ref, cfg, detector_config, odometry_source))
+            rovers.append(_Rover(name, p, ref, cfg))
         total = sum(len(r.archive.frame_numbers) for r in rovers)
         heap = [(r.mission_time, i) for i, r in enumerate(rovers)]
         heapq.heapify(heap)
@@ -511,11 +519,11 @@ def write_rover_outputs(result: MultiRoverResult, outdir: str | os.PathLike, plo
     import json
 
     from lunarloc.outputs import make_dir, write_text
-    from lunarloc.pipeline import _clean, write_outputs
+    from lunarloc.runio import to_json_ready, write_run
 
     out = make_dir(outdir)
     for r in result.rovers:
-        write_outputs(r.result, out / r.name)
+        write_run(r.result, out / r.name)
     doc = {**result.summary(), "shared_attempts": {r.name: [asdict(a) for a in r.shared] for r in result.rovers},
            "config": result.config}  # fmt: skip
     written = []
@@ -526,6 +534,6 @@ def write_rover_outputs(result: MultiRoverResult, outdir: str | os.PathLike, plo
             plot_run(out / r.name)
         written.append(plot_rovers([out / r.name for r in result.rovers], out / "map_all.png",
                                    [r.name for r in result.rovers]))  # fmt: skip
-    write_text(out / "rovers.json", json.dumps(_clean(doc), indent=1, default=str))
+    write_text(out / "rovers.json", json.dumps(to_json_ready(doc), indent=1, default=str))
     written.insert(0, out / "rovers.json")
     return written

@@ -10,42 +10,28 @@ import typer
 from lunarloc.cli.app import console
 
 
-def run_several(archives: list[Path], reference: Path | None, out: Path, share_maps: bool, segmenter: str,
-                weights: Path | None, loop_config, odometry: str | None, plot: bool, overwrite: bool) -> None:  # fmt: skip
+def run_several(archives: list[Path], reference: Path | None, out: Path, run_config, *, share_maps: bool,
+                plot: bool, overwrite: bool) -> None:  # fmt: skip
+    """`run_config`: the :class:`~lunarloc.config.RunConfig` of `lunarloc run` (``--config`` and
+    the options given), used by every rover."""
     from rich.table import Table
     from tqdm import tqdm
 
-    from lunarloc.cli.checks import choice
     from lunarloc.errors import ConfigError
-    from lunarloc.inputs import check_input_file
-    from lunarloc.multirover import MultiRoverConfig, check_archives, run_rovers, write_rover_outputs, rover_names
-    from lunarloc.odometry import parse_odometry_source
+    from lunarloc.multirover import MultiRoverConfig, check_archives, rover_names, run_rovers, write_rover_outputs
     from lunarloc.outputs import check_output_dir
-    from lunarloc.perception.detector import DetectorConfig
-    from lunarloc.perception.segment import SegmenterKind
-    from lunarloc.pipeline import load_reference, scaled_detector_config
+    from lunarloc.reference import load_reference
 
     if len(archives) < 2:
         raise ConfigError("--share-maps needs several archives (rovers) to share maps between")
     if reference is None and not share_maps:
         raise ConfigError("several archives need --reference MAP, --share-maps, or both")
-    choice(segmenter, SegmenterKind, "--segmenter")
-    if weights is not None:
-        check_input_file(weights, None, "FastSAM weights")
-    if odometry is not None:
-        parse_odometry_source(odometry)  # fail on a bad name before any work
-    cfg = MultiRoverConfig(loop=loop_config, share_maps=share_maps)
+    cfg = MultiRoverConfig(run=run_config, share_maps=share_maps)
     paths = check_archives(archives, cfg)
     check_output_dir(out, overwrite, ("rovers.json", "map_all.png"), marker="rovers.json")
     for name in rover_names(paths):
         check_output_dir(out / name, overwrite)
-    ref = load_reference(reference, loop_config.aggregation) if reference is not None else None
-    from lunarloc.data.lac import LacArchive
-    from lunarloc.pipeline import _camera_of
-
-    with LacArchive(paths[0]) as ar:
-        width = _camera_of(ar.configured_cameras).width
-    det_cfg = scaled_detector_config(width, DetectorConfig(segmenter=segmenter, weights=str(weights) if weights else None))
+    ref = load_reference(reference, run_config.loop.aggregation) if reference is not None else None
     with tqdm(unit="tick", desc=f"{len(paths)} rovers", dynamic_ncols=True, mininterval=1.0) as bar:
 
         def ticked(done: int, total: int) -> None:
@@ -53,7 +39,7 @@ def run_several(archives: list[Path], reference: Path | None, out: Path, share_m
                 bar.reset(total)
             bar.update(done - bar.n)
 
-        res = run_rovers(paths, ref, cfg, det_cfg, odometry_source=odometry, progress=ticked)
+        res = run_rovers(paths, ref, cfg, progress=ticked)
     written = write_rover_outputs(res, out, plot=plot)
     t = Table(title=f"{len(paths)} rovers on one clock" + (f" in {reference.name}" if reference else "")
               + (", sharing maps" if share_maps else ""))  # fmt: skip
@@ -66,6 +52,8 @@ def run_several(archives: list[Path], reference: Path | None, out: Path, share_m
                   *(f"{r[k]['rmse_m']:.3f}" if k in r else "-" for k in ("ate_odometry", "ate_corrected", "ate_online")),
                   "-" if mx is None else f"{mx * 100:.1f}")  # fmt: skip
     console().print(t)
+    typer.echo("odometry: " + ", ".join(f"{r.name} {r.result.config['info']['odometry_source']}" for r in res.rovers))
     for p in written:
         typer.echo(f"wrote {p}")
-    typer.echo(f"wrote {out}/<rover>/ for {', '.join(r.name for r in res.rovers)} (the layout of one `lunarloc run`)")
+    typer.echo(f"wrote {out}/<rover>/ for {', '.join(r.name for r in res.rovers)} (the layout of one `lunarloc run`; "
+               "its config.json repeats it with --config)")  # fmt: skip
