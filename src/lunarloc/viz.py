@@ -81,14 +81,7 @@ def plot_map(run: RunFolder, path: Path, title: str = "") -> Path:
         ax.scatter(fx[:, 0], fx[:, 1], s=14, c="tab:green", edgecolors="k", lw=0.5, zorder=5, label="fixes")
     # frame the trajectories (plus a margin), not the whole site
     P = np.vstack([run.odometry[:, :2], run.corrected[:, :2]] + ([run.ground_truth[:, :2]] if run.ground_truth is not None else []))
-    lo, hi = P.min(axis=0) - 3.0, P.max(axis=0) + 3.0
-    c, h = (lo + hi) / 2, max(hi - lo) / 2
-    ax.set_xlim(c[0] - h, c[0] + h)
-    ax.set_ylim(c[1] - h, c[1] + h)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.grid(alpha=0.3)
+    _frame_square(ax, P)
     ax.set_title(title or "Online localization: top-down map")
     ax.legend(loc="upper left", fontsize=7, framealpha=0.85, markerscale=1.2)
     fig.tight_layout()
@@ -173,3 +166,65 @@ def plot_run(outdir: str | Path, figdir: str | Path | None = None) -> list[Path]
     if (outdir / "example_frame.npz").is_file():
         out.append(plot_frame(outdir / "example_frame.npz", figdir / "frame.png"))
     return out
+
+
+def plot_rovers(outdirs: list[str | Path], path: str | Path, names: list[str] | None = None, title: str = "") -> Path:
+    """One top-down map of several rovers' run folders (``lunarloc run A.lac B.lac``): per
+    rover (one colour each) ground truth (thin black-edged), odometry (dotted), corrected
+    (solid), its landmarks (+) and accepted fixes; ground-truth rocks and the reference in grey."""
+    from lunarloc.runio import read_run
+
+    plt = _plt()
+    runs = [read_run(d) for d in outdirs]
+    names = names or [Path(d).name for d in outdirs]
+    fig, ax = plt.subplots(figsize=(9, 9), dpi=100)
+    rocks = next((r.rocks for r in runs if r.rocks is not None and len(r.rocks)), None)
+    if rocks is not None:
+        ax.scatter(rocks[:, 1], rocks[:, 2], s=np.clip(rocks[:, 4] * 120, 1, 60), c="0.8", lw=0, label="ground-truth rocks")
+    if len(runs[0].reference_xyz):
+        ax.scatter(runs[0].reference_xyz[:, 0], runs[0].reference_xyz[:, 1], s=20, facecolors="none", edgecolors="0.45", lw=0.8,
+                   label="reference landmarks")  # fmt: skip
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    pts = []
+    for i, (run, name) in enumerate(zip(runs, names)):
+        c = colors[i % len(colors)]
+        s = run.summary
+        lab = name
+        if "ate_corrected" in s:
+            lab += f" (RMSE odometry {s['ate_odometry']['rmse_m'] * 100:.1f} cm, corrected {s['ate_corrected']['rmse_m'] * 100:.1f} cm)"
+        if run.ground_truth is not None:
+            ax.plot(run.ground_truth[:, 0], run.ground_truth[:, 1], c="k", lw=2.6, alpha=0.35)
+            pts.append(run.ground_truth[:, :2])
+        ax.plot(run.odometry[:, 0], run.odometry[:, 1], c=c, lw=1.0, ls=":")
+        ax.plot(run.corrected[:, 0], run.corrected[:, 1], c=c, lw=1.4, label=lab)
+        if len(run.vehicle_xyz):
+            ax.scatter(run.vehicle_xyz[:, 0], run.vehicle_xyz[:, 1], s=10, color=c, marker="+", lw=0.8)
+        fx = np.array([a["fix_xyz"] for a in run.attempts if a.get("accepted") and a.get("fix_xyz")]).reshape(-1, 3)
+        if len(fx):
+            ax.scatter(fx[:, 0], fx[:, 1], s=16, color=c, edgecolors="k", lw=0.5, zorder=5)
+        pts += [run.odometry[:, :2], run.corrected[:, :2]]
+    ax.plot([], [], c="k", lw=2.6, alpha=0.35, label="ground truth")
+    ax.plot([], [], c="0.3", lw=1.0, ls=":", label="odometry")
+    ax.scatter([], [], s=10, c="0.3", marker="+", label="rover landmarks (corrected)")
+    ax.scatter([], [], s=16, c="0.3", edgecolors="k", lw=0.5, label="accepted fixes")
+    P = np.vstack(pts)
+    _frame_square(ax, P)
+    ax.set_title(title or f"{len(runs)} rovers on one clock: ground truth, odometry and corrected")
+    ax.legend(loc="upper left", fontsize=7, framealpha=0.85)
+    fig.tight_layout()
+    path = Path(path)
+    _save(fig, path)
+    plt.close(fig)
+    return path
+
+
+def _frame_square(ax, P: np.ndarray, margin_m: float = 3.0) -> None:
+    """Square, equal-aspect axes around the points P (N, 2) plus a margin; labelled, gridded."""
+    lo, hi = P.min(axis=0) - margin_m, P.max(axis=0) + margin_m
+    c, h = (lo + hi) / 2, max(hi - lo) / 2
+    ax.set_xlim(c[0] - h, c[0] + h)
+    ax.set_ylim(c[1] - h, c[1] + h)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.grid(alpha=0.3)

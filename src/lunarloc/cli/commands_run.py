@@ -52,10 +52,12 @@ def _print_summary(s: dict, title: str) -> None:
 
 @app.command("run")
 def run_cmd(
-    archive: Path = typer.Argument(..., help="Vehicle traverse .lac archive (stereo images; any custom records)."),
-    reference: Path = typer.Option(..., "--reference", "-r",
-                                   help="Reference map: landmark CSV/.npz, traverse CSV, rocks.csv (id,x,y,z,radius), "
-                                   "LAC geometric map (.npy) or rock catalogue CSV."),  # fmt: skip
+    archives: list[Path] = typer.Argument(..., help="Vehicle traverse .lac archive (stereo images; any custom records); "
+                                          "several: rovers of one site on one clock (docs/multi-rover.md)."),  # fmt: skip
+    reference: Optional[Path] = typer.Option(None, "--reference", "-r",
+                                             help="Reference map: landmark CSV/.npz, traverse CSV, rocks.csv (id,x,y,z,radius), "
+                                             "LAC geometric map (.npy) or rock catalogue CSV (required with one archive)."),  # fmt: skip
+    share_maps: bool = typer.Option(False, "--share-maps", help="Several archives: also localize against the other rovers' live maps."),
     out: Path = typer.Option(..., "-o", "--out", help="Output folder."),
     config: Optional[Path] = CONFIG_OPT,
     segmenter: Optional[str] = typer.Option(None, "--segmenter", help="classical | fastsam (default from the config: classical)."),
@@ -72,7 +74,8 @@ def run_cmd(
     ),  # fmt: skip
     overwrite: bool = OVERWRITE_OPT,
 ) -> None:
-    """Online localization over a traverse: detect, map, localize against REFERENCE, fuse."""
+    """Online localization over a traverse: detect, map, localize against REFERENCE, fuse.
+    Several archives play on one mission clock, each rover also using the others' maps with --share-maps."""
     from tqdm import tqdm
 
     from lunarloc.config import RunConfig
@@ -94,11 +97,20 @@ def run_cmd(
     positive(window_m, "--window-m", 1e6, "m")
     if weights is not None:
         check_input_file(weights, None, "FastSAM weights")
-    check_input_file(archive, None, ".lac archive")
     cfg, _ = _run_config(config, RunConfig())
     cfg = cfg.with_options(detector__segmenter=segmenter, detector__weights=str(weights) if weights else None,
                            loop__localize_every_m=every_m, loop__localize_every_s=every_s, loop__window_m=window_m,
                            loop__fix_kind=fix, odometry__source=odometry)  # fmt: skip
+    if len(archives) > 1 or share_maps:
+        from lunarloc.cli.commands_multirover import run_several
+
+        return run_several(archives, reference, out, cfg, share_maps=share_maps, plot=plot, overwrite=overwrite)
+    archive = archives[0]
+    if reference is None:
+        from lunarloc.errors import ConfigError
+
+        raise ConfigError("--reference MAP is required with one archive (several archives can use --share-maps instead)")
+    check_input_file(archive, None, ".lac archive")
     check_output_dir(out, overwrite)  # a previous run is refused, or cleared with --overwrite
     ref = load_reference(reference, cfg.loop.aggregation)
     with tqdm(unit="frame", desc="run", dynamic_ncols=True) as bar:  # closed before an error prints

@@ -1,0 +1,262 @@
+"""Several rovers on one clock (lunarloc.multirover, `lunarloc run A.lac B.lac`): per-rover run
+folders, the combined figure, mission-time order, sharing that never makes a rover worse
+than a failing bound, and clear errors for bad input."""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from lunarloc.cli import main
+from lunarloc.errors import ConfigError, InputError
+
+W, H = 320, 180
+
+
+def _cfg(**kw):
+    """MultiRoverConfig with the archives' recorded odometry (as ``--odometry record:odometry``)."""
+    from lunarloc.config import RunConfig
+    from lunarloc.multirover import MultiRoverConfig
+
+    return MultiRoverConfig(run=RunConfig().with_options(odometry__source="record:odometry"), **kw)
+
+
+def _sim(out, seed, n, duration, width=W, rover=None):
+    from lunarloc.data.rover import RoverConfig
+    from lunarloc.data.simulate import SimulationConfig, simulate_dataset
+    from lunarloc.data.site import SiteConfig
+
+    cfg = SimulationConfig(site=SiteConfig(n_rocks=800), duration_s=duration, image_rate_hz=2.0, width=width,
+                           height=width * 9 // 16, cameras=("FrontLeft", "FrontRight"), semantic=False,
+                           rover=rover or RoverConfig())  # fmt: skip
+    return simulate_dataset(seed, n, out, cfg)
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """Two 8 s traverses of site 3 (they start at one place), 320x180 front pair at 2 Hz."""
+    out = tmp_path_factory.mktemp("rovers")
+    paths = _sim(out, 3, 2, 8.0)
+    return out, paths
+
+
+def test_two_rovers_write_one_run_folder_each(tiny, tmp_path, capsys):
+    out_dir, (a, b) = tiny
+    from lunarloc.config import RunConfig
+
+    out = tmp_path / "out"
+    given = tmp_path / "given.json"  # --config applies to every rover; options given override it
+    given.write_text(json.dumps(RunConfig().with_options(loop__window_m=6.5, odometry__source="imu").to_dict()))
+    rc = main(["run", str(a), str(b), "--reference", str(out_dir / "rocks.csv"), "--share-maps", "-o", str(out),
+               "--config", str(given), "--odometry", "record:odometry"])  # fmt: skip
+    assert rc == 0, capsys.readouterr().err
+    doc = json.loads((out / "rovers.json").read_text())
+    assert [r["name"] for r in doc["rovers"]] == ["traverse_0", "traverse_1"]
+    assert (out / "map_all.png").is_file()
+    for name, lac in (("traverse_0", a), ("traverse_1", b)):
+        d = out / name
+        for f in ("trajectory.tum", "trajectory_odometry.tum", "trajectory_groundtruth.tum", "attempts.csv",
+                  "summary.json", "config.json", "map.png"):  # fmt: skip
+            assert (d / f).is_file(), f
+        s = json.loads((d / "summary.json").read_text())
+        assert s["frames"] == 161 and s["image_frames"] == 17  # every tick of its archive, images at 2 Hz
+        cfg_doc = json.loads((d / "config.json").read_text())  # a single run's config.json: RunConfig + info
+        assert cfg_doc["info"]["archive"] == str(lac) and cfg_doc["info"]["multirover"]["share_maps"] is True
+        used = RunConfig.from_dict(cfg_doc)
+        assert used.loop.window_m == 6.5 and used.odometry.source == "record:odometry"
+        # the failing bound: whatever the fixes, a rover ends no worse than its odometry + 5 cm
+        assert s["ate_corrected"]["rmse_m"] <= s["ate_odometry"]["rmse_m"] + 0.05
+    # a second run into the same folder is refused without --overwrite
+    assert main(["run", str(a), str(b), "--share-maps", "-o", str(out)]) == 2
+    assert "previous run" in capsys.readouterr().err
+
+
+def test_mission_time_order_and_names(tiny):
+    """Ticks of both rovers interleave in mission time; equal stems get distinct names."""
+    from lunarloc.multirover import rover_names
+
+    from pathlib import Path
+
+    assert rover_names([Path("a/t.lac"), Path("b/t.lac"), Path("c/t x.lac")]) == ["t", "t_2", "t_x"]
+    import lunarloc.multirover as mr
+
+    order = []
+    orig = mr._Rover.tick
+
+    def spy(self):
+        order.append((float(self.agent.get_mission_time()), self.name))
+        return orig(self)
+
+    out_dir, paths = tiny
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(mr._Rover, "tick", spy)
+        res = mr.run_rovers(paths, None, _cfg(share_maps=True))
+    times = [t for t, _ in order]
+    assert times == sorted(times) and len(order) == 2 * 161
+    assert [n for _, n in order[:4]] == ["traverse_0", "traverse_1"] * 2
+    # no reference: attempts against the (absent) reference are not reported, only shared ones
+    for r in res.rovers:
+        assert all(a.reason.startswith("map of") for a in r.result.attempts)
+        assert len(r.result.reference) == 0
+
+
+def test_live_map_uncertainty_grows_with_the_owner_drift(tiny):
+    """A rover's live map carries, per landmark, the owner's sigma where it placed it; with no
+    fix that is the drift model since the start: non-decreasing along the traverse."""
+    import lunarloc.multirover as mr
+
+    out_dir, paths = tiny
+    r = mr._Rover("a", paths[0], None, _cfg(share_maps=True))
+    try:
+        while True:
+            r.tick()
+            if r.agent.at_end():
+                break
+            r.agent.step_frame()
+        s_m, s_yaw = r.owner_sigmas()
+        assert len(s_m) == len(r.loc.loop.kf_frame) > 5
+        assert np.all(np.diff(s_m) >= -1e-12) and s_m[-1] > s_m[0]
+        r.anchor = (0.3, 0.01)  # its last fix was a shared one of 30 cm: every landmark inherits it
+        s2, _ = r.owner_sigmas()
+        assert np.all(s2 >= 0.3) and np.allclose(s2, np.hypot(s_m, 0.3))
+        live = r.live_map(1e9, 0.0)
+        if live is not None and len(live.landmarks):
+            assert live.owner_sigma_m.shape == (len(live.landmarks),) and np.all(live.owner_sigma_m >= 0.3)
+    finally:
+        r.close()
+
+
+def test_bad_input_is_a_clear_error(tiny, tmp_path, capsys):
+    from lunarloc.data.rover import RoverConfig
+    from lunarloc.multirover import MultiRoverConfig, check_archives, run_rovers
+
+    out_dir, (a, b) = tiny
+    with pytest.raises(InputError, match="given twice"):
+        check_archives([a, out_dir / ".." / out_dir.name / a.name])
+    copy = tmp_path / "copy.lac"
+    copy.write_bytes(a.read_bytes())
+    with pytest.raises(InputError, match="same traverse"):
+        check_archives([a, copy])
+    other_site = _sim(tmp_path / "site4", 4, 1, 2.0)[0]
+    with pytest.raises(InputError, match="site seed 4.*site seed 3"):
+        check_archives([a, other_site])
+    other_clock = _sim(tmp_path / "clock", 3, 1, 2.0, rover=RoverConfig(rate_hz=10.0))[0]
+    with pytest.raises(InputError, match="different clocks"):
+        check_archives([a, other_clock])
+    with pytest.raises(ConfigError, match="share_maps"):
+        run_rovers([a, b], None, MultiRoverConfig(share_maps=False))
+    bad = tmp_path / "bad.lac"
+    bad.write_bytes(b"not an archive")
+    o = str(tmp_path / "o")
+    for argv, msg in (
+        (["run", str(a), str(bad), "--share-maps"], "bad.lac"),
+        (["run", str(a), str(a), "--share-maps"], "given twice"),
+        (["run", str(a), str(other_site), "--share-maps"], "site seed"),
+        (["run", str(a), str(b)], "--reference MAP, --share-maps"),
+        (["run", str(a), "--share-maps"], "several archives"),
+        (["run", str(a)], "--reference MAP is required"),
+    ):
+        assert main([*argv, "-o", o]) == 2, argv
+        err = capsys.readouterr().err
+        assert msg in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "o").exists()  # nothing written before the inputs were checked
+
+
+def test_config_is_checked_and_serialised():
+    from lunarloc.multirover import MultiRoverConfig
+
+    c = MultiRoverConfig(share_maps=True, share_refresh_s=2.0)
+    d = c.to_dict()
+    assert d["share_maps"] is True and d["run"]["loop"]["window_m"] == c.run.loop.window_m
+    assert MultiRoverConfig.from_dict(json.loads(json.dumps(d))) == c
+    with pytest.raises(ConfigError, match="run.loop.window_m"):
+        MultiRoverConfig.from_dict({**d, "run": {**d["run"], "loop": {"window_m": "x"}}})
+    with pytest.raises(ConfigError):
+        replace(c, share_refresh_s=0.0)
+
+
+# --------------------------------------------------------------------------- sharing, with detections from the rock list
+# Rendering and detecting enough rocks for fixes takes minutes; these tests keep the archives'
+# clock, poses, IMU and drifting odometry record (tiny images) and replace the detector by the
+# ground-truth rocks seen from the true pose (5 cm noise), so the sharing logic runs for real.
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    """Two 45 s traverses of site 3 (2 Hz, 160x90 front pair), which overlap."""
+    out = tmp_path_factory.mktemp("pair")
+    return out, _sim(out, 3, 2, 45.0, width=160)
+
+
+def _rock_detector(mp, rocks_csv, noise_m=0.05, max_range_m=6.0, hfov_deg=70.0):
+    import lunarloc.multirover as mr
+    from lunarloc.geometry import invert_transform, transform_points
+    from lunarloc.online import OnlineLocalizer
+    from lunarloc.reference import rocks_to_reference
+
+    rocks = rocks_to_reference(np.loadtxt(rocks_csv, delimiter=",", skiprows=1)).positions_xyz
+    rng = np.random.default_rng(0)
+    orig_tick = mr._Rover.tick
+
+    def tick(self):
+        self.loc._T_true = self.agent.get_transform_matrix()
+        return orig_tick(self)
+
+    def detect(self, images):
+        p = transform_points(invert_transform(self._T_true), rocks)
+        r = np.hypot(p[:, 0], p[:, 1])
+        seen = (p[:, 0] > 0.5) & (r < max_range_m) & (np.abs(np.degrees(np.arctan2(p[:, 1], p[:, 0]))) < hfov_deg / 2)
+        return p[seen] + rng.normal(0, noise_m, (int(seen.sum()), 3))
+
+    mp.setattr(mr._Rover, "tick", tick)
+    mp.setattr(OnlineLocalizer, "_detect", detect)
+
+
+def _run(paths, rocks_csv, reference=None, shift_owner_m=None):
+    import lunarloc.multirover as mr
+
+    with pytest.MonkeyPatch.context() as mp:
+        _rock_detector(mp, rocks_csv)
+        if shift_owner_m is not None:  # traverse_0's live map is off by a rigid shift its sigma does not admit
+            orig = mr._Rover.live_map
+
+            def live_map(self, t, refresh_s):
+                m = orig(self, t, refresh_s)
+                if m is None or self.name != "traverse_0":
+                    return m
+                lm = m.landmarks
+                shifted = mr.LandmarkMap(lm.positions_xyz + [shift_owner_m, 0.0, 0.0], lm.sizes, lm.sightings, lm.frame,
+                                         lm.sigma_xy_m, lm.sigma_z_m)  # fmt: skip
+                return mr._LiveMap(shifted, m.owner_sigma_m, m.owner_sigma_yaw_rad, m.key, m.built_t)
+
+            mp.setattr(mr._Rover, "live_map", live_map)
+        return mr.run_rovers(paths, reference, _cfg(share_maps=True))
+
+
+def test_shared_maps_align_rovers_without_a_reference(pair):
+    out, paths = pair
+    res = _run(paths, out / "rocks.csv")
+    shared = [a for r in res.rovers for a in r.shared if a.accepted]
+    assert len(shared) >= 2  # the rovers did align to each other
+    for a in shared:
+        # a fix is as good as the owner's estimate: never off by more than twice its stated sigma
+        assert a.fix_error_m < 2 * a.fix_sigma_m, a
+        assert a.fix_sigma_m >= a.owner_sigma_m > 0  # the owner's uncertainty is in the fix
+    for r in res.rovers:
+        s = r.result.summary()
+        assert s["ate_corrected"]["rmse_m"] <= s["ate_odometry"]["rmse_m"] + 0.02, (r.name, s)
+
+
+def test_a_wrong_live_map_does_not_pull_a_rover(pair):
+    """traverse_0's live map shifted 4 m, far more than its and traverse_1's sigmas admit (the
+    gate's drift model allows ~0.7 m after these 13 m): traverse_1 does not follow it. (Within
+    that envelope a map that misstates its accuracy can pull a rover, as a wrong reference can.)"""
+    out, paths = pair
+    res = _run(paths, out / "rocks.csv", shift_owner_m=4.0)
+    r1 = next(r for r in res.rovers if r.name == "traverse_1")
+    tried = [a for a in r1.shared if a.success]
+    assert tried, "the shifted map was never matched: the test would prove nothing"
+    assert not any(a.accepted for a in tried), [(a.fix_error_m, a.gate_d2) for a in tried]
+    s = r1.result.summary()
+    assert s["ate_corrected"]["max_m"] <= s["ate_odometry"]["max_m"] + 0.02, s
