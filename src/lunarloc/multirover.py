@@ -253,15 +253,16 @@ class _Rover:
             online = replace(online, reference_max_distance_m=math.inf)
         self.has_reference = reference is not None
         detector_config = cfg.run.detector_for(rig.camera.width)
+        lander = ar.initial.get("lander")  # rover-relative at the start; detections on the lander are dropped
         if reference is None:
             # OnlineLocalizer wants a reference of >= 3 landmarks; a rover without one is given
             # three far away and then an empty map, against which every attempt finds nothing
             # (recorded by the loop, dropped from the outputs), so only shared fixes correct it.
             far = T0[:3, 3] + np.array([[1e6, 0, 0], [1e6, 1, 0], [1e6, 0, 1]])
-            self.loc = OnlineLocalizer(LandmarkMap(far, frame="map"), T0, online, rig, detector_config)
+            self.loc = OnlineLocalizer(LandmarkMap(far, frame="map"), T0, online, rig, detector_config, lander)
             self.loc.reference = self.loc.loop.reference = LandmarkMap(np.zeros((0, 3)), frame="map")
         else:
-            self.loc = OnlineLocalizer(reference, T0, online, rig, detector_config)
+            self.loc = OnlineLocalizer(reference, T0, online, rig, detector_config, lander)
         self.detector_config = self.loc.detector.config
         self.camera = rig.camera
         self.rocks = ar.custom("rocks").to_array(("id", "x", "y", "z", "radius")) if "rocks" in ar.custom_records else None
