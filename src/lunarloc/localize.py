@@ -1107,7 +1107,7 @@ def _search_3d(Pv, Pr, node_of, assoc, cfg):
 
 def _explained(T, Pv, Pr, assoc, radius):
     """Associations consistent with T (their landmarks land within `radius`)."""
-    d = np.linalg.norm(transform_points(T, Pv[assoc[:, 0]]) - Pr[assoc[:, 1]], axis=1)
+    d = np.linalg.norm(transform_points(T, Pv)[assoc[:, 0]] - Pr[assoc[:, 1]], axis=1)  # each landmark moved once
     return d < radius
 
 
@@ -1219,6 +1219,13 @@ class _BestYaw(float):
     index: RefPairIndex
     upper: np.ndarray
     best_size: int
+    edges: dict | None  # bin -> (eu, ev) of the bins the search built (exact solver, up to _EDGE_CACHE_MAX)
+
+
+_EDGE_CACHE_MAX = 8_000_000
+"""Edges (8 bytes each) of the built bins the search keeps for the same-yaw competitor
+search, which needs the graphs of the bins around the winner again (13-15: 1.4 million
+edges in all); beyond it the competitor rebuilds the bins it needs."""
 
 
 def _far_pairs_floor(values: np.ndarray, n_bins: int, sep_bins: float) -> int:
@@ -1265,7 +1272,16 @@ def _search_yaw_bins(Pv, Pr, node_of, cfg):
     def lb_now() -> int:
         return max(int(state["best"] // cfg.competitor_ratio), state["floor"])
 
+    edges = {} if cfg.solver is Solver.EXACT else None  # clique sizes do not depend on edge order
+    kept = [0]
+
     def visit_chunk(bins, ptr, su, sv, sw):
+        if edges is not None:
+            with lock:
+                if kept[0] + len(su) <= _EDGE_CACHE_MAX:
+                    kept[0] += len(su)
+                    for t, b in enumerate(bins):
+                        edges[b] = (su[ptr[t]:ptr[t + 1]], sv[ptr[t]:ptr[t + 1]])
         for t in sorted(range(len(bins)), key=lambda t: -upper[bins[t]]):
             b = bins[t]
             with lock:
@@ -1306,7 +1322,7 @@ def _search_yaw_bins(Pv, Pr, node_of, cfg):
     far = _far_mask(n_bins, sep_bins)[b_best]
     second = max([state["floor"], int(lower[far].max(initial=0))] + [len(c) for b, c in found.items() if far[b]])
     best_yaw = _BestYaw(-math.pi + (b_best + 0.5) * step)
-    best_yaw.index, best_yaw.upper, best_yaw.best_size = index, upper, size
+    best_yaw.index, best_yaw.upper, best_yaw.best_size, best_yaw.edges = index, upper, size, edges
     return found[b_best], int(second), best_yaw, total_edges
 
 
@@ -1345,6 +1361,23 @@ def _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw, floor: int = 
                 with lock:
                     state["best"] = max(state["best"], len(c))
 
+    cached = best_yaw.edges if isinstance(best_yaw, _BestYaw) and best_yaw.edges is not None else {}
+    if any(b in cached for b in bins):
+        # a bin the search built: its graph without the explained associations is its edges
+        # minus those touching them (the same edges the rebuild below would give, in
+        # another order: the maximum clique's size, all that is kept, is the same)
+        removed = np.zeros(n_assoc, dtype=bool)
+        removed[node_of[assoc[explained, 0], assoc[explained, 1]]] = True
+        for b in [b for b in bins if b in cached]:
+            eu, ev = cached[b]
+            keep = ~(removed[eu] | removed[ev])
+            if keep.any():
+                eu, ev = eu[keep], ev[keep]
+                c = _solve(cfg.solver, n_assoc, eu, ev, eu, state["best"], cfg.seed, scratch.arr)
+                state["best"] = max(state["best"], len(c))
+        bins = [b for b in bins if b not in cached]
+        if not bins:
+            return state["best"] if state["best"] > lb0 else floor
     vp = vehicle_pairs(Pv)
     index = index if index is not None else _ref_index(Pr, cfg)
     sweep_bin_chunks(vp, index, node2, n_bins, yaw_bin_chunks(n_bins, _chunk_bins(cfg), bins), *_graph_args(cfg),
