@@ -36,11 +36,18 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=None, help="search threads (default: the config's)")
     ap.add_argument("--pairs", nargs="*", help="pairs as A-B (default: all)")
     ap.add_argument("--repeat", type=int, default=1, help="calls per pair; the fastest is kept")
+    ap.add_argument("--unbounded", action="store_true", help="state no odometry bounds (the distortion is fitted "
+                    "from the maps, as a one-shot `lunarloc localize` does)")
     ap.add_argument("--compare", help="earlier JSON of this script: list pairs whose answer differs")
     args = ap.parse_args()
     pairs = ([tuple(int(x) for x in p.split("-")) for p in args.pairs] if args.pairs
              else list(itertools.combinations(sorted(find_traverses(args.data)), 2)))
-    cfg = LocalizationConfig() if args.threads is None else LocalizationConfig(threads=args.threads)
+    # as `lunarloc bench pairs` runs them: the maps are rigid (ground-truth poses), and the
+    # localizer is told so (odometry bounds 0); without bounds it fits the distortion instead
+    bounds = dict(odometry_scale_error=0.0, odometry_heading_drift_deg_per_m=0.0)
+    if args.unbounded:
+        bounds = {}
+    cfg = LocalizationConfig(**bounds) if args.threads is None else LocalizationConfig(threads=args.threads, **bounds)
     calls = []
 
     def timed_localize(*a, **k):  # bench_pairs' own loop, with each call's CPU and wall time kept

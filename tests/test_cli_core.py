@@ -83,3 +83,42 @@ def test_usage_errors_exit_2(capsys):
     assert main(["localize", "--bogus"]) == 2
     assert "No such option" in capsys.readouterr().err
     assert main(["no-such-command"]) == 2
+
+
+def test_lazy_command_table_matches_registered_commands():
+    """`main` imports only the invoked command's module (issue 14: a warm `localize` should
+    not import the renderer or the fusion stack); the table it uses must name every command
+    the modules register, in the module that registers it."""
+    import importlib
+
+    app_mod = importlib.import_module("lunarloc.cli.app")
+    app_mod._register_commands()
+    registered = {c.name for c in app_mod.app.registered_commands} | {g.name for g in app_mod.app.registered_groups}
+    assert registered == set(app_mod._MODULES_OF_COMMAND)
+    for name, modules in app_mod._MODULES_OF_COMMAND.items():
+        owners = [m for m in modules if any(
+            getattr(c.callback, "__module__", "") == f"lunarloc.cli.{m}" for c in app_mod.app.registered_commands
+            if c.name == name)]
+        if name != "bench":  # a group: its subcommands live in several modules
+            assert owners == list(modules), name
+    assert set(m for ms in app_mod._MODULES_OF_COMMAND.values() for m in ms) == set(app_mod._COMMAND_MODULES)
+
+
+def test_help_lists_every_command(capsys):
+    assert main(["--help"]) == 0
+    out = capsys.readouterr().out
+    from lunarloc.cli.app import _MODULES_OF_COMMAND
+
+    for name in _MODULES_OF_COMMAND:
+        assert name in out
+
+
+def test_localize_imports_only_its_module(tmp_path):
+    """In a fresh process, `lunarloc localize --help` leaves the other command modules unimported."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from lunarloc.cli import main; main(['localize', '--help']); "
+            "print(sorted(m for m in sys.modules if m.startswith('lunarloc.cli.commands_')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip().splitlines()[-1] == "['lunarloc.cli.commands_core']"

@@ -131,3 +131,25 @@ def test_search_tolerance_follows_the_maps_sigma(rng):
     assert L.chance_clique_size(m, cfg.mode, wide.epsilon_m, wide.epsilon_z_m) > L.chance_clique_size(m, cfg.mode)
     fixed = L.LocalizationConfig(search_sigmas=0).for_maps(grid, veh)
     assert fixed.epsilon_m == cfg.epsilon_m
+
+
+def test_same_yaw_competitor_from_the_kept_edges_equals_the_rebuilt_one(rng):
+    """The same-yaw competitor search reuses the edges of the bins the main search built
+    (minus the winner's explained associations); it must give what rebuilding them gives,
+    with a floor low enough that every bin near the winner is searched."""
+    from lunarloc.geometry import arun
+
+    for _ in range(3):
+        # a repeated pattern at the same heading: a real same-yaw competitor to find
+        cfg, Pv, Pr, node_of = _setup(rng, n_common=25, n_outliers=5)
+        assoc = np.argwhere(node_of >= 0)
+        assoc = assoc[np.argsort(node_of[assoc[:, 0], assoc[:, 1]])]
+        best, _competitor, yaw, _ = L._search_yaw_bins(Pv, Pr, node_of, cfg)
+        inl = assoc[best]
+        T = arun(Pv[inl[:, 0]], Pr[inl[:, 1]])
+        assert yaw.edges, "the search keeps the edges of the bins it built"
+        yaw.best_size = 2  # lb0 = 1: every bin near the winner holding an edge is searched
+        kept = L._competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, yaw, 0)
+        yaw.edges = None
+        rebuilt = L._competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, yaw, 0)
+        assert kept == rebuilt

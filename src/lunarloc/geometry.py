@@ -11,6 +11,8 @@ Conventions
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from lunarloc.errors import DegenerateGeometryError, InputError
@@ -209,3 +211,12 @@ def arun_yaw(src, dst, weights=None, *, min_spread: float = 1e-3) -> np.ndarray:
     sxy = w @ (A[:, 0] * B[:, 1] - A[:, 1] * B[:, 0])
     R = rot_z(float(np.arctan2(sxy, sxx)))
     return make_transform(R, mu_d - R @ mu_s)
+
+
+def exp_so3(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the rotation vector `w` (Rodrigues)."""
+    th = math.sqrt(float(w @ w))
+    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if th < 1e-9:
+        return np.eye(3) + K
+    return np.eye(3) + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / th**2) * (K @ K)

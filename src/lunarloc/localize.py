@@ -35,7 +35,7 @@ from lunarloc.association.graph import (
 from lunarloc.association.putative import putative_associations
 from lunarloc.errors import ConfigError, DegenerateGeometryError, InputError
 from lunarloc.geometry import (
-    arun, arun_yaw, as_points, invert_transform, make_transform, rot_z, tilt_angle, transform_points, yaw_of,
+    arun, arun_yaw, as_points, exp_so3, invert_transform, make_transform, rot_z, tilt_angle, transform_points, yaw_of,
 )
 from lunarloc.maps import LandmarkMap
 
@@ -519,13 +519,14 @@ def predicted_error(T, P, Q, weights, query_xyz, sigma_floor: float = 0.005) -> 
     return out
 
 
-def _arc_length_at(path_xyz: np.ndarray, points_xyz: np.ndarray) -> np.ndarray:
+def _arc_length_at(path_xyz: np.ndarray, *points_xyz: np.ndarray) -> list[np.ndarray]:
     """Distance travelled along `path_xyz` (F, 3) to its point nearest (horizontally) to
-    each of `points_xyz`: when the odometry was there."""
+    each point of each set in `points_xyz`: when the odometry was there. One tree of the
+    path for all the sets (a path at the frame rate holds thousands of poses)."""
     path = np.asarray(path_xyz, float)
     s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))]
-    _, j = cKDTree(path[:, :2]).query(np.asarray(points_xyz, float)[:, :2])
-    return s[j]
+    tree = cKDTree(path[:, :2], balanced_tree=False, compact_nodes=False)  # built for a few queries: the quick build
+    return [s[tree.query(np.asarray(p, float)[:, :2])[1]] for p in points_xyz]
 
 
 def distortion_allowance(query_xyz, inliers_xyz, weights, scale_error: float, heading_drift_rad_per_m: float,
@@ -547,8 +548,7 @@ def distortion_allowance(query_xyz, inliers_xyz, weights, scale_error: float, he
     if path_xyz is not None and len(path_xyz) >= 2:
         # the fit's heading is a weighted mean of the inliers' local headings: it differs
         # from the query's by at most the drift over the longest stretch between them
-        s_inl = _arc_length_at(path_xyz, inliers_xyz)
-        s_q = _arc_length_at(path_xyz, q)
+        s_inl, s_q = _arc_length_at(path_xyz, inliers_xyz, q)
         D = np.maximum(np.abs(s_q - s_inl.min()), np.abs(s_q - s_inl.max()))
     else:
         D = L
@@ -613,16 +613,25 @@ class _Unbender:
         self.steps = np.diff(self.path, axis=0)
         self.s = np.r_[0.0, np.cumsum(np.linalg.norm(self.steps[:, :2], axis=1))]
         self.tree = cKDTree(self.path[:, :2])
+        self._last = None
 
     def index(self, points_xyz: np.ndarray) -> np.ndarray:
         return self.tree.query(np.asarray(points_xyz, float)[:, :2])[1]
 
+    def _bent_path(self, delta: float, kappa: float) -> np.ndarray:
+        # the last one is kept: a finite-difference Jacobian varies one parameter at a time,
+        # so most of its calls share (delta, kappa) and the re-integration
+        if self._last is None or self._last[0] != (delta, kappa):
+            a = -delta * self.s[1:]
+            c, sn = np.cos(a), np.sin(a)
+            st = self.steps
+            turned = np.stack([c * st[:, 0] - sn * st[:, 1], sn * st[:, 0] + c * st[:, 1], st[:, 2]], axis=1)
+            path = self.path[0] + np.vstack([np.zeros((1, 3)), np.cumsum(turned / (1.0 + kappa), axis=0)])
+            self._last = ((delta, kappa), path)
+        return self._last[1]
+
     def __call__(self, points_xyz: np.ndarray, idx: np.ndarray, delta: float, kappa: float) -> np.ndarray:
-        a = -delta * self.s[1:]
-        c, sn = np.cos(a), np.sin(a)
-        st = self.steps
-        turned = np.stack([c * st[:, 0] - sn * st[:, 1], sn * st[:, 0] + c * st[:, 1], st[:, 2]], axis=1)
-        path = self.path[0] + np.vstack([np.zeros((1, 3)), np.cumsum(turned / (1.0 + kappa), axis=0)])
+        path = self._bent_path(float(delta), float(kappa))
         rel = np.asarray(points_xyz, float) - self.path[idx]
         b = -delta * self.s[idx]
         cb, sb = np.cos(b), np.sin(b)
@@ -654,8 +663,8 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
     tree = cKDTree(Pr)
     R0 = Rotation.from_matrix(T[:3, :3]).as_rotvec()
 
-    def model_T(x):
-        return make_transform(Rotation.from_rotvec(x[:3]).as_matrix(), x[3:6])
+    def model_T(x):  # Rodrigues: scipy's Rotation costs ~25 us a call here, called ~100 times per fit
+        return make_transform(exp_so3(x[:3]), x[3:6])
 
     def apply(x, P, idx):
         return transform_points(model_T(x), unb(P, idx, x[6], x[7]))
@@ -695,7 +704,9 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
 
     def at_query(xx):  # positions (3 per query point), then the map's local heading at each
         R = model_T(xx)[:3, :3]
-        return np.r_[apply(xx, q, idx_q).ravel(), [yaw_of(R @ rot_z(h)) for h in unb.heading(idx_q, xx[6])]]
+        h = unb.heading(idx_q, xx[6])  # yaw_of(R @ rot_z(h)) for every h at once
+        c, s = np.cos(h), np.sin(h)
+        return np.r_[apply(xx, q, idx_q).ravel(), np.arctan2(R[1, 0] * c + R[1, 1] * s, R[0, 0] * c + R[0, 1] * s)]
 
     f0 = at_query(x)
     Jq = np.empty((len(f0), 8))
@@ -1096,7 +1107,7 @@ def _search_3d(Pv, Pr, node_of, assoc, cfg):
 
 def _explained(T, Pv, Pr, assoc, radius):
     """Associations consistent with T (their landmarks land within `radius`)."""
-    d = np.linalg.norm(transform_points(T, Pv[assoc[:, 0]]) - Pr[assoc[:, 1]], axis=1)
+    d = np.linalg.norm(transform_points(T, Pv)[assoc[:, 0]] - Pr[assoc[:, 1]], axis=1)  # each landmark moved once
     return d < radius
 
 
@@ -1208,6 +1219,13 @@ class _BestYaw(float):
     index: RefPairIndex
     upper: np.ndarray
     best_size: int
+    edges: dict | None  # bin -> (eu, ev) of the bins the search built (exact solver, up to _EDGE_CACHE_MAX)
+
+
+_EDGE_CACHE_MAX = 8_000_000
+"""Edges (8 bytes each) of the built bins the search keeps for the same-yaw competitor
+search, which needs the graphs of the bins around the winner again (13-15: 1.4 million
+edges in all); beyond it the competitor rebuilds the bins it needs."""
 
 
 def _far_pairs_floor(values: np.ndarray, n_bins: int, sep_bins: float) -> int:
@@ -1254,7 +1272,16 @@ def _search_yaw_bins(Pv, Pr, node_of, cfg):
     def lb_now() -> int:
         return max(int(state["best"] // cfg.competitor_ratio), state["floor"])
 
+    edges = {} if cfg.solver is Solver.EXACT else None  # clique sizes do not depend on edge order
+    kept = [0]
+
     def visit_chunk(bins, ptr, su, sv, sw):
+        if edges is not None:
+            with lock:
+                if kept[0] + len(su) <= _EDGE_CACHE_MAX:
+                    kept[0] += len(su)
+                    for t, b in enumerate(bins):
+                        edges[b] = (su[ptr[t]:ptr[t + 1]], sv[ptr[t]:ptr[t + 1]])
         for t in sorted(range(len(bins)), key=lambda t: -upper[bins[t]]):
             b = bins[t]
             with lock:
@@ -1295,7 +1322,7 @@ def _search_yaw_bins(Pv, Pr, node_of, cfg):
     far = _far_mask(n_bins, sep_bins)[b_best]
     second = max([state["floor"], int(lower[far].max(initial=0))] + [len(c) for b, c in found.items() if far[b]])
     best_yaw = _BestYaw(-math.pi + (b_best + 0.5) * step)
-    best_yaw.index, best_yaw.upper, best_yaw.best_size = index, upper, size
+    best_yaw.index, best_yaw.upper, best_yaw.best_size, best_yaw.edges = index, upper, size, edges
     return found[b_best], int(second), best_yaw, total_edges
 
 
@@ -1334,6 +1361,23 @@ def _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw, floor: int = 
                 with lock:
                     state["best"] = max(state["best"], len(c))
 
+    cached = best_yaw.edges if isinstance(best_yaw, _BestYaw) and best_yaw.edges is not None else {}
+    if any(b in cached for b in bins):
+        # a bin the search built: its graph without the explained associations is its edges
+        # minus those touching them (the same edges the rebuild below would give, in
+        # another order: the maximum clique's size, all that is kept, is the same)
+        removed = np.zeros(n_assoc, dtype=bool)
+        removed[node_of[assoc[explained, 0], assoc[explained, 1]]] = True
+        for b in [b for b in bins if b in cached]:
+            eu, ev = cached[b]
+            keep = ~(removed[eu] | removed[ev])
+            if keep.any():
+                eu, ev = eu[keep], ev[keep]
+                c = _solve(cfg.solver, n_assoc, eu, ev, eu, state["best"], cfg.seed, scratch.arr)
+                state["best"] = max(state["best"], len(c))
+        bins = [b for b in bins if b not in cached]
+        if not bins:
+            return state["best"] if state["best"] > lb0 else floor
     vp = vehicle_pairs(Pv)
     index = index if index is not None else _ref_index(Pr, cfg)
     sweep_bin_chunks(vp, index, node2, n_bins, yaw_bin_chunks(n_bins, _chunk_bins(cfg), bins), *_graph_args(cfg),

@@ -30,17 +30,39 @@ def console():
     return Console(width=None if sys.stdout.isatty() else 130)
 
 
-def _register_commands() -> None:
-    # Each command group lives in its own module; importing registers it on `app`.
-    from lunarloc.cli import commands_core  # noqa: F401
-    from lunarloc.cli import commands_data  # noqa: F401
-    from lunarloc.cli import commands_sim  # noqa: F401
-    from lunarloc.cli import commands_perception  # noqa: F401
-    from lunarloc.cli import commands_run  # noqa: F401
-    from lunarloc.cli import commands_campaign  # noqa: F401
-    from lunarloc.cli import commands_setup  # noqa: F401
-    from lunarloc.cli import commands_odometry  # noqa: F401
-    from lunarloc.cli import commands_overhead  # noqa: F401
+_COMMAND_MODULES = (
+    "commands_core", "commands_data", "commands_sim", "commands_perception", "commands_run",
+    "commands_campaign", "commands_setup", "commands_odometry", "commands_overhead",
+)
+"""Every command module; importing one registers its commands on `app`."""
+
+_MODULES_OF_COMMAND = {
+    "map": ("commands_core",), "localize": ("commands_core",),
+    "bench": ("commands_core", "commands_run"),  # `bench pairs` and `bench loop`
+    "info": ("commands_data",), "simulate": ("commands_sim",), "detect": ("commands_perception",),
+    "run": ("commands_run",), "plot": ("commands_run",), "demo": ("commands_run",),
+    "campaign": ("commands_campaign",), "warm-up": ("commands_setup",),
+    "odometry": ("commands_odometry",), "score": ("commands_overhead",),
+}
+"""Where each top-level command lives, so that a call imports only its own module (the
+renderer, OpenCV, fusion and the campaign engine stay out of `lunarloc localize`). A name
+not listed here (``--help``, a typo, a command added without updating this table) imports
+every module, so the table can only make a call faster, never hide a command; a test checks
+that it matches what the modules register."""
+
+
+def _register_commands(argv: list[str] | None = None) -> None:
+    """Import the command modules: only the invoked command's when ``argv`` names a listed
+    one (its first word not starting with ``-``), else all of them (help, listings)."""
+    import importlib
+
+    first = next((a for a in (argv or ()) if not a.startswith("-")), None)
+    if argv is not None and first in _MODULES_OF_COMMAND and "--help" not in argv[: argv.index(first)]:
+        names = _MODULES_OF_COMMAND[first]
+    else:
+        names = _COMMAND_MODULES
+    for name in names:
+        importlib.import_module(f"lunarloc.cli.{name}")
 
 
 _STATE = {"debug": False}
@@ -81,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     a hidden ``.NAME.tmp-*`` file, never a truncated output under its real name."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     _STATE["debug"] = False
-    _register_commands()
+    _register_commands(sys.argv[1:] if argv is None else list(argv))
     return _run(argv)
 
 

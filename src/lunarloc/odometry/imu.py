@@ -30,6 +30,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from lunarloc.errors import ConfigError, InputError
+from lunarloc.geometry import exp_so3 as _exp_so3
 
 __all__ = ["ImuOdometryConfig", "ImuSamples", "integrate_imu", "relative_motions", "imu_samples_from_archive",
            "imu_odometry"]
@@ -102,15 +103,6 @@ def imu_samples_from_archive(archive) -> ImuSamples:
     accel = np.column_stack([cols[c] for c in IMU_COLUMNS[:3]])
     gyro = np.column_stack([cols[c] for c in IMU_COLUMNS[3:]])
     return ImuSamples(frames, t, accel, gyro, cols["linear_speed"])
-
-
-def _exp_so3(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix of the rotation vector `w` (Rodrigues)."""
-    th = math.sqrt(float(w @ w))
-    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if th < 1e-9:
-        return np.eye(3) + K
-    return np.eye(3) + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / th**2) * (K @ K)
 
 
 def _orthonormalize(R: np.ndarray) -> np.ndarray:
