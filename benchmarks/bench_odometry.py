@@ -21,6 +21,9 @@ the prior: gyro-aided tracking, fallback on failed frames); ``visual-noprior`` r
 wall time and, less sensitive to a shared CPU, in process CPU time (``cpu_pairs_per_s``
 in the JSON: all of OpenCV's threads together; ``cpu_ms_per_pair`` for both visual rows,
 the dispatcher's including image decoding and the IMU integration).
+With ``--keep-archives`` the site's rock list is kept too (``rocks_SEED.csv``), so
+``lunarloc run traverse_SEED.lac --reference rocks_SEED.csv -o RUN`` can follow (``run``
+uses ``visual`` by default whatever custom records the archive has).
 ``--distance M`` picks, per seed, the shortest duration (multiple of 10 s) whose path is
 at least M metres (instead of ``--duration``). ``--archives`` scores existing archives
 (e.g. kept with ``--keep-archives``) instead of simulating.
@@ -130,6 +133,8 @@ def main() -> None:
             t0 = time.perf_counter()
             path, _ = simulate_traverse(site, args.out / f"traverse_{seed}.lac", 0, run_cfg)
             t_sim = round(time.perf_counter() - t0, 1)
+            if args.keep_archives:  # the reference for `lunarloc run` on the kept archive
+                site.write_rocks_csv(args.out / f"rocks_{seed}.csv")
         with LacArchive(path) as ar:
             gt = ground_truth_poses(ar)
             width = int(ar.configured_cameras.get("FrontLeft", {}).get("width", 0) or 0) or None
