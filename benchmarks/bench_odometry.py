@@ -19,7 +19,11 @@ the prior: gyro-aided tracking, fallback on failed frames); ``visual-noprior`` r
 :func:`lunarloc.odometry.visual.visual_odometry_frames` alone (images only), and its
 ``pairs/s`` counts only ``StereoVisualOdometry.update`` (image decoding excluded), in
 wall time and, less sensitive to a shared CPU, in process CPU time (``cpu_pairs_per_s``
-in the JSON: all of OpenCV's threads together).
+in the JSON: all of OpenCV's threads together; ``cpu_ms_per_pair`` for both visual rows,
+the dispatcher's including image decoding and the IMU integration).
+With ``--keep-archives`` the site's rock list is kept too (``rocks_SEED.csv``), so
+``lunarloc run traverse_SEED.lac --reference rocks_SEED.csv -o RUN`` can follow (``run``
+uses ``visual`` by default whatever custom records the archive has).
 ``--distance M`` picks, per seed, the shortest duration (multiple of 10 s) whose path is
 at least M metres (instead of ``--duration``). ``--archives`` scores existing archives
 (e.g. kept with ``--keep-archives``) instead of simulating.
@@ -88,7 +92,7 @@ def visual_noprior(archive, T_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray, d
     idx = np.array([index[int(f)] for f in frames])
     T_map = np.einsum("ij,njk->nik", T_gt[idx[0]] @ invert_transform(T[0]), T)
     stats = {"pairs_per_s": round(len(frames) / busy, 2), "cpu_pairs_per_s": round(len(frames) / max(cpu, 1e-9), 2),
-             "failures": fails, "time_s": round(busy, 3)}  # fmt: skip
+             "cpu_ms_per_pair": round(1000 * cpu / len(frames), 1), "failures": fails, "time_s": round(busy, 3)}  # fmt: skip
     return idx, T_map, stats
 
 
@@ -113,38 +117,49 @@ def main() -> None:
                            imu=ImuConfig(gyro_bias_rad_s=args.gyro_bias))  # fmt: skip
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
-    print(f"{'seed':>4} {'source':>16} {'path m':>7} {'final %':>8} {'deg/m':>8} {'RMSE m':>7} {'time s':>7} {'pairs/s':>8}")
-    jobs = [(p.stem, None) for p in args.archives] if args.archives else [(seed, seed) for seed in args.seeds]
+    print(f"{'seed':>4} {'source':>16} {'path m':>7} {'final %':>8} {'deg/m':>8} {'RMSE m':>7} {'time s':>7} {'pairs/s':>8} "
+          f"{'CPU ms/pair':>11}")  # fmt: skip
+    # an archive is named by its stem, or by its folder and stem where stems repeat (.../s13/bare.lac)
+    stems = [p.stem for p in args.archives or []]
+    named = [(p.stem if stems.count(p.stem) == 1 else f"{p.parent.name}/{p.stem}", p) for p in args.archives or []]
+    jobs = [(name, None) for name, _ in named] if args.archives else [(seed, seed) for seed in args.seeds]
     for name, seed in jobs:
         t_sim = None
         if seed is None:
-            path = next(p for p in args.archives if p.stem == name)
+            path = dict(named)[name]
         else:
             site = simulate_site(seed, cfg.site)
             run_cfg = replace(cfg, duration_s=duration_for(site, args.distance, cfg)) if args.distance else replace(cfg)
             t0 = time.perf_counter()
             path, _ = simulate_traverse(site, args.out / f"traverse_{seed}.lac", 0, run_cfg)
             t_sim = round(time.perf_counter() - t0, 1)
+            if args.keep_archives:  # the reference for `lunarloc run` on the kept archive
+                site.write_rocks_csv(args.out / f"rocks_{seed}.csv")
         with LacArchive(path) as ar:
             gt = ground_truth_poses(ar)
             width = int(ar.configured_cameras.get("FrontLeft", {}).get("width", 0) or 0) or None
             for src in sources:
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 if src == NOPRIOR:
                     idx, T, extra = visual_noprior(ar, gt)
                     d, label = odometry_drift(T, gt[idx]), NOPRIOR
                 else:
                     traj = archive_odometry(ar, src)
-                    wall = time.perf_counter() - t0
+                    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
                     d, label = odometry_drift(traj.T_map_rover, gt), traj.label
                     pairs = int(traj.measured.sum()) if src == "visual" and traj.measured is not None else None
+                    # visual: image decoding and the IMU integration included
                     extra = {"time_s": round(wall, 3), "pairs_per_s": round(pairs / wall, 2) if pairs else None,
+                             "cpu_pairs_per_s": round(pairs / max(cpu, 1e-9), 2) if pairs else None,
+                             "cpu_ms_per_pair": round(1000 * cpu / pairs, 1) if pairs else None,
                              "failures": traj.failures}  # fmt: skip
                 row = {"seed": name, "source": label, "width": width, **extra, "simulate_s": t_sim, **d}
                 rows.append(row)
                 pps = "-" if row["pairs_per_s"] is None else f"{row['pairs_per_s']:.1f}"
+                cms = "-" if row.get("cpu_ms_per_pair") is None else f"{row['cpu_ms_per_pair']:.1f}"
                 print(f"{name!s:>4} {label:>16} {d['path_length_m']:>7.1f} {d['final_error_pct']:>8.3f} "
-                      f"{d['heading_deg_per_m']:>8.5f} {d['rmse_m']:>7.3f} {row['time_s']:>7.2f} {pps:>8}", flush=True)  # fmt: skip
+                      f"{d['heading_deg_per_m']:>8.5f} {d['rmse_m']:>7.3f} {row['time_s']:>7.2f} {pps:>8} {cms:>11}",
+                      flush=True)  # fmt: skip
         if seed is not None and not args.keep_archives:
             path.unlink()
     out = args.out / "bench_odometry.json"

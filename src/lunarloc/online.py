@@ -274,6 +274,9 @@ class OnlineLocalizer:
 
                 self._vo = StereoVisualOdometry(self.rig.camera, self._mounts[left].T_rover_optical,
                                                 self._mounts[right].T_rover_optical)  # fmt: skip
+                from lunarloc.odometry.tilt import GravityAlignedChain
+
+                self._vo_chain = GravityAlignedChain(self._vo.config.gravity_tilt_gain)  # roll/pitch from gravity
         # per-tick state (constant size)
         self._tick = 0
         self._t_prev: float | None = None
@@ -281,7 +284,7 @@ class OnlineLocalizer:
         self._speed_prev = 0.0
         self._T_map_imu = self.T_map_rover0.copy()  # IMU dead reckoning
         self._T_map_odo = self.T_map_rover0.copy()  # odometry (visual / IMU / caller), odo == map at start
-        self._vo_anchor = None  # (T_map_odo at the last VO pair, T_map_imu there, T_map_vo)
+        self._vo_anchor = None  # (T_map_odo at the last VO pair, T_map_imu there)
         self._T_odo_caller = None  # T_odo_caller: the caller's odometry frame in ours
         self._T_loop_odo = np.eye(4)  # the loop's odometry frame <- odo (changes at re-anchors)
         self._last_kf = None  # (t, T_odo_rover) of the last keyframe
@@ -360,7 +363,7 @@ class OnlineLocalizer:
         elif self._vo is not None and pair is not None and pair[0] == STEREO_PAIRS[0][0]:
             T_odo = self._visual(images, T_imu)
         elif self._vo_anchor is not None:  # bridge with the IMU since the last VO pair
-            T_odo_vo, T_imu_vo, _ = self._vo_anchor
+            T_odo_vo, T_imu_vo = self._vo_anchor
             T_odo = T_odo_vo @ invert_transform(T_imu_vo) @ T_imu
         else:
             T_odo = T_imu
@@ -463,12 +466,9 @@ class OnlineLocalizer:
         if self._vo_anchor is not None:
             prior = invert_transform(self._vo_anchor[1]) @ T_imu
         T_vo_rover = self._vo.update(images[left], images[right], prior)
-        if self._vo_anchor is None:
-            T_map_vo = self._T_map_odo_prediction(T_imu) @ invert_transform(T_vo_rover)
-        else:
-            T_map_vo = self._vo_anchor[2]
-        T_odo = T_map_vo @ T_vo_rover
-        self._vo_anchor = (T_odo, T_imu, T_map_vo)
+        # visual motion chained from the first pair's predicted pose, roll and pitch from the IMU's gravity
+        T_odo = self._vo_chain.add(T_vo_rover, T_imu, self._T_map_odo_prediction(T_imu))
+        self._vo_anchor = (T_odo, T_imu)
         return T_odo
 
     def _T_map_odo_prediction(self, T_imu: np.ndarray) -> np.ndarray:

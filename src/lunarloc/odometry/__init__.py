@@ -166,8 +166,11 @@ def archive_odometry(
         _, T = imu_odometry(archive, imu_config)
         return OdometryTrajectory(frames, times, T, src.value, False, np.ones(len(frames), bool))
     # record and visual: measured poses at some frames, IMU in between
+    def imu_poses() -> np.ndarray:
+        return integrate_imu(imu_samples_from_archive(archive), T0, imu_config)
+
     def imu_rel() -> np.ndarray:
-        return relative_motions(integrate_imu(imu_samples_from_archive(archive), T0, imu_config))
+        return relative_motions(imu_poses())
 
     if src is OdometrySource.RECORD:
         from lunarloc.odometry.record import read_record_poses
@@ -189,7 +192,7 @@ def archive_odometry(
         mask = np.zeros(len(frames), bool)
         mask[list(measured)] = True
         return OdometryTrajectory(frames, times, T, f"record:{name}", False, mask)
-    return _visual(archive, frames, times, T0, imu_rel, progress, visual_config)  # IMU once the pairs are known
+    return _visual(archive, frames, times, T0, imu_poses, progress, visual_config)  # IMU once the pairs are known
 
 
 def _bridge(n: int, T0: np.ndarray, imu_rel: np.ndarray, measured: dict[int, np.ndarray]) -> np.ndarray:
@@ -209,17 +212,20 @@ def _bridge(n: int, T0: np.ndarray, imu_rel: np.ndarray, measured: dict[int, np.
     return out
 
 
-def _visual(archive, frames, times, T0, imu_motions, progress, visual_config) -> OdometryTrajectory:
+def _visual(archive, frames, times, T0, imu_poses, progress, visual_config) -> OdometryTrajectory:
     pair_frames = _front_pair_frames(archive)
     if not pair_frames:
         raise InputError(
             f"{archive.path}: no frame has both {FRONT_PAIR[0]} and {FRONT_PAIR[1]} images: "
             "visual odometry needs the front stereo pair (use --odometry imu)"
         )
-    from lunarloc.odometry.visual import StereoVisualOdometry
+    from lunarloc.odometry.tilt import GravityAlignedChain
+    from lunarloc.odometry.visual import StereoVisualOdometry, VisualOdometryConfig
     from lunarloc.perception.detector import _camera_from_archive, mounts_from_archive_row
 
-    imu_rel = imu_motions()
+    T_imu = imu_poses()
+    imu_rel = relative_motions(T_imu)
+    chain = GravityAlignedChain((visual_config or VisualOdometryConfig()).gravity_tilt_gain)
 
     camera = _camera_from_archive(archive)
     # camera body poses from the first pair's rows (the IPEx rig where a row has none), as
@@ -233,7 +239,6 @@ def _visual(archive, frames, times, T0, imu_motions, progress, visual_config) ->
     n = len(frames)
     out = np.empty((n, 4, 4))
     measured = np.zeros(n, bool)
-    T_map_odo = None
     last = None
     failures = 0
     k_next = 0
@@ -246,9 +251,8 @@ def _visual(archive, frames, times, T0, imu_motions, progress, visual_config) ->
             left, right = (imgs[(c, f, "grayscale")] for c in FRONT_PAIR)
             prior = None if last is None else invert_transform(out[last]) @ out[i]
             T_odo_rover = vo.update(left, right, prior)
-            if T_map_odo is None:
-                T_map_odo = out[i] @ invert_transform(T_odo_rover)
-            out[i] = T_map_odo @ T_odo_rover
+            # visual motion chained from the first pair's IMU-propagated pose, roll and pitch from gravity
+            out[i] = chain.add(T_odo_rover, T_imu[i], out[i])
             measured[i] = True
             failures += 0 if getattr(vo, "last_ok", True) else 1
             last = i

@@ -35,6 +35,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
+from enum import Enum
 
 import numpy as np
 
@@ -43,6 +44,7 @@ from lunarloc.geometry import invert_transform, make_transform, rotation_angle
 from lunarloc.perception.camera import PinholeCamera
 
 __all__ = [
+    "ImageNormalization",
     "VisualOdometryConfig",
     "StereoVisualOdometry",
     "front_pair_setup",
@@ -51,6 +53,22 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 logger.addHandler(logging.NullHandler())
+
+
+class ImageNormalization(str, Enum):
+    """What the images go through before corners, stereo matching and tracking.
+
+    ``local-contrast``: each pixel becomes its contrast against a Gaussian-weighted local
+    mean, ``(I - mean) / (mean + 4)``, so a brightness gradient that moves with the camera
+    (the rover's lamp fall-off, its light cone on the ground) is divided out instead of
+    pulling the Lucas-Kanade flow toward zero. ``clahe``: OpenCV's contrast-limited
+    adaptive histogram equalisation. ``none``: the raw images. The sky mask is always
+    taken from the raw image.
+    """
+
+    NONE = "none"
+    LOCAL_CONTRAST = "local-contrast"
+    CLAHE = "clahe"
 
 
 @dataclass(frozen=True)
@@ -62,6 +80,10 @@ class VisualOdometryConfig:
     feature_quality: float = 0.005  # goodFeaturesToTrack qualityLevel (fraction of the best corner)
     min_feature_distance_frac: float = 0.012  # min distance between corners, fraction of the image width
     border_px: int = 8  # corners closer than this to the image border are not used
+    normalization: ImageNormalization = ImageNormalization.LOCAL_CONTRAST  # applied before detection, stereo and tracking
+    normalization_sigma_frac: float = 0.01  # local-contrast: Gaussian sigma, fraction of the image width ...
+    normalization_min_sigma_px: float = 6.0  # ... and at least this (small images: a tiny sigma keeps only noise)
+    normalization_gain: float = 255.0  # local-contrast: grey levels per unit of relative contrast (centred on 128)
     detect_max_width_px: int = 640  # corners are detected on the image reduced to at most this width
     sky_threshold: int = 6  # pixels at or below this grey level are sky (or unlit void)
     sky_dilate_frac: float = 0.01  # grow the sky mask by this fraction of the width (horizon edge)
@@ -95,9 +117,22 @@ class VisualOdometryConfig:
     keyframe_min_fraction: float = 0.5  # ... or fewer than this fraction of the keyframe's points
     keyframe_max_translation_m: float = 1.5  # ... or the rover moved farther than this from the keyframe
     constant_velocity: bool = True  # without a prior, predict the next pose by the last motion
+    # -- fusion with the IMU (lunarloc.odometry.tilt.GravityAlignedChain, used where an IMU
+    # attitude exists: archive odometry and the online component; the class itself ignores it)
+    gravity_tilt_gain: float = 1.0  # 1: roll and pitch from gravity at every pair; 0: purely visual
 
     def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "normalization", ImageNormalization(self.normalization))
+        except ValueError:
+            raise ConfigError(
+                f"VisualOdometryConfig: normalization={self.normalization!r}; choose one of "
+                f"{', '.join(m.value for m in ImageNormalization)}"
+            ) from None
         checks = {
+            "normalization_sigma_frac": 0 < self.normalization_sigma_frac < 0.5,
+            "normalization_min_sigma_px": 0 < self.normalization_min_sigma_px < 1e3,
+            "normalization_gain": 0 < self.normalization_gain < 1e4,
             "max_features": self.max_features >= 8,
             "feature_quality": 0 < self.feature_quality < 1,
             "min_feature_distance_frac": 0 <= self.min_feature_distance_frac < 0.5,
@@ -128,13 +163,14 @@ class VisualOdometryConfig:
             "keyframe_min_tracked": self.keyframe_min_tracked >= self.min_inliers,
             "keyframe_min_fraction": 0 <= self.keyframe_min_fraction <= 1,
             "keyframe_max_translation_m": self.keyframe_max_translation_m > 0,
+            "gravity_tilt_gain": 0 <= self.gravity_tilt_gain <= 1,
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
             raise ConfigError(f"VisualOdometryConfig: invalid {', '.join(f'{k}={getattr(self, k)!r}' for k in bad)}")
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        return {**asdict(self), "normalization": self.normalization.value}
 
     @classmethod
     def from_dict(cls, data: dict) -> VisualOdometryConfig:
@@ -224,6 +260,8 @@ class StereoVisualOdometry:
             "criteria": self._lk["criteria"],
         }
         self._dilate = None
+        self._clahe = None
+        self._raw_left = None
         self.reset()
 
     # -- public --------------------------------------------------------------------------
@@ -245,8 +283,10 @@ class StereoVisualOdometry:
         sensor (IMU/wheels), used to predict the tracks, to check the visual rotation,
         and as the estimate when vision fails. Without it a failed frame holds the pose.
         """
-        left, right = self._check_images(left, right)
+        raw_left, right = self._check_images(left, right)
         prior = None if prior_T_prev_curr is None else _as_transform(prior_T_prev_curr, "prior_T_prev_curr")
+        left, right = self._normalize(raw_left), self._normalize(right)
+        self._raw_left = raw_left  # the sky mask is taken from the raw image
         first = self.n_frames == 0
         self.n_frames += 1
         if first:
@@ -290,6 +330,21 @@ class StereoVisualOdometry:
             out.append(np.ascontiguousarray(img))
         return out[0], out[1]
 
+    def _normalize(self, image: np.ndarray) -> np.ndarray:
+        """`image` after :class:`ImageNormalization` (uint8, same shape)."""
+        cv2, c = self._cv2, self.config
+        if c.normalization is ImageNormalization.NONE:
+            return image
+        if c.normalization is ImageNormalization.CLAHE:
+            if self._clahe is None:
+                self._clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8))
+            return self._clahe.apply(image)
+        f = image.astype(np.float32)
+        sigma = max(c.normalization_min_sigma_px, c.normalization_sigma_frac * image.shape[1])
+        mean = cv2.GaussianBlur(f, (0, 0), sigma)
+        out = (f - mean) / (mean + 4.0) * c.normalization_gain + 128.0
+        return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+
     def _feature_mask(self, image: np.ndarray, scale: int) -> np.ndarray:
         """Where corners may be detected in `image` (the left image reduced `scale` times)."""
         cv2, c = self._cv2, self.config
@@ -318,8 +373,12 @@ class StereoVisualOdometry:
         cv2, c = self._cv2, self.config
         H, W = left.shape
         scale = max(1, int(np.ceil(W / c.detect_max_width_px)))
-        small = left if scale == 1 else cv2.resize(left, (W // scale, H // scale), interpolation=cv2.INTER_AREA)
-        mask = self._feature_mask(small, scale)
+
+        def reduce(img):
+            return img if scale == 1 else cv2.resize(img, (W // scale, H // scale), interpolation=cv2.INTER_AREA)
+
+        small = reduce(left)
+        mask = self._feature_mask(reduce(self._raw_left if self._raw_left is not None else left), scale)
         corners = cv2.goodFeaturesToTrack(
             small, c.max_features, c.feature_quality, max(1.0, c.min_feature_distance_frac * small.shape[1]), mask=mask
         )
