@@ -124,3 +124,22 @@ def test_a_signature_not_built_falls_back_to_the_jit():
     )
     lines = _python(code).stdout.splitlines()
     assert lines == ["False", "True float64 True"]
+
+
+@pytest.mark.skipif(not _built(), reason="ahead-of-time kernels not built here (`lunarloc warm-up` builds them)")
+def test_a_module_from_another_build_is_not_loaded(tmp_path):
+    import shutil
+
+    meta = json.loads((aot._HERE / f"{aot.AOT_MODULE}.json").read_text())
+    shutil.copyfile(aot._HERE / meta["module"], tmp_path / meta["module"])
+    (tmp_path / f"{aot.AOT_MODULE}.json").write_text(json.dumps(meta))
+    code = (
+        "import sys; from pathlib import Path; from lunarloc.association import aot, clique, graph\n"
+        f"folder = Path({str(tmp_path)!r})\n"
+        "t = aot._load_table(folder); print(len(t) > 0, aot._STATE['reason'])\n"
+    )
+    assert _python(code).stdout.startswith("True loaded")  # the copy as built: loads
+    meta["build_id"] += 1  # the table of another build
+    (tmp_path / f"{aot.AOT_MODULE}.json").write_text(json.dumps(meta))
+    out = _python(code).stdout
+    assert out.startswith("False cannot load") and "build id" in out, out

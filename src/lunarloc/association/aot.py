@@ -230,7 +230,9 @@ def _load_table(folder: Path = _HERE) -> dict:
             raise ImportError(f"not an extension module: {meta.get('module')}")
         mod = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(mod)
-    except Exception as exc:  # missing, broken or foreign binary: the JIT path still works
+        if mod.aot_build_id() != meta.get("build_id"):  # a module from another build than the table
+            raise ImportError("build id differs from the table's")
+    except Exception as exc:  # missing, broken, foreign or mismatched binary: the JIT path still works
         _STATE["reason"] = f"cannot load {meta.get('module')}: {type(exc).__name__}: {exc}"
         return {}
     table: dict = {}
@@ -305,6 +307,7 @@ def build_aot(folder: Path | None = None, *, verbose: bool = False) -> AotBuild:
     into ``folder`` (default: this package's folder, where :func:`njit` looks). Needs a C
     compiler and Python's headers; raises ``OSError``/``RuntimeError`` style errors from the
     toolchain, which the caller reports (the JIT path keeps working without the build)."""
+    import secrets
     import shutil
     import tempfile
     import time
@@ -336,6 +339,10 @@ def build_aot(folder: Path | None = None, *, verbose: bool = False) -> AotBuild:
         cc.output_dir = tmp
         cc.verbose = verbose
         cc.target_cpu = _host_cpu()
+        build_id = secrets.randbits(62)  # ties the module to its table (see _load_table)
+        ns: dict = {}
+        exec(f"def aot_build_id():\n    return {build_id}\n", ns)
+        cc.export("aot_build_id", "i8()")(ns["aot_build_id"])
         n = 0
         for k in _REGISTRY:
             for sig in k.dispatcher.signatures:
@@ -362,7 +369,7 @@ def build_aot(folder: Path | None = None, *, verbose: bool = False) -> AotBuild:
             raise RuntimeError(f"numba.pycc wrote {[p.name for p in Path(tmp).iterdir()]}, expected one {AOT_MODULE} module")
         import numba
 
-        meta = {"format": AOT_FORMAT, "module": built[0].name, "sources": _sources(), "numba": numba.__version__,
+        meta = {"format": AOT_FORMAT, "module": built[0].name, "build_id": build_id, "sources": _sources(), "numba": numba.__version__,
                 "python": sys.version.split()[0], "target_cpu": cc.target_cpu, "kernels": kernels}
         folder.mkdir(parents=True, exist_ok=True)
         table = _table_path(folder)
