@@ -143,3 +143,17 @@ def test_a_module_from_another_build_is_not_loaded(tmp_path):
     (tmp_path / f"{aot.AOT_MODULE}.json").write_text(json.dumps(meta))
     out = _python(code).stdout
     assert out.startswith("False cannot load") and "build id" in out, out
+
+
+def test_warm_up_reports_a_failed_build_and_still_succeeds(monkeypatch, capsys):
+    from lunarloc.cli.app import main
+
+    def no_compiler(*a, **k):
+        raise OSError("gcc: command not found")
+
+    monkeypatch.setattr(aot, "build_aot", no_compiler)
+    assert main(["warm-up"]) == 0
+    out = capsys.readouterr()
+    assert "association kernels ready" in out.out
+    assert "ahead-of-time kernels not built (OSError: gcc: command not found)" in out.err
+    assert "numba's cache is used instead" in out.err
