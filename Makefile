@@ -27,4 +27,4 @@ bench: $(STAMP)
 	$(BIN)/lunarloc bench pairs --data ../shared/data/lunarloc-data --out bench-output --overwrite
 
 clean:
-	rm -rf $(VENV) demo-output bench-output build *.egg-info src/*.egg-info
+	rm -rf $(VENV) demo-output bench-output build *.egg-info src/*.egg-info src/lunarloc/association/_aot_kernels*

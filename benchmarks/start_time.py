@@ -1,16 +1,20 @@
 """Cold and warm start of ``lunarloc localize REF VEH --json``, and where a warm call's time goes.
 
-* **warm**: numba's cache already holds the compiled kernels (``make`` runs ``lunarloc
-  warm-up`` after installing); each run is a fresh process.
-* **cold**: every run gets an empty ``NUMBA_CACHE_DIR`` (a new temporary folder), so the
-  kernels are compiled in that process, as on a first call after installing without the
-  warm-up step.
+* **warm**: after ``make`` (which runs ``lunarloc warm-up``): the ahead-of-time kernels are
+  built (``lunarloc.association.aot``) and numba's cache holds the JIT kernels; each run is a
+  fresh process. ``--jit`` times the JIT fallback instead (``LUNARLOC_AOT=0``: numba's cache,
+  no ahead-of-time build).
+* **cold**: as on a first call after installing without the warm-up step: no ahead-of-time
+  build (``LUNARLOC_AOT=0``) and an empty ``NUMBA_CACHE_DIR`` (a new temporary folder), so the
+  kernels are compiled in that process.
 
 Each run is timed from outside (wall clock, and the child's CPU time, user + system, from
 ``resource.getrusage(RUSAGE_CHILDREN)``): CPU time hardly depends on how loaded the
 machine is, wall time does. ``--split`` also times the stages of one warm call inside one
-process (imports, map loading, the first localization, which loads the cached kernels,
-and a second one).
+process (imports, map loading, the first localization, which loads the kernels, and a
+second one). ``--other-python PY`` interleaves every warm run with one of the same command
+under another interpreter (e.g. another checkout's ``.venv/bin/python``), so that both see
+the same load.
 
 The pair: the landmark map of real traverse 3 as the reference and traverse 7's map moved
 into a vehicle frame by a fixed rigid transform (both built from ``--data`` into a
@@ -19,6 +23,7 @@ temporary folder).
 Usage::
 
     python benchmarks/start_time.py --data ../shared/data/lunarloc-data [--runs 5] [--cold-runs 5] [--split]
+        [--jit] [--other-python OTHER/.venv/bin/python]
 """
 
 from __future__ import annotations
@@ -43,19 +48,22 @@ def mark(label, s={"t": t0, "c": c0}):
     s["t"], s["c"] = t, c
 import numpy; mark("import numpy")
 import typer, rich.console; mark("import typer, rich")
-import numba; mark("import numba")
 import scipy.spatial; mark("import scipy.spatial")
 import lunarloc.localize, lunarloc.localize_large; mark("import lunarloc.localize")
-from lunarloc.cli.app import _register_commands; _register_commands(); mark("import the CLI commands")
+from lunarloc.cli.app import _register_commands; _register_commands(["localize"]); mark("import the CLI command")
+import lunarloc.config; mark("import lunarloc.config (RunConfig)")
 from pathlib import Path
 from lunarloc.reference import load_reference
 from lunarloc.maps import load_map
 ref, veh = load_reference(Path(sys.argv[1])), load_map(sys.argv[2]); mark("load the two maps")
 from lunarloc.localize_large import localize_large
-localize_large(ref, veh); mark("first localize (loads cached kernels)")
+import scipy.optimize; mark("import scipy.optimize (distortion fit)")
+localize_large(ref, veh); mark("first localize (loads the kernels)")
 localize_large(ref, veh); mark("second localize")
 for label, w, c in rows:
     print(f"  {label:40s} wall {w:6.3f} s  CPU {c:6.3f} s")
+from lunarloc.association.aot import aot_status
+print(f"  ahead-of-time kernels: {aot_status()}; numba imported: {'numba' in sys.modules}")
 """
 
 
@@ -104,6 +112,8 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=5, help="warm runs")
     ap.add_argument("--cold-runs", type=int, default=5, help="cold runs (each compiles every kernel)")
     ap.add_argument("--split", action="store_true", help="also time the stages of one warm call in one process")
+    ap.add_argument("--jit", action="store_true", help="warm runs on numba's cache only (LUNARLOC_AOT=0)")
+    ap.add_argument("--other-python", type=Path, help="interleave each warm run with one under this interpreter")
     ap.add_argument("--src", type=Path, help="run the lunarloc found in this source folder (PYTHONPATH), e.g. an "
                     "older commit unpacked with `git archive REV src | tar -x -C DIR` (pass DIR/src)")
     args = ap.parse_args()
@@ -112,15 +122,28 @@ def main() -> None:
         cmd = [sys.executable, "-m", "lunarloc", "localize", str(ref), str(veh), "--json"]
         env = dict(os.environ)
         env.pop("NUMBA_CACHE_DIR", None)
+        env.pop("LUNARLOC_AOT", None)
+        if args.jit:
+            env["LUNARLOC_AOT"] = "0"
         if args.src is not None:
             env["PYTHONPATH"] = str(args.src.resolve())
+        other = None if args.other_python is None else [str(args.other_python), *cmd[1:]]
         _run(cmd, env)  # make sure the ordinary cache is warm
+        if other:
+            _run(other, env)
         print(f"load average {os.getloadavg()[0]:.1f} at start")
-        _report("warm", [_run(cmd, env) for _ in range(args.runs)])
+        warm, warm_other = [], []
+        for k in range(args.runs):
+            pair = [(warm, cmd)] + ([(warm_other, other)] if other else [])
+            for runs, c in pair if k % 2 == 0 else pair[::-1]:  # alternate which goes first
+                runs.append(_run(c, env))
+        _report("warm" + (" (numba's cache, LUNARLOC_AOT=0)" if args.jit else ""), warm)
+        if other:
+            _report(f"warm, {args.other_python}", warm_other)
         cold = []
         for _ in range(args.cold_runs):
             with tempfile.TemporaryDirectory(prefix="numba-cold-") as cache:
-                cold.append(_run(cmd, dict(env, NUMBA_CACHE_DIR=cache)))
+                cold.append(_run(cmd, dict(env, NUMBA_CACHE_DIR=cache, LUNARLOC_AOT="0")))
         if cold:
             _report("cold (empty numba cache)", cold)
         if args.split:

@@ -18,12 +18,19 @@ __all__ = ["warm_up"]
 _WARM = False
 
 
-def warm_up(force: bool = False) -> float:
+def warm_up(force: bool = False, jit: bool = False) -> float:
     """Compile (or load from the cache) every association kernel, in every mode and solver.
-    Returns the seconds it took (about 0 once done in this process)."""
+    Returns the seconds it took (about 0 once done in this process).
+
+    Where the ahead-of-time kernels are built (:mod:`lunarloc.association.aot`) this only
+    loads them; ``jit=True`` runs numba's JIT path even then, compiling into numba's cache
+    (``lunarloc warm-up``: the fallback for argument types the build does not hold)."""
     global _WARM
-    if _WARM and not force:
+    if _WARM in (("jit", True) if jit else ("jit", "aot", True)) and not force:
         return 0.0
+    import contextlib
+
+    from lunarloc.association.aot import jit_only
     from lunarloc.geometry import euler_to_rotation, make_transform, transform_points
     from lunarloc.localize import LocalizationConfig, Mode, Solver, localize
     from lunarloc.maps import LandmarkMap
@@ -36,8 +43,9 @@ def warm_up(force: bool = False) -> float:
     T = make_transform(euler_to_rotation(0.0, 0.0, 0.7), np.array([3.0, -2.0, 0.1]))
     veh_xyz = transform_points(np.linalg.inv(T), ref_xyz[:40]) + rng.normal(0, 0.005, (40, 3))
     ref, veh = LandmarkMap(ref_xyz, frame="ref"), LandmarkMap(veh_xyz, frame="veh")
-    for mode in Mode:
-        for solver in Solver:
-            localize(ref, veh, LocalizationConfig(mode=mode, solver=solver))
-    _WARM = True
+    with jit_only() if jit else contextlib.nullcontext():
+        for mode in Mode:
+            for solver in Solver:
+                localize(ref, veh, LocalizationConfig(mode=mode, solver=solver))
+    _WARM = "jit" if jit else (_WARM or "aot")
     return time.perf_counter() - t0

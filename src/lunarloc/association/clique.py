@@ -19,7 +19,7 @@ lower bound passed in.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from lunarloc.association.aot import njit
 
 __all__ = ["max_clique", "peel", "csr_from_edges", "core_numbers", "bin_clique_bounds"]
 

@@ -26,7 +26,7 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-from numba import njit
+from lunarloc.association.aot import njit
 
 __all__ = ["graph_3d", "RefPairIndex", "sweep_bin_chunks", "sweep_yaw_bins", "vehicle_pairs", "yaw_bin_chunks"]
 
