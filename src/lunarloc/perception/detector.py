@@ -745,29 +745,36 @@ def _ring_mask(shape: tuple[int, int], rows: np.ndarray, cols: np.ndarray, width
 
 
 def _height_above_quadric(points: np.ndarray, rows: np.ndarray, cols: np.ndarray, P: np.ndarray, q: float,
-                          width: int = 4, gap: int = 1, min_points: int = 12) -> float:
+                          width: int = 4, gap: int = 1, min_points: int = 12, max_points: int = 400) -> float:
     """Visible top (quantile q of the heights of P, the blob's rover-frame points) above
-    a quadric surface z(x, y) fitted (least squares, one pass dropping outliers beyond
-    2.5 MADs) to the low-resolution stereo `points` (h, w, 3) in the ring around the
-    blob (rows, cols). A quadric follows a crest or a crater rim through the blob, so a
-    stretch of crest stands out of it by little; a rock stands out by its height. NaN
-    when fewer than min_points ring points are valid."""
+    a quadric surface z(x, y) fitted (least squares, then once more without the points
+    beyond 2.5 MADs) to the low-resolution stereo `points` (h, w, 3) in the ring around
+    the blob (rows, cols); at most max_points of each are used. A quadric follows a
+    crest or a crater rim through the blob, so a stretch of crest stands out of it by
+    little; a rock stands out by its height. NaN when fewer than min_points ring points
+    are valid."""
     (r0, r1, c0, c1), ring = _ring_mask(points.shape[:2], rows, cols, width, gap)
-    R = points[r0:r1, c0:c1][ring].astype(float)
+    R = points[r0:r1, c0:c1][ring]
     R = R[np.isfinite(R[:, 2])]
     if R.shape[0] < min_points or P.shape[0] == 0:
         return float("nan")
+    R = R[:: -(-R.shape[0] // max_points)].astype(float)
+    P = np.asarray(P, float)[:: -(-P.shape[0] // max_points)]
     o = R[:, :2].mean(axis=0)
 
     def design(xy):
         x, y = xy[:, 0] - o[0], xy[:, 1] - o[1]
         return np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=1)
 
-    A = design(R[:, :2])
+    A, z = design(R[:, :2]), R[:, 2]
     keep = np.ones(R.shape[0], bool)
     for _ in range(2):
-        c, *_ = np.linalg.lstsq(A[keep], R[keep, 2], rcond=None)
-        res = R[:, 2] - A @ c
+        Ak = A[keep]
+        try:
+            c = np.linalg.solve(Ak.T @ Ak + 1e-9 * np.eye(6), Ak.T @ z[keep])
+        except np.linalg.LinAlgError:
+            return float("nan")
+        res = z - A @ c
         mad = 1.4826 * float(np.median(np.abs(res[keep] - np.median(res[keep])))) + 1e-3
         keep = np.abs(res) <= 2.5 * mad
         if np.count_nonzero(keep) < min_points:
