@@ -289,3 +289,32 @@ def test_small_blob_standing_too_high_for_its_size_is_not_a_rock():
     assert np.isfinite(d.height_m) and d.height_m < DetectorConfig().top_per_radius * d.radius_m
     pr = Detector(DetectorConfig(top_per_radius=0.3, top_noise_m=0.0), CAM).detect_pair(left, right, T)
     assert not pr.detections and any(r.reason is RejectReason.NOT_A_ROCK for r in pr.records)
+
+
+def test_crest_stands_little_above_a_quadric_ground_and_a_rock_stands_out():
+    from lunarloc.perception.detector import _height_above_quadric
+
+    rng = np.random.default_rng(1)
+    r, c = np.mgrid[0:40, 0:40]
+    x, y = 2.0 + 0.05 * r, -1.0 + 0.05 * c
+    blob = (np.abs(r - 20) <= 4) & (np.abs(c - 20) <= 2)  # 0.4 m x 0.2 m around (3.0, 0.0)
+    rows, cols = np.nonzero(blob)
+    noise = rng.normal(0.0, 0.002, x.shape)
+    # a rim crest running along x through the blob: the blob's top is on the crest
+    crest = np.stack([x, y, 0.08 - 0.8 * y * y + noise], axis=-1)
+    h_crest = _height_above_quadric(crest, rows, cols, crest[blob], 0.9)
+    # a rock of radius 0.1 m on flat ground: its top stands 6 cm above it
+    flat = np.stack([x, y, noise], axis=-1)
+    P = flat[blob].copy()
+    bump = 0.06 * np.exp(-((P[:, 0] - 3.0) ** 2 + P[:, 1] ** 2) / 0.01)
+    P[:, 2] += bump
+    h_rock = _height_above_quadric(flat, rows, cols, P, 0.9)
+    cfg = DetectorConfig()
+    assert h_crest < min(cfg.quadric_contrast_per_radius * 0.1, cfg.quadric_contrast_max_m) < h_rock
+    assert h_rock == pytest.approx(np.quantile(bump, 0.9), abs=0.005)  # the ground fit is ~0
+    # too few valid ring points: no verdict
+    holes = crest.copy()
+    holes[..., 2] = np.nan
+    assert np.isnan(_height_above_quadric(holes, rows, cols, crest[blob], 0.9))
+    with pytest.raises(ConfigError):
+        DetectorConfig(quadric_contrast_per_radius=-0.1)
