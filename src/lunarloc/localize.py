@@ -1105,6 +1105,9 @@ def localize(
         competitor=int(competitor), distortion_fitted=bend is not None,
     )
     out.checks = verify(ev, cfg)
+    if screen is not None:  # it passed: shown first, as a check that refuses nothing further
+        out.checks.insert(0, Check("screen", screen.score, screen.needed, True, ">=",
+                                   "inliers beyond chance at the best pose voted by the reference's rock triangles"))
     failed = [c for c in out.checks if not c.passed]
     out.success = not failed
     out.reason = failed[0].detail if failed else "ok"
