@@ -996,9 +996,15 @@ def localize(
                                   timings=timings, checks=[Check("associations", 0, 1, False, ">=", why)])
 
     t0 = time.perf_counter()
-    screen = _screen(Pv, Pr, cfg, required) if cfg.mode is Mode.GRAVITY else None
+    if cfg.mode is Mode.GRAVITY:
+        report: dict = {}
+        best, competitor, best_yaw, num_edges = _search_yaw_bins(Pv, Pr, node_of, cfg, required, report)
+    else:
+        best, competitor, num_edges = _search_3d(Pv, Pr, node_of, assoc, cfg)
+        best_yaw, report = None, {}
+    screen = report.get("screen")
     if screen is not None:
-        timings["screen"] = time.perf_counter() - t0
+        timings["screen"] = report["screen_s"]
         if not screen.passed:
             why = (f"no consistent set large enough: the best of {screen.candidates} candidate poses voted by the "
                    f"reference's rock triangles has {screen.score:.1f} inliers beyond chance ({screen.inliers} in all), "
@@ -1008,13 +1014,7 @@ def localize(
                 False, _nan_T(), np.zeros((0, 2), int), float("nan"), why, required_inliers=required,
                 num_associations=m, timings=timings,
                 checks=[Check("screen", screen.score, screen.needed, False, ">=", why)])
-        t0 = time.perf_counter()
-    if cfg.mode is Mode.GRAVITY:
-        best, competitor, best_yaw, num_edges = _search_yaw_bins(Pv, Pr, node_of, cfg)
-    else:
-        best, competitor, num_edges = _search_3d(Pv, Pr, node_of, assoc, cfg)
-        best_yaw = None
-    timings["search"] = time.perf_counter() - t0
+    timings["search"] = time.perf_counter() - t0 - timings.get("screen", 0.0)
     base = dict(required_inliers=required, num_associations=m, num_edges=num_edges, timings=timings)
 
     if len(best) < 3:
@@ -1267,7 +1267,7 @@ def _far_mask(n_bins: int, min_sep_bins: float) -> np.ndarray:
     return np.minimum(d, n_bins - d) > min_sep_bins
 
 
-def _search_yaw_bins(Pv, Pr, node_of, cfg):
+def _search_yaw_bins(Pv, Pr, node_of, cfg, required: int | None = None, report: dict | None = None):
     """Max consistent set over relative-yaw bins; also the best set whose yaw differs
     by more than competitor_yaw_sep_deg (the competing hypothesis).
 
@@ -1278,13 +1278,24 @@ def _search_yaw_bins(Pv, Pr, node_of, cfg):
     the winner is the largest clique of any bin (ties: smallest yaw), found exactly; the
     competitor is exact whenever it exceeds best / competitor_ratio (when it can decide
     the ambiguity test, as the inlier count is at least the clique size), otherwise a
-    lower bound on it (a clique found in a far bin)."""
+    lower bound on it (a clique found in a far bin).
+
+    With `required` (the inliers acceptance needs), a search that would be large is screened
+    first (:func:`_screen`, its outcome in ``report["screen"]``); when the screen refuses,
+    nothing is built and no set is returned."""
     n_assoc = int(node_of.size)
     n_bins = _n_bins(cfg)
     step = 2 * math.pi / n_bins
     sep_bins = math.radians(cfg.competitor_yaw_sep_deg) / step
     index = _ref_index(Pr, cfg)
     vp = vehicle_pairs(Pv)
+    if required is not None:
+        t0 = time.perf_counter()
+        screen = _screen(Pv, Pr, cfg, required, vp, index)
+        if report is not None and screen is not None:
+            report["screen"], report["screen_s"] = screen, time.perf_counter() - t0
+        if screen is not None and not screen.passed:
+            return np.empty(0, dtype=np.int32), 0, None, 0
     upper, lower, total_edges = _bin_bounds(Pv, vp, index, node_of, cfg)
     found: dict[int, np.ndarray] = {}
     state = {"best": 0, "floor": _far_pairs_floor(lower, n_bins, sep_bins)}
@@ -1411,30 +1422,26 @@ def _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw, floor: int = 
 # --------------------------------------------------------------------------- screen
 
 
-def predicted_incidences(Pv: np.ndarray, Pr: np.ndarray, cfg: LocalizationConfig) -> float:
+def predicted_incidences(Pv: np.ndarray, Pr: np.ndarray, cfg: LocalizationConfig, vp=None,
+                          index: RefPairIndex | None = None) -> float:
     """Estimated size of the gravity-aware search's yaw-bin consistency graphs: edge
     incidences summed over the bins, before the height test (so an over-estimate).
 
-    A vehicle pair of horizontal distance d meets every ordered reference pair whose
-    distance is within epsilon of d (counted with a KD-tree, no N_ref^2 array), and such
-    a match lands in the ``2 tol / step`` bins around its yaw (tol: the generator's yaw
-    tolerance). Measured on the 600-rock overhead benchmark at 15 cm: 1.5 x the real
-    incidences (docs/scaling.md)."""
+    A vehicle pair of horizontal distance d meets the ordered reference pairs within
+    epsilon of d (counted from the distance rows of the search's :class:`RefPairIndex`,
+    interpolated within a row), and such a match lands in the ``2 tol / step`` bins around
+    its yaw (tol: the generator's yaw tolerance). O(vehicle pairs) given the search's own
+    `vp` and `index`. Measured on the 600-rock overhead benchmark at 15 cm: about 1.5x the
+    real incidences (``tests/test_screen.py`` checks it stays within 3x)."""
     eps = cfg.epsilon_m
-    vp = vehicle_pairs(Pv)
+    vp = vehicle_pairs(Pv) if vp is None else vp
+    index = _ref_index(Pr, cfg) if index is None else index
     dh, dz = vp[2], vp[4]
     if len(dh) == 0:
         return 0.0
-    if len(Pr) <= 3000:  # sorted distances: a few ms
-        from scipy.spatial.distance import pdist
-
-        dr = np.sort(pdist(Pr[:, :2]))
-        within = 2.0 * (np.searchsorted(dr, dh + eps) - np.searchsorted(dr, dh - eps))
-    else:  # pair counts at radii a grid apart, without the N^2 distances
-        tree = cKDTree(Pr[:, :2])
-        radii = np.arange(0.0, float(dh.max()) + 2 * eps, eps / 2)
-        ordered = tree.count_neighbors(tree, radii).astype(float) - len(Pr)  # ordered pairs a != b within r
-        within = np.interp(dh + eps, radii, ordered) - np.interp(np.maximum(dh - eps, 0.0), radii, ordered)
+    cum = index.row_ptr.astype(float)  # ordered pairs closer than each distance cell's start
+    cells = np.arange(len(cum)) * index.dist_cell
+    within = np.interp(dh + eps, cells, cum) - np.interp(np.maximum(dh - eps, 0.0), cells, cum)
     step = 2 * math.pi / _n_bins(cfg)
     dmin = dh - eps
     k_eps = cfg.yaw_noise_factor * eps
@@ -1466,7 +1473,8 @@ class Screen:
     inliers: int = 0
 
 
-def _screen(Pv: np.ndarray, Pr: np.ndarray, cfg: LocalizationConfig, required: int) -> Screen | None:
+def _screen(Pv: np.ndarray, Pr: np.ndarray, cfg: LocalizationConfig, required: int, vp=None,
+            index: RefPairIndex | None = None) -> Screen | None:
     """Cheap refusal before an exhaustive search that would be large.
 
     Runs only when the yaw-bin graphs would hold at least ``screen_min_incidences``
@@ -1483,14 +1491,14 @@ def _screen(Pv: np.ndarray, Pr: np.ndarray, cfg: LocalizationConfig, required: i
     gives no candidate: the screen passes (it cannot judge) and the exact search decides."""
     if not cfg.screen_min_incidences > 0:
         return None
-    incidences = predicted_incidences(Pv, Pr, cfg)
+    incidences = predicted_incidences(Pv, Pr, cfg, vp, index)
     if incidences < cfg.screen_min_incidences:
         return None
     from lunarloc.association.index import IndexConfig, ReferenceIndex
 
     needed = cfg.screen_fraction * required
-    index = ReferenceIndex(Pr, cfg.epsilon_m, IndexConfig(max_candidates=cfg.screen_candidates))
-    votes = index.vote(Pv, cfg.epsilon_z_m, math.tan(math.radians(cfg.max_tilt_deg)), _SCREEN_TRIANGLES)
+    tri = ReferenceIndex(Pr, cfg.epsilon_m, IndexConfig(max_candidates=cfg.screen_candidates))  # rock triangles
+    votes = tri.vote(Pv, cfg.epsilon_z_m, math.tan(math.radians(cfg.max_tilt_deg)), _SCREEN_TRIANGLES)
     if not votes.candidates:
         return Screen(True, float("nan"), needed, 0, incidences)
     best, best_inliers = 0.0, 0  # inliers beyond chance: none until a candidate shows some
@@ -1501,7 +1509,7 @@ def _screen(Pv: np.ndarray, Pr: np.ndarray, cfg: LocalizationConfig, required: i
         T[:2, :2] = [[c, -s], [s, c]]
         T[:2, 3] = np.array([x, y]) - T[:2, :2] @ votes.centre_xy
         Pt = transform_points(T, Pv)
-        d, j = index.tree_xy.query(Pt[:, :2])  # the vote fixes x, y and yaw; the height from the nearest rocks
+        d, j = tri.tree_xy.query(Pt[:, :2])  # the vote fixes x, y and yaw; the height from the nearest rocks
         near = d < cfg.refine_radius_m
         if near.sum() < 3:  # nothing to refine from: no more than chance here
             continue
