@@ -129,6 +129,10 @@ class LocalizationConfig:
     landmark_sigma_z_m: float = 0.0083  # vertical, likewise
     rmse_confidence: float = 0.999  # chi-square acceptance of the inlier residuals at this confidence
     search_sigmas: float = 2.0  # search tolerances >= this many sigma of a pairwise difference (sqrt(2) x combined sigma)
+    # --- screen before an exhaustive search that would be large (:func:`_screen`) ---
+    screen_min_incidences: float = 3e7  # predicted yaw-bin graph size from which the screen runs first (0: never)
+    screen_fraction: float = 0.5  # a candidate pose passes with this share of the required inliers beyond chance
+    screen_candidates: int = 8  # candidate poses of the triangle vote refined by the screen
     # --- distortion (non-rigid vehicle maps: odometry scale error, heading drift) ---
     near_miss_outer_m: float = 0.30  # vehicle landmarks landing refine_radius_m..this far from a reference rock are "near misses"
     max_near_miss_z: float = 3.0  # refuse when near misses exceed chance by this many standard deviations ...
@@ -165,6 +169,8 @@ class LocalizationConfig:
             raise ConfigError("min_inliers must be >= 3")
         if not self.near_miss_outer_m > 0 or not self.landmark_sigma_m > 0 or not self.landmark_sigma_z_m > 0:
             raise ConfigError("near_miss_outer_m, landmark_sigma_m and landmark_sigma_z_m must be positive")
+        if not self.screen_min_incidences >= 0 or not 0 < self.screen_fraction <= 1 or self.screen_candidates < 1:
+            raise ConfigError("screen_min_incidences must be >= 0, screen_fraction in (0, 1], screen_candidates >= 1")
         if not self.search_sigmas >= 0:
             raise ConfigError(f"search_sigmas must be >= 0, got {self.search_sigmas}")
         if (self.odometry_scale_error or 0.0) < 0 or (self.odometry_heading_drift_deg_per_m or 0.0) < 0:
@@ -991,11 +997,24 @@ def localize(
 
     t0 = time.perf_counter()
     if cfg.mode is Mode.GRAVITY:
-        best, competitor, best_yaw, num_edges = _search_yaw_bins(Pv, Pr, node_of, cfg)
+        report: dict = {}
+        best, competitor, best_yaw, num_edges = _search_yaw_bins(Pv, Pr, node_of, cfg, required, report)
     else:
         best, competitor, num_edges = _search_3d(Pv, Pr, node_of, assoc, cfg)
-        best_yaw = None
-    timings["search"] = time.perf_counter() - t0
+        best_yaw, report = None, {}
+    screen = report.get("screen")
+    if screen is not None:
+        timings["screen"] = report["screen_s"]
+        if not screen.passed:
+            why = (f"no consistent set large enough: the best of {screen.candidates} candidate poses voted by the "
+                   f"reference's rock triangles has {screen.score:.1f} inliers beyond chance ({screen.inliers} in all), "
+                   f"under {cfg.screen_fraction:g} x the {required} acceptance needs; the exhaustive search "
+                   f"(~{screen.incidences:.2g} graph edges) was not run")
+            return LocalizationResult(
+                False, _nan_T(), np.zeros((0, 2), int), float("nan"), why, required_inliers=required,
+                num_associations=m, timings=timings,
+                checks=[Check("screen", screen.score, screen.needed, False, ">=", why)])
+    timings["search"] = time.perf_counter() - t0 - timings.get("screen", 0.0)
     base = dict(required_inliers=required, num_associations=m, num_edges=num_edges, timings=timings)
 
     if len(best) < 3:
@@ -1086,6 +1105,9 @@ def localize(
         competitor=int(competitor), distortion_fitted=bend is not None,
     )
     out.checks = verify(ev, cfg)
+    if screen is not None:  # it passed: shown first, as a check that refuses nothing further
+        out.checks.insert(0, Check("screen", screen.score, screen.needed, True, ">=",
+                                   "inliers beyond chance at the best pose voted by the reference's rock triangles"))
     failed = [c for c in out.checks if not c.passed]
     out.success = not failed
     out.reason = failed[0].detail if failed else "ok"
@@ -1245,7 +1267,7 @@ def _far_mask(n_bins: int, min_sep_bins: float) -> np.ndarray:
     return np.minimum(d, n_bins - d) > min_sep_bins
 
 
-def _search_yaw_bins(Pv, Pr, node_of, cfg):
+def _search_yaw_bins(Pv, Pr, node_of, cfg, required: int | None = None, report: dict | None = None):
     """Max consistent set over relative-yaw bins; also the best set whose yaw differs
     by more than competitor_yaw_sep_deg (the competing hypothesis).
 
@@ -1256,13 +1278,24 @@ def _search_yaw_bins(Pv, Pr, node_of, cfg):
     the winner is the largest clique of any bin (ties: smallest yaw), found exactly; the
     competitor is exact whenever it exceeds best / competitor_ratio (when it can decide
     the ambiguity test, as the inlier count is at least the clique size), otherwise a
-    lower bound on it (a clique found in a far bin)."""
+    lower bound on it (a clique found in a far bin).
+
+    With `required` (the inliers acceptance needs), a search that would be large is screened
+    first (:func:`_screen`, its outcome in ``report["screen"]``); when the screen refuses,
+    nothing is built and no set is returned."""
     n_assoc = int(node_of.size)
     n_bins = _n_bins(cfg)
     step = 2 * math.pi / n_bins
     sep_bins = math.radians(cfg.competitor_yaw_sep_deg) / step
     index = _ref_index(Pr, cfg)
     vp = vehicle_pairs(Pv)
+    if required is not None:
+        t0 = time.perf_counter()
+        screen = _screen(Pv, Pr, cfg, required, vp, index)
+        if report is not None and screen is not None:
+            report["screen"], report["screen_s"] = screen, time.perf_counter() - t0
+        if screen is not None and not screen.passed:
+            return np.empty(0, dtype=np.int32), 0, None, 0
     upper, lower, total_edges = _bin_bounds(Pv, vp, index, node_of, cfg)
     found: dict[int, np.ndarray] = {}
     state = {"best": 0, "floor": _far_pairs_floor(lower, n_bins, sep_bins)}
@@ -1384,3 +1417,128 @@ def _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw, floor: int = 
                      visit_chunk, weights=cfg.solver is Solver.CLIPPER,
                      workers=_workers(cfg, vp, index, len(bins) / n_bins))
     return state["best"] if state["best"] > lb0 else floor
+
+
+# --------------------------------------------------------------------------- screen
+
+
+def predicted_incidences(Pv: np.ndarray, Pr: np.ndarray, cfg: LocalizationConfig, vp=None,
+                          index: RefPairIndex | None = None) -> float:
+    """Estimated size of the gravity-aware search's yaw-bin consistency graphs: edge
+    incidences summed over the bins, before the height test (so an over-estimate).
+
+    A vehicle pair of horizontal distance d meets the ordered reference pairs within
+    epsilon of d (counted from the distance rows of the search's :class:`RefPairIndex`,
+    interpolated within a row), and such a match lands in the ``2 tol / step`` bins around
+    its yaw (tol: the generator's yaw tolerance). O(vehicle pairs) given the search's own
+    `vp` and `index`. Measured on the 600-rock overhead benchmark at 15 cm: about 1.5x the
+    real incidences (``tests/test_screen.py`` checks it stays within 3x)."""
+    eps = cfg.epsilon_m
+    vp = vehicle_pairs(Pv) if vp is None else vp
+    index = _ref_index(Pr, cfg) if index is None else index
+    dh, dz = vp[2], vp[4]
+    if len(dh) == 0:
+        return 0.0
+    cum = index.row_ptr.astype(float)  # ordered pairs closer than each distance cell's start
+    cells = np.arange(len(cum)) * index.dist_cell
+    within = np.interp(dh + eps, cells, cum) - np.interp(np.maximum(dh - eps, 0.0), cells, cum)
+    step = 2 * math.pi / _n_bins(cfg)
+    dmin = dh - eps
+    k_eps = cfg.yaw_noise_factor * eps
+    tan_tilt = math.tan(math.radians(cfg.max_tilt_deg))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tol = np.where(dmin > k_eps, 0.5 * step + np.arcsin(np.minimum(k_eps / dmin, 1.0))
+                       + tan_tilt * np.abs(dz) / dmin, math.pi)
+    bins = np.minimum(np.maximum(2 * tol / step, 1.0), _n_bins(cfg))
+    return float(np.sum(within * bins))
+
+
+_SCREEN_TRIANGLES = 800
+"""Vehicle triangles the screen votes with at most: the vote's cost grows with them (a
+150-landmark map at 15 cm: 6300 triangles, 117 000 matches, 0.3 s); the true pose keeps its
+share of the votes in a sample."""
+
+
+@dataclass
+class Screen:
+    """Outcome of :func:`_screen`: the best candidate pose's inliers beyond chance
+    (``score``), what passing needs (``needed``), how many candidates were refined, and
+    the predicted graph size that made the screen run."""
+
+    passed: bool
+    score: float
+    needed: float
+    candidates: int
+    incidences: float
+    inliers: int = 0
+
+
+def _screen(Pv: np.ndarray, Pr: np.ndarray, cfg: LocalizationConfig, required: int, vp=None,
+            index: RefPairIndex | None = None) -> Screen | None:
+    """Cheap refusal before an exhaustive search that would be large.
+
+    Runs only when the yaw-bin graphs would hold at least ``screen_min_incidences``
+    edge incidences (:func:`predicted_incidences`; a 600-rock overhead map at 15 cm holds
+    about 70 million, 5-10 s of CPU), else returns None. The reference's rock triangles
+    (:class:`~lunarloc.association.index.ReferenceIndex`, at the search's own tolerance)
+    vote for poses; each of the ``screen_candidates`` best-voted poses is refined as the
+    final hypothesis is (:func:`_refine`, mutual nearest neighbours within the refinement
+    radius), and scored by its inliers less the matches chance gives at that pose
+    (:func:`chance_refined`). The screen passes when a score reaches ``screen_fraction``
+    of the inliers acceptance requires; then the exhaustive search runs as without the
+    screen, so the screen can only refuse, never accept, and whatever is accepted is what
+    the exact search and verification accept. A vehicle map without a matching triangle
+    gives no candidate: the screen passes (it cannot judge) and the exact search decides."""
+    if not cfg.screen_min_incidences > 0:
+        return None
+    incidences = predicted_incidences(Pv, Pr, cfg, vp, index)
+    if incidences < cfg.screen_min_incidences:
+        return None
+    from lunarloc.association.index import IndexConfig, ReferenceIndex
+
+    needed = cfg.screen_fraction * required
+    tri = ReferenceIndex(Pr, cfg.epsilon_m, IndexConfig(max_candidates=cfg.screen_candidates))  # rock triangles
+    votes = tri.vote(Pv, cfg.epsilon_z_m, math.tan(math.radians(cfg.max_tilt_deg)), _SCREEN_TRIANGLES)
+    if not votes.candidates:
+        return Screen(True, float("nan"), needed, 0, incidences)
+    best, best_inliers = 0.0, 0  # inliers beyond chance: none until a candidate shows some
+    for cand in votes.candidates:
+        x, y, yaw = _vote_mode(votes.votes_xy_yaw, cand.x_m, cand.y_m, cand.yaw_rad)
+        c, s = math.cos(yaw), math.sin(yaw)
+        T = np.eye(4)
+        T[:2, :2] = [[c, -s], [s, c]]
+        T[:2, 3] = np.array([x, y]) - T[:2, :2] @ votes.centre_xy
+        Pt = transform_points(T, Pv)
+        d, j = tri.tree_xy.query(Pt[:, :2])  # the vote fixes x, y and yaw; the height from the nearest rocks
+        near = d < cfg.refine_radius_m
+        if near.sum() < 3:  # nothing to refine from: no more than chance here
+            continue
+        T[2, 3] = float(np.median((Pr[j, 2] - Pt[:, 2])[near]))
+        try:
+            T, inl = _refine(T, Pv, Pr, np.zeros((0, 2), np.int64), cfg)
+        except (DegenerateGeometryError, InputError):  # fewer than 3 (or collinear) mutual neighbours in 3D
+            continue
+        score = len(inl) - chance_refined(T, Pv, Pr, np.zeros(0, np.int64), cfg.refine_radius_m)
+        if score > best:
+            best, best_inliers = score, len(inl)
+        if best >= needed:
+            break
+    return Screen(best >= needed, best, needed, len(votes.candidates), incidences, best_inliers)
+
+
+def _vote_mode(votes: np.ndarray, x: float, y: float, yaw: float,
+               windows=((1.0, 10.0), (0.5, 5.0), (0.25, 2.5), (0.25, 2.5))) -> tuple[float, float, float]:
+    """The densest place of the triangle votes (x, y, yaw rad) near a candidate: the median
+    of the votes within a window around the estimate, the window shrinking (metres,
+    degrees). A candidate is the median of a 6 m x 30 deg neighbourhood that chance votes
+    share: 0.4 m and 4 degrees off the true pose on the 600-rock benchmark, too far for
+    refinement to lock on; the true votes agree within centimetres."""
+    for half_m, half_deg in windows:
+        dyaw = (votes[:, 2] - yaw + math.pi) % (2 * math.pi) - math.pi
+        near = (np.abs(votes[:, 0] - x) < half_m) & (np.abs(votes[:, 1] - y) < half_m) & (
+            np.abs(dyaw) < math.radians(half_deg))
+        if near.sum() < 3:
+            break
+        x, y = float(np.median(votes[near, 0])), float(np.median(votes[near, 1]))
+        yaw = float(yaw + np.median(dyaw[near]))
+    return x, y, yaw

@@ -75,11 +75,23 @@ class LargeResult(LocalizationResult):
 
 
 def build_index(reference: LandmarkMap, config: LocalizationConfig | None = None,
-                index_config: IndexConfig | None = None) -> ReferenceIndex:
-    """The constellation index of `reference` for localization with `config`'s tolerance."""
+                index_config: IndexConfig | None = None, vehicle: LandmarkMap | None = None) -> ReferenceIndex:
+    """The constellation index of `reference` for localization with `config`, at the
+    search's tolerance: `config`'s epsilon raised to what the maps' uncertainty needs
+    (:meth:`LocalizationConfig.for_maps`; without `vehicle`, a vehicle map that states no
+    sigma of its own). :func:`localize_large` rebuilds an index whose tolerance is not the
+    one the pair needs."""
     cfg = config or LocalizationConfig()
     P = _check_map(reference, "reference")
-    return ReferenceIndex(P, cfg.epsilon_m, index_config)
+    return ReferenceIndex(P, _index_epsilon(reference, vehicle, cfg), index_config)
+
+
+def _index_epsilon(reference: LandmarkMap, vehicle: LandmarkMap | None, cfg: LocalizationConfig) -> float:
+    """The horizontal search tolerance of this pair of maps (the vehicle map stating no
+    sigma when it is not given): what the triangle sides are compared at."""
+    if vehicle is None:
+        vehicle = LandmarkMap(reference.positions_xyz[:1])  # no stated sigma: the config's landmark sigma
+    return cfg.for_maps(reference, vehicle).epsilon_m
 
 
 def _from(res: LocalizationResult, **extra) -> LargeResult:
@@ -113,20 +125,22 @@ def localize_large(
         return _from(localize(reference, vehicle, cfg), search="full", considered=len(Pr) * len(Pv))
     if cfg.mode is not Mode.GRAVITY:
         raise ConfigError("the indexed search needs the gravity-aware mode (rover maps levelled by the IMU)")
-    if index is not None and (len(index.xyz) != len(Pr) or index.epsilon_m != cfg.epsilon_m):
-        raise ConfigError("the given index was built for another reference map or another epsilon_m")
+    if index is not None and (len(index.xyz) != len(Pr) or not np.array_equal(index.xyz, Pr)):
+        raise ConfigError("the given index was built for another reference map")
 
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    if index is None:
-        index = ReferenceIndex(Pr, cfg.epsilon_m, icfg)
+    fm = cfg.for_maps(reference, vehicle)  # the crops' search runs at the maps' tolerances: so do the index and chance
+    if index is None or not math.isclose(index.epsilon_m, fm.epsilon_m, rel_tol=1e-9):
+        if index is not None:
+            log.info("localize_large: index built at %.4f m, the maps need %.4f m: rebuilt", index.epsilon_m, fm.epsilon_m)
+        index = ReferenceIndex(Pr, fm.epsilon_m, icfg)
     timings["index"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    votes = index.vote(Pv, cfg.epsilon_z_m, math.tan(math.radians(cfg.max_tilt_deg)))
+    votes = index.vote(Pv, fm.epsilon_z_m, math.tan(math.radians(cfg.max_tilt_deg)))
     timings["vote"] = time.perf_counter() - t0
 
     m_full = len(Pr) * len(Pv)
-    fm = cfg.for_maps(reference, vehicle)  # the crops' search runs at the maps' tolerances: so does chance
     required = max(cfg.min_inliers, int(math.ceil(
         chance_clique_size(m_full, cfg.mode, fm.epsilon_m, fm.epsilon_z_m) + cfg.chance_margin)))
     considered = votes.lookups

@@ -158,6 +158,7 @@ class Votes:
     lookups: int
     matches: int
     centre_xy: np.ndarray  # the vehicle-frame point whose reference position was voted for
+    votes_xy_yaw: np.ndarray | None = None  # (matches, 3): every match's vote (x, y of the centre, yaw rad)
 
 
 class ReferenceIndex:
@@ -210,13 +211,18 @@ class ReferenceIndex:
         q = np.clip(q, 0, self.nq - 1)
         return ((ccw.astype(np.int64) * self.nq + q[:, 0]) * self.nq + q[:, 1]) * self.nq + q[:, 2]
 
-    def vote(self, veh_xyz: np.ndarray, epsilon_z_m: float, tan_tilt: float) -> Votes:
-        """Match the vehicle map's triangles against the index and vote for poses."""
+    def vote(self, veh_xyz: np.ndarray, epsilon_z_m: float, tan_tilt: float, max_triangles: int | None = None) -> Votes:
+        """Match the vehicle map's triangles against the index and vote for poses.
+        `max_triangles`: vote with at most this many of the vehicle map's triangles (evenly
+        spread over its list; a quick look at a dense map, whose true pose keeps the same
+        share of the votes)."""
         cfg = self.config
         V = np.ascontiguousarray(veh_xyz, dtype=np.float64)
         eps = self.epsilon_m
         centre = np.median(V[:, :2], axis=0)
         tri = triangles(V[:, :2], self.max_side_m + eps, max(self.min_side_m - eps, 0.0), cfg.chunk_pairs)
+        if max_triangles is not None and len(tri) > max_triangles:
+            tri = tri[np.linspace(0, len(tri) - 1, max(int(max_triangles), 1)).astype(np.int64)]
         v, s, ccw = _canonical(V, tri)
         # near-equal sides may sort the other way in the reference: look those up swapped too
         extra_v, extra_s, extra_c = [v], [s], [ccw]
@@ -270,7 +276,7 @@ class ReferenceIndex:
         dx, dy = centre[0] - cv[:, 0], centre[1] - cv[:, 1]
         x = cr[:, 0] + cy * dx - sy * dy
         y = cr[:, 1] + sy * dx + cy * dy
-        return Votes(self._candidates(x, y, yaw), n_tri, lookups, len(tv), centre)
+        return Votes(self._candidates(x, y, yaw), n_tri, lookups, len(tv), centre, np.c_[x, y, yaw])
 
     def _candidates(self, x, y, yaw) -> list:
         cfg = self.config
@@ -290,12 +296,17 @@ class ReferenceIndex:
             nb = ((ux + ox - 1) * ny + (uy + oy - 1)) * nk + (uyaw + ok_ - 1) % nk
             s = np.minimum(np.searchsorted(uk, nb), len(uk) - 1)
             score += np.where(uk[s] == nb, counts[s], 0)
+        # the votes of a cell's 3 x 3 x 3 neighbourhood, by slices of the votes sorted by cell
+        order = np.argsort(key, kind="stable")
+        skey = key[order]
+        offs = np.array([((ox - 1) * ny + (oy - 1)) * nk for ox, oy in np.ndindex(3, 3)], np.int64)
         out: list[Candidate] = []
         for t in np.argsort(-score, kind="stable")[: 50 * cfg.max_candidates]:
             if score[t] < cfg.min_votes or len(out) >= cfg.max_candidates:
                 break
-            near = (np.abs(bx - bx0 - ux[t]) <= 1) & (np.abs(by - by0 - uy[t]) <= 1) & (
-                np.abs((bk - uyaw[t] + 1) % nk) <= 2)
+            cells = (uk[t] - uyaw[t] + offs)[:, None] + (uyaw[t] + np.arange(-1, 2)) % nk
+            near = order[np.concatenate([np.arange(lo, hi) for lo, hi in zip(
+                np.searchsorted(skey, cells.ravel(), "left"), np.searchsorted(skey, cells.ravel(), "right"))])]
             c = Candidate(float(np.median(x[near])), float(np.median(y[near])),
                           float(np.angle(np.mean(np.exp(1j * yaw[near])))), int(score[t]))
             if any(math.hypot(c.x_m - o.x_m, c.y_m - o.y_m) < cfg.candidate_separation_m
