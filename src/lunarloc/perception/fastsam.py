@@ -12,6 +12,14 @@ Offline rules enforced here, before ultralytics is imported:
   raised, so ultralytics never gets a chance to fetch a file by that name.
 * No plotting is done (plotting is what downloads fonts).
 
+ONNX
+----
+:func:`export_onnx` writes a dynamic-shape ONNX file next to a local checkpoint once;
+``FastSamSegmenter`` takes it as weights (ultralytics runs it on onnxruntime; extra
+``fastsam-onnx``). Speeds of both paths: ``benchmarks/fastsam_speed.py``, which times
+networks built by :func:`build_untrained_checkpoint` (FastSAM's architecture, random
+weights), and docs/perception.md.
+
 torchvision on CPU-only torch
 -----------------------------
 ultralytics reads torchvision's *version* at import and imports torchvision before
