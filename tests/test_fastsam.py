@@ -129,3 +129,17 @@ def test_detect_cli_with_fastsam_weights_end_to_end(untrained_checkpoint, tmp_pa
     rec = json.loads(out.with_name("det.csv.config.json").read_text())
     assert rec["detector"]["segmenter"] == "fastsam"
     assert rec["detector"]["weights"] == str(untrained_checkpoint)
+
+
+def test_ultralytics_leaves_pil_image_open_alone(untrained_checkpoint, tmp_path):
+    """ultralytics patches PIL.Image.open on import (a corrupt image then tries to load
+    pi_heif); after lunarloc has loaded FastSAM a corrupt PNG is still PIL's own error,
+    which the archive reader reports as a clear one."""
+    from PIL import Image, UnidentifiedImageError
+
+    make_segmenter("fastsam", weights=str(untrained_checkpoint), imgsz=320)
+    bad = tmp_path / "corrupt.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\nbroken")
+    assert getattr(Image.open, "__module__", "") != "ultralytics.utils.patches"
+    with pytest.raises(UnidentifiedImageError):
+        Image.open(bad)

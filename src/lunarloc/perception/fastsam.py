@@ -53,6 +53,7 @@ __all__ = [
     "configure_offline",
     "build_untrained_checkpoint",
     "export_onnx",
+    "import_ultralytics",
     "FASTSAM_SCALES",
 ]
 
@@ -72,6 +73,28 @@ def configure_offline() -> None:
     os.environ.setdefault("YOLO_VERBOSE", "False")
 
 
+def import_ultralytics():
+    """Import ultralytics (or raise DependencyError with the install hint) and undo its
+    global patch of ``PIL.Image.open``.
+
+    On import ultralytics replaces ``PIL.Image.open`` process-wide with a wrapper that,
+    on an unidentified image, tries to install and import ``pi_heif``; lunarloc's own
+    image reading would then turn a corrupt PNG in an archive into an internal error
+    (``ModuleNotFoundError``) instead of a clear one. lunarloc passes arrays to
+    ultralytics and needs no HEIF, so the original ``open`` is put back.
+    """
+    from PIL import Image
+
+    original = Image.open
+    mod = require("ultralytics", "fastsam", _HINT)
+    patches = sys.modules.get("ultralytics.utils.patches")
+    if getattr(Image.open, "__module__", "") == "ultralytics.utils.patches":
+        if getattr(original, "__module__", "") == "ultralytics.utils.patches":  # imported before us
+            original = getattr(patches, "_image_open", original)
+        Image.open = original
+    return mod
+
+
 def ensure_torchvision() -> bool:
     """Make ``import torchvision`` usable for ultralytics' inference path.
 
@@ -89,7 +112,7 @@ def ensure_torchvision() -> bool:
         for name in [m for m in sys.modules if m == "torchvision" or m.startswith("torchvision.")]:
             del sys.modules[name]
         logger.info("torchvision unusable with this torch (%s); using a pure-torch NMS stand-in", exc)
-    require("ultralytics", "fastsam", _HINT)
+    import_ultralytics()
     from importlib.metadata import PackageNotFoundError, version
 
     from ultralytics.utils.nms import TorchNMS
@@ -125,7 +148,7 @@ def build_untrained_checkpoint(path: str | os.PathLike, scale: str = "s", *, see
         raise InputError(f"unknown network scale {scale!r}; choose one of {sorted(FASTSAM_SCALES)}")
     configure_offline()
     torch = require("torch", "fastsam", _HINT)
-    require("ultralytics", "fastsam", _HINT)
+    import_ultralytics()
     from ultralytics import YOLO
     from ultralytics.nn.tasks import SegmentationModel, yaml_model_load
 
@@ -187,7 +210,7 @@ class FastSamSegmenter:
             )
         configure_offline()
         require("torch", "fastsam", _HINT)
-        require("ultralytics", "fastsam", _HINT)
+        import_ultralytics()
         if path.suffix.lower() == ".onnx":
             require("onnxruntime", "fastsam-onnx", _HINT)
         ensure_torchvision()
@@ -270,7 +293,7 @@ def export_onnx(weights: str | os.PathLike, *, imgsz: int = 1024) -> Path:
         raise InputError(f"ONNX export needs a local .pt checkpoint, got {path}")
     configure_offline()
     require("torch", "fastsam", _HINT)
-    require("ultralytics", "fastsam", _HINT)
+    import_ultralytics()
     for mod in ("onnx", "onnxslim", "onnxruntime"):
         require(mod, "fastsam-onnx", _HINT)
     ensure_torchvision()
