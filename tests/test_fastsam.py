@@ -1,8 +1,9 @@
 """FastSAM backend: offline guards and the real inference path on an untrained checkpoint.
 
-The inference test needs the `fastsam` extra (torch + ultralytics) and skips cleanly
-without it. The checkpoint is a YOLOv8n-seg (FastSAM's architecture) built from
-ultralytics' packaged yaml with random weights: nothing is downloaded.
+The inference tests need the `fastsam` extra (torch + ultralytics; the ONNX test also
+`fastsam-onnx`) and skip cleanly without it. The checkpoint is a one-class YOLOv8n-seg
+(FastSAM-s/-x are its s/x siblings) built from ultralytics' packaged yaml with random
+weights: nothing is downloaded.
 """
 
 from __future__ import annotations
@@ -12,8 +13,8 @@ import os
 import numpy as np
 import pytest
 
-from lunarloc.errors import ConfigError, InputError
-from lunarloc.perception.fastsam import point_grid
+from lunarloc.errors import ConfigError, DependencyError, InputError
+from lunarloc.perception.fastsam import build_untrained_checkpoint, export_onnx, point_grid
 from lunarloc.perception.segment import SegmenterKind, make_segmenter
 
 
@@ -34,23 +35,26 @@ def test_missing_weights_is_a_clear_error_and_no_download(tmp_path, monkeypatch)
         make_segmenter("nope")
 
 
+def test_bad_arguments_fail_before_any_heavy_import(tmp_path, monkeypatch):
+    with pytest.raises(InputError, match="scale"):
+        build_untrained_checkpoint(tmp_path / "a.pt", "q")
+    with pytest.raises(InputError, match=r"\.pt checkpoint"):
+        export_onnx(tmp_path / "missing.pt")
+    onnx = tmp_path / "FastSAM-s.onnx"
+    onnx.write_bytes(b"not a model")
+    monkeypatch.setenv("YOLO_CONFIG_DIR", str(tmp_path / "cfg"))  # ultralytics' settings, if it is imported here
+    monkeypatch.setitem(__import__("sys").modules, "onnxruntime", None)  # as if not installed
+    with pytest.raises(DependencyError, match=r"lunarloc\[fastsam"):  # torch, ultralytics or onnxruntime missing
+        make_segmenter("fastsam", weights=str(onnx))
+
+
 @pytest.fixture(scope="module")
 def untrained_checkpoint(tmp_path_factory):
     pytest.importorskip("torch")
     d = tmp_path_factory.mktemp("fastsam")
     os.environ.setdefault("YOLO_CONFIG_DIR", str(d / "cfg"))  # keep ultralytics' settings out of $HOME
-    from lunarloc.perception.fastsam import configure_offline
-
-    configure_offline()
     pytest.importorskip("ultralytics")
-    import torch
-    from ultralytics import YOLO
-
-    torch.manual_seed(0)  # random init, but the same every run
-    model = YOLO("yolov8n-seg.yaml", task="segment")  # built from the packaged yaml: random weights
-    path = d / "untrained-yolov8n-seg.pt"
-    model.save(str(path))
-    return path
+    return build_untrained_checkpoint(d / "untrained-yolov8n-seg.pt", "n", seed=0)  # random init, same every run
 
 
 def test_fastsam_inference_path_on_cpu(untrained_checkpoint):
@@ -69,3 +73,73 @@ def test_fastsam_inference_path_on_cpu(untrained_checkpoint):
     for m in out:
         full = m.to_full((180, 320))
         assert full[g[:, 1], g[:, 0]].any()
+
+
+def _union(masks, shape):
+    full = np.zeros(shape, bool)
+    for m in masks:
+        full |= m.to_full(shape)
+    return full
+
+
+def test_onnx_export_runs_like_the_checkpoint(untrained_checkpoint):
+    for mod in ("onnx", "onnxslim", "onnxruntime"):
+        pytest.importorskip(mod)
+    onnx = export_onnx(untrained_checkpoint, imgsz=320)
+    assert onnx.suffix == ".onnx" and onnx.is_file()
+    img = (np.random.default_rng(1).uniform(0, 255, (180, 320))).astype(np.uint8)
+    kw = dict(imgsz=320, conf=0.0, iou=0.9, device="cpu")
+    a = make_segmenter("fastsam", weights=str(untrained_checkpoint), **kw).segment(img)
+    b = make_segmenter("fastsam", weights=str(onnx), **kw).segment(img)
+    assert len(a) > 0 and abs(len(a) - len(b)) <= max(2, len(a) // 10)
+    ua, ub = _union(a, (180, 320)), _union(b, (180, 320))
+    assert np.count_nonzero(ua & ub) >= 0.9 * np.count_nonzero(ua | ub)
+
+
+def test_detector_runs_fastsam_masks_through_its_filters(untrained_checkpoint):
+    from lunarloc.perception.camera import PinholeCamera, ipex_rig
+    from lunarloc.perception.detector import Detector, DetectorConfig
+
+    cam = PinholeCamera(320, 180, 70.0)
+    seg = make_segmenter("fastsam", weights=str(untrained_checkpoint), imgsz=320, conf=0.0)
+    det = Detector(DetectorConfig(segmenter="fastsam", weights=str(untrained_checkpoint)), cam, segmenter=seg)
+    rng = np.random.default_rng(2)
+    left = rng.uniform(0, 255, (180, 320)).astype(np.uint8)
+    res = det.detect_pair(left, np.roll(left, -4, axis=1), ipex_rig(cam)["FrontLeft"].T_rover_optical)
+    assert len(res.masks) > 0 and len(res.records) == len(res.masks)
+    # every mask was judged: rejected with a reason, or kept as one finite detection
+    assert sum(r.reason is None for r in res.records) == len(res.detections)
+    assert all(np.all(np.isfinite(d.p_rover)) for d in res.detections)
+
+
+def test_detect_cli_with_fastsam_weights_end_to_end(untrained_checkpoint, tmp_path):
+    import json
+
+    from lunarloc.cli import main
+    from lunarloc.data.simulate import SimulationConfig, simulate_dataset
+
+    cfg = SimulationConfig(duration_s=2.0, image_rate_hz=2.0, width=320, height=180,
+                           cameras=("FrontLeft", "FrontRight"), semantic=False)  # fmt: skip
+    simulate_dataset(0, 1, tmp_path, cfg)
+    out = tmp_path / "det.csv"
+    rc = main(["detect", str(tmp_path / "traverse_0.lac"), "-o", str(out), "--segmenter", "fastsam",
+               "--weights", str(untrained_checkpoint)])  # fmt: skip
+    assert rc == 0
+    assert out.read_text().startswith("frame,x,y,z,detections")
+    rec = json.loads(out.with_name("det.csv.config.json").read_text())
+    assert rec["detector"]["segmenter"] == "fastsam"
+    assert rec["detector"]["weights"] == str(untrained_checkpoint)
+
+
+def test_ultralytics_leaves_pil_image_open_alone(untrained_checkpoint, tmp_path):
+    """ultralytics patches PIL.Image.open on import (a corrupt image then tries to load
+    pi_heif); after lunarloc has loaded FastSAM a corrupt PNG is still PIL's own error,
+    which the archive reader reports as a clear one."""
+    from PIL import Image, UnidentifiedImageError
+
+    make_segmenter("fastsam", weights=str(untrained_checkpoint), imgsz=320)
+    bad = tmp_path / "corrupt.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\nbroken")
+    assert getattr(Image.open, "__module__", "") != "ultralytics.utils.patches"
+    with pytest.raises(UnidentifiedImageError):
+        Image.open(bad)

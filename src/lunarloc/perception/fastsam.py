@@ -12,6 +12,14 @@ Offline rules enforced here, before ultralytics is imported:
   raised, so ultralytics never gets a chance to fetch a file by that name.
 * No plotting is done (plotting is what downloads fonts).
 
+ONNX
+----
+:func:`export_onnx` writes a dynamic-shape ONNX file next to a local checkpoint once;
+``FastSamSegmenter`` takes it as weights (ultralytics runs it on onnxruntime; extra
+``fastsam-onnx``). Speeds of both paths: ``benchmarks/fastsam_speed.py``, which times
+networks built by :func:`build_untrained_checkpoint` (FastSAM's architecture, random
+weights), and docs/perception.md.
+
 torchvision on CPU-only torch
 -----------------------------
 ultralytics reads torchvision's *version* at import and imports torchvision before
@@ -38,12 +46,24 @@ import numpy as np
 from lunarloc.errors import DependencyError, InputError, require
 from lunarloc.perception.masks import InstanceMask, InstanceMasks
 
-__all__ = ["FastSamSegmenter", "point_grid", "ensure_torchvision", "configure_offline"]
+__all__ = [
+    "FastSamSegmenter",
+    "point_grid",
+    "ensure_torchvision",
+    "configure_offline",
+    "build_untrained_checkpoint",
+    "export_onnx",
+    "import_ultralytics",
+    "FASTSAM_SCALES",
+]
 
 logger = logging.getLogger(__name__)
 logger.addHandler(logging.NullHandler())
 
-_HINT = "install torch==2.13.0 first (CPU build), then torchvision==0.28.0 --no-deps and ultralytics; see README"
+_HINT = (
+    "install torch==2.13.0 first (CPU build), then torchvision==0.28.0 --no-deps and the extra; "
+    "see docs/perception.md"
+)
 
 
 def configure_offline() -> None:
@@ -51,6 +71,28 @@ def configure_offline() -> None:
     os.environ.setdefault("YOLO_OFFLINE", "1")
     os.environ.setdefault("YOLO_AUTOINSTALL", "False")
     os.environ.setdefault("YOLO_VERBOSE", "False")
+
+
+def import_ultralytics():
+    """Import ultralytics (or raise DependencyError with the install hint) and undo its
+    global patch of ``PIL.Image.open``.
+
+    On import ultralytics replaces ``PIL.Image.open`` process-wide with a wrapper that,
+    on an unidentified image, tries to install and import ``pi_heif``; lunarloc's own
+    image reading would then turn a corrupt PNG in an archive into an internal error
+    (``ModuleNotFoundError``) instead of a clear one. lunarloc passes arrays to
+    ultralytics and needs no HEIF, so the original ``open`` is put back.
+    """
+    from PIL import Image
+
+    original = Image.open
+    mod = require("ultralytics", "fastsam", _HINT)
+    patches = sys.modules.get("ultralytics.utils.patches")
+    if getattr(Image.open, "__module__", "") == "ultralytics.utils.patches":
+        if getattr(original, "__module__", "") == "ultralytics.utils.patches":  # imported before us
+            original = getattr(patches, "_image_open", original)
+        Image.open = original
+    return mod
 
 
 def ensure_torchvision() -> bool:
@@ -70,7 +112,7 @@ def ensure_torchvision() -> bool:
         for name in [m for m in sys.modules if m == "torchvision" or m.startswith("torchvision.")]:
             del sys.modules[name]
         logger.info("torchvision unusable with this torch (%s); using a pure-torch NMS stand-in", exc)
-    require("ultralytics", "fastsam", _HINT)
+    import_ultralytics()
     from importlib.metadata import PackageNotFoundError, version
 
     from ultralytics.utils.nms import TorchNMS
@@ -90,6 +132,39 @@ def ensure_torchvision() -> bool:
     return False
 
 
+# FastSAM-s is a YOLOv8s-seg and FastSAM-x a YOLOv8x-seg, each with one class ("object").
+FASTSAM_SCALES = {"s": "FastSAM-s", "x": "FastSAM-x", "n": "YOLOv8n-seg (tests only)"}
+
+
+def build_untrained_checkpoint(path: str | os.PathLike, scale: str = "s", *, seed: int = 0) -> Path:
+    """Save a FastSAM-shaped network with random weights as an ultralytics ``.pt`` checkpoint.
+
+    The network is built from ultralytics' packaged ``yolov8{scale}-seg.yaml`` with one
+    class, FastSAM's architecture (``s``: FastSAM-s, ``x``: FastSAM-x; ``n`` is a smaller
+    sibling for tests). Nothing is downloaded. Random weights find no rocks: use it to
+    time the network and to test the inference path, never to detect.
+    """
+    if scale not in FASTSAM_SCALES:
+        raise InputError(f"unknown network scale {scale!r}; choose one of {sorted(FASTSAM_SCALES)}")
+    configure_offline()
+    torch = require("torch", "fastsam", _HINT)
+    import_ultralytics()
+    from ultralytics import YOLO
+    from ultralytics.nn.tasks import SegmentationModel, yaml_model_load
+
+    torch.manual_seed(seed)
+    yolo = YOLO(f"yolov8{scale}-seg.yaml", task="segment", verbose=False)  # 80 classes; replaced below
+    cfg = yaml_model_load(f"yolov8{scale}-seg.yaml")
+    cfg["nc"] = 1
+    net = SegmentationModel(cfg, nc=1, verbose=False)
+    net.args, net.task, net.names = yolo.model.args, "segment", {0: "object"}
+    yolo.model = net
+    out = Path(path).expanduser()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    yolo.save(str(out))
+    return out
+
+
 def point_grid(width: int, height: int, n: int = 32) -> np.ndarray:
     """(n*n, 2) int pixel coordinates (u, v) of a uniform n x n grid of cell centres."""
     if n < 1:
@@ -105,9 +180,11 @@ class FastSamSegmenter:
 
     Parameters
     ----------
-    weights : path to a FastSAM checkpoint (FastSAM-s.pt / FastSAM-x.pt) or any
-        ultralytics YOLOv8-seg checkpoint. Must exist; never downloaded.
+    weights : path to a FastSAM checkpoint (FastSAM-s.pt / FastSAM-x.pt), any
+        ultralytics YOLOv8-seg checkpoint, or its ONNX export (``.onnx``, see
+        :func:`export_onnx`; runs on onnxruntime). Must exist; never downloaded.
     imgsz : network input size in pixels (long side); FastSAM's default is 1024.
+        A fixed-shape ONNX export runs at its own size.
     conf, iou : confidence and NMS IoU thresholds (FastSAM defaults 0.4, 0.9).
     grid : points per side of the prompt grid (paper: 32).
     device : torch device string ("cpu" by default).
@@ -129,11 +206,13 @@ class FastSamSegmenter:
         if not path.is_file():
             raise InputError(
                 f"FastSAM weights not found: {path} (lunarloc never downloads weights; "
-                "pass the path of a local FastSAM-s.pt or FastSAM-x.pt)"
+                "pass the path of a local FastSAM-s.pt or FastSAM-x.pt, or its .onnx export)"
             )
         configure_offline()
         require("torch", "fastsam", _HINT)
-        require("ultralytics", "fastsam", _HINT)
+        import_ultralytics()
+        if path.suffix.lower() == ".onnx":
+            require("onnxruntime", "fastsam-onnx", _HINT)
         ensure_torchvision()
         from ultralytics import FastSAM
 
@@ -148,8 +227,9 @@ class FastSamSegmenter:
         self.grid = int(grid)
         self.device = device
 
-    def segment(self, image: np.ndarray) -> InstanceMasks:
-        """Masks of the image (H, W) grayscale or (H, W, 3) RGB uint8."""
+    def predict(self, image: np.ndarray):
+        """ultralytics' result of the network and its postprocessing (NMS, masks at image
+        resolution, the point prompt) for one (H, W) grayscale or (H, W, 3) uint8 image."""
         import cv2
 
         img = np.asarray(image)
@@ -173,12 +253,20 @@ class FastSamSegmenter:
             )
         except ImportError as exc:  # pragma: no cover
             raise DependencyError(f"FastSAM inference needs a missing module: {exc} ({_HINT})") from exc
+        return results[0] if results else None
+
+    @staticmethod
+    def masks_from(result, image_shape: tuple[int, int]) -> InstanceMasks:
+        """InstanceMasks of an ultralytics result (empty masks dropped)."""
+        import cv2
+
+        H, W = image_shape
         out = InstanceMasks((H, W))
-        if not results or results[0].masks is None:
+        if result is None or result.masks is None:
             return out
-        res = results[0]
-        data = res.masks.data.cpu().numpy().astype(bool)
-        scores = res.boxes.conf.cpu().numpy() if res.boxes is not None and len(res.boxes) == len(data) else None
+        data = result.masks.data.cpu().numpy().astype(bool)
+        boxes = result.boxes
+        scores = boxes.conf.cpu().numpy() if boxes is not None and len(boxes) == len(data) else None
         for k, m in enumerate(data):
             if m.shape != (H, W):
                 m = cv2.resize(m.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST).astype(bool)
@@ -186,3 +274,33 @@ class FastSamSegmenter:
                 continue
             out.masks.append(InstanceMask.from_full(m, float(scores[k]) if scores is not None else 1.0))
         return out
+
+    def segment(self, image: np.ndarray) -> InstanceMasks:
+        """Masks of the image (H, W) grayscale or (H, W, 3) RGB uint8."""
+        return self.masks_from(self.predict(image), np.asarray(image).shape[:2])
+
+
+def export_onnx(weights: str | os.PathLike, *, imgsz: int = 1024) -> Path:
+    """Export a local FastSAM checkpoint to ONNX next to it (``FastSAM-s.pt`` ->
+    ``FastSAM-s.onnx``) and return the new file's path. Run once; nothing is downloaded.
+
+    The export has dynamic input shapes, so one file serves any ``imgsz`` and keeps
+    ultralytics' rectangular letterbox (1280x720 runs at 1024x576, not 1024x1024).
+    Needs the ``fastsam-onnx`` extra (onnx, onnxslim, onnxruntime).
+    """
+    path = Path(weights).expanduser()
+    if path.suffix.lower() != ".pt" or not path.is_file():
+        raise InputError(f"ONNX export needs a local .pt checkpoint, got {path}")
+    configure_offline()
+    require("torch", "fastsam", _HINT)
+    import_ultralytics()
+    for mod in ("onnx", "onnxslim", "onnxruntime"):
+        require(mod, "fastsam-onnx", _HINT)
+    ensure_torchvision()
+    from ultralytics import FastSAM
+
+    try:
+        out = FastSAM(str(path)).export(format="onnx", imgsz=int(imgsz), dynamic=True, simplify=True, device="cpu")
+    except Exception as exc:  # ultralytics raises many types for a bad checkpoint
+        raise InputError(f"cannot export {path} to ONNX: {exc}") from exc
+    return Path(out)
