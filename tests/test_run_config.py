@@ -257,3 +257,14 @@ def test_index_section_reaches_localize(tmp_path, capsys):
     assert main([*args, "--config", str(cfg)]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["config"]["index"]["min_votes"] == 100_000 and not out["success"] and not out["candidates"]
+
+
+def test_the_demo_odometry_source_is_set_in_one_place():
+    """The scenario has no odometry setting of its own: the run configuration's
+    odometry.source is it (the simulator's drifting record by default)."""
+    from lunarloc.scenario import ScenarioConfig, demo_run_config
+
+    assert demo_run_config().odometry.source == "record:odometry"
+    assert "odometry" not in ScenarioConfig().to_dict()
+    with pytest.raises(ConfigError, match="scenario.odometry.*odometry.source"):
+        ScenarioConfig.from_dict({"seed": 3, "odometry": "visual"})

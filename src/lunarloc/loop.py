@@ -220,18 +220,23 @@ class LoopState:
     ``step(frame, t, odo_pose6, detections_rover=None, gt_pose6=None)``: every frame gives
     its odometry pose; keyframes (image frames) also give their detections in the rover
     frame, (N, 3). Ground truth, when given, is only used to score fixes.
+
+    ``reference=None``: no reference map (a rover that only localizes in other rovers' maps,
+    :mod:`lunarloc.multirover`). Attempts are still made on schedule (their local map is what
+    a caller can localize elsewhere) and end with the reason "no reference map".
     """
 
-    def __init__(self, reference: LandmarkMap, config: LoopConfig | None = None,
+    def __init__(self, reference: LandmarkMap | None, config: LoopConfig | None = None,
                  localization: LocalizationConfig | None = None):  # fmt: skip
         from lunarloc.warmup import warm_up
 
         warm_up()  # compile before any stage timer starts: compile time is not run time
-        if not isinstance(reference, LandmarkMap):
-            raise InputError("reference must be a LandmarkMap")
-        if len(reference) < 3:
+        if reference is not None and not isinstance(reference, LandmarkMap):
+            raise InputError("reference must be a LandmarkMap or None")
+        if reference is not None and len(reference) < 3:
             raise InputError(f"reference map has {len(reference)} landmark(s); at least 3 are needed")
-        self.reference = reference
+        self.has_reference = reference is not None
+        self.reference = reference if reference is not None else LandmarkMap(np.zeros((0, 3)), frame="map")
         self.config = config or LoopConfig()
         self.localization = localization or loop_localization_config()
         self.graph = PoseGraph(self.config.fusion)
@@ -357,6 +362,9 @@ class LoopState:
         self.timings["mapping"] += att.time_mapping_s
         if len(veh) < cfg.min_window_landmarks:
             att.reason = f"too few local landmarks ({len(veh)} < {cfg.min_window_landmarks})"
+            return att
+        if not self.has_reference:
+            att.reason = "no reference map"
             return att
         if len(ref) < 3:
             att.reason = f"reference has {len(ref)} landmarks near the predicted position"

@@ -46,7 +46,7 @@ import os
 import re
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -249,20 +249,12 @@ class _Rover:
         rig = CameraRig.from_sensors(agent.sensors(), {c: agent.get_camera_position(c) for c in ar.cameras})
         # the run folder holds the whole history, so the pose graph is never re-anchored
         online = OnlineConfig(loop=cfg.run.loop, localization=cfg.run.localization, max_keyframes=10**9)
-        if reference is None:
-            online = replace(online, reference_max_distance_m=math.inf)
         self.has_reference = reference is not None
         detector_config = cfg.run.detector_for(rig.camera.width)
         lander = ar.initial.get("lander")  # rover-relative at the start; detections on the lander are dropped
-        if reference is None:
-            # OnlineLocalizer wants a reference of >= 3 landmarks; a rover without one is given
-            # three far away and then an empty map, against which every attempt finds nothing
-            # (recorded by the loop, dropped from the outputs), so only shared fixes correct it.
-            far = T0[:3, 3] + np.array([[1e6, 0, 0], [1e6, 1, 0], [1e6, 0, 1]])
-            self.loc = OnlineLocalizer(LandmarkMap(far, frame="map"), T0, online, rig, detector_config, lander)
-            self.loc.reference = self.loc.loop.reference = LandmarkMap(np.zeros((0, 3)), frame="map")
-        else:
-            self.loc = OnlineLocalizer(reference, T0, online, rig, detector_config, lander)
+        # without a reference every attempt ends "no reference map" (recorded by the loop,
+        # dropped from the outputs) and only shared fixes correct the rover
+        self.loc = OnlineLocalizer(reference, T0, online, rig, detector_config, lander)
         self.detector_config = self.loc.detector.config
         self.camera = rig.camera
         self.rocks = ar.custom("rocks").to_array(("id", "x", "y", "z", "radius")) if "rocks" in ar.custom_records else None

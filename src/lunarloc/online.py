@@ -226,7 +226,10 @@ class Estimate:
 class OnlineLocalizer:
     """Per-tick global localization against a reference rock map (see the module docstring).
 
-    reference : the reference map (frame ``map``), e.g. :func:`lunarloc.load_reference`.
+    reference : the reference map (frame ``map``), e.g. :func:`lunarloc.load_reference`; None
+        for a rover with no reference (its attempts end "no reference map"; a caller such as
+        :mod:`lunarloc.multirover` localizes their local maps in other rovers' maps).
+        ``localized`` then stays False.
     initial_pose : the rover's pose in ``map`` at the first tick (the LAC's
         ``get_initial_position()``: a Transform, a 4x4 or (x, y, z, roll, pitch, yaw)).
     config : :class:`OnlineConfig`.
@@ -238,13 +241,14 @@ class OnlineLocalizer:
         the lander are then dropped. None: no lander exclusion.
     """
 
-    def __init__(self, reference: LandmarkMap, initial_pose, config: OnlineConfig | None = None,
+    def __init__(self, reference: LandmarkMap | None, initial_pose, config: OnlineConfig | None = None,
                  rig: CameraRig | None = None, detector_config=None, lander_pose=None):  # fmt: skip
         from lunarloc.perception.detector import Detector
         from lunarloc.config import scaled_detector_config
 
-        if not isinstance(reference, LandmarkMap):
-            raise InputError(f"reference must be a LandmarkMap (see lunarloc.load_reference), got {type(reference).__name__}")
+        if reference is not None and not isinstance(reference, LandmarkMap):
+            raise InputError(f"reference must be a LandmarkMap (see lunarloc.load_reference) or None, "
+                             f"got {type(reference).__name__}")
         self.config = cfg = config or OnlineConfig()
         self.rig = rig or CameraRig()
         if not isinstance(self.rig, CameraRig):
@@ -253,7 +257,7 @@ class OnlineLocalizer:
         # the lander's centre in map (= odometry at the start), for dropping detections on it
         self._lander_xy = None if lander_pose is None else (self.T_map_rover0 @ _as_T(lander_pose, "lander_pose"))[:2, 3]
         self.reference = reference
-        if len(reference) >= 1:
+        if reference is not None and len(reference) >= 1:
             d = np.linalg.norm(reference.positions_xyz[:, :2] - self.T_map_rover0[:2, 3], axis=1)
             if float(d.min()) > cfg.reference_max_distance_m:
                 raise InputError(
