@@ -202,7 +202,7 @@ def test_history_stays_bounded_across_reanchors():
         T = pose_to_matrix(0.01 * i, 0.0, 0.0, 0.0, 0.0, 0.002 * i)
         img = blank if i % 2 == 0 else None
         e = loc.update(0.05 * i, {"Grayscale": {"FrontLeft": img, "FrontRight": img}}, IMU_REST, 0.2, 0.04, odometry=T)
-        held.append(len(loc.loop.kf_frame))
+        held.append(len(loc.loop.keyframes))
         assert np.allclose(e.T_map_rover, T, atol=1e-6)
     assert max(held) <= 50 and loc.reanchors >= 2
 

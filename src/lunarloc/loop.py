@@ -32,7 +32,7 @@ import numpy as np
 
 from lunarloc.ate import ate, path_length
 from lunarloc.errors import ConfigError, InputError, LunarLocError
-from lunarloc.fusion import FusionConfig, PoseGraph, wrap_angle
+from lunarloc.fusion import FusionConfig, Keyframe, PoseGraph, wrap_angle
 from lunarloc.geometry import matrix_to_pose, pose_to_matrix, transform_points, yaw_of
 from lunarloc.localize import LocalizationConfig, localize
 from lunarloc.maps import AggregationConfig, LandmarkMap, aggregate_detections
@@ -245,11 +245,6 @@ class LoopState:
         self.odo: list[np.ndarray] = []
         self.online: list[np.ndarray] = []
         self.gt: list[np.ndarray] = []
-        self.kf_frame: list[int] = []
-        self.kf_rp: list[tuple[float, float]] = []  # odometry roll, pitch at keyframes
-        self.kf_det: list[np.ndarray] = []
-        self.kf_dist: list[float] = []
-        self._kf_odo: list[np.ndarray] = []
         self.attempts: list[Attempt] = []
         self.timings = {"detection": 0.0, "mapping": 0.0, "association": 0.0, "fusion": 0.0}
         self._dist = 0.0
@@ -257,6 +252,13 @@ class LoopState:
         self._last_attempt_dist = 0.0
         self._last_attempt_t = None
         self.T_map_odo = np.eye(4)  # the latest keyframe's correction
+
+    @property
+    def keyframes(self) -> list[Keyframe]:
+        """The keyframes (:class:`lunarloc.fusion.Keyframe`: the one record the loop and the
+        pose graph share: frame, time, odometry pose, roll/pitch, detections, path length,
+        current estimate)."""
+        return self.graph.keyframes
 
     # -------------------------------------------------------------- per frame
     def step(self, frame: int, t: float, T_odo_rover: np.ndarray, detections_rover: np.ndarray | None = None,
@@ -276,21 +278,18 @@ class LoopState:
         self.gt.append(None if T_map_rover_true is None else np.asarray(matrix_to_pose(T_map_rover_true), float))
         is_kf = (detections_rover is not None) if keyframe is None else keyframe
         attempt = None
-        if is_kf or not self.kf_frame:
+        if is_kf or not self.graph.keyframes:
             attempt = self._keyframe(frame, t, q, np.zeros((0, 3)) if detections_rover is None else detections_rover)
         self.online.append(_apply_corr(self.T_map_odo, q))
         return attempt
 
     def _keyframe(self, frame, t, q, det) -> Attempt | None:
         t0 = time.perf_counter()
-        k = self.graph.add_keyframe(t, (q[0], q[1], q[2], q[5]), self._moving_since_kf if self.kf_frame else None)
+        k = self.graph.add_keyframe(t, (q[0], q[1], q[2], q[5]), self._moving_since_kf if self.graph.keyframes else None,
+                                    frame=int(frame), roll_pitch_rad=(float(q[3]), float(q[4])),
+                                    detections_rover=det, path_m=self._dist)  # fmt: skip
         self._moving_since_kf = 0.0
         self.timings["fusion"] += time.perf_counter() - t0
-        self.kf_frame.append(int(frame))
-        self.kf_rp.append((float(q[3]), float(q[4])))
-        self._kf_odo.append(q)
-        self.kf_det.append(np.asarray(det, float).reshape(-1, 3))
-        self.kf_dist.append(self._dist)
         if self._last_attempt_t is None:
             self._last_attempt_t = t
         attempt = None
@@ -303,31 +302,27 @@ class LoopState:
         return attempt
 
     def _correction(self, k: int) -> np.ndarray:
-        est = self.graph.pose(k)
-        o = self.odo_at_keyframe(k)
-        d = float(wrap_angle(est[3] - o[5]))
-        c, s = math.cos(d), math.sin(d)
-        T = np.eye(4)
-        T[:2, :2] = [[c, -s], [s, c]]
-        T[:3, 3] = est[:3] - T[:3, :3] @ o[:3]
-        return T
+        return self.graph.keyframes[k].T_map_odo
 
-    def odo_at_keyframe(self, k: int) -> np.ndarray:
-        """Odometry pose (6,) of keyframe k."""
-        return self._kf_odo[k]
+    def window(self, k: int) -> np.ndarray:
+        """Indices of the keyframes whose detections form keyframe k's local map: those of the
+        last ``window_m`` metres of odometry path up to it (and any after it)."""
+        path = np.array([kf.path_m for kf in self.graph.keyframes])
+        return np.flatnonzero(path >= path[k] - self.config.window_m)
 
     def _window_points(self, keyframes: np.ndarray, poses4: np.ndarray | None, with_index: bool = False):
         """Detections of `keyframes` placed with `poses4` (estimate) or odometry (None):
         (points (N, 3), keyframe of each (N,)[, index of each within its keyframe (N,)])."""
         pts, fr, ix = [], [], []
         for k in keyframes:
-            D = self.kf_det[k]
+            kf = self.graph.keyframes[k]
+            D = kf.detections_rover
             if len(D) == 0:
                 continue
-            roll, pitch = self.kf_rp[k]
+            roll, pitch = kf.roll_pitch_rad
             if poses4 is None:
-                o = self._kf_odo[k]
-                T = pose_to_matrix(o[0], o[1], o[2], roll, pitch, o[5])
+                o = kf.odo_pose4
+                T = pose_to_matrix(o[0], o[1], o[2], roll, pitch, o[3])
             else:
                 x, y, z, yaw = poses4[k]
                 T = pose_to_matrix(x, y, z, roll, pitch, yaw)
@@ -343,8 +338,7 @@ class LoopState:
     def _attempt(self, k: int, frame: int, t: float) -> Attempt:
         cfg = self.config
         t0 = time.perf_counter()
-        dist = np.asarray(self.kf_dist)
-        win = np.flatnonzero(dist >= dist[k] - cfg.window_m)
+        win = self.window(k)
         poses = self.graph.poses()
         P, F, I = self._window_points(win, poses, with_index=True)
         veh = aggregate_detections(P, F, cfg.aggregation, frame="estimate") if len(P) else LandmarkMap(np.zeros((0, 3)))
@@ -387,7 +381,7 @@ class LoopState:
             return att
         t0 = time.perf_counter()
         x, y, z, yaw = poses[k]
-        roll, pitch = self.kf_rp[k]
+        roll, pitch = self.graph.keyframes[k].roll_pitch_rad
         T_est = pose_to_matrix(x, y, z, roll, pitch, yaw)
         T_fix = res.T_ref_veh @ T_est
         fix4 = np.array([T_fix[0, 3], T_fix[1, 3], T_fix[2, 3], yaw_of(T_fix[:3, :3])])
@@ -428,8 +422,9 @@ class LoopState:
             return
         kf, idx, lm = F[ok], I[ok], j[ok]
         targets = ref.positions_xyz[inl[lm, 1]]
-        p_rover = np.array([self.kf_det[k][i] for k, i in zip(kf, idx)])
-        rp = np.array([self.kf_rp[k] for k in kf])
+        kfs = self.graph.keyframes
+        p_rover = np.array([kfs[k].detections_rover[i] for k, i in zip(kf, idx)])
+        rp = np.array([kfs[k].roll_pitch_rad for k in kf])
         keys = list(zip(kf.tolist(), idx.tolist()))
         self.graph.add_landmark_observations(keys, kf, p_rover, rp, targets, self.config.fusion.observation_sigma_m)
 
@@ -440,15 +435,15 @@ class LoopState:
         run's full configuration as written to its run folder."""
         t0 = time.perf_counter()
         self.graph.solve()
-        T_kf = np.stack([self._correction(k) for k in range(len(self.kf_frame))])
+        T_kf = self.graph.correction_transforms()
         self.timings["fusion"] += time.perf_counter() - t0
         frames = np.asarray(self.frames)
         times = np.asarray(self.times)
         odo = np.asarray(self.odo)
-        kf_t = times[np.searchsorted(frames, np.asarray(self.kf_frame))]
+        kf_t = np.array([kf.t_s for kf in self.graph.keyframes])
         corrected = _interpolate_corrections(T_kf, kf_t, times, odo)
         poses = self.graph.poses()
-        all_kf = np.arange(len(self.kf_frame))
+        all_kf = np.arange(len(self.graph.keyframes))
         P, F = self._window_points(all_kf, poses)
         Po, Fo = self._window_points(all_kf, None)
         agg = self.config.aggregation

@@ -304,7 +304,7 @@ class _Rover:
     def owner_sigmas(self) -> tuple[np.ndarray, np.ndarray]:
         """(position m, yaw rad) sigma of every keyframe's estimate in ``map``."""
         g = self.loc.loop.graph
-        s = np.array([g.predicted_sigma(k) for k in range(len(self.loc.loop.kf_frame))], float).reshape(-1, 2)
+        s = np.array([g.predicted_sigma(k) for k in range(len(self.loc.loop.keyframes))], float).reshape(-1, 2)
         return np.hypot(s[:, 0], self.anchor[0]), np.hypot(s[:, 1], self.anchor[1])
 
     def live_map(self, t: float, refresh_s: float) -> _LiveMap | None:
@@ -312,7 +312,7 @@ class _Rover:
         from scipy.spatial import cKDTree
 
         loop = self.loc.loop
-        n = len(loop.kf_frame)
+        n = len(loop.keyframes)
         key = (n, len(loop.graph.fixes), self.anchor)
         if self.live is not None and (self.live.key == key or t - self.live.built_t < refresh_s):
             return self.live
@@ -342,11 +342,10 @@ class _Rover:
         t_start = time.perf_counter()
         loop = self.loc.loop
         cfg = loop.config
-        k = len(loop.kf_frame) - 1
+        k = len(loop.keyframes) - 1
         f, t = self.ticks[-1]
-        dist = np.asarray(loop.kf_dist)
         poses = loop.graph.poses()
-        win = np.flatnonzero(dist >= dist[k] - cfg.window_m)
+        win = loop.window(k)
         P, F = loop._window_points(win, poses)
         veh = aggregate_detections(P, F, cfg.aggregation, frame="estimate") if len(P) else None
         if veh is None or len(veh) < cfg.min_window_landmarks:
@@ -381,7 +380,7 @@ class _Rover:
             if not res.success:
                 continue
             x, y, z, yaw = poses[k]
-            roll, pitch = loop.kf_rp[k]
+            roll, pitch = loop.keyframes[k].roll_pitch_rad
             T_fix = res.T_ref_veh @ pose_to_matrix(x, y, z, roll, pitch, yaw)
             fix4 = np.array([T_fix[0, 3], T_fix[1, 3], T_fix[2, 3], yaw_of(T_fix[:3, :3])])
             inl = res.inliers
@@ -430,7 +429,7 @@ class _Rover:
         attempts = list(loop.attempts) if self.has_reference else []
         attempts = sorted(attempts + self.shared_att, key=lambda a: (a.time_s, a.reason.startswith("map of")))
         kf = loop.finish(self.n_image)  # final solve; keyframe-rate trajectories
-        T_kf = np.stack([loop._correction(k) for k in range(len(loop.kf_frame))])
+        T_kf = loop.graph.correction_transforms()
         frames = np.array([f for f, _ in self.ticks], int)
         times = np.array([t for _, t in self.ticks], float)
         odo = np.asarray(self.odo)

@@ -383,11 +383,11 @@ class OnlineLocalizer:
                 from lunarloc.perception.detector import on_lander
 
                 det = det[~on_lander(det, T_odo, self._lander_xy)]
-            if len(self.loop.kf_frame) >= self.config.max_keyframes:
+            if len(self.loop.keyframes) >= self.config.max_keyframes:
                 self._reanchor()
             attempt = self.loop.step(self._tick, t, self._T_loop_odo @ T_odo, det, None, keyframe=True)
             self._last_kf = (t, T_odo)
-            k = len(self.loop.kf_frame) - 1
+            k = len(self.loop.keyframes) - 1
             self._sigmas = self.loop.graph.predicted_sigma(k)
             if attempt is not None:
                 self.recent_attempts.append(attempt)
@@ -503,22 +503,19 @@ class OnlineLocalizer:
         """Start a new loop state from the keyframes of the last window (bounded history)."""
         old = self.loop
         cfg = self._loop_config
-        n = len(old.kf_frame)
-        dist = np.asarray(old.kf_dist)
-        keep = np.flatnonzero(dist >= dist[-1] - cfg.window_m)[-self.config.max_keyframes // 3 :]
+        n = len(old.keyframes)
+        keep = old.window(n - 1)[-self.config.max_keyframes // 3 :]
         poses = old.graph.poses()
         sm, sy = old.graph.predicted_sigma(int(keep[0]))
         noise = replace(cfg.fusion.noise, start_sigma_m=max(sm, cfg.fusion.noise.start_sigma_m),
                         start_sigma_yaw_rad=max(sy, cfg.fusion.noise.start_sigma_yaw_rad))  # fmt: skip
         new = LoopState(self.reference, replace(cfg, fusion=replace(cfg.fusion, noise=noise)), self.config.localization)
         new._last_attempt_dist = new._last_attempt_t = math.inf  # no attempts while the window is re-fed
-        times = np.asarray(old.times)
-        frames = np.asarray(old.frames)
-        kf_t = times[np.searchsorted(frames, np.asarray(old.kf_frame)[keep])]
-        for k, t in zip(keep, kf_t):
+        for k in keep:
+            kf = old.keyframes[k]
             x, y, z, yaw = poses[k]
-            roll, pitch = old.kf_rp[k]
-            new.step(old.kf_frame[k], float(t), pose_to_matrix(x, y, z, roll, pitch, yaw), old.kf_det[k], None, keyframe=True)
+            roll, pitch = kf.roll_pitch_rad
+            new.step(kf.frame, kf.t_s, pose_to_matrix(x, y, z, roll, pitch, yaw), kf.detections_rover, None, keyframe=True)
         g_old, g_new = old.graph, new.graph
         # the gate's drift model continues from the last fix (distance and time since it)
         g_new._last_fix_dist = g_new.keyframes[-1].distance_m - (g_old.keyframes[-1].distance_m - g_old._last_fix_dist)
