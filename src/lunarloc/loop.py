@@ -155,14 +155,15 @@ class Attempt:
 
 @dataclass
 class LoopResult:
-    """Everything a run produced (poses (F, 6): x, y, z, roll, pitch, yaw in ``map``)."""
+    """Everything a run produced. Trajectories are (F, 4, 4) transforms, one per frame; the
+    run folder's TUM files hold them as positions and quaternions (:func:`lunarloc.runio.write_run`)."""
 
     frames: np.ndarray
     times: np.ndarray
-    odometry: np.ndarray
-    online: np.ndarray  # causal estimate: what the rover knew at each frame
-    corrected: np.ndarray  # pose-graph estimate at the end of the run (continuous)
-    ground_truth: np.ndarray | None
+    T_odo_rover: np.ndarray  # odometry (odo == map at the start)
+    T_map_rover_online: np.ndarray  # causal estimate: what the rover knew at each frame
+    T_map_rover: np.ndarray  # corrected: pose-graph estimate at the end of the run (continuous)
+    T_map_rover_true: np.ndarray | None  # ground truth
     attempts: list[Attempt]
     vehicle_map: LandmarkMap  # all detections placed with the corrected poses
     vehicle_map_odometry: LandmarkMap  # ... and with the raw odometry poses
@@ -185,7 +186,8 @@ class LoopResult:
             "frames": int(len(self.frames)),
             "image_frames": int(self.num_image_frames),
             "duration_s": round(self.duration_s, 3),
-            "path_length_m": round(path_length(self.ground_truth if self.ground_truth is not None else self.odometry), 3),
+            "path_length_m": round(path_length((self.T_map_rover_true if self.T_map_rover_true is not None
+                                                else self.T_odo_rover)[:, :3, 3]), 3),
             "reference_landmarks": len(self.reference),
             "vehicle_landmarks": len(self.vehicle_map),
             "attempts": len(self.attempts),
@@ -196,11 +198,12 @@ class LoopResult:
         }
         acc = [a.fix_error_m for a in self.attempts if a.accepted and math.isfinite(a.fix_error_m)]
         out["max_accepted_fix_error_m"] = round(max(acc), 4) if acc else None
-        if self.ground_truth is not None:
-            for name, est in (("odometry", self.odometry), ("corrected", self.corrected), ("online", self.online)):
-                out[f"ate_{name}"] = ate(est, self.ground_truth)
-            out["final_error_odometry_m"] = round(float(np.linalg.norm(self.odometry[-1, :3] - self.ground_truth[-1, :3])), 4)
-            out["final_error_corrected_m"] = round(float(np.linalg.norm(self.corrected[-1, :3] - self.ground_truth[-1, :3])), 4)
+        if self.T_map_rover_true is not None:
+            gt = self.T_map_rover_true[:, :3, 3]
+            for name, T in (("odometry", self.T_odo_rover), ("corrected", self.T_map_rover), ("online", self.T_map_rover_online)):
+                out[f"ate_{name}"] = ate(T[:, :3, 3], gt)
+            out["final_error_odometry_m"] = round(float(np.linalg.norm(self.T_odo_rover[-1, :3, 3] - gt[-1])), 4)
+            out["final_error_corrected_m"] = round(float(np.linalg.norm(self.T_map_rover[-1, :3, 3] - gt[-1])), 4)
         total = sum(self.timings_s.values())
         n = max(self.num_image_frames, 1)
         out["time_total_s"] = round(total, 3)
@@ -217,8 +220,8 @@ class LoopState:
     """The loop's state, fed frame by frame (see module docstring); the per-tick component an
     agent calls is :class:`lunarloc.online.OnlineLocalizer`, built on this class.
 
-    ``step(frame, t, odo_pose6, detections_rover=None, gt_pose6=None)``: every frame gives
-    its odometry pose; keyframes (image frames) also give their detections in the rover
+    ``step(frame, t, T_odo_rover, detections_rover=None, T_map_rover_true=None)``: every frame
+    gives its odometry pose (4x4); keyframes (image frames) also give their detections in the rover
     frame, (N, 3). Ground truth, when given, is only used to score fixes.
 
     ``reference=None``: no reference map (a rover that only localizes in other rovers' maps,
@@ -242,9 +245,11 @@ class LoopState:
         self.graph = PoseGraph(self.config.fusion)
         self.frames: list[int] = []
         self.times: list[float] = []
-        self.odo: list[np.ndarray] = []
-        self.online: list[np.ndarray] = []
-        self.gt: list[np.ndarray] = []
+        # per frame, 4x4: odometry, causal estimate (T_map_odo @ T_odo_rover), ground truth or None
+        self.T_odo_rover: list[np.ndarray] = []
+        self.T_map_rover_online: list[np.ndarray] = []
+        self.T_map_rover_true: list[np.ndarray | None] = []
+        self._q_prev: np.ndarray | None = None  # the previous frame's odometry (x, y, z, roll, pitch, yaw)
         self.attempts: list[Attempt] = []
         self.timings = {"detection": 0.0, "mapping": 0.0, "association": 0.0, "fusion": 0.0}
         self._dist = 0.0
@@ -264,23 +269,24 @@ class LoopState:
     def step(self, frame: int, t: float, T_odo_rover: np.ndarray, detections_rover: np.ndarray | None = None,
              T_map_rover_true: np.ndarray | None = None, keyframe: bool | None = None) -> Attempt | None:  # fmt: skip
         """Feed one frame (its odometry pose, 4x4); returns the localization attempt made at it,
-        if any. The frame's results (odometry, online estimate, ground truth) are kept as
-        (x, y, z, roll, pitch, yaw) rows, the run's trajectory format."""
+        if any. The frame's odometry, online estimate and ground truth are kept as 4x4 transforms."""
+        T_odo_rover = np.array(T_odo_rover, float)
         q = np.asarray(matrix_to_pose(T_odo_rover), float)
-        if self.odo:
-            step = float(np.linalg.norm(q[:3] - self.odo[-1][:3]))
-            if step > 1e-6 or abs(float(wrap_angle(q[5] - self.odo[-1][5]))) > 1e-6:
+        if self._q_prev is not None:
+            step = float(np.linalg.norm(q[:3] - self._q_prev[:3]))
+            if step > 1e-6 or abs(float(wrap_angle(q[5] - self._q_prev[5]))) > 1e-6:
                 self._moving_since_kf += t - self.times[-1]
             self._dist += step
+        self._q_prev = q
         self.frames.append(int(frame))
         self.times.append(float(t))
-        self.odo.append(q)
-        self.gt.append(None if T_map_rover_true is None else np.asarray(matrix_to_pose(T_map_rover_true), float))
+        self.T_odo_rover.append(T_odo_rover)
+        self.T_map_rover_true.append(None if T_map_rover_true is None else np.array(T_map_rover_true, float))
         is_kf = (detections_rover is not None) if keyframe is None else keyframe
         attempt = None
         if is_kf or not self.graph.keyframes:
             attempt = self._keyframe(frame, t, q, np.zeros((0, 3)) if detections_rover is None else detections_rover)
-        self.online.append(_apply_corr(self.T_map_odo, q))
+        self.T_map_rover_online.append(self.T_map_odo @ T_odo_rover)
         return attempt
 
     def _keyframe(self, frame, t, q, det) -> Attempt | None:
@@ -319,11 +325,10 @@ class LoopState:
             D = kf.detections_rover
             if len(D) == 0:
                 continue
-            roll, pitch = kf.roll_pitch_rad
             if poses4 is None:
-                o = kf.odo_pose4
-                T = pose_to_matrix(o[0], o[1], o[2], roll, pitch, o[3])
+                T = kf.T_odo_rover
             else:
+                roll, pitch = kf.roll_pitch_rad
                 x, y, z, yaw = poses4[k]
                 T = pose_to_matrix(x, y, z, roll, pitch, yaw)
             pts.append(transform_points(T, D))
@@ -396,9 +401,9 @@ class LoopState:
         att.fix_xyz = fix4[:3].tolist()
         att.inlier_vehicle_xyz = Vp.round(4).tolist()
         att.inlier_reference_xyz = ref.positions_xyz[inl[:, 1]].round(4).tolist()
-        gt = self.gt[-1]
-        if gt is not None:
-            att.fix_error_m = float(np.linalg.norm(fix4[:3] - gt[:3]))
+        T_true = self.T_map_rover_true[-1]
+        if T_true is not None:
+            att.fix_error_m = float(np.linalg.norm(fix4[:3] - T_true[:3, 3]))
         if g.accepted:
             if cfg.fix_kind is FixKind.POSE:
                 self.graph.add_fix(k, fix4, sig_m, sig_m / extent)
@@ -439,9 +444,9 @@ class LoopState:
         self.timings["fusion"] += time.perf_counter() - t0
         frames = np.asarray(self.frames)
         times = np.asarray(self.times)
-        odo = np.asarray(self.odo)
+        T_odo = np.asarray(self.T_odo_rover).reshape(-1, 4, 4)
         kf_t = np.array([kf.t_s for kf in self.graph.keyframes])
-        corrected = _interpolate_corrections(T_kf, kf_t, times, odo)
+        corrected = _interpolate_corrections(T_kf, kf_t, times, T_odo)
         poses = self.graph.poses()
         all_kf = np.arange(len(self.graph.keyframes))
         P, F = self._window_points(all_kf, poses)
@@ -449,26 +454,23 @@ class LoopState:
         agg = self.config.aggregation
         vmap = aggregate_detections(P, F, agg, frame="map") if len(P) else LandmarkMap(np.zeros((0, 3)), frame="map")
         vodo = aggregate_detections(Po, Fo, agg, frame="odometry") if len(Po) else LandmarkMap(np.zeros((0, 3)), frame="odometry")
-        gt = None if any(g is None for g in self.gt) else np.asarray(self.gt)
-        return LoopResult(frames, times, odo, np.asarray(self.online), corrected, gt, self.attempts, vmap, vodo,
+        gt = None if any(g is None for g in self.T_map_rover_true) else np.asarray(self.T_map_rover_true).reshape(-1, 4, 4)
+        return LoopResult(frames, times, T_odo, np.asarray(self.T_map_rover_online).reshape(-1, 4, 4), corrected, gt,
+                          self.attempts, vmap, vodo,
                           self.reference, dict(self.timings), num_image_frames, config or {}, self.graph.scale,
                           rocks, example, source)  # fmt: skip
 
 
-def _apply_corr(T_map_odo: np.ndarray, q: np.ndarray) -> np.ndarray:
-    T = T_map_odo @ pose_to_matrix(*q)
-    return np.asarray(matrix_to_pose(T), float)
-
-
-def _interpolate_corrections(T_kf: np.ndarray, kf_t: np.ndarray, times: np.ndarray, odo: np.ndarray) -> np.ndarray:
-    """Apply per-keyframe corrections T_map_odo, linearly interpolated in time (translation and
-    yaw), to every frame's odometry pose: a continuous trajectory."""
+def _interpolate_corrections(T_kf: np.ndarray, kf_t: np.ndarray, times: np.ndarray, T_odo_rover: np.ndarray) -> np.ndarray:
+    """Apply per-keyframe corrections T_map_odo (K, 4, 4), linearly interpolated in time
+    (translation and yaw), to every frame's odometry pose (F, 4, 4): a continuous trajectory
+    T_map_rover (F, 4, 4)."""
     yaw = np.unwrap(np.arctan2(T_kf[:, 1, 0], T_kf[:, 0, 0]))
     tx = [np.interp(times, kf_t, T_kf[:, i, 3]) for i in range(3)]
     ya = np.interp(times, kf_t, yaw)
-    out = np.empty_like(odo)
+    out = np.empty((len(times), 4, 4))
     for n in range(len(times)):
         c, s = math.cos(ya[n]), math.sin(ya[n])
         T = np.array([[c, -s, 0, tx[0][n]], [s, c, 0, tx[1][n]], [0, 0, 1, tx[2][n]], [0, 0, 0, 1.0]])
-        out[n] = _apply_corr(T, odo[n])
+        out[n] = T @ T_odo_rover[n]
     return out

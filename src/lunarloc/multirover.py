@@ -53,7 +53,7 @@ import numpy as np
 
 from lunarloc.config import RunConfig, config_from_dict, config_to_dict
 from lunarloc.errors import ConfigError, InputError, LunarLocError
-from lunarloc.geometry import invert_transform, matrix_to_pose, pose_to_matrix, yaw_of
+from lunarloc.geometry import invert_transform, pose_to_matrix, yaw_of
 from lunarloc.loop import Attempt, LoopResult, _interpolate_corrections
 from lunarloc.maps import LandmarkMap, aggregate_detections
 
@@ -259,9 +259,10 @@ class _Rover:
         self.camera = rig.camera
         self.rocks = ar.custom("rocks").to_array(("id", "x", "y", "z", "radius")) if "rocks" in ar.custom_records else None
         self.ticks: list[tuple[int, float]] = []
-        self.online: list[np.ndarray] = []
-        self.gt: list[np.ndarray] = []
-        self.odo: list[np.ndarray] = []
+        # per tick, 4x4: the component's estimate, ground truth, odometry
+        self.T_map_rover_online: list[np.ndarray] = []
+        self.T_map_rover_true: list[np.ndarray] = []
+        self.T_odo_rover: list[np.ndarray] = []
         self.n_image = 0
         self.shared: list[SharedAttempt] = []
         self.shared_att: list[Attempt] = []
@@ -285,16 +286,16 @@ class _Rover:
             raise InputError(f"{self.path}: no odometry pose at frame {f}")
         data = a.input_data()
         imu, v, w = a.get_imu_data(), a.get_linear_speed(), a.get_angular_speed()
-        gt = a.get_transform().as_tuple()
+        T_true = a.get_transform_matrix()
         t1 = time.perf_counter()
         est = self.loc.update(t, data, imu, v, w, odometry=self.odometry[f])
         t2 = time.perf_counter()
         self.timings["io"] += t1 - t0
         self.timings["update"] += t2 - t1
         self.ticks.append((int(f), float(t)))
-        self.online.append(np.asarray(est.pose6, float))
-        self.gt.append(np.asarray(gt, float))
-        self.odo.append(np.asarray(matrix_to_pose(self.odometry[f]), float))
+        self.T_map_rover_online.append(est.T_map_rover)
+        self.T_map_rover_true.append(T_true)
+        self.T_odo_rover.append(self.odometry[f])
         self.n_image += int(any(img is not None for img in (data or {}).get("Grayscale", {}).values()))
         if est.attempt is not None and est.attempt.accepted:
             self.anchor = (0.0, 0.0)  # a reference fix: the rover's error no longer inherits another's
@@ -392,7 +393,7 @@ class _Rover:
             sig_m, sig_yaw = math.hypot(pred, om), math.hypot(pred / extent, oy)
             att.owner_sigma_m, att.owner_sigma_yaw_deg = om, math.degrees(oy)
             att.fix_sigma_m, att.fix_sigma_yaw_deg = sig_m, math.degrees(sig_yaw)
-            att.fix_error_m = float(np.linalg.norm(fix4[:3] - self.gt[-1][:3]))
+            att.fix_error_m = float(np.linalg.norm(fix4[:3] - self.T_map_rover_true[-1][:3, 3]))
             if sig_m >= max_ratio * own_m:
                 att.reason = (f"not informative: the fix ({sig_m * 100:.0f} cm, {other.name}'s estimate "
                               f"{om * 100:.0f} cm) is not below {max_ratio:g} x the rover's own prediction ({own_m * 100:.0f} cm)")  # fmt: skip
@@ -432,14 +433,15 @@ class _Rover:
         T_kf = loop.graph.correction_transforms()
         frames = np.array([f for f, _ in self.ticks], int)
         times = np.array([t for _, t in self.ticks], float)
-        odo = np.asarray(self.odo)
-        corrected = _interpolate_corrections(T_kf, np.asarray(loop.times), times, odo)
+        T_odo = np.asarray(self.T_odo_rover).reshape(-1, 4, 4)
+        corrected = _interpolate_corrections(T_kf, np.asarray(loop.times), times, T_odo)
         # the run's configuration as a single run writes it (read back by `lunarloc run --config`)
         info = {"archive": str(self.path), "odometry_source": self.odometry_label, "camera": asdict(self.camera),
                 "detector_scaled": self.detector_config.to_dict(),
                 "multirover": {k: v for k, v in config.to_dict().items() if k != "run"}}  # fmt: skip
         ref = reference if reference is not None else LandmarkMap(np.zeros((0, 3)), frame="map")
-        res = LoopResult(frames, times, odo, np.asarray(self.online), corrected, np.asarray(self.gt), attempts,
+        res = LoopResult(frames, times, T_odo, np.asarray(self.T_map_rover_online).reshape(-1, 4, 4), corrected,
+                         np.asarray(self.T_map_rover_true).reshape(-1, 4, 4), attempts,
                          kf.vehicle_map, kf.vehicle_map_odometry, ref, dict(self.timings), self.n_image,
                          {**config.run.to_dict(), "info": info}, kf.scale, self.rocks, None, str(self.path))  # fmt: skip
         return RoverRun(self.name, self.path, res, self.shared)

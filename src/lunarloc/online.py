@@ -50,7 +50,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from lunarloc.errors import ConfigError, InputError
-from lunarloc.geometry import invert_transform, matrix_to_pose, pose_to_matrix
+from lunarloc.geometry import invert_transform, pose_to_matrix
 from lunarloc.maps import LandmarkMap
 from lunarloc.odometry.imu import ImuOdometryConfig, ImuSamples, integrate_imu
 from lunarloc.perception.camera import IPEX_STEREO_BASELINE_M, STEREO_PAIRS, CameraMount, PinholeCamera, ipex_rig
@@ -213,11 +213,6 @@ class Estimate:
     fixes: int = 0  # accepted fixes so far
     keyframe: bool = False  # this tick was a keyframe (detector ran)
     attempt: Attempt | None = None  # the localization attempt made at this tick, if any
-
-    @property
-    def pose6(self) -> tuple[float, float, float, float, float, float]:
-        """(x, y, z, roll, pitch, yaw) of ``T_map_rover``."""
-        return matrix_to_pose(self.T_map_rover)
 
 
 # --------------------------------------------------------------------------- the component
