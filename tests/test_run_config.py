@@ -119,14 +119,20 @@ def test_bench_loop_repeated_from_its_config_gives_the_same_outputs(tmp_path, ca
     assert "loop.window_m" in capsys.readouterr().err
 
 
-def test_localize_takes_and_reports_its_config(tmp_path, capsys):
-    from lunarloc.cli import main
+def _localize_maps(tmp_path):
+    """A reference map and a vehicle map (25 of its landmarks, shifted) as CSV files."""
     from lunarloc.maps import LandmarkMap, save_map
 
     rng = np.random.default_rng(3)
     ref = rng.uniform(0, 20, (60, 3)) * [1, 1, 0.02]
     save_map(LandmarkMap(ref), tmp_path / "ref.csv")
     save_map(LandmarkMap(ref[:25] + [0.3, -0.2, 0.0]), tmp_path / "veh.csv")
+
+
+def test_localize_takes_and_reports_its_config(tmp_path, capsys):
+    from lunarloc.cli import main
+
+    _localize_maps(tmp_path)
     cfg = tmp_path / "cfg.json"
     cfg.write_text(json.dumps({"localization": {"epsilon_m": 0.04, "min_inliers": 7}}))
     assert main(["localize", str(tmp_path / "ref.csv"), str(tmp_path / "veh.csv"), "--json", "--config", str(cfg),
@@ -243,12 +249,8 @@ def test_localization_rounds_and_sigma_floor_are_used(monkeypatch):
 def test_index_section_reaches_localize(tmp_path, capsys):
     """`localize --config` passes the index section to the indexed search."""
     from lunarloc.cli import main
-    from lunarloc.maps import LandmarkMap, save_map
 
-    rng = np.random.default_rng(3)
-    ref = rng.uniform(0, 20, (60, 3)) * [1, 1, 0.02]
-    save_map(LandmarkMap(ref), tmp_path / "ref.csv")
-    save_map(LandmarkMap(ref[:25] + [0.3, -0.2, 0.0]), tmp_path / "veh.csv")
+    _localize_maps(tmp_path)
     cfg = tmp_path / "cfg.json"
     args = ["localize", str(tmp_path / "ref.csv"), str(tmp_path / "veh.csv"), "--json", "--search", "indexed"]
     assert main(args) == 0
