@@ -149,7 +149,7 @@ def run_long(lac: Path, ref: Path, hours: float, max_keyframes: int, rows: list,
         err = np.asarray(err)
         g = loc.loop.graph
         row = {"lap": lap, "mission_time_h": round(t_mission / 3600, 4), "update": stats_ms(times),
-               "rss_mb": round(rss_mb(), 1), "keyframes_held": len(loc.loop.kf_frame),
+               "rss_mb": round(rss_mb(), 1), "keyframes_held": len(loc.loop.keyframes),
                "observations_held": g.num_observations, "fixes_held": len(g.fixes), "reanchors": loc.reanchors,
                "fixes_total": e.fixes, "lap_rmse_m": round(float(np.sqrt(np.mean(err**2))), 4),
                "lap_max_error_m": round(float(err.max()), 4)}  # fmt: skip

@@ -199,7 +199,10 @@ def test_keyframe_record_carries_the_loop_data_and_the_correction():
     g.solve()
     kf = g.keyframes[17]
     assert isinstance(kf, Keyframe) and kf.index == 17 and kf.frame == 170 and kf.t_s == 17.0
-    assert kf.odo_pose6[3:5] == pytest.approx(kf.roll_pitch_rad)
+    from lunarloc.geometry import matrix_to_pose
+
+    assert matrix_to_pose(kf.T_odo_rover)[3:5] == pytest.approx(kf.roll_pitch_rad, abs=1e-12)
+    assert kf.T_odo_rover[:3, 3] == pytest.approx(kf.odo_pose4[:3])
     assert kf.detections_rover.shape[1] == 3
     assert kf.path_m == pytest.approx(0.31 * 17)
     T = kf.T_map_odo

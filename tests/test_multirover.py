@@ -115,7 +115,7 @@ def test_live_map_uncertainty_grows_with_the_owner_drift(tiny):
                 break
             r.agent.step_frame()
         s_m, s_yaw = r.owner_sigmas()
-        assert len(s_m) == len(r.loc.loop.kf_frame) > 5
+        assert len(s_m) == len(r.loc.loop.keyframes) > 5
         assert np.all(np.diff(s_m) >= -1e-12) and s_m[-1] > s_m[0]
         r.anchor = (0.3, 0.01)  # its last fix was a shared one of 30 cm: every landmark inherits it
         s2, _ = r.owner_sigmas()

@@ -202,7 +202,7 @@ def test_history_stays_bounded_across_reanchors():
         T = pose_to_matrix(0.01 * i, 0.0, 0.0, 0.0, 0.0, 0.002 * i)
         img = blank if i % 2 == 0 else None
         e = loc.update(0.05 * i, {"Grayscale": {"FrontLeft": img, "FrontRight": img}}, IMU_REST, 0.2, 0.04, odometry=T)
-        held.append(len(loc.loop.kf_frame))
+        held.append(len(loc.loop.keyframes))
         assert np.allclose(e.T_map_rover, T, atol=1e-6)
     assert max(held) <= 50 and loc.reanchors >= 2
 
@@ -230,3 +230,39 @@ def test_detections_on_the_lander_are_dropped(sim, monkeypatch):
     monkeypatch.setattr(loc2.loop, "step", lambda *a, **k: (seen2.append(a[3].copy()), step2(*a, **k))[1])
     loc2.update(0.0, {"Grayscale": {"FrontLeft": img, "FrontRight": img}}, IMU_REST, 0.0, 0.0)
     assert len(seen2[0]) == 2
+
+
+def test_no_reference_map(monkeypatch):
+    """OnlineLocalizer(None, ...): a rover with no reference map (multi-rover --share-maps).
+    Attempts are still made on schedule (their local maps are what another rover's map can
+    localize) and end "no reference map"; the estimate is the odometry. The same ticks with a
+    reference localize, so the attempts are real ones."""
+    rig = CameraRig.from_calibration(160, 90, fx=114.25)
+    rng = np.random.default_rng(4)
+    rocks = np.c_[rng.uniform(-2, 14, (150, 2)), rng.uniform(-0.05, 0.05, 150)]
+    blank = np.zeros((90, 160), np.uint8)
+
+    def drive(reference):
+        loc = OnlineLocalizer(reference, np.zeros(6), rig=rig)
+        attempts, e = [], None
+        for i in range(200):
+            T = pose_to_matrix(0.05 * i, 0.0, 0.0, 0.0, 0.0, 0.0)
+            near = rocks[np.linalg.norm(rocks[:, :2] - T[:2, 3], axis=1) < 4.0]
+            det = (near - T[:3, 3]) @ T[:3, :3]  # rover frame
+            monkeypatch.setattr(loc, "_detect", lambda images, det=det: det)
+            img = blank if i % 2 == 0 else None
+            e = loc.update(0.05 * i, {"Grayscale": {"FrontLeft": img, "FrontRight": img}}, IMU_REST, 1.0, 0.0,
+                           odometry=T)  # fmt: skip
+            if e.attempt is not None:
+                attempts.append(e.attempt)
+            assert reference is not None or np.allclose(e.T_map_rover, T, atol=1e-9)
+        return loc, attempts, e
+
+    loc, attempts, e = drive(None)
+    assert len(attempts) >= 3 and all(a.reason == "no reference map" and not a.accepted for a in attempts)
+    assert attempts[-1].landmarks >= 6  # a local map was built for each
+    assert not e.localized and loc.loop.has_reference is False
+    _, attempts_ref, e_ref = drive(LandmarkMap(rocks))
+    assert e_ref.localized and len(attempts_ref) == len(attempts)
+    with pytest.raises(InputError, match="or None"):
+        OnlineLocalizer(rocks, np.zeros(6), rig=rig)

@@ -53,7 +53,8 @@ def test_outputs_are_written(loop_run, tmp_path):
     assert json.loads((tmp_path / "config.json").read_text())["loop"]["fix_kind"] == "landmarks"
     back = read_run(tmp_path)
     assert back.summary == summary and len(back.attempts) == len(attempts)
-    assert np.allclose(back.corrected[:, :3], loop_run.corrected[:, :3], atol=1e-6)
+    assert np.allclose(back.corrected[:, :3], loop_run.T_map_rover[:, :3, 3], atol=1e-6)
+    assert loop_run.T_map_rover.shape == (len(t), 4, 4) and loop_run.T_odo_rover.shape == (len(t), 4, 4)
     assert back.ground_truth is not None and RunConfig.from_dict(back.config) == RunConfig.for_detections()
 
 

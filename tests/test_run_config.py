@@ -119,14 +119,20 @@ def test_bench_loop_repeated_from_its_config_gives_the_same_outputs(tmp_path, ca
     assert "loop.window_m" in capsys.readouterr().err
 
 
-def test_localize_takes_and_reports_its_config(tmp_path, capsys):
-    from lunarloc.cli import main
+def _localize_maps(tmp_path):
+    """A reference map and a vehicle map (25 of its landmarks, shifted) as CSV files."""
     from lunarloc.maps import LandmarkMap, save_map
 
     rng = np.random.default_rng(3)
     ref = rng.uniform(0, 20, (60, 3)) * [1, 1, 0.02]
     save_map(LandmarkMap(ref), tmp_path / "ref.csv")
     save_map(LandmarkMap(ref[:25] + [0.3, -0.2, 0.0]), tmp_path / "veh.csv")
+
+
+def test_localize_takes_and_reports_its_config(tmp_path, capsys):
+    from lunarloc.cli import main
+
+    _localize_maps(tmp_path)
     cfg = tmp_path / "cfg.json"
     cfg.write_text(json.dumps({"localization": {"epsilon_m": 0.04, "min_inliers": 7}}))
     assert main(["localize", str(tmp_path / "ref.csv"), str(tmp_path / "veh.csv"), "--json", "--config", str(cfg),
@@ -146,3 +152,121 @@ def test_demo_config_errors_before_any_work(tmp_path, capsys):
     cfg.write_text(json.dumps({**RunConfig().to_dict(), "scenario": {"seed": 1, "rocks": 5}}))
     assert main(["demo", "--out", str(tmp_path / "d"), "--config", str(cfg)]) == 2
     assert "rocks" in capsys.readouterr().err and not (tmp_path / "d" / "data").exists()
+
+
+# --------------------------------------------------------------------------- tuning constants (item 4)
+
+TUNING = {  # section path -> today's value (the constant the code held before it became a setting)
+    ("localization", "irls_rounds"): 5,
+    ("localization", "refine_rounds"): 3,
+    ("localization", "distortion_fit_rounds"): 3,
+    ("localization", "registration_sigma_floor_m"): 0.005,
+    ("index", "neighbours"): 12,
+    ("index", "min_side_ratio"): 0.2,
+    ("detector", "stereo", "p1_per_block_px2"): 24,
+    ("detector", "stereo", "p2_per_block_px2"): 96,
+    ("detector", "fullres_p1_per_block_px2"): 8,
+    ("detector", "fullres_p2_per_block_px2"): 32,
+}
+
+
+@pytest.mark.parametrize("cfg", [RunConfig(), RunConfig.for_detections()])
+def test_tuning_constants_are_written_with_todays_values(cfg):
+    d = json.loads(json.dumps(cfg.to_dict()))
+    for path, value in TUNING.items():
+        node = d
+        for k in path:
+            node = node[k]
+        assert node == value, path
+    assert cfg.detector.stereo.P1 == 8 * 3 * 11**2 and cfg.detector.stereo.P2 == 32 * 3 * 11**2
+
+
+@pytest.mark.parametrize("path", list(TUNING))
+def test_tuning_constants_are_read_back(path, tmp_path):
+    value = TUNING[path]
+    new = value * 2 if isinstance(value, int) else value * 3
+    data: dict = {}
+    node = data
+    for k in path[:-1]:
+        node = node.setdefault(k, {})
+    node[path[-1]] = new
+    if path[-1] == "p1_per_block_px2" or path[-1] == "fullres_p1_per_block_px2":
+        node[path[-1].replace("p1", "p2")] = 1000  # keep P2 > P1
+    p = tmp_path / "config.json"
+    p.write_text(json.dumps(data))
+    cfg, _ = load_config_file(p)
+    obj = cfg
+    for k in path:
+        obj = getattr(obj, k)
+    assert obj == new
+    assert RunConfig.from_dict(cfg.to_dict()) == cfg
+
+
+@pytest.mark.parametrize("data, key", [
+    ({"localization": {"irls_rounds": 0}}, "irls_rounds"),
+    ({"localization": {"refine_rounds": 1.5}}, "localization.refine_rounds"),
+    ({"localization": {"distortion_fit_rounds": -1}}, "distortion_fit_rounds"),
+    ({"localization": {"registration_sigma_floor_m": 0}}, "registration_sigma_floor_m"),
+    ({"index": {"neighbours": 2}}, "neighbours"),
+    ({"index": {"triangles": 2}}, "index.triangles"),
+    ({"detector": {"stereo": {"p1_per_block_px2": 200}}}, "p1_per_block_px2"),
+    ({"detector": {"fullres_p2_per_block_px2": 4}}, "fullres_p2_per_block_px2"),
+])  # fmt: skip
+def test_bad_tuning_constants_name_the_key(data, key):
+    with pytest.raises(ConfigError, match=key):
+        RunConfig.from_dict(data)
+
+
+def test_localization_rounds_and_sigma_floor_are_used(monkeypatch):
+    """The settings reach the code: IRLS runs `irls_rounds` re-fits, and the sigma floor
+    bounds the predicted error from below."""
+    import importlib
+
+    from lunarloc.geometry import make_transform, rot_z
+    from lunarloc.maps import LandmarkMap
+
+    L = importlib.import_module("lunarloc.localize")  # the module (the package exports a function of that name)
+    rng = np.random.default_rng(5)
+    P = rng.uniform(-5, 5, (20, 3)) * [1, 1, 0.05]
+    T = make_transform(rot_z(0.3), [1.0, -2.0, 0.0])
+    Q = P @ T[:3, :3].T + T[:3, 3] + rng.normal(0, 0.002, P.shape)
+    calls = []
+    real = L._register
+    monkeypatch.setattr(L, "_register", lambda *a, **k: calls.append(1) or real(*a, **k))
+    for rounds in (1, 4):
+        calls.clear()
+        L._register_robust(P, Q, L.LocalizationConfig(irls_rounds=rounds))
+        assert len(calls) == rounds + 1  # the first fit, then one per round
+    monkeypatch.undo()
+    ref, veh = LandmarkMap(Q), LandmarkMap(P)
+    rigid = {"max_predicted_error_m": 10.0, "odometry_scale_error": 0.0, "odometry_heading_drift_deg_per_m": 0.0}
+    small = L.localize(ref, veh, L.LocalizationConfig(**rigid))
+    big = L.localize(ref, veh, L.LocalizationConfig(registration_sigma_floor_m=0.05, **rigid))
+    assert small.success and big.success
+    assert big.predicted_error_m > 3 * small.predicted_error_m
+
+
+def test_index_section_reaches_localize(tmp_path, capsys):
+    """`localize --config` passes the index section to the indexed search."""
+    from lunarloc.cli import main
+
+    _localize_maps(tmp_path)
+    cfg = tmp_path / "cfg.json"
+    args = ["localize", str(tmp_path / "ref.csv"), str(tmp_path / "veh.csv"), "--json", "--search", "indexed"]
+    assert main(args) == 0
+    assert json.loads(capsys.readouterr().out)["success"]
+    cfg.write_text(json.dumps({"index": {"min_votes": 100_000}}))  # no region gets that many votes
+    assert main([*args, "--config", str(cfg)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["config"]["index"]["min_votes"] == 100_000 and not out["success"] and not out["candidates"]
+
+
+def test_the_demo_odometry_source_is_set_in_one_place():
+    """The scenario has no odometry setting of its own: the run configuration's
+    odometry.source is it (the simulator's drifting record by default)."""
+    from lunarloc.scenario import ScenarioConfig, demo_run_config
+
+    assert demo_run_config().odometry.source == "record:odometry"
+    assert "odometry" not in ScenarioConfig().to_dict()
+    with pytest.raises(ConfigError, match="scenario.odometry.*odometry.source"):
+        ScenarioConfig.from_dict({"seed": 3, "odometry": "visual"})

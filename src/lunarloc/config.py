@@ -7,6 +7,8 @@ one back with ``--config FILE``; command-line options then override single setti
 - ``detector``: :class:`~lunarloc.perception.detector.DetectorConfig`, tuned at
   ``detector_tuned_width_px`` and scaled to the images' width by :func:`scaled_detector_config`;
 - ``localization``: :class:`~lunarloc.localize.LocalizationConfig`;
+- ``index``: :class:`~lunarloc.association.index.IndexConfig` (the rock-triangle index of
+  large references, used by ``localize``'s indexed search);
 - ``loop``: :class:`~lunarloc.loop.LoopConfig` (local map, attempts, fusion);
 - ``odometry``: :class:`OdometryConfig` (where the odometry comes from, IMU and visual
   odometry settings, and the simulated drift of traverse-CSV runs).
@@ -34,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from lunarloc.association.index import IndexConfig
 from lunarloc.errors import ConfigError
 from lunarloc.localize import LocalizationConfig
 from lunarloc.loop import IMAGE_WINDOW_M, LoopConfig, image_localization_config, loop_localization_config
@@ -191,6 +194,7 @@ class RunConfig:
     detector: Any = field(default_factory=_detector_default)  # DetectorConfig, at detector_tuned_width_px
     detector_tuned_width_px: int = 1280  # the detector's pixel sizes are tuned at this image width
     localization: LocalizationConfig = field(default_factory=image_localization_config)
+    index: IndexConfig = field(default_factory=IndexConfig)
     loop: LoopConfig = field(default_factory=lambda: LoopConfig(window_m=IMAGE_WINDOW_M))
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
 

@@ -176,10 +176,12 @@ class Keyframe:
     path_m: float | None = None
 
     @property
-    def odo_pose6(self) -> np.ndarray:
-        """Odometry pose (x, y, z, roll, pitch, yaw) of the keyframe."""
+    def T_odo_rover(self) -> np.ndarray:
+        """(4, 4) odometry pose of the keyframe (``odo_pose4`` with its roll and pitch)."""
+        from lunarloc.geometry import pose_to_matrix
+
         x, y, z, yaw = self.odo_pose4
-        return np.array([x, y, z, self.roll_pitch_rad[0], self.roll_pitch_rad[1], yaw])
+        return pose_to_matrix(x, y, z, self.roll_pitch_rad[0], self.roll_pitch_rad[1], yaw)
 
     @property
     def T_map_odo(self) -> np.ndarray:

@@ -112,6 +112,9 @@ class LocalizationConfig:
     refine: bool = True  # re-fit with mutual nearest neighbours under the estimate
     refine_radius_m: float = 0.10  # max residual of a nearest-neighbour pair kept by refinement
     robust_scale_m: float = 0.02  # Cauchy scale of the robust (IRLS) re-weighting in refinement
+    irls_rounds: int = 5  # re-weighting rounds of the robust registration
+    refine_rounds: int = 3  # mutual-nearest-neighbour re-fits of refinement (fewer when the inliers settle)
+    registration_sigma_floor_m: float = 0.005  # floor on the residual noise scale in the covariance, predicted error and scale check
     # --- acceptance (verification) ---
     min_inliers: int = 6  # absolute floor on the inlier count
     chance_margin: float = 2.5  # inliers must exceed the chance envelope at this map size by this many
@@ -144,6 +147,7 @@ class LocalizationConfig:
     odometry_scale_error: float | None = None
     odometry_heading_drift_deg_per_m: float | None = None
     distortion_fit_sigmas: float = 2.0  # no bounds stated: allowance = fitted bend's shift + this many sigmas
+    distortion_fit_rounds: int = 3  # bent-model fits, inliers gathered again under the model between them
     min_inliers_distortion_fit: int = 6  # fewer inliers cannot fix the 8 parameters of the bent model: no allowance, refused
     competitor_ratio: float = 1.5  # best must be this many times the best competing hypothesis
     competitor_yaw_sep_deg: float = 10.0  # hypotheses whose yaws differ more than this compete
@@ -171,6 +175,12 @@ class LocalizationConfig:
             raise ConfigError("near_miss_outer_m, landmark_sigma_m and landmark_sigma_z_m must be positive")
         if not self.screen_min_incidences >= 0 or not 0 < self.screen_fraction <= 1 or self.screen_candidates < 1:
             raise ConfigError("screen_min_incidences must be >= 0, screen_fraction in (0, 1], screen_candidates >= 1")
+        for name in ("irls_rounds", "refine_rounds", "distortion_fit_rounds"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or not 1 <= v <= 100:
+                raise ConfigError(f"{name}={v!r} must be an integer in [1, 100]")
+        if not self.registration_sigma_floor_m > 0:
+            raise ConfigError(f"registration_sigma_floor_m must be positive, got {self.registration_sigma_floor_m}")
         if not self.search_sigmas >= 0:
             raise ConfigError(f"search_sigmas must be >= 0, got {self.search_sigmas}")
         if (self.odometry_scale_error or 0.0) < 0 or (self.odometry_heading_drift_deg_per_m or 0.0) < 0:
@@ -397,12 +407,12 @@ def _residuals(T, P, Q):
 
 
 def _register_robust(P, Q, cfg, T=None):
-    """Registration re-weighted by a Cauchy loss (IRLS, 5 rounds): correspondences with
-    residuals well above `robust_scale_m` lose influence. Returns (T, weights)."""
+    """Registration re-weighted by a Cauchy loss (IRLS, `irls_rounds` rounds): correspondences
+    with residuals well above `robust_scale_m` lose influence. Returns (T, weights)."""
     if T is None:
         T = _register(P, Q, cfg)
     w = np.ones(len(P))
-    for _ in range(5):
+    for _ in range(cfg.irls_rounds):
         r = _residuals(T, P, Q)
         w = 1.0 / (1.0 + (r / cfg.robust_scale_m) ** 2)
         try:
@@ -413,10 +423,10 @@ def _register_robust(P, Q, cfg, T=None):
 
 
 def _refine(T, Pv, Pr, inl, cfg):
-    """Mutual nearest neighbours within refine_radius under T, re-fitted (3 rounds)."""
+    """Mutual nearest neighbours within refine_radius under T, re-fitted (`refine_rounds` rounds)."""
     tree = cKDTree(Pr)
     best_T, best_inl = T, inl
-    for _ in range(3):
+    for _ in range(cfg.refine_rounds):
         Pt = transform_points(best_T, Pv)
         d, j = tree.query(Pt, distance_upper_bound=cfg.refine_radius_m)
         ok = np.isfinite(d)
@@ -648,12 +658,12 @@ class _Unbender:
         return -delta * self.s[idx]
 
 
-def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius_m: float) -> BendFit:
+def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius_m: float, rounds: int = 3) -> BendFit:
     """Fit a bent (heading drift) and scaled (path scale error) model of the vehicle map to
     its inliers, starting from the rigid fit T: parameters rotation vector, translation, drift
     per metre and scale error, by least squares on the 3D residuals over `sigma_axis_m` (the
     landmarks' per-axis noise; the residuals' own scale when larger). Inliers are gathered
-    again under the model (mutual nearest neighbours within `radius_m`, 2 rounds), so the
+    again under the model (mutual nearest neighbours within `radius_m`; at most `rounds` fits), so the
     part of a bent map the rigid fit left out can show its bend. Covariance from the Jacobian;
     the query points' positions and headings under the model, with their uncertainty, are
     compared with the rigid fit's. Without `path_xyz` a straight path along the map's
@@ -679,7 +689,7 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
     pairs = np.asarray(inl)
     chi2_rigid = chi2_bent = 0.0
     first_round = True
-    for _ in range(3):
+    for _ in range(rounds):
         v, r = pairs[:, 0], pairs[:, 1]
         used = len(pairs)
 
@@ -1039,8 +1049,8 @@ def localize(
     except DegenerateGeometryError:
         w = np.ones(len(inl))
     query = Pv if query_xyz is None else as_points(query_xyz, "query points")
-    C_c, centre_ref = pose_covariance(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w)
-    pred_fit = predicted_error(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, query)
+    C_c, centre_ref = pose_covariance(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, cfg.registration_sigma_floor_m)
+    pred_fit = predicted_error(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, query, cfg.registration_sigma_floor_m)
     path = None if path_xyz is None else as_points(path_xyz, "vehicle path")
     bend = None
     if cfg.odometry_bounds_stated:
@@ -1052,7 +1062,7 @@ def localize(
         distortion, distortion_rot = np.array([math.inf]), np.array([math.inf])
         if len(inl) >= cfg.min_inliers_distortion_fit:
             bend = bending_fit(T, Pv, Pr, inl, query, path, math.sqrt((2 * sigma_h**2 + sigma_z**2) / 3),
-                               cfg.refine_radius_m)
+                               cfg.refine_radius_m, cfg.distortion_fit_rounds)
             distortion[0], distortion_rot[0] = fitted_allowance(bend, cfg)
     pred = pred_fit + distortion  # the distortion is a bound (a bias), not a random error: added, not in quadrature
     rot_sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(C_c[3:, 3:]))), 0.0)) if np.all(np.isfinite(C_c)) else math.inf
@@ -1064,7 +1074,7 @@ def localize(
     k_chance = min(len(inl), core + max(0.0, len(inl) - core - chance_gain))
     near_outer = max(cfg.near_miss_outer_m, 3 * cfg.refine_radius_m)
     near, near_exp = near_miss_excess(T, Pv, Pr, inl[:, 0], cfg.refine_radius_m, near_outer)
-    dscale, scale_se = scale_check(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w)
+    dscale, scale_se = scale_check(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, cfg.registration_sigma_floor_m)
     timings["registration"] = time.perf_counter() - t0
 
     # competitor in 6-DoF mode: best set among associations the winner does not explain

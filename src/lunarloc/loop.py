@@ -32,7 +32,7 @@ import numpy as np
 
 from lunarloc.ate import ate, path_length
 from lunarloc.errors import ConfigError, InputError, LunarLocError
-from lunarloc.fusion import FusionConfig, PoseGraph, wrap_angle
+from lunarloc.fusion import FusionConfig, Keyframe, PoseGraph, wrap_angle
 from lunarloc.geometry import matrix_to_pose, pose_to_matrix, transform_points, yaw_of
 from lunarloc.localize import LocalizationConfig, localize
 from lunarloc.maps import AggregationConfig, LandmarkMap, aggregate_detections
@@ -155,14 +155,15 @@ class Attempt:
 
 @dataclass
 class LoopResult:
-    """Everything a run produced (poses (F, 6): x, y, z, roll, pitch, yaw in ``map``)."""
+    """Everything a run produced. Trajectories are (F, 4, 4) transforms, one per frame; the
+    run folder's TUM files hold them as positions and quaternions (:func:`lunarloc.runio.write_run`)."""
 
     frames: np.ndarray
     times: np.ndarray
-    odometry: np.ndarray
-    online: np.ndarray  # causal estimate: what the rover knew at each frame
-    corrected: np.ndarray  # pose-graph estimate at the end of the run (continuous)
-    ground_truth: np.ndarray | None
+    T_odo_rover: np.ndarray  # odometry (odo == map at the start)
+    T_map_rover_online: np.ndarray  # causal estimate: what the rover knew at each frame
+    T_map_rover: np.ndarray  # corrected: pose-graph estimate at the end of the run (continuous)
+    T_map_rover_true: np.ndarray | None  # ground truth
     attempts: list[Attempt]
     vehicle_map: LandmarkMap  # all detections placed with the corrected poses
     vehicle_map_odometry: LandmarkMap  # ... and with the raw odometry poses
@@ -185,7 +186,8 @@ class LoopResult:
             "frames": int(len(self.frames)),
             "image_frames": int(self.num_image_frames),
             "duration_s": round(self.duration_s, 3),
-            "path_length_m": round(path_length(self.ground_truth if self.ground_truth is not None else self.odometry), 3),
+            "path_length_m": round(path_length((self.T_map_rover_true if self.T_map_rover_true is not None
+                                                else self.T_odo_rover)[:, :3, 3]), 3),
             "reference_landmarks": len(self.reference),
             "vehicle_landmarks": len(self.vehicle_map),
             "attempts": len(self.attempts),
@@ -196,11 +198,12 @@ class LoopResult:
         }
         acc = [a.fix_error_m for a in self.attempts if a.accepted and math.isfinite(a.fix_error_m)]
         out["max_accepted_fix_error_m"] = round(max(acc), 4) if acc else None
-        if self.ground_truth is not None:
-            for name, est in (("odometry", self.odometry), ("corrected", self.corrected), ("online", self.online)):
-                out[f"ate_{name}"] = ate(est, self.ground_truth)
-            out["final_error_odometry_m"] = round(float(np.linalg.norm(self.odometry[-1, :3] - self.ground_truth[-1, :3])), 4)
-            out["final_error_corrected_m"] = round(float(np.linalg.norm(self.corrected[-1, :3] - self.ground_truth[-1, :3])), 4)
+        if self.T_map_rover_true is not None:
+            gt = self.T_map_rover_true[:, :3, 3]
+            for name, T in (("odometry", self.T_odo_rover), ("corrected", self.T_map_rover), ("online", self.T_map_rover_online)):
+                out[f"ate_{name}"] = ate(T[:, :3, 3], gt)
+            out["final_error_odometry_m"] = round(float(np.linalg.norm(self.T_odo_rover[-1, :3, 3] - gt[-1])), 4)
+            out["final_error_corrected_m"] = round(float(np.linalg.norm(self.T_map_rover[-1, :3, 3] - gt[-1])), 4)
         total = sum(self.timings_s.values())
         n = max(self.num_image_frames, 1)
         out["time_total_s"] = round(total, 3)
@@ -217,34 +220,36 @@ class LoopState:
     """The loop's state, fed frame by frame (see module docstring); the per-tick component an
     agent calls is :class:`lunarloc.online.OnlineLocalizer`, built on this class.
 
-    ``step(frame, t, odo_pose6, detections_rover=None, gt_pose6=None)``: every frame gives
-    its odometry pose; keyframes (image frames) also give their detections in the rover
+    ``step(frame, t, T_odo_rover, detections_rover=None, T_map_rover_true=None)``: every frame
+    gives its odometry pose (4x4); keyframes (image frames) also give their detections in the rover
     frame, (N, 3). Ground truth, when given, is only used to score fixes.
+
+    ``reference=None``: no reference map (a rover that only localizes in other rovers' maps,
+    :mod:`lunarloc.multirover`). Attempts are still made on schedule (their local map is what
+    a caller can localize elsewhere) and end with the reason "no reference map".
     """
 
-    def __init__(self, reference: LandmarkMap, config: LoopConfig | None = None,
+    def __init__(self, reference: LandmarkMap | None, config: LoopConfig | None = None,
                  localization: LocalizationConfig | None = None):  # fmt: skip
         from lunarloc.warmup import warm_up
 
         warm_up()  # compile before any stage timer starts: compile time is not run time
-        if not isinstance(reference, LandmarkMap):
-            raise InputError("reference must be a LandmarkMap")
-        if len(reference) < 3:
+        if reference is not None and not isinstance(reference, LandmarkMap):
+            raise InputError("reference must be a LandmarkMap or None")
+        if reference is not None and len(reference) < 3:
             raise InputError(f"reference map has {len(reference)} landmark(s); at least 3 are needed")
-        self.reference = reference
+        self.has_reference = reference is not None
+        self.reference = reference if reference is not None else LandmarkMap(np.zeros((0, 3)), frame="map")
         self.config = config or LoopConfig()
         self.localization = localization or loop_localization_config()
         self.graph = PoseGraph(self.config.fusion)
         self.frames: list[int] = []
         self.times: list[float] = []
-        self.odo: list[np.ndarray] = []
-        self.online: list[np.ndarray] = []
-        self.gt: list[np.ndarray] = []
-        self.kf_frame: list[int] = []
-        self.kf_rp: list[tuple[float, float]] = []  # odometry roll, pitch at keyframes
-        self.kf_det: list[np.ndarray] = []
-        self.kf_dist: list[float] = []
-        self._kf_odo: list[np.ndarray] = []
+        # per frame, 4x4: odometry, causal estimate (T_map_odo @ T_odo_rover), ground truth or None
+        self.T_odo_rover: list[np.ndarray] = []
+        self.T_map_rover_online: list[np.ndarray] = []
+        self.T_map_rover_true: list[np.ndarray | None] = []
+        self._q_prev: np.ndarray | None = None  # the previous frame's odometry (x, y, z, roll, pitch, yaw)
         self.attempts: list[Attempt] = []
         self.timings = {"detection": 0.0, "mapping": 0.0, "association": 0.0, "fusion": 0.0}
         self._dist = 0.0
@@ -253,39 +258,44 @@ class LoopState:
         self._last_attempt_t = None
         self.T_map_odo = np.eye(4)  # the latest keyframe's correction
 
+    @property
+    def keyframes(self) -> list[Keyframe]:
+        """The keyframes (:class:`lunarloc.fusion.Keyframe`: the one record the loop and the
+        pose graph share: frame, time, odometry pose, roll/pitch, detections, path length,
+        current estimate)."""
+        return self.graph.keyframes
+
     # -------------------------------------------------------------- per frame
     def step(self, frame: int, t: float, T_odo_rover: np.ndarray, detections_rover: np.ndarray | None = None,
              T_map_rover_true: np.ndarray | None = None, keyframe: bool | None = None) -> Attempt | None:  # fmt: skip
         """Feed one frame (its odometry pose, 4x4); returns the localization attempt made at it,
-        if any. The frame's results (odometry, online estimate, ground truth) are kept as
-        (x, y, z, roll, pitch, yaw) rows, the run's trajectory format."""
+        if any. The frame's odometry, online estimate and ground truth are kept as 4x4 transforms."""
+        T_odo_rover = np.array(T_odo_rover, float)
         q = np.asarray(matrix_to_pose(T_odo_rover), float)
-        if self.odo:
-            step = float(np.linalg.norm(q[:3] - self.odo[-1][:3]))
-            if step > 1e-6 or abs(float(wrap_angle(q[5] - self.odo[-1][5]))) > 1e-6:
+        if self._q_prev is not None:
+            step = float(np.linalg.norm(q[:3] - self._q_prev[:3]))
+            if step > 1e-6 or abs(float(wrap_angle(q[5] - self._q_prev[5]))) > 1e-6:
                 self._moving_since_kf += t - self.times[-1]
             self._dist += step
+        self._q_prev = q
         self.frames.append(int(frame))
         self.times.append(float(t))
-        self.odo.append(q)
-        self.gt.append(None if T_map_rover_true is None else np.asarray(matrix_to_pose(T_map_rover_true), float))
+        self.T_odo_rover.append(T_odo_rover)
+        self.T_map_rover_true.append(None if T_map_rover_true is None else np.array(T_map_rover_true, float))
         is_kf = (detections_rover is not None) if keyframe is None else keyframe
         attempt = None
-        if is_kf or not self.kf_frame:
+        if is_kf or not self.graph.keyframes:
             attempt = self._keyframe(frame, t, q, np.zeros((0, 3)) if detections_rover is None else detections_rover)
-        self.online.append(_apply_corr(self.T_map_odo, q))
+        self.T_map_rover_online.append(self.T_map_odo @ T_odo_rover)
         return attempt
 
     def _keyframe(self, frame, t, q, det) -> Attempt | None:
         t0 = time.perf_counter()
-        k = self.graph.add_keyframe(t, (q[0], q[1], q[2], q[5]), self._moving_since_kf if self.kf_frame else None)
+        k = self.graph.add_keyframe(t, (q[0], q[1], q[2], q[5]), self._moving_since_kf if self.graph.keyframes else None,
+                                    frame=int(frame), roll_pitch_rad=(float(q[3]), float(q[4])),
+                                    detections_rover=det, path_m=self._dist)  # fmt: skip
         self._moving_since_kf = 0.0
         self.timings["fusion"] += time.perf_counter() - t0
-        self.kf_frame.append(int(frame))
-        self.kf_rp.append((float(q[3]), float(q[4])))
-        self._kf_odo.append(q)
-        self.kf_det.append(np.asarray(det, float).reshape(-1, 3))
-        self.kf_dist.append(self._dist)
         if self._last_attempt_t is None:
             self._last_attempt_t = t
         attempt = None
@@ -298,32 +308,27 @@ class LoopState:
         return attempt
 
     def _correction(self, k: int) -> np.ndarray:
-        est = self.graph.pose(k)
-        o = self.odo_at_keyframe(k)
-        d = float(wrap_angle(est[3] - o[5]))
-        c, s = math.cos(d), math.sin(d)
-        T = np.eye(4)
-        T[:2, :2] = [[c, -s], [s, c]]
-        T[:3, 3] = est[:3] - T[:3, :3] @ o[:3]
-        return T
+        return self.graph.keyframes[k].T_map_odo
 
-    def odo_at_keyframe(self, k: int) -> np.ndarray:
-        """Odometry pose (6,) of keyframe k."""
-        return self._kf_odo[k]
+    def window(self, k: int) -> np.ndarray:
+        """Indices of the keyframes whose detections form keyframe k's local map: those of the
+        last ``window_m`` metres of odometry path up to it (and any after it)."""
+        path = np.array([kf.path_m for kf in self.graph.keyframes])
+        return np.flatnonzero(path >= path[k] - self.config.window_m)
 
     def _window_points(self, keyframes: np.ndarray, poses4: np.ndarray | None, with_index: bool = False):
         """Detections of `keyframes` placed with `poses4` (estimate) or odometry (None):
         (points (N, 3), keyframe of each (N,)[, index of each within its keyframe (N,)])."""
         pts, fr, ix = [], [], []
         for k in keyframes:
-            D = self.kf_det[k]
+            kf = self.graph.keyframes[k]
+            D = kf.detections_rover
             if len(D) == 0:
                 continue
-            roll, pitch = self.kf_rp[k]
             if poses4 is None:
-                o = self._kf_odo[k]
-                T = pose_to_matrix(o[0], o[1], o[2], roll, pitch, o[5])
+                T = kf.T_odo_rover
             else:
+                roll, pitch = kf.roll_pitch_rad
                 x, y, z, yaw = poses4[k]
                 T = pose_to_matrix(x, y, z, roll, pitch, yaw)
             pts.append(transform_points(T, D))
@@ -338,8 +343,7 @@ class LoopState:
     def _attempt(self, k: int, frame: int, t: float) -> Attempt:
         cfg = self.config
         t0 = time.perf_counter()
-        dist = np.asarray(self.kf_dist)
-        win = np.flatnonzero(dist >= dist[k] - cfg.window_m)
+        win = self.window(k)
         poses = self.graph.poses()
         P, F, I = self._window_points(win, poses, with_index=True)
         veh = aggregate_detections(P, F, cfg.aggregation, frame="estimate") if len(P) else LandmarkMap(np.zeros((0, 3)))
@@ -357,6 +361,9 @@ class LoopState:
         self.timings["mapping"] += att.time_mapping_s
         if len(veh) < cfg.min_window_landmarks:
             att.reason = f"too few local landmarks ({len(veh)} < {cfg.min_window_landmarks})"
+            return att
+        if not self.has_reference:
+            att.reason = "no reference map"
             return att
         if len(ref) < 3:
             att.reason = f"reference has {len(ref)} landmarks near the predicted position"
@@ -379,7 +386,7 @@ class LoopState:
             return att
         t0 = time.perf_counter()
         x, y, z, yaw = poses[k]
-        roll, pitch = self.kf_rp[k]
+        roll, pitch = self.graph.keyframes[k].roll_pitch_rad
         T_est = pose_to_matrix(x, y, z, roll, pitch, yaw)
         T_fix = res.T_ref_veh @ T_est
         fix4 = np.array([T_fix[0, 3], T_fix[1, 3], T_fix[2, 3], yaw_of(T_fix[:3, :3])])
@@ -394,9 +401,9 @@ class LoopState:
         att.fix_xyz = fix4[:3].tolist()
         att.inlier_vehicle_xyz = Vp.round(4).tolist()
         att.inlier_reference_xyz = ref.positions_xyz[inl[:, 1]].round(4).tolist()
-        gt = self.gt[-1]
-        if gt is not None:
-            att.fix_error_m = float(np.linalg.norm(fix4[:3] - gt[:3]))
+        T_true = self.T_map_rover_true[-1]
+        if T_true is not None:
+            att.fix_error_m = float(np.linalg.norm(fix4[:3] - T_true[:3, 3]))
         if g.accepted:
             if cfg.fix_kind is FixKind.POSE:
                 self.graph.add_fix(k, fix4, sig_m, sig_m / extent)
@@ -420,8 +427,9 @@ class LoopState:
             return
         kf, idx, lm = F[ok], I[ok], j[ok]
         targets = ref.positions_xyz[inl[lm, 1]]
-        p_rover = np.array([self.kf_det[k][i] for k, i in zip(kf, idx)])
-        rp = np.array([self.kf_rp[k] for k in kf])
+        kfs = self.graph.keyframes
+        p_rover = np.array([kfs[k].detections_rover[i] for k, i in zip(kf, idx)])
+        rp = np.array([kfs[k].roll_pitch_rad for k in kf])
         keys = list(zip(kf.tolist(), idx.tolist()))
         self.graph.add_landmark_observations(keys, kf, p_rover, rp, targets, self.config.fusion.observation_sigma_m)
 
@@ -432,40 +440,37 @@ class LoopState:
         run's full configuration as written to its run folder."""
         t0 = time.perf_counter()
         self.graph.solve()
-        T_kf = np.stack([self._correction(k) for k in range(len(self.kf_frame))])
+        T_kf = self.graph.correction_transforms()
         self.timings["fusion"] += time.perf_counter() - t0
         frames = np.asarray(self.frames)
         times = np.asarray(self.times)
-        odo = np.asarray(self.odo)
-        kf_t = times[np.searchsorted(frames, np.asarray(self.kf_frame))]
-        corrected = _interpolate_corrections(T_kf, kf_t, times, odo)
+        T_odo = np.asarray(self.T_odo_rover).reshape(-1, 4, 4)
+        kf_t = np.array([kf.t_s for kf in self.graph.keyframes])
+        corrected = _interpolate_corrections(T_kf, kf_t, times, T_odo)
         poses = self.graph.poses()
-        all_kf = np.arange(len(self.kf_frame))
+        all_kf = np.arange(len(self.graph.keyframes))
         P, F = self._window_points(all_kf, poses)
         Po, Fo = self._window_points(all_kf, None)
         agg = self.config.aggregation
         vmap = aggregate_detections(P, F, agg, frame="map") if len(P) else LandmarkMap(np.zeros((0, 3)), frame="map")
         vodo = aggregate_detections(Po, Fo, agg, frame="odometry") if len(Po) else LandmarkMap(np.zeros((0, 3)), frame="odometry")
-        gt = None if any(g is None for g in self.gt) else np.asarray(self.gt)
-        return LoopResult(frames, times, odo, np.asarray(self.online), corrected, gt, self.attempts, vmap, vodo,
+        gt = None if any(g is None for g in self.T_map_rover_true) else np.asarray(self.T_map_rover_true).reshape(-1, 4, 4)
+        return LoopResult(frames, times, T_odo, np.asarray(self.T_map_rover_online).reshape(-1, 4, 4), corrected, gt,
+                          self.attempts, vmap, vodo,
                           self.reference, dict(self.timings), num_image_frames, config or {}, self.graph.scale,
                           rocks, example, source)  # fmt: skip
 
 
-def _apply_corr(T_map_odo: np.ndarray, q: np.ndarray) -> np.ndarray:
-    T = T_map_odo @ pose_to_matrix(*q)
-    return np.asarray(matrix_to_pose(T), float)
-
-
-def _interpolate_corrections(T_kf: np.ndarray, kf_t: np.ndarray, times: np.ndarray, odo: np.ndarray) -> np.ndarray:
-    """Apply per-keyframe corrections T_map_odo, linearly interpolated in time (translation and
-    yaw), to every frame's odometry pose: a continuous trajectory."""
+def _interpolate_corrections(T_kf: np.ndarray, kf_t: np.ndarray, times: np.ndarray, T_odo_rover: np.ndarray) -> np.ndarray:
+    """Apply per-keyframe corrections T_map_odo (K, 4, 4), linearly interpolated in time
+    (translation and yaw), to every frame's odometry pose (F, 4, 4): a continuous trajectory
+    T_map_rover (F, 4, 4)."""
     yaw = np.unwrap(np.arctan2(T_kf[:, 1, 0], T_kf[:, 0, 0]))
     tx = [np.interp(times, kf_t, T_kf[:, i, 3]) for i in range(3)]
     ya = np.interp(times, kf_t, yaw)
-    out = np.empty_like(odo)
+    out = np.empty((len(times), 4, 4))
     for n in range(len(times)):
         c, s = math.cos(ya[n]), math.sin(ya[n])
         T = np.array([[c, -s, 0, tx[0][n]], [s, c, 0, tx[1][n]], [0, 0, 1, tx[2][n]], [0, 0, 0, 1.0]])
-        out[n] = _apply_corr(T, odo[n])
+        out[n] = T @ T_odo_rover[n]
     return out

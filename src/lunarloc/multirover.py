@@ -46,14 +46,14 @@ import os
 import re
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from lunarloc.config import RunConfig, config_from_dict, config_to_dict
 from lunarloc.errors import ConfigError, InputError, LunarLocError
-from lunarloc.geometry import invert_transform, matrix_to_pose, pose_to_matrix, yaw_of
+from lunarloc.geometry import invert_transform, pose_to_matrix, yaw_of
 from lunarloc.loop import Attempt, LoopResult, _interpolate_corrections
 from lunarloc.maps import LandmarkMap, aggregate_detections
 
@@ -249,27 +249,20 @@ class _Rover:
         rig = CameraRig.from_sensors(agent.sensors(), {c: agent.get_camera_position(c) for c in ar.cameras})
         # the run folder holds the whole history, so the pose graph is never re-anchored
         online = OnlineConfig(loop=cfg.run.loop, localization=cfg.run.localization, max_keyframes=10**9)
-        if reference is None:
-            online = replace(online, reference_max_distance_m=math.inf)
         self.has_reference = reference is not None
         detector_config = cfg.run.detector_for(rig.camera.width)
         lander = ar.initial.get("lander")  # rover-relative at the start; detections on the lander are dropped
-        if reference is None:
-            # OnlineLocalizer wants a reference of >= 3 landmarks; a rover without one is given
-            # three far away and then an empty map, against which every attempt finds nothing
-            # (recorded by the loop, dropped from the outputs), so only shared fixes correct it.
-            far = T0[:3, 3] + np.array([[1e6, 0, 0], [1e6, 1, 0], [1e6, 0, 1]])
-            self.loc = OnlineLocalizer(LandmarkMap(far, frame="map"), T0, online, rig, detector_config, lander)
-            self.loc.reference = self.loc.loop.reference = LandmarkMap(np.zeros((0, 3)), frame="map")
-        else:
-            self.loc = OnlineLocalizer(reference, T0, online, rig, detector_config, lander)
+        # without a reference every attempt ends "no reference map" (recorded by the loop,
+        # dropped from the outputs) and only shared fixes correct the rover
+        self.loc = OnlineLocalizer(reference, T0, online, rig, detector_config, lander)
         self.detector_config = self.loc.detector.config
         self.camera = rig.camera
         self.rocks = ar.custom("rocks").to_array(("id", "x", "y", "z", "radius")) if "rocks" in ar.custom_records else None
         self.ticks: list[tuple[int, float]] = []
-        self.online: list[np.ndarray] = []
-        self.gt: list[np.ndarray] = []
-        self.odo: list[np.ndarray] = []
+        # per tick, 4x4: the component's estimate, ground truth, odometry
+        self.T_map_rover_online: list[np.ndarray] = []
+        self.T_map_rover_true: list[np.ndarray] = []
+        self.T_odo_rover: list[np.ndarray] = []
         self.n_image = 0
         self.shared: list[SharedAttempt] = []
         self.shared_att: list[Attempt] = []
@@ -293,16 +286,16 @@ class _Rover:
             raise InputError(f"{self.path}: no odometry pose at frame {f}")
         data = a.input_data()
         imu, v, w = a.get_imu_data(), a.get_linear_speed(), a.get_angular_speed()
-        gt = a.get_transform().as_tuple()
+        T_true = a.get_transform_matrix()
         t1 = time.perf_counter()
         est = self.loc.update(t, data, imu, v, w, odometry=self.odometry[f])
         t2 = time.perf_counter()
         self.timings["io"] += t1 - t0
         self.timings["update"] += t2 - t1
         self.ticks.append((int(f), float(t)))
-        self.online.append(np.asarray(est.pose6, float))
-        self.gt.append(np.asarray(gt, float))
-        self.odo.append(np.asarray(matrix_to_pose(self.odometry[f]), float))
+        self.T_map_rover_online.append(est.T_map_rover)
+        self.T_map_rover_true.append(T_true)
+        self.T_odo_rover.append(self.odometry[f])
         self.n_image += int(any(img is not None for img in (data or {}).get("Grayscale", {}).values()))
         if est.attempt is not None and est.attempt.accepted:
             self.anchor = (0.0, 0.0)  # a reference fix: the rover's error no longer inherits another's
@@ -312,7 +305,7 @@ class _Rover:
     def owner_sigmas(self) -> tuple[np.ndarray, np.ndarray]:
         """(position m, yaw rad) sigma of every keyframe's estimate in ``map``."""
         g = self.loc.loop.graph
-        s = np.array([g.predicted_sigma(k) for k in range(len(self.loc.loop.kf_frame))], float).reshape(-1, 2)
+        s = np.array([g.predicted_sigma(k) for k in range(len(self.loc.loop.keyframes))], float).reshape(-1, 2)
         return np.hypot(s[:, 0], self.anchor[0]), np.hypot(s[:, 1], self.anchor[1])
 
     def live_map(self, t: float, refresh_s: float) -> _LiveMap | None:
@@ -320,7 +313,7 @@ class _Rover:
         from scipy.spatial import cKDTree
 
         loop = self.loc.loop
-        n = len(loop.kf_frame)
+        n = len(loop.keyframes)
         key = (n, len(loop.graph.fixes), self.anchor)
         if self.live is not None and (self.live.key == key or t - self.live.built_t < refresh_s):
             return self.live
@@ -350,11 +343,10 @@ class _Rover:
         t_start = time.perf_counter()
         loop = self.loc.loop
         cfg = loop.config
-        k = len(loop.kf_frame) - 1
+        k = len(loop.keyframes) - 1
         f, t = self.ticks[-1]
-        dist = np.asarray(loop.kf_dist)
         poses = loop.graph.poses()
-        win = np.flatnonzero(dist >= dist[k] - cfg.window_m)
+        win = loop.window(k)
         P, F = loop._window_points(win, poses)
         veh = aggregate_detections(P, F, cfg.aggregation, frame="estimate") if len(P) else None
         if veh is None or len(veh) < cfg.min_window_landmarks:
@@ -389,7 +381,7 @@ class _Rover:
             if not res.success:
                 continue
             x, y, z, yaw = poses[k]
-            roll, pitch = loop.kf_rp[k]
+            roll, pitch = loop.keyframes[k].roll_pitch_rad
             T_fix = res.T_ref_veh @ pose_to_matrix(x, y, z, roll, pitch, yaw)
             fix4 = np.array([T_fix[0, 3], T_fix[1, 3], T_fix[2, 3], yaw_of(T_fix[:3, :3])])
             inl = res.inliers
@@ -401,7 +393,7 @@ class _Rover:
             sig_m, sig_yaw = math.hypot(pred, om), math.hypot(pred / extent, oy)
             att.owner_sigma_m, att.owner_sigma_yaw_deg = om, math.degrees(oy)
             att.fix_sigma_m, att.fix_sigma_yaw_deg = sig_m, math.degrees(sig_yaw)
-            att.fix_error_m = float(np.linalg.norm(fix4[:3] - self.gt[-1][:3]))
+            att.fix_error_m = float(np.linalg.norm(fix4[:3] - self.T_map_rover_true[-1][:3, 3]))
             if sig_m >= max_ratio * own_m:
                 att.reason = (f"not informative: the fix ({sig_m * 100:.0f} cm, {other.name}'s estimate "
                               f"{om * 100:.0f} cm) is not below {max_ratio:g} x the rover's own prediction ({own_m * 100:.0f} cm)")  # fmt: skip
@@ -438,17 +430,18 @@ class _Rover:
         attempts = list(loop.attempts) if self.has_reference else []
         attempts = sorted(attempts + self.shared_att, key=lambda a: (a.time_s, a.reason.startswith("map of")))
         kf = loop.finish(self.n_image)  # final solve; keyframe-rate trajectories
-        T_kf = np.stack([loop._correction(k) for k in range(len(loop.kf_frame))])
+        T_kf = loop.graph.correction_transforms()
         frames = np.array([f for f, _ in self.ticks], int)
         times = np.array([t for _, t in self.ticks], float)
-        odo = np.asarray(self.odo)
-        corrected = _interpolate_corrections(T_kf, np.asarray(loop.times), times, odo)
+        T_odo = np.asarray(self.T_odo_rover).reshape(-1, 4, 4)
+        corrected = _interpolate_corrections(T_kf, np.asarray(loop.times), times, T_odo)
         # the run's configuration as a single run writes it (read back by `lunarloc run --config`)
         info = {"archive": str(self.path), "odometry_source": self.odometry_label, "camera": asdict(self.camera),
                 "detector_scaled": self.detector_config.to_dict(),
                 "multirover": {k: v for k, v in config.to_dict().items() if k != "run"}}  # fmt: skip
         ref = reference if reference is not None else LandmarkMap(np.zeros((0, 3)), frame="map")
-        res = LoopResult(frames, times, odo, np.asarray(self.online), corrected, np.asarray(self.gt), attempts,
+        res = LoopResult(frames, times, T_odo, np.asarray(self.T_map_rover_online).reshape(-1, 4, 4), corrected,
+                         np.asarray(self.T_map_rover_true).reshape(-1, 4, 4), attempts,
                          kf.vehicle_map, kf.vehicle_map_odometry, ref, dict(self.timings), self.n_image,
                          {**config.run.to_dict(), "info": info}, kf.scale, self.rocks, None, str(self.path))  # fmt: skip
         return RoverRun(self.name, self.path, res, self.shared)

@@ -50,7 +50,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from lunarloc.errors import ConfigError, InputError
-from lunarloc.geometry import invert_transform, matrix_to_pose, pose_to_matrix
+from lunarloc.geometry import invert_transform, pose_to_matrix
 from lunarloc.maps import LandmarkMap
 from lunarloc.odometry.imu import ImuOdometryConfig, ImuSamples, integrate_imu
 from lunarloc.perception.camera import IPEX_STEREO_BASELINE_M, STEREO_PAIRS, CameraMount, PinholeCamera, ipex_rig
@@ -214,11 +214,6 @@ class Estimate:
     keyframe: bool = False  # this tick was a keyframe (detector ran)
     attempt: Attempt | None = None  # the localization attempt made at this tick, if any
 
-    @property
-    def pose6(self) -> tuple[float, float, float, float, float, float]:
-        """(x, y, z, roll, pitch, yaw) of ``T_map_rover``."""
-        return matrix_to_pose(self.T_map_rover)
-
 
 # --------------------------------------------------------------------------- the component
 
@@ -226,7 +221,10 @@ class Estimate:
 class OnlineLocalizer:
     """Per-tick global localization against a reference rock map (see the module docstring).
 
-    reference : the reference map (frame ``map``), e.g. :func:`lunarloc.load_reference`.
+    reference : the reference map (frame ``map``), e.g. :func:`lunarloc.load_reference`; None
+        for a rover with no reference (its attempts end "no reference map"; a caller such as
+        :mod:`lunarloc.multirover` localizes their local maps in other rovers' maps).
+        ``localized`` then stays False.
     initial_pose : the rover's pose in ``map`` at the first tick (the LAC's
         ``get_initial_position()``: a Transform, a 4x4 or (x, y, z, roll, pitch, yaw)).
     config : :class:`OnlineConfig`.
@@ -238,13 +236,14 @@ class OnlineLocalizer:
         the lander are then dropped. None: no lander exclusion.
     """
 
-    def __init__(self, reference: LandmarkMap, initial_pose, config: OnlineConfig | None = None,
+    def __init__(self, reference: LandmarkMap | None, initial_pose, config: OnlineConfig | None = None,
                  rig: CameraRig | None = None, detector_config=None, lander_pose=None):  # fmt: skip
         from lunarloc.perception.detector import Detector
         from lunarloc.config import scaled_detector_config
 
-        if not isinstance(reference, LandmarkMap):
-            raise InputError(f"reference must be a LandmarkMap (see lunarloc.load_reference), got {type(reference).__name__}")
+        if reference is not None and not isinstance(reference, LandmarkMap):
+            raise InputError(f"reference must be a LandmarkMap (see lunarloc.load_reference) or None, "
+                             f"got {type(reference).__name__}")
         self.config = cfg = config or OnlineConfig()
         self.rig = rig or CameraRig()
         if not isinstance(self.rig, CameraRig):
@@ -253,7 +252,7 @@ class OnlineLocalizer:
         # the lander's centre in map (= odometry at the start), for dropping detections on it
         self._lander_xy = None if lander_pose is None else (self.T_map_rover0 @ _as_T(lander_pose, "lander_pose"))[:2, 3]
         self.reference = reference
-        if len(reference) >= 1:
+        if reference is not None and len(reference) >= 1:
             d = np.linalg.norm(reference.positions_xyz[:, :2] - self.T_map_rover0[:2, 3], axis=1)
             if float(d.min()) > cfg.reference_max_distance_m:
                 raise InputError(
@@ -379,11 +378,11 @@ class OnlineLocalizer:
                 from lunarloc.perception.detector import on_lander
 
                 det = det[~on_lander(det, T_odo, self._lander_xy)]
-            if len(self.loop.kf_frame) >= self.config.max_keyframes:
+            if len(self.loop.keyframes) >= self.config.max_keyframes:
                 self._reanchor()
             attempt = self.loop.step(self._tick, t, self._T_loop_odo @ T_odo, det, None, keyframe=True)
             self._last_kf = (t, T_odo)
-            k = len(self.loop.kf_frame) - 1
+            k = len(self.loop.keyframes) - 1
             self._sigmas = self.loop.graph.predicted_sigma(k)
             if attempt is not None:
                 self.recent_attempts.append(attempt)
@@ -499,22 +498,19 @@ class OnlineLocalizer:
         """Start a new loop state from the keyframes of the last window (bounded history)."""
         old = self.loop
         cfg = self._loop_config
-        n = len(old.kf_frame)
-        dist = np.asarray(old.kf_dist)
-        keep = np.flatnonzero(dist >= dist[-1] - cfg.window_m)[-self.config.max_keyframes // 3 :]
+        n = len(old.keyframes)
+        keep = old.window(n - 1)[-self.config.max_keyframes // 3 :]
         poses = old.graph.poses()
         sm, sy = old.graph.predicted_sigma(int(keep[0]))
         noise = replace(cfg.fusion.noise, start_sigma_m=max(sm, cfg.fusion.noise.start_sigma_m),
                         start_sigma_yaw_rad=max(sy, cfg.fusion.noise.start_sigma_yaw_rad))  # fmt: skip
         new = LoopState(self.reference, replace(cfg, fusion=replace(cfg.fusion, noise=noise)), self.config.localization)
         new._last_attempt_dist = new._last_attempt_t = math.inf  # no attempts while the window is re-fed
-        times = np.asarray(old.times)
-        frames = np.asarray(old.frames)
-        kf_t = times[np.searchsorted(frames, np.asarray(old.kf_frame)[keep])]
-        for k, t in zip(keep, kf_t):
+        for k in keep:
+            kf = old.keyframes[k]
             x, y, z, yaw = poses[k]
-            roll, pitch = old.kf_rp[k]
-            new.step(old.kf_frame[k], float(t), pose_to_matrix(x, y, z, roll, pitch, yaw), old.kf_det[k], None, keyframe=True)
+            roll, pitch = kf.roll_pitch_rad
+            new.step(kf.frame, kf.t_s, pose_to_matrix(x, y, z, roll, pitch, yaw), kf.detections_rover, None, keyframe=True)
         g_old, g_new = old.graph, new.graph
         # the gate's drift model continues from the last fix (distance and time since it)
         g_new._last_fix_dist = g_new.keyframes[-1].distance_m - (g_old.keyframes[-1].distance_m - g_old._last_fix_dist)

@@ -32,11 +32,15 @@ from lunarloc.errors import FileFormatError
 __all__ = ["write_tum", "read_tum", "write_run", "read_run", "RunFolder", "to_json_ready"]
 
 
-def write_tum(path: Path, times: np.ndarray, poses: np.ndarray) -> None:
-    """TUM trajectory file from times (F,) and poses (F, 6) x, y, z, roll, pitch, yaw."""
+def write_tum(path: Path, times: np.ndarray, T_map_rover: np.ndarray) -> None:
+    """TUM trajectory file from times (F,) and poses (F, 4, 4) (the file's position and
+    quaternion come from the pose's x, y, z, roll, pitch, yaw)."""
     from scipy.spatial.transform import Rotation
 
+    from lunarloc.geometry import matrix_to_pose
     from lunarloc.outputs import atomic_open
+
+    poses = np.array([matrix_to_pose(T) for T in T_map_rover], float).reshape(-1, 6)
 
     q = Rotation.from_euler("ZYX", poses[:, [5, 4, 3]]).as_quat()  # x, y, z, w; R = Rz Ry Rx
     with atomic_open(path, "w") as fh:
@@ -77,11 +81,11 @@ def write_run(result, outdir: str | Path) -> dict:
     from lunarloc.reference import ROCK_COLUMNS
 
     out = make_dir(outdir)
-    write_tum(out / "trajectory.tum", result.times, result.corrected)
-    write_tum(out / "trajectory_online.tum", result.times, result.online)
-    write_tum(out / "trajectory_odometry.tum", result.times, result.odometry)
-    if result.ground_truth is not None:
-        write_tum(out / "trajectory_groundtruth.tum", result.times, result.ground_truth)
+    write_tum(out / "trajectory.tum", result.times, result.T_map_rover)
+    write_tum(out / "trajectory_online.tum", result.times, result.T_map_rover_online)
+    write_tum(out / "trajectory_odometry.tum", result.times, result.T_odo_rover)
+    if result.T_map_rover_true is not None:
+        write_tum(out / "trajectory_groundtruth.tum", result.times, result.T_map_rover_true)
     keys = list(Attempt(0, 0.0, 0, 0, 0, False, False).row().keys())
     with atomic_open(out / "attempts.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=keys)

@@ -27,7 +27,7 @@ from lunarloc.errors import ConfigError, LunarLocError
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
-__all__ = ["ScenarioConfig", "ScenarioError", "run_scenario", "scenario_problems"]
+__all__ = ["ScenarioConfig", "ScenarioError", "demo_run_config", "run_scenario", "scenario_problems"]
 
 
 class ScenarioError(LunarLocError):
@@ -47,9 +47,9 @@ class ScenarioConfig:
     sun_elevation_deg: float | None = None  # None: the renderer's default
     sun_azimuth_deg: float | None = None
     min_reference_landmarks: int = 3  # fewer in the reference map is a failed stage
-    # the vehicle's odometry (lunarloc.odometry.OdometrySource text): the simulator's drifting
-    # record by default; "visual" or "imu" for what a LAC rover really has
-    odometry: str = "record:odometry"
+    # The vehicle's odometry source is the run configuration's ``odometry.source`` (one place):
+    # :func:`demo_run_config` sets the simulator's drifting record; "visual" or "imu" there for
+    # what a LAC rover really has.
 
     def __post_init__(self) -> None:
         for name in ("duration_s", "reference_duration_s", "image_rate_hz"):
@@ -62,9 +62,6 @@ class ScenarioConfig:
             raise ConfigError(f"n_rocks={self.n_rocks!r} must be an integer in [3, 100000]")
         if not isinstance(self.seed, int) or self.seed < 0:
             raise ConfigError(f"seed={self.seed!r} must be a non-negative integer")
-        from lunarloc.odometry import parse_odometry_source
-
-        parse_odometry_source(self.odometry)  # ConfigError/InputError naming the valid sources
 
     @property
     def height(self) -> int:
@@ -76,6 +73,9 @@ class ScenarioConfig:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "ScenarioConfig":
         known = {f.name for f in fields(cls)}
+        if "odometry" in d:
+            raise ConfigError("scenario.odometry: the odometry source is set in one place, the run configuration's "
+                              f"odometry.source (move {d['odometry']!r} there)")
         unknown = sorted(set(d) - known)
         if unknown:
             raise ConfigError(f"unknown scenario setting(s) {unknown}; known: {', '.join(sorted(known))}")
@@ -111,21 +111,29 @@ class _Stages:
         return cm()
 
 
+def demo_run_config():
+    """The scenario's default :class:`lunarloc.config.RunConfig`: the image defaults with the
+    simulator's drifting odometry record (``odometry.source = "record:odometry"``) as the
+    vehicle's odometry."""
+    from lunarloc.config import OdometryConfig, RunConfig
+
+    return RunConfig(odometry=OdometryConfig(source="record:odometry"))
+
+
 def run_scenario(config: ScenarioConfig, out: str | Path, *, log: Callable[[str], None] | None = None,
                  figures: bool = True, run_config=None) -> dict:  # fmt: skip
     """Run one scenario into the folder ``out`` (``out/data`` holds the generated site,
     archives and reference map; ``out`` the run folder of the vehicle traverse). Returns the
     run's summary with ``scenario`` (the config) and ``stage_seconds`` added.
 
-    run_config : :class:`lunarloc.config.RunConfig` of the reference map and the loop (default
-        ``RunConfig()``); its odometry source is the scenario's ``odometry``. The run folder's
+    run_config : :class:`lunarloc.config.RunConfig` of the reference map, the loop and the
+        vehicle's odometry (``odometry.source``; default :func:`demo_run_config`). The run folder's
         ``config.json`` holds it with a ``scenario`` section: ``lunarloc demo --config`` repeats
         the run."""
     from lunarloc.data.render import SiteRenderer
     from lunarloc.data.simulate import SimulationConfig, simulate_site, simulate_traverse
     from lunarloc.data.site import SiteConfig
     from lunarloc.maps import save_map
-    from lunarloc.config import RunConfig
     from lunarloc.pipeline import run
     from lunarloc.reference import build_reference_map
     from lunarloc.runio import write_run
@@ -153,8 +161,7 @@ def run_scenario(config: ScenarioConfig, out: str | Path, *, log: Callable[[str]
     with stage(f"simulate vehicle traverse ({c.duration_s:g} s, drifting odometry)"):
         veh_arch, _ = simulate_traverse(site, data / "vehicle.lac", 1, replace(base, duration_s=c.duration_s),
                                         renderer=renderer)  # fmt: skip
-    rc = run_config or RunConfig()
-    rc = replace(rc, odometry=replace(rc.odometry, source=c.odometry))
+    rc = run_config or demo_run_config()
     with stage("build the reference map from the reference traverse's images"):
         ref = build_reference_map(ref_arch, rc)
         save_map(ref, data / "reference_map.csv")

@@ -145,7 +145,7 @@ def localize_cmd(
     agg = _agg(radius, min_sightings)
     ref = load_reference(reference, agg, dem=dem)
     veh = load_map(vehicle, agg)
-    res = localize_large(ref, veh, cfg, search=search)
+    res = localize_large(ref, veh, cfg, run_cfg.index, search=search)
     if as_json:
         from lunarloc.runio import to_json_ready
 

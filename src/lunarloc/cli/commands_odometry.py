@@ -51,7 +51,7 @@ def odometry_cmd(
              "failures": traj.failures, **drift}  # fmt: skip
     if out is not None:
         out.parent.mkdir(parents=True, exist_ok=True)
-        write_tum(out, traj.times_s, traj.poses6())
+        write_tum(out, traj.times_s, traj.T_map_rover)
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(json.dumps(drift, indent=2))

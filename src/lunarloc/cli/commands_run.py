@@ -169,16 +169,15 @@ def demo_cmd(
     traverse, build the reference map from images, run the loop, print a table, write figures."""
     from dataclasses import replace
 
-    from lunarloc.config import RunConfig
     from lunarloc.errors import ConfigError
     from lunarloc.outputs import check_output_dir
-    from lunarloc.scenario import ScenarioConfig, run_scenario, scenario_problems
+    from lunarloc.scenario import ScenarioConfig, demo_run_config, run_scenario, scenario_problems
 
     positive(duration, "--duration", 3600.0, "s")
     positive(reference_duration, "--reference-duration", 3600.0, "s")
     number(width, "--width", 64, 4096, unit="px")
     positive(image_rate, "--image-rate", 10.0, "Hz")
-    run_cfg, extra = _run_config(config, RunConfig(), ("scenario",))
+    run_cfg, extra = _run_config(config, demo_run_config(), ("scenario",))
     scen = ScenarioConfig.from_dict(extra["scenario"]) if "scenario" in extra else ScenarioConfig()
     given = {"seed": seed, "n_rocks": n_rocks, "duration_s": duration, "reference_duration_s": reference_duration,
              "width": width, "image_rate_hz": image_rate}  # fmt: skip

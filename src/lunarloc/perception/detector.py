@@ -161,8 +161,11 @@ class DetectorConfig:
     fullres_points: bool = True
     # Width (pixels, multiple of 16) of the full-resolution disparity search band.
     fullres_span_px: int = 16
-    # SGBM block (pixels, odd) of the full-resolution match.
+    # SGBM block (pixels, odd) of the full-resolution match, and its smoothness penalties
+    # P1, P2 per pixel of the block (P = value x block_size^2; one grayscale channel).
     fullres_block_size: int = 5
+    fullres_p1_per_block_px2: int = 8
+    fullres_p2_per_block_px2: int = 32
     # Pixels eroded from the mask before its full-resolution points are taken (the
     # silhouette's pixels mix rock and background disparities).
     fullres_erode_px: int = 2
@@ -237,6 +240,9 @@ class DetectorConfig:
             raise ConfigError("top_quantile must be in (0, 1]")
         if self.depth_half_window_px < 0:
             raise ConfigError("depth_half_window_px must be >= 0")
+        if not 1 <= self.fullres_p1_per_block_px2 < self.fullres_p2_per_block_px2:
+            raise ConfigError(f"fullres_p1_per_block_px2={self.fullres_p1_per_block_px2}, fullres_p2_per_block_px2="
+                              f"{self.fullres_p2_per_block_px2}: need 1 <= p1 < p2 (SGBM wants P2 > P1)")
         if self.radius_per_size <= 0:
             raise ConfigError("radius_per_size must be > 0")
         if not (self.max_rock_height_m > 0 and self.max_rock_radius_m > 0 and self.lander_radius_m >= 0):
@@ -381,7 +387,9 @@ class Detector:
         import cv2
 
         cfg = self.config
-        d = mask_disparity_fullres(L, right, m.crop, m.u0, m.v0, d_lr, cfg.fullres_span_px, cfg.fullres_block_size)
+        d = mask_disparity_fullres(L, right, m.crop, m.u0, m.v0, d_lr, cfg.fullres_span_px, cfg.fullres_block_size,
+                                   p1_per_block_px2=cfg.fullres_p1_per_block_px2,
+                                   p2_per_block_px2=cfg.fullres_p2_per_block_px2)
         if d is None:
             return None
         crop = np.asarray(m.crop, bool)

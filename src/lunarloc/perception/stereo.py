@@ -54,9 +54,12 @@ class StereoConfig:
     speckle_range: int = 32
     # Maximum left-right consistency difference in pixels.
     disp12_max_diff: int = 1
-    # Smoothness penalties; None = the reference agent's 8*3*b^2 and 32*3*b^2.
+    # Smoothness penalties; None = p1_per_block_px2 * block_size^2 and p2_per_block_px2 *
+    # block_size^2 (the reference agent's 8*3*b^2 and 32*3*b^2: 8 and 32 per channel, 3 channels).
     p1: int | None = None
     p2: int | None = None
+    p1_per_block_px2: int = 24
+    p2_per_block_px2: int = 96
     # Smallest disparity in pixels accepted as valid (rejects far, noisy matches).
     min_valid_disparity_px: float = 1.0
     # Work at 1/downscale resolution (1 = full). 2 is ~4-6x faster; disparities are
@@ -78,14 +81,17 @@ class StereoConfig:
             raise ConfigError("block_size must be odd and >= 1")
         if self.downscale < 1:
             raise ConfigError("downscale must be >= 1")
+        if not 1 <= self.p1_per_block_px2 < self.p2_per_block_px2:
+            raise ConfigError(f"p1_per_block_px2={self.p1_per_block_px2}, p2_per_block_px2={self.p2_per_block_px2}: "
+                              "need 1 <= p1_per_block_px2 < p2_per_block_px2 (SGBM wants P2 > P1)")
 
     @property
     def P1(self) -> int:
-        return self.p1 if self.p1 is not None else 8 * 3 * self.block_size**2
+        return self.p1 if self.p1 is not None else self.p1_per_block_px2 * self.block_size**2
 
     @property
     def P2(self) -> int:
-        return self.p2 if self.p2 is not None else 32 * 3 * self.block_size**2
+        return self.p2 if self.p2 is not None else self.p2_per_block_px2 * self.block_size**2
 
 
 def max_num_disparities(width: int, block_size: int) -> int:
@@ -562,6 +568,8 @@ def mask_disparity_fullres(
     span_px: int = 16,
     block_size: int = 5,
     pad_px: int = 8,
+    p1_per_block_px2: int = 8,
+    p2_per_block_px2: int = 32,
 ) -> np.ndarray | None:
     """Full-resolution SGBM disparity over one mask's bounding box, searched only in a
     narrow band around an initial guess.
@@ -574,7 +582,8 @@ def mask_disparity_fullres(
     keeping SGBM's 1/16 px sub-pixel resolution at full image resolution, where the
     half-resolution map quantises depth. Returns the (h, w) disparity of the crop's box
     in full-resolution pixels (NaN invalid or at the band's edges), or None when the
-    band leaves the image.
+    band leaves the image. SGBM's smoothness penalties are ``p1_per_block_px2`` and
+    ``p2_per_block_px2`` times the block's area (one grayscale channel).
     """
     import cv2
 
@@ -595,7 +604,7 @@ def mask_disparity_fullres(
     Lc = _columns(L, r0, r1, la, b)
     Rc = _columns(R, r0, r1, la - dmin, b - dmin)
     m = cv2.StereoSGBM_create(
-        minDisparity=0, numDisparities=nd, blockSize=bs, P1=8 * bs * bs, P2=32 * bs * bs,
+        minDisparity=0, numDisparities=nd, blockSize=bs, P1=p1_per_block_px2 * bs * bs, P2=p2_per_block_px2 * bs * bs,
         disp12MaxDiff=1, uniquenessRatio=10, speckleWindowSize=0, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
     )  # fmt: skip
     d = m.compute(Lc, Rc).astype(np.float32)[v0 - r0 : v0 - r0 + h, u0 - la : u0 - la + w] / 16.0
