@@ -298,7 +298,8 @@ def main(argv=None) -> int:
     if a.online:
         for i in range(1, len(archives)):
             for ms in a.min_sightings:
-                run_dir = a.out / f"run_{i}_ms{ms}"
+                odo_tag = "" if a.odometry is None else "_" + a.odometry.replace(":", "-")
+                run_dir = a.out / f"run_{i}_ms{ms}{odo_tag}"
                 if not (run_dir / "summary.json").exists():
                     _run(_lunarloc() + ["run", str(archives[i]), "--reference", str(maps[0, "gt", ms]), "--out",
                                         str(run_dir), "--no-plot"]
