@@ -3,7 +3,7 @@
 Usage
 -----
     python benchmarks/bench_loop_sim.py --out bench-output/loop-sim [--seeds 13 15 16]
-        [--duration 470] [--width 640] [--image-rate 2] [--rocks 800] [--reference rocks|images]
+        [--duration 470] [--width 640] [--image-rate 2] [--rocks 386] [--reference rocks|images]
         [--heading-bias-std 1.5e-3]
 
 For each seed: simulate a site and one vehicle traverse (front stereo pair, default
@@ -62,7 +62,7 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=470.0)
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--image-rate", type=float, default=2.0)
-    ap.add_argument("--rocks", type=int, default=800)
+    ap.add_argument("--rocks", type=int, default=386, help="rocks on the site (default: the LAC's 386; 800 before)")
     ap.add_argument("--reference", choices=["rocks", "images"], default="rocks")
     ap.add_argument("--heading-bias-std", type=float, default=None,
                     help="std of the odometry's initial gyro bias, rad/s (default OdometryConfig: 5e-4)")

@@ -7,12 +7,18 @@ Usage
         [--image-rate 1] [--vehicle-image-rate R] [--lighting sun|lamps|sun+lamps] [--sun-elevation DEG]
         [--width 1280 --height 720] [--rocks N] [--all-cameras]
         [--min-sightings 5 2] [--epsilon 0.05 0.08] [--poses gt/gt ...] [--online] [--json OUT.json]
+        [--plan random|survey] [--reference-duration D] [--odometry SOURCE]
 
 Steps (each runs the project's own command line; outputs already in DIR are reused):
 
 1. ``lunarloc simulate --seed S --traverses N --out DIR --duration D --image-rate R
-   --front-only --no-semantic`` (with ``--rocks N`` the site is simulated through the
-   Python API instead, ``SiteConfig(n_rocks=N)``: the command has no such option).
+   --front-only --no-semantic`` (with ``--rocks N``, ``--plan survey``, ``--reference-duration``
+   or ``--vehicle-image-rate`` the site is simulated through the Python API instead,
+   e.g. ``SiteConfig(n_rocks=N)``: the command has no such options).
+   ``--plan survey``: traverse 0 (the reference) surveys the site in an outward spiral about
+   the lander (``TraversePlan.SURVEY``); every later traverse revisits that ground from
+   another start (``TraversePlan.REVISIT``), as a later session of a mission would. The
+   share of each vehicle path within 1.5 m and 3 m of the reference path is reported.
 2. ``lunarloc detect DIR/traverse_i.lac -o DIR/det_i_<pose>.csv --pose <pose>`` for
    pose = ground-truth and odometry.
 3. ``lunarloc map det_i_<pose>.csv -o map_i_<pose>_ms<M>.csv --min-sightings M``.
@@ -52,6 +58,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lunarloc.data.rover import path_share_near
+
 POSES = {"gt": "ground-truth", "odo": "odometry"}
 PAIRS = [("gt", "gt"), ("odo", "odo"), ("gt", "odo")]
 
@@ -78,7 +86,7 @@ def simulate(a, log: list[str]) -> list[Path]:
     paths = [a.out / f"traverse_{i}.lac" for i in range(a.traverses)]
     if all(p.exists() for p in paths):
         return paths
-    if a.rocks is None and a.vehicle_image_rate is None:
+    if a.rocks is None and a.vehicle_image_rate is None and a.plan == "random" and a.reference_duration is None:
         cmd = _lunarloc() + [
             "simulate", "--seed", str(a.seed), "--traverses", str(a.traverses), "--out", str(a.out),
             "--duration", f"{a.duration:g}", "--image-rate", f"{a.image_rate:g}", "--width", str(a.width),
@@ -100,17 +108,23 @@ def simulate(a, log: list[str]) -> list[Path]:
             render=RenderConfig(sun_elevation_deg=a.sun_elevation, lighting=a.lighting),
         )  # fmt: skip
         veh_rate = a.vehicle_image_rate or a.image_rate
+        ref_cfg = replace(cfg, duration_s=a.reference_duration or a.duration)
+        veh_cfg = replace(cfg, image_rate_hz=veh_rate)
+        if a.plan == "survey":
+            ref_cfg = replace(ref_cfg, rover=replace(cfg.rover, plan="survey"))
+            veh_cfg = replace(veh_cfg, rover=replace(cfg.rover, plan="revisit"))
         log.append(f"python: simulate_traverse(simulate_site({a.seed}, cfg), traverse_i.lac, i, cfg) with SimulationConfig("
                    f"site=SiteConfig(n_rocks={site_cfg.n_rocks}), duration_s={a.duration:g}, image_rate_hz={a.image_rate:g} "
                    f"(vehicle traverses {veh_rate:g}), width={a.width}, height={a.height}, semantic=False, "
-                   f"render=RenderConfig(sun_elevation_deg={a.sun_elevation:g}, lighting={a.lighting!r}), cameras=...)")  # fmt: skip
+                   f"render=RenderConfig(sun_elevation_deg={a.sun_elevation:g}, lighting={a.lighting!r}), cameras=...), "
+                   f"plan {a.plan} (reference {ref_cfg.rover.plan}, {ref_cfg.duration_s:g} s; vehicles {veh_cfg.rover.plan})")  # fmt: skip
         print(f"$ {log[-1]}", file=sys.stderr, flush=True)
         t0 = time.perf_counter()
         site = simulate_site(a.seed, cfg)
         site.write_rocks_csv(a.out / "rocks.csv")
         for i, p in enumerate(paths):
             if not p.exists():
-                simulate_traverse(site, p, i, cfg if i == 0 else replace(cfg, image_rate_hz=veh_rate))
+                simulate_traverse(site, p, i, ref_cfg if i == 0 else veh_cfg)
         print(f"  ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
     return paths
 
@@ -126,7 +140,16 @@ def _truth(archive: Path) -> dict:
         odo_frames = ar.custom("odometry")["frame"]
     last = int(frames[-1])
     k = int(np.flatnonzero(odo_frames == last)[0])
-    return {"gt_last": gt[-1], "odo_last": odo[k], "path_m": float(np.linalg.norm(np.diff(gt, axis=0), axis=1).sum())}
+    return {"gt_last": gt[-1], "odo_last": odo[k], "path_m": float(np.linalg.norm(np.diff(gt, axis=0), axis=1).sum()),
+            "gt_xyz": gt}
+
+
+def _odometry_source(run_dir: Path) -> str | None:
+    """The odometry a run used (its config.json's ``info``), None when not recorded."""
+    try:
+        return json.loads((run_dir / "config.json").read_text())["info"]["odometry_source"]
+    except (OSError, KeyError, ValueError):
+        return None
 
 
 def _landmark_rocks(map_path: Path, det_path: Path, gt_det_path: Path, rocks: np.ndarray, radius_m: float = 0.10):
@@ -213,6 +236,12 @@ def main(argv=None) -> int:
     ap.add_argument("--online", action="store_true",
                     help="also run `lunarloc run` on every vehicle traverse against the reference map built with "
                          "ground-truth poses (each --min-sightings), and report the online trajectory's RMSE")  # fmt: skip
+    ap.add_argument("--plan", choices=["random", "survey"], default="random",
+                    help="random: every traverse drives random legs from the site's start; survey: the reference "
+                         "surveys around the lander and the vehicles revisit that ground from other starts")  # fmt: skip
+    ap.add_argument("--reference-duration", type=float, default=None, help="reference traverse, s (default --duration)")
+    ap.add_argument("--odometry", default=None,
+                    help="`lunarloc run --odometry` for --online (default: run's own, visual odometry)")  # fmt: skip
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
@@ -269,24 +298,30 @@ def main(argv=None) -> int:
     if a.online:
         for i in range(1, len(archives)):
             for ms in a.min_sightings:
-                run_dir = a.out / f"run_{i}_ms{ms}"
+                odo_tag = "" if a.odometry is None else "_" + a.odometry.replace(":", "-")
+                run_dir = a.out / f"run_{i}_ms{ms}{odo_tag}"
                 if not (run_dir / "summary.json").exists():
                     _run(_lunarloc() + ["run", str(archives[i]), "--reference", str(maps[0, "gt", ms]), "--out",
-                                        str(run_dir), "--no-plot"], log)  # fmt: skip
+                                        str(run_dir), "--no-plot"]
+                         + ([] if a.odometry is None else ["--odometry", a.odometry]), log)  # fmt: skip
                 rs = json.loads((run_dir / "summary.json").read_text())
                 online.append({
                     "veh": i, "min_sightings": ms, "ref_landmarks": rs["reference_landmarks"],
                     "attempts": rs["attempts"], "localized": rs["localized"], "fixes": rs["fixes"],
                     "online_rmse_m": rs["ate_online"]["rmse_m"], "corrected_rmse_m": rs["ate_corrected"]["rmse_m"],
                     "odometry_rmse_m": rs["ate_odometry"]["rmse_m"], "path_m": rs["path_length_m"],
+                    "worst_fix_m": rs.get("max_accepted_fix_error_m"),
+                    "odometry_source": _odometry_source(run_dir),
                 })  # fmt: skip
     summary = {
         "online": online,
         "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(a).items()},
         "commands": log,
         "traverses": [{"archive": str(p), "path_m": t["path_m"],
-                       "odometry_err_last_m": float(np.linalg.norm(t["odo_last"] - t["gt_last"]))}
-                      for p, t in zip(archives, truth)],  # fmt: skip
+                       "odometry_err_last_m": float(np.linalg.norm(t["odo_last"] - t["gt_last"])),
+                       **({} if i == 0 else {f"share_near_reference_{d:g}m": path_share_near(t["gt_xyz"], truth[0]["gt_xyz"], d)
+                                             for d in (1.5, 3.0)})}
+                      for i, (p, t) in enumerate(zip(archives, truth))],  # fmt: skip
         "maps": quality,
         "results": rows,
         "wall_s": time.perf_counter() - t_start,
@@ -313,7 +348,9 @@ def print_table(s: dict) -> None:
 
     for t in s["traverses"]:
         err = 100 * t["odometry_err_last_m"]
-        print(f"{t['archive']}: path {t['path_m']:.1f} m, odometry error at the end {err:.1f} cm")
+        near = "".join(f", {100 * v:.0f} % of it within {k.rsplit('_', 1)[1]} of the reference path"
+                       for k, v in t.items() if k.startswith("share_near_reference_"))
+        print(f"{t['archive']}: path {t['path_m']:.1f} m, odometry error at the end {err:.1f} cm{near}")
     print("maps: landmarks; within max(0.15 m, r) of a true rock (odometry maps: judged by the same detections"
           " with ground-truth poses), median distance:")  # fmt: skip
     for name, q in s["maps"].items():
@@ -337,11 +374,12 @@ def print_table(s: dict) -> None:
     if s.get("online"):
         print("online (`lunarloc run` of the vehicle traverse against the ground-truth-pose reference map): "
               "ATE RMSE of the online, corrected and odometry-only trajectories, cm")  # fmt: skip
-        print("veh ms L_ref attempts localized fixes online corrected odometry path_m")
+        print("veh ms L_ref attempts localized fixes online corrected odometry path_m worst_fix")
         for r in s["online"]:
             print(f"{r['veh']:>3} {r['min_sightings']:>2} {r['ref_landmarks']:>5} {r['attempts']:>8} {r['localized']:>9} "
                   f"{r['fixes']:>5} {cm(r['online_rmse_m']):>6} {cm(r['corrected_rmse_m']):>9} "
-                  f"{cm(r['odometry_rmse_m']):>8} {r['path_m']:>6.1f}")  # fmt: skip
+                  f"{cm(r['odometry_rmse_m']):>8} {r['path_m']:>6.1f} {cm(r.get('worst_fix_m')):>9}"
+                  f"  ({r.get('odometry_source')})")  # fmt: skip
     print(f"wall time {s['wall_s']:.0f} s")
 
 

@@ -7,6 +7,7 @@ from lunarloc.data.rover import (
     LUNAR_GRAVITY,
     OdometryConfig,
     RoverConfig,
+    path_share_near,
     plan_traverse,
     simulate_imu,
     simulate_odometry,
@@ -99,3 +100,51 @@ def test_long_traverse_stays_on_site(site, seed):
     xy = traj.xyz[:, :2]
     reached = [w for w in traj.waypoints[1:] if np.linalg.norm(xy - w, axis=1).min() < 0.01]
     assert len(reached) >= 0.5 * (len(traj.waypoints) - 1)
+
+
+@pytest.fixture(scope="module")
+def survey(site):
+    return plan_traverse(site, 150.0, seed=11, config=RoverConfig(plan="survey"))
+
+
+def _angle_about(site, xy):
+    d = np.asarray(xy)[:, :2] - site.lander_xyz[:2]
+    return np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+
+
+def test_survey_circles_the_lander_from_the_start(site, survey):
+    np.testing.assert_allclose(survey.xyz[0, :2], site.rover_start_xy)
+    r0 = float(np.hypot(*(site.rover_start_xy - site.lander_xyz[:2])))
+    r = np.hypot(*(survey.xyz[:, :2] - site.lander_xyz[:2]).T)
+    assert r.min() > r0 - 2.5 and r.max() < r0 + 2.5 + 2.0
+    turned = np.degrees(np.abs(_angle_about(site, survey.xyz)[-1] - _angle_about(site, survey.xyz)[0]))
+    assert turned > 300.0  # about one lap in 150 s at the LAC's 0.3 m/s
+    big = site.rocks.radii >= RoverConfig().avoid_rock_radius_m
+    d = np.linalg.norm(survey.xyz[:, None, :2] - site.rocks.centers[None, big, :2], axis=2)
+    assert np.all(d > site.rocks.radii[big] * 1.2)
+
+
+def test_revisit_starts_elsewhere_and_drives_surveyed_ground(site, survey):
+    cfg = RoverConfig(plan="revisit")
+    veh = plan_traverse(site, 90.0, seed=12, config=cfg)
+    assert np.linalg.norm(veh.xyz[0, :2] - survey.xyz[0, :2]) > 3.0
+    r0 = float(np.hypot(*(site.rover_start_xy - site.lander_xyz[:2])))
+    r_wp = np.hypot(*(veh.waypoints - site.lander_xyz[:2]).T)
+    assert np.all(r_wp >= r0 + cfg.revisit_band_m[0] - 1e-9) and np.all(r_wp <= r0 + cfg.revisit_band_m[1] + 1e-9)
+    assert veh.path_length() > 15.0
+    assert path_share_near(veh.xyz, survey.xyz, 3.0) > 0.8
+
+
+def test_path_share_near():
+    line = np.column_stack([np.linspace(0, 10, 101), np.zeros(101)])
+    other = np.column_stack([np.linspace(0, 4, 41), np.full(41, 1.0)])
+    assert path_share_near(line, other, 1.5) == pytest.approx(0.5, abs=0.02)  # x in [0, 4 + 1.1]
+    assert path_share_near(line, other, 0.5) == 0.0
+    assert path_share_near(line, np.zeros((0, 2)), 1.0) == 0.0
+
+
+def test_unknown_plan_is_a_config_error():
+    from lunarloc.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="traverseplan"):
+        RoverConfig(plan="zigzag")

@@ -3,8 +3,12 @@ and every job of a `lunarloc campaign`.
 
 ``run_scenario(config, out)`` reads like its table of contents:
 
-1. simulate a site (``seed``, ``n_rocks``) and its renderer;
-2. simulate a reference traverse and a vehicle traverse (drifting odometry) of it;
+1. simulate a site (``seed``, ``n_rocks``: the LAC's 386 by default) and its renderer;
+2. simulate a reference traverse and a vehicle traverse (drifting odometry) of it; with
+   ``plan="survey"`` (the default) the reference surveys around the lander and the vehicle
+   revisits that ground from another start (:class:`lunarloc.data.rover.TraversePlan`), as a
+   later session of a mission does; ``plan="random"`` drives both from the site's start to
+   random waypoints;
 3. build the reference map from the reference traverse's images (ground-truth poses, as a
    map surveyed earlier would be);
 4. run the online loop on the vehicle traverse against that map and write the run folder;
@@ -39,9 +43,10 @@ class ScenarioConfig:
     """Everything one scenario depends on. Durations in seconds, rates in Hz, sizes in px."""
 
     seed: int = 7  # site seed (the vehicle traverse uses traverse index 1, the reference 0)
-    n_rocks: int = 800  # rocks on the 27 m x 27 m site (LAC: 386)
+    n_rocks: int = 386  # rocks on the 27 m x 27 m site (the LAC's density)
     duration_s: float = 90.0  # vehicle traverse
-    reference_duration_s: float = 100.0  # reference traverse
+    reference_duration_s: float = 120.0  # reference traverse
+    plan: str = "survey"  # survey: the reference surveys, the vehicle revisits; random: both drive at random
     width: int = 640  # image width; height = 9/16 of it
     image_rate_hz: float = 2.0  # camera rate of both traverses
     sun_elevation_deg: float | None = None  # None: the renderer's default
@@ -60,6 +65,8 @@ class ScenarioConfig:
             raise ConfigError(f"width={self.width!r} must be an integer in [32, 4096]")
         if not isinstance(self.n_rocks, int) or not 3 <= self.n_rocks <= 100_000:
             raise ConfigError(f"n_rocks={self.n_rocks!r} must be an integer in [3, 100000]")
+        if self.plan not in ("survey", "random"):
+            raise ConfigError(f"plan={self.plan!r} must be 'survey' or 'random'")
         if not isinstance(self.seed, int) or self.seed < 0:
             raise ConfigError(f"seed={self.seed!r} must be a non-negative integer")
 
@@ -150,17 +157,21 @@ def run_scenario(config: ScenarioConfig, out: str | Path, *, log: Callable[[str]
            if v is not None}  # fmt: skip
     if sun:
         base = replace(base, render=replace(base.render, **sun))
+    ref_rover = veh_rover = base.rover
+    if c.plan == "survey":
+        ref_rover, veh_rover = replace(base.rover, plan="survey"), replace(base.rover, plan="revisit")
     with stage(f"simulate site (seed {c.seed}, {c.n_rocks} rocks)"):
         site = simulate_site(c.seed, base.site)
         site.write_rocks_csv(data / "rocks.csv")
         renderer = SiteRenderer(site, base.render)
     with stage(f"simulate reference traverse ({c.reference_duration_s:g} s, {c.width}x{c.height} front pair "
                f"at {c.image_rate_hz:g} Hz)"):  # fmt: skip
-        ref_arch, _ = simulate_traverse(site, data / "reference.lac", 0, replace(base, duration_s=c.reference_duration_s),
+        ref_arch, _ = simulate_traverse(site, data / "reference.lac", 0,
+                                        replace(base, duration_s=c.reference_duration_s, rover=ref_rover),
                                         renderer=renderer)  # fmt: skip
     with stage(f"simulate vehicle traverse ({c.duration_s:g} s, drifting odometry)"):
-        veh_arch, _ = simulate_traverse(site, data / "vehicle.lac", 1, replace(base, duration_s=c.duration_s),
-                                        renderer=renderer)  # fmt: skip
+        veh_arch, _ = simulate_traverse(site, data / "vehicle.lac", 1,
+                                        replace(base, duration_s=c.duration_s, rover=veh_rover), renderer=renderer)  # fmt: skip
     rc = run_config or demo_run_config()
     with stage("build the reference map from the reference traverse's images"):
         ref = build_reference_map(ref_arch, rc)

@@ -158,11 +158,11 @@ def demo_cmd(
     seed: Optional[int] = typer.Option(None, "--seed", help="Site seed (default 7)."),
     duration: Optional[float] = typer.Option(None, "--duration", help="Vehicle traverse length, seconds (default 90)."),
     reference_duration: Optional[float] = typer.Option(None, "--reference-duration",
-                                                       help="Reference traverse length, seconds (default 100)."),  # fmt: skip
+                                                       help="Reference traverse length, seconds (default 120)."),  # fmt: skip
     width: Optional[int] = typer.Option(None, "--width", help="Image width (height = 9/16 of it; default 640)."),
     image_rate: Optional[float] = typer.Option(None, "--image-rate", help="Camera rate of both traverses, Hz (default 2)."),
     n_rocks: Optional[int] = typer.Option(None, "--rocks", min=0, max=100_000,
-                                          help="Rocks on the site (LAC map: 386; the demo uses a rock-rich site: 800)."),  # fmt: skip
+                                          help="Rocks on the site (default: the LAC map's 386)."),  # fmt: skip
     overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """End to end on generated data: simulate a site, a reference and a drifting vehicle

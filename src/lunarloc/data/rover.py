@@ -23,18 +23,21 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from lunarloc.data.render import _ParsedEnum
 from lunarloc.errors import ConfigError, InputError
 from lunarloc.geometry import euler_to_rotation, rotation_to_euler
 
 __all__ = [
     "LUNAR_GRAVITY",
     "RoverConfig",
+    "TraversePlan",
     "OdometryConfig",
     "ImuConfig",
     "Trajectory",
     "plan_traverse",
     "simulate_imu",
     "simulate_odometry",
+    "path_share_near",
 ]
 
 logger = logging.getLogger(__name__)
@@ -42,6 +45,22 @@ logger.addHandler(logging.NullHandler())
 
 LUNAR_GRAVITY = 1.62
 """Lunar surface gravity, m/s^2."""
+
+
+class TraversePlan(_ParsedEnum):
+    """How a traverse chooses where to drive (see :func:`plan_traverse`).
+
+    * ``random``: random obstacle-free legs from the site's rover start, anywhere on the site.
+    * ``survey``: a mapping pass, an outward spiral around the lander from the rover start
+      (a first lap of about 33 m, which takes about 2.5 minutes at 0.3 m/s with its stops), as a reference traverse.
+    * ``revisit``: a later traverse of the surveyed ground: it starts elsewhere on the survey's
+      first lap (a seed-chosen angle around the lander) and drives random obstacle-free legs
+      whose ends stay within ``revisit_band_m`` of that lap's radius.
+    """
+
+    RANDOM = "random"
+    SURVEY = "survey"
+    REVISIT = "revisit"
 
 
 @dataclass(frozen=True)
@@ -59,6 +78,15 @@ class RoverConfig:
     clearance_m: float = 0.5  # kept between the rover centre and an obstacle's edge
     edge_margin_m: float = 1.5  # waypoints stay this far inside the site edge
     waypoint_distance_m: tuple[float, float] = (2.0, 8.0)  # leg length range
+    plan: TraversePlan = TraversePlan.RANDOM  # where the traverse drives
+    survey_radius_m: float | None = None  # survey's first-lap radius about the lander (None: the start's)
+    survey_step_deg: float = 45.0  # angle between survey waypoints about the lander
+    survey_lap_growth_m: float = 2.5  # the survey spiral's radius grows this much per lap
+    revisit_band_m: tuple[float, float] = (-1.5, 2.5)  # revisit leg ends: survey radius + this range
+    revisit_start_deg: tuple[float, float] = (90.0, 270.0)  # revisit start: angle from the survey start
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "plan", TraversePlan.parse(self.plan))
 
     def validate(self) -> None:
         if self.rate_hz <= 0 or self.speed_mps <= 0 or self.accel_mps2 <= 0 or self.yaw_rate_rad_s <= 0:
@@ -66,6 +94,12 @@ class RoverConfig:
         lo, hi = self.waypoint_distance_m
         if not 0 < lo < hi:
             raise ConfigError(f"waypoint_distance_m={self.waypoint_distance_m} must satisfy 0 < min < max")
+        if self.survey_radius_m is not None and not self.survey_radius_m > 0:
+            raise ConfigError(f"survey_radius_m={self.survey_radius_m} must be > 0 (or None)")
+        if not 0 < self.survey_step_deg <= 90:
+            raise ConfigError(f"survey_step_deg={self.survey_step_deg} must be in (0, 90]")
+        if not self.revisit_band_m[0] < self.revisit_band_m[1]:
+            raise ConfigError(f"revisit_band_m={self.revisit_band_m} must satisfy min < max")
 
 
 @dataclass(frozen=True)
@@ -147,7 +181,9 @@ def _segment_clear(p0, p1, centres, radii) -> bool:
     return bool(np.all(np.linalg.norm(centres - closest, axis=1) > radii))
 
 
-def _choose_waypoints(site, start_xy, rng, cfg: RoverConfig, total_m: float) -> np.ndarray:
+def _choose_waypoints(site, start_xy, rng, cfg: RoverConfig, total_m: float, region=None) -> np.ndarray:
+    """Random obstacle-free legs from `start_xy` until `total_m`; `region(p)`, when given,
+    must also hold at every leg's end."""
     centres, radii = _obstacles(site, cfg)
     half = site.half_size - cfg.edge_margin_m
     pts = [np.asarray(start_xy, float)]
@@ -158,7 +194,8 @@ def _choose_waypoints(site, start_xy, rng, cfg: RoverConfig, total_m: float) -> 
             ang = rng.uniform(0, 2 * np.pi)
             L = rng.uniform(*cfg.waypoint_distance_m)
             p1 = p0 + L * np.array([np.cos(ang), np.sin(ang)])
-            if np.all(np.abs(p1) <= half) and _segment_clear(p0, p1, centres, radii):
+            if (np.all(np.abs(p1) <= half) and (region is None or region(p1))
+                    and _segment_clear(p0, p1, centres, radii)):  # fmt: skip
                 break
         else:
             raise InputError(
@@ -167,6 +204,89 @@ def _choose_waypoints(site, start_xy, rng, cfg: RoverConfig, total_m: float) -> 
         pts.append(p1)
         dist += float(np.linalg.norm(p1 - p0))
     return np.array(pts)
+
+
+def _survey_frame(site, cfg: RoverConfig) -> tuple[np.ndarray, float, float]:
+    """Lander centre (2,), first-lap radius and the rover start's angle about the lander."""
+    c = np.asarray(site.lander_xyz[:2], float)
+    d = site.rover_start_xy - c
+    radius = float(np.hypot(*d)) if cfg.survey_radius_m is None else float(cfg.survey_radius_m)
+    return c, radius, float(np.arctan2(d[1], d[0]))
+
+
+def _survey_waypoints(site, rng, cfg: RoverConfig, total_m: float) -> np.ndarray:
+    """An outward spiral about the lander from the rover start (direction from `rng`),
+    each waypoint moved in or out by up to 1.6 m when its leg would touch an obstacle."""
+    centres, radii = _obstacles(site, cfg)
+    c, r0, th0 = _survey_frame(site, cfg)
+    half = site.half_size - cfg.edge_margin_m
+    sense = 1.0 if rng.random() < 0.5 else -1.0
+    step = np.radians(cfg.survey_step_deg)
+    pts = [site.rover_start_xy.astype(float)]
+    dist = 0.0
+    j = 1 if np.isclose(r0, np.hypot(*(pts[0] - c))) else 0
+    detours = 0
+
+    def ok(p):
+        return bool(np.all(np.abs(p) <= half) and _segment_clear(pts[-1], p, centres, radii))
+
+    while dist < total_m:
+        th = th0 + sense * j * step
+        r = r0 + cfg.survey_lap_growth_m * j * step / (2 * np.pi)
+        for dr in (0.0, 0.4, -0.4, 0.8, -0.8, 1.2, -1.2, 1.6, -1.6):
+            p1 = c + (r + dr) * np.array([np.cos(th), np.sin(th)])
+            if ok(p1):
+                j += 1
+                detours = 0
+                break
+        else:  # blocked: a detour waypoint part of the way there, the target kept
+            d = pts[-1] - c
+            th_prev = float(np.arctan2(d[1], d[0]))
+            gap = float(_wrap(th - th_prev))
+            cands = [c + rng.uniform(r - 2.0, r + 2.0) * np.array([np.cos(a), np.sin(a)])
+                     for a in th_prev + gap * rng.uniform(0.1, 0.9, 200)]  # fmt: skip
+            clear = [q for q in cands if ok(q)]
+            detours += 1
+            if detours > 12:
+                raise InputError("no obstacle-free survey waypoint found around the lander; the site is too crowded")
+            if not clear:  # aim one step further on
+                j += 1
+                continue
+            p1 = max(clear, key=lambda q: abs(_wrap(np.arctan2(*(q - c)[::-1]) - th_prev)))
+        dist += float(np.linalg.norm(p1 - pts[-1]))
+        pts.append(p1)
+    return np.array(pts)
+
+
+def _revisit_start(site, rng, cfg: RoverConfig) -> tuple[np.ndarray, object]:
+    """A start on the survey's first lap at a seed-chosen angle from the survey start, clear
+    of obstacles, and the region (a band about the lap's radius) the revisit stays in."""
+    centres, radii = _obstacles(site, cfg)
+    c, r0, th0 = _survey_frame(site, cfg)
+    lo, hi = r0 + cfg.revisit_band_m[0], r0 + cfg.revisit_band_m[1]
+    half = site.half_size - cfg.edge_margin_m
+    for _ in range(500):
+        th = th0 + np.radians(rng.uniform(*cfg.revisit_start_deg))
+        p = c + rng.uniform(max(lo, r0 - 0.5), min(hi, r0 + 0.5)) * np.array([np.cos(th), np.sin(th)])
+        if np.all(np.abs(p) <= half) and np.all(np.linalg.norm(centres - p, axis=1) > radii):
+            break
+    else:
+        raise InputError("no obstacle-free revisit start found on the survey's first lap")
+    return p, lambda q: lo <= float(np.hypot(*(q - c))) <= hi
+
+
+def path_share_near(path_xy: np.ndarray, other_xy: np.ndarray, within_m: float) -> float:
+    """Share (0..1) of `path_xy`'s length (a polyline, (N, 2)) whose points lie within
+    `within_m` of `other_xy`'s samples (a densely sampled path, e.g. at the rover rate)."""
+    from scipy.spatial import cKDTree
+
+    path_xy, other_xy = np.asarray(path_xy, float)[:, :2], np.asarray(other_xy, float)[:, :2]
+    seg = np.linalg.norm(np.diff(path_xy, axis=0), axis=1)
+    if len(other_xy) == 0 or seg.sum() == 0:
+        return 0.0
+    mid = (path_xy[1:] + path_xy[:-1]) / 2
+    near = cKDTree(other_xy).query(mid, distance_upper_bound=within_m)[0] <= within_m
+    return float(seg[near].sum() / seg.sum())
 
 
 def terrain_pose(site, x, y, yaw, cfg: RoverConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -201,14 +321,18 @@ def terrain_pose(site, x, y, yaw, cfg: RoverConfig) -> tuple[np.ndarray, np.ndar
 def plan_traverse(
     site, duration_s: float, seed: int = 0, config: RoverConfig | None = None, start_yaw: float | None = None
 ) -> Trajectory:
-    """Drive from the site's rover start between random obstacle-free waypoints.
+    """Drive between obstacle-free waypoints chosen by ``config.plan`` (:class:`TraversePlan`):
+    from the site's rover start to random ones (``random``, the default), in an outward spiral
+    about the lander (``survey``), or from elsewhere on the survey's first lap to random ones
+    near it (``revisit``).
 
     The rover turns in place toward each waypoint, then drives toward it with a
     speed ramp, correcting its heading on the way and stopping at the waypoint's
     along-track position (it never drives past a waypoint, so it stays inside the
     convex hull of its waypoints); states are sampled at ``rate_hz`` for
     ``duration_s`` seconds.
-    The same site always starts at the same place; `seed` picks the waypoints.
+    ``random`` and ``survey`` traverses of a site start at the site's rover start; `seed`
+    picks the waypoints (and the survey's direction, the revisit's start).
     """
     cfg = config or RoverConfig()
     cfg.validate()
@@ -217,7 +341,14 @@ def plan_traverse(
     rng = np.random.default_rng([int(seed), 0x7A3])
     dt = 1.0 / cfg.rate_hz
     n = int(round(duration_s * cfg.rate_hz)) + 1
-    wps = _choose_waypoints(site, site.rover_start_xy, rng, cfg, cfg.speed_mps * duration_s + 10.0)
+    total_m = cfg.speed_mps * duration_s + 10.0
+    if cfg.plan is TraversePlan.SURVEY:
+        wps = _survey_waypoints(site, rng, cfg, total_m)
+    elif cfg.plan is TraversePlan.REVISIT:
+        start, region = _revisit_start(site, rng, cfg)
+        wps = _choose_waypoints(site, start, rng, cfg, total_m, region)
+    else:
+        wps = _choose_waypoints(site, site.rover_start_xy, rng, cfg, total_m)
     x, y = wps[0]
     yaw = float(np.arctan2(*(wps[1] - wps[0])[::-1])) if start_yaw is None else float(start_yaw)
     v = 0.0
