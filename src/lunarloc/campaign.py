@@ -56,7 +56,8 @@ EXAMPLE_SPEC = """\
 # lunarloc campaign spec: every combination of the [grid] values is one job; [job] holds
 # the settings all jobs share. Keys are the fields of lunarloc.scenario.ScenarioConfig:
 # seed, n_rocks, duration_s, reference_duration_s, width, image_rate_hz,
-# sun_elevation_deg, sun_azimuth_deg, min_reference_landmarks, odometry, plan.
+# sun_elevation_deg, sun_azimuth_deg, min_reference_landmarks, plan. (The odometry source is the run
+# configuration's odometry.source; the campaign uses the demo's: the drifting record.)
 [campaign]
 name = "example"
 
