@@ -1228,6 +1228,9 @@ def _bin_bounds(Pv, vp, index, node_of, cfg) -> tuple[np.ndarray, np.ndarray, in
     lock = threading.Lock()
     chunks = yaw_bin_chunks(n_bins, _chunk_bins(cfg), range(n_bins))
     pi, pj = vp[0], vp[1]
+    # threads by the bounds' whole work (every group's pairs against the reference pairs), as
+    # the groups run one after another: many small group sweeps add up to one large one
+    workers = _workers(cfg, vp, index, 1.0 / groups)
     edges = 0
     for g in range(groups):
         sel = (pi % groups == g) & (pj % groups == g)
@@ -1240,7 +1243,7 @@ def _bin_bounds(Pv, vp, index, node_of, cfg) -> tuple[np.ndarray, np.ndarray, in
                 np.maximum.at(lower, bins, lb)
 
         edges += sweep_bin_chunks(vpg, index, node_of, n_bins, chunks, *_graph_args(cfg), visit_chunk,
-                                  weights=False, workers=_workers(cfg, vpg, index))
+                                  weights=False, workers=workers)
     return upper, lower, edges
 
 
