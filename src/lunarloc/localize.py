@@ -580,10 +580,9 @@ class BendFit:
 
     ``shift_m`` : largest distance, over the query points, between where the rigid fit and the
         bent model put them (what the rigid pose gets wrong if the map is bent as fitted);
-    ``sigma_m`` : largest 1-sigma position uncertainty of the bent model there beyond the rigid
-        model's (how well the data fix the bending as seen from the query points: large when the
-        inliers cover little of the path; the rigid pose's own uncertainty is the registration's,
-        counted once in the predicted error, :func:`fitted_predicted_error`);
+    ``sigma_m`` : largest 1-sigma position uncertainty of the bent model there (how well the
+        data fix the bending as seen from the query points: large when the inliers cover little
+        of the path);
     ``rotation_shift_deg`` / ``rotation_sigma_deg`` : the same for the heading at the query points;
     ``chi2_drop`` : decrease of the inliers' chi-square from the rigid fit to the bent model
         (2 extra parameters: above ~13.8 the bend is real at 0.999 confidence);
@@ -734,14 +733,6 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
         Jq[:, i] = (at_query(x + dx) - at_query(x - dx)) / (2 * h)
     n = len(q)
     var = np.einsum("ij,jk,ik->i", Jq, C, Jq) if np.all(np.isfinite(C)) else np.full(len(f0), np.inf)
-    # The bent model's uncertainty at the query points holds the rigid pose's own (which the
-    # predicted error already counts as the registration's): only the increase over the rigid
-    # model fitted to the same residuals is the bend's. For nested least squares that is the
-    # variance of the difference between the two models' predictions.
-    try:
-        var = np.maximum(var - np.einsum("ij,jk,ik->i", Jq[:, :6], s2 * np.linalg.inv(J[:, :6].T @ J[:, :6]), Jq[:, :6]), 0.0)
-    except np.linalg.LinAlgError:
-        pass
     pos_var = var[: 3 * n].reshape(-1, 3).sum(axis=1)
     shift = np.linalg.norm(f0[: 3 * n].reshape(-1, 3) - transform_points(T, q), axis=1)
     dyaw = np.abs((f0[3 * n:] - yaw_of(T[:3, :3]) + math.pi) % (2 * math.pi) - math.pi)
@@ -754,24 +745,19 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
     )
 
 
-def fitted_predicted_error(bend: BendFit, cfg: "LocalizationConfig", registration_m: np.ndarray,
-                           registration_rot_deg: float) -> tuple[np.ndarray, float]:
-    """Predicted 1-sigma position error (m, per query point) and rotation error (deg) when no
-    odometry bounds are stated and the distortion is fitted from the maps: the fitted bend's
-    shift (a bias) plus the random part, the registration's sigma and `distortion_fit_sigmas`
-    times the bend's own sigma (the bend the data cannot exclude) combined in quadrature. The
-    two are independent: `BendFit.sigma_m` is the bent model's uncertainty beyond the rigid
-    one's, and the difference of two nested least-squares predictions is uncorrelated with the
-    smaller model's. Adding the bent model's whole sigma linearly counted the registration two
-    more times, and refused every compact map against a LAC grid (docs/verification.md).
-    The shift counts even when the bend is not significant: the model under-estimates real
-    drift (a landmark is placed at its nearest path point, not where it was seen from), and
-    gating it on a chi-square test let a 2.3-sigma bend through (pair 4-9, 0.025 deg/m, 60 m
-    window: 10.3 cm / 1.03 deg off, predicted 5.5 cm)."""
+def fitted_allowance(bend: BendFit, cfg: "LocalizationConfig") -> tuple[float, float]:
+    """Position (m) and rotation (rad) allowance at the query points from a fitted bend when no
+    odometry bounds are stated: the bent model's shift from the rigid fit, plus
+    `distortion_fit_sigmas` times the bent model's own uncertainty there (the bend the data
+    cannot exclude). The shift counts even when the bend is not significant: the model
+    under-estimates real drift (a landmark is placed at its nearest path point, not where it
+    was seen from), and gating it on a chi-square test let a 2.3-sigma bend through (pair
+    4-9, 0.025 deg/m, 60 m window: 10.3 cm / 1.03 deg off, predicted 5.5 cm). Not finite
+    when the fit is not."""
     k = cfg.distortion_fit_sigmas
-    pos = bend.shift_m + np.hypot(np.asarray(registration_m, float), k * bend.sigma_m)
-    rot = bend.rotation_shift_deg + math.hypot(registration_rot_deg, k * bend.rotation_sigma_deg)
-    return pos, rot
+    pos = bend.shift_m + k * bend.sigma_m
+    rot = bend.rotation_shift_deg + k * bend.rotation_sigma_deg
+    return (pos, math.radians(rot)) if math.isfinite(pos) and math.isfinite(rot) else (math.inf, math.inf)
 
 
 def near_miss_excess(T, Pv, Pr, inlier_veh: np.ndarray, inner_m: float, outer_m: float,
@@ -1077,13 +1063,10 @@ def localize(
         if len(inl) >= cfg.min_inliers_distortion_fit:
             bend = bending_fit(T, Pv, Pr, inl, query, path, math.sqrt((2 * sigma_h**2 + sigma_z**2) / 3),
                                cfg.refine_radius_m, cfg.distortion_fit_rounds)
+            distortion[0], distortion_rot[0] = fitted_allowance(bend, cfg)
     pred = pred_fit + distortion  # the distortion is a bound (a bias), not a random error: added, not in quadrature
     rot_sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(C_c[3:, 3:]))), 0.0)) if np.all(np.isfinite(C_c)) else math.inf
     pred_rot_deg = math.degrees(rot_sigma + float(distortion_rot.max()))
-    if bend is not None and all(map(math.isfinite, (bend.shift_m, bend.sigma_m, bend.rotation_shift_deg,
-                                                      bend.rotation_sigma_deg, rot_sigma))):
-        pred, pred_rot_deg = fitted_predicted_error(bend, cfg, pred_fit, math.degrees(rot_sigma))
-        distortion, distortion_rot = pred - pred_fit, np.array([math.radians(pred_rot_deg) - rot_sigma])
     # the chance envelope was measured on consistent cores: refinement's chance additions
     # (more of them with a wider refinement radius) do not count towards beating it
     core = len(best)
