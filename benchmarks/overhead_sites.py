@@ -77,7 +77,8 @@ def main() -> None:
     ok = [r for r in rows if r[3]]
     wrong = [r for r in ok if r[6] >= 0.10]
     accuracy = (f"error at the centroid median {np.median([r[5] for r in ok]) * 100:.1f} cm, max "
-                f"{max(r[5] for r in ok) * 100:.1f} cm; predicted covers the max error in "
+                f"{max(r[5] for r in ok) * 100:.1f} cm, max anywhere {max(r[6] for r in ok) * 100:.1f} cm; the predicted "
+                f"error covers the max error in {np.mean([r[6] <= r[7] for r in ok]):.0%} (1 sigma) / "
                 f"{np.mean([r[6] <= 3 * r[7] for r in ok]):.0%} (3 sigma)") if ok else "none to measure"
     print(f"{len(ok)} of {len(rows)} localized, {len(wrong)} of them more than 10 cm off anywhere on the vehicle map;"
           f" {accuracy}; time median {np.median([r[8] for r in rows]):.2f} s (load average {os.getloadavg()[0]:.1f})")
