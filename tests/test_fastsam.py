@@ -143,3 +143,21 @@ def test_ultralytics_leaves_pil_image_open_alone(untrained_checkpoint, tmp_path)
     assert getattr(Image.open, "__module__", "") != "ultralytics.utils.patches"
     with pytest.raises(UnidentifiedImageError):
         Image.open(bad)
+
+
+def test_fastsam_input_size_is_a_validated_config_field():
+    from lunarloc.errors import ConfigError
+    from lunarloc.perception.detector import DetectorConfig
+
+    assert DetectorConfig().fastsam_imgsz_px == 1024
+    assert DetectorConfig(fastsam_imgsz_px=640).to_dict()["fastsam_imgsz_px"] == 640
+    for bad in (0, 100, 8192, 640.0, True):
+        with pytest.raises(ConfigError, match="fastsam_imgsz_px"):
+            DetectorConfig(fastsam_imgsz_px=bad)
+
+
+def test_detector_builds_fastsam_at_the_configured_size(untrained_checkpoint):
+    from lunarloc.perception.detector import Detector, DetectorConfig
+
+    det = Detector(DetectorConfig(segmenter="fastsam", weights=str(untrained_checkpoint), fastsam_imgsz_px=320))
+    assert det.segmenter.imgsz == 320

@@ -116,6 +116,8 @@ class DetectorConfig:
     # Segmentation backend; `weights` is the checkpoint path for fastsam.
     segmenter: SegmenterKind = SegmenterKind.CLASSICAL
     weights: str | None = None
+    # FastSAM's network input, long side in pixels (its default 1024; 640 costs about half)
+    fastsam_imgsz_px: int = 1024
     classical: ClassicalConfig = field(default_factory=ClassicalConfig)
     # Mask filters (size, elongation, border, range); see MaskFilterConfig.
     filters: MaskFilterConfig = field(default_factory=MaskFilterConfig)
@@ -253,6 +255,9 @@ class DetectorConfig:
             raise ConfigError("top_per_radius must be > 0 and top_noise_m >= 0")
         if self.segmenter is SegmenterKind.FASTSAM and not self.weights:
             raise ConfigError("the fastsam segmenter needs weights (a FastSAM .pt path)")
+        if (not isinstance(self.fastsam_imgsz_px, int) or isinstance(self.fastsam_imgsz_px, bool)
+                or not 32 <= self.fastsam_imgsz_px <= 4096 or self.fastsam_imgsz_px % 32):
+            raise ConfigError(f"fastsam_imgsz_px={self.fastsam_imgsz_px!r} must be a multiple of 32 in [32, 4096]")
 
     def to_dict(self) -> dict:
         """Plain dict (Enums as values) to write next to results."""
@@ -355,7 +360,8 @@ class Detector:
         self.config = config or DetectorConfig()
         self.camera = camera or PinholeCamera()
         self.segmenter = segmenter or make_segmenter(
-            self.config.segmenter, weights=self.config.weights, classical=self.config.classical
+            self.config.segmenter, weights=self.config.weights, classical=self.config.classical,
+            imgsz=self.config.fastsam_imgsz_px,
         )
         self.stereo = StereoMatcher(self.config.stereo, self.camera)
         self.height_stereo = StereoMatcher(self.config.height_stereo, self.camera)
