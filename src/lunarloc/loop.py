@@ -41,7 +41,7 @@ log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
 __all__ = ["FixKind", "LoopConfig", "IMAGE_WINDOW_M", "image_localization_config", "Attempt", "LoopResult",
-           "LoopState"]  # fmt: skip
+           "LoopState", "interpolate_corrections"]  # fmt: skip
 
 
 # --------------------------------------------------------------------------- configuration
@@ -316,7 +316,7 @@ class LoopState:
         path = np.array([kf.path_m for kf in self.graph.keyframes])
         return np.flatnonzero(path >= path[k] - self.config.window_m)
 
-    def _window_points(self, keyframes: np.ndarray, poses4: np.ndarray | None, with_index: bool = False):
+    def window_points(self, keyframes: np.ndarray, poses4: np.ndarray | None, with_index: bool = False):
         """Detections of `keyframes` placed with `poses4` (estimate) or odometry (None):
         (points (N, 3), keyframe of each (N,)[, index of each within its keyframe (N,)])."""
         pts, fr, ix = [], [], []
@@ -345,7 +345,7 @@ class LoopState:
         t0 = time.perf_counter()
         win = self.window(k)
         poses = self.graph.poses()
-        P, F, I = self._window_points(win, poses, with_index=True)
+        P, F, I = self.window_points(win, poses, with_index=True)
         veh = aggregate_detections(P, F, cfg.aggregation, frame="estimate") if len(P) else LandmarkMap(np.zeros((0, 3)))
         att = Attempt(frame, t, k, len(veh), 0, False, False)
         ref = self.reference
@@ -446,11 +446,11 @@ class LoopState:
         times = np.asarray(self.times)
         T_odo = np.asarray(self.T_odo_rover).reshape(-1, 4, 4)
         kf_t = np.array([kf.t_s for kf in self.graph.keyframes])
-        corrected = _interpolate_corrections(T_kf, kf_t, times, T_odo)
+        corrected = interpolate_corrections(T_kf, kf_t, times, T_odo)
         poses = self.graph.poses()
         all_kf = np.arange(len(self.graph.keyframes))
-        P, F = self._window_points(all_kf, poses)
-        Po, Fo = self._window_points(all_kf, None)
+        P, F = self.window_points(all_kf, poses)
+        Po, Fo = self.window_points(all_kf, None)
         agg = self.config.aggregation
         vmap = aggregate_detections(P, F, agg, frame="map") if len(P) else LandmarkMap(np.zeros((0, 3)), frame="map")
         vodo = aggregate_detections(Po, Fo, agg, frame="odometry") if len(Po) else LandmarkMap(np.zeros((0, 3)), frame="odometry")
@@ -461,7 +461,7 @@ class LoopState:
                           rocks, example, source)  # fmt: skip
 
 
-def _interpolate_corrections(T_kf: np.ndarray, kf_t: np.ndarray, times: np.ndarray, T_odo_rover: np.ndarray) -> np.ndarray:
+def interpolate_corrections(T_kf: np.ndarray, kf_t: np.ndarray, times: np.ndarray, T_odo_rover: np.ndarray) -> np.ndarray:
     """Apply per-keyframe corrections T_map_odo (K, 4, 4), linearly interpolated in time
     (translation and yaw), to every frame's odometry pose (F, 4, 4): a continuous trajectory
     T_map_rover (F, 4, 4)."""

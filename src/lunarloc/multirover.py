@@ -54,7 +54,7 @@ import numpy as np
 from lunarloc.config import RunConfig, config_from_dict, config_to_dict
 from lunarloc.errors import ConfigError, InputError, LunarLocError
 from lunarloc.geometry import invert_transform, pose_to_matrix, yaw_of
-from lunarloc.loop import Attempt, LoopResult, _interpolate_corrections
+from lunarloc.loop import Attempt, LoopResult, interpolate_corrections
 from lunarloc.maps import LandmarkMap, aggregate_detections
 
 log = logging.getLogger(__name__)
@@ -319,7 +319,7 @@ class _Rover:
             return self.live
         if n == 0:
             return None
-        P, F = loop._window_points(np.arange(n), loop.graph.poses())
+        P, F = loop.window_points(np.arange(n), loop.graph.poses())
         if len(P) == 0:
             return None
         agg = loop.config.aggregation
@@ -347,7 +347,7 @@ class _Rover:
         f, t = self.ticks[-1]
         poses = loop.graph.poses()
         win = loop.window(k)
-        P, F = loop._window_points(win, poses)
+        P, F = loop.window_points(win, poses)
         veh = aggregate_detections(P, F, cfg.aggregation, frame="estimate") if len(P) else None
         if veh is None or len(veh) < cfg.min_window_landmarks:
             self.timings["sharing"] += time.perf_counter() - t_start
@@ -434,7 +434,7 @@ class _Rover:
         frames = np.array([f for f, _ in self.ticks], int)
         times = np.array([t for _, t in self.ticks], float)
         T_odo = np.asarray(self.T_odo_rover).reshape(-1, 4, 4)
-        corrected = _interpolate_corrections(T_kf, np.asarray(loop.times), times, T_odo)
+        corrected = interpolate_corrections(T_kf, np.asarray(loop.times), times, T_odo)
         # the run's configuration as a single run writes it (read back by `lunarloc run --config`)
         info = {"archive": str(self.path), "odometry_source": self.odometry_label, "camera": asdict(self.camera),
                 "detector_scaled": self.detector_config.to_dict(),
