@@ -28,6 +28,7 @@ import numpy as np
 
 from lunarloc.errors import ConfigError, InputError
 from lunarloc.geometry import pose_to_matrix, transform_points
+from lunarloc.odometry.visual import ImageNormalization
 from lunarloc.perception.camera import STEREO_PAIRS, CameraMount, PinholeCamera, ipex_rig
 from lunarloc.perception.masks import (
     InstanceMasks,
@@ -96,7 +97,7 @@ class CentreMethod(str, Enum):
 def _height_stereo_default() -> StereoConfig:
     return StereoConfig(
         num_disparities=192, block_size=5, downscale=2, speckle_window_size=50, three_way=True, p1=8 * 25, p2=32 * 25,
-        full_width=True,
+        full_width=True, normalization=ImageNormalization.LIFT,
     )
 
 

@@ -109,6 +109,19 @@ class ClassicalConfig:
     # Blobs whose stereo points are farther than this (median optical depth, metres)
     # are dropped: stereo heights and shapes degrade with range^2.
     height_max_range_m: float = 8.0
+    # Blobs that the mask filters would reject as elongated (eigenvalue ratio of the
+    # pixel covariance above height_split_eig_ratio, the height masks' tau_elong) or as
+    # cut by the image border are split at their height saddles instead: the blob is
+    # thresholded at height_split_step_m steps above height_region_m until it falls into
+    # two or more parts of at least height_min_area_px, and every pixel goes to the part
+    # it is nearest to. Parts that stand apart become masks of their own (a rock merged
+    # with a raised streak running to the border, two rocks touching along a crest);
+    # a blob without a saddle is left whole. 0 = off.
+    height_split_step_m: float = 0.01
+    height_split_eig_ratio: float = 20.0
+    # Split parts take back the blob's pixels within this many (height-map) pixels of
+    # them, the rock's flanks below the split level; the blob's other pixels are dropped.
+    height_split_grow_px: float = 3.0
 
     def __post_init__(self) -> None:
         if not self.bright_hi_sigma >= self.bright_lo_sigma > 0:
@@ -119,6 +132,11 @@ class ClassicalConfig:
             raise ConfigError("bg_median_px must be >= 16")
         if self.grow < 0 or self.min_area_px < 1:
             raise ConfigError("grow must be >= 0 and min_area_px >= 1")
+        if not (0 <= self.height_split_step_m < 1 and self.height_split_eig_ratio >= 1
+                and 0 <= self.height_split_grow_px < 1e3):
+            raise ConfigError(f"height_split_step_m={self.height_split_step_m} must be in [0, 1), height_split_eig_ratio="
+                              f"{self.height_split_eig_ratio} >= 1 and height_split_grow_px={self.height_split_grow_px} "
+                              "in [0, 1000)")
 
 
 class ClassicalSegmenter:
@@ -157,6 +175,9 @@ class ClassicalSegmenter:
         n, lab, st, _ = cv2.connectedComponentsWithStats(region, connectivity=8)
         if n <= 1:
             return np.zeros(H.shape, np.int32)
+        if c.height_split_step_m > 0:
+            lab, n = split_at_saddles(H, lab, st, c)
+            st = _component_stats(lab, n)
         seeds = np.bincount(lab[H > c.height_seed_m], minlength=n) > 0
         keep = seeds & (st[:, cv2.CC_STAT_AREA] >= c.height_min_area_px)
         # blobs cut by the columns where SGBM cannot match are not fully visible
@@ -268,6 +289,111 @@ class ClassicalSegmenter:
                 crop = cv2.resize(crop, (crop.shape[1] * k, crop.shape[0] * k), interpolation=cv2.INTER_NEAREST)
             out.masks.append(InstanceMask(int(sl[1].start) * k, int(sl[0].start) * k, crop.astype(bool)))
         return out
+
+
+def _component_stats(lab: np.ndarray, n: int) -> np.ndarray:
+    """(n, 5) OpenCV-style stats (left, top, width, height, area) of labels 0..n-1."""
+    import cv2
+
+    st = np.zeros((n, 5), np.int32)
+    st[:, cv2.CC_STAT_LEFT] = lab.shape[1]
+    st[:, cv2.CC_STAT_TOP] = lab.shape[0]
+    st[:, cv2.CC_STAT_AREA] = np.bincount(lab.ravel(), minlength=n)[:n]
+    rows = np.flatnonzero(lab.any(axis=1))
+    if rows.size == 0:
+        return st
+    vv, uu = np.nonzero(lab)
+    ll = lab[vv, uu]
+    left = np.full(n, lab.shape[1]); top = np.full(n, lab.shape[0])  # noqa: E702
+    right = np.zeros(n, np.int64); bottom = np.zeros(n, np.int64)  # noqa: E702
+    np.minimum.at(left, ll, uu); np.minimum.at(top, ll, vv)  # noqa: E702
+    np.maximum.at(right, ll, uu); np.maximum.at(bottom, ll, vv)  # noqa: E702
+    has = st[:, cv2.CC_STAT_AREA] > 0
+    st[has, cv2.CC_STAT_LEFT], st[has, cv2.CC_STAT_TOP] = left[has], top[has]
+    st[has, cv2.CC_STAT_WIDTH] = right[has] - left[has] + 1
+    st[has, cv2.CC_STAT_HEIGHT] = bottom[has] - top[has] + 1
+    return st
+
+
+def _eig_ratio(mask: np.ndarray) -> float:
+    """lambda_max / lambda_min of a binary mask's pixel covariance (as masks.mask_stats)."""
+    import cv2
+
+    mo = cv2.moments(mask.astype(np.uint8), binaryImage=True)
+    n = mo["m00"]
+    if n <= 0:
+        return 1.0
+    a, b, d = mo["mu20"] / n + 1 / 12, mo["mu11"] / n, mo["mu02"] / n + 1 / 12
+    disc = np.sqrt(max((a - d) ** 2 / 4 + b * b, 0.0))
+    lo = (a + d) / 2 - disc
+    return float(((a + d) / 2 + disc) / lo) if lo > 1e-12 else float("inf")
+
+
+def split_at_saddles(H: np.ndarray, lab: np.ndarray, st: np.ndarray, c: ClassicalConfig) -> tuple[np.ndarray, int]:
+    """Split the blobs of a label image that the mask filters would reject (elongated
+    beyond ``c.height_split_eig_ratio``, or touching the image border) at their height
+    saddles: each such blob is thresholded at ``c.height_split_step_m`` steps above
+    ``c.height_region_m`` until it falls into >= 2 parts of >= ``c.height_min_area_px``
+    pixels (a blob cut by the border: or into one part clear of the border); blob pixels
+    within ``c.height_split_grow_px`` of a part then join the nearest part, the others
+    are dropped. Returns the new labels and
+    their count (background 0 included). H: (h, w) heights above the ground, metres
+    (no NaN); lab / st: cv2.connectedComponentsWithStats' labels and stats."""
+    import cv2
+
+    h, w = lab.shape
+    n = int(st.shape[0])
+    out = lab
+    for i in range(1, st.shape[0]):
+        x, y, bw, bh, area = (int(v) for v in st[i, :5])
+        if area < 2 * c.height_min_area_px:
+            continue
+        sub = lab[y : y + bh, x : x + bw] == i
+        border = x == 0 or y == 0 or x + bw >= w or y + bh >= h
+        if not border and _eig_ratio(sub) <= c.height_split_eig_ratio:
+            continue
+        Hs = np.where(sub, H[y : y + bh, x : x + bw], -1.0)
+        peak = float(Hs.max())
+        level = c.height_region_m + c.height_split_step_m
+        big = np.zeros(0, int)
+        while level < peak:
+            _, parts, pst, _ = cv2.connectedComponentsWithStats((Hs > level).astype(np.uint8), connectivity=8)
+            big = np.flatnonzero(pst[1:, cv2.CC_STAT_AREA] >= c.height_min_area_px) + 1
+            if big.size >= 2:
+                break
+            if big.size == 1 and border:
+                # one part left that stands apart from the border: the rest was low ground
+                # (a raised streak) that joined it to the edge
+                px, py, pw, ph = (int(v) for v in pst[big[0], :4])
+                if not (x + px == 0 or y + py == 0 or x + px + pw >= w or y + py + ph >= h):
+                    break
+            if big.size == 0:
+                break
+            level += c.height_split_step_m
+        else:
+            continue
+        if big.size == 0 or (big.size == 1 and not border):
+            continue
+        # every blob pixel within height_split_grow_px of a part joins the nearest part
+        # (Voronoi labels of the parts' pixels; the rock's flanks below the split level);
+        # the rest of the blob (the streak, a saddle's middle) is dropped
+        seeds = np.isin(parts, big)
+        dist, vor = cv2.distanceTransformWithLabels((~seeds).astype(np.uint8), cv2.DIST_L2, 5,
+                                                    labelType=cv2.DIST_LABEL_PIXEL)  # fmt: skip
+        vv, uu = np.nonzero(seeds)
+        lut = np.zeros(int(vor.max()) + 1, np.int64)
+        lut[vor[vv, uu]] = parts[vv, uu]
+        owner = np.where(dist <= c.height_split_grow_px, lut[vor], 0)
+        if out is lab:
+            out = lab.copy()
+        view = out[y : y + bh, x : x + bw]
+        view[sub & (owner == 0)] = 0
+        for j, part in enumerate(big):
+            if j == 0:
+                continue  # the first part keeps the blob's label
+            view[sub & (owner == part)] = n
+            n += 1
+    return out, n
 
 
 def make_segmenter(

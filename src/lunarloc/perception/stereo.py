@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lunarloc.errors import ConfigError, InputError
+from lunarloc.odometry.visual import ImageNormalization, normalize_image
 from lunarloc.perception.camera import IPEX_STEREO_BASELINE_M, PinholeCamera
 
 __all__ = [
@@ -73,8 +74,30 @@ class StereoConfig:
     # unmatched, get disparities wherever their match lies inside the right image
     # (a point at column u with disparity d <= u). Costs (W + nd) / W of the time.
     full_width: bool = False
+    # What the images go through before the low-resolution match (disparity_lowres;
+    # visual odometry's ImageNormalization). local-contrast divides out slow brightness
+    # changes (the lamps' fall-off with range at night, the sun's shading), so SGBM's
+    # fixed smoothness penalties weigh texture alike in the bright near field and the
+    # dark far field; with the raw images a lamp-lit rock's disparity spreads over the
+    # unlit ground above its top and its lower flanks take the ground's (see
+    # docs/perception.md, "Fourth pass"). The sky mask is always taken from the raw image.
+    normalization: ImageNormalization = ImageNormalization.NONE
+    # local-contrast: Gaussian local mean of this standard deviation (fraction of the
+    # matched image's width; large against a rock, small against the lamps' fall-off)
+    # and grey levels per unit of relative contrast.
+    normalization_sigma_frac: float = 0.05
+    normalization_gain: float = 100.0
 
     def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "normalization", ImageNormalization(self.normalization))
+        except ValueError:
+            raise ConfigError(f"normalization={self.normalization!r}: choose one of "
+                              f"{', '.join(m.value for m in ImageNormalization)}") from None
+        if not 0 < self.normalization_sigma_frac < 0.5:
+            raise ConfigError(f"normalization_sigma_frac={self.normalization_sigma_frac}: must be in (0, 0.5)")
+        if not 0 < self.normalization_gain < 1e4:
+            raise ConfigError(f"normalization_gain={self.normalization_gain}: must be in (0, 1e4)")
         if self.num_disparities <= 0 or self.num_disparities % 16:
             raise ConfigError("num_disparities must be a positive multiple of 16")
         if self.block_size < 1 or self.block_size % 2 == 0:
@@ -280,11 +303,25 @@ class StereoMatcher:
             Rs = cv2.resize(R, (w, h), interpolation=cv2.INTER_AREA)[r0:]
         else:
             Ls, Rs = L[r0:], R[r0:]
-        d = self._compute_full_width(Ls, Rs) if self.config.full_width else self._compute(Ls, Rs).astype(np.float32) / 16.0
+        Lm, Rm = self._normalized(Ls, sky_level), self._normalized(Rs, sky_level)
+        d = self._compute_full_width(Lm, Rm) if self.config.full_width else self._compute(Lm, Rm).astype(np.float32) / 16.0
         d[~(d >= self.config.min_valid_disparity_px / k)] = np.nan
         if sky_level is not None:
             d[Ls < sky_level] = np.nan
         out[r0:] = d
+        return out
+
+    def _normalized(self, image: np.ndarray, sky_level: int | None) -> np.ndarray:
+        """`image` (uint8, at matching resolution) after config.normalization; pixels
+        darker than `sky_level` in the raw image stay black (sky)."""
+        c = self.config
+        if c.normalization is ImageNormalization.NONE:
+            return image
+        sigma = c.normalization_sigma_frac * image.shape[1]
+        # the local mean on an image reduced so that its Gaussian keeps >= 4 pixels
+        out = normalize_image(image, c.normalization, sigma, c.normalization_gain, mean_shrink=int(sigma // 4))
+        if sky_level is not None:
+            out[image < sky_level] = 0
         return out
 
     def depth_from_disparity(self, disparity: np.ndarray) -> np.ndarray:
