@@ -122,8 +122,8 @@ def test_an_elongated_blob_is_split_at_its_saddle_into_rocks():
     H = np.zeros(shape)
     H[28:33, 20:101] = 0.035  # a raised streak 3.5 cm high joins two rock tops 8 cm high
     H = np.maximum(H, np.maximum(_dome(shape, 30, 30, 0.08, 6), _dome(shape, 85, 30, 0.08, 6)))
-    assert len(_blobs(_labels(H, height_split_step_m=0.0))) == 1  # before: one streak
-    boxes = _blobs(_labels(H))
+    assert len(_blobs(_labels(H))) == 1  # off by default: one streak
+    boxes = _blobs(_labels(H, height_split_step_m=0.01))
     assert len(boxes) == 2
     (a0, _, a1, _), (b0, _, b1, _) = boxes
     assert a0 <= 30 <= a1 < b0 <= 85 <= b1  # one part per rock, the streak shared out
@@ -133,10 +133,10 @@ def test_a_blob_without_a_saddle_or_not_rejected_is_left_whole():
     shape = (60, 120)
     strip = np.zeros(shape)
     strip[28:33, 20:101] = 0.06  # a flat elongated strip: no saddle to split at
-    assert len(_blobs(_labels(strip))) == 1
+    assert len(_blobs(_labels(strip, height_split_step_m=0.01))) == 1
     # a round blob with two tops (a knobbly rock) is not elongated: not split
     knobs = np.maximum(_dome(shape, 55, 30, 0.08, 12), _dome(shape, 65, 30, 0.08, 12))
-    assert len(_blobs(_labels(knobs))) == 1
+    assert len(_blobs(_labels(knobs, height_split_step_m=0.01))) == 1
 
 
 def test_a_rock_merged_with_a_streak_cut_by_the_border_becomes_a_mask_of_its_own():
@@ -147,7 +147,7 @@ def test_a_rock_merged_with_a_streak_cut_by_the_border_becomes_a_mask_of_its_own
     H = np.zeros(shape)
     H[24:36, 0:72] = 0.035  # raised ground running out of the image on the left, up to the rock
     H = np.maximum(H, _dome(shape, 75, 30, 0.10, 12))  # a rock on its end
-    seg = ClassicalSegmenter(ClassicalConfig())
+    seg = ClassicalSegmenter(ClassicalConfig(height_split_step_m=0.01))
     masks = seg.segment(np.full((120, 240), 128, np.uint8), height=_height_map(H))
     fc = MaskFilterConfig(tau_elong=20.0)
     kept = [m for m in masks if image_reject_reason(mask_stats(m, masks.image_shape), fc) is None]
@@ -162,7 +162,7 @@ def test_a_rock_merged_with_a_streak_cut_by_the_border_becomes_a_mask_of_its_own
 
 def test_split_settings_round_trip_and_bad_values_name_the_key():
     d = json.loads(json.dumps(RunConfig().to_dict()))
-    assert d["detector"]["classical"]["height_split_step_m"] == pytest.approx(0.01)
+    assert d["detector"]["classical"]["height_split_step_m"] == 0.0
     d["detector"]["classical"]["height_split_step_m"] = 0.02
     assert RunConfig.from_dict(d).detector.classical.height_split_step_m == pytest.approx(0.02)
     for key, value in (("height_split_step_m", -0.01), ("height_split_eig_ratio", 0.5), ("height_split_grow_px", -1)):
