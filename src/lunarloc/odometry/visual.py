@@ -83,8 +83,9 @@ def normalize_image(
     """A uint8 grayscale image after :class:`ImageNormalization` (same shape).
 
     ``local-contrast``: ``(I - mean) / (mean + 4) * gain + 128`` with a Gaussian local mean
-    of standard deviation `sigma_px`; ``lift``: ``I * max(gain / (mean + 4), 1)``; ``clahe``: `clahe` (an OpenCV CLAHE object; one with
-    clip limit 2 and 8x8 tiles when None); ``none``: `image` itself. Shared by visual
+    of standard deviation `sigma_px`; ``lift``: ``I * max(gain / (mean + 4), 1)``;
+    ``clahe``: `clahe` (an OpenCV CLAHE object; one with clip limit 2 and 8x8 tiles when
+    None); ``none``: `image` itself. Shared by visual
     odometry and the detector's stereo (:class:`lunarloc.perception.stereo.StereoConfig`).
     mean_shrink > 1: the local mean is blurred on the image reduced that many times and
     interpolated back (a wide Gaussian costs ~10x less; the mean is smooth anyway).

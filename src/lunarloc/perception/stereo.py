@@ -75,16 +75,18 @@ class StereoConfig:
     # (a point at column u with disparity d <= u). Costs (W + nd) / W of the time.
     full_width: bool = False
     # What the images go through before the low-resolution match (disparity_lowres;
-    # visual odometry's ImageNormalization). local-contrast divides out slow brightness
-    # changes (the lamps' fall-off with range at night, the sun's shading), so SGBM's
-    # fixed smoothness penalties weigh texture alike in the bright near field and the
-    # dark far field; with the raw images a lamp-lit rock's disparity spreads over the
-    # unlit ground above its top and its lower flanks take the ground's (see
-    # docs/perception.md, "Fourth pass"). The sky mask is always taken from the raw image.
+    # visual odometry's ImageNormalization). SGBM's smoothness penalties are fixed in grey
+    # levels: with the raw lamp-lit images at night a rock's disparity spreads over the
+    # unlit ground above its top and its lower flanks take the ground's, so its height
+    # blob is a strip rejected as elongated. `lift` brightens regions darker than
+    # normalization_gain grey levels to it and leaves brighter ones as they are (the
+    # height map's matcher uses it; see docs/perception.md, "Fourth pass").
+    # `local-contrast` divides out every slow brightness change (shadows included).
+    # The sky mask is always taken from the raw image.
     normalization: ImageNormalization = ImageNormalization.NONE
-    # local-contrast: Gaussian local mean of this standard deviation (fraction of the
-    # matched image's width; large against a rock, small against the lamps' fall-off)
-    # and grey levels per unit of relative contrast.
+    # Gaussian local mean of this standard deviation (fraction of the matched image's
+    # width; large against a rock, small against the lamps' fall-off); lift: the target
+    # grey level, local-contrast: grey levels per unit of relative contrast.
     normalization_sigma_frac: float = 0.05
     normalization_gain: float = 100.0
 
