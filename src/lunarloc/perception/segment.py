@@ -302,8 +302,7 @@ def _component_stats(lab: np.ndarray, n: int) -> np.ndarray:
     st[:, cv2.CC_STAT_LEFT] = lab.shape[1]
     st[:, cv2.CC_STAT_TOP] = lab.shape[0]
     st[:, cv2.CC_STAT_AREA] = np.bincount(lab.ravel(), minlength=n)[:n]
-    rows = np.flatnonzero(lab.any(axis=1))
-    if rows.size == 0:
+    if not lab.any():
         return st
     vv, uu = np.nonzero(lab)
     ll = lab[vv, uu]
