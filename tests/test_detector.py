@@ -382,7 +382,8 @@ def test_overlapping_detections_keep_the_larger_one():
 
 @pytest.mark.parametrize("key, value", [
     ("max_nearer_ring_fraction", 1.5), ("max_nearer_ring_fraction", -0.1), ("nearer_depth_ratio", 1.0),
-    ("nearer_depth_ratio", 0.0), ("duplicate_overlap_ratio", -1.0),
+    ("nearer_depth_ratio", 0.0), ("duplicate_overlap_ratio", -1.0), ("crest_extension_ratio", -0.1),
+    ("crest_max_radius_m", -0.01),
 ])  # fmt: skip
 def test_precision_rule_settings_are_checked_and_round_trip(key, value, tmp_path):
     import json
@@ -391,8 +392,54 @@ def test_precision_rule_settings_are_checked_and_round_trip(key, value, tmp_path
 
     with pytest.raises(ConfigError, match=key):
         RunConfig.from_dict({"detector": {key: value}})
-    good = {"max_nearer_ring_fraction": 0.3, "nearer_depth_ratio": 0.6, "duplicate_overlap_ratio": 0.5}[key]
+    good = {"max_nearer_ring_fraction": 0.3, "nearer_depth_ratio": 0.6, "duplicate_overlap_ratio": 0.5,
+            "crest_extension_ratio": 0.75, "crest_max_radius_m": 0.2}[key]
     p = tmp_path / "config.json"
     p.write_text(json.dumps({"detector": {key: good}}))
     cfg, _ = load_config_file(p)
     assert getattr(cfg.detector, key) == good and RunConfig.from_dict(cfg.to_dict()) == cfg
+
+
+def test_a_crest_goes_on_beyond_its_blob_and_a_lone_rock_does_not():
+    from lunarloc.perception.detector import _lateral_extension_ratio
+
+    rng = np.random.default_rng(3)
+    r, c = np.mgrid[0:30, 0:60]
+    noise = rng.normal(0.0, 0.002, r.shape)
+    blob = (np.abs(r - 15) <= 1) & (np.abs(c - 30) <= 3)
+    rows, cols = np.nonzero(blob)
+    # a lone small rock: 4.5 cm above flat ground, the ground beyond its ends at ~0
+    rock = noise.copy()
+    rock[blob] += 0.045
+    e_rock = _lateral_extension_ratio(rock, rows, cols)
+    # a crest along the image rows: the blob is its highest stretch (4.5 cm), the crest
+    # beyond it stands 3-4 cm above the local ground (under the 2.5 cm region threshold
+    # only where it dips)
+    crest = noise + 0.035 * np.exp(-((r - 15) ** 2) / 2.0)
+    crest[blob] = 0.045 + noise[blob]
+    e_crest = _lateral_extension_ratio(crest, rows, cols)
+    ratio = DetectorConfig().crest_extension_ratio
+    assert e_rock < 0.2 < ratio < e_crest
+    # the rock beside a crest running past it two rows lower still ends at its sides
+    beside = rock + 0.03 * np.exp(-((r - 22) ** 2) / 1.0)
+    assert _lateral_extension_ratio(beside, rows, cols) < ratio
+    # no valid heights beyond it, or no top: no verdict
+    holes = crest.copy()
+    holes[~blob] = np.nan
+    assert np.isnan(_lateral_extension_ratio(holes, rows, cols))
+    assert np.isnan(_lateral_extension_ratio(-np.abs(crest), rows, cols))
+    with pytest.raises(ConfigError, match="crest_extension_ratio"):
+        DetectorConfig(crest_extension_ratio=-0.5)
+
+
+def test_default_rules_keep_a_lone_small_rock_on_flat_ground():
+    # the full detector on a rendered pair: a 0.08 m rock 2.3 m ahead is kept with the
+    # framed, duplicate and crest rules on, and is measured as a lone rock
+    c = np.array([2.3, 0.0, -0.18])
+    left, right, rig = ground_scene(tuple(c), 0.08)
+    pr = Detector(DetectorConfig(), CAM).detect_pair(left, right, rig["FrontLeft"].T_rover_optical)
+    assert len(pr.detections) == 1
+    d = pr.detections[0]
+    assert np.linalg.norm(d.p_rover[:2] - c[:2]) < 0.08
+    assert d.nearer_ring_fraction < DetectorConfig().max_nearer_ring_fraction
+    assert d.extension_ratio < 0.5 * DetectorConfig().crest_extension_ratio  # measured (R < 0.12 m), and low

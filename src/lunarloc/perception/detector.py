@@ -250,6 +250,16 @@ class DetectorConfig:
     # 0.8 removes 2 of 37 false detections within 5 m and none of 890 true ones (0.6-0.7
     # remove 3, but 0.6 drops 14 true ones of held-out site 44's adjacent rocks). 0 = off.
     duplicate_overlap_ratio: float = 0.8
+    # Crest, not rock: a rock ends at its silhouette, a stretch of crest (a crater rim,
+    # a ridge, the far edge of a long shadow, which the 0.35 m ground cells cut under)
+    # goes on. A blob of estimated radius under crest_max_radius_m (narrower than a
+    # ground cell) is rejected when, over the image columns one blob width beyond its
+    # left and right ends (its rows, one row either side), the median of the columns'
+    # highest heights above the local ground exceeds crest_extension_ratio x its own top
+    # (low-resolution heights). Set on the tuning sites (see docs/perception.md,
+    # "Fourth pass"). 0 = off.
+    crest_extension_ratio: float = 0.6
+    crest_max_radius_m: float = 0.12
     # Detections within this horizontal distance (metres) of the lander's centre are
     # dropped when the lander's map position is given (LAC lander: legs and pads
     # ~1.9 m from its centre; fiducial panels and their shadows around it).
@@ -279,6 +289,9 @@ class DetectorConfig:
             raise ConfigError(f"nearer_depth_ratio={self.nearer_depth_ratio!r} must be in (0, 1)")
         if not self.duplicate_overlap_ratio >= 0.0:
             raise ConfigError(f"duplicate_overlap_ratio={self.duplicate_overlap_ratio!r} must be >= 0 (0 = off)")
+        if not (self.crest_extension_ratio >= 0.0 and self.crest_max_radius_m >= 0.0):
+            raise ConfigError(f"crest_extension_ratio={self.crest_extension_ratio!r} and crest_max_radius_m="
+                              f"{self.crest_max_radius_m!r} must be >= 0 (0 = off)")
         if self.segmenter is SegmenterKind.FASTSAM and not self.weights:
             raise ConfigError("the fastsam segmenter needs weights (a FastSAM .pt path)")
         if (not isinstance(self.fastsam_imgsz_px, int) or isinstance(self.fastsam_imgsz_px, bool)
@@ -326,6 +339,9 @@ class Detection:
     # fraction of the valid depths in the ring around it nearer than
     # nearer_depth_ratio x its depth (NaN without stereo points)
     nearer_ring_fraction: float = float("nan")
+    # median highest height just beyond its left and right ends over its own top
+    # (NaN when not measured: blobs of radius >= crest_max_radius_m)
+    extension_ratio: float = float("nan")
 
 
 @dataclass
@@ -629,6 +645,8 @@ class Detector:
                 )
                 nearer = _nearer_ring_fraction(hm.depth, rows, cols, D, cfg.nearer_depth_ratio)
                 framed = bool(np.isfinite(nearer) and nearer > cfg.max_nearer_ring_fraction)
+                ext = _lateral_extension_ratio(hm.height, rows, cols) if R_est < cfg.crest_max_radius_m else float("nan")
+                flat |= bool(cfg.crest_extension_ratio > 0 and np.isfinite(ext) and ext > cfg.crest_extension_ratio)
                 if vis_h > cfg.max_rock_height_m or R_est > cfg.max_rock_radius_m or perched or flat or framed:
                     rec.reason = RejectReason.NOT_A_ROCK
                     continue
@@ -637,7 +655,7 @@ class Detector:
             det = _detection(camera_name, st, D, s, R_est, p, p_rover, T_map_rover)
             if cfg.centre_method is CentreMethod.STEREO_POINTS:
                 det = replace(det, height_m=top, height_front_m=h_sur, height_ring_m=ring, height_quadric_m=quad,
-                              nearer_ring_fraction=nearer)
+                              nearer_ring_fraction=nearer, extension_ratio=ext)
             if self._on_lander(det, lander_xy):
                 rec.reason = RejectReason.ON_LANDER
                 continue
@@ -853,6 +871,36 @@ def _nearer_ring_fraction(depth: np.ndarray, rows: np.ndarray, cols: np.ndarray,
     if vals.size < min_valid:
         return float("nan")
     return float(np.count_nonzero(vals < ratio * depth_m)) / vals.size
+
+
+def _lateral_extension_ratio(height: np.ndarray, rows: np.ndarray, cols: np.ndarray, q: float = 0.9,
+                             gap: int = 1, min_columns: int = 3) -> float:
+    """How far a blob (rows, cols) of the low-resolution map `height` (metres above the
+    local ground, NaN invalid) goes on beyond its left and right ends: over the columns
+    from `gap` + 1 to `gap` + W beyond each end (W = its width in columns, at least 3),
+    each column's highest valid height in the blob's rows (one row either side), then
+    the median over the columns, divided by the blob's top (quantile q of its heights).
+    A rock ends at its silhouette (ground beyond it: about 0); a stretch of crest goes on
+    at nearly its height. NaN when fewer than `min_columns` columns hold a valid height
+    or the blob's top is not above the ground."""
+    h, w = height.shape
+    vals = height[rows, cols]
+    vals = vals[np.isfinite(vals)]
+    if vals.size == 0:
+        return float("nan")
+    top = float(np.quantile(vals, q))
+    if top <= 0:
+        return float("nan")
+    c0, c1 = int(cols.min()), int(cols.max())
+    W = max(3, c1 - c0 + 1)
+    ext = np.r_[np.arange(c1 + 1 + gap, c1 + 1 + gap + W), np.arange(c0 - gap - W, c0 - gap)]
+    ext = ext[(ext >= 0) & (ext < w)]
+    win = height[max(int(rows.min()) - 1, 0) : int(rows.max()) + 2][:, ext]
+    ok = np.isfinite(win).any(axis=0)
+    if np.count_nonzero(ok) < min_columns:
+        return float("nan")
+    col_max = np.max(np.where(np.isfinite(win[:, ok]), win[:, ok], -np.inf), axis=0)
+    return float(np.median(col_max)) / top
 
 
 def overlapping_duplicates(dets: list[Detection], overlap_ratio: float) -> list[int]:
