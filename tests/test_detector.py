@@ -383,7 +383,7 @@ def test_overlapping_detections_keep_the_larger_one():
 @pytest.mark.parametrize("key, value", [
     ("max_nearer_ring_fraction", 1.5), ("max_nearer_ring_fraction", -0.1), ("nearer_depth_ratio", 1.0),
     ("nearer_depth_ratio", 0.0), ("duplicate_overlap_ratio", -1.0), ("crest_extension_ratio", -0.1),
-    ("crest_max_radius_m", -0.01),
+    ("crest_max_radius_m", -0.01), ("crest_extension_max_ratio", 0.5),
 ])  # fmt: skip
 def test_precision_rule_settings_are_checked_and_round_trip(key, value, tmp_path):
     import json
@@ -393,7 +393,7 @@ def test_precision_rule_settings_are_checked_and_round_trip(key, value, tmp_path
     with pytest.raises(ConfigError, match=key):
         RunConfig.from_dict({"detector": {key: value}})
     good = {"max_nearer_ring_fraction": 0.3, "nearer_depth_ratio": 0.6, "duplicate_overlap_ratio": 0.5,
-            "crest_extension_ratio": 0.75, "crest_max_radius_m": 0.2}[key]
+            "crest_extension_ratio": 0.75, "crest_max_radius_m": 0.2, "crest_extension_max_ratio": 3.0}[key]
     p = tmp_path / "config.json"
     p.write_text(json.dumps({"detector": {key: good}}))
     cfg, _ = load_config_file(p)
@@ -420,6 +420,11 @@ def test_a_crest_goes_on_beyond_its_blob_and_a_lone_rock_does_not():
     e_crest = _lateral_extension_ratio(crest, rows, cols)
     ratio = DetectorConfig().crest_extension_ratio
     assert e_rock < 0.2 < ratio < e_crest
+    # a rock on a ridge line that stands far higher than the rock's top beside it: the
+    # ridge is a larger raised body, the blob is not its local high, no verdict of crest
+    ridge = noise + 0.12 * np.exp(-((r - 15) ** 2) / 2.0)
+    ridge[blob] = 0.045 + noise[blob]
+    assert _lateral_extension_ratio(ridge, rows, cols) > DetectorConfig().crest_extension_max_ratio
     # the rock beside a crest running past it two rows lower still ends at its sides
     beside = rock + 0.03 * np.exp(-((r - 22) ** 2) / 1.0)
     assert _lateral_extension_ratio(beside, rows, cols) < ratio
