@@ -318,3 +318,133 @@ def test_crest_stands_little_above_a_quadric_ground_and_a_rock_stands_out():
     assert np.isnan(_height_above_quadric(holes, rows, cols, crest[blob], 0.9))
     with pytest.raises(ConfigError):
         DetectorConfig(quadric_contrast_per_radius=-0.1)
+
+
+# ------------------------------------------------------------------ fourth pass: precision rules
+
+
+def test_blob_framed_by_a_nearer_surface_is_measured_as_such():
+    from lunarloc.perception.detector import _nearer_ring_fraction
+
+    r, c = np.mgrid[0:40, 0:60]
+    # ground: depth grows towards the top of the image (row 0 = far), a rock of depth
+    # 3.0 m sits on it; the ring below the rock is nearer ground, above it farther
+    ground = 3.0 * (1.0 + 0.015 * (20 - r))  # 3 m at the rock's row, 1.5 % per low-res row
+    blob = (np.abs(r - 20) <= 2) & (np.abs(c - 30) <= 4)
+    rows, cols = np.nonzero(blob)
+    depth = ground.copy()
+    depth[blob] = 2.95
+    assert _nearer_ring_fraction(depth, rows, cols, 2.95, 0.6) == 0.0  # a rock on the ground
+    # the ground below a rock is nearer, steeply so at grazing angles: not counted
+    steep = 3.0 * (1.0 + 0.12 * (20 - r))
+    steep[blob] = 2.95
+    assert _nearer_ring_fraction(steep, rows, cols, 2.95, 0.6) == 0.0
+    # the same blob measured at 4.5 m on a boulder face 1.2 m away (a stereo mismatch)
+    face = np.full(r.shape, 1.2)
+    face[blob] = 4.5
+    f = _nearer_ring_fraction(face, rows, cols, 4.5, DetectorConfig().nearer_depth_ratio)
+    assert f == 1.0 and f > DetectorConfig().max_nearer_ring_fraction
+    # a real rock half framed by a nearer boulder on its left: a quarter of its ring
+    half = depth.copy()
+    half[:, :27] = 1.5
+    assert 0.0 < _nearer_ring_fraction(half, rows, cols, 2.95, 0.6) < 0.5
+    # too few valid ring depths, or no depth of its own: no verdict
+    holes = depth.copy()
+    holes[~blob] = np.nan
+    assert np.isnan(_nearer_ring_fraction(holes, rows, cols, 2.95, 0.6))
+    assert np.isnan(_nearer_ring_fraction(depth, rows, cols, float("nan"), 0.6))
+
+
+def _det(p, radius):
+    from lunarloc.perception.detector import Detection
+
+    p = np.asarray(p, float)
+    return Detection("FrontLeft", (0.0, 0.0), float(p[0]), 5.0, 1.0, 100, radius / 2, radius, p, p, p)
+
+
+def test_overlapping_detections_keep_the_larger_one():
+    from lunarloc.perception.detector import overlapping_duplicates
+
+    big = _det([3.0, 0.0, 0.1], 0.3)
+    part = _det([3.1, 0.15, 0.2], 0.05)  # inside the big one's sphere: a second blob of it
+    lone = _det([3.0, 1.0, 0.0], 0.05)  # a small rock 1 m to the side
+    assert overlapping_duplicates([part, big, lone], 1.0) == [0]
+    assert overlapping_duplicates([big, lone], 1.0) == []
+    assert overlapping_duplicates([part, big], 0.0) == []  # off
+    # two small neighbours just touching are kept at ratio 1, merged at a looser ratio
+    a, b = _det([2.0, 0.0, 0.0], 0.05), _det([2.0, 0.11, 0.0], 0.05)
+    assert overlapping_duplicates([a, b], 1.0) == []
+    assert len(overlapping_duplicates([a, b], 0.5)) == 1
+    # a chain: the middle one is dropped by the largest, the far one stays
+    c1, c2, c3 = _det([1.0, 0.0, 0.0], 0.2), _det([1.0, 0.25, 0.0], 0.1), _det([1.0, 0.5, 0.0], 0.08)
+    assert overlapping_duplicates([c1, c2, c3], 1.0) == [1]
+
+
+@pytest.mark.parametrize("key, value", [
+    ("max_nearer_ring_fraction", 1.5), ("max_nearer_ring_fraction", -0.1), ("nearer_depth_ratio", 1.0),
+    ("nearer_depth_ratio", 0.0), ("duplicate_overlap_ratio", -1.0), ("crest_extension_ratio", -0.1),
+    ("crest_max_radius_m", -0.01), ("crest_extension_max_ratio", 0.5),
+])  # fmt: skip
+def test_precision_rule_settings_are_checked_and_round_trip(key, value, tmp_path):
+    import json
+
+    from lunarloc.config import RunConfig, load_config_file
+
+    with pytest.raises(ConfigError, match=key):
+        RunConfig.from_dict({"detector": {key: value}})
+    good = {"max_nearer_ring_fraction": 0.3, "nearer_depth_ratio": 0.6, "duplicate_overlap_ratio": 0.5,
+            "crest_extension_ratio": 0.75, "crest_max_radius_m": 0.2, "crest_extension_max_ratio": 3.0}[key]
+    p = tmp_path / "config.json"
+    p.write_text(json.dumps({"detector": {key: good}}))
+    cfg, _ = load_config_file(p)
+    assert getattr(cfg.detector, key) == good and RunConfig.from_dict(cfg.to_dict()) == cfg
+
+
+def test_a_crest_goes_on_beyond_its_blob_and_a_lone_rock_does_not():
+    from lunarloc.perception.detector import _lateral_extension_ratio
+
+    rng = np.random.default_rng(3)
+    r, c = np.mgrid[0:30, 0:60]
+    noise = rng.normal(0.0, 0.002, r.shape)
+    blob = (np.abs(r - 15) <= 1) & (np.abs(c - 30) <= 3)
+    rows, cols = np.nonzero(blob)
+    # a lone small rock: 4.5 cm above flat ground, the ground beyond its ends at ~0
+    rock = noise.copy()
+    rock[blob] += 0.045
+    e_rock = _lateral_extension_ratio(rock, rows, cols)
+    # a crest along the image rows: the blob is its highest stretch (4.5 cm), the crest
+    # beyond it stands 3-4 cm above the local ground (under the 2.5 cm region threshold
+    # only where it dips)
+    crest = noise + 0.035 * np.exp(-((r - 15) ** 2) / 2.0)
+    crest[blob] = 0.045 + noise[blob]
+    e_crest = _lateral_extension_ratio(crest, rows, cols)
+    ratio = DetectorConfig().crest_extension_ratio
+    assert e_rock < 0.2 < ratio < e_crest
+    # a rock on a ridge line that stands far higher than the rock's top beside it: the
+    # ridge is a larger raised body, the blob is not its local high, no verdict of crest
+    ridge = noise + 0.12 * np.exp(-((r - 15) ** 2) / 2.0)
+    ridge[blob] = 0.045 + noise[blob]
+    assert _lateral_extension_ratio(ridge, rows, cols) > DetectorConfig().crest_extension_max_ratio
+    # the rock beside a crest running past it two rows lower still ends at its sides
+    beside = rock + 0.03 * np.exp(-((r - 22) ** 2) / 1.0)
+    assert _lateral_extension_ratio(beside, rows, cols) < ratio
+    # no valid heights beyond it, or no top: no verdict
+    holes = crest.copy()
+    holes[~blob] = np.nan
+    assert np.isnan(_lateral_extension_ratio(holes, rows, cols))
+    assert np.isnan(_lateral_extension_ratio(-np.abs(crest), rows, cols))
+    with pytest.raises(ConfigError, match="crest_extension_ratio"):
+        DetectorConfig(crest_extension_ratio=-0.5)
+
+
+def test_default_rules_keep_a_lone_small_rock_on_flat_ground():
+    # the full detector on a rendered pair: a 0.08 m rock 2.3 m ahead is kept with the
+    # framed, duplicate and crest rules on, and is measured as a lone rock
+    c = np.array([2.3, 0.0, -0.18])
+    left, right, rig = ground_scene(tuple(c), 0.08)
+    pr = Detector(DetectorConfig(), CAM).detect_pair(left, right, rig["FrontLeft"].T_rover_optical)
+    assert len(pr.detections) == 1
+    d = pr.detections[0]
+    assert np.linalg.norm(d.p_rover[:2] - c[:2]) < 0.08
+    assert d.nearer_ring_fraction < DetectorConfig().max_nearer_ring_fraction
+    assert d.extension_ratio < 0.5 * DetectorConfig().crest_extension_ratio  # measured (R < 0.12 m), and low

@@ -208,6 +208,8 @@ class RejectReason(str, Enum):
     NOT_A_ROCK = "not_a_rock"
     # inside the lander's footprint (its pose in the map is known)
     ON_LANDER = "on_lander"
+    # overlaps a larger detection of the same image in 3D (two blobs of one rock)
+    DUPLICATE = "duplicate"
 
 
 @dataclass(frozen=True)
