@@ -91,6 +91,28 @@ class CentreMethod(str, Enum):
     # surface + centre_range_factor * R; height = ground + visible top height -
     # centre_height_factor * R, with R = 2 x the lateral standard deviation.
     STEREO_POINTS = "stereo-points"
+    # As STEREO_POINTS (the same stereo points, radius and not-a-rock rules), but the
+    # centre from an ellipsoid fitted to the visible points (surface_fit_* fields; see
+    # _centre_from_surface_fit).
+    SURFACE_FIT = "surface-fit"
+
+
+# the methods that take the centre from the mask's stereo points (height map needed)
+_POINTS_METHODS = (CentreMethod.STEREO_POINTS, CentreMethod.SURFACE_FIT)
+
+
+def _check_surface_fit(cfg) -> None:
+    """ConfigError naming the first invalid surface_fit_* field of a DetectorConfig."""
+    for k in ("lateral_sigma", "depth_sigma", "height_ratio", "height_sigma", "noise_m", "cauchy"):
+        v = getattr(cfg, f"surface_fit_{k}")
+        if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
+            raise ConfigError(f"surface_fit_{k}={v!r} must be a finite number > 0")
+    if not (isinstance(cfg.surface_fit_noise_per_m2, (int, float)) and cfg.surface_fit_noise_per_m2 >= 0):
+        raise ConfigError(f"surface_fit_noise_per_m2={cfg.surface_fit_noise_per_m2!r} must be >= 0")
+    for k, lo in (("iterations", 1), ("min_points", 7), ("max_points", 7)):
+        v = getattr(cfg, f"surface_fit_{k}")
+        if not isinstance(v, int) or isinstance(v, bool) or v < lo:
+            raise ConfigError(f"surface_fit_{k}={v!r} must be an integer >= {lo}")
 
 
 def _height_stereo_default() -> StereoConfig:
@@ -156,6 +178,24 @@ class DetectorConfig:
     # STEREO_POINTS: the centre lies this many radii below the visible top
     # (simulated rocks: vertical semi-axis 0.55-0.85 x radius). Tuned on site 0.
     centre_height_factor: float = 0.6
+    # SURFACE_FIT: an ellipsoid (axes along the viewing ray, across it, vertical) is
+    # fitted to the mask's stereo points. Priors, log-normal with these sigmas: lateral
+    # semi-axis = the silhouette's radius; depth semi-axis = the lateral one (a rock is
+    # about as deep as it is wide); vertical semi-axis = surface_fit_height_ratio x the
+    # lateral one (rocks are flatter than spheres). Point noise (metres): max(noise_m,
+    # noise_per_m2 x range^2); Cauchy weights at surface_fit_cauchy noise sigmas.
+    surface_fit_lateral_sigma: float = 0.15
+    surface_fit_depth_sigma: float = 0.25
+    surface_fit_height_ratio: float = 0.7
+    surface_fit_height_sigma: float = 0.3
+    surface_fit_noise_m: float = 0.005
+    surface_fit_noise_per_m2: float = 0.001
+    surface_fit_cauchy: float = 2.0
+    surface_fit_shape_sigma: float = 0.1
+    surface_fit_points_eff: int = 30
+    surface_fit_iterations: int = 10
+    surface_fit_min_points: int = 12
+    surface_fit_max_points: int = 300
     # STEREO_POINTS: recompute each kept mask's stereo points at full resolution (SGBM
     # on the mask's box, disparities within fullres_span_px of the low-resolution
     # median; ~1 ms per mask). The half-resolution map quantises depth: at 4 m a
@@ -247,6 +287,7 @@ class DetectorConfig:
                               f"{self.fullres_p2_per_block_px2}: need 1 <= p1 < p2 (SGBM wants P2 > P1)")
         if self.radius_per_size <= 0:
             raise ConfigError("radius_per_size must be > 0")
+        _check_surface_fit(self)
         if not (self.max_rock_height_m > 0 and self.max_rock_radius_m > 0 and self.lander_radius_m >= 0):
             raise ConfigError("max_rock_height_m and max_rock_radius_m must be > 0, lander_radius_m >= 0")
         if not (self.quadric_contrast_per_radius >= 0 and self.quadric_contrast_max_m >= 0):
@@ -369,7 +410,7 @@ class Detector:
     @property
     def uses_height(self) -> bool:
         """True when each pair needs the low-resolution stereo height map."""
-        return self.config.centre_method is CentreMethod.STEREO_POINTS or bool(
+        return self.config.centre_method in _POINTS_METHODS or bool(
             getattr(self.segmenter, "uses_stereo", False)
         )
 
@@ -551,7 +592,7 @@ class Detector:
             rec.depth_m, rec.size_m, rec.reason = D, s, reason
             if reason is not None:
                 continue
-            if cfg.centre_method is CentreMethod.STEREO_POINTS:
+            if cfg.centre_method in _POINTS_METHODS:
                 P_rov = hm.points_rover[rows[ok], cols[ok]].astype(float)
                 if cfg.refine_disparity_px > 0:
                     # full-resolution masked template match rescales the points' depths
@@ -576,7 +617,8 @@ class Detector:
                     # the silhouette's lateral spread: a disc or half-disc of radius R
                     # has a horizontal standard deviation of R / 2
                     R_sil = cfg.radius_per_size * float(np.sqrt(st.cov[0, 0])) * D * alpha
-                p_rover, R_est = _centre_from_points(P_rov, h_pts, T_rover_optical[:3, 3], cfg, R_sil)
+                centre_fn = _centre_from_surface_fit if cfg.centre_method is CentreMethod.SURFACE_FIT else _centre_from_points
+                p_rover, R_est = centre_fn(P_rov, h_pts, T_rover_optical[:3, 3], cfg, R_sil)
                 p = transform_points(T_optical_rover, p_rover[None])[0]
                 if ground_pts is None:
                     ok_all = np.isfinite(hm.depth)
@@ -603,7 +645,7 @@ class Detector:
             else:
                 p, p_rover, R_est = self._lift_centroid(*st.centroid_uv, D, s, T_rover_optical)
             det = _detection(camera_name, st, D, s, R_est, p, p_rover, T_map_rover)
-            if cfg.centre_method is CentreMethod.STEREO_POINTS:
+            if cfg.centre_method in _POINTS_METHODS:
                 det = replace(det, height_m=top, height_front_m=h_sur, height_ring_m=ring, height_quadric_m=quad)
             if self._on_lander(det, lander_xy):
                 rec.reason = RejectReason.ON_LANDER
@@ -1012,3 +1054,112 @@ def debug_overlay(image: np.ndarray, pair: PairResult, depth_max_m: float = 10.0
     dvis[~np.isfinite(z)] = 0
     cv2.putText(dvis, f"depth 0-{depth_max_m:g} m", (8, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1)
     return np.hstack([vis, dvis])
+
+
+# ---------------------------------------------------------------------- surface fit
+def _ellipsoid_residuals(D: np.ndarray, theta: np.ndarray, jac: bool = True):
+    """Sampson distances (metres) of local points D (n, 3) to an axis-aligned ellipsoid
+    with centre theta[:3] and log semi-axes theta[3:6]: r = f / |grad f| with
+    f = sum(d_k^2 / a_k^2) - 1 (first-order distance to the surface); and, with jac,
+    their (n, 6) Jacobian with respect to theta."""
+    d = D - theta[:3]
+    al = np.exp(-2.0 * theta[3:6])  # 1 / a_k^2
+    ad = al * d
+    f = np.einsum("ij,ij->i", ad, d) - 1.0
+    S = np.maximum(np.einsum("ij,ij->i", ad, ad), 1e-12)
+    sq = np.sqrt(S)
+    G = 2.0 * sq
+    r = f / G
+    if not jac:
+        return r, None
+    # d f / d c_k = -2 al_k d_k; d f / d l_k = -2 al_k d_k^2
+    # d S / d c_k = -2 al_k^2 d_k; d S / d l_k = -4 al_k^2 d_k^2; d G = d S / sqrt(S)
+    df = np.concatenate([-2.0 * ad, -2.0 * ad * d], axis=1)
+    dS = np.concatenate([-2.0 * al * ad, -4.0 * ad * ad], axis=1)
+    dG = dS / sq[:, None]
+    J = (df * G[:, None] - f[:, None] * dG) / (G * G)[:, None]
+    return r, J
+
+
+def _centre_from_surface_fit(
+    P: np.ndarray, h: np.ndarray, cam_rover: np.ndarray, cfg: DetectorConfig, radius_m: float | None = None
+) -> tuple[np.ndarray, float]:
+    """Rock centre (rover frame) from an ellipsoid fitted to the visible stereo points.
+
+    The ellipsoid's axes are aligned with the viewing direction (along the ray, across
+    it, vertical). Its centre and three semi-axes are fitted (robust Gauss-Newton on
+    the points' Sampson distances, Cauchy weights) to the visible surface, with priors
+    that keep the fit well posed when the surface seen is a small cap: the lateral
+    semi-axis near the silhouette's radius (`radius_m`), the depth semi-axis near the
+    lateral one, and the vertical one near `surface_fit_height_ratio` x the lateral one
+    (log-normal, widths `surface_fit_*_sigma`); the rock's bottom is not above the local
+    ground (it rests on it or is buried). The points' own curvature moves the axes away
+    from these priors where the surface seen constrains them (large, near rocks). Starts
+    from, and falls back to, :func:`_centre_from_points` (too few points, a fit that
+    does not converge or moves the centre by more than two radii). Returns the centre
+    and the radius of :func:`_centre_from_points` (the silhouette's), which the
+    not-a-rock rules use."""
+    p0, R = _centre_from_points(P, h, cam_rover, cfg, radius_m)
+    P = np.asarray(P, float)
+    n_max = cfg.surface_fit_max_points
+    if P.shape[0] < cfg.surface_fit_min_points:
+        return p0, R
+    if P.shape[0] > n_max:
+        P = P[:: -(-P.shape[0] // n_max)]
+        h = np.asarray(h, float)[:: -(-np.asarray(h).shape[0] // n_max)]
+    ground = float(np.median(P[:, 2] - np.asarray(h, float)[: P.shape[0]]))
+    # local frame: x along the horizontal viewing ray to p0, y across it, z up; origin p0
+    d = p0[:2] - cam_rover[:2]
+    nd = float(np.hypot(d[0], d[1]))
+    fwd = d / nd if nd > 1e-9 else np.array([1.0, 0.0])
+    Rl = np.array([[fwd[0], fwd[1], 0.0], [-fwd[1], fwd[0], 0.0], [0.0, 0.0, 1.0]])  # rover -> local
+    D = (P - p0) @ Rl.T
+    g_loc = ground - p0[2]
+    rng = np.linalg.norm(P - cam_rover, axis=1)
+    # stereo range noise grows as range^2 (a fixed disparity error); floor for texture
+    sig = np.maximum(cfg.surface_fit_noise_m, cfg.surface_fit_noise_per_m2 * rng * rng)
+    # a rock is not an ellipsoid: its bumps and facets (spatially correlated, so the
+    # points count as at most surface_fit_points_eff independent ones)
+    sig = np.sqrt(sig * sig + (cfg.surface_fit_shape_sigma * R) ** 2) * np.sqrt(
+        max(D.shape[0] / cfg.surface_fit_points_eff, 1.0))
+    lR = float(np.log(R))
+    lk = float(np.log(cfg.surface_fit_height_ratio))
+    theta = np.array([0.0, 0.0, 0.0, lR, lR, lR + lk])
+    # priors as rows A theta - b (scaled by their sigmas)
+    sa, sf, sb = cfg.surface_fit_lateral_sigma, cfg.surface_fit_depth_sigma, cfg.surface_fit_height_sigma
+    A = np.array([
+        [0, 0, 0, 0, 1 / sa, 0],
+        [0, 0, 0, 1 / sf, -1 / sf, 0],
+        [0, 0, 0, 0, -1 / sb, 1 / sb],
+    ], float)  # fmt: skip
+    bvec = np.array([lR / sa, 0.0, lk / sb])
+    w = np.ones(D.shape[0])
+    for it in range(cfg.surface_fit_iterations):
+        r, J = _ellipsoid_residuals(D, theta)
+        rs = r / sig
+        if it > 0:  # Cauchy weights after the first step (scale: the noise)
+            w = 1.0 / (1.0 + (rs / cfg.surface_fit_cauchy) ** 2)
+        Js = J / sig[:, None] * np.sqrt(w)[:, None]
+        rw = rs * np.sqrt(w)
+        H = Js.T @ Js + A.T @ A
+        gvec = Js.T @ rw + A.T @ (A @ theta - bvec)
+        # the rock's bottom (c_z - b) is not above the local ground: a hinge
+        bottom = theta[2] - np.exp(theta[5]) - g_loc
+        if bottom > 0:
+            jb = np.array([0, 0, 1.0, 0, 0, -np.exp(theta[5])]) / cfg.surface_fit_noise_m
+            H += np.outer(jb, jb)
+            gvec += jb * bottom / cfg.surface_fit_noise_m
+        try:
+            step = np.linalg.solve(H + 1e-6 * np.eye(6), -gvec)
+        except np.linalg.LinAlgError:
+            return p0, R
+        step[3:] = np.clip(step[3:], -0.3, 0.3)
+        theta = theta + step
+        if not np.all(np.isfinite(theta)):
+            return p0, R
+        if np.max(np.abs(step[:3])) < 1e-4:
+            break
+    c = theta[:3]
+    if not np.all(np.isfinite(c)) or float(np.linalg.norm(c)) > 2.0 * R:
+        return p0, R
+    return p0 + Rl.T @ c, R
