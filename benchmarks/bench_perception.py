@@ -4,7 +4,7 @@ Usage
 -----
     python benchmarks/bench_perception.py ARCHIVE.lac [ARCHIVE.lac ...] [--every N]
         [--segmenter classical|fastsam --weights PATH] [--no-centre-correction]
-        [--json OUT.json]
+        [--centre-method METHOD] [--config RUN_CONFIG.json] [--breakdown] [--json OUT.json]
     python benchmarks/bench_perception.py --simulate SEED [SEED ...] [--lighting sun|lamps|sun+lamps]
         [--sun-elevation DEG] [--duration S] [--width W --height H] ...   # renders first (front pair)
     python benchmarks/bench_perception.py --lac-real DIR [--figure PNG]  # the real LAC frame
@@ -41,13 +41,14 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from lunarloc.geometry import transform_points
 from lunarloc.perception.camera import STEREO_PAIRS
-from lunarloc.perception.detector import Detector, DetectorConfig, detect_archive
+from lunarloc.perception.detector import CentreMethod, Detector, DetectorConfig, detect_archive
 
 SIZE_BANDS = [(0.0, 0.1), (0.1, 0.2), (0.2, 0.4), (0.4, 10.0)]
 RANGE_BANDS = [(0.0, 2.5), (2.5, 5.0), (5.0, 8.0)]
@@ -120,6 +121,8 @@ class Accumulator:
         self.err_xy: list[float] = []
         self.err3d_surface: list[float] = []
         self.err_target: list[float] = []  # r >= 0.1, range <= 5
+        # per target match (r >= 0.1, range <= 5): the error's parts, for --breakdown
+        self.target_rows: list[tuple] = []
         self.small_near = np.zeros(2, int)  # [hit, visible]: 0.05 <= r < 0.1 within 3 m
         self.times: dict[str, list[float]] = {}
         # false positives within 5 m by what lies under the detection's image centroid
@@ -170,6 +173,10 @@ class Accumulator:
                     self.err_xy.append(float(np.linalg.norm(det_xyz[i, :2] - centres[j, :2])))
                     if radii[j] >= 0.1 and rng <= 5.0:
                         self.err_target.append(dist)
+                        self.target_rows.append(
+                            centre_error_parts(det_xyz[i], centres[j], radii[j], rng, cam_pos, dets[i].radius_m,
+                                               detector.config)
+                        )
         for i, d in enumerate(dets):
             if i not in matched_det and d.depth_m < 5.0 and semantics.get(d.camera) is not None:
                 self.fp_causes[fp_cause(d, semantics[d.camera], id_to_idx, centres, radii, matched_rock)] += 1
@@ -212,6 +219,9 @@ class Accumulator:
             "centroid_err_target_p90_m": pct(self.err_target, 90),
             "centroid_err3d_median_m": pct(self.err3d, 50),
             "centroid_err3d_p90_m": pct(self.err3d, 90),
+            # horizontal error of the same matches (what localization mostly uses)
+            "centroid_err_target_xy_median_m": pct([r[3] for r in self.target_rows], 50),
+            "centroid_err_target_xy_p90_m": pct([r[3] for r in self.target_rows], 90),
             "centroid_err_xy_median_m": pct(self.err_xy, 50),
             "centroid_err_xy_p90_m": pct(self.err_xy, 90),
             "surface_centroid_err3d_median_m": pct(self.err3d_surface, 50),
@@ -219,6 +229,7 @@ class Accumulator:
             "recall_by_size_range": self.rec.tolist(),
             "precision_by_estsize_range": self.prec.tolist(),
             "false_positives_within_5m_by_cause": dict(self.fp_causes),
+            "centre_breakdown": centre_breakdown(self.target_rows),
             "time_per_frame_s": {k: float(np.mean(v)) for k, v in self.times.items()},
             # left images per second through segmentation + filtering, counting the
             # low-resolution stereo height map ("stereo") that the classical segmenter
@@ -227,6 +238,72 @@ class Accumulator:
                 2.0 / max(sum(float(np.mean(v)) for k, v in self.times.items() if k != "cpu"), 1e-9)
             ),
         }
+
+
+CENTRE_SIZE_BANDS = [(0.1, 0.15), (0.15, 0.2), (0.2, 0.3), (0.3, 0.5), (0.5, 10.0)]
+CENTRE_RANGE_BANDS = [(0.0, 2.5), (2.5, 5.0)]
+
+
+def centre_error_parts(est: np.ndarray, true: np.ndarray, r_true: float, rng: float, cam: np.ndarray, r_est: float,
+                       cfg: DetectorConfig) -> tuple:
+    """One matched detection's centre error, split: (true radius, range, 3D error, horizontal
+    error, along the horizontal viewing ray (+ = too far), across it, vertical (+ = too high),
+    estimated / true radius, 3D error with the true radius). The last is an oracle for the
+    stereo-points centre (centre_range_factor x R beyond the visible surface along the ray,
+    centre_height_factor x R below its top): the same centre moved as if R were the true
+    radius (the ray taken from the camera to the estimate); NaN for other methods."""
+    e = np.asarray(est, float) - true
+    v = true[:2] - cam[:2]
+    v = v / max(float(np.linalg.norm(v)), 1e-9)
+    along, lat = float(e[:2] @ v), float(-e[0] * v[1] + e[1] * v[0])
+    oracle = float("nan")
+    if cfg.centre_method is CentreMethod.STEREO_POINTS:
+        f = est[:2] - cam[:2]
+        f = f / max(float(np.linalg.norm(f)), 1e-9)
+        dR = r_true - r_est
+        moved = est + dR * np.array([cfg.centre_range_factor * f[0], cfg.centre_range_factor * f[1],
+                                     -cfg.centre_height_factor])  # fmt: skip
+        oracle = float(np.linalg.norm(moved - true))
+    return (float(r_true), float(rng), float(np.linalg.norm(e)), float(np.linalg.norm(e[:2])), along, lat, float(e[2]),
+            float(r_est / r_true), oracle)
+
+
+def centre_breakdown(rows: list[tuple]) -> dict:
+    """Centre error of target matches by true radius band and by range band: count,
+    median / p90 3D error, median horizontal error, median signed along-ray and vertical
+    parts, median |lateral| part, median estimated / true radius, and the median error
+    with the true radius (oracle; see centre_error_parts)."""
+    a = np.asarray(rows, float).reshape(-1, 9)
+    out = {}
+    for name, col, bands in (("radius", 0, CENTRE_SIZE_BANDS), ("range", 1, CENTRE_RANGE_BANDS)):
+        for lo, hi in bands:
+            m = a[(a[:, col] >= lo) & (a[:, col] < hi)]
+            if not len(m):
+                continue
+            key = f"{name} {lo:g}-{hi:g}" if hi < 10 else f"{name} >={lo:g}"
+            out[key] = {
+                "n": int(len(m)), "median_m": float(np.median(m[:, 2])), "p90_m": float(np.percentile(m[:, 2], 90)),
+                "xy_median_m": float(np.median(m[:, 3])), "along_median_m": float(np.median(m[:, 4])),
+                "lateral_abs_median_m": float(np.median(np.abs(m[:, 5]))), "vertical_median_m": float(np.median(m[:, 6])),
+                "radius_ratio_median": float(np.median(m[:, 7])),
+                "true_radius_oracle_median_m": float(np.median(m[:, 8])) if np.isfinite(m[:, 8]).all() else None,
+            }  # fmt: skip
+    return out
+
+
+def print_breakdown(groups: dict[str, dict]) -> None:
+    """The centre error's parts per lighting, by true radius and range band (cm)."""
+    print("centre error of target matches (cm): n, median, p90, horizontal median, along-ray (+ far), |lateral|, "
+          "vertical (+ high), est/true radius, median with the true radius")
+    for name, s in groups.items():
+        print(f"{name}: median {100 * s['centroid_err_target_median_m']:.1f}, horizontal "
+              f"{100 * s['centroid_err_target_xy_median_m']:.1f}")
+        for band, b in s["centre_breakdown"].items():
+            o = b["true_radius_oracle_median_m"]
+            print(f"  {band:>14} {b['n']:4d} {100 * b['median_m']:5.1f} {100 * b['p90_m']:5.1f} "
+                  f"{100 * b['xy_median_m']:5.1f} {100 * b['along_median_m']:+5.1f} {100 * b['lateral_abs_median_m']:4.1f} "
+                  f"{100 * b['vertical_median_m']:+5.1f} {b['radius_ratio_median']:5.2f} "
+                  + ("-" if o is None else f"{100 * o:5.1f}"))
 
 
 def print_summary(s: dict) -> None:
@@ -244,7 +321,7 @@ def print_summary(s: dict) -> None:
         row = s["precision_by_estsize_range"][i]
         print(f"{band(sb):>14} " + "".join(f"{(h / t if t else float('nan')):>8.2f} ({h:>3}/{t:>3})" for h, t in row))
     for k, v in s.items():
-        if k not in ("recall_by_size_range", "precision_by_estsize_range"):
+        if k not in ("recall_by_size_range", "precision_by_estsize_range", "centre_breakdown"):
             if k != "by_lighting":
                 print(f"{k}: {v}")
 
@@ -356,7 +433,7 @@ def lac_real_frame(folder: Path, figure: Path | None = None) -> list:
     return pr.detections
 
 
-def speed(path: Path, repeats: int = 5) -> dict:
+def speed(path: Path, repeats: int = 5, cfg: DetectorConfig | None = None) -> dict:
     """Wall and process-CPU time of the detector on one 1280x720 front pair of an
     archive (after a warm-up run): per stereo pair and per two-pair frame."""
     from lunarloc.data.lac import LacArchive
@@ -365,7 +442,7 @@ def speed(path: Path, repeats: int = 5) -> dict:
     with LacArchive(path) as ar:
         f = next(int(f) for f in ar.frame_numbers if ar.camera_row("FrontLeft", int(f)) is not None)
         L, R = ar.grayscale("FrontLeft", f), ar.grayscale("FrontRight", f)
-    det = Detector(DetectorConfig())
+    det = Detector(cfg or DetectorConfig())
     T = ipex_rig(det.camera)["FrontLeft"].T_rover_optical
     det.detect_pair(L, R, T)
     w0, c0 = time.perf_counter(), time.process_time()
@@ -389,21 +466,33 @@ def main(argv=None) -> int:
     ap.add_argument("--sun-elevation", type=float, default=12.0, help="simulated sun elevation, degrees (<= 0: night)")
     ap.add_argument("--out-dir", type=Path, default=Path("bench-output/perception"))
     ap.add_argument("--every", type=int, default=1, help="use every N-th camera frame")
-    ap.add_argument("--segmenter", default="classical")
+    ap.add_argument("--segmenter", default=None, help="classical | fastsam (default: the config's, classical)")
     ap.add_argument("--weights", default=None)
     ap.add_argument("--no-centre-correction", action="store_true")
+    ap.add_argument("--centre-method", default=None, help=" | ".join(m.value for m in CentreMethod) + " (default: the config's)")
+    ap.add_argument("--breakdown", action="store_true",
+                    help="print the centre error by true radius and range band, split along / across the ray / vertical")
     ap.add_argument("--min-gt-px", type=int, default=50)
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--lac-real", type=Path, default=None, help="run the real LAC frame in this folder and stop")
     ap.add_argument("--figure", type=Path, default=None, help="with --lac-real: draw the detections here")
     ap.add_argument("--speed", action="store_true", help="time the detector on one front pair of each archive")
+    ap.add_argument("--config", type=Path, default=None,
+                    help="a run configuration (config.json, `lunarloc config`): its detector section is benchmarked")
     a = ap.parse_args(argv)
+    base = DetectorConfig()
+    if a.config is not None:
+        from lunarloc.config import load_config_file
+
+        base = load_config_file(a.config)[0].detector
+    if a.centre_method:
+        base = replace(base, centre_method=CentreMethod(a.centre_method))
     if a.lac_real is not None:
         lac_real_frame(a.lac_real, a.figure)
         return 0
     if a.speed:
         for p in a.archives:
-            print(p, json.dumps({k: round(v, 1) for k, v in speed(p).items()}))
+            print(p, json.dumps({k: round(v, 1) for k, v in speed(p, cfg=base).items()}))
         return 0
     archives = list(a.archives)
     for seed in a.simulate:
@@ -425,7 +514,8 @@ def main(argv=None) -> int:
         archives.append(p)
     if not archives:
         ap.error("give archives or --simulate SEED")
-    cfg = DetectorConfig(segmenter=a.segmenter, weights=a.weights, centre_correction=not a.no_centre_correction)
+    cfg = replace(base, segmenter=a.segmenter or base.segmenter, weights=a.weights or base.weights,
+                  centre_correction=base.centre_correction and not a.no_centre_correction)
     acc = Accumulator()
     acc.min_gt_px = a.min_gt_px
     det = None
@@ -442,7 +532,7 @@ def main(argv=None) -> int:
         acc.small_near += g.small_near
         for k, v in g.fp_causes.items():
             acc.fp_causes[k] += v
-        for k in ("err3d", "err_xy", "err3d_surface", "err_target"):
+        for k in ("err3d", "err_xy", "err3d_surface", "err_target", "target_rows"):
             getattr(acc, k).extend(getattr(g, k))
         for k, v in g.times.items():
             acc.times.setdefault(k, []).extend(v)
@@ -454,6 +544,8 @@ def main(argv=None) -> int:
     s["config"] = configs[next(iter(configs))] if len(configs) == 1 else configs
     print_summary(s)
     print_groups({**s["by_lighting"], "all": s})
+    if a.breakdown:
+        print_breakdown({**s["by_lighting"], "all": s})
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)
         a.json.write_text(json.dumps(s, indent=2, default=str))
