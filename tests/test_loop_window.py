@@ -65,6 +65,23 @@ def test_window_stops_at_its_maximum():
     assert all(a.landmarks < 1000 for a in late)
 
 
+def test_maximum_below_the_window_keeps_it_fixed():
+    atts = _straight_drive(LoopConfig(window_m=4.0, localize_every_m=5.0, localize_every_s=1e6,
+                                      window_target_landmarks=1000, window_max_m=3.0)).attempts  # fmt: skip
+    assert atts and all(a.window_m == 4.0 for a in atts)
+
+
+def test_image_runs_default_to_the_adaptive_window():
+    from lunarloc.loop import IMAGE_WINDOW_M, IMAGE_WINDOW_MAX_M, IMAGE_WINDOW_TARGET_LANDMARKS
+
+    loop = RunConfig().loop
+    assert (loop.window_m, loop.window_target_landmarks, loop.window_max_m) == (
+        IMAGE_WINDOW_M, IMAGE_WINDOW_TARGET_LANDMARKS, IMAGE_WINDOW_MAX_M)
+    assert RunConfig.for_detections().loop.window_target_landmarks == 0  # the real dataset's runs: fixed window
+    # a longer window asked for on the command line is not refused by the default maximum
+    assert RunConfig().with_options(loop__window_m=16.0).loop.window_m == 16.0
+
+
 def test_target_met_by_the_base_window_keeps_it():
     atts = _straight_drive(LoopConfig(window_m=4.0, localize_every_m=5.0, localize_every_s=1e6,
                                       window_target_landmarks=2, window_max_m=16.0)).attempts  # fmt: skip
@@ -72,7 +89,7 @@ def test_target_met_by_the_base_window_keeps_it():
 
 
 @pytest.mark.parametrize("key, value", [("window_target_landmarks", -1), ("window_target_landmarks", 2.5),
-                                        ("window_target_landmarks", True), ("window_max_m", 3.0),
+                                        ("window_target_landmarks", True), ("window_max_m", "12"),
                                         ("window_max_m", -1.0), ("window_max_m", math.inf)])  # fmt: skip
 def test_bad_window_settings_name_their_key(key, value):
     with pytest.raises(ConfigError, match=key):
