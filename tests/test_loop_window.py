@@ -71,15 +71,14 @@ def test_maximum_below_the_window_keeps_it_fixed():
     assert atts and all(a.window_m == 4.0 for a in atts)
 
 
-def test_image_runs_default_to_the_adaptive_window():
-    from lunarloc.loop import IMAGE_WINDOW_M, IMAGE_WINDOW_MAX_M, IMAGE_WINDOW_TARGET_LANDMARKS
-
-    loop = RunConfig().loop
-    assert (loop.window_m, loop.window_target_landmarks, loop.window_max_m) == (
-        IMAGE_WINDOW_M, IMAGE_WINDOW_TARGET_LANDMARKS, IMAGE_WINDOW_MAX_M)
-    assert RunConfig.for_detections().loop.window_target_landmarks == 0  # the real dataset's runs: fixed window
-    # a longer window asked for on the command line is not refused by the default maximum
-    assert RunConfig().with_options(loop__window_m=16.0).loop.window_m == 16.0
+def test_runs_keep_a_fixed_window_by_default():
+    # off by default: under a drifting odometry a grown window gave a fix 11 cm off at 2.7 cm
+    # predicted (docs/multi-session-images.md); the window is stated rigid to the localizer
+    assert RunConfig().loop.window_target_landmarks == 0
+    assert RunConfig.for_detections().loop.window_target_landmarks == 0
+    # a longer window asked for on the command line is not refused by a smaller maximum
+    cfg = RunConfig().with_options(loop__window_target_landmarks=20, loop__window_max_m=12.0, loop__window_m=16.0)
+    assert cfg.loop.window_m == 16.0
 
 
 def test_target_met_by_the_base_window_keeps_it():

@@ -40,7 +40,7 @@ from lunarloc.maps import AggregationConfig, LandmarkMap, aggregate_detections
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
-__all__ = ["FixKind", "LoopConfig", "IMAGE_WINDOW_M", "image_loop_config", "image_localization_config", "Attempt", "LoopResult",
+__all__ = ["FixKind", "LoopConfig", "IMAGE_WINDOW_M", "image_localization_config", "Attempt", "LoopResult",
            "LoopState", "interpolate_corrections"]  # fmt: skip
 
 
@@ -110,20 +110,6 @@ class LoopConfig:
 IMAGE_WINDOW_M = 8.0
 """Local-map window for detections from simulated stereo images: less odometry distortion
 inside it before the first fix than the real dataset's 12 m."""
-
-
-IMAGE_WINDOW_TARGET_LANDMARKS = 20
-IMAGE_WINDOW_MAX_M = 12.0
-"""Adaptive window of runs on images: a local map of fewer than 20 landmarks grows to up to
-12 m. Measured on five held-out multi-session sites at the LAC's density (docs/multi-session-
-images.md): the windows that fail hold 6-10 rocks that are also in the reference map against
-the 8-10 inliers the chance test asks for."""
-
-
-def image_loop_config(**overrides) -> LoopConfig:
-    """The loop of runs on images: an `IMAGE_WINDOW_M` window, grown when sparse (above)."""
-    return LoopConfig(**{"window_m": IMAGE_WINDOW_M, "window_target_landmarks": IMAGE_WINDOW_TARGET_LANDMARKS,
-                         "window_max_m": IMAGE_WINDOW_MAX_M, **overrides})  # fmt: skip
 
 
 RIGID_WINDOW = {"odometry_scale_error": 0.0, "odometry_heading_drift_deg_per_m": 0.0}
