@@ -156,7 +156,7 @@ class Attempt:
     inlier_reference_xyz: list | None = None
     time_mapping_s: float = 0.0
     time_association_s: float = 0.0
-    window_m: float = float("nan")  # length of path whose detections formed the local map (adaptive window)
+    window_m: float = float("nan")  # window length used: window_m, or longer where the adaptive window grew
 
     def row(self) -> dict:
         d = asdict(self)
