@@ -7,7 +7,7 @@ Usage
         [--image-rate 1] [--vehicle-image-rate R] [--lighting sun|lamps|sun+lamps] [--sun-elevation DEG]
         [--width 1280 --height 720] [--rocks N] [--all-cameras]
         [--min-sightings 5 2] [--epsilon 0.05 0.08] [--poses gt/gt ...] [--online] [--json OUT.json]
-        [--plan random|survey] [--reference-duration D] [--odometry SOURCE]
+        [--plan random|survey] [--reference-duration D] [--odometry SOURCE] [--run-config C.json --run-tag T]
 
 Steps (each runs the project's own command line; outputs already in DIR are reused):
 
