@@ -7,7 +7,7 @@ Usage
         [--image-rate 1] [--vehicle-image-rate R] [--lighting sun|lamps|sun+lamps] [--sun-elevation DEG]
         [--width 1280 --height 720] [--rocks N] [--all-cameras]
         [--min-sightings 5 2] [--epsilon 0.05 0.08] [--poses gt/gt ...] [--online] [--json OUT.json]
-        [--plan random|survey] [--reference-duration D] [--odometry SOURCE]
+        [--plan random|survey] [--reference-duration D] [--odometry SOURCE] [--run-config C.json --run-tag T]
 
 Steps (each runs the project's own command line; outputs already in DIR are reused):
 
@@ -152,6 +152,16 @@ def _odometry_source(run_dir: Path) -> str | None:
         return None
 
 
+def _fix_record(run_dir: Path) -> dict:
+    """Of a run's accepted fixes: the worst one's error and predicted error (m), and the
+    first one's time (s from the run's first attempt's clock)."""
+    atts = [a for a in json.loads((run_dir / "attempts.json").read_text()) if a["accepted"]]
+    scored = [a for a in atts if a.get("fix_error_m") is not None and math.isfinite(a["fix_error_m"])]
+    worst = max(scored, key=lambda a: a["fix_error_m"]) if scored else None
+    return {"worst_fix_predicted_m": None if worst is None else worst["predicted_error_m"],
+            "first_fix_time_s": atts[0]["time_s"] if atts else None}
+
+
 def _landmark_rocks(map_path: Path, det_path: Path, gt_det_path: Path, rocks: np.ndarray, radius_m: float = 0.10):
     """Ground-truth rock of each landmark of a map (-1: none within max(0.15 m, r)) and
     its distance, by the landmark's detections seen with ground-truth poses.
@@ -242,6 +252,10 @@ def main(argv=None) -> int:
     ap.add_argument("--reference-duration", type=float, default=None, help="reference traverse, s (default --duration)")
     ap.add_argument("--odometry", default=None,
                     help="`lunarloc run --odometry` for --online (default: run's own, visual odometry)")  # fmt: skip
+    ap.add_argument("--run-config", type=Path, default=None,
+                    help="`lunarloc run --config` for --online (e.g. a config.json with the loop's adaptive window)")  # fmt: skip
+    ap.add_argument("--run-tag", default="",
+                    help="suffix of the --online run folders (runs whose folder exists are not run again)")  # fmt: skip
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
@@ -299,11 +313,12 @@ def main(argv=None) -> int:
         for i in range(1, len(archives)):
             for ms in a.min_sightings:
                 odo_tag = "" if a.odometry is None else "_" + a.odometry.replace(":", "-")
-                run_dir = a.out / f"run_{i}_ms{ms}{odo_tag}"
+                run_dir = a.out / f"run_{i}_ms{ms}{odo_tag}{'_' + a.run_tag if a.run_tag else ''}"
                 if not (run_dir / "summary.json").exists():
                     _run(_lunarloc() + ["run", str(archives[i]), "--reference", str(maps[0, "gt", ms]), "--out",
                                         str(run_dir), "--no-plot"]
-                         + ([] if a.odometry is None else ["--odometry", a.odometry]), log)  # fmt: skip
+                         + ([] if a.odometry is None else ["--odometry", a.odometry])
+                         + ([] if a.run_config is None else ["--config", str(a.run_config)]), log)  # fmt: skip
                 rs = json.loads((run_dir / "summary.json").read_text())
                 online.append({
                     "veh": i, "min_sightings": ms, "ref_landmarks": rs["reference_landmarks"],
@@ -311,6 +326,7 @@ def main(argv=None) -> int:
                     "online_rmse_m": rs["ate_online"]["rmse_m"], "corrected_rmse_m": rs["ate_corrected"]["rmse_m"],
                     "odometry_rmse_m": rs["ate_odometry"]["rmse_m"], "path_m": rs["path_length_m"],
                     "worst_fix_m": rs.get("max_accepted_fix_error_m"),
+                    **_fix_record(run_dir),
                     "odometry_source": _odometry_source(run_dir),
                 })  # fmt: skip
     summary = {

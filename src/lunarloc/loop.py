@@ -63,6 +63,11 @@ class LoopConfig:
     localize_every_m: float = 1.5  # attempt a localization after this much odometry travel ...
     localize_every_s: float = 20.0  # ... or this much time, whichever comes first
     window_m: float = 12.0  # the local map holds detections of the last window_m metres of travel
+    # adaptive window (:meth:`LoopState.local_map`): a local map of fewer than window_target_landmarks
+    # landmarks grows back along the path in steps of window_m / 2, up to window_max_m (<= window_m or
+    # a target of 0: fixed window)
+    window_target_landmarks: int = 0
+    window_max_m: float = 0.0
     min_window_landmarks: int = 6  # fewer landmarks than this: no attempt (recorded as skipped)
     crop_reference: bool = True  # localize against the reference near the predicted window only
     crop_sigmas: float = 3.0  # crop radius = window radius + crop_sigmas x predicted sigma ...
@@ -89,6 +94,12 @@ class LoopConfig:
             raise ConfigError(f"fix_kind={self.fix_kind!r}: use one of {', '.join(k.value for k in FixKind)}") from None
         if not isinstance(self.min_window_landmarks, int) or self.min_window_landmarks < 3:
             raise ConfigError(f"min_window_landmarks={self.min_window_landmarks!r} must be an integer >= 3")
+        t = self.window_target_landmarks
+        if not isinstance(t, int) or isinstance(t, bool) or t < 0:
+            raise ConfigError(f"window_target_landmarks={t!r} must be an integer >= 0 (0: fixed window)")
+        w = self.window_max_m
+        if not (isinstance(w, (int, float)) and not isinstance(w, bool) and 0 <= w < math.inf):
+            raise ConfigError(f"window_max_m={w!r} must be >= 0 and finite (at most window_m: fixed window)")
 
     def to_dict(self) -> dict:
         from lunarloc.config import config_to_dict
@@ -145,6 +156,7 @@ class Attempt:
     inlier_reference_xyz: list | None = None
     time_mapping_s: float = 0.0
     time_association_s: float = 0.0
+    window_m: float = float("nan")  # window length used: window_m, or longer where the adaptive window grew
 
     def row(self) -> dict:
         d = asdict(self)
@@ -310,11 +322,29 @@ class LoopState:
     def _correction(self, k: int) -> np.ndarray:
         return self.graph.keyframes[k].T_map_odo
 
-    def window(self, k: int) -> np.ndarray:
+    def window(self, k: int, length_m: float | None = None) -> np.ndarray:
         """Indices of the keyframes whose detections form keyframe k's local map: those of the
-        last ``window_m`` metres of odometry path up to it (and any after it)."""
+        last `length_m` (default ``window_m``) metres of odometry path up to it (and any after it)."""
         path = np.array([kf.path_m for kf in self.graph.keyframes])
-        return np.flatnonzero(path >= path[k] - self.config.window_m)
+        return np.flatnonzero(path >= path[k] - (self.config.window_m if length_m is None else length_m))
+
+    def local_map(self, k: int, poses4: np.ndarray):
+        """Keyframe k's local map, its detections placed with `poses4`: (window keyframes,
+        points, keyframe of each, index of each within its keyframe, the aggregated
+        LandmarkMap, window length m). The window is the last ``window_m`` metres of path; an
+        adaptive window (``window_target_landmarks`` > 0, ``window_max_m`` > ``window_m``)
+        whose map holds fewer landmarks than the target grows back along the path by
+        ``window_m / 2`` at a time, up to ``window_max_m`` or the first keyframe (the longest
+        is used when none reaches the target)."""
+        cfg = self.config
+        length = cfg.window_m
+        while True:
+            win = self.window(k, length)
+            P, F, I = self.window_points(win, poses4, with_index=True)
+            veh = aggregate_detections(P, F, cfg.aggregation, frame="estimate") if len(P) else LandmarkMap(np.zeros((0, 3)))
+            if len(veh) >= cfg.window_target_landmarks or length >= cfg.window_max_m or win[0] == 0:
+                return win, P, F, I, veh, length
+            length = min(length + cfg.window_m / 2, cfg.window_max_m)
 
     def window_points(self, keyframes: np.ndarray, poses4: np.ndarray | None, with_index: bool = False):
         """Detections of `keyframes` placed with `poses4` (estimate) or odometry (None):
@@ -343,11 +373,9 @@ class LoopState:
     def _attempt(self, k: int, frame: int, t: float) -> Attempt:
         cfg = self.config
         t0 = time.perf_counter()
-        win = self.window(k)
         poses = self.graph.poses()
-        P, F, I = self.window_points(win, poses, with_index=True)
-        veh = aggregate_detections(P, F, cfg.aggregation, frame="estimate") if len(P) else LandmarkMap(np.zeros((0, 3)))
-        att = Attempt(frame, t, k, len(veh), 0, False, False)
+        win, P, F, I, veh, length = self.local_map(k, poses)
+        att = Attempt(frame, t, k, len(veh), 0, False, False, window_m=float(length))
         ref = self.reference
         if cfg.crop_reference and len(veh):
             c = veh.positions_xyz[:, :2].mean(axis=0)
