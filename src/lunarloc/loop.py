@@ -35,7 +35,7 @@ from lunarloc.errors import ConfigError, InputError, LunarLocError
 from lunarloc.fusion import FusionConfig, Keyframe, PoseGraph, wrap_angle
 from lunarloc.geometry import matrix_to_pose, pose_to_matrix, transform_points, yaw_of
 from lunarloc.localize import LocalizationConfig, localize
-from lunarloc.maps import AggregationConfig, LandmarkMap, aggregate_detections
+from lunarloc.maps import AggregationConfig, LandmarkMap, aggregate_detections, detection_arcs_m
 
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
@@ -346,7 +346,8 @@ class LoopState:
         win = self.window(k)
         poses = self.graph.poses()
         P, F, I = self.window_points(win, poses, with_index=True)
-        veh = aggregate_detections(P, F, cfg.aggregation, frame="estimate") if len(P) else LandmarkMap(np.zeros((0, 3)))
+        veh = aggregate_detections(P, F, cfg.aggregation, frame="estimate", detection_arc_m=detection_arcs_m(
+            poses[win, :3], win, F)) if len(P) else LandmarkMap(np.zeros((0, 3)))  # arcs along the path given below
         att = Attempt(frame, t, k, len(veh), 0, False, False)
         ref = self.reference
         if cfg.crop_reference and len(veh):
