@@ -164,3 +164,18 @@ def test_compact_rigid_map_in_a_lac_grid_localizes_without_bounds():
     assert r.distortion_fit["placement"] == "straight stand-in"
     err = np.linalg.norm(transform_points(r.T_ref_veh @ invert_transform(T), P) - P, axis=1).max()
     assert err < r.predicted_error_m < 0.10
+
+
+def test_max_sighting_span_is_a_run_setting(tmp_path):
+    import json
+
+    from lunarloc.config import RunConfig, load_config_file
+    from lunarloc.errors import ConfigError
+
+    assert RunConfig().localization.max_sighting_span_m == 10.0
+    p = tmp_path / "config.json"
+    p.write_text(json.dumps({"localization": {"max_sighting_span_m": 25.0}}))
+    cfg, _ = load_config_file(p)
+    assert cfg.localization.max_sighting_span_m == 25.0 and RunConfig.from_dict(cfg.to_dict()) == cfg
+    with pytest.raises(ConfigError, match="max_sighting_span_m"):
+        LocalizationConfig(max_sighting_span_m=0.0)
