@@ -69,7 +69,8 @@ def main() -> None:
                 err_c, err_max = float(np.linalg.norm(centre - P.mean(axis=0))), float(e.max())
             else:
                 err_c = err_max = float("nan")
-            rows.append((seed, len(ref), len(veh), r.success, r.num_inliers, err_c, err_max, r.predicted_error_m, dt))
+            rows.append((seed, len(ref), len(veh), r.success, r.num_inliers, err_c, err_max, r.predicted_error_m, dt,
+                         r.predicted_rotation_deg, r.distortion_fit))
             print(f"site {seed} ({len(ref)} grid rocks) vehicle {len(veh):3d}: success {r.success!s:5s} "
                   f"inliers {r.num_inliers:3d} err centre {err_c * 100:5.1f} cm, max {err_max * 100:5.1f} cm, "
                   f"predicted {r.predicted_error_m * 100:5.1f} cm, {dt:.2f} s  {'' if r.success else r.reason[:70]}",
@@ -80,6 +81,15 @@ def main() -> None:
                 f"{max(r[5] for r in ok) * 100:.1f} cm, max anywhere {max(r[6] for r in ok) * 100:.1f} cm; the predicted "
                 f"error covers the max error in {np.mean([r[6] <= r[7] for r in ok]):.0%} (1 sigma) / "
                 f"{np.mean([r[6] <= 3 * r[7] for r in ok]):.0%} (3 sigma)") if ok else "none to measure"
+    fits = [r[10] for r in rows if r[10] and np.isfinite(r[10]["sigma_m"])]
+    if fits:  # no bounds stated: what the predicted error is made of (medians over the fitted maps)
+        med = {k: np.median([f[k] for f in fits]) for k in ("shift_m", "sigma_m", "floor_sigma_m", "rotation_shift_deg",
+                                                            "rotation_sigma_deg", "rotation_floor_sigma_deg")}
+        print(f"bend fitted on {len(fits)} maps, medians: predicted {np.median([r[7] for r in rows]) * 100:.1f} cm / "
+              f"{np.median([r[9] for r in rows]):.2f} deg; shift {med['shift_m'] * 100:.1f} cm / "
+              f"{med['rotation_shift_deg']:.2f} deg, bend's own sigma {med['sigma_m'] * 100:.1f} cm / "
+              f"{med['rotation_sigma_deg']:.2f} deg, floor {med['floor_sigma_m'] * 100:.1f} cm / "
+              f"{med['rotation_floor_sigma_deg']:.2f} deg; true max error {np.median([r[6] for r in rows]) * 100:.1f} cm")
     print(f"{len(ok)} of {len(rows)} localized, {len(wrong)} of them more than 10 cm off anywhere on the vehicle map;"
           f" {accuracy}; time median {np.median([r[8] for r in rows]):.2f} s (load average {os.getloadavg()[0]:.1f})")
 

@@ -36,7 +36,7 @@ from lunarloc.geometry import (
     transform_points,
 )
 from lunarloc.localize import LocalizationConfig, localize
-from lunarloc.maps import AggregationConfig, Traverse, aggregate_detections, load_traverse
+from lunarloc.maps import AggregationConfig, Traverse, aggregate_detections, detection_arcs_m, load_traverse
 
 log = logging.getLogger(__name__)
 
@@ -234,13 +234,13 @@ def vehicle_map(
     else:
         det, rover, T_odo_world = drifted_detections(veh_trav, drift)
     T_veh_odo = random_vehicle_transform(rng)
-    det_frame = veh_trav.detection_frame
+    det_frame, frames = veh_trav.detection_frame, veh_trav.frames
     if window_m is not None:
         travelled = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(veh_trav.rover_xyz, axis=0), axis=1))]
         first = veh_trav.frames[np.searchsorted(travelled, travelled[-1] - window_m)]
         keep = det_frame >= first
         det, det_frame = det[keep], det_frame[keep]
-        rover = rover[veh_trav.frames >= first]
+        rover, frames = rover[veh_trav.frames >= first], frames[veh_trav.frames >= first]
     last = rover[-1]
     if scale_about_centroid != 1.0 and len(det):
         c = det.mean(axis=0)
@@ -250,10 +250,13 @@ def vehicle_map(
         T_odo_world = make_transform(np.eye(3), last - rover[-1]) @ T_odo_world
         rover = c + scale_about_centroid * (rover - c)
     det_v = transform_points(T_veh_odo, det)
-    veh = aggregate_detections(det_v, det_frame, agg_config, frame=veh_trav.name)
+    path_v = transform_points(T_veh_odo, rover)
+    # where along the returned path each landmark was seen from (the bend model places it there)
+    veh = aggregate_detections(det_v, det_frame, agg_config, frame=veh_trav.name,
+                               detection_arc_m=detection_arcs_m(path_v, frames, det_frame))
     T_true = invert_transform(T_veh_odo @ T_odo_world)  # world <- vehicle, exact at the last frame
     last_v = transform_points(T_veh_odo, last[None])[0]
-    return veh, T_true, last_v, transform_points(T_veh_odo, rover)
+    return veh, T_true, last_v, path_v
 
 
 def run_pair(

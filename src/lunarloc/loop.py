@@ -35,7 +35,7 @@ from lunarloc.errors import ConfigError, InputError, LunarLocError
 from lunarloc.fusion import FusionConfig, Keyframe, PoseGraph, wrap_angle
 from lunarloc.geometry import matrix_to_pose, pose_to_matrix, transform_points, yaw_of
 from lunarloc.localize import LocalizationConfig, localize
-from lunarloc.maps import AggregationConfig, LandmarkMap, aggregate_detections
+from lunarloc.maps import AggregationConfig, LandmarkMap, aggregate_detections, detection_arcs_m
 
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
@@ -341,7 +341,8 @@ class LoopState:
         while True:
             win = self.window(k, length)
             P, F, I = self.window_points(win, poses4, with_index=True)
-            veh = aggregate_detections(P, F, cfg.aggregation, frame="estimate") if len(P) else LandmarkMap(np.zeros((0, 3)))
+            veh = aggregate_detections(P, F, cfg.aggregation, frame="estimate", detection_arc_m=detection_arcs_m(
+                poses4[win, :3], win, F)) if len(P) else LandmarkMap(np.zeros((0, 3)))  # arcs along the window's path
             if len(veh) >= cfg.window_target_landmarks or length >= cfg.window_max_m or win[0] == 0:
                 return win, P, F, I, veh, length
             length = min(length + cfg.window_m / 2, cfg.window_max_m)

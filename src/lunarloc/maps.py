@@ -4,10 +4,13 @@ loader, and aggregation of per-frame rock detections into landmarks.
 File formats
 ------------
 * Landmark-map CSV: header ``x,y,z`` with optional ``size`` (m), ``sightings``,
-  ``sigma_xy`` and ``sigma_z`` (1-sigma position uncertainty, m) columns, one landmark per row; a first comment line ``# frame: NAME`` keeps the
-  frame name.
+  ``sigma_xy`` and ``sigma_z`` (1-sigma position uncertainty, m) columns, and optional
+  ``sighting_arc``, ``sighting_arc_min`` and ``sighting_arc_max`` (m: where along the vehicle's
+  odometry path the landmark was seen from, all three or none), one landmark per row; a first
+  comment line ``# frame: NAME`` keeps the frame name. Files without the optional columns load.
 * Binary: NumPy ``.npz`` with arrays ``positions_xyz``, optional ``sizes``,
-  ``sightings``, ``sigma_xy_m`` and ``sigma_z_m``, and a 0-d string ``frame``.
+  ``sightings``, ``sigma_xy_m``, ``sigma_z_m``, ``sighting_arc_m``, ``sighting_arc_min_m`` and
+  ``sighting_arc_max_m``, and a 0-d string ``frame``.
 * Traverse CSV (the LunarLoc dataset, ``mit-acl/lunarloc-data``):
   ``frame,x,y,z,detections,boulders`` where ``boulders`` is a Python-literal list
   of ``(x, y, z)`` rock centroids in the map frame.
@@ -42,6 +45,8 @@ __all__ = [
     "TRAVERSE_COLUMNS",
     "sighting_sigma",
     "NO_HEIGHT_SIGMA_M",
+    "path_arc_length_m",
+    "detection_arcs_m",
 ]
 
 TRAVERSE_COLUMNS = ("frame", "x", "y", "z", "detections", "boulders")
@@ -67,6 +72,9 @@ def parse_boulders(text: str) -> np.ndarray:
     vals = np.array(_NUMBER.findall(t), dtype=float)
     return vals.reshape(-1, 3)
 
+#: LandmarkMap's optional sighting arc-length fields (all three or none)
+_ARC_FIELDS = ("sighting_arc_m", "sighting_arc_min_m", "sighting_arc_max_m")
+
 #: a landmark's vertical sigma at or above this means "height unknown" (e.g. a rock catalogue
 #: without heights): the localizer then associates in 2D + yaw
 NO_HEIGHT_SIGMA_M = 1.0e6
@@ -86,6 +94,14 @@ class LandmarkMap:
         gives its quantisation cell / sqrt(12), an image-built map its sighting spread.
     sigma_z_m : optional (N,) 1-sigma vertical position uncertainty (m).
     Unknown uncertainty stays None: the localizer then uses its configured defaults.
+    sighting_arc_m, sighting_arc_min_m, sighting_arc_max_m : optional (N,) where the vehicle
+        saw each landmark from, as distance travelled (horizontally, m) along its odometry path
+        from that path's first pose (:func:`path_arc_length_m`): the mean over the landmark's
+        detections, and their least and greatest. All three or none; None for maps not built
+        by a vehicle (overhead grids, catalogues). The localizer's bend model
+        (:func:`lunarloc.localize.bending_fit`) places each landmark there along the path it is
+        given (``localize(path_xyz=)``, the same path from the same first pose); a wide span
+        (min to max) marks a landmark the path passed more than once.
     """
 
     positions_xyz: np.ndarray
@@ -94,12 +110,15 @@ class LandmarkMap:
     frame: str = "map"
     sigma_xy_m: np.ndarray | None = None
     sigma_z_m: np.ndarray | None = None
+    sighting_arc_m: np.ndarray | None = None
+    sighting_arc_min_m: np.ndarray | None = None
+    sighting_arc_max_m: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.positions_xyz = as_points(self.positions_xyz, "landmark positions")
         _check_coordinates(self.positions_xyz, "landmark positions")
         n = len(self.positions_xyz)
-        for name in ("sizes", "sightings", "sigma_xy_m", "sigma_z_m"):
+        for name in ("sizes", "sightings", "sigma_xy_m", "sigma_z_m") + _ARC_FIELDS:
             val = getattr(self, name)
             if val is None:
                 continue
@@ -109,6 +128,21 @@ class LandmarkMap:
             if not np.all(np.isfinite(arr)) or np.any(arr < 0):
                 raise InputError(f"{name} must be finite and non-negative")
             setattr(self, name, arr)
+        given = [getattr(self, name) is not None for name in _ARC_FIELDS]
+        if any(given) and not all(given):
+            raise InputError(f"{', '.join(_ARC_FIELDS)} go together: give all three or none")
+        if all(given) and not np.all((self.sighting_arc_min_m <= self.sighting_arc_m + 1e-5)
+                                     & (self.sighting_arc_m <= self.sighting_arc_max_m + 1e-5)):
+            raise InputError("sighting arc lengths must satisfy min <= mean <= max for every landmark")
+
+    @property
+    def has_sighting_arcs(self) -> bool:
+        """Whether the map says where along its vehicle's path each landmark was seen from."""
+        return self.sighting_arc_m is not None
+
+    def _arcs(self, idx=None) -> dict:
+        return {name: (None if getattr(self, name) is None else getattr(self, name) if idx is None
+                       else getattr(self, name)[idx]) for name in _ARC_FIELDS}
 
     def __len__(self) -> int:
         return len(self.positions_xyz)
@@ -128,13 +162,14 @@ class LandmarkMap:
             self.frame,
             None if self.sigma_xy_m is None else self.sigma_xy_m[idx],
             None if self.sigma_z_m is None else self.sigma_z_m[idx],
+            **self._arcs(idx),
         )
 
     def transformed(self, T_new_frame: np.ndarray, frame: str | None = None) -> "LandmarkMap":
         """Copy with positions mapped by `T_new_frame` (4x4) into a new frame."""
         return LandmarkMap(
             transform_points(T_new_frame, self.positions_xyz), self.sizes, self.sightings, frame or self.frame,
-            self.sigma_xy_m, self.sigma_z_m,
+            self.sigma_xy_m, self.sigma_z_m, **self._arcs(),
         )
 
 
@@ -316,22 +351,32 @@ def aggregate_detections(
     detection_frame: np.ndarray | None = None,
     config: AggregationConfig | None = None,
     frame: str = "map",
+    detection_arc_m: np.ndarray | None = None,
 ) -> LandmarkMap:
     """Cluster detections (D, 3) into a LandmarkMap (median centre, sighting count).
 
     `detection_frame` (D,) gives the frame of each detection; with it, `sightings`
-    counts distinct frames and `config.min_frames` applies.
+    counts distinct frames and `config.min_frames` applies. `detection_arc_m` (D,) gives the
+    distance the vehicle had travelled along its path when it took each detection
+    (:func:`detection_arcs_m`); with it, the map carries each landmark's sighting arc length
+    (mean, least, greatest over its detections).
     """
     from sklearn.cluster import DBSCAN
 
     cfg = config or AggregationConfig()
     pts = as_points(detections_xyz, "detections")
+    arc = None
+    if detection_arc_m is not None:
+        arc = np.asarray(detection_arc_m, dtype=float).reshape(-1)
+        if arc.shape[0] != len(pts) or not np.all(np.isfinite(arc)) or np.any(arc < 0):
+            raise InputError(f"detection_arc_m must hold {len(pts)} finite non-negative values, got {arc.shape[0]}")
+    no_arcs = {} if arc is None else {name: np.zeros(0) for name in _ARC_FIELDS}
     if len(pts) == 0:
-        return LandmarkMap(np.zeros((0, 3)), sightings=np.zeros(0), frame=frame)
+        return LandmarkMap(np.zeros((0, 3)), sightings=np.zeros(0), frame=frame, **no_arcs)
     labels = DBSCAN(eps=cfg.radius_m, min_samples=cfg.min_sightings).fit_predict(pts)
     keep = labels >= 0
     if not np.any(keep):
-        return LandmarkMap(np.zeros((0, 3)), sightings=np.zeros(0), frame=frame)
+        return LandmarkMap(np.zeros((0, 3)), sightings=np.zeros(0), frame=frame, **no_arcs)
     lab = labels[keep]
     order = np.argsort(lab, kind="stable")
     lab_sorted = lab[order]
@@ -339,7 +384,8 @@ def aggregate_detections(
     starts = np.flatnonzero(np.r_[True, lab_sorted[1:] != lab_sorted[:-1]])
     groups = np.split(np.arange(len(lab_sorted)), starts[1:])
     frames_sorted = None if detection_frame is None else np.asarray(detection_frame)[keep][order]
-    centres, counts, spreads = [], [], []
+    arc_sorted = None if arc is None else arc[keep][order]
+    centres, counts, spreads, arcs = [], [], [], []
     for g in groups:
         n = len(np.unique(frames_sorted[g])) if frames_sorted is not None else len(g)
         if n < cfg.min_frames and frames_sorted is not None:
@@ -347,11 +393,16 @@ def aggregate_detections(
         centres.append(np.median(pts_sorted[g], axis=0))
         counts.append(n)
         spreads.append(sighting_sigma(pts_sorted[g], n))
+        if arc_sorted is not None:
+            a = arc_sorted[g]
+            arcs.append((float(np.mean(a)), float(a.min()), float(a.max())))
     if not centres:
-        return LandmarkMap(np.zeros((0, 3)), sightings=np.zeros(0), frame=frame)
+        return LandmarkMap(np.zeros((0, 3)), sightings=np.zeros(0), frame=frame, **no_arcs)
     sig = np.asarray(spreads, dtype=float).reshape(-1, 2)
+    A = np.asarray(arcs, dtype=float).reshape(-1, 3)
     return LandmarkMap(np.asarray(centres), sightings=np.asarray(counts, dtype=float), frame=frame,
-                       sigma_xy_m=sig[:, 0], sigma_z_m=sig[:, 1])
+                       sigma_xy_m=sig[:, 0], sigma_z_m=sig[:, 1],
+                       **({} if arc is None else dict(zip(_ARC_FIELDS, A.T))))
 
 
 def sighting_sigma(points_xyz: np.ndarray, n_independent: int) -> tuple[float, float]:
@@ -365,9 +416,36 @@ def sighting_sigma(points_xyz: np.ndarray, n_independent: int) -> tuple[float, f
     return float(k * np.sqrt(0.5 * (mad[0] ** 2 + mad[1] ** 2))), float(k * mad[2])
 
 
+def path_arc_length_m(path_xyz: np.ndarray) -> np.ndarray:
+    """(F,) horizontal distance travelled along a path (F, 3) from its first pose: the arc
+    length in which :class:`LandmarkMap` states where a landmark was seen from."""
+    P = np.asarray(path_xyz, dtype=float).reshape(-1, 3)
+    return np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(P[:, :2], axis=0), axis=1))] if len(P) else np.zeros(0)
+
+
+def detection_arcs_m(path_xyz: np.ndarray, path_frame: np.ndarray, detection_frame: np.ndarray) -> np.ndarray:
+    """(D,) arc length along `path_xyz` (F, 3; its poses numbered by `path_frame` (F,)) at which
+    each detection was taken (its frame `detection_frame` (D,)). InputError if a detection's
+    frame is not a pose of the path."""
+    frames = np.asarray(path_frame).reshape(-1)
+    arc = path_arc_length_m(path_xyz)
+    if len(frames) != len(arc):
+        raise InputError(f"path has {len(arc)} poses but {len(frames)} frame numbers")
+    det = np.asarray(detection_frame).reshape(-1)
+    order = np.argsort(frames, kind="stable")
+    pos = np.searchsorted(frames[order], det)
+    pos = np.minimum(pos, max(len(frames) - 1, 0))
+    if len(det) and (not len(frames) or np.any(frames[order][pos] != det)):
+        raise InputError("a detection's frame is not a pose of the path: no arc length for it")
+    return arc[order][pos]
+
+
 def traverse_map(traverse: Traverse, config: AggregationConfig | None = None) -> LandmarkMap:
-    """Landmark map of a traverse's detections (frame name = traverse name)."""
-    return aggregate_detections(traverse.detections_xyz, traverse.detection_frame, config, frame=traverse.name)
+    """Landmark map of a traverse's detections (frame name = traverse name), with where along
+    the traverse's path each landmark was seen from (arc length from its first frame)."""
+    arcs = detection_arcs_m(traverse.rover_xyz, traverse.frames, traverse.detection_frame)
+    return aggregate_detections(traverse.detections_xyz, traverse.detection_frame, config, frame=traverse.name,
+                                detection_arc_m=arcs)
 
 
 __all__.append("traverse_map")
@@ -386,7 +464,7 @@ def save_map(landmarks: LandmarkMap, path: str | Path) -> Path:
             extra["sizes"] = landmarks.sizes
         if landmarks.sightings is not None:
             extra["sightings"] = landmarks.sightings
-        for name in _SIGMA_COLUMNS.values():
+        for name in (*_SIGMA_COLUMNS.values(), *_ARC_COLUMNS.values()):
             if getattr(landmarks, name) is not None:
                 extra[name] = getattr(landmarks, name)
         from lunarloc.outputs import atomic_path
@@ -404,7 +482,7 @@ def save_map(landmarks: LandmarkMap, path: str | Path) -> Path:
     if landmarks.sightings is not None:
         cols.append("sightings")
         data.append(landmarks.sightings[:, None])
-    for col, name in _SIGMA_COLUMNS.items():
+    for col, name in (*_SIGMA_COLUMNS.items(), *_ARC_COLUMNS.items()):
         if getattr(landmarks, name) is not None:
             cols.append(col)
             data.append(getattr(landmarks, name)[:, None])
@@ -421,6 +499,8 @@ def save_map(landmarks: LandmarkMap, path: str | Path) -> Path:
 
 # optional per-landmark uncertainty: CSV column -> LandmarkMap attribute (and .npz array)
 _SIGMA_COLUMNS = {"sigma_xy": "sigma_xy_m", "sigma_z": "sigma_z_m"}
+# optional sighting arc lengths: CSV column -> LandmarkMap attribute (and .npz array)
+_ARC_COLUMNS = dict(zip(("sighting_arc", "sighting_arc_min", "sighting_arc_max"), _ARC_FIELDS))
 
 
 def read_numeric_csv(path: str | Path, required: tuple[str, ...], what: str = "CSV") -> tuple[str | None, list[str], np.ndarray]:
@@ -482,7 +562,7 @@ def _load_map_csv(path: Path) -> LandmarkMap:
             table[:, idx["size"]] if "size" in idx else None,
             table[:, idx["sightings"]] if "sightings" in idx else None,
             frame=frame or path.stem,
-            **{name: table[:, idx[col]] for col, name in _SIGMA_COLUMNS.items() if col in idx},
+            **{name: table[:, idx[col]] for col, name in (*_SIGMA_COLUMNS.items(), *_ARC_COLUMNS.items()) if col in idx},
         )
     except InputError as exc:
         raise FileFormatError(f"{path}: {exc}") from None
@@ -516,6 +596,7 @@ def _load_map_npz(path: Path) -> LandmarkMap:
     try:
         return LandmarkMap(z["positions_xyz"], z.get("sizes"), z.get("sightings"),
                            str(frame) if frame is not None else path.stem,
-                           **{name: z[name] for name in _SIGMA_COLUMNS.values() if name in z})  # fmt: skip
+                           **{name: z[name] for name in (*_SIGMA_COLUMNS.values(), *_ARC_COLUMNS.values())
+                              if name in z})  # fmt: skip
     except InputError as exc:
         raise FileFormatError(f"{path}: {exc}") from None
