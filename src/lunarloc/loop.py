@@ -34,7 +34,7 @@ from lunarloc.ate import ate, path_length
 from lunarloc.errors import ConfigError, InputError, LunarLocError
 from lunarloc.fusion import FusionConfig, Keyframe, PoseGraph, wrap_angle
 from lunarloc.geometry import matrix_to_pose, pose_to_matrix, transform_points, yaw_of
-from lunarloc.localize import LocalizationConfig, localize
+from lunarloc.localize import LocalizationConfig, landmark_sigmas, localize
 from lunarloc.maps import AggregationConfig, LandmarkMap, aggregate_detections
 
 log = logging.getLogger(__name__)
@@ -99,6 +99,13 @@ class LoopConfig:
 IMAGE_WINDOW_M = 8.0
 """Local-map window for detections from simulated stereo images: less odometry distortion
 inside it before the first fix than the real dataset's 12 m."""
+
+
+DATASET_OBSERVATION_SIGMA_M = 0.015
+"""A landmark tie's sigma for the LunarLoc dataset's detections (runs on traverse CSVs, ``bench
+loop``): their scatter about the true rock, measured at the true poses, is 1.0-1.4 cm per axis
+(traverses 3, 5 and 12; docs/fusion.md), where detections from simulated stereo images scatter
+3.4 cm (``FusionConfig.observation_sigma_m``, 5 cm)."""
 
 
 RIGID_WINDOW = {"odometry_scale_error": 0.0, "odometry_heading_drift_deg_per_m": 0.0}
@@ -242,6 +249,8 @@ class LoopState:
         self.reference = reference if reference is not None else LandmarkMap(np.zeros((0, 3)), frame="map")
         self.config = config or LoopConfig()
         self.localization = localization or loop_localization_config()
+        # per reference landmark (horizontal per axis, vertical) 1-sigma: what its ties share
+        self.reference_sigmas = landmark_sigmas(self.reference, self.localization)
         self.graph = PoseGraph(self.config.fusion)
         self.frames: list[int] = []
         self.times: list[float] = []
@@ -348,14 +357,15 @@ class LoopState:
         P, F, I = self.window_points(win, poses, with_index=True)
         veh = aggregate_detections(P, F, cfg.aggregation, frame="estimate") if len(P) else LandmarkMap(np.zeros((0, 3)))
         att = Attempt(frame, t, k, len(veh), 0, False, False)
-        ref = self.reference
+        ref, ref_index = self.reference, np.arange(len(self.reference))
         if cfg.crop_reference and len(veh):
             c = veh.positions_xyz[:, :2].mean(axis=0)
             radius = float(np.max(np.linalg.norm(veh.positions_xyz[:, :2] - c, axis=1)))
             sig, _ = self.graph.predicted_sigma(k)
             R = radius + cfg.crop_sigmas * sig + cfg.crop_margin_m
             near = np.linalg.norm(ref.positions_xyz[:, :2] - c, axis=1) <= R
-            ref = ref.subset(np.flatnonzero(near))
+            ref_index = np.flatnonzero(near)
+            ref = ref.subset(ref_index)
         att.reference_landmarks = len(ref)
         att.time_mapping_s = time.perf_counter() - t0
         self.timings["mapping"] += att.time_mapping_s
@@ -408,7 +418,7 @@ class LoopState:
             if cfg.fix_kind is FixKind.POSE:
                 self.graph.add_fix(k, fix4, sig_m, sig_m / extent)
             else:
-                self._add_observations(veh, inl, ref, P, F, I)
+                self._add_observations(veh, inl, ref, P, F, I, ref_index)
             self.graph.solve(cfg.active_window_m)
             att.accepted = True
         else:
@@ -416,8 +426,12 @@ class LoopState:
         self.timings["fusion"] += time.perf_counter() - t0
         return att
 
-    def _add_observations(self, veh: LandmarkMap, inl: np.ndarray, ref: LandmarkMap, P, F, I) -> None:
-        """Tie every window detection of an inlier vehicle landmark to its reference landmark."""
+    def _add_observations(self, veh: LandmarkMap, inl: np.ndarray, ref: LandmarkMap, P, F, I,
+                          ref_index: np.ndarray | None = None) -> None:  # fmt: skip
+        """Tie every window detection of an inlier vehicle landmark to its reference landmark
+        (`ref_index`: the index of each of `ref`'s landmarks in the full reference, which names
+        the landmark whose error its ties share; its sigma is the reference's stated one with
+        the localization's landmark sigma added, :func:`lunarloc.localize.landmark_sigmas`)."""
         from scipy.spatial import cKDTree
 
         V = veh.positions_xyz[inl[:, 0]]
@@ -431,7 +445,11 @@ class LoopState:
         p_rover = np.array([kfs[k].detections_rover[i] for k, i in zip(kf, idx)])
         rp = np.array([kfs[k].roll_pitch_rad for k in kf])
         keys = list(zip(kf.tolist(), idx.tolist()))
-        self.graph.add_landmark_observations(keys, kf, p_rover, rp, targets, self.config.fusion.observation_sigma_m)
+        rock = (np.arange(len(ref)) if ref_index is None else np.asarray(ref_index))[inl[lm, 1]]
+        sig_xy, sig_z = self.reference_sigmas
+        sig = np.column_stack([sig_xy[rock], sig_xy[rock], sig_z[rock]])
+        self.graph.add_landmark_observations(keys, kf, p_rover, rp, targets, self.config.fusion.observation_sigma_m,
+                                             rock.tolist(), sig)  # fmt: skip
 
     # -------------------------------------------------------------- end of run
     def finish(self, num_image_frames: int, source: str = "", rocks=None, example=None,
