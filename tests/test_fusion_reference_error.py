@@ -169,3 +169,35 @@ def test_run_config_round_trips_the_tie_model_and_names_a_bad_key():
     d["loop"]["fusion"]["observation_sigma_m"] = -0.05
     with pytest.raises(ConfigError, match="observation_sigma_m"):
         RunConfig.from_dict(d)
+
+
+def test_the_loop_ties_detections_to_the_full_references_rocks_with_their_sigmas():
+    from _loop_data import synthetic_traverse
+    from lunarloc.evaluation import DriftModel
+    from lunarloc.loop import LoopState
+    from lunarloc.maps import LandmarkMap
+    from lunarloc.sources import TraverseCsvSource
+
+    rocks, trav = synthetic_traverse(length_m=12.0)
+    rng = np.random.default_rng(4)
+    sig_xy = rng.uniform(0.01, 0.05, len(rocks))  # per-rock stated sigmas, as a grid or catalogue gives
+    ref = LandmarkMap(rocks + rng.normal(0, 1, rocks.shape) * np.c_[sig_xy, sig_xy, np.zeros(len(rocks))],
+                      sigma_xy_m=sig_xy, sigma_z_m=np.full(len(rocks), 0.02))  # fmt: skip
+    cfg = RunConfig.for_detections()
+    loop = LoopState(ref, cfg.loop, cfg.localization)
+    with TraverseCsvSource(trav, DriftModel(0.1, 0.03)) as src:
+        for f in src:
+            loop.step(f.frame, f.time_s, f.T_odo_rover, f.detections_rover, f.T_map_rover_true, keyframe=f.keyframe)
+    g = loop.graph
+    assert sum(a.accepted for a in loop.attempts) >= 2 and len(g.reference_landmarks) >= 5
+    floor = cfg.localization.landmark_sigma_m
+    for key, r in g.reference_landmarks.items():  # keyed by the index in the full reference, not the crop's
+        assert np.array_equal(r.target_xyz, ref.positions_xyz[key])
+        assert r.sigma_xyz[:2] == pytest.approx([math.hypot(sig_xy[key], floor)] * 2)
+    # ties made by different attempts share their rock's one error
+    tied_at = {}
+    for o in g.observations.values():
+        tied_at.setdefault(o.landmark, set()).add(o.keyframe)
+    assert max(len(k) for k in tied_at.values()) > 10
+    res = loop.finish(len(loop.keyframes))
+    assert res.summary()["ate_corrected"]["rmse_m"] < 0.05
