@@ -147,8 +147,8 @@ def test_bad_tie_inputs():
     g.add_keyframe(0.0, [0, 0, 0, 0])
     with pytest.raises(InputError, match="landmark_sigma_xyz"):
         g.add_landmark_observations([0], [0], [[1, 0, 0]], [[0, 0]], [[1, 0, 0]], 0.05, ["r"])
-    with pytest.raises(InputError, match="positive"):
-        g.add_landmark_observations([0], [0], [[1, 0, 0]], [[0, 0]], [[1, 0, 0]], 0.05, ["r"], [0.0])
+    with pytest.raises(InputError, match=">= 0"):
+        g.add_landmark_observations([0], [0], [[1, 0, 0]], [[0, 0]], [[1, 0, 0]], 0.05, ["r"], [-0.01])
     g.add_landmark_observations([0], [0], [[1, 0, 0]], [[0, 0]], [[1, 0, 0]], 0.05, ["r"], [0.02])
     with pytest.raises(InputError, match="two different positions"):
         g.add_landmark_observations([1], [0], [[1, 0, 0]], [[0, 0]], [[1.5, 0, 0]], 0.05, ["r"], [0.02])
@@ -190,10 +190,9 @@ def test_the_loop_ties_detections_to_the_full_references_rocks_with_their_sigmas
             loop.step(f.frame, f.time_s, f.T_odo_rover, f.detections_rover, f.T_map_rover_true, keyframe=f.keyframe)
     g = loop.graph
     assert sum(a.accepted for a in loop.attempts) >= 2 and len(g.reference_landmarks) >= 5
-    floor = cfg.localization.landmark_sigma_m
     for key, r in g.reference_landmarks.items():  # keyed by the index in the full reference, not the crop's
         assert np.array_equal(r.target_xyz, ref.positions_xyz[key])
-        assert r.sigma_xyz[:2] == pytest.approx([math.hypot(sig_xy[key], floor)] * 2)
+        assert r.sigma_xyz.tolist() == pytest.approx([sig_xy[key], sig_xy[key], 0.02])  # as the map states
     # ties made by different attempts share their rock's one error
     tied_at = {}
     for o in g.observations.values():
@@ -201,3 +200,31 @@ def test_the_loop_ties_detections_to_the_full_references_rocks_with_their_sigmas
     assert max(len(k) for k in tied_at.values()) > 10
     res = loop.finish(len(loop.keyframes))
     assert res.summary()["ate_corrected"]["rmse_m"] < 0.05
+
+
+def test_a_reference_stated_exact_is_tied_alone_as_before():
+    g = PoseGraph()
+    g.add_keyframe(0.0, [0, 0, 0, 0])
+    g.add_keyframe(1.0, [0.3, 0, 0, 0])
+    g.add_landmark_observations([0, 1], [0, 1], [[1, 0, 0], [0.7, 0, 0]], np.zeros((2, 2)), [[1, 0, 0]] * 2, 0.05,
+                                ["exact", "exact"], np.zeros((2, 3)))  # fmt: skip
+    assert g.reference_landmarks == {} and all(o.landmark is None for o in g.observations.values())
+    g.add_landmark_observations([2], [1], [[0.7, 1, 0]], [[0, 0]], [[1, 1, 0]], 0.05, ["grid"], [[0.043, 0.043, 0.0]])
+    assert g.reference_landmarks["grid"].sigma_xyz[2] > 0  # an axis stated exact keeps a finite prior
+    assert {type(f).__name__ for f in g.factors()} >= {"LandmarkFactor", "SharedLandmarkFactor"}
+
+
+def test_the_reference_error_prior_stays_out_of_the_robust_loss():
+    from lunarloc.fusion import PriorFactor, robust_loss
+
+    g = _standing_rover(ReferenceErrorModel.SHARED, n_a=3, n_good=1)
+    factors = g.factors()
+    assert robust_loss([f for f in factors if f.robust], "soft_l1") == "soft_l1"  # unchanged without priors
+    loss = robust_loss(factors, "soft_l1")
+    rows = np.concatenate([np.full(len(f) * f.dim, f.robust) for f in factors])
+    z = np.full(len(rows), 16.0)  # residuals of 4 loss scales
+    rho = loss(z)
+    prior = next(f for f in factors if isinstance(f, PriorFactor) and not f.robust)
+    assert len(prior) == 3 * len(g.reference_landmarks)
+    assert np.allclose(rho[:, ~rows], [[16.0], [1.0], [0.0]])  # quadratic: rho = z
+    assert np.allclose(rho[0, rows], 2 * (np.sqrt(17.0) - 1))  # soft_l1 elsewhere

@@ -39,9 +39,7 @@ import numpy as np
 from lunarloc.association.index import IndexConfig
 from lunarloc.errors import ConfigError
 from lunarloc.localize import LocalizationConfig
-from lunarloc.fusion import FusionConfig
-from lunarloc.loop import (DATASET_OBSERVATION_SIGMA_M, IMAGE_WINDOW_M, LoopConfig, image_localization_config,
-                           loop_localization_config)  # fmt: skip
+from lunarloc.loop import IMAGE_WINDOW_M, LoopConfig, image_localization_config, loop_localization_config
 from lunarloc.odometry.imu import ImuOdometryConfig
 
 __all__ = ["RunConfig", "OdometryConfig", "config_to_dict", "config_from_dict", "scaled_detector_config",
@@ -212,10 +210,9 @@ class RunConfig:
 
     @classmethod
     def for_detections(cls, **overrides) -> RunConfig:
-        """Runs on the LunarLoc dataset's detections (no images): the default localization,
-        a 12 m local map and the dataset detections' tie sigma."""
-        loop = LoopConfig(fusion=FusionConfig(observation_sigma_m=DATASET_OBSERVATION_SIGMA_M))
-        return cls(**{"localization": loop_localization_config(), "loop": loop, **overrides})
+        """Runs on the LunarLoc dataset's detections (no images): the default localization
+        and a 12 m local map."""
+        return cls(**{"localization": loop_localization_config(), "loop": LoopConfig(), **overrides})
 
     def detector_for(self, width: int):
         """The detector's config for images `width` pixels wide."""

@@ -75,7 +75,7 @@ log.addHandler(logging.NullHandler())
 __all__ = [
     "OdometryNoise", "GateConfig", "ReferenceErrorModel", "FusionConfig", "Fix", "GateResult", "Keyframe",
     "LandmarkObservation", "ReferenceLandmark", "StateLayout", "Factor", "OdometryFactor", "BiasWalkFactor",
-    "PriorFactor", "PoseFixFactor", "LandmarkFactor", "SharedLandmarkFactor",
+    "PriorFactor", "PoseFixFactor", "LandmarkFactor", "SharedLandmarkFactor", "robust_loss",
     "jacobian_sparsity", "stacked_residual", "PoseGraph", "wrap_angle",
 ]  # fmt: skip
 
@@ -116,6 +116,11 @@ class GateConfig:
         from scipy.stats import chi2
 
         return float(chi2.ppf(self.probability, 4))
+
+
+MIN_REFERENCE_SIGMA_M = 1e-4
+"""Floor of a shared reference error's sigma on an axis the map states exact (0) while others
+are not: keeps its prior finite."""
 
 
 class ReferenceErrorModel(str, enum.Enum):
@@ -298,6 +303,7 @@ class Factor:
 
     dim: int = 0
     reads: np.ndarray | None = None  # (dim, m) bool; None: every row reads every column
+    robust: bool = True  # False: a Gaussian prior, kept out of the robust loss (see :func:`robust_loss`)
     columns: np.ndarray
 
     def __len__(self) -> int:
@@ -361,10 +367,11 @@ class PriorFactor(Factor):
 
     dim = 1
 
-    def __init__(self, columns, mean, sigma):
+    def __init__(self, columns, mean, sigma, robust: bool = True):
         self.columns = np.asarray(columns, int).reshape(-1, 1)
         self.mean = np.asarray(mean, float).reshape(-1)
         self.sigma = np.asarray(sigma, float).reshape(-1)
+        self.robust = robust
 
     def residual(self, v):
         return ((v[:, 0] - self.mean) / self.sigma)[:, None]
@@ -453,6 +460,44 @@ def jacobian_sparsity(factors: list[Factor], active: np.ndarray, state_size: int
     S = coo_matrix((np.ones(int(keep.sum())), (rr[keep], cc[keep])), shape=(r0, len(active))).tocsr()
     S.data[:] = 1.0
     return S
+
+
+def _loss_rho(name: str, z: np.ndarray) -> np.ndarray:
+    """(3, n) rho(z), rho'(z), rho''(z) of scipy's named robust losses (z = squared scaled residual)."""
+    if name == "linear":
+        return np.stack([z, np.ones_like(z), np.zeros_like(z)])
+    if name == "soft_l1":
+        t = 1 + z
+        return np.stack([2 * (t**0.5 - 1), t**-0.5, -0.5 * t**-1.5])
+    if name == "huber":
+        big = z > 1
+        r = np.sqrt(np.where(big, z, 1.0))
+        return np.stack([np.where(big, 2 * r - 1, z), np.where(big, 1 / r, 1.0), np.where(big, -0.5 / r**3, 0.0)])
+    if name == "cauchy":
+        t = 1 + z
+        return np.stack([np.log1p(z), 1 / t, -1 / t**2])
+    if name == "arctan":
+        t = 1 + z**2
+        return np.stack([np.arctan(z), 1 / t, -2 * z / t**2])
+    raise ConfigError(f"loss={name!r}: use one of linear, soft_l1, huber, cauchy, arctan")
+
+
+def robust_loss(factors: list[Factor], name: str):
+    """The ``loss`` argument of ``least_squares`` for `factors`: the named robust loss on every
+    residual, except the rows of factors that are Gaussian priors (``robust = False``: a prior
+    is no measurement that can be an outlier; robust, a reference rock's error would grow
+    cheaply and let the trajectory wander with its rocks), which stay quadratic. Just `name`
+    when every factor is robust."""
+    mask = np.concatenate([np.full(len(f) * f.dim, f.robust) for f in factors]) if factors else np.zeros(0, bool)
+    if mask.all():
+        return name
+
+    def loss(z):
+        out = _loss_rho(name, z)
+        out[:, ~mask] = _loss_rho("linear", z[~mask])
+        return out
+
+    return loss
 
 
 def stacked_residual(factors: list[Factor], z: np.ndarray) -> np.ndarray:
@@ -611,15 +656,16 @@ class PoseGraph:
             S = np.repeat(S.reshape(-1, 1), 3, axis=1) if S.ndim == 1 else S.reshape(-1, 3)
             if not len(landmarks) == len(S) == len(kf):
                 raise InputError("landmark observations: arrays of different lengths")
-            if not np.all(np.isfinite(S) & (S > 0)):
-                raise InputError("landmark observations: reference sigmas must be positive and finite")
+            if not np.all(np.isfinite(S) & (S >= 0)):
+                raise InputError("landmark observations: reference sigmas must be finite and >= 0")
         for n, (key, k, p, rp, q) in enumerate(zip(keys, kf, P, RP, Q)):
             lm = None
-            if shared:
+            if shared and np.any(S[n] > 0):  # a landmark stated exact (sigma 0) is tied alone
                 lm = landmarks[n]
                 ref = self.reference_landmarks.get(lm)
                 if ref is None:
-                    self.reference_landmarks[lm] = ReferenceLandmark(len(self.reference_landmarks), q.copy(), S[n].copy())
+                    sig = np.maximum(S[n], MIN_REFERENCE_SIGMA_M)
+                    self.reference_landmarks[lm] = ReferenceLandmark(len(self.reference_landmarks), q.copy(), sig)
                 elif not np.allclose(ref.target_xyz, q):
                     raise InputError(f"reference landmark {lm!r} tied at two different positions")
             self.observations[key] = LandmarkObservation(int(k), p, rp, q, float(sigma_m), lm)
@@ -686,7 +732,7 @@ class PoseGraph:
                                     [o.target_xyz for o in obs], [o.sigma_m for o in obs])  # fmt: skip
         lms = [r for r in refs.values() if r.index in free]
         prior = PriorFactor(L.landmark([r.index for r in lms]).ravel(), 0.0,
-                            np.concatenate([r.sigma_xyz for r in lms]))  # fmt: skip
+                            np.concatenate([r.sigma_xyz for r in lms]), robust=False)  # fmt: skip
         return [ties, prior]
 
     def state(self) -> np.ndarray:
@@ -719,7 +765,7 @@ class PoseGraph:
             return stacked_residual(factors, z)
 
         res = least_squares(fun, z[active].copy(), jac_sparsity=jacobian_sparsity(factors, active, layout.size),
-                            method="trf", x_scale="jac", max_nfev=cfg.max_nfev, loss=cfg.loss,
+                            method="trf", x_scale="jac", max_nfev=cfg.max_nfev, loss=robust_loss(factors, cfg.loss),
                             f_scale=cfg.loss_scale, ftol=1e-8, xtol=1e-8, gtol=1e-8)  # fmt: skip
         z[active] = res.x
         self._write_back(z, layout)

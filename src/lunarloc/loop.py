@@ -34,7 +34,7 @@ from lunarloc.ate import ate, path_length
 from lunarloc.errors import ConfigError, InputError, LunarLocError
 from lunarloc.fusion import FusionConfig, Keyframe, PoseGraph, wrap_angle
 from lunarloc.geometry import matrix_to_pose, pose_to_matrix, transform_points, yaw_of
-from lunarloc.localize import LocalizationConfig, landmark_sigmas, localize
+from lunarloc.localize import LocalizationConfig, localize
 from lunarloc.maps import AggregationConfig, LandmarkMap, aggregate_detections
 
 log = logging.getLogger(__name__)
@@ -99,14 +99,6 @@ class LoopConfig:
 IMAGE_WINDOW_M = 8.0
 """Local-map window for detections from simulated stereo images: less odometry distortion
 inside it before the first fix than the real dataset's 12 m."""
-
-
-DATASET_OBSERVATION_SIGMA_M = 0.025
-"""A landmark tie's sigma for the LunarLoc dataset's detections (runs on traverse CSVs, ``bench
-loop``), measured at the true poses on traverses 3 and 5: they scatter 1.1-1.4 cm per axis about
-their rock's mean, and a rock's consecutive ties are correlated (lag-1 0.5), so n ties weigh as
-n / 3 independent ones: 1.8 x 1.4 cm as independent ties (docs/fusion.md). Detections from
-simulated stereo images keep ``FusionConfig.observation_sigma_m`` (5 cm; 3.4 cm scatter)."""
 
 
 RIGID_WINDOW = {"odometry_scale_error": 0.0, "odometry_heading_drift_deg_per_m": 0.0}
@@ -250,8 +242,9 @@ class LoopState:
         self.reference = reference if reference is not None else LandmarkMap(np.zeros((0, 3)), frame="map")
         self.config = config or LoopConfig()
         self.localization = localization or loop_localization_config()
-        # per reference landmark (horizontal per axis, vertical) 1-sigma: what its ties share
-        self.reference_sigmas = landmark_sigmas(self.reference, self.localization)
+        # per reference landmark (horizontal per axis, vertical) 1-sigma as the map states it
+        # (0 where it states none): the error its ties share (fusion.ReferenceErrorModel)
+        self.reference_sigmas = stated_sigmas(self.reference)
         self.graph = PoseGraph(self.config.fusion)
         self.frames: list[int] = []
         self.times: list[float] = []
@@ -431,8 +424,8 @@ class LoopState:
                           ref_index: np.ndarray | None = None) -> None:  # fmt: skip
         """Tie every window detection of an inlier vehicle landmark to its reference landmark
         (`ref_index`: the index of each of `ref`'s landmarks in the full reference, which names
-        the landmark whose error its ties share; its sigma is the reference's stated one with
-        the localization's landmark sigma added, :func:`lunarloc.localize.landmark_sigmas`)."""
+        the landmark whose error its ties share; its sigma is the one the reference states,
+        :attr:`reference_sigmas`)."""
         from scipy.spatial import cKDTree
 
         V = veh.positions_xyz[inl[:, 0]]
@@ -493,3 +486,11 @@ def interpolate_corrections(T_kf: np.ndarray, kf_t: np.ndarray, times: np.ndarra
         T = np.array([[c, -s, 0, tx[0][n]], [s, c, 0, tx[1][n]], [0, 0, 1, tx[2][n]], [0, 0, 0, 1.0]])
         out[n] = T @ T_odo_rover[n]
     return out
+
+
+def stated_sigmas(m: LandmarkMap) -> tuple[np.ndarray, np.ndarray]:
+    """A map's per-landmark (horizontal per axis, vertical) 1-sigma as it states them, 0 where
+    it states none (a catalogue without sigmas, a simulated site's exact ``rocks.csv``)."""
+    n = len(m)
+    return (np.zeros(n) if m.sigma_xy_m is None else m.sigma_xy_m.copy(),
+            np.zeros(n) if m.sigma_z_m is None else m.sigma_z_m.copy())  # fmt: skip
