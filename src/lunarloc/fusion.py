@@ -27,6 +27,18 @@ Roll and pitch are observable from gravity and are taken from odometry as they a
   ``b_0 ~ N(0, bias_sigma)``; the first keyframe is anchored at the known start pose.
 * Fix at keyframe ``j`` (from :func:`lunarloc.localize.localize`): ``p_j = p_fix`` and
   ``psi_j = psi_fix`` with the fix's sigmas.
+* Landmark tie (the loop's default kind of fix): a detection ``p_rover`` made at keyframe
+  ``k`` is reference landmark ``r``: ``p_k + Rz(psi_k) R_rp p_rover = q_r + e_r`` with the
+  detection's own sigma (``observation_sigma_m``). ``q_r`` is the landmark's position as the
+  reference map states it and ``e_r ~ N(0, diag(s_xy^2, s_xy^2, s_z^2))`` its error, one
+  3-vector per reference landmark, in the state and *shared by every tie to it*
+  (:attr:`ReferenceErrorModel.SHARED`). A reference rock's error (a LAC grid's quantisation,
+  4.3 cm per axis for a one-cell rock) is the same for all n detections tied to it, so it
+  must count once per rock, not once per tie: tying each detection alone with a sigma that
+  includes it would weigh one biased rock n times. Marginalising ``e_r`` out gives the n
+  ties the covariance ``s_obs^2 I + s_ref^2 1 1^T`` per axis: their mean is known to
+  ``sqrt(s_obs^2 / n + s_ref^2)``, their differences (what constrains the relative poses,
+  the heading between keyframes) to ``s_obs``, as if the reference were exact.
 
 Code shape: the graph keeps one :class:`Keyframe` record per keyframe (time, odometry
 pose, estimate, bias, and the loop's frame, roll/pitch and detections), the fixes and the
@@ -48,6 +60,7 @@ rejected, while a long stretch without fixes widens the gate.
 
 from __future__ import annotations
 
+import enum
 import logging
 import math
 from dataclasses import asdict, dataclass, field
@@ -60,8 +73,9 @@ log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
 __all__ = [
-    "OdometryNoise", "GateConfig", "FusionConfig", "Fix", "GateResult", "Keyframe", "LandmarkObservation",
-    "StateLayout", "Factor", "OdometryFactor", "BiasWalkFactor", "PriorFactor", "PoseFixFactor", "LandmarkFactor",
+    "OdometryNoise", "GateConfig", "ReferenceErrorModel", "FusionConfig", "Fix", "GateResult", "Keyframe",
+    "LandmarkObservation", "ReferenceLandmark", "StateLayout", "Factor", "OdometryFactor", "BiasWalkFactor",
+    "PriorFactor", "PoseFixFactor", "LandmarkFactor", "SharedLandmarkFactor", "robust_loss",
     "jacobian_sparsity", "stacked_residual", "PoseGraph", "wrap_angle",
 ]  # fmt: skip
 
@@ -104,6 +118,18 @@ class GateConfig:
         return float(chi2.ppf(self.probability, 4))
 
 
+MIN_REFERENCE_SIGMA_M = 1e-4
+"""Floor of a shared reference error's sigma on an axis the map states exact (0) while others
+are not: keeps its prior finite."""
+
+
+class ReferenceErrorModel(str, enum.Enum):
+    """How the reference landmarks' own position error enters the landmark ties."""
+
+    SHARED = "shared"  # one error 3-vector per reference landmark, shared by its ties, prior its stated sigma
+    INDEPENDENT = "independent"  # each tie alone with observation_sigma_m; the reference's sigma is ignored
+
+
 @dataclass(frozen=True)
 class FusionConfig:
     """Pose-graph fusion of fixes and odometry."""
@@ -116,13 +142,22 @@ class FusionConfig:
     max_nfev: int = 50  # least-squares function evaluations per solve
     loss: str = "soft_l1"  # robust loss of least_squares (residuals are in sigmas)
     loss_scale: float = 3.0  # residuals beyond ~this many sigmas lose influence
-    observation_sigma_m: float = 0.05  # landmark observation: detection + reference landmark error (m)
+    observation_sigma_m: float = 0.05  # landmark tie: the detection's own error (m; INDEPENDENT: and the reference's)
+    reference_error: ReferenceErrorModel = ReferenceErrorModel.SHARED  # how a reference landmark's own error enters its ties
 
     def __post_init__(self) -> None:
         if not 0 < self.gate.probability < 1:
             raise ConfigError("gate.probability must be in (0, 1)")
         if self.min_fix_sigma_m <= 0 or self.min_fix_sigma_yaw_deg <= 0:
             raise ConfigError("fix sigma floors must be positive")
+        o = self.observation_sigma_m
+        if isinstance(o, bool) or not isinstance(o, (int, float)) or not 0 < o < math.inf:
+            raise ConfigError(f"observation_sigma_m={o!r} must be positive and finite")
+        try:
+            object.__setattr__(self, "reference_error", ReferenceErrorModel(self.reference_error))
+        except ValueError:
+            raise ConfigError(f"reference_error={self.reference_error!r}: use one of "
+                              f"{', '.join(m.value for m in ReferenceErrorModel)}") from None  # fmt: skip
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -207,17 +242,37 @@ class LandmarkObservation:
     roll_pitch_rad: np.ndarray
     target_xyz: np.ndarray
     sigma_m: float
+    landmark: object = None  # the reference landmark's key (:class:`ReferenceLandmark`); None: tied alone
+
+
+@dataclass
+class ReferenceLandmark:
+    """A reference landmark that detections are tied to: its stated position ``target_xyz``
+    (map frame, m), the 1-sigma of that position per axis ``sigma_xyz`` (x, y, z; m), its index
+    ``index`` among the graph's reference landmarks (its columns in the state) and the current
+    estimate of its error ``offset_xyz`` (true = stated + offset), rewritten by every solve."""
+
+    index: int
+    target_xyz: np.ndarray
+    sigma_xyz: np.ndarray
+    offset_xyz: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 # ---------------------------------------------------------------------------- factors
 class StateLayout:
-    """Indices into the full state vector ``z`` of a graph of ``K`` keyframes:
-    ``[x_0, y_0, z_0, psi_0, ..., x_{K-1}, ..., psi_{K-1}, b_0, ..., b_{K-1}, k]``."""
+    """Indices into the full state vector ``z`` of a graph of ``K`` keyframes and ``L``
+    reference landmarks: ``[x_0, y_0, z_0, psi_0, ..., x_{K-1}, ..., psi_{K-1}, b_0, ...,
+    b_{K-1}, k, e_0 (3), ..., e_{L-1} (3)]`` (``e_j`` the error of reference landmark j)."""
 
-    def __init__(self, num_keyframes: int):
+    def __init__(self, num_keyframes: int, num_landmarks: int = 0):
         self.K = int(num_keyframes)
-        self.size = 5 * self.K + 1
+        self.L = int(num_landmarks)
+        self.size = 5 * self.K + 1 + 3 * self.L
         self.scale = 5 * self.K
+
+    def landmark(self, j) -> np.ndarray:
+        """(n, 3) indices of the error (x, y, z) of reference landmarks ``j`` (n,)."""
+        return self.scale + 1 + 3 * np.asarray(j, int).reshape(-1, 1) + np.arange(3)
 
     def pose(self, i) -> np.ndarray:
         """(n, 4) indices of (x, y, z, yaw) of keyframes ``i`` (n,)."""
@@ -227,11 +282,14 @@ class StateLayout:
         """(n,) indices of the heading biases of keyframes ``i``."""
         return 4 * self.K + np.asarray(i, int).reshape(-1)
 
-    def active(self, first: int, calibrate: bool) -> np.ndarray:
-        """Indices optimised when keyframes ``first..K-1`` are free (the rest held fixed)."""
+    def active(self, first: int, calibrate: bool, landmarks=()) -> np.ndarray:
+        """Indices optimised when keyframes ``first..K-1`` and reference landmarks
+        `landmarks` are free (the rest held fixed)."""
         idx = np.arange(4 * first, 4 * self.K)
         if calibrate:
             idx = np.r_[idx, np.arange(4 * self.K + first, 5 * self.K), self.scale]
+        if len(landmarks):
+            idx = np.r_[idx, self.landmark(landmarks).ravel()]
         return idx
 
 
@@ -245,6 +303,7 @@ class Factor:
 
     dim: int = 0
     reads: np.ndarray | None = None  # (dim, m) bool; None: every row reads every column
+    robust: bool = True  # False: a Gaussian prior, kept out of the robust loss (see :func:`robust_loss`)
     columns: np.ndarray
 
     def __len__(self) -> int:
@@ -308,10 +367,11 @@ class PriorFactor(Factor):
 
     dim = 1
 
-    def __init__(self, columns, mean, sigma):
+    def __init__(self, columns, mean, sigma, robust: bool = True):
         self.columns = np.asarray(columns, int).reshape(-1, 1)
         self.mean = np.asarray(mean, float).reshape(-1)
         self.sigma = np.asarray(sigma, float).reshape(-1)
+        self.robust = robust
 
     def residual(self, v):
         return ((v[:, 0] - self.mean) / self.sigma)[:, None]
@@ -361,6 +421,25 @@ class LandmarkFactor(Factor):
         return (_rotate_z(v[:, 3], self.p_level) + v[:, :3] - self.targets) / self.sigma_m
 
 
+class SharedLandmarkFactor(LandmarkFactor):
+    """Tie to a reference landmark whose error ``e`` is in the state, shared by all its ties:
+    ``p_k + Rz(psi_k) R_rp p_rover = target + e`` with the detection's own sigma. Columns: the
+    keyframe's pose (4), the landmark's error (3). Its prior ``e ~ N(0, sigma_ref^2)`` is a
+    :class:`PriorFactor` per component."""
+
+    #                  x  y  z  psi ex ey ez
+    reads = np.array([[1, 0, 0, 1, 1, 0, 0],
+                      [0, 1, 0, 1, 0, 1, 0],
+                      [0, 0, 1, 0, 0, 0, 1]], bool)  # fmt: skip
+
+    def __init__(self, layout: StateLayout, keyframes, landmarks, p_rover, roll_pitch_rad, targets, sigma_m):
+        super().__init__(layout, keyframes, p_rover, roll_pitch_rad, targets, sigma_m)
+        self.columns = np.column_stack([self.columns, layout.landmark(landmarks)])
+
+    def residual(self, v):
+        return (_rotate_z(v[:, 3], self.p_level) + v[:, :3] - self.targets - v[:, 4:7]) / self.sigma_m
+
+
 def jacobian_sparsity(factors: list[Factor], active: np.ndarray, state_size: int):
     """(rows, len(active)) CSR pattern: residual row ``c`` of factor ``i`` depends on the
     active ones of ``columns[i]`` (those ``reads[c]`` selects), nothing else."""
@@ -381,6 +460,44 @@ def jacobian_sparsity(factors: list[Factor], active: np.ndarray, state_size: int
     S = coo_matrix((np.ones(int(keep.sum())), (rr[keep], cc[keep])), shape=(r0, len(active))).tocsr()
     S.data[:] = 1.0
     return S
+
+
+def _loss_rho(name: str, z: np.ndarray) -> np.ndarray:
+    """(3, n) rho(z), rho'(z), rho''(z) of scipy's named robust losses (z = squared scaled residual)."""
+    if name == "linear":
+        return np.stack([z, np.ones_like(z), np.zeros_like(z)])
+    if name == "soft_l1":
+        t = 1 + z
+        return np.stack([2 * (t**0.5 - 1), t**-0.5, -0.5 * t**-1.5])
+    if name == "huber":
+        big = z > 1
+        r = np.sqrt(np.where(big, z, 1.0))
+        return np.stack([np.where(big, 2 * r - 1, z), np.where(big, 1 / r, 1.0), np.where(big, -0.5 / r**3, 0.0)])
+    if name == "cauchy":
+        t = 1 + z
+        return np.stack([np.log1p(z), 1 / t, -1 / t**2])
+    if name == "arctan":
+        t = 1 + z**2
+        return np.stack([np.arctan(z), 1 / t, -2 * z / t**2])
+    raise ConfigError(f"loss={name!r}: use one of linear, soft_l1, huber, cauchy, arctan")
+
+
+def robust_loss(factors: list[Factor], name: str):
+    """The ``loss`` argument of ``least_squares`` for `factors`: the named robust loss on every
+    residual, except the rows of factors that are Gaussian priors (``robust = False``: a prior
+    is no measurement that can be an outlier; robust, a reference rock's error would grow
+    cheaply and let the trajectory wander with its rocks), which stay quadratic. Just `name`
+    when every factor is robust."""
+    mask = np.concatenate([np.full(len(f) * f.dim, f.robust) for f in factors]) if factors else np.zeros(0, bool)
+    if mask.all():
+        return name
+
+    def loss(z):
+        out = _loss_rho(name, z)
+        out[:, ~mask] = _loss_rho("linear", z[~mask])
+        return out
+
+    return loss
 
 
 def stacked_residual(factors: list[Factor], z: np.ndarray) -> np.ndarray:
@@ -404,6 +521,7 @@ class PoseGraph:
         self.scale = 1.0
         self.fixes: list[Fix] = []
         self.observations: dict = {}  # key -> LandmarkObservation
+        self.reference_landmarks: dict = {}  # landmark key -> ReferenceLandmark (SHARED ties)
         self._last_fix_dist = 0.0
         self._last_fix_time = 0.0
         self.num_solves = 0
@@ -507,12 +625,19 @@ class PoseGraph:
         self.fixes.append(Fix(i, np.asarray(pose4, float).reshape(4), sm, sy))
         self._fixed_at(i)
 
-    def add_landmark_observations(self, keys, keyframes, p_rover, roll_pitch, targets, sigma_m: float) -> None:
+    def add_landmark_observations(self, keys, keyframes, p_rover, roll_pitch, targets, sigma_m: float,
+                                  landmarks=None, landmark_sigma_xyz=None) -> None:  # fmt: skip
         """Landmark fixes: detection ``p_rover`` (rover frame) made at keyframe ``k`` is the
         reference landmark ``target`` (map frame). Residual ``T_k(p_rover) - target`` with
-        ``T_k`` = (x, y, z, yaw) of the keyframe and its odometry roll/pitch. `keys` (hashable,
-        one per observation) de-duplicate: a detection re-associated by a later window
-        replaces its earlier constraint. Call :meth:`solve` afterwards.
+        ``T_k`` = (x, y, z, yaw) of the keyframe and its odometry roll/pitch, in units of the
+        detection's sigma `sigma_m`. `keys` (hashable, one per observation) de-duplicate: a
+        detection re-associated by a later window replaces its earlier constraint.
+
+        `landmarks` (hashable, one per observation: which reference landmark it is tied to) and
+        `landmark_sigma_xyz` ((n, 3) or (n,): that landmark's 1-sigma per axis, m) model the
+        reference's own error once per landmark (``FusionConfig.reference_error`` SHARED, see
+        the module docstring); without them, or with INDEPENDENT, each tie stands alone.
+        Call :meth:`solve` afterwards.
         """
         kf = np.asarray(keyframes, int).reshape(-1)
         P = np.asarray(p_rover, float).reshape(-1, 3)
@@ -522,8 +647,28 @@ class PoseGraph:
             raise InputError("landmark observations: arrays of different lengths")
         if len(kf) and (kf.min() < 0 or kf.max() >= len(self)):
             raise InputError("landmark observation of an unknown keyframe")
-        for key, k, p, rp, q in zip(keys, kf, P, RP, Q):
-            self.observations[key] = LandmarkObservation(int(k), p, rp, q, float(sigma_m))
+        shared = landmarks is not None and self.config.reference_error is ReferenceErrorModel.SHARED
+        if landmarks is not None:
+            landmarks = list(landmarks)
+            if landmark_sigma_xyz is None:
+                raise InputError("landmark observations: landmarks given without landmark_sigma_xyz")
+            S = np.asarray(landmark_sigma_xyz, float)
+            S = np.repeat(S.reshape(-1, 1), 3, axis=1) if S.ndim == 1 else S.reshape(-1, 3)
+            if not len(landmarks) == len(S) == len(kf):
+                raise InputError("landmark observations: arrays of different lengths")
+            if not np.all(np.isfinite(S) & (S >= 0)):
+                raise InputError("landmark observations: reference sigmas must be finite and >= 0")
+        for n, (key, k, p, rp, q) in enumerate(zip(keys, kf, P, RP, Q)):
+            lm = None
+            if shared and np.any(S[n] > 0):  # a landmark stated exact (sigma 0) is tied alone
+                lm = landmarks[n]
+                ref = self.reference_landmarks.get(lm)
+                if ref is None:
+                    sig = np.maximum(S[n], MIN_REFERENCE_SIGMA_M)
+                    self.reference_landmarks[lm] = ReferenceLandmark(len(self.reference_landmarks), q.copy(), sig)
+                elif not np.allclose(ref.target_xyz, q):
+                    raise InputError(f"reference landmark {lm!r} tied at two different positions")
+            self.observations[key] = LandmarkObservation(int(k), p, rp, q, float(sigma_m), lm)
         if len(kf):
             self._fixed_at(int(kf.max()))
 
@@ -542,7 +687,7 @@ class PoseGraph:
     def factors(self, first: int = 0) -> list[Factor]:
         """The factors touching keyframes ``first..K-1`` (older ones are held fixed)."""
         K, nz, calib = len(self), self.config.noise, self.config.calibrate
-        L = StateLayout(K)
+        L = StateLayout(K, len(self.reference_landmarks))
         kfs = self.keyframes
         e = np.arange(max(first - 1, 0), K - 1)  # odometry edges e -> e+1 touching a free keyframe
         odo = np.array([kf.odo_pose4 for kf in kfs])
@@ -554,11 +699,12 @@ class PoseGraph:
         if fixes:
             out.append(PoseFixFactor(L, [f.keyframe for f in fixes], [f.pose4 for f in fixes],
                                      [f.sigma_m for f in fixes], [f.sigma_yaw_rad for f in fixes]))  # fmt: skip
-        obs = [o for o in self.observations.values() if o.keyframe >= first]
+        obs = [o for o in self.observations.values() if o.keyframe >= first and o.landmark is None]
         if obs:
             out.append(LandmarkFactor(L, [o.keyframe for o in obs], [o.p_rover for o in obs],
                                       [o.roll_pitch_rad for o in obs], [o.target_xyz for o in obs],
                                       [o.sigma_m for o in obs]))  # fmt: skip
+        out += self._shared_factors(L, first)
         if calib:
             out.append(BiasWalkFactor(L, e, tau, nz))
             out.append(PriorFactor([L.scale], 1.0, nz.scale_sigma))
@@ -566,12 +712,38 @@ class PoseGraph:
                 out.append(PriorFactor(L.bias([0]), 0.0, nz.bias_sigma_rad_s))
         return out
 
+    def free_landmarks(self, first: int = 0) -> list[int]:
+        """Indices of the reference landmarks a solve from keyframe `first` frees: those tied
+        to a free keyframe."""
+        return sorted({self.reference_landmarks[o.landmark].index for o in self.observations.values()
+                       if o.landmark is not None and o.keyframe >= first})  # fmt: skip
+
+    def _shared_factors(self, L: StateLayout, first: int) -> list[Factor]:
+        """Ties to the reference landmarks a solve frees (with their ties from held keyframes
+        too, which pin the landmark's error where the earlier trajectory put it) and the
+        landmarks' priors ``e ~ N(0, sigma_ref^2)``."""
+        free = set(self.free_landmarks(first))
+        if not free:
+            return []
+        refs = self.reference_landmarks
+        obs = [o for o in self.observations.values() if o.landmark is not None and refs[o.landmark].index in free]
+        ties = SharedLandmarkFactor(L, [o.keyframe for o in obs], [refs[o.landmark].index for o in obs],
+                                    [o.p_rover for o in obs], [o.roll_pitch_rad for o in obs],
+                                    [o.target_xyz for o in obs], [o.sigma_m for o in obs])  # fmt: skip
+        lms = [r for r in refs.values() if r.index in free]
+        prior = PriorFactor(L.landmark([r.index for r in lms]).ravel(), 0.0,
+                            np.concatenate([r.sigma_xyz for r in lms]), robust=False)  # fmt: skip
+        return [ties, prior]
+
     def state(self) -> np.ndarray:
         """Full state vector (see :class:`StateLayout`); without calibration the biases are 0
         and the scale 1."""
         calib = self.config.calibrate
         b = [kf.bias_rad_s if calib else 0.0 for kf in self.keyframes]
-        return np.r_[self.poses().ravel(), b, self.scale if calib else 1.0]
+        e = np.zeros((len(self.reference_landmarks), 3))
+        for r in self.reference_landmarks.values():
+            e[r.index] = r.offset_xyz
+        return np.r_[self.poses().ravel(), b, self.scale if calib else 1.0, e.ravel()]
 
     def solve(self, active_window_m: float | None = None) -> float:
         """Re-optimise the keyframes (all, or those within `active_window_m` metres of
@@ -583,9 +755,9 @@ class PoseGraph:
 
         cfg = self.config
         first = self.first_active(active_window_m)
-        layout = StateLayout(len(self))
+        layout = StateLayout(len(self), len(self.reference_landmarks))
         factors = self.factors(first)
-        active = layout.active(first, cfg.calibrate)
+        active = layout.active(first, cfg.calibrate, self.free_landmarks(first))
         z = self.state()
 
         def fun(x):
@@ -593,7 +765,7 @@ class PoseGraph:
             return stacked_residual(factors, z)
 
         res = least_squares(fun, z[active].copy(), jac_sparsity=jacobian_sparsity(factors, active, layout.size),
-                            method="trf", x_scale="jac", max_nfev=cfg.max_nfev, loss=cfg.loss,
+                            method="trf", x_scale="jac", max_nfev=cfg.max_nfev, loss=robust_loss(factors, cfg.loss),
                             f_scale=cfg.loss_scale, ftol=1e-8, xtol=1e-8, gtol=1e-8)  # fmt: skip
         z[active] = res.x
         self._write_back(z, layout)
@@ -614,6 +786,8 @@ class PoseGraph:
                 kf.bias_rad_s = float(b)
         if calib:
             self.scale = float(z[layout.scale])
+        for r in self.reference_landmarks.values():
+            r.offset_xyz = z[layout.landmark(r.index)[0]].copy()
 
     # ------------------------------------------------------------------ interpolation
     def corrections(self) -> np.ndarray:

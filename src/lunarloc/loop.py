@@ -254,6 +254,9 @@ class LoopState:
         self.reference = reference if reference is not None else LandmarkMap(np.zeros((0, 3)), frame="map")
         self.config = config or LoopConfig()
         self.localization = localization or loop_localization_config()
+        # per reference landmark (horizontal per axis, vertical) 1-sigma as the map states it
+        # (0 where it states none): the error its ties share (fusion.ReferenceErrorModel)
+        self.reference_sigmas = stated_sigmas(self.reference)
         self.graph = PoseGraph(self.config.fusion)
         self.frames: list[int] = []
         self.times: list[float] = []
@@ -377,14 +380,15 @@ class LoopState:
         poses = self.graph.poses()
         win, P, F, I, veh, length = self.local_map(k, poses)
         att = Attempt(frame, t, k, len(veh), 0, False, False, window_m=float(length))
-        ref = self.reference
+        ref, ref_index = self.reference, np.arange(len(self.reference))
         if cfg.crop_reference and len(veh):
             c = veh.positions_xyz[:, :2].mean(axis=0)
             radius = float(np.max(np.linalg.norm(veh.positions_xyz[:, :2] - c, axis=1)))
             sig, _ = self.graph.predicted_sigma(k)
             R = radius + cfg.crop_sigmas * sig + cfg.crop_margin_m
             near = np.linalg.norm(ref.positions_xyz[:, :2] - c, axis=1) <= R
-            ref = ref.subset(np.flatnonzero(near))
+            ref_index = np.flatnonzero(near)
+            ref = ref.subset(ref_index)
         att.reference_landmarks = len(ref)
         att.time_mapping_s = time.perf_counter() - t0
         self.timings["mapping"] += att.time_mapping_s
@@ -437,7 +441,7 @@ class LoopState:
             if cfg.fix_kind is FixKind.POSE:
                 self.graph.add_fix(k, fix4, sig_m, sig_m / extent)
             else:
-                self._add_observations(veh, inl, ref, P, F, I)
+                self._add_observations(veh, inl, ref, P, F, I, ref_index)
             self.graph.solve(cfg.active_window_m)
             att.accepted = True
         else:
@@ -445,8 +449,12 @@ class LoopState:
         self.timings["fusion"] += time.perf_counter() - t0
         return att
 
-    def _add_observations(self, veh: LandmarkMap, inl: np.ndarray, ref: LandmarkMap, P, F, I) -> None:
-        """Tie every window detection of an inlier vehicle landmark to its reference landmark."""
+    def _add_observations(self, veh: LandmarkMap, inl: np.ndarray, ref: LandmarkMap, P, F, I,
+                          ref_index: np.ndarray | None = None) -> None:  # fmt: skip
+        """Tie every window detection of an inlier vehicle landmark to its reference landmark
+        (`ref_index`: the index of each of `ref`'s landmarks in the full reference, which names
+        the landmark whose error its ties share; its sigma is the one the reference states,
+        :attr:`reference_sigmas`)."""
         from scipy.spatial import cKDTree
 
         V = veh.positions_xyz[inl[:, 0]]
@@ -460,7 +468,11 @@ class LoopState:
         p_rover = np.array([kfs[k].detections_rover[i] for k, i in zip(kf, idx)])
         rp = np.array([kfs[k].roll_pitch_rad for k in kf])
         keys = list(zip(kf.tolist(), idx.tolist()))
-        self.graph.add_landmark_observations(keys, kf, p_rover, rp, targets, self.config.fusion.observation_sigma_m)
+        rock = (np.arange(len(ref)) if ref_index is None else np.asarray(ref_index))[inl[lm, 1]]
+        sig_xy, sig_z = self.reference_sigmas
+        sig = np.column_stack([sig_xy[rock], sig_xy[rock], sig_z[rock]])
+        self.graph.add_landmark_observations(keys, kf, p_rover, rp, targets, self.config.fusion.observation_sigma_m,
+                                             rock.tolist(), sig)  # fmt: skip
 
     # -------------------------------------------------------------- end of run
     def finish(self, num_image_frames: int, source: str = "", rocks=None, example=None,
@@ -503,3 +515,11 @@ def interpolate_corrections(T_kf: np.ndarray, kf_t: np.ndarray, times: np.ndarra
         T = np.array([[c, -s, 0, tx[0][n]], [s, c, 0, tx[1][n]], [0, 0, 1, tx[2][n]], [0, 0, 0, 1.0]])
         out[n] = T @ T_odo_rover[n]
     return out
+
+
+def stated_sigmas(m: LandmarkMap) -> tuple[np.ndarray, np.ndarray]:
+    """A map's per-landmark (horizontal per axis, vertical) 1-sigma as it states them, 0 where
+    it states none (a catalogue without sigmas, a simulated site's exact ``rocks.csv``)."""
+    n = len(m)
+    return (np.zeros(n) if m.sigma_xy_m is None else m.sigma_xy_m.copy(),
+            np.zeros(n) if m.sigma_z_m is None else m.sigma_z_m.copy())  # fmt: skip
