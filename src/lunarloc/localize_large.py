@@ -107,10 +107,14 @@ def localize_large(
     *,
     search: Search | str = Search.AUTO,
     index: ReferenceIndex | None = None,
+    query_xyz: np.ndarray | None = None,
+    path_xyz: np.ndarray | None = None,
 ) -> LargeResult:
     """Find ``T_ref_veh`` of `vehicle` in a possibly very large `reference` (see the
     module docstring). Inputs are checked as by :func:`localize`; a failure to localize
-    is ``success=False`` with a reason, never an exception."""
+    is ``success=False`` with a reason, never an exception. `query_xyz` and `path_xyz`
+    (vehicle frame) are passed to every :func:`localize` call: where the pose is judged,
+    and the odometry path that built the vehicle map."""
     cfg = config or LocalizationConfig()
     icfg = index.config if index is not None else (index_config or IndexConfig())
     try:
@@ -122,7 +126,8 @@ def localize_large(
     if search is Search.AUTO:
         search = Search.INDEXED if (len(Pr) >= icfg.auto_min_reference and cfg.mode is Mode.GRAVITY) else Search.FULL
     if search is Search.FULL:
-        return _from(localize(reference, vehicle, cfg), search="full", considered=len(Pr) * len(Pv))
+        return _from(localize(reference, vehicle, cfg, query_xyz=query_xyz, path_xyz=path_xyz), search="full",
+                     considered=len(Pr) * len(Pv))
     if cfg.mode is not Mode.GRAVITY:
         raise ConfigError("the indexed search needs the gravity-aware mode (rover maps levelled by the IMU)")
     if index is not None and (len(index.xyz) != len(Pr) or not np.array_equal(index.xyz, Pr)):
@@ -162,7 +167,7 @@ def localize_large(
             rows.append(row)
             results.append(None)
             continue
-        r = localize(reference.subset(crop), vehicle, cfg)
+        r = localize(reference.subset(crop), vehicle, cfg, query_xyz=query_xyz, path_xyz=path_xyz)
         considered += r.num_associations
         if len(r.inliers):
             r.inliers = np.c_[r.inliers[:, 0], crop[r.inliers[:, 1]]]

@@ -93,7 +93,10 @@ def localize_cmd(
     reference: Path = typer.Argument(
         ..., help="Reference map: landmark CSV/.npz, traverse CSV, rocks.csv, LAC geometric map (.npy) or rock catalogue CSV."
     ),
-    vehicle: Path = typer.Argument(..., help="Vehicle map: landmark CSV/.npz or traverse CSV."),
+    vehicle: Path = typer.Argument(
+        ..., help="Vehicle map: landmark CSV/.npz or traverse CSV (then its path is used: the pose is judged at the "
+        "traverse's last position, and a fitted distortion places each landmark where it was seen from)."
+    ),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object (with the configuration used)."),
     config: Optional[Path] = typer.Option(
         None, "--config", help="Run configuration (its localization section is used); options given override it."
@@ -124,7 +127,7 @@ def localize_cmd(
     from lunarloc.config import RunConfig, load_config_file
     from lunarloc.localize import LocalizationConfig, Mode, Registration, Solver
     from lunarloc.localize_large import Search, localize_large
-    from lunarloc.maps import load_map
+    from lunarloc.maps import is_traverse_csv, load_map, load_traverse, traverse_map
     from lunarloc.reference import load_reference
 
     choice(search, Search, "--search")
@@ -144,8 +147,14 @@ def localize_cmd(
     cfg: LocalizationConfig = run_cfg.localization
     agg = _agg(radius, min_sightings)
     ref = load_reference(reference, agg, dem=dem)
-    veh = load_map(vehicle, agg)
-    res = localize_large(ref, veh, cfg, run_cfg.index, search=search)
+    query_xyz = path_xyz = None
+    if vehicle.suffix.lower() != ".npz" and is_traverse_csv(vehicle):
+        trav = load_traverse(vehicle)  # a traverse: its path built the map, and the rover is at its end
+        veh, path_xyz = traverse_map(trav, agg), trav.rover_xyz
+        query_xyz = path_xyz[-1:]
+    else:
+        veh = load_map(vehicle, agg)
+    res = localize_large(ref, veh, cfg, run_cfg.index, search=search, query_xyz=query_xyz, path_xyz=path_xyz)
     if as_json:
         from lunarloc.runio import to_json_ready
 
