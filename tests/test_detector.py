@@ -383,7 +383,8 @@ def test_overlapping_detections_keep_the_larger_one():
 @pytest.mark.parametrize("key, value", [
     ("max_nearer_ring_fraction", 1.5), ("max_nearer_ring_fraction", -0.1), ("nearer_depth_ratio", 1.0),
     ("nearer_depth_ratio", 0.0), ("duplicate_overlap_ratio", -1.0), ("crest_extension_ratio", -0.1),
-    ("crest_max_radius_m", -0.01), ("crest_extension_max_ratio", 0.5),
+    ("crest_max_radius_m", -0.01), ("crest_extension_max_ratio", 0.5), ("strip_max_eig_ratio", -1.0),
+    ("strip_max_extension_ratio", -0.1),
 ])  # fmt: skip
 def test_precision_rule_settings_are_checked_and_round_trip(key, value, tmp_path):
     import json
@@ -393,7 +394,8 @@ def test_precision_rule_settings_are_checked_and_round_trip(key, value, tmp_path
     with pytest.raises(ConfigError, match=key):
         RunConfig.from_dict({"detector": {key: value}})
     good = {"max_nearer_ring_fraction": 0.3, "nearer_depth_ratio": 0.6, "duplicate_overlap_ratio": 0.5,
-            "crest_extension_ratio": 0.75, "crest_max_radius_m": 0.2, "crest_extension_max_ratio": 3.0}[key]
+            "crest_extension_ratio": 0.75, "crest_max_radius_m": 0.2, "crest_extension_max_ratio": 3.0,
+            "strip_max_eig_ratio": 40.0, "strip_max_extension_ratio": 0.3}[key]
     p = tmp_path / "config.json"
     p.write_text(json.dumps({"detector": {key: good}}))
     cfg, _ = load_config_file(p)
@@ -448,3 +450,40 @@ def test_default_rules_keep_a_lone_small_rock_on_flat_ground():
     assert np.linalg.norm(d.p_rover[:2] - c[:2]) < 0.08
     assert d.nearer_ring_fraction < DetectorConfig().max_nearer_ring_fraction
     assert d.extension_ratio < 0.5 * DetectorConfig().crest_extension_ratio  # measured (R < 0.12 m), and low
+
+
+def test_a_mid_range_rock_seen_as_a_flat_strip_is_kept():
+    # a 0.16 m sphere buried to 6 cm above the ground 4 m ahead: what of it stands above
+    # the height map's region threshold is a strip (eigenvalue ratio ~23, above the
+    # height filters' tau_elong of 20); the strip rule keeps it, where it ends at its sides
+    c = np.array([4.0, 0.0, -0.29])
+    left, right, rig = ground_scene(tuple(c), 0.16)
+    T = rig["FrontLeft"].T_rover_optical
+    off = Detector(DetectorConfig(strip_max_eig_ratio=0.0), CAM).detect_pair(left, right, T)
+    assert off.detections == [] and [r.reason for r in off.records] == [RejectReason.ELONGATED]
+    pr = Detector(DetectorConfig(), CAM).detect_pair(left, right, T)
+    assert len(pr.detections) == 1
+    d = pr.detections[0]
+    assert DetectorConfig().height_filters.tau_elong < d.eig_ratio <= DetectorConfig().strip_max_eig_ratio
+    assert np.linalg.norm(d.p_rover[:2] - c[:2]) < 0.15
+    assert d.extension_ratio <= DetectorConfig().strip_max_extension_ratio
+    # a strip that goes on beyond its ends at its own height is a crest: rejected
+    crest = Detector(DetectorConfig(strip_max_extension_ratio=0.0), CAM).detect_pair(left, right, T)
+    assert crest.detections == [] and [r.reason for r in crest.records] == [RejectReason.NOT_A_ROCK]
+
+
+def test_only_elongated_masks_within_the_strip_limit_are_strips():
+    from lunarloc.perception.detector import _is_flat_strip
+
+    cfg, fc = DetectorConfig(), MaskFilterConfig(tau_elong=20.0)
+
+    class S:
+        eig_ratio = 25.0
+
+    assert _is_flat_strip(RejectReason.ELONGATED, S, fc, cfg)
+    assert not _is_flat_strip(RejectReason.BORDER, S, fc, cfg)
+    assert not _is_flat_strip(None, S, fc, cfg)
+    S.eig_ratio = cfg.strip_max_eig_ratio + 1.0
+    assert not _is_flat_strip(RejectReason.ELONGATED, S, fc, cfg)
+    S.eig_ratio = 25.0
+    assert not _is_flat_strip(RejectReason.ELONGATED, S, fc, DetectorConfig(strip_max_eig_ratio=0.0))
