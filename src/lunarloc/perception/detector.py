@@ -31,6 +31,7 @@ from lunarloc.geometry import pose_to_matrix, transform_points
 from lunarloc.odometry.visual import ImageNormalization
 from lunarloc.perception.camera import STEREO_PAIRS, CameraMount, PinholeCamera, ipex_rig
 from lunarloc.perception.masks import (
+    InstanceMask,
     InstanceMasks,
     MaskFilterConfig,
     MaskStats,
@@ -65,6 +66,7 @@ __all__ = [
     "mounts_from_archive_row",
     "on_lander",
     "overlapping_duplicates",
+    "split_at_depth_steps",
     "detect_archive",
     "write_traverse_csv",
     "format_boulders",
@@ -281,6 +283,37 @@ class DetectorConfig:
     # to 0.949); see docs/perception.md, "Fifth pass". strip_max_eig_ratio 0 = off.
     strip_max_eig_ratio: float = 30.0
     strip_max_extension_ratio: float = 0.35
+    # Raised strips: a large rock's top at 2.5-5 m (or a 0.1-0.2 m rock's with the
+    # occlusion band SGBM adds at its left) is a strip with an eigenvalue ratio of 30-50,
+    # beyond strip_max_eig_ratio, or one that does not end at its sides (its flank runs
+    # on into the ground's rise). A height blob rejected only as elongated, with an
+    # eigenvalue ratio up to raised_strip_max_eig_ratio and at least
+    # raised_strip_min_area_px full-resolution pixels, goes on to the depth, size and
+    # not-a-rock tests and is kept when its visible top stands at least
+    # raised_strip_min_quadric_m above the quadric ground fitted around it (the height
+    # above the quadric of the quadric rule; 0.05 = quadric_contrast_max_m: a crest or rim
+    # strip follows the quadric) and its estimated radius is at most
+    # raised_strip_max_radius_m (larger ones were merged regions of several bodies). Terrain
+    # strips are thin (few rows) and low above the quadric; rock tops are not. Tuning
+    # sites (17 archives): of 40 such blobs within 5.5 m, 37 true (18 sightings of rocks
+    # r >= 0.1 m within 5 m) and 3 false, 2 of them merged regions of radius 0.68-0.71 m;
+    # any area limit from 560 to 700 and eigenvalue limit from 50 to 60 gives the same
+    # there. See docs/perception.md, "Sixth pass". raised_strip_max_eig_ratio 0 = off.
+    raised_strip_max_eig_ratio: float = 50.0
+    raised_strip_min_area_px: int = 600
+    raised_strip_min_quadric_m: float = 0.05
+    raised_strip_max_radius_m: float = 0.5
+    # Depth steps: a height blob can join two bodies at different ranges that touch in
+    # the image (a rock seen above a nearer rock's top, a large rock in front of another);
+    # its centre then lies between them. A blob whose valid depths' 5-95 % quantiles
+    # differ by more than depth_split_ratio (relative) is cut at its depth steps: every
+    # blob pixel farther than (1 + depth_split_ratio) x a 4-neighbour's depth is cut, and
+    # the 4-connected parts left with at least the segmenter's height_min_area_px
+    # low-resolution pixels and a pixel above its height_seed_m become masks of their own
+    # (when two or more do; the blob stays whole otherwise). A smooth rock's surface
+    # changes depth by a few percent from one low-resolution pixel to the next. 0 = off.
+    # See docs/perception.md, "Sixth pass".
+    depth_split_ratio: float = 0.0
     # Detections within this horizontal distance (metres) of the lander's centre are
     # dropped when the lander's map position is given (LAC lander: legs and pads
     # ~1.9 m from its centre; fiducial panels and their shadows around it).
@@ -319,6 +352,16 @@ class DetectorConfig:
         if not (self.strip_max_eig_ratio >= 0.0 and self.strip_max_extension_ratio >= 0.0):
             raise ConfigError(f"strip_max_eig_ratio={self.strip_max_eig_ratio!r} and strip_max_extension_ratio="
                               f"{self.strip_max_extension_ratio!r} must be >= 0 (strip_max_eig_ratio 0 = off)")
+        if not (self.raised_strip_max_eig_ratio >= 0.0 and self.raised_strip_min_quadric_m >= 0.0
+                and self.raised_strip_max_radius_m > 0.0):
+            raise ConfigError(f"raised_strip_max_eig_ratio={self.raised_strip_max_eig_ratio!r} and "
+                              f"raised_strip_min_quadric_m={self.raised_strip_min_quadric_m!r} must be >= 0 (the first 0 = "
+                              f"off), raised_strip_max_radius_m={self.raised_strip_max_radius_m!r} > 0")
+        if not 0.0 <= self.depth_split_ratio < 10.0:
+            raise ConfigError(f"depth_split_ratio={self.depth_split_ratio!r} must be in [0, 10) (0 = off)")
+        if (not isinstance(self.raised_strip_min_area_px, int) or isinstance(self.raised_strip_min_area_px, bool)
+                or self.raised_strip_min_area_px < 0):
+            raise ConfigError(f"raised_strip_min_area_px={self.raised_strip_min_area_px!r} must be an integer >= 0")
         if self.segmenter is SegmenterKind.FASTSAM and not self.weights:
             raise ConfigError("the fastsam segmenter needs weights (a FastSAM .pt path)")
         if (not isinstance(self.fastsam_imgsz_px, int) or isinstance(self.fastsam_imgsz_px, bool)
@@ -600,6 +643,8 @@ class Detector:
         if getattr(self.segmenter, "uses_stereo", False):
             masks = self.segmenter.segment(L, height=hm)
             fc = cfg.height_filters
+            masks = split_at_depth_steps(masks, hm, cfg.depth_split_ratio, cfg.classical.height_min_area_px,
+                                         cfg.classical.height_seed_m)
         else:
             masks = self.segmenter.segment(L)
         t2 = time.perf_counter()
@@ -616,13 +661,15 @@ class Detector:
             rec.reason = image_reject_reason(st, fc)
             strip = (_is_flat_strip(rec.reason, st, fc, cfg) and fc is cfg.height_filters
                      and cfg.centre_method is CentreMethod.STEREO_POINTS)
-            if rec.reason is not None and not strip:
+            raised = (_is_raised_strip(rec.reason, st, fc, cfg) and fc is cfg.height_filters
+                      and cfg.centre_method is CentreMethod.STEREO_POINTS)
+            if rec.reason is not None and not (strip or raised):
                 continue
             rows, cols = hm.lowres_index(m)
             z = hm.depth[rows, cols]
             ok = np.isfinite(z)
             D = float(np.median(z[ok])) if np.count_nonzero(ok) >= 3 else float("nan")
-            reason, s = classify_mask(st, D, alpha, replace(fc, tau_elong=cfg.strip_max_eig_ratio) if strip else fc)
+            reason, s = classify_mask(st, D, alpha, replace(fc, tau_elong=st.eig_ratio) if strip or raised else fc)
             rec.depth_m, rec.size_m, rec.reason = D, s, reason
             if reason is not None:
                 continue
@@ -677,7 +724,7 @@ class Detector:
                 ext = (_lateral_extension_ratio(hm.height, rows, cols) if R_est < cfg.crest_max_radius_m or strip
                        else float("nan"))
                 crest = cfg.crest_extension_ratio > 0 and cfg.crest_extension_ratio < ext <= cfg.crest_extension_max_ratio
-                flat |= bool(crest) or (strip and not ext <= cfg.strip_max_extension_ratio)
+                flat |= bool(crest) or _strip_rejected(strip, raised, ext, quad, R_est, cfg)
                 if vis_h > cfg.max_rock_height_m or R_est > cfg.max_rock_radius_m or perched or flat or framed:
                     rec.reason = RejectReason.NOT_A_ROCK
                     continue
@@ -792,6 +839,89 @@ def _is_flat_strip(reason: RejectReason | None, st, fc: MaskFilterConfig, cfg: D
     mid range; see DetectorConfig.strip_max_eig_ratio)."""
     return (reason is RejectReason.ELONGATED and cfg.strip_max_eig_ratio > fc.tau_elong
             and st.eig_ratio <= cfg.strip_max_eig_ratio)
+
+
+def split_at_depth_steps(masks: InstanceMasks, height: HeightMap, step_ratio: float, min_area_px: int,
+                         seed_m: float) -> InstanceMasks:
+    """Masks cut at their depth steps (see DetectorConfig.depth_split_ratio): each mask of
+    `masks` (full resolution, from the low-resolution `height` map) whose valid depths'
+    5-95 % quantiles differ by more than `step_ratio` is cut where a pixel lies farther
+    than (1 + step_ratio) x a 4-neighbour's depth; when two or more 4-connected parts of
+    at least `min_area_px` low-resolution pixels with a height above `seed_m` remain,
+    they replace the mask (in its place), otherwise it stays whole. Pixels without a
+    depth stay with the part they connect to. `masks` itself when step_ratio is 0."""
+    if step_ratio <= 0 or len(masks) == 0:
+        return masks
+    out = InstanceMasks(masks.image_shape)
+    for m in masks:
+        parts = _depth_parts(m, height, step_ratio, min_area_px, seed_m)
+        out.masks.extend([m] if parts is None else parts)
+    return out
+
+
+def _depth_parts(m, height: HeightMap, step_ratio: float, min_area_px: int, seed_m: float):
+    """The parts of mask `m` between its depth steps (list of InstanceMask), or None when
+    it has fewer than two (see split_at_depth_steps)."""
+    import cv2
+
+    rows, cols = height.lowres_index(m)
+    z = height.depth[rows, cols]
+    ok = np.isfinite(z)
+    if np.count_nonzero(ok) < 2 * max(min_area_px, 1):
+        return None
+    lo, hi = np.quantile(z[ok], [0.05, 0.95])
+    f = 1.0 + step_ratio
+    if not hi > f * lo:
+        return None
+    r0, c0 = int(rows.min()), int(cols.min())
+    shape = (int(rows.max()) - r0 + 1, int(cols.max()) - c0 + 1)
+    Z = np.full(shape, np.nan)
+    Z[rows - r0, cols - c0] = z
+    blob = np.zeros(shape, bool)
+    blob[rows - r0, cols - c0] = True
+    far = np.zeros(shape, bool)
+    with np.errstate(invalid="ignore"):
+        far[1:] |= Z[1:] > f * Z[:-1]
+        far[:-1] |= Z[:-1] > f * Z[1:]
+        far[:, 1:] |= Z[:, 1:] > f * Z[:, :-1]
+        far[:, :-1] |= Z[:, :-1] > f * Z[:, 1:]
+    n, lab = cv2.connectedComponents((blob & ~far).astype(np.uint8), connectivity=4)
+    if n <= 2:
+        return None
+    H = height.height[r0 : r0 + shape[0], c0 : c0 + shape[1]]
+    k = height.scale
+    parts = []
+    for i in range(1, n):
+        p = lab == i
+        if np.count_nonzero(p) < min_area_px or not np.any(H[p] > seed_m):
+            continue
+        pr, pc = np.nonzero(p)
+        crop = p[pr.min() : pr.max() + 1, pc.min() : pc.max() + 1]
+        crop = np.repeat(np.repeat(crop, k, axis=0), k, axis=1) if k > 1 else crop
+        parts.append(InstanceMask(int(c0 + pc.min()) * k, int(r0 + pr.min()) * k, crop.copy()))
+    return parts if len(parts) >= 2 else None
+
+
+def _is_raised_strip(reason: RejectReason | None, st, fc: MaskFilterConfig, cfg: DetectorConfig) -> bool:
+    """True for a mask that the image filters reject as elongated only, with an eigenvalue
+    ratio within cfg.raised_strip_max_eig_ratio and at least cfg.raised_strip_min_area_px
+    pixels (a candidate raised strip; see DetectorConfig.raised_strip_max_eig_ratio)."""
+    return (reason is RejectReason.ELONGATED and cfg.raised_strip_max_eig_ratio > fc.tau_elong
+            and st.eig_ratio <= cfg.raised_strip_max_eig_ratio and st.area >= cfg.raised_strip_min_area_px)
+
+
+def _strip_rejected(strip: bool, raised: bool, ext: float, quad: float, radius_m: float, cfg: DetectorConfig) -> bool:
+    """Whether an elongated mask let through as a flat strip (`strip`) and/or a raised
+    strip candidate (`raised`) is still rejected: kept when it is a flat strip that ends
+    at its sides (extension ratio `ext` <= cfg.strip_max_extension_ratio) or a raised
+    strip whose top stands >= cfg.raised_strip_min_quadric_m above the quadric ground
+    (`quad`, metres) with an estimated radius `radius_m` <= cfg.raised_strip_max_radius_m.
+    NaN measures fail their test. False for a mask that is neither."""
+    if not (strip or raised):
+        return False
+    if strip and ext <= cfg.strip_max_extension_ratio:
+        return False
+    return not (raised and quad >= cfg.raised_strip_min_quadric_m and radius_m <= cfg.raised_strip_max_radius_m)
 
 
 def _centre_from_points(
