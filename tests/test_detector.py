@@ -487,3 +487,124 @@ def test_only_elongated_masks_within_the_strip_limit_are_strips():
     assert not _is_flat_strip(RejectReason.ELONGATED, S, fc, cfg)
     S.eig_ratio = 25.0
     assert not _is_flat_strip(RejectReason.ELONGATED, S, fc, DetectorConfig(strip_max_eig_ratio=0.0))
+
+
+def test_a_large_rock_seen_as_a_raised_strip_is_kept():
+    # a 0.5 m boulder buried to 10 cm above the ground 4 m ahead: what stands above the
+    # region threshold is a strip (eigenvalue ratio ~30, beyond the flat-strip limit,
+    # and it does not end at its sides); it stands well above the quadric ground around
+    # it, so the raised-strip rule keeps it
+    c = np.array([4.0, 0.0, -0.2 - 0.5 + 0.1])
+    left, right, rig = ground_scene(tuple(c), 0.5)
+    T = rig["FrontLeft"].T_rover_optical
+    off = Detector(DetectorConfig(raised_strip_max_eig_ratio=0.0), CAM).detect_pair(left, right, T)
+    assert off.detections == [] and [r.reason for r in off.records] == [RejectReason.ELONGATED]
+    pr = Detector(DetectorConfig(), CAM).detect_pair(left, right, T)
+    assert len(pr.detections) == 1
+    d = pr.detections[0]
+    cfg = DetectorConfig()
+    assert cfg.height_filters.tau_elong < d.eig_ratio <= cfg.raised_strip_max_eig_ratio
+    assert d.area_px >= cfg.raised_strip_min_area_px and d.height_quadric_m >= cfg.raised_strip_min_quadric_m
+    assert np.linalg.norm(d.p_rover[:2] - c[:2]) < 0.1
+    # a strip standing lower above its quadric ground than asked, or wider than allowed: rejected
+    for strict in (DetectorConfig(raised_strip_min_quadric_m=d.height_quadric_m + 0.01),
+                   DetectorConfig(raised_strip_max_radius_m=0.5 * d.radius_m)):
+        pr = Detector(strict, CAM).detect_pair(left, right, T)
+        assert pr.detections == [] and [r.reason for r in pr.records] == [RejectReason.NOT_A_ROCK]
+    # too few pixels to be a candidate: rejected as elongated, as before
+    pr = Detector(DetectorConfig(raised_strip_min_area_px=d.area_px + 1), CAM).detect_pair(left, right, T)
+    assert pr.detections == [] and [r.reason for r in pr.records] == [RejectReason.ELONGATED]
+
+
+def test_strip_verdicts():
+    from lunarloc.perception.detector import _is_raised_strip, _strip_rejected
+
+    cfg, fc = DetectorConfig(), MaskFilterConfig(tau_elong=20.0)
+
+    class S:
+        eig_ratio, area = 40.0, 800
+
+    assert _is_raised_strip(RejectReason.ELONGATED, S, fc, cfg)
+    assert not _is_raised_strip(RejectReason.BORDER, S, fc, cfg) and not _is_raised_strip(None, S, fc, cfg)
+    assert not _is_raised_strip(RejectReason.ELONGATED, S, fc, DetectorConfig(raised_strip_max_eig_ratio=0.0))
+    S.area = cfg.raised_strip_min_area_px - 1
+    assert not _is_raised_strip(RejectReason.ELONGATED, S, fc, cfg)
+    S.area, S.eig_ratio = 800, cfg.raised_strip_max_eig_ratio + 1.0
+    assert not _is_raised_strip(RejectReason.ELONGATED, S, fc, cfg)
+    q_ok, q_low, R_ok = cfg.raised_strip_min_quadric_m + 0.01, cfg.raised_strip_min_quadric_m - 0.01, 0.2
+    ext_ok, ext_bad = cfg.strip_max_extension_ratio - 0.05, cfg.strip_max_extension_ratio + 0.2
+    # neither kind: no verdict here
+    assert not _strip_rejected(False, False, np.nan, np.nan, R_ok, cfg)
+    # a flat strip: kept when it ends at its sides, else rescued only as a raised strip
+    assert not _strip_rejected(True, False, ext_ok, q_low, R_ok, cfg)
+    assert _strip_rejected(True, False, ext_bad, q_ok, R_ok, cfg)
+    assert not _strip_rejected(True, True, ext_bad, q_ok, R_ok, cfg)
+    assert _strip_rejected(True, True, np.nan, q_low, R_ok, cfg)
+    # a raised strip: needs its height above the quadric and a rock's radius
+    assert not _strip_rejected(False, True, np.nan, q_ok, R_ok, cfg)
+    assert _strip_rejected(False, True, ext_ok, q_low, R_ok, cfg)
+    assert _strip_rejected(False, True, ext_ok, np.nan, R_ok, cfg)
+    assert _strip_rejected(False, True, ext_ok, q_ok, cfg.raised_strip_max_radius_m + 0.1, cfg)
+
+
+def _height_map(depth, height, scale=2):
+    from lunarloc.perception.stereo import HeightMap
+
+    h, w = depth.shape
+    return HeightMap(np.where(np.isfinite(depth), 30.0 / depth, np.nan), depth, np.zeros((h, w, 3)), height, scale, 0,
+                     np.eye(4))
+
+
+def test_a_blob_joining_two_bodies_at_different_ranges_is_split_at_the_depth_step():
+    from lunarloc.perception.detector import split_at_depth_steps
+    from lunarloc.perception.masks import masks_from_labels
+
+    # a low-resolution blob of 12 x 20 pixels: its lower 7 rows a near rock (2.6-2.75 m,
+    # smoothly varying), its upper 5 rows a farther rock's top at 4.4 m, seen above it
+    depth = np.full((30, 40), 6.0)
+    height = np.zeros((30, 40))
+    blob = np.zeros((30, 40), bool)
+    blob[10:22, 10:30] = True
+    depth[15:22, 10:30] = np.linspace(2.75, 2.6, 7)[:, None]
+    depth[10:15, 10:30] = 4.4
+    height[blob] = 0.06
+    depth[12, 12] = np.nan  # a hole without depth stays with its part
+    hm = _height_map(depth, height)
+    k = hm.scale
+    full = np.kron(blob, np.ones((k, k), bool)).astype(np.int32)
+    masks = masks_from_labels(full)
+    assert len(masks) == 1
+    out = split_at_depth_steps(masks, hm, 0.1, 10, 0.035)
+    assert len(out) == 2
+    rows = sorted((m.v0 // k, (m.v0 + m.crop.shape[0]) // k) for m in out)
+    assert rows[0][0] == 10 and rows[0][1] <= 15 and rows[1][0] >= 15 and rows[1][1] == 22
+    assert all(m.crop.shape[1] == 20 * k for m in out)
+    # off, or a step under the ratio, or a part too small or too low: the blob stays whole
+    assert split_at_depth_steps(masks, hm, 0.0, 10, 0.035) is masks
+    assert len(split_at_depth_steps(masks, hm, 0.8, 10, 0.035)) == 1
+    assert len(split_at_depth_steps(masks, hm, 0.1, 200, 0.035)) == 1
+    low = height.copy()
+    low[10:15] = 0.02
+    assert len(split_at_depth_steps(masks, _height_map(depth, low), 0.1, 10, 0.035)) == 1
+    # a smooth surface receding by a few percent per pixel (one rock) is not cut
+    smooth = depth.copy()
+    smooth[10:22, 10:30] = np.linspace(3.4, 2.6, 12)[:, None]
+    assert len(split_at_depth_steps(masks, _height_map(smooth, height), 0.1, 10, 0.035)) == 1
+
+
+@pytest.mark.parametrize("key, bad, good", [
+    ("raised_strip_max_eig_ratio", -1.0, 40.0), ("raised_strip_min_area_px", -5, 400),
+    ("raised_strip_min_area_px", 2.5, 400), ("raised_strip_min_quadric_m", -0.01, 0.04),
+    ("raised_strip_max_radius_m", 0.0, 0.6), ("depth_split_ratio", -0.1, 0.15), ("depth_split_ratio", 12.0, 0.2),
+])  # fmt: skip
+def test_raised_strip_and_depth_split_settings_are_checked_and_round_trip(key, bad, good, tmp_path):
+    import json
+
+    from lunarloc.config import RunConfig, load_config_file
+
+    with pytest.raises(ConfigError, match=key):
+        RunConfig.from_dict({"detector": {key: bad}})
+    p = tmp_path / "config.json"
+    p.write_text(json.dumps({"detector": {key: good}}))
+    cfg, _ = load_config_file(p)
+    assert getattr(cfg.detector, key) == good and RunConfig.from_dict(cfg.to_dict()) == cfg
