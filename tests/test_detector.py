@@ -452,18 +452,25 @@ def test_default_rules_keep_a_lone_small_rock_on_flat_ground():
     assert d.extension_ratio < 0.5 * DetectorConfig().crest_extension_ratio  # measured (R < 0.12 m), and low
 
 
+def _elongated_rock_kept_by_default(c, radius, off_cfg):
+    """The rendered ground scene with one sphere (centre c, radius): the detector with
+    `off_cfg` rejects its one mask as elongated, the default one keeps it. Returns
+    (left, right, T_rover_optical, the detection)."""
+    left, right, rig = ground_scene(tuple(c), radius)
+    T = rig["FrontLeft"].T_rover_optical
+    off = Detector(off_cfg, CAM).detect_pair(left, right, T)
+    assert off.detections == [] and [r.reason for r in off.records] == [RejectReason.ELONGATED]
+    pr = Detector(DetectorConfig(), CAM).detect_pair(left, right, T)
+    assert len(pr.detections) == 1
+    return left, right, T, pr.detections[0]
+
+
 def test_a_mid_range_rock_seen_as_a_flat_strip_is_kept():
     # a 0.16 m sphere buried to 6 cm above the ground 4 m ahead: what of it stands above
     # the height map's region threshold is a strip (eigenvalue ratio ~23, above the
     # height filters' tau_elong of 20); the strip rule keeps it, where it ends at its sides
     c = np.array([4.0, 0.0, -0.29])
-    left, right, rig = ground_scene(tuple(c), 0.16)
-    T = rig["FrontLeft"].T_rover_optical
-    off = Detector(DetectorConfig(strip_max_eig_ratio=0.0), CAM).detect_pair(left, right, T)
-    assert off.detections == [] and [r.reason for r in off.records] == [RejectReason.ELONGATED]
-    pr = Detector(DetectorConfig(), CAM).detect_pair(left, right, T)
-    assert len(pr.detections) == 1
-    d = pr.detections[0]
+    left, right, T, d = _elongated_rock_kept_by_default(c, 0.16, DetectorConfig(strip_max_eig_ratio=0.0))
     assert DetectorConfig().height_filters.tau_elong < d.eig_ratio <= DetectorConfig().strip_max_eig_ratio
     assert np.linalg.norm(d.p_rover[:2] - c[:2]) < 0.15
     assert d.extension_ratio <= DetectorConfig().strip_max_extension_ratio
@@ -495,13 +502,7 @@ def test_a_large_rock_seen_as_a_raised_strip_is_kept():
     # and it does not end at its sides); it stands well above the quadric ground around
     # it, so the raised-strip rule keeps it
     c = np.array([4.0, 0.0, -0.2 - 0.5 + 0.1])
-    left, right, rig = ground_scene(tuple(c), 0.5)
-    T = rig["FrontLeft"].T_rover_optical
-    off = Detector(DetectorConfig(raised_strip_max_eig_ratio=0.0), CAM).detect_pair(left, right, T)
-    assert off.detections == [] and [r.reason for r in off.records] == [RejectReason.ELONGATED]
-    pr = Detector(DetectorConfig(), CAM).detect_pair(left, right, T)
-    assert len(pr.detections) == 1
-    d = pr.detections[0]
+    left, right, T, d = _elongated_rock_kept_by_default(c, 0.5, DetectorConfig(raised_strip_max_eig_ratio=0.0))
     cfg = DetectorConfig()
     assert cfg.height_filters.tau_elong < d.eig_ratio <= cfg.raised_strip_max_eig_ratio
     assert d.area_px >= cfg.raised_strip_min_area_px and d.height_quadric_m >= cfg.raised_strip_min_quadric_m
