@@ -516,19 +516,18 @@ def test_disparity_roughness_tells_a_smooth_surface_from_stereo_noise():
 
 
 def test_a_rock_is_kept_with_a_smooth_disparity_and_the_rule_is_wired():
-    c = np.array([2.3, 0.0, -0.18])
-    left, right, rig = ground_scene(tuple(c), 0.08)
-    T = rig["FrontLeft"].T_rover_optical
-    pr = Detector(DetectorConfig(), CAM).detect_pair(left, right, T)
-    assert len(pr.detections) == 1
-    assert pr.detections[0].disparity_roughness < 0.5 * DetectorConfig().max_disparity_roughness
-    # off: not measured
-    off = Detector(DetectorConfig(max_disparity_roughness=1.0), CAM).detect_pair(left, right, T)
-    assert len(off.detections) == 1 and np.isnan(off.detections[0].disparity_roughness)
-    # counting SGBM's sub-pixel steps as jumps makes any surface rough: rejected as not a rock
-    fine = Detector(DetectorConfig(roughness_step_px=1e-3, max_disparity_roughness=1e-3), CAM).detect_pair(left, right, T)
-    assert fine.detections == [] and RejectReason.NOT_A_ROCK in [r.reason for r in fine.records]
-
+    left, right, rig = ground_scene((2.3, 0.0, -0.18), 0.08)
+    configs = {
+        "default": DetectorConfig(),
+        "off": DetectorConfig(max_disparity_roughness=1.0),  # not measured
+        # counting SGBM's sub-pixel steps as jumps makes any surface rough
+        "fine": DetectorConfig(roughness_step_px=1e-3, max_disparity_roughness=1e-3),
+    }
+    runs = {k: Detector(cfg, CAM).detect_pair(left, right, rig["FrontLeft"].T_rover_optical) for k, cfg in configs.items()}
+    assert [len(runs[k].detections) for k in configs] == [1, 1, 0]
+    assert runs["default"].detections[0].disparity_roughness < 0.5 * DetectorConfig().max_disparity_roughness
+    assert np.isnan(runs["off"].detections[0].disparity_roughness)
+    assert RejectReason.NOT_A_ROCK in [r.reason for r in runs["fine"].records]
 
 
 def _frame(k, x_rover, dets):

@@ -1211,30 +1211,8 @@ def detect_archive(
     lander_xy: np.ndarray | None = None,
 ) -> Iterator[FrameDetections]:
     """Run the detector over the frames of a LacArchive that have left images, then
-    confirm low crest blobs across neighbouring frames (:func:`confirm_across_frames`;
-    DetectorConfig.confirm_tol_m). Arguments as :func:`_detect_archive_frames`."""
-    camera = _camera_from_archive(archive)
-    det = detector or Detector(config, camera)
-    yield from confirm_across_frames(
-        _detect_archive_frames(archive, config, pose, detector=det, frames=frames, keep_depth=keep_depth, poses=poses,
-                               lander_xy=lander_xy),
-        det.config,
-    )
-
-
-def _detect_archive_frames(
-    archive,
-    config: DetectorConfig | None = None,
-    pose: PoseSource | str = PoseSource.GROUND_TRUTH,
-    *,
-    detector: Detector | None = None,
-    frames: Iterable[int] | None = None,
-    keep_depth: bool = False,
-    poses: Mapping[int, np.ndarray] | None = None,
-    lander_xy: np.ndarray | None = None,
-) -> Iterator[FrameDetections]:
-    """Run the detector over the frames of a LacArchive that have left images (each
-    frame on its own).
+    confirm low crest blobs across neighbouring frames (:func:`confirm_across_frames`,
+    DetectorConfig.confirm_tol_m).
 
     pose : ground truth (frames.csv) or odometry (custom/odometry.csv) for the map frame.
     frames : optional subset of frame numbers.
@@ -1244,9 +1222,14 @@ def _detect_archive_frames(
         dropped); default: the archive's (initial.toml ``lander`` is relative to the
         rover's initial pose, composed by :meth:`LacArchive.lander_pose_map`).
     """
+    det = detector or Detector(config, _camera_from_archive(archive))
+    yield from confirm_across_frames(_detect_archive_frames(archive, det, pose, frames, keep_depth, poses, lander_xy),
+                                     det.config)
+
+
+def _detect_archive_frames(archive, det: Detector, pose, frames, keep_depth: bool, poses, lander_xy):
+    """detect_archive's frames, each detected on its own (arguments as detect_archive's)."""
     pose = PoseSource(pose)
-    camera = _camera_from_archive(archive)
-    det = detector or Detector(config, camera)
     if pose is PoseSource.ODOMETRY and poses is None:
         from lunarloc.odometry import archive_odometry
 
