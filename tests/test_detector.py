@@ -608,3 +608,9 @@ def test_low_sun_settings_are_checked_and_round_trip(key, value, tmp_path):
     p.write_text(json.dumps({"detector": {key: good}}))
     cfg, _ = load_config_file(p)
     assert getattr(cfg.detector, key) == good and RunConfig.from_dict(cfg.to_dict()) == cfg
+
+
+def test_every_reject_reason_has_an_overlay_colour():
+    from lunarloc.perception.detector import REASON_COLOURS_BGR
+
+    assert set(REASON_COLOURS_BGR) == set(RejectReason)

@@ -1302,6 +1302,7 @@ REASON_COLOURS_BGR = {
     RejectReason.NOT_A_ROCK: (128, 0, 128),
     RejectReason.ON_LANDER: (0, 200, 255),
     RejectReason.DUPLICATE: (255, 128, 0),
+    RejectReason.UNCONFIRMED: (200, 200, 255),
 }
 KEPT_COLOUR_BGR = (0, 255, 0)
 
