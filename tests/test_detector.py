@@ -609,3 +609,130 @@ def test_raised_strip_and_depth_split_settings_are_checked_and_round_trip(key, b
     p.write_text(json.dumps({"detector": {key: good}}))
     cfg, _ = load_config_file(p)
     assert getattr(cfg.detector, key) == good and RunConfig.from_dict(cfg.to_dict()) == cfg
+
+
+def test_disparity_roughness_tells_a_smooth_surface_from_stereo_noise():
+    from lunarloc.perception.detector import disparity_roughness
+
+    r, c = np.mgrid[0:40, 0:60].astype(float)
+    inside = ((r - 20) / 18) ** 2 + ((c - 30) / 27) ** 2 < 1.0
+    # a rock: a dome 4 px of disparity high on a ground plane tilted 0.3 px per row
+    dome = 30.0 + 0.3 * r + 4.0 * np.sqrt(np.clip(1.0 - ((r - 20) / 18) ** 2 - ((c - 30) / 27) ** 2, 0.0, None))
+    sub_px = np.round(dome * 16.0) / 16.0  # SGBM's 1/16 px steps
+    rng = np.random.default_rng(5)
+    # stereo noise in a textureless shadow: patches of disparities jumping by pixels
+    patches = 30.0 + np.kron(rng.normal(0.0, 2.0, (10, 15)), np.ones((4, 4)))
+    noisy = 30.0 + rng.normal(0.0, 1.5, r.shape)
+    limit = DetectorConfig().max_disparity_roughness
+    step = DetectorConfig().roughness_step_px
+    assert disparity_roughness(sub_px, inside, step) < 0.25 * limit
+    assert disparity_roughness(patches, inside, step) > limit
+    assert disparity_roughness(noisy, inside, step) > 2 * limit
+    # invalid pixels are left out, not read as jumps; too few triples: no verdict
+    holes = sub_px.copy()
+    holes[::3] = np.nan
+    assert disparity_roughness(holes, inside, step) < 0.25 * limit
+    assert np.isnan(disparity_roughness(noisy, np.zeros_like(inside), step))
+    with pytest.raises(InputError):
+        disparity_roughness(noisy[0], inside[0], step)
+
+
+def test_a_rock_is_kept_with_a_smooth_disparity_and_the_rule_is_wired():
+    left, right, rig = ground_scene((2.3, 0.0, -0.18), 0.08)
+    configs = {
+        "default": DetectorConfig(),
+        "off": DetectorConfig(max_disparity_roughness=1.0),  # not measured
+        # counting SGBM's sub-pixel steps as jumps makes any surface rough
+        "fine": DetectorConfig(roughness_step_px=1e-3, max_disparity_roughness=1e-3),
+    }
+    runs = {k: Detector(cfg, CAM).detect_pair(left, right, rig["FrontLeft"].T_rover_optical) for k, cfg in configs.items()}
+    assert [len(runs[k].detections) for k in configs] == [1, 1, 0]
+    assert runs["default"].detections[0].disparity_roughness < 0.5 * DetectorConfig().max_disparity_roughness
+    assert np.isnan(runs["off"].detections[0].disparity_roughness)
+    assert RejectReason.NOT_A_ROCK in [r.reason for r in runs["fine"].records]
+
+
+def _frame(k, x_rover, dets):
+    """A one-pair frame with the rover at (x_rover, 0) in the map and detections
+    (map positions) given as (p_map, needs_confirmation)."""
+    from dataclasses import replace as _replace
+
+    from lunarloc.perception.detector import MaskRecord, PairResult
+    from lunarloc.perception.masks import InstanceMasks
+
+    T = np.eye(4)
+    T[0, 3] = x_rover
+    ds = [_replace(_det(p, 0.08), needs_confirmation=flag) for p, flag in dets]
+    recs = [MaskRecord(i, None, 3.0, 0.04, None) for i in range(len(ds))]
+    return FrameDetections(k, T, [PairResult("FrontLeft", InstanceMasks((720, 1280)), recs, ds, None)])
+
+
+def test_a_low_crest_blob_is_kept_only_when_a_neighbouring_frame_sees_it_at_the_same_place():
+    from lunarloc.perception.detector import confirm_across_frames
+
+    cfg = DetectorConfig()
+    rock, crest = [4.0, 0.5, 0.0], [4.5, -0.5, 0.0]
+    moving = [[4.5 + 0.4 * k, -0.5, 0.0] for k in range(4)]  # a bump that moves along a crest
+    frames = [_frame(k, 0.5 * k, [(rock, True), (moving[k], True), ([6.0, 1.0, 0.0], False)]) for k in range(4)]
+    out = list(confirm_across_frames(frames, cfg))
+    assert [f.frame for f in out] == [0, 1, 2, 3]
+    for f in out:
+        got = [d.p_map[:2].tolist() for d in f.detections]
+        assert [4.0, 0.5] in got and [6.0, 1.0] in got  # the rock stays put; unmarked ones are never judged
+        assert len(got) == 2  # the moving bump is dropped in every frame
+        assert [r.reason for r in f.pairs[0].records].count(RejectReason.UNCONFIRMED) == 1
+    # a marked blob seen again within confirm_tol_m of where it was: kept
+    near = [crest, [crest[0] + 0.5 * cfg.confirm_tol_m, crest[1], 0.0]]
+    out = list(confirm_across_frames([_frame(k, 0.5 * k, [(near[k], True)]) for k in range(2)], cfg))
+    assert all(len(f.detections) == 1 for f in out)
+    # no neighbour far enough (the rover stands still, or a single frame): no verdict, kept
+    still = list(confirm_across_frames([_frame(k, 0.0, [(moving[k], True)]) for k in range(3)], cfg))
+    assert all(len(f.detections) == 1 for f in still)
+    # off: everything passes
+    off = list(confirm_across_frames([_frame(k, 0.5 * k, [(moving[k], True)]) for k in range(3)],
+                                     DetectorConfig(confirm_tol_m=0.0)))
+    assert all(len(f.detections) == 1 for f in off)
+
+
+def test_only_low_blobs_on_a_crest_need_confirmation():
+    from lunarloc.perception.detector import _needs_confirmation
+
+    cfg = DetectorConfig()
+    r, c = np.mgrid[0:30, 0:60]
+    blob = (np.abs(r - 15) <= 1) & (np.abs(c - 30) <= 3)
+    rows, cols = np.nonzero(blob)
+    crest = 0.035 * np.exp(-((r - 15) ** 2) / 2.0)
+    crest[blob] = 0.045
+    lone = np.zeros(r.shape)
+    lone[blob] = 0.045
+    low = cfg.confirm_max_top_m * 0.75
+    assert _needs_confirmation(low, float("nan"), crest, rows, cols, cfg)  # measured here: it goes on
+    assert not _needs_confirmation(low, float("nan"), lone, rows, cols, cfg)  # ends at its sides
+    assert not _needs_confirmation(cfg.confirm_max_top_m * 1.5, 0.9, crest, rows, cols, cfg)  # stands high: a rock
+    assert not _needs_confirmation(low, 0.9, crest, rows, cols, DetectorConfig(confirm_tol_m=0.0))  # off
+
+
+@pytest.mark.parametrize("key, value", [
+    ("max_disparity_roughness", 0.0), ("max_disparity_roughness", 1.5), ("roughness_step_px", 0.0),
+    ("confirm_tol_m", -0.1), ("confirm_max_top_m", -0.01), ("confirm_min_extension_ratio", -0.1),
+    ("confirm_min_baseline_m", -1.0), ("confirm_max_frames", 0),
+])  # fmt: skip
+def test_low_sun_settings_are_checked_and_round_trip(key, value, tmp_path):
+    import json
+
+    from lunarloc.config import RunConfig, load_config_file
+
+    with pytest.raises(ConfigError, match=key):
+        RunConfig.from_dict({"detector": {key: value}})
+    good = {"max_disparity_roughness": 0.2, "roughness_step_px": 1.5, "confirm_tol_m": 0.3, "confirm_max_top_m": 0.05,
+            "confirm_min_extension_ratio": 0.4, "confirm_min_baseline_m": 0.2, "confirm_max_frames": 5}[key]
+    p = tmp_path / "config.json"
+    p.write_text(json.dumps({"detector": {key: good}}))
+    cfg, _ = load_config_file(p)
+    assert getattr(cfg.detector, key) == good and RunConfig.from_dict(cfg.to_dict()) == cfg
+
+
+def test_every_reject_reason_has_an_overlay_colour():
+    from lunarloc.perception.detector import REASON_COLOURS_BGR
+
+    assert set(REASON_COLOURS_BGR) == set(RejectReason)

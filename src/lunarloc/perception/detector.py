@@ -320,6 +320,37 @@ class DetectorConfig:
     # behind a rock no longer joins it); 0.07, 0.1 and 0.15 give 0.933-0.935 and
     # 0.970-0.972. 0 = off. See docs/perception.md, "Sixth pass".
     depth_split_ratio: float = 0.1
+    # Rough surface, not rock: a rock is a smooth surface, so the full-resolution
+    # disparity over its (eroded) mask changes smoothly from pixel to pixel; a blob of
+    # stereo noise (a textureless shadow under a low sun: a boulder's, a crest's or the
+    # rover's own) is a patchwork of disparities. A blob is rejected when more than
+    # max_disparity_roughness of the second differences of its full-resolution
+    # disparity (rows and columns, three valid pixels of the mask in a line) exceed
+    # roughness_step_px (full-resolution pixels; SGBM's sub-pixel steps on a dome are
+    # a fraction of that). Geometry only: the same surface gives the same disparities
+    # whatever the light. Set on the tuning sites; see docs/perception.md, "Sixth pass:
+    # low sun". Needs fullres_points; max_disparity_roughness 1 = off.
+    max_disparity_roughness: float = 0.15
+    roughness_step_px: float = 1.0
+    # Low crest blobs are confirmed by a second view: a blob whose visible top stands
+    # less than confirm_max_top_m above the local ground and whose height goes on
+    # beyond its left and right ends at more than confirm_min_extension_ratio of its top
+    # (the crest test's ratio, measured whatever its radius) cannot be told from a small
+    # half-buried rock in one view. A rock stays put in the map frame; a bump of a crest
+    # or a shadow's edge does not (it moves along the crest, or is not seen again, as the
+    # viewpoint changes). Such a blob is kept only when a detection of the nearest
+    # earlier or later frame whose rover position lies at least confirm_min_baseline_m
+    # away (searched over confirm_max_frames frames each way) lies within confirm_tol_m
+    # of it horizontally in the map frame; with no such frame it is kept. Applied by
+    # detect_archive (it needs the map poses and one frame of look-ahead) and by
+    # confirm_across_frames; detect_frame alone marks the blob (needs_confirmation).
+    # Set on the tuning sites; see docs/perception.md, "Sixth pass: low sun".
+    # confirm_tol_m 0 = off.
+    confirm_tol_m: float = 0.2
+    confirm_max_top_m: float = 0.06
+    confirm_min_extension_ratio: float = 0.3
+    confirm_min_baseline_m: float = 0.1
+    confirm_max_frames: int = 10
     # Detections within this horizontal distance (metres) of the lander's centre are
     # dropped when the lander's map position is given (LAC lander: legs and pads
     # ~1.9 m from its centre; fiducial panels and their shadows around it).
@@ -368,6 +399,18 @@ class DetectorConfig:
         if (not isinstance(self.raised_strip_min_area_px, int) or isinstance(self.raised_strip_min_area_px, bool)
                 or self.raised_strip_min_area_px < 0):
             raise ConfigError(f"raised_strip_min_area_px={self.raised_strip_min_area_px!r} must be an integer >= 0")
+        if not 0.0 < self.max_disparity_roughness <= 1.0:
+            raise ConfigError(f"max_disparity_roughness={self.max_disparity_roughness!r} must be in (0, 1] (1 = off)")
+        if not self.roughness_step_px > 0.0:
+            raise ConfigError(f"roughness_step_px={self.roughness_step_px!r} must be > 0 (full-resolution pixels)")
+        if not (self.confirm_tol_m >= 0.0 and self.confirm_max_top_m >= 0.0 and self.confirm_min_baseline_m >= 0.0):
+            raise ConfigError(f"confirm_tol_m={self.confirm_tol_m!r}, confirm_max_top_m={self.confirm_max_top_m!r} and "
+                              f"confirm_min_baseline_m={self.confirm_min_baseline_m!r} must be >= 0 (confirm_tol_m 0 = off)")
+        if not self.confirm_min_extension_ratio >= 0.0:
+            raise ConfigError(f"confirm_min_extension_ratio={self.confirm_min_extension_ratio!r} must be >= 0")
+        if (not isinstance(self.confirm_max_frames, int) or isinstance(self.confirm_max_frames, bool)
+                or self.confirm_max_frames < 1):
+            raise ConfigError(f"confirm_max_frames={self.confirm_max_frames!r} must be an integer >= 1")
         if self.segmenter is SegmenterKind.FASTSAM and not self.weights:
             raise ConfigError("the fastsam segmenter needs weights (a FastSAM .pt path)")
         if (not isinstance(self.fastsam_imgsz_px, int) or isinstance(self.fastsam_imgsz_px, bool)
@@ -418,6 +461,12 @@ class Detection:
     # median highest height just beyond its left and right ends over its own top
     # (NaN when not measured: blobs of radius >= crest_max_radius_m)
     extension_ratio: float = float("nan")
+    # fraction of rough second differences of the full-resolution disparity (see
+    # DetectorConfig.max_disparity_roughness); NaN when not measured
+    disparity_roughness: float = float("nan")
+    # a low blob on a crest, to be confirmed by a neighbouring frame (see
+    # DetectorConfig.confirm_tol_m)
+    needs_confirmation: bool = False
 
 
 @dataclass
@@ -507,10 +556,13 @@ class Detector:
         hm.valid_u0 = 0 if self.config.height_stereo.full_width else nd * k
         return hm
 
-    def _fullres_points(self, L, right, m, d_lr: float, T_rover_optical: np.ndarray, min_points: int = 5):
+    def _fullres_points(self, L, right, m, d_lr: float, T_rover_optical: np.ndarray, min_points: int = 5,
+                        disparity_out: dict | None = None):
         """Rover-frame points of a mask from a full-resolution SGBM match in a narrow
         band around its low-resolution disparity `d_lr` (full-res pixels); the mask is
-        eroded by fullres_erode_px first. None when too few pixels match."""
+        eroded by fullres_erode_px first. None when too few pixels match.
+        disparity_out : if given, receives "disparity" (the crop's full-resolution
+        disparity, NaN invalid) and "mask" (the eroded crop) when the match ran."""
         import cv2
 
         cfg = self.config
@@ -525,6 +577,8 @@ class Detector:
             ce = cv2.erode(crop.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
             if np.count_nonzero(ce) >= 10:
                 crop = ce
+        if disparity_out is not None:
+            disparity_out.update(disparity=d, mask=crop)
         vv, uu = np.nonzero(crop & np.isfinite(d))
         if vv.size < min_points:
             return None
@@ -693,9 +747,10 @@ class Detector:
                         D = D * d_lr / d_ref
                         rec.depth_m = D
                 h_pts = hm.height[rows[ok], cols[ok]]
+                fr_disp: dict = {}
                 if cfg.fullres_points and P_rov.shape[0] >= 3:
                     fr = self._fullres_points(L, right, m, float(np.median(hm.disparity[rows[ok], cols[ok]])) * hm.scale,
-                                              T_rover_optical)  # fmt: skip
+                                              T_rover_optical, disparity_out=fr_disp)  # fmt: skip
                     if fr is not None:
                         ground = float(np.median(P_rov[:, 2] - h_pts))
                         P_rov, h_pts = fr, fr[:, 2] - ground
@@ -731,6 +786,9 @@ class Detector:
                        else float("nan"))
                 crest = cfg.crest_extension_ratio > 0 and cfg.crest_extension_ratio < ext <= cfg.crest_extension_max_ratio
                 flat |= bool(crest) or _strip_rejected(strip, raised, ext, quad, R_est, cfg)
+                rough = (disparity_roughness(fr_disp["disparity"], fr_disp["mask"], cfg.roughness_step_px)
+                         if fr_disp and cfg.max_disparity_roughness < 1.0 else float("nan"))
+                flat |= bool(rough > cfg.max_disparity_roughness)
                 if vis_h > cfg.max_rock_height_m or R_est > cfg.max_rock_radius_m or perched or flat or framed:
                     rec.reason = RejectReason.NOT_A_ROCK
                     continue
@@ -740,6 +798,8 @@ class Detector:
             if cfg.centre_method is CentreMethod.STEREO_POINTS:
                 det = replace(det, height_m=top, height_front_m=h_sur, height_ring_m=ring, height_quadric_m=quad,
                               nearer_ring_fraction=nearer, extension_ratio=ext)
+                det = replace(det, disparity_roughness=rough,
+                              needs_confirmation=_needs_confirmation(top, ext, hm.height, rows, cols, cfg))
             if self._on_lander(det, lander_xy):
                 rec.reason = RejectReason.ON_LANDER
                 continue
@@ -1078,6 +1138,100 @@ def _lateral_extension_ratio(height: np.ndarray, rows: np.ndarray, cols: np.ndar
     return float(np.median(col_max)) / top
 
 
+def _needs_confirmation(top: float, ext: float, height: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                        cfg: DetectorConfig) -> bool:
+    """True for a low blob on a crest (see DetectorConfig.confirm_tol_m): its visible top
+    under cfg.confirm_max_top_m and its lateral extension ratio (measured here when the
+    crest rule did not measure it) above cfg.confirm_min_extension_ratio."""
+    if cfg.confirm_tol_m <= 0 or not top < cfg.confirm_max_top_m:
+        return False
+    if not np.isfinite(ext):
+        ext = _lateral_extension_ratio(height, rows, cols)
+    return bool(ext > cfg.confirm_min_extension_ratio)
+
+
+def confirm_across_frames(frames: Iterable[FrameDetections], config: DetectorConfig) -> Iterator[FrameDetections]:
+    """Drop the detections marked needs_confirmation that no neighbouring frame confirms
+    (see DetectorConfig.confirm_tol_m); frames are yielded in order, each once its
+    later neighbour is known (at most config.confirm_max_frames frames of look-ahead).
+
+    For each frame, its neighbours are the nearest earlier and the nearest later frame
+    whose rover position lies at least confirm_min_baseline_m away, within
+    confirm_max_frames frames. A marked detection is kept when any detection of either
+    neighbour lies within confirm_tol_m of it horizontally (map frame), or when neither
+    neighbour exists; otherwise it is removed from its pair and its record's reason set
+    to UNCONFIRMED. Frames without a map pose (T_map_rover None) pass unchanged. Off
+    (a plain pass-through) when confirm_tol_m is 0."""
+    from collections import deque
+
+    cfg = config
+    if cfg.confirm_tol_m <= 0:
+        yield from frames
+        return
+    past: deque[FrameDetections] = deque(maxlen=cfg.confirm_max_frames)
+    pending: list[FrameDetections] = []
+
+    def pos(fd: FrameDetections):
+        return None if fd.T_map_rover is None else np.asarray(fd.T_map_rover, float)[:2, 3]
+
+    def far(a: FrameDetections, b: FrameDetections) -> bool:
+        pa, pb = pos(a), pos(b)
+        return pa is not None and pb is not None and float(np.hypot(*(pa - pb))) >= cfg.confirm_min_baseline_m
+
+    def resolve(fd: FrameDetections, later: list[FrameDetections]) -> FrameDetections:
+        if pos(fd) is None:
+            return fd
+        before = next((o for o in reversed(past) if far(fd, o)), None)
+        after = next((o for o in later if far(fd, o)), None)
+        if before is None and after is None:
+            return fd
+        others = [d.p_map[:2] for o in (before, after) if o is not None for d in o.detections if d.p_map is not None]
+        Q = np.asarray(others, float).reshape(-1, 2)
+        for pair in fd.pairs:
+            kept = [r for r in pair.records if r.reason is None]
+            keep = []
+            for rec, d in zip(kept, pair.detections):
+                ok = (not d.needs_confirmation or d.p_map is None
+                      or (Q.shape[0] > 0 and float(np.min(np.hypot(*(Q - d.p_map[:2]).T))) <= cfg.confirm_tol_m))
+                if not ok and len(kept) == len(pair.detections):
+                    rec.reason = RejectReason.UNCONFIRMED
+                keep.append(ok)
+            pair.detections = [d for d, ok in zip(pair.detections, keep) if ok]
+        return fd
+
+    for fd in frames:
+        pending.append(fd)
+        while pending and (len(pending) > cfg.confirm_max_frames or any(far(pending[0], o) for o in pending[1:])):
+            head = pending.pop(0)
+            out = resolve(head, pending[: cfg.confirm_max_frames])
+            past.append(head)
+            yield out
+    while pending:
+        head = pending.pop(0)
+        out = resolve(head, pending[: cfg.confirm_max_frames])
+        past.append(head)
+        yield out
+
+
+def disparity_roughness(disparity: np.ndarray, mask: np.ndarray, step_px: float = 1.0,
+                        min_triples: int = 10) -> float:
+    """Fraction of the second differences of a full-resolution `disparity` (h, w; pixels,
+    NaN invalid) over `mask` (h, w bool) whose magnitude exceeds `step_px`: for every
+    three pixels in a row or a column, all in the mask and valid, |d[i-1] - 2 d[i] +
+    d[i+1]|. On a smooth surface (a rock, the ground) the disparity's curvature is a small
+    fraction of a pixel, so few exceed a pixel; stereo noise in a textureless region
+    (a deep shadow) jumps from pixel to pixel. NaN when fewer than `min_triples`
+    triples are valid."""
+    d = np.where(np.asarray(mask, bool), np.asarray(disparity, float), np.nan)
+    if d.ndim != 2:
+        raise InputError(f"disparity must be a 2-D array, got shape {d.shape}")
+    second = [np.abs(d[:, :-2] - 2.0 * d[:, 1:-1] + d[:, 2:]), np.abs(d[:-2, :] - 2.0 * d[1:-1, :] + d[2:, :])]
+    vals = np.concatenate([x[np.isfinite(x)] for x in second])
+    if vals.size < min_triples:
+        return float("nan")
+    return float(np.count_nonzero(vals > step_px)) / vals.size
+
+
 def overlapping_duplicates(dets: list[Detection], overlap_ratio: float) -> list[int]:
     """Indices of the detections to drop as duplicates: of two detections whose centres
     (``p_rover``) are closer than (R1 + R2) / overlap_ratio (their spheres overlap for a
@@ -1192,7 +1346,9 @@ def detect_archive(
     poses: Mapping[int, np.ndarray] | None = None,
     lander_xy: np.ndarray | None = None,
 ) -> Iterator[FrameDetections]:
-    """Run the detector over the frames of a LacArchive that have left images.
+    """Run the detector over the frames of a LacArchive that have left images, then
+    confirm low crest blobs across neighbouring frames (:func:`confirm_across_frames`,
+    DetectorConfig.confirm_tol_m).
 
     pose : ground truth (frames.csv) or odometry (custom/odometry.csv) for the map frame.
     frames : optional subset of frame numbers.
@@ -1202,9 +1358,14 @@ def detect_archive(
         dropped); default: the archive's (initial.toml ``lander`` is relative to the
         rover's initial pose, composed by :meth:`LacArchive.lander_pose_map`).
     """
+    det = detector or Detector(config, _camera_from_archive(archive))
+    yield from confirm_across_frames(_detect_archive_frames(archive, det, pose, frames, keep_depth, poses, lander_xy),
+                                     det.config)
+
+
+def _detect_archive_frames(archive, det: Detector, pose, frames, keep_depth: bool, poses, lander_xy):
+    """detect_archive's frames, each detected on its own (arguments as detect_archive's)."""
     pose = PoseSource(pose)
-    camera = _camera_from_archive(archive)
-    det = detector or Detector(config, camera)
     if pose is PoseSource.ODOMETRY and poses is None:
         from lunarloc.odometry import archive_odometry
 
@@ -1277,6 +1438,7 @@ REASON_COLOURS_BGR = {
     RejectReason.NOT_A_ROCK: (128, 0, 128),
     RejectReason.ON_LANDER: (0, 200, 255),
     RejectReason.DUPLICATE: (255, 128, 0),
+    RejectReason.UNCONFIRMED: (200, 200, 255),
 }
 KEPT_COLOUR_BGR = (0, 255, 0)
 

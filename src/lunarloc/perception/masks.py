@@ -210,6 +210,8 @@ class RejectReason(str, Enum):
     ON_LANDER = "on_lander"
     # overlaps a larger detection of the same image in 3D (two blobs of one rock)
     DUPLICATE = "duplicate"
+    # a low blob on a crest that no neighbouring frame saw at the same map place
+    UNCONFIRMED = "unconfirmed"
 
 
 @dataclass(frozen=True)
