@@ -48,7 +48,7 @@ import numpy as np
 
 from lunarloc.geometry import transform_points
 from lunarloc.perception.camera import STEREO_PAIRS
-from lunarloc.perception.detector import CentreMethod, Detector, DetectorConfig, detect_archive
+from lunarloc.perception.detector import CentreEstimator, CentreMethod, Detector, DetectorConfig, detect_archive
 
 SIZE_BANDS = [(0.0, 0.1), (0.1, 0.2), (0.2, 0.4), (0.4, 10.0)]
 RANGE_BANDS = [(0.0, 2.5), (2.5, 5.0), (5.0, 8.0)]
@@ -251,7 +251,8 @@ def centre_error_parts(est: np.ndarray, true: np.ndarray, r_true: float, rng: fl
     estimated / true radius, 3D error with the true radius). The last is an oracle for the
     stereo-points centre (centre_range_factor x R beyond the visible surface along the ray,
     centre_height_factor x R below its top): the same centre moved as if R were the true
-    radius (the ray taken from the camera to the estimate); NaN for other methods."""
+    radius (the ray taken from the camera to the estimate; for the BLEND estimator its own
+    radius factors); NaN for other methods."""
     e = np.asarray(est, float) - true
     v = true[:2] - cam[:2]
     v = v / max(float(np.linalg.norm(v)), 1e-9)
@@ -261,8 +262,11 @@ def centre_error_parts(est: np.ndarray, true: np.ndarray, r_true: float, rng: fl
         f = est[:2] - cam[:2]
         f = f / max(float(np.linalg.norm(f)), 1e-9)
         dR = r_true - r_est
-        moved = est + dR * np.array([cfg.centre_range_factor * f[0], cfg.centre_range_factor * f[1],
-                                     -cfg.centre_height_factor])  # fmt: skip
+        k_along, k_z = cfg.centre_range_factor, cfg.centre_height_factor
+        if cfg.centre_estimator is CentreEstimator.BLEND:  # its radius terms (the near anchor unclamped)
+            w = cfg.centre_near_weight
+            k_along, k_z = (1 - w) * cfg.centre_range_factor + w * cfg.centre_near_range_factor, cfg.centre_ring_radius_factor
+        moved = est + dR * np.array([k_along * f[0], k_along * f[1], -k_z])
         oracle = float(np.linalg.norm(moved - true))
     return (float(r_true), float(rng), float(np.linalg.norm(e)), float(np.linalg.norm(e[:2])), along, lat, float(e[2]),
             float(r_est / r_true), oracle)
@@ -395,10 +399,11 @@ def print_groups(groups: dict[str, dict]) -> None:
         print(f"{name}: " + " ".join(str(c.get(k, 0)) for k in FP_CAUSES))
 
 
-def lac_real_frame(folder: Path, figure: Path | None = None) -> list:
+def lac_real_frame(folder: Path, figure: Path | None = None, cfg: DetectorConfig | None = None) -> list:
     """Detect rocks on the real LAC frame (FrontLeft/FrontRight_99.png, pose_99.json; the
     lander stands at the site centre, the map origin); print the detections and draw
-    them (kept masks green, rejected ones coloured by filter) into `figure`."""
+    them (kept masks green, rejected ones coloured by filter) into `figure`. `cfg`: the
+    detector configuration (default DetectorConfig())."""
     import cv2
 
     from lunarloc.geometry import pose_to_matrix
@@ -411,7 +416,7 @@ def lac_real_frame(folder: Path, figure: Path | None = None) -> list:
         raise SystemExit(f"no FrontLeft_99.png / FrontRight_99.png in {folder}")
     p = json.loads((folder / "pose_99.json").read_text())
     T = pose_to_matrix(*[float(p[k]) for k in ("x", "y", "z", "roll", "pitch", "yaw")])
-    det = Detector(DetectorConfig(), PinholeCamera(left.shape[1], left.shape[0], 70.0))
+    det = Detector(cfg or DetectorConfig(), PinholeCamera(left.shape[1], left.shape[0], 70.0))
     T_ro = ipex_rig(det.camera)["FrontLeft"].T_rover_optical
     det.detect_pair(left, right, T_ro, T, "FrontLeft")  # warm-up (OpenCV allocations)
     t0 = time.perf_counter()
@@ -420,7 +425,7 @@ def lac_real_frame(folder: Path, figure: Path | None = None) -> list:
     print(f"real LAC frame 99: {len(pr.detections)} detections in {1000 * dt:.0f} ms (wall)")
     for d in pr.detections:
         print(f"  u,v {d.uv[0]:6.0f} {d.uv[1]:5.0f}  depth {d.depth_m:5.2f} m  radius {d.radius_m:5.3f} m  "
-              f"map {d.p_map[0]:6.2f} {d.p_map[1]:6.2f}")  # fmt: skip
+              f"map {d.p_map[0]:6.2f} {d.p_map[1]:6.2f} {d.p_map[2]:6.2f}")  # fmt: skip
     counts: dict[str, int] = {}
     for r in pr.records:
         if r.reason is not None:
@@ -488,7 +493,7 @@ def main(argv=None) -> int:
     if a.centre_method:
         base = replace(base, centre_method=CentreMethod(a.centre_method))
     if a.lac_real is not None:
-        lac_real_frame(a.lac_real, a.figure)
+        lac_real_frame(a.lac_real, a.figure, base)
         return 0
     if a.speed:
         for p in a.archives:

@@ -57,6 +57,7 @@ from lunarloc.perception.stereo import (
 __all__ = [
     "PoseSource",
     "CentreMethod",
+    "CentreEstimator",
     "DetectorConfig",
     "Detection",
     "MaskRecord",
@@ -95,6 +96,19 @@ class CentreMethod(str, Enum):
     # surface + centre_range_factor * R; height = ground + visible top height -
     # centre_height_factor * R, with R = 2 x the lateral standard deviation.
     STEREO_POINTS = "stereo-points"
+
+
+class CentreEstimator(str, Enum):
+    """STEREO_POINTS: how the centre is placed from the mask's stereo points (see
+    docs/perception.md, "Sixth pass: centre")."""
+
+    # Along the viewing ray: median range of the visible surface + centre_range_factor
+    # x R; lateral: mean lateral offset; height: visible top - centre_height_factor x R.
+    MEDIAN = "median"
+    # Along the ray, a blend of that median anchor and a near anchor (a low quantile of
+    # the points' range + centre_near_range_factor x R); height from the visible top and
+    # the ground fitted in a ring around the blob (excluding it), see _centre_blend.
+    BLEND = "blend"
 
 
 def _height_stereo_default() -> StereoConfig:
@@ -160,6 +174,23 @@ class DetectorConfig:
     # STEREO_POINTS: the centre lies this many radii below the visible top
     # (simulated rocks: vertical semi-axis 0.55-0.85 x radius). Tuned on site 0.
     centre_height_factor: float = 0.6
+    # STEREO_POINTS: the centre estimator (CentreEstimator; MEDIAN is the two lines above).
+    # BLEND's settings: the weight of the near anchor along the ray, its quantile of the
+    # points' range and its radius factor; the height is top - centre_ring_radius_factor x R
+    # - centre_ring_exposed_factor x (top - ring ground), the ground a plane fitted (one-
+    # sided robust) to the height map's points in a ring around the blob. Chosen on the
+    # tuning sites (17 archives); see docs/perception.md, "Sixth pass: centre".
+    centre_estimator: CentreEstimator = CentreEstimator.MEDIAN
+    centre_near_weight: float = 0.3
+    centre_near_quantile: float = 0.05
+    centre_near_range_factor: float = 0.81
+    centre_ring_radius_factor: float = 0.3
+    centre_ring_exposed_factor: float = 0.4
+    # BLEND: the near anchor is taken no nearer than the points' median range minus this
+    # many radii (a rock's visible surface spans about one radius in front of its median;
+    # a few stray ground or mismatched points in the mask must not pull it: on site 105
+    # one 0.13 m rock at 4.6 m was moved 18 cm nearer without it).
+    centre_near_clamp_radii: float = 1.0
     # STEREO_POINTS: recompute each kept mask's stereo points at full resolution (SGBM
     # on the mask's box, disparities within fullres_span_px of the low-resolution
     # median; ~1 ms per mask). The half-resolution map quantises depth: at 4 m a
@@ -359,6 +390,14 @@ class DetectorConfig:
     def __post_init__(self) -> None:
         object.__setattr__(self, "segmenter", SegmenterKind(self.segmenter))
         object.__setattr__(self, "centre_method", CentreMethod(self.centre_method))
+        object.__setattr__(self, "centre_estimator", CentreEstimator(self.centre_estimator))
+        if not (0.0 <= self.centre_near_weight <= 1.0 and 0.0 < self.centre_near_quantile <= 0.5):
+            raise ConfigError(f"centre_near_weight={self.centre_near_weight!r} must be in [0, 1] and "
+                              f"centre_near_quantile={self.centre_near_quantile!r} in (0, 0.5]")
+        if not (self.centre_near_range_factor >= 0 and self.centre_ring_radius_factor >= 0
+                and self.centre_ring_exposed_factor >= 0 and self.centre_near_clamp_radii >= 0):
+            raise ConfigError("centre_near_range_factor, centre_ring_radius_factor, centre_ring_exposed_factor and "
+                              "centre_near_clamp_radii must be >= 0")
         if not 0.0 < self.top_quantile <= 1.0:
             raise ConfigError("top_quantile must be in (0, 1]")
         if self.depth_half_window_px < 0:
@@ -422,6 +461,7 @@ class DetectorConfig:
         d = asdict(self)
         d["segmenter"] = self.segmenter.value
         d["centre_method"] = self.centre_method.value
+        d["centre_estimator"] = self.centre_estimator.value
         return d
 
 
@@ -759,7 +799,7 @@ class Detector:
                     # the silhouette's lateral spread: a disc or half-disc of radius R
                     # has a horizontal standard deviation of R / 2
                     R_sil = cfg.radius_per_size * float(np.sqrt(st.cov[0, 0])) * D * alpha
-                p_rover, R_est = _centre_from_points(P_rov, h_pts, T_rover_optical[:3, 3], cfg, R_sil)
+                p_rover, R_est = _centre_for_mask(P_rov, h_pts, T_rover_optical[:3, 3], cfg, R_sil, hm.points_rover, rows, cols)
                 p = transform_points(T_optical_rover, p_rover[None])[0]
                 if ground_pts is None:
                     ok_all = np.isfinite(hm.depth)
@@ -1003,14 +1043,7 @@ def _centre_from_points(
     range of the visible points and centre_height_factor * R below their top.
     """
     P = np.asarray(P, float)
-    m = np.median(P, axis=0)
-    d = m[:2] - cam_rover[:2]
-    n = float(np.hypot(d[0], d[1]))
-    fwd = d / n if n > 1e-9 else np.array([1.0, 0.0])
-    perp = np.array([-fwd[1], fwd[0]])
-    rel = P[:, :2] - cam_rover[:2]
-    lat = rel @ perp
-    rng = rel @ fwd
+    fwd, perp, rng, lat = _ray_frame(P, cam_rover)
     R = max(2.0 * float(np.std(lat)) if radius_m is None else float(radius_m), 1e-3)
     ground = float(np.median(P[:, 2] - h))
     top = float(np.quantile(h, cfg.top_quantile))
@@ -1019,6 +1052,87 @@ def _centre_from_points(
     xy = cam_rover[:2] + fwd * r_c + perp * l_c
     z = ground + top - cfg.centre_height_factor * R
     return np.array([xy[0], xy[1], z]), R
+
+
+def _ray_frame(P: np.ndarray, cam_rover: np.ndarray):
+    """The horizontal viewing ray from the camera `cam_rover` to the median of the
+    points P (n, 3; rover frame): (fwd, perp) unit vectors along and across it, and each
+    point's horizontal range along it and lateral offset across it."""
+    d = np.median(P[:, :2], axis=0) - cam_rover[:2]
+    n = float(np.hypot(d[0], d[1]))
+    fwd = d / n if n > 1e-9 else np.array([1.0, 0.0])
+    perp = np.array([-fwd[1], fwd[0]])
+    rel = P[:, :2] - cam_rover[:2]
+    return fwd, perp, rel @ fwd, rel @ perp
+
+
+def _centre_for_mask(P: np.ndarray, h: np.ndarray, cam_rover: np.ndarray, cfg: DetectorConfig, radius_m: float | None,
+                     points: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, float]:
+    """Rock centre (rover frame) and radius of a kept mask by cfg.centre_estimator: P, h,
+    cam_rover and radius_m as for _centre_from_points; `points` (H, W, 3) the height
+    map's rover-frame points and (rows, cols) the blob's low-resolution pixels (BLEND
+    fits the ground in a ring around it)."""
+    if cfg.centre_estimator is CentreEstimator.BLEND:
+        return _centre_blend(P, h, cam_rover, cfg, radius_m, _ring_ground_plane(points, rows, cols))
+    return _centre_from_points(P, h, cam_rover, cfg, radius_m)
+
+
+def _centre_blend(P: np.ndarray, h: np.ndarray, cam_rover: np.ndarray, cfg: DetectorConfig, radius_m: float | None,
+                  plane: np.ndarray | None) -> tuple[np.ndarray, float]:
+    """Rock centre (rover frame) and radius, CentreEstimator.BLEND. Along the viewing
+    ray, (1 - w) x (median range + centre_range_factor x R) + w x (near +
+    centre_near_range_factor x R), w = centre_near_weight, near = the points' range
+    quantile centre_near_quantile but no nearer than the median - centre_near_clamp_radii
+    x R: the median of the visible surface moves with how much of the rock's top the
+    mask holds, its near edge with the mask's lower part, and their errors are partly
+    independent. Lateral: the points' mean lateral offset. Height: top -
+    centre_ring_radius_factor x R - centre_ring_exposed_factor x (top - g), g the ground
+    `plane` (z = c0 + c1 x + c2 y, rover frame; see _ring_ground_plane) under the centre:
+    the exposed height 2 c (1 - burial) carries the vertical semi-axis c, which the
+    radius alone fixes to +-0.15 R. Without a plane the height is MEDIAN's."""
+    P = np.asarray(P, float)
+    fwd, perp, rng, lat = _ray_frame(P, cam_rover)
+    R = max(2.0 * float(np.std(lat)) if radius_m is None else float(radius_m), 1e-3)
+    w = cfg.centre_near_weight
+    med = float(np.median(rng))
+    near = max(float(np.quantile(rng, cfg.centre_near_quantile)), med - cfg.centre_near_clamp_radii * R)
+    r_c = (1.0 - w) * (med + cfg.centre_range_factor * R) + w * (near + cfg.centre_near_range_factor * R)
+    xy = cam_rover[:2] + fwd * r_c + perp * float(np.mean(lat))
+    top = float(np.median(P[:, 2] - h)) + float(np.quantile(h, cfg.top_quantile))
+    if plane is None:
+        z = top - cfg.centre_height_factor * R
+    else:
+        g = float(plane[0] + plane[1] * xy[0] + plane[2] * xy[1])
+        z = top - cfg.centre_ring_radius_factor * R - cfg.centre_ring_exposed_factor * (top - g)
+    return np.array([xy[0], xy[1], z]), R
+
+
+def _ring_ground_plane(points: np.ndarray, rows: np.ndarray, cols: np.ndarray, width: int = 6, gap: int = 2,
+                       min_points: int = 15, max_points: int = 400) -> np.ndarray | None:
+    """Ground plane z = c0 + c1 x + c2 y (rover frame, metres) under a blob (rows, cols)
+    of the low-resolution map, fitted to the valid stereo `points` (H, W, 3) in the ring
+    `width` pixels wide that starts `gap` pixels outside it, by least squares repeated
+    three times without the points more than 2 MADs above the plane or 4 below it (one-
+    sided: the rock's own skirt and neighbouring rocks stand above the ground). Unlike
+    the local ground cells it does not rise under a large rock. None when fewer than
+    min_points ring points are valid or kept."""
+    (r0, r1, c0, c1), ring = _ring_mask(points.shape[:2], rows, cols, width, gap)
+    Q = points[r0:r1, c0:c1][ring]
+    Q = Q[np.isfinite(Q[:, 2])]
+    if Q.shape[0] < min_points:
+        return None
+    Q = Q[:: -(-Q.shape[0] // max_points)].astype(float)
+    A = np.column_stack([np.ones(Q.shape[0]), Q[:, 0], Q[:, 1]])
+    keep = np.ones(Q.shape[0], bool)
+    c = None
+    for _ in range(3):
+        c = np.linalg.lstsq(A[keep], Q[keep, 2], rcond=None)[0]
+        res = Q[:, 2] - A @ c
+        mad = 1.4826 * float(np.median(np.abs(res[keep]))) + 2e-3
+        keep = (res < 2.0 * mad) & (res > -4.0 * mad)
+        if np.count_nonzero(keep) < min_points:
+            return None
+    return c
 
 
 def _ring_height(height: np.ndarray, rows: np.ndarray, cols: np.ndarray, width: int = 4, gap: int = 1,
