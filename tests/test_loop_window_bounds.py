@@ -131,3 +131,25 @@ def test_stated_bounds_cover_a_stretched_window():
         assert len(fixes) == len(rigid), mode
         assert all(e <= 3 * p for e, p in fixes), (mode, fixes)
         assert fixes[0][1] > 3 * rigid[0][1], mode  # the distortion term is there
+
+
+def test_calibrated_windows_are_fitted_after_the_set_fixes():
+    from lunarloc.loop import Attempt
+
+    ref = LandmarkMap(np.random.default_rng(0).uniform(-5, 5, (10, 3)))
+    src = OdometryBounds(0.02, 0.05)
+    state = LoopState(ref, LoopConfig(calibrated_after_fixes=2), image_localization_config(), odometry=src)
+    for accepted in (True, False, True):
+        assert state.window_localization().odometry_scale_error == 0.02  # not yet calibrated
+        state.attempts.append(Attempt(0, 0.0, 0, 10, 10, accepted, accepted))
+    assert not state.window_localization().odometry_bounds_stated  # 2 fixes: the bend is fitted
+    # rigid windows, bounds the localization states itself, and 0 (the default) never switch
+    for loop, loc in ((LoopConfig(calibrated_after_fixes=2, window_bounds="rigid"), image_localization_config()),
+                      (LoopConfig(calibrated_after_fixes=2), image_localization_config(odometry_scale_error=0.01)),
+                      (LoopConfig(), image_localization_config())):  # fmt: skip
+        s = LoopState(ref, loop, loc, odometry=src)
+        s.attempts.extend([Attempt(0, 0.0, 0, 10, 10, True, True)] * 3)
+        assert s.window_localization() == s.localization and s.localization.odometry_bounds_stated
+    assert RunConfig.for_detections().loop.calibrated_after_fixes == 2 and RunConfig().loop.calibrated_after_fixes == 0
+    with pytest.raises(ConfigError, match="calibrated_after_fixes"):
+        LoopConfig(calibrated_after_fixes=-1)

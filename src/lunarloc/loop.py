@@ -138,6 +138,7 @@ class LoopConfig:
     # how each window's odometry distortion is stated to the localizer (when the localization
     # settings state no odometry bounds): the source's bounds (odometry_bounds), fitted, or rigid
     window_bounds: WindowBounds = WindowBounds.SOURCE
+    calibrated_after_fixes: int = 0  # > 0: after this many fixes the source's bounds give way to a fitted bend
     odometry_bounds: SourceBounds = field(default_factory=SourceBounds)
 
     def __post_init__(self) -> None:
@@ -159,6 +160,9 @@ class LoopConfig:
                               f"{', '.join(k.value for k in WindowBounds)}") from None  # fmt: skip
         if not isinstance(self.min_window_landmarks, int) or self.min_window_landmarks < 3:
             raise ConfigError(f"min_window_landmarks={self.min_window_landmarks!r} must be an integer >= 3")
+        c = self.calibrated_after_fixes
+        if not isinstance(c, int) or isinstance(c, bool) or c < 0:
+            raise ConfigError(f"calibrated_after_fixes={c!r} must be an integer >= 0 (0: the source's bounds throughout)")
         t = self.window_target_landmarks
         if not isinstance(t, int) or isinstance(t, bool) or t < 0:
             raise ConfigError(f"window_target_landmarks={t!r} must be an integer >= 0 (0: fixed window)")
@@ -362,6 +366,22 @@ class LoopState:
         self.odometry = odometry
         bounds = odometry if not isinstance(odometry, str) else self.config.odometry_bounds.for_source(odometry)
         self.localization = window_localization(self._localization, self.config, bounds)
+        # the source's bounds describe the raw odometry: once the pose graph has calibrated it
+        # (calibrated_after_fixes accepted fixes), what is left of a window's bend is fitted
+        from_source = (self.config.window_bounds is WindowBounds.SOURCE and bounds is not None
+                       and not self._localization.odometry_bounds_stated)  # fmt: skip
+        self._calibrated_localization = (replace(self.localization, odometry_scale_error=None,
+                                                 odometry_heading_drift_deg_per_m=None)
+                                         if from_source else self.localization)  # fmt: skip
+
+    def window_localization(self) -> LocalizationConfig:
+        """The localization the next window is judged with: :attr:`localization`, or once
+        ``calibrated_after_fixes`` fixes are in the pose graph (> 0) and the bounds are the
+        source's, none stated (the calibrated window's bend is fitted)."""
+        n = self.config.calibrated_after_fixes
+        if n > 0 and sum(a.accepted for a in self.attempts) >= n:
+            return self._calibrated_localization
+        return self.localization
 
     @property
     def keyframes(self) -> list[Keyframe]:
@@ -495,7 +515,7 @@ class LoopState:
         try:
             # the pose is judged where it is used (the rover now, keyframe k) and the distance
             # travelled between inliers and rover is measured along the window's path
-            res = localize(ref, veh, self.localization, query_xyz=poses[k : k + 1, :3], path_xyz=poses[win, :3])
+            res = localize(ref, veh, self.window_localization(), query_xyz=poses[k : k + 1, :3], path_xyz=poses[win, :3])
         except LunarLocError as exc:
             att.time_association_s = time.perf_counter() - t0
             self.timings["association"] += att.time_association_s
