@@ -160,15 +160,16 @@ def transform(T: np.ndarray, P: np.ndarray) -> np.ndarray:
     return P @ T[:3, :3].T + T[:3, 3]
 
 
-def replay(site: Path, min_sightings: int, odometry: str, loop_overrides: dict, diagnose: bool):
-    from lunarloc.config import RunConfig
+def replay(site: Path, min_sightings: int, odometry: str, loop_overrides: dict, diagnose: bool,
+           localization_overrides: dict | None = None):
+    from lunarloc.config import RunConfig, config_from_dict
     from lunarloc.loop import LoopState
     from lunarloc.perception.detector import on_lander
     from lunarloc.reference import load_reference
 
     z = np.load(cache_vehicle(site))
     cfg = RunConfig()
-    loop_cfg = dataclasses.replace(cfg.loop, **loop_overrides)
+    loop_cfg = config_from_dict(type(cfg.loop), {**cfg.loop.to_dict(), **loop_overrides}, "loop")
     ref = load_reference(site / f"map_0_gt_ms{min_sightings}.csv")
     if diagnose:
         rocks = _rocks(site)
@@ -178,7 +179,8 @@ def replay(site: Path, min_sightings: int, odometry: str, loop_overrides: dict, 
                                 "sightings": _reference_sightings(site, rocks)})  # fmt: skip
     else:
         cls = LoopState
-    state = cls(ref, loop_cfg, cfg.localization)
+    loc = dataclasses.replace(cfg.localization, **(localization_overrides or {}))
+    state = cls(ref, loop_cfg, loc, odometry=odometry)  # the windows state this odometry's bounds
     state.rows = []
     T = z["T_visual"] if odometry == "visual" else z["T_record"]
     offset = 0

@@ -73,7 +73,7 @@ def test_maximum_below_the_window_keeps_it_fixed():
 
 def test_runs_keep_a_fixed_window_by_default():
     # off by default: under a drifting odometry a grown window gave a fix 11 cm off at 2.7 cm
-    # predicted (docs/multi-session-images.md); the window is stated rigid to the localizer
+    # predicted (docs/multi-session-images.md), the record's window stated rigid to the localizer
     assert RunConfig().loop.window_target_landmarks == 0
     assert RunConfig.for_detections().loop.window_target_landmarks == 0
     # a longer window asked for on the command line is not refused by a smaller maximum

@@ -211,8 +211,10 @@ class RunConfig:
     @classmethod
     def for_detections(cls, **overrides) -> RunConfig:
         """Runs on the LunarLoc dataset's detections (no images): the default localization
-        and a 12 m local map."""
-        return cls(**{"localization": loop_localization_config(), "loop": LoopConfig(), **overrides})
+        and a 12 m local map. Its windows state the simulated drift until the pose graph has
+        calibrated it (2 fixes), then their bend is fitted (docs/online-component.md)."""
+        return cls(**{"localization": loop_localization_config(), "loop": LoopConfig(calibrated_after_fixes=2),
+                      **overrides})  # fmt: skip
 
     def detector_for(self, width: int):
         """The detector's config for images `width` pixels wide."""

@@ -26,7 +26,7 @@ import enum
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -54,6 +54,62 @@ class FixKind(str, enum.Enum):
     POSE = "pose"  # one pose fix of the newest keyframe (extrapolates the rigid fit to the rover)
 
 
+class WindowBounds(str, enum.Enum):
+    """How the loop states its windows' odometry distortion to the localizer (the
+    ``odometry_scale_error`` / ``odometry_heading_drift_deg_per_m`` of the
+    :class:`~lunarloc.localize.LocalizationConfig` each attempt runs with), when the
+    localization settings state none themselves."""
+
+    SOURCE = "source"  # the bounds of the odometry source in use (LoopConfig.odometry_bounds), added to the predicted error
+    FITTED = "fitted"  # none stated: localize() fits each window's bend (and the measured floor) from its inliers
+    RIGID = "rigid"  # bounds 0: no distortion term (the loop before session 11; over-confident under drifting odometry)
+
+
+@dataclass(frozen=True)
+class OdometryBounds:
+    """Bounds on an odometry's distortion over a window: relative scale error and heading
+    drift per metre of path (what :func:`lunarloc.localize.distortion_allowance` takes)."""
+
+    scale_error: float = 0.0
+    heading_drift_deg_per_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("scale_error", "heading_drift_deg_per_m"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and 0 <= v < math.inf):
+                raise ConfigError(f"{name}={v!r} must be >= 0 and finite")
+
+    def localization_overrides(self) -> dict:
+        return {"odometry_scale_error": float(self.scale_error),
+                "odometry_heading_drift_deg_per_m": float(self.heading_drift_deg_per_m)}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class SourceBounds:
+    """Per odometry source (:class:`lunarloc.odometry.OdometrySource`), the bounds the loop
+    states for a window of its poses (``window_bounds = "source"``); None: none stated, the
+    window's bend is fitted. Traverse-CSV runs (the real dataset's detections) state their
+    simulated drift (``odometry.scale_error``, ``heading_drift_deg_per_m``) exactly; a source
+    not listed (replayed poses, a caller's own odometry) is fitted. What the defaults were
+    chosen on: docs/online-component.md, "Window distortion"."""
+
+    # stereo VO at 640x360-1280x720: 8 m windows distort by 0.2-0.9 % and up to 0.06-0.08 deg/m
+    visual: OdometryBounds | None = field(default_factory=lambda: OdometryBounds(0.01, 0.06))
+    # the simulator's drifting record (3 % scale, gyro bias ~0.1 deg/m) stated honestly refuses every
+    # fix before the pose graph has calibrated it, so none ever comes: stated rigid by default
+    record: OdometryBounds | None = field(default_factory=OdometryBounds)
+    imu: OdometryBounds | None = None  # not measured per window: fitted
+    ground_truth: OdometryBounds | None = field(default_factory=OdometryBounds)
+
+    def for_source(self, label: str) -> OdometryBounds | None:
+        """The bounds of the odometry source named `label` (``visual``, ``record:NAME``,
+        ``imu``, ``ground-truth``, as :attr:`lunarloc.odometry.OdometryTrajectory.label`
+        writes it); None for any other, or one whose bounds are None (fitted)."""
+        head = str(label).split(":")[0].split(" ")[0].strip().lower()
+        return {"visual": self.visual, "imu": self.imu, "record": self.record,
+                "ground-truth": self.ground_truth}.get(head)  # fmt: skip
+
+
 @dataclass(frozen=True)
 class LoopConfig:
     """Parameters of the online loop (distances in metres, times in seconds). The
@@ -79,6 +135,11 @@ class LoopConfig:
     keyframe_max_interval_s: float = 2.0  # ... and a keyframe at least this often
     aggregation: AggregationConfig = field(default_factory=lambda: AggregationConfig(min_sightings=2, min_frames=2))
     fusion: FusionConfig = field(default_factory=FusionConfig)
+    # how each window's odometry distortion is stated to the localizer (when the localization
+    # settings state no odometry bounds): the source's bounds (odometry_bounds), fitted, or rigid
+    window_bounds: WindowBounds = WindowBounds.SOURCE
+    calibrated_after_fixes: int = 0  # > 0: after this many fixes the source's bounds give way to a fitted bend
+    odometry_bounds: SourceBounds = field(default_factory=SourceBounds)
 
     def __post_init__(self) -> None:
         for name in ("localize_every_m", "localize_every_s", "window_m", "crop_sigmas", "fix_sigma_fallback_m",
@@ -92,8 +153,16 @@ class LoopConfig:
             object.__setattr__(self, "fix_kind", FixKind(self.fix_kind))
         except ValueError:
             raise ConfigError(f"fix_kind={self.fix_kind!r}: use one of {', '.join(k.value for k in FixKind)}") from None
+        try:
+            object.__setattr__(self, "window_bounds", WindowBounds(self.window_bounds))
+        except ValueError:
+            raise ConfigError(f"window_bounds={self.window_bounds!r}: use one of "
+                              f"{', '.join(k.value for k in WindowBounds)}") from None  # fmt: skip
         if not isinstance(self.min_window_landmarks, int) or self.min_window_landmarks < 3:
             raise ConfigError(f"min_window_landmarks={self.min_window_landmarks!r} must be an integer >= 3")
+        c = self.calibrated_after_fixes
+        if not isinstance(c, int) or isinstance(c, bool) or c < 0:
+            raise ConfigError(f"calibrated_after_fixes={c!r} must be an integer >= 0 (0: the source's bounds throughout)")
         t = self.window_target_landmarks
         if not isinstance(t, int) or isinstance(t, bool) or t < 0:
             raise ConfigError(f"window_target_landmarks={t!r} must be an integer >= 0 (0: fixed window)")
@@ -113,21 +182,35 @@ inside it before the first fix than the real dataset's 12 m."""
 
 
 RIGID_WINDOW = {"odometry_scale_error": 0.0, "odometry_heading_drift_deg_per_m": 0.0}
-"""The loop states its windows rigid (odometry bounds 0): its pose graph and fix gate model the
-drift, and its windows are short; `localize()` fits the distortion only when no bound is stated."""
+"""Odometry bounds 0: a window stated rigid (``window_bounds = "rigid"``)."""
 
 
 def loop_localization_config(**overrides) -> LocalizationConfig:
-    """The default localization for the loop's windows (real-dataset detections): rigid windows."""
-    return LocalizationConfig(**{**RIGID_WINDOW, **overrides})
+    """The default localization for the loop's windows (real-dataset detections). It states
+    no odometry bounds: each window's are the loop's to state (``LoopConfig.window_bounds``)."""
+    return LocalizationConfig(**overrides)
 
 
 def image_localization_config(**overrides) -> LocalizationConfig:
     """Localization settings for detections from simulated stereo images (noisier than the
     real dataset's): 8 cm consistency tolerance and residual RMSE, refinement radius 16 cm,
-    predicted error up to 15 cm."""
+    predicted error up to 15 cm. No odometry bounds: the loop states each window's."""
     return LocalizationConfig(**{"epsilon_m": 0.08, "epsilon_z_m": 0.08, "max_rmse_m": 0.08, "refine_radius_m": 0.16,
-                                 "max_predicted_error_m": 0.15, **RIGID_WINDOW, **overrides})  # fmt: skip
+                                 "max_predicted_error_m": 0.15, **overrides})  # fmt: skip
+
+
+def window_localization(localization: LocalizationConfig, loop: LoopConfig,
+                        source_bounds: OdometryBounds | None) -> LocalizationConfig:
+    """The localization a loop window is judged with: `localization` as given when it states
+    odometry bounds itself (a run configuration of its own, ``bench loop --odometry-bounds``);
+    else the loop's ``window_bounds``: ``source`` states `source_bounds` (the odometry source's,
+    :meth:`SourceBounds.for_source`; None, a source not known, leaves them to be fitted),
+    ``fitted`` none, ``rigid`` 0."""
+    if localization.odometry_bounds_stated or loop.window_bounds is WindowBounds.FITTED:
+        return localization
+    if loop.window_bounds is WindowBounds.RIGID:
+        return replace(localization, **RIGID_WINDOW)
+    return localization if source_bounds is None else replace(localization, **source_bounds.localization_overrides())
 
 
 # --------------------------------------------------------------------------- results
@@ -242,7 +325,7 @@ class LoopState:
     """
 
     def __init__(self, reference: LandmarkMap | None, config: LoopConfig | None = None,
-                 localization: LocalizationConfig | None = None):  # fmt: skip
+                 localization: LocalizationConfig | None = None, odometry: str | OdometryBounds | None = None):  # fmt: skip
         from lunarloc.warmup import warm_up
 
         warm_up()  # compile before any stage timer starts: compile time is not run time
@@ -253,7 +336,8 @@ class LoopState:
         self.has_reference = reference is not None
         self.reference = reference if reference is not None else LandmarkMap(np.zeros((0, 3)), frame="map")
         self.config = config or LoopConfig()
-        self.localization = localization or loop_localization_config()
+        self._localization = localization or loop_localization_config()
+        self.set_odometry(odometry)
         # per reference landmark (horizontal per axis, vertical) 1-sigma as the map states it
         # (0 where it states none): the error its ties share (fusion.ReferenceErrorModel)
         self.reference_sigmas = stated_sigmas(self.reference)
@@ -272,6 +356,32 @@ class LoopState:
         self._last_attempt_dist = 0.0
         self._last_attempt_t = None
         self.T_map_odo = np.eye(4)  # the latest keyframe's correction
+
+    def set_odometry(self, odometry: str | OdometryBounds | None) -> None:
+        """Name the odometry that feeds :meth:`step` (a source label, ``visual``,
+        ``record:odometry``, ...; or its bounds directly; None: not known), whose bounds the
+        windows state under ``window_bounds = "source"`` (:func:`window_localization`)."""
+        if odometry is not None and not isinstance(odometry, (str, OdometryBounds)):
+            raise InputError(f"odometry must be a source name or OdometryBounds, got {type(odometry).__name__}")
+        self.odometry = odometry
+        bounds = odometry if not isinstance(odometry, str) else self.config.odometry_bounds.for_source(odometry)
+        self.localization = window_localization(self._localization, self.config, bounds)
+        # the source's bounds describe the raw odometry: once the pose graph has calibrated it
+        # (calibrated_after_fixes accepted fixes), what is left of a window's bend is fitted
+        from_source = (self.config.window_bounds is WindowBounds.SOURCE and bounds is not None
+                       and not self._localization.odometry_bounds_stated)  # fmt: skip
+        self._calibrated_localization = (replace(self.localization, odometry_scale_error=None,
+                                                 odometry_heading_drift_deg_per_m=None)
+                                         if from_source else self.localization)  # fmt: skip
+
+    def window_localization(self) -> LocalizationConfig:
+        """The localization the next window is judged with: :attr:`localization`, or once
+        ``calibrated_after_fixes`` fixes are in the pose graph (> 0) and the bounds are the
+        source's, none stated (the calibrated window's bend is fitted)."""
+        n = self.config.calibrated_after_fixes
+        if n > 0 and sum(a.accepted for a in self.attempts) >= n:
+            return self._calibrated_localization
+        return self.localization
 
     @property
     def keyframes(self) -> list[Keyframe]:
@@ -405,7 +515,7 @@ class LoopState:
         try:
             # the pose is judged where it is used (the rover now, keyframe k) and the distance
             # travelled between inliers and rover is measured along the window's path
-            res = localize(ref, veh, self.localization, query_xyz=poses[k : k + 1, :3], path_xyz=poses[win, :3])
+            res = localize(ref, veh, self.window_localization(), query_xyz=poses[k : k + 1, :3], path_xyz=poses[win, :3])
         except LunarLocError as exc:
             att.time_association_s = time.perf_counter() - t0
             self.timings["association"] += att.time_association_s

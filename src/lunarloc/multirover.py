@@ -372,7 +372,7 @@ class _Rover:
             ref = live.landmarks.subset(near)
             try:
                 # as the reference attempt: the pose judged at the rover now, along the window's path
-                res = localize(ref, veh, loop.localization, query_xyz=poses[k : k + 1, :3], path_xyz=poses[win, :3])
+                res = localize(ref, veh, loop.window_localization(), query_xyz=poses[k : k + 1, :3], path_xyz=poses[win, :3])
             except LunarLocError as exc:
                 att.reason = f"{type(exc).__name__}: {exc}"
                 continue

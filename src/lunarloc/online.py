@@ -261,7 +261,10 @@ class OnlineLocalizer:
         noise = replace(cfg.loop.fusion.noise, start_sigma_m=cfg.initial_sigma_m,
                         start_sigma_yaw_rad=math.radians(cfg.initial_sigma_yaw_deg))  # fmt: skip
         self._loop_config = replace(cfg.loop, fusion=replace(cfg.loop.fusion, noise=noise))
-        self.loop = LoopState(reference, self._loop_config, cfg.localization)  # checks the reference (>= 3 landmarks)
+        # its windows state the bounds of the odometry that places them (LoopConfig.window_bounds)
+        self._odometry_source = "visual" if cfg.visual_odometry else "imu"
+        self.loop = LoopState(reference, self._loop_config, cfg.localization,
+                              odometry=self._odometry_source)  # checks the reference (>= 3 landmarks)
         self.detector = Detector(detector_config or scaled_detector_config(self.rig.camera.width), self.rig.camera)
         self._mounts = self.rig.mounts()
         self._pairs = [p for p in self.detector.config.pairs if p[0] in self._mounts and p[1] in self._mounts]
@@ -347,6 +350,9 @@ class OnlineLocalizer:
         a = self._check_imu(imu, linear_speed, angular_speed)
         images = self._images(input_data)
         T_caller = None if odometry is None else _as_T(odometry, "odometry")
+        if T_caller is not None and self._odometry_source is not None:
+            self._odometry_source = None  # the caller's odometry: its bounds are not known, its windows' bend is fitted
+            self.loop.set_odometry(None)
         # ---- odometry
         if self._t_prev is None:
             T_imu = self._T_map_imu
@@ -504,7 +510,8 @@ class OnlineLocalizer:
         sm, sy = old.graph.predicted_sigma(int(keep[0]))
         noise = replace(cfg.fusion.noise, start_sigma_m=max(sm, cfg.fusion.noise.start_sigma_m),
                         start_sigma_yaw_rad=max(sy, cfg.fusion.noise.start_sigma_yaw_rad))  # fmt: skip
-        new = LoopState(self.reference, replace(cfg, fusion=replace(cfg.fusion, noise=noise)), self.config.localization)
+        new = LoopState(self.reference, replace(cfg, fusion=replace(cfg.fusion, noise=noise)), self.config.localization,
+                        odometry=old.odometry)
         new._last_attempt_dist = new._last_attempt_t = math.inf  # no attempts while the window is re-fed
         for k in keep:
             kf = old.keyframes[k]

@@ -45,6 +45,7 @@ def run(source, reference: LandmarkMap, config: RunConfig | None = None, *,
     cfg = config or RunConfig()
     loop = LoopState(reference, cfg.loop, cfg.localization)
     with source:
+        loop.set_odometry(odometry_of(source))  # its windows state this odometry's bounds
         detector = _detector(source, cfg)
         example = _ExampleFrame()
         total, n_kf = source.n_frames, 0
@@ -72,6 +73,18 @@ def run(source, reference: LandmarkMap, config: RunConfig | None = None, *,
     if detector is not None:
         info["detector_scaled"] = detector.config.to_dict()
     return loop.finish(n_kf, source.name, source.rocks, example.best, {**cfg.to_dict(), "info": info})
+
+
+def odometry_of(source):
+    """What the loop needs to know of `source`'s odometry to state its windows' distortion
+    (:meth:`lunarloc.loop.LoopState.set_odometry`): a traverse CSV's simulated drift, exactly,
+    as bounds; an archive's odometry source label (``visual``, ``record:NAME``, ...)."""
+    from lunarloc.loop import OdometryBounds
+
+    drift = getattr(source, "drift", None)
+    if drift is not None:
+        return OdometryBounds(abs(float(drift.scale_error)), abs(float(drift.heading_drift_deg_per_m)))
+    return getattr(source, "odometry_label", None) or None
 
 
 def _detector(source, cfg: RunConfig):
