@@ -270,3 +270,19 @@ def test_the_demo_odometry_source_is_set_in_one_place():
     assert "odometry" not in ScenarioConfig().to_dict()
     with pytest.raises(ConfigError, match="scenario.odometry.*odometry.source"):
         ScenarioConfig.from_dict({"seed": 3, "odometry": "visual"})
+
+
+def test_a_section_given_in_part_keeps_the_rest_of_its_own_default():
+    # {"detector": {"height_stereo": {"uniqueness_ratio": ...}}} changes that one setting and
+    # keeps the height map's half-resolution SGBM (not StereoConfig's full-resolution
+    # defaults); a partial loop section keeps the run's own loop defaults
+    from dataclasses import replace
+
+    from lunarloc.perception.detector import DetectorConfig
+
+    hs = DetectorConfig().height_stereo
+    cfg = RunConfig.from_dict({"detector": {"height_stereo": {"uniqueness_ratio": hs.uniqueness_ratio + 1}}, "loop": {}})
+    assert cfg.detector.height_stereo == replace(hs, uniqueness_ratio=hs.uniqueness_ratio + 1)
+    assert cfg.detector.height_stereo.downscale == hs.downscale != 1
+    assert cfg.detector.height_filters == DetectorConfig().height_filters
+    assert cfg.loop == RunConfig().loop and cfg.localization == RunConfig().localization

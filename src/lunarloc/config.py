@@ -30,7 +30,7 @@ import math
 import types
 import typing
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields, is_dataclass, replace
+from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -67,10 +67,12 @@ def config_to_dict(obj) -> Any:
     return obj
 
 
-def config_from_dict(cls, data, where: str = ""):
+def config_from_dict(cls, data, where: str = "", base=None):
     """The config dataclass `cls` from plain values (as :func:`config_to_dict` writes them).
-    Missing keys keep their defaults; an unknown key, a value of the wrong type or one the
-    config refuses is a ConfigError naming the key (``where`` is the section path)."""
+    Missing keys keep their defaults (those of `base`, an instance of `cls`, when given); a
+    nested section given in part keeps the rest of its field's own default (e.g. the height
+    map's SGBM settings, not StereoConfig's); an unknown key, a value of the wrong type or
+    one the config refuses is a ConfigError naming the key (``where`` is the section path)."""
     label = where or cls.__name__
     if not isinstance(data, Mapping):
         raise ConfigError(f"{label}: expected a table of settings, got {type(data).__name__} {data!r:.60}")
@@ -80,16 +82,25 @@ def config_from_dict(cls, data, where: str = ""):
     if unknown:
         key = f"{where}.{unknown[0]}" if where else str(unknown[0])
         raise ConfigError(f"unknown setting {key!r} (known in {label}: {', '.join(known)})")
-    kwargs = {k: _convert(hints[k], v, f"{where}.{k}" if where else k) for k, v in data.items()}
+    kwargs = {k: _convert(hints[k], v, f"{where}.{k}" if where else k,
+                          getattr(base, k) if base is not None else _field_default(cls, k)) for k, v in data.items()}
     try:
-        return cls(**kwargs)
+        return replace(base, **kwargs) if base is not None else cls(**kwargs)
     except ConfigError as exc:
         raise ConfigError(f"{label}: {exc}" if where else str(exc)) from None
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"{label}: {exc}") from None
 
 
-def _convert(tp, v, key: str):
+def _field_default(cls, name: str):
+    """The default value of dataclass `cls`'s field `name` (None when it has none)."""
+    f = next(f for f in fields(cls) if f.name == name)
+    if f.default_factory is not MISSING:
+        return f.default_factory()
+    return None if f.default is MISSING else f.default
+
+
+def _convert(tp, v, key: str, default=None):
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
         args = typing.get_args(tp)
@@ -98,12 +109,12 @@ def _convert(tp, v, key: str):
         errors = []
         for a in (a for a in args if a is not type(None)):
             try:
-                return _convert(a, v, key)
+                return _convert(a, v, key, default)
             except ConfigError as exc:
                 errors.append(str(exc))
         raise ConfigError(errors[0] if len(errors) == 1 else f"{key}: {v!r} fits none of {tp}")
     if is_dataclass(tp):
-        return config_from_dict(tp, v, key)
+        return config_from_dict(tp, v, key, default if isinstance(default, tp) else None)
     if isinstance(tp, type) and issubclass(tp, enum.Enum):
         try:
             return tp(v)
