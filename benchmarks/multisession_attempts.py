@@ -103,6 +103,7 @@ def _diagnosing_loop(truth: dict):
     from scipy.spatial import cKDTree
 
     from lunarloc import loop as loop_module
+    from lunarloc.geometry import pose_to_matrix
 
     class DiagnosingLoop(loop_module.LoopState):
         rows: list
@@ -139,6 +140,18 @@ def _diagnosing_loop(truth: dict):
                 vid = np.array([rock_ids(np.median(G[near == i], axis=0)[None], truth["rocks"])[0] if np.any(near == i)
                                 else -1 for i in range(len(V))])  # fmt: skip
                 rid = rock_ids(ref.positions_xyz, truth["rocks"])
+                # each vehicle landmark where ground-truth poses place it, against the reference
+                Vt = np.array([np.median(G[near == i], axis=0) if np.any(near == i) else np.full(3, np.nan)
+                               for i in range(len(V))]).reshape(-1, 3)  # fmt: skip
+                dref = (np.linalg.norm(Vt[:, None, :] - truth["reference_xyz"][None], axis=2).min(axis=1)
+                        if len(truth["reference_xyz"]) else np.full(len(V), np.inf))  # fmt: skip
+                T_true = truth["T_true"][truth["index"][frame]]
+                would = float("nan")
+                if np.all(np.isfinite(res.T_ref_veh)):
+                    x, y, z, yaw = poses[k]
+                    roll, pitch = kfs[k].roll_pitch_rad
+                    T_fix = res.T_ref_veh @ pose_to_matrix(x, y, z, roll, pitch, yaw)
+                    would = float(np.linalg.norm(T_fix[:3, 3] - T_true[:3, 3]))
                 window_rocks = set(vid[vid >= 0].tolist())
                 missing = window_rocks - truth["reference_rocks"]
                 inl = res.inliers
@@ -149,11 +162,36 @@ def _diagnosing_loop(truth: dict):
                     "missing_reference_sightings": sorted(int(truth["sightings"][r]) for r in missing),
                     "true_inliers": int(np.sum((vid[inl[:, 0]] >= 0) & (vid[inl[:, 0]] == rid[inl[:, 1]]))) if len(inl) else 0,
                     "required": res.required_inliers, "associations": res.num_associations,
+                    "overlap_0.1m": int(np.sum(dref <= 0.1)),
+                    "failed_checks": [c.name for c in res.checks if not c.passed],
+                    "would_be_error_m": would, **_oracle_crop(self, ref, veh, Vt, truth["reference_xyz"]),
+                    "odometry_error_m": float(np.linalg.norm(
+                        truth["T_odo"][truth["index"][frame]][:3, 3] - T_true[:3, 3])),
                 })  # fmt: skip
             self.rows.append(row)
             return att
 
     return DiagnosingLoop
+
+
+def _oracle_crop(state, ref, veh, Vt: np.ndarray, reference_xyz: np.ndarray, radii=(0.5, 1.0, 2.0)) -> dict:
+    """What the chance test would require if the reference were cropped to the landmarks within
+    r (horizontal) of the window landmarks' TRUE positions (an oracle crop: the best any prior
+    could do), for each r: {"required_at_crop_<r>m": [reference landmarks kept, inliers required]}."""
+    from lunarloc.localize import chance_clique_size
+
+    cfg = state.window_localization().for_maps(ref, veh)
+    out = {}
+    ok = np.all(np.isfinite(Vt), axis=1)
+    for r in radii:
+        d = (np.linalg.norm(Vt[ok][:, None, :2] - reference_xyz[None, :, :2], axis=2).min(axis=0)
+             if np.any(ok) else np.full(len(reference_xyz), np.inf))
+        n = int(np.sum(d <= r))
+        m = len(veh) * n
+        need = max(cfg.min_inliers, int(np.ceil(chance_clique_size(m, cfg.mode, cfg.epsilon_m, cfg.epsilon_z_m)
+                                                + cfg.chance_margin)))
+        out[f"required_at_crop_{r:g}m"] = [n, need]
+    return out
 
 
 def transform(T: np.ndarray, P: np.ndarray) -> np.ndarray:
@@ -176,6 +214,8 @@ def replay(site: Path, min_sightings: int, odometry: str, loop_overrides: dict, 
         rid = rock_ids(ref.positions_xyz, rocks)
         cls = _diagnosing_loop({"T_true": z["T_true"], "index": {int(f): i for i, f in enumerate(z["frames"])},
                                 "rocks": rocks, "reference_rocks": set(rid[rid >= 0].tolist()),
+                                "reference_xyz": ref.positions_xyz,
+                                "T_odo": z["T_visual"] if odometry == "visual" else z["T_record"],
                                 "sightings": _reference_sightings(site, rocks)})  # fmt: skip
     else:
         cls = LoopState

@@ -583,6 +583,11 @@ class PoseGraph:
         """Odometry distance travelled (m) up to keyframe i."""
         return self.keyframes[i].distance_m
 
+    def distance_since_fix(self, i: int) -> float:
+        """Odometry distance (m) from the last fix (or the start) to keyframe i: what the gate's
+        drift model grows with."""
+        return max(self.keyframes[i].distance_m - self._last_fix_dist, 0.0)
+
     def predicted_sigma(self, i: int) -> tuple[float, float]:
         """Gate model: (position sigma m, yaw sigma rad) of keyframe i's prediction."""
         g = self.config.gate

@@ -40,7 +40,7 @@ from lunarloc.maps import AggregationConfig, LandmarkMap, aggregate_detections, 
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
-__all__ = ["FixKind", "LoopConfig", "IMAGE_WINDOW_M", "image_localization_config", "Attempt", "LoopResult",
+__all__ = ["FixKind", "CropSigma", "LoopConfig", "IMAGE_WINDOW_M", "image_localization_config", "Attempt", "LoopResult",
            "LoopState", "interpolate_corrections"]  # fmt: skip
 
 
@@ -63,6 +63,18 @@ class WindowBounds(str, enum.Enum):
     SOURCE = "source"  # the bounds of the odometry source in use (LoopConfig.odometry_bounds), added to the predicted error
     FITTED = "fitted"  # none stated: localize() fits each window's bend (and the measured floor) from its inliers
     RIGID = "rigid"  # bounds 0: no distortion term (the loop before session 11; over-confident under drifting odometry)
+
+
+class CropSigma(str, enum.Enum):
+    """Which position sigma sizes the reference crop of an attempt (``LoopConfig.crop_sigma``).
+    The crop is chosen from the prediction alone, never from the data, so the chance test at the
+    crop's association count stays valid whatever its size; a crop too small only loses fixes."""
+
+    GATE = "gate"  # the pose graph's gate drift model (5 % of the distance since the last fix and a heading random walk)
+    # the odometry bounds the window states (scale error and heading drift per metre, grown over the
+    # distance since the last fix, from the gate's base sigmas); the gate's model where the window
+    # states none or states them 0 (fitted, rigid)
+    SOURCE = "source"
 
 
 @dataclass(frozen=True)
@@ -128,6 +140,7 @@ class LoopConfig:
     crop_reference: bool = True  # localize against the reference near the predicted window only
     crop_sigmas: float = 3.0  # crop radius = window radius + crop_sigmas x predicted sigma ...
     crop_margin_m: float = 2.0  # ... + this margin
+    crop_sigma: CropSigma = CropSigma.GATE  # the predicted sigma the crop is sized by: the gate's model or the window's odometry bounds
     fix_sigma_fallback_m: float = 0.05  # a fix's sigma when the localizer predicts none
     fix_kind: FixKind = FixKind.LANDMARKS  # how fixes enter the pose graph
     active_window_m: float = 40.0  # each solve re-optimises keyframes of the last active_window_m metres
@@ -153,6 +166,10 @@ class LoopConfig:
             object.__setattr__(self, "fix_kind", FixKind(self.fix_kind))
         except ValueError:
             raise ConfigError(f"fix_kind={self.fix_kind!r}: use one of {', '.join(k.value for k in FixKind)}") from None
+        try:
+            object.__setattr__(self, "crop_sigma", CropSigma(self.crop_sigma))
+        except ValueError:
+            raise ConfigError(f"crop_sigma={self.crop_sigma!r}: use one of {', '.join(k.value for k in CropSigma)}") from None
         try:
             object.__setattr__(self, "window_bounds", WindowBounds(self.window_bounds))
         except ValueError:
@@ -484,6 +501,24 @@ class LoopState:
             out = (np.concatenate(pts), np.concatenate(fr), np.concatenate(ix))
         return out if with_index else out[:2]
 
+    def crop_sigma_m(self, k: int) -> float:
+        """The position sigma (m) of keyframe k's prediction that sizes its attempt's reference
+        crop (``crop_sigma``): the gate's drift model, or the bounds the window states (scale error
+        s, heading drift d per metre) over the distance D since the last fix, from the gate's base
+        sigmas b (m) and b_yaw: sqrt(b^2 + (s D)^2 + (yaw D / 2)^2), yaw = hypot(b_yaw, d D) - the
+        gate's own form with the odometry's bounds for its rates."""
+        gate_m, _ = self.graph.predicted_sigma(k)
+        if self.config.crop_sigma is CropSigma.GATE:
+            return gate_m
+        loc = self.window_localization()
+        scale, drift_deg = loc.odometry_scale_error or 0.0, loc.odometry_heading_drift_deg_per_m or 0.0
+        if scale <= 0 and drift_deg <= 0:  # none stated (fitted) or stated rigid: nothing to size it by
+            return gate_m
+        g = self.config.fusion.gate
+        dd = self.graph.distance_since_fix(k)
+        yaw = math.hypot(math.radians(g.base_sigma_yaw_deg), math.radians(drift_deg) * dd)
+        return min(gate_m, math.sqrt(g.base_sigma_m**2 + (scale * dd) ** 2 + (0.5 * yaw * dd) ** 2))
+
     def _attempt(self, k: int, frame: int, t: float) -> Attempt:
         cfg = self.config
         t0 = time.perf_counter()
@@ -494,8 +529,7 @@ class LoopState:
         if cfg.crop_reference and len(veh):
             c = veh.positions_xyz[:, :2].mean(axis=0)
             radius = float(np.max(np.linalg.norm(veh.positions_xyz[:, :2] - c, axis=1)))
-            sig, _ = self.graph.predicted_sigma(k)
-            R = radius + cfg.crop_sigmas * sig + cfg.crop_margin_m
+            R = radius + cfg.crop_sigmas * self.crop_sigma_m(k) + cfg.crop_margin_m
             near = np.linalg.norm(ref.positions_xyz[:, :2] - c, axis=1) <= R
             ref_index = np.flatnonzero(near)
             ref = ref.subset(ref_index)
