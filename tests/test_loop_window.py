@@ -8,16 +8,16 @@ import pytest
 
 from lunarloc.config import RunConfig
 from lunarloc.errors import ConfigError
-from lunarloc.loop import LoopConfig, LoopState
+from lunarloc.loop import LoopConfig, LoopState, OdometryBounds
 
 
-def _straight_drive(loop_config: LoopConfig, length_m: float = 30.0, spacing_m: float = 1.0):
+def _straight_drive(loop_config: LoopConfig, length_m: float = 30.0, spacing_m: float = 1.0, odometry=None):
     """A rover driving straight along x at 0.5 m/s (10 Hz, a keyframe every 0.5 s) past a row
     of rocks every `spacing_m` metres, 1 m to its left; each keyframe sees the rocks 0.5-3 m
     ahead. No reference map: every attempt stops after building its local map."""
     x_rock = np.arange(0.0, length_m + 5, spacing_m)
     rocks = np.column_stack([x_rock, np.ones(len(x_rock)), np.zeros(len(x_rock))])
-    state = LoopState(None, loop_config)
+    state = LoopState(None, loop_config, odometry=odometry)
     n = int(length_m / 0.05)
     for i in range(n + 1):
         x = 0.05 * i
@@ -71,11 +71,19 @@ def test_maximum_below_the_window_keeps_it_fixed():
     assert atts and all(a.window_m == 4.0 for a in atts)
 
 
-def test_runs_keep_a_fixed_window_by_default():
-    # off by default: under a drifting odometry a grown window gave a fix 11 cm off at 2.7 cm
-    # predicted (docs/multi-session-images.md), the record's window stated rigid to the localizer
-    assert RunConfig().loop.window_target_landmarks == 0
+def test_image_runs_grow_their_window_unless_it_is_stated_rigid():
+    # image runs (and the online component) grow an 8 m window to 12 m while it holds fewer than
+    # 20 landmarks; the real dataset's runs keep a fixed one
+    assert (RunConfig().loop.window_target_landmarks, RunConfig().loop.window_max_m) == (20, 12.0)
     assert RunConfig.for_detections().loop.window_target_landmarks == 0
+    # a window stated rigid (bounds 0, as the drifting record is by default) does not grow: under
+    # it a grown window gave a fix 11 cm off at 2.7 cm predicted (docs/multi-session-images.md)
+    loop = LoopConfig(window_m=4.0, localize_every_m=5.0, localize_every_s=1e6, window_target_landmarks=9,
+                      window_max_m=16.0)  # fmt: skip
+    assert all(a.window_m == 4.0 for a in _straight_drive(loop, odometry=OdometryBounds(0.0, 0.0)).attempts)
+    assert all(a.window_m == 4.0 for a in _straight_drive(loop, odometry="record:odometry").attempts)
+    stated = _straight_drive(loop, odometry="visual").attempts  # 1 %, 0.06 deg/m: paid for in the predicted error
+    assert max(a.window_m for a in stated) > 4.0
     # a longer window asked for on the command line is not refused by a smaller maximum
     cfg = RunConfig().with_options(loop__window_target_landmarks=20, loop__window_max_m=12.0, loop__window_m=16.0)
     assert cfg.loop.window_m == 16.0

@@ -39,7 +39,7 @@ import numpy as np
 from lunarloc.association.index import IndexConfig
 from lunarloc.errors import ConfigError
 from lunarloc.localize import LocalizationConfig
-from lunarloc.loop import IMAGE_WINDOW_M, LoopConfig, image_localization_config, loop_localization_config
+from lunarloc.loop import LoopConfig, image_localization_config, image_loop_config, loop_localization_config
 from lunarloc.odometry.imu import ImuOdometryConfig
 
 __all__ = ["RunConfig", "OdometryConfig", "config_to_dict", "config_from_dict", "scaled_detector_config",
@@ -206,7 +206,7 @@ class RunConfig:
     detector_tuned_width_px: int = 1280  # the detector's pixel sizes are tuned at this image width
     localization: LocalizationConfig = field(default_factory=image_localization_config)
     index: IndexConfig = field(default_factory=IndexConfig)
-    loop: LoopConfig = field(default_factory=lambda: LoopConfig(window_m=IMAGE_WINDOW_M))
+    loop: LoopConfig = field(default_factory=image_loop_config)
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
 
     def __post_init__(self) -> None:

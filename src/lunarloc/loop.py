@@ -40,7 +40,7 @@ from lunarloc.maps import AggregationConfig, LandmarkMap, aggregate_detections, 
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
-__all__ = ["FixKind", "CropSigma", "LoopConfig", "IMAGE_WINDOW_M", "image_localization_config", "Attempt", "LoopResult",
+__all__ = ["FixKind", "CropSigma", "LoopConfig", "IMAGE_WINDOW_M", "image_localization_config", "image_loop_config", "Attempt", "LoopResult",
            "LoopState", "interpolate_corrections"]  # fmt: skip
 
 
@@ -214,6 +214,24 @@ def image_localization_config(**overrides) -> LocalizationConfig:
     predicted error up to 15 cm. No odometry bounds: the loop states each window's."""
     return LocalizationConfig(**{"epsilon_m": 0.08, "epsilon_z_m": 0.08, "max_rmse_m": 0.08, "refine_radius_m": 0.16,
                                  "max_predicted_error_m": 0.15, **overrides})  # fmt: skip
+
+
+def image_loop_config(**overrides) -> LoopConfig:
+    """The loop for detections from stereo images (``RunConfig()``, ``OnlineConfig()``): an 8 m
+    window (:data:`IMAGE_WINDOW_M`) that grows to 12 m while it holds fewer than 20 landmarks
+    (not when stated rigid, :meth:`LoopState.local_map`), and a reference crop sized by the
+    window's odometry bounds (``crop_sigma = "source"``). Measured on the multi-session sites:
+    docs/online-component.md, "Session 12: multi-session runs without a fix"."""
+    return LoopConfig(**{"window_m": IMAGE_WINDOW_M, "window_target_landmarks": 20, "window_max_m": 12.0,
+                         "crop_sigma": CropSigma.SOURCE, **overrides})  # fmt: skip
+
+
+def stated_window_bounds(localization: LocalizationConfig) -> tuple[float, float] | None:
+    """The odometry bounds a window's localization states, (scale error, heading drift deg/m),
+    a bound not given counting 0; None where it states none (the bend is fitted)."""
+    if not localization.odometry_bounds_stated:
+        return None
+    return (float(localization.odometry_scale_error or 0.0), float(localization.odometry_heading_drift_deg_per_m or 0.0))
 
 
 def window_localization(localization: LocalizationConfig, loop: LoopConfig,
@@ -468,12 +486,16 @@ class LoopState:
         is used when none reaches the target)."""
         cfg = self.config
         length = cfg.window_m
+        # a window stated rigid (bounds 0) does not grow: its odometry's bend, larger over a longer
+        # path, would be kept out of the predicted error (a 12 m window of the drifting record gave a
+        # fix 11.0 cm off at 2.7 cm predicted, docs/multi-session-images.md)
+        grows = stated_window_bounds(self.window_localization()) != (0.0, 0.0)
         while True:
             win = self.window(k, length)
             P, F, I = self.window_points(win, poses4, with_index=True)
             veh = aggregate_detections(P, F, cfg.aggregation, frame="estimate", detection_arc_m=detection_arcs_m(
                 poses4[win, :3], win, F)) if len(P) else LandmarkMap(np.zeros((0, 3)))  # arcs along the window's path
-            if len(veh) >= cfg.window_target_landmarks or length >= cfg.window_max_m or win[0] == 0:
+            if len(veh) >= cfg.window_target_landmarks or length >= cfg.window_max_m or win[0] == 0 or not grows:
                 return win, P, F, I, veh, length
             length = min(length + cfg.window_m / 2, cfg.window_max_m)
 
@@ -508,12 +530,10 @@ class LoopState:
         sigmas b (m) and b_yaw: sqrt(b^2 + (s D)^2 + (yaw D / 2)^2), yaw = hypot(b_yaw, d D) - the
         gate's own form with the odometry's bounds for its rates."""
         gate_m, _ = self.graph.predicted_sigma(k)
-        if self.config.crop_sigma is CropSigma.GATE:
-            return gate_m
-        loc = self.window_localization()
-        scale, drift_deg = loc.odometry_scale_error or 0.0, loc.odometry_heading_drift_deg_per_m or 0.0
-        if scale <= 0 and drift_deg <= 0:  # none stated (fitted) or stated rigid: nothing to size it by
-            return gate_m
+        bounds = stated_window_bounds(self.window_localization())
+        if self.config.crop_sigma is CropSigma.GATE or bounds is None or bounds == (0.0, 0.0):
+            return gate_m  # none stated (fitted) or stated rigid: nothing to size it by
+        scale, drift_deg = bounds
         g = self.config.fusion.gate
         dd = self.graph.distance_since_fix(k)
         yaw = math.hypot(math.radians(g.base_sigma_yaw_deg), math.radians(drift_deg) * dd)

@@ -55,7 +55,7 @@ from lunarloc.maps import LandmarkMap
 from lunarloc.odometry.imu import ImuOdometryConfig, ImuSamples, integrate_imu
 from lunarloc.perception.camera import IPEX_STEREO_BASELINE_M, STEREO_PAIRS, CameraMount, PinholeCamera, ipex_rig
 from lunarloc.localize import LocalizationConfig
-from lunarloc.loop import IMAGE_WINDOW_M, Attempt, LoopConfig, LoopState, image_localization_config
+from lunarloc.loop import Attempt, LoopConfig, LoopState, image_localization_config, image_loop_config
 
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
@@ -172,7 +172,7 @@ class CameraRig:
 class OnlineConfig:
     """Settings of the component (metres, seconds, degrees as named)."""
 
-    loop: LoopConfig = field(default_factory=lambda: LoopConfig(window_m=IMAGE_WINDOW_M))
+    loop: LoopConfig = field(default_factory=image_loop_config)
     localization: LocalizationConfig = field(default_factory=image_localization_config)
     imu: ImuOdometryConfig = field(default_factory=ImuOdometryConfig)
     visual_odometry: bool = True  # stereo VO on image ticks (else IMU only) when no odometry is passed
