@@ -44,6 +44,11 @@ def test_a_mid_range_blob_that_a_marginal_rule_rejects_becomes_a_tentative_detec
     # without keep_tentative (detect_frame's default: the online loop) it never comes out
     dropped = _pair(TENTATIVE, c, keep_tentative=False)
     assert dropped.detections == [] and [r.reason for r in dropped.records] == [RejectReason.TENTATIVE]
+    left, right, rig = ground_scene(tuple(c), 0.16)
+    images = {"FrontLeft": left, "FrontRight": right}
+    assert Detector(TENTATIVE, CAM).detect_frame(images, rig).detections == []
+    assert [d.tentative for d in Detector(TENTATIVE, CAM).detect_frame(images, rig, keep_tentative=True).detections] \
+        == ["elongated"]
     # nearer than tentative_min_range_m: rejected as today
     near = _pair(replace(TENTATIVE, tentative_min_range_m=4.5), c, keep_tentative=True)
     assert near.detections == [] and [r.reason for r in near.records] == [RejectReason.ELONGATED]
