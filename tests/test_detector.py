@@ -458,6 +458,9 @@ def _elongated_rock_kept_by_default(c, radius, off_cfg):
     (left, right, T_rover_optical, the detection)."""
     left, right, rig = ground_scene(tuple(c), radius)
     T = rig["FrontLeft"].T_rover_optical
+    from dataclasses import replace
+
+    off_cfg = replace(off_cfg, tentative_max_range_m=0.0)  # else a tentative (tests/test_tentative.py)
     off = Detector(off_cfg, CAM).detect_pair(left, right, T)
     assert off.detections == [] and [r.reason for r in off.records] == [RejectReason.ELONGATED]
     pr = Detector(DetectorConfig(), CAM).detect_pair(left, right, T)
@@ -475,7 +478,7 @@ def test_a_mid_range_rock_seen_as_a_flat_strip_is_kept():
     assert np.linalg.norm(d.p_rover[:2] - c[:2]) < 0.15
     assert d.extension_ratio <= DetectorConfig().strip_max_extension_ratio
     # a strip that goes on beyond its ends at its own height is a crest: rejected
-    crest = Detector(DetectorConfig(strip_max_extension_ratio=0.0), CAM).detect_pair(left, right, T)
+    crest = Detector(DetectorConfig(strip_max_extension_ratio=0.0, tentative_max_range_m=0.0), CAM).detect_pair(left, right, T)
     assert crest.detections == [] and [r.reason for r in crest.records] == [RejectReason.NOT_A_ROCK]
 
 
@@ -508,12 +511,12 @@ def test_a_large_rock_seen_as_a_raised_strip_is_kept():
     assert d.area_px >= cfg.raised_strip_min_area_px and d.height_quadric_m >= cfg.raised_strip_min_quadric_m
     assert np.linalg.norm(d.p_rover[:2] - c[:2]) < 0.1
     # a strip standing lower above its quadric ground than asked, or wider than allowed: rejected
-    for strict in (DetectorConfig(raised_strip_min_quadric_m=d.height_quadric_m + 0.01),
-                   DetectorConfig(raised_strip_max_radius_m=0.5 * d.radius_m)):
+    for strict in (DetectorConfig(raised_strip_min_quadric_m=d.height_quadric_m + 0.01, tentative_max_range_m=0.0),
+                   DetectorConfig(raised_strip_max_radius_m=0.5 * d.radius_m, tentative_max_range_m=0.0)):
         pr = Detector(strict, CAM).detect_pair(left, right, T)
         assert pr.detections == [] and [r.reason for r in pr.records] == [RejectReason.NOT_A_ROCK]
     # too few pixels to be a candidate: rejected as elongated, as before
-    pr = Detector(DetectorConfig(raised_strip_min_area_px=d.area_px + 1), CAM).detect_pair(left, right, T)
+    pr = Detector(DetectorConfig(raised_strip_min_area_px=d.area_px + 1, tentative_max_range_m=0.0), CAM).detect_pair(left, right, T)
     assert pr.detections == [] and [r.reason for r in pr.records] == [RejectReason.ELONGATED]
 
 

@@ -382,6 +382,29 @@ class DetectorConfig:
     confirm_min_extension_ratio: float = 0.3
     confirm_min_baseline_m: float = 0.1
     confirm_max_frames: int = 10
+    # Tentative mid-range detections, confirmed by a second view: a height blob whose
+    # median depth lies within [tentative_min_range_m, tentative_max_range_m] and that one
+    # of the marginal rules rejects (TENTATIVE_RULES: elongated beyond the strip limits up
+    # to tentative_max_eig_ratio, too small, under the contrast floors, a crest verdict, a
+    # strip that fails its test) is kept as a tentative detection (Detection.tentative:
+    # the rule's name) instead of being dropped. detect_archive / confirm_across_frames
+    # keep a tentative only when a firm (not tentative) detection of at least
+    # tentative_min_views of the neighbouring frames (each at least
+    # confirm_min_baseline_m of rover travel away, up to confirm_max_frames frames each
+    # way) lies within tentative_tol_m of it horizontally in the map frame; with no such
+    # frame it is dropped. detect_frame drops tentatives unless asked to keep them
+    # (keep_tentative), so the online loop never sees one unconfirmed. Rules never made
+    # tentative: rough disparity (stereo noise), too tall / wide / perched / framed (large
+    # bodies, the lander). Set on the tuning sites (37 archives): recall r >= 0.1 m within
+    # 5 m 0.907 -> 0.939 at precision within 5 m 0.987 -> 0.988 (tolerance 0.15 m: 5 more
+    # false detections for 1 sighting; two views: a third of the gain; 5 or 6 m, eigenvalue
+    # limit 40-80: the same within 5 m). See docs/perception.md, "Seventh pass: tentative
+    # mid-range detections". tentative_max_range_m 0 = off.
+    tentative_max_range_m: float = 5.0
+    tentative_min_range_m: float = 2.0
+    tentative_max_eig_ratio: float = 60.0
+    tentative_tol_m: float = 0.1
+    tentative_min_views: int = 1
     # Detections within this horizontal distance (metres) of the lander's centre are
     # dropped when the lander's map position is given (LAC lander: legs and pads
     # ~1.9 m from its centre; fiducial panels and their shadows around it).
@@ -450,6 +473,18 @@ class DetectorConfig:
         if (not isinstance(self.confirm_max_frames, int) or isinstance(self.confirm_max_frames, bool)
                 or self.confirm_max_frames < 1):
             raise ConfigError(f"confirm_max_frames={self.confirm_max_frames!r} must be an integer >= 1")
+        if not (self.tentative_max_range_m >= 0.0 and self.tentative_min_range_m >= 0.0
+                and self.tentative_max_eig_ratio >= 0.0 and self.tentative_tol_m > 0.0):
+            raise ConfigError(f"tentative_max_range_m={self.tentative_max_range_m!r}, tentative_min_range_m="
+                              f"{self.tentative_min_range_m!r} and tentative_max_eig_ratio={self.tentative_max_eig_ratio!r}"
+                              f" must be >= 0 (tentative_max_range_m 0 = off), tentative_tol_m="
+                              f"{self.tentative_tol_m!r} > 0")
+        if self.tentative_max_range_m > 0 and not self.tentative_min_range_m < self.tentative_max_range_m:
+            raise ConfigError(f"tentative_min_range_m={self.tentative_min_range_m!r} must be under "
+                              f"tentative_max_range_m={self.tentative_max_range_m!r}")
+        if (not isinstance(self.tentative_min_views, int) or isinstance(self.tentative_min_views, bool)
+                or self.tentative_min_views not in (1, 2)):
+            raise ConfigError(f"tentative_min_views={self.tentative_min_views!r} must be 1 or 2 (neighbouring frames)")
         if self.segmenter is SegmenterKind.FASTSAM and not self.weights:
             raise ConfigError("the fastsam segmenter needs weights (a FastSAM .pt path)")
         if (not isinstance(self.fastsam_imgsz_px, int) or isinstance(self.fastsam_imgsz_px, bool)
@@ -507,6 +542,10 @@ class Detection:
     # a low blob on a crest, to be confirmed by a neighbouring frame (see
     # DetectorConfig.confirm_tol_m)
     needs_confirmation: bool = False
+    # a tentative mid-range detection: the name of the marginal rule that would have
+    # rejected it ("" = a firm detection); kept only when a neighbouring frame's firm
+    # detection confirms it (see DetectorConfig.tentative_max_range_m)
+    tentative: str = ""
 
 
 @dataclass
@@ -655,6 +694,7 @@ class Detector:
         keep_depth: bool = False,
         timings: dict[str, float] | None = None,
         lander_xy: np.ndarray | None = None,
+        keep_tentative: bool = False,
     ) -> PairResult:
         """Detections from one rectified stereo pair.
 
@@ -663,6 +703,9 @@ class Detector:
         frame in the rover frame. T_map_rover : 4x4 rover pose in the map, or None.
         lander_xy : (2,) the lander's centre in the map frame (metres), or None;
         detections within config.lander_radius_m of it are rejected (needs T_map_rover).
+        keep_tentative : keep tentative detections (Detection.tentative; see
+        DetectorConfig.tentative_max_range_m), for confirm_across_frames to judge; by default
+        they are dropped (their record's reason TENTATIVE).
         """
         cfg = self.config
         fc = cfg.filters
@@ -675,7 +718,7 @@ class Detector:
             )
         if self.uses_height and right is not None:
             return self._detect_pair_height(
-                L, right, T_rover_optical, T_map_rover, camera_name, keep_depth, tm, lander_xy
+                L, right, T_rover_optical, T_map_rover, camera_name, keep_depth, tm, lander_xy, keep_tentative
             )
         t0 = time.perf_counter()
         masks = self.segmenter.segment(L)
@@ -731,6 +774,7 @@ class Detector:
         keep_depth: bool,
         tm: dict[str, float],
         lander_xy: np.ndarray | None = None,
+        keep_tentative: bool = False,
     ) -> PairResult:
         """detect_pair with the low-resolution stereo height map computed first (it feeds
         the segmenter when it uses stereo, and the centre estimate)."""
@@ -753,6 +797,8 @@ class Detector:
         alpha = self.camera.alpha
         T_optical_rover = np.linalg.inv(T_rover_optical)
         ground_pts = None  # stereo points for the not-a-rock check, on first use
+        tent_on = (cfg.tentative_max_range_m > 0 and fc is cfg.height_filters
+                   and cfg.centre_method is CentreMethod.STEREO_POINTS)
         kept_recs: list[MaskRecord] = []  # the record of each kept detection
         for i, m in enumerate(masks):
             st = mask_stats(m, masks.image_shape, border_px=fc.border_px)
@@ -763,15 +809,24 @@ class Detector:
                      and cfg.centre_method is CentreMethod.STEREO_POINTS)
             raised = (_is_raised_strip(rec.reason, st, fc, cfg) and fc is cfg.height_filters
                       and cfg.centre_method is CentreMethod.STEREO_POINTS)
-            if rec.reason is not None and not (strip or raised):
+            # a tentative candidate rejected as elongated beyond the strip limits
+            long_ = (tent_on and not (strip or raised) and rec.reason is RejectReason.ELONGATED
+                     and st.eig_ratio <= cfg.tentative_max_eig_ratio)
+            if rec.reason is not None and not (strip or raised or long_):
                 continue
             rows, cols = hm.lowres_index(m)
             z = hm.depth[rows, cols]
             ok = np.isfinite(z)
             D = float(np.median(z[ok])) if np.count_nonzero(ok) >= 3 else float("nan")
-            reason, s = classify_mask(st, D, alpha, replace(fc, tau_elong=st.eig_ratio) if strip or raised else fc)
+            reason, s = classify_mask(st, D, alpha, replace(fc, tau_elong=st.eig_ratio) if strip or raised or long_ else fc)
             rec.depth_m, rec.size_m, rec.reason = D, s, reason
-            if reason is not None:
+            mid = bool(tent_on and cfg.tentative_min_range_m <= D <= cfg.tentative_max_range_m)
+            tent = "elongated" if long_ else ""
+            if reason is RejectReason.TOO_SMALL and mid and s > 0:
+                tent, rec.reason = "+".join(filter(None, (tent, "too_small"))), None
+            elif long_ and reason is None and not mid:
+                rec.reason = RejectReason.ELONGATED
+            if rec.reason is not None:
                 continue
             if cfg.centre_method is CentreMethod.STEREO_POINTS:
                 P_rov = hm.points_rover[rows[ok], cols[ok]].astype(float)
@@ -816,8 +871,8 @@ class Detector:
                 perched |= top > cfg.top_per_radius * R_est + cfg.top_noise_m
                 ring = _ring_height(hm.height, rows, cols)
                 quad = _height_above_quadric(hm.points_rover, rows, cols, P_rov, cfg.top_quantile)
-                flat = np.isfinite(ring) and top - ring < cfg.min_contrast_m
-                flat |= bool(
+                contrast = bool(np.isfinite(ring) and top - ring < cfg.min_contrast_m)
+                quadric = bool(
                     np.isfinite(quad) and quad < min(cfg.quadric_contrast_per_radius * R_est, cfg.quadric_contrast_max_m)
                 )
                 nearer = _nearer_ring_fraction(hm.depth, rows, cols, D, cfg.nearer_depth_ratio)
@@ -825,13 +880,17 @@ class Detector:
                 ext = (_lateral_extension_ratio(hm.height, rows, cols) if R_est < cfg.crest_max_radius_m or strip
                        else float("nan"))
                 crest = cfg.crest_extension_ratio > 0 and cfg.crest_extension_ratio < ext <= cfg.crest_extension_max_ratio
-                flat |= bool(crest) or _strip_rejected(strip, raised, ext, quad, R_est, cfg)
+                strip_out = _strip_rejected(strip, raised, ext, quad, R_est, cfg)
                 rough = (disparity_roughness(fr_disp["disparity"], fr_disp["mask"], cfg.roughness_step_px)
                          if fr_disp and cfg.max_disparity_roughness < 1.0 else float("nan"))
-                flat |= bool(rough > cfg.max_disparity_roughness)
-                if vis_h > cfg.max_rock_height_m or R_est > cfg.max_rock_radius_m or perched or flat or framed:
+                hard = (vis_h > cfg.max_rock_height_m or R_est > cfg.max_rock_radius_m or perched or framed
+                        or bool(rough > cfg.max_disparity_roughness))
+                soft = [n for n, f in (("contrast", contrast), ("quadric", quadric), ("crest", bool(crest)),
+                                       ("strip", strip_out)) if f]
+                if hard or (soft and not (mid and set(soft) <= TENTATIVE_RULES)):
                     rec.reason = RejectReason.NOT_A_ROCK
                     continue
+                tent = "+".join(filter(None, (tent, *soft)))
             else:
                 p, p_rover, R_est = self._lift_centroid(*st.centroid_uv, D, s, T_rover_optical)
             det = _detection(camera_name, st, D, s, R_est, p, p_rover, T_map_rover)
@@ -839,15 +898,20 @@ class Detector:
                 det = replace(det, height_m=top, height_front_m=h_sur, height_ring_m=ring, height_quadric_m=quad,
                               nearer_ring_fraction=nearer, extension_ratio=ext)
                 det = replace(det, disparity_roughness=rough,
-                              needs_confirmation=_needs_confirmation(top, ext, hm.height, rows, cols, cfg))
+                              needs_confirmation=_needs_confirmation(top, ext, hm.height, rows, cols, cfg),
+                              tentative=tent)
             if self._on_lander(det, lander_xy):
                 rec.reason = RejectReason.ON_LANDER
                 continue
             dets.append(det)
             kept_recs.append(rec)
-        for k in sorted(overlapping_duplicates(dets, cfg.duplicate_overlap_ratio), reverse=True):
+        for k in sorted(_duplicates_firm_first(dets, cfg.duplicate_overlap_ratio), reverse=True):
             kept_recs[k].reason = RejectReason.DUPLICATE
             del dets[k], kept_recs[k]
+        if not keep_tentative:
+            for k in [k for k, d in enumerate(dets) if d.tentative][::-1]:
+                kept_recs[k].reason = RejectReason.TENTATIVE
+                del dets[k], kept_recs[k]
         t3 = time.perf_counter()
         for k, v in (("segment", t2 - t1), ("filter", t3 - t2), ("stereo", t1 - t0)):
             tm[k] = tm.get(k, 0.0) + v
@@ -870,11 +934,15 @@ class Detector:
         *,
         keep_depth: bool = False,
         lander_xy: np.ndarray | None = None,
+        keep_tentative: bool = False,
     ) -> FrameDetections:
         """Detections of all configured pairs whose left image is in `images`.
 
         mounts : camera name -> CameraMount (defaults to the IPEx rig).
         lander_xy : the lander's centre in the map frame (detections on it are dropped).
+        keep_tentative : keep tentative mid-range detections (only confirm_across_frames
+        may judge them; detect_archive asks for them). Off by default: a caller without
+        cross-frame confirmation (the online loop) never gets one.
         """
         mounts = mounts if mounts is not None else ipex_rig(self.camera)
         out = FrameDetections(frame, T_map_rover)
@@ -893,6 +961,7 @@ class Detector:
                     keep_depth=keep_depth,
                     timings=out.timings,
                     lander_xy=lander_xy,
+                    keep_tentative=keep_tentative,
                 )
             )
         return out
@@ -1275,11 +1344,17 @@ def confirm_across_frames(frames: Iterable[FrameDetections], config: DetectorCon
     neighbour lies within confirm_tol_m of it horizontally (map frame), or when neither
     neighbour exists; otherwise it is removed from its pair and its record's reason set
     to UNCONFIRMED. Frames without a map pose (T_map_rover None) pass unchanged. Off
-    (a plain pass-through) when confirm_tol_m is 0."""
+    (a plain pass-through) when confirm_tol_m is 0.
+
+    Tentative detections (Detection.tentative; DetectorConfig.tentative_max_range_m) are
+    judged more strictly: one is kept only when a firm (not tentative) detection of each
+    of config.tentative_min_views of those neighbours (1: either) lies within
+    tentative_tol_m of it horizontally; with too few neighbours, or no map pose, it is
+    removed (reason TENTATIVE). They are judged even when confirm_tol_m is 0."""
     from collections import deque
 
     cfg = config
-    if cfg.confirm_tol_m <= 0:
+    if cfg.confirm_tol_m <= 0 and cfg.tentative_max_range_m <= 0:
         yield from frames
         return
     past: deque[FrameDetections] = deque(maxlen=cfg.confirm_max_frames)
@@ -1292,25 +1367,32 @@ def confirm_across_frames(frames: Iterable[FrameDetections], config: DetectorCon
         pa, pb = pos(a), pos(b)
         return pa is not None and pb is not None and float(np.hypot(*(pa - pb))) >= cfg.confirm_min_baseline_m
 
+    def near(Q: np.ndarray, p: np.ndarray, tol: float) -> bool:
+        return Q.shape[0] > 0 and float(np.min(np.hypot(*(Q - p[:2]).T))) <= tol
+
+    def firm_xy(o: FrameDetections) -> np.ndarray:
+        return np.asarray([d.p_map[:2] for d in o.detections if d.p_map is not None and not d.tentative],
+                          float).reshape(-1, 2)
+
     def resolve(fd: FrameDetections, later: list[FrameDetections]) -> FrameDetections:
         if pos(fd) is None:
+            if any(d.tentative for d in fd.detections):
+                _drop(fd, lambda d: not d.tentative, RejectReason.TENTATIVE)
             return fd
         before = next((o for o in reversed(past) if far(fd, o)), None)
         after = next((o for o in later if far(fd, o)), None)
-        if before is None and after is None:
-            return fd
-        others = [d.p_map[:2] for o in (before, after) if o is not None for d in o.detections if d.p_map is not None]
-        Q = np.asarray(others, float).reshape(-1, 2)
-        for pair in fd.pairs:
-            kept = [r for r in pair.records if r.reason is None]
-            keep = []
-            for rec, d in zip(kept, pair.detections):
-                ok = (not d.needs_confirmation or d.p_map is None
-                      or (Q.shape[0] > 0 and float(np.min(np.hypot(*(Q - d.p_map[:2]).T))) <= cfg.confirm_tol_m))
-                if not ok and len(kept) == len(pair.detections):
-                    rec.reason = RejectReason.UNCONFIRMED
-                keep.append(ok)
-            pair.detections = [d for d, ok in zip(pair.detections, keep) if ok]
+        views = [o for o in (before, after) if o is not None]
+        firm = [firm_xy(o) for o in views]  # tentative detections confirm nothing
+        Q = np.concatenate(firm) if firm else np.zeros((0, 2))
+
+        def ok(d: Detection) -> bool:
+            if d.tentative:
+                seen = sum(d.p_map is not None and near(F, d.p_map, cfg.tentative_tol_m) for F in firm)
+                return seen >= cfg.tentative_min_views
+            return (not d.needs_confirmation or d.p_map is None or not views or cfg.confirm_tol_m <= 0
+                    or near(Q, d.p_map, cfg.confirm_tol_m))
+
+        _drop(fd, ok, None)
         return fd
 
     for fd in frames:
@@ -1325,6 +1407,19 @@ def confirm_across_frames(frames: Iterable[FrameDetections], config: DetectorCon
         out = resolve(head, pending[: cfg.confirm_max_frames])
         past.append(head)
         yield out
+
+
+def _drop(fd: FrameDetections, keep, reason: RejectReason | None) -> None:
+    """Remove the detections of `fd` for which keep(d) is False from their pairs, setting
+    their records' reason (`reason`, or TENTATIVE / UNCONFIRMED by the detection's kind)."""
+    for pair in fd.pairs:
+        kept = [r for r in pair.records if r.reason is None]
+        flags = [bool(keep(d)) for d in pair.detections]
+        if len(kept) == len(pair.detections):
+            for rec, d, f in zip(kept, pair.detections, flags):
+                if not f:
+                    rec.reason = reason or (RejectReason.TENTATIVE if d.tentative else RejectReason.UNCONFIRMED)
+        pair.detections = [d for d, f in zip(pair.detections, flags) if f]
 
 
 def disparity_roughness(disparity: np.ndarray, mask: np.ndarray, step_px: float = 1.0,
@@ -1344,6 +1439,32 @@ def disparity_roughness(disparity: np.ndarray, mask: np.ndarray, step_px: float 
     if vals.size < min_triples:
         return float("nan")
     return float(np.count_nonzero(vals > step_px)) / vals.size
+
+
+# The not-a-rock verdicts that a mid-range blob may survive as a tentative detection
+# (DetectorConfig.tentative_max_range_m): the ring contrast floor, the quadric floor, the
+# crest rule and a strip's failed test; never the rough, tall, wide, perched or framed ones.
+TENTATIVE_RULES = frozenset({"contrast", "quadric", "crest", "strip"})
+
+
+def _duplicates_firm_first(dets: list[Detection], overlap_ratio: float) -> list[int]:
+    """overlapping_duplicates over the firm detections of `dets` (exactly its result when
+    none is tentative); then each tentative one (largest radius first) that overlaps a
+    kept detection (the same test) is dropped too: a tentative never displaces a firm one."""
+    firm = [i for i, d in enumerate(dets) if not d.tentative]
+    drop = {firm[k] for k in overlapping_duplicates([dets[i] for i in firm], overlap_ratio)}
+    tent = sorted((i for i, d in enumerate(dets) if d.tentative), key=lambda i: -dets[i].radius_m)
+    if overlap_ratio <= 0 or not tent:
+        return sorted(drop)
+    kept = [i for i in firm if i not in drop]
+    for i in tent:
+        d = dets[i]
+        if any(float(np.linalg.norm(d.p_rover - dets[j].p_rover)) * overlap_ratio < d.radius_m + dets[j].radius_m
+               for j in kept):
+            drop.add(i)
+        else:
+            kept.append(i)
+    return sorted(drop)
 
 
 def overlapping_duplicates(dets: list[Detection], overlap_ratio: float) -> list[int]:
@@ -1504,7 +1625,8 @@ def _detect_archive_frames(archive, det: Detector, pose, frames, keep_depth: boo
             s = rec.state
             T = pose_to_matrix(s["x"], s["y"], s["z"], s["roll"], s["pitch"], s["yaw"])
         mounts = mounts_from_archive_row(rec.cameras, det.camera)
-        yield det.detect_frame(rec.grayscale, mounts, T, rec.frame, keep_depth=keep_depth, lander_xy=lander_xy)
+        yield det.detect_frame(rec.grayscale, mounts, T, rec.frame, keep_depth=keep_depth, lander_xy=lander_xy,
+                               keep_tentative=True)
 
 
 # ---------------------------------------------------------------------- CSV output
@@ -1553,6 +1675,7 @@ REASON_COLOURS_BGR = {
     RejectReason.ON_LANDER: (0, 200, 255),
     RejectReason.DUPLICATE: (255, 128, 0),
     RejectReason.UNCONFIRMED: (200, 200, 255),
+    RejectReason.TENTATIVE: (255, 200, 200),
 }
 KEPT_COLOUR_BGR = (0, 255, 0)
 

@@ -212,6 +212,9 @@ class RejectReason(str, Enum):
     DUPLICATE = "duplicate"
     # a low blob on a crest that no neighbouring frame saw at the same map place
     UNCONFIRMED = "unconfirmed"
+    # a tentative mid-range detection (DetectorConfig.tentative_max_range_m) dropped
+    # unconfirmed: detect_frame without keep_tentative, or no neighbouring frame saw it
+    TENTATIVE = "tentative"
 
 
 @dataclass(frozen=True)
