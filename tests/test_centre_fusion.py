@@ -128,3 +128,20 @@ def test_fusion_settings_are_checked_and_round_trip(key, value, tmp_path):
     p.write_text(json.dumps({"detector": {key: good}}))
     cfg, _ = load_config_file(p)
     assert getattr(cfg.detector, key) == good and RunConfig.from_dict(cfg.to_dict()) == cfg
+
+
+def test_detect_archive_fuses_when_on_and_not_when_off(monkeypatch):
+    import lunarloc.perception.detector as detector_mod
+
+    rock = np.array([5.0, 0.4, 0.0])
+    offs = [np.array([0.03 * (-1) ** k, 0.0, 0.0]) for k in range(4)]
+
+    def frames(*_args, **_kwargs):
+        return iter([_frame(k, 0.3 * k, [rock + offs[k]]) for k in range(4)])
+
+    monkeypatch.setattr(detector_mod, "_detect_archive_frames", frames)
+    for cfg, fused in ((DetectorConfig(fuse_tol_m=0.0), False), (DetectorConfig(fuse_tol_m=0.2), True)):
+        out = list(detector_mod.detect_archive(None, cfg, detector=detector_mod.Detector(cfg)))
+        got = np.array([f.detections[0].p_map for f in out])
+        assert np.allclose(got, rock + np.mean(offs, axis=0)) == fused
+        assert np.allclose(got, rock + np.array(offs)) != fused
