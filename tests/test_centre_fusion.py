@@ -145,3 +145,32 @@ def test_detect_archive_fuses_when_on_and_not_when_off(monkeypatch):
         got = np.array([f.detections[0].p_map for f in out])
         assert np.allclose(got, rock + np.mean(offs, axis=0)) == fused
         assert np.allclose(got, rock + np.array(offs)) != fused
+
+
+def test_landmark_centres_benchmark_scores_landmarks_against_the_true_rocks():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "landmark_centres.py"
+    spec = importlib.util.spec_from_file_location("landmark_centres", path)
+    lc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(lc)
+    rng = np.random.default_rng(7)
+    rocks = np.array([[1, 4.0, 0.0, 0.1, 0.15], [2, 4.0, 1.5, 0.05, 0.06], [3, 6.0, -1.0, 0.1, 0.2]])
+    frames = np.arange(8)
+    rover = np.column_stack([0.3 * frames, np.zeros(8), np.zeros(8)])
+    D, DF, R = [], [], []
+    for f in frames:
+        for r in rocks:
+            D.append(r[1:4] + rng.normal(0.0, 0.03, 3))
+            DF.append(f)
+            R.append(float(np.linalg.norm(r[1:4] - rover[f])))
+    bias = np.array([0.02, 0.0, 0.0])  # one shared offset of every sighting of rock 3
+    D = [d + bias if k % 3 == 2 else d for k, d in enumerate(D)]
+    res = lc.evaluate([(frames, rover, D, DF, R, rocks, "x")], [3])
+    det, lm = res["all"]["detections"], res["all"]["landmarks_ms3"]
+    assert det["matched"] == 24 and lm["items"] == 3 and lm["matched"] == 3
+    # r >= 0.1 m: rocks 1 and 3; detections only within 5 m (rock 3 from 4 of the 8 frames)
+    assert lm["target"]["n"] == 2 and det["target"]["n"] == 8 + 4
+    assert lm["all"]["3d_median_m"] < det["all"]["3d_median_m"]  # the cluster's median averages the noise
+    assert set(res) == {"x", "all"}
