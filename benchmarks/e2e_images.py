@@ -8,6 +8,7 @@ Usage
         [--width 1280 --height 720] [--rocks N] [--all-cameras]
         [--min-sightings 5 2] [--epsilon 0.05 0.08] [--poses gt/gt ...] [--online] [--json OUT.json]
         [--plan random|survey] [--reference-duration D] [--odometry SOURCE] [--run-config C.json --run-tag T]
+        [--detect-config C.json]
 
 Steps (each runs the project's own command line; outputs already in DIR are reused):
 
@@ -256,6 +257,9 @@ def main(argv=None) -> int:
                     help="`lunarloc run --config` for --online (e.g. a config.json with the loop's adaptive window)")  # fmt: skip
     ap.add_argument("--run-tag", default="",
                     help="suffix of the --online run folders (runs whose folder exists are not run again)")  # fmt: skip
+    ap.add_argument("--detect-config", type=Path, default=None,
+                    help="run config for `lunarloc detect` (e.g. a detector setting's before/after; use a fresh --out"
+                         " holding links to the archives, as detections and maps already there are reused)")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
@@ -274,7 +278,8 @@ def main(argv=None) -> int:
         for pose in needed:
             det = a.out / f"det_{i}_{pose}.csv"
             if not det.exists():
-                _run(_lunarloc() + ["detect", str(arch), "-o", str(det), "--pose", POSES[pose]], log)
+                _run(_lunarloc() + ["detect", str(arch), "-o", str(det), "--pose", POSES[pose]]
+                     + ([] if a.detect_config is None else ["--config", str(a.detect_config)]), log)
             for ms in a.min_sightings:
                 m = a.out / f"map_{i}_{pose}_ms{ms}.csv"
                 if not m.exists():

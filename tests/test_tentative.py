@@ -125,6 +125,28 @@ def test_two_views_needed_when_asked():
     assert len(_run(two, frames(True))[1].detections) == 1  # both views
 
 
+def test_a_later_firm_view_confirms_when_asked_to_look_that_far():
+    # the rock is tentative from frames 0-2 and firm only from frame 3 (nearer): with one
+    # view each way frame 0 cannot be confirmed; with three it can, and frames of nothing
+    # but tentatives still confirm nothing
+    one = replace(DetectorConfig(), tentative_max_range_m=6.0, tentative_confirm_frames=1)
+    three = replace(one, tentative_confirm_frames=3)
+
+    def frames(firm_last):
+        fr = [_frame(k, 0.5 * k, [_det(ROCK, "too_small")]) for k in range(3)]
+        return fr + [_frame(3, 1.5, [_det(ROCK, "" if firm_last else "too_small")])]
+
+    assert [len(f.detections) for f in _run(one, frames(True))] == [0, 0, 1, 1]
+    assert [len(f.detections) for f in _run(three, frames(True))] == [1, 1, 1, 1]
+    assert all(f.detections == [] for f in _run(three, frames(False)))
+    # beyond the third frame on that side: dropped
+    late = frames(False) + [_frame(4, 2.0, [_det(ROCK)])]
+    assert [len(f.detections) for f in _run(three, late)] == [0, 1, 1, 1, 1]
+    # frames closer than confirm_min_baseline_m do not count as views
+    crawl = [_frame(k, 0.01 * k, [_det(ROCK, "too_small")]) for k in range(3)] + [_frame(3, 0.5, [_det(ROCK)])]
+    assert [len(f.detections) for f in _run(one, crawl)] == [1, 1, 1, 1]
+
+
 def test_confirmation_off_passes_everything_through():
     off = replace(DetectorConfig(), confirm_tol_m=0.0, tentative_max_range_m=0.0)
     fr = [_frame(0, 0.0, [_det(ROCK, "crest"), replace(_det([6.0, 0.0, 0.0]), needs_confirmation=True)])]
@@ -134,6 +156,7 @@ def test_confirmation_off_passes_everything_through():
 @pytest.mark.parametrize("key, value", [
     ("tentative_max_range_m", -1.0), ("tentative_min_range_m", -0.5), ("tentative_max_eig_ratio", -1.0),
     ("tentative_tol_m", 0.0), ("tentative_min_views", 3), ("tentative_min_views", 1.5),
+    ("tentative_confirm_frames", 0), ("tentative_confirm_frames", 11), ("tentative_confirm_frames", 2.5),
 ])  # fmt: skip
 def test_tentative_settings_are_checked_and_round_trip(key, value):
     import json
@@ -143,7 +166,7 @@ def test_tentative_settings_are_checked_and_round_trip(key, value):
     with pytest.raises(ConfigError, match=key):
         RunConfig.from_dict({"detector": {key: value}})
     good = {"tentative_max_range_m": 5.5, "tentative_min_range_m": 3.0, "tentative_max_eig_ratio": 45.0,
-            "tentative_tol_m": 0.12, "tentative_min_views": 2}[key]
+            "tentative_tol_m": 0.12, "tentative_min_views": 2, "tentative_confirm_frames": 4}[key]
     cfg = RunConfig.from_dict({"detector": {key: good}})
     assert getattr(cfg.detector, key) == good and getattr(cfg.detector, key) != getattr(DetectorConfig(), key)
     assert RunConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg  # through a config file's JSON

@@ -435,6 +435,11 @@ class DetectorConfig:
     tentative_max_eig_ratio: float = 60.0
     tentative_tol_m: float = 0.1
     tentative_min_views: int = 1
+    # How many frames on each side may confirm a tentative: the first
+    # tentative_confirm_frames frames each way that lie at least confirm_min_baseline_m
+    # away (within confirm_max_frames). 1 = the nearest only. A mid-range rock seen
+    # tentatively from 4-5 m is often seen firmly only a few frames later, nearer.
+    tentative_confirm_frames: int = 3
     # Detections within this horizontal distance (metres) of the lander's centre are
     # dropped when the lander's map position is given (LAC lander: legs and pads
     # ~1.9 m from its centre; fiducial panels and their shadows around it).
@@ -522,6 +527,10 @@ class DetectorConfig:
         if (not isinstance(self.tentative_min_views, int) or isinstance(self.tentative_min_views, bool)
                 or self.tentative_min_views not in (1, 2)):
             raise ConfigError(f"tentative_min_views={self.tentative_min_views!r} must be 1 or 2 (neighbouring frames)")
+        if (not isinstance(self.tentative_confirm_frames, int) or isinstance(self.tentative_confirm_frames, bool)
+                or not 1 <= self.tentative_confirm_frames <= self.confirm_max_frames):
+            raise ConfigError(f"tentative_confirm_frames={self.tentative_confirm_frames!r} must be an integer from 1 "
+                              f"to confirm_max_frames={self.confirm_max_frames!r}")
         if self.segmenter is SegmenterKind.FASTSAM and not self.weights:
             raise ConfigError("the fastsam segmenter needs weights (a FastSAM .pt path)")
         if (not isinstance(self.fastsam_imgsz_px, int) or isinstance(self.fastsam_imgsz_px, bool)
@@ -1389,10 +1398,11 @@ def confirm_across_frames(frames: Iterable[FrameDetections], config: DetectorCon
     (a plain pass-through) when confirm_tol_m is 0.
 
     Tentative detections (Detection.tentative; DetectorConfig.tentative_max_range_m) are
-    judged more strictly: one is kept only when a firm (not tentative) detection of each
-    of config.tentative_min_views of those neighbours (1: either) lies within
-    tentative_tol_m of it horizontally; with too few neighbours, or no map pose, it is
-    removed (reason TENTATIVE). They are judged even when confirm_tol_m is 0."""
+    judged more strictly: one is kept only when a firm (not tentative) detection lies
+    within tentative_tol_m of it horizontally on config.tentative_min_views sides (1:
+    either), a side being its first config.tentative_confirm_frames frames that way at
+    least confirm_min_baseline_m away; with too few, or no map pose, it is removed
+    (reason TENTATIVE). They are judged even when confirm_tol_m is 0."""
     from collections import deque
 
     cfg = config
@@ -1421,15 +1431,18 @@ def confirm_across_frames(frames: Iterable[FrameDetections], config: DetectorCon
             if any(d.tentative for d in fd.detections):
                 _drop(fd, lambda d: not d.tentative, RejectReason.TENTATIVE)
             return fd
-        before = next((o for o in reversed(past) if far(fd, o)), None)
-        after = next((o for o in later if far(fd, o)), None)
-        views = [o for o in (before, after) if o is not None]
+        K = cfg.tentative_confirm_frames
+        befores = [o for o in reversed(past) if far(fd, o)][:K]
+        afters = [o for o in later if far(fd, o)][:K]
+        views = befores[:1] + afters[:1]  # the crest rule asks the nearest frame each way
         firm = [firm_xy(o) for o in views]  # tentative detections confirm nothing
         Q = np.concatenate(firm) if firm else np.zeros((0, 2))
+        # per side, the firm detections of its first K frames (tentatives confirm nothing)
+        sides = [np.concatenate([firm_xy(o) for o in side]) for side in (befores, afters) if side]
 
         def ok(d: Detection) -> bool:
             if d.tentative:
-                seen = sum(d.p_map is not None and near(F, d.p_map, cfg.tentative_tol_m) for F in firm)
+                seen = sum(d.p_map is not None and near(F, d.p_map, cfg.tentative_tol_m) for F in sides)
                 return seen >= cfg.tentative_min_views
             return (not d.needs_confirmation or d.p_map is None or not views or cfg.confirm_tol_m <= 0
                     or near(Q, d.p_map, cfg.confirm_tol_m))
@@ -1437,9 +1450,12 @@ def confirm_across_frames(frames: Iterable[FrameDetections], config: DetectorCon
         _drop(fd, ok, None)
         return fd
 
+    # frames of look-ahead a frame waits for: the later views that may confirm it
+    ahead = cfg.tentative_confirm_frames if cfg.tentative_max_range_m > 0 else 1
     for fd in frames:
         pending.append(fd)
-        while pending and (len(pending) > cfg.confirm_max_frames or any(far(pending[0], o) for o in pending[1:])):
+        while pending and (len(pending) > cfg.confirm_max_frames
+                           or sum(far(pending[0], o) for o in pending[1:]) >= ahead):
             head = pending.pop(0)
             out = resolve(head, pending[: cfg.confirm_max_frames])
             past.append(head)
