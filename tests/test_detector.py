@@ -103,9 +103,10 @@ def test_filters_reject_with_reasons():
     assert all(r.reason is not None for r in pr.records) and not pr.detections
 
 
-def ground_scene(centre=(3.28, 0.1, -0.15), radius=0.15, seed=1):
+def ground_scene(centre=(3.28, 0.1, -0.15), radius=0.15, seed=1, axes=None):
     """Left/right images of the FrontLeft pair over flat textured ground (rover frame
-    z = -0.2, the body 0.2 m up) with one textured sphere, by analytic ray casting."""
+    z = -0.2, the body 0.2 m up) with one textured sphere of `radius`, or an ellipsoid of
+    semi-axes `axes` (along rover x, y, z), by analytic ray casting."""
     import cv2
 
     rng = np.random.default_rng(seed)
@@ -119,10 +120,11 @@ def ground_scene(centre=(3.28, 0.1, -0.15), radius=0.15, seed=1):
         T = rig[name].T_rover_optical
         o, d = T[:3, 3], rays @ T[:3, :3].T
         t_g = np.where(d[:, 2] < -1e-6, (-0.2 - o[2]) / np.minimum(d[:, 2], -1e-6), np.inf)
-        oc = o - c
-        b = d @ oc
-        disc = b * b - (oc @ oc - radius**2)
-        t_s = np.where(disc > 0, -b - np.sqrt(np.maximum(disc, 0)), np.inf)
+        ax = np.full(3, radius) if axes is None else np.asarray(axes, float)
+        oc, ds = (o - c) / ax, d / ax  # the ellipsoid as a unit sphere
+        a2, b = np.einsum("ij,ij->i", ds, ds), ds @ oc
+        disc = b * b - a2 * (oc @ oc - 1.0)
+        t_s = np.where(disc > 0, (-b - np.sqrt(np.maximum(disc, 0))) / a2, np.inf)
         t = np.minimum(t_g, t_s)
         p = o + d * np.where(np.isfinite(t), t, 0)[:, None]
         on_rock = t_s < t_g
@@ -258,6 +260,33 @@ def test_height_above_surroundings_sees_a_knob_on_a_large_object():
     cfg = DetectorConfig()
     assert h > cfg.height_per_radius * 0.02 + cfg.height_margin_m  # perched: rejected
     assert np.isnan(_height_above_surroundings(knob, knob.mean(0), 0.02, ground[:5], cam, 0.9))
+
+
+@pytest.mark.parametrize("axes, centre", [((0.3, 0.3, 0.55), (3.5, 0.2, 0.2)), ((0.35, 0.35, 0.6), (4.0, 0.0, 0.2))])
+def test_a_boulder_taller_than_wide_is_a_rock_not_a_knob(axes, centre):
+    # seen end-on, its silhouette gives a radius of about 0.3 m while it stands 0.75-0.8 m
+    # above the ground: the knob tests alone would call it perched on something larger
+    left, right, rig = ground_scene(centre, axes=axes)
+    T = rig["FrontLeft"].T_rover_optical
+    found = Detector(DetectorConfig(), CAM).detect_pair(left, right, T).detections
+    assert len(found) == 1
+    d = found[0]
+    assert np.linalg.norm(d.p_rover[:2] - np.asarray(centre[:2])) < 0.15 and d.radius_m >= 0.2
+    # every blob tested, as before: rejected as not a rock
+    before = Detector(DetectorConfig(perched_max_radius_m=0.0), CAM).detect_pair(left, right, T)
+    assert before.detections == [] and RejectReason.NOT_A_ROCK in [r.reason for r in before.records]
+
+
+def test_perched_max_radius_is_checked_and_round_trips():
+    import json
+
+    from lunarloc.config import RunConfig
+
+    with pytest.raises(ConfigError, match="perched_max_radius_m"):
+        RunConfig.from_dict({"detector": {"perched_max_radius_m": -0.1}})
+    cfg = RunConfig.from_dict({"detector": {"perched_max_radius_m": 0.0}})
+    assert cfg.detector.perched_max_radius_m == 0.0 != DetectorConfig().perched_max_radius_m
+    assert RunConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
 
 
 def test_on_lander_in_any_frame_and_bad_input():

@@ -273,6 +273,13 @@ class DetectorConfig:
     # of 16 false ones).
     top_per_radius: float = 2.5
     top_noise_m: float = 0.02
+    # Both knob tests above judge a blob's height by its radius; a blob whose estimated
+    # radius reaches perched_max_radius_m is not a knob (the knobs they catch, on
+    # boulders and on the lander, measure under 0.1 m), and a boulder taller than it is
+    # wide, seen end-on, fails them (its radius comes from its narrow silhouette: one of
+    # 0.35 m stood 0.8-1.0 m above the ground in front). Such a blob is still held to
+    # max_rock_height_m. Session 13; 0 = every blob is tested (before).
+    perched_max_radius_m: float = 0.2
     # A rock stands out of the ground around it: a blob whose top is less than
     # min_contrast_m above the upper quartile of the heights in a ring 1-5 low-
     # resolution pixels outside it is a stretch of a crest (a crater rim or a ridge
@@ -478,6 +485,8 @@ class DetectorConfig:
             raise ConfigError("quadric_contrast_per_radius and quadric_contrast_max_m must be >= 0")
         if not (self.top_per_radius > 0 and self.top_noise_m >= 0):
             raise ConfigError("top_per_radius must be > 0 and top_noise_m >= 0")
+        if not self.perched_max_radius_m >= 0:
+            raise ConfigError(f"perched_max_radius_m={self.perched_max_radius_m!r} must be >= 0 (0 = test every blob)")
         if not 0.0 <= self.max_nearer_ring_fraction <= 1.0:
             raise ConfigError(f"max_nearer_ring_fraction={self.max_nearer_ring_fraction!r} must be in [0, 1] (1 = off)")
         if not 0.0 < self.nearer_depth_ratio < 1.0:
@@ -919,6 +928,7 @@ class Detector:
                     # size allows sits on something larger (a knob on a boulder)
                     perched = h_sur > cfg.height_per_radius * R_est + cfg.height_margin_m
                 perched |= top > cfg.top_per_radius * R_est + cfg.top_noise_m
+                perched &= not (0 < cfg.perched_max_radius_m <= R_est)  # a boulder, not a knob
                 ring = _ring_height(hm.height, rows, cols)
                 quad = _height_above_quadric(hm.points_rover, rows, cols, P_rov, cfg.top_quantile)
                 contrast = bool(np.isfinite(ring) and top - ring < cfg.min_contrast_m)
