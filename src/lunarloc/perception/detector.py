@@ -386,8 +386,19 @@ class DetectorConfig:
     # (17 archives, with raised strips on): recall r >= 0.1 m within 5 m 0.920 -> 0.933,
     # precision within 5 m 0.966 -> 0.971 (terrain false detections 37 -> 33: ground
     # behind a rock no longer joins it); 0.07, 0.1 and 0.15 give 0.933-0.935 and
-    # 0.970-0.972. 0 = off. See docs/perception.md, "Sixth pass".
-    depth_split_ratio: float = 0.1
+    # 0.970-0.972. 0 = off. See docs/perception.md, "Sixth pass". 0.07 (was 0.1) with
+    # depth_split_step_px 2 (session 14): tuning sites (32 archives, 12 at night) target
+    # sightings 881 -> 890 of 944, false detections within 5 m 21 -> 22; held-out sites
+    # 161-164 and 191-194 (40 archives) 833 -> 840 of 945, false 55 -> 53. Either change
+    # alone gains little (0.1 with 2 pixels: 834 held-out). "Ninth pass".
+    depth_split_ratio: float = 0.07
+    # ... measured between pixels this many low-resolution pixels apart (along rows and
+    # columns), not only between 4-neighbours: SGBM's block and smoothness penalties
+    # spread a step between two bodies over a pixel or two, so no single pixel pair jumps
+    # by the ratio (a rock seen above a nearer rock's top, two rocks' tops joined behind
+    # a nearer one). Flat ground recedes about 3 % per 2 pixels at 4 m and 6 % at 8 m.
+    # 1 = 4-neighbours only (before session 14). See docs/perception.md, "Ninth pass".
+    depth_split_step_px: int = 2
     # Rough surface, not rock: a rock is a smooth surface, so the full-resolution
     # disparity over its (eroded) mask changes smoothly from pixel to pixel; a blob of
     # stereo noise (a textureless shadow under a low sun: a boulder's, a crest's or the
@@ -509,6 +520,9 @@ class DetectorConfig:
                               f"off), raised_strip_max_radius_m={self.raised_strip_max_radius_m!r} > 0")
         if not 0.0 <= self.depth_split_ratio < 10.0:
             raise ConfigError(f"depth_split_ratio={self.depth_split_ratio!r} must be in [0, 10) (0 = off)")
+        if (not isinstance(self.depth_split_step_px, int) or isinstance(self.depth_split_step_px, bool)
+                or not 1 <= self.depth_split_step_px <= 8):
+            raise ConfigError(f"depth_split_step_px={self.depth_split_step_px!r} must be an integer in [1, 8]")
         if (not isinstance(self.raised_strip_min_area_px, int) or isinstance(self.raised_strip_min_area_px, bool)
                 or self.raised_strip_min_area_px < 0):
             raise ConfigError(f"raised_strip_min_area_px={self.raised_strip_min_area_px!r} must be an integer >= 0")
@@ -847,7 +861,7 @@ class Detector:
             masks = self.segmenter.segment(L, height=hm)
             fc = cfg.height_filters
             masks = split_at_depth_steps(masks, hm, cfg.depth_split_ratio, cfg.classical.height_min_area_px,
-                                         cfg.classical.height_seed_m)
+                                         cfg.classical.height_seed_m, cfg.depth_split_step_px)
         else:
             masks = self.segmenter.segment(L)
         t2 = time.perf_counter()
@@ -1078,11 +1092,13 @@ def _is_flat_strip(reason: RejectReason | None, st, fc: MaskFilterConfig, cfg: D
 
 
 def split_at_depth_steps(masks: InstanceMasks, height: HeightMap, step_ratio: float, min_area_px: int,
-                         seed_m: float) -> InstanceMasks:
+                         seed_m: float, step_px: int = 1) -> InstanceMasks:
     """Masks cut at their depth steps (see DetectorConfig.depth_split_ratio): each mask of
     `masks` (full resolution, from the low-resolution `height` map) whose valid depths'
     5-95 % quantiles differ by more than `step_ratio` is cut where a pixel lies farther
-    than (1 + step_ratio) x a 4-neighbour's depth; when two or more 4-connected parts of
+    than (1 + step_ratio) x the depth of a pixel `step_px` low-resolution pixels above,
+    below, left or right of it (DetectorConfig.depth_split_step_px: SGBM spreads a step
+    over a pixel or two); when two or more 4-connected parts of
     at least `min_area_px` low-resolution pixels with a height above `seed_m` remain,
     they replace the mask (in its place), otherwise it stays whole. Pixels without a
     depth stay with the part they connect to. `masks` itself when step_ratio is 0."""
@@ -1090,12 +1106,12 @@ def split_at_depth_steps(masks: InstanceMasks, height: HeightMap, step_ratio: fl
         return masks
     out = InstanceMasks(masks.image_shape)
     for m in masks:
-        parts = _depth_parts(m, height, step_ratio, min_area_px, seed_m)
+        parts = _depth_parts(m, height, step_ratio, min_area_px, seed_m, step_px)
         out.masks.extend([m] if parts is None else parts)
     return out
 
 
-def _depth_parts(m, height: HeightMap, step_ratio: float, min_area_px: int, seed_m: float):
+def _depth_parts(m, height: HeightMap, step_ratio: float, min_area_px: int, seed_m: float, step_px: int = 1):
     """The parts of mask `m` between its depth steps (list of InstanceMask), or None when
     it has fewer than two (see split_at_depth_steps)."""
     import cv2
@@ -1116,11 +1132,12 @@ def _depth_parts(m, height: HeightMap, step_ratio: float, min_area_px: int, seed
     blob = np.zeros(shape, bool)
     blob[rows - r0, cols - c0] = True
     far = np.zeros(shape, bool)
+    s = int(step_px)
     with np.errstate(invalid="ignore"):
-        far[1:] |= Z[1:] > f * Z[:-1]
-        far[:-1] |= Z[:-1] > f * Z[1:]
-        far[:, 1:] |= Z[:, 1:] > f * Z[:, :-1]
-        far[:, :-1] |= Z[:, :-1] > f * Z[:, 1:]
+        far[s:] |= Z[s:] > f * Z[:-s]
+        far[:-s] |= Z[:-s] > f * Z[s:]
+        far[:, s:] |= Z[:, s:] > f * Z[:, :-s]
+        far[:, :-s] |= Z[:, :-s] > f * Z[:, s:]
     n, lab = cv2.connectedComponents((blob & ~far).astype(np.uint8), connectivity=4)
     if n <= 2:
         return None
