@@ -597,25 +597,32 @@ def _height_map(depth, height, scale=2):
                      np.eye(4))
 
 
-def test_a_blob_joining_two_bodies_at_different_ranges_is_split_at_the_depth_step():
-    from lunarloc.perception.detector import split_at_depth_steps
+def _blob_12x20(k=2):
+    """A low-resolution map 30 x 40 with one blob of 12 x 20 pixels (rows 10-21, columns
+    10-29) standing 6 cm above the ground at 6 m: (depth, height, its full-resolution masks)."""
     from lunarloc.perception.masks import masks_from_labels
 
-    # a low-resolution blob of 12 x 20 pixels: its lower 7 rows a near rock (2.6-2.75 m,
-    # smoothly varying), its upper 5 rows a farther rock's top at 4.4 m, seen above it
     depth = np.full((30, 40), 6.0)
     height = np.zeros((30, 40))
     blob = np.zeros((30, 40), bool)
     blob[10:22, 10:30] = True
+    height[blob] = 0.06
+    masks = masks_from_labels(np.kron(blob, np.ones((k, k), bool)).astype(np.int32))
+    assert len(masks) == 1
+    return depth, height, masks
+
+
+def test_a_blob_joining_two_bodies_at_different_ranges_is_split_at_the_depth_step():
+    from lunarloc.perception.detector import split_at_depth_steps
+
+    # its lower 7 rows a near rock (2.6-2.75 m, smoothly varying), its upper 5 rows a
+    # farther rock's top at 4.4 m, seen above it
+    depth, height, masks = _blob_12x20()
     depth[15:22, 10:30] = np.linspace(2.75, 2.6, 7)[:, None]
     depth[10:15, 10:30] = 4.4
-    height[blob] = 0.06
     depth[12, 12] = np.nan  # a hole without depth stays with its part
     hm = _height_map(depth, height)
     k = hm.scale
-    full = np.kron(blob, np.ones((k, k), bool)).astype(np.int32)
-    masks = masks_from_labels(full)
-    assert len(masks) == 1
     out = split_at_depth_steps(masks, hm, 0.1, 10, 0.035)
     assert len(out) == 2
     rows = sorted((m.v0 // k, (m.v0 + m.crop.shape[0]) // k) for m in out)
@@ -636,21 +643,15 @@ def test_a_blob_joining_two_bodies_at_different_ranges_is_split_at_the_depth_ste
 
 def test_a_depth_step_spread_over_two_pixels_is_cut_when_measured_two_pixels_apart():
     from lunarloc.perception.detector import split_at_depth_steps
-    from lunarloc.perception.masks import masks_from_labels
 
     # as above, but the matcher has smoothed the step: one row half-way between the near
     # rock (2.75 m) and the far rock's top (3.05 m), so neighbouring pixels differ by < 7 %
-    depth = np.full((30, 40), 6.0)
-    height = np.zeros((30, 40))
-    blob = np.zeros((30, 40), bool)
-    blob[10:22, 10:30] = True
+    depth, height, masks = _blob_12x20()
     depth[16:22, 10:30] = np.linspace(2.75, 2.6, 6)[:, None]
     depth[15, 10:30] = 2.9
     depth[10:15, 10:30] = 3.05
-    height[blob] = 0.06
     hm = _height_map(depth, height)
     k = hm.scale
-    masks = masks_from_labels(np.kron(blob, np.ones((k, k), bool)).astype(np.int32))
     assert len(split_at_depth_steps(masks, hm, 0.07, 10, 0.035, step_px=1)) == 1
     out = split_at_depth_steps(masks, hm, 0.07, 10, 0.035, step_px=2)
     assert len(out) == 2
