@@ -9,6 +9,7 @@ Usage
         [--sun-elevation DEG] [--duration S] [--width W --height H] ...   # renders first (front pair)
     python benchmarks/bench_perception.py --lac-real DIR [--figure PNG]  # the real LAC frame
     python benchmarks/bench_perception.py --speed ARCHIVE.lac             # time one front pair
+    python benchmarks/bench_perception.py ARCHIVE.lac ... --misses MISSES.csv  # where each miss is lost
 
 Archives must come from `lunarloc simulate` (they hold ``custom/rocks.csv`` and the
 semantic images). The image size and field of view are read from each archive
@@ -113,6 +114,46 @@ def fp_cause(d, semantic: np.ndarray, id_to_idx: dict, centres: np.ndarray, radi
     return "small-rock-offcentre" if radii[j] < 0.1 else "rock-offcentre"
 
 
+MISS_FIELDS = ("archive", "frame", "camera", "rock_id", "radius_m", "range_m", "stage", "overlap", "mask_eig_ratio",
+               "mask_depth_m", "valid_fraction", "max_height_m")
+
+
+def miss_stage(pair, rock_px: np.ndarray) -> dict:
+    """Where a missed rock was lost in one pair (`rock_px`: its pixels in the left image).
+    The mask overlapping most of the rock is followed through the filters: its reject
+    reason (``elongated``, ``tentative``, ``unconfirmed``, ``not_a_rock``, ...) or ``kept``
+    (kept, but its centre lies beyond the match tolerance: it joined another body or saw
+    only part of the rock). With no overlapping mask the stage is ``no-blob``, with the
+    share of the rock's low-resolution pixels that have a height and the highest of those
+    heights above the fitted ground (``pair.height`` needed: ``detect_archive(...,
+    keep_depth=True)``)."""
+    best, overlap = None, 0
+    for k, m in enumerate(pair.masks):
+        h, w = m.crop.shape
+        o = int(np.count_nonzero(rock_px[m.v0 : m.v0 + h, m.u0 : m.u0 + w] & m.crop))
+        if o > overlap:
+            best, overlap = k, o
+    n = max(int(np.count_nonzero(rock_px)), 1)
+    out = dict(stage="no-blob", overlap=overlap / n, mask_eig_ratio=float("nan"), mask_depth_m=float("nan"),
+               valid_fraction=float("nan"), max_height_m=float("nan"))
+    if best is not None:
+        rec = next((r for r in pair.records if r.mask_index == best), None)
+        out["stage"] = "kept" if rec is None or rec.reason is None else rec.reason.value
+        if rec is not None:
+            out["mask_eig_ratio"], out["mask_depth_m"] = float(rec.stats.eig_ratio), float(rec.depth_m)
+        return out
+    hm = pair.height
+    if hm is not None:
+        vv, uu = np.nonzero(rock_px)
+        lv, lu = vv // hm.scale, uu // hm.scale
+        ok = (lv < hm.height.shape[0]) & (lu < hm.height.shape[1])
+        hh = hm.height[lv[ok], lu[ok]]
+        good = np.isfinite(hh)
+        out["valid_fraction"] = float(good.mean()) if hh.size else 0.0
+        out["max_height_m"] = float(hh[good].max()) if good.any() else float("nan")
+    return out
+
+
 class Accumulator:
     def __init__(self) -> None:
         self.rec = np.zeros((len(SIZE_BANDS), len(RANGE_BANDS), 2), int)  # [hit, total]
@@ -129,6 +170,10 @@ class Accumulator:
         self.fp_causes: dict[str, int] = {k: 0 for k in FP_CAUSES}
         self.n_frames = 0
         self.n_det = 0
+        # rows of MISS_FIELDS for each missed target sighting (r >= 0.1 m within 5 m) when a
+        # list is given (--misses); needs the frames' height maps (keep_depth)
+        self.misses: list[dict] | None = None
+        self.archive = ""
 
     def add_frame(self, fd, semantics: dict, rocks: np.ndarray, detector: Detector, mounts) -> None:
         self.n_frames += 1
@@ -166,6 +211,9 @@ class Accumulator:
                 self.rec[sb, rb, 1] += 1
                 small_near = 0.05 <= radii[j] < 0.1 and rng <= 3.0
                 self.small_near += [int(small_near and j in matched_rock), int(small_near)]
+                if j not in matched_rock and self.misses is not None and radii[j] >= 0.1 and rng <= 5.0:
+                    self.misses.append(dict(archive=self.archive, frame=fd.frame, camera=pair.camera, rock_id=r,
+                                            radius_m=float(radii[j]), range_m=rng, **miss_stage(pair, rid == r)))
                 if j in matched_rock:
                     self.rec[sb, rb, 0] += 1
                     i, dist = matched_rock[j]
@@ -358,7 +406,9 @@ def run_archive(path: Path, cfg: DetectorConfig, every: int, acc: Accumulator, d
             det = Detector(scaled_detector_config(cam.width, base=cfg), cam)
         print(f"{path}: {cam.width}x{cam.height} px, hfov {cam.hfov_deg:g} deg", file=sys.stderr)
         lander_xy = _lander_xy(ar)  # known to a LAC agent: detections on the lander are dropped
-        for fd in detect_archive(ar, det.config, "ground-truth", detector=det, frames=frames, lander_xy=lander_xy):
+        acc.archive = path.name
+        for fd in detect_archive(ar, det.config, "ground-truth", detector=det, frames=frames, lander_xy=lander_xy,
+                                 keep_depth=acc.misses is not None):
             sem = {left: ar.semantic(left, fd.frame) for left, _ in det.config.pairs}
             rows = {c: ar.camera_row(c, fd.frame) for c in ar.cameras}
             mounts = mounts_from_archive_row({k: v for k, v in rows.items() if v}, det.camera)
@@ -484,6 +534,10 @@ def main(argv=None) -> int:
     ap.add_argument("--speed", action="store_true", help="time the detector on one front pair of each archive")
     ap.add_argument("--config", type=Path, default=None,
                     help="a run configuration (config.json, `lunarloc config`): its detector section is benchmarked")
+    ap.add_argument("--misses", type=Path, default=None,
+                    help="write each missed sighting of a rock r >= 0.1 m within 5 m, with the stage where it was "
+                    "lost (the mask overlapping it most: its reject reason, or kept but off-centre; or no blob), to "
+                    "this CSV and print the counts")
     a = ap.parse_args(argv)
     base = DetectorConfig()
     if a.config is not None:
@@ -526,9 +580,12 @@ def main(argv=None) -> int:
     det = None
     configs = {}  # the detector config used at each image size (pixel parameters scaled)
     groups: dict[str, Accumulator] = {}
+    misses: list[dict] = []
     for p in archives:
         g = groups.setdefault(lighting_label(p), Accumulator())
         g.min_gt_px = a.min_gt_px
+        if a.misses is not None:
+            g.misses = misses
         det = run_archive(p, cfg, a.every, g, det)
         configs[f"{det.camera.width}x{det.camera.height}"] = det.config.to_dict()
     for g in groups.values():  # the total over all archives
@@ -554,7 +611,25 @@ def main(argv=None) -> int:
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)
         a.json.write_text(json.dumps(s, indent=2, default=str))
+    if a.misses is not None:
+        write_misses(a.misses, misses)
     return 0
+
+
+def write_misses(path: Path, rows: list[dict]) -> None:
+    """The missed target sightings as CSV (MISS_FIELDS), and their counts by stage."""
+    import csv
+    from collections import Counter
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=MISS_FIELDS)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in r.items()})
+    counts = Counter(r["stage"] for r in rows)
+    print(f"missed target sightings: {len(rows)} -> {path}; by stage: "
+          + ", ".join(f"{k} {v}" for k, v in counts.most_common()))
 
 
 if __name__ == "__main__":
