@@ -147,6 +147,24 @@ def test_a_later_firm_view_confirms_when_asked_to_look_that_far():
     assert [len(f.detections) for f in _run(one, crawl)] == [1, 1, 1, 1]
 
 
+def test_a_large_tentative_is_confirmed_within_a_share_of_its_radius():
+    # a large rock's centre moves with how much of it each view's mask holds: a tentative
+    # of radius 0.4 m whose firm view lies 0.15 m away is kept at 0.5 x radius (0.2 m) and
+    # dropped with the fixed 0.1 m alone; a small one (0.1 m) at 0.15 m is dropped either way
+    cfg = replace(DetectorConfig(), tentative_max_range_m=6.0, tentative_tol_m=0.1, tentative_tol_per_radius=0.5)
+    fixed = replace(cfg, tentative_tol_per_radius=0.0)
+
+    def frames(radius_m):
+        tent = replace(_det(ROCK, "elongated"), radius_m=radius_m)
+        return [_frame(0, 0.0, [tent]), _frame(1, 0.5, [_det(np.add(ROCK, [0.15, 0.0, 0.0]))])]
+
+    assert len(_run(cfg, frames(0.4))[0].detections) == 1
+    assert _run(fixed, frames(0.4))[0].detections == []
+    assert _run(cfg, frames(0.1))[0].detections == []
+    # the default
+    assert DetectorConfig().tentative_tol_per_radius == 0.5
+
+
 def test_confirmation_off_passes_everything_through():
     off = replace(DetectorConfig(), confirm_tol_m=0.0, tentative_max_range_m=0.0)
     fr = [_frame(0, 0.0, [_det(ROCK, "crest"), replace(_det([6.0, 0.0, 0.0]), needs_confirmation=True)])]
@@ -157,6 +175,7 @@ def test_confirmation_off_passes_everything_through():
     ("tentative_max_range_m", -1.0), ("tentative_min_range_m", -0.5), ("tentative_max_eig_ratio", -1.0),
     ("tentative_tol_m", 0.0), ("tentative_min_views", 3), ("tentative_min_views", 1.5),
     ("tentative_confirm_frames", 0), ("tentative_confirm_frames", 11), ("tentative_confirm_frames", 2.5),
+    ("tentative_tol_per_radius", -0.1),
 ])  # fmt: skip
 def test_tentative_settings_are_checked_and_round_trip(key, value):
     import json
@@ -166,7 +185,8 @@ def test_tentative_settings_are_checked_and_round_trip(key, value):
     with pytest.raises(ConfigError, match=key):
         RunConfig.from_dict({"detector": {key: value}})
     good = {"tentative_max_range_m": 5.5, "tentative_min_range_m": 3.0, "tentative_max_eig_ratio": 45.0,
-            "tentative_tol_m": 0.12, "tentative_min_views": 2, "tentative_confirm_frames": 4}[key]
+            "tentative_tol_m": 0.12, "tentative_min_views": 2, "tentative_confirm_frames": 4,
+            "tentative_tol_per_radius": 0.8}[key]
     cfg = RunConfig.from_dict({"detector": {key: good}})
     assert getattr(cfg.detector, key) == good and getattr(cfg.detector, key) != getattr(DetectorConfig(), key)
     assert RunConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg  # through a config file's JSON
