@@ -9,7 +9,7 @@ Usage
         [--sun-elevation DEG] [--duration S] [--width W --height H] ...   # renders first (front pair)
     python benchmarks/bench_perception.py --lac-real DIR [--figure PNG]  # the real LAC frame
     python benchmarks/bench_perception.py --speed ARCHIVE.lac             # time one front pair
-    python benchmarks/bench_perception.py ARCHIVE.lac ... --misses MISSES.csv  # where each miss is lost
+    python benchmarks/bench_perception.py ARCHIVE.lac ... --misses MISSES.csv  # where each miss is lost, rocks missed most
 
 Archives must come from `lunarloc simulate` (they hold ``custom/rocks.csv`` and the
 semantic images). The image size and field of view are read from each archive
@@ -537,7 +537,7 @@ def main(argv=None) -> int:
     ap.add_argument("--misses", type=Path, default=None,
                     help="write each missed sighting of a rock r >= 0.1 m within 5 m, with the stage where it was "
                     "lost (the mask overlapping it most: its reject reason, or kept but off-centre; or no blob), to "
-                    "this CSV and print the counts")
+                    "this CSV, and print the counts by stage and the rocks missed most")
     a = ap.parse_args(argv)
     base = DetectorConfig()
     if a.config is not None:
@@ -630,6 +630,29 @@ def write_misses(path: Path, rows: list[dict]) -> None:
     counts = Counter(r["stage"] for r in rows)
     print(f"missed target sightings: {len(rows)} -> {path}; by stage: "
           + ", ".join(f"{k} {v}" for k, v in counts.most_common()))
+    groups = misses_by_rock(rows)
+    if groups:
+        print("rocks missed most (archive, rock id, radius, range, sightings missed, stages):")
+        for g in groups[:10]:
+            print(f"  {g['archive']}  rock {g['rock_id']}  r {g['radius_m']:.2f} m  {g['range_min_m']:.1f}-"
+                  f"{g['range_max_m']:.1f} m  {g['missed']} x  " + ", ".join(f"{k} {v}" for k, v in g["stages"]))
+
+
+def misses_by_rock(rows: list[dict]) -> list[dict]:
+    """The missed sightings grouped by rock (archive, rock_id), most missed first: a few rocks
+    missed frame after frame are most misses, and one look at each explains them."""
+    from collections import Counter
+
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["archive"], r["rock_id"]), []).append(r)
+    out = []
+    for (archive, rock_id), g in groups.items():
+        rng = [float(r["range_m"]) for r in g]
+        out.append(dict(archive=archive, rock_id=rock_id, radius_m=float(g[0]["radius_m"]), missed=len(g),
+                        range_min_m=min(rng), range_max_m=max(rng),
+                        stages=Counter(r["stage"] for r in g).most_common()))
+    return sorted(out, key=lambda d: (-d["missed"], d["archive"], str(d["rock_id"])))
 
 
 if __name__ == "__main__":

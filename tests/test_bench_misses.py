@@ -52,3 +52,20 @@ def test_a_miss_is_put_at_the_mask_overlapping_it_most_or_at_the_height_map():
     near[12:22, 30:38] = True  # columns 15-18 low-res: heights of 2 cm; no mask there
     got = bench.miss_stage(_pair([None, None], hm), near)
     assert got["stage"] == "no-blob" and got["valid_fraction"] == 1.0 and got["max_height_m"] == 0.02
+
+
+def test_misses_are_grouped_by_rock_most_missed_first():
+    bench = _bench()
+
+    def row(archive, rock, frame, stage, rng):
+        return dict(archive=archive, frame=frame, camera="FrontLeft", rock_id=rock, radius_m=0.2, range_m=rng,
+                    stage=stage)
+
+    rows = [row("a.lac", 7, 0, "elongated", 4.5), row("b.lac", 7, 0, "kept", 3.0), row("a.lac", 7, 40, "elongated", 3.9),
+            row("a.lac", 7, 80, "tentative", 3.2), row("a.lac", 3, 0, "no-blob", 2.0)]
+    got = bench.misses_by_rock(rows)
+    # the same id in two archives is two rocks; the most missed first
+    assert [(g["archive"], g["rock_id"], g["missed"]) for g in got] == [("a.lac", 7, 3), ("a.lac", 3, 1), ("b.lac", 7, 1)]
+    assert got[0]["stages"] == [("elongated", 2), ("tentative", 1)]
+    assert (got[0]["range_min_m"], got[0]["range_max_m"]) == (3.2, 4.5)
+    assert bench.misses_by_rock([]) == []
