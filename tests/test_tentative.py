@@ -129,7 +129,8 @@ def test_a_later_firm_view_confirms_when_asked_to_look_that_far():
     # the rock is tentative from frames 0-2 and firm only from frame 3 (nearer): with one
     # view each way frame 0 cannot be confirmed; with three it can, and frames of nothing
     # but tentatives still confirm nothing
-    one = replace(DetectorConfig(), tentative_max_range_m=6.0, tentative_confirm_frames=1)
+    # (repeats of the tentative itself confirm it too by default; that rule is tested below)
+    one = replace(DetectorConfig(), tentative_max_range_m=6.0, tentative_confirm_frames=1, tentative_min_repeats=0)
     three = replace(one, tentative_confirm_frames=3)
 
     def frames(firm_last):
@@ -165,6 +166,25 @@ def test_a_large_tentative_is_confirmed_within_a_share_of_its_radius():
     assert DetectorConfig().tentative_tol_per_radius == 0.5
 
 
+def test_a_tentative_seen_again_in_enough_neighbouring_frames_is_kept():
+    # a rock seen only tentatively, never firmly, in four frames 0.5 m apart: each frame sees
+    # it again in three of its neighbouring frames (three each way at most), so with
+    # tentative_min_repeats 3 all four are kept; with 0 (off) or 4, none
+    cfg = replace(DetectorConfig(), tentative_max_range_m=6.0, tentative_confirm_frames=3, tentative_min_repeats=3)
+
+    def frames(n, step_m=0.0):
+        return [_frame(k, 0.5 * k, [_det(np.add(ROCK, [step_m * k, 0.0, 0.0]), "too_small")]) for k in range(n)]
+
+    assert [len(f.detections) for f in _run(cfg, frames(4))] == [1, 1, 1, 1]
+    assert all(f.detections == [] for f in _run(replace(cfg, tentative_min_repeats=0), frames(4)))
+    assert all(f.detections == [] for f in _run(replace(cfg, tentative_min_repeats=4), frames(4)))
+    # three frames give each at most two repeats; blobs that wander by more than the
+    # tolerance from frame to frame (stereo noise) do not repeat
+    assert all(f.detections == [] for f in _run(cfg, frames(3)))
+    assert all(f.detections == [] for f in _run(cfg, frames(6, step_m=1.5 * cfg.tentative_tol_m)))
+    assert DetectorConfig().tentative_min_repeats == 3
+
+
 def test_confirmation_off_passes_everything_through():
     off = replace(DetectorConfig(), confirm_tol_m=0.0, tentative_max_range_m=0.0)
     fr = [_frame(0, 0.0, [_det(ROCK, "crest"), replace(_det([6.0, 0.0, 0.0]), needs_confirmation=True)])]
@@ -175,7 +195,8 @@ def test_confirmation_off_passes_everything_through():
     ("tentative_max_range_m", -1.0), ("tentative_min_range_m", -0.5), ("tentative_max_eig_ratio", -1.0),
     ("tentative_tol_m", 0.0), ("tentative_min_views", 3), ("tentative_min_views", 1.5),
     ("tentative_confirm_frames", 0), ("tentative_confirm_frames", 11), ("tentative_confirm_frames", 2.5),
-    ("tentative_tol_per_radius", -0.1),
+    ("tentative_tol_per_radius", -0.1), ("tentative_min_repeats", -1), ("tentative_min_repeats", 21),
+    ("tentative_min_repeats", 2.5),
 ])  # fmt: skip
 def test_tentative_settings_are_checked_and_round_trip(key, value):
     import json
@@ -186,7 +207,7 @@ def test_tentative_settings_are_checked_and_round_trip(key, value):
         RunConfig.from_dict({"detector": {key: value}})
     good = {"tentative_max_range_m": 5.5, "tentative_min_range_m": 3.0, "tentative_max_eig_ratio": 45.0,
             "tentative_tol_m": 0.12, "tentative_min_views": 2, "tentative_confirm_frames": 4,
-            "tentative_tol_per_radius": 0.8}[key]
+            "tentative_tol_per_radius": 0.8, "tentative_min_repeats": 4}[key]
     cfg = RunConfig.from_dict({"detector": {key: good}})
     assert getattr(cfg.detector, key) == good and getattr(cfg.detector, key) != getattr(DetectorConfig(), key)
     assert RunConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg  # through a config file's JSON
