@@ -114,14 +114,15 @@ def fp_cause(d, semantic: np.ndarray, id_to_idx: dict, centres: np.ndarray, radi
     return "small-rock-offcentre" if radii[j] < 0.1 else "rock-offcentre"
 
 
-MISS_FIELDS = ("archive", "frame", "camera", "rock_id", "radius_m", "range_m", "stage", "overlap", "mask_eig_ratio",
-               "mask_depth_m", "valid_fraction", "max_height_m")
+MISS_FIELDS = ("archive", "frame", "camera", "rock_id", "radius_m", "range_m", "stage", "tentative_rules", "overlap",
+               "mask_eig_ratio", "mask_depth_m", "valid_fraction", "max_height_m")
 
 
 def miss_stage(pair, rock_px: np.ndarray) -> dict:
     """Where a missed rock was lost in one pair (`rock_px`: its pixels in the left image).
     The mask overlapping most of the rock is followed through the filters: its reject
-    reason (``elongated``, ``tentative``, ``unconfirmed``, ``not_a_rock``, ...) or ``kept``
+    reason (``elongated``, ``tentative`` with the rules that made it one in
+    ``tentative_rules``, ``unconfirmed``, ``not_a_rock``, ...) or ``kept``
     (kept, but its centre lies beyond the match tolerance: it joined another body or saw
     only part of the rock). With no overlapping mask the stage is ``no-blob``, with the
     share of the rock's low-resolution pixels that have a height and the highest of those
@@ -134,13 +135,14 @@ def miss_stage(pair, rock_px: np.ndarray) -> dict:
         if o > overlap:
             best, overlap = k, o
     n = max(int(np.count_nonzero(rock_px)), 1)
-    out = dict(stage="no-blob", overlap=overlap / n, mask_eig_ratio=float("nan"), mask_depth_m=float("nan"),
+    out = dict(stage="no-blob", tentative_rules="", overlap=overlap / n, mask_eig_ratio=float("nan"), mask_depth_m=float("nan"),
                valid_fraction=float("nan"), max_height_m=float("nan"))
     if best is not None:
         rec = next((r for r in pair.records if r.mask_index == best), None)
         out["stage"] = "kept" if rec is None or rec.reason is None else rec.reason.value
         if rec is not None:
             out["mask_eig_ratio"], out["mask_depth_m"] = float(rec.stats.eig_ratio), float(rec.depth_m)
+            out["tentative_rules"] = rec.tentative  # why a dropped tentative was tentative
         return out
     hm = pair.height
     if hm is not None:
@@ -630,6 +632,10 @@ def write_misses(path: Path, rows: list[dict]) -> None:
     counts = Counter(r["stage"] for r in rows)
     print(f"missed target sightings: {len(rows)} -> {path}; by stage: "
           + ", ".join(f"{k} {v}" for k, v in counts.most_common()))
+    rules = Counter(r.get("tentative_rules") or "?" for r in rows if r["stage"] == "tentative")
+    if rules:
+        print("tentatives never confirmed, by the rules that made them tentative: "
+              + ", ".join(f"{k} {v}" for k, v in rules.most_common()))
     groups = misses_by_rock(rows)
     if groups:
         print("rocks missed most (archive, rock id, radius, range, sightings missed, stages):")

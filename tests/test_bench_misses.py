@@ -36,6 +36,11 @@ def test_a_miss_is_put_at_the_mask_overlapping_it_most_or_at_the_height_map():
     got = bench.miss_stage(_pair([RejectReason.ELONGATED, None]), rock)
     assert got["stage"] == "elongated" and 0.3 < got["overlap"] < 0.7
     assert got["mask_depth_m"] == 3.0 and got["mask_eig_ratio"] > 1.0
+    # a dropped tentative says which marginal rules made it one
+    pair = _pair([RejectReason.TENTATIVE, None])
+    pair.records[0].tentative = "contrast+quadric"
+    got = bench.miss_stage(pair, rock)
+    assert (got["stage"], got["tentative_rules"]) == ("tentative", "contrast+quadric")
     # kept, but not matched: the detection's centre lies too far from the rock's
     assert bench.miss_stage(_pair([None, None]), rock)["stage"] == "kept"
     # no mask over it: the height map says why no blob formed (half its pixels without

@@ -44,6 +44,7 @@ def test_a_mid_range_blob_that_a_marginal_rule_rejects_becomes_a_tentative_detec
     # without keep_tentative (detect_frame's default: the online loop) it never comes out
     dropped = _pair(TENTATIVE, c, keep_tentative=False)
     assert dropped.detections == [] and [r.reason for r in dropped.records] == [RejectReason.TENTATIVE]
+    assert dropped.records[0].tentative == "elongated"  # the record keeps why it was tentative
     left, right, rig = ground_scene(tuple(c), 0.16)
     images = {"FrontLeft": left, "FrontRight": right}
     assert Detector(TENTATIVE, CAM).detect_frame(images, rig).detections == []

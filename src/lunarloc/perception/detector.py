@@ -651,6 +651,9 @@ class MaskRecord:
     depth_m: float
     size_m: float
     reason: RejectReason | None
+    # the marginal rules that made its detection tentative (Detection.tentative; "" = firm
+    # or never a detection), kept when the detection is later dropped
+    tentative: str = ""
 
 
 @dataclass
@@ -855,6 +858,7 @@ class Detector:
             if self._on_lander(det, lander_xy):
                 rec.reason = RejectReason.ON_LANDER
                 continue
+            rec.tentative = det.tentative
             dets.append(det)
         t4 = time.perf_counter()
         for k, v in (("segment", t1 - t0), ("filter", (t2 - t1) + (t4 - t3)), ("stereo", t3 - t2)):
@@ -1001,6 +1005,7 @@ class Detector:
             if self._on_lander(det, lander_xy):
                 rec.reason = RejectReason.ON_LANDER
                 continue
+            rec.tentative = det.tentative
             dets.append(det)
             kept_recs.append(rec)
         for k in sorted(_duplicates_firm_first(dets, cfg.duplicate_overlap_ratio), reverse=True):
