@@ -422,7 +422,7 @@ def test_overlapping_detections_keep_the_larger_one():
     ("max_nearer_ring_fraction", 1.5), ("max_nearer_ring_fraction", -0.1), ("nearer_depth_ratio", 1.0),
     ("nearer_depth_ratio", 0.0), ("duplicate_overlap_ratio", -1.0), ("crest_extension_ratio", -0.1),
     ("crest_max_radius_m", -0.01), ("crest_extension_max_ratio", 0.5), ("strip_max_eig_ratio", -1.0),
-    ("strip_max_extension_ratio", -0.1), ("crest_ignores_firm_rocks", "yes"),
+    ("strip_max_extension_ratio", -0.1),
 ])  # fmt: skip
 def test_precision_rule_settings_are_checked_and_round_trip(key, value, tmp_path):
     import json
@@ -433,46 +433,11 @@ def test_precision_rule_settings_are_checked_and_round_trip(key, value, tmp_path
         RunConfig.from_dict({"detector": {key: value}})
     good = {"max_nearer_ring_fraction": 0.3, "nearer_depth_ratio": 0.6, "duplicate_overlap_ratio": 0.5,
             "crest_extension_ratio": 0.75, "crest_max_radius_m": 0.2, "crest_extension_max_ratio": 3.0,
-            "strip_max_eig_ratio": 40.0, "strip_max_extension_ratio": 0.3, "crest_ignores_firm_rocks": False}[key]
+            "strip_max_eig_ratio": 40.0, "strip_max_extension_ratio": 0.3}[key]
     p = tmp_path / "config.json"
     p.write_text(json.dumps({"detector": {key: good}}))
     cfg, _ = load_config_file(p)
     assert getattr(cfg.detector, key) == good and RunConfig.from_dict(cfg.to_dict()) == cfg
-
-
-def test_a_small_rock_beside_a_firm_larger_rock_is_no_crest():
-    """crest_ignores_firm_rocks: the high ground beyond a tentative crest's end is a firm
-    detection's rock, so once that rock's pixels are left out the blob is no crest."""
-    from dataclasses import replace
-
-    from lunarloc.perception.detector import MaskRecord, _lateral_extension_ratio, _recheck_crests
-    from lunarloc.perception.masks import masks_from_labels
-    from lunarloc.perception.stereo import HeightMap
-
-    r, c = np.mgrid[0:30, 0:60]
-    H = np.zeros((30, 60))
-    lab = np.zeros((30, 60), np.int32)
-    small = (np.abs(r - 15) <= 1) & (np.abs(c - 20) <= 3)  # columns 17-23
-    big = (np.abs(r - 14) <= 4) & (c >= 25) & (c <= 40)  # a larger rock just right of it
-    H[small], H[big] = 0.045, 0.08
-    lab[small], lab[big] = 1, 2
-    masks = masks_from_labels(lab)
-    hm = HeightMap(np.ones_like(H), np.ones_like(H), np.zeros((30, 60, 3)), H, 1, 0, np.eye(4))
-    rows, cols = np.nonzero(small)
-    cfg = DetectorConfig()
-    assert cfg.crest_extension_ratio < _lateral_extension_ratio(H, rows, cols) <= cfg.crest_extension_max_ratio
-
-    def run(big_tentative: str):
-        dets = [replace(_det([3.0, 0.0, 0.0], 0.05), tentative="crest+too_small"),
-                replace(_det([3.0, 0.3, 0.0], 0.2), tentative=big_tentative)]
-        recs = [MaskRecord(i, None, 3.0, 0.05, None, d.tentative) for i, d in enumerate(dets)]
-        _recheck_crests(dets, recs, masks, hm, cfg)
-        return dets[0].tentative, recs[0].tentative
-
-    # the larger rock is firm: "crest" goes, the other rule stays; the record follows
-    assert run("") == ("too_small", "too_small")
-    # the larger body is itself only tentative (it may be the crest): the blob stays a crest
-    assert run("quadric") == ("crest+too_small", "crest+too_small")
 
 
 def test_a_crest_goes_on_beyond_its_blob_and_a_lone_rock_does_not():

@@ -338,15 +338,6 @@ class DetectorConfig:
     crest_extension_ratio: float = 0.6
     crest_extension_max_ratio: float = 2.0
     crest_max_radius_m: float = 0.12
-    # A rock beside a larger rock is not on a crest: the larger rock's height goes on
-    # beyond the small one's end. With crest_ignores_firm_rocks, a tentative detection
-    # that the crest rule made tentative is judged again once the pair's other detections
-    # are known, with the pixels of its firm (not tentative) detections left out of the
-    # columns beyond its ends; it drops "crest" when the ratio no longer exceeds
-    # crest_extension_ratio. Tuning sites (52 archives): target sightings 1467 -> 1470 of
-    # 1609, true detections within 5 m 4747 -> 4751, false 49 -> 49 (docs/perception.md,
-    # "Eleventh pass").
-    crest_ignores_firm_rocks: bool = True
     # Flat strips of small rocks at mid range: at 2.5-5 m a 0.1-0.2 m rock is a low dome
     # 20-30 pixels tall, and what of it stands above the height map's region threshold
     # is its top plus the band above it that SGBM's block gives the rock's disparity: a
@@ -531,8 +522,6 @@ class DetectorConfig:
             raise ConfigError(f"nearer_depth_ratio={self.nearer_depth_ratio!r} must be in (0, 1)")
         if not self.duplicate_overlap_ratio >= 0.0:
             raise ConfigError(f"duplicate_overlap_ratio={self.duplicate_overlap_ratio!r} must be >= 0 (0 = off)")
-        if not isinstance(self.crest_ignores_firm_rocks, bool):
-            raise ConfigError(f"crest_ignores_firm_rocks={self.crest_ignores_firm_rocks!r} must be true or false")
         if not (self.crest_extension_ratio >= 0.0 and self.crest_max_radius_m >= 0.0):
             raise ConfigError(f"crest_extension_ratio={self.crest_extension_ratio!r} and crest_max_radius_m="
                               f"{self.crest_max_radius_m!r} must be >= 0 (0 = off)")
@@ -1019,8 +1008,6 @@ class Detector:
             rec.tentative = det.tentative
             dets.append(det)
             kept_recs.append(rec)
-        if cfg.crest_ignores_firm_rocks and any("crest" in d.tentative.split("+") for d in dets):
-            _recheck_crests(dets, kept_recs, masks, hm, cfg)
         for k in sorted(_duplicates_firm_first(dets, cfg.duplicate_overlap_ratio), reverse=True):
             kept_recs[k].reason = RejectReason.DUPLICATE
             del dets[k], kept_recs[k]
@@ -1409,31 +1396,6 @@ def _nearer_ring_fraction(depth: np.ndarray, rows: np.ndarray, cols: np.ndarray,
     if vals.size < min_valid:
         return float("nan")
     return float(np.count_nonzero(vals < ratio * depth_m)) / vals.size
-
-
-def _recheck_crests(dets: list[Detection], recs: list[MaskRecord], masks, hm: HeightMap, cfg: DetectorConfig) -> None:
-    """Judge each tentative crest of a pair again (DetectorConfig.crest_ignores_firm_rocks)
-    with the low-resolution pixels of the pair's firm detections left out of the height
-    map: high ground beside it that is a rock does not make it a crest. `dets` and their
-    records `recs` are updated in place."""
-    firm = np.zeros(hm.height.shape, bool)
-    for d, r in zip(dets, recs):
-        if not d.tentative:
-            rr, cc = hm.lowres_index(masks[r.mask_index])
-            firm[rr, cc] = True
-    if not firm.any():
-        return
-    H = np.where(firm, np.nan, hm.height)
-    for k, (d, r) in enumerate(zip(dets, recs)):
-        rules = d.tentative.split("+")
-        if "crest" not in rules:
-            continue
-        rr, cc = hm.lowres_index(masks[r.mask_index])
-        ext = _lateral_extension_ratio(H, rr, cc)
-        if not (cfg.crest_extension_ratio < ext <= cfg.crest_extension_max_ratio):
-            rules.remove("crest")
-            dets[k] = replace(d, tentative="+".join(rules))
-            r.tentative = dets[k].tentative
 
 
 def _lateral_extension_ratio(height: np.ndarray, rows: np.ndarray, cols: np.ndarray, q: float = 0.9,
