@@ -10,6 +10,7 @@ Usage
     python benchmarks/bench_perception.py --lac-real DIR [--figure PNG]  # the real LAC frame
     python benchmarks/bench_perception.py --speed ARCHIVE.lac             # time one front pair
     python benchmarks/bench_perception.py ARCHIVE.lac ... --misses MISSES.csv  # where each miss is lost, rocks missed most
+    python benchmarks/bench_perception.py --pool RUN1.json RUN2.json ...  # pool earlier runs' sites, with intervals
 
 Archives must come from `lunarloc simulate` (they hold ``custom/rocks.csv`` and the
 semantic images). The image size and field of view are read from each archive
@@ -31,6 +32,11 @@ Metrics
   estimated-radius band and range band (detection depth), over detections.
 * Centroid error of matched detections: 3D and horizontal (median, p90), for the
   visible-surface centroid and the centre-corrected one.
+* 90 % intervals of the targets' figures (precision within 5 m, the two recalls, the
+  median centre error), per lighting, by a bootstrap over sites (`site_bootstrap`): a
+  rock is seen in several frames and terrain fools the detector frame after frame, so
+  the sites, not the sightings, are the independent draws. With four sites an interval
+  is often 0.1 wide; pool more sites to judge a target.
 * Time per frame per stage (segment, filter, stereo), both left images of a frame.
   With the classical segmenter "stereo" is the half-resolution SGBM + ground height
   map that segmentation itself uses, so images/s counts all three stages.
@@ -176,6 +182,44 @@ class Accumulator:
         # list is given (--misses); needs the frames' height maps (keep_depth)
         self.misses: list[dict] | None = None
         self.archive = ""
+        # per site (`site_key`): the counts behind the targets, for the bootstrap intervals
+        self.by_site: dict[str, dict] = {}
+        self._mark: tuple | None = None
+
+    def begin_archive(self, name: str) -> None:
+        """Start counting an archive; `end_archive` adds its share to its site's counts."""
+        self.archive = name
+        self._mark = (self.rec.copy(), self.prec.copy(), self.small_near.copy(), len(self.err_target))
+
+    def end_archive(self) -> None:
+        rec, prec, small, n_err = self._mark
+        site = self.by_site.setdefault(site_key(self.archive), {
+            "target": np.zeros(2, int), "precision": np.zeros(2, int), "small": np.zeros(2, int), "err": []})
+        site["target"] += (self.rec - rec)[1:, :2].sum(axis=(0, 1))
+        site["precision"] += (self.prec - prec)[:, :2].sum(axis=(0, 1))
+        site["small"] += self.small_near - small
+        site["err"].extend(self.err_target[n_err:])
+        self._mark = None
+
+    def merge(self, other: "Accumulator") -> None:
+        """Add another accumulator's counts (the total over lightings)."""
+        self.rec += other.rec
+        self.prec += other.prec
+        self.small_near += other.small_near
+        for k, v in other.fp_causes.items():
+            self.fp_causes[k] += v
+        for k in ("err3d", "err_xy", "err3d_surface", "err_target", "target_rows"):
+            getattr(self, k).extend(getattr(other, k))
+        for k, v in other.times.items():
+            self.times.setdefault(k, []).extend(v)
+        self.n_frames += other.n_frames
+        self.n_det += other.n_det
+        for key, c in other.by_site.items():
+            site = self.by_site.setdefault(key, {
+                "target": np.zeros(2, int), "precision": np.zeros(2, int), "small": np.zeros(2, int), "err": []})
+            for k in ("target", "precision", "small"):
+                site[k] += c[k]
+            site["err"].extend(c["err"])
 
     def add_frame(self, fd, semantics: dict, rocks: np.ndarray, detector: Detector, mounts) -> None:
         self.n_frames += 1
@@ -280,6 +324,11 @@ class Accumulator:
             "precision_by_estsize_range": self.prec.tolist(),
             "false_positives_within_5m_by_cause": dict(self.fp_causes),
             "centre_breakdown": centre_breakdown(self.target_rows),
+            "sites": len(self.by_site),
+            "site_bootstrap_ci90": site_bootstrap(self.by_site),
+            # the counts behind the targets per site, so that runs can be pooled (--pool)
+            "by_site": {k: {n: (v.tolist() if isinstance(v, np.ndarray) else list(v)) for n, v in c.items()}
+                        for k, c in self.by_site.items()},
             "time_per_frame_s": {k: float(np.mean(v)) for k, v in self.times.items()},
             # left images per second through segmentation + filtering, counting the
             # low-resolution stereo height map ("stereo") that the classical segmenter
@@ -288,6 +337,92 @@ class Accumulator:
                 2.0 / max(sum(float(np.mean(v)) for k, v in self.times.items() if k != "cpu"), 1e-9)
             ),
         }
+
+
+def site_key(archive: str) -> str:
+    """The site an archive shows: `site<seed>` from `--simulate`'s names, else the name."""
+    import re
+
+    m = re.search(r"site(\d+)", archive)
+    return f"site{m.group(1)}" if m else archive
+
+
+def pool_runs(paths: list[Path]) -> dict[str, dict[str, dict]]:
+    """The per-site counts of several `--json` outputs, merged per lighting:
+    {lighting: {site: counts}}. A site scored twice under one lighting is an error (it
+    would be counted twice)."""
+    pooled: dict[str, dict[str, dict]] = {}
+    for path in paths:
+        try:
+            run = json.loads(Path(path).read_text())
+        except (OSError, ValueError) as e:
+            raise SystemExit(f"--pool: cannot read {path}: {e}")
+        groups = run.get("by_lighting")
+        if not groups or any("by_site" not in g for g in groups.values()):
+            raise SystemExit(f"--pool: {path} has no per-site counts (written by an older bench_perception.py?)")
+        for lighting, g in groups.items():
+            sites = pooled.setdefault(lighting, {})
+            for key, c in g["by_site"].items():
+                if key in sites:
+                    raise SystemExit(f"--pool: {key} under {lighting} is in two runs ({path} and an earlier one)")
+                sites[key] = {n: (list(v) if n == "err" else np.asarray(v, int)) for n, v in c.items()}
+    return pooled
+
+
+def print_pooled(pooled: dict[str, dict[str, dict]]) -> dict:
+    """One row per lighting: the pooled figures with their 90 % site-bootstrap intervals."""
+    def ratio(sites, k):
+        c = sum((s[k] for s in sites.values()), np.zeros(2, int))
+        return float(c[0] / c[1]) if c[1] else float("nan"), c.tolist()
+
+    out = {}
+    print("lighting | sites | P(<=5m) [90 %] | R(r>=.1,<=5m) [90 %] | R(.05-.1,<=3m) [90 %] | err50 cm [90 %]")
+    for lighting, sites in sorted(pooled.items()):
+        ci = site_bootstrap(sites)
+        errs = [e for s in sites.values() for e in s["err"]]
+        row = {"sites": len(sites), "ci90": ci,
+               "precision_range<=5": ratio(sites, "precision"),
+               "target_recall_r>=0.1_range<=5": ratio(sites, "target"),
+               "recall_0.05<=r<0.1_range<=3": ratio(sites, "small"),
+               "centroid_err_target_median_m": float(np.median(errs)) if errs else float("nan")}
+        out[lighting] = row
+
+        def cell(k, scale=1.0, fmt="{:.3f}"):
+            v = row[k][0] if isinstance(row[k], tuple) else row[k]
+            iv = ci.get(k)
+            return fmt.format(scale * v) + ("" if iv is None else " [" + ", ".join(fmt.format(scale * x) for x in iv) + "]")
+        print(" | ".join([lighting, str(len(sites)), cell("precision_range<=5"), cell("target_recall_r>=0.1_range<=5"),
+                          cell("recall_0.05<=r<0.1_range<=3"), cell("centroid_err_target_median_m", 100.0, "{:.1f}")]))
+    return out
+
+
+def site_bootstrap(by_site: dict[str, dict], n_boot: int = 2000, level: float = 0.9, seed: int = 0) -> dict:
+    """Intervals for the targets' figures with the sites as the unit of resampling.
+
+    A rock is seen in several frames and a false detection on terrain persists from
+    frame to frame, so sightings are not independent; sites are. The sites are drawn
+    with replacement `n_boot` times and each figure (a ratio of pooled counts, or the
+    median of the pooled centre errors) recomputed: the central `level` interval of
+    those draws. Empty (fewer than two sites) when there is nothing to resample."""
+    keys = sorted(by_site)
+    if len(keys) < 2:
+        return {}
+    rng = np.random.default_rng(seed)
+    counts = {k: np.array([by_site[s][k] for s in keys], float) for k in ("target", "precision", "small")}
+    errs = [np.asarray(by_site[s]["err"], float) for s in keys]
+    draws = rng.integers(0, len(keys), size=(n_boot, len(keys)))
+    out = {}
+    q = (100 * (1 - level) / 2, 100 * (1 + level) / 2)
+    for name, k in (("precision_range<=5", "precision"), ("target_recall_r>=0.1_range<=5", "target"),
+                    ("recall_0.05<=r<0.1_range<=3", "small")):
+        c = counts[k][draws].sum(axis=1)  # (n_boot, 2)
+        ok = c[:, 1] > 0
+        if ok.any():
+            out[name] = [float(v) for v in np.percentile(c[ok, 0] / c[ok, 1], q)]
+    med = [np.median(e) for e in (np.concatenate([errs[i] for i in d]) for d in draws) if len(e)]
+    if med:
+        out["centroid_err_target_median_m"] = [float(v) for v in np.percentile(med, q)]
+    return out
 
 
 CENTRE_SIZE_BANDS = [(0.1, 0.15), (0.15, 0.2), (0.2, 0.3), (0.3, 0.5), (0.5, 10.0)]
@@ -408,13 +543,14 @@ def run_archive(path: Path, cfg: DetectorConfig, every: int, acc: Accumulator, d
             det = Detector(scaled_detector_config(cam.width, base=cfg), cam)
         print(f"{path}: {cam.width}x{cam.height} px, hfov {cam.hfov_deg:g} deg", file=sys.stderr)
         lander_xy = _lander_xy(ar)  # known to a LAC agent: detections on the lander are dropped
-        acc.archive = path.name
+        acc.begin_archive(path.name)
         for fd in detect_archive(ar, det.config, "ground-truth", detector=det, frames=frames, lander_xy=lander_xy,
                                  keep_depth=acc.misses is not None):
             sem = {left: ar.semantic(left, fd.frame) for left, _ in det.config.pairs}
             rows = {c: ar.camera_row(c, fd.frame) for c in ar.cameras}
             mounts = mounts_from_archive_row({k: v for k, v in rows.items() if v}, det.camera)
             acc.add_frame(fd, sem, rocks, det, mounts)
+        acc.end_archive()
     return det
 
 
@@ -445,6 +581,15 @@ def print_groups(groups: dict[str, dict]) -> None:
             f"{s['recall_0.05<=r<0.1_range<=3']:.2f}", f"{100 * s['centroid_err_target_median_m']:.1f}",
             f"{100 * s['centroid_err_target_p90_m']:.1f}", f"{s['frames_per_s']:.1f}", f"{s['cpu_ms_per_frame']:.0f}",
         ]))  # fmt: skip
+    ci = {name: s["site_bootstrap_ci90"] for name, s in groups.items() if s.get("site_bootstrap_ci90")}
+    if ci:
+        print("90 % intervals, the sites resampled (bootstrap): P(<=5m) | R(r>=.1,<=5m) | R(.05-.1,<=3m) | err50 cm")
+        for name, c in ci.items():
+            def iv(k, scale=1.0, fmt="{:.3f}"):
+                return "-" if k not in c else "[" + ", ".join(fmt.format(scale * v) for v in c[k]) + "]"
+            print(f"{name} ({groups[name]['sites']} sites): " + " | ".join([
+                iv("precision_range<=5"), iv("target_recall_r>=0.1_range<=5"), iv("recall_0.05<=r<0.1_range<=3"),
+                iv("centroid_err_target_median_m", 100.0, "{:.1f}")]))
     print("false positives within 5 m by cause: " + ", ".join(FP_CAUSES))
     for name, s in groups.items():
         c = s.get("false_positives_within_5m_by_cause", {})
@@ -536,6 +681,9 @@ def main(argv=None) -> int:
     ap.add_argument("--speed", action="store_true", help="time the detector on one front pair of each archive")
     ap.add_argument("--config", type=Path, default=None,
                     help="a run configuration (config.json, `lunarloc config`): its detector section is benchmarked")
+    ap.add_argument("--pool", type=Path, nargs="+", default=None, metavar="JSON",
+                    help="pool the per-site counts of earlier --json outputs (other sites, or other lightings) and "
+                    "print each lighting's figures with 90 %% intervals, the sites resampled; detects nothing")
     ap.add_argument("--misses", type=Path, default=None,
                     help="write each missed sighting of a rock r >= 0.1 m within 5 m, with the stage where it was "
                     "lost (the mask overlapping it most: its reject reason, or kept but off-centre; or no blob), to "
@@ -548,6 +696,12 @@ def main(argv=None) -> int:
         base = load_config_file(a.config)[0].detector
     if a.centre_method:
         base = replace(base, centre_method=CentreMethod(a.centre_method))
+    if a.pool is not None:
+        pooled = print_pooled(pool_runs(a.pool))
+        if a.json:
+            a.json.parent.mkdir(parents=True, exist_ok=True)
+            a.json.write_text(json.dumps(pooled, indent=2))
+        return 0
     if a.lac_real is not None:
         lac_real_frame(a.lac_real, a.figure, base)
         return 0
@@ -591,17 +745,7 @@ def main(argv=None) -> int:
         det = run_archive(p, cfg, a.every, g, det)
         configs[f"{det.camera.width}x{det.camera.height}"] = det.config.to_dict()
     for g in groups.values():  # the total over all archives
-        acc.rec += g.rec
-        acc.prec += g.prec
-        acc.small_near += g.small_near
-        for k, v in g.fp_causes.items():
-            acc.fp_causes[k] += v
-        for k in ("err3d", "err_xy", "err3d_surface", "err_target", "target_rows"):
-            getattr(acc, k).extend(getattr(g, k))
-        for k, v in g.times.items():
-            acc.times.setdefault(k, []).extend(v)
-        acc.n_frames += g.n_frames
-        acc.n_det += g.n_det
+        acc.merge(g)
     s = acc.summary()
     s["by_lighting"] = {k: g.summary() for k, g in groups.items()}
     s["archives"] = [str(p) for p in archives]

@@ -1,4 +1,5 @@
-"""benchmarks/bench_perception.py --misses: where a missed rock was lost."""
+"""benchmarks/bench_perception.py: where a missed rock was lost (--misses), and the targets'
+intervals with the sites resampled."""
 
 import importlib.util
 from pathlib import Path
@@ -74,3 +75,84 @@ def test_misses_are_grouped_by_rock_most_missed_first():
     assert got[0]["stages"] == [("elongated", 2), ("tentative", 1)]
     assert (got[0]["range_min_m"], got[0]["range_max_m"]) == (3.2, 4.5)
     assert bench.misses_by_rock([]) == []
+
+
+def _site(hit, total, tp, det, err):
+    return {"target": np.array([hit, total]), "precision": np.array([tp, det]), "small": np.array([0, 0]),
+            "err": list(err)}
+
+
+def test_site_intervals_resample_sites_not_sightings():
+    bench = _bench()
+    assert bench.site_bootstrap({"site1": _site(9, 10, 9, 10, [0.03])}) == {}  # one site: nothing to resample
+    # identical sites: the interval shrinks to the figure itself
+    same = bench.site_bootstrap({f"site{i}": _site(9, 10, 19, 20, [0.02, 0.04]) for i in range(5)})
+    assert same["target_recall_r>=0.1_range<=5"] == [0.9, 0.9]
+    assert same["precision_range<=5"] == [0.95, 0.95]
+    assert "recall_0.05<=r<0.1_range<=3" not in same  # no small rock seen anywhere
+    assert np.allclose(same["centroid_err_target_median_m"], 0.03)
+    # one bad site among good ones: the interval spans the pooled figure and stays within
+    # the sites' own range; many sightings at one site do not narrow it as independent
+    # sightings would
+    sites = {f"site{i}": _site(95, 100, 95, 100, [0.03] * 3) for i in range(4)}
+    sites["site9"] = _site(50, 100, 80, 100, [0.10] * 3)
+    lo, hi = bench.site_bootstrap(sites)["target_recall_r>=0.1_range<=5"]
+    assert 0.5 <= lo < 430 / 500 < hi <= 0.95
+    assert hi - lo > 0.1
+    lo, hi = bench.site_bootstrap(sites)["centroid_err_target_median_m"]
+    assert lo == 0.03 and hi >= 0.03
+
+
+def test_counts_are_kept_per_site_and_summed_over_lightings():
+    bench = _bench()
+    groups = []
+    for hits in ((3, 1), (2, 2)):  # two lightings; in each, sites 7 and 8
+        g = bench.Accumulator()
+        for name, h in zip(("site7_sun_el5_traverse0.lac", "site8_sun_el5_traverse0.lac"), hits):
+            g.begin_archive(name)
+            g.rec[1, 0] += [h, 4]  # r 0.1-0.2 m within 2.5 m: h of 4 seen
+            g.prec[0, 1] += [5, 6]
+            g.err_target.extend([0.01 * h] * h)
+            g.end_archive()
+        groups.append(g)
+    assert groups[0].by_site["site7"]["target"].tolist() == [3, 4]
+    assert groups[0].by_site["site8"]["precision"].tolist() == [5, 6]
+    total = bench.Accumulator()
+    for g in groups:
+        total.merge(g)
+    assert total.by_site["site7"]["target"].tolist() == [5, 8]
+    assert total.by_site["site8"]["err"] == [0.01, 0.02, 0.02]
+    s = total.summary()
+    assert s["sites"] == 2 and s["target_recall_counts"] == [8, 16]
+    lo, hi = s["site_bootstrap_ci90"]["target_recall_r>=0.1_range<=5"]
+    assert 3 / 8 <= lo <= 0.5 <= hi <= 5 / 8
+
+
+def test_runs_pool_by_lighting_and_refuse_a_site_counted_twice(tmp_path, capsys):
+    import json
+
+    import pytest
+
+    bench = _bench()
+
+    def run(path, lighting, sites):
+        by_site = {k: {"target": [h, 10], "precision": [9, 10], "small": [1, 2], "err": [0.02, 0.04]}
+                   for k, h in sites.items()}
+        path.write_text(json.dumps({"by_lighting": {lighting: {"by_site": by_site}}}))
+        return path
+
+    a = run(tmp_path / "a.json", "sun 5", {"site1": 9, "site2": 7})
+    b = run(tmp_path / "b.json", "sun 5", {"site3": 8})
+    c = run(tmp_path / "c.json", "lamps", {"site1": 6})
+    pooled = bench.pool_runs([a, b, c])
+    assert sorted(pooled) == ["lamps", "sun 5"] and sorted(pooled["sun 5"]) == ["site1", "site2", "site3"]
+    rows = bench.print_pooled(pooled)
+    assert rows["sun 5"]["target_recall_r>=0.1_range<=5"] == (0.8, [24, 30])
+    assert rows["lamps"]["sites"] == 1 and rows["lamps"]["ci90"] == {}  # one site: no interval
+    assert "sun 5 | 3 | 0.900" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="site1 under sun 5 is in two runs"):
+        bench.pool_runs([a, a])
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps({"by_lighting": {"sun 5": {"frames": 3}}}))
+    with pytest.raises(SystemExit, match="no per-site counts"):
+        bench.pool_runs([old])
