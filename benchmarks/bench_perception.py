@@ -458,30 +458,34 @@ def centre_error_parts(est: np.ndarray, true: np.ndarray, r_true: float, rng: fl
 
 
 def centre_breakdown(rows: list[tuple]) -> dict:
-    """Centre error of target matches by true radius band and by range band: count,
-    median / p90 3D error, median horizontal error, median signed along-ray and vertical
-    parts, median |lateral| part, median estimated / true radius, and the median error
-    with the true radius (oracle; see centre_error_parts)."""
+    """Centre error of target matches, all of them ("all") and by true radius band and by
+    range band: count, median / p90 3D error, median horizontal error, median signed
+    along-ray and vertical parts, median |lateral| part, median estimated / true radius,
+    and the median error with the true radius (oracle; see centre_error_parts)."""
     a = np.asarray(rows, float).reshape(-1, 9)
     out = {}
+    subsets = [("all", np.ones(len(a), bool))]
     for name, col, bands in (("radius", 0, CENTRE_SIZE_BANDS), ("range", 1, CENTRE_RANGE_BANDS)):
         for lo, hi in bands:
-            m = a[(a[:, col] >= lo) & (a[:, col] < hi)]
-            if not len(m):
-                continue
             key = f"{name} {lo:g}-{hi:g}" if hi < 10 else f"{name} >={lo:g}"
-            out[key] = {
-                "n": int(len(m)), "median_m": float(np.median(m[:, 2])), "p90_m": float(np.percentile(m[:, 2], 90)),
-                "xy_median_m": float(np.median(m[:, 3])), "along_median_m": float(np.median(m[:, 4])),
-                "lateral_abs_median_m": float(np.median(np.abs(m[:, 5]))), "vertical_median_m": float(np.median(m[:, 6])),
-                "radius_ratio_median": float(np.median(m[:, 7])),
-                "true_radius_oracle_median_m": float(np.median(m[:, 8])) if np.isfinite(m[:, 8]).all() else None,
-            }  # fmt: skip
+            subsets.append((key, (a[:, col] >= lo) & (a[:, col] < hi)))
+    for key, sel in subsets:
+        m = a[sel]
+        if not len(m):
+            continue
+        out[key] = {
+            "n": int(len(m)), "median_m": float(np.median(m[:, 2])), "p90_m": float(np.percentile(m[:, 2], 90)),
+            "xy_median_m": float(np.median(m[:, 3])), "along_median_m": float(np.median(m[:, 4])),
+            "lateral_abs_median_m": float(np.median(np.abs(m[:, 5]))), "vertical_median_m": float(np.median(m[:, 6])),
+            "radius_ratio_median": float(np.median(m[:, 7])),
+            "true_radius_oracle_median_m": float(np.median(m[:, 8])) if np.isfinite(m[:, 8]).all() else None,
+        }  # fmt: skip
     return out
 
 
 def print_breakdown(groups: dict[str, dict]) -> None:
-    """The centre error's parts per lighting, by true radius and range band (cm)."""
+    """The centre error's parts per lighting, over all target matches and by true radius and
+    range band (cm)."""
     print("centre error of target matches (cm): n, median, p90, horizontal median, along-ray (+ far), |lateral|, "
           "vertical (+ high), est/true radius, median with the true radius")
     for name, s in groups.items():

@@ -156,3 +156,15 @@ def test_runs_pool_by_lighting_and_refuse_a_site_counted_twice(tmp_path, capsys)
     old.write_text(json.dumps({"by_lighting": {"sun 5": {"frames": 3}}}))
     with pytest.raises(SystemExit, match="no per-site counts"):
         bench.pool_runs([old])
+
+
+def test_the_centre_breakdown_has_a_row_for_all_target_matches():
+    bench = _bench()
+    # (true radius, range, 3D error, horizontal, along, lateral, vertical, est/true radius, oracle)
+    rows = [(0.12, 1.0, 0.02, 0.01, 0.0, 0.0, 0.0, 1.0, 0.01),
+            (0.12, 3.0, 0.04, 0.03, 0.0, 0.0, 0.0, 1.0, 0.03),
+            (0.35, 3.0, 0.10, 0.08, 0.0, 0.0, 0.0, 0.8, 0.05)]
+    got = bench.centre_breakdown(rows)
+    assert got["all"]["n"] == 3 and got["all"]["median_m"] == 0.04 and got["all"]["true_radius_oracle_median_m"] == 0.03
+    assert got["radius 0.1-0.15"]["n"] == 2 and got["radius 0.3-0.5"]["median_m"] == 0.10
+    assert got["range 2.5-5"]["n"] == 2 and "radius 0.15-0.2" not in got
