@@ -357,15 +357,20 @@ def pool_runs(paths: list[Path]) -> dict[str, dict[str, dict]]:
             run = json.loads(Path(path).read_text())
         except (OSError, ValueError) as e:
             raise SystemExit(f"--pool: cannot read {path}: {e}")
-        groups = run.get("by_lighting")
-        if not groups or any("by_site" not in g for g in groups.values()):
+        groups = run.get("by_lighting") if isinstance(run, dict) else None
+        if not isinstance(groups, dict) or not groups or any(
+                not isinstance(g, dict) or not isinstance(g.get("by_site"), dict) for g in groups.values()):
             raise SystemExit(f"--pool: {path} has no per-site counts (written by an older bench_perception.py?)")
         for lighting, g in groups.items():
             sites = pooled.setdefault(lighting, {})
             for key, c in g["by_site"].items():
                 if key in sites:
                     raise SystemExit(f"--pool: {key} under {lighting} is in two runs ({path} and an earlier one)")
-                sites[key] = {n: (list(v) if n == "err" else np.asarray(v, int)) for n, v in c.items()}
+                try:
+                    sites[key] = {n: np.asarray(c[n], int).reshape(2) for n in ("target", "precision", "small")}
+                    sites[key]["err"] = [float(e) for e in c["err"]]
+                except (KeyError, TypeError, ValueError):
+                    raise SystemExit(f"--pool: {path}: the counts of {key} under {lighting} are malformed") from None
     return pooled
 
 

@@ -156,6 +156,14 @@ def test_runs_pool_by_lighting_and_refuse_a_site_counted_twice(tmp_path, capsys)
     old.write_text(json.dumps({"by_lighting": {"sun 5": {"frames": 3}}}))
     with pytest.raises(SystemExit, match="no per-site counts"):
         bench.pool_runs([old])
+    old.write_text("[1, 2]")  # not a run at all
+    with pytest.raises(SystemExit, match="no per-site counts"):
+        bench.pool_runs([old])
+    old.write_text(json.dumps({"by_lighting": {"sun 5": {"by_site": {"site1": {"target": [1]}}}}}))
+    with pytest.raises(SystemExit, match="counts of site1 under sun 5 are malformed"):
+        bench.pool_runs([old])
+    with pytest.raises(SystemExit, match="cannot read"):
+        bench.pool_runs([tmp_path / "missing.json"])
 
 
 def test_the_centre_breakdown_has_a_row_for_all_target_matches():
