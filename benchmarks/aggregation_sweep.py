@@ -15,8 +15,8 @@ import time
 
 import numpy as np
 
-from lunarloc.evaluation import bench_pairs
-from lunarloc.maps import AggregationConfig
+from lunarloc.pipeline.evaluation import bench_pairs
+from lunarloc.io.maps import AggregationConfig
 
 
 def main() -> None:

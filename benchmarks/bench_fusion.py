@@ -4,7 +4,7 @@ A rover drives a long lawn-mower path with drifting odometry (scale error and he
 bias); every keyframe sees up to 8 landmarks and every 20th has a pose fix. The graph
 is solved incrementally over a sliding window (as the online loop does) and once in
 full at the end. With ``--compare OTHER.py`` (another ``fusion.py``, e.g. the previous
-one: ``git show 255fd75:src/lunarloc/fusion.py > /tmp/fusion_old.py``) the same script
+one: ``git show 255fd75:src/lunarloc/fusion/posegraph.py > /tmp/fusion_old.py``) the same script
 runs on both and prints the largest difference of the final estimates.
 
 Usage: python benchmarks/bench_fusion.py [--keyframes 600] [--window-m 10] [--compare OTHER.py]
@@ -23,7 +23,7 @@ import numpy as np
 
 def _module(path: str | None):
     if path is None:
-        import lunarloc.fusion as mod
+        import lunarloc.fusion.posegraph as mod
 
         return mod
     spec = importlib.util.spec_from_file_location("fusion_other", path)
@@ -79,7 +79,7 @@ def main() -> None:
     ap.add_argument("--window-m", type=float, default=10.0)
     ap.add_argument("--compare", default=None, help="another fusion.py to run the same scenario on")
     args = ap.parse_args()
-    runs = {"lunarloc.fusion": run(_module(None), args.keyframes, args.window_m)}
+    runs = {"lunarloc.fusion.posegraph": run(_module(None), args.keyframes, args.window_m)}
     if args.compare:
         runs[args.compare] = run(_module(args.compare), args.keyframes, args.window_m)
     for name, r in runs.items():

@@ -7,7 +7,7 @@ Usage
         [--heading-bias-std 1.5e-3]
 
 For each seed: simulate a site and one vehicle traverse (front stereo pair, default
-odometry drift: 3 % scale error + random-walk gyro bias), then run ``lunarloc.pipeline.run``
+odometry drift: 3 % scale error + random-walk gyro bias), then run ``lunarloc.pipeline.runner.run``
 against the site's ground-truth rock list (``--reference rocks``) or a map built from
 the images of a reference traverse of the same site (``--reference images``). Writes
 each run's outputs and ``bench_loop_sim.json``; prints one line per traverse.
@@ -30,22 +30,22 @@ from pathlib import Path
 
 import numpy as np
 
-from lunarloc.data.render import SiteRenderer
-from lunarloc.data.simulate import SimulationConfig, simulate_site, simulate_traverse
-from lunarloc.data.site import SiteConfig
-from lunarloc.geometry import pose_to_matrix
-from lunarloc.config import RunConfig
-from lunarloc.pipeline import run
-from lunarloc.reference import build_reference_map, load_reference
-from lunarloc.runio import write_run
-from lunarloc.sources import ArchiveSource
+from lunarloc.sim.render import SiteRenderer
+from lunarloc.sim.simulate import SimulationConfig, simulate_site, simulate_traverse
+from lunarloc.sim.site import SiteConfig
+from lunarloc.core.geometry import pose_to_matrix
+from lunarloc.config.run import RunConfig
+from lunarloc.pipeline.runner import run
+from lunarloc.pipeline.reference import build_reference_map, load_reference
+from lunarloc.io.runs import write_run
+from lunarloc.pipeline.sources import ArchiveSource
 
 
 def replay_odometry(archive: Path, seed: int, odo_cfg) -> np.ndarray:
     """Odometry (F, 6) re-simulated from an archive's ground truth with `odo_cfg`."""
-    from lunarloc.data.lac import LacArchive
-    from lunarloc.data.rover import Trajectory, simulate_odometry
-    from lunarloc.data.simulate import traverse_seed
+    from lunarloc.io.lac.archive import LacArchive
+    from lunarloc.sim.rover import Trajectory, simulate_odometry
+    from lunarloc.sim.simulate import traverse_seed
 
     with LacArchive(archive) as ar:
         f = ar.frames

@@ -33,9 +33,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args()
 
-    from lunarloc.config import RunConfig, load_config_file
-    from lunarloc.multirover import MultiRoverConfig, run_rovers, write_rover_outputs
-    from lunarloc.reference import load_reference
+    from lunarloc.config.run import RunConfig, load_config_file
+    from lunarloc.pipeline.multirover import MultiRoverConfig, run_rovers, write_rover_outputs
+    from lunarloc.pipeline.reference import load_reference
 
     run_cfg = load_config_file(a.config)[0] if a.config is not None else RunConfig()
     run_cfg = run_cfg.with_options(odometry__source=a.odometry)

@@ -1,4 +1,4 @@
-"""Odometry drift on simulated traverses, per source (``lunarloc.odometry``).
+"""Odometry drift on simulated traverses, per source (``lunarloc.odometry.source``).
 
 Usage
 -----
@@ -8,7 +8,7 @@ Usage
 
 For each seed: simulate one traverse of the seed's site (``lunarloc simulate``'s
 simulator; seeds 13, 15, 16 at 470 s give traverses of about 100 m that stay on the
-site), then run every ``--sources`` entry through :func:`lunarloc.odometry.archive_odometry`
+site), then run every ``--sources`` entry through :func:`lunarloc.odometry.source.archive_odometry`
 and score it against the archive's ground truth: final error as % of the path length,
 heading error in degrees per metre, RMSE, and the wall time (with ``visual``: image
 pairs per second). Images are rendered (front pair, ``--width`` x 9/16) only when a
@@ -45,19 +45,19 @@ from pathlib import Path
 
 import numpy as np
 
-from lunarloc.data.lac import LacArchive
-from lunarloc.data.rover import ImuConfig
-from lunarloc.data.simulate import SimulationConfig, simulate_site, simulate_traverse
-from lunarloc.geometry import invert_transform
-from lunarloc.odometry import archive_odometry, ground_truth_poses, odometry_drift, parse_odometry_source
+from lunarloc.io.lac.archive import LacArchive
+from lunarloc.sim.rover import ImuConfig
+from lunarloc.sim.simulate import SimulationConfig, simulate_site, simulate_traverse
+from lunarloc.core.geometry import invert_transform
+from lunarloc.odometry.source import archive_odometry, ground_truth_poses, odometry_drift, parse_odometry_source
 
 NOPRIOR = "visual-noprior"
 
 
 def duration_for(site, distance_m: float, cfg: SimulationConfig) -> float:
     """Shortest duration (s, a multiple of 10) whose traverse 0 of `site` is at least `distance_m` long."""
-    from lunarloc.data.rover import plan_traverse
-    from lunarloc.data.simulate import traverse_seed
+    from lunarloc.sim.rover import plan_traverse
+    from lunarloc.sim.simulate import traverse_seed
 
     duration = 10.0 * np.ceil(distance_m / cfg.rover.speed_mps * 1.15 / 10.0)
     seed = traverse_seed(site.seed, 0)

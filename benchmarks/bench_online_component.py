@@ -37,12 +37,12 @@ from pathlib import Path
 import numpy as np
 
 from lunarloc import CameraRig, OnlineLocalizer, PlaybackAgent, load_reference
-from lunarloc.geometry import invert_transform, pose_to_matrix
+from lunarloc.core.geometry import invert_transform, pose_to_matrix
 
 
 def simulate(d: Path, seed: int, duration: float, width: int, rocks: int) -> tuple[Path, Path]:
-    from lunarloc.data.simulate import SimulationConfig, simulate_site, simulate_traverse
-    from lunarloc.data.site import SiteConfig
+    from lunarloc.sim.simulate import SimulationConfig, simulate_site, simulate_traverse
+    from lunarloc.sim.site import SiteConfig
 
     d.mkdir(parents=True, exist_ok=True)
     lac, ref = d / "traverse.lac", d / "rocks.csv"
@@ -69,7 +69,7 @@ def stats_ms(t: list[float]) -> dict:
 def make_localizer(env, ref_path: Path, max_keyframes: int) -> OnlineLocalizer:
     from dataclasses import replace
 
-    from lunarloc.online import OnlineConfig
+    from lunarloc.online.component import OnlineConfig
 
     cams = ("FrontLeft", "FrontRight")
     rig = CameraRig.from_sensors(env.sensors(), {c: env.get_camera_position(c) for c in cams})

@@ -15,7 +15,7 @@ Usage
 Archives must come from `lunarloc simulate` (they hold ``custom/rocks.csv`` and the
 semantic images). The image size and field of view are read from each archive
 (``initial.toml``); the detector's pixel-sized parameters, tuned at 1280x720, are
-scaled to the archive's width (``lunarloc.config.scaled_detector_config``).
+scaled to the archive's width (``lunarloc.config.run.scaled_detector_config``).
 Detections use the ground-truth rover pose, so the errors measured are those of
 perception alone.
 
@@ -53,7 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lunarloc.geometry import transform_points
+from lunarloc.core.geometry import transform_points
 from lunarloc.perception.camera import STEREO_PAIRS
 from lunarloc.perception.detector import CentreEstimator, CentreMethod, Detector, DetectorConfig, detect_archive
 
@@ -69,7 +69,7 @@ def _band(x: float, bands) -> int:
 
 
 def _rock_ids(sem: np.ndarray) -> np.ndarray:
-    from lunarloc.data.render import semantic_to_rock_id
+    from lunarloc.sim.render import semantic_to_rock_id
 
     return semantic_to_rock_id(sem)
 
@@ -103,7 +103,7 @@ def fp_cause(d, semantic: np.ndarray, id_to_idx: dict, centres: np.ndarray, radi
     (duplicate), much larger than the detection (a part of it: a knob, a split mask),
     or whose centre is beyond the match tolerance (off-centre; 'small' when its radius
     is under 0.1 m, below the target band)."""
-    from lunarloc.data.render import semantic_lander_mask
+    from lunarloc.sim.render import semantic_lander_mask
 
     u, v = int(round(d.uv[0])), int(round(d.uv[1]))
     win = np.asarray(semantic)[max(v - 3, 0) : v + 4, max(u - 3, 0) : u + 4]
@@ -537,16 +537,16 @@ def run_archive(path: Path, cfg: DetectorConfig, every: int, acc: Accumulator, d
     """Accumulate one archive's metrics. The camera (image size, field of view) is read
     from the archive and `cfg`'s pixel-sized parameters (tuned at 1280 px) are scaled
     to its width; `detector` is reused when it was built for the same camera."""
-    from lunarloc.data.lac import LacArchive
+    from lunarloc.io.lac.archive import LacArchive
     from lunarloc.perception.detector import mounts_from_archive_row
-    from lunarloc.config import scaled_detector_config
-    from lunarloc.perception.detector import _camera_from_archive
+    from lunarloc.config.run import scaled_detector_config
+    from lunarloc.perception.camera import camera_from_archive
 
     with LacArchive(path) as ar:
         t = ar.custom("rocks")
         rocks = np.column_stack([t["id"], t["x"], t["y"], t["z"], t["radius"]])
         frames = [int(f) for f in ar.frame_numbers if ar.camera_row(STEREO_PAIRS[0][0], int(f)) is not None][::every]
-        cam = _camera_from_archive(ar)
+        cam = camera_from_archive(ar)
         det = detector if detector is not None and detector.camera == cam else None
         if det is None:
             det = Detector(scaled_detector_config(cam.width, base=cfg), cam)
@@ -568,7 +568,7 @@ def lighting_label(path: Path) -> str:
     sun+lamps", else "sun elevation E deg" -> "sun E")."""
     import re
 
-    from lunarloc.data.lac import LacArchive
+    from lunarloc.io.lac.archive import LacArchive
 
     with LacArchive(path) as ar:
         desc = str(ar.metadata.get("description", ""))
@@ -612,7 +612,7 @@ def lac_real_frame(folder: Path, figure: Path | None = None, cfg: DetectorConfig
     detector configuration (default DetectorConfig())."""
     import cv2
 
-    from lunarloc.geometry import pose_to_matrix
+    from lunarloc.core.geometry import pose_to_matrix
     from lunarloc.perception.camera import PinholeCamera, ipex_rig
     from lunarloc.perception.detector import debug_overlay
 
@@ -647,7 +647,7 @@ def lac_real_frame(folder: Path, figure: Path | None = None, cfg: DetectorConfig
 def speed(path: Path, repeats: int = 5, cfg: DetectorConfig | None = None) -> dict:
     """Wall and process-CPU time of the detector on one 1280x720 front pair of an
     archive (after a warm-up run): per stereo pair and per two-pair frame."""
-    from lunarloc.data.lac import LacArchive
+    from lunarloc.io.lac.archive import LacArchive
     from lunarloc.perception.camera import ipex_rig
 
     with LacArchive(path) as ar:
@@ -700,7 +700,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     base = DetectorConfig()
     if a.config is not None:
-        from lunarloc.config import load_config_file
+        from lunarloc.config.run import load_config_file
 
         base = load_config_file(a.config)[0].detector
     if a.centre_method:
@@ -720,9 +720,9 @@ def main(argv=None) -> int:
         return 0
     archives = list(a.archives)
     for seed in a.simulate:
-        from lunarloc.data.simulate import SimulationConfig, simulate_site, simulate_traverse
+        from lunarloc.sim.simulate import SimulationConfig, simulate_site, simulate_traverse
 
-        from lunarloc.data.render import RenderConfig
+        from lunarloc.sim.render import RenderConfig
 
         sc = SimulationConfig(duration_s=a.duration, image_rate_hz=a.image_rate, width=a.width, height=a.height,
                               cameras=("FrontLeft", "FrontRight"),

@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from lunarloc.data.render import Lighting, RenderConfig, SiteRenderer
-from lunarloc.data.rover import plan_traverse
-from lunarloc.data.simulate import SimulationConfig, simulate_site, simulate_traverse, traverse_seed
+from lunarloc.sim.render import Lighting, RenderConfig, SiteRenderer
+from lunarloc.sim.rover import plan_traverse
+from lunarloc.sim.simulate import SimulationConfig, simulate_site, simulate_traverse, traverse_seed
 from lunarloc.perception.camera import PinholeCamera, ipex_rig
 
 

@@ -17,7 +17,7 @@ Null models with the rock density and structure of the real LunarLoc maps:
 
 For each pair the largest consistent set (exact maximum clique over all yaw bins) is
 recorded against the number of putative associations m. The acceptance rule in
-``lunarloc.localize.chance_clique_size`` is an envelope over these maxima.
+``lunarloc.localization.localize.chance_clique_size`` is an envelope over these maxima.
 
 Usage: python benchmarks/chance_cliques.py [--data ../shared/data/lunarloc-data] [--out chance.json]
 """
@@ -33,9 +33,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lunarloc.evaluation import find_traverses
-from lunarloc.localize import LocalizationConfig, Mode, localize
-from lunarloc.maps import LandmarkMap, load_traverse, traverse_map
+from lunarloc.pipeline.evaluation import find_traverses
+from lunarloc.localization.localize import LocalizationConfig, Mode, localize
+from lunarloc.io.maps import LandmarkMap, load_traverse, traverse_map
 
 
 def synthetic_field(rng, n, size=27.0):
@@ -97,8 +97,8 @@ def main() -> None:
         rows.append((na, nb, "synthetic", m, k))
         print(f"synthetic {na}x{nb}: m={m} chance clique={k}", flush=True)
     if args.overhead:
-        from lunarloc.data.simulate import simulate_site
-        from lunarloc.overhead import grid_landmarks, site_geometric_map
+        from lunarloc.sim.simulate import simulate_site
+        from lunarloc.io.overhead import grid_landmarks, site_geometric_map
 
         for seed in range(args.overhead):
             ref = grid_landmarks(site_geometric_map(simulate_site(1000 + seed)))

@@ -59,7 +59,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lunarloc.data.rover import path_share_near
+from lunarloc.sim.rover import path_share_near
 
 POSES = {"gt": "ground-truth", "odo": "odometry"}
 PAIRS = [("gt", "gt"), ("odo", "odo"), ("gt", "odo")]
@@ -97,9 +97,9 @@ def simulate(a, log: list[str]) -> list[Path]:
     else:
         from dataclasses import replace
 
-        from lunarloc.data.render import RenderConfig
-        from lunarloc.data.simulate import ALL_CAMERAS, SimulationConfig, simulate_site, simulate_traverse
-        from lunarloc.data.site import SiteConfig
+        from lunarloc.sim.render import RenderConfig
+        from lunarloc.sim.simulate import ALL_CAMERAS, SimulationConfig, simulate_site, simulate_traverse
+        from lunarloc.sim.site import SiteConfig
 
         site_cfg = SiteConfig() if a.rocks is None else replace(SiteConfig(), n_rocks=a.rocks)
         cfg = SimulationConfig(
@@ -132,7 +132,7 @@ def simulate(a, log: list[str]) -> list[Path]:
 
 def _truth(archive: Path) -> dict:
     """Last ground-truth and odometry positions of a traverse (site frame, metres)."""
-    from lunarloc.data.lac import LacArchive
+    from lunarloc.io.lac.archive import LacArchive
 
     with LacArchive(archive) as ar:
         gt = ar.positions()
@@ -173,7 +173,7 @@ def _landmark_rocks(map_path: Path, det_path: Path, gt_det_path: Path, rocks: np
     within `radius_m` (the clustering radius) of it. For a ground-truth-pose map both
     files are the same.
     """
-    from lunarloc.maps import load_map, load_traverse
+    from lunarloc.io.maps import load_map, load_traverse
 
     P = load_map(map_path).positions_xyz
     D = load_traverse(det_path).detections_xyz
@@ -200,7 +200,7 @@ def _map_quality(ids: np.ndarray, dist: np.ndarray) -> dict:
 
 
 def _errors(T: np.ndarray | None, veh_map: Path, truth_veh: dict, ref_pose: str, veh_pose: str) -> dict:
-    from lunarloc.maps import load_map
+    from lunarloc.io.maps import load_map
 
     nan = float("nan")
     out = {"err_origin_m": nan, "err_landmarks_median_m": nan, "err_landmarks_max_m": nan,

@@ -16,9 +16,9 @@ import argparse
 
 import numpy as np
 
-from lunarloc.evaluation import bench_pairs
-from lunarloc.localize import LocalizationConfig
-from lunarloc.maps import AggregationConfig
+from lunarloc.pipeline.evaluation import bench_pairs
+from lunarloc.localization.localize import LocalizationConfig
+from lunarloc.io.maps import AggregationConfig
 
 VARIANTS = {
     "clique only (Arun on the max clique)": (LocalizationConfig(refine=False), None),

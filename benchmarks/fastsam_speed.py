@@ -56,7 +56,7 @@ def _load_frame(args) -> tuple[np.ndarray, np.ndarray, str]:
     import cv2
 
     if args.archive is not None:
-        from lunarloc.data.lac import LacArchive
+        from lunarloc.io.lac.archive import LacArchive
 
         with LacArchive(args.archive) as arc:
             for f in arc.frame_numbers():

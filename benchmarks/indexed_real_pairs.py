@@ -16,8 +16,8 @@ import argparse
 import itertools
 import json
 
-import lunarloc.evaluation as ev
-from lunarloc.localize_large import localize_large
+import lunarloc.pipeline.evaluation as ev
+from lunarloc.localization.large import localize_large
 
 
 def main() -> None:

@@ -28,10 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
-from lunarloc.data.render import Lighting, RenderConfig, SiteRenderer, semantic_to_palette
-from lunarloc.data.rover import RoverConfig, terrain_pose
-from lunarloc.data.site import generate_site
-from lunarloc.geometry import pose_to_matrix
+from lunarloc.sim.render import Lighting, RenderConfig, SiteRenderer, semantic_to_palette
+from lunarloc.sim.rover import RoverConfig, terrain_pose
+from lunarloc.sim.site import generate_site
+from lunarloc.core.geometry import pose_to_matrix
 from lunarloc.perception.camera import PinholeCamera, ipex_rig
 
 # The real frame's shadows (the rover's own falls ahead and about 18 degrees left of
@@ -132,7 +132,7 @@ def _outline_rocks(img: np.ndarray, sem: np.ndarray, site, T_map_optical: np.nda
     the camera, from the semantic ids (`sem`, the renderer's rock ids)."""
     import cv2
 
-    from lunarloc.data.render import semantic_to_rock_id
+    from lunarloc.sim.render import semantic_to_rock_id
 
     ids, cam = semantic_to_rock_id(sem), T_map_optical[:3, 3]
     for k in range(len(site.rocks)):

@@ -16,7 +16,7 @@ configuration's detector scaled to the archive's width, the lander dropped). Wit
 ground-truth`` are read instead (e.g. the multi-session reference traverses).
 
 Each traverse's detections are clustered as ``lunarloc map`` clusters them
-(:func:`lunarloc.maps.traverse_map`, ``AggregationConfig`` with the given minimum
+(:func:`lunarloc.io.maps.traverse_map`, ``AggregationConfig`` with the given minimum
 sightings). Reported, for the rocks of radius >= 0.1 m ("target") and for all rocks:
 
 * detections: each frame's detections matched one-to-one to the true rocks within
@@ -76,7 +76,7 @@ class Errors:
 
 def _landmarks(frames: np.ndarray, rover_xyz: np.ndarray, dets: np.ndarray, det_frame: np.ndarray,
                min_sightings: int) -> np.ndarray:
-    from lunarloc.maps import AggregationConfig, Traverse, traverse_map
+    from lunarloc.io.maps import AggregationConfig, Traverse, traverse_map
 
     trav = Traverse(np.asarray(frames), np.asarray(rover_xyz, float).reshape(-1, 3), np.asarray(dets, float).reshape(-1, 3),
                     np.asarray(det_frame))
@@ -85,16 +85,17 @@ def _landmarks(frames: np.ndarray, rover_xyz: np.ndarray, dets: np.ndarray, det_
 
 def _archive_traverse(path: Path, base_cfg):
     """(frames, rover_xyz, detections (D, 3), their frames, their camera ranges, rocks, label)."""
-    from lunarloc.config import scaled_detector_config
-    from lunarloc.data.lac import LacArchive
+    from lunarloc.config.run import scaled_detector_config
+    from lunarloc.io.lac.archive import LacArchive
     from lunarloc.perception.camera import STEREO_PAIRS
-    from lunarloc.perception.detector import Detector, _camera_from_archive, detect_archive
+    from lunarloc.perception.camera import camera_from_archive
+    from lunarloc.perception.detector import Detector, detect_archive
 
     with LacArchive(path) as ar:
         t = ar.custom("rocks")
         rocks = np.column_stack([t["id"], t["x"], t["y"], t["z"], t["radius"]])
         frames = [int(f) for f in ar.frame_numbers if ar.camera_row(STEREO_PAIRS[0][0], int(f)) is not None]
-        cam = _camera_from_archive(ar)
+        cam = camera_from_archive(ar)
         det = Detector(scaled_detector_config(cam.width, base=base_cfg), cam)
         F, X, D, DF, R = [], [], [], [], []
         for fd in detect_archive(ar, det.config, "ground-truth", detector=det, frames=frames, lander_xy=_lander_xy(ar)):
@@ -109,8 +110,8 @@ def _archive_traverse(path: Path, base_cfg):
 
 
 def _csv_traverse(det_path: Path, rocks_path: Path):
-    from lunarloc.data.site import load_rocks_csv
-    from lunarloc.maps import load_traverse
+    from lunarloc.sim.site import load_rocks_csv
+    from lunarloc.io.maps import load_traverse
 
     tr = load_traverse(det_path)
     pos = {int(f): p for f, p in zip(tr.frames, tr.rover_xyz)}
@@ -161,7 +162,7 @@ def main(argv=None) -> int:
         ap.error("give one --rocks per --det")
     if not a.archives and not a.det:
         ap.error("give archives or --det/--rocks pairs")
-    from lunarloc.config import RunConfig, load_config_file
+    from lunarloc.config.run import RunConfig, load_config_file
 
     cfg = (load_config_file(a.config)[0] if a.config else RunConfig()).detector
     trs = [_archive_traverse(p, cfg) for p in a.archives] + [_csv_traverse(d, r) for d, r in zip(a.det, a.rocks)]

@@ -40,8 +40,8 @@ BANDS = [(0.0, 0.05), (0.05, 0.1), (0.1, 0.2), (0.2, 10.0)]
 def _seen_rocks(archive: Path, rocks: np.ndarray, max_range_m: float = 6.0, hfov_deg: float = 70.0) -> np.ndarray:
     """Boolean (N,): rocks within max_range_m of the FrontLeft camera and inside its
     horizontal field of view at some image frame (occlusion ignored)."""
-    from lunarloc.data.lac import LacArchive
-    from lunarloc.geometry import pose_to_matrix
+    from lunarloc.io.lac.archive import LacArchive
+    from lunarloc.core.geometry import pose_to_matrix
     from lunarloc.perception.camera import PinholeCamera, ipex_rig
 
     T_rc = ipex_rig(PinholeCamera())["FrontLeft"].T_rover_optical
@@ -60,7 +60,7 @@ def _seen_rocks(archive: Path, rocks: np.ndarray, max_range_m: float = 6.0, hfov
 
 
 def evaluate(trav, rocks: np.ndarray, seen: np.ndarray, every: int, min_sightings: int) -> dict:
-    from lunarloc.maps import AggregationConfig, Traverse, traverse_map
+    from lunarloc.io.maps import AggregationConfig, Traverse, traverse_map
 
     keep_frames = np.asarray(trav.frames)[::every]
     sel = np.isin(trav.detection_frame, keep_frames)
@@ -98,8 +98,8 @@ def main(argv=None) -> int:
     ap.add_argument("--min-sightings", type=int, nargs="+", default=[2, 3, 5])
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
-    from lunarloc.maps import load_traverse
-    from lunarloc.data.site import load_rocks_csv
+    from lunarloc.io.maps import load_traverse
+    from lunarloc.sim.site import load_rocks_csv
 
     rocks = load_rocks_csv(a.rocks)[:, 1:5]
     seen = _seen_rocks(a.archive, rocks)

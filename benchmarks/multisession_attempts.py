@@ -12,7 +12,7 @@ archive `traverse_1.lac`, the site's `rocks.csv`, the reference detections `det_
 the reference map `map_0_gt_ms<M>.csv`. The vehicle's per-frame rock detections (rover frame)
 and its odometry (visual, and the archive's `odometry` record) are computed once and cached in
 `SITE_DIR/vehicle_frames.npz`; each run then replays them through
-:class:`lunarloc.loop.LoopState` with the run configuration's image defaults (`RunConfig()`)
+:class:`lunarloc.online.loop.LoopState` with the run configuration's image defaults (`RunConfig()`)
 and `--loop` overrides - the same loop `lunarloc run` drives, in a few seconds.
 
 Per attempt (`--attempts`): the window's path length and landmarks, how many of them lie on a
@@ -41,9 +41,9 @@ CACHE = "vehicle_frames.npz"
 def cache_vehicle(site: Path) -> Path:
     """Detect rocks in every image frame of SITE/traverse_1.lac once (rover frame, before the
     lander exclusion, which depends on the odometry) and keep both odometries."""
-    from lunarloc.config import OdometryConfig, RunConfig
+    from lunarloc.config.run import OdometryConfig, RunConfig
     from lunarloc.perception.detector import Detector
-    from lunarloc.sources import ArchiveSource
+    from lunarloc.pipeline.sources import ArchiveSource
 
     out = site / CACHE
     if out.exists():
@@ -88,7 +88,7 @@ def _rocks(site: Path) -> np.ndarray:
 
 def _reference_sightings(site: Path, rocks: np.ndarray) -> np.ndarray:
     """Per rock: the reference frames (ground-truth poses) that detected it."""
-    from lunarloc.maps import load_traverse
+    from lunarloc.io.maps import load_traverse
 
     tr = load_traverse(site / "det_0_gt.csv")
     ids = rock_ids(tr.detections_xyz, rocks)
@@ -102,8 +102,8 @@ def _diagnosing_loop(truth: dict):
     """A LoopState that records, per attempt, what the window held against the truth."""
     from scipy.spatial import cKDTree
 
-    from lunarloc import loop as loop_module
-    from lunarloc.geometry import pose_to_matrix
+    from lunarloc.online import loop as loop_module
+    from lunarloc.core.geometry import pose_to_matrix
 
     class DiagnosingLoop(loop_module.LoopState):
         rows: list
@@ -178,7 +178,7 @@ def _oracle_crop(state, ref, veh, Vt: np.ndarray, reference_xyz: np.ndarray, rad
     """What the chance test would require if the reference were cropped to the landmarks within
     r (horizontal) of the window landmarks' TRUE positions (an oracle crop: the best any prior
     could do), for each r: {"required_at_crop_<r>m": [reference landmarks kept, inliers required]}."""
-    from lunarloc.localize import chance_clique_size
+    from lunarloc.localization.localize import chance_clique_size
 
     cfg = state.window_localization().for_maps(ref, veh)
     out = {}
@@ -200,10 +200,10 @@ def transform(T: np.ndarray, P: np.ndarray) -> np.ndarray:
 
 def replay(site: Path, min_sightings: int, odometry: str, loop_overrides: dict, diagnose: bool,
            localization_overrides: dict | None = None):
-    from lunarloc.config import RunConfig, config_from_dict
-    from lunarloc.loop import LoopState
+    from lunarloc.config.run import RunConfig, config_from_dict
+    from lunarloc.online.loop import LoopState
     from lunarloc.perception.detector import on_lander
-    from lunarloc.reference import load_reference
+    from lunarloc.pipeline.reference import load_reference
 
     z = np.load(cache_vehicle(site))
     cfg = RunConfig()

@@ -1,6 +1,6 @@
 """Localization against the ground-truth LAC geometric map of simulated sites.
 
-For each simulated site (``lunarloc.data.simulate.simulate_site``), the reference is its
+For each simulated site (``lunarloc.sim.simulate.simulate_site``), the reference is its
 LAC geometric map (``overhead.site_geometric_map``: 0.15 m cells, rocks grouped by
 ``overhead.grid_landmarks``). Vehicle maps are landmark-level stand-ins for image-built
 maps: the visible centres of the rocks a detector can see (radius >= 5 cm,
@@ -20,13 +20,13 @@ import time
 
 import numpy as np
 
-from lunarloc.data.simulate import simulate_site
-from lunarloc.evaluation import random_vehicle_transform
-from lunarloc.geometry import invert_transform, transform_points
-from lunarloc.localize import LocalizationConfig, localize
-from lunarloc.maps import LandmarkMap
-from lunarloc.overhead import grid_landmarks, site_geometric_map
-from lunarloc.reference import rocks_to_reference
+from lunarloc.sim.simulate import simulate_site
+from lunarloc.pipeline.evaluation import random_vehicle_transform
+from lunarloc.core.geometry import invert_transform, transform_points
+from lunarloc.localization.localize import LocalizationConfig, localize
+from lunarloc.io.maps import LandmarkMap
+from lunarloc.io.overhead import grid_landmarks, site_geometric_map
+from lunarloc.pipeline.reference import rocks_to_reference
 
 
 def main() -> None:

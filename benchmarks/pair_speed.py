@@ -24,9 +24,9 @@ import time
 
 import numpy as np
 
-import lunarloc.evaluation as evaluation
-from lunarloc.evaluation import bench_pairs, find_traverses
-from lunarloc.localize import LocalizationConfig, localize
+import lunarloc.pipeline.evaluation as evaluation
+from lunarloc.pipeline.evaluation import bench_pairs, find_traverses
+from lunarloc.localization.localize import LocalizationConfig, localize
 
 
 def main() -> None:

@@ -1,7 +1,7 @@
 """Cost of localizing a 150-landmark window against references of 100 to 100,000 rocks.
 
 Uniform synthetic rock fields at the LAC density (0.55 rocks per square metre, smooth
-terrain; ``lunarloc.data.fields``); per field, vehicle windows of 150 landmarks (85 %
+terrain; ``lunarloc.sim.fields``); per field, vehicle windows of 150 landmarks (85 %
 of the rocks around a random rock detected, 1.5 cm noise per axis, 15 % spurious
 landmarks, any yaw, tilt up to 0.5 deg). At 100 rocks the window is 60 landmarks (a
 150-landmark window does not fit).
@@ -11,10 +11,10 @@ compile time is not counted; peak memory is the rise of the process's peak RSS o
 its level before the call, via /proc/self/clear_refs; the process's own level, Python with
 numpy, scipy and the loaded kernels, is reported as ``rss_before_mb``):
 
-* ``full``: :func:`lunarloc.localize.localize` on the whole reference (before);
+* ``full``: :func:`lunarloc.localization.localize.localize` on the whole reference (before);
   sizes whose N^2 reference-pair index would exceed the memory limit are skipped
   with the estimate, and larger sizes stop once one exceeds the time limit.
-* ``indexed``: :func:`lunarloc.localize_large.localize_large` (after). Its time is
+* ``indexed``: :func:`lunarloc.localization.large.localize_large` (after). Its time is
   split into building the reference index (once per reference map) and the query.
 
 Per size also ``--null-trials`` windows cut from an UNRELATED field of the same size: each
@@ -64,11 +64,11 @@ def _reset_peak() -> bool:
 def child(n: int, method: str, trials: int, seed: int, null_trials: int = 0) -> dict:
     import numpy as np
 
-    from lunarloc.data.fields import uniform_rock_field, vehicle_window
-    from lunarloc.evaluation import _warm_up
-    from lunarloc.geometry import rotation_angle, transform_points
-    from lunarloc.localize import LocalizationConfig, localize
-    from lunarloc.localize_large import build_index, localize_large
+    from lunarloc.sim.fields import uniform_rock_field, vehicle_window
+    from lunarloc.pipeline.evaluation import _warm_up
+    from lunarloc.core.geometry import rotation_angle, transform_points
+    from lunarloc.localization.localize import LocalizationConfig, localize
+    from lunarloc.localization.large import build_index, localize_large
 
     cfg = LocalizationConfig()
     _warm_up(cfg)  # load the compiled kernels: compile time is not run time
@@ -134,10 +134,10 @@ def stress(n: int, trials: int, seed: int) -> None:
     landmarks, more noise) against an n-rock field; prints right/accepted per variant."""
     import numpy as np
 
-    from lunarloc.data.fields import uniform_rock_field, vehicle_window
-    from lunarloc.evaluation import _warm_up
-    from lunarloc.geometry import transform_points
-    from lunarloc.localize_large import build_index, localize_large
+    from lunarloc.sim.fields import uniform_rock_field, vehicle_window
+    from lunarloc.pipeline.evaluation import _warm_up
+    from lunarloc.core.geometry import transform_points
+    from lunarloc.localization.large import build_index, localize_large
 
     _warm_up(None)
     ref = uniform_rock_field(np.random.default_rng(seed), n)

@@ -49,14 +49,14 @@ def mark(label, s={"t": t0, "c": c0}):
 import numpy; mark("import numpy")
 import typer, rich.console; mark("import typer, rich")
 import scipy.spatial; mark("import scipy.spatial")
-import lunarloc.localize, lunarloc.localize_large; mark("import lunarloc.localize")
+import lunarloc.localization.localize, lunarloc.localization.large; mark("import lunarloc.localization.localize")
 from lunarloc.cli.app import _register_commands; _register_commands(["localize"]); mark("import the CLI command")
-import lunarloc.config; mark("import lunarloc.config (RunConfig)")
+import lunarloc.config.run; mark("import lunarloc.config.run (RunConfig)")
 from pathlib import Path
-from lunarloc.reference import load_reference
-from lunarloc.maps import load_map
+from lunarloc.pipeline.reference import load_reference
+from lunarloc.io.maps import load_map
 ref, veh = load_reference(Path(sys.argv[1])), load_map(sys.argv[2]); mark("load the two maps")
-from lunarloc.localize_large import localize_large
+from lunarloc.localization.large import localize_large
 import scipy.optimize; mark("import scipy.optimize (distortion fit)")
 localize_large(ref, veh); mark("first localize (loads the kernels)")
 localize_large(ref, veh); mark("second localize")
@@ -70,8 +70,8 @@ print(f"  ahead-of-time kernels: {aot_status()}; numba imported: {'numba' in sys
 def _pair(data: Path, out: Path) -> tuple[Path, Path]:
     import numpy as np
 
-    from lunarloc.geometry import euler_to_rotation, make_transform, transform_points
-    from lunarloc.maps import AggregationConfig, LandmarkMap, aggregate_detections, load_traverse, save_map
+    from lunarloc.core.geometry import euler_to_rotation, make_transform, transform_points
+    from lunarloc.io.maps import AggregationConfig, LandmarkMap, aggregate_detections, load_traverse, save_map
 
     maps = []
     for k in (3, 7):

@@ -199,7 +199,7 @@ def with_member(name: str, data: bytes | str | None, base: dict | None = None) -
 
 def map_file_ok(name: str, min_landmarks: int = 1, max_landmarks: int | None = None):
     def check(folder: Path, stdout: str) -> bool:
-        from lunarloc.maps import load_map
+        from lunarloc.io.maps import load_map
 
         m = load_map(folder / name)
         n = len(m)

@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 
-from lunarloc.maps import Traverse
+from lunarloc.io.maps import Traverse
 
 
 def synthetic_traverse(seed: int = 0, length_m: float = 30.0, rate_hz: float = 20.0, speed: float = 0.5,

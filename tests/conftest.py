@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lunarloc.geometry import euler_to_rotation, make_transform, transform_points
-from lunarloc.maps import LandmarkMap
+from lunarloc.core.geometry import euler_to_rotation, make_transform, transform_points
+from lunarloc.io.maps import LandmarkMap
 
 import os
 

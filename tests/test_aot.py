@@ -28,7 +28,7 @@ def _built() -> bool:
 
 def test_import_lunarloc_does_not_import_numba():
     # the kernels are compiled or loaded at their first call, not at import
-    out = _python("import sys, lunarloc, lunarloc.localize, lunarloc.association.graph\n"
+    out = _python("import sys, lunarloc, lunarloc.localization.localize, lunarloc.association.graph\n"
                   "print('numba' in sys.modules)").stdout.split()
     assert out == ["False"]
 
@@ -76,9 +76,9 @@ def test_missing_stale_or_broken_build_is_not_loaded(tmp_path, monkeypatch):
 
 _PAIR = """
 import sys, json, numpy as np
-from lunarloc.geometry import euler_to_rotation, make_transform, transform_points
-from lunarloc.localize import LocalizationConfig, Mode, localize
-from lunarloc.maps import LandmarkMap
+from lunarloc.core.geometry import euler_to_rotation, make_transform, transform_points
+from lunarloc.localization.localize import LocalizationConfig, Mode, localize
+from lunarloc.io.maps import LandmarkMap
 from lunarloc.association import aot
 rng = np.random.default_rng(3)
 ref_xyz = np.c_[rng.uniform(-10, 10, (120, 2)), rng.normal(0, 0.2, 120)]

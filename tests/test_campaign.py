@@ -8,10 +8,10 @@ import json
 
 import pytest
 
-from lunarloc import campaign as camp
+from lunarloc.pipeline import campaign as camp
 from lunarloc.cli.app import main
-from lunarloc.errors import FileFormatError
-from lunarloc.scenario import ScenarioConfig
+from lunarloc.core.errors import FileFormatError
+from lunarloc.pipeline.scenario import ScenarioConfig
 
 
 def _spec(tmp_path, text: str):
@@ -66,7 +66,7 @@ def _fake_summary(cfg: ScenarioConfig) -> dict:
 
 
 def test_failed_job_is_recorded_and_rerun_skips_finished_jobs(tmp_path, monkeypatch):
-    import lunarloc.scenario as scenario
+    import lunarloc.pipeline.scenario as scenario
 
     calls = []
 
@@ -95,7 +95,7 @@ def test_failed_job_is_recorded_and_rerun_skips_finished_jobs(tmp_path, monkeypa
 
 
 def test_check_failure_is_a_result_not_a_crash(tmp_path, monkeypatch):
-    import lunarloc.scenario as scenario
+    import lunarloc.pipeline.scenario as scenario
 
     def no_fix(cfg, out, **kw):
         s = _fake_summary(cfg)

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from lunarloc.errors import ConfigError
+from lunarloc.core.errors import ConfigError
 from lunarloc.perception.detector import (
     CentreEstimator,
     Detector,
@@ -125,7 +125,7 @@ def test_blend_height_follows_the_ring_ground_and_its_range_the_near_edge():
     ("centre_ring_radius_factor", -0.1), ("centre_ring_exposed_factor", -0.1), ("centre_near_clamp_radii", -1.0),
 ])  # fmt: skip
 def test_centre_settings_are_checked_and_round_trip(key, value, tmp_path):
-    from lunarloc.config import RunConfig, load_config_file
+    from lunarloc.config.run import RunConfig, load_config_file
 
     with pytest.raises(ConfigError, match=key):
         RunConfig.from_dict({"detector": {key: value}})

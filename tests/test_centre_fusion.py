@@ -7,8 +7,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from lunarloc.errors import ConfigError
-from lunarloc.geometry import invert_transform, pose_to_matrix, transform_points
+from lunarloc.core.errors import ConfigError
+from lunarloc.core.geometry import invert_transform, pose_to_matrix, transform_points
 from lunarloc.perception.camera import ipex_rig
 from lunarloc.perception.detector import (
     CentreFusion,
@@ -118,7 +118,7 @@ def test_without_a_camera_pose_p_optical_is_left_alone():
 def test_fusion_settings_are_checked_and_round_trip(key, value, tmp_path):
     import json
 
-    from lunarloc.config import RunConfig, load_config_file
+    from lunarloc.config.run import RunConfig, load_config_file
 
     with pytest.raises(ConfigError):
         RunConfig.from_dict({"detector": {key: value}})

@@ -5,7 +5,7 @@ import pytest
 
 from conftest import make_pair
 from lunarloc.cli import main
-from lunarloc.maps import LandmarkMap, load_map, save_map
+from lunarloc.io.maps import LandmarkMap, load_map, save_map
 
 
 def write_traverse_csv(path, world_rocks, rng, n_frames=12):
@@ -128,7 +128,7 @@ def test_localize_traverse_vehicle_uses_its_path(tmp_path, rng, capsys):
     """A traverse CSV as the vehicle: the localizer is given its path (the pose judged at the
     traverse's last position; a fitted bend places each landmark where it was seen from),
     as the pair benchmark does; a landmark map as the vehicle gets the straight stand-in."""
-    from lunarloc.geometry import make_transform, transform_points
+    from lunarloc.core.geometry import make_transform, transform_points
 
     rocks = np.c_[rng.uniform(0, 20, 70), rng.uniform(-4, 4, 70), rng.uniform(-0.05, 0.05, 70)]
     c, s_ = np.cos(0.6), np.sin(0.6)

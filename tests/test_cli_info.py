@@ -11,8 +11,8 @@ from typer.testing import CliRunner
 
 from lunarloc.cli import commands_data  # registers `info` on the app
 from lunarloc.cli.app import app as lunarloc_app
-from lunarloc.data.lac import LacWriter
-from lunarloc.errors import ArchiveError
+from lunarloc.io.lac.archive import LacWriter
+from lunarloc.core.errors import ArchiveError
 
 W, H = 32, 24
 

@@ -11,7 +11,7 @@ from lunarloc.cli import main
 
 @pytest.fixture(scope="module")
 def tiny_archive(tmp_path_factory):
-    from lunarloc.data.simulate import SimulationConfig, simulate_dataset
+    from lunarloc.sim.simulate import SimulationConfig, simulate_dataset
 
     out = tmp_path_factory.mktemp("sim")
     cfg = SimulationConfig(duration_s=6.0, image_rate_hz=2.0, width=320, height=180,
@@ -73,7 +73,7 @@ def test_bench_loop(tmp_path, capsys):
 def test_detect_then_map(tiny_archive, tmp_path, capsys):
     """`lunarloc detect` on a 320x180 archive writes the dataset CSV that `lunarloc map` reads,
     with debug overlays, and records the (resolution-scaled) detector config it used."""
-    from lunarloc.maps import load_traverse
+    from lunarloc.io.maps import load_traverse
 
     det = tmp_path / "det.csv"
     rc = main(["detect", str(tiny_archive / "traverse_0.lac"), "-o", str(det), "--debug-dir", str(tmp_path / "dbg")])

@@ -8,8 +8,8 @@ import csv
 import numpy as np
 import pytest
 
-from lunarloc.errors import ConfigError, InputError
-from lunarloc.geometry import pose_to_matrix, transform_points
+from lunarloc.core.errors import ConfigError, InputError
+from lunarloc.core.geometry import pose_to_matrix, transform_points
 from lunarloc.perception.camera import PinholeCamera, ipex_rig
 from lunarloc.perception.detector import (
     Detector,
@@ -230,8 +230,8 @@ def test_too_tall_and_lander_footprint_are_rejected():
 
 def test_cli_detect_lander_xy_drops_detections_on_the_lander(tmp_path):
     from lunarloc.cli.app import main
-    from lunarloc.data.simulate import SimulationConfig, simulate_dataset
-    from lunarloc.maps import load_traverse
+    from lunarloc.sim.simulate import SimulationConfig, simulate_dataset
+    from lunarloc.io.maps import load_traverse
 
     cfg = SimulationConfig(duration_s=6.0, image_rate_hz=2.0, width=320, height=180,
                            cameras=("FrontLeft", "FrontRight"), semantic=False)  # fmt: skip
@@ -289,7 +289,7 @@ def test_a_boulder_taller_than_wide_is_a_rock_not_a_knob(axes, centre):
 def test_perched_max_radius_is_checked_and_round_trips():
     import json
 
-    from lunarloc.config import RunConfig
+    from lunarloc.config.run import RunConfig
 
     with pytest.raises(ConfigError, match="perched_max_radius_m"):
         RunConfig.from_dict({"detector": {"perched_max_radius_m": -0.1}})
@@ -427,7 +427,7 @@ def test_overlapping_detections_keep_the_larger_one():
 def test_precision_rule_settings_are_checked_and_round_trip(key, value, tmp_path):
     import json
 
-    from lunarloc.config import RunConfig, load_config_file
+    from lunarloc.config.run import RunConfig, load_config_file
 
     with pytest.raises(ConfigError, match=key):
         RunConfig.from_dict({"detector": {key: value}})
@@ -672,7 +672,7 @@ def test_a_depth_step_spread_over_two_pixels_is_cut_when_measured_two_pixels_apa
 def test_raised_strip_and_depth_split_settings_are_checked_and_round_trip(key, bad, good, tmp_path):
     import json
 
-    from lunarloc.config import RunConfig, load_config_file
+    from lunarloc.config.run import RunConfig, load_config_file
 
     with pytest.raises(ConfigError, match=key):
         RunConfig.from_dict({"detector": {key: bad}})
@@ -791,7 +791,7 @@ def test_only_low_blobs_on_a_crest_need_confirmation():
 def test_low_sun_settings_are_checked_and_round_trip(key, value, tmp_path):
     import json
 
-    from lunarloc.config import RunConfig, load_config_file
+    from lunarloc.config.run import RunConfig, load_config_file
 
     with pytest.raises(ConfigError, match=key):
         RunConfig.from_dict({"detector": {key: value}})

@@ -13,7 +13,7 @@ import os
 import numpy as np
 import pytest
 
-from lunarloc.errors import ConfigError, DependencyError, InputError
+from lunarloc.core.errors import ConfigError, DependencyError, InputError
 from lunarloc.perception.fastsam import build_untrained_checkpoint, export_onnx, point_grid
 from lunarloc.perception.segment import SegmenterKind, make_segmenter
 
@@ -116,7 +116,7 @@ def test_detect_cli_with_fastsam_weights_end_to_end(untrained_checkpoint, tmp_pa
     import json
 
     from lunarloc.cli import main
-    from lunarloc.data.simulate import SimulationConfig, simulate_dataset
+    from lunarloc.sim.simulate import SimulationConfig, simulate_dataset
 
     cfg = SimulationConfig(duration_s=2.0, image_rate_hz=2.0, width=320, height=180,
                            cameras=("FrontLeft", "FrontRight"), semantic=False)  # fmt: skip
@@ -146,7 +146,7 @@ def test_ultralytics_leaves_pil_image_open_alone(untrained_checkpoint, tmp_path)
 
 
 def test_fastsam_input_size_is_a_validated_config_field():
-    from lunarloc.errors import ConfigError
+    from lunarloc.core.errors import ConfigError
     from lunarloc.perception.detector import DetectorConfig
 
     assert DetectorConfig().fastsam_imgsz_px == 1024

@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from lunarloc.errors import InputError
-from lunarloc.fusion import FusionConfig, PoseGraph, wrap_angle
+from lunarloc.core.errors import InputError
+from lunarloc.fusion.posegraph import FusionConfig, PoseGraph, wrap_angle
 
 
 def _square_drive(K=150, scale=1.03, bias=5e-4):
@@ -92,7 +92,7 @@ def test_bad_inputs():
 
 
 # ------------------------------------------------------------------ factor graph
-from lunarloc.fusion import (  # noqa: E402
+from lunarloc.fusion.posegraph import (  # noqa: E402
     Keyframe,
     LandmarkFactor,
     OdometryFactor,
@@ -199,7 +199,7 @@ def test_keyframe_record_carries_the_loop_data_and_the_correction():
     g.solve()
     kf = g.keyframes[17]
     assert isinstance(kf, Keyframe) and kf.index == 17 and kf.frame == 170 and kf.t_s == 17.0
-    from lunarloc.geometry import matrix_to_pose
+    from lunarloc.core.geometry import matrix_to_pose
 
     assert matrix_to_pose(kf.T_odo_rover)[3:5] == pytest.approx(kf.roll_pitch_rad, abs=1e-12)
     assert kf.T_odo_rover[:3, 3] == pytest.approx(kf.odo_pose4[:3])

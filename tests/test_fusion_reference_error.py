@@ -6,9 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from lunarloc.config import RunConfig
-from lunarloc.errors import ConfigError, InputError
-from lunarloc.fusion import (
+from lunarloc.config.run import RunConfig
+from lunarloc.core.errors import ConfigError, InputError
+from lunarloc.fusion.posegraph import (
     FusionConfig,
     OdometryNoise,
     PoseGraph,
@@ -173,10 +173,10 @@ def test_run_config_round_trips_the_tie_model_and_names_a_bad_key():
 
 def test_the_loop_ties_detections_to_the_full_references_rocks_with_their_sigmas():
     from _loop_data import synthetic_traverse
-    from lunarloc.evaluation import DriftModel
-    from lunarloc.loop import LoopState
-    from lunarloc.maps import LandmarkMap
-    from lunarloc.sources import TraverseCsvSource
+    from lunarloc.pipeline.evaluation import DriftModel
+    from lunarloc.online.loop import LoopState
+    from lunarloc.io.maps import LandmarkMap
+    from lunarloc.pipeline.sources import TraverseCsvSource
 
     rocks, trav = synthetic_traverse(length_m=12.0)
     rng = np.random.default_rng(4)
@@ -215,7 +215,7 @@ def test_a_reference_stated_exact_is_tied_alone_as_before():
 
 
 def test_the_reference_error_prior_stays_out_of_the_robust_loss():
-    from lunarloc.fusion import PriorFactor, robust_loss
+    from lunarloc.fusion.posegraph import PriorFactor, robust_loss
 
     g = _standing_rover(ReferenceErrorModel.SHARED, n_a=3, n_good=1)
     factors = g.factors()

@@ -47,7 +47,7 @@ def _traverse(tmp_path: Path) -> Path:
 
 
 def test_ctrl_c_exits_130_and_leaves_no_output(tmp_path, monkeypatch, capsys):
-    import lunarloc.maps as maps
+    import lunarloc.io.maps as maps
 
     def interrupted(*a, **k):
         raise KeyboardInterrupt
@@ -60,7 +60,7 @@ def test_ctrl_c_exits_130_and_leaves_no_output(tmp_path, monkeypatch, capsys):
 
 
 def test_interrupted_write_leaves_neither_partial_file_nor_temporary(tmp_path):
-    from lunarloc.outputs import atomic_open
+    from lunarloc.io.outputs import atomic_open
 
     target = tmp_path / "d.csv"
     target.write_text("previous\n")
@@ -91,7 +91,7 @@ def test_detect_interrupted_mid_archive_writes_nothing(tmp_path, monkeypatch):
 
 
 def test_eof_error_is_not_an_interruption(tmp_path, monkeypatch, capsys):
-    import lunarloc.maps as maps
+    import lunarloc.io.maps as maps
 
     def eof(*a, **k):
         raise EOFError("ran out of input")
@@ -109,7 +109,7 @@ def test_empty_npz_is_an_input_error(tmp_path, capsys):
 
 
 def test_unexpected_exception_is_one_line_and_debug_shows_traceback(tmp_path, monkeypatch, capsys):
-    import lunarloc.maps as maps
+    import lunarloc.io.maps as maps
 
     def boom(*a, **k):
         raise RuntimeError("boom")
@@ -149,7 +149,7 @@ def test_full_disk_is_a_clear_error(tmp_path, monkeypatch, capsys):
 
 def test_demo_check_failure_exits_1(monkeypatch, tmp_path):
     import lunarloc.cli.commands_run as cr
-    import lunarloc.scenario as scenario
+    import lunarloc.pipeline.scenario as scenario
 
     fake = {"fixes": 0, "ate_odometry": {"rmse_m": 1.0, "max_m": 1.0}, "ate_corrected": {"rmse_m": 1.0, "max_m": 1.0},
             "ate_online": {"rmse_m": 1.0, "max_m": 1.0}}  # fmt: skip
@@ -175,8 +175,8 @@ def _peak_mib(fn) -> float:
 def test_npz_bomb_and_huge_shape_are_refused_without_allocating(tmp_path, monkeypatch):
     import zipfile
 
-    from lunarloc import inputs
-    from lunarloc.maps import load_map
+    from lunarloc.io import inputs
+    from lunarloc.io.maps import load_map
 
     monkeypatch.setattr(inputs, "MAX_NPZ_MEMBER_BYTES", 32 * 1024**2)  # the mechanism, at a test-sized limit
     bomb = tmp_path / "bomb.npz"
@@ -193,7 +193,7 @@ def test_npz_bomb_and_huge_shape_are_refused_without_allocating(tmp_path, monkey
 
 
 def test_lac_member_of_newlines_is_refused_with_bounded_memory(tmp_path, monkeypatch):
-    import lunarloc.data.lac as lac
+    import lunarloc.io.lac.archive as lac
 
     monkeypatch.setattr(lac, "MAX_TABLE_BYTES", 16 * 1024**2)  # the mechanism, at a test-sized limit
     LacArchive = lac.LacArchive
@@ -208,7 +208,7 @@ def test_lac_member_of_newlines_is_refused_with_bounded_memory(tmp_path, monkeyp
 
 
 def test_blank_lines_cost_nothing_in_an_archive_table(tmp_path):
-    from lunarloc.data.lac import LacArchive
+    from lunarloc.io.lac.archive import LacArchive
 
     m = H.lac_members()
     m["frames.csv"] += b"\n" * 1024**2
@@ -218,7 +218,7 @@ def test_blank_lines_cost_nothing_in_an_archive_table(tmp_path):
 
 
 def test_traverse_csv_memory_is_proportional_to_its_content(tmp_path):
-    from lunarloc.maps import load_traverse
+    from lunarloc.io.maps import load_traverse
 
     text = H.traverse_text(n_frames=1200, rock_xyz=H.rocks(200))
     p = H.write(tmp_path, "t.csv", text)
@@ -229,14 +229,14 @@ def test_traverse_csv_memory_is_proportional_to_its_content(tmp_path):
 
 
 def test_library_writer_never_replaces_a_device_or_folder(tmp_path):
-    from lunarloc.errors import OutputError
-    from lunarloc.maps import LandmarkMap, save_map
+    from lunarloc.core.errors import OutputError
+    from lunarloc.io.maps import LandmarkMap, save_map
 
     lm = LandmarkMap(H.rocks(5))
     with pytest.raises(OutputError, match="not a regular file"):
         save_map(lm, (tmp_path / "m.csv").mkdir() or tmp_path / "m.csv")  # a folder named like a map
     if os.path.exists("/dev/null"):
-        from lunarloc.outputs import atomic_open
+        from lunarloc.io.outputs import atomic_open
 
         with pytest.raises(OutputError, match="not a regular file"):
             with atomic_open("/dev/null") as fh:

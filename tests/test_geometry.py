@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from lunarloc.errors import DegenerateGeometryError, InputError
-from lunarloc.geometry import (
+from lunarloc.core.errors import DegenerateGeometryError, InputError
+from lunarloc.core.geometry import (
     arun,
     arun_yaw,
     euler_to_rotation,

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from lunarloc.association.index import IndexConfig, ReferenceIndex, triangles
-from lunarloc.data.fields import uniform_rock_field, vehicle_window
-from lunarloc.errors import ConfigError, DegenerateGeometryError, InputError
-from lunarloc.geometry import rotation_angle, transform_points
-from lunarloc.localize import LocalizationConfig, Mode
-from lunarloc.localize_large import Search, build_index, localize_large
-from lunarloc.maps import LandmarkMap
+from lunarloc.sim.fields import uniform_rock_field, vehicle_window
+from lunarloc.core.errors import ConfigError, DegenerateGeometryError, InputError
+from lunarloc.core.geometry import rotation_angle, transform_points
+from lunarloc.localization.localize import LocalizationConfig, Mode
+from lunarloc.localization.large import Search, build_index, localize_large
+from lunarloc.io.maps import LandmarkMap
 
 
 @pytest.fixture(scope="module")
@@ -129,7 +129,7 @@ def test_cli_localize_uses_the_index_for_a_large_reference(tmp_path, capsys):
     import json
 
     from lunarloc.cli import main
-    from lunarloc.maps import save_map
+    from lunarloc.io.maps import save_map
 
     rng = np.random.default_rng(11)
     ref = uniform_rock_field(rng, 2500)

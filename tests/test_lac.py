@@ -10,7 +10,7 @@ import zlib
 import numpy as np
 import pytest
 
-from lunarloc.data.lac import (
+from lunarloc.io.lac.archive import (
     CAMERA_COLUMNS,
     DATA_SPEC,
     FRAME_COLUMNS,
@@ -19,7 +19,7 @@ from lunarloc.data.lac import (
     _IndexedGzipReader,
     float_text,
 )
-from lunarloc.errors import ArchiveError, InputError
+from lunarloc.core.errors import ArchiveError, InputError
 
 W, H = 32, 24
 

@@ -27,8 +27,8 @@ import tarfile
 import numpy as np
 import pytest
 
-from lunarloc.data.lac import FRAME_COLUMNS, LacArchive, LacWriter, float_text, lander_pose_map
-from lunarloc.errors import ArchiveError
+from lunarloc.io.lac.archive import FRAME_COLUMNS, LacArchive, LacWriter, float_text, lander_pose_map
+from lunarloc.core.errors import ArchiveError
 
 W, H = 32, 24
 CAMS = ("Front", "FrontLeft", "FrontRight", "BackLeft")
@@ -257,7 +257,7 @@ def test_legacy_lunarloc_archive_with_map_frame_lander_is_converted(tmp_path):
 
 
 def test_simulator_writes_a_rover_relative_lander(tmp_path):
-    from lunarloc.data.simulate import SimulationConfig, simulate_site, simulate_traverse
+    from lunarloc.sim.simulate import SimulationConfig, simulate_site, simulate_traverse
 
     cfg = SimulationConfig(duration_s=1.0, cameras=(), semantic=False)
     site = simulate_site(0, cfg.site)
@@ -274,7 +274,7 @@ def test_simulator_writes_a_rover_relative_lander(tmp_path):
 @pytest.mark.parametrize("value", [0.1 + 0.2, 0.15000000000000002, -0.00445413312008323, 1e-5 / 3, 2.7755575615628914e-17,
                                    123.456, 1e300, -0.0, 0.05 * 7, 1.0 / 3.0])  # fmt: skip
 def test_float_text_is_read_the_same_by_a_correctly_rounding_and_pandas_parser(value):
-    from lunarloc.data.lac import _pandas_exact
+    from lunarloc.io.lac.archive import _pandas_exact
 
     text = float_text(value)
     assert float(text) == pytest.approx(value, rel=5e-15, abs=1e-22)

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lunarloc.geometry import pose_to_matrix
+from lunarloc.core.geometry import pose_to_matrix
 from lunarloc.perception.camera import PinholeCamera, ipex_rig
 from lunarloc.perception.detector import Detector, DetectorConfig
 

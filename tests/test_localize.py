@@ -6,9 +6,9 @@ import pytest
 
 from conftest import make_pair, random_T, rock_field
 from lunarloc import LandmarkMap, LocalizationConfig, localize
-from lunarloc.errors import ConfigError, DegenerateGeometryError, InputError
-from lunarloc.geometry import invert_transform, rotation_angle, transform_points
-from lunarloc.localize import Mode, Solver
+from lunarloc.core.errors import ConfigError, DegenerateGeometryError, InputError
+from lunarloc.core.geometry import invert_transform, rotation_angle, transform_points
+from lunarloc.localization.localize import Mode, Solver
 
 
 RIGID = LocalizationConfig(odometry_scale_error=0.0, odometry_heading_drift_deg_per_m=0.0)  # stated rigid
@@ -154,7 +154,7 @@ def test_result_json_round_trip(rng):
 def test_verify_is_a_table_of_named_checks(rng):
     from dataclasses import replace
 
-    from lunarloc.localize import Evidence, verify
+    from lunarloc.localization.localize import Evidence, verify
 
     ref, veh, _, _ = make_pair(rng, n_ref=80, n_common=25, n_outliers=5)
     r = localize(ref, veh)
@@ -231,7 +231,7 @@ def test_scaled_map_gives_no_confident_wrong_pose(seed):
 
 
 def test_near_miss_excess_counts_displaced_partners(rng):
-    from lunarloc.localize import near_miss_excess
+    from lunarloc.localization.localize import near_miss_excess
 
     ref = rock_field(rng, 400)
     veh = ref[:100].copy()
@@ -243,7 +243,7 @@ def test_near_miss_excess_counts_displaced_partners(rng):
 
 
 def test_distortion_allowance_and_odometry_bounds(rng):
-    from lunarloc.localize import distortion_allowance
+    from lunarloc.localization.localize import distortion_allowance
 
     q = np.array([[10.0, 0.0, 0.0]])
     inl = np.zeros((3, 3))
@@ -281,7 +281,7 @@ def test_covariance_covers_the_truth():
 
 
 def test_real_scaled_vehicle_map_is_refused(real_data):
-    from lunarloc.maps import load_traverse, traverse_map
+    from lunarloc.io.maps import load_traverse, traverse_map
 
     ref = traverse_map(load_traverse(real_data / "csv" / "traverse_7.csv"))
     veh = traverse_map(load_traverse(real_data / "csv" / "traverse_12.csv"))
@@ -294,7 +294,7 @@ def test_real_scaled_vehicle_map_is_refused(real_data):
 
 
 def test_chance_envelope_grows_with_the_search_tolerance():
-    from lunarloc.localize import chance_clique_size
+    from lunarloc.localization.localize import chance_clique_size
 
     m = 90_000
     base = chance_clique_size(m)
@@ -309,7 +309,7 @@ def _drifted_strip(rng, drift_deg_per_m, scale_error, length_m=30.0, n_rocks=70)
     """Rocks along a gently curving 30 m drive seen by drifting odometry (the rover's frame at
     each rock's nearest path point carries the heading error accumulated so far): returns
     (reference map, vehicle map, vehicle path, true rover end, vehicle rover end)."""
-    from lunarloc.evaluation import DriftModel, drifted_path
+    from lunarloc.pipeline.evaluation import DriftModel, drifted_path
 
     s = np.linspace(0, length_m, 301)
     g = np.c_[s, 2.0 * np.sin(s / 12.0), np.zeros_like(s)]
@@ -324,12 +324,12 @@ def _drifted_strip(rng, drift_deg_per_m, scale_error, length_m=30.0, n_rocks=70)
 
 
 def test_bending_fit_recovers_drift_and_scale():
-    from lunarloc.localize import bending_fit
+    from lunarloc.localization.localize import bending_fit
 
     rng = np.random.default_rng(3)
     ref, veh, path, _, end_v = _drifted_strip(rng, 0.1, 0.01)
     inl = np.c_[np.arange(len(veh)), np.arange(len(ref))]
-    from lunarloc.geometry import arun
+    from lunarloc.core.geometry import arun
 
     T = arun(veh.positions_xyz, ref.positions_xyz)
     b = bending_fit(T, veh.positions_xyz, ref.positions_xyz, inl, end_v[None], path, 0.01, 0.3)
@@ -366,7 +366,7 @@ def test_bent_map_without_bounds_is_never_confidently_wrong(seed):
 
 
 def test_bench_coverage_counts_errors_inside_the_predicted_sigmas():
-    from lunarloc.evaluation import BenchSummary, PairResult, covariance_d2
+    from lunarloc.pipeline.evaluation import BenchSummary, PairResult, covariance_d2
 
     E = np.eye(4)
     E[:3, 3] = [0.03, 0.0, 0.0]
@@ -382,7 +382,7 @@ def test_bench_coverage_counts_errors_inside_the_predicted_sigmas():
 
 
 def test_distortion_covariance_moves_the_allowance_to_the_origin():
-    from lunarloc.localize import distortion_covariance
+    from lunarloc.localization.localize import distortion_covariance
 
     assert not distortion_covariance(np.array([10.0, 0, 0]), 0.0, 0.0).any()
     assert not distortion_covariance(np.array([10.0, 0, 0]), math.inf, 0.01).any()

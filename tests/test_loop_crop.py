@@ -9,10 +9,10 @@ import math
 import numpy as np
 import pytest
 
-from lunarloc.config import RunConfig
-from lunarloc.errors import ConfigError
-from lunarloc.loop import CropSigma, LoopConfig, LoopState, OdometryBounds, image_localization_config
-from lunarloc.maps import LandmarkMap
+from lunarloc.config.run import RunConfig
+from lunarloc.core.errors import ConfigError
+from lunarloc.online.loop import CropSigma, LoopConfig, LoopState, OdometryBounds, image_localization_config
+from lunarloc.io.maps import LandmarkMap
 
 
 def test_crop_sigma_setting_round_trips_and_refuses_bad_values():

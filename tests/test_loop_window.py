@@ -6,9 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from lunarloc.config import RunConfig
-from lunarloc.errors import ConfigError
-from lunarloc.loop import LoopConfig, LoopState, OdometryBounds
+from lunarloc.config.run import RunConfig
+from lunarloc.core.errors import ConfigError
+from lunarloc.online.loop import LoopConfig, LoopState, OdometryBounds
 
 
 def _straight_drive(loop_config: LoopConfig, length_m: float = 30.0, spacing_m: float = 1.0, odometry=None):

@@ -8,14 +8,14 @@ import math
 import numpy as np
 import pytest
 
-from lunarloc.config import RunConfig
-from lunarloc.errors import ConfigError, InputError
-from lunarloc.evaluation import DriftModel
-from lunarloc.localize import LocalizationConfig
-from lunarloc.loop import (LoopConfig, LoopState, OdometryBounds, SourceBounds, WindowBounds, image_localization_config,
+from lunarloc.config.run import RunConfig
+from lunarloc.core.errors import ConfigError, InputError
+from lunarloc.pipeline.evaluation import DriftModel
+from lunarloc.localization.localize import LocalizationConfig
+from lunarloc.online.loop import (LoopConfig, LoopState, OdometryBounds, SourceBounds, WindowBounds, image_localization_config,
                            window_localization)  # fmt: skip
-from lunarloc.maps import LandmarkMap
-from lunarloc.pipeline import odometry_of
+from lunarloc.io.maps import LandmarkMap
+from lunarloc.pipeline.runner import odometry_of
 
 
 def test_each_source_has_its_bounds():
@@ -60,7 +60,7 @@ def test_loop_state_takes_the_source_bounds():
 
 def test_traverse_source_states_its_simulated_drift():
     from tests._loop_data import synthetic_traverse
-    from lunarloc.sources import TraverseCsvSource
+    from lunarloc.pipeline.sources import TraverseCsvSource
 
     _, trav = synthetic_traverse(length_m=5.0)
     assert odometry_of(TraverseCsvSource(trav, DriftModel(0.05, -0.02))) == OdometryBounds(0.02, 0.05)
@@ -134,7 +134,7 @@ def test_stated_bounds_cover_a_stretched_window():
 
 
 def test_calibrated_windows_are_fitted_after_the_set_fixes():
-    from lunarloc.loop import Attempt
+    from lunarloc.online.loop import Attempt
 
     ref = LandmarkMap(np.random.default_rng(0).uniform(-5, 5, (10, 3)))
     src = OdometryBounds(0.02, 0.05)

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from lunarloc.errors import FileFormatError, InputError
-from lunarloc.maps import (
+from lunarloc.core.errors import FileFormatError, InputError
+from lunarloc.io.maps import (
     AggregationConfig,
     LandmarkMap,
     aggregate_detections,

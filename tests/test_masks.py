@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lunarloc.errors import ConfigError, InputError
+from lunarloc.core.errors import ConfigError, InputError
 from lunarloc.perception.masks import (
     InstanceMask,
     MaskFilterConfig,

@@ -1,4 +1,4 @@
-"""Several rovers on one clock (lunarloc.multirover, `lunarloc run A.lac B.lac`): per-rover run
+"""Several rovers on one clock (lunarloc.pipeline.multirover, `lunarloc run A.lac B.lac`): per-rover run
 folders, the combined figure, mission-time order, sharing that never makes a rover worse
 than a failing bound, and clear errors for bad input."""
 
@@ -9,23 +9,23 @@ import numpy as np
 import pytest
 
 from lunarloc.cli import main
-from lunarloc.errors import ConfigError, InputError
+from lunarloc.core.errors import ConfigError, InputError
 
 W, H = 320, 180
 
 
 def _cfg(**kw):
     """MultiRoverConfig with the archives' recorded odometry (as ``--odometry record:odometry``)."""
-    from lunarloc.config import RunConfig
-    from lunarloc.multirover import MultiRoverConfig
+    from lunarloc.config.run import RunConfig
+    from lunarloc.pipeline.multirover import MultiRoverConfig
 
     return MultiRoverConfig(run=RunConfig().with_options(odometry__source="record:odometry"), **kw)
 
 
 def _sim(out, seed, n, duration, width=W, rover=None):
-    from lunarloc.data.rover import RoverConfig
-    from lunarloc.data.simulate import SimulationConfig, simulate_dataset
-    from lunarloc.data.site import SiteConfig
+    from lunarloc.sim.rover import RoverConfig
+    from lunarloc.sim.simulate import SimulationConfig, simulate_dataset
+    from lunarloc.sim.site import SiteConfig
 
     cfg = SimulationConfig(site=SiteConfig(n_rocks=800), duration_s=duration, image_rate_hz=2.0, width=width,
                            height=width * 9 // 16, cameras=("FrontLeft", "FrontRight"), semantic=False,
@@ -43,7 +43,7 @@ def tiny(tmp_path_factory):
 
 def test_two_rovers_write_one_run_folder_each(tiny, tmp_path, capsys):
     out_dir, (a, b) = tiny
-    from lunarloc.config import RunConfig
+    from lunarloc.config.run import RunConfig
 
     out = tmp_path / "out"
     given = tmp_path / "given.json"  # --config applies to every rover; options given override it
@@ -74,12 +74,12 @@ def test_two_rovers_write_one_run_folder_each(tiny, tmp_path, capsys):
 
 def test_mission_time_order_and_names(tiny):
     """Ticks of both rovers interleave in mission time; equal stems get distinct names."""
-    from lunarloc.multirover import rover_names
+    from lunarloc.pipeline.multirover import rover_names
 
     from pathlib import Path
 
     assert rover_names([Path("a/t.lac"), Path("b/t.lac"), Path("c/t x.lac")]) == ["t", "t_2", "t_x"]
-    import lunarloc.multirover as mr
+    import lunarloc.pipeline.multirover as mr
 
     order = []
     orig = mr._Rover.tick
@@ -104,7 +104,7 @@ def test_mission_time_order_and_names(tiny):
 def test_live_map_uncertainty_grows_with_the_owner_drift(tiny):
     """A rover's live map carries, per landmark, the owner's sigma where it placed it; with no
     fix that is the drift model since the start: non-decreasing along the traverse."""
-    import lunarloc.multirover as mr
+    import lunarloc.pipeline.multirover as mr
 
     out_dir, paths = tiny
     r = mr._Rover("a", paths[0], None, _cfg(share_maps=True))
@@ -128,8 +128,8 @@ def test_live_map_uncertainty_grows_with_the_owner_drift(tiny):
 
 
 def test_bad_input_is_a_clear_error(tiny, tmp_path, capsys):
-    from lunarloc.data.rover import RoverConfig
-    from lunarloc.multirover import MultiRoverConfig, check_archives, run_rovers
+    from lunarloc.sim.rover import RoverConfig
+    from lunarloc.pipeline.multirover import MultiRoverConfig, check_archives, run_rovers
 
     out_dir, (a, b) = tiny
     with pytest.raises(InputError, match="given twice"):
@@ -164,7 +164,7 @@ def test_bad_input_is_a_clear_error(tiny, tmp_path, capsys):
 
 
 def test_config_is_checked_and_serialised():
-    from lunarloc.multirover import MultiRoverConfig
+    from lunarloc.pipeline.multirover import MultiRoverConfig
 
     c = MultiRoverConfig(share_maps=True, share_refresh_s=2.0)
     d = c.to_dict()
@@ -190,10 +190,10 @@ def pair(tmp_path_factory):
 
 
 def _rock_detector(mp, rocks_csv, noise_m=0.05, max_range_m=6.0, hfov_deg=70.0):
-    import lunarloc.multirover as mr
-    from lunarloc.geometry import invert_transform, transform_points
-    from lunarloc.online import OnlineLocalizer
-    from lunarloc.reference import rocks_to_reference
+    import lunarloc.pipeline.multirover as mr
+    from lunarloc.core.geometry import invert_transform, transform_points
+    from lunarloc.online.component import OnlineLocalizer
+    from lunarloc.pipeline.reference import rocks_to_reference
 
     rocks = rocks_to_reference(np.loadtxt(rocks_csv, delimiter=",", skiprows=1)).positions_xyz
     rng = np.random.default_rng(0)
@@ -214,7 +214,7 @@ def _rock_detector(mp, rocks_csv, noise_m=0.05, max_range_m=6.0, hfov_deg=70.0):
 
 
 def _run(paths, rocks_csv, reference=None, shift_owner_m=None):
-    import lunarloc.multirover as mr
+    import lunarloc.pipeline.multirover as mr
 
     with pytest.MonkeyPatch.context() as mp:
         _rock_detector(mp, rocks_csv)

@@ -11,10 +11,10 @@ import tarfile
 import numpy as np
 import pytest
 
-from lunarloc.data.lac import LacArchive, LacWriter
-from lunarloc.errors import ArchiveError, ConfigError, InputError
-from lunarloc.geometry import matrix_to_pose, pose_to_matrix
-from lunarloc.odometry import (
+from lunarloc.io.lac.archive import LacArchive, LacWriter
+from lunarloc.core.errors import ArchiveError, ConfigError, InputError
+from lunarloc.core.geometry import matrix_to_pose, pose_to_matrix
+from lunarloc.odometry.source import (
     OdometrySource,
     archive_odometry,
     default_odometry_source,
@@ -157,7 +157,7 @@ def _rewrite(src, dst, edit):
 
 def _set_cell(line: int, column: str, text: str):
     """An edit for _rewrite: frames.csv's `column` on (0-based text) line `line` set to `text`."""
-    from lunarloc.data.lac import FRAME_COLUMNS
+    from lunarloc.io.lac.archive import FRAME_COLUMNS
 
     def edit(name, data):
         if name != "frames.csv":
@@ -255,7 +255,7 @@ def test_odometry_command(arc, tmp_path, capsys):
 @pytest.fixture(scope="module")
 def bare_image_archive(tmp_path_factory):
     """A simulated traverse with the front pair and no custom record at all (a bare LAC archive)."""
-    from lunarloc.data.simulate import SimulationConfig, simulate_dataset
+    from lunarloc.sim.simulate import SimulationConfig, simulate_dataset
 
     out = tmp_path_factory.mktemp("bare")
     cfg = SimulationConfig(duration_s=6.0, image_rate_hz=2.0, width=320, height=180,

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from lunarloc.errors import ConfigError, InputError
-from lunarloc.geometry import invert_transform, matrix_to_pose, pose_to_matrix, rotation_angle, yaw_of
+from lunarloc.core.errors import ConfigError, InputError
+from lunarloc.core.geometry import invert_transform, matrix_to_pose, pose_to_matrix, rotation_angle, yaw_of
 from lunarloc.odometry.tilt import GravityAlignedChain, align_tilt
 
 

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from lunarloc import CameraRig, OnlineLocalizer, PlaybackAgent, load_reference
-from lunarloc.errors import InputError
-from lunarloc.geometry import invert_transform, pose_to_matrix
-from lunarloc.maps import LandmarkMap
+from lunarloc.core.errors import InputError
+from lunarloc.core.geometry import invert_transform, pose_to_matrix
+from lunarloc.io.maps import LandmarkMap
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
 from lac_agent import LunarLocAgent  # noqa: E402
@@ -24,8 +24,8 @@ W, H = 640, 360  # at 320x180 too few rocks are detected for a fix in a short tr
 def sim(tmp_path_factory):
     """24 s at 20 Hz, front pair at 10 Hz (every other tick), 640x360, no semantic images,
     800 rocks on the 27 m site."""
-    from lunarloc.data.simulate import SimulationConfig, simulate_dataset
-    from lunarloc.data.site import SiteConfig
+    from lunarloc.sim.simulate import SimulationConfig, simulate_dataset
+    from lunarloc.sim.site import SiteConfig
 
     out = tmp_path_factory.mktemp("online")
     cfg = SimulationConfig(site=SiteConfig(n_rocks=800), duration_s=24.0, image_rate_hz=10.0, width=W, height=H,
@@ -44,7 +44,7 @@ SensorPosition = enum.Enum("SensorPosition", "Front FrontLeft FrontRight Left Ri
 
 def _drive(archive, reference_path, keys=str):
     """Run the example agent as the leaderboard would; returns (times, estimates, ground truth, ticks with images)."""
-    from lunarloc.data.lac import LacArchive
+    from lunarloc.io.lac.archive import LacArchive
 
     est, gt, image_ticks = [], [], 0
     with pytest.MonkeyPatch.context() as mp, PlaybackAgent(archive) as env:
@@ -190,7 +190,7 @@ def test_history_stays_bounded_across_reanchors():
     caller's odometry exactly)."""
     from dataclasses import replace
 
-    from lunarloc.online import OnlineConfig
+    from lunarloc.online.component import OnlineConfig
 
     rig = CameraRig.from_calibration(160, 90, fx=114.25)
     rng = np.random.default_rng(3)

@@ -9,11 +9,11 @@ import pytest
 
 from conftest import random_T, rock_field
 from lunarloc.cli import main
-from lunarloc.errors import FileFormatError, InputError
-from lunarloc.geometry import invert_transform, transform_points
-from lunarloc.localize import LocalizationConfig, localize
-from lunarloc.maps import LandmarkMap, load_map, save_map
-from lunarloc.overhead import (
+from lunarloc.core.errors import FileFormatError, InputError
+from lunarloc.core.geometry import invert_transform, transform_points
+from lunarloc.localization.localize import LocalizationConfig, localize
+from lunarloc.io.maps import LandmarkMap, load_map, save_map
+from lunarloc.io.overhead import (
     LAC_CELL_M,
     empty_lac_grid,
     grid_landmarks,
@@ -24,7 +24,7 @@ from lunarloc.overhead import (
     site_geometric_map,
     validate_lac_grid,
 )
-from lunarloc.reference import load_reference
+from lunarloc.pipeline.reference import load_reference
 
 # the vehicle maps below are true rock positions (no odometry): stated rigid. Without bounds the
 # localizer fits a bend along a straight stand-in path and, against a grid's 4 cm quantisation,
@@ -88,8 +88,8 @@ def test_localize_vehicle_map_in_a_lac_grid(rng):
 
 
 def test_site_geometric_map_and_its_rocks():
-    from lunarloc.data.simulate import simulate_site
-    from lunarloc.reference import rocks_to_reference
+    from lunarloc.sim.simulate import simulate_site
+    from lunarloc.pipeline.reference import rocks_to_reference
 
     site = simulate_site(0)
     g = site_geometric_map(site)
@@ -241,8 +241,8 @@ def test_sigma_columns_round_trip_and_old_files_load(tmp_path, rng):
 
 
 def test_simulate_writes_the_ground_truth_geometric_map(tmp_path, monkeypatch):
-    from lunarloc.data import simulate as sim
-    from lunarloc.data.site import SiteConfig, generate_site
+    from lunarloc.sim import simulate as sim
+    from lunarloc.sim.site import SiteConfig, generate_site
 
     small = SiteConfig(size_m=12.0, n_rocks=40, n_craters=1, rover_start_xy=(-2.0, -2.0))
     monkeypatch.setattr(sim, "simulate_site", lambda seed, config=None: generate_site(seed, small))
@@ -256,10 +256,10 @@ def test_simulate_writes_the_ground_truth_geometric_map(tmp_path, monkeypatch):
 def test_online_loop_with_a_geometric_map_reference(tmp_path):
     """`run` takes its reference through load_reference: a LAC geometric map works as one."""
     from _loop_data import synthetic_traverse
-    from lunarloc.evaluation import DriftModel
-    from lunarloc.config import RunConfig
-    from lunarloc.pipeline import run
-    from lunarloc.sources import TraverseCsvSource
+    from lunarloc.pipeline.evaluation import DriftModel
+    from lunarloc.config.run import RunConfig
+    from lunarloc.pipeline.runner import run
+    from lunarloc.pipeline.sources import TraverseCsvSource
 
     rocks, trav = synthetic_traverse(length_m=20.0)
     keep = np.all(np.abs(rocks[:, :2]) < 13.3, axis=1)
@@ -275,8 +275,8 @@ def test_online_loop_with_a_geometric_map_reference(tmp_path):
 def test_grid_header_checked_before_allocating(tmp_path):
     """A .npy whose header declares a huge grid, or more data than the file holds, is refused
     from its header alone."""
-    from lunarloc.errors import FileFormatError
-    from lunarloc.overhead import load_lac_grid
+    from lunarloc.core.errors import FileFormatError
+    from lunarloc.io.overhead import load_lac_grid
 
     huge = tmp_path / "huge.npy"
     with open(huge, "wb") as fh:

@@ -7,15 +7,15 @@ import numpy as np
 import pytest
 
 from _loop_data import synthetic_traverse
-from lunarloc.errors import FileFormatError, InputError
-from lunarloc.evaluation import DriftModel
-from lunarloc.maps import LandmarkMap, save_map
-from lunarloc.config import RunConfig
-from lunarloc.loop import LoopConfig, LoopState
-from lunarloc.pipeline import run
-from lunarloc.reference import load_reference, rocks_to_reference
-from lunarloc.runio import read_run, read_tum, write_run
-from lunarloc.sources import ArchiveSource, TraverseCsvSource
+from lunarloc.core.errors import FileFormatError, InputError
+from lunarloc.pipeline.evaluation import DriftModel
+from lunarloc.io.maps import LandmarkMap, save_map
+from lunarloc.config.run import RunConfig
+from lunarloc.online.loop import LoopConfig, LoopState
+from lunarloc.pipeline.runner import run
+from lunarloc.pipeline.reference import load_reference, rocks_to_reference
+from lunarloc.io.runs import read_run, read_tum, write_run
+from lunarloc.pipeline.sources import ArchiveSource, TraverseCsvSource
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "lunarloc-data"
 
@@ -97,7 +97,7 @@ def test_bad_archive(tmp_path):
 
 
 def test_config_validation():
-    from lunarloc.errors import ConfigError
+    from lunarloc.core.errors import ConfigError
 
     with pytest.raises(ConfigError):
         LoopConfig(window_m=0)
@@ -108,7 +108,7 @@ def test_config_validation():
 @pytest.mark.realdata
 @pytest.mark.skipif(not (DATA / "csv" / "traverse_9.csv").is_file(), reason="LunarLoc data not present")
 def test_real_traverse_loop():
-    from lunarloc.maps import aggregate_detections, load_traverse
+    from lunarloc.io.maps import aggregate_detections, load_traverse
 
     veh = load_traverse(DATA / "csv" / "traverse_6.csv")
     ref_t = load_traverse(DATA / "csv" / "traverse_9.csv")
@@ -121,7 +121,7 @@ def test_real_traverse_loop():
 def test_loop_judges_the_pose_at_the_rover(monkeypatch):
     """Each attempt hands localize() the rover's position (query_xyz, 1 x 3) and the window's
     path (path_xyz), both in the local map's frame: the pose is judged where it is used."""
-    import lunarloc.loop as loop_mod
+    import lunarloc.online.loop as loop_mod
 
     seen = []
     real = loop_mod.localize

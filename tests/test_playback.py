@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lunarloc.data.lac import LacArchive, LacWriter, _IndexedGzipReader, float_text
-from lunarloc.data.playback import PlaybackAgent, Transform
-from lunarloc.errors import InputError
-from lunarloc.geometry import pose_to_matrix
+from lunarloc.io.lac.archive import LacArchive, LacWriter, _IndexedGzipReader, float_text
+from lunarloc.io.lac.playback import PlaybackAgent, Transform
+from lunarloc.core.errors import InputError
+from lunarloc.core.geometry import pose_to_matrix
 
 W, H = 32, 24
 FL_POSE = [0.28, 0.081, 0.131, 0.0, 0.0, 0.0]

@@ -13,8 +13,8 @@ import inspect
 import numpy as np
 import pytest
 
-from lunarloc.data.lac import LacWriter, float_text
-from lunarloc.data.playback import PlaybackAgent, Transform
+from lunarloc.io.lac.archive import LacWriter, float_text
+from lunarloc.io.lac.playback import PlaybackAgent, Transform
 
 W, H = 16, 12
 

@@ -71,7 +71,7 @@ def test_import_and_help_from_a_read_only_install(readonly_install):
 
 
 def test_no_writable_place_warns(monkeypatch):
-    from lunarloc import _runtime
+    from lunarloc.core import runtime as _runtime
 
     monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
     monkeypatch.setattr(_runtime, "_writable", lambda p: False)

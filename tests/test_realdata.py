@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from lunarloc.evaluation import PAPER_PAIRS, bench_pairs, drifted_detections, DriftModel
-from lunarloc.maps import load_traverse
+from lunarloc.pipeline.evaluation import PAPER_PAIRS, bench_pairs, drifted_detections, DriftModel
+from lunarloc.io.maps import load_traverse
 
 
 def test_all_traverses_load(real_data):

@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from lunarloc.config import RunConfig
-from lunarloc.errors import ConfigError
-from lunarloc.odometry.visual import ImageNormalization, normalize_image
+from lunarloc.config.run import RunConfig
+from lunarloc.core.errors import ConfigError
+from lunarloc.perception.images import ImageNormalization, normalize_image
 from lunarloc.perception.camera import PinholeCamera
 from lunarloc.perception.detector import DetectorConfig
 from lunarloc.perception.stereo import StereoConfig, StereoMatcher

@@ -9,7 +9,7 @@ import pytest
 pytest.importorskip("trimesh")
 pytest.importorskip("embreex")
 
-from lunarloc.data.render import (  # noqa: E402
+from lunarloc.sim.render import (  # noqa: E402
     LAC_PALETTE,
     SEM_FIDUCIAL,
     SEM_GROUND,
@@ -27,10 +27,10 @@ from lunarloc.data.render import (  # noqa: E402
     semantic_to_rock_id,
     sun_direction,
 )
-from lunarloc.errors import ConfigError, InputError  # noqa: E402
-from lunarloc.data.rover import plan_traverse  # noqa: E402
-from lunarloc.data.site import SiteConfig, generate_site  # noqa: E402
-from lunarloc.geometry import invert_transform, pose_to_matrix, transform_points  # noqa: E402
+from lunarloc.core.errors import ConfigError, InputError  # noqa: E402
+from lunarloc.sim.rover import plan_traverse  # noqa: E402
+from lunarloc.sim.site import SiteConfig, generate_site  # noqa: E402
+from lunarloc.core.geometry import invert_transform, pose_to_matrix, transform_points  # noqa: E402
 from lunarloc.perception.camera import PinholeCamera, ipex_rig  # noqa: E402
 
 SMALL = SiteConfig(size_m=16.0, terrain_margin_m=4.0, resolution_m=0.15, n_rocks=150, rover_start_xy=(-3.0, -2.0))
@@ -298,8 +298,8 @@ def test_cli_rejects_an_unknown_lighting(capsys):
 
 
 def test_archive_palette_semantics_and_light_intensity(tmp_path):
-    lac = pytest.importorskip("lunarloc.data.lac")
-    from lunarloc.data.simulate import SimulationConfig, simulate_site, simulate_traverse
+    lac = pytest.importorskip("lunarloc.io.lac.archive")
+    from lunarloc.sim.simulate import SimulationConfig, simulate_site, simulate_traverse
 
     small = SiteConfig(size_m=14.0, terrain_margin_m=3.0, resolution_m=0.2, n_rocks=80, rover_start_xy=(-3.0, -2.0))
     base = dict(site=small, duration_s=1.0, image_rate_hz=2.0, width=64, height=36, cameras=("FrontLeft",))

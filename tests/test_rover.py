@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from lunarloc.data.rover import (
+from lunarloc.sim.rover import (
     LUNAR_GRAVITY,
     OdometryConfig,
     RoverConfig,
@@ -12,8 +12,8 @@ from lunarloc.data.rover import (
     simulate_imu,
     simulate_odometry,
 )
-from lunarloc.data.site import generate_site
-from lunarloc.geometry import euler_to_rotation
+from lunarloc.sim.site import generate_site
+from lunarloc.core.geometry import euler_to_rotation
 
 
 @pytest.fixture(scope="module")
@@ -144,7 +144,7 @@ def test_path_share_near():
 
 
 def test_unknown_plan_is_a_config_error():
-    from lunarloc.errors import ConfigError
+    from lunarloc.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match="traverseplan"):
         RoverConfig(plan="zigzag")

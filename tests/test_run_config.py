@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from _loop_data import synthetic_traverse
-from lunarloc.config import OdometryConfig, RunConfig, config_from_dict, load_config_file
-from lunarloc.errors import ConfigError
-from lunarloc.loop import FixKind, LoopConfig
+from lunarloc.config.run import OdometryConfig, RunConfig, config_from_dict, load_config_file
+from lunarloc.core.errors import ConfigError
+from lunarloc.online.loop import FixKind, LoopConfig
 
 
 @pytest.mark.parametrize("cfg", [RunConfig(), RunConfig.for_detections(),
@@ -121,7 +121,7 @@ def test_bench_loop_repeated_from_its_config_gives_the_same_outputs(tmp_path, ca
 
 def _localize_maps(tmp_path):
     """A reference map and a vehicle map (25 of its landmarks, shifted) as CSV files."""
-    from lunarloc.maps import LandmarkMap, save_map
+    from lunarloc.io.maps import LandmarkMap, save_map
 
     rng = np.random.default_rng(3)
     ref = rng.uniform(0, 20, (60, 3)) * [1, 1, 0.02]
@@ -222,10 +222,10 @@ def test_localization_rounds_and_sigma_floor_are_used(monkeypatch):
     bounds the predicted error from below."""
     import importlib
 
-    from lunarloc.geometry import make_transform, rot_z
-    from lunarloc.maps import LandmarkMap
+    from lunarloc.core.geometry import make_transform, rot_z
+    from lunarloc.io.maps import LandmarkMap
 
-    L = importlib.import_module("lunarloc.localize")  # the module (the package exports a function of that name)
+    L = importlib.import_module("lunarloc.localization.localize")  # the module (the package exports a function of that name)
     rng = np.random.default_rng(5)
     P = rng.uniform(-5, 5, (20, 3)) * [1, 1, 0.05]
     T = make_transform(rot_z(0.3), [1.0, -2.0, 0.0])
@@ -264,7 +264,7 @@ def test_index_section_reaches_localize(tmp_path, capsys):
 def test_the_demo_odometry_source_is_set_in_one_place():
     """The scenario has no odometry setting of its own: the run configuration's
     odometry.source is it (the simulator's drifting record by default)."""
-    from lunarloc.scenario import ScenarioConfig, demo_run_config
+    from lunarloc.pipeline.scenario import ScenarioConfig, demo_run_config
 
     assert demo_run_config().odometry.source == "record:odometry"
     assert "odometry" not in ScenarioConfig().to_dict()

@@ -2,9 +2,9 @@
 
 import pytest
 
-from lunarloc.data.rover import TraversePlan
-from lunarloc.errors import ConfigError
-from lunarloc.scenario import ScenarioConfig, ScenarioError, run_scenario
+from lunarloc.sim.rover import TraversePlan
+from lunarloc.core.errors import ConfigError
+from lunarloc.pipeline.scenario import ScenarioConfig, ScenarioError, run_scenario
 
 
 def test_defaults_are_the_lac_density_and_a_survey():
@@ -17,8 +17,8 @@ def test_defaults_are_the_lac_density_and_a_survey():
 
 @pytest.mark.parametrize("plan, expected", [("survey", ["survey", "revisit"]), ("random", ["random", "random"])])
 def test_reference_and_vehicle_plans(monkeypatch, tmp_path, plan, expected):
-    import lunarloc.data.render as render
-    import lunarloc.data.simulate as sim
+    import lunarloc.sim.render as render
+    import lunarloc.sim.simulate as sim
 
     seen = []
 

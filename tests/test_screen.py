@@ -12,14 +12,14 @@ import pytest
 from conftest import make_pair, rock_field
 from lunarloc.association.graph import sweep_yaw_bins, vehicle_pairs
 from lunarloc.association.putative import putative_associations
-from lunarloc.data.fields import uniform_rock_field, vehicle_window
-from lunarloc.errors import ConfigError
-from lunarloc.geometry import invert_transform, transform_points
-from lunarloc.localize import LocalizationConfig, localize, predicted_incidences
-from lunarloc.localize_large import build_index, localize_large
-from lunarloc.maps import LandmarkMap
+from lunarloc.sim.fields import uniform_rock_field, vehicle_window
+from lunarloc.core.errors import ConfigError
+from lunarloc.core.geometry import invert_transform, transform_points
+from lunarloc.localization.localize import LocalizationConfig, localize, predicted_incidences
+from lunarloc.localization.large import build_index, localize_large
+from lunarloc.io.maps import LandmarkMap
 
-L = importlib.import_module("lunarloc.localize")
+L = importlib.import_module("lunarloc.localization.localize")
 Q_SIGMA = 0.15 / math.sqrt(12)  # a 0.15 m grid's quantisation sigma
 
 
@@ -130,7 +130,7 @@ def test_indexed_search_on_a_quantised_map_uses_the_derived_tolerance(caplog):
     cfg = LocalizationConfig()
     narrow = build_index(LandmarkMap(quantised), cfg)  # 5 cm: what the index used to be built at
     assert narrow.epsilon_m == pytest.approx(0.05)
-    with caplog.at_level("INFO", logger="lunarloc.localize_large"):
+    with caplog.at_level("INFO", logger="lunarloc.localization.large"):
         res = localize_large(ref, win.vehicle, cfg, index=narrow, search="indexed")
     assert "rebuilt" in caplog.text
     assert res.success, res.reason

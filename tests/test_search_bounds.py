@@ -11,7 +11,7 @@ from lunarloc.association.clique import bin_clique_bounds, max_clique
 from lunarloc.association.graph import RefPairIndex, sweep_bin_chunks, sweep_yaw_bins, vehicle_pairs, yaw_bin_chunks
 from lunarloc.association.putative import putative_associations
 
-L = importlib.import_module("lunarloc.localize")  # the module (the package re-exports the function)
+L = importlib.import_module("lunarloc.localization.localize")  # the module (the package re-exports the function)
 
 
 def _setup(rng, n_ref=90, n_common=25, n_outliers=15):
@@ -113,7 +113,7 @@ def test_reference_pair_index_matches_a_sort(rng):
 
 
 def test_search_tolerance_follows_the_maps_sigma(rng):
-    from lunarloc.maps import LandmarkMap
+    from lunarloc.io.maps import LandmarkMap
 
     ref, veh, _, _ = make_pair(rng, n_ref=60, n_common=20, n_outliers=5)
     cfg = L.LocalizationConfig()
@@ -137,7 +137,7 @@ def test_same_yaw_competitor_from_the_kept_edges_equals_the_rebuilt_one(rng):
     """The same-yaw competitor search reuses the edges of the bins the main search built
     (minus the winner's explained associations); it must give what rebuilding them gives,
     with a floor low enough that every bin near the winner is searched."""
-    from lunarloc.geometry import arun
+    from lunarloc.core.geometry import arun
 
     for _ in range(3):
         # a repeated pattern at the same heading: a real same-yaw competitor to find

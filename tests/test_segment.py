@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lunarloc.errors import ConfigError, InputError
+from lunarloc.core.errors import ConfigError, InputError
 from lunarloc.perception.masks import mask_stats
 from lunarloc.perception.segment import (
     ClassicalConfig,

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from conftest import random_T, rock_field
-from lunarloc.errors import InputError
-from lunarloc.geometry import invert_transform, transform_points
-from lunarloc.localize import LocalizationConfig, localize
-from lunarloc.maps import (
+from lunarloc.core.errors import InputError
+from lunarloc.core.geometry import invert_transform, transform_points
+from lunarloc.localization.localize import LocalizationConfig, localize
+from lunarloc.io.maps import (
     LandmarkMap,
     Traverse,
     aggregate_detections,
@@ -83,7 +83,7 @@ def _revisit_case(seed, drift_deg_per_m=0.1):
     rocks of x 7-15 m (most of which lie between the two legs, several nearer the outbound
     one that never saw them) and unrelated rocks. Returns (reference, vehicle map with
     sighting arcs, odometry path, true path)."""
-    from lunarloc.evaluation import DriftModel, drifted_path
+    from lunarloc.pipeline.evaluation import DriftModel, drifted_path
 
     rng = np.random.default_rng(seed)
     th = np.linspace(-np.pi / 2, np.pi / 2, 20)[1:-1]
@@ -121,7 +121,7 @@ def test_revisited_landmarks_placed_where_seen_refuse_the_wrong_pose(monkeypatch
     legs come within sight of are left out and the bend is not determined: refused."""
     ref, veh, o, g = _revisit_case(0)
     noarcs = LandmarkMap(veh.positions_xyz, veh.sizes, veh.sightings, veh.frame, veh.sigma_xy_m, veh.sigma_z_m)
-    module = importlib.import_module("lunarloc.localize")  # the package exports a function of that name
+    module = importlib.import_module("lunarloc.localization.localize")  # the package exports a function of that name
 
     def run(v):
         r = localize(ref, v, query_xyz=o[-1:], path_xyz=o)
@@ -148,9 +148,9 @@ def test_compact_rigid_map_in_a_lac_grid_localizes_without_bounds():
     """A 6 m vehicle map of true rock positions against the site's LAC grid (4.3 cm
     quantisation), no odometry bounds stated: the registration's uncertainty counted once,
     the fitted bend's own beside it, the pose is claimed (the triple count refused it)."""
-    from lunarloc.data.simulate import simulate_site
-    from lunarloc.overhead import grid_landmarks, site_geometric_map
-    from lunarloc.reference import rocks_to_reference
+    from lunarloc.sim.simulate import simulate_site
+    from lunarloc.io.overhead import grid_landmarks, site_geometric_map
+    from lunarloc.pipeline.reference import rocks_to_reference
 
     site = simulate_site(0)
     ref = grid_landmarks(site_geometric_map(site))
@@ -169,8 +169,8 @@ def test_compact_rigid_map_in_a_lac_grid_localizes_without_bounds():
 def test_max_sighting_span_is_a_run_setting(tmp_path):
     import json
 
-    from lunarloc.config import RunConfig, load_config_file
-    from lunarloc.errors import ConfigError
+    from lunarloc.config.run import RunConfig, load_config_file
+    from lunarloc.core.errors import ConfigError
 
     assert RunConfig().localization.max_sighting_span_m == 10.0
     p = tmp_path / "config.json"

@@ -6,10 +6,10 @@ import pytest
 pytest.importorskip("trimesh")
 pytest.importorskip("embreex")
 
-from lunarloc.data.rover import RoverConfig  # noqa: E402
-from lunarloc.data.simulate import SimulationConfig, simulate_site, simulate_traverse  # noqa: E402
-from lunarloc.data.site import SiteConfig  # noqa: E402
-from lunarloc.errors import ConfigError  # noqa: E402
+from lunarloc.sim.rover import RoverConfig  # noqa: E402
+from lunarloc.sim.simulate import SimulationConfig, simulate_site, simulate_traverse  # noqa: E402
+from lunarloc.sim.site import SiteConfig  # noqa: E402
+from lunarloc.core.errors import ConfigError  # noqa: E402
 
 SMALL_SITE = SiteConfig(size_m=14.0, terrain_margin_m=3.0, resolution_m=0.2, n_rocks=80, rover_start_xy=(-3.0, -2.0))
 
@@ -21,7 +21,7 @@ def _cfg(**kw):
 
 
 def test_traverse_round_trip(tmp_path):
-    lac = pytest.importorskip("lunarloc.data.lac")
+    lac = pytest.importorskip("lunarloc.io.lac.archive")
     cfg = _cfg()
     site = simulate_site(2, cfg)
     path, traj = simulate_traverse(site, tmp_path / "t.lac", 0, cfg)
@@ -40,7 +40,7 @@ def test_traverse_round_trip(tmp_path):
         assert odo.n_rows == len(traj)
         row = a.camera_row("BackLeft", 0)
         assert row["camera_x"] == pytest.approx(-0.28) and row["camera_yaw"] == pytest.approx(np.pi)
-    from lunarloc.data.render import SiteRenderer
+    from lunarloc.sim.render import SiteRenderer
     from lunarloc.perception.camera import PinholeCamera, ipex_rig
 
     rig = ipex_rig(PinholeCamera(64, 36))
@@ -60,7 +60,7 @@ def test_config_validation():
 
 
 def test_cli_simulate(tmp_path, monkeypatch):
-    pytest.importorskip("lunarloc.data.lac")
+    pytest.importorskip("lunarloc.io.lac.archive")
     from typer.testing import CliRunner
 
     from lunarloc.cli import commands_sim  # noqa: F401
@@ -70,9 +70,9 @@ def test_cli_simulate(tmp_path, monkeypatch):
         from lunarloc.cli import commands_data  # noqa: F401
     except ImportError:
         pass
-    from lunarloc.data import simulate as sim
+    from lunarloc.sim import simulate as sim
 
-    from lunarloc.data.site import generate_site
+    from lunarloc.sim.site import generate_site
 
     monkeypatch.setattr(sim, "simulate_site", lambda seed, config=None: generate_site(seed, SMALL_SITE))
     res = CliRunner().invoke(
@@ -83,7 +83,7 @@ def test_cli_simulate(tmp_path, monkeypatch):
     assert res.exit_code == 0, res.output
     assert (tmp_path / "rocks.csv").exists()
     assert (tmp_path / "traverse_0.lac").exists() and (tmp_path / "traverse_1.lac").exists()
-    lac = pytest.importorskip("lunarloc.data.lac")
+    lac = pytest.importorskip("lunarloc.io.lac.archive")
     with lac.LacArchive(tmp_path / "traverse_0.lac") as a0, lac.LacArchive(tmp_path / "traverse_1.lac") as a1:
         np.testing.assert_allclose(a0.poses()[0, :2], a1.poses()[0, :2])  # same start
         assert a0.image_count("FrontLeft") == 3 and a0.image_count("BackLeft") == 0

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from lunarloc.data.site import SiteConfig, generate_site, load_rocks_csv
-from lunarloc.errors import ConfigError
+from lunarloc.sim.site import SiteConfig, generate_site, load_rocks_csv
+from lunarloc.core.errors import ConfigError
 
 
 @pytest.fixture(scope="module")
@@ -98,7 +98,7 @@ def test_rocks_are_irregular_not_ellipsoids(site):
 
 
 def test_lander_fiducial_panels_follow_the_lac_layout(site):
-    from lunarloc.data.site import LAC_FIDUCIALS
+    from lunarloc.sim.site import LAC_FIDUCIALS
 
     p = site.fiducial_panels()
     assert len(p) == 16

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lunarloc.errors import ConfigError, InputError
+from lunarloc.core.errors import ConfigError, InputError
 from lunarloc.perception.camera import PinholeCamera
 from lunarloc.perception.stereo import StereoConfig, StereoMatcher, depth_at, to_gray_u8
 
@@ -167,7 +167,7 @@ def test_tiny_images_clamp_the_search_range():
 def test_detector_runs_on_160x90_pairs():
     from lunarloc.perception.camera import ipex_rig
     from lunarloc.perception.detector import Detector
-    from lunarloc.config import scaled_detector_config
+    from lunarloc.config.run import scaled_detector_config
 
     cam = PinholeCamera(width=160, height=90)
     left, right = _textured_pair(6, h=90, w=160)
@@ -210,7 +210,7 @@ def test_full_width_matches_the_left_band_where_the_match_exists():
 
 def test_scaled_config_scales_the_near_rock_pixel_size():
     from lunarloc.perception.detector import DetectorConfig
-    from lunarloc.config import scaled_detector_config
+    from lunarloc.config.run import scaled_detector_config
 
     base = DetectorConfig()
     half = scaled_detector_config(640)

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from lunarloc.errors import ConfigError
+from lunarloc.core.errors import ConfigError
 from lunarloc.perception.detector import (
     Detection,
     Detector,
@@ -202,7 +202,7 @@ def test_confirmation_off_passes_everything_through():
 def test_tentative_settings_are_checked_and_round_trip(key, value):
     import json
 
-    from lunarloc.config import RunConfig
+    from lunarloc.config.run import RunConfig
 
     with pytest.raises(ConfigError, match=key):
         RunConfig.from_dict({"detector": {key: value}})

@@ -8,8 +8,8 @@ import pytest
 
 pytest.importorskip("cv2")
 
-from lunarloc.errors import ConfigError, InputError  # noqa: E402
-from lunarloc.geometry import invert_transform, pose_to_matrix, rotation_angle  # noqa: E402
+from lunarloc.core.errors import ConfigError, InputError  # noqa: E402
+from lunarloc.core.geometry import invert_transform, pose_to_matrix, rotation_angle  # noqa: E402
 from lunarloc.odometry.visual import (  # noqa: E402
     StereoVisualOdometry,
     VisualOdometryConfig,
@@ -41,12 +41,12 @@ def traverse_lamps(tmp_path_factory):
 
 def _simulate(tmp_path_factory, lighting: str):
     pytest.importorskip("embreex")
-    from lunarloc.data.lac import LacArchive
-    from lunarloc.data.simulate import SimulationConfig, simulate_site, simulate_traverse
-    from lunarloc.data.site import SiteConfig
+    from lunarloc.io.lac.archive import LacArchive
+    from lunarloc.sim.simulate import SimulationConfig, simulate_site, simulate_traverse
+    from lunarloc.sim.site import SiteConfig
 
     site_cfg = SiteConfig(size_m=14.0, terrain_margin_m=3.0, resolution_m=0.2, n_rocks=80, rover_start_xy=(-3.0, -2.0))
-    from lunarloc.data.render import RenderConfig
+    from lunarloc.sim.render import RenderConfig
 
     cfg = SimulationConfig(
         site=site_cfg, duration_s=12.0, image_rate_hz=2.0, width=W, height=H,
@@ -115,7 +115,7 @@ def test_archive_convenience_matches_direct_use(traverse):
     vo = StereoVisualOdometry(CAMERA, T_LEFT, T_RIGHT)
     T_direct = np.stack([vo.update(l, r) for l, r in zip(traverse["left"], traverse["right"])])
     np.testing.assert_allclose(T, T_direct, atol=1e-9)
-    from lunarloc.data.playback import PlaybackAgent
+    from lunarloc.io.lac.playback import PlaybackAgent
 
     with PlaybackAgent(traverse["path"]) as agent:
         frames2, T2 = visual_odometry_frames(agent)
@@ -124,7 +124,7 @@ def test_archive_convenience_matches_direct_use(traverse):
 
 
 def _open(path):
-    from lunarloc.data.lac import LacArchive
+    from lunarloc.io.lac.archive import LacArchive
 
     return LacArchive(path)
 
@@ -234,7 +234,7 @@ def test_config_round_trip_and_validation():
 
 
 def test_archive_without_front_images_is_refused(tmp_path):
-    from lunarloc.data.lac import LacArchive, LacWriter
+    from lunarloc.io.lac.archive import LacArchive, LacWriter
 
     cams = {n: {"camera_active": False, "width": W, "height": H} for n in ("FrontLeft", "FrontRight")}
     path = tmp_path / "noimg.lac"
@@ -277,7 +277,7 @@ def test_local_contrast_removes_the_flow_bias_of_a_camera_fixed_light():
 
 
 def test_normalization_is_a_checked_enum_that_round_trips():
-    from lunarloc.odometry.visual import ImageNormalization
+    from lunarloc.perception.images import ImageNormalization
 
     cfg = VisualOdometryConfig(normalization="clahe")
     assert cfg.normalization is ImageNormalization.CLAHE

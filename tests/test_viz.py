@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 
 from _loop_data import synthetic_traverse
-from lunarloc.errors import FileFormatError
-from lunarloc.evaluation import DriftModel
-from lunarloc.maps import LandmarkMap
-from lunarloc.config import RunConfig
-from lunarloc.pipeline import run
-from lunarloc.runio import write_run
-from lunarloc.sources import TraverseCsvSource
+from lunarloc.core.errors import FileFormatError
+from lunarloc.pipeline.evaluation import DriftModel
+from lunarloc.io.maps import LandmarkMap
+from lunarloc.config.run import RunConfig
+from lunarloc.pipeline.runner import run
+from lunarloc.io.runs import write_run
+from lunarloc.pipeline.sources import TraverseCsvSource
 from lunarloc.viz import plot_run
 
 

@@ -1,7 +1,7 @@
 """warm_up compiles the association kernels once per process; the command runs it."""
 
 from lunarloc.cli.app import main
-from lunarloc.warmup import warm_up
+from lunarloc.localization.warmup import warm_up
 
 
 def test_warm_up_once_per_process(capsys):
@@ -18,7 +18,7 @@ def test_warm_up_reaches_every_search_kernel():
     import sys
 
     code = (
-        "from lunarloc.warmup import warm_up; warm_up(jit=True)\n"
+        "from lunarloc.localization.warmup import warm_up; warm_up(jit=True)\n"
         "from lunarloc.association import clique, graph\n"
         "missing = [f.__name__ for f in (clique._bin_bounds, clique._peeled_max_clique, clique._peeled_graph,\n"
         "           graph._yaw_chunk_incidences, graph._bucket_pairs, graph._graph_3d) if not f.signatures]\n"

@@ -16,13 +16,13 @@ The one-call API::
 
 import logging
 
-from lunarloc._runtime import ensure_numba_cache_dir
+from lunarloc.core.runtime import ensure_numba_cache_dir
 
 ensure_numba_cache_dir()  # before numba is imported (read-only installs, unwritable $HOME)
 
-from lunarloc.errors import LunarLocError  # noqa: E402
-from lunarloc.localize import LocalizationConfig, LocalizationResult, Mode, Solver, localize  # noqa: E402
-from lunarloc.maps import AggregationConfig, LandmarkMap, load_map, load_traverse, save_map  # noqa: E402
+from lunarloc.core.errors import LunarLocError  # noqa: E402
+from lunarloc.localization.localize import LocalizationConfig, LocalizationResult, Mode, Solver, localize  # noqa: E402
+from lunarloc.io.maps import AggregationConfig, LandmarkMap, load_map, load_traverse, save_map  # noqa: E402
 
 __version__ = "0.1.0"
 __all__ = [
@@ -46,12 +46,12 @@ __all__ = [
 ]
 
 _LAZY = {  # imported on first use: OpenCV and the detector stay out of `import lunarloc`
-    "OnlineLocalizer": "lunarloc.online",
-    "OnlineConfig": "lunarloc.online",
-    "CameraRig": "lunarloc.online",
-    "Estimate": "lunarloc.online",
-    "PlaybackAgent": "lunarloc.data.playback",
-    "load_reference": "lunarloc.reference",
+    "OnlineLocalizer": "lunarloc.online.component",
+    "OnlineConfig": "lunarloc.online.component",
+    "CameraRig": "lunarloc.online.component",
+    "Estimate": "lunarloc.online.component",
+    "PlaybackAgent": "lunarloc.io.lac.playback",
+    "load_reference": "lunarloc.pipeline.reference",
 }
 
 

@@ -1,6 +1,6 @@
 """Figures of an online-localization run (matplotlib, Agg backend, imported lazily).
 
-All figures read a run's output folder (see :mod:`lunarloc.runio`), so
+All figures read a run's output folder (see :mod:`lunarloc.io.runs`), so
 ``lunarloc plot OUTDIR`` regenerates them without re-running anything:
 
 * ``map.png``: top-down map (``map`` frame, metres): ground-truth rocks, reference landmarks,
@@ -20,10 +20,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from lunarloc.errors import FileFormatError
+from lunarloc.core.errors import FileFormatError
 
 if TYPE_CHECKING:
-    from lunarloc.runio import RunFolder
+    from lunarloc.io.runs import RunFolder
 
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
@@ -42,7 +42,7 @@ def _plt():
 
 def _save(fig, path: Path) -> None:
     """savefig to a temporary name in the same folder, renamed into place."""
-    from lunarloc.outputs import atomic_path
+    from lunarloc.io.outputs import atomic_path
 
     with atomic_path(path) as tmp:
         fig.savefig(tmp)
@@ -125,7 +125,7 @@ def plot_error(run: RunFolder, path: Path, title: str = "") -> Path:
 
 def plot_frame(npz_path: Path, path: Path) -> Path:
     plt = _plt()
-    from lunarloc.inputs import load_npz_arrays
+    from lunarloc.io.inputs import load_npz_arrays
 
     z = load_npz_arrays(npz_path)  # checked before allocating; FileFormatError naming the file
     try:
@@ -155,7 +155,7 @@ def plot_run(outdir: str | Path, figdir: str | Path | None = None) -> list[Path]
     outdir = Path(outdir)
     figdir = Path(figdir) if figdir is not None else outdir
     figdir.mkdir(parents=True, exist_ok=True)
-    from lunarloc.runio import read_run
+    from lunarloc.io.runs import read_run
 
     run = read_run(outdir)
     s = run.summary
@@ -172,7 +172,7 @@ def plot_rovers(outdirs: list[str | Path], path: str | Path, names: list[str] | 
     """One top-down map of several rovers' run folders (``lunarloc run A.lac B.lac``): per
     rover (one colour each) ground truth (thin black-edged), odometry (dotted), corrected
     (solid), its landmarks (+) and accepted fixes; ground-truth rocks and the reference in grey."""
-    from lunarloc.runio import read_run
+    from lunarloc.io.runs import read_run
 
     plt = _plt()
     runs = [read_run(d) for d in outdirs]

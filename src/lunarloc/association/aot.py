@@ -21,7 +21,7 @@ that, when called from Python:
    calling kernels compile as before). A missing, stale or unloadable build, an argument
    type it was not built for, or ``LUNARLOC_AOT=0`` all take this path.
 
-The build harvests the signatures to compile from :func:`lunarloc.warmup.warm_up` (every
+The build harvests the signatures to compile from the warm-up it is given (:func:`lunarloc.localization.warmup.warm_up`: every
 mode and solver), run on the JIT path in the building process, and compiles each with the
 GIL released (as ``nogil=True`` kernels do under the JIT), for the host CPU.
 """
@@ -302,8 +302,9 @@ def _host_cpu() -> str:
     return llvm.get_host_cpu_name()
 
 
-def build_aot(folder: Path | None = None, *, verbose: bool = False) -> AotBuild:
-    """Compile every kernel signature that :func:`lunarloc.warmup.warm_up` uses, ahead of time,
+def build_aot(exercise, folder: Path | None = None, *, verbose: bool = False) -> AotBuild:
+    """Compile every kernel signature that ``exercise()`` uses (run once on the JIT path to harvest
+    them; :func:`lunarloc.localization.warmup.build_kernels` passes its warm-up), ahead of time,
     into ``folder`` (default: this package's folder, where :func:`njit` looks). Needs a C
     compiler and Python's headers; raises ``OSError``/``RuntimeError`` style errors from the
     toolchain, which the caller reports (the JIT path keeps working without the build)."""
@@ -313,11 +314,9 @@ def build_aot(folder: Path | None = None, *, verbose: bool = False) -> AotBuild:
     import time
     import warnings
 
-    from lunarloc.warmup import warm_up
-
     t0 = time.perf_counter()
     folder = Path(folder) if folder is not None else _HERE
-    warm_up(jit=True)  # every kernel signature the pipeline uses, on the JIT path (once a process)
+    exercise()  # every kernel signature the pipeline uses, on the JIT path (once a process)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # numba.pycc is deprecated (still shipped and working)
         from numba.core.compiler import Flags

@@ -24,7 +24,7 @@ attitude. The same works for rocks:
 
 Nothing here is of size N_ref x N_veh or N x N: the index holds O(N_ref) triangles,
 the vote O(matches). The exact search and verification then run on the reference
-cropped around each candidate (:mod:`lunarloc.localize_large`).
+cropped around each candidate (:mod:`lunarloc.localization.large`).
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lunarloc.errors import ConfigError, InputError
+from lunarloc.core.errors import ConfigError, InputError
 
 __all__ = ["IndexConfig", "ReferenceIndex", "Candidate", "Votes", "triangles"]
 

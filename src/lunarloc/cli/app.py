@@ -9,7 +9,7 @@ import sys
 
 import typer
 
-from lunarloc.errors import LunarLocError
+from lunarloc.core.errors import LunarLocError
 
 app = typer.Typer(
     name="lunarloc",
@@ -108,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(argv: list[str] | None) -> int:
-    from lunarloc.errors import CheckFailedError, file_error
+    from lunarloc.core.errors import CheckFailedError, file_error
 
     try:
         # standalone_mode=False makes click *return* the code of a `typer.Exit` raised by a

@@ -9,7 +9,7 @@ from collections.abc import Iterable
 
 import typer
 
-from lunarloc.errors import ConfigError
+from lunarloc.core.errors import ConfigError
 
 OVERWRITE_OPT = typer.Option(False, "--overwrite", help="Replace existing outputs (refused otherwise).")
 

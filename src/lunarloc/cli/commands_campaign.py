@@ -25,7 +25,7 @@ def campaign_cmd(
     """Run a grid of simulate -> map -> run -> score jobs (site seeds x sun x rock density ...)
     on Dask; failed jobs are reported, finished ones skipped on a rerun. Exit 1 when a job
     failed (raised) or did not pass its check."""
-    from lunarloc.campaign import EXAMPLE_SPEC, load_spec, run_campaign
+    from lunarloc.pipeline.campaign import EXAMPLE_SPEC, load_spec, run_campaign
 
     if example:
         typer.echo(EXAMPLE_SPEC, nl=False)

@@ -17,7 +17,7 @@ app.add_typer(bench_app, name="bench")
 
 
 def _agg(radius: Optional[float], min_sightings: Optional[int]):
-    from lunarloc.maps import AggregationConfig
+    from lunarloc.io.maps import AggregationConfig
 
     positive(radius, "--radius", 10.0, "m")
     d = AggregationConfig()
@@ -35,7 +35,7 @@ the consistency graph grows quadratically in memory (issue 13: 6.5 GB at 5 m).""
 
 
 def _map_suffix(out: Path) -> None:
-    from lunarloc.errors import ConfigError
+    from lunarloc.core.errors import ConfigError
 
     if out.suffix.lower() not in (".csv", ".npz"):
         raise ConfigError(f"{out}: unknown map format {out.suffix!r} (use .csv or .npz)")
@@ -53,9 +53,9 @@ def map_cmd(
     overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """Build a landmark map (one landmark per rock) from a traverse's detections."""
-    from lunarloc.errors import InputError
-    from lunarloc.maps import load_traverse, save_map, traverse_map
-    from lunarloc.outputs import check_output_file
+    from lunarloc.core.errors import InputError
+    from lunarloc.io.maps import load_traverse, save_map, traverse_map
+    from lunarloc.io.outputs import check_output_file
 
     if out is None and lac_grid is None:
         raise InputError("nothing to write: give -o/--out MAP (.csv/.npz) and/or --lac-grid GRID.npy")
@@ -75,8 +75,8 @@ def map_cmd(
     if lac_grid is not None:
         import numpy as np
 
-        from lunarloc.outputs import atomic_path
-        from lunarloc.overhead import landmarks_to_lac_grid
+        from lunarloc.io.outputs import atomic_path
+        from lunarloc.io.overhead import landmarks_to_lac_grid
 
         grid = landmarks_to_lac_grid(lm)
         with atomic_path(lac_grid) as tmp:
@@ -124,11 +124,11 @@ def localize_cmd(
     ),
 ) -> None:
     """Localize VEHICLE in REFERENCE. Exit code 0 whether or not it localized."""
-    from lunarloc.config import RunConfig, load_config_file
-    from lunarloc.localize import LocalizationConfig, Mode, Registration, Solver
-    from lunarloc.localize_large import Search, localize_large
-    from lunarloc.maps import is_traverse_csv, load_map, load_traverse, traverse_map
-    from lunarloc.reference import load_reference
+    from lunarloc.config.run import RunConfig, load_config_file
+    from lunarloc.localization.localize import LocalizationConfig, Mode, Registration, Solver
+    from lunarloc.localization.large import Search, localize_large
+    from lunarloc.io.maps import is_traverse_csv, load_map, load_traverse, traverse_map
+    from lunarloc.pipeline.reference import load_reference
 
     choice(search, Search, "--search")
     for value, enum_, opt in ((mode, Mode, "--mode"), (solver, Solver, "--solver"), (registration, Registration, "--registration")):
@@ -156,7 +156,7 @@ def localize_cmd(
         veh = load_map(vehicle, agg)
     res = localize_large(ref, veh, cfg, run_cfg.index, search=search, query_xyz=query_xyz, path_xyz=path_xyz)
     if as_json:
-        from lunarloc.runio import to_json_ready
+        from lunarloc.io.runs import to_json_ready
 
         typer.echo(json.dumps({**res.to_dict(), "config": to_json_ready(run_cfg.to_dict())}))
         return
@@ -223,10 +223,10 @@ def bench_pairs_cmd(
     from rich.progress import Progress
     from rich.table import Table
 
-    from lunarloc.bench import pairs_problems, pairs_to_run, write_pairs
-    from lunarloc.evaluation import PAPER_PAIRS, DriftModel, bench_pairs, find_traverses
-    from lunarloc.localize import LocalizationConfig, Mode, Solver
-    from lunarloc.outputs import check_output_dir
+    from lunarloc.pipeline.bench import pairs_problems, pairs_to_run, write_pairs
+    from lunarloc.pipeline.evaluation import PAPER_PAIRS, DriftModel, bench_pairs, find_traverses
+    from lunarloc.localization.localize import LocalizationConfig, Mode, Solver
+    from lunarloc.io.outputs import check_output_dir
 
     choice(mode, Mode, "--mode")
     choice(solver, Solver, "--solver")

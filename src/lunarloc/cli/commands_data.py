@@ -82,7 +82,7 @@ def _plot(archive, out: Path) -> None:
     ax.set_title(archive.path.name)
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     ax.grid(alpha=0.3)
-    from lunarloc.outputs import atomic_path
+    from lunarloc.io.outputs import atomic_path
 
     with atomic_path(out) as tmp:
         fig.savefig(tmp, dpi=120, bbox_inches="tight")
@@ -98,9 +98,9 @@ def info(
     """Summarise a .lac archive: frames, duration, cameras, image counts, path length, custom records."""
     from rich.table import Table as RichTable
 
-    from lunarloc.data.lac import LacArchive
-    from lunarloc.errors import ConfigError
-    from lunarloc.outputs import check_output_file
+    from lunarloc.io.lac.archive import LacArchive
+    from lunarloc.core.errors import ConfigError
+    from lunarloc.io.outputs import check_output_file
 
     if plot is not None:
         if plot.suffix.lower() not in PLOT_SUFFIXES:

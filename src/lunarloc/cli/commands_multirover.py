@@ -1,5 +1,5 @@
 """`lunarloc run A.lac B.lac [--reference MAP] [--share-maps] -o OUT`: several rovers on one
-clock (the driver is :mod:`lunarloc.multirover`; this module checks arguments and prints)."""
+clock (the driver is :mod:`lunarloc.pipeline.multirover`; this module checks arguments and prints)."""
 
 from __future__ import annotations
 
@@ -12,15 +12,15 @@ from lunarloc.cli.app import console
 
 def run_several(archives: list[Path], reference: Path | None, out: Path, run_config, *, share_maps: bool,
                 plot: bool, overwrite: bool) -> None:  # fmt: skip
-    """`run_config`: the :class:`~lunarloc.config.RunConfig` of `lunarloc run` (``--config`` and
+    """`run_config`: the :class:`~lunarloc.config.run.RunConfig` of `lunarloc run` (``--config`` and
     the options given), used by every rover."""
     from rich.table import Table
     from tqdm import tqdm
 
-    from lunarloc.errors import ConfigError
-    from lunarloc.multirover import MultiRoverConfig, check_archives, rover_names, run_rovers, write_rover_outputs
-    from lunarloc.outputs import check_output_dir
-    from lunarloc.reference import load_reference
+    from lunarloc.core.errors import ConfigError
+    from lunarloc.pipeline.multirover import MultiRoverConfig, check_archives, rover_names, run_rovers, write_rover_outputs
+    from lunarloc.io.outputs import check_output_dir
+    from lunarloc.pipeline.reference import load_reference
 
     if len(archives) < 2:
         raise ConfigError("--share-maps needs several archives (rovers) to share maps between")

@@ -25,10 +25,10 @@ def odometry_cmd(
     """Odometry of ARCHIVE from SOURCE, and its drift against the archive's ground truth."""
     from tqdm import tqdm
 
-    from lunarloc.data.lac import LacArchive
-    from lunarloc.odometry import archive_odometry, default_odometry_source, ground_truth_poses, odometry_drift
-    from lunarloc.odometry import parse_odometry_source
-    from lunarloc.runio import write_tum
+    from lunarloc.io.lac.archive import LacArchive
+    from lunarloc.odometry.source import archive_odometry, default_odometry_source, ground_truth_poses, odometry_drift
+    from lunarloc.odometry.source import parse_odometry_source
+    from lunarloc.io.runs import write_tum
 
     if source is not None:
         parse_odometry_source(source)

@@ -19,7 +19,7 @@ def score_cmd(
 ) -> None:
     """Score PRODUCED against TRUTH as the LAC does: share of cells with height error below
     the tolerance (geometric map) and the F1 over per-cell rock flags (rock map)."""
-    from lunarloc.overhead import load_lac_grid, score_geometric_map
+    from lunarloc.io.overhead import load_lac_grid, score_geometric_map
 
     s = score_geometric_map(load_lac_grid(produced), load_lac_grid(truth), height_tolerance)
     if as_json:

@@ -41,13 +41,13 @@ def detect(
     and its configuration (OUTPUT.config.json)."""
     from tqdm import tqdm
 
-    from lunarloc.config import RunConfig, load_config_file
-    from lunarloc.inputs import check_input_file
-    from lunarloc.outputs import check_output_dir, check_output_file, make_dir
+    from lunarloc.config.run import RunConfig, load_config_file
+    from lunarloc.io.inputs import check_input_file
+    from lunarloc.io.outputs import check_output_dir, check_output_file, make_dir
     from lunarloc.perception.camera import STEREO_PAIRS
     from lunarloc.perception.detector import PoseSource
     from lunarloc.perception.segment import SegmenterKind
-    from lunarloc.pipeline import detect as detect_pipeline
+    from lunarloc.pipeline.runner import detect as detect_pipeline
 
     choice(pose, PoseSource, "--pose")
     if segmenter is not None:
@@ -68,7 +68,7 @@ def detect(
     if lander_xy is not None:
         import math
 
-        from lunarloc.errors import ConfigError
+        from lunarloc.core.errors import ConfigError
 
         try:
             lander = [float(v) for v in lander_xy.split(",")]

@@ -18,7 +18,7 @@ CONFIG_OPT = typer.Option(None, "--config", help="Run configuration (a run folde
 
 def _run_config(config: Optional[Path], default, extra_sections: tuple[str, ...] = ()):
     """(RunConfig, extra sections) from --config FILE, or (`default`, {})."""
-    from lunarloc.config import load_config_file
+    from lunarloc.config.run import load_config_file
 
     if config is None:
         return default, {}
@@ -78,15 +78,15 @@ def run_cmd(
     Several archives play on one mission clock, each rover also using the others' maps with --share-maps."""
     from tqdm import tqdm
 
-    from lunarloc.config import RunConfig
-    from lunarloc.inputs import check_input_file
-    from lunarloc.loop import FixKind
-    from lunarloc.outputs import check_output_dir
+    from lunarloc.config.run import RunConfig
+    from lunarloc.io.inputs import check_input_file
+    from lunarloc.online.loop import FixKind
+    from lunarloc.io.outputs import check_output_dir
     from lunarloc.perception.segment import SegmenterKind
-    from lunarloc.pipeline import run
-    from lunarloc.reference import load_reference
-    from lunarloc.runio import write_run
-    from lunarloc.sources import ArchiveSource
+    from lunarloc.pipeline.runner import run
+    from lunarloc.pipeline.reference import load_reference
+    from lunarloc.io.runs import write_run
+    from lunarloc.pipeline.sources import ArchiveSource
 
     if segmenter is not None:
         choice(segmenter, SegmenterKind, "--segmenter")
@@ -107,7 +107,7 @@ def run_cmd(
         return run_several(archives, reference, out, cfg, share_maps=share_maps, plot=plot, overwrite=overwrite)
     archive = archives[0]
     if reference is None:
-        from lunarloc.errors import ConfigError
+        from lunarloc.core.errors import ConfigError
 
         raise ConfigError("--reference MAP is required with one archive (several archives can use --share-maps instead)")
     check_input_file(archive, None, ".lac archive")
@@ -140,7 +140,7 @@ def plot_cmd(
 ) -> None:
     """Regenerate the figures (map.png, error.png, frame.png) of a run (replacing earlier ones:
     regenerating them is this command's purpose)."""
-    from lunarloc.outputs import check_output_dir
+    from lunarloc.io.outputs import check_output_dir
     from lunarloc.viz import plot_run
 
     check_output_dir(figdir if figdir is not None else outdir, True, ())
@@ -169,9 +169,9 @@ def demo_cmd(
     traverse, build the reference map from images, run the loop, print a table, write figures."""
     from dataclasses import replace
 
-    from lunarloc.errors import ConfigError
-    from lunarloc.outputs import check_output_dir
-    from lunarloc.scenario import ScenarioConfig, demo_run_config, run_scenario, scenario_problems
+    from lunarloc.core.errors import ConfigError
+    from lunarloc.io.outputs import check_output_dir
+    from lunarloc.pipeline.scenario import ScenarioConfig, demo_run_config, run_scenario, scenario_problems
 
     positive(duration, "--duration", 3600.0, "s")
     positive(reference_duration, "--reference-duration", 3600.0, "s")
@@ -195,7 +195,7 @@ def demo_cmd(
                f"(config.json repeats it: lunarloc demo --config {out}/config.json)")  # fmt: skip
     problems = scenario_problems(s)
     if problems:
-        from lunarloc.errors import CheckFailedError
+        from lunarloc.core.errors import CheckFailedError
 
         raise CheckFailedError("demo: " + "; ".join(problems))
 
@@ -223,11 +223,11 @@ def bench_loop_cmd(
     simulated odometry drift; each traverse is localized against a map of all the others."""
     from rich.table import Table
 
-    from lunarloc.bench import bench_loop
-    from lunarloc.config import RunConfig
-    from lunarloc.errors import ConfigError
-    from lunarloc.evaluation import find_traverses
-    from lunarloc.outputs import check_output_dir
+    from lunarloc.pipeline.bench import bench_loop
+    from lunarloc.config.run import RunConfig
+    from lunarloc.core.errors import ConfigError
+    from lunarloc.pipeline.evaluation import find_traverses
+    from lunarloc.io.outputs import check_output_dir
 
     number(heading_drift, "--heading-drift", 0.0, 10.0, unit="deg/m")
     number(scale_error, "--scale-error", -0.5, 0.5)

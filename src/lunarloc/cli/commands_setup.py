@@ -17,16 +17,16 @@ def warm_up_cmd(
 ) -> None:
     """Compile (or load from numba's cache) every association kernel, then compile them ahead
     of time; `make` runs it after installing, so the first real call starts fast."""
-    from lunarloc.warmup import warm_up
+    from lunarloc.localization.warmup import warm_up
 
     s = warm_up(force=True, jit=True)
     typer.echo(f"association kernels ready in {s:.1f} s (numba's cache)")
     if not aot:
         return
-    from lunarloc.association.aot import build_aot
+    from lunarloc.localization.warmup import build_kernels
 
     try:
-        r = build_aot()
+        r = build_kernels()
     except Exception as exc:  # no compiler, no Python headers, a read-only install: the JIT path works
         msg = " ".join(f"{type(exc).__name__}: {exc}".split())[:300]
         typer.echo(f"warning: ahead-of-time kernels not built ({msg}); numba's cache is used instead", err=True)

@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 from lunarloc.cli.app import app
-from lunarloc.data.render import Lighting, SemanticFormat
+from lunarloc.sim.render import Lighting, SemanticFormat
 from lunarloc.cli.checks import OVERWRITE_OPT, number, positive
 
 
@@ -42,7 +42,7 @@ def simulate(
     overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """Simulate a lunar site: write its ground-truth rock map and N traverse archives."""
-    from lunarloc.outputs import check_output_dir
+    from lunarloc.io.outputs import check_output_dir
 
     positive(duration, "--duration", 24 * 3600.0, "s")
     number(width, "--width", 16, 8192, unit="px")
@@ -58,8 +58,8 @@ def simulate(
 
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from lunarloc.data.render import RenderConfig
-    from lunarloc.data.simulate import ALL_CAMERAS, SimulationConfig, simulate_dataset, write_example_images
+    from lunarloc.sim.render import RenderConfig
+    from lunarloc.sim.simulate import ALL_CAMERAS, SimulationConfig, simulate_dataset, write_example_images
 
     cfg = SimulationConfig(
         duration_s=duration,

@@ -29,8 +29,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from lunarloc.errors import ConfigError, InputError
-from lunarloc.geometry import exp_so3 as _exp_so3
+from lunarloc.core.errors import ConfigError, InputError
+from lunarloc.core.geometry import exp_so3 as _exp_so3
 
 __all__ = ["ImuOdometryConfig", "ImuSamples", "integrate_imu", "relative_motions", "imu_samples_from_archive",
            "imu_odometry"]
@@ -175,6 +175,6 @@ def relative_motions(T_map_rover: np.ndarray) -> np.ndarray:
 
 def imu_odometry(archive, config: ImuOdometryConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(frames (F,), T_map_rover (F, 4, 4)): dead reckoning over an open archive from its
-    initial rover pose (the ``imu`` source of :func:`lunarloc.odometry.archive_odometry`)."""
+    initial rover pose (the ``imu`` source of :func:`lunarloc.odometry.source.archive_odometry`)."""
     T = integrate_imu(imu_samples_from_archive(archive), archive.initial_rover_pose(), config)
     return np.asarray(archive.frame_numbers), T

@@ -20,8 +20,8 @@ import logging
 
 import numpy as np
 
-from lunarloc.errors import ArchiveError
-from lunarloc.geometry import pose_to_matrix
+from lunarloc.core.errors import ArchiveError
+from lunarloc.core.geometry import pose_to_matrix
 
 __all__ = ["POSE_COLUMNS", "MATRIX_COLUMNS", "read_record_poses"]
 

@@ -22,8 +22,8 @@ import math
 
 import numpy as np
 
-from lunarloc.errors import ConfigError, InputError
-from lunarloc.geometry import invert_transform
+from lunarloc.core.errors import ConfigError, InputError
+from lunarloc.core.geometry import invert_transform
 
 __all__ = ["align_tilt", "GravityAlignedChain"]
 

@@ -35,17 +35,15 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
-from enum import Enum
 
 import numpy as np
 
-from lunarloc.errors import ConfigError, InputError
-from lunarloc.geometry import invert_transform, make_transform, rotation_angle
+from lunarloc.core.errors import ConfigError, InputError
+from lunarloc.core.geometry import invert_transform, make_transform, rotation_angle
 from lunarloc.perception.camera import PinholeCamera
+from lunarloc.perception.images import ImageNormalization, normalize_image
 
 __all__ = [
-    "ImageNormalization",
-    "normalize_image",
     "VisualOdometryConfig",
     "StereoVisualOdometry",
     "front_pair_setup",
@@ -54,62 +52,6 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 logger.addHandler(logging.NullHandler())
-
-
-class ImageNormalization(str, Enum):
-    """What the images go through before corners, stereo matching and tracking.
-
-    ``local-contrast``: each pixel becomes its contrast against a Gaussian-weighted local
-    mean, ``(I - mean) / (mean + 4)``, so a brightness gradient that moves with the camera
-    (the rover's lamp fall-off, its light cone on the ground) is divided out instead of
-    pulling the Lucas-Kanade flow toward zero. ``clahe``: OpenCV's contrast-limited
-    adaptive histogram equalisation. ``lift``: dark regions are brightened to a target
-    level, ``I * max(target / (mean + 4), 1)`` with the same local mean (the gain setting is
-    the target grey level), and regions already as bright are left as they are (the
-    detector's stereo at night: the unlit far field gets the contrast SGBM's penalties
-    are set for, the lamp-lit near field and daylight scenes are unchanged). ``none``: the
-    raw images. The sky mask is always taken from the raw image.
-    """
-
-    NONE = "none"
-    LOCAL_CONTRAST = "local-contrast"
-    CLAHE = "clahe"
-    LIFT = "lift"
-
-
-def normalize_image(
-    image: np.ndarray, method: ImageNormalization, sigma_px: float, gain: float, clahe=None, mean_shrink: int = 1
-) -> np.ndarray:
-    """A uint8 grayscale image after :class:`ImageNormalization` (same shape).
-
-    ``local-contrast``: ``(I - mean) / (mean + 4) * gain + 128`` with a Gaussian local mean
-    of standard deviation `sigma_px`; ``lift``: ``I * max(gain / (mean + 4), 1)``;
-    ``clahe``: `clahe` (an OpenCV CLAHE object; one with clip limit 2 and 8x8 tiles when
-    None); ``none``: `image` itself. Shared by visual
-    odometry and the detector's stereo (:class:`lunarloc.perception.stereo.StereoConfig`).
-    mean_shrink > 1: the local mean is blurred on the image reduced that many times and
-    interpolated back (a wide Gaussian costs ~10x less; the mean is smooth anyway).
-    """
-    import cv2
-
-    method = ImageNormalization(method)
-    if method is ImageNormalization.NONE:
-        return image
-    if method is ImageNormalization.CLAHE:
-        return (clahe or cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8))).apply(image)
-    f = image.astype(np.float32)
-    k = max(int(mean_shrink), 1)
-    if k > 1 and min(f.shape) >= 4 * k:
-        small = cv2.resize(f, (f.shape[1] // k, f.shape[0] // k), interpolation=cv2.INTER_AREA)
-        mean = cv2.resize(cv2.GaussianBlur(small, (0, 0), float(sigma_px) / k), (f.shape[1], f.shape[0]),
-                          interpolation=cv2.INTER_LINEAR)  # fmt: skip
-    else:
-        mean = cv2.GaussianBlur(f, (0, 0), float(sigma_px))
-    if method is ImageNormalization.LIFT:
-        out = f * np.maximum(float(gain) / (mean + 4.0), 1.0)
-    else:
-        out = (f - mean) / (mean + 4.0) * float(gain) + 128.0
-    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
 
 @dataclass(frozen=True)
@@ -549,14 +491,14 @@ class StereoVisualOdometry:
 def front_pair_setup(archive) -> tuple[PinholeCamera, np.ndarray, np.ndarray, str, str]:
     """Intrinsics and optical-frame mounts of an archive's front stereo pair.
 
-    `archive` is a :class:`~lunarloc.data.lac.LacArchive` or a
-    :class:`~lunarloc.data.playback.PlaybackAgent`. Intrinsics from ``initial.toml``,
+    `archive` is a :class:`~lunarloc.io.lac.archive.LacArchive` or a
+    :class:`~lunarloc.io.lac.playback.PlaybackAgent`. Intrinsics from ``initial.toml``,
     camera poses from each camera's first table row (the IPEx rig where a row has
     none), as the detector reads them. Returns ``(camera, T_rover_left,
     T_rover_right, left_name, right_name)``.
     """
     from lunarloc.perception.camera import STEREO_PAIRS
-    from lunarloc.perception.detector import _camera_from_archive, mounts_from_archive_row
+    from lunarloc.perception.camera import camera_from_archive, mounts_from_archive_row
 
     archive = getattr(archive, "archive", archive)
     left_name, right_name = STEREO_PAIRS[0]
@@ -566,7 +508,7 @@ def front_pair_setup(archive) -> tuple[PinholeCamera, np.ndarray, np.ndarray, st
         if table is None or len(table) == 0:
             raise InputError(f"{archive.path}: no {name} images, visual odometry needs the front stereo pair")
         rows[name] = table.row(0)
-    camera = _camera_from_archive(archive)
+    camera = camera_from_archive(archive)
     mounts = mounts_from_archive_row(rows, camera)
     return camera, mounts[left_name].T_rover_optical, mounts[right_name].T_rover_optical, left_name, right_name
 
@@ -576,8 +518,8 @@ def visual_odometry_frames(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Run :class:`StereoVisualOdometry` over the front-pair images of an archive (no prior).
 
-    `archive` is a path, a :class:`~lunarloc.data.lac.LacArchive` or a
-    :class:`~lunarloc.data.playback.PlaybackAgent`.
+    `archive` is a path, a :class:`~lunarloc.io.lac.archive.LacArchive` or a
+    :class:`~lunarloc.io.lac.playback.PlaybackAgent`.
     Returns ``(frames (N,), T_odo_rover (N, 4, 4))`` for the N frames that have both
     a left and a right image; ``odo`` is the rover pose at the first of them.
     `progress(done, total)` is called after each pair.
@@ -585,7 +527,7 @@ def visual_odometry_frames(
     import os
 
     if isinstance(archive, (str, os.PathLike)):
-        from lunarloc.data.lac import LacArchive
+        from lunarloc.io.lac.archive import LacArchive
 
         with LacArchive(archive) as opened:
             return visual_odometry_frames(opened, config, progress)

@@ -12,11 +12,12 @@ Frames
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from lunarloc.geometry import make_transform, pose_to_matrix
+from lunarloc.core.geometry import make_transform, pose_to_matrix
 
 __all__ = [
     "PinholeCamera",
@@ -25,6 +26,8 @@ __all__ = [
     "IPEX_STEREO_BASELINE_M",
     "ipex_rig",
     "STEREO_PAIRS",
+    "camera_from_archive",
+    "mounts_from_archive_row",
 ]
 
 # Optical frame axes expressed in the camera body frame: x_opt = -y_body,
@@ -135,3 +138,34 @@ def ipex_rig(camera: PinholeCamera | None = None) -> dict[str, CameraMount]:
         "BackLeft": CameraMount("BackLeft", pose_to_matrix(-0.28, -b, z, 0.0, 0.0, np.pi), cam),
         "BackRight": CameraMount("BackRight", pose_to_matrix(-0.28, b, z, 0.0, 0.0, np.pi), cam),
     }
+
+
+def mounts_from_archive_row(rows: Mapping[str, Mapping], camera: PinholeCamera) -> dict[str, CameraMount]:
+    """Camera mounts from an archive frame's camera-table rows (camera_x..camera_yaw,
+    the camera body pose in the rover frame); cameras without a pose use the IPEx rig."""
+    rig = ipex_rig(camera)
+    out = dict(rig)
+    for name, row in rows.items():
+        try:
+            pose = [float(row[f"camera_{k}"]) for k in ("x", "y", "z", "roll", "pitch", "yaw")]
+        except (KeyError, TypeError, ValueError):
+            continue
+        if np.all(np.isfinite(pose)):
+            out[name] = CameraMount(name, pose_to_matrix(*pose), camera)
+    return out
+
+
+def camera_from_archive(archive) -> PinholeCamera:
+    """The pinhole camera of an archive's first configured left stereo camera (its width,
+    height and field of view; the LAC's 1280x720, 70 degrees when absent)."""
+    cams = archive.configured_cameras
+    for left, _ in STEREO_PAIRS:
+        c = cams.get(left)
+        if c:
+            try:
+                w, h = int(c.get("width", 1280)), int(c.get("height", 720))
+                fov = float(c.get("fov", c.get("hfov_deg", 70.0)))
+                return PinholeCamera(w, h, fov)
+            except (TypeError, ValueError):
+                break
+    return PinholeCamera()

@@ -26,10 +26,17 @@ from pathlib import Path
 
 import numpy as np
 
-from lunarloc.errors import ConfigError, InputError
-from lunarloc.geometry import invert_transform, pose_to_matrix, transform_points
-from lunarloc.odometry.visual import ImageNormalization
-from lunarloc.perception.camera import STEREO_PAIRS, CameraMount, PinholeCamera, ipex_rig
+from lunarloc.core.errors import ConfigError, InputError
+from lunarloc.core.geometry import invert_transform, pose_to_matrix, transform_points
+from lunarloc.perception.images import ImageNormalization
+from lunarloc.perception.camera import (
+    STEREO_PAIRS,
+    CameraMount,
+    PinholeCamera,
+    camera_from_archive,
+    ipex_rig,
+    mounts_from_archive_row,
+)
 from lunarloc.perception.masks import (
     InstanceMask,
     InstanceMasks,
@@ -1753,35 +1760,6 @@ def _mask_depth(depth: np.ndarray, m, cu: float, cv: float, h: int, fallback: bo
 
 
 # ---------------------------------------------------------------------- archives
-def mounts_from_archive_row(rows: Mapping[str, Mapping], camera: PinholeCamera) -> dict[str, CameraMount]:
-    """Camera mounts from an archive frame's camera-table rows (camera_x..camera_yaw,
-    the camera body pose in the rover frame); cameras without a pose use the IPEx rig."""
-    rig = ipex_rig(camera)
-    out = dict(rig)
-    for name, row in rows.items():
-        try:
-            pose = [float(row[f"camera_{k}"]) for k in ("x", "y", "z", "roll", "pitch", "yaw")]
-        except (KeyError, TypeError, ValueError):
-            continue
-        if np.all(np.isfinite(pose)):
-            out[name] = CameraMount(name, pose_to_matrix(*pose), camera)
-    return out
-
-
-def _camera_from_archive(archive) -> PinholeCamera:
-    cams = archive.configured_cameras
-    for left, _ in STEREO_PAIRS:
-        c = cams.get(left)
-        if c:
-            try:
-                w, h = int(c.get("width", 1280)), int(c.get("height", 720))
-                fov = float(c.get("fov", c.get("hfov_deg", 70.0)))
-                return PinholeCamera(w, h, fov)
-            except (TypeError, ValueError):
-                break
-    return PinholeCamera()
-
-
 def detect_archive(
     archive,
     config: DetectorConfig | None = None,
@@ -1801,12 +1779,12 @@ def detect_archive(
     pose : ground truth (frames.csv) or odometry (custom/odometry.csv) for the map frame.
     frames : optional subset of frame numbers.
     poses : optional {frame: T_map_rover (4x4)} placing detections instead of `pose`
-        (e.g. :func:`lunarloc.odometry.archive_odometry`'s trajectory).
+        (e.g. :func:`lunarloc.odometry.source.archive_odometry`'s trajectory).
     lander_xy : the lander's centre in the map frame of `pose` (detections on it are
         dropped); default: the archive's (initial.toml ``lander`` is relative to the
         rover's initial pose, composed by :meth:`LacArchive.lander_pose_map`).
     """
-    det = detector or Detector(config, _camera_from_archive(archive))
+    det = detector or Detector(config, camera_from_archive(archive))
     confirmed = confirm_across_frames(_detect_archive_frames(archive, det, pose, frames, keep_depth, poses, lander_xy),
                                       det.config)
     yield from fuse_track_centres(confirmed, det.config)
@@ -1816,12 +1794,8 @@ def _detect_archive_frames(archive, det: Detector, pose, frames, keep_depth: boo
     """detect_archive's frames, each detected on its own (arguments as detect_archive's)."""
     pose = PoseSource(pose)
     if pose is PoseSource.ODOMETRY and poses is None:
-        from lunarloc.odometry import archive_odometry
-
-        if "odometry" not in archive.custom_records:
-            raise InputError(f"{archive.path}: no odometry record; use --pose ground-truth or --odometry SOURCE")
-        traj = archive_odometry(archive, "record:odometry")
-        poses = dict(zip(traj.frames.tolist(), traj.T_map_rover))
+        raise InputError("pose 'odometry' needs the odometry poses (poses=...; lunarloc.pipeline.runner.detect "
+                         "reads them from the archive)")
     if lander_xy is None:  # the archive knows where the lander stands (initial.toml, rover-relative)
         lander_xy = np.asarray(archive.lander_pose_map()[:2], float)
     wanted = None if frames is None else {int(f) for f in frames}
@@ -1856,7 +1830,7 @@ def write_traverse_csv(path: str | Path, frames: Iterable[FrameDetections]) -> i
     x, y, z is the rover position of the pose used; boulders are map-frame centroids.
     Returns the number of rows written. Frames without a pose raise InputError.
     """
-    from lunarloc.outputs import atomic_open
+    from lunarloc.io.outputs import atomic_open
 
     path = Path(path)
     n = 0
@@ -1930,3 +1904,21 @@ def debug_overlay(image: np.ndarray, pair: PairResult, depth_max_m: float = 10.0
     dvis[~np.isfinite(z)] = 0
     cv2.putText(dvis, f"depth 0-{depth_max_m:g} m", (8, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1)
     return np.hstack([vis, dvis])
+
+
+def scaled_detector_config(width: int, base=None, tuned_width_px: int = 1280):
+    """Detector config for images `width` pixels wide: the pixel-sized parameters of `base`
+    (tuned at `tuned_width_px`) scaled to the resolution. Below the tuned width the range cap
+    drops to 5 m and the SGBM block shrinks (coarser pixels, larger depth error at range)."""
+    base = base or DetectorConfig()
+    f = width / float(tuned_width_px)
+    if abs(f - 1.0) < 1e-6:
+        return base
+    c, fl, st = base.classical, base.filters, base.stereo
+    return replace(
+        base,
+        classical=replace(c, bg_median_px=max(16, int(c.bg_median_px * f)), min_area_px=max(4, int(c.min_area_px * f * f))),
+        filters=replace(fl, min_area_px=max(4, int(fl.min_area_px * f * f)), max_range_m=min(fl.max_range_m, 5.0) if f < 1 else fl.max_range_m),
+        stereo=replace(st, num_disparities=max(16, int(st.num_disparities * f) // 16 * 16), block_size=7 if f < 1 else st.block_size),
+        height_filters=replace(base.height_filters, near_sigma_px=base.height_filters.near_sigma_px * f),
+    )  # fmt: skip

@@ -8,7 +8,7 @@ Offline rules enforced here, before ultralytics is imported:
 
 * ``YOLO_OFFLINE=1`` (no connectivity checks, no telemetry), ``YOLO_AUTOINSTALL=False``
   (no pip installs at run time), ``YOLO_VERBOSE=False`` unless the caller set them.
-* The weights path must exist; otherwise :class:`~lunarloc.errors.InputError` is
+* The weights path must exist; otherwise :class:`~lunarloc.core.errors.InputError` is
   raised, so ultralytics never gets a chance to fetch a file by that name.
 * No plotting is done (plotting is what downloads fonts).
 
@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lunarloc.errors import DependencyError, InputError, require
+from lunarloc.core.errors import DependencyError, InputError, require
 from lunarloc.perception.masks import InstanceMask, InstanceMasks
 
 __all__ = [

@@ -23,7 +23,7 @@ from enum import Enum
 
 import numpy as np
 
-from lunarloc.errors import ConfigError, InputError
+from lunarloc.core.errors import ConfigError, InputError
 
 __all__ = [
     "InstanceMask",

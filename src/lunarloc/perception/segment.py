@@ -21,7 +21,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from lunarloc.errors import ConfigError, InputError
+from lunarloc.core.errors import ConfigError, InputError
 from lunarloc.perception.masks import InstanceMask, InstanceMasks
 from lunarloc.perception.stereo import HeightMap, to_gray_u8
 

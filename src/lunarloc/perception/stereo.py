@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lunarloc.errors import ConfigError, InputError
-from lunarloc.odometry.visual import ImageNormalization, normalize_image
+from lunarloc.core.errors import ConfigError, InputError
+from lunarloc.perception.images import ImageNormalization, normalize_image
 from lunarloc.perception.camera import IPEX_STEREO_BASELINE_M, PinholeCamera
 
 __all__ = [

@@ -1,0 +1,1 @@
+"""Run configuration: one config that round-trips, and its presets."""

@@ -1,0 +1,173 @@
+"""One run configuration that round-trips: :class:`RunConfig`.
+
+Every command that runs a pipeline (``run``, ``detect``, ``localize``, ``bench loop``, ``demo``)
+writes its full configuration (``config.json`` in run folders, next to other outputs) and reads
+one back with ``--config FILE``; command-line options then override single settings. Sections:
+
+- ``detector``: :class:`~lunarloc.perception.detector.DetectorConfig`, tuned at
+  ``detector_tuned_width_px`` and scaled to the images' width by :func:`scaled_detector_config`;
+- ``localization``: :class:`~lunarloc.localization.localize.LocalizationConfig`;
+- ``index``: :class:`~lunarloc.association.index.IndexConfig` (the rock-triangle index of
+  large references, used by ``localize``'s indexed search);
+- ``loop``: :class:`~lunarloc.online.loop.LoopConfig` (local map, attempts, fusion);
+- ``odometry``: :class:`OdometryConfig` (where the odometry comes from, IMU and visual
+  odometry settings, and the simulated drift of traverse-CSV runs).
+
+A file may hold other sections that a command reads itself (``scenario`` for ``demo``) and an
+``info`` section (what a run used: source, camera, odometry), written for the record and
+ignored when read. Any other key, or a value of the wrong type or out of range, is a
+:class:`~lunarloc.core.errors.ConfigError` naming the key (``loop.window_m: ...``).
+
+:func:`config_to_dict` / :func:`config_from_dict` do the conversion for any config dataclass
+(nested dataclasses, Enums, tuples, optional values).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+
+from lunarloc.association.index import IndexConfig
+from lunarloc.core.configs import config_from_dict, config_to_dict
+from lunarloc.core.errors import ConfigError
+from lunarloc.localization.localize import LocalizationConfig
+from lunarloc.online.loop import LoopConfig, image_localization_config, image_loop_config, loop_localization_config
+from lunarloc.odometry.imu import ImuOdometryConfig
+from lunarloc.perception.detector import scaled_detector_config
+
+__all__ = ["RunConfig", "OdometryConfig", "config_to_dict", "config_from_dict", "scaled_detector_config",
+           "load_config_file"]  # fmt: skip
+
+INFO_SECTION = "info"
+
+
+# --------------------------------------------------------------------------- sections
+
+
+@dataclass(frozen=True)
+class OdometryConfig:
+    """Where a run's odometry comes from and how it is computed."""
+
+    # visual | imu | record:NAME | ground-truth (evaluation only); None: visual when the
+    # archive has front stereo pairs, else imu (lunarloc.odometry.source.OdometrySource)
+    source: str | None = None
+    imu: ImuOdometryConfig = field(default_factory=ImuOdometryConfig)
+    visual: Any = None  # VisualOdometryConfig (None: its defaults), see __post_init__
+    # traverse-CSV runs (no odometry recorded): simulated drift and frame rate
+    heading_drift_deg_per_m: float = 0.05
+    scale_error: float = 0.02
+    rate_hz: float = 20.0
+
+    def __post_init__(self) -> None:
+        from lunarloc.odometry.visual import VisualOdometryConfig
+
+        if self.visual is None:
+            object.__setattr__(self, "visual", VisualOdometryConfig())
+        elif isinstance(self.visual, Mapping):
+            object.__setattr__(self, "visual", config_from_dict(VisualOdometryConfig, self.visual, "visual"))
+        elif not isinstance(self.visual, VisualOdometryConfig):
+            raise ConfigError(f"visual: expected VisualOdometryConfig settings, got {type(self.visual).__name__}")
+        if self.source is not None:
+            from lunarloc.odometry.source import parse_odometry_source
+
+            parse_odometry_source(self.source)  # ConfigError naming the valid sources
+        if not (0 <= self.heading_drift_deg_per_m <= 10 and -0.5 <= self.scale_error <= 0.5 and 0 < self.rate_hz <= 1000):
+            raise ConfigError(f"heading_drift_deg_per_m={self.heading_drift_deg_per_m} (0..10), scale_error="
+                              f"{self.scale_error} (-0.5..0.5), rate_hz={self.rate_hz} (0..1000]")  # fmt: skip
+
+    @property
+    def drift(self):
+        """The simulated drift of traverse-CSV runs (:class:`lunarloc.odometry.drift.DriftModel`)."""
+        from lunarloc.odometry.drift import DriftModel
+
+        return DriftModel(self.heading_drift_deg_per_m, self.scale_error)
+
+
+def _detector_default():
+    from lunarloc.perception.detector import DetectorConfig
+
+    return DetectorConfig()
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """The full configuration of a run (see the module docstring). The defaults are those of
+    runs on images (``lunarloc run``, ``demo``); :meth:`for_detections` gives those of runs on
+    the real dataset's detections (``bench loop``)."""
+
+    detector: Any = field(default_factory=_detector_default)  # DetectorConfig, at detector_tuned_width_px
+    detector_tuned_width_px: int = 1280  # the detector's pixel sizes are tuned at this image width
+    localization: LocalizationConfig = field(default_factory=image_localization_config)
+    index: IndexConfig = field(default_factory=IndexConfig)
+    loop: LoopConfig = field(default_factory=image_loop_config)
+    odometry: OdometryConfig = field(default_factory=OdometryConfig)
+
+    def __post_init__(self) -> None:
+        from lunarloc.perception.detector import DetectorConfig
+
+        if isinstance(self.detector, Mapping):
+            object.__setattr__(self, "detector", config_from_dict(DetectorConfig, self.detector, "detector"))
+        elif not isinstance(self.detector, DetectorConfig):
+            raise ConfigError(f"detector: expected DetectorConfig settings, got {type(self.detector).__name__}")
+        if not isinstance(self.detector_tuned_width_px, int) or not 64 <= self.detector_tuned_width_px <= 8192:
+            raise ConfigError(f"detector_tuned_width_px={self.detector_tuned_width_px!r} must be an integer in [64, 8192]")
+
+    @classmethod
+    def for_detections(cls, **overrides) -> RunConfig:
+        """Runs on the LunarLoc dataset's detections (no images): the default localization
+        and a 12 m local map. Its windows state the simulated drift until the pose graph has
+        calibrated it (2 fixes), then their bend is fitted (docs/online-component.md)."""
+        return cls(**{"localization": loop_localization_config(), "loop": LoopConfig(calibrated_after_fixes=2),
+                      **overrides})  # fmt: skip
+
+    def detector_for(self, width: int):
+        """The detector's config for images `width` pixels wide."""
+        return scaled_detector_config(width, self.detector, self.detector_tuned_width_px)
+
+    def to_dict(self) -> dict:
+        return config_to_dict(self)
+
+    @classmethod
+    def from_dict(cls, data: Mapping, extra_sections: tuple[str, ...] = ()) -> RunConfig:
+        """From :meth:`to_dict`'s output; the ``info`` section and `extra_sections` are skipped."""
+        if not isinstance(data, Mapping):
+            raise ConfigError(f"a run configuration is a table of sections, got {type(data).__name__}")
+        return config_from_dict(cls, {k: v for k, v in data.items() if k not in (INFO_SECTION, *extra_sections)})
+
+    def with_options(self, **settings) -> RunConfig:
+        """A copy with settings given as ``section__name=value`` (None: keep), e.g.
+        ``loop__window_m=8.0``: how command-line options override a config file. The
+        settings of one section are applied together (checked once)."""
+        by_section: dict[str, dict] = {}
+        for key, value in settings.items():
+            if value is not None:
+                section, name = key.split("__")
+                by_section.setdefault(section, {})[name] = value
+        out = self
+        for section, values in by_section.items():
+            try:
+                out = replace(out, **{section: replace(getattr(out, section), **values)})
+            except ConfigError as exc:
+                raise ConfigError(f"{section}: {exc}") from None
+        return out
+
+
+def load_config_file(path: str | Path, extra_sections: tuple[str, ...] = ()) -> tuple[RunConfig, dict]:
+    """A :class:`RunConfig` from a JSON file (a run folder's ``config.json`` or one written by
+    ``--config``'s commands), and the `extra_sections` it holds. Errors name the file."""
+    from lunarloc.io.inputs import check_input_file
+
+    path = check_input_file(path, None, "run configuration")
+    try:
+        data = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"{path}: not a JSON run configuration ({exc})") from None
+    try:
+        cfg = RunConfig.from_dict(data, extra_sections)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+    return cfg, {k: data[k] for k in extra_sections if k in data}

@@ -1,1 +1,0 @@
-"""Data: traverse CSVs, `.lac` archives, playback agent, simulated site."""

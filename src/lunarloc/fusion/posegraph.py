@@ -1,0 +1,805 @@
+"""Fuse global localization fixes with odometry: a 4-DoF pose graph with self-calibration.
+
+Why ``scipy.optimize.least_squares`` and not GTSAM: GTSAM is on PyPI (``gtsam 4.3.0``,
+a 34 MB cp311 manylinux wheel that ``pip install --dry-run gtsam`` resolves here), but
+the factors this graph needs are not stock ones: 4-DoF poses with gravity-fixed roll and
+pitch, an odometry scale and a random-walk heading bias estimated with the trajectory,
+and detections tied to reference landmarks through the keyframe's odometry roll/pitch.
+In GTSAM they would be Python ``CustomFactor``s (a Python call per factor per iteration)
+or C++. The graph is small (hundreds to a few thousand 4-DoF nodes, re-solved over a
+sliding window of recent keyframes), and scipy's trust-region solver with a sparse
+Jacobian pattern (finite differences grouped by column colouring) re-solves it in tens
+of milliseconds, without another heavy binary dependency.
+
+Model (frames: ``ref`` = reference / world map frame; poses are of the rover body)
+------------------------------------------------------------------------------------
+State per keyframe ``i``: position ``p_i`` (m, ref frame), yaw ``psi_i`` (rad), and the
+gyro heading bias ``b_i`` (rad per second of motion); one global odometry scale ``k``.
+Roll and pitch are observable from gravity and are taken from odometry as they are
+(the localizer is gravity-aware), so the graph is 4-DoF (x, y, z, yaw).
+
+* Odometry edge ``i -> i+1``: ``Rz(-psi_i) (p_{i+1} - p_i) = k * d_i`` and
+  ``psi_{i+1} - psi_i = dpsi_i - b_i * tau_i``, where ``d_i`` is the odometry
+  displacement expressed in the odometry heading frame of ``i``, ``dpsi_i`` the odometry
+  yaw increment and ``tau_i`` the time spent moving. Sigmas grow with the step
+  (``sqrt(floor^2 + (rel * |d_i|)^2)`` and ``yaw_noise * sqrt(tau_i)``).
+* Bias random walk ``b_{i+1} - b_i ~ N(0, walk^2 tau_i)``; priors ``k ~ N(1, scale_sigma)``,
+  ``b_0 ~ N(0, bias_sigma)``; the first keyframe is anchored at the known start pose.
+* Fix at keyframe ``j`` (from :func:`lunarloc.localization.localize.localize`): ``p_j = p_fix`` and
+  ``psi_j = psi_fix`` with the fix's sigmas.
+* Landmark tie (the loop's default kind of fix): a detection ``p_rover`` made at keyframe
+  ``k`` is reference landmark ``r``: ``p_k + Rz(psi_k) R_rp p_rover = q_r + e_r`` with the
+  detection's own sigma (``observation_sigma_m``). ``q_r`` is the landmark's position as the
+  reference map states it and ``e_r ~ N(0, diag(s_xy^2, s_xy^2, s_z^2))`` its error, one
+  3-vector per reference landmark, in the state and *shared by every tie to it*
+  (:attr:`ReferenceErrorModel.SHARED`). A reference rock's error (a LAC grid's quantisation,
+  4.3 cm per axis for a one-cell rock) is the same for all n detections tied to it, so it
+  must count once per rock, not once per tie: tying each detection alone with a sigma that
+  includes it would weigh one biased rock n times. Marginalising ``e_r`` out gives the n
+  ties the covariance ``s_obs^2 I + s_ref^2 1 1^T`` per axis: their mean is known to
+  ``sqrt(s_obs^2 / n + s_ref^2)``, their differences (what constrains the relative poses,
+  the heading between keyframes) to ``s_obs``, as if the reference were exact.
+
+Code shape: the graph keeps one :class:`Keyframe` record per keyframe (time, odometry
+pose, estimate, bias, and the loop's frame, roll/pitch and detections), the fixes and the
+landmark observations. A solve builds the factors touching the free keyframes, one small
+class per kind (:class:`OdometryFactor`, :class:`BiasWalkFactor`, :class:`PriorFactor`,
+:class:`PoseFixFactor`, :class:`LandmarkFactor`), each vectorised over its instances and
+giving its residual and the state columns it reads (:class:`StateLayout`); the Jacobian
+sparsity is derived from those columns (:func:`jacobian_sparsity`), never written by hand.
+
+Estimating ``k`` and ``b`` is what keeps the trajectory right *between* fixes: after a
+few fixes the odometry is calibrated and the dead-reckoned prediction drifts far less.
+
+Gating: a fix is accepted only if its Mahalanobis distance to the current prediction
+of the keyframe is within the chi-square quantile (4 DoF). The predicted covariance is
+diagonal and grows with the distance and time travelled since the last accepted fix
+(:class:`GateConfig`), so a fix that disagrees with odometry beyond its uncertainty is
+rejected, while a long stretch without fixes widens the gate.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from lunarloc.core.errors import ConfigError, InputError
+
+log = logging.getLogger(__name__)
+log.addHandler(logging.NullHandler())
+
+__all__ = [
+    "OdometryNoise", "GateConfig", "ReferenceErrorModel", "FusionConfig", "Fix", "GateResult", "Keyframe",
+    "LandmarkObservation", "ReferenceLandmark", "StateLayout", "Factor", "OdometryFactor", "BiasWalkFactor",
+    "PriorFactor", "PoseFixFactor", "LandmarkFactor", "SharedLandmarkFactor", "robust_loss",
+    "jacobian_sparsity", "stacked_residual", "PoseGraph", "wrap_angle",
+]  # fmt: skip
+
+
+def wrap_angle(a):
+    """Wrap radians to [-pi, pi)."""
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+@dataclass(frozen=True)
+class OdometryNoise:
+    """Noise of the odometry edges and the calibration priors of the pose graph."""
+
+    trans_floor_m: float = 0.002  # translation sigma floor per edge (m)
+    trans_rel: float = 0.02  # translation sigma per metre of the edge (after scale calibration)
+    yaw_noise_rad_sqrt_s: float = 1e-3  # heading noise, rad per sqrt(second of motion)
+    yaw_floor_rad: float = 1e-4  # heading sigma floor per edge (rad)
+    scale_sigma: float = 0.05  # prior sigma of the odometry scale factor k around 1
+    bias_sigma_rad_s: float = 2e-3  # prior sigma of the initial heading bias (rad/s)
+    bias_walk_rad_s_sqrt_s: float = 1e-4  # heading bias random walk (rad/s per sqrt(s))
+    start_sigma_m: float = 0.01  # the first keyframe's position is known this well (m)
+    start_sigma_yaw_rad: float = 0.002  # ... and its yaw (rad)
+
+
+@dataclass(frozen=True)
+class GateConfig:
+    """Chi-square gate on fixes: predicted drift covariance grows with distance and time."""
+
+    enabled: bool = True
+    probability: float = 0.999  # chi-square quantile (4 DoF) a consistent fix stays within
+    base_sigma_m: float = 0.05  # position sigma right after an accepted fix (m)
+    rate_m_per_m: float = 0.05  # added position sigma per metre travelled since then (5 % of distance)
+    base_sigma_yaw_deg: float = 0.5  # yaw sigma right after an accepted fix
+    yaw_rate_deg_per_s: float = 0.05  # added yaw sigma per second since then (3 deg/min)
+    yaw_rate_deg_per_m: float = 0.5  # added yaw sigma per metre since then
+
+    def threshold(self) -> float:
+        from scipy.stats import chi2
+
+        return float(chi2.ppf(self.probability, 4))
+
+
+MIN_REFERENCE_SIGMA_M = 1e-4
+"""Floor of a shared reference error's sigma on an axis the map states exact (0) while others
+are not: keeps its prior finite."""
+
+
+class ReferenceErrorModel(str, enum.Enum):
+    """How the reference landmarks' own position error enters the landmark ties."""
+
+    SHARED = "shared"  # one error 3-vector per reference landmark, shared by its ties, prior its stated sigma
+    INDEPENDENT = "independent"  # each tie alone with observation_sigma_m; the reference's sigma is ignored
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    """Pose-graph fusion of fixes and odometry."""
+
+    noise: OdometryNoise = field(default_factory=OdometryNoise)
+    gate: GateConfig = field(default_factory=GateConfig)
+    calibrate: bool = True  # estimate the odometry scale and heading bias (else fixed to 1 and 0)
+    min_fix_sigma_m: float = 0.02  # floor of a fix's position sigma (m)
+    min_fix_sigma_yaw_deg: float = 0.2  # floor of a fix's yaw sigma
+    max_nfev: int = 50  # least-squares function evaluations per solve
+    loss: str = "soft_l1"  # robust loss of least_squares (residuals are in sigmas)
+    loss_scale: float = 3.0  # residuals beyond ~this many sigmas lose influence
+    observation_sigma_m: float = 0.05  # landmark tie: the detection's own error (m; INDEPENDENT: and the reference's)
+    reference_error: ReferenceErrorModel = ReferenceErrorModel.SHARED  # how a reference landmark's own error enters its ties
+
+    def __post_init__(self) -> None:
+        if not 0 < self.gate.probability < 1:
+            raise ConfigError("gate.probability must be in (0, 1)")
+        if self.min_fix_sigma_m <= 0 or self.min_fix_sigma_yaw_deg <= 0:
+            raise ConfigError("fix sigma floors must be positive")
+        o = self.observation_sigma_m
+        if isinstance(o, bool) or not isinstance(o, (int, float)) or not 0 < o < math.inf:
+            raise ConfigError(f"observation_sigma_m={o!r} must be positive and finite")
+        try:
+            object.__setattr__(self, "reference_error", ReferenceErrorModel(self.reference_error))
+        except ValueError:
+            raise ConfigError(f"reference_error={self.reference_error!r}: use one of "
+                              f"{', '.join(m.value for m in ReferenceErrorModel)}") from None  # fmt: skip
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class Fix:
+    """A global fix of keyframe `keyframe`: pose4 = (x, y, z, yaw) in the reference frame."""
+
+    keyframe: int
+    pose4: np.ndarray
+    sigma_m: float
+    sigma_yaw_rad: float
+
+
+@dataclass
+class GateResult:
+    accepted: bool
+    d2: float  # Mahalanobis distance squared
+    threshold: float
+    innovation: np.ndarray  # fix - prediction: (dx, dy, dz, dyaw) m, m, m, rad
+    predicted_sigma_m: float
+    predicted_sigma_yaw_rad: float
+
+
+@dataclass(eq=False)
+class Keyframe:
+    """One keyframe: the record the loop and the pose graph share.
+
+    Set by the graph: ``index``, ``t_s``, ``odo_pose4`` (odometry x, y, z m and yaw rad in the
+    odometry frame), ``moving_time_s`` (time moving since the previous keyframe),
+    ``distance_m`` (odometry distance from keyframe 0, summed keyframe to keyframe) and the
+    current estimate ``estimate_pose4`` (x, y, z, yaw in the map = reference frame) with the
+    heading bias ``bias_rad_s``, both rewritten by :meth:`PoseGraph.solve`.
+    Carried for the loop, unused by the graph: ``frame`` (its frame number),
+    ``roll_pitch_rad`` (odometry roll and pitch; gravity-fixed), ``detections_rover``
+    ((N, 3) rock centres in the rover frame) and ``path_m`` (the loop's odometry path
+    length, summed frame to frame, which differs from ``distance_m``).
+    """
+
+    index: int
+    t_s: float
+    odo_pose4: np.ndarray
+    estimate_pose4: np.ndarray
+    moving_time_s: float = 0.0
+    distance_m: float = 0.0
+    bias_rad_s: float = 0.0
+    frame: int | None = None
+    roll_pitch_rad: tuple[float, float] = (0.0, 0.0)
+    detections_rover: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    path_m: float | None = None
+
+    @property
+    def T_odo_rover(self) -> np.ndarray:
+        """(4, 4) odometry pose of the keyframe (``odo_pose4`` with its roll and pitch)."""
+        from lunarloc.core.geometry import pose_to_matrix
+
+        x, y, z, yaw = self.odo_pose4
+        return pose_to_matrix(x, y, z, self.roll_pitch_rad[0], self.roll_pitch_rad[1], yaw)
+
+    @property
+    def T_map_odo(self) -> np.ndarray:
+        """(4, 4) correction near this keyframe: maps odometry-frame points to the map frame
+        (rotation about z by the yaw correction about the origin, then the translation that
+        puts the odometry position on the estimate)."""
+        dpsi = float(wrap_angle(self.estimate_pose4[3] - self.odo_pose4[3]))
+        c, s = math.cos(dpsi), math.sin(dpsi)
+        T = np.eye(4)
+        T[:2, :2] = [[c, -s], [s, c]]
+        T[:3, 3] = self.estimate_pose4[:3] - T[:3, :3] @ self.odo_pose4[:3]
+        return T
+
+
+@dataclass
+class LandmarkObservation:
+    """Detection ``p_rover`` (rover frame, m) made at keyframe ``keyframe`` is the reference
+    landmark ``target_xyz`` (map frame, m); ``roll_pitch_rad`` is the keyframe's odometry
+    roll and pitch."""
+
+    keyframe: int
+    p_rover: np.ndarray
+    roll_pitch_rad: np.ndarray
+    target_xyz: np.ndarray
+    sigma_m: float
+    landmark: object = None  # the reference landmark's key (:class:`ReferenceLandmark`); None: tied alone
+
+
+@dataclass
+class ReferenceLandmark:
+    """A reference landmark that detections are tied to: its stated position ``target_xyz``
+    (map frame, m), the 1-sigma of that position per axis ``sigma_xyz`` (x, y, z; m), its index
+    ``index`` among the graph's reference landmarks (its columns in the state) and the current
+    estimate of its error ``offset_xyz`` (true = stated + offset), rewritten by every solve."""
+
+    index: int
+    target_xyz: np.ndarray
+    sigma_xyz: np.ndarray
+    offset_xyz: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+
+# ---------------------------------------------------------------------------- factors
+class StateLayout:
+    """Indices into the full state vector ``z`` of a graph of ``K`` keyframes and ``L``
+    reference landmarks: ``[x_0, y_0, z_0, psi_0, ..., x_{K-1}, ..., psi_{K-1}, b_0, ...,
+    b_{K-1}, k, e_0 (3), ..., e_{L-1} (3)]`` (``e_j`` the error of reference landmark j)."""
+
+    def __init__(self, num_keyframes: int, num_landmarks: int = 0):
+        self.K = int(num_keyframes)
+        self.L = int(num_landmarks)
+        self.size = 5 * self.K + 1 + 3 * self.L
+        self.scale = 5 * self.K
+
+    def landmark(self, j) -> np.ndarray:
+        """(n, 3) indices of the error (x, y, z) of reference landmarks ``j`` (n,)."""
+        return self.scale + 1 + 3 * np.asarray(j, int).reshape(-1, 1) + np.arange(3)
+
+    def pose(self, i) -> np.ndarray:
+        """(n, 4) indices of (x, y, z, yaw) of keyframes ``i`` (n,)."""
+        return 4 * np.asarray(i, int).reshape(-1, 1) + np.arange(4)
+
+    def bias(self, i) -> np.ndarray:
+        """(n,) indices of the heading biases of keyframes ``i``."""
+        return 4 * self.K + np.asarray(i, int).reshape(-1)
+
+    def active(self, first: int, calibrate: bool, landmarks=()) -> np.ndarray:
+        """Indices optimised when keyframes ``first..K-1`` and reference landmarks
+        `landmarks` are free (the rest held fixed)."""
+        idx = np.arange(4 * first, 4 * self.K)
+        if calibrate:
+            idx = np.r_[idx, np.arange(4 * self.K + first, 5 * self.K), self.scale]
+        if len(landmarks):
+            idx = np.r_[idx, self.landmark(landmarks).ravel()]
+        return idx
+
+
+class Factor:
+    """``n`` factors of one kind. ``columns`` (n, m) are the state indices factor ``i`` reads;
+    :meth:`residual` maps their values ``z[columns]`` (n, m) to (n, dim) residuals in sigmas.
+    The residual sees nothing but its columns, so the Jacobian sparsity derived from them
+    (:func:`jacobian_sparsity`) cannot miss a dependency. ``reads`` (dim, m), optional,
+    narrows which of the columns each residual row reads (fewer finite-difference groups);
+    ``tests/test_fusion.py`` checks it against a numerical Jacobian."""
+
+    dim: int = 0
+    reads: np.ndarray | None = None  # (dim, m) bool; None: every row reads every column
+    robust: bool = True  # False: a Gaussian prior, kept out of the robust loss (see :func:`robust_loss`)
+    columns: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.columns)
+
+    def residual(self, v: np.ndarray) -> np.ndarray:  # pragma: no cover - interface
+        raise NotImplementedError
+
+
+def _rotate_z(psi: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    """Rotate (n, 3) vectors by yaw ``psi`` (n,) about z."""
+    c, s = np.cos(psi), np.sin(psi)
+    return np.stack([c * xyz[:, 0] - s * xyz[:, 1], s * xyz[:, 0] + c * xyz[:, 1], xyz[:, 2]], axis=1)
+
+
+class OdometryFactor(Factor):
+    """Edge ``i -> j``: ``Rz(-psi_i)(p_j - p_i) = k d`` and ``psi_j - psi_i = dpsi - b_i tau``.
+    Columns: pose i (4), pose j (4), ``b_i``, ``k``."""
+
+    dim = 4
+    #                  x_i y_i z_i psi_i x_j y_j z_j psi_j b_i k
+    reads = np.array([[1, 1, 0, 1, 1, 1, 0, 0, 0, 1],  # along-track (heading frame of i)
+                      [1, 1, 0, 1, 1, 1, 0, 0, 0, 1],  # cross-track
+                      [0, 0, 1, 0, 0, 0, 1, 0, 0, 1],  # vertical
+                      [0, 0, 0, 1, 0, 0, 0, 1, 1, 0]], bool)  # yaw  # fmt: skip
+
+    def __init__(self, layout: StateLayout, i, odo_pose4: np.ndarray, moving_time_s, noise: OdometryNoise):
+        i = np.asarray(i, int).reshape(-1)
+        a, b = odo_pose4[i], odo_pose4[i + 1]
+        self.d = _rotate_z(-a[:, 3], b[:, :3] - a[:, :3])  # odometry step in the heading frame of i
+        self.dpsi = wrap_angle(b[:, 3] - a[:, 3])
+        self.tau = np.asarray(moving_time_s, float).reshape(-1)
+        self.sigma_m = np.sqrt(noise.trans_floor_m**2 + (noise.trans_rel * np.linalg.norm(self.d, axis=1)) ** 2)[:, None]
+        self.sigma_yaw = np.sqrt(noise.yaw_floor_rad**2 + noise.yaw_noise_rad_sqrt_s**2 * self.tau)
+        self.columns = np.column_stack([layout.pose(i), layout.pose(i + 1), layout.bias(i), np.full(len(i), layout.scale)])
+
+    def residual(self, v):
+        local = _rotate_z(-v[:, 3], v[:, 4:7] - v[:, 0:3])
+        k, bias = v[:, 9:10], v[:, 8]
+        dyaw = wrap_angle(v[:, 7] - v[:, 3] - (self.dpsi - bias * self.tau)) / self.sigma_yaw
+        return np.column_stack([(local - k * self.d) / self.sigma_m, dyaw])
+
+
+class BiasWalkFactor(Factor):
+    """Heading-bias random walk ``b_{i+1} - b_i ~ N(0, walk^2 tau)``. Columns: ``b_i``, ``b_{i+1}``."""
+
+    dim = 1
+
+    def __init__(self, layout: StateLayout, i, moving_time_s, noise: OdometryNoise):
+        i = np.asarray(i, int).reshape(-1)
+        self.sigma = noise.bias_walk_rad_s_sqrt_s * np.sqrt(np.maximum(np.asarray(moving_time_s, float), 1e-3))
+        self.columns = np.column_stack([layout.bias(i), layout.bias(i + 1)])
+
+    def residual(self, v):
+        return ((v[:, 1] - v[:, 0]) / self.sigma)[:, None]
+
+
+class PriorFactor(Factor):
+    """Gaussian prior ``z[c] ~ N(mean, sigma^2)`` on single state values (calibration priors:
+    the odometry scale, the first heading bias). Columns: the one value."""
+
+    dim = 1
+
+    def __init__(self, columns, mean, sigma, robust: bool = True):
+        self.columns = np.asarray(columns, int).reshape(-1, 1)
+        self.mean = np.asarray(mean, float).reshape(-1)
+        self.sigma = np.asarray(sigma, float).reshape(-1)
+        self.robust = robust
+
+    def residual(self, v):
+        return ((v[:, 0] - self.mean) / self.sigma)[:, None]
+
+
+class PoseFixFactor(Factor):
+    """Keyframe pose = a known (x, y, z, yaw) with position and yaw sigmas: a global fix, or
+    the anchor of the first keyframe at the start pose. Columns: the keyframe's pose (4)."""
+
+    dim = 4
+    reads = np.eye(4, dtype=bool)  # x, y, z, yaw each against its own value
+
+    def __init__(self, layout: StateLayout, keyframes, pose4, sigma_m, sigma_yaw_rad):
+        kf = np.asarray(keyframes, int).reshape(-1)
+        self.pose4 = np.asarray(pose4, float).reshape(-1, 4)
+        self.sigma_m = np.asarray(sigma_m, float).reshape(-1, 1)
+        self.sigma_yaw = np.asarray(sigma_yaw_rad, float).reshape(-1)
+        self.columns = layout.pose(kf)
+
+    def residual(self, v):
+        return np.column_stack([(v[:, :3] - self.pose4[:, :3]) / self.sigma_m,
+                                wrap_angle(v[:, 3] - self.pose4[:, 3]) / self.sigma_yaw])  # fmt: skip
+
+
+class LandmarkFactor(Factor):
+    """Detection ``p_rover`` at keyframe ``k`` is reference landmark ``target``:
+    ``p_k + Rz(psi_k) R_rp p_rover = target`` (``R_rp`` the keyframe's odometry roll/pitch,
+    applied once here). Columns: the keyframe's pose (4)."""
+
+    dim = 3
+    reads = np.array([[1, 0, 0, 1], [0, 1, 0, 1], [0, 0, 1, 0]], bool)  # x and y turn with yaw; z does not
+
+    def __init__(self, layout: StateLayout, keyframes, p_rover, roll_pitch_rad, targets, sigma_m):
+        kf = np.asarray(keyframes, int).reshape(-1)
+        p = np.asarray(p_rover, float).reshape(-1, 3)
+        rp = np.asarray(roll_pitch_rad, float).reshape(-1, 2)
+        # level the detection by roll and pitch: R = Rz(yaw) Ry(pitch) Rx(roll)
+        cr, sr, cp, sp = np.cos(rp[:, 0]), np.sin(rp[:, 0]), np.cos(rp[:, 1]), np.sin(rp[:, 1])
+        y1 = cr * p[:, 1] - sr * p[:, 2]
+        z1 = sr * p[:, 1] + cr * p[:, 2]
+        self.p_level = np.stack([cp * p[:, 0] + sp * z1, y1, -sp * p[:, 0] + cp * z1], axis=1)
+        self.targets = np.asarray(targets, float).reshape(-1, 3)
+        self.sigma_m = np.asarray(sigma_m, float).reshape(-1, 1)
+        self.columns = layout.pose(kf)
+
+    def residual(self, v):
+        return (_rotate_z(v[:, 3], self.p_level) + v[:, :3] - self.targets) / self.sigma_m
+
+
+class SharedLandmarkFactor(LandmarkFactor):
+    """Tie to a reference landmark whose error ``e`` is in the state, shared by all its ties:
+    ``p_k + Rz(psi_k) R_rp p_rover = target + e`` with the detection's own sigma. Columns: the
+    keyframe's pose (4), the landmark's error (3). Its prior ``e ~ N(0, sigma_ref^2)`` is a
+    :class:`PriorFactor` per component."""
+
+    #                  x  y  z  psi ex ey ez
+    reads = np.array([[1, 0, 0, 1, 1, 0, 0],
+                      [0, 1, 0, 1, 0, 1, 0],
+                      [0, 0, 1, 0, 0, 0, 1]], bool)  # fmt: skip
+
+    def __init__(self, layout: StateLayout, keyframes, landmarks, p_rover, roll_pitch_rad, targets, sigma_m):
+        super().__init__(layout, keyframes, p_rover, roll_pitch_rad, targets, sigma_m)
+        self.columns = np.column_stack([self.columns, layout.landmark(landmarks)])
+
+    def residual(self, v):
+        return (_rotate_z(v[:, 3], self.p_level) + v[:, :3] - self.targets - v[:, 4:7]) / self.sigma_m
+
+
+def jacobian_sparsity(factors: list[Factor], active: np.ndarray, state_size: int):
+    """(rows, len(active)) CSR pattern: residual row ``c`` of factor ``i`` depends on the
+    active ones of ``columns[i]`` (those ``reads[c]`` selects), nothing else."""
+    from scipy.sparse import coo_matrix
+
+    col_of = np.full(state_size, -1)
+    col_of[active] = np.arange(len(active))
+    rows, cols, r0 = [], [], 0
+    for f in factors:
+        n, m = f.columns.shape
+        reads = np.ones((f.dim, m), bool) if f.reads is None else f.reads
+        c, j = np.nonzero(reads)  # row within the factor, column it reads
+        rows.append((r0 + f.dim * np.arange(n)[:, None] + c).ravel())
+        cols.append(col_of[f.columns[:, j]].ravel())
+        r0 += n * f.dim
+    rr, cc = np.concatenate(rows), np.concatenate(cols)
+    keep = cc >= 0
+    S = coo_matrix((np.ones(int(keep.sum())), (rr[keep], cc[keep])), shape=(r0, len(active))).tocsr()
+    S.data[:] = 1.0
+    return S
+
+
+def _loss_rho(name: str, z: np.ndarray) -> np.ndarray:
+    """(3, n) rho(z), rho'(z), rho''(z) of scipy's named robust losses (z = squared scaled residual)."""
+    if name == "linear":
+        return np.stack([z, np.ones_like(z), np.zeros_like(z)])
+    if name == "soft_l1":
+        t = 1 + z
+        return np.stack([2 * (t**0.5 - 1), t**-0.5, -0.5 * t**-1.5])
+    if name == "huber":
+        big = z > 1
+        r = np.sqrt(np.where(big, z, 1.0))
+        return np.stack([np.where(big, 2 * r - 1, z), np.where(big, 1 / r, 1.0), np.where(big, -0.5 / r**3, 0.0)])
+    if name == "cauchy":
+        t = 1 + z
+        return np.stack([np.log1p(z), 1 / t, -1 / t**2])
+    if name == "arctan":
+        t = 1 + z**2
+        return np.stack([np.arctan(z), 1 / t, -2 * z / t**2])
+    raise ConfigError(f"loss={name!r}: use one of linear, soft_l1, huber, cauchy, arctan")
+
+
+def robust_loss(factors: list[Factor], name: str):
+    """The ``loss`` argument of ``least_squares`` for `factors`: the named robust loss on every
+    residual, except the rows of factors that are Gaussian priors (``robust = False``: a prior
+    is no measurement that can be an outlier; robust, a reference rock's error would grow
+    cheaply and let the trajectory wander with its rocks), which stay quadratic. Just `name`
+    when every factor is robust."""
+    mask = np.concatenate([np.full(len(f) * f.dim, f.robust) for f in factors]) if factors else np.zeros(0, bool)
+    if mask.all():
+        return name
+
+    def loss(z):
+        out = _loss_rho(name, z)
+        out[:, ~mask] = _loss_rho("linear", z[~mask])
+        return out
+
+    return loss
+
+
+def stacked_residual(factors: list[Factor], z: np.ndarray) -> np.ndarray:
+    """All factors' residuals at full state ``z``, factor by factor, row-major."""
+    return np.concatenate([f.residual(z[f.columns]).ravel() for f in factors])
+
+
+# ---------------------------------------------------------------------------- the graph
+class PoseGraph:
+    """Incremental 4-DoF pose graph (see module docstring).
+
+    Use: ``add_keyframe`` for every keyframe (odometry pose, time), ``gate`` and
+    ``add_fix`` when a localization succeeds (or ``add_landmark_observations``), ``solve``
+    to re-optimise; ``keyframes`` holds one :class:`Keyframe` record each, ``poses()`` the
+    current (x, y, z, yaw) of every keyframe as an array.
+    """
+
+    def __init__(self, config: FusionConfig | None = None):
+        self.config = config or FusionConfig()
+        self.keyframes: list[Keyframe] = []
+        self.scale = 1.0
+        self.fixes: list[Fix] = []
+        self.observations: dict = {}  # key -> LandmarkObservation
+        self.reference_landmarks: dict = {}  # landmark key -> ReferenceLandmark (SHARED ties)
+        self._last_fix_dist = 0.0
+        self._last_fix_time = 0.0
+        self.num_solves = 0
+
+    # ------------------------------------------------------------------ building
+    def __len__(self) -> int:
+        return len(self.keyframes)
+
+    def add_keyframe(self, t: float, odo_pose4, moving_time_s: float | None = None, *, frame: int | None = None,
+                     roll_pitch_rad=(0.0, 0.0), detections_rover=None, path_m: float | None = None) -> int:  # fmt: skip
+        """Add a keyframe at time `t` (s) with odometry pose (x, y, z, yaw); returns its index.
+
+        The new keyframe's estimate is the last estimate propagated by the calibrated
+        odometry increment. `moving_time_s` is the time spent moving since the previous
+        keyframe (default: the elapsed time). `frame`, `roll_pitch_rad`, `detections_rover`
+        and `path_m` are carried in the :class:`Keyframe` record for the loop.
+        """
+        q = np.array(odo_pose4, float).reshape(4)
+        if not np.all(np.isfinite(q)):
+            raise InputError("odometry pose must be finite")
+        n = len(self.keyframes)
+        prev = self.keyframes[-1] if n else None
+        if prev is not None and t < prev.t_s:
+            raise InputError(f"keyframe time {t} is before the previous one {prev.t_s}")
+        det = np.zeros((0, 3)) if detections_rover is None else np.asarray(detections_rover, float).reshape(-1, 3)
+        rp = (float(roll_pitch_rad[0]), float(roll_pitch_rad[1]))
+        if prev is None:
+            kf = Keyframe(0, float(t), q, q.copy(), 0.0, 0.0, 0.0, frame, rp, det, path_m)
+        else:
+            tau = float(t - prev.t_s if moving_time_s is None else moving_time_s)
+            c, s = math.cos(prev.odo_pose4[3]), math.sin(prev.odo_pose4[3])
+            dx, dy, dz = q[:3] - prev.odo_pose4[:3]
+            d = np.array([c * dx + s * dy, -s * dx + c * dy, dz])  # odometry step in the heading frame
+            dpsi = float(wrap_angle(q[3] - prev.odo_pose4[3]))
+            e, b = prev.estimate_pose4, prev.bias_rad_s
+            c, s = math.cos(e[3]), math.sin(e[3])
+            kd = self.scale * d
+            new = np.empty(4)
+            new[:3] = e[:3] + np.array([c * kd[0] - s * kd[1], s * kd[0] + c * kd[1], kd[2]])
+            new[3] = float(wrap_angle(e[3] + dpsi - b * tau))
+            dist = prev.distance_m + float(np.linalg.norm(d))
+            kf = Keyframe(n, float(t), q, new, tau, dist, b, frame, rp, det, path_m)
+        self.keyframes.append(kf)
+        return n
+
+    # ------------------------------------------------------------------ queries
+    def poses(self) -> np.ndarray:
+        """(K, 4) current estimates (x, y, z, yaw) of all keyframes (map frame)."""
+        return np.array([kf.estimate_pose4 for kf in self.keyframes]).reshape(-1, 4)
+
+    def pose(self, i: int) -> np.ndarray:
+        return self.keyframes[i].estimate_pose4.copy()
+
+    @property
+    def biases(self) -> np.ndarray:
+        return np.array([kf.bias_rad_s for kf in self.keyframes])
+
+    def distance(self, i: int) -> float:
+        """Odometry distance travelled (m) up to keyframe i."""
+        return self.keyframes[i].distance_m
+
+    def distance_since_fix(self, i: int) -> float:
+        """Odometry distance (m) from the last fix (or the start) to keyframe i: what the gate's
+        drift model grows with."""
+        return max(self.keyframes[i].distance_m - self._last_fix_dist, 0.0)
+
+    def predicted_sigma(self, i: int) -> tuple[float, float]:
+        """Gate model: (position sigma m, yaw sigma rad) of keyframe i's prediction."""
+        g = self.config.gate
+        dd = max(self.keyframes[i].distance_m - self._last_fix_dist, 0.0)
+        dt = max(self.keyframes[i].t_s - self._last_fix_time, 0.0)
+        yaw = math.radians(math.hypot(g.base_sigma_yaw_deg, g.yaw_rate_deg_per_s * dt + g.yaw_rate_deg_per_m * dd))
+        # heading uncertainty swings the position sideways by about yaw * distance / 2
+        pos = math.sqrt(g.base_sigma_m**2 + (g.rate_m_per_m * dd) ** 2 + (0.5 * yaw * dd) ** 2)
+        return pos, yaw
+
+    # ------------------------------------------------------------------ fixes
+    def _fix_sigmas(self, sigma_m: float, sigma_yaw_rad: float) -> tuple[float, float]:
+        c = self.config
+        return max(float(sigma_m), c.min_fix_sigma_m), max(float(sigma_yaw_rad), math.radians(c.min_fix_sigma_yaw_deg))
+
+    def gate(self, i: int, pose4, sigma_m: float, sigma_yaw_rad: float) -> GateResult:
+        """Chi-square test of a fix of keyframe i against its current prediction."""
+        q = np.asarray(pose4, float).reshape(4)
+        sm, sy = self._fix_sigmas(sigma_m, sigma_yaw_rad)
+        pm, py = self.predicted_sigma(i)
+        innov = q - self.keyframes[i].estimate_pose4
+        innov[3] = float(wrap_angle(innov[3]))
+        var = np.array([pm**2 + sm**2] * 3 + [py**2 + sy**2])
+        d2 = float(np.sum(innov**2 / var))
+        thr = self.config.gate.threshold()
+        ok = (d2 <= thr) or not self.config.gate.enabled
+        return GateResult(bool(ok), d2, thr, innov, pm, py)
+
+    def _fixed_at(self, i: int) -> None:
+        """A fix or observation at keyframe i restarts the gate's drift model there."""
+        kf = self.keyframes[i]
+        if kf.distance_m >= self._last_fix_dist:
+            self._last_fix_dist, self._last_fix_time = kf.distance_m, kf.t_s
+
+    def add_fix(self, i: int, pose4, sigma_m: float, sigma_yaw_rad: float) -> None:
+        """Add a (gated) fix of keyframe i; call :meth:`solve` afterwards."""
+        if not 0 <= i < len(self):
+            raise InputError(f"no keyframe {i}")
+        sm, sy = self._fix_sigmas(sigma_m, sigma_yaw_rad)
+        self.fixes.append(Fix(i, np.asarray(pose4, float).reshape(4), sm, sy))
+        self._fixed_at(i)
+
+    def add_landmark_observations(self, keys, keyframes, p_rover, roll_pitch, targets, sigma_m: float,
+                                  landmarks=None, landmark_sigma_xyz=None) -> None:  # fmt: skip
+        """Landmark fixes: detection ``p_rover`` (rover frame) made at keyframe ``k`` is the
+        reference landmark ``target`` (map frame). Residual ``T_k(p_rover) - target`` with
+        ``T_k`` = (x, y, z, yaw) of the keyframe and its odometry roll/pitch, in units of the
+        detection's sigma `sigma_m`. `keys` (hashable, one per observation) de-duplicate: a
+        detection re-associated by a later window replaces its earlier constraint.
+
+        `landmarks` (hashable, one per observation: which reference landmark it is tied to) and
+        `landmark_sigma_xyz` ((n, 3) or (n,): that landmark's 1-sigma per axis, m) model the
+        reference's own error once per landmark (``FusionConfig.reference_error`` SHARED, see
+        the module docstring); without them, or with INDEPENDENT, each tie stands alone.
+        Call :meth:`solve` afterwards.
+        """
+        kf = np.asarray(keyframes, int).reshape(-1)
+        P = np.asarray(p_rover, float).reshape(-1, 3)
+        RP = np.asarray(roll_pitch, float).reshape(-1, 2)
+        Q = np.asarray(targets, float).reshape(-1, 3)
+        if not (len(kf) == len(P) == len(RP) == len(Q) == len(keys)):
+            raise InputError("landmark observations: arrays of different lengths")
+        if len(kf) and (kf.min() < 0 or kf.max() >= len(self)):
+            raise InputError("landmark observation of an unknown keyframe")
+        shared = landmarks is not None and self.config.reference_error is ReferenceErrorModel.SHARED
+        if landmarks is not None:
+            landmarks = list(landmarks)
+            if landmark_sigma_xyz is None:
+                raise InputError("landmark observations: landmarks given without landmark_sigma_xyz")
+            S = np.asarray(landmark_sigma_xyz, float)
+            S = np.repeat(S.reshape(-1, 1), 3, axis=1) if S.ndim == 1 else S.reshape(-1, 3)
+            if not len(landmarks) == len(S) == len(kf):
+                raise InputError("landmark observations: arrays of different lengths")
+            if not np.all(np.isfinite(S) & (S >= 0)):
+                raise InputError("landmark observations: reference sigmas must be finite and >= 0")
+        for n, (key, k, p, rp, q) in enumerate(zip(keys, kf, P, RP, Q)):
+            lm = None
+            if shared and np.any(S[n] > 0):  # a landmark stated exact (sigma 0) is tied alone
+                lm = landmarks[n]
+                ref = self.reference_landmarks.get(lm)
+                if ref is None:
+                    sig = np.maximum(S[n], MIN_REFERENCE_SIGMA_M)
+                    self.reference_landmarks[lm] = ReferenceLandmark(len(self.reference_landmarks), q.copy(), sig)
+                elif not np.allclose(ref.target_xyz, q):
+                    raise InputError(f"reference landmark {lm!r} tied at two different positions")
+            self.observations[key] = LandmarkObservation(int(k), p, rp, q, float(sigma_m), lm)
+        if len(kf):
+            self._fixed_at(int(kf.max()))
+
+    @property
+    def num_observations(self) -> int:
+        return len(self.observations)
+
+    # ------------------------------------------------------------------ optimisation
+    def first_active(self, active_window_m: float | None) -> int:
+        """First keyframe free in a solve over the last `active_window_m` metres (None: all)."""
+        if active_window_m is None:
+            return 0
+        dist = np.array([kf.distance_m for kf in self.keyframes])
+        return min(int(np.searchsorted(dist, dist[-1] - active_window_m)), len(self) - 1)
+
+    def factors(self, first: int = 0) -> list[Factor]:
+        """The factors touching keyframes ``first..K-1`` (older ones are held fixed)."""
+        K, nz, calib = len(self), self.config.noise, self.config.calibrate
+        L = StateLayout(K, len(self.reference_landmarks))
+        kfs = self.keyframes
+        e = np.arange(max(first - 1, 0), K - 1)  # odometry edges e -> e+1 touching a free keyframe
+        odo = np.array([kf.odo_pose4 for kf in kfs])
+        tau = np.array([kfs[i + 1].moving_time_s for i in e])
+        out: list[Factor] = [OdometryFactor(L, e, odo, tau, nz)]
+        if first == 0:
+            out.append(PoseFixFactor(L, [0], odo[0], nz.start_sigma_m, nz.start_sigma_yaw_rad))
+        fixes = [f for f in self.fixes if f.keyframe >= first]
+        if fixes:
+            out.append(PoseFixFactor(L, [f.keyframe for f in fixes], [f.pose4 for f in fixes],
+                                     [f.sigma_m for f in fixes], [f.sigma_yaw_rad for f in fixes]))  # fmt: skip
+        obs = [o for o in self.observations.values() if o.keyframe >= first and o.landmark is None]
+        if obs:
+            out.append(LandmarkFactor(L, [o.keyframe for o in obs], [o.p_rover for o in obs],
+                                      [o.roll_pitch_rad for o in obs], [o.target_xyz for o in obs],
+                                      [o.sigma_m for o in obs]))  # fmt: skip
+        out += self._shared_factors(L, first)
+        if calib:
+            out.append(BiasWalkFactor(L, e, tau, nz))
+            out.append(PriorFactor([L.scale], 1.0, nz.scale_sigma))
+            if first == 0:
+                out.append(PriorFactor(L.bias([0]), 0.0, nz.bias_sigma_rad_s))
+        return out
+
+    def free_landmarks(self, first: int = 0) -> list[int]:
+        """Indices of the reference landmarks a solve from keyframe `first` frees: those tied
+        to a free keyframe."""
+        return sorted({self.reference_landmarks[o.landmark].index for o in self.observations.values()
+                       if o.landmark is not None and o.keyframe >= first})  # fmt: skip
+
+    def _shared_factors(self, L: StateLayout, first: int) -> list[Factor]:
+        """Ties to the reference landmarks a solve frees (with their ties from held keyframes
+        too, which pin the landmark's error where the earlier trajectory put it) and the
+        landmarks' priors ``e ~ N(0, sigma_ref^2)``."""
+        free = set(self.free_landmarks(first))
+        if not free:
+            return []
+        refs = self.reference_landmarks
+        obs = [o for o in self.observations.values() if o.landmark is not None and refs[o.landmark].index in free]
+        ties = SharedLandmarkFactor(L, [o.keyframe for o in obs], [refs[o.landmark].index for o in obs],
+                                    [o.p_rover for o in obs], [o.roll_pitch_rad for o in obs],
+                                    [o.target_xyz for o in obs], [o.sigma_m for o in obs])  # fmt: skip
+        lms = [r for r in refs.values() if r.index in free]
+        prior = PriorFactor(L.landmark([r.index for r in lms]).ravel(), 0.0,
+                            np.concatenate([r.sigma_xyz for r in lms]), robust=False)  # fmt: skip
+        return [ties, prior]
+
+    def state(self) -> np.ndarray:
+        """Full state vector (see :class:`StateLayout`); without calibration the biases are 0
+        and the scale 1."""
+        calib = self.config.calibrate
+        b = [kf.bias_rad_s if calib else 0.0 for kf in self.keyframes]
+        e = np.zeros((len(self.reference_landmarks), 3))
+        for r in self.reference_landmarks.values():
+            e[r.index] = r.offset_xyz
+        return np.r_[self.poses().ravel(), b, self.scale if calib else 1.0, e.ravel()]
+
+    def solve(self, active_window_m: float | None = None) -> float:
+        """Re-optimise the keyframes (all, or those within `active_window_m` metres of
+        travel of the newest; older ones are held fixed). Returns the final cost; a no-op
+        without fixes or landmark observations."""
+        if (not self.fixes and not self.observations) or len(self) < 2:
+            return 0.0
+        from scipy.optimize import least_squares
+
+        cfg = self.config
+        first = self.first_active(active_window_m)
+        layout = StateLayout(len(self), len(self.reference_landmarks))
+        factors = self.factors(first)
+        active = layout.active(first, cfg.calibrate, self.free_landmarks(first))
+        z = self.state()
+
+        def fun(x):
+            z[active] = x
+            return stacked_residual(factors, z)
+
+        res = least_squares(fun, z[active].copy(), jac_sparsity=jacobian_sparsity(factors, active, layout.size),
+                            method="trf", x_scale="jac", max_nfev=cfg.max_nfev, loss=robust_loss(factors, cfg.loss),
+                            f_scale=cfg.loss_scale, ftol=1e-8, xtol=1e-8, gtol=1e-8)  # fmt: skip
+        z[active] = res.x
+        self._write_back(z, layout)
+        self.num_solves += 1
+        log.debug("pose graph: %d keyframes (%d active), %d factors (%s), cost %.3g, scale %.4f",
+                  len(self), len(self) - first, sum(len(f) for f in factors),
+                  ", ".join(f"{type(f).__name__} {len(f)}" for f in factors), res.cost, self.scale)  # fmt: skip
+        return float(res.cost)
+
+    def _write_back(self, z: np.ndarray, layout: StateLayout) -> None:
+        P = z[: 4 * layout.K].reshape(-1, 4).copy()
+        P[:, 3] = wrap_angle(P[:, 3])
+        calib = self.config.calibrate
+        B = z[layout.bias(np.arange(layout.K))]
+        for kf, p, b in zip(self.keyframes, P, B):
+            kf.estimate_pose4 = p
+            if calib:
+                kf.bias_rad_s = float(b)
+        if calib:
+            self.scale = float(z[layout.scale])
+        for r in self.reference_landmarks.values():
+            r.offset_xyz = z[layout.landmark(r.index)[0]].copy()
+
+    # ------------------------------------------------------------------ interpolation
+    def corrections(self) -> np.ndarray:
+        """(K, 4) per-keyframe correction ``estimate - odometry`` as (dx, dy, dz, dyaw) applied
+        about the odometry position: see :meth:`correction_transforms`."""
+        return np.array([kf.estimate_pose4 - kf.odo_pose4 for kf in self.keyframes]).reshape(-1, 4)
+
+    def correction_transforms(self) -> np.ndarray:
+        """(K, 4, 4) ``T_map_odo`` per keyframe (:attr:`Keyframe.T_map_odo`)."""
+        return np.array([kf.T_map_odo for kf in self.keyframes]).reshape(-1, 4, 4)

@@ -1,0 +1,1 @@
+"""LAC archives (the Lunar Autonomy Challenge recorder's format) and the playback agent."""

@@ -1,0 +1,222 @@
+"""Global localization in a large reference map without a prior (lost in space).
+
+``localize_large(reference, vehicle, config, index_config, search=...)``:
+
+1. **Index** the reference's rock triangles (:class:`lunarloc.association.index.ReferenceIndex`,
+   O(N_ref); pass a prebuilt ``index`` to reuse it for every vehicle map).
+2. **Vote**: the vehicle map's triangles look up matching reference triangles; each
+   match votes for a pose; the best-supported poses are the candidate regions.
+3. **Exact search on crops**: the reference cropped around each candidate region goes
+   through the ordinary :func:`lunarloc.localization.localize.localize` (exact maximum clique over
+   yaw bins, registration, every verification check), so the answer is exactly as
+   trustworthy as on a small map.
+4. **Judge globally**: the winner's inliers must beat what chance produces against the
+   WHOLE reference (the chance envelope at n_veh x n_ref associations, not the crop's),
+   and the best competing candidate region must be clearly smaller
+   (``competitor_ratio``), else the answer is refused as ambiguous.
+
+``search="full"`` is the plain :func:`localize` on the whole map; ``"auto"`` uses the
+index when the reference holds at least ``IndexConfig.auto_min_reference`` rocks (and the
+mode is gravity-aware).
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lunarloc.association.index import IndexConfig, ReferenceIndex
+from lunarloc.core.errors import ConfigError
+from lunarloc.core.geometry import yaw_of
+from lunarloc.localization.localize import (
+    Check, LocalizationConfig, LocalizationResult, Mode, _check_map, chance_clique_size, localize,
+)
+from lunarloc.io.maps import LandmarkMap
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Search", "LargeResult", "localize_large", "build_index"]
+
+
+class Search(str, enum.Enum):
+    """How the reference map is searched."""
+
+    AUTO = "auto"  # indexed for large references (gravity mode), full otherwise
+    FULL = "full"  # every association against the whole reference (exact, quadratic)
+    INDEXED = "indexed"  # constellation index -> candidate regions -> exact search on crops
+
+
+@dataclass
+class LargeResult(LocalizationResult):
+    """A :class:`LocalizationResult` plus how the indexed search got there.
+
+    search : "full" or "indexed" (what ran).
+    candidates : per candidate region checked: its vote pose and votes, the crop size,
+        and the exact search's outcome there (inliers, clique, reason).
+    winner : index into `candidates` of the answer (-1: none).
+    considered : associations considered in all (triangle lookups + the crops' putative
+        associations); n_veh x n_ref for the full search.
+    """
+
+    search: str = "full"
+    candidates: list = field(default_factory=list)
+    winner: int = -1
+    considered: int = 0
+
+    def to_dict(self) -> dict:
+        d = super().to_dict()
+        d.update(search=self.search, candidates=self.candidates, winner=self.winner, considered=self.considered)
+        return d
+
+
+def build_index(reference: LandmarkMap, config: LocalizationConfig | None = None,
+                index_config: IndexConfig | None = None, vehicle: LandmarkMap | None = None) -> ReferenceIndex:
+    """The constellation index of `reference` for localization with `config`, at the
+    search's tolerance: `config`'s epsilon raised to what the maps' uncertainty needs
+    (:meth:`LocalizationConfig.for_maps`; without `vehicle`, a vehicle map that states no
+    sigma of its own). :func:`localize_large` rebuilds an index whose tolerance is not the
+    one the pair needs."""
+    cfg = config or LocalizationConfig()
+    P = _check_map(reference, "reference")
+    return ReferenceIndex(P, _index_epsilon(reference, vehicle, cfg), index_config)
+
+
+def _index_epsilon(reference: LandmarkMap, vehicle: LandmarkMap | None, cfg: LocalizationConfig) -> float:
+    """The horizontal search tolerance of this pair of maps (the vehicle map stating no
+    sigma when it is not given): what the triangle sides are compared at."""
+    if vehicle is None:
+        vehicle = LandmarkMap(reference.positions_xyz[:1])  # no stated sigma: the config's landmark sigma
+    return cfg.for_maps(reference, vehicle).epsilon_m
+
+
+def _from(res: LocalizationResult, **extra) -> LargeResult:
+    base = {k: getattr(res, k) for k in LocalizationResult.__dataclass_fields__}
+    return LargeResult(**base, **extra)
+
+
+def localize_large(
+    reference: LandmarkMap,
+    vehicle: LandmarkMap,
+    config: LocalizationConfig | None = None,
+    index_config: IndexConfig | None = None,
+    *,
+    search: Search | str = Search.AUTO,
+    index: ReferenceIndex | None = None,
+    query_xyz: np.ndarray | None = None,
+    path_xyz: np.ndarray | None = None,
+) -> LargeResult:
+    """Find ``T_ref_veh`` of `vehicle` in a possibly very large `reference` (see the
+    module docstring). Inputs are checked as by :func:`localize`; a failure to localize
+    is ``success=False`` with a reason, never an exception. `query_xyz` and `path_xyz`
+    (vehicle frame) are passed to every :func:`localize` call: where the pose is judged,
+    and the odometry path that built the vehicle map."""
+    cfg = config or LocalizationConfig()
+    icfg = index.config if index is not None else (index_config or IndexConfig())
+    try:
+        search = Search(search)
+    except ValueError:
+        raise ConfigError(f"search must be one of {[s.value for s in Search]}, got {search!r}") from None
+    Pr = _check_map(reference, "reference")
+    Pv = _check_map(vehicle, "vehicle")
+    if search is Search.AUTO:
+        search = Search.INDEXED if (len(Pr) >= icfg.auto_min_reference and cfg.mode is Mode.GRAVITY) else Search.FULL
+    if search is Search.FULL:
+        return _from(localize(reference, vehicle, cfg, query_xyz=query_xyz, path_xyz=path_xyz), search="full",
+                     considered=len(Pr) * len(Pv))
+    if cfg.mode is not Mode.GRAVITY:
+        raise ConfigError("the indexed search needs the gravity-aware mode (rover maps levelled by the IMU)")
+    if index is not None and (len(index.xyz) != len(Pr) or not np.array_equal(index.xyz, Pr)):
+        raise ConfigError("the given index was built for another reference map")
+
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    fm = cfg.for_maps(reference, vehicle)  # the crops' search runs at the maps' tolerances: so do the index and chance
+    if index is None or not math.isclose(index.epsilon_m, fm.epsilon_m, rel_tol=1e-9):
+        if index is not None:
+            log.info("localize_large: index built at %.4f m, the maps need %.4f m: rebuilt", index.epsilon_m, fm.epsilon_m)
+        index = ReferenceIndex(Pr, fm.epsilon_m, icfg)
+    timings["index"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    votes = index.vote(Pv, fm.epsilon_z_m, math.tan(math.radians(cfg.max_tilt_deg)))
+    timings["vote"] = time.perf_counter() - t0
+
+    m_full = len(Pr) * len(Pv)
+    required = max(cfg.min_inliers, int(math.ceil(
+        chance_clique_size(m_full, cfg.mode, fm.epsilon_m, fm.epsilon_z_m) + cfg.chance_margin)))
+    considered = votes.lookups
+    results: list[LocalizationResult] = []
+    rows: list[dict] = []
+    t0 = time.perf_counter()
+    for cand in votes.candidates:
+        if any(r is not None and r.success for r in results) and (
+                cand.votes < icfg.competitor_vote_ratio * votes.candidates[0].votes):
+            # too few votes to compete: votes grow as the cube of a region's consistent
+            # set, so a region with 1/competitor_ratio of the inliers has ~30 % of the votes
+            rows.append({**cand.to_dict(), "checked": False})
+            results.append(None)
+            continue
+        crop = index.crop(Pv, votes.centre_xy, cand)
+        row = {**cand.to_dict(), "checked": True, "crop_rocks": int(len(crop))}
+        if len(crop) < 3:
+            row.update(success=False, inliers=0, clique=0, reason="fewer than 3 rocks in the crop")
+            rows.append(row)
+            results.append(None)
+            continue
+        r = localize(reference.subset(crop), vehicle, cfg, query_xyz=query_xyz, path_xyz=path_xyz)
+        considered += r.num_associations
+        if len(r.inliers):
+            r.inliers = np.c_[r.inliers[:, 0], crop[r.inliers[:, 1]]]
+        row.update(success=bool(r.success), inliers=r.num_inliers, clique=r.clique_size, reason=r.reason)
+        rows.append(row)
+        results.append(r)
+    timings["exact"] = time.perf_counter() - t0
+
+    done = [(i, r) for i, r in enumerate(results) if r is not None]
+    if not done:
+        why = ("no candidate region: no vehicle triangle matched the reference index" if not votes.matches
+               else f"no candidate region with {icfg.min_votes} or more votes ({votes.matches} triangle matches)")
+        return LargeResult(False, np.full((4, 4), np.nan), np.zeros((0, 2), int), float("nan"), why,
+                           required_inliers=required, num_associations=m_full, timings=timings,
+                           search="indexed", candidates=rows, considered=considered)
+    # winner: a verified answer first, then the largest inlier set
+    w, best = max(done, key=lambda ir: (ir[1].success, ir[1].num_inliers, ir[1].clique_size))
+    competitor = best.competitor_size
+    for i, r in done:
+        if i != w and not _same_pose(r, best, cfg):
+            competitor = max(competitor, r.clique_size)
+    out = _from(best, search="indexed", candidates=rows, winner=w, considered=considered)
+    out.timings = timings
+    out.required_inliers = max(required, best.required_inliers)
+    out.num_associations = m_full
+    out.competitor_size = int(competitor)
+    k = out.num_inliers
+    ok_chance, ok_margin = k >= out.required_inliers, k >= cfg.competitor_ratio * competitor
+    whole = [  # the chance and margin checks again, against the whole reference
+        Check("inliers_vs_chance_whole_reference", k, out.required_inliers, ok_chance, ">=",
+              "inliers against the chance envelope of the whole reference" if ok_chance else
+              f"{k} inliers is too few to beat chance in the whole reference ({m_full} associations; "
+              f"need {out.required_inliers})"),
+        Check("winner_margin_regions", k, cfg.competitor_ratio * competitor, ok_margin, ">=",
+              "inliers against the best competing candidate region" if ok_margin else
+              f"ambiguous: {k} inliers vs a competing candidate region with {competitor}"),
+    ]
+    out.checks = list(out.checks) + whole
+    if out.success and not all(c.passed for c in whole):
+        out.success = False
+        out.reason = next(c.detail for c in whole if not c.passed)
+    log.info("localize_large: %s (candidate %d of %d)", out.reason, w, len(rows))
+    return out
+
+
+def _same_pose(a: LocalizationResult, b: LocalizationResult, cfg: LocalizationConfig) -> bool:
+    """Two answers that are the same hypothesis (overlapping candidate crops)."""
+    if not (np.all(np.isfinite(a.T_ref_veh)) and np.all(np.isfinite(b.T_ref_veh))):
+        return False
+    dyaw = abs((yaw_of(a.T_ref_veh[:3, :3]) - yaw_of(b.T_ref_veh[:3, :3]) + math.pi) % (2 * math.pi) - math.pi)
+    return bool(np.linalg.norm(a.T_ref_veh[:2, 3] - b.T_ref_veh[:2, 3]) < 1.0
+                and dyaw < math.radians(cfg.competitor_yaw_sep_deg))

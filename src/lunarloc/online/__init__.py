@@ -1,0 +1,1 @@
+"""Localization over time: the online loop's state and the per-tick component an agent calls."""

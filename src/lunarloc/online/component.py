@@ -1,0 +1,531 @@
+"""The online localizer as a component a Lunar Autonomy Challenge agent calls every tick.
+
+::
+
+    from lunarloc import OnlineLocalizer, PlaybackAgent, load_reference
+    agent = PlaybackAgent("traverse.lac")
+    loc = OnlineLocalizer(load_reference("map.csv"), initial_pose=agent.get_initial_position(),
+                          rig=CameraRig.from_sensors(agent.sensors()))
+    loc.warm_up()                      # compile/caches before the mission clock starts
+    while not agent.at_end():
+        est = loc.update(agent.get_mission_time(), agent.input_data(), agent.get_imu_data(),
+                         agent.get_linear_speed(), agent.get_angular_speed())
+        est.T_map_rover, est.covariance, est.localized
+        agent.step_frame()
+
+Per tick (:meth:`OnlineLocalizer.update`):
+
+1. **odometry**: the IMU is integrated every tick (:func:`lunarloc.odometry.imu.integrate_imu`,
+   one step); on ticks with a front stereo pair, stereo visual odometry
+   (:class:`~lunarloc.odometry.visual.StereoVisualOdometry`, with the IMU motion since the
+   previous pair as its prior) replaces it, the IMU bridging the ticks in between. A caller
+   with its own odometry passes ``odometry=T_odo_rover`` instead (any fixed frame ``odo``).
+2. **keyframes**: an image tick becomes a keyframe when the rover moved or turned enough
+   since the last one (or ``keyframe_max_interval_s`` passed); only keyframes run the rock
+   detector (:class:`~lunarloc.perception.detector.Detector`).
+3. **localization and fusion**: the keyframe goes to the loop state
+   (:class:`lunarloc.online.loop.LoopState`: local map, association with the reference, gated
+   fixes in the pose graph); the estimate is ``T_map_odo @ T_odo_rover`` with the newest
+   keyframe's correction ``T_map_odo``.
+
+Bounded memory and time: the pose graph is **re-anchored** when it holds ``max_keyframes``
+keyframes: a new graph starts from the keyframes of the last ``window_m`` metres (their
+current estimates become its odometry; the first one is anchored with the drift sigma
+predicted there), so the history (keyframes, detections, observations, attempts) never grows
+past a fixed size. The odometry calibration (scale, heading bias) restarts at each re-anchor.
+
+Frames: ``map`` (the reference map's frame, where the initial pose is given), ``odo``
+(odometry, equal to ``map`` at the start), ``rover`` (x forward, y left, z up). Metres,
+radians, seconds.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+
+from lunarloc.core.errors import ConfigError, InputError
+from lunarloc.core.geometry import invert_transform, pose_to_matrix
+from lunarloc.io.maps import LandmarkMap
+from lunarloc.odometry.imu import ImuOdometryConfig, ImuSamples, integrate_imu
+from lunarloc.perception.camera import IPEX_STEREO_BASELINE_M, STEREO_PAIRS, CameraMount, PinholeCamera, ipex_rig
+from lunarloc.localization.localize import LocalizationConfig
+from lunarloc.online.loop import Attempt, LoopConfig, LoopState, image_localization_config, image_loop_config
+
+log = logging.getLogger(__name__)
+log.addHandler(logging.NullHandler())
+
+__all__ = ["CameraRig", "OnlineConfig", "Estimate", "OnlineLocalizer", "camera_name"]
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+def camera_name(key) -> str:
+    """A camera key of ``input_data`` as a name: ``"FrontLeft"``, the LAC's
+    ``SensorPosition.FrontLeft`` enum member (its ``.name``) or its string form."""
+    name = getattr(key, "name", None)
+    if not isinstance(name, str):
+        name = str(key)
+    return name.rsplit(".", 1)[-1]
+
+
+def _as_T(pose, what: str) -> np.ndarray:
+    """A 4x4 transform from a 4x4 array, a 6-vector (x, y, z, roll, pitch, yaw) or a
+    Transform-like object with ``matrix()``/``get_matrix()``."""
+    for attr in ("matrix", "get_matrix"):
+        f = getattr(pose, attr, None)
+        if callable(f):
+            pose = f()
+            break
+    try:
+        a = np.asarray(pose, float)
+    except (TypeError, ValueError):
+        raise InputError(f"{what} must be a 4x4 transform, a 6-vector or a Transform, got {type(pose).__name__}") from None
+    if a.shape == (6,):
+        a = pose_to_matrix(*a)
+    if a.shape != (4, 4) or not np.all(np.isfinite(a)):
+        raise InputError(f"{what} must be a finite 4x4 transform or (x, y, z, roll, pitch, yaw); got shape {a.shape}")
+    return a
+
+
+@dataclass(frozen=True)
+class CameraRig:
+    """Intrinsics shared by the cameras and each camera's body pose in the rover frame
+    (``T_rover_cam``, LAC axes: x along the optical axis, y left, z up)."""
+
+    camera: PinholeCamera = field(default_factory=PinholeCamera)
+    T_rover_cam: Mapping[str, np.ndarray] = field(default_factory=lambda: {n: m.T_rover_cam for n, m in ipex_rig().items()})
+
+    def __post_init__(self) -> None:
+        poses = {camera_name(k): _as_T(v, f"pose of camera {camera_name(k)}") for k, v in dict(self.T_rover_cam).items()}
+        object.__setattr__(self, "T_rover_cam", poses)
+
+    @classmethod
+    def from_sensors(cls, sensors: Mapping, camera_poses: Mapping | None = None, hfov_deg: float = 70.0) -> CameraRig:
+        """From an agent's ``sensors()`` ({camera: {width, height, ...}}) and, optionally, the
+        camera poses it reports (``get_camera_position(name)``: Transform, 4x4 or 6-vector);
+        cameras without a pose get the IPEx rig's. All stereo cameras must share one size."""
+        sizes = {}
+        for key, c in dict(sensors).items():
+            name = camera_name(key)
+            try:
+                if not c.get("camera_active", True) in (True, "True", "true", 1):
+                    continue
+                sizes[name] = (int(c.get("width", 1280)), int(c.get("height", 720)))
+            except (AttributeError, TypeError, ValueError):
+                raise InputError(f"sensors(): camera {name} has no usable width/height ({c!r})") from None
+        stereo = {n: s for n, s in sizes.items() if any(n in p for p in STEREO_PAIRS)}
+        if not stereo:
+            raise InputError(f"sensors(): no active stereo camera ({', '.join(n for p in STEREO_PAIRS for n in p)}); "
+                             f"active: {', '.join(sizes) or 'none'}")  # fmt: skip
+        if len(set(stereo.values())) > 1:
+            raise InputError(f"sensors(): stereo cameras differ in size {stereo}; one intrinsic model is supported")
+        w, h = next(iter(stereo.values()))
+        cam = PinholeCamera(w, h, hfov_deg)
+        poses = {n: m.T_rover_cam for n, m in ipex_rig(cam).items()}
+        for key, p in dict(camera_poses or {}).items():
+            T = _as_T(p, f"pose of camera {camera_name(key)}")
+            if np.allclose(T, np.eye(4)):
+                continue  # a zero pose (PlaybackAgent before the camera's first row): keep the rig's
+            poses[camera_name(key)] = T
+        return cls(cam, poses)
+
+    @classmethod
+    def from_calibration(cls, width: int, height: int, fx: float, fy: float | None = None, cx: float | None = None,
+                         cy: float | None = None, baseline_m: float = IPEX_STEREO_BASELINE_M,
+                         T_rover_cam: Mapping | None = None) -> CameraRig:  # fmt: skip
+        """From one's own calibration: pixels ``fx, fy, cx, cy``, the stereo ``baseline_m`` (the
+        IPEx rig's layout with that baseline) or explicit ``T_rover_cam`` poses. The camera
+        model is a centred square-pixel pinhole: ``fy`` must equal ``fx`` and ``(cx, cy)`` be the
+        image centre within a pixel (rectify the images first otherwise)."""
+        fy = fx if fy is None else fy
+        cx = (width - 1) / 2 if cx is None else cx
+        cy = (height - 1) / 2 if cy is None else cy
+        if not (fx > 0 and width > 0 and height > 0):
+            raise InputError(f"calibration: fx={fx}, width={width}, height={height} must be > 0")
+        if abs(fy - fx) > 1e-3 * fx or abs(cx - (width - 1) / 2) > 1.0 or abs(cy - (height - 1) / 2) > 1.0:
+            raise InputError(f"calibration: fx={fx}, fy={fy}, cx={cx}, cy={cy}: the camera model needs fy == fx and "
+                             f"the principal point at the image centre ({(width - 1) / 2}, {(height - 1) / 2}); rectify first")  # fmt: skip
+        cam = PinholeCamera(int(width), int(height), math.degrees(2 * math.atan(width / 2 / fx)))
+        if T_rover_cam is None:
+            if not baseline_m > 0:
+                raise InputError(f"calibration: baseline_m={baseline_m} must be > 0")
+            rig = ipex_rig(cam)
+            T_rover_cam = {}
+            for n, m in rig.items():
+                T = m.T_rover_cam.copy()
+                T[1, 3] = math.copysign(baseline_m / 2, T[1, 3])
+                T_rover_cam[n] = T
+        return cls(cam, T_rover_cam)
+
+    def mounts(self) -> dict[str, CameraMount]:
+        return {n: CameraMount(n, T, self.camera) for n, T in self.T_rover_cam.items()}
+
+
+@dataclass(frozen=True)
+class OnlineConfig:
+    """Settings of the component (metres, seconds, degrees as named)."""
+
+    loop: LoopConfig = field(default_factory=image_loop_config)
+    localization: LocalizationConfig = field(default_factory=image_localization_config)
+    imu: ImuOdometryConfig = field(default_factory=ImuOdometryConfig)
+    visual_odometry: bool = True  # stereo VO on image ticks (else IMU only) when no odometry is passed
+    keyframe_min_travel_m: float = 0.05  # an image tick is a keyframe after this much travel ...
+    keyframe_min_turn_deg: float = 2.0  # ... or this much turning ...
+    keyframe_max_interval_s: float = 2.0  # ... or this long since the last keyframe
+    max_keyframes: int = 1500  # re-anchor the pose graph when it holds this many keyframes
+    reference_max_distance_m: float = 50.0  # the reference must have a landmark this close to the initial pose
+    initial_sigma_m: float = 0.05  # uncertainty of the initial pose (position) ...
+    initial_sigma_yaw_deg: float = 0.5  # ... and heading
+    tilt_sigma_deg: float = 0.5  # roll / pitch sigma reported in the covariance (gravity-levelled)
+    max_recent_attempts: int = 100  # localization attempts kept in `recent_attempts`
+
+    def __post_init__(self) -> None:
+        if self.max_keyframes < 50:
+            raise ConfigError(f"max_keyframes={self.max_keyframes} must be >= 50")
+        for name in ("keyframe_min_travel_m", "keyframe_min_turn_deg", "keyframe_max_interval_s",
+                     "reference_max_distance_m", "initial_sigma_m", "initial_sigma_yaw_deg", "tilt_sigma_deg"):  # fmt: skip
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"{name}={getattr(self, name)} must be > 0")
+
+    def to_dict(self) -> dict:
+        from lunarloc.core.configs import config_to_dict
+
+        return config_to_dict(self)
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """The rover pose at one tick. ``covariance`` is 6x6 over (x, y, z, roll, pitch, yaw) in
+    m^2 / rad^2: the loop's drift model since the last fix (diagonal), not a marginal of the
+    pose graph. ``localized``: a fix from the reference map has been accepted at some tick."""
+
+    mission_time_s: float
+    T_map_rover: np.ndarray
+    covariance: np.ndarray
+    localized: bool
+    fixes: int = 0  # accepted fixes so far
+    keyframe: bool = False  # this tick was a keyframe (detector ran)
+    attempt: Attempt | None = None  # the localization attempt made at this tick, if any
+
+
+# --------------------------------------------------------------------------- the component
+
+
+class OnlineLocalizer:
+    """Per-tick global localization against a reference rock map (see the module docstring).
+
+    reference : the reference map (frame ``map``), e.g. :func:`lunarloc.load_reference`; None
+        for a rover with no reference (its attempts end "no reference map"; a caller such as
+        :mod:`lunarloc.pipeline.multirover` localizes their local maps in other rovers' maps).
+        ``localized`` then stays False.
+    initial_pose : the rover's pose in ``map`` at the first tick (the LAC's
+        ``get_initial_position()``: a Transform, a 4x4 or (x, y, z, roll, pitch, yaw)).
+    config : :class:`OnlineConfig`.
+    rig : :class:`CameraRig` (intrinsics and mounts); default the LAC's IPEx rig at 1280x720,
+        or :meth:`CameraRig.from_sensors` / :meth:`CameraRig.from_calibration`.
+    detector_config : default :func:`lunarloc.config.run.scaled_detector_config` at the rig's width.
+    lander_pose : the lander's pose relative to the rover at the first tick (the LAC's
+        ``get_initial_lander_position()``, in any form `initial_pose` takes); detections on
+        the lander are then dropped. None: no lander exclusion.
+    """
+
+    def __init__(self, reference: LandmarkMap | None, initial_pose, config: OnlineConfig | None = None,
+                 rig: CameraRig | None = None, detector_config=None, lander_pose=None):  # fmt: skip
+        from lunarloc.perception.detector import Detector
+        from lunarloc.perception.detector import scaled_detector_config
+
+        if reference is not None and not isinstance(reference, LandmarkMap):
+            raise InputError(f"reference must be a LandmarkMap (see lunarloc.load_reference) or None, "
+                             f"got {type(reference).__name__}")
+        self.config = cfg = config or OnlineConfig()
+        self.rig = rig or CameraRig()
+        if not isinstance(self.rig, CameraRig):
+            raise InputError(f"rig must be a CameraRig, got {type(self.rig).__name__}")
+        self.T_map_rover0 = _as_T(initial_pose, "initial_pose")
+        # the lander's centre in map (= odometry at the start), for dropping detections on it
+        self._lander_xy = None if lander_pose is None else (self.T_map_rover0 @ _as_T(lander_pose, "lander_pose"))[:2, 3]
+        self.reference = reference
+        if reference is not None and len(reference) >= 1:
+            d = np.linalg.norm(reference.positions_xyz[:, :2] - self.T_map_rover0[:2, 3], axis=1)
+            if float(d.min()) > cfg.reference_max_distance_m:
+                raise InputError(
+                    f"the reference map has no landmark within {cfg.reference_max_distance_m:g} m of the initial pose "
+                    f"({float(d.min()):.1f} m to the nearest): is it in another frame than the initial pose?")  # fmt: skip
+        noise = replace(cfg.loop.fusion.noise, start_sigma_m=cfg.initial_sigma_m,
+                        start_sigma_yaw_rad=math.radians(cfg.initial_sigma_yaw_deg))  # fmt: skip
+        self._loop_config = replace(cfg.loop, fusion=replace(cfg.loop.fusion, noise=noise))
+        # its windows state the bounds of the odometry that places them (LoopConfig.window_bounds)
+        self._odometry_source = "visual" if cfg.visual_odometry else "imu"
+        self.loop = LoopState(reference, self._loop_config, cfg.localization,
+                              odometry=self._odometry_source)  # checks the reference (>= 3 landmarks)
+        self.detector = Detector(detector_config or scaled_detector_config(self.rig.camera.width), self.rig.camera)
+        self._mounts = self.rig.mounts()
+        self._pairs = [p for p in self.detector.config.pairs if p[0] in self._mounts and p[1] in self._mounts]
+        self._vo = None
+        if cfg.visual_odometry:
+            left, right = STEREO_PAIRS[0]
+            if left in self._mounts and right in self._mounts:
+                from lunarloc.odometry.visual import StereoVisualOdometry
+
+                self._vo = StereoVisualOdometry(self.rig.camera, self._mounts[left].T_rover_optical,
+                                                self._mounts[right].T_rover_optical)  # fmt: skip
+                from lunarloc.odometry.tilt import GravityAlignedChain
+
+                self._vo_chain = GravityAlignedChain(self._vo.config.gravity_tilt_gain)  # roll/pitch from gravity
+        # per-tick state (constant size)
+        self._tick = 0
+        self._t_prev: float | None = None
+        self._imu_prev: np.ndarray | None = None
+        self._speed_prev = 0.0
+        self._T_map_imu = self.T_map_rover0.copy()  # IMU dead reckoning
+        self._T_map_odo = self.T_map_rover0.copy()  # odometry (visual / IMU / caller), odo == map at start
+        self._vo_anchor = None  # (T_map_odo at the last VO pair, T_map_imu there)
+        self._T_odo_caller = None  # T_odo_caller: the caller's odometry frame in ours
+        self._T_loop_odo = np.eye(4)  # the loop's odometry frame <- odo (changes at re-anchors)
+        self._last_kf = None  # (t, T_odo_rover) of the last keyframe
+        self._fixes = 0
+        self._sigmas = (cfg.initial_sigma_m, math.radians(cfg.initial_sigma_yaw_deg))
+        self.reanchors = 0
+        self.recent_attempts: collections.deque[Attempt] = collections.deque(maxlen=cfg.max_recent_attempts)
+
+    # -------------------------------------------------------------- public
+    def warm_up(self) -> float:
+        """Compile the association kernels, import and run the pose graph, the local-map
+        aggregation, the detector and the visual odometry once on synthetic data, so that the
+        first ticks of the mission pay no one-off cost (imports, compilation). Returns the
+        seconds taken."""
+        import time
+
+        from lunarloc.localization.warmup import warm_up
+
+        t0 = time.perf_counter()
+        warm_up()
+        # the pose graph's first gate and solve import scipy.stats / scipy.optimize (~1 s)
+        from lunarloc.fusion.posegraph import PoseGraph
+
+        g = PoseGraph(self._loop_config.fusion)
+        for i in range(3):
+            g.add_keyframe(float(i), (0.1 * i, 0.0, 0.0, 0.0))
+        g.gate(2, (0.2, 0.0, 0.0, 0.0), 0.05, 0.01)
+        g.add_fix(2, (0.2, 0.01, 0.0, 0.0), 0.05, 0.01)
+        g.solve()
+        # ... and the local map's first aggregation imports scikit-learn (DBSCAN)
+        from lunarloc.io.maps import aggregate_detections
+
+        pts = np.random.default_rng(0).uniform(-3, 3, (20, 3))
+        aggregate_detections(np.r_[pts, pts + 0.01], np.repeat([0, 1], 20), self._loop_config.aggregation)
+        c = self.rig.camera
+        blank = np.zeros((c.height, c.width), np.uint8)
+        blank[c.height // 2 :] = 90
+        images = {n: blank for p in self._pairs[:1] for n in p}
+        if images:
+            self.detector.detect_frame(images, self._mounts)
+        if self._vo is not None:
+            from lunarloc.odometry.visual import StereoVisualOdometry
+
+            left, right = STEREO_PAIRS[0]
+            vo = StereoVisualOdometry(self.rig.camera, self._mounts[left].T_rover_optical, self._mounts[right].T_rover_optical)
+            vo.update(blank, blank)
+            vo.update(blank, blank)
+        return time.perf_counter() - t0
+
+    @property
+    def localized(self) -> bool:
+        return self._fixes > 0
+
+    def update(self, mission_time_s: float, input_data: Mapping | None, imu, linear_speed: float,
+               angular_speed: float, odometry=None) -> Estimate:  # fmt: skip
+        """One tick: the LAC's ``input_data`` (``{"Grayscale": {camera: image or None}}``),
+        ``get_imu_data()`` (6,), ``get_linear_speed()`` (m/s), ``get_angular_speed()`` (rad/s)
+        and optionally the caller's odometry ``T_odo_rover`` (4x4 or 6-vector, any fixed frame).
+        Raises InputError on malformed input (the component's state is then unchanged)."""
+        t = self._check_time(mission_time_s)
+        a = self._check_imu(imu, linear_speed, angular_speed)
+        images = self._images(input_data)
+        T_caller = None if odometry is None else _as_T(odometry, "odometry")
+        if T_caller is not None and self._odometry_source is not None:
+            self._odometry_source = None  # the caller's odometry: its bounds are not known, its windows' bend is fitted
+            self.loop.set_odometry(None)
+        # ---- odometry
+        if self._t_prev is None:
+            T_imu = self._T_map_imu
+        else:
+            s = ImuSamples(np.arange(2), np.array([self._t_prev, t]), np.stack([self._imu_prev[:3], a[:3]]),
+                           np.stack([self._imu_prev[3:], a[3:]]), np.array([self._speed_prev, float(linear_speed)]))  # fmt: skip
+            T_imu = integrate_imu(s, self._T_map_imu, self.config.imu)[1]
+        pair = self._stereo_pair(images)
+        if T_caller is not None:
+            if self._T_odo_caller is None:
+                self._T_odo_caller = self._T_map_odo @ invert_transform(T_caller)
+            T_odo = self._T_odo_caller @ T_caller
+        elif self._vo is not None and pair is not None and pair[0] == STEREO_PAIRS[0][0]:
+            T_odo = self._visual(images, T_imu)
+        elif self._vo_anchor is not None:  # bridge with the IMU since the last VO pair
+            T_odo_vo, T_imu_vo = self._vo_anchor
+            T_odo = T_odo_vo @ invert_transform(T_imu_vo) @ T_imu
+        else:
+            T_odo = T_imu
+        self._t_prev, self._imu_prev, self._speed_prev = t, a, float(linear_speed)
+        self._T_map_imu, self._T_map_odo = T_imu, T_odo
+        self._tick += 1
+        # ---- keyframe: detection, localization, fusion
+        attempt, is_kf = None, False
+        if pair is not None and self._is_keyframe(t, T_odo):
+            is_kf = True
+            det = self._detect(images)
+            if self._lander_xy is not None:
+                from lunarloc.perception.detector import on_lander
+
+                det = det[~on_lander(det, T_odo, self._lander_xy)]
+            if len(self.loop.keyframes) >= self.config.max_keyframes:
+                self._reanchor()
+            attempt = self.loop.step(self._tick, t, self._T_loop_odo @ T_odo, det, None, keyframe=True)
+            self._last_kf = (t, T_odo)
+            k = len(self.loop.keyframes) - 1
+            self._sigmas = self.loop.graph.predicted_sigma(k)
+            if attempt is not None:
+                self.recent_attempts.append(attempt)
+                self._fixes += int(attempt.accepted)
+        T = self.loop.T_map_odo @ self._T_loop_odo @ T_odo
+        return Estimate(t, T, self._covariance(), self.localized, self._fixes, is_kf, attempt)
+
+    # -------------------------------------------------------------- checks
+    def _check_time(self, mission_time_s) -> float:
+        try:
+            t = float(mission_time_s)
+        except (TypeError, ValueError):
+            raise InputError(f"mission_time_s must be a number, got {mission_time_s!r}") from None
+        if not math.isfinite(t):
+            raise InputError(f"mission_time_s is not finite ({t})")
+        if self._t_prev is not None:
+            if t <= self._t_prev:
+                raise InputError(f"mission time went backwards or stood still: {t:.3f} s after {self._t_prev:.3f} s")
+            if t - self._t_prev > self.config.imu.max_dt_s:
+                raise InputError(f"{t - self._t_prev:.3f} s since the previous tick (max {self.config.imu.max_dt_s:g} s): "
+                                 "call update() every tick")  # fmt: skip
+        return t
+
+    @staticmethod
+    def _check_imu(imu, linear_speed, angular_speed) -> np.ndarray:
+        try:
+            a = np.asarray(imu, float).reshape(-1)
+            v, w = float(linear_speed), float(angular_speed)
+        except (TypeError, ValueError):
+            raise InputError(f"imu must be 6 numbers [ax, ay, az, gx, gy, gz], speeds numbers; got {imu!r}") from None
+        if a.shape != (6,):
+            raise InputError(f"imu must be 6 numbers [ax, ay, az, gx, gy, gz] (m/s^2, rad/s), got {a.size}")
+        if not (np.all(np.isfinite(a)) and math.isfinite(v) and math.isfinite(w)):
+            raise InputError(f"imu or speed is not finite (imu {np.round(a, 4).tolist()}, linear {v}, angular {w})")
+        return a
+
+    def _images(self, input_data) -> dict[str, np.ndarray | None]:
+        """{camera name: image or None} of the Grayscale group; shapes checked."""
+        if input_data is None:
+            return {}
+        if not isinstance(input_data, Mapping):
+            raise InputError(f"input_data must be a dict like {{'Grayscale': {{camera: image}}}}, got {type(input_data).__name__}")
+        group = input_data.get("Grayscale", {}) or {}
+        if not isinstance(group, Mapping):
+            raise InputError(f"input_data['Grayscale'] must be a dict {{camera: image or None}}, got {type(group).__name__}")
+        names = {camera_name(k) for k in group}
+        if names and not any(n in names for p in self._pairs for n in p):
+            raise InputError(f"input_data['Grayscale'] has no stereo camera (has {', '.join(sorted(names))}); the component "
+                             f"needs one of the pairs {', '.join('/'.join(p) for p in self._pairs)} active")  # fmt: skip
+        c = self.rig.camera
+        out = {}
+        for key, img in group.items():
+            name = camera_name(key)
+            if img is not None:
+                img = np.asarray(img)
+                if img.shape != (c.height, c.width):
+                    raise InputError(f"input_data['Grayscale'][{name}]: image shape {img.shape}, expected "
+                                     f"({c.height}, {c.width}) grayscale (the rig's size; see CameraRig)")  # fmt: skip
+            out[name] = img
+        return out
+
+    def _stereo_pair(self, images: dict) -> tuple[str, str] | None:
+        """The first configured pair with both images at this tick; InputError when one of a
+        pair has an image and the other none."""
+        found = None
+        for left, right in self._pairs:
+            has_l, has_r = images.get(left) is not None, images.get(right) is not None
+            if has_l != has_r:
+                missing = right if has_l else left
+                raise InputError(f"input_data: {left if has_l else right} has an image but {missing} "
+                                 f"{'is missing' if missing not in images else 'is None'}: a stereo pair is captured together")  # fmt: skip
+            if has_l and found is None:
+                found = (left, right)
+        return found
+
+    # -------------------------------------------------------------- steps
+    def _visual(self, images: dict, T_imu: np.ndarray) -> np.ndarray:
+        left, right = STEREO_PAIRS[0]
+        prior = None
+        if self._vo_anchor is not None:
+            prior = invert_transform(self._vo_anchor[1]) @ T_imu
+        T_vo_rover = self._vo.update(images[left], images[right], prior)
+        # visual motion chained from the first pair's predicted pose, roll and pitch from the IMU's gravity
+        T_odo = self._vo_chain.add(T_vo_rover, T_imu, self._T_map_odo_prediction(T_imu))
+        self._vo_anchor = (T_odo, T_imu)
+        return T_odo
+
+    def _T_map_odo_prediction(self, T_imu: np.ndarray) -> np.ndarray:
+        """The odometry pose this tick would have without vision (IMU since the last tick)."""
+        return self._T_map_odo @ invert_transform(self._T_map_imu) @ T_imu
+
+    def _is_keyframe(self, t: float, T_odo: np.ndarray) -> bool:
+        if self._last_kf is None:
+            return True
+        t_kf, T_kf = self._last_kf
+        c = self.config
+        rel = invert_transform(T_kf) @ T_odo
+        turn = math.degrees(abs(math.atan2(rel[1, 0], rel[0, 0])))
+        return (np.linalg.norm(rel[:3, 3]) >= c.keyframe_min_travel_m or turn >= c.keyframe_min_turn_deg
+                or t - t_kf >= c.keyframe_max_interval_s)  # fmt: skip
+
+    def _detect(self, images: dict) -> np.ndarray:
+        imgs = {n: im for n, im in images.items() if im is not None and any(n in p for p in self._pairs)}
+        fd = self.detector.detect_frame(imgs, self._mounts, None, self._tick)
+        return np.array([d.p_rover for d in fd.detections], float).reshape(-1, 3)
+
+    def _covariance(self) -> np.ndarray:
+        sm, sy = self._sigmas
+        st = math.radians(self.config.tilt_sigma_deg)
+        return np.diag([sm**2, sm**2, sm**2, st**2, st**2, sy**2])
+
+    def _reanchor(self) -> None:
+        """Start a new loop state from the keyframes of the last window (bounded history)."""
+        old = self.loop
+        cfg = self._loop_config
+        n = len(old.keyframes)
+        keep = old.window(n - 1)[-self.config.max_keyframes // 3 :]
+        poses = old.graph.poses()
+        sm, sy = old.graph.predicted_sigma(int(keep[0]))
+        noise = replace(cfg.fusion.noise, start_sigma_m=max(sm, cfg.fusion.noise.start_sigma_m),
+                        start_sigma_yaw_rad=max(sy, cfg.fusion.noise.start_sigma_yaw_rad))  # fmt: skip
+        new = LoopState(self.reference, replace(cfg, fusion=replace(cfg.fusion, noise=noise)), self.config.localization,
+                        odometry=old.odometry)
+        new._last_attempt_dist = new._last_attempt_t = math.inf  # no attempts while the window is re-fed
+        for k in keep:
+            kf = old.keyframes[k]
+            x, y, z, yaw = poses[k]
+            roll, pitch = kf.roll_pitch_rad
+            new.step(kf.frame, kf.t_s, pose_to_matrix(x, y, z, roll, pitch, yaw), kf.detections_rover, None, keyframe=True)
+        g_old, g_new = old.graph, new.graph
+        # the gate's drift model continues from the last fix (distance and time since it)
+        g_new._last_fix_dist = g_new.keyframes[-1].distance_m - (g_old.keyframes[-1].distance_m - g_old._last_fix_dist)
+        g_new._last_fix_time = g_old._last_fix_time
+        new._last_attempt_dist = new._dist - (old._dist - old._last_attempt_dist)
+        new._last_attempt_t = old._last_attempt_t
+        # the new loop's odometry frame is the map estimate at the last kept keyframe
+        self._T_loop_odo = old._correction(n - 1) @ self._T_loop_odo
+        self.loop = new
+        self.reanchors += 1
+        log.debug("re-anchored the pose graph: %d keyframes -> %d", n, len(keep))

@@ -1,0 +1,1 @@
+"""Applications: whole-traverse runs, detection, sources, references, scenarios, campaigns, benchmarks."""

@@ -1,0 +1,1 @@
+"""The simulator: procedural sites, the rover, the renderer, synthetic rock fields."""
