@@ -64,8 +64,7 @@ def test_wrong_reference_gives_no_fixes():
     other, _ = synthetic_traverse(seed=5)
     cfg = RunConfig.for_detections(loop=LoopConfig(localize_every_m=3.0))
     res = run(TraverseCsvSource(trav, DriftModel(0.1, 0.03)), LandmarkMap(other), cfg)
-    s = res.summary()
-    assert s["fixes"] == 0 or s["max_accepted_fix_error_m"] < 0.2
+    assert res.summary()["fixes"] == 0  # another site's rocks: any fix would be a wrong one
 
 
 def test_rocks_reference(tmp_path):

@@ -133,16 +133,19 @@ def test_set_frame_and_random_access(archive):
 def test_full_playback_is_forward_only(tmp_path, monkeypatch):
     path = tmp_path / "long.lac"
     _write(path, n_frames=60, first_image=0, every=1)
-    with LacArchive(path, checkpoint_spacing=2048) as archive, PlaybackAgent(archive) as agent:
-        restores = []
-        orig = _IndexedGzipReader._restore
-        monkeypatch.setattr(_IndexedGzipReader, "_restore", lambda self, k: (restores.append(k), orig(self, k)))
-        n = 0
-        for _ in agent:
-            n += sum(v is not None for v in agent.input_data()["Grayscale"].values())
-        assert n == 60
-        assert len(restores) <= 1  # one jump back to the first image, then forward only
-    assert archive._file is None or archive._file.closed is False  # agent does not close a borrowed archive
+    with LacArchive(path, checkpoint_spacing=2048) as archive:
+        with PlaybackAgent(archive) as agent:
+            restores = []
+            orig = _IndexedGzipReader._restore
+            monkeypatch.setattr(_IndexedGzipReader, "_restore", lambda self, k: (restores.append(k), orig(self, k)))
+            n = 0
+            for _ in agent:
+                n += sum(v is not None for v in agent.input_data()["Grayscale"].values())
+            assert n == 60
+            assert len(restores) <= 1  # one jump back to the first image, then forward only
+        # the agent closed, the archive it borrowed is still open and readable
+        assert archive._file is not None and not archive._file.closed
+        assert archive.grayscale("FrontLeft", 0) is not None
 
 
 def test_empty_frames_table_is_an_error(tmp_path):

@@ -69,48 +69,81 @@ def _field_default(cls, name: str):
 
 
 def _convert(tp, v, key: str, default=None):
+    """`v` as a value of the annotated type `tp`; a ConfigError naming `key` when it is not one
+    (`default`: the field's current value, the base of a nested section given in part)."""
+    return _converter(tp)(tp, v, key, default)
+
+
+def _converter(tp):
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
-        args = typing.get_args(tp)
-        if v is None and type(None) in args:
-            return None
-        errors = []
-        for a in (a for a in args if a is not type(None)):
-            try:
-                return _convert(a, v, key, default)
-            except ConfigError as exc:
-                errors.append(str(exc))
-        raise ConfigError(errors[0] if len(errors) == 1 else f"{key}: {v!r} fits none of {tp}")
-    if is_dataclass(tp):
-        return config_from_dict(tp, v, key, default if isinstance(default, tp) else None)
-    if isinstance(tp, type) and issubclass(tp, enum.Enum):
-        try:
-            return tp(v)
-        except ValueError:
-            raise ConfigError(f"{key}: {v!r} is not one of {', '.join(str(m.value) for m in tp)}") from None
-    if tp is bool:
-        if not isinstance(v, bool):
-            raise ConfigError(f"{key}: expected true or false, got {v!r}")
-        return v
-    if tp is int:
-        if isinstance(v, bool) or not (isinstance(v, int) or (isinstance(v, float) and v.is_integer())):
-            raise ConfigError(f"{key}: expected an integer, got {v!r}")
-        return int(v)
-    if tp is float:
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise ConfigError(f"{key}: expected a finite number, got {v!r}")
-        return float(v)
-    if tp is str:
-        if not isinstance(v, str):
-            raise ConfigError(f"{key}: expected a string, got {v!r}")
-        return v
+        return _to_union
     if origin is tuple:
-        args = typing.get_args(tp)
-        if not isinstance(v, (list, tuple)):
-            raise ConfigError(f"{key}: expected a list, got {v!r}")
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_convert(args[0], x, f"{key}[{i}]") for i, x in enumerate(v))
-        if args and len(args) != len(v):
-            raise ConfigError(f"{key}: expected {len(args)} values, got {len(v)}")
-        return tuple(_convert(a, x, f"{key}[{i}]") for i, (a, x) in enumerate(zip(args, v))) if args else tuple(v)
+        return _to_tuple
+    if is_dataclass(tp):
+        return _to_section
+    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        return _to_enum
+    return _SCALARS.get(tp, lambda tp, v, key, default: v)
+
+
+def _to_union(tp, v, key, default):
+    args = typing.get_args(tp)
+    if v is None and type(None) in args:
+        return None
+    errors = []
+    for a in (a for a in args if a is not type(None)):
+        try:
+            return _convert(a, v, key, default)
+        except ConfigError as exc:
+            errors.append(str(exc))
+    raise ConfigError(errors[0] if len(errors) == 1 else f"{key}: {v!r} fits none of {tp}")
+
+
+def _to_section(tp, v, key, default):
+    return config_from_dict(tp, v, key, default if isinstance(default, tp) else None)
+
+
+def _to_enum(tp, v, key, default):
+    try:
+        return tp(v)
+    except ValueError:
+        raise ConfigError(f"{key}: {v!r} is not one of {', '.join(str(m.value) for m in tp)}") from None
+
+
+def _to_tuple(tp, v, key, default):
+    args = typing.get_args(tp)
+    if not isinstance(v, (list, tuple)):
+        raise ConfigError(f"{key}: expected a list, got {v!r}")
+    if len(args) == 2 and args[1] is Ellipsis:
+        return tuple(_convert(args[0], x, f"{key}[{i}]") for i, x in enumerate(v))
+    if args and len(args) != len(v):
+        raise ConfigError(f"{key}: expected {len(args)} values, got {len(v)}")
+    return tuple(_convert(a, x, f"{key}[{i}]") for i, (a, x) in enumerate(zip(args, v))) if args else tuple(v)
+
+
+def _to_bool(tp, v, key, default):
+    if not isinstance(v, bool):
+        raise ConfigError(f"{key}: expected true or false, got {v!r}")
     return v
+
+
+def _to_int(tp, v, key, default):
+    if isinstance(v, bool) or not (isinstance(v, int) or (isinstance(v, float) and v.is_integer())):
+        raise ConfigError(f"{key}: expected an integer, got {v!r}")
+    return int(v)
+
+
+def _to_float(tp, v, key, default):
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise ConfigError(f"{key}: expected a finite number, got {v!r}")
+    return float(v)
+
+
+def _to_str(tp, v, key, default):
+    if not isinstance(v, str):
+        raise ConfigError(f"{key}: expected a string, got {v!r}")
+    return v
+
+
+_SCALARS = {bool: _to_bool, int: _to_int, float: _to_float, str: _to_str}
