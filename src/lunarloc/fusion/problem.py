@@ -1,0 +1,142 @@
+"""Building and solving the pose graph's least-squares problem: the factors touching the free
+keyframes (older ones held fixed), the state vector, one robust ``least_squares`` solve and
+the write-back of its result into the graph's records (:class:`lunarloc.fusion.posegraph.PoseGraph`
+keeps the state; this module turns it into a problem)."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from lunarloc.fusion.factors import (
+    BiasWalkFactor,
+    Factor,
+    LandmarkFactor,
+    OdometryFactor,
+    PoseFixFactor,
+    PriorFactor,
+    SharedLandmarkFactor,
+    StateLayout,
+    jacobian_sparsity,
+    robust_loss,
+    stacked_residual,
+    wrap_angle,
+)
+
+log = logging.getLogger("lunarloc.fusion.posegraph")
+
+__all__ = ["first_active", "build_factors", "free_landmarks", "state_vector", "solve"]
+
+
+def first_active(graph, active_window_m: float | None) -> int:
+    """First keyframe free in a solve over the last `active_window_m` metres (None: all)."""
+    if active_window_m is None:
+        return 0
+    dist = np.array([kf.distance_m for kf in graph.keyframes])
+    return min(int(np.searchsorted(dist, dist[-1] - active_window_m)), len(graph) - 1)
+
+def build_factors(graph, first: int = 0) -> list[Factor]:
+    """The factors touching keyframes ``first..K-1`` (older ones are held fixed)."""
+    K, nz, calib = len(graph), graph.config.noise, graph.config.calibrate
+    L = StateLayout(K, len(graph.reference_landmarks))
+    kfs = graph.keyframes
+    e = np.arange(max(first - 1, 0), K - 1)  # odometry edges e -> e+1 touching a free keyframe
+    odo = np.array([kf.odo_pose4 for kf in kfs])
+    tau = np.array([kfs[i + 1].moving_time_s for i in e])
+    out: list[Factor] = [OdometryFactor(L, e, odo, tau, nz)]
+    if first == 0:
+        out.append(PoseFixFactor(L, [0], odo[0], nz.start_sigma_m, nz.start_sigma_yaw_rad))
+    fixes = [f for f in graph.fixes if f.keyframe >= first]
+    if fixes:
+        out.append(PoseFixFactor(L, [f.keyframe for f in fixes], [f.pose4 for f in fixes],
+                                 [f.sigma_m for f in fixes], [f.sigma_yaw_rad for f in fixes]))  # fmt: skip
+    obs = [o for o in graph.observations.values() if o.keyframe >= first and o.landmark is None]
+    if obs:
+        out.append(LandmarkFactor(L, [o.keyframe for o in obs], [o.p_rover for o in obs],
+                                  [o.roll_pitch_rad for o in obs], [o.target_xyz for o in obs],
+                                  [o.sigma_m for o in obs]))  # fmt: skip
+    out += _shared_factors(graph, L, first)
+    if calib:
+        out.append(BiasWalkFactor(L, e, tau, nz))
+        out.append(PriorFactor([L.scale], 1.0, nz.scale_sigma))
+        if first == 0:
+            out.append(PriorFactor(L.bias([0]), 0.0, nz.bias_sigma_rad_s))
+    return out
+
+def free_landmarks(graph, first: int = 0) -> list[int]:
+    """Indices of the reference landmarks a solve from keyframe `first` frees: those tied
+    to a free keyframe."""
+    return sorted({graph.reference_landmarks[o.landmark].index for o in graph.observations.values()
+                   if o.landmark is not None and o.keyframe >= first})  # fmt: skip
+
+def _shared_factors(graph, L: StateLayout, first: int) -> list[Factor]:
+    """Ties to the reference landmarks a solve frees (with their ties from held keyframes
+    too, which pin the landmark's error where the earlier trajectory put it) and the
+    landmarks' priors ``e ~ N(0, sigma_ref^2)``."""
+    free = set(free_landmarks(graph, first))
+    if not free:
+        return []
+    refs = graph.reference_landmarks
+    obs = [o for o in graph.observations.values() if o.landmark is not None and refs[o.landmark].index in free]
+    ties = SharedLandmarkFactor(L, [o.keyframe for o in obs], [refs[o.landmark].index for o in obs],
+                                [o.p_rover for o in obs], [o.roll_pitch_rad for o in obs],
+                                [o.target_xyz for o in obs], [o.sigma_m for o in obs])  # fmt: skip
+    lms = [r for r in refs.values() if r.index in free]
+    prior = PriorFactor(L.landmark([r.index for r in lms]).ravel(), 0.0,
+                        np.concatenate([r.sigma_xyz for r in lms]), robust=False)  # fmt: skip
+    return [ties, prior]
+
+def state_vector(graph) -> np.ndarray:
+    """Full state vector (see :class:`StateLayout`); without calibration the biases are 0
+    and the scale 1."""
+    calib = graph.config.calibrate
+    b = [kf.bias_rad_s if calib else 0.0 for kf in graph.keyframes]
+    e = np.zeros((len(graph.reference_landmarks), 3))
+    for r in graph.reference_landmarks.values():
+        e[r.index] = r.offset_xyz
+    return np.r_[graph.poses().ravel(), b, graph.scale if calib else 1.0, e.ravel()]
+
+def solve(graph, active_window_m: float | None = None) -> float:
+    """Re-optimise the keyframes (all, or those within `active_window_m` metres of
+    travel of the newest; older ones are held fixed). Returns the final cost; a no-op
+    without fixes or landmark observations."""
+    if (not graph.fixes and not graph.observations) or len(graph) < 2:
+        return 0.0
+    from scipy.optimize import least_squares
+
+    cfg = graph.config
+    first = first_active(graph, active_window_m)
+    layout = StateLayout(len(graph), len(graph.reference_landmarks))
+    factors = build_factors(graph, first)
+    active = layout.active(first, cfg.calibrate, free_landmarks(graph, first))
+    z = state_vector(graph)
+
+    def fun(x):
+        z[active] = x
+        return stacked_residual(factors, z)
+
+    res = least_squares(fun, z[active].copy(), jac_sparsity=jacobian_sparsity(factors, active, layout.size),
+                        method="trf", x_scale="jac", max_nfev=cfg.max_nfev, loss=robust_loss(factors, cfg.loss),
+                        f_scale=cfg.loss_scale, ftol=1e-8, xtol=1e-8, gtol=1e-8)  # fmt: skip
+    z[active] = res.x
+    _write_back(graph, z, layout)
+    graph.num_solves += 1
+    log.debug("pose graph: %d keyframes (%d active), %d factors (%s), cost %.3g, scale %.4f",
+              len(graph), len(graph) - first, sum(len(f) for f in factors),
+              ", ".join(f"{type(f).__name__} {len(f)}" for f in factors), res.cost, graph.scale)  # fmt: skip
+    return float(res.cost)
+
+def _write_back(graph, z: np.ndarray, layout: StateLayout) -> None:
+    P = z[: 4 * layout.K].reshape(-1, 4).copy()
+    P[:, 3] = wrap_angle(P[:, 3])
+    calib = graph.config.calibrate
+    B = z[layout.bias(np.arange(layout.K))]
+    for kf, p, b in zip(graph.keyframes, P, B):
+        kf.estimate_pose4 = p
+        if calib:
+            kf.bias_rad_s = float(b)
+    if calib:
+        graph.scale = float(z[layout.scale])
+    for r in graph.reference_landmarks.values():
+        r.offset_xyz = z[layout.landmark(r.index)[0]].copy()
