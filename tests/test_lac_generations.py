@@ -274,7 +274,7 @@ def test_simulator_writes_a_rover_relative_lander(tmp_path):
 @pytest.mark.parametrize("value", [0.1 + 0.2, 0.15000000000000002, -0.00445413312008323, 1e-5 / 3, 2.7755575615628914e-17,
                                    123.456, 1e300, -0.0, 0.05 * 7, 1.0 / 3.0])  # fmt: skip
 def test_float_text_is_read_the_same_by_a_correctly_rounding_and_pandas_parser(value):
-    from lunarloc.io.lac.archive import _pandas_exact
+    from lunarloc.io.lac.writer import _pandas_exact
 
     text = float_text(value)
     assert float(text) == pytest.approx(value, rel=5e-15, abs=1e-22)
