@@ -31,7 +31,7 @@ RADIUS_OPT = typer.Option(None, "--radius", help="Clustering radius in metres (d
 SIGHT_OPT = typer.Option(None, "--min-sightings", min=1, max=1_000_000, help="Detections needed per landmark.")
 MAX_EPSILON_M = 0.3
 """Largest --epsilon accepted: beyond it nearly every pair of associations is 'consistent' and
-the consistency graph grows quadratically in memory (issue 13: 6.5 GB at 5 m)."""
+the consistency graph grows quadratically in memory (6.5 GB measured at 5 m)."""
 
 
 def _map_suffix(out: Path) -> None:

@@ -62,7 +62,7 @@ class WindowBounds(str, enum.Enum):
 
     SOURCE = "source"  # the bounds of the odometry source in use (LoopConfig.odometry_bounds), added to the predicted error
     FITTED = "fitted"  # none stated: localize() fits each window's bend (and the measured floor) from its inliers
-    RIGID = "rigid"  # bounds 0: no distortion term (the loop before session 11; over-confident under drifting odometry)
+    RIGID = "rigid"  # bounds 0: no distortion term (over-confident under drifting odometry)
 
 
 class CropSigma(str, enum.Enum):
@@ -221,7 +221,7 @@ def image_loop_config(**overrides) -> LoopConfig:
     window (:data:`IMAGE_WINDOW_M`) that grows to 12 m while it holds fewer than 20 landmarks
     (not when stated rigid, :meth:`LoopState.local_map`), and a reference crop sized by the
     window's odometry bounds (``crop_sigma = "source"``). Measured on the multi-session sites:
-    docs/online-component.md, "Session 12: multi-session runs without a fix"."""
+    docs/online-component.md (multi-session runs without a fix)."""
     return LoopConfig(**{"window_m": IMAGE_WINDOW_M, "window_target_landmarks": 20, "window_max_m": 12.0,
                          "crop_sigma": CropSigma.SOURCE, **overrides})  # fmt: skip
 
