@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from lunarloc.core.errors import InputError
-from lunarloc.fusion.posegraph import FusionConfig, PoseGraph, wrap_angle
+from lunarloc.fusion.factors import wrap_angle
+from lunarloc.fusion.posegraph import FusionConfig, PoseGraph
 
 
 def _square_drive(K=150, scale=1.03, bias=5e-4):
@@ -92,8 +93,8 @@ def test_bad_inputs():
 
 
 # ------------------------------------------------------------------ factor graph
-from lunarloc.fusion.posegraph import (  # noqa: E402
-    Keyframe,
+from lunarloc.fusion.posegraph import Keyframe  # noqa: E402
+from lunarloc.fusion.factors import (  # noqa: E402
     LandmarkFactor,
     OdometryFactor,
     PoseFixFactor,

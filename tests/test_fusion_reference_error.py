@@ -13,11 +13,8 @@ from lunarloc.fusion.posegraph import (
     OdometryNoise,
     PoseGraph,
     ReferenceErrorModel,
-    SharedLandmarkFactor,
-    StateLayout,
-    jacobian_sparsity,
-    stacked_residual,
 )
+from lunarloc.fusion.factors import SharedLandmarkFactor, StateLayout, jacobian_sparsity, stacked_residual
 
 SIGMA_OBS = 0.05  # the detection's own sigma (m)
 SIGMA_REF = 0.05  # each reference rock's stated sigma per axis (m)
@@ -215,7 +212,7 @@ def test_a_reference_stated_exact_is_tied_alone_as_before():
 
 
 def test_the_reference_error_prior_stays_out_of_the_robust_loss():
-    from lunarloc.fusion.posegraph import PriorFactor, robust_loss
+    from lunarloc.fusion.factors import PriorFactor, robust_loss
 
     g = _standing_rover(ReferenceErrorModel.SHARED, n_a=3, n_good=1)
     factors = g.factors()

@@ -156,6 +156,15 @@ def _check_pairs(src, dst, min_count: int):
     return src, dst
 
 
+def _pair_weights(weights, n: int) -> np.ndarray:
+    """Weights normalised to sum 1 (uniform when None); InputError unless finite,
+    non-negative, one per pair and not all zero."""
+    w = np.ones(n) if weights is None else np.asarray(weights, dtype=float).reshape(-1)
+    if w.shape[0] != n or np.any(w < 0) or not np.all(np.isfinite(w)) or w.sum() <= 0:
+        raise InputError("weights must be finite, non-negative, one per pair, and not all zero")
+    return w / w.sum()
+
+
 def arun(src, dst, weights=None, *, min_spread: float = 1e-3) -> np.ndarray:
     """Least-squares rigid transform ``T`` with ``dst ~ R @ src + t`` (Arun et al. 1987).
 
@@ -166,10 +175,7 @@ def arun(src, dst, weights=None, *, min_spread: float = 1e-3) -> np.ndarray:
     whose rotation about their common line is undetermined.
     """
     src, dst = _check_pairs(src, dst, 3)
-    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=float).reshape(-1)
-    if w.shape[0] != src.shape[0] or np.any(w < 0) or not np.all(np.isfinite(w)) or w.sum() <= 0:
-        raise InputError("weights must be finite, non-negative, one per pair, and not all zero")
-    w = w / w.sum()
+    w = _pair_weights(weights, len(src))
     mu_s = w @ src
     mu_d = w @ dst
     A = src - mu_s
@@ -197,10 +203,7 @@ def arun_yaw(src, dst, weights=None, *, min_spread: float = 1e-3) -> np.ndarray:
     in the horizontal plane.
     """
     src, dst = _check_pairs(src, dst, 2)
-    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=float).reshape(-1)
-    if w.shape[0] != src.shape[0] or np.any(w < 0) or not np.all(np.isfinite(w)) or w.sum() <= 0:
-        raise InputError("weights must be finite, non-negative, one per pair, and not all zero")
-    w = w / w.sum()
+    w = _pair_weights(weights, len(src))
     mu_s = w @ src
     mu_d = w @ dst
     A = src[:, :2] - mu_s[:2]

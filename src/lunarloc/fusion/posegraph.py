@@ -46,7 +46,8 @@ landmark observations. A solve builds the factors touching the free keyframes, o
 class per kind (:class:`OdometryFactor`, :class:`BiasWalkFactor`, :class:`PriorFactor`,
 :class:`PoseFixFactor`, :class:`LandmarkFactor`), each vectorised over its instances and
 giving its residual and the state columns it reads (:class:`StateLayout`); the Jacobian
-sparsity is derived from those columns (:func:`jacobian_sparsity`), never written by hand.
+sparsity is derived from those columns (:func:`jacobian_sparsity`), never written by hand
+(:mod:`lunarloc.fusion.factors`; building and solving: :mod:`lunarloc.fusion.problem`).
 
 Estimating ``k`` and ``b`` is what keeps the trajectory right *between* fixes: after a
 few fixes the odometry is calibrated and the dead-reckoned prediction drifts far less.
@@ -69,29 +70,14 @@ import numpy as np
 
 from lunarloc.core.errors import ConfigError, InputError
 from lunarloc.fusion import problem
-from lunarloc.fusion.factors import (
-    BiasWalkFactor,
-    Factor,
-    LandmarkFactor,
-    OdometryFactor,
-    PoseFixFactor,
-    PriorFactor,
-    SharedLandmarkFactor,
-    StateLayout,
-    jacobian_sparsity,
-    robust_loss,
-    stacked_residual,
-    wrap_angle,
-)
+from lunarloc.fusion.factors import Factor, wrap_angle
 
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
 __all__ = [
     "OdometryNoise", "GateConfig", "ReferenceErrorModel", "FusionConfig", "Fix", "GateResult", "Keyframe",
-    "LandmarkObservation", "ReferenceLandmark", "StateLayout", "Factor", "OdometryFactor", "BiasWalkFactor",
-    "PriorFactor", "PoseFixFactor", "LandmarkFactor", "SharedLandmarkFactor", "robust_loss",
-    "jacobian_sparsity", "stacked_residual", "PoseGraph", "wrap_angle",
+    "LandmarkObservation", "ReferenceLandmark", "PoseGraph",
 ]  # fmt: skip
 
 

@@ -32,7 +32,8 @@ import numpy as np
 
 from lunarloc.core.metrics import ate, path_length
 from lunarloc.core.errors import ConfigError, InputError, LunarLocError
-from lunarloc.fusion.posegraph import FusionConfig, Keyframe, PoseGraph, wrap_angle
+from lunarloc.fusion.factors import wrap_angle
+from lunarloc.fusion.posegraph import FusionConfig, Keyframe, PoseGraph
 from lunarloc.core.geometry import matrix_to_pose, pose_to_matrix, transform_points, yaw_of
 from lunarloc.localization.localize import LocalizationConfig, localize
 from lunarloc.io.maps import AggregationConfig, LandmarkMap, aggregate_detections, detection_arcs_m
