@@ -335,7 +335,7 @@ class AggregationConfig:
     DBSCAN (Ester et al. 1996) groups detections of the same rock; the landmark is
     the component-wise median of its group (robust to stray detections).
     Defaults were chosen by measurement on the 17 real LunarLoc traverses
-    (README, "Landmark aggregation").
+    (docs/results.md, "Landmark clustering").
     """
 
     radius_m: float = 0.10  # DBSCAN eps: neighbours within this distance belong to one rock

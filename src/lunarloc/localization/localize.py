@@ -69,7 +69,7 @@ class Solver(str, enum.Enum):
 def chance_clique_size(num_associations: int, mode: "Mode" = Mode.GRAVITY, epsilon_m: float = 0.05,
                        epsilon_z_m: float = 0.05) -> float:
     """Upper envelope of the largest consistent set found between UNRELATED maps with
-    `num_associations` putative associations (measured; see README "Acceptance rule").
+    `num_associations` putative associations (measured; see docs/results.md, "The acceptance rule").
 
     Envelope ``a + b * log10(m)`` over the largest chance cliques of 184 unrelated map
     pairs at the default settings: 124 real traverse pairs with every shared rock
