@@ -28,7 +28,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
-__all__ = ["plot_run", "plot_map", "plot_error", "plot_frame"]
+__all__ = ["plot_run", "plot_map", "plot_error", "plot_frame", "plot_lac_maps"]
 
 
 def _plt():
@@ -228,3 +228,56 @@ def _frame_square(ax, P: np.ndarray, margin_m: float = 3.0) -> None:
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.grid(alpha=0.3)
+
+
+def plot_lac_maps(produced: np.ndarray, truth: np.ndarray, path: str | Path, observed: np.ndarray | None = None,
+                  height_tolerance_m: float = 0.05, title: str = "") -> Path:  # fmt: skip
+    """Produced LAC map, true map and per-cell error side by side (site frame, metres; x to
+    the right, y up): heights with rock cells outlined, the height error (cells beyond the
+    tolerance hatched by colour saturation, unfilled cells black) and the rock flags (true
+    positives green, false positives red, misses blue). `observed` (N, N) bool outlines the
+    cells the cameras saw on the error panel."""
+    plt = _plt()
+    from matplotlib.colors import ListedColormap
+
+    p, t = np.asarray(produced, float), np.asarray(truth, float)
+    cell = float(abs(t[1, 0, 0] - t[0, 0, 0]))
+    ext = [t[0, 0, 0] - cell / 2, t[-1, 0, 0] + cell / 2, t[0, 0, 1] - cell / 2, t[0, -1, 1] + cell / 2]
+    ph = np.where(np.isfinite(p[:, :, 2]), p[:, :, 2], np.nan)
+    lo, hi = np.nanpercentile(t[:, :, 2], [1, 99])
+    fig, axes = plt.subplots(1, 4, figsize=(22, 5.8), dpi=90)
+    show = dict(origin="lower", extent=ext, interpolation="nearest")
+    for ax, h, name in ((axes[0], ph, "produced height"), (axes[1], t[:, :, 2], "true height (16-ray mean)")):
+        im = ax.imshow(h.T, cmap="gist_earth", vmin=lo, vmax=hi, **show)
+        ax.set_title(name)
+        fig.colorbar(im, ax=ax, fraction=0.046, label="m")
+    err = ph - t[:, :, 2]
+    ok = np.abs(err) < height_tolerance_m
+    im = axes[2].imshow(np.clip(err, -0.2, 0.2).T, cmap="coolwarm", vmin=-0.2, vmax=0.2, **show)
+    axes[2].imshow(np.where(np.isfinite(err), np.nan, 1.0).T, cmap=ListedColormap(["black"]), **show)
+    fig.colorbar(im, ax=axes[2], fraction=0.046, label="produced - true (m)")
+    share = float(np.mean(ok[observed])) if observed is not None and observed.any() else float(np.mean(ok))
+    where = "seen cells" if observed is not None else "all cells"
+    axes[2].set_title(f"height error: {share:.1%} of {where} within {height_tolerance_m * 100:g} cm")
+    if observed is not None:
+        axes[2].contour(np.arange(t.shape[0]) * cell + ext[0] + cell / 2, np.arange(t.shape[1]) * cell + ext[2] + cell / 2,
+                        observed.T.astype(float), levels=[0.5], colors="k", linewidths=0.6)  # fmt: skip
+    pr, tr = p[:, :, 3] >= 0.5, t[:, :, 3] >= 0.5
+    code = np.zeros(pr.shape)
+    code[pr & tr], code[pr & ~tr], code[~pr & tr] = 1, 2, 3
+    cmap = ListedColormap(["white", "tab:green", "tab:red", "tab:blue"])
+    axes[3].imshow(code.T, cmap=cmap, vmin=-0.5, vmax=3.5, **show)
+    tp, fp, fn = int((code == 1).sum()), int((code == 2).sum()), int((code == 3).sum())
+    f1 = 2 * tp / (2 * tp + fp + fn) if tp else 0.0
+    axes[3].set_title(f"rock cells: {tp} right (green), {fp} false (red), {fn} missed (blue); F1 {f1:.2f}")
+    for ax in axes:
+        ax.set_xlabel("x (m)")
+        ax.set_aspect("equal")
+    axes[0].set_ylabel("y (m)")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    _save(fig, path)
+    plt.close(fig)
+    return path

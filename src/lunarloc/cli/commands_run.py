@@ -73,6 +73,11 @@ def run_cmd(
         "Default: visual when the archive has front stereo pairs, else imu.",
     ),  # fmt: skip
     overwrite: bool = OVERWRITE_OPT,
+    lac_map: Optional[Path] = typer.Option(
+        None, "--lac-map",
+        help="Also write the LAC geometric map (.npy, 180 x 180 x 4) from the stereo points and detections, "
+        "placed with the corrected poses, and its cells' side data (.cells.npz); score it with `lunarloc score`.",
+    ),  # fmt: skip
 ) -> None:
     """Online localization over a traverse: detect, map, localize against REFERENCE, fuse.
     Several archives play on one mission clock, each rover also using the others' maps with --share-maps."""
@@ -104,6 +109,11 @@ def run_cmd(
     if len(archives) > 1 or share_maps:
         from lunarloc.cli.commands_multirover import run_several
 
+        if lac_map is not None:
+            from lunarloc.core.errors import ConfigError
+
+            raise ConfigError("--lac-map takes one archive")
+
         return run_several(archives, reference, out, cfg, share_maps=share_maps, plot=plot, overwrite=overwrite)
     archive = archives[0]
     if reference is None:
@@ -112,6 +122,13 @@ def run_cmd(
         raise ConfigError("--reference MAP is required with one archive (several archives can use --share-maps instead)")
     check_input_file(archive, None, ".lac archive")
     check_output_dir(out, overwrite)  # a previous run is refused, or cleared with --overwrite
+    mapper = None
+    if lac_map is not None:
+        from lunarloc.io.outputs import check_output_file
+        from lunarloc.mapping.lac_map import LacMapper
+
+        check_output_file(lac_map, overwrite)
+        mapper = LacMapper()
     ref = load_reference(reference, cfg.loop.aggregation)
     with tqdm(unit="frame", desc="run", dynamic_ncols=True) as bar:  # closed before an error prints
 
@@ -121,8 +138,18 @@ def run_cmd(
             if n % 50 == 0 or n == total:
                 bar.refresh()
 
-        res = run(ArchiveSource(archive, cfg.odometry, cfg.detector.pairs), ref, cfg, progress=prog)
+        res = run(ArchiveSource(archive, cfg.odometry, cfg.detector.pairs), ref, cfg, progress=prog, mapper=mapper)
     s = write_run(res, out)
+    if mapper is not None:
+        import numpy as np
+
+        from lunarloc.mapping.lac_map import save_lac_map
+
+        est = mapper.grid()
+        for p in save_lac_map(est, lac_map):
+            typer.echo(f"wrote {p}")
+        typer.echo(f"LAC map: {int(est.observed.sum())} cells seen, {int(est.interpolated.sum())} interpolated, "
+                   f"{int(np.sum(est.array[:, :, 3] >= 0.5))} rock cells ({len(est.rocks)} rocks)")
     _print_summary(s, f"{archive.name} in {reference.name} ({len(ref)} landmarks)")
     typer.echo(f"odometry: {res.config['info']['odometry_source']}")
     if plot:

@@ -48,6 +48,10 @@ log = logging.getLogger(__name__)
 __all__ = [
     "LAC_CELL_M",
     "LAC_CELLS",
+    "LAC_RAY_OFFSETS",
+    "LAC_MISSION_S",
+    "LAC_POINTS",
+    "UNFILLED",
     "NO_HEIGHT_SIGMA_M",
     "OverheadConfig",
     "validate_lac_grid",
@@ -65,6 +69,12 @@ __all__ = [
 
 LAC_CELL_M = 0.15
 LAC_CELLS = 180
+#: the LAC's value of a height or rock flag the agent has not completed
+UNFILLED = -np.inf
+#: the LAC's mission time limit (s): the productivity rate is its cells over this time
+LAC_MISSION_S = 24 * 3600.0
+#: the LAC's points: geometric map, rock map, mapping productivity, no fiducials
+LAC_POINTS = {"geometric_map": 300.0, "rocks_map": 300.0, "mapping_productivity": 250.0, "localization": 150.0}
 _CATALOGUE_COLUMNS = ("x", "y", "z", "radius", "sigma_m")
 _HEIGHT_SIGMA_M = 0.01  # a grid rock's height: not quantised, but its cells' heights vary
 
@@ -87,9 +97,11 @@ class OverheadConfig:
 # --------------------------------------------------------------------------- LAC grid
 
 
-def validate_lac_grid(grid, name: str = "geometric map") -> np.ndarray:
+def validate_lac_grid(grid, name: str = "geometric map", allow_unfilled: bool = False) -> np.ndarray:
     """Check a LAC geometric map array and return it as float64 (N, M, 4).
 
+    allow_unfilled : accept the LAC's "not completed" value (-inf) as a height or rock
+        flag (an agent's map; the scorer counts such cells as failures).
     Raises InputError for a wrong shape or dtype, non-finite coordinates or heights,
     irregular cell spacing, or rock flags outside [0, 1]."""
     arr = np.asarray(grid)
@@ -102,10 +114,13 @@ def validate_lac_grid(grid, name: str = "geometric map") -> np.ndarray:
     arr = arr.astype(np.float64)
     for k, what in ((0, "x"), (1, "y"), (2, "height"), (3, "rock flag")):
         bad = ~np.isfinite(arr[:, :, k])
+        if allow_unfilled and k >= 2:
+            bad &= ~(arr[:, :, k] == UNFILLED)
         if np.any(bad):
             i, j = np.argwhere(bad)[0]
             raise InputError(f"{name}: {int(bad.sum())} cell(s) with a non-finite {what} (first: cell [{i}, {j}])")
     flag = arr[:, :, 3]
+    flag = flag[flag != UNFILLED] if allow_unfilled else flag
     if np.any(flag < 0) or np.any(flag > 1):
         raise InputError(f"{name}: rock flags must lie in [0, 1] (got {flag.min():g} .. {flag.max():g})")
     cell = _cell_size(arr)
@@ -126,8 +141,9 @@ def _cell_size(grid: np.ndarray) -> float:
     return cx
 
 
-def load_lac_grid(path: str | Path) -> np.ndarray:
-    """Read a LAC geometric map saved with ``np.save`` (validated; see module docstring)."""
+def load_lac_grid(path: str | Path, allow_unfilled: bool = False) -> np.ndarray:
+    """Read a LAC geometric map saved with ``np.save`` (validated; see module docstring;
+    `allow_unfilled`: see :func:`validate_lac_grid`)."""
     from lunarloc.io.inputs import check_input_file
 
     path = check_input_file(path, None, "LAC geometric map")
@@ -138,7 +154,7 @@ def load_lac_grid(path: str | Path) -> np.ndarray:
         raise FileFormatError(f"{path}: not a NumPy .npy array ({exc})") from None
     if not isinstance(arr, np.ndarray):
         raise FileFormatError(f"{path}: expected one array (np.save), got an archive of several")
-    return validate_lac_grid(arr, str(path))
+    return validate_lac_grid(arr, str(path), allow_unfilled)
 
 
 #: the largest grid side read (cells); the LAC map is 180
@@ -312,20 +328,40 @@ def empty_lac_grid(size_m: float = LAC_CELL_M * LAC_CELLS, cell_m: float = LAC_C
     return out
 
 
-def site_geometric_map(site, cell_m: float = LAC_CELL_M) -> np.ndarray:
-    """The ground-truth LAC geometric map of a simulated site: per cell the surface height
-    (terrain, or the top of a rock where one covers the cell centre) and the rock flag
-    (the cell centre lies inside a rock's footprint ellipse)."""
+#: the LAC's ray lattice inside a cell: 4 x 4 downward rays at these offsets from the
+#: centre, in cells (3.75 cm apart in a 0.15 m cell)
+LAC_RAY_OFFSETS = np.array([-3.0, -1.0, 1.0, 3.0]) / 8.0
+
+
+def site_geometric_map(site, cell_m: float = LAC_CELL_M, rule: str = "lac") -> np.ndarray:
+    """The ground-truth LAC geometric map of a simulated site.
+
+    rule ``lac`` (default; what the LAC's scorer holds): per cell, 16 downward rays on a
+    4 x 4 lattice 1/4 cell apart (3.75 cm in a 0.15 m cell, :data:`LAC_RAY_OFFSETS`); the
+    cell's height is the mean of the surface heights the rays hit (terrain, or a rock's top
+    where it stands above the terrain) and its rock flag is set when any ray hits a rock.
+    rule ``centre`` (the rule before issue 28): one ray at the cell centre (height and flag
+    from it). Rocks are the site's ellipsoids; the lander is not in the map (terrain under it)."""
+    if rule not in ("lac", "centre"):
+        raise InputError(f"unknown ground-truth rule {rule!r} (lac or centre)")
     grid = empty_lac_grid(site.config.size_m, cell_m)
-    x, y = grid[:, :, 0], grid[:, :, 1]
+    offsets = LAC_RAY_OFFSETS * cell_m if rule == "lac" else np.zeros(1)
+    ox, oy = np.meshgrid(offsets, offsets, indexing="ij")
+    # ray points: (N, N, R)
+    x = grid[:, :, 0, None] + ox.reshape(1, 1, -1)
+    y = grid[:, :, 1, None] + oy.reshape(1, 1, -1)
     h = site.terrain_height(x, y)
-    flag = np.zeros_like(h)
+    hit = np.zeros(h.shape, dtype=bool)
     rocks = site.rocks
+    lo = grid[0, 0, :2] + offsets.min()
+    n = grid.shape[0]
     for k in range(len(rocks)):
         c, (a, b, cz), yaw = rocks.centers[k], rocks.axes[k], rocks.yaws[k]
         r = max(a, b)
-        i0, i1 = np.searchsorted(grid[:, 0, 0], [c[0] - r, c[0] + r])
-        j0, j1 = np.searchsorted(grid[0, :, 1], [c[1] - r, c[1] + r])
+        i0 = max(int(math.floor((c[0] - r - lo[0]) / cell_m)), 0)
+        i1 = min(int(math.ceil((c[0] + r - lo[0]) / cell_m)) + 1, n)
+        j0 = max(int(math.floor((c[1] - r - lo[1]) / cell_m)), 0)
+        j1 = min(int(math.ceil((c[1] + r - lo[1]) / cell_m)) + 1, n)
         if i1 <= i0 or j1 <= j0:
             continue
         dx, dy = x[i0:i1, j0:j1] - c[0], y[i0:i1, j0:j1] - c[1]
@@ -339,18 +375,19 @@ def site_geometric_map(site, cell_m: float = LAC_CELL_M) -> np.ndarray:
         sub_h = h[i0:i1, j0:j1]
         above = inside & (top > sub_h)
         sub_h[above] = top[above]
-        flag[i0:i1, j0:j1][above] = 1.0
-    grid[:, :, 2], grid[:, :, 3] = h, flag
+        hit[i0:i1, j0:j1][above] = True
+    grid[:, :, 2] = h.mean(axis=2)
+    grid[:, :, 3] = hit.any(axis=2).astype(float)
     return grid
 
 
-def write_site_geometric_map(site, path: str | Path) -> Path:
+def write_site_geometric_map(site, path: str | Path, rule: str = "lac") -> Path:
     """Write the site's ground-truth LAC geometric map (:func:`site_geometric_map`) as ``.npy``."""
     from lunarloc.io.outputs import atomic_open
 
     path = Path(path)
     with atomic_open(path, "wb") as fh:
-        np.save(fh, site_geometric_map(site))
+        np.save(fh, site_geometric_map(site, rule=rule))
     return path
 
 
@@ -386,32 +423,71 @@ def landmarks_to_lac_grid(landmarks: LandmarkMap, size_m: float = LAC_CELL_M * L
 # --------------------------------------------------------------------------- scoring
 
 
-def score_geometric_map(produced, truth, height_tolerance_m: float = 0.05) -> dict:
-    """The LAC's map scores of `produced` against `truth` (same grid):
-    ``geometric``: share of cells whose height is within `height_tolerance_m`;
-    ``rock_precision`` / ``rock_recall`` / ``rock_f1`` over the per-cell rock flags.
+def score_geometric_map(produced, truth, height_tolerance_m: float = 0.05, *, cells=None,
+                        mission_time_s: float | None = None, fiducials_used: bool = False) -> dict:
+    """The LAC's map scores of `produced` against `truth` (same grid), with the scorer's rules:
 
-    Raises InputError when the grids differ in shape or cell centres."""
-    p = validate_lac_grid(produced, "produced map")
+    ``geometric``: share of cells whose height error is below `height_tolerance_m` (an
+    unfilled cell, -inf, fails); ``rock_precision`` / ``rock_recall`` / ``rock_f1`` over
+    the per-cell rock flags (a flag >= 0.5 is a rock; unfilled flags count as no rock);
+    ``productivity``: cells with both height and flag filled per second of `mission_time_s`
+    against the LAC's rate (all cells in 24 h), capped at 1 (default mission time: 24 h,
+    so the share of cells filled); ``points``: the LAC's points of each part and their
+    ``total`` (300 x geometric + 300 x F1 + 250 x productivity + 150 without fiducials; the
+    rock part is 0 when the truth has no rocks, as the scorer does).
+
+    cells : optional (N, N) bool mask: the geometric share and the rock scores over these
+        cells only (e.g. those the cameras saw; points then say what the whole map would
+        score if it were those cells; productivity always counts the whole map).
+    Raises InputError when the grids differ in shape or cell centres or the mask does not fit."""
+    p = validate_lac_grid(produced, "produced map", allow_unfilled=True)
     t = validate_lac_grid(truth, "true map")
     if p.shape != t.shape:
         raise InputError(f"produced map has shape {p.shape}, the true map {t.shape}: not the same grid")
     if np.max(np.abs(p[:, :, :2] - t[:, :, :2])) > 1e-6:
         raise InputError("produced and true maps have different cell centres (x, y): not the same grid")
-    ok_h = np.abs(p[:, :, 2] - t[:, :, 2]) < height_tolerance_m
-    pr, tr = p[:, :, 3] >= 0.5, t[:, :, 3] >= 0.5
+    if cells is None:
+        sel = np.ones(p.shape[:2], dtype=bool)
+    else:
+        sel = np.asarray(cells)
+        if sel.shape != p.shape[:2]:
+            raise InputError(f"cell mask has shape {sel.shape}, the maps {p.shape[:2]}")
+        sel = sel.astype(bool)
+    if mission_time_s is not None and not (math.isfinite(mission_time_s) and mission_time_s > 0):
+        raise InputError(f"mission time {mission_time_s} s must be > 0")
+    filled_h = np.isfinite(p[:, :, 2])
+    filled = filled_h & np.isfinite(p[:, :, 3])
+    with np.errstate(invalid="ignore"):
+        ok_h = filled_h & (np.abs(p[:, :, 2] - t[:, :, 2]) < height_tolerance_m)
+    pr, tr = (p[:, :, 3] >= 0.5) & sel, (t[:, :, 3] >= 0.5) & sel
     tp = int(np.sum(pr & tr))
     fp = int(np.sum(pr & ~tr))
     fn = int(np.sum(~pr & tr))
     precision = tp / (tp + fp) if tp + fp else 0.0
     recall = tp / (tp + fn) if tp + fn else 0.0
-    f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
+    f1 = 2 * tp / (2 * tp + fp + fn) if tp else 0.0
+    n_sel = int(sel.sum())
+    geometric = float(ok_h[sel].mean()) if n_sel else 0.0
+    mission = LAC_MISSION_S if mission_time_s is None else float(mission_time_s)
+    rate = int(filled.sum()) / mission
+    productivity = min(rate / (p.shape[0] * p.shape[1] / LAC_MISSION_S), 1.0)
+    pts = {
+        "geometric_map": LAC_POINTS["geometric_map"] * geometric,
+        "rocks_map": LAC_POINTS["rocks_map"] * f1 if tr.any() else 0.0,
+        "mapping_productivity": LAC_POINTS["mapping_productivity"] * productivity,
+        "localization": 0.0 if fiducials_used else LAC_POINTS["localization"],
+    }
+    pts["total"] = sum(pts.values())
     return {
-        "cells": int(ok_h.size),
-        "geometric": float(ok_h.mean()),
+        "cells": n_sel,
+        "geometric": geometric,
         "rock_precision": precision,
         "rock_recall": recall,
         "rock_f1": f1,
         "rock_cells_true": int(tr.sum()),
         "rock_cells_produced": int(pr.sum()),
+        "cells_filled": int(filled.sum()),
+        "mission_time_s": mission,
+        "productivity": productivity,
+        "points": pts,
     }

@@ -32,29 +32,39 @@ from lunarloc.core.errors import InputError
 from lunarloc.online.loop import LoopResult, LoopState
 from lunarloc.io.maps import LandmarkMap
 
-__all__ = ["run", "detect", "DetectResult"]
+__all__ = ["run", "detect", "DetectResult", "add_to_mapper", "place_mapper", "LANDER_EXCLUSION_M"]
 
 
 def run(source, reference: LandmarkMap, config: RunConfig | None = None, *,
-        progress: Callable[[int, int], None] | None = None) -> LoopResult:  # fmt: skip
+        progress: Callable[[int, int], None] | None = None, mapper=None) -> LoopResult:  # fmt: skip
     """Online localization of every frame of `source` (:class:`~lunarloc.pipeline.sources.ArchiveSource`
     or :class:`~lunarloc.pipeline.sources.TraverseCsvSource`) against `reference` (frame ``map``).
 
     config : :class:`RunConfig` (default: ``RunConfig()``, the settings for images); the
-        detector is scaled to the source's image width. `progress(done, total)` per frame."""
+        detector is scaled to the source's image width. `progress(done, total)` per frame.
+    mapper : optional :class:`~lunarloc.mapping.lac_map.LacMapper`: every image frame's stereo
+        points and detections are added to it (the lander excluded), and at the end every frame
+        is re-placed with the corrected poses (``LoopResult.T_map_rover``): ``mapper.grid()``
+        is then the LAC map of the run (:func:`place_mapper` re-places it with other poses)."""
     cfg = config or RunConfig()
     loop = LoopState(reference, cfg.loop, cfg.localization)
     with source:
         loop.set_odometry(odometry_of(source))  # its windows state this odometry's bounds
         detector = _detector(source, cfg)
+        if mapper is not None and source.lander_xy is not None:
+            mapper.exclude_disc(source.lander_xy, LANDER_EXCLUSION_M)
         example = _ExampleFrame()
         total, n_kf = source.n_frames, 0
         for n, frame in enumerate(source, start=1):
             detections = frame.detections_rover
             if frame.images is not None:
                 t0 = time.perf_counter()
-                fd = detector.detect_frame(frame.images, frame.mounts, None, frame.frame)
+                fd = detector.detect_frame(frame.images, frame.mounts, None, frame.frame, keep_depth=mapper is not None)
                 loop.timings["detection"] += time.perf_counter() - t0
+                if mapper is not None:
+                    t0 = time.perf_counter()
+                    add_to_mapper(mapper, frame.frame, frame.T_odo_rover, fd, detector, frame.images)
+                    loop.timings["lac_map"] = loop.timings.get("lac_map", 0.0) + time.perf_counter() - t0
                 detections = np.array([d.p_rover for d in fd.detections], float).reshape(-1, 3)
                 if source.lander_xy is not None:  # the lander is no rock: drop detections on it
                     from lunarloc.perception.detector import on_lander
@@ -72,7 +82,44 @@ def run(source, reference: LandmarkMap, config: RunConfig | None = None, *,
     info = source.info()
     if detector is not None:
         info["detector_scaled"] = detector.config.to_dict()
-    return loop.finish(n_kf, source.name, source.rocks, example.best, {**cfg.to_dict(), "info": info})
+    result = loop.finish(n_kf, source.name, source.rocks, example.best, {**cfg.to_dict(), "info": info})
+    if mapper is not None:
+        place_mapper(mapper, result.frames, result.T_map_rover)
+    return result
+
+
+#: points and detections within this distance of the lander's centre are not mapped (its
+#: body and legs are not terrain; the detector drops its detections within the same radius)
+LANDER_EXCLUSION_M = 2.2
+
+
+def add_to_mapper(mapper, frame_id, T_map_rover, fd, detector, images) -> None:
+    """Add one frame's detections (:class:`~lunarloc.perception.detector.FrameDetections`,
+    detected with ``keep_depth=True``) and its pairs' stereo points to `mapper`. A pair without
+    the detector's height map (a detector that needs none) gets one computed here."""
+    pts = []
+    for pair in fd.pairs:
+        hm = pair.height
+        if hm is None and pair.T_rover_optical is not None:
+            left, right = next(((a, b) for a, b in detector.config.pairs if a == pair.camera), (None, None))
+            if images.get(right) is not None:
+                hm = detector.height_map(images[left], images[right], pair.T_rover_optical)
+        if hm is not None:
+            pts.append(hm.points_rover.reshape(-1, 3))
+    rocks = np.array([[*d.p_rover, d.radius_m] for d in fd.detections], float).reshape(-1, 4)
+    mapper.add_frame(frame_id, T_map_rover, np.concatenate(pts) if pts else None, rocks)
+
+
+def place_mapper(mapper, frames, T_map_rover) -> int:
+    """Re-place every frame `mapper` holds with its pose in `T_map_rover` ((F, 4, 4), one per
+    entry of `frames`). Returns the number of frames moved."""
+    index = {int(f): k for k, f in enumerate(np.asarray(frames).tolist())}
+    moved = 0
+    for fid in mapper.frame_ids:
+        k = index.get(int(fid))
+        if k is not None:
+            moved += mapper.repose(fid, T_map_rover[k])
+    return moved
 
 
 def odometry_of(source):

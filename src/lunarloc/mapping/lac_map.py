@@ -1,0 +1,585 @@
+"""The LAC geometric map from what the rover sees: terrain heights and rock flags per cell.
+
+A :class:`LacMapper` takes, per stereo frame, the rover-frame points of the stereo the
+detector already computes (:attr:`lunarloc.perception.stereo.HeightMap.points_rover`; any
+(..., 3) array of rover-frame points works) and the frame's rock detections (rover-frame
+centres with radii), with the rover's pose in the map frame. :meth:`LacMapper.grid` places
+every frame with its current pose and returns the LAC's ``(180, 180, 4)`` array
+(``x, y, height, rock flag``; :mod:`lunarloc.io.overhead` has its layout) with per-cell
+uncertainty and the cells it interpolated. When the pose graph corrects past poses,
+:meth:`LacMapper.repose` moves a frame: what it placed moves with it at the next ``grid()``.
+
+What the LAC scores (:func:`lunarloc.io.overhead.score_geometric_map`): a true cell's height is
+the mean of 16 downward rays on a 3.75 cm lattice inside it, its rock flag is set when any of
+the rays hits a rock. The mapper estimates both:
+
+* **Heights.** Each frame's points within ``max_range_m`` (horizontal, rover frame) are binned
+  in the rover frame (``bin_m`` squares): per bin the mean point and a weight (its point count
+  times ``1 / (1 + (range / range_scale_m)^4)``: stereo height noise grows fast with range).
+  This per-frame summary (a few thousand bins) is all that is kept of a frame. ``grid()``
+  places the bins of every frame with its pose; a cell's height is the **weighted median** of
+  the bins that fall in it (robust to stereo outliers and to a rock edge's few points), its
+  uncertainty the weighted spread about that median (``height_sigma_m``).
+* **Rocks.** Detections are placed with their frame's pose; those of different frames within
+  ``rock_merge_m`` of each other are one rock; a rock seen in at least ``rock_min_sightings``
+  frames is kept with the median centre and radius, and every cell with **any** of its 16 ray
+  points within ``rock_radius_scale x radius + rock_radius_margin_m`` of the centre is flagged
+  (the LAC's any-ray rule).
+* **Cells never seen** (``fill``): ``all`` (default) fills every unseen cell with the
+  Gaussian-weighted mean of the seen heights at the smallest scale (1, 2, 4, ... cells) that
+  reaches one (normalised convolution), with no rock; ``near`` only those within ``fill_max_m`` of a seen cell; ``none`` leaves
+  them unfilled (the LAC's -inf). An unfilled cell always fails the LAC's geometric score and
+  counts nothing for productivity, so ``all`` can only gain points; the estimate says which
+  cells were interpolated and how far from a seen cell (``fill_distance_m``).
+* **Bounded memory.** At most ``max_frames`` frames are kept re-placeable; older ones are
+  frozen into per-cell sums at their last pose (their heights then join each cell's median
+  as one weighted mean) and can no longer move. Memory: the frozen sums (three N x N arrays)
+  plus ``max_frames`` summaries (about 16 bytes a bin; :meth:`LacMapper.memory_bytes`).
+
+Excluded areas (:meth:`LacMapper.exclude_disc`, e.g. the lander: its points are not terrain)
+drop the points and detections placed inside them; their cells are interpolated.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import OrderedDict
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from lunarloc.core.errors import ConfigError, InputError
+from lunarloc.io.overhead import LAC_CELL_M, LAC_CELLS, LAC_RAY_OFFSETS, UNFILLED, empty_lac_grid
+
+log = logging.getLogger(__name__)
+log.addHandler(logging.NullHandler())
+
+__all__ = ["LacMapperConfig", "LacMapEstimate", "LacMapper", "write_geometric_map", "save_lac_map", "cells_path",
+           "load_observed_cells"]
+
+FILL_MODES = ("all", "near", "none")
+
+
+@dataclass(frozen=True)
+class LacMapperConfig:
+    """How the mapper bins, weights, fuses and fills (metres)."""
+
+    size_m: float = LAC_CELL_M * LAC_CELLS  # side of the square map (LAC: 27 m)
+    cell_m: float = LAC_CELL_M  # cell side (LAC: 0.15 m)
+    centre_xy: tuple[float, float] = (0.0, 0.0)  # map centre in the map frame (LAC: the origin)
+    bin_m: float = 0.05  # rover-frame bin of a frame's summary
+    min_range_m: float = 0.3  # points nearer than this (horizontal, rover frame) are dropped
+    max_range_m: float = 4.0  # ... and farther than this
+    range_scale_m: float = 2.0  # bin weight count / (1 + (range / range_scale_m)^4)
+    max_abs_z_m: float = 3.0  # rover-frame points higher or lower than this are dropped
+    max_frames: int = 2000  # frames kept re-placeable; older ones are frozen at their pose
+    rock_min_sightings: int = 2  # frames that must detect a rock before it is mapped
+    rock_merge_m: float = 0.15  # detections of different frames nearer than this are one rock
+    rock_max_range_m: float = 6.0  # detections farther than this (horizontal, rover frame) are dropped
+    rock_radius_scale: float = 1.0  # footprint radius = scale x estimated radius + margin
+    rock_radius_margin_m: float = 0.0
+    fill: str = "all"  # unseen cells: all | near | none (module docstring)
+    fill_max_m: float = 1.0  # `near`: fill within this distance of a seen cell
+
+    def __post_init__(self) -> None:
+        n = self.size_m / self.cell_m
+        if not (self.cell_m > 0 and n >= 2 and abs(n - round(n)) < 1e-6):
+            raise ConfigError(f"size_m={self.size_m} must be a whole number (>= 2) of cells of cell_m={self.cell_m}")
+        if not 0 < self.bin_m <= self.cell_m:
+            raise ConfigError(f"bin_m={self.bin_m} must be in (0, cell_m]")
+        if not 0 <= self.min_range_m < self.max_range_m:
+            raise ConfigError("need 0 <= min_range_m < max_range_m")
+        if self.range_scale_m <= 0 or self.max_abs_z_m <= 0:
+            raise ConfigError("range_scale_m and max_abs_z_m must be > 0")
+        if self.max_frames < 1 or self.rock_min_sightings < 1:
+            raise ConfigError("max_frames and rock_min_sightings must be >= 1")
+        if self.rock_merge_m < 0 or self.rock_max_range_m <= 0 or self.rock_radius_scale < 0:
+            raise ConfigError("rock_merge_m and rock_radius_scale must be >= 0, rock_max_range_m > 0")
+        if self.fill not in FILL_MODES:
+            raise ConfigError(f"fill={self.fill!r}: one of {', '.join(FILL_MODES)}")
+        if self.fill_max_m < 0:
+            raise ConfigError("fill_max_m must be >= 0")
+
+    @property
+    def cells(self) -> int:
+        return int(round(self.size_m / self.cell_m))
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class LacMapEstimate:
+    """What :meth:`LacMapper.grid` returns. Arrays are (N, N), cell [i, j] as in :attr:`array`.
+
+    array : the LAC map (N, N, 4): x, y, height (m), rock flag (0/1); -inf where unfilled.
+    observed : cells that hold points of at least one frame.
+    interpolated : cells filled without being observed.
+    height_sigma_m : weighted spread of the observed heights about the cell's height (NaN unobserved).
+    weight : sum of the bin weights in the cell (0 unobserved).
+    fill_distance_m : distance from the cell centre to the nearest observed cell centre (0 observed).
+    rocks : (K, 3) the mapped rocks: x, y (map frame), footprint radius (m).
+    """
+
+    array: np.ndarray
+    observed: np.ndarray
+    interpolated: np.ndarray
+    height_sigma_m: np.ndarray
+    weight: np.ndarray
+    fill_distance_m: np.ndarray
+    rocks: np.ndarray
+
+    @property
+    def filled(self) -> np.ndarray:
+        return np.isfinite(self.array[:, :, 2])
+
+
+@dataclass
+class _Frame:
+    T_map_rover: np.ndarray  # (4, 4)
+    bins: np.ndarray  # (K, 4) float32: rover-frame x, y, z, weight
+    rocks: np.ndarray  # (M, 4) float32: rover-frame x, y, z, radius
+    seq: int = 0  # order of arrival (a rock's sightings count distinct frames)
+
+
+def _check_T(T, what: str) -> np.ndarray:
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise InputError(f"{what}: expected a finite 4x4 transform, got shape {T.shape}")
+    return T
+
+
+class LacMapper:
+    """Fuse stereo frames into the LAC geometric map (module docstring).
+
+    Per frame: :meth:`add_frame`; when the pose graph corrects past poses: :meth:`repose`;
+    the map: :meth:`grid`. Frame ids are any hashable (the frame number, the tick)."""
+
+    def __init__(self, config: LacMapperConfig | None = None) -> None:
+        self.config = cfg = config or LacMapperConfig()
+        self._grid0 = empty_lac_grid(cfg.size_m, cfg.cell_m, cfg.centre_xy)
+        n = cfg.cells
+        self._lo = np.array([self._grid0[0, 0, 0], self._grid0[0, 0, 1]]) - cfg.cell_m / 2.0
+        self._frames: OrderedDict = OrderedDict()
+        self._seq = 0
+        self._frozen_w = np.zeros((n, n))
+        self._frozen_wz = np.zeros((n, n))
+        self._frozen_wz2 = np.zeros((n, n))
+        self._frozen_rocks = np.zeros((0, 4))  # map-frame x, y, radius, seq
+        self._discs: list[tuple[float, float, float]] = []
+        self.frozen_frames = 0
+        # the rover-frame bin lattice: keys in a (side x side) square
+        self._half = int(math.ceil(cfg.max_range_m / cfg.bin_m)) + 1
+        self._side = 2 * self._half + 1
+
+    # ------------------------------------------------------------------ inputs
+    def exclude_disc(self, centre_xy, radius_m: float) -> None:
+        """Drop points and detections placed within `radius_m` of `centre_xy` (map frame),
+        e.g. the lander (its body and legs are not terrain)."""
+        c = np.asarray(centre_xy, float).reshape(-1)
+        if c.shape[0] < 2 or not np.all(np.isfinite(c[:2])) or not (math.isfinite(radius_m) and radius_m > 0):
+            raise InputError(f"exclude_disc: need a finite centre (x, y) and radius > 0, got {centre_xy}, {radius_m}")
+        self._discs.append((float(c[0]), float(c[1]), float(radius_m)))
+
+    def add_frame(self, frame_id, T_map_rover, points_rover=None, rocks_rover=None) -> int:
+        """Add what one frame saw, placed with `T_map_rover` (4x4, rover -> map).
+
+        points_rover : (..., 3) rover-frame points (x forward, y left, z up; NaN rows are
+            skipped), e.g. a stereo HeightMap's ``points_rover``; several pairs of one frame may
+            be added under the same `frame_id` (they are merged; the pose is the last given).
+        rocks_rover : (M, 4) rover-frame rock centres and radii (m), or (M, 3) centres
+            (radius 0: the cell holding the centre).
+        Returns the number of bins the frame's summary holds. Raises InputError on a bad pose
+        or array shape."""
+        T = _check_T(T_map_rover, f"frame {frame_id}: T_map_rover")
+        bins = self._summarise(points_rover, frame_id)
+        rocks = self._rocks(rocks_rover, frame_id)
+        old = self._frames.get(frame_id)
+        if old is not None:
+            old.T_map_rover = T
+            old.bins = np.concatenate([old.bins, bins])
+            old.rocks = np.concatenate([old.rocks, rocks])
+            return len(old.bins)
+        self._frames[frame_id] = _Frame(T, bins, rocks, self._seq)
+        self._seq += 1
+        while len(self._frames) > self.config.max_frames:
+            self._freeze(*self._frames.popitem(last=False))
+        return len(bins)
+
+    def repose(self, frame_id, T_map_rover) -> bool:
+        """Move frame `frame_id` to `T_map_rover` (e.g. the pose graph's corrected pose).
+        Returns False when the frame is unknown or already frozen (then nothing moves)."""
+        fr = self._frames.get(frame_id)
+        if fr is None:
+            return False
+        fr.T_map_rover = _check_T(T_map_rover, f"frame {frame_id}: T_map_rover")
+        return True
+
+    @property
+    def frame_ids(self) -> list:
+        """Ids of the frames that can still be re-placed (oldest first)."""
+        return list(self._frames.keys())
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def memory_bytes(self) -> int:
+        """Bytes held: frame summaries, frozen sums and rocks."""
+        n = sum(f.bins.nbytes + f.rocks.nbytes + f.T_map_rover.nbytes for f in self._frames.values())
+        return int(n + self._frozen_w.nbytes * 3 + self._frozen_rocks.nbytes)
+
+    # ------------------------------------------------------------------ summaries
+    def _summarise(self, points, frame_id) -> np.ndarray:
+        cfg = self.config
+        if points is None:
+            return np.zeros((0, 4), np.float32)
+        P = np.asarray(points, dtype=np.float32)
+        if P.ndim < 1 or P.shape[-1] != 3:
+            raise InputError(f"frame {frame_id}: points_rover must be (..., 3), got shape {P.shape}")
+        P = P.reshape(-1, 3)
+        x, y, z = P[:, 0], P[:, 1], P[:, 2]
+        with np.errstate(invalid="ignore"):
+            r = np.hypot(x, y)
+            ok = (r >= cfg.min_range_m) & (r <= cfg.max_range_m) & (np.abs(z) <= cfg.max_abs_z_m)
+        if not np.any(ok):
+            return np.zeros((0, 4), np.float32)
+        x, y, z = x[ok], y[ok], z[ok]
+        ix = np.floor(x / cfg.bin_m).astype(np.int64) + self._half
+        iy = np.floor(y / cfg.bin_m).astype(np.int64) + self._half
+        key = ix * self._side + iy
+        m = self._side * self._side
+        cnt = np.bincount(key, minlength=m)
+        used = np.flatnonzero(cnt)
+        c = cnt[used].astype(np.float64)
+        mx = np.bincount(key, x, minlength=m)[used] / c
+        my = np.bincount(key, y, minlength=m)[used] / c
+        mz = np.bincount(key, z, minlength=m)[used] / c
+        w = c / (1.0 + (np.hypot(mx, my) / cfg.range_scale_m) ** 4)
+        return np.column_stack([mx, my, mz, w]).astype(np.float32)
+
+    def _rocks(self, rocks, frame_id) -> np.ndarray:
+        cfg = self.config
+        if rocks is None:
+            return np.zeros((0, 4), np.float32)
+        R = np.asarray(rocks, dtype=float)
+        if R.size == 0:
+            return np.zeros((0, 4), np.float32)
+        if R.ndim != 2 or R.shape[1] not in (3, 4):
+            raise InputError(f"frame {frame_id}: rocks_rover must be (M, 3) or (M, 4), got shape {R.shape}")
+        if R.shape[1] == 3:
+            R = np.column_stack([R, np.zeros(len(R))])
+        ok = np.all(np.isfinite(R), axis=1) & (R[:, 3] >= 0) & (np.hypot(R[:, 0], R[:, 1]) <= cfg.rock_max_range_m)
+        return R[ok].astype(np.float32)
+
+    def _freeze(self, frame_id, fr: _Frame) -> None:
+        """Fold a frame into the frozen sums at its current pose (it can no longer move)."""
+        c, z, w = self._place_bins(fr)
+        n = self.config.cells
+        self._frozen_w += np.bincount(c, w, minlength=n * n).reshape(n, n)
+        self._frozen_wz += np.bincount(c, w * z, minlength=n * n).reshape(n, n)
+        self._frozen_wz2 += np.bincount(c, w * z * z, minlength=n * n).reshape(n, n)
+        xy, r = self._place_rocks(fr)
+        if len(xy):
+            self._frozen_rocks = np.concatenate([self._frozen_rocks, np.column_stack([xy, r, np.full(len(r), fr.seq)])])
+        self.frozen_frames += 1
+        log.debug("mapper: froze frame %s (%d bins)", frame_id, len(fr.bins))
+
+    # ------------------------------------------------------------------ placing
+    def _keep_outside_discs(self, xy: np.ndarray) -> np.ndarray:
+        keep = np.ones(len(xy), dtype=bool)
+        for cx, cy, r in self._discs:
+            keep &= (xy[:, 0] - cx) ** 2 + (xy[:, 1] - cy) ** 2 > r * r
+        return keep
+
+    def _place_bins(self, fr: _Frame):
+        """Cell ids (flat), heights and weights of a frame's bins at its pose (inside the map)."""
+        cfg = self.config
+        if len(fr.bins) == 0:
+            return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+        T = fr.T_map_rover
+        P = fr.bins[:, :3].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+        i = np.floor((P[:, 0] - self._lo[0]) / cfg.cell_m).astype(np.int64)
+        j = np.floor((P[:, 1] - self._lo[1]) / cfg.cell_m).astype(np.int64)
+        n = cfg.cells
+        ok = (i >= 0) & (i < n) & (j >= 0) & (j < n)
+        if self._discs:
+            ok &= self._keep_outside_discs(P[:, :2])
+        return (i * n + j)[ok], P[ok, 2], fr.bins[ok, 3].astype(np.float64)
+
+    def _place_rocks(self, fr: _Frame):
+        if len(fr.rocks) == 0:
+            return np.zeros((0, 2)), np.zeros(0)
+        T = fr.T_map_rover
+        P = fr.rocks[:, :3].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+        keep = self._keep_outside_discs(P[:, :2]) if self._discs else np.ones(len(P), bool)
+        return P[keep, :2], fr.rocks[keep, 3].astype(np.float64)
+
+    # ------------------------------------------------------------------ the map
+    def grid(self) -> LacMapEstimate:
+        """The LAC map of everything added so far, every frame at its current pose."""
+        cfg = self.config
+        n = cfg.cells
+        cs, zs, ws = [], [], []
+        for fr in self._frames.values():
+            c, z, w = self._place_bins(fr)
+            cs.append(c)
+            zs.append(z)
+            ws.append(w)
+        fz = np.flatnonzero(self._frozen_w.reshape(-1) > 0)
+        if len(fz):  # frozen frames: one weighted mean per cell
+            fw = self._frozen_w.reshape(-1)[fz]
+            cs.append(fz)
+            zs.append(self._frozen_wz.reshape(-1)[fz] / fw)
+            ws.append(fw)
+        c = np.concatenate(cs) if cs else np.zeros(0, np.int64)
+        z = np.concatenate(zs) if zs else np.zeros(0)
+        w = np.concatenate(ws) if ws else np.zeros(0)
+        height = np.full(n * n, np.nan)
+        sigma = np.full(n * n, np.nan)
+        weight = np.bincount(c, w, minlength=n * n) if len(c) else np.zeros(n * n)
+        if len(c):
+            med = _weighted_median(c, z, w, n * n)
+            height[:] = med
+            spread2 = np.bincount(c, w * (z - med[c]) ** 2, minlength=n * n)
+            fzw2 = self._frozen_wz2.reshape(-1)
+            if len(fz):  # the frozen cells' own spread about their mean
+                mean_f = self._frozen_wz.reshape(-1)[fz] / self._frozen_w.reshape(-1)[fz]
+                spread2[fz] += np.maximum(fzw2[fz] - self._frozen_w.reshape(-1)[fz] * mean_f**2, 0.0)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                sigma = np.sqrt(spread2 / weight)
+        observed = (weight > 0).reshape(n, n)
+        height = height.reshape(n, n)
+        sigma = np.where(observed, sigma.reshape(n, n), np.nan)
+        out = self._grid0.copy()
+        out[:, :, 2] = np.where(observed, height, UNFILLED)
+        out[:, :, 3] = np.where(observed, 0.0, UNFILLED)
+        filled_h, dist = _fill(out[:, :, :3], observed, cfg)
+        interpolated = np.isfinite(filled_h) & ~observed
+        out[:, :, 2] = filled_h
+        out[:, :, 3] = np.where(np.isfinite(filled_h), 0.0, UNFILLED)
+        rocks = self._fused_rocks()
+        flags = _rock_cells(rocks, self._grid0, cfg.cell_m)
+        out[:, :, 3] = np.where(flags, 1.0, out[:, :, 3])
+        # a flagged cell with no height yet: its height from its neighbourhood is unknown, but
+        # a flag without a height scores as filled only when both are set; give it the nearest
+        out[:, :, 2] = np.where(flags & ~np.isfinite(out[:, :, 2]), _nearest_fill(out[:, :, 2]), out[:, :, 2])
+        return LacMapEstimate(out, observed, interpolated, sigma, weight.reshape(n, n), dist, rocks)
+
+    def _fused_rocks(self) -> np.ndarray:
+        """Detections of all frames merged into rocks: (K, 3) x, y, footprint radius."""
+        cfg = self.config
+        parts = [self._frozen_rocks]
+        for fr in self._frames.values():
+            xy, r = self._place_rocks(fr)
+            if len(r):
+                parts.append(np.column_stack([xy, r, np.full(len(r), fr.seq)]))
+        D = np.concatenate(parts)
+        if len(D) == 0:
+            return np.zeros((0, 3))
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+        from scipy.spatial import cKDTree
+
+        pairs = cKDTree(D[:, :2]).query_pairs(cfg.rock_merge_m, output_type="ndarray") if cfg.rock_merge_m > 0 else None
+        if pairs is None or len(pairs) == 0:
+            labels = np.arange(len(D))
+            k = len(D)
+        else:
+            adj = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(D), len(D)))
+            k, labels = connected_components(adj, directed=False)
+        # sightings: distinct frames per rock
+        seen = np.unique(np.column_stack([labels, D[:, 3]]), axis=0)
+        sightings = np.bincount(seen[:, 0].astype(np.int64), minlength=k)
+        keep = np.flatnonzero(sightings >= cfg.rock_min_sightings)
+        if len(keep) == 0:
+            return np.zeros((0, 3))
+        order = np.argsort(labels, kind="stable")
+        starts = np.searchsorted(labels[order], keep)
+        ends = np.searchsorted(labels[order], keep, side="right")
+        out = np.empty((len(keep), 3))
+        for q, (a, b) in enumerate(zip(starts, ends)):
+            g = D[order[a:b]]
+            out[q] = (np.median(g[:, 0]), np.median(g[:, 1]),
+                      cfg.rock_radius_scale * np.median(g[:, 2]) + cfg.rock_radius_margin_m)  # fmt: skip
+        return out
+
+
+def _weighted_median(c: np.ndarray, z: np.ndarray, w: np.ndarray, size: int) -> np.ndarray:
+    """Per group id `c` (0..size-1), the weighted median of `z` (NaN for empty groups)."""
+    order = np.lexsort((z, c))
+    cs, zs, ws = c[order], z[order], w[order]
+    cw = np.cumsum(ws)
+    groups, start = np.unique(cs, return_index=True)
+    end = np.r_[start[1:], len(cs)]
+    base = np.where(start > 0, cw[np.maximum(start - 1, 0)], 0.0)
+    total = cw[end - 1] - base
+    idx = np.searchsorted(cw, base + 0.5 * total, side="left")
+    idx = np.clip(idx, start, end - 1)
+    out = np.full(size, np.nan)
+    out[groups] = zs[idx]
+    return out
+
+
+def _nearest_fill(h: np.ndarray) -> np.ndarray:
+    """`h` with every non-finite cell given the nearest finite cell's value (all -inf if none)."""
+    from scipy import ndimage
+
+    ok = np.isfinite(h)
+    if not np.any(ok):
+        return h
+    _, (ii, jj) = ndimage.distance_transform_edt(~ok, return_indices=True)
+    return h[ii, jj]
+
+
+def _fill(xyh: np.ndarray, observed: np.ndarray, cfg: LacMapperConfig):
+    """Heights with the unseen cells filled by `cfg.fill`, and each cell's distance to the
+    nearest observed cell (metres)."""
+    from scipy import ndimage
+
+    h = xyh[:, :, 2].copy()
+    n = h.shape[0]
+    if not np.any(observed):
+        return h, np.full((n, n), np.inf)
+    dist = ndimage.distance_transform_edt(~observed) * cfg.cell_m
+    if cfg.fill == "none" or np.all(observed):
+        return h, dist
+    # normalised convolution at growing scales: each unseen cell takes the Gaussian-weighted
+    # mean of the observed heights at the smallest scale (1, 2, 4, ... cells) that reaches any
+    want = ~observed
+    if cfg.fill == "near":
+        want &= dist <= cfg.fill_max_m
+    m = observed.astype(float)
+    hz = np.where(observed, h, 0.0)
+    todo = want.copy()
+    sigma = 1.0
+    while np.any(todo) and sigma <= 2 * n:
+        den = ndimage.gaussian_filter(m, sigma, mode="constant", truncate=3.0)
+        num = ndimage.gaussian_filter(hz, sigma, mode="constant", truncate=3.0)
+        ok = todo & (den > 1e-3)
+        h[ok] = num[ok] / den[ok]
+        todo &= ~ok
+        sigma *= 2.0
+    if np.any(todo):
+        _, (ii, jj) = ndimage.distance_transform_edt(~observed, return_indices=True)
+        h[todo] = h[ii, jj][todo]
+    return h, dist
+
+
+def _rock_cells(rocks: np.ndarray, grid: np.ndarray, cell_m: float) -> np.ndarray:
+    """(N, N) bool: cells with any of their 16 LAC ray points within a rock's footprint."""
+    n = grid.shape[0]
+    flags = np.zeros((n, n), dtype=bool)
+    if len(rocks) == 0:
+        return flags
+    xs, ys = grid[:, 0, 0], grid[0, :, 1]
+    off = LAC_RAY_OFFSETS * cell_m
+    lo_x, lo_y = xs[0] - cell_m / 2, ys[0] - cell_m / 2
+    for x, y, r in rocks:
+        r = max(float(r), 0.0)
+        i0 = max(int(math.floor((x - r - lo_x) / cell_m)), 0)
+        i1 = min(int(math.floor((x + r - lo_x) / cell_m)) + 1, n)
+        j0 = max(int(math.floor((y - r - lo_y) / cell_m)), 0)
+        j1 = min(int(math.floor((y + r - lo_y) / cell_m)) + 1, n)
+        if i1 <= i0 or j1 <= j0:
+            continue
+        # nearest ray point of each cell to the centre, per axis (the lattice is separable)
+        dx = np.min(np.abs(xs[i0:i1, None] + off[None, :] - x), axis=1)
+        dy = np.min(np.abs(ys[j0:j1, None] + off[None, :] - y), axis=1)
+        hit = dx[:, None] ** 2 + dy[None, :] ** 2 <= r * r
+        if r == 0 or not hit.any():  # a point rock or one between the rays: the cell holding its centre
+            i, j = int((x - lo_x) // cell_m), int((y - lo_y) // cell_m)
+            if 0 <= i < n and 0 <= j < n:
+                flags[i, j] = True
+        flags[i0:i1, j0:j1] |= hit
+    return flags
+
+
+def write_geometric_map(grid, geometric_map) -> int:
+    """Write a map into the leaderboard's ``GeometricMap`` (any object with
+    ``set_cell_height(i, j, h)`` and ``set_cell_rock(i, j, flag)``; the agent's
+    ``self.get_geometric_map()``). `grid` is a :class:`LacMapEstimate` or an (N, N, 4) LAC array
+    in the same cell layout (x with the first index). Unfilled cells (-inf) are left as they
+    are. Returns the number of cells written (height and flag both set).
+
+    Raises InputError when `grid` is not an (N, N, 4) array, or when the target map reports a
+    different cell count or different cell centres (``get_cell_number()`` /
+    ``get_map_array()``, where it has them)."""
+    arr = grid.array if isinstance(grid, LacMapEstimate) else np.asarray(grid, dtype=float)
+    if arr.ndim != 3 or arr.shape[2] != 4 or arr.shape[0] != arr.shape[1]:
+        raise InputError(f"expected an (N, N, 4) LAC map, got shape {arr.shape}")
+    for name in ("set_cell_height", "set_cell_rock"):
+        if not callable(getattr(geometric_map, name, None)):
+            raise InputError(f"the geometric map ({type(geometric_map).__name__}) has no {name}()")
+    n = arr.shape[0]
+    get_n = getattr(geometric_map, "get_cell_number", None)
+    if callable(get_n) and int(get_n()) != n:
+        raise InputError(f"the geometric map has {int(get_n())} cells a side, the mapper's {n}")
+    get_arr = getattr(geometric_map, "get_map_array", None)
+    if callable(get_arr):
+        target = np.asarray(get_arr(), dtype=float)
+        if target.shape[:2] == arr.shape[:2] and np.max(np.abs(target[:, :, :2] - arr[:, :, :2])) > 1e-6:
+            raise InputError("the geometric map's cell centres differ from the mapper's: is the mapper's "
+                             "centre_xy / size_m the map's?")  # fmt: skip
+    written = 0
+    h, f = arr[:, :, 2], arr[:, :, 3]
+    for i, j in zip(*np.nonzero(np.isfinite(h) | np.isfinite(f))):
+        i, j = int(i), int(j)
+        both = True
+        if np.isfinite(h[i, j]):
+            geometric_map.set_cell_height(i, j, float(h[i, j]))
+        else:
+            both = False
+        if np.isfinite(f[i, j]):
+            geometric_map.set_cell_rock(i, j, bool(f[i, j] >= 0.5))
+        else:
+            both = False
+        written += both
+    return written
+
+
+def save_lac_map(estimate: LacMapEstimate, path) -> tuple:
+    """Write the map as ``PATH`` (``np.save`` of the (N, N, 4) LAC array; -inf where
+    unfilled) and its per-cell side data as ``PATH`` with suffix ``.cells.npz``
+    (``observed``, ``interpolated``, ``height_sigma_m``, ``weight``, ``fill_distance_m``,
+    ``rocks``; what ``lunarloc score --seen-only`` reads). Returns both paths."""
+    from pathlib import Path
+
+    from lunarloc.io.outputs import atomic_open
+
+    path = Path(path)
+    side = cells_path(path)
+    with atomic_open(path, "wb") as fh:
+        np.save(fh, estimate.array)
+    with atomic_open(side, "wb") as fh:
+        np.savez_compressed(fh, observed=estimate.observed, interpolated=estimate.interpolated,
+                            height_sigma_m=estimate.height_sigma_m, weight=estimate.weight,
+                            fill_distance_m=estimate.fill_distance_m, rocks=estimate.rocks)  # fmt: skip
+    return path, side
+
+
+def cells_path(path):
+    """The side file of a map written by :func:`save_lac_map`: ``map.npy`` -> ``map.cells.npz``."""
+    from pathlib import Path
+
+    path = Path(path)
+    return path.with_name(path.stem + ".cells.npz")
+
+
+def load_observed_cells(path, shape: tuple[int, int]) -> np.ndarray:
+    """The ``observed`` mask of a map's side file (:func:`cells_path`); FileFormatError when it
+    is missing, unreadable or not of `shape`."""
+    from lunarloc.core.errors import FileFormatError
+
+    side = cells_path(path)
+    if not side.is_file():
+        raise FileFormatError(f"{side}: no such file (the cells the cameras saw are written next to a map by "
+                              f"`lunarloc run --lac-map`)")  # fmt: skip
+    try:
+        with np.load(side, allow_pickle=False) as z:
+            obs = np.asarray(z["observed"])
+    except (OSError, ValueError, KeyError, EOFError) as exc:
+        raise FileFormatError(f"{side}: not a map's cell file ({exc})") from None
+    if obs.shape != tuple(shape) or obs.dtype != bool:
+        raise FileFormatError(f"{side}: observed mask of shape {obs.shape} and dtype {obs.dtype}, expected bool {tuple(shape)}")
+    return obs
