@@ -179,7 +179,7 @@ def test_bounded_memory_freezes_the_oldest_frames(rng):
 
 
 def test_rocks_need_two_sightings_and_mark_the_cells_any_ray_reaches(rng):
-    m = LacMapper(LacMapperConfig(size_m=9.0, fill="none"))
+    m = LacMapper(LacMapperConfig(size_m=9.0, fill="none", rock_bump_m=None))  # detections only
     T0 = pose_to_matrix(-2.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     T1 = pose_to_matrix(-1.5, 0.5, 0.0, 0.0, 0.0, 0.0)
     rock_map = np.array([1.0, 0.2, 0.05])
@@ -299,3 +299,90 @@ def test_cli_score_seen_only_and_figure(tmp_path, rng, capsys):
     (tmp_path / "other.npy").write_bytes((tmp_path / "truth.npy").read_bytes())
     assert main(["score", str(tmp_path / "other.npy"), str(tmp_path / "truth.npy"), "--seen-only"]) == 2
     assert "cells.npz" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- from images
+
+
+@pytest.fixture(scope="module")
+def tiny_sim(tmp_path_factory):
+    """6 s of a simulated traverse, front pair at 2 Hz, 640x360, with its 16-ray truth."""
+    from lunarloc.sim.simulate import SimulationConfig, simulate_dataset
+
+    out = tmp_path_factory.mktemp("lacmap")
+    cfg = SimulationConfig(duration_s=6.0, image_rate_hz=2.0, width=640, height=360,
+                           cameras=("FrontLeft", "FrontRight"), semantic=False)  # fmt: skip
+    simulate_dataset(0, 1, out, cfg)
+    return out
+
+
+def test_run_writes_the_lac_map_and_score_reads_it(tiny_sim, tmp_path, capsys):
+    from lunarloc.cli import main
+
+    lac = tmp_path / "lac.npy"
+    assert main(["run", str(tiny_sim / "traverse_0.lac"), "--reference", str(tiny_sim / "rocks.csv"),
+                 "-o", str(tmp_path / "run"), "--lac-map", str(lac), "--no-plot"]) == 0  # fmt: skip
+    assert "LAC map:" in capsys.readouterr().out
+    assert lac.is_file() and (tmp_path / "lac.cells.npz").is_file()
+    assert main(["score", str(lac), str(tiny_sim / "geometric_map.npy"), "--json", "--seen-only"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    # a few metres of a traverse: the cells the cameras saw are mostly right in height
+    assert s["cells"] > 200 and s["geometric"] > 0.7, s
+    assert s["cells_filled"] == 180 * 180  # fill=all
+    # an existing map is refused before anything runs
+    assert main(["run", str(tiny_sim / "traverse_0.lac"), "--reference", str(tiny_sim / "rocks.csv"),
+                 "-o", str(tmp_path / "run2"), "--lac-map", str(lac), "--no-plot"]) == 2  # fmt: skip
+    assert "exists" in capsys.readouterr().err
+
+
+def test_online_localizer_feeds_its_mapper(tiny_sim):
+    from lunarloc import OnlineLocalizer, PlaybackAgent, load_reference
+    from lunarloc.online.component import CameraRig
+
+    truth = np.load(tiny_sim / "geometric_map.npy")
+    mapper = LacMapper()
+    kfs = 0
+    with PlaybackAgent(tiny_sim / "traverse_0.lac") as env:
+        loc = OnlineLocalizer(load_reference(tiny_sim / "rocks.csv"), env.get_initial_position(),
+                              rig=CameraRig.from_sensors(env.sensors()), mapper=mapper)  # fmt: skip
+        while True:
+            e = loc.update(env.get_mission_time(), env.input_data(), env.get_imu_data(), env.get_linear_speed(),
+                           env.get_angular_speed())  # fmt: skip
+            kfs += e.keyframe
+            if env.at_end():
+                break
+            env.step_frame()
+    assert len(mapper) == kfs > 3
+    # the mapper's frames sit where the pose graph has its keyframes
+    for kf in loc.loop.keyframes:
+        if kf.frame in mapper.frame_ids:
+            placed = mapper._frames[kf.frame].T_map_rover
+            assert np.linalg.norm(placed[:2, 3] - kf.estimate_pose4[:2]) < 0.5
+    est = mapper.grid()
+    ok = np.abs(est.array[:, :, 2] - truth[:, :, 2]) < 0.05
+    assert est.observed.sum() > 200 and ok[est.observed].mean() > 0.6
+
+
+def test_a_bump_in_the_heights_is_a_rock_without_any_detection(rng):
+    """A 10 cm block 0.3 m across on smooth terrain (on the rover's circle), never detected: its cells are flagged."""
+
+    def bumped(P_map):
+        inside = (np.abs(P_map[:, 0] - 0.075) < 0.15) & (np.abs(P_map[:, 1] - 3.075) < 0.15)
+        return np.where(inside, 0.10, 0.0)
+
+    m = LacMapper(LacMapperConfig(size_m=15.0, fill="none"))
+    for k, T in enumerate(circle_poses(20, radius=3.0)):
+        pts = frame_points(T, rng, outliers=0.0)
+        P = (T @ np.c_[pts, np.ones(len(pts))].T).T[:, :3]
+        P[:, 2] += bumped(P)
+        m.add_frame(k, T, (invert_transform(T) @ np.c_[P, np.ones(len(P))].T).T[:, :3])
+    est = m.grid()
+    flags = est.array[:, :, 3] == 1
+    x, y = est.array[:, :, 0], est.array[:, :, 1]
+    block = (np.abs(x - 0.075) < 0.1) & (np.abs(y - 3.075) < 0.1)
+    assert est.observed[block].all()
+    assert flags[block].all()
+    assert flags.sum() <= 16  # nothing beyond the block and the cells it reaches into
+    off = LacMapper(LacMapperConfig(size_m=15.0, fill="none", rock_bump_m=None))
+    off._frames = m._frames
+    assert not (off.grid().array[:, :, 3] == 1).any()

@@ -25,6 +25,9 @@ the rays hits a rock. The mapper estimates both:
   frames is kept with the median centre and radius, and every cell with **any** of its 16 ray
   points within ``rock_radius_scale x radius + rock_radius_margin_m`` of the centre is flagged
   (the LAC's any-ray rule).
+* **Rock bumps.** Observed cells standing ``rock_bump_m`` or more above their local ground
+  (the ``rock_ground_quantile`` percentile of the heights in a ``rock_ground_window_m``
+  square) are flagged too: small rocks the detector misses still raise the heights.
 * **Cells never seen** (``fill``): ``all`` (default) fills every unseen cell with the
   Gaussian-weighted mean of the seen heights at the smallest scale (1, 2, 4, ... cells) that
   reaches one (normalised convolution), with no rock; ``near`` only those within ``fill_max_m`` of a seen cell; ``none`` leaves
@@ -56,7 +59,7 @@ log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
 __all__ = ["LacMapperConfig", "LacMapEstimate", "LacMapper", "write_geometric_map", "save_lac_map", "cells_path",
-           "load_observed_cells"]
+           "load_observed_cells", "frame_inputs"]
 
 FILL_MODES = ("all", "near", "none")
 
@@ -79,6 +82,9 @@ class LacMapperConfig:
     rock_max_range_m: float = 6.0  # detections farther than this (horizontal, rover frame) are dropped
     rock_radius_scale: float = 1.0  # footprint radius = scale x estimated radius + margin
     rock_radius_margin_m: float = 0.0
+    rock_bump_m: float | None = 0.05  # observed cells this high over their local ground are rock cells (None: off)
+    rock_ground_window_m: float = 1.05  # the local ground: a low quantile of the heights in this square
+    rock_ground_quantile: float = 30.0  # ... this percentile
     fill: str = "all"  # unseen cells: all | near | none (module docstring)
     fill_max_m: float = 1.0  # `near`: fill within this distance of a seen cell
 
@@ -100,6 +106,10 @@ class LacMapperConfig:
             raise ConfigError(f"fill={self.fill!r}: one of {', '.join(FILL_MODES)}")
         if self.fill_max_m < 0:
             raise ConfigError("fill_max_m must be >= 0")
+        if self.rock_bump_m is not None and not self.rock_bump_m > 0:
+            raise ConfigError("rock_bump_m must be > 0 (or None)")
+        if self.rock_ground_window_m < 2 * self.cell_m or not 0 <= self.rock_ground_quantile <= 100:
+            raise ConfigError("rock_ground_window_m must span >= 2 cells, rock_ground_quantile lie in [0, 100]")
 
     @property
     def cells(self) -> int:
@@ -360,11 +370,26 @@ class LacMapper:
         out[:, :, 3] = np.where(np.isfinite(filled_h), 0.0, UNFILLED)
         rocks = self._fused_rocks()
         flags = _rock_cells(rocks, self._grid0, cfg.cell_m)
+        if cfg.rock_bump_m is not None and observed.any():
+            flags |= self._bumps(filled_h, observed)
         out[:, :, 3] = np.where(flags, 1.0, out[:, :, 3])
         # a flagged cell with no height yet: its height from its neighbourhood is unknown, but
         # a flag without a height scores as filled only when both are set; give it the nearest
         out[:, :, 2] = np.where(flags & ~np.isfinite(out[:, :, 2]), _nearest_fill(out[:, :, 2]), out[:, :, 2])
         return LacMapEstimate(out, observed, interpolated, sigma, weight.reshape(n, n), dist, rocks)
+
+    def _bumps(self, h: np.ndarray, observed: np.ndarray) -> np.ndarray:
+        """Observed cells at least ``rock_bump_m`` above their local ground (a low percentile
+        of the heights around them): rocks too small or too flat for the detector."""
+        from scipy import ndimage
+
+        cfg = self.config
+        k = max(3, int(round(cfg.rock_ground_window_m / cfg.cell_m)) | 1)
+        hh = np.where(np.isfinite(h), h, _nearest_fill(h))
+        if not np.all(np.isfinite(hh)):
+            return np.zeros(h.shape, bool)
+        ground = ndimage.percentile_filter(hh, cfg.rock_ground_quantile, size=k, mode="nearest")
+        return observed & (hh - ground >= cfg.rock_bump_m)
 
     def _fused_rocks(self) -> np.ndarray:
         """Detections of all frames merged into rocks: (K, 3) x, y, footprint radius."""
@@ -583,3 +608,23 @@ def load_observed_cells(path, shape: tuple[int, int]) -> np.ndarray:
     if obs.shape != tuple(shape) or obs.dtype != bool:
         raise FileFormatError(f"{side}: observed mask of shape {obs.shape} and dtype {obs.dtype}, expected bool {tuple(shape)}")
     return obs
+
+
+def frame_inputs(fd, detector=None, images=None) -> tuple[np.ndarray | None, np.ndarray]:
+    """What :meth:`LacMapper.add_frame` takes from one frame of the detector
+    (:class:`~lunarloc.perception.detector.FrameDetections`, detected with ``keep_depth=True``):
+    the rover-frame stereo points of its pairs (each pair's ``height.points_rover``; a pair
+    without one gets it from ``detector.height_map`` when `detector` and its `images` are
+    given) and its detections as (M, 4) rover-frame centres and radii. Points None when no
+    pair has any."""
+    pts = []
+    for pair in fd.pairs:
+        hm = getattr(pair, "height", None)
+        if hm is None and detector is not None and images and getattr(pair, "T_rover_optical", None) is not None:
+            right = next((b for a, b in detector.config.pairs if a == pair.camera), None)
+            if images.get(pair.camera) is not None and images.get(right) is not None:
+                hm = detector.height_map(images[pair.camera], images[right], pair.T_rover_optical)
+        if hm is not None:
+            pts.append(np.asarray(hm.points_rover, np.float32).reshape(-1, 3))
+    rocks = np.array([[*d.p_rover, d.radius_m] for d in fd.detections], float).reshape(-1, 4)
+    return (np.concatenate(pts) if pts else None), rocks

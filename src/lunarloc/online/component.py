@@ -234,10 +234,14 @@ class OnlineLocalizer:
     lander_pose : the lander's pose relative to the rover at the first tick (the LAC's
         ``get_initial_lander_position()``, in any form `initial_pose` takes); detections on
         the lander are then dropped. None: no lander exclusion.
+    mapper : optional :class:`~lunarloc.mapping.lac_map.LacMapper`: every keyframe's stereo
+        points and detections are added to it with the tick's estimate (frame id: the tick
+        number), and after each accepted fix the keyframes still in the pose graph are
+        re-placed with their corrected poses; ``mapper.grid()`` is the LAC map so far.
     """
 
     def __init__(self, reference: LandmarkMap | None, initial_pose, config: OnlineConfig | None = None,
-                 rig: CameraRig | None = None, detector_config=None, lander_pose=None):  # fmt: skip
+                 rig: CameraRig | None = None, detector_config=None, lander_pose=None, mapper=None):  # fmt: skip
         from lunarloc.perception.detector import Detector
         from lunarloc.perception.detector import scaled_detector_config
 
@@ -294,6 +298,10 @@ class OnlineLocalizer:
         self._sigmas = (cfg.initial_sigma_m, math.radians(cfg.initial_sigma_yaw_deg))
         self.reanchors = 0
         self.recent_attempts: collections.deque[Attempt] = collections.deque(maxlen=cfg.max_recent_attempts)
+        self.mapper = mapper  # the LAC map (issue 28): fed at keyframes, see _feed_mapper
+        self._fd = None  # the last keyframe's detector output (for the mapper)
+        if mapper is not None and self._lander_xy is not None:
+            mapper.exclude_disc(self._lander_xy, _LANDER_EXCLUSION_M)
 
     # -------------------------------------------------------------- public
     def warm_up(self) -> float:
@@ -394,6 +402,8 @@ class OnlineLocalizer:
                 self.recent_attempts.append(attempt)
                 self._fixes += int(attempt.accepted)
         T = self.loop.T_map_odo @ self._T_loop_odo @ T_odo
+        if is_kf and self.mapper is not None:
+            self._feed_mapper(images, T, attempt)
         return Estimate(t, T, self._covariance(), self.localized, self._fixes, is_kf, attempt)
 
     # -------------------------------------------------------------- checks
@@ -492,7 +502,8 @@ class OnlineLocalizer:
 
     def _detect(self, images: dict) -> np.ndarray:
         imgs = {n: im for n, im in images.items() if im is not None and any(n in p for p in self._pairs)}
-        fd = self.detector.detect_frame(imgs, self._mounts, None, self._tick)
+        fd = self.detector.detect_frame(imgs, self._mounts, None, self._tick, keep_depth=self.mapper is not None)
+        self._fd = fd if self.mapper is not None else None
         return np.array([d.p_rover for d in fd.detections], float).reshape(-1, 3)
 
     def _covariance(self) -> np.ndarray:
@@ -529,3 +540,26 @@ class OnlineLocalizer:
         self.loop = new
         self.reanchors += 1
         log.debug("re-anchored the pose graph: %d keyframes -> %d", n, len(keep))
+
+    # -------------------------------------------------------------- the LAC map (issue 28)
+    def _feed_mapper(self, images: dict, T_map_rover: np.ndarray, attempt) -> None:
+        """Add this keyframe to the mapper at the tick's estimate; after an accepted fix,
+        re-place the keyframes the pose graph still holds with their corrected poses."""
+        from lunarloc.mapping.lac_map import frame_inputs
+
+        if self._fd is not None:
+            points, rocks = frame_inputs(self._fd, self.detector, images)
+            self.mapper.add_frame(self._tick, T_map_rover, points, rocks)
+            self._fd = None
+        if attempt is not None and attempt.accepted:
+            for kf in self.loop.keyframes:
+                if kf.frame is None:
+                    continue
+                x, y, z, yaw = (float(v) for v in kf.estimate_pose4)
+                roll, pitch = kf.roll_pitch_rad
+                self.mapper.repose(kf.frame, pose_to_matrix(x, y, z, roll, pitch, yaw))
+
+
+#: points and detections within this distance of the lander's centre are not mapped (as the
+#: detector's on_lander radius)
+_LANDER_EXCLUSION_M = 2.2

@@ -95,19 +95,12 @@ LANDER_EXCLUSION_M = 2.2
 
 def add_to_mapper(mapper, frame_id, T_map_rover, fd, detector, images) -> None:
     """Add one frame's detections (:class:`~lunarloc.perception.detector.FrameDetections`,
-    detected with ``keep_depth=True``) and its pairs' stereo points to `mapper`. A pair without
-    the detector's height map (a detector that needs none) gets one computed here."""
-    pts = []
-    for pair in fd.pairs:
-        hm = pair.height
-        if hm is None and pair.T_rover_optical is not None:
-            left, right = next(((a, b) for a, b in detector.config.pairs if a == pair.camera), (None, None))
-            if images.get(right) is not None:
-                hm = detector.height_map(images[left], images[right], pair.T_rover_optical)
-        if hm is not None:
-            pts.append(hm.points_rover.reshape(-1, 3))
-    rocks = np.array([[*d.p_rover, d.radius_m] for d in fd.detections], float).reshape(-1, 4)
-    mapper.add_frame(frame_id, T_map_rover, np.concatenate(pts) if pts else None, rocks)
+    detected with ``keep_depth=True``) and its pairs' stereo points to `mapper`
+    (:func:`lunarloc.mapping.lac_map.frame_inputs`)."""
+    from lunarloc.mapping.lac_map import frame_inputs
+
+    points, rocks = frame_inputs(fd, detector, images)
+    mapper.add_frame(frame_id, T_map_rover, points, rocks)
 
 
 def place_mapper(mapper, frames, T_map_rover) -> int:

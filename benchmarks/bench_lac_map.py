@@ -1,0 +1,275 @@
+"""The LAC map from what the rover sees (issue 28): scores on simulated LAC-look sites with
+three pose sources, the mapping cost per stereo pair, and memory over a long replay.
+
+Usage
+-----
+    # 1. sites: 386 rocks, a survey traverse circling the lander, front stereo pair, 2 Hz
+    python benchmarks/bench_lac_map.py simulate --out DIR --seeds 281 282 283 284 285 \
+        [--lamps-only 284] [--duration 160] [--width 640]
+    # 2. scores: run the online loop with a mapper, then place the same frames with the
+    #    ground-truth, odometry and corrected poses and score each against the 16-ray truth
+    python benchmarks/bench_lac_map.py score --out DIR --seeds 281 282 283 284 285 [--json OUT.json]
+        [--figure-seed 281]
+    # 3. cost: detection vs mapping per stereo pair (an archive at each resolution)
+    python benchmarks/bench_lac_map.py cost --archive A.lac [--frames 40]
+    # 4. memory: the mapper fed for a long replay (the archive's frames cycled with their
+    #    ground-truth poses, shifted around the site; the detector is not re-run)
+    python benchmarks/bench_lac_map.py memory --archive A.lac --hours 2 --rate-hz 2
+
+Each site's truth is ``site_geometric_map(simulate_site(seed))`` (the LAC's 16-ray rule). "Seen"
+cells are those the ground-truth-placed frames observed (the same set for all three pose
+sources). Prints one line per site and source; writes the rows as JSON with ``--json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def simulate(a) -> None:
+    from lunarloc.sim.render import RenderConfig, SiteRenderer
+    from lunarloc.sim.rover import RoverConfig
+    from lunarloc.sim.simulate import SimulationConfig, simulate_site, simulate_traverse
+
+    for seed in a.seeds:
+        light = "lamps" if seed in a.lamps_only else "sun+lamps"
+        cfg = SimulationConfig(duration_s=a.duration, image_rate_hz=a.image_rate, width=a.width, height=a.width * 9 // 16,
+                               cameras=("FrontLeft", "FrontRight"), semantic=False, rover=RoverConfig(plan="survey"),
+                               render=RenderConfig(lighting=light))  # fmt: skip
+        d = a.out / f"seed_{seed}"
+        d.mkdir(parents=True, exist_ok=True)
+        site = simulate_site(seed, cfg.site)
+        site.write_rocks_csv(d / "rocks.csv")
+        (d / "lighting.txt").write_text(light + "\n")
+        t0 = time.perf_counter()
+        if not (d / "traverse.lac").is_file():
+            simulate_traverse(site, d / "traverse.lac", 0, cfg, renderer=SiteRenderer(site, cfg.render))
+        print(f"seed {seed} ({light}): {time.perf_counter() - t0:.0f} s", flush=True)
+
+
+def _scores(mapper, frames, T, truth, seen):
+    from lunarloc.io.overhead import score_geometric_map
+    from lunarloc.pipeline.runner import place_mapper
+
+    place_mapper(mapper, frames, T)
+    est = mapper.grid()
+    all_ = score_geometric_map(est.array, truth)
+    s_seen = score_geometric_map(est.array, truth, cells=est.observed if seen is None else seen)
+    return est, all_, s_seen
+
+
+def score(a) -> None:
+    from lunarloc.config.run import RunConfig
+    from lunarloc.io.overhead import site_geometric_map
+    from lunarloc.mapping.lac_map import LacMapper, LacMapperConfig
+    from lunarloc.pipeline.reference import load_reference
+    from lunarloc.pipeline.runner import run
+    from lunarloc.pipeline.sources import ArchiveSource
+    from lunarloc.sim.simulate import simulate_site
+
+    mcfg = LacMapperConfig(**json.loads(a.mapper_config)) if a.mapper_config else LacMapperConfig()
+    rows = []
+    for seed in a.seeds:
+        d = a.out / f"seed_{seed}"
+        light = (d / "lighting.txt").read_text().strip() if (d / "lighting.txt").is_file() else "?"
+        truth = site_geometric_map(simulate_site(seed))
+        cfg = RunConfig()
+        mapper = LacMapper(mcfg)
+        t0 = time.perf_counter()
+        res = run(ArchiveSource(d / "traverse.lac", cfg.odometry, cfg.detector.pairs), load_reference(d / "rocks.csv"),
+                  cfg, mapper=mapper)  # fmt: skip
+        wall = time.perf_counter() - t0
+        if a.dump:  # the mapper and the three pose sets, to re-score other mapper settings without re-running
+            import pickle
+
+            with open(d / "mapper_dump.pkl", "wb") as fh:
+                pickle.dump({"mapper": mapper, "frames": res.frames, "gt": res.T_map_rover_true, "odometry": res.T_odo_rover,
+                             "corrected": res.T_map_rover}, fh)  # fmt: skip
+        summ = res.summary()
+        n_img = max(res.num_image_frames, 1)
+        est_gt, all_gt, seen_gt = _scores(mapper, res.frames, res.T_map_rover_true, truth, None)
+        seen = est_gt.observed
+        out = {"gt": (est_gt, all_gt, seen_gt)}
+        for name, T in (("odometry", res.T_odo_rover), ("corrected", res.T_map_rover)):
+            out[name] = _scores(mapper, res.frames, T, truth, seen)
+        for name, (est, s_all, s_seen) in out.items():
+            row = {
+                "seed": seed, "lighting": light, "poses": name, "seen_cells": int(seen.sum()),
+                "rock_cells_true_seen": s_seen["rock_cells_true"],
+                "seen_geometric": round(s_seen["geometric"], 4), "seen_rock_precision": round(s_seen["rock_precision"], 4),
+                "seen_rock_recall": round(s_seen["rock_recall"], 4), "seen_rock_f1": round(s_seen["rock_f1"], 4),
+                "all_geometric": round(s_all["geometric"], 4), "all_rock_f1": round(s_all["rock_f1"], 4),
+                "seen_points_geo_rock": round(s_seen["points"]["geometric_map"] + s_seen["points"]["rocks_map"], 1),
+                "all_points_geo_rock": round(s_all["points"]["geometric_map"] + s_all["points"]["rocks_map"], 1),
+                "interp_within_1m_geometric": _interp_share(est, truth, 1.0),
+                "rocks_mapped": int(len(est.rocks)),
+                "ate_rmse_m": {"gt": 0.0, "odometry": summ["ate_odometry"]["rmse_m"],
+                               "corrected": summ["ate_corrected"]["rmse_m"]}[name],
+                "path_m": summ["path_length_m"], "image_frames": res.num_image_frames,
+                "detection_ms_per_frame": round(1000 * res.timings_s.get("detection", 0) / n_img, 1),
+                "lac_map_ms_per_frame": round(1000 * res.timings_s.get("lac_map", 0) / n_img, 2),
+                "loop_wall_s": round(wall, 1), "mapper_mb": round(mapper.memory_bytes() / 1e6, 2),
+            }  # fmt: skip
+            rows.append(row)
+            print(f"seed {seed} {light:9s} {name:9s}: seen {row['seen_cells']} cells: height {row['seen_geometric']:.3f}, "
+                  f"rock P {row['seen_rock_precision']:.2f} R {row['seen_rock_recall']:.2f} F1 {row['seen_rock_f1']:.3f} "
+                  f"({row['seen_points_geo_rock']:.0f} pts) | whole map: height {row['all_geometric']:.3f}, "
+                  f"F1 {row['all_rock_f1']:.3f} ({row['all_points_geo_rock']:.0f} pts) | ATE {row['ate_rmse_m']:.3f} m",
+                  flush=True)  # fmt: skip
+        if a.figure_seed == seed:
+            from lunarloc.viz import plot_lac_maps
+
+            for name in ("gt", "corrected"):
+                est = out[name][0]
+                p = plot_lac_maps(est.array, truth, a.out / f"lac_map_seed{seed}_{name}.png", observed=seen,
+                                  title=f"site {seed} ({light}), {name} poses")  # fmt: skip
+                print(f"wrote {p}")
+    if a.json:
+        Path(a.json).write_text(json.dumps(rows, indent=1))
+    _summary(rows)
+
+
+def _interp_share(est, truth, within_m: float):
+    sel = est.interpolated & (est.fill_distance_m <= within_m)
+    if not sel.any():
+        return None
+    return round(float(np.mean(np.abs(est.array[:, :, 2][sel] - truth[:, :, 2][sel]) < 0.05)), 4)
+
+
+def _summary(rows) -> None:
+    for name in ("gt", "odometry", "corrected"):
+        r = [x for x in rows if x["poses"] == name]
+        if not r:
+            continue
+        g = np.array([x["seen_geometric"] for x in r])
+        f = np.array([x["seen_rock_f1"] for x in r])
+        ga = np.array([x["all_geometric"] for x in r])
+        fa = np.array([x["all_rock_f1"] for x in r])
+        print(f"{name:9s}: seen height {g.mean():.3f} (min {g.min():.3f}), seen rock F1 {f.mean():.3f} (min {f.min():.3f}); "
+              f"whole map height {ga.mean():.3f}, F1 {fa.mean():.3f} over {len(r)} sites")  # fmt: skip
+
+
+def cost(a) -> None:
+    """Per stereo pair: detection (with the height map kept) vs the mapper's add_frame."""
+    from lunarloc.config.run import RunConfig
+    from lunarloc.io.lac.archive import LacArchive
+    from lunarloc.mapping.lac_map import LacMapper
+    from lunarloc.perception.camera import camera_from_archive, ipex_rig
+    from lunarloc.perception.detector import Detector
+    from lunarloc.pipeline.runner import add_to_mapper
+
+    cfg = RunConfig()
+    with LacArchive(a.archive) as ar:
+        cam = camera_from_archive(ar)
+        det = Detector(cfg.detector_for(cam.width), cam)
+        mounts = ipex_rig(cam)
+        frames = [int(f) for f in ar.frame_numbers if ar.camera_row("FrontLeft", int(f))][: a.frames]
+        images = [{c: ar.grayscale(c, f) for c in ("FrontLeft", "FrontRight")} for f in frames]
+    m = LacMapper()
+    t_det0, t_det, t_map = [], [], []
+    for k, im in enumerate(images):
+        t0 = time.perf_counter()
+        det.detect_frame(im, mounts, None, k)
+        t1 = time.perf_counter()
+        fd = det.detect_frame(im, mounts, None, k, keep_depth=True)
+        t2 = time.perf_counter()
+        add_to_mapper(m, k, np.eye(4), fd, det, im)
+        t3 = time.perf_counter()
+        if k >= 2:  # after warm-up
+            t_det0.append(t1 - t0)
+            t_det.append(t2 - t1)
+            t_map.append(t3 - t2)
+    t0 = time.perf_counter()
+    m.grid()
+    t_grid = time.perf_counter() - t0
+    med = lambda v: 1000 * float(np.median(v))  # noqa: E731
+    print(f"{a.archive} {cam.width}x{cam.height}, {len(t_map)} pairs: detection {med(t_det0):.1f} ms "
+          f"(with the height map kept {med(t_det):.1f} ms), mapper add_frame {med(t_map):.2f} ms "
+          f"({100 * med(t_map) / med(t_det0):.1f} % of detection); grid() of {len(m)} frames {1000 * t_grid:.0f} ms")  # fmt: skip
+
+
+def memory(a) -> None:
+    """Feed the mapper for `hours` at `rate_hz` with the archive's frames cycled (ground-truth
+    poses; each cycle shifted so the rover keeps covering the site)."""
+    from lunarloc.config.run import RunConfig
+    from lunarloc.core.geometry import pose_to_matrix
+    from lunarloc.io.lac.archive import LacArchive
+    from lunarloc.mapping.lac_map import LacMapper, LacMapperConfig
+    from lunarloc.perception.camera import camera_from_archive, ipex_rig
+    from lunarloc.perception.detector import Detector
+
+    cfg = RunConfig()
+    with LacArchive(a.archive) as ar:
+        cam = camera_from_archive(ar)
+        det = Detector(cfg.detector_for(cam.width), cam)
+        mounts = ipex_rig(cam)
+        fr = ar.frames
+        frames = [int(f) for f in ar.frame_numbers if ar.camera_row("FrontLeft", int(f))][: a.frames]
+        cached = []
+        for f in frames:
+            im = {c: ar.grayscale(c, f) for c in ("FrontLeft", "FrontRight")}
+            fd = det.detect_frame(im, mounts, None, f, keep_depth=True)
+            pts = np.concatenate([p.height.points_rover.reshape(-1, 3) for p in fd.pairs if p.height is not None])
+            rocks = np.array([[*d.p_rover, d.radius_m] for d in fd.detections]).reshape(-1, 4)
+            i = int(np.flatnonzero(np.asarray(fr["frame"]) == f)[0])
+            T = pose_to_matrix(fr["x"][i], fr["y"][i], fr["z"][i], fr["roll"][i], fr["pitch"][i], fr["yaw"][i])
+            cached.append((T, pts, rocks))
+    m = LacMapper(LacMapperConfig(**json.loads(a.mapper_config)) if a.mapper_config else None)
+    n_total = int(a.hours * 3600 * a.rate_hz)
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    t0 = time.perf_counter()
+    marks = {int(n_total * q) for q in (0.1, 0.25, 0.5, 0.75, 1.0)}
+    for k in range(n_total):
+        T, pts, rocks = cached[k % len(cached)]
+        cyc = k // len(cached)
+        S = pose_to_matrix(((cyc * 1.3) % 6) - 3, ((cyc * 0.7) % 6) - 3, 0, 0, 0, 0.3 * cyc)
+        m.add_frame(k, S @ T, pts, rocks)
+        if k + 1 in marks:
+            rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+            print(f"{k + 1} frames ({(k + 1) / a.rate_hz / 3600:.2f} h): mapper holds {m.memory_bytes() / 1e6:.1f} MB "
+                  f"({len(m)} re-placeable frames, {m.frozen_frames} frozen), process max RSS {rss:.0f} MB "
+                  f"(+{rss - rss0:.0f} MB), {time.perf_counter() - t0:.0f} s", flush=True)  # fmt: skip
+    t1 = time.perf_counter()
+    m.grid()
+    print(f"grid() after {n_total} frames: {1000 * (time.perf_counter() - t1):.0f} ms")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    s = sub.add_parser("simulate")
+    s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--seeds", type=int, nargs="+", required=True)
+    s.add_argument("--lamps-only", type=int, nargs="*", default=[284])
+    s.add_argument("--duration", type=float, default=160.0)
+    s.add_argument("--image-rate", type=float, default=2.0)
+    s.add_argument("--width", type=int, default=640)
+    s = sub.add_parser("score")
+    s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--seeds", type=int, nargs="+", required=True)
+    s.add_argument("--json", default=None)
+    s.add_argument("--figure-seed", type=int, default=None)
+    s.add_argument("--mapper-config", default=None, help="JSON of LacMapperConfig fields")
+    s.add_argument("--dump", action="store_true", help="pickle the mapper and poses into each site's folder")
+    s = sub.add_parser("cost")
+    s.add_argument("--archive", type=Path, required=True)
+    s.add_argument("--frames", type=int, default=30)
+    s = sub.add_parser("memory")
+    s.add_argument("--archive", type=Path, required=True)
+    s.add_argument("--frames", type=int, default=60)
+    s.add_argument("--hours", type=float, default=2.0)
+    s.add_argument("--rate-hz", type=float, default=2.0)
+    s.add_argument("--mapper-config", default=None)
+    a = ap.parse_args()
+    {"simulate": simulate, "score": score, "cost": cost, "memory": memory}[a.cmd](a)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
