@@ -179,7 +179,7 @@ def test_bounded_memory_freezes_the_oldest_frames(rng):
 
 
 def test_rocks_need_two_sightings_and_mark_the_cells_any_ray_reaches(rng):
-    m = LacMapper(LacMapperConfig(size_m=9.0, fill="none", rock_bump_m=None))  # detections only
+    m = LacMapper(LacMapperConfig(size_m=9.0, fill="none"))
     T0 = pose_to_matrix(-2.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     T1 = pose_to_matrix(-1.5, 0.5, 0.0, 0.0, 0.0, 0.0)
     rock_map = np.array([1.0, 0.2, 0.05])
@@ -370,7 +370,7 @@ def test_a_bump_in_the_heights_is_a_rock_without_any_detection(rng):
         inside = (np.abs(P_map[:, 0] - 0.075) < 0.15) & (np.abs(P_map[:, 1] - 3.075) < 0.15)
         return np.where(inside, 0.10, 0.0)
 
-    m = LacMapper(LacMapperConfig(size_m=15.0, fill="none"))
+    m = LacMapper(LacMapperConfig(size_m=15.0, fill="none", rock_bump_m=0.05))
     for k, T in enumerate(circle_poses(20, radius=3.0)):
         pts = frame_points(T, rng, outliers=0.0)
         P = (T @ np.c_[pts, np.ones(len(pts))].T).T[:, :3]
@@ -383,6 +383,6 @@ def test_a_bump_in_the_heights_is_a_rock_without_any_detection(rng):
     assert est.observed[block].all()
     assert flags[block].all()
     assert flags.sum() <= 16  # nothing beyond the block and the cells it reaches into
-    off = LacMapper(LacMapperConfig(size_m=15.0, fill="none", rock_bump_m=None))
+    off = LacMapper(LacMapperConfig(size_m=15.0, fill="none"))  # the default: off
     off._frames = m._frames
     assert not (off.grid().array[:, :, 3] == 1).any()

@@ -43,6 +43,9 @@ __all__ = [
     "Estimate",
     "PlaybackAgent",
     "load_reference",
+    "LacMapper",
+    "LacMapperConfig",
+    "write_geometric_map",
 ]
 
 _LAZY = {  # imported on first use: OpenCV and the detector stay out of `import lunarloc`
@@ -52,6 +55,9 @@ _LAZY = {  # imported on first use: OpenCV and the detector stay out of `import 
     "Estimate": "lunarloc.online.component",
     "PlaybackAgent": "lunarloc.io.lac.playback",
     "load_reference": "lunarloc.pipeline.reference",
+    "LacMapper": "lunarloc.mapping.lac_map",
+    "LacMapperConfig": "lunarloc.mapping.lac_map",
+    "write_geometric_map": "lunarloc.mapping.lac_map",
 }
 
 

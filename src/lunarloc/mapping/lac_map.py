@@ -25,9 +25,11 @@ the rays hits a rock. The mapper estimates both:
   frames is kept with the median centre and radius, and every cell with **any** of its 16 ray
   points within ``rock_radius_scale x radius + rock_radius_margin_m`` of the centre is flagged
   (the LAC's any-ray rule).
-* **Rock bumps.** Observed cells standing ``rock_bump_m`` or more above their local ground
-  (the ``rock_ground_quantile`` percentile of the heights in a ``rock_ground_window_m``
-  square) are flagged too: small rocks the detector misses still raise the heights.
+* **Rock bumps** (off by default). With ``rock_bump_m`` set, observed cells standing that much
+  or more above their local ground (the ``rock_ground_quantile`` percentile of the heights in
+  a ``rock_ground_window_m`` square) are flagged too. On the tuning site it added more false
+  rock cells (terrain roughness, crater rims) than true ones at every threshold from 3 to
+  7 cm, so it stays off (docs/lac-map.md).
 * **Cells never seen** (``fill``): ``all`` (default) fills every unseen cell with the
   Gaussian-weighted mean of the seen heights at the smallest scale (1, 2, 4, ... cells) that
   reaches one (normalised convolution), with no rock; ``near`` only those within ``fill_max_m`` of a seen cell; ``none`` leaves
@@ -82,7 +84,7 @@ class LacMapperConfig:
     rock_max_range_m: float = 6.0  # detections farther than this (horizontal, rover frame) are dropped
     rock_radius_scale: float = 1.0  # footprint radius = scale x estimated radius + margin
     rock_radius_margin_m: float = 0.0
-    rock_bump_m: float | None = 0.05  # observed cells this high over their local ground are rock cells (None: off)
+    rock_bump_m: float | None = None  # observed cells this high over their local ground are rock cells (None: off)
     rock_ground_window_m: float = 1.05  # the local ground: a low quantile of the heights in this square
     rock_ground_quantile: float = 30.0  # ... this percentile
     fill: str = "all"  # unseen cells: all | near | none (module docstring)
