@@ -340,7 +340,7 @@ def site_geometric_map(site, cell_m: float = LAC_CELL_M, rule: str = "lac") -> n
     4 x 4 lattice 1/4 cell apart (3.75 cm in a 0.15 m cell, :data:`LAC_RAY_OFFSETS`); the
     cell's height is the mean of the surface heights the rays hit (terrain, or a rock's top
     where it stands above the terrain) and its rock flag is set when any ray hits a rock.
-    rule ``centre`` (the rule before issue 28): one ray at the cell centre (height and flag
+    rule ``centre`` (the earlier rule): one ray at the cell centre (height and flag
     from it). Rocks are the site's ellipsoids; the lander is not in the map (terrain under it)."""
     if rule not in ("lac", "centre"):
         raise InputError(f"unknown ground-truth rule {rule!r} (lac or centre)")

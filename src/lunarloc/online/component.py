@@ -298,7 +298,7 @@ class OnlineLocalizer:
         self._sigmas = (cfg.initial_sigma_m, math.radians(cfg.initial_sigma_yaw_deg))
         self.reanchors = 0
         self.recent_attempts: collections.deque[Attempt] = collections.deque(maxlen=cfg.max_recent_attempts)
-        self.mapper = mapper  # the LAC map (issue 28): fed at keyframes, see _feed_mapper
+        self.mapper = mapper  # the LAC map: fed at keyframes, see _feed_mapper
         self._fd = None  # the last keyframe's detector output (for the mapper)
         if mapper is not None and self._lander_xy is not None:
             mapper.exclude_disc(self._lander_xy, _LANDER_EXCLUSION_M)
@@ -541,7 +541,7 @@ class OnlineLocalizer:
         self.reanchors += 1
         log.debug("re-anchored the pose graph: %d keyframes -> %d", n, len(keep))
 
-    # -------------------------------------------------------------- the LAC map (issue 28)
+    # -------------------------------------------------------------- the LAC map
     def _feed_mapper(self, images: dict, T_map_rover: np.ndarray, attempt) -> None:
         """Add this keyframe to the mapper at the tick's estimate; after an accepted fix,
         re-place the keyframes the pose graph still holds with their corrected poses."""
