@@ -57,7 +57,8 @@ def score_cmd(
     )
     con.print(f"productivity: {s['productivity']:.3f} ({s['cells_filled']} cells filled in {s['mission_time_s']:g} s)")
     pts = s["points"]
-    con.print(f"LAC points: geometric {pts['geometric_map']:.1f}/300, rocks {pts['rocks_map']:.1f}/300, "
+    label = "LAC points (as if the whole map were the cells seen)" if seen_only else "LAC points"
+    con.print(f"{label}: geometric {pts['geometric_map']:.1f}/300, rocks {pts['rocks_map']:.1f}/300, "
               f"productivity {pts['mapping_productivity']:.1f}/250, localization {pts['localization']:.0f}/150, "
               f"total {pts['total']:.1f}/1000")
     if figure is not None:
