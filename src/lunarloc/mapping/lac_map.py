@@ -61,9 +61,13 @@ log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
 __all__ = ["LacMapperConfig", "LacMapEstimate", "LacMapper", "write_geometric_map", "save_lac_map", "cells_path",
-           "load_observed_cells", "frame_inputs"]
+           "load_observed_cells", "frame_inputs", "LANDER_EXCLUSION_M"]
 
 FILL_MODES = ("all", "near", "none")
+
+#: the lander's exclusion disc radius (m) callers pass to :meth:`LacMapper.exclude_disc`: its
+#: body and legs are not terrain (the detector's ``on_lander`` drops detections within it too)
+LANDER_EXCLUSION_M = 2.2
 
 
 @dataclass(frozen=True)

@@ -301,7 +301,9 @@ class OnlineLocalizer:
         self.mapper = mapper  # the LAC map: fed at keyframes, see _feed_mapper
         self._fd = None  # the last keyframe's detector output (for the mapper)
         if mapper is not None and self._lander_xy is not None:
-            mapper.exclude_disc(self._lander_xy, _LANDER_EXCLUSION_M)
+            from lunarloc.mapping.lac_map import LANDER_EXCLUSION_M
+
+            mapper.exclude_disc(self._lander_xy, LANDER_EXCLUSION_M)
 
     # -------------------------------------------------------------- public
     def warm_up(self) -> float:
@@ -559,7 +561,3 @@ class OnlineLocalizer:
                 roll, pitch = kf.roll_pitch_rad
                 self.mapper.repose(kf.frame, pose_to_matrix(x, y, z, roll, pitch, yaw))
 
-
-#: points and detections within this distance of the lander's centre are not mapped (as the
-#: detector's on_lander radius)
-_LANDER_EXCLUSION_M = 2.2

@@ -31,6 +31,7 @@ from lunarloc.config.run import RunConfig
 from lunarloc.core.errors import InputError
 from lunarloc.online.loop import LoopResult, LoopState
 from lunarloc.io.maps import LandmarkMap
+from lunarloc.mapping.lac_map import LANDER_EXCLUSION_M
 
 __all__ = ["run", "detect", "DetectResult", "add_to_mapper", "place_mapper", "LANDER_EXCLUSION_M"]
 
@@ -86,11 +87,6 @@ def run(source, reference: LandmarkMap, config: RunConfig | None = None, *,
     if mapper is not None:
         place_mapper(mapper, result.frames, result.T_map_rover)
     return result
-
-
-#: points and detections within this distance of the lander's centre are not mapped (its
-#: body and legs are not terrain; the detector drops its detections within the same radius)
-LANDER_EXCLUSION_M = 2.2
 
 
 def add_to_mapper(mapper, frame_id, T_map_rover, fd, detector, images) -> None:
