@@ -1,4 +1,4 @@
-"""The LAC map from what the rover sees (issue 28): scores on simulated LAC-look sites with
+"""The LAC map from what the rover sees: scores on simulated LAC-look sites with
 three pose sources, the mapping cost per stereo pair, and memory over a long replay.
 
 Usage
