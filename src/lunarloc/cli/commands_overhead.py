@@ -19,8 +19,10 @@ def score_cmd(
 ) -> None:
     """Score PRODUCED against TRUTH as the LAC does: share of cells with height error below
     the tolerance (geometric map) and the F1 over per-cell rock flags (rock map)."""
-    from lunarloc.io.overhead import load_lac_grid, score_geometric_map
+    from lunarloc.cli.checks import positive
+    from lunarloc.io.overhead import MAX_HEIGHT_TOLERANCE_M, load_lac_grid, score_geometric_map
 
+    positive(height_tolerance, "--height-tolerance", MAX_HEIGHT_TOLERANCE_M, "m")  # before reading the maps
     s = score_geometric_map(load_lac_grid(produced), load_lac_grid(truth), height_tolerance)
     if as_json:
         typer.echo(json.dumps(s))

@@ -122,14 +122,20 @@ def run_cmd(
                 bar.refresh()
 
         res = run(ArchiveSource(archive, cfg.odometry, cfg.detector.pairs), ref, cfg, progress=prog)
-    s = write_run(res, out)
-    _print_summary(s, f"{archive.name} in {reference.name} ({len(ref)} landmarks)")
-    typer.echo(f"odometry: {res.config['info']['odometry_source']}")
+    figures: list[Path] = []
     if plot:
         from lunarloc.viz import plot_run
+    try:  # the figures before summary.json, which marks a complete run folder
+        s = write_run(res, out, before_summary=(lambda s: figures.extend(plot_run(out, summary=s))) if plot else None)
+    except BaseException:
+        from lunarloc.io.outputs import remove_partial_outputs
 
-        for p in plot_run(out):
-            typer.echo(f"wrote {p}")
+        remove_partial_outputs(out)  # what this run wrote (the folder held no run: checked above), temporaries too
+        raise
+    _print_summary(s, f"{archive.name} in {reference.name} ({len(ref)} landmarks)")
+    typer.echo(f"odometry: {res.config['info']['odometry_source']}")
+    for p in figures:
+        typer.echo(f"wrote {p}")
     typer.echo(f"wrote {out}/ (trajectory.tum, attempts.csv, summary.json, config.json, ...)")
 
 

@@ -386,12 +386,20 @@ def landmarks_to_lac_grid(landmarks: LandmarkMap, size_m: float = LAC_CELL_M * L
 # --------------------------------------------------------------------------- scoring
 
 
+#: the largest height tolerance `score` accepts (m); the LAC's is 0.05
+MAX_HEIGHT_TOLERANCE_M = 1.0
+
+
 def score_geometric_map(produced, truth, height_tolerance_m: float = 0.05) -> dict:
     """The LAC's map scores of `produced` against `truth` (same grid):
     ``geometric``: share of cells whose height is within `height_tolerance_m`;
     ``rock_precision`` / ``rock_recall`` / ``rock_f1`` over the per-cell rock flags.
 
-    Raises InputError when the grids differ in shape or cell centres."""
+    Raises InputError when the grids differ in shape or cell centres, or the tolerance is not
+    in (0, 1] m (a negative or NaN one scored every map 0.0)."""
+    from lunarloc.core.validate import real
+
+    real(height_tolerance_m, "height_tolerance_m", 0.0, MAX_HEIGHT_TOLERANCE_M, lo_open=True, unit="m")
     p = validate_lac_grid(produced, "produced map")
     t = validate_lac_grid(truth, "true map")
     if p.shape != t.shape:
