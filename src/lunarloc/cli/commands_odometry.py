@@ -60,7 +60,7 @@ def odometry_cmd(
     drift = {"archive": str(archive), "source": traj.label, "evaluation_only": traj.evaluation_only,
              "measured_frames": int(traj.measured.sum()) if traj.measured is not None else None,
              "failures": traj.failures, **drift}  # fmt: skip
-    if not np.all(np.isfinite(traj.T_map_rover)):  # never written as a result (issue 33)
+    if not np.all(np.isfinite(traj.T_map_rover)):  # never written as a result
         raise InputError(f"{archive}: the {traj.label} odometry is not finite (a non-finite value in the archive?)")
     bad = [k for k, v in drift.items() if isinstance(v, float) and not math.isfinite(v)]
     if bad:

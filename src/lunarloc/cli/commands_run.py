@@ -195,7 +195,15 @@ def demo_cmd(
     check_output_dir(Path(out) / "data", overwrite, DEMO_DATA_FILES, marker=None)
 
     t0 = time.perf_counter()
-    s = run_scenario(scen, out, log=lambda msg: typer.echo(f"[demo] {msg}"), run_config=run_cfg)
+    try:
+        s = run_scenario(scen, out, log=lambda msg: typer.echo(f"[demo] {msg}"), run_config=run_cfg)
+    except KeyboardInterrupt:  # a failed stage keeps its data for a look (no summary.json: not complete)
+        from lunarloc.io.outputs import remove_partial_outputs
+
+        # both folders held none of these names (checked above): what this demo wrote, and temporaries
+        remove_partial_outputs(out)
+        remove_partial_outputs(Path(out) / "data", DEMO_DATA_FILES)
+        raise
     _print_summary(s, "demo: vehicle traverse localized in the image-built reference map")
     typer.echo(f"demo finished in {time.perf_counter() - t0:.0f} s; outputs and figures in {out}/ "
                f"(config.json repeats it: lunarloc demo --config {out}/config.json)")  # fmt: skip

@@ -162,7 +162,7 @@ class RunConfig:
 
 
 #: Caps on settings, the same whether a value comes from a command-line option or from a
-#: ``--config`` file (issue 33: ``localization.epsilon_m = 10`` in a file bypassed the CLI's
+#: ``--config`` file (``localization.epsilon_m = 10`` in a file bypassed the CLI's
 #: 0.3 m cap and ran for minutes): (low, high, unit); a low end of 0.0 is exclusive (a length,
 #: a rate), any other low end inclusive. Beyond these, every number in a configuration must
 #: lie within +-MAX_SETTING_MAGNITUDE.

@@ -1,6 +1,6 @@
-"""Checks of what the public API is given, as strict as the CLI's checks of its options
-(issue 33): rigid transforms, numbers within physical bounds, configs of the right type,
-images of the right container. Every refusal is an :class:`~lunarloc.core.errors.InputError`
+"""Checks of what the public API is given, as strict as the CLI's checks of its options:
+rigid transforms, numbers within physical bounds, configs of the right type, images of the
+right container. Every refusal is an :class:`~lunarloc.core.errors.InputError`
 (values) or :class:`~lunarloc.core.errors.ConfigError` (configs) whose message starts with
 the argument's name; a check returns the value it accepted (as float / ndarray) and changes
 nothing else, so a caller that checks before touching its state leaves that state unchanged.

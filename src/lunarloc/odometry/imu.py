@@ -94,7 +94,7 @@ def imu_samples_from_archive(archive) -> ImuSamples:
             )
         cols[c] = v
     # within the physical bounds the per-tick API accepts (lunarloc.core.validate): a speed of
-    # 1e300 m/s was integrated into a trajectory and written as a result (issue 33)
+    # 1e300 m/s was integrated into a trajectory and written as a result
     from lunarloc.core import validate
 
     for c, lim in ((IMU_COLUMNS[0], validate.MAX_ACCEL_MPS2), (IMU_COLUMNS[1], validate.MAX_ACCEL_MPS2),

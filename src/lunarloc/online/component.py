@@ -97,7 +97,7 @@ def _as_T(pose, what: str) -> np.ndarray:
         a = pose_to_matrix(*a)
     if a.shape != (4, 4):
         raise InputError(f"{what} must be a finite 4x4 transform or (x, y, z, roll, pitch, yaw); got shape {a.shape}")
-    return validate.rigid_transform(a, what)  # orthonormal, det +1, last row 0 0 0 1 (issue 33)
+    return validate.rigid_transform(a, what)  # orthonormal, det +1, last row 0 0 0 1
 
 
 @dataclass(frozen=True)
@@ -252,7 +252,7 @@ class OnlineLocalizer:
         from lunarloc.perception.detector import Detector, DetectorConfig
         from lunarloc.perception.detector import scaled_detector_config
 
-        if config is not None:  # the types first: a string here was an AttributeError deep inside (issue 33)
+        if config is not None:  # the types first: a string here was an AttributeError deep inside
             validate.instance(config, "config", OnlineConfig, "lunarloc.OnlineConfig")
         if detector_config is not None:
             validate.instance(detector_config, "detector_config", DetectorConfig, "lunarloc.perception.detector.DetectorConfig")

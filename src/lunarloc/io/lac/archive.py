@@ -344,7 +344,7 @@ class LacArchive:
     def _check_camera_poses(self, table: Table, member: str) -> None:
         """The camera's pose (camera_x..camera_yaw) at every row with an image must be finite
         and on the rover (within +-MAX_CAMERA_OFFSET metres / radians): a NaN there was an
-        internal error in `run` (issue 33)."""
+        internal error in `run`."""
         used = np.array([bool(v) for v in table["grayscale"]], bool)
         if not used.any():
             return
@@ -703,7 +703,7 @@ class LacArchive:
     def finite_columns(self, columns: Sequence[str], what: str, limit: float = MAX_STATE_VALUE) -> np.ndarray:
         """frames.csv's `columns` as an (N, k) array; ArchiveError naming the line and column of
         the first value that is not finite or beyond +-`limit` (a NaN in the ground truth made
-        ``run`` exit 0 with ``ATE nan``: issue 33)."""
+        ``run`` exit 0 with ``ATE nan``)."""
         a = self.frames.to_array(tuple(columns))
         bad = ~np.isfinite(a) | (np.abs(np.nan_to_num(a, nan=0.0, posinf=np.inf, neginf=np.inf)) > limit)
         if np.any(bad):
