@@ -365,7 +365,7 @@ def _campaign_cases() -> list[Case]:
 def _config_cases() -> list[Case]:
     C: list[Case] = []
 
-    def runcfg(name, cfg_text: str | bytes, cmd="run"):
+    def runcfg(name, cfg_text: str | bytes, cmd="run", expect="error", check=None):
         def build(d: Path) -> list[str]:
             c = H.write(d, "c.json", cfg_text)
             if cmd == "run":
@@ -382,7 +382,7 @@ def _config_cases() -> list[Case]:
             H.write(d, "data/csv/traverse_2.csv", H.traverse_text(seed=2))
             return ["bench", "loop", "--data", str(d / "data"), "--out", str(d / "bo"), "--config", str(c)]
 
-        C.append(Case(f"config/{cmd}-{name}", "config", build))
+        C.append(Case(f"config/{cmd}-{name}", "config", build, expect, check))
 
     def j(section, key, value):
         return json.dumps({section: {key: value}})
@@ -410,6 +410,10 @@ def _config_cases() -> list[Case]:
     runcfg("unknown-section", json.dumps({"bogus": {}}))
     runcfg("huge-int", '{"localization": {"min_inliers": ' + "9" * 5000 + "}}")
     runcfg("epsilon-10", j("localization", "epsilon_m", 10.0), "localize")
+    # valid files at the caps: still accepted
+    runcfg("epsilon-at-cap-ok", j("localization", "epsilon_m", 0.3), "localize", "ok", H.json_localized(None))
+    runcfg("window-at-cap-ok", json.dumps({"loop": {"window_m": 1e6, "localize_every_s": 1e7}, "localization": {"threads": 1}}),
+           "run", "ok", H.run_folder_ok("run"))  # fmt: skip
     runcfg("scenario-duration-1e9", json.dumps({"scenario": {"duration_s": 1e9}}), "demo")
     runcfg("scenario-width-1e6", json.dumps({"scenario": {"width": 10**6}}), "demo")
     runcfg("scenario-sun-1000", json.dumps({"scenario": {"sun_elevation_deg": 1000.0}}), "demo")
@@ -488,8 +492,8 @@ def frames_with(cell: tuple[int, str, str], base: dict | None = None) -> dict[st
     return m
 
 
-def camera_with(cam: str, col: str, value: str) -> dict[str, bytes]:
-    m = H.lac_members()
+def camera_with(cam: str, col: str, value: str, base: dict | None = None) -> dict[str, bytes]:
+    m = dict(base or H.lac_members())
     name = f"cameras/{cam}/{cam}_frames.csv"
     lines = m[name].decode().splitlines()
     cols = lines[0].split(",")
@@ -524,6 +528,13 @@ def _archive_cases() -> list[Case]:
             run(f"ground-truth-{col}-{v}", lambda col=col, v=v: frames_with((5, col, v)))
             odo(f"ground-truth-{col}-{v}", lambda col=col, v=v: frames_with((5, col, v)))
     run("ground-truth-x-1e300", lambda: frames_with((5, "x", "1e300")))
+    # values at the bounds are data, not damage
+    run("speed-at-the-lac-limit-ok", lambda: frames_with((5, "linear_speed", "0.49")), "--odometry", "imu", expect="ok",
+        check=H.run_folder_ok("run"))  # fmt: skip
+    run("cameras-higher-ok", lambda: camera_with("FrontRight", "camera_z", "0.9", camera_with("FrontLeft", "camera_z", "0.9")),
+        expect="ok", check=H.run_folder_ok("run"))  # fmt: skip
+    odo("imu-bump-ok", lambda: frames_with((5, "accel_x", "30.0")), "--source", "imu", expect="ok",
+        check=lambda d, so: (d / "o.json").is_file())  # fmt: skip
     odo("imu-accel-nan", lambda: frames_with((5, "accel_x", "nan")), "--source", "imu")
     odo("imu-gyro-inf", lambda: frames_with((5, "gyro_z", "inf")), "--source", "imu")
     run("imu-accel-nan", lambda: frames_with((5, "accel_x", "nan")), "--odometry", "imu")

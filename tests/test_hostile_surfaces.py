@@ -208,3 +208,16 @@ def test_odometry_outputs_need_overwrite_and_are_complete(tmp_path, capsys):
     assert len(tum.read_text().splitlines()) == 21
     d = json.loads((tmp_path / "o.json").read_text())
     assert all(np.isfinite(v) for v in d.values() if isinstance(v, float))
+
+
+def test_a_campaign_at_the_limits_is_accepted(tmp_path):
+    """The checks refuse what is out of range, not what is at the edge: 10,000 jobs, and every
+    setting at its stated bound."""
+    from lunarloc.pipeline.campaign import MAX_JOBS, load_spec
+
+    spec = H.write(tmp_path, "s.toml", S.spec_text(
+        {"duration_s": 3600.0, "reference_duration_s": 3600.0, "image_rate_hz": 10.0, "width": 4096,
+         "sun_azimuth_deg": -360.0, "min_reference_landmarks": 100_000},
+        grid={"seed": list(range(100)), "n_rocks": list(range(3, 103)), "sun_elevation_deg": [90.0]}))  # fmt: skip
+    s = load_spec(spec)
+    assert s.size == MAX_JOBS and len(s.jobs()) == MAX_JOBS
