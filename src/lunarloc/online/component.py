@@ -196,7 +196,7 @@ class OnlineConfig:
     max_recent_attempts: int = 100  # localization attempts kept in `recent_attempts`
 
     def __post_init__(self) -> None:
-        validate.integer(self.max_keyframes, "max_keyframes", 50, 10**6, ConfigError)
+        validate.integer(self.max_keyframes, "max_keyframes", 50, 10**9, ConfigError)  # 10**9: never re-anchor
         validate.integer(self.max_recent_attempts, "max_recent_attempts", 0, 10**6, ConfigError)
         for name in ("keyframe_min_travel_m", "keyframe_min_turn_deg", "keyframe_max_interval_s",
                      "reference_max_distance_m", "initial_sigma_m", "initial_sigma_yaw_deg", "tilt_sigma_deg"):  # fmt: skip
