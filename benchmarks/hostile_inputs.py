@@ -4,7 +4,7 @@ outcomes: clear error, correct result, traceback, silent garbage, internal error
     .venv/bin/python benchmarks/hostile_inputs.py                 # the code in this checkout
     .venv/bin/python benchmarks/hostile_inputs.py --src OLD/src   # another checkout's code
     .venv/bin/python benchmarks/hostile_inputs.py --json out.json --no-slow
-    .venv/bin/python benchmarks/hostile_inputs.py --kinds api,campaign,config,score,archive  # issue 33's corpus
+    .venv/bin/python benchmarks/hostile_inputs.py --kinds api,campaign,config,score,archive  # the second corpus (the API, campaigns, configs, ...)
 
 Each case runs in-process through ``lunarloc.cli.app.main`` in its own temporary folder (the
 working directory is that folder). The address space is capped (--max-gib) so a memory bomb

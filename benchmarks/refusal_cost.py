@@ -1,4 +1,4 @@
-"""Time and memory to refuse the oversized inputs of issue 33 (a 10^9- and a 10^6-job
+"""Time and memory to refuse the oversized inputs of the second hostile corpus (a 10^9- and a 10^6-job
 campaign grid, a 1e9 s scenario, ``localization.epsilon_m = 10`` in --config, 100,000-deep
 JSON), each case of the hostile corpus (tests/_hostile_surfaces.py) in a fresh process.
 
