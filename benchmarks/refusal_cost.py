@@ -55,7 +55,7 @@ def main() -> None:
     for name in CASES:
         code = CHILD.replace("SRC", repr(str(args.src.resolve()))).replace("TESTS", repr(str(ROOT / "tests")))
         code = code.replace("NAME", repr(name)).replace("TIMEOUT", str(args.timeout))
-        p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=args.timeout + 120)
+        p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=args.timeout + 120, check=False)
         line = next((l for l in p.stdout.splitlines() if l.startswith("RESULT ")), None)
         if line is None:
             r = {"case": name, "outcome": f"child failed (exit {p.returncode})", "wall_s": None, "peak_rss_mib": None,

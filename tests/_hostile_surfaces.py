@@ -17,9 +17,8 @@ import json
 import math
 from pathlib import Path
 
-import numpy as np
-
 import _hostile as H
+import numpy as np
 from _hostile import Case
 
 IMU_REST = [0.0, 0.0, 1.622, 0.0, 0.0, 0.0]
@@ -236,7 +235,7 @@ def _api_cases() -> list[Case]:
     C.append(_update_case("time-jump", {"mission_time_s": 60.0}, "tick"))
     C.append(_update_case("time-nan", {"mission_time_s": float("nan")}, "mission_time_s"))
     img = np.zeros((90, 160), np.uint8)
-    small = lambda: _loc(rig=_small_rig())  # noqa: E731
+    small = lambda: _loc(rig=_small_rig())
     for name, data in (("images-ndarray-group", {"Grayscale": img}),
                        ("images-ragged-list", {"Grayscale": {"FrontLeft": [[1, 2], [3]], "FrontRight": [[1, 2], [3]]}}),
                        ("images-string", {"Grayscale": {"FrontLeft": "img.png", "FrontRight": "img.png"}}),

@@ -8,16 +8,15 @@ from __future__ import annotations
 import json
 import tracemalloc
 
+import _hostile as H
+import _hostile_surfaces as S
 import numpy as np
 import pytest
 
-import _hostile as H
-import _hostile_surfaces as S
 from lunarloc.cli.app import main
 from lunarloc.core import validate
 from lunarloc.core.errors import ConfigError, InputError, LunarLocError
 from lunarloc.core.geometry import pose_to_matrix
-
 
 # ----------------------------------------------------------------------------- the validation layer
 
@@ -137,7 +136,7 @@ def _leftovers(folder):
 def test_summary_is_written_after_the_figures(tmp_path, monkeypatch):
     """A signal while the figures are drawn: no summary.json (the mark of a complete run),
     no file of this run, no temporary file."""
-    import lunarloc.viz as viz
+    from lunarloc import viz
     from lunarloc.io.outputs import RUN_FILES
 
     real = viz.plot_run
@@ -156,7 +155,7 @@ def test_summary_is_written_after_the_figures(tmp_path, monkeypatch):
 
 
 def test_interrupted_overwrite_leaves_no_temporary_and_no_partial_run(tmp_path, monkeypatch):
-    import lunarloc.io.runs as runs
+    from lunarloc.io import runs
 
     assert main(_run_args(tmp_path, "--no-plot")) == 0
     real = runs.write_tum

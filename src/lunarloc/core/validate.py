@@ -32,9 +32,23 @@ import numpy as np
 
 from lunarloc.core.errors import ConfigError, InputError
 
-__all__ = ["RIGID_TOL", "MAX_ABS_COORD_M", "LAC_MAX_LINEAR_SPEED_MPS", "LAC_MAX_ANGULAR_SPEED_RADPS",
-           "MAX_LINEAR_SPEED_MPS", "MAX_ANGULAR_SPEED_RADPS", "MAX_ACCEL_MPS2", "MAX_GYRO_RADPS",
-           "MAX_MISSION_TIME_S", "real", "integer", "rigid_transform", "imu_sample", "instance", "gray_image"]  # fmt: skip
+__all__ = [
+    "LAC_MAX_ANGULAR_SPEED_RADPS",
+    "LAC_MAX_LINEAR_SPEED_MPS",
+    "MAX_ABS_COORD_M",
+    "MAX_ACCEL_MPS2",
+    "MAX_ANGULAR_SPEED_RADPS",
+    "MAX_GYRO_RADPS",
+    "MAX_LINEAR_SPEED_MPS",
+    "MAX_MISSION_TIME_S",
+    "RIGID_TOL",
+    "gray_image",
+    "imu_sample",
+    "instance",
+    "integer",
+    "real",
+    "rigid_transform",
+]  # fmt: skip
 
 RIGID_TOL = 1e-4
 MAX_ABS_COORD_M = 1e7
