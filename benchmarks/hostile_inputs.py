@@ -1,9 +1,10 @@
 """Run the generated corpus of hostile inputs (tests/_hostile.py) through the CLI and count
-outcomes: clear error, correct result, traceback, silent garbage, internal error, other.
+outcomes: clear error, correct result, traceback, silent garbage, internal error, hang, other.
 
     .venv/bin/python benchmarks/hostile_inputs.py                 # the code in this checkout
     .venv/bin/python benchmarks/hostile_inputs.py --src OLD/src   # another checkout's code
     .venv/bin/python benchmarks/hostile_inputs.py --json out.json --no-slow
+    .venv/bin/python benchmarks/hostile_inputs.py --kinds api,campaign,config,score,archive  # the second corpus (the API, campaigns, configs, ...)
 
 Each case runs in-process through ``lunarloc.cli.app.main`` in its own temporary folder (the
 working directory is that folder). The address space is capped (--max-gib) so a memory bomb
@@ -31,6 +32,7 @@ def main() -> None:
     ap.add_argument("--no-slow", action="store_true", help="leave out the few slow cases")
     ap.add_argument("--max-gib", type=float, default=12.0, help="address-space cap (GiB)")
     ap.add_argument("--only", default="", help="run only cases whose name contains this")
+    ap.add_argument("--kinds", default="", help="comma-separated kinds to run (csv,npz,lac,option,output,api,campaign,config,score,archive)")
     ap.add_argument("--case-timeout", type=int, default=60, help="seconds before a case counts as a hang")
     args = ap.parse_args()
     sys.path.insert(0, str(args.src.resolve()))
@@ -42,7 +44,13 @@ def main() -> None:
     from _hostile import OUTCOMES, corpus, run_case
 
     print(f"lunarloc from {Path(lunarloc.__file__).parent}", flush=True)
-    cases = [c for c in corpus(include_slow=not args.no_slow) if args.only in c.name]
+    tw = time.perf_counter()
+    from lunarloc.localization.warmup import warm_up
+
+    warm_up()  # compile the kernels first: a cold numba cache is not a hang of the first case that localizes
+    print(f"kernels warmed up in {time.perf_counter() - tw:.0f} s", flush=True)
+    kinds = set(filter(None, args.kinds.split(",")))
+    cases = [c for c in corpus(include_slow=not args.no_slow) if args.only in c.name and (not kinds or c.kind in kinds)]
     results = []
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="hostile-") as tmp:

@@ -42,6 +42,10 @@ class Case:
     expect: str = "error"  # error | ok | either
     check: Callable[[Path, str], bool] | None = None  # (folder, stdout) -> outputs correct?
     slow: bool = False
+    # API cases (tests/_hostile_surfaces.py): call(folder) returns the API's result or raises;
+    # a refusal counts as a clear error when it is a LunarLocError whose message names `names`
+    call: Callable[[Path], object] | None = None
+    names: str = ""
 
 
 @dataclass
@@ -746,8 +750,12 @@ def _output_cases() -> list[Case]:
 
 
 def corpus(include_slow: bool = True) -> list[Case]:
-    """All cases; `include_slow=False` leaves out the few that take seconds each."""
-    cases = _csv_cases() + _npz_cases() + _lac_cases() + _option_cases() + _output_cases()
+    """All cases; `include_slow=False` leaves out the few that take seconds each. The second
+    corpus (issue 33: the API, campaigns, --config, score, odometry, damaged archives) is in
+    tests/_hostile_surfaces.py."""
+    from _hostile_surfaces import surface_cases
+
+    cases = _csv_cases() + _npz_cases() + _lac_cases() + _option_cases() + _output_cases() + surface_cases()
     names = [c.name for c in cases]
     assert len(names) == len(set(names)), "case names must be unique"
     return [c for c in cases if include_slow or not c.slow]
@@ -779,6 +787,8 @@ def run_case(case: Case, folder: Path, main=None, timeout_s: int = 0) -> Outcome
     if main is None:
         from lunarloc.cli.app import main
     folder.mkdir(parents=True, exist_ok=True)
+    if case.call is not None:
+        return _run_call(case, folder, timeout_s)
     argv = case.build(folder)
     out, err = io.StringIO(), io.StringIO()
     rc, escaped = None, None
@@ -828,3 +838,56 @@ def run_case(case: Case, folder: Path, main=None, timeout_s: int = 0) -> Outcome
     if rc == 2 and case.expect in ("error", "either") and _clear_error(se):
         return Outcome(case.name, case.kind, "clear error", rc, msg)
     return Outcome(case.name, case.kind, "other", rc, msg)
+
+
+def _run_call(case: Case, folder: Path, timeout_s: int = 0) -> Outcome:
+    """An API case: a LunarLocError naming the argument is a clear error (the state check is
+    the case's own: it raises StateChanged), any other exception a traceback, a result the
+    case's check refuses silent garbage."""
+    import signal
+
+    from lunarloc.core.errors import LunarLocError
+    from _hostile_surfaces import StateChanged
+
+    def alarm(signum, frame):
+        raise CaseTimeout()
+
+    old = signal.signal(signal.SIGALRM, alarm) if timeout_s else None
+    cwd = os.getcwd()
+    os.chdir(folder)
+    result, exc = None, None
+    try:
+        if timeout_s:
+            signal.alarm(timeout_s)
+        try:
+            result = case.call(folder)
+        except CaseTimeout:
+            return Outcome(case.name, case.kind, "hang", None, f"still running after {timeout_s} s")
+        except BaseException as e:  # noqa: BLE001 - classified below
+            exc = e
+    finally:
+        if timeout_s:
+            signal.alarm(0)
+            signal.signal(signal.SIGALRM, old)
+        os.chdir(cwd)
+    if exc is not None:
+        msg = f"{type(exc).__name__}: {exc}"[:300]
+        if isinstance(exc, StateChanged):
+            return Outcome(case.name, case.kind, "other", None, msg)
+        if isinstance(exc, LunarLocError) and case.expect in ("error", "either"):
+            if case.names and case.names not in str(exc):
+                return Outcome(case.name, case.kind, "other", None, f"does not name {case.names!r}: {msg}")
+            return Outcome(case.name, case.kind, "clear error", None, msg)
+        if isinstance(exc, LunarLocError):
+            return Outcome(case.name, case.kind, "other", None, f"refused valid input: {msg}")
+        if isinstance(exc, MemoryError):
+            return Outcome(case.name, case.kind, "internal error", None, msg)
+        return Outcome(case.name, case.kind, "traceback", None, msg)
+    if case.expect == "error":
+        return Outcome(case.name, case.kind, "silent garbage", None, f"returned {type(result).__name__}")
+    try:
+        good = case.check is None or bool(case.check(folder, result))
+    except Exception as e:  # noqa: BLE001 - an unreadable result is garbage
+        good, result = False, f"check raised {type(e).__name__}: {e}"
+    return Outcome(case.name, case.kind, "correct result" if good else "silent garbage", None,
+                   "" if good else f"result failed its check {str(result)[:200]}")

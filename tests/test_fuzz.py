@@ -1,6 +1,8 @@
-"""Issue 13: every hostile or broken input gives one clear error (exit 2, one line, no
-traceback) or a correct result. The corpus is generated (tests/_hostile.py: CSV, .npz, .lac,
-options, output paths); each case runs in-process through ``lunarloc.cli.app.main``.
+"""Issues 13 and 33: every hostile or broken input gives one clear error (exit 2, one line, no
+traceback; for the API a LunarLocError naming the argument, state unchanged) or a correct
+result. The corpus is generated (tests/_hostile.py: CSV, .npz, .lac, options, output paths;
+tests/_hostile_surfaces.py: the OnlineLocalizer API, campaign specs, --config files, score,
+odometry, damaged archives); each CLI case runs in-process through ``lunarloc.cli.app.main``.
 Also: exit codes (130, 70, --debug), atomic outputs, and memory bounds measured with
 tracemalloc."""
 
@@ -23,14 +25,14 @@ CASES = H.corpus(include_slow=False)  # the few multi-second cases run in benchm
 
 def test_corpus_is_large_and_covers_every_kind():
     kinds = {c.kind for c in CASES}
-    assert len(CASES) >= 150
-    assert kinds == {"csv", "npz", "lac", "option", "output"}
-    assert all(sum(c.kind == k for c in CASES) >= 20 for k in kinds)
+    assert len(CASES) >= 450
+    assert kinds == {"csv", "npz", "lac", "option", "output", "api", "campaign", "config", "score", "archive"}
+    assert all(sum(c.kind == k for c in CASES) >= 15 for k in kinds)
 
 
 @pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
 def test_hostile_input(case, tmp_path):
-    o = H.run_case(case, tmp_path / "case")
+    o = H.run_case(case, tmp_path / "case", timeout_s=120)  # a hang fails the case, not the suite
     want = {"error": ("clear error",), "ok": ("correct result",), "either": ("clear error", "correct result")}
     assert o.outcome in want[case.expect], f"{case.name}: {o.outcome} (exit {o.rc}): {o.message}"
     if o.outcome == "clear error":

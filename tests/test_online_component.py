@@ -251,7 +251,8 @@ def test_no_reference_map(monkeypatch):
             det = (near - T[:3, 3]) @ T[:3, :3]  # rover frame
             monkeypatch.setattr(loc, "_detect", lambda images, det=det: det)
             img = blank if i % 2 == 0 else None
-            e = loc.update(0.05 * i, {"Grayscale": {"FrontLeft": img, "FrontRight": img}}, IMU_REST, 1.0, 0.0,
+            # the speed: the LAC's limit (the API refuses more than twice it); the caller's odometry moves the rover
+            e = loc.update(0.05 * i, {"Grayscale": {"FrontLeft": img, "FrontRight": img}}, IMU_REST, 0.49, 0.0,
                            odometry=T)  # fmt: skip
             if e.attempt is not None:
                 attempts.append(e.attempt)

@@ -149,15 +149,17 @@ def plot_frame(npz_path: Path, path: Path) -> Path:
     return path
 
 
-def plot_run(outdir: str | Path, figdir: str | Path | None = None) -> list[Path]:
+def plot_run(outdir: str | Path, figdir: str | Path | None = None, summary: dict | None = None) -> list[Path]:
     """Write map.png, error.png (if ground truth is known) and frame.png (if the run used
-    images) for the run in `outdir` into `figdir` (default: `outdir`). Returns the paths."""
+    images) for the run in `outdir` into `figdir` (default: `outdir`). Returns the paths.
+    `summary`: the run's summary before ``summary.json`` is written (``write_run``'s
+    ``before_summary``: figures first, the file marking a complete run last)."""
     outdir = Path(outdir)
     figdir = Path(figdir) if figdir is not None else outdir
     figdir.mkdir(parents=True, exist_ok=True)
     from lunarloc.io.runs import read_run
 
-    run = read_run(outdir)
+    run = read_run(outdir, summary)
     s = run.summary
     title = f"{Path(str(s.get('source', ''))).name}: {s.get('fixes', 0)} fixes over {s.get('path_length_m', 0):.0f} m"
     out = [plot_map(run, figdir / "map.png", title)]

@@ -34,6 +34,10 @@ def campaign_cmd(
         raise typer.BadParameter("give SPEC and -o OUT (or --example to print a spec)")
     if scheduler is not None and workers is not None:
         raise typer.BadParameter("--workers sizes the local cluster; it does not go with --scheduler")
+    if scheduler not in (None, "sync"):
+        from lunarloc.pipeline.campaign import check_scheduler_address
+
+        check_scheduler_address(scheduler)  # before anything is printed or written
     s = load_spec(spec)
     jobs = s.jobs()
     con = console()

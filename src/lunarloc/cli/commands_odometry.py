@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Optional
 
 import typer
 
+import numpy as np
+
 from lunarloc.cli.app import app, console
+from lunarloc.cli.checks import OVERWRITE_OPT
 
 
 @app.command("odometry")
@@ -21,6 +25,7 @@ def odometry_cmd(
     ),  # fmt: skip
     out: Optional[Path] = typer.Option(None, "-o", "--out", help="Write the trajectory here (TUM: t x y z qx qy qz qw)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the drift figures here (JSON)."),
+    overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """Odometry of ARCHIVE from SOURCE, and its drift against the archive's ground truth."""
     from tqdm import tqdm
@@ -30,8 +35,14 @@ def odometry_cmd(
     from lunarloc.odometry.source import parse_odometry_source
     from lunarloc.io.runs import write_tum
 
+    from lunarloc.core.errors import InputError
+    from lunarloc.io.outputs import check_output_file, write_text
+
     if source is not None:
         parse_odometry_source(source)
+    for path in (out, json_out):  # before the work: an existing output needs --overwrite
+        if path is not None:
+            check_output_file(path, overwrite)
     con = console()
     with LacArchive(archive) as ar:
         source = source or default_odometry_source(ar)
@@ -49,12 +60,15 @@ def odometry_cmd(
     drift = {"archive": str(archive), "source": traj.label, "evaluation_only": traj.evaluation_only,
              "measured_frames": int(traj.measured.sum()) if traj.measured is not None else None,
              "failures": traj.failures, **drift}  # fmt: skip
+    if not np.all(np.isfinite(traj.T_map_rover)):  # never written as a result
+        raise InputError(f"{archive}: the {traj.label} odometry is not finite (a non-finite value in the archive?)")
+    bad = [k for k, v in drift.items() if isinstance(v, float) and not math.isfinite(v)]
+    if bad:
+        raise InputError(f"{archive}: drift figures {', '.join(bad)} are not finite")
     if out is not None:
-        out.parent.mkdir(parents=True, exist_ok=True)
         write_tum(out, traj.times_s, traj.T_map_rover)
     if json_out is not None:
-        json_out.parent.mkdir(parents=True, exist_ok=True)
-        json_out.write_text(json.dumps(drift, indent=2))
+        write_text(json_out, json.dumps(drift, indent=2, allow_nan=False))
     pct = "-" if drift["final_error_pct"] is None else f"{drift['final_error_pct']:.2f} %"
     con.print(f"[bold]{archive.name}[/bold]: odometry {traj.label}, {drift['frames']} frames, "
               f"path {drift['path_length_m']:.2f} m (ground truth)")  # fmt: skip

@@ -28,8 +28,9 @@ def score_cmd(
     """Score PRODUCED against TRUTH as the LAC does: share of cells with height error below
     the tolerance (geometric map; unfilled cells fail), precision / recall / F1 over the
     per-cell rock flags (rock map), mapping productivity, and the LAC's points."""
-    from lunarloc.io.overhead import load_lac_grid, score_geometric_map
+    from lunarloc.io.overhead import MAX_HEIGHT_TOLERANCE_M, load_lac_grid, score_geometric_map
 
+    positive(height_tolerance, "--height-tolerance", MAX_HEIGHT_TOLERANCE_M, "m")  # before reading the maps
     positive(mission_time, "--mission-time", 1e7, "s")
     p = load_lac_grid(produced, allow_unfilled=True)
     t = load_lac_grid(truth)

@@ -139,7 +139,16 @@ def run_cmd(
                 bar.refresh()
 
         res = run(ArchiveSource(archive, cfg.odometry, cfg.detector.pairs), ref, cfg, progress=prog, mapper=mapper)
-    s = write_run(res, out)
+    figures: list[Path] = []
+    if plot:
+        from lunarloc.viz import plot_run
+    try:  # the figures before summary.json, which marks a complete run folder
+        s = write_run(res, out, before_summary=(lambda s: figures.extend(plot_run(out, summary=s))) if plot else None)
+    except BaseException:
+        from lunarloc.io.outputs import remove_partial_outputs
+
+        remove_partial_outputs(out)  # what this run wrote (the folder held no run: checked above), temporaries too
+        raise
     if mapper is not None:
         import numpy as np
 
@@ -152,11 +161,8 @@ def run_cmd(
                    f"{int(np.sum(est.array[:, :, 3] >= 0.5))} rock cells ({len(est.rocks)} rocks)")
     _print_summary(s, f"{archive.name} in {reference.name} ({len(ref)} landmarks)")
     typer.echo(f"odometry: {res.config['info']['odometry_source']}")
-    if plot:
-        from lunarloc.viz import plot_run
-
-        for p in plot_run(out):
-            typer.echo(f"wrote {p}")
+    for p in figures:
+        typer.echo(f"wrote {p}")
     typer.echo(f"wrote {out}/ (trajectory.tum, attempts.csv, summary.json, config.json, ...)")
 
 
@@ -216,7 +222,15 @@ def demo_cmd(
     check_output_dir(Path(out) / "data", overwrite, DEMO_DATA_FILES, marker=None)
 
     t0 = time.perf_counter()
-    s = run_scenario(scen, out, log=lambda msg: typer.echo(f"[demo] {msg}"), run_config=run_cfg)
+    try:
+        s = run_scenario(scen, out, log=lambda msg: typer.echo(f"[demo] {msg}"), run_config=run_cfg)
+    except KeyboardInterrupt:  # a failed stage keeps its data for a look (no summary.json: not complete)
+        from lunarloc.io.outputs import remove_partial_outputs
+
+        # both folders held none of these names (checked above): what this demo wrote, and temporaries
+        remove_partial_outputs(out)
+        remove_partial_outputs(Path(out) / "data", DEMO_DATA_FILES)
+        raise
     _print_summary(s, "demo: vehicle traverse localized in the image-built reference map")
     typer.echo(f"demo finished in {time.perf_counter() - t0:.0f} s; outputs and figures in {out}/ "
                f"(config.json repeats it: lunarloc demo --config {out}/config.json)")  # fmt: skip

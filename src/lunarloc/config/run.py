@@ -40,9 +40,14 @@ from lunarloc.odometry.imu import ImuOdometryConfig
 from lunarloc.perception.detector import scaled_detector_config
 
 __all__ = ["RunConfig", "OdometryConfig", "config_to_dict", "config_from_dict", "scaled_detector_config",
-           "load_config_file"]  # fmt: skip
+           "load_config_file", "check_limits", "SETTING_LIMITS"]  # fmt: skip
 
 INFO_SECTION = "info"
+MAX_CONFIG_BYTES = 4 * 1024**2  # a run configuration is a few kB
+
+
+def _no_constant(name: str):
+    raise ValueError(f"{name} is not a number a setting can take (JSON has no NaN or Infinity)")
 
 
 # --------------------------------------------------------------------------- sections
@@ -153,7 +158,67 @@ class RunConfig:
                 out = replace(out, **{section: replace(getattr(out, section), **values)})
             except ConfigError as exc:
                 raise ConfigError(f"{section}: {exc}") from None
-        return out
+        return check_limits(out) if by_section else out
+
+
+#: Caps on settings, the same whether a value comes from a command-line option or from a
+#: ``--config`` file (``localization.epsilon_m = 10`` in a file bypassed the CLI's
+#: 0.3 m cap and ran for minutes): (low, high, unit); a low end of 0.0 is exclusive (a length,
+#: a rate), any other low end inclusive. Beyond these, every number in a configuration must
+#: lie within +-MAX_SETTING_MAGNITUDE.
+SETTING_LIMITS: dict[str, tuple[float, float, str]] = {
+    "localization.epsilon_m": (0.0, 0.3, "m"),  # the consistency graph grows with it (docs/robustness.md)
+    "localization.epsilon_z_m": (0.0, 0.3, "m"),
+    "localization.sigma_m": (0.0, 0.3, "m"),
+    "localization.refine_radius_m": (0.0, 10.0, "m"),
+    "localization.near_miss_outer_m": (0.0, 10.0, "m"),
+    "localization.yaw_step_deg": (0.1, 45.0, "deg"),
+    "localization.max_predicted_error_m": (0.0, 100.0, "m"),
+    "localization.max_rmse_m": (0.0, 10.0, "m"),
+    "localization.threads": (1, 256, ""),
+    "localization.max_edges": (1, 1_000_000_000, ""),
+    "localization.min_inliers": (3, 1_000_000, ""),
+    "localization.screen_candidates": (1, 10_000, ""),
+    "loop.localize_every_m": (0.0, 1e6, "m"),
+    "loop.localize_every_s": (0.0, 1e7, "s"),
+    "loop.window_m": (0.0, 1e6, "m"),
+    "loop.crop_margin_m": (-1.0, 1e6, "m"),  # the low end: LoopConfig's own check (>= 0)
+    "loop.keyframe_every_s": (1e-3, 1e7, "s"),
+    "loop.keyframe_max_interval_s": (1e-3, 1e7, "s"),
+    "loop.min_window_landmarks": (3, 1_000_000, ""),
+    "odometry.heading_drift_deg_per_m": (-1.0, 10.0, "deg/m"),  # the low end: OdometryConfig's (>= 0)
+    "odometry.scale_error": (-0.5, 0.5, ""),
+    "odometry.rate_hz": (0.0, 1000.0, "Hz"),
+}
+MAX_SETTING_MAGNITUDE = 1e9
+
+
+def _numbers(d, prefix: str = ""):
+    if isinstance(d, Mapping):
+        for k, v in d.items():
+            yield from _numbers(v, f"{prefix}.{k}" if prefix else str(k))
+    elif isinstance(d, (list, tuple)):
+        for i, v in enumerate(d):
+            yield from _numbers(v, f"{prefix}[{i}]")
+    elif isinstance(d, (int, float)) and not isinstance(d, bool):
+        yield prefix, d
+
+
+def check_limits(cfg: RunConfig) -> RunConfig:
+    """`cfg` if every setting is within :data:`SETTING_LIMITS` and every number within
+    +-:data:`MAX_SETTING_MAGNITUDE`; else a ConfigError naming the first one that is not."""
+    values = dict(_numbers(cfg.to_dict()))
+    for key, (lo, hi, unit) in SETTING_LIMITS.items():
+        v = values.get(key)
+        if v is None:
+            continue
+        if not ((v > lo if lo == 0.0 else v >= lo) and v <= hi):
+            rng = f"({lo:g}, {hi:g}]" if lo == 0.0 else f"[{lo:g}, {hi:g}]"
+            raise ConfigError(f"{key}: {v!r} outside {rng}{' ' + unit if unit else ''}")
+    for key, v in values.items():
+        if abs(v) > MAX_SETTING_MAGNITUDE:
+            raise ConfigError(f"{key}: {v!r} beyond +-{MAX_SETTING_MAGNITUDE:g}, not a plausible setting")
+    return cfg
 
 
 def load_config_file(path: str | Path, extra_sections: tuple[str, ...] = ()) -> tuple[RunConfig, dict]:
@@ -161,13 +226,19 @@ def load_config_file(path: str | Path, extra_sections: tuple[str, ...] = ()) -> 
     ``--config``'s commands), and the `extra_sections` it holds. Errors name the file."""
     from lunarloc.io.inputs import check_input_file
 
-    path = check_input_file(path, None, "run configuration")
+    path = check_input_file(path, MAX_CONFIG_BYTES, "run configuration")
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(path.read_text(encoding="utf-8"), parse_constant=_no_constant)
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ConfigError(f"{path}: not a JSON run configuration ({exc})") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: not a JSON run configuration (nested too deeply)") from None
+    except ValueError as exc:  # NaN / Infinity literals, integers of thousands of digits
+        raise ConfigError(f"{path}: {exc}") from None
     try:
-        cfg = RunConfig.from_dict(data, extra_sections)
+        cfg = check_limits(RunConfig.from_dict(data, extra_sections))
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: a setting is nested too deeply") from None
     return cfg, {k: data[k] for k in extra_sections if k in data}

@@ -23,7 +23,7 @@ from pathlib import Path
 
 from lunarloc.core.errors import OutputError, file_error
 
-__all__ = ["check_output_file", "check_output_dir", "atomic_path", "atomic_open", "RUN_FILES"]
+__all__ = ["check_output_file", "check_output_dir", "atomic_path", "atomic_open", "RUN_FILES", "remove_partial_outputs"]
 
 RUN_FILES = (
     "trajectory.tum", "trajectory_online.tum", "trajectory_odometry.tum", "trajectory_groundtruth.tum",
@@ -31,6 +31,24 @@ RUN_FILES = (
     "rocks.csv", "example_frame.npz", "config.json", "summary.json", "map.png", "error.png", "frame.png",
 )  # fmt: skip
 """Files a run folder (``lunarloc run``, ``lunarloc demo``) holds; ``summary.json`` marks one."""
+
+
+def remove_partial_outputs(folder: str | os.PathLike, names=RUN_FILES) -> list[str]:
+    """Remove from `folder` the outputs `names` and any temporary file of an atomic write
+    (``.NAME.tmp-*``): what an interrupted command wrote. Call it only for a folder that held
+    none of `names` before the command (``check_output_dir`` cleared or refused them).
+    Returns the names removed."""
+    d = Path(folder)
+    removed = []
+    if not d.is_dir():
+        return removed
+    for p in d.iterdir():
+        if p.name in names or (p.name.startswith(".") and ".tmp-" in p.name):
+            with contextlib.suppress(OSError):
+                if p.is_file() or p.is_symlink():
+                    p.unlink()
+                    removed.append(p.name)
+    return removed
 
 
 def _writable_dir(d: Path, target: Path) -> None:
@@ -114,9 +132,9 @@ def atomic_path(path: str | os.PathLike):
         fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.tmp-", suffix=target.suffix, dir=target.parent)
     except OSError as exc:
         raise file_error(target, exc, "write") from None
-    os.close(fd)
     tmp_path = Path(tmp)
     try:
+        os.close(fd)
         yield tmp_path
         umask = os.umask(0)
         os.umask(umask)

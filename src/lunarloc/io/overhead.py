@@ -423,6 +423,10 @@ def landmarks_to_lac_grid(landmarks: LandmarkMap, size_m: float = LAC_CELL_M * L
 # --------------------------------------------------------------------------- scoring
 
 
+#: the largest height tolerance `score` accepts (m); the LAC's is 0.05
+MAX_HEIGHT_TOLERANCE_M = 1.0
+
+
 def score_geometric_map(produced, truth, height_tolerance_m: float = 0.05, *, cells=None,
                         mission_time_s: float | None = None, fiducials_used: bool = False) -> dict:
     """The LAC's map scores of `produced` against `truth` (same grid), with the scorer's rules:
@@ -439,7 +443,11 @@ def score_geometric_map(produced, truth, height_tolerance_m: float = 0.05, *, ce
     cells : optional (N, N) bool mask: the geometric share and the rock scores over these
         cells only (e.g. those the cameras saw; points then say what the whole map would
         score if it were those cells; productivity always counts the whole map).
-    Raises InputError when the grids differ in shape or cell centres or the mask does not fit."""
+    Raises InputError when the grids differ in shape or cell centres, the mask does not fit, or
+    the tolerance is not in (0, 1] m (a negative or NaN one scored every map 0.0)."""
+    from lunarloc.core.validate import real
+
+    real(height_tolerance_m, "height_tolerance_m", 0.0, MAX_HEIGHT_TOLERANCE_M, lo_open=True, unit="m")
     p = validate_lac_grid(produced, "produced map", allow_unfilled=True)
     t = validate_lac_grid(truth, "true map")
     if p.shape != t.shape:

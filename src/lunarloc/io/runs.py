@@ -72,9 +72,12 @@ def to_json_ready(x):
     return x
 
 
-def write_run(result, outdir: str | Path) -> dict:
+def write_run(result, outdir: str | Path, before_summary=None) -> dict:
     """Write a :class:`~lunarloc.online.loop.LoopResult` to the run folder `outdir` (see the module
-    docstring); returns its summary."""
+    docstring); returns its summary. ``summary.json`` is written last and marks a complete
+    folder: `before_summary(summary)`, when given, runs just before it (the figures,
+    :func:`lunarloc.viz.plot_run` with ``summary=``), so a run interrupted while plotting
+    never looks complete."""
     from lunarloc.io.maps import save_map
     from lunarloc.io.outputs import atomic_open, atomic_path, make_dir, write_text
     from lunarloc.io.maps import ROCK_COLUMNS
@@ -106,6 +109,8 @@ def write_run(result, outdir: str | Path) -> dict:
                                 depth_m=ex["depth_m"], frame=ex["frame"], camera=ex["camera"])  # fmt: skip
     write_text(out / "config.json", json.dumps(to_json_ready(result.config), indent=2, default=str))
     summary = result.summary()
+    if before_summary is not None:
+        before_summary(to_json_ready(summary))
     write_text(out / "summary.json", json.dumps(to_json_ready(summary), indent=2))
     return summary
 
@@ -132,22 +137,23 @@ class RunFolder:
 RUN_FILES_NEEDED = ("trajectory.tum", "trajectory_odometry.tum", "attempts.json", "summary.json")
 
 
-def read_run(outdir: str | Path) -> RunFolder:
+def read_run(outdir: str | Path, summary: dict | None = None) -> RunFolder:
     """Read a run folder written by :func:`write_run`; FileFormatError naming the folder when
-    it is not one or a file is damaged."""
+    it is not one or a file is damaged. `summary`: the summary not yet written (figures drawn
+    before ``summary.json``, see :func:`write_run`)."""
     outdir = Path(outdir)
-    missing = [n for n in RUN_FILES_NEEDED if not (outdir / n).is_file()]
+    missing = [n for n in RUN_FILES_NEEDED if not (outdir / n).is_file() and not (n == "summary.json" and summary is not None)]
     if missing:
         raise FileFormatError(f"{outdir}: not a lunarloc run folder (missing {', '.join(missing)})")
     try:
-        return _read_run(outdir)
+        return _read_run(outdir, summary)
     except (ValueError, IndexError) as exc:  # json, TUM or CSV contents; LunarLocErrors pass through
         if isinstance(exc, FileFormatError):
             raise
         raise FileFormatError(f"{outdir}: damaged run folder ({type(exc).__name__}: {str(exc)[:120]})") from None
 
 
-def _read_run(outdir: Path) -> RunFolder:
+def _read_run(outdir: Path, summary: dict | None = None) -> RunFolder:
     from lunarloc.io.maps import load_map
 
     def tum(name):
@@ -162,7 +168,7 @@ def _read_run(outdir: Path) -> RunFolder:
     return RunFolder(
         outdir, t, corrected, tum("trajectory_odometry.tum"), tum("trajectory_online.tum"),
         tum("trajectory_groundtruth.tum"), json.loads((outdir / "attempts.json").read_text()),
-        json.loads((outdir / "summary.json").read_text()), json.loads(cfg.read_text()) if cfg.is_file() else None,
+        summary if summary is not None else json.loads((outdir / "summary.json").read_text()), json.loads(cfg.read_text()) if cfg.is_file() else None,
         xyz("reference_map.csv"), xyz("vehicle_map.csv"), xyz("vehicle_map_odometry.csv"),
         np.loadtxt(rocks, delimiter=",", skiprows=1, ndmin=2) if rocks.is_file() else None,
     )  # fmt: skip

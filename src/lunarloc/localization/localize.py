@@ -1108,6 +1108,10 @@ def localize(
     than 3 landmarks, coincident or collinear landmarks). A failed localization is not
     an error: it returns ``success=False`` with a reason.
     """
+    if config is not None:
+        from lunarloc.core.validate import instance
+
+        instance(config, "config", LocalizationConfig, "lunarloc.LocalizationConfig")
     if isinstance(reference, LandmarkMap) and isinstance(vehicle, LandmarkMap) and not (
         reference.has_heights and vehicle.has_heights
     ):

@@ -93,6 +93,19 @@ def imu_samples_from_archive(archive) -> ImuSamples:
                 f"{len(bad)} such row(s)): IMU odometry needs every tick's IMU, speed and time"
             )
         cols[c] = v
+    # within the physical bounds the per-tick API accepts (lunarloc.core.validate): a speed of
+    # 1e300 m/s was integrated into a trajectory and written as a result
+    from lunarloc.core import validate
+
+    for c, lim in ((IMU_COLUMNS[0], validate.MAX_ACCEL_MPS2), (IMU_COLUMNS[1], validate.MAX_ACCEL_MPS2),
+                   (IMU_COLUMNS[2], validate.MAX_ACCEL_MPS2), (IMU_COLUMNS[3], validate.MAX_GYRO_RADPS),
+                   (IMU_COLUMNS[4], validate.MAX_GYRO_RADPS), (IMU_COLUMNS[5], validate.MAX_GYRO_RADPS),
+                   ("linear_speed", validate.MAX_LINEAR_SPEED_MPS), ("mission_time", validate.MAX_MISSION_TIME_S)):  # fmt: skip
+        bad = np.flatnonzero(np.abs(cols[c]) > lim)
+        if len(bad):
+            i = int(bad[0])
+            raise InputError(f"{where}: '{c}' = {cols[c][i]:.4g} at frame {int(frames[i])} (line {i + 2}) is beyond "
+                             f"physical bounds (+-{lim:g}; {len(bad)} such row(s))")  # fmt: skip
     t = cols["mission_time"]
     if len(t) > 1:
         dt = np.diff(t)

@@ -49,6 +49,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
+from lunarloc.core import validate
 from lunarloc.core.errors import ConfigError, InputError
 from lunarloc.core.geometry import invert_transform, pose_to_matrix
 from lunarloc.io.maps import LandmarkMap
@@ -84,14 +85,19 @@ def _as_T(pose, what: str) -> np.ndarray:
             pose = f()
             break
     try:
-        a = np.asarray(pose, float)
+        raw = np.asarray(pose)
+        if raw.dtype.kind not in "fiu":  # strings, bools, objects: not a pose
+            raise TypeError
+        a = raw.astype(float)
     except (TypeError, ValueError):
         raise InputError(f"{what} must be a 4x4 transform, a 6-vector or a Transform, got {type(pose).__name__}") from None
     if a.shape == (6,):
+        if not np.all(np.isfinite(a)):
+            raise InputError(f"{what} (x, y, z, roll, pitch, yaw) is not finite: {a.tolist()}")
         a = pose_to_matrix(*a)
-    if a.shape != (4, 4) or not np.all(np.isfinite(a)):
+    if a.shape != (4, 4):
         raise InputError(f"{what} must be a finite 4x4 transform or (x, y, z, roll, pitch, yaw); got shape {a.shape}")
-    return a
+    return validate.rigid_transform(a, what)  # orthonormal, det +1, last row 0 0 0 1
 
 
 @dataclass(frozen=True)
@@ -144,6 +150,9 @@ class CameraRig:
         IPEx rig's layout with that baseline) or explicit ``T_rover_cam`` poses. The camera
         model is a centred square-pixel pinhole: ``fy`` must equal ``fx`` and ``(cx, cy)`` be the
         image centre within a pixel (rectify the images first otherwise)."""
+        width = validate.integer(width, "calibration width", 16, 8192)
+        height = validate.integer(height, "calibration height", 16, 8192)
+        fx = validate.real(fx, "calibration fx", 0.0, lo_open=True)
         fy = fx if fy is None else fy
         cx = (width - 1) / 2 if cx is None else cx
         cy = (height - 1) / 2 if cy is None else cy
@@ -187,12 +196,14 @@ class OnlineConfig:
     max_recent_attempts: int = 100  # localization attempts kept in `recent_attempts`
 
     def __post_init__(self) -> None:
-        if self.max_keyframes < 50:
-            raise ConfigError(f"max_keyframes={self.max_keyframes} must be >= 50")
+        validate.integer(self.max_keyframes, "max_keyframes", 50, 10**9, ConfigError)  # 10**9: never re-anchor
+        validate.integer(self.max_recent_attempts, "max_recent_attempts", 0, 10**6, ConfigError)
         for name in ("keyframe_min_travel_m", "keyframe_min_turn_deg", "keyframe_max_interval_s",
                      "reference_max_distance_m", "initial_sigma_m", "initial_sigma_yaw_deg", "tilt_sigma_deg"):  # fmt: skip
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"{name}={getattr(self, name)} must be > 0")
+            validate.real(getattr(self, name), name, 0.0, lo_open=True, error=ConfigError)
+        for name, cls in (("loop", LoopConfig), ("localization", LocalizationConfig), ("imu", ImuOdometryConfig),
+                          ("visual_odometry", bool)):  # fmt: skip
+            validate.instance(getattr(self, name), name, cls)
 
     def to_dict(self) -> dict:
         from lunarloc.core.configs import config_to_dict
@@ -242,9 +253,13 @@ class OnlineLocalizer:
 
     def __init__(self, reference: LandmarkMap | None, initial_pose, config: OnlineConfig | None = None,
                  rig: CameraRig | None = None, detector_config=None, lander_pose=None, mapper=None):  # fmt: skip
-        from lunarloc.perception.detector import Detector
+        from lunarloc.perception.detector import Detector, DetectorConfig
         from lunarloc.perception.detector import scaled_detector_config
 
+        if config is not None:  # the types first: a string here was an AttributeError deep inside
+            validate.instance(config, "config", OnlineConfig, "lunarloc.OnlineConfig")
+        if detector_config is not None:
+            validate.instance(detector_config, "detector_config", DetectorConfig, "lunarloc.perception.detector.DetectorConfig")
         if reference is not None and not isinstance(reference, LandmarkMap):
             raise InputError(f"reference must be a LandmarkMap (see lunarloc.load_reference) or None, "
                              f"got {type(reference).__name__}")
@@ -358,8 +373,10 @@ class OnlineLocalizer:
         Raises InputError on malformed input (the component's state is then unchanged)."""
         t = self._check_time(mission_time_s)
         a = self._check_imu(imu, linear_speed, angular_speed)
+        linear_speed = float(linear_speed)
         images = self._images(input_data)
         T_caller = None if odometry is None else _as_T(odometry, "odometry")
+        pair = self._stereo_pair(images)  # may refuse: before any state changes
         if T_caller is not None and self._odometry_source is not None:
             self._odometry_source = None  # the caller's odometry: its bounds are not known, its windows' bend is fitted
             self.loop.set_odometry(None)
@@ -370,7 +387,6 @@ class OnlineLocalizer:
             s = ImuSamples(np.arange(2), np.array([self._t_prev, t]), np.stack([self._imu_prev[:3], a[:3]]),
                            np.stack([self._imu_prev[3:], a[3:]]), np.array([self._speed_prev, float(linear_speed)]))  # fmt: skip
             T_imu = integrate_imu(s, self._T_map_imu, self.config.imu)[1]
-        pair = self._stereo_pair(images)
         if T_caller is not None:
             if self._T_odo_caller is None:
                 self._T_odo_caller = self._T_map_odo @ invert_transform(T_caller)
@@ -410,15 +426,12 @@ class OnlineLocalizer:
 
     # -------------------------------------------------------------- checks
     def _check_time(self, mission_time_s) -> float:
-        try:
-            t = float(mission_time_s)
-        except (TypeError, ValueError):
-            raise InputError(f"mission_time_s must be a number, got {mission_time_s!r}") from None
-        if not math.isfinite(t):
-            raise InputError(f"mission_time_s is not finite ({t})")
+        t = validate.real(mission_time_s, "mission_time_s", unit="s")
+        if self._t_prev is None or t > self._t_prev:
+            validate.real(t, "mission_time_s", 0.0, validate.MAX_MISSION_TIME_S, unit="s")
         if self._t_prev is not None:
             if t <= self._t_prev:
-                raise InputError(f"mission time went backwards or stood still: {t:.3f} s after {self._t_prev:.3f} s")
+                raise InputError(f"mission_time_s went backwards or stood still: {t:.3f} s after {self._t_prev:.3f} s")
             if t - self._t_prev > self.config.imu.max_dt_s:
                 raise InputError(f"{t - self._t_prev:.3f} s since the previous tick (max {self.config.imu.max_dt_s:g} s): "
                                  "call update() every tick")  # fmt: skip
@@ -426,15 +439,12 @@ class OnlineLocalizer:
 
     @staticmethod
     def _check_imu(imu, linear_speed, angular_speed) -> np.ndarray:
-        try:
-            a = np.asarray(imu, float).reshape(-1)
-            v, w = float(linear_speed), float(angular_speed)
-        except (TypeError, ValueError):
-            raise InputError(f"imu must be 6 numbers [ax, ay, az, gx, gy, gz], speeds numbers; got {imu!r}") from None
-        if a.shape != (6,):
-            raise InputError(f"imu must be 6 numbers [ax, ay, az, gx, gy, gz] (m/s^2, rad/s), got {a.size}")
-        if not (np.all(np.isfinite(a)) and math.isfinite(v) and math.isfinite(w)):
-            raise InputError(f"imu or speed is not finite (imu {np.round(a, 4).tolist()}, linear {v}, angular {w})")
+        """The IMU sample and speeds within physical bounds (lunarloc.core.validate)."""
+        a = validate.imu_sample(imu, "imu")
+        m = validate.MAX_LINEAR_SPEED_MPS
+        validate.real(linear_speed, "linear_speed", -m, m, unit="m/s")
+        m = validate.MAX_ANGULAR_SPEED_RADPS
+        validate.real(angular_speed, "angular_speed", -m, m, unit="rad/s")
         return a
 
     def _images(self, input_data) -> dict[str, np.ndarray | None]:
@@ -443,7 +453,8 @@ class OnlineLocalizer:
             return {}
         if not isinstance(input_data, Mapping):
             raise InputError(f"input_data must be a dict like {{'Grayscale': {{camera: image}}}}, got {type(input_data).__name__}")
-        group = input_data.get("Grayscale", {}) or {}
+        group = input_data.get("Grayscale")
+        group = {} if group is None else group
         if not isinstance(group, Mapping):
             raise InputError(f"input_data['Grayscale'] must be a dict {{camera: image or None}}, got {type(group).__name__}")
         names = {camera_name(k) for k in group}
@@ -455,10 +466,7 @@ class OnlineLocalizer:
         for key, img in group.items():
             name = camera_name(key)
             if img is not None:
-                img = np.asarray(img)
-                if img.shape != (c.height, c.width):
-                    raise InputError(f"input_data['Grayscale'][{name}]: image shape {img.shape}, expected "
-                                     f"({c.height}, {c.width}) grayscale (the rig's size; see CameraRig)")  # fmt: skip
+                img = validate.gray_image(img, f"input_data['Grayscale'][{name}]", (c.height, c.width))
             out[name] = img
         return out
 

@@ -36,13 +36,14 @@ import itertools
 import json
 import logging
 import math
+import re
 import time
 import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from lunarloc.core.errors import ConfigError, FileFormatError, require
+from lunarloc.core.errors import ConfigError, FileFormatError, OutputError, require
 from lunarloc.pipeline.scenario import ScenarioConfig
 
 log = logging.getLogger(__name__)
@@ -80,6 +81,10 @@ RESULT_COLUMNS = [
 ]  # fmt: skip
 
 
+#: the most jobs one campaign may hold (checked from the axes' lengths, before the grid is built)
+MAX_JOBS = 10_000
+
+
 @dataclass(frozen=True)
 class Job:
     """One cell of the grid: an id (stable across reruns) and its scenario."""
@@ -94,8 +99,35 @@ class CampaignSpec:
     job: dict[str, Any] = field(default_factory=dict)
     grid: dict[str, list] = field(default_factory=dict)
 
+    @property
+    def size(self) -> int:
+        """The number of jobs, from the axes' lengths (the grid is not built)."""
+        return math.prod(len(v) for v in self.grid.values())
+
+    def check(self) -> None:
+        """Refuse, before any job is built: more than MAX_JOBS combinations (computed from the
+        axes), and any value out of range (each axis value merged over ``job`` alone: the
+        settings have no cross-field constraints, so every combination is then valid)."""
+        n = self.size
+        if n > MAX_JOBS:
+            axes = " x ".join(f"{len(v)} {k}" for k, v in sorted(self.grid.items()))
+            raise ConfigError(f"{n} jobs ({axes}); a campaign is limited to {MAX_JOBS}")
+        try:
+            ScenarioConfig.from_dict(dict(self.job))
+        except ConfigError as exc:
+            raise ConfigError(f"[job]: {exc}") from None
+        for k, values in sorted(self.grid.items()):
+            for i, v in enumerate(values):
+                if isinstance(v, (list, dict)):
+                    raise ConfigError(f"grid axis '{k}', value {i + 1}: {v!r} is a list or table, not a value")
+                try:
+                    ScenarioConfig.from_dict({**self.job, k: v})
+                except ConfigError as exc:
+                    raise ConfigError(f"grid axis '{k}', value {i + 1}: {exc}") from None
+
     def jobs(self) -> list[Job]:
         """Every combination of the grid's values, each merged over ``job``; validated."""
+        self.check()
         keys = sorted(self.grid)
         combos = itertools.product(*(self.grid[k] for k in keys)) if keys else [()]
         out = []
@@ -141,13 +173,16 @@ def load_spec(path: str | Path) -> CampaignSpec:
     for k, v in grid.items():
         if not isinstance(v, list) or not v:
             raise FileFormatError(f"{path}: grid axis '{k}' must be a non-empty list")
-    spec = CampaignSpec(name=str(meta.get("name", path.stem)), job=dict(job), grid=dict(grid))
+    if not job and not grid:
+        raise FileFormatError(f"{path}: neither [job] nor [grid]: nothing to run (see lunarloc campaign --example)")
+    name = meta.get("name", path.stem)
+    if not isinstance(name, str):
+        raise FileFormatError(f"{path}: [campaign] name must be a string, got {name!r}")
+    spec = CampaignSpec(name=name, job=dict(job), grid=dict(grid))
     try:
-        jobs = spec.jobs()
+        spec.jobs()  # the size and every value checked first (CampaignSpec.check), then the grid built
     except ConfigError as exc:
         raise FileFormatError(f"{path}: {exc}") from None
-    if len(jobs) > 10_000:
-        raise FileFormatError(f"{path}: {len(jobs)} jobs; a campaign is limited to 10000")
     return spec
 
 
@@ -177,9 +212,9 @@ def run_job(job: Job, jobs_dir: str) -> dict:
         (out / "error.txt").write_text(traceback.format_exc())
     row["wall_s"] = round(time.perf_counter() - t0, 2)
     out.mkdir(parents=True, exist_ok=True)
-    tmp = out / "result.json.tmp"
-    tmp.write_text(json.dumps(row, indent=1))
-    tmp.replace(out / "result.json")  # written last and atomically: its presence means finished
+    from lunarloc.io.outputs import write_text
+
+    write_text(out / "result.json", json.dumps(row, indent=1))  # last and atomically: its presence means finished
     return row
 
 
@@ -221,10 +256,16 @@ def run_campaign(spec: CampaignSpec, out: str | Path, *, scheduler: str | None =
     progress : called with (row, done, total) after each job.
     """
     out = Path(out)
+    jobs = spec.jobs()
+    if scheduler not in (None, "sync"):
+        check_scheduler_address(scheduler)  # a bad or unreachable address is an input error, before any file
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out}: exists and is not a folder")
     jobs_dir = out / "jobs"
     jobs_dir.mkdir(parents=True, exist_ok=True)
-    jobs = spec.jobs()
-    (out / "spec.json").write_text(json.dumps({"name": spec.name, "job": spec.job, "grid": spec.grid}, indent=1))
+    from lunarloc.io.outputs import write_text
+
+    write_text(out / "spec.json", json.dumps({"name": spec.name, "job": spec.job, "grid": spec.grid}, indent=1))
     rows: dict[str, dict] = {}
     todo = []
     for j in jobs:
@@ -243,7 +284,13 @@ def run_campaign(spec: CampaignSpec, out: str | Path, *, scheduler: str | None =
                 progress(rows[j.id], len(rows), total)
         used = "sync (one after another)"
     elif todo:
-        used = _run_distributed(todo, jobs_dir, rows, total, scheduler, workers, progress)
+        try:
+            used = _run_distributed(todo, jobs_dir, rows, total, scheduler, workers, progress)
+        except BaseException:
+            # interrupted (or the cluster failed): the workers are gone once the cluster is closed,
+            # and what they were writing must not stay behind as temporary files
+            remove_temporaries(jobs_dir, [j for j in todo if j.id not in rows])
+            raise
     else:
         used = "none (all jobs finished earlier)"
     wall = time.perf_counter() - t0
@@ -251,6 +298,62 @@ def run_campaign(spec: CampaignSpec, out: str | Path, *, scheduler: str | None =
     table = _write_table(ordered, out)
     fig = _summary_figure(ordered, out / "summary.png", spec.name)
     return CampaignResult(ordered, skipped, wall, used, table, fig)
+
+
+def _is_temporary(p: Path) -> bool:
+    """A file an atomic writer had not finished: ``.NAME.tmp-XXXX.SUFFIX`` (lunarloc.io.outputs),
+    ``.NAME.XXXX.tmp`` (archives) or ``NAME.tmp`` (job results)."""
+    n = p.name
+    return n.endswith(".tmp") or (n.startswith(".") and ".tmp" in n)
+
+
+def remove_temporaries(jobs_dir: Path, jobs: list[Job]) -> int:
+    """Remove the temporary files left in the folders of `jobs` (unfinished: a worker was
+    stopped mid-write); returns how many."""
+    n = 0
+    for j in jobs:
+        d = Path(jobs_dir) / j.id
+        if not d.is_dir():
+            continue
+        for p in d.rglob("*"):
+            if _is_temporary(p) and p.is_file():
+                try:
+                    p.unlink()
+                    n += 1
+                except OSError:  # pragma: no cover - already gone, or unwritable
+                    pass
+    return n
+
+
+_SCHEDULER_ADDRESS = re.compile(r"^(?:(?P<proto>[a-z][a-z0-9+.-]*)://)?(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+)"
+                                r"(?::(?P<port>[0-9]{1,5}))?/?$")  # fmt: skip
+_SCHEDULER_PROTOCOLS = ("tcp", "tls", "ws", "wss", "ucx", "inproc")
+
+
+def check_scheduler_address(address: str, timeout_s: float = 10.0) -> tuple[str, str, int]:
+    """(protocol, host, port) of a Dask scheduler address ``[tcp://]host[:port]`` (port 8786
+    by default), after a TCP connection to it succeeded; ConfigError (an input error) for a
+    malformed address, an unknown protocol or a scheduler that cannot be reached."""
+    import socket
+
+    m = _SCHEDULER_ADDRESS.match(address or "")
+    if not m:
+        raise ConfigError(f"--scheduler {address!r}: not a scheduler address (tcp://HOST:PORT, or 'sync')")
+    proto = m["proto"] or "tcp"
+    if proto not in _SCHEDULER_PROTOCOLS:
+        raise ConfigError(f"--scheduler {address!r}: unknown protocol {proto!r} (one of {', '.join(_SCHEDULER_PROTOCOLS)})")
+    port = int(m["port"] or 8786)
+    if not 1 <= port <= 65535:
+        raise ConfigError(f"--scheduler {address!r}: port {port} outside 1..65535")
+    host = m["host"].strip("[]")
+    if proto in ("tcp", "tls", "ws", "wss"):
+        try:
+            with socket.create_connection((host, port), timeout=timeout_s):
+                pass
+        except OSError as exc:
+            raise ConfigError(f"--scheduler {address!r}: cannot connect to {host}:{port} "
+                              f"({exc.strerror or type(exc).__name__})") from None  # fmt: skip
+    return proto, host, port
 
 
 def _run_distributed(todo, jobs_dir, rows, total, scheduler, workers, progress) -> str:
@@ -261,7 +364,10 @@ def _run_distributed(todo, jobs_dir, rows, total, scheduler, workers, progress) 
     logging.getLogger("distributed").setLevel(logging.WARNING)
     cluster = None
     if scheduler:
-        client = Client(scheduler, timeout="30s")
+        try:
+            client = Client(scheduler, timeout="30s")
+        except (OSError, TimeoutError, ValueError) as exc:  # reachable, but not a Dask scheduler
+            raise ConfigError(f"--scheduler {scheduler!r}: no Dask scheduler there ({type(exc).__name__}: {exc})") from None
         used = f"dask scheduler {scheduler}"
     else:
         import os
@@ -293,19 +399,22 @@ def _run_distributed(todo, jobs_dir, rows, total, scheduler, workers, progress) 
 
 
 def _write_table(rows: list[dict], out: Path) -> Path:
+    from lunarloc.io.outputs import atomic_open
+
     path = out / "results.csv"
-    tmp = out / "results.csv.tmp"
-    with open(tmp, "w", newline="") as fh:
+    with atomic_open(path, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=RESULT_COLUMNS, extrasaction="ignore")
         w.writeheader()
         for r in rows:
             w.writerow({k: r.get(k, "") if r.get(k) is not None else "" for k in RESULT_COLUMNS})
-    tmp.replace(path)
     try:  # Parquet where the stack for it is installed; CSV always
         import pandas as pd
         import pyarrow  # noqa: F401
 
-        pd.DataFrame(rows, columns=RESULT_COLUMNS).to_parquet(out / "results.parquet")
+        from lunarloc.io.outputs import atomic_path
+
+        with atomic_path(out / "results.parquet") as tmp:
+            pd.DataFrame(rows, columns=RESULT_COLUMNS).to_parquet(tmp)
     except ImportError:
         pass
     return path
@@ -345,6 +454,9 @@ def _summary_figure(rows: list[dict], path: Path, title: str) -> Path | None:
     ax.set_title(f"campaign '{title}': {ok}/{len(rows)} jobs ran, {passed} passed the check")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    from lunarloc.io.outputs import atomic_path
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
     return path

@@ -516,16 +516,16 @@ def write_rover_outputs(result: MultiRoverResult, outdir: str | os.PathLike, plo
     from lunarloc.io.runs import to_json_ready, write_run
 
     out = make_dir(outdir)
-    for r in result.rovers:
-        write_run(r.result, out / r.name)
+    if plot:
+        from lunarloc.viz import plot_run
+    for r in result.rovers:  # each rover's figures before its summary.json (a complete folder's mark)
+        write_run(r.result, out / r.name, before_summary=(lambda s, d=out / r.name: plot_run(d, summary=s)) if plot else None)
     doc = {**result.summary(), "shared_attempts": {r.name: [asdict(a) for a in r.shared] for r in result.rovers},
            "config": result.config}  # fmt: skip
     written = []
     if plot:
-        from lunarloc.viz import plot_rovers, plot_run
+        from lunarloc.viz import plot_rovers
 
-        for r in result.rovers:
-            plot_run(out / r.name)
         written.append(plot_rovers([out / r.name for r in result.rovers], out / "map_all.png",
                                    [r.name for r in result.rovers]))  # fmt: skip
     write_text(out / "rovers.json", json.dumps(to_json_ready(doc), indent=1, default=str))

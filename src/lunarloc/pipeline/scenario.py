@@ -38,6 +38,10 @@ class ScenarioError(LunarLocError):
     """A stage of a scenario failed; the message names the stage."""
 
 
+#: the longest traverse a scenario simulates (s): `demo --duration`'s cap, the same for campaigns and --config
+MAX_DURATION_S = 3600.0
+
+
 @dataclass(frozen=True)
 class ScenarioConfig:
     """Everything one scenario depends on. Durations in seconds, rates in Hz, sizes in px."""
@@ -57,18 +61,22 @@ class ScenarioConfig:
     # what a LAC rover really has.
 
     def __post_init__(self) -> None:
-        for name in ("duration_s", "reference_duration_s", "image_rate_hz"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and v > 0 and v < float("inf")):
-                raise ConfigError(f"{name}={v!r} must be a finite number > 0")
-        if not isinstance(self.width, int) or not 32 <= self.width <= 4096:
-            raise ConfigError(f"width={self.width!r} must be an integer in [32, 4096]")
-        if not isinstance(self.n_rocks, int) or not 3 <= self.n_rocks <= 100_000:
-            raise ConfigError(f"n_rocks={self.n_rocks!r} must be an integer in [3, 100000]")
+        # every value within a documented range (docs/campaign.md), checked before anything runs;
+        # booleans are not numbers here (``seed = true`` was seed 1)
+        from lunarloc.core.validate import integer, real
+
+        for name, hi in (("duration_s", MAX_DURATION_S), ("reference_duration_s", MAX_DURATION_S), ("image_rate_hz", 10.0)):
+            real(getattr(self, name), name, 0.0, hi, lo_open=True, error=ConfigError)
+        integer(self.width, "width", 32, 4096, ConfigError)
+        integer(self.n_rocks, "n_rocks", 3, 100_000, ConfigError)
+        integer(self.seed, "seed", 0, 2**63 - 1, ConfigError)
+        integer(self.min_reference_landmarks, "min_reference_landmarks", 3, 100_000, ConfigError)
+        if self.sun_elevation_deg is not None:
+            real(self.sun_elevation_deg, "sun_elevation_deg", -90.0, 90.0, unit="deg", error=ConfigError)
+        if self.sun_azimuth_deg is not None:
+            real(self.sun_azimuth_deg, "sun_azimuth_deg", -360.0, 360.0, unit="deg", error=ConfigError)
         if self.plan not in ("survey", "random"):
             raise ConfigError(f"plan={self.plan!r} must be 'survey' or 'random'")
-        if not isinstance(self.seed, int) or self.seed < 0:
-            raise ConfigError(f"seed={self.seed!r} must be a non-negative integer")
 
     @property
     def height(self) -> int:
@@ -79,6 +87,8 @@ class ScenarioConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "ScenarioConfig":
+        if not isinstance(d, dict):
+            raise ConfigError(f"scenario settings must be a table, got {type(d).__name__}")
         known = {f.name for f in fields(cls)}
         if "odometry" in d:
             raise ConfigError("scenario.odometry: the odometry source is set in one place, the run configuration's "
@@ -86,6 +96,8 @@ class ScenarioConfig:
         unknown = sorted(set(d) - known)
         if unknown:
             raise ConfigError(f"unknown scenario setting(s) {unknown}; known: {', '.join(sorted(known))}")
+        if not isinstance(d, dict):
+            raise ConfigError(f"scenario settings must be a table, got {type(d).__name__}")
         try:
             return cls(**d)
         except TypeError as exc:
@@ -182,13 +194,15 @@ def run_scenario(config: ScenarioConfig, out: str | Path, *, log: Callable[[str]
     with stage("online localization of the vehicle traverse"):
         res = run(ArchiveSource(veh_arch, rc.odometry, rc.detector.pairs), ref, rc)
         res.config["scenario"] = c.to_dict()
-        summary = write_run(res, out)
-    if figures:
-        from lunarloc.viz import plot_run
+        figs = None
+        if figures:
+            from lunarloc.viz import plot_run
 
-        with stage("figures"):
-            for p in plot_run(out):
-                stage.log(f"wrote {p}")
+            def figs(s):  # before summary.json, which marks a complete run folder
+                for p in plot_run(out, summary=s):
+                    stage.log(f"wrote {p}")
+
+        summary = write_run(res, out, before_summary=figs)
     summary["scenario"] = c.to_dict()
     summary["stage_seconds"] = {k: round(v, 2) for k, v in stage.seconds.items()}
     return summary

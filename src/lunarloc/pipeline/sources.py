@@ -84,6 +84,8 @@ class ArchiveSource:
         t0 = time.perf_counter()
         self._ar = ar = LacArchive(self.path)
         try:
+            ar.poses()  # the ground truth (evaluation only) finite, or an ArchiveError naming the cell
+            ar.finite_columns(("mission_time",), "mission time")
             t_odo = time.perf_counter()
             self._odometry = self._odometry_poses(ar)
             self.timings["odometry"] = time.perf_counter() - t_odo

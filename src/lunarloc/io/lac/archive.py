@@ -176,6 +176,12 @@ MAX_TAR_HEADER_BYTES = 1024**2  # a GNU long-name or pax extended header
 MAX_MEMBERS = 1_000_000  # tar members (a 1 h traverse, 8 cameras at 10 Hz with semantics: ~600 k)
 
 
+#: ground truth, IMU and time values beyond this are not a rover's (metres, radians, m/s^2, seconds)
+MAX_STATE_VALUE = 1e7
+#: a camera mounted on the rover: offsets (m) and angles (rad) within this
+MAX_CAMERA_OFFSET = 100.0
+
+
 class _BoundedTarInfo(tarfile.TarInfo):
     """TarInfo that refuses oversized long-name / pax headers (tarfile would read them
     whole into memory) and archives with more than MAX_MEMBERS members."""
@@ -330,9 +336,26 @@ class LacArchive:
                 for i, v in enumerate(col):
                     s = v.strip()
                     col[i] = "" if s.lower() == "nan" else s
+            self._check_camera_poses(table, member)
             self._camera_tables[name] = table
             self._camera_index[name] = self._index_frames(table["frame"], member)
             self._check_images(name, table, member)
+
+    def _check_camera_poses(self, table: Table, member: str) -> None:
+        """The camera's pose (camera_x..camera_yaw) at every row with an image must be finite
+        and on the rover (within +-MAX_CAMERA_OFFSET metres / radians): a NaN there was an
+        internal error in `run`."""
+        used = np.array([bool(v) for v in table["grayscale"]], bool)
+        if not used.any():
+            return
+        cols = ("camera_x", "camera_y", "camera_z", "camera_roll", "camera_pitch", "camera_yaw")
+        a = table.to_array(cols)[used]
+        bad = ~np.isfinite(a) | (np.abs(np.nan_to_num(a, nan=0.0)) > MAX_CAMERA_OFFSET)
+        if np.any(bad):
+            i, k = (int(x) for x in np.argwhere(bad)[0])
+            line = int(np.flatnonzero(used)[i]) + 2
+            raise self._err(member, f"line {line}, column {cols[k]}: {a[i, k]!r} is not a camera pose on the rover "
+                            f"(finite, within +-{MAX_CAMERA_OFFSET:g})")  # fmt: skip
 
     def _check_camera_configs(self) -> None:
         """Camera tables of initial.toml: width/height positive integers (numbers or numeric
@@ -670,12 +693,24 @@ class LacArchive:
 
     # -- summaries -------------------------------------------------------------------
     def positions(self) -> np.ndarray:
-        """(N, 3) ground-truth rover positions from frames.csv, metres."""
-        return self.frames.to_array(("x", "y", "z"))
+        """(N, 3) ground-truth rover positions from frames.csv, metres (finite, checked)."""
+        return self.finite_columns(("x", "y", "z"), "ground truth")
 
     def poses(self) -> np.ndarray:
-        """(N, 6) rover poses [x, y, z, roll, pitch, yaw] from frames.csv."""
-        return self.frames.to_array(("x", "y", "z", "roll", "pitch", "yaw"))
+        """(N, 6) rover poses [x, y, z, roll, pitch, yaw] from frames.csv (finite, checked)."""
+        return self.finite_columns(("x", "y", "z", "roll", "pitch", "yaw"), "ground truth")
+
+    def finite_columns(self, columns: Sequence[str], what: str, limit: float = MAX_STATE_VALUE) -> np.ndarray:
+        """frames.csv's `columns` as an (N, k) array; ArchiveError naming the line and column of
+        the first value that is not finite or beyond +-`limit` (a NaN in the ground truth made
+        ``run`` exit 0 with ``ATE nan``)."""
+        a = self.frames.to_array(tuple(columns))
+        bad = ~np.isfinite(a) | (np.abs(np.nan_to_num(a, nan=0.0, posinf=np.inf, neginf=np.inf)) > limit)
+        if np.any(bad):
+            i, k = (int(x) for x in np.argwhere(bad)[0])
+            raise self._err("frames.csv", f"line {i + 2}, column {columns[k]}: {a[i, k]!r} is not a usable {what} "
+                            f"value (finite, within +-{limit:g}; {int(bad.sum())} such cell(s))")  # fmt: skip
+        return a
 
     def path_length(self) -> float:
         """Length of the ground-truth path, metres (sum of 3D steps between frames)."""
