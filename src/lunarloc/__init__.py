@@ -6,10 +6,11 @@ The per-tick component a rover agent calls (see docs/online-component.md)::
     loc = OnlineLocalizer(load_reference("map.csv"), initial_pose=T_map_rover0)
     est = loc.update(mission_time_s, input_data, imu, linear_speed, angular_speed)
 
-The one-call API::
+The one-call API (what ``lunarloc localize REFERENCE VEHICLE`` does)::
 
-    from lunarloc import load_map, localize
-    result = localize(load_map("reference.csv"), load_map("vehicle.csv"))
+    from lunarloc import load_reference, load_vehicle, localize
+    veh = load_vehicle("traverse_5.csv")      # a traverse CSV: its map, path and last position
+    result = localize(load_reference("traverse_3.csv"), veh.map, query_xyz=veh.query_xyz, path_xyz=veh.path_xyz)
     if result.success:
         print(result.T_ref_veh)
 """
@@ -22,7 +23,10 @@ ensure_numba_cache_dir()  # before numba is imported (read-only installs, unwrit
 
 from lunarloc.core.errors import LunarLocError  # noqa: E402
 from lunarloc.localization.localize import LocalizationConfig, LocalizationResult, Mode, Solver, localize  # noqa: E402
-from lunarloc.io.maps import AggregationConfig, LandmarkMap, load_map, load_traverse, save_map  # noqa: E402
+from lunarloc.io.maps import (  # noqa: E402
+    AggregationConfig, LandmarkMap, VehicleInput, load_map, load_traverse, load_vehicle, save_map,
+)
+from lunarloc.io.trajectory import write_kitti, write_tum  # noqa: E402
 
 __version__ = "0.1.0"
 __all__ = [
@@ -35,6 +39,10 @@ __all__ = [
     "Solver",
     "load_map",
     "load_traverse",
+    "load_vehicle",
+    "VehicleInput",
+    "write_tum",
+    "write_kitti",
     "localize",
     "save_map",
     "OnlineLocalizer",

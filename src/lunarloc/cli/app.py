@@ -7,27 +7,39 @@ import logging
 import os
 import sys
 
+import enum
+from typing import Optional
+
 import typer
 
 from lunarloc.core.errors import LunarLocError
+
+
+class LogLevel(str, enum.Enum):
+    DEBUG = "debug"
+    INFO = "info"
+    WARNING = "warning"
+    ERROR = "error"
 
 app = typer.Typer(
     name="lunarloc",
     help="Rock-landmark global localization for planetary rovers (LunarLoc).",
     no_args_is_help=True,
-    add_completion=False,
+    add_completion=True,  # --install-completion / --show-completion (bash, zsh, fish, PowerShell)
     pretty_exceptions_enable=False,
 )
 
 
-def console():
+def console(stderr: bool = False):
     """A rich console for command output; 130 columns when not a terminal (CI logs,
-    files), so that tables are not squeezed to the 80-column default."""
+    files), so that tables are not squeezed to the 80-column default. ``stderr=True``: the
+    human-readable lines go to stderr (a command whose stdout carries ``--json``)."""
     import sys
 
     from rich.console import Console
 
-    return Console(width=None if sys.stdout.isatty() else 130)
+    stream = sys.stderr if stderr else sys.stdout
+    return Console(width=None if stream.isatty() else 130, stderr=stderr)
 
 
 _COMMAND_MODULES = (
@@ -72,12 +84,37 @@ EXIT_OK, EXIT_CHECK_FAILED, EXIT_USAGE, EXIT_INTERNAL, EXIT_INTERRUPTED = 0, 1, 
 error (a bug: EX_SOFTWARE of sysexits.h), 130 interrupted (Ctrl-C, SIGTERM)."""
 
 
+def _version(value: bool) -> None:
+    if value:
+        from lunarloc import __version__
+
+        typer.echo(f"lunarloc {__version__}")
+        raise typer.Exit(0)
+
+
+def log_level(verbose: int, quiet: bool, level: str | None) -> int:
+    """The logging level the options ask for (an explicit --log-level wins)."""
+    if level is not None:
+        return getattr(logging, level.upper())
+    if quiet:
+        return logging.ERROR
+    return {0: logging.WARNING, 1: logging.INFO}.get(verbose, logging.DEBUG)
+
+
 @app.callback()
 def _root(
     debug: bool = typer.Option(False, "--debug", help="Show the Python traceback of any error (for bug reports)."),
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                 help="Print the version and exit."),
+    verbose: int = typer.Option(0, "-v", "--verbose", count=True,
+                                help="More log lines on stderr: -v progress notes (INFO), -vv debugging."),
+    quiet: bool = typer.Option(False, "-q", "--quiet", help="Only errors on stderr (no warnings)."),
+    level: Optional[LogLevel] = typer.Option(None, "--log-level", case_sensitive=False,
+                                             help="Log level on stderr (overrides -v/-q; default warning)."),
 ) -> None:
     """Rock-landmark global localization for planetary rovers (LunarLoc)."""
     _STATE["debug"] = debug
+    logging.getLogger().setLevel(log_level(verbose, quiet, level.value if level is not None else None))
 
 
 def _one_line(text: str, limit: int = 400) -> str:
@@ -102,6 +139,7 @@ def main(argv: list[str] | None = None) -> int:
     numba kernel to return. Outputs are written atomically, so a killed run leaves at most
     a hidden ``.NAME.tmp-*`` file, never a truncated output under its real name."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    logging.getLogger().setLevel(logging.WARNING)  # the default of every call (-v/-q/--log-level change it)
     _STATE["debug"] = False
     _register_commands(sys.argv[1:] if argv is None else list(argv))
     return _run(argv)

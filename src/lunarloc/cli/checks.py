@@ -12,6 +12,38 @@ import typer
 from lunarloc.core.errors import ConfigError
 
 OVERWRITE_OPT = typer.Option(False, "--overwrite", help="Replace existing outputs (refused otherwise).")
+ODOMETRY_METAVAR = "[visual|imu|record:NAME|ground-truth]"
+"""--odometry / --source take a name or record:NAME, so they are not a closed choice; the
+metavar lists them in --help all the same."""
+JSON_STDOUT_OPT = typer.Option(False, "--json", help="Print one JSON object on stdout (nothing else).")
+JSON_OUT_OPT = typer.Option(None, "--json-out", help="Also write the JSON object to this file.", dir_okay=False)
+
+
+def enum_value(value):
+    """The string value of an Enum option (Typer passes the member), None unchanged."""
+    return value.value if isinstance(value, enum.Enum) else value
+
+
+def check_json_out(path, overwrite: bool) -> None:
+    """Before any work: a ``--json-out`` file may be written (refused if it exists, unless --overwrite)."""
+    if path is not None:
+        from lunarloc.io.outputs import check_output_file
+
+        check_output_file(path, overwrite, "JSON output")
+
+
+def write_json_out(doc: dict, path, to_stdout: bool) -> None:
+    """`doc` as one JSON line on stdout (``--json``) and/or into `path` (``--json-out``, atomically)."""
+    import json
+
+    text = json.dumps(doc)
+    if to_stdout:
+        typer.echo(text)
+    if path is not None:
+        from lunarloc.io.outputs import atomic_open
+
+        with atomic_open(path, "w") as fh:
+            fh.write(json.dumps(doc, indent=2) + "\n")
 
 
 def choice(value: str, valid: type[enum.Enum] | Iterable[str], option: str) -> str:

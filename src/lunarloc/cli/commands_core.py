@@ -10,7 +10,11 @@ from typing import Optional
 import typer
 
 from lunarloc.cli.app import app, console
-from lunarloc.cli.checks import OVERWRITE_OPT, choice, number, positive
+from lunarloc.cli.checks import (
+    JSON_OUT_OPT, JSON_STDOUT_OPT, OVERWRITE_OPT, check_json_out, enum_value, number, positive, write_json_out,
+)
+from lunarloc.localization.large import Search
+from lunarloc.localization.localize import Mode, Registration, Solver
 
 bench_app = typer.Typer(help="Benchmarks that reproduce the published figures.", no_args_is_help=True)
 app.add_typer(bench_app, name="bench")
@@ -97,14 +101,15 @@ def localize_cmd(
         ..., help="Vehicle map: landmark CSV/.npz or traverse CSV (then its path is used: the pose is judged at the "
         "traverse's last position, and a fitted distortion places each landmark where it was seen from)."
     ),
-    as_json: bool = typer.Option(False, "--json", help="Print one JSON object (with the configuration used)."),
+    as_json: bool = JSON_STDOUT_OPT,
+    json_out: Optional[Path] = JSON_OUT_OPT,
     config: Optional[Path] = typer.Option(
         None, "--config", help="Run configuration (its localization section is used); options given override it."
     ),
-    mode: Optional[str] = typer.Option(None, help="gravity (IMU-levelled maps, default) or 6dof."),
-    solver: Optional[str] = typer.Option(None, help="exact (maximum clique, default) or clipper."),
+    mode: Optional[Mode] = typer.Option(None, help="gravity (IMU-levelled maps, default) or 6dof (any rotation)."),
+    solver: Optional[Solver] = typer.Option(None, help="exact (maximum clique, default) or clipper."),
     epsilon: Optional[float] = typer.Option(None, help=f"Pairwise distance tolerance in metres, in (0, {MAX_EPSILON_M:g}] (default 0.05)."),
-    registration: Optional[str] = typer.Option(None, help="se3 (default) or yaw (4-DoF, exactly levelled maps)."),
+    registration: Optional[Registration] = typer.Option(None, help="se3 (default) or yaw (4-DoF, exactly levelled maps)."),
     max_size_ratio: Optional[float] = typer.Option(
         None, help="Prune associations whose size ratio exceeds this (maps with a size column)."
     ),
@@ -118,23 +123,26 @@ def localize_cmd(
     ),
     radius: Optional[float] = RADIUS_OPT,
     min_sightings: Optional[int] = SIGHT_OPT,
-    search: str = typer.Option(
-        "auto", help="full (every association), indexed (rock-triangle index, for large references) "
+    search: Search = typer.Option(
+        Search.AUTO.value, help="full (every association), indexed (rock-triangle index, for large references) "
         "or auto (indexed from 2,000 reference rocks)."
     ),
+    overwrite: bool = OVERWRITE_OPT,
 ) -> None:
-    """Localize VEHICLE in REFERENCE. Exit code 0 whether or not it localized."""
+    """Localize VEHICLE in REFERENCE. Exit code 0 whether or not it localized.
+
+    The same in Python: veh = load_vehicle(VEHICLE); localize(load_reference(REFERENCE), veh.map,
+    query_xyz=veh.query_xyz, path_xyz=veh.path_xyz)."""
     from lunarloc.config.run import RunConfig, load_config_file
-    from lunarloc.localization.localize import LocalizationConfig, Mode, Registration, Solver
-    from lunarloc.localization.large import Search, localize_large
-    from lunarloc.io.maps import is_traverse_csv, load_map, load_traverse, traverse_map
+    from lunarloc.localization.localize import LocalizationConfig
+    from lunarloc.localization.large import localize_large
+    from lunarloc.localization.warmup import prepare_kernels
+    from lunarloc.io.maps import load_vehicle
     from lunarloc.pipeline.reference import load_reference
 
-    choice(search, Search, "--search")
-    for value, enum_, opt in ((mode, Mode, "--mode"), (solver, Solver, "--solver"), (registration, Registration, "--registration")):
-        if value is not None:
-            choice(value, enum_, opt)
+    mode, solver, registration, search = (enum_value(v) for v in (mode, solver, registration, search))
     positive(epsilon, "--epsilon", MAX_EPSILON_M, "m")
+    check_json_out(json_out, overwrite)
     number(max_size_ratio, "--max-size-ratio", 1.0, 1e6)
     # one-shot: odometry bounds not stated unless given (the distortion is fitted from the maps)
     run_cfg = load_config_file(config)[0] if config is not None else RunConfig.for_detections(localization=LocalizationConfig())
@@ -147,19 +155,17 @@ def localize_cmd(
     cfg: LocalizationConfig = run_cfg.localization
     agg = _agg(radius, min_sightings)
     ref = load_reference(reference, agg, dem=dem)
-    query_xyz = path_xyz = None
-    if vehicle.suffix.lower() != ".npz" and is_traverse_csv(vehicle):
-        trav = load_traverse(vehicle)  # a traverse: its path built the map, and the rover is at its end
-        veh, path_xyz = traverse_map(trav, agg), trav.rover_xyz
-        query_xyz = path_xyz[-1:]
-    else:
-        veh = load_map(vehicle, agg)
-    res = localize_large(ref, veh, cfg, run_cfg.index, search=search, query_xyz=query_xyz, path_xyz=path_xyz)
-    if as_json:
+    v = load_vehicle(vehicle, agg)  # a traverse CSV: its map, the path that built it and the rover's last position
+    veh = v.map
+    kernels = prepare_kernels()  # compiled or loaded here, announced, and never counted in the result's time
+    res = localize_large(ref, veh, cfg, run_cfg.index, search=search, query_xyz=v.query_xyz, path_xyz=v.path_xyz)
+    if as_json or json_out is not None:
         from lunarloc.io.runs import to_json_ready
 
-        typer.echo(json.dumps({**res.to_dict(), "config": to_json_ready(run_cfg.to_dict())}))
-        return
+        doc = {**res.to_dict(), "config": to_json_ready(run_cfg.to_dict()), "kernels": kernels.to_dict()}
+        write_json_out(doc, json_out, as_json)
+        if as_json:
+            return
 
     con = console()
     status = "[green]localized[/green]" if res.success else f"[red]not localized[/red]: {res.reason}"
@@ -193,7 +199,7 @@ def localize_cmd(
             table.add_row(c.name, f"{c.value:.4g}", c.relation, f"{c.limit:.4g}",
                           "yes" if c.passed else "[red]no[/red]")
         con.print(table)
-    if math.isfinite(res.T_ref_veh[0, 0]):
+    if res.success:  # no transform for a pose that is not trusted
         con.print("T_ref_veh =")
         for row in res.T_ref_veh:
             con.print("  " + " ".join(f"{v:+.6f}" for v in row))
@@ -205,13 +211,14 @@ def bench_pairs_cmd(
     out: Path = typer.Option(Path("bench-output"), "--out", help="Folder for pairs.csv and pairs.json."),
     only_paper: bool = typer.Option(False, "--paper", help="Only the paper's five pairs."),
     seed: int = typer.Option(0, help="Seed of the random vehicle transforms."),
-    drift: float = typer.Option(0.0, help="Simulated heading drift, degrees per metre travelled."),
+    heading_drift: float = typer.Option(0.0, "--heading-drift", help="Simulated heading drift, degrees per metre travelled."),
+    drift: Optional[float] = typer.Option(None, "--drift", hidden=True, help="Old name of --heading-drift."),
     scale_error: float = typer.Option(0.0, help="Simulated odometry scale error (0.01 = 1%)."),
     window: Optional[float] = typer.Option(
         None, help="Vehicle map from the last WINDOW metres of the path only (use with drift)."
     ),
-    mode: str = typer.Option("gravity", help="gravity or 6dof."),
-    solver: str = typer.Option("exact", help="exact or clipper."),
+    mode: Mode = typer.Option(Mode.GRAVITY.value, help="gravity or 6dof."),
+    solver: Solver = typer.Option(Solver.EXACT.value, help="exact or clipper."),
     odometry_bounds: bool = typer.Option(
         True, "--odometry-bounds/--no-odometry-bounds",
         help="Tell the localizer the simulated drift as its odometry's bounds (scale, heading drift).",
@@ -225,12 +232,12 @@ def bench_pairs_cmd(
 
     from lunarloc.pipeline.bench import pairs_problems, pairs_to_run, write_pairs
     from lunarloc.pipeline.evaluation import PAPER_PAIRS, DriftModel, bench_pairs, find_traverses
-    from lunarloc.localization.localize import LocalizationConfig, Mode, Solver
+    from lunarloc.localization.localize import LocalizationConfig
     from lunarloc.io.outputs import check_output_dir
 
-    choice(mode, Mode, "--mode")
-    choice(solver, Solver, "--solver")
-    number(drift, "--drift", 0.0, 10.0, unit="deg/m")
+    mode, solver = enum_value(mode), enum_value(solver)
+    drift = heading_drift if drift is None else drift  # --drift: the old name, kept as a hidden alias
+    number(drift, "--heading-drift", 0.0, 10.0, unit="deg/m")
     number(scale_error, "--scale-error", -0.5, 0.5)
     positive(window, "--window", 1e6, "m")
     check_output_dir(out, overwrite, ("pairs.csv", "pairs.json"), marker=None)

@@ -2,21 +2,21 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Optional
 
 import typer
 
 from lunarloc.cli.app import app, console
-from lunarloc.cli.checks import positive
+from lunarloc.cli.checks import JSON_OUT_OPT, JSON_STDOUT_OPT, OVERWRITE_OPT, check_json_out, positive, write_json_out
 
 
 @app.command("score")
 def score_cmd(
     produced: Path = typer.Argument(..., help="The team's LAC geometric map (.npy, N x N x 4; -inf marks unfilled cells)."),
     truth: Path = typer.Argument(..., help="The ground-truth LAC geometric map (.npy), e.g. from simulate."),
-    as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
+    as_json: bool = JSON_STDOUT_OPT,
+    json_out: Optional[Path] = JSON_OUT_OPT,
     height_tolerance: float = typer.Option(0.05, help="Height error allowed per cell, metres (LAC: 0.05)."),
     seen_only: bool = typer.Option(False, "--seen-only", help="Score the geometric and rock maps over the cells the "
                                    "cameras saw only (PRODUCED's .cells.npz, written by `run --lac-map`)."),  # fmt: skip
@@ -24,6 +24,7 @@ def score_cmd(
                                                  "productivity (default: the LAC's 24 h, i.e. the share of cells filled)."),  # fmt: skip
     fiducials: bool = typer.Option(False, "--fiducials", help="The agent used the lander's fiducials (no localization points)."),
     figure: Optional[Path] = typer.Option(None, "--figure", help="Also write a PNG: produced map, true map, per-cell error."),
+    overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """Score PRODUCED against TRUTH as the LAC does: share of cells with height error below
     the tolerance (geometric map; unfilled cells fail), precision / recall / F1 over the
@@ -32,6 +33,7 @@ def score_cmd(
 
     positive(height_tolerance, "--height-tolerance", MAX_HEIGHT_TOLERANCE_M, "m")  # before reading the maps
     positive(mission_time, "--mission-time", 1e7, "s")
+    check_json_out(json_out, overwrite)
     p = load_lac_grid(produced, allow_unfilled=True)
     t = load_lac_grid(truth)
     cells = None
@@ -45,8 +47,8 @@ def score_cmd(
 
         plot_lac_maps(p, t, figure, observed=cells, height_tolerance_m=height_tolerance,
                       title=f"{produced.name} vs {truth.name}")  # fmt: skip
+    write_json_out(s, json_out, as_json)
     if as_json:
-        typer.echo(json.dumps(s))
         return
     con = console()
     where = f"{s['cells']} cells the cameras saw" if seen_only else f"all {s['cells']} cells"

@@ -8,7 +8,9 @@ from typing import Optional
 import typer
 
 from lunarloc.cli.app import app
-from lunarloc.cli.checks import OVERWRITE_OPT, choice
+from lunarloc.cli.checks import ODOMETRY_METAVAR, OVERWRITE_OPT, enum_value
+from lunarloc.perception.detector import PoseSource
+from lunarloc.perception.segment import SegmenterKind
 
 
 @app.command("detect")
@@ -18,11 +20,11 @@ def detect(
     config: Optional[Path] = typer.Option(
         None, "--config", help="run configuration (a config.json written by detect or run); options given override it"
     ),
-    segmenter: Optional[str] = typer.Option(None, "--segmenter", help="classical | fastsam (default from the config: classical)"),
+    segmenter: Optional[SegmenterKind] = typer.Option(None, "--segmenter", help="default from the config: classical"),
     weights: Optional[Path] = typer.Option(None, "--weights", help="FastSAM checkpoint (.pt) for --segmenter fastsam"),
-    pose: str = typer.Option("ground-truth", "--pose", help="rover pose for the map frame: ground-truth | odometry"),
+    pose: PoseSource = typer.Option(PoseSource.GROUND_TRUTH.value, "--pose", help="rover pose for the map frame"),
     odometry: Optional[str] = typer.Option(
-        None, "--odometry",
+        None, "--odometry", metavar=ODOMETRY_METAVAR,
         help="place detections with this odometry source instead of --pose: "
         "visual | imu | record:NAME | ground-truth (evaluation only)",
     ),  # fmt: skip
@@ -45,13 +47,9 @@ def detect(
     from lunarloc.io.inputs import check_input_file
     from lunarloc.io.outputs import check_output_dir, check_output_file, make_dir
     from lunarloc.perception.camera import STEREO_PAIRS
-    from lunarloc.perception.detector import PoseSource
-    from lunarloc.perception.segment import SegmenterKind
     from lunarloc.pipeline.runner import detect as detect_pipeline
 
-    choice(pose, PoseSource, "--pose")
-    if segmenter is not None:
-        choice(segmenter, SegmenterKind, "--segmenter")
+    pose, segmenter = enum_value(pose), enum_value(segmenter)
     if weights is not None:
         check_input_file(weights, None, "FastSAM weights")
     check_input_file(archive, None, ".lac archive")

@@ -9,8 +9,10 @@ from typing import Optional
 import typer
 
 from lunarloc.cli.app import app, console
-from lunarloc.cli.checks import OVERWRITE_OPT, choice, number, positive
+from lunarloc.cli.checks import ODOMETRY_METAVAR, OVERWRITE_OPT, enum_value, number, positive
 from lunarloc.cli.commands_core import bench_app
+from lunarloc.online.loop import FixKind
+from lunarloc.perception.segment import SegmenterKind
 
 
 CONFIG_OPT = typer.Option(None, "--config", help="Run configuration (a run folder's config.json); options given override it.")
@@ -60,15 +62,15 @@ def run_cmd(
     share_maps: bool = typer.Option(False, "--share-maps", help="Several archives: also localize against the other rovers' live maps."),
     out: Path = typer.Option(..., "-o", "--out", help="Output folder."),
     config: Optional[Path] = CONFIG_OPT,
-    segmenter: Optional[str] = typer.Option(None, "--segmenter", help="classical | fastsam (default from the config: classical)."),
+    segmenter: Optional[SegmenterKind] = typer.Option(None, "--segmenter", help="Default from the config: classical."),
     weights: Optional[Path] = typer.Option(None, "--weights", help="FastSAM checkpoint for --segmenter fastsam."),
     every_m: Optional[float] = typer.Option(None, "--every-m", help="Localize after this many metres of travel (default 1.5) ..."),
     every_s: Optional[float] = typer.Option(None, "--every-s", help="... or this many seconds (default 20)."),
     window_m: Optional[float] = typer.Option(None, "--window-m", help="Local map: detections of the last N metres (default 8)."),
-    fix: Optional[str] = typer.Option(None, "--fix", help="How fixes enter the pose graph: landmarks (default) | pose."),
+    fix: Optional[FixKind] = typer.Option(None, "--fix", help="How fixes enter the pose graph (default landmarks)."),
     plot: bool = typer.Option(True, "--plot/--no-plot", help="Write the figures into OUT."),
     odometry: Optional[str] = typer.Option(
-        None, "--odometry",
+        None, "--odometry", metavar=ODOMETRY_METAVAR,
         help="Odometry source: visual | imu | record:NAME | ground-truth (evaluation only). "
         "Default: visual when the archive has front stereo pairs, else imu.",
     ),  # fmt: skip
@@ -85,18 +87,13 @@ def run_cmd(
 
     from lunarloc.config.run import RunConfig
     from lunarloc.io.inputs import check_input_file
-    from lunarloc.online.loop import FixKind
     from lunarloc.io.outputs import check_output_dir
-    from lunarloc.perception.segment import SegmenterKind
     from lunarloc.pipeline.runner import run
     from lunarloc.pipeline.reference import load_reference
     from lunarloc.io.runs import write_run
     from lunarloc.pipeline.sources import ArchiveSource
 
-    if segmenter is not None:
-        choice(segmenter, SegmenterKind, "--segmenter")
-    if fix is not None:
-        choice(fix, FixKind, "--fix")
+    segmenter, fix = enum_value(segmenter), enum_value(fix)
     positive(every_m, "--every-m", 1e6, "m")
     positive(every_s, "--every-s", 1e7, "s")
     positive(window_m, "--window-m", 1e6, "m")
@@ -250,6 +247,7 @@ def bench_loop_cmd(
     out: Path = typer.Option(Path("bench-output/loop"), "--out", help="Folder for loop.json and per-traverse runs."),
     config: Optional[Path] = CONFIG_OPT,
     heading_drift: Optional[float] = typer.Option(None, "--heading-drift", help="Simulated heading drift, deg per metre (default 0.05)."),
+    drift: Optional[float] = typer.Option(None, "--drift", hidden=True, help="Same as --heading-drift."),
     scale_error: Optional[float] = typer.Option(None, "--scale-error", help="Simulated odometry scale error (default 0.02 = 2%)."),
     traverses: Optional[str] = typer.Option(None, "--traverses", help="Comma-separated vehicle traverses (default all)."),
     min_length: float = typer.Option(5.0, "--min-length", help="Skip vehicle traverses shorter than this (m)."),
@@ -270,6 +268,7 @@ def bench_loop_cmd(
     from lunarloc.pipeline.evaluation import find_traverses
     from lunarloc.io.outputs import check_output_dir
 
+    heading_drift = heading_drift if drift is None else drift  # one name across bench commands; --drift an alias
     number(heading_drift, "--heading-drift", 0.0, 10.0, unit="deg/m")
     number(scale_error, "--scale-error", -0.5, 0.5)
     number(min_length, "--min-length", 0.0, 1e6, unit="m")

@@ -584,6 +584,47 @@ def load_map(path: str | Path, config: AggregationConfig | None = None) -> Landm
     return _load_map_csv(path)
 
 
+@dataclass(frozen=True)
+class VehicleInput:
+    """What :func:`lunarloc.localize` needs from a vehicle file (:func:`load_vehicle`).
+
+    ``map``: the vehicle landmark map. From a traverse CSV also ``path_xyz`` (F, 3), the
+    rover path that built the map (vehicle frame, m: the localizer measures how far the
+    rover drove between landmarks, which bounds or fits the odometry's bend along it), and
+    ``query_xyz`` (1, 3), the rover's last position (where the pose will be used, so where
+    its error is judged). Both None for a landmark map, whose path is not known.
+    Pass them on: ``localize(ref, v.map, query_xyz=v.query_xyz, path_xyz=v.path_xyz)``.
+    """
+
+    map: LandmarkMap
+    path_xyz: np.ndarray | None = None
+    query_xyz: np.ndarray | None = None
+    source: str = "map"
+
+    def localize_kwargs(self) -> dict:
+        """``{"query_xyz": ..., "path_xyz": ...}`` for :func:`lunarloc.localize`."""
+        return {"query_xyz": self.query_xyz, "path_xyz": self.path_xyz}
+
+
+def load_vehicle(path: str | Path, config: AggregationConfig | None = None) -> VehicleInput:
+    """A vehicle file as :func:`lunarloc.localize` needs it (what ``lunarloc localize`` does
+    with its VEHICLE argument, so the API and the CLI give the same answer).
+
+    A LunarLoc traverse CSV gives its landmark map (detections clustered with `config`)
+    *and* its path and last position; a landmark map (``.csv``/``.npz``) gives the map
+    alone. Raises FileFormatError naming the file (and line) when it cannot be read."""
+    path = Path(path)
+    if path.suffix.lower() != ".npz" and is_traverse_csv(path):
+        trav = load_traverse(path)
+        path_xyz = np.asarray(trav.rover_xyz, dtype=float)
+        return VehicleInput(traverse_map(trav, config), path_xyz, path_xyz[-1:].copy() if len(path_xyz) else None,
+                            "traverse")  # fmt: skip
+    return VehicleInput(load_map(path, config))
+
+
+__all__ += ["VehicleInput", "load_vehicle"]
+
+
 def _load_map_npz(path: Path) -> LandmarkMap:
     """A `.npz` landmark map, every array checked before it is allocated
     (:func:`lunarloc.io.inputs.load_npz_arrays`)."""

@@ -29,32 +29,9 @@ import numpy as np
 
 from lunarloc.core.errors import FileFormatError
 
+from lunarloc.io.trajectory import read_tum, write_tum  # their home is io.trajectory; kept importable here
+
 __all__ = ["write_tum", "read_tum", "write_run", "read_run", "RunFolder", "to_json_ready"]
-
-
-def write_tum(path: Path, times: np.ndarray, T_map_rover: np.ndarray) -> None:
-    """TUM trajectory file from times (F,) and poses (F, 4, 4) (the file's position and
-    quaternion come from the pose's x, y, z, roll, pitch, yaw)."""
-    from scipy.spatial.transform import Rotation
-
-    from lunarloc.core.geometry import matrix_to_pose
-    from lunarloc.io.outputs import atomic_open
-
-    poses = np.array([matrix_to_pose(T) for T in T_map_rover], float).reshape(-1, 6)
-
-    q = Rotation.from_euler("ZYX", poses[:, [5, 4, 3]]).as_quat()  # x, y, z, w; R = Rz Ry Rx
-    with atomic_open(path, "w") as fh:
-        for t, p, qq in zip(times, poses, q):
-            fh.write(f"{t:.6f} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} {qq[0]:.8f} {qq[1]:.8f} {qq[2]:.8f} {qq[3]:.8f}\n")
-
-
-def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """(times (F,), poses (F, 6) x, y, z, roll, pitch, yaw) from a TUM file."""
-    from scipy.spatial.transform import Rotation
-
-    a = np.loadtxt(path, ndmin=2)
-    eul = Rotation.from_quat(a[:, 4:8]).as_euler("ZYX")
-    return a[:, 0], np.column_stack([a[:, 1:4], eul[:, 2], eul[:, 1], eul[:, 0]])
 
 
 def to_json_ready(x):

@@ -1112,6 +1112,9 @@ def localize(
         from lunarloc.core.validate import instance
 
         instance(config, "config", LocalizationConfig, "lunarloc.LocalizationConfig")
+    from lunarloc.localization.warmup import prepare_kernels
+
+    prepare_kernels()  # first call of a process: compile or load the kernels before any stage timer starts
     if isinstance(reference, LandmarkMap) and isinstance(vehicle, LandmarkMap) and not (
         reference.has_heights and vehicle.has_heights
     ):
