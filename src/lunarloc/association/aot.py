@@ -30,22 +30,26 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import sys
 import threading
+import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["njit", "Kernel", "jit_only", "aot_status", "build_aot", "AotBuild", "AOT_MODULE"]
+__all__ = ["njit", "Kernel", "jit_only", "aot_status", "build_aot", "AotBuild", "AOT_MODULE", "prepare_kernels",
+           "KernelPreparation", "exercising"]
 
 AOT_MODULE = "_aot_kernels"
 """Name of the ahead-of-time extension module (in this package)."""
 AOT_FORMAT = 1
 """Version of the table layout in ``_aot_kernels.json``."""
 _HERE = Path(__file__).resolve().parent
+logger = logging.getLogger(__name__)
 
 _REGISTRY: list["Kernel"] = []
 _LOCK = threading.RLock()
@@ -259,6 +263,102 @@ def aot_status() -> str:
         if _STATE["table"] is None:
             _STATE["table"] = _load_table()
         return _STATE["reason"]
+
+
+# --------------------------------------------------------------------------- first use
+
+ANNOUNCE_AFTER_S = 1.0
+"""A kernel preparation still running after this many seconds is announced (WARNING)."""
+_PREP_LOCK = threading.Lock()
+_PREP: dict = {"done": None}
+_EXERCISING = threading.local()
+
+
+@dataclass(frozen=True)
+class KernelPreparation:
+    """What :func:`prepare_kernels` did in this process: ``source`` is ``"aot"`` (the
+    ahead-of-time module was loaded: nothing to compile), ``"cache"`` (numba loaded every
+    kernel from its on-disk cache), ``"compiled"`` (numba compiled ``compiled`` kernel
+    signatures, cached on disk for later processes) or ``"ready"`` (nothing left to do in this
+    process); ``seconds`` is the wall time it took, never part of a localization's time."""
+
+    source: str
+    seconds: float
+    compiled: int = 0
+    detail: str = ""
+
+    def to_dict(self) -> dict:
+        return {"source": self.source, "seconds": round(self.seconds, 3), "compiled": self.compiled,
+                "detail": self.detail}
+
+
+@contextmanager
+def exercising():
+    """Marks the calls made while exercising the kernels (they must not prepare them again)."""
+    outer = getattr(_EXERCISING, "active", False)
+    _EXERCISING.active = True
+    try:
+        yield
+    finally:
+        _EXERCISING.active = outer
+
+
+def _compiled_signatures() -> int:
+    """How many kernel signatures numba compiled (cache misses) in this process so far."""
+    with _LOCK:
+        kernels = [k for k in _REGISTRY if k._dispatcher is not None]
+    return sum(sum(k._dispatcher.stats.cache_misses.values()) for k in kernels)
+
+
+def prepare_kernels(exercise) -> KernelPreparation:
+    """Once a process, before any timed stage: load the ahead-of-time module if it is built,
+    else call ``exercise()`` (it runs every kernel on a small problem, so that numba loads
+    them from its cache or compiles them into it; it returns the seconds it worked, 0.0
+    when there was nothing left to do). Later calls return at once (``"ready"``).
+
+    Neither path needs ``numba.pycc``. Logs a WARNING when the work is still going after
+    :data:`ANNOUNCE_AFTER_S` (a compile: the first use after an install) and a closing line
+    with the seconds it took (WARNING after a compile or an announced load, else INFO)."""
+    if getattr(_EXERCISING, "active", False):
+        return KernelPreparation("ready", 0.0, detail="inside the kernel exercise")
+    with _PREP_LOCK:
+        done = _PREP["done"]
+        if done is not None:
+            return KernelPreparation("ready", 0.0, detail=f"done earlier in this process ({done.source})")
+        t0 = time.perf_counter()
+        status = aot_status()
+        if status.startswith("loaded"):
+            _PREP["done"] = KernelPreparation("aot", time.perf_counter() - t0, detail=status)
+            logger.debug("association kernels: ahead-of-time module %s", status)
+            return _PREP["done"]
+        announce = threading.Timer(ANNOUNCE_AFTER_S, logger.warning, args=(
+            "preparing the association kernels: numba compiles them on the first use after install (up to a "
+            "minute, once; cached for later runs; `lunarloc warm-up` does it ahead of time) ...",))  # fmt: skip
+        announce.daemon = True
+        before = _compiled_signatures()
+        announce.start()
+        try:
+            with exercising():
+                worked = exercise()
+        finally:
+            announce.cancel()
+        seconds = time.perf_counter() - t0
+        compiled = _compiled_signatures() - before
+        why = f"ahead-of-time module {status}"
+        if worked == 0.0:  # exercised earlier in this process (the online loop warms up itself)
+            done = KernelPreparation("ready", seconds, 0, "warmed up earlier in this process")
+        elif compiled:
+            done = KernelPreparation("compiled", seconds, compiled, why)
+            logger.warning("association kernels compiled in %.1f s (%d signatures; cached for later runs; not "
+                           "counted as localization time)", seconds, compiled)  # fmt: skip
+        else:
+            done = KernelPreparation("cache", seconds, 0, why)
+            # announced above (a slow load, a busy machine): the closing line at the same level
+            logger.log(logging.WARNING if seconds >= ANNOUNCE_AFTER_S else logging.INFO,
+                       "association kernels loaded from numba's cache in %.2f s (%s; not counted as "
+                       "localization time)", seconds, why)  # fmt: skip
+        _PREP["done"] = done
+        return done
 
 
 # --------------------------------------------------------------------------- building

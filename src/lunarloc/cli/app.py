@@ -141,8 +141,13 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     logging.getLogger().setLevel(logging.WARNING)  # the default of every call (-v/-q/--log-level change it)
     _STATE["debug"] = False
-    _register_commands(sys.argv[1:] if argv is None else list(argv))
-    return _run(argv)
+    args = sys.argv[1:] if argv is None else list(argv)
+    _register_commands(args)
+    if "odometry" in args and "--json" in args:
+        from lunarloc.cli.checks import legacy_json_argv
+
+        args = legacy_json_argv(args)
+    return _run(args)
 
 
 def _run(argv: list[str] | None) -> int:

@@ -72,3 +72,15 @@ def number(value: float | None, option: str, lo: float | None = None, hi: float 
 def positive(value: float | None, option: str, hi: float | None = None, unit: str = "") -> float | None:
     """Finite, > 0 and (when given) <= hi."""
     return number(value, option, 0.0, hi, lo_open=True, unit=unit)
+
+
+def legacy_json_argv(argv: list[str]) -> list[str]:
+    """``odometry ... --json FILE.json`` (the form before --json became the stdout flag of every
+    command) rewritten as ``--json-out FILE.json``, with a deprecation warning on stderr."""
+    out = list(argv)
+    for i, a in enumerate(out[:-1]):
+        if a == "--json" and out[i + 1].lower().endswith(".json") and not out[i + 1].startswith("-"):
+            typer.secho(f"warning: `--json {out[i + 1]}` is deprecated: --json now prints JSON on stdout; "
+                        f"use --json-out {out[i + 1]}", err=True, fg=typer.colors.YELLOW)  # fmt: skip
+            out[i] = "--json-out"
+    return out

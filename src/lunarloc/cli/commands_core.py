@@ -169,7 +169,9 @@ def localize_cmd(
 
     con = console()
     status = "[green]localized[/green]" if res.success else f"[red]not localized[/red]: {res.reason}"
-    con.print(f"{vehicle.name} ({len(veh)} landmarks) in {reference.name} ({len(ref)} landmarks): {status}")
+    from lunarloc.pipeline.reference import reference_summary
+
+    con.print(f"{vehicle.name} ({len(veh)} landmarks) in {reference.name} ({reference_summary(reference, ref)}): {status}")
     con.print(
         f"inliers {res.num_inliers} (needed {res.required_inliers}, competitor {res.competitor_size}), "
         f"RMSE {res.residual_rmse_m * 100:.2f} cm, yaw {res.yaw_deg:.2f} deg, tilt {res.tilt_deg:.2f} deg, "

@@ -87,3 +87,4 @@ def odometry_cmd(
     for p in (out, kitti, json_out):
         if p is not None:
             con.print(f"wrote {p}")
+

@@ -156,7 +156,10 @@ def run_cmd(
             typer.echo(f"wrote {p}")
         typer.echo(f"LAC map: {int(est.observed.sum())} cells seen, {int(est.interpolated.sum())} interpolated, "
                    f"{int(np.sum(est.array[:, :, 3] >= 0.5))} rock cells ({len(est.rocks)} rocks)")
-    _print_summary(s, f"{archive.name} in {reference.name} ({len(ref)} landmarks)")
+    from lunarloc.pipeline.reference import reference_summary
+
+    _print_summary(s, f"{archive.name} in {reference.name}")
+    typer.echo(f"reference: {reference_summary(reference, ref)}")
     typer.echo(f"odometry: {res.config['info']['odometry_source']}")
     for p in figures:
         typer.echo(f"wrote {p}")

@@ -42,8 +42,11 @@ def simulate(
     overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """Simulate a lunar site: write its ground-truth rock map and N traverse archives."""
+    from lunarloc.core.errors import require
     from lunarloc.io.outputs import check_output_dir
 
+    for module in ("trimesh", "embreex.rtcore_scene", "embreex.mesh_construction"):
+        require(module, "sim", "the ray-cast renderer")  # before any output exists
     positive(duration, "--duration", 24 * 3600.0, "s")
     number(width, "--width", 16, 8192, unit="px")
     number(height, "--height", 16, 8192, unit="px")

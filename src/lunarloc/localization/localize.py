@@ -1112,8 +1112,6 @@ def localize(
         from lunarloc.core.validate import instance
 
         instance(config, "config", LocalizationConfig, "lunarloc.LocalizationConfig")
-    from lunarloc.localization.warmup import prepare_kernels
-
     prepare_kernels()  # first call of a process: compile or load the kernels before any stage timer starts
     if isinstance(reference, LandmarkMap) and isinstance(vehicle, LandmarkMap) and not (
         reference.has_heights and vehicle.has_heights
@@ -1695,3 +1693,49 @@ def _vote_mode(votes: np.ndarray, x: float, y: float, yaw: float,
         x, y = float(np.median(votes[near, 0])), float(np.median(votes[near, 1]))
         yaw = float(yaw + np.median(dyaw[near]))
     return x, y, yaw
+
+
+# --------------------------------------------------------------------------- kernels at first use
+
+_WARM: bool | str = False
+
+
+def warm_kernels(force: bool = False, jit: bool = False) -> float:
+    """Compile (or load from the cache) every association kernel, in every mode and solver.
+    Returns the seconds it took (0.0 once done in this process). Public as
+    :func:`lunarloc.localization.warmup.warm_up`.
+
+    Where the ahead-of-time kernels are built (:mod:`lunarloc.association.aot`) this only
+    loads them; ``jit=True`` runs numba's JIT path even then, compiling into numba's cache
+    (``lunarloc warm-up``: the fallback for argument types the build does not hold)."""
+    global _WARM
+    if _WARM in (("jit", True) if jit else ("jit", "aot", True)) and not force:
+        return 0.0
+    import contextlib
+
+    from lunarloc.association.aot import exercising, jit_only
+    from lunarloc.core.geometry import euler_to_rotation, make_transform, transform_points
+
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(0)
+    # 80 x 40 = 3,200 associations: large enough for the search's per-bin bounds (their
+    # kernels compile too), small enough to take a moment once compiled
+    ref_xyz = np.c_[rng.uniform(-8, 8, (80, 2)), rng.normal(0, 0.2, 80)]
+    T = make_transform(euler_to_rotation(0.0, 0.0, 0.7), np.array([3.0, -2.0, 0.1]))
+    veh_xyz = transform_points(np.linalg.inv(T), ref_xyz[:40]) + rng.normal(0, 0.005, (40, 3))
+    ref, veh = LandmarkMap(ref_xyz, frame="ref"), LandmarkMap(veh_xyz, frame="veh")
+    with exercising(), (jit_only() if jit else contextlib.nullcontext()):
+        for mode in Mode:
+            for solver in Solver:
+                localize(ref, veh, LocalizationConfig(mode=mode, solver=solver))
+    _WARM = "jit" if jit else (_WARM or "aot")
+    return time.perf_counter() - t0
+
+
+def prepare_kernels():
+    """Once a process: the kernels ready before any stage timer starts (loaded ahead of time,
+    from numba's cache, or compiled, announced on the log); see
+    :func:`lunarloc.association.aot.prepare_kernels`."""
+    from lunarloc.association.aot import prepare_kernels as prepare
+
+    return prepare(warm_kernels)

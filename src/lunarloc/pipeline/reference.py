@@ -20,7 +20,8 @@ from lunarloc.io.maps import ROCK_COLUMNS, AggregationConfig, LandmarkMap, aggre
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
-__all__ = ["ROCK_COLUMNS", "rocks_to_reference", "load_reference", "build_reference_map", "reference_from_traverses"]
+__all__ = ["ROCK_COLUMNS", "rocks_to_reference", "load_reference", "reference_summary", "build_reference_map",
+           "reference_from_traverses"]
 
 
 
@@ -40,10 +41,27 @@ def rocks_to_reference(rocks: np.ndarray, min_radius_m: float = 0.05, top_offset
     if r.ndim != 2 or r.shape[1] < 5:
         raise InputError(f"rock list must be (N, 5) id,x,y,z,radius; got shape {r.shape}")
     keep = r[:, 4] >= min_radius_m
+    if not keep.all():
+        log.info("reference: %d of %d rocks kept; %d under %g cm radius dropped (below the detector's size floor)",
+                 int(keep.sum()), len(r), int((~keep).sum()), min_radius_m * 100)  # fmt: skip
     r = r[keep]
     pos = r[:, 1:4].copy()
     pos[:, 2] += top_offset * r[:, 4]
     return LandmarkMap(pos, sizes=2 * r[:, 4], frame="rocks")
+
+
+def reference_summary(path: str | Path, reference: LandmarkMap, min_radius_m: float = 0.05) -> str:
+    """How many landmarks `reference` (loaded from `path` by :func:`load_reference`) holds and,
+    for a rock list, how many rocks were dropped and why: e.g. ``177 landmarks (386 rocks, 209
+    under 5 cm radius dropped: below the detector's size floor)``."""
+    path = Path(path)
+    n = len(reference)
+    if path.suffix.lower() == ".csv" and _is_rock_csv(path):
+        total = len(load_rock_csv(path))
+        if total > n:
+            return (f"{n} landmarks ({total} rocks, {total - n} under {min_radius_m * 100:g} cm radius dropped: "
+                    f"below the detector's size floor)")  # fmt: skip
+    return f"{n} landmarks"
 
 
 def _is_rock_csv(path: Path) -> bool:

@@ -234,8 +234,11 @@ def simulate_dataset(
     if n_traverses < 0:
         raise ConfigError(f"n_traverses={n_traverses} must be >= 0")
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     site = simulate_site(seed, cfg.site)
+    # the renderer first: without the `sim` extra this raises DependencyError before any file
+    # is written (rocks.csv and simulation.json alone would make a rerun refuse to overwrite)
+    renderer = SiteRenderer(site, cfg.render) if n_traverses else None
+    out.mkdir(parents=True, exist_ok=True)
     site.write_rocks_csv(out / "rocks.csv")
     from lunarloc.io.overhead import write_site_geometric_map  # the LAC ground-truth map (x, y, height, rock)
 
@@ -243,7 +246,6 @@ def simulate_dataset(
     from lunarloc.io.outputs import write_text
 
     write_text(out / "simulation.json", json.dumps({"seed": int(seed), **cfg.to_dict()}, indent=2))
-    renderer = SiteRenderer(site, cfg.render)
     paths = []
     for i in range(n_traverses):
         cb = (lambda n, i=i: progress(i, n)) if progress is not None else None
