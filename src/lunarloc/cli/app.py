@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
+import enum
 import errno
 import logging
 import os
 import sys
-
-import enum
 from typing import Optional
 
 import typer
@@ -16,6 +15,8 @@ from lunarloc.core.errors import LunarLocError
 
 
 class LogLevel(str, enum.Enum):
+    """--log-level choices (-v is info, -vv debug, -q error; default warning)."""
+
     DEBUG = "debug"
     INFO = "info"
     WARNING = "warning"
