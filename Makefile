@@ -11,7 +11,7 @@ $(BIN)/python:
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
 $(STAMP): $(BIN)/python pyproject.toml
-	$(BIN)/python -m pip install --quiet -e ".[test,sim,campaign]"
+	$(BIN)/python -m pip install --quiet -e ".[test,opencv,sim,campaign]"
 	$(BIN)/lunarloc warm-up
 	touch $(STAMP)
 
@@ -36,6 +36,6 @@ clean:
 fastsam: $(STAMP)
 	$(BIN)/python -m pip install --quiet torch==2.13.0
 	$(BIN)/python -m pip install --quiet --no-deps torchvision==0.28.0
-	$(BIN)/python -m pip install --quiet -e ".[test,sim,campaign,fastsam-onnx]"
+	$(BIN)/python -m pip install --quiet -e ".[test,opencv,sim,campaign,fastsam-onnx]"
 	$(BIN)/python -m pytest -q tests/test_fastsam.py
 	$(BIN)/python benchmarks/fastsam_speed.py
