@@ -38,7 +38,7 @@ from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 
-from lunarloc.core.errors import ConfigError, InputError
+from lunarloc.core.errors import ConfigError, InputError, import_cv2
 from lunarloc.core.geometry import invert_transform, make_transform, rotation_angle
 from lunarloc.perception.camera import PinholeCamera
 from lunarloc.perception.images import ImageNormalization, normalize_image
@@ -211,8 +211,7 @@ class StereoVisualOdometry:
         T_rover_right: np.ndarray,
         config: VisualOdometryConfig | None = None,
     ):
-        import cv2
-
+        cv2 = import_cv2()
         self._cv2 = cv2
         if not isinstance(camera, PinholeCamera):
             raise InputError(f"camera must be a PinholeCamera, got {type(camera).__name__}")
