@@ -374,7 +374,8 @@ class StereoVisualOdometry:
         fx, b = self.camera.fx, self.baseline_m
         seed_disp = fx * b / 4.0  # a point 4 m ahead
         guess = uv_l.copy()
-        guess[:, 0] -= seed_disp
+        # float64 arithmetic, cast back (numpy 2 does so for a float64 scalar; numpy 1 kept float32)
+        guess[:, 0] = guess[:, 0].astype(np.float64) - seed_disp
         uv_r, st, _ = cv2.calcOpticalFlowPyrLK(
             left, right, uv_l, guess.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk_stereo
         )
@@ -389,7 +390,7 @@ class StereoVisualOdometry:
             & (np.linalg.norm(back - uv_l, axis=1) <= c.stereo_check_px)
             & (disp >= c.min_disparity_px)
         )
-        depth = np.where(ok, fx * b / np.maximum(disp, 1e-6), np.inf)
+        depth = np.where(ok, fx * b / np.maximum(disp.astype(np.float64), 1e-6), np.inf)  # float64 on numpy 1 too
         ok &= (depth >= c.min_depth_m) & (depth <= c.max_depth_m)
         if ok.sum() < c.min_inliers:
             return False

@@ -441,6 +441,21 @@ class HeightMap:
         return key // w, key % w
 
 
+def _bilinear(grid: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+    """float32 `grid` interpolated bilinearly at (gx, gy) (column, row) positions, all within
+    [0, shape - 1). Exact weights: cv2.remap's INTER_LINEAR rounds positions to 1/32 pixel in
+    OpenCV 4.x (exact in 5.x), which moved heights by millimetres between OpenCV releases and
+    flipped borderline masks; this costs ~1 ms more than cv2.remap at 640x360."""
+    x0, y0 = gx.astype(np.int32), gy.astype(np.int32)  # non-negative: truncation is floor
+    fx, fy = gx - x0.astype(np.float32), gy - y0.astype(np.float32)
+    w = grid.shape[1]
+    i = y0 * np.int32(w) + x0
+    flat = grid.ravel()
+    a, b, c, d = flat.take(i), flat.take(i + 1), flat.take(i + w), flat.take(i + w + 1)
+    top = a + fx * (b - a)
+    return top + fy * (c + fx * (d - c) - top)
+
+
 def ground_height_map(
     disparity: np.ndarray,
     scale: int,
@@ -531,7 +546,7 @@ def ground_height_map(
     gy = np.clip((Yd - np.float32(y_lo)) * np.float32(1.0 / c) + np.float32(0.5), 0.0, ny + 0.999)
     gx[~ok] = 0.0
     gy[~ok] = 0.0
-    gz = cv2.remap(Gp.astype(np.float32), gx, gy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    gz = _bilinear(Gp.astype(np.float32), gx, gy)
     np.subtract(Zd, gz, out=height, where=ok)
     cols = np.flatnonzero(ok.any(axis=0))
     out.valid_u0 = int(cols[0]) * k if cols.size else camera.width
