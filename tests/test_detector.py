@@ -103,6 +103,23 @@ def test_filters_reject_with_reasons():
     assert all(r.reason is not None for r in pr.records) and not pr.detections
 
 
+def _bilinear_reflect(img, x, y):
+    """`img` sampled bilinearly at pixel positions (x, y), mirrored past its edges (OpenCV's
+    BORDER_REFLECT). Exact, where cv2.remap rounds positions to 1/32 pixel in OpenCV 4.x, so
+    the scene is the same under every OpenCV release."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    x0, y0 = np.floor(x), np.floor(y)
+    fx, fy = x - x0, y - y0
+
+    def mirror(i, n):
+        i = np.mod(i.astype(np.int64), 2 * n)
+        return np.where(i >= n, 2 * n - 1 - i, i)
+
+    h, w = img.shape
+    xa, xb, ya, yb = mirror(x0, w), mirror(x0 + 1, w), mirror(y0, h), mirror(y0 + 1, h)
+    return (img[ya, xa] * (1 - fx) + img[ya, xb] * fx) * (1 - fy) + (img[yb, xa] * (1 - fx) + img[yb, xb] * fx) * fy
+
+
 def ground_scene(centre=(3.28, 0.1, -0.15), radius=0.15, seed=1, axes=None):
     """Left/right images of the FrontLeft pair over flat textured ground (rover frame
     z = -0.2, the body 0.2 m up) with one textured sphere of `radius`, or an ellipsoid of
@@ -131,9 +148,7 @@ def ground_scene(centre=(3.28, 0.1, -0.15), radius=0.15, seed=1, axes=None):
         # texture from the hit point (fixed in the world, so consistent across views)
         a = np.where(on_rock, p[:, 0] + 0.7 * p[:, 2], p[:, 0]) / res
         e = np.where(on_rock, p[:, 1] + 0.7 * p[:, 2], p[:, 1]) / res + 800
-        val = cv2.remap(tex, a.reshape(CAM.height, CAM.width).astype(np.float32),
-                        e.reshape(CAM.height, CAM.width).astype(np.float32), cv2.INTER_LINEAR,
-                        borderMode=cv2.BORDER_REFLECT).ravel()
+        val = _bilinear_reflect(tex, a.astype(np.float32), e.astype(np.float32))
         val = np.where(on_rock, val + 50, val)
         val = np.where(np.isfinite(t), val, 0)  # black sky
         out.append(np.clip(val, 0, 255).astype(np.uint8).reshape(CAM.height, CAM.width))

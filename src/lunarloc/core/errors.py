@@ -99,3 +99,19 @@ def require(module: str, extra: str, hint: str | None = None):
         if hint:
             msg += f" ({hint})"
         raise DependencyError(msg) from exc
+
+
+def import_cv2():
+    """OpenCV's ``cv2``, or DependencyError with the install hint. OpenCV is not a hard
+    dependency (the ``opencv`` extra): any one of its wheels works, and an environment that
+    pins one (the LAC leaderboard pins opencv-python) must not get a second."""
+    import importlib
+
+    try:
+        return importlib.import_module("cv2")
+    except ImportError as exc:
+        raise DependencyError(
+            "OpenCV (cv2) is required for images (segmentation, stereo, visual odometry): "
+            "pip install 'lunarloc[opencv]', or keep the one OpenCV wheel your environment "
+            "already has (opencv-python, opencv-python-headless or a contrib one)"
+        ) from exc

@@ -38,7 +38,7 @@ from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 
-from lunarloc.core.errors import ConfigError, InputError
+from lunarloc.core.errors import ConfigError, InputError, import_cv2
 from lunarloc.core.geometry import invert_transform, make_transform, rotation_angle
 from lunarloc.perception.camera import PinholeCamera
 from lunarloc.perception.images import ImageNormalization, normalize_image
@@ -211,8 +211,7 @@ class StereoVisualOdometry:
         T_rover_right: np.ndarray,
         config: VisualOdometryConfig | None = None,
     ):
-        import cv2
-
+        cv2 = import_cv2()
         self._cv2 = cv2
         if not isinstance(camera, PinholeCamera):
             raise InputError(f"camera must be a PinholeCamera, got {type(camera).__name__}")
@@ -375,7 +374,8 @@ class StereoVisualOdometry:
         fx, b = self.camera.fx, self.baseline_m
         seed_disp = fx * b / 4.0  # a point 4 m ahead
         guess = uv_l.copy()
-        guess[:, 0] -= seed_disp
+        # float64 arithmetic, cast back (numpy 2 does so for a float64 scalar; numpy 1 kept float32)
+        guess[:, 0] = guess[:, 0].astype(np.float64) - seed_disp
         uv_r, st, _ = cv2.calcOpticalFlowPyrLK(
             left, right, uv_l, guess.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk_stereo
         )
@@ -390,7 +390,7 @@ class StereoVisualOdometry:
             & (np.linalg.norm(back - uv_l, axis=1) <= c.stereo_check_px)
             & (disp >= c.min_disparity_px)
         )
-        depth = np.where(ok, fx * b / np.maximum(disp, 1e-6), np.inf)
+        depth = np.where(ok, fx * b / np.maximum(disp.astype(np.float64), 1e-6), np.inf)  # float64 on numpy 1 too
         ok &= (depth >= c.min_depth_m) & (depth <= c.max_depth_m)
         if ok.sum() < c.min_inliers:
             return False

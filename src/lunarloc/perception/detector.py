@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lunarloc.core.errors import ConfigError, InputError
+from lunarloc.core.errors import ConfigError, InputError, import_cv2
 from lunarloc.core.geometry import invert_transform, pose_to_matrix, transform_points
 from lunarloc.perception.images import ImageNormalization
 from lunarloc.perception.camera import (
@@ -749,8 +749,7 @@ class Detector:
         eroded by fullres_erode_px first. None when too few pixels match.
         disparity_out : if given, receives "disparity" (the crop's full-resolution
         disparity, NaN invalid) and "mask" (the eroded crop) when the match ran."""
-        import cv2
-
+        cv2 = import_cv2()
         cfg = self.config
         d = mask_disparity_fullres(L, right, m.crop, m.u0, m.v0, d_lr, cfg.fullres_span_px, cfg.fullres_block_size,
                                    p1_per_block_px2=cfg.fullres_p1_per_block_px2,
@@ -1029,8 +1028,7 @@ class Detector:
         tm["cpu"] = tm.get("cpu", 0.0) + time.process_time() - c0
         depth = None
         if keep_depth:
-            import cv2
-
+            cv2 = import_cv2()
             depth = cv2.resize(hm.depth, (L.shape[1], L.shape[0]), interpolation=cv2.INTER_NEAREST)
         return PairResult(camera_name, masks, records, dets, depth, hm if keep_depth else None)
 
@@ -1150,8 +1148,7 @@ def split_at_depth_steps(masks: InstanceMasks, height: HeightMap, step_ratio: fl
 def _depth_parts(m, height: HeightMap, step_ratio: float, min_area_px: int, seed_m: float, step_px: int = 1):
     """The parts of mask `m` between its depth steps (list of InstanceMask), or None when
     it has fewer than two (see split_at_depth_steps)."""
-    import cv2
-
+    cv2 = import_cv2()
     rows, cols = height.lowres_index(m)
     z = height.depth[rows, cols]
     ok = np.isfinite(z)
@@ -1332,8 +1329,7 @@ def _ring_height(height: np.ndarray, rows: np.ndarray, cols: np.ndarray, width: 
 def _ring_mask(shape: tuple[int, int], rows: np.ndarray, cols: np.ndarray, width: int, gap: int):
     """((r0, r1, c0, c1) window, boolean ring of pixels `width` wide starting `gap`
     pixels outside the blob (rows, cols) in that window) of a low-resolution map."""
-    import cv2
-
+    cv2 = import_cv2()
     h, w = shape
     r = width + gap
     r0, r1 = max(int(rows.min()) - r, 0), min(int(rows.max()) + r + 1, h)
@@ -1872,8 +1868,7 @@ def debug_overlay(image: np.ndarray, pair: PairResult, depth_max_m: float = 10.0
     """BGR picture: left, the image with kept masks green and rejected masks coloured
     by the rejecting filter (legend drawn in the corner); right, the depth map (near =
     bright, invalid = black), when the pair kept it."""
-    import cv2
-
+    cv2 = import_cv2()
     g = to_gray_u8(image)
     vis = cv2.cvtColor(g, cv2.COLOR_GRAY2BGR)
     colour = np.zeros_like(vis)

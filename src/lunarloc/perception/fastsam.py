@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lunarloc.core.errors import DependencyError, InputError, require
+from lunarloc.core.errors import DependencyError, InputError, import_cv2, require
 from lunarloc.perception.masks import InstanceMask, InstanceMasks
 
 __all__ = [
@@ -230,8 +230,7 @@ class FastSamSegmenter:
     def predict(self, image: np.ndarray):
         """ultralytics' result of the network and its postprocessing (NMS, masks at image
         resolution, the point prompt) for one (H, W) grayscale or (H, W, 3) uint8 image."""
-        import cv2
-
+        cv2 = import_cv2()
         img = np.asarray(image)
         if img.ndim == 2:
             img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
@@ -258,8 +257,7 @@ class FastSamSegmenter:
     @staticmethod
     def masks_from(result, image_shape: tuple[int, int]) -> InstanceMasks:
         """InstanceMasks of an ultralytics result (empty masks dropped)."""
-        import cv2
-
+        cv2 = import_cv2()
         H, W = image_shape
         out = InstanceMasks((H, W))
         if result is None or result.masks is None:

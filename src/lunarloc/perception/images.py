@@ -44,8 +44,9 @@ def normalize_image(
     mean_shrink > 1: the local mean is blurred on the image reduced that many times and
     interpolated back (a wide Gaussian costs ~10x less; the mean is smooth anyway).
     """
-    import cv2
+    from lunarloc.core.errors import import_cv2
 
+    cv2 = import_cv2()
     method = ImageNormalization(method)
     if method is ImageNormalization.NONE:
         return image

@@ -23,7 +23,7 @@ from enum import Enum
 
 import numpy as np
 
-from lunarloc.core.errors import ConfigError, InputError
+from lunarloc.core.errors import ConfigError, InputError, import_cv2
 
 __all__ = [
     "InstanceMask",
@@ -153,8 +153,7 @@ def mask_stats(mask: InstanceMask, image_shape: tuple[int, int], border_px: int 
     A one-pixel mask has zero covariance; its covariance gets the variance of a
     uniform pixel (1/12 per axis) so that the eigenvalue ratio stays finite.
     """
-    import cv2
-
+    cv2 = import_cv2()
     # image moments of the binary crop (same sums as over the pixel coordinates)
     mo = cv2.moments(np.asarray(mask.crop, np.uint8), binaryImage=True)
     n = int(round(mo["m00"]))

@@ -21,7 +21,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from lunarloc.core.errors import ConfigError, InputError
+from lunarloc.core.errors import ConfigError, InputError, import_cv2
 from lunarloc.perception.masks import InstanceMask, InstanceMasks
 from lunarloc.perception.stereo import HeightMap, to_gray_u8
 
@@ -166,8 +166,7 @@ class ClassicalSegmenter:
 
     def height_labels(self, height: HeightMap) -> np.ndarray:
         """(h, w) int32 labels of blobs standing above the local ground, low resolution."""
-        import cv2
-
+        cv2 = import_cv2()
         c = self.config
         H = np.nan_to_num(height.height, nan=-1.0)
         region = (H > c.height_region_m).astype(np.uint8)
@@ -197,8 +196,7 @@ class ClassicalSegmenter:
 
     def labels(self, image: np.ndarray) -> np.ndarray:
         """(H, W) int32 label image: 0 background, 1..N regions."""
-        import cv2
-
+        cv2 = import_cv2()
         c = self.config
         I8 = to_gray_u8(image)
         H, W = I8.shape
@@ -278,7 +276,7 @@ class ClassicalSegmenter:
 
 
     def _segment_height(self, shape: tuple[int, int], height: HeightMap) -> InstanceMasks:
-        import cv2
+        cv2 = import_cv2()
         from scipy import ndimage
 
         lab = self.height_labels(height)
@@ -296,8 +294,7 @@ class ClassicalSegmenter:
 
 def _component_stats(lab: np.ndarray, n: int) -> np.ndarray:
     """(n, 5) OpenCV-style stats (left, top, width, height, area) of labels 0..n-1."""
-    import cv2
-
+    cv2 = import_cv2()
     st = np.zeros((n, 5), np.int32)
     st[:, cv2.CC_STAT_LEFT] = lab.shape[1]
     st[:, cv2.CC_STAT_TOP] = lab.shape[0]
@@ -319,8 +316,7 @@ def _component_stats(lab: np.ndarray, n: int) -> np.ndarray:
 
 def _eig_ratio(mask: np.ndarray) -> float:
     """lambda_max / lambda_min of a binary mask's pixel covariance (as masks.mask_stats)."""
-    import cv2
-
+    cv2 = import_cv2()
     mo = cv2.moments(mask.astype(np.uint8), binaryImage=True)
     n = mo["m00"]
     if n <= 0:
@@ -341,8 +337,7 @@ def split_at_saddles(H: np.ndarray, lab: np.ndarray, st: np.ndarray, c: Classica
     are dropped. Returns the new labels and
     their count (background 0 included). H: (h, w) heights above the ground, metres
     (no NaN); lab / st: cv2.connectedComponentsWithStats' labels and stats."""
-    import cv2
-
+    cv2 = import_cv2()
     h, w = lab.shape
     n = int(st.shape[0])
     out = lab

@@ -28,7 +28,7 @@ from typing import Callable
 import numpy as np
 
 from lunarloc.config.run import RunConfig
-from lunarloc.core.errors import InputError
+from lunarloc.core.errors import InputError, import_cv2
 from lunarloc.online.loop import LoopResult, LoopState
 from lunarloc.io.maps import LandmarkMap
 from lunarloc.mapping.lac_map import LANDER_EXCLUSION_M
@@ -233,8 +233,7 @@ def detect(archive: str | Path, output: str | Path, config: RunConfig | None = N
                 for k, v in fd.timings.items():
                     res.stage_seconds[k] = res.stage_seconds.get(k, 0.0) + v
                 if debug_dir is not None:
-                    import cv2
-
+                    cv2 = import_cv2()
                     for pair in fd.pairs:
                         img = ar.grayscale(pair.camera, fd.frame)
                         cv2.imwrite(str(Path(debug_dir) / f"{pair.camera}_{fd.frame:06d}.png"), debug_overlay(img, pair))
