@@ -12,8 +12,12 @@
    trustworthy as on a small map.
 4. **Judge globally**: the winner's inliers must beat what chance produces against the
    WHOLE reference (the chance envelope at n_veh x n_ref associations, not the crop's),
-   and the best competing candidate region must be clearly smaller
-   (``competitor_ratio``), else the answer is refused as ambiguous.
+   and the best competing hypothesis found anywhere must be clearly smaller
+   (``competitor_ratio``), like against like: the winner's refined inliers against every
+   other region's refined inliers, and its consistent set (clique) against every other
+   consistent set (the other regions', and the competitor inside its own crop, which is
+   cropped wide enough to hold a copy shifted by less than the candidates' separation).
+   Else the answer is refused as ambiguous: a repeated world is refused, not guessed.
 
 ``search="full"`` is the plain :func:`localize` on the whole map; ``"auto"`` uses the
 index when the reference holds at least ``IndexConfig.auto_min_reference`` rocks (and the
@@ -185,25 +189,40 @@ def localize_large(
                            search="indexed", candidates=rows, considered=considered)
     # winner: a verified answer first, then the largest inlier set
     w, best = max(done, key=lambda ir: (ir[1].success, ir[1].num_inliers, ir[1].clique_size))
-    competitor = best.competitor_size
+    # the best competing hypothesis found anywhere, like against like: the other regions'
+    # refined inlier counts against the winner's refined count, and every consistent set
+    # (the other regions' cliques, the competitor inside the winner's crop) against the
+    # winner's clique. A refined count against a raw clique flatters the winner: on a lattice
+    # every copy refines to nearly all the vehicle map's landmarks (issue 30)
+    comp_clique, comp_refined, comp_region = best.competitor_size, 0, -1
     for i, r in done:
         if i != w and not _same_pose(r, best, cfg):
-            competitor = max(competitor, r.clique_size)
+            comp_clique = max(comp_clique, r.clique_size)
+            if r.num_inliers > comp_refined:
+                comp_refined, comp_region = r.num_inliers, i
     out = _from(best, search="indexed", candidates=rows, winner=w, considered=considered)
     out.timings = timings
     out.required_inliers = max(required, best.required_inliers)
     out.num_associations = m_full
-    out.competitor_size = int(competitor)
+    out.competitor_size = int(max(comp_clique, comp_refined))
     k = out.num_inliers
-    ok_chance, ok_margin = k >= out.required_inliers, k >= cfg.competitor_ratio * competitor
+    ratio = cfg.competitor_ratio
+    ok_chance = k >= out.required_inliers
+    ok_refined = k >= ratio * comp_refined
+    ok_clique = best.clique_size >= ratio * comp_clique
     whole = [  # the chance and margin checks again, against the whole reference
         Check("inliers_vs_chance_whole_reference", k, out.required_inliers, ok_chance, ">=",
               "inliers against the chance envelope of the whole reference" if ok_chance else
               f"{k} inliers is too few to beat chance in the whole reference ({m_full} associations; "
               f"need {out.required_inliers})"),
-        Check("winner_margin_regions", k, cfg.competitor_ratio * competitor, ok_margin, ">=",
-              "inliers against the best competing candidate region" if ok_margin else
-              f"ambiguous: {k} inliers vs a competing candidate region with {competitor}"),
+        Check("winner_margin_regions", k, ratio * comp_refined, ok_refined, ">=",
+              f"refined inliers against {ratio:g} x the best competing candidate region's" if ok_refined else
+              f"ambiguous: {k} inliers vs {comp_refined} in a competing candidate region "
+              f"(candidate {comp_region + 1}; a repeated pattern)"),
+        Check("winner_margin_cliques", best.clique_size, ratio * comp_clique, ok_clique, ">=",
+              f"consistent set against {ratio:g} x the best competing one (inside the crop and in other regions)"
+              if ok_clique else
+              f"ambiguous: a consistent set of {best.clique_size} vs a competing one of {comp_clique}"),
     ]
     out.checks = list(out.checks) + whole
     if out.success and not all(c.passed for c in whole):

@@ -94,6 +94,18 @@ _CHANCE_EPSILON_M = 0.05  # the search tolerance (horizontal and vertical) the e
 _TOLERANCE_EXPONENT = 0.65  # measured: largest ratio of chance sets 2.0 at 3x the tolerance, 1.33 at 1.6x (gamma 0.63, 0.61)
 
 
+#: The prior on the vehicle map's odometry distortion when no bounds are stated: 1-sigma heading
+#: drift per metre travelled and relative scale error of real rover odometry. Source: lunarloc's
+#: own stereo VO with the IMU prior (the dispatcher's ``visual`` source) on nine simulated
+#: traverses of 30-102 m (docs/odometry-visual.md, both tables): final heading error per metre
+#: 0.0006-0.025 deg/m, RMS 0.012; final position error 0.12-0.56 % of the path, RMS 0.31 % (an
+#: upper bound on the scale error: it holds the heading drift's lever too). The bend fit is
+#: regularised by it: two maps that do not fix the bend (few inliers, far from the query) fall
+#: back on what real odometry does, not on an unconstrained fit (metres; issue 30).
+PRIOR_DRIFT_DEG_PER_M = 0.012
+PRIOR_SCALE_ERROR = 0.003
+
+
 @dataclass
 class LocalizationConfig:
     """Parameters of :func:`localize`. Distances in metres, angles in degrees."""
@@ -146,7 +158,12 @@ class LocalizationConfig:
     # predicted error. 0 states a rigid map (e.g. built from ground-truth poses).
     odometry_scale_error: float | None = None
     odometry_heading_drift_deg_per_m: float | None = None
-    distortion_fit_sigmas: float = 2.0  # no bounds stated: allowance = fitted bend's shift + this many sigmas
+    distortion_fit_sigmas: float = 1.0  # no bounds stated: the bend's own sigma counts this many times (1: a 1-sigma prediction)
+    # no bounds stated: 1-sigma prior on the odometry's heading drift (deg/m) and scale error that
+    # regularises the bend fit (None: unconstrained, the fit from the maps alone). Defaults: what
+    # real rover odometry shows (PRIOR_DRIFT_DEG_PER_M, PRIOR_SCALE_ERROR; docs/verification.md)
+    odometry_prior_drift_deg_per_m: float | None = PRIOR_DRIFT_DEG_PER_M
+    odometry_prior_scale_error: float | None = PRIOR_SCALE_ERROR
     distortion_fit_rounds: int = 3  # bent-model fits, inliers gathered again under the model between them
     min_inliers_distortion_fit: int = 6  # fewer inliers cannot fix the 8 parameters of the bent model: no allowance, refused
     max_sighting_span_m: float = 10.0  # a landmark seen over more path than this (passed twice) is left out of the bent-model fit
@@ -186,6 +203,10 @@ class LocalizationConfig:
             raise ConfigError(f"registration_sigma_floor_m must be positive, got {self.registration_sigma_floor_m}")
         if not self.search_sigmas >= 0:
             raise ConfigError(f"search_sigmas must be >= 0, got {self.search_sigmas}")
+        for name in ("odometry_prior_drift_deg_per_m", "odometry_prior_scale_error"):
+            v = getattr(self, name)
+            if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ConfigError(f"{name} must be positive (or None: no prior), got {v!r}")
         if (self.odometry_scale_error or 0.0) < 0 or (self.odometry_heading_drift_deg_per_m or 0.0) < 0:
             raise ConfigError("odometry_scale_error and odometry_heading_drift_deg_per_m must be >= 0")
 
@@ -733,7 +754,8 @@ def _sighting_placement(unb: "_Unbender", Pv: np.ndarray, given: bool, sighting_
 
 
 def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius_m: float, rounds: int = 3,
-                sighting_arcs=None, max_sighting_span_m: float = 10.0, min_inliers: int = 6) -> BendFit:
+                sighting_arcs=None, max_sighting_span_m: float = 10.0, min_inliers: int = 6,
+                prior_drift_rad_per_m: float | None = None, prior_scale_error: float | None = None) -> BendFit:
     """Fit a bent (heading drift) and scaled (path scale error) model of the vehicle map to
     its inliers, starting from the rigid fit T: parameters rotation vector, translation, drift
     per metre and scale error, by least squares on the 3D residuals over `sigma_axis_m` (the
@@ -750,7 +772,11 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
     twice: its aggregate mixes passes the model cannot tell apart) is left out of the fit.
     Without them, its nearest path point stands in, and a landmark that more than one pass of
     the path comes within sight of (:meth:`_Unbender.passes`) is left out. With fewer than `min_inliers` inliers
-    left the bend is not determined: infinite sigma (refused)."""
+    left the bend is not determined: infinite sigma (refused).
+
+    `prior_drift_rad_per_m` / `prior_scale_error`: a zero-mean Gaussian prior (1 sigma) on the drift
+    and the scale error, two more residuals of the least squares (a maximum a posteriori fit): where
+    the maps do not fix the bend, its uncertainty is the prior's, not metres."""
     from scipy.optimize import least_squares
     from scipy.spatial.transform import Rotation
 
@@ -779,6 +805,8 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
         return BendFit(0.0, inf, 0.0, inf, inf, inf, inf, inf, 0.0, int(len(pairs)), bool(given), source,
                        int(len(inl) - len(pairs)), inf, inf)
     left_out = int(len(inl) - len(pairs))
+    prior_sd = (np.array([prior_drift_rad_per_m or math.inf, prior_scale_error or math.inf])
+                if (prior_drift_rad_per_m or prior_scale_error) else None)
     chi2_rigid = chi2_bent = 0.0
     first_round = True
     for _ in range(rounds):
@@ -786,7 +814,8 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
         used = len(pairs)
 
         def resid(xx):
-            return ((apply(xx, Pv[v], idx_all[v]) - Pr[r]) / sigma_axis_m).ravel()
+            geo = ((apply(xx, Pv[v], idx_all[v]) - Pr[r]) / sigma_axis_m).ravel()
+            return np.r_[geo, xx[6:8] / prior_sd] if prior_sd is not None else geo
 
         sol = least_squares(resid, x, x_scale=np.r_[np.full(3, 1e-3), np.full(3, 1e-2), 1e-4, 1e-3], method="lm",
                             max_nfev=200)
@@ -804,10 +833,15 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
             break
         pairs = new
     J = sol.jac
-    dof = max(J.shape[0] - 8, 1)
-    s2 = max(1.0, float(np.sum(sol.fun**2)) / dof)  # residuals noisier than the stated sigma widen the covariance
+    n_prior = 0 if prior_sd is None else 2
+    geo = slice(0, J.shape[0] - n_prior)
+    dof = max(J.shape[0] - n_prior - 8, 1)
+    # residuals noisier than the stated sigma widen the data's part of the covariance (not the prior's)
+    s2 = max(1.0, float(np.sum(sol.fun[geo] ** 2)) / dof)
+    J = J.copy()
+    J[geo] /= math.sqrt(s2)  # the geometric rows at the noise they show; from here on C = (J^T J)^-1
     try:
-        C = s2 * np.linalg.inv(J.T @ J)
+        C = np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
         C = np.full((8, 8), np.inf)
 
@@ -832,7 +866,7 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
     # variance of the difference between the two models' predictions.
     if np.all(np.isfinite(var)):
         try:
-            C6 = s2 * np.linalg.inv(J[:, :6].T @ J[:, :6])
+            C6 = np.linalg.inv(J[:, :6].T @ J[:, :6])
             var = np.maximum(var - np.einsum("ij,jk,ik->i", Jq[:, :6], C6, Jq[:, :6]), 0.0)
         except np.linalg.LinAlgError:
             pass
@@ -1198,7 +1232,10 @@ def localize(
                     if vehicle.has_sighting_arcs else None)
             bend = bending_fit(T, Pv, Pr, inl, query, path, math.sqrt((2 * sigma_h**2 + sigma_z**2) / 3),
                                cfg.refine_radius_m, cfg.distortion_fit_rounds, arcs, cfg.max_sighting_span_m,
-                               cfg.min_inliers_distortion_fit)
+                               cfg.min_inliers_distortion_fit,
+                               None if cfg.odometry_prior_drift_deg_per_m is None
+                               else math.radians(cfg.odometry_prior_drift_deg_per_m),
+                               cfg.odometry_prior_scale_error)
     pred = pred_fit + distortion  # the distortion is a bound (a bias), not a random error: added, not in quadrature
     rot_sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(C_c[3:, 3:]))), 0.0)) if np.all(np.isfinite(C_c)) else math.inf
     pred_rot_deg = math.degrees(rot_sigma + float(distortion_rot.max()))
