@@ -28,7 +28,7 @@ def main() -> None:
     paths = ev.find_traverses(args.data)
     pairs = list(ev.PAPER_PAIRS) + [p for p in itertools.combinations(sorted(paths), 2) if p not in ev.PAPER_PAIRS]
     # run_pair calls evaluation.localize; route it through the indexed search
-    ev.localize = lambda ref, veh, cfg=None: localize_large(ref, veh, cfg, search="indexed")
+    ev.localize = lambda ref, veh, cfg=None, **kw: localize_large(ref, veh, cfg, search="indexed", **kw)
     s = ev.bench_pairs(args.data, pairs)
     d = s.to_dict()
     bad = [f"{r.reference}-{r.vehicle}: {r.reason}" for r in s.results if not (r.success and r.correct)]

@@ -116,7 +116,8 @@ def localize_cmd(
     dem: Optional[Path] = typer.Option(None, "--dem", help="LAC geometric map giving heights to a catalogue without z."),
     odometry_scale_error: Optional[float] = typer.Option(
         None, help="Bound on the vehicle map's relative scale error (its odometry's spec, 0.03 = 3 %; 0: a rigid "
-        "map). Without either bound the distortion is fitted from the maps."
+        "map). Without either bound the distortion is fitted from the maps under a prior of real rover odometry "
+        "(0.012 deg/m, 0.3 %; docs/verification.md)."
     ),
     odometry_drift: Optional[float] = typer.Option(
         None, help="Bound on the odometry's heading drift, degrees per metre (0: a rigid map)."
@@ -189,7 +190,10 @@ def localize_cmd(
         con.print(
             f"no odometry bounds stated: fitted heading drift {math.degrees(f['drift_rad_per_m']):+.3f} "
             f"+- {math.degrees(f['drift_se']):.3f} deg/m, scale error {f['scale_error'] * 100:+.2f} "
-            f"+- {f['scale_se'] * 100:.2f} % ({'along the given path' if f['path_given'] else 'path unknown: straight stand-in'})"
+            f"+- {f['scale_se'] * 100:.2f} % ({'along the given path' if f['path_given'] else 'path unknown: straight stand-in'}"
+            + ("" if cfg.odometry_prior_drift_deg_per_m is None else
+               f"; prior {cfg.odometry_prior_drift_deg_per_m:g} deg/m, {(cfg.odometry_prior_scale_error or 0) * 100:g} %")
+            + ")"
         )
     if res.checks:
         from rich.table import Table

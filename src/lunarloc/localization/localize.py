@@ -158,7 +158,7 @@ class LocalizationConfig:
     # predicted error. 0 states a rigid map (e.g. built from ground-truth poses).
     odometry_scale_error: float | None = None
     odometry_heading_drift_deg_per_m: float | None = None
-    distortion_fit_sigmas: float = 1.0  # no bounds stated: the bend's own sigma counts this many times (1: a 1-sigma prediction)
+    distortion_fit_sigmas: float = 2.0  # no bounds stated, the fit from the maps alone: allowance = fitted bend's shift + this many sigmas (under the prior: 1)
     # no bounds stated: 1-sigma prior on the odometry's heading drift (deg/m) and scale error that
     # regularises the bend fit (None: unconstrained, the fit from the maps alone). Defaults: what
     # real rover odometry shows (PRIOR_DRIFT_DEG_PER_M, PRIOR_SCALE_ERROR; docs/verification.md)
@@ -637,6 +637,7 @@ class BendFit:
     left_out: int = 0
     floor_sigma_m: float = 0.0
     rotation_floor_sigma_deg: float = 0.0
+    prior: str = "none"  # the odometry prior: "applied", "rejected: ..." (prior-data conflict) or "none"
 
 
 def _straight_path(points_xyz: np.ndarray, step_m: float = 0.25) -> np.ndarray:
@@ -872,8 +873,11 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
             pass
     # Real maps bend and stretch a little beyond what their noise says (measured floors): the
     # floors' effect at the query points with the rigid part re-fitted to the inliers (what the
-    # inliers absorb of a bend does not move the pose). A 1-sigma spread, kept apart.
-    floor = np.array([math.radians(DRIFT_FLOOR_DEG_PER_M), SCALE_FLOOR]) ** 2
+    # inliers absorb of a bend does not move the pose). A 1-sigma spread, kept apart. With a
+    # prior the fit models that distortion itself (its posterior holds it where the maps do not
+    # fix the bend): no floor on top.
+    floor = (np.array([math.radians(DRIFT_FLOOR_DEG_PER_M), SCALE_FLOOR]) ** 2 if prior_sd is None
+             else np.zeros(2))
     try:
         G = Jq[:, 6:] - Jq[:, :6] @ np.linalg.solve(J[:, :6].T @ J[:, :6], J[:, :6].T @ J[:, 6:])
         var_floor = G**2 @ floor
@@ -894,6 +898,28 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
     )
 
 
+#: A bend the maps alone fit this many sigma (their standard error and the prior's combined) away
+#: from the prior's zero is one real odometry does not make: the prior is not applied (issue 30:
+#: a 0.1 deg/m map, shrunk towards the 0.012 deg/m prior, was claimed 14 cm off)
+PRIOR_CONFLICT_SIGMAS = 2.0
+
+
+def prior_conflict(bend: "BendFit", prior_drift_rad_per_m: float | None, prior_scale_error: float | None) -> float:
+    """How far, in sigmas, the bend fitted from the maps alone lies from the zero-mean odometry
+    prior: the larger of drift and scale, each over the root sum of squares of its standard
+    error and the prior's sigma (a parameter without a prior does not count). Infinite when the
+    fit is not finite."""
+    out = 0.0
+    for est, se, sd in ((bend.drift_rad_per_m, bend.drift_se, prior_drift_rad_per_m),
+                        (bend.scale_error, bend.scale_se, prior_scale_error)):
+        if sd is None:
+            continue
+        if not (math.isfinite(est) and math.isfinite(se)):
+            return math.inf
+        out = max(out, abs(est) / math.sqrt(se**2 + sd**2))
+    return out
+
+
 def fitted_predicted_error(bend: BendFit, cfg: "LocalizationConfig", registration_m: np.ndarray,
                            registration_rot_deg: float) -> tuple[np.ndarray, float]:
     """Predicted 1-sigma position error (m, per query point) and rotation error (deg) when no
@@ -911,7 +937,9 @@ def fitted_predicted_error(bend: BendFit, cfg: "LocalizationConfig", registratio
     The shift counts even when the bend is not significant: gating it on a chi-square test let
     a 2.3-sigma bend through (pair 4-9, 0.025 deg/m, 60 m window: 10.3 cm / 1.03 deg off,
     predicted 5.5 cm). Infinite when the fit is not finite."""
-    k = cfg.distortion_fit_sigmas
+    # under the odometry prior the bend's sigma is a posterior's, a calibrated 1 sigma; from the
+    # maps alone it is counted `distortion_fit_sigmas` times (its standard errors run small, DRIFT_FLOOR_DEG_PER_M)
+    k = 1.0 if bend.prior == "applied" else cfg.distortion_fit_sigmas
     reg = np.asarray(registration_m, float)
     if not all(map(math.isfinite, (bend.shift_m, bend.sigma_m, bend.rotation_shift_deg, bend.rotation_sigma_deg,
                                    bend.floor_sigma_m, bend.rotation_floor_sigma_deg, registration_rot_deg))):
@@ -1230,12 +1258,19 @@ def localize(
         if len(inl) >= cfg.min_inliers_distortion_fit:
             arcs = ((vehicle.sighting_arc_m, vehicle.sighting_arc_min_m, vehicle.sighting_arc_max_m)
                     if vehicle.has_sighting_arcs else None)
-            bend = bending_fit(T, Pv, Pr, inl, query, path, math.sqrt((2 * sigma_h**2 + sigma_z**2) / 3),
-                               cfg.refine_radius_m, cfg.distortion_fit_rounds, arcs, cfg.max_sighting_span_m,
-                               cfg.min_inliers_distortion_fit,
-                               None if cfg.odometry_prior_drift_deg_per_m is None
-                               else math.radians(cfg.odometry_prior_drift_deg_per_m),
-                               cfg.odometry_prior_scale_error)
+            fit_args = (T, Pv, Pr, inl, query, path, math.sqrt((2 * sigma_h**2 + sigma_z**2) / 3),
+                        cfg.refine_radius_m, cfg.distortion_fit_rounds, arcs, cfg.max_sighting_span_m,
+                        cfg.min_inliers_distortion_fit)
+            bend = bending_fit(*fit_args)  # from the maps alone
+            prior = (None if cfg.odometry_prior_drift_deg_per_m is None else math.radians(cfg.odometry_prior_drift_deg_per_m),
+                     cfg.odometry_prior_scale_error)
+            if any(v is not None for v in prior):
+                conflict = prior_conflict(bend, *prior)
+                if conflict <= PRIOR_CONFLICT_SIGMAS:
+                    bend = bending_fit(*fit_args, *prior)
+                    bend.prior = "applied"
+                else:  # the maps show a bend real odometry does not make: the prior does not describe them
+                    bend.prior = f"rejected: the maps' bend is {conflict:.1f} sigma from the prior"
     pred = pred_fit + distortion  # the distortion is a bound (a bias), not a random error: added, not in quadrature
     rot_sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(C_c[3:, 3:]))), 0.0)) if np.all(np.isfinite(C_c)) else math.inf
     pred_rot_deg = math.degrees(rot_sigma + float(distortion_rot.max()))
