@@ -901,7 +901,7 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
 #: A bend the maps alone fit this many sigma (their standard error and the prior's combined) away
 #: from the prior's zero is one real odometry does not make: the prior is not applied (issue 30:
 #: a 0.1 deg/m map, shrunk towards the 0.012 deg/m prior, was claimed 14 cm off)
-PRIOR_CONFLICT_SIGMAS = 2.0
+PRIOR_CONFLICT_SIGMAS = 1.0
 
 
 def prior_conflict(bend: "BendFit", prior_drift_rad_per_m: float | None, prior_scale_error: float | None) -> float:
