@@ -158,7 +158,7 @@ class LocalizationConfig:
     # predicted error. 0 states a rigid map (e.g. built from ground-truth poses).
     odometry_scale_error: float | None = None
     odometry_heading_drift_deg_per_m: float | None = None
-    distortion_fit_sigmas: float = 2.0  # no bounds stated, the fit from the maps alone: allowance = fitted bend's shift + this many sigmas (under the prior: 1)
+    distortion_fit_sigmas: float = 2.0  # no bounds stated: allowance = fitted bend's shift + this many sigmas
     # no bounds stated: 1-sigma prior on the odometry's heading drift (deg/m) and scale error that
     # regularises the bend fit (None: unconstrained, the fit from the maps alone). Defaults: what
     # real rover odometry shows (PRIOR_DRIFT_DEG_PER_M, PRIOR_SCALE_ERROR; docs/verification.md)
@@ -873,11 +873,9 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
             pass
     # Real maps bend and stretch a little beyond what their noise says (measured floors): the
     # floors' effect at the query points with the rigid part re-fitted to the inliers (what the
-    # inliers absorb of a bend does not move the pose). A 1-sigma spread, kept apart. With a
-    # prior the fit models that distortion itself (its posterior holds it where the maps do not
-    # fix the bend): no floor on top.
-    floor = (np.array([math.radians(DRIFT_FLOOR_DEG_PER_M), SCALE_FLOOR]) ** 2 if prior_sd is None
-             else np.zeros(2))
+    # inliers absorb of a bend does not move the pose). A 1-sigma spread, kept apart, under the
+    # prior too (without it, bent maps were claimed wrong: see fitted_predicted_error).
+    floor = np.array([math.radians(DRIFT_FLOOR_DEG_PER_M), SCALE_FLOOR]) ** 2
     try:
         G = Jq[:, 6:] - Jq[:, :6] @ np.linalg.solve(J[:, :6].T @ J[:, :6], J[:, :6].T @ J[:, 6:])
         var_floor = G**2 @ floor
@@ -937,9 +935,11 @@ def fitted_predicted_error(bend: BendFit, cfg: "LocalizationConfig", registratio
     The shift counts even when the bend is not significant: gating it on a chi-square test let
     a 2.3-sigma bend through (pair 4-9, 0.025 deg/m, 60 m window: 10.3 cm / 1.03 deg off,
     predicted 5.5 cm). Infinite when the fit is not finite."""
-    # under the odometry prior the bend's sigma is a posterior's, a calibrated 1 sigma; from the
-    # maps alone it is counted `distortion_fit_sigmas` times (its standard errors run small, DRIFT_FLOOR_DEG_PER_M)
-    k = 1.0 if bend.prior == "applied" else cfg.distortion_fit_sigmas
+    # counted `distortion_fit_sigmas` times, under the prior too: the fit's standard errors run
+    # small on real maps (DRIFT_FLOOR_DEG_PER_M), and at 1 sigma under the prior, with no floor,
+    # bent maps the inliers could not see (0.05-0.1 deg/m, 11 inliers, 30 m windows: pairs 4-14,
+    # 7-15) were claimed 21-24 cm off with 6.5-8.4 cm predicted (issue 30)
+    k = cfg.distortion_fit_sigmas
     reg = np.asarray(registration_m, float)
     if not all(map(math.isfinite, (bend.shift_m, bend.sigma_m, bend.rotation_shift_deg, bend.rotation_sigma_deg,
                                    bend.floor_sigma_m, bend.rotation_floor_sigma_deg, registration_rot_deg))):
