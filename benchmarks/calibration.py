@@ -1,4 +1,4 @@
-"""Calibration of the localizer's claims (issue 30): claimed, right, confident-wrong and the
+"""Calibration of the localizer's claims: claimed, right, confident-wrong and the
 NEES shares per family of maps, configuration (the CLI's default: no odometry bounds stated;
 the maps stated rigid) and search (full, indexed, auto). The families and the judging are in
 :mod:`lunarloc.pipeline.calibration`; this prints the table and writes every outcome as JSON.

@@ -1,4 +1,4 @@
-"""A fast subset of the calibration families (lunarloc.pipeline.calibration, issue 30): no
+"""A fast subset of the calibration families (lunarloc.pipeline.calibration): no
 confident-wrong pose from any search or configuration, repeated worlds through the indexed
 search included. The whole benchmark is benchmarks/calibration.py."""
 
@@ -15,7 +15,7 @@ from lunarloc.pipeline.calibration import (
 )
 
 # (family, seed, search, config): the repeated worlds through the indexed search (lattices 2 and 5
-# were claimed 13 m and 34 m off before issue 30; 5 holds 2,116 rocks, so auto is indexed; what large
+# were claimed 13 m and 34 m off before the like-against-like judgement; 5 holds 2,116 rocks, so auto is indexed; what large
 # maps and the CLI's auto search from 2,000 rocks use), and one case of every other family
 # through the CLI's default (auto search, no odometry bounds)
 FAST = (

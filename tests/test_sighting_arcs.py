@@ -130,7 +130,7 @@ def test_revisited_landmarks_placed_where_seen_refuse_the_wrong_pose(monkeypatch
         r = localize(ref, v, cfg, query_xyz=o[-1:], path_xyz=o)
         return r, float(np.linalg.norm(transform_points(r.T_ref_veh, o[-1:])[0] - g[-1]))
 
-    # the default, the fit under the odometry prior (issue 30), refuses the 0.1 deg/m map too: the
+    # the default, the fit under the odometry prior, refuses the 0.1 deg/m map too: the
     # drift the maps show is well beyond what the prior allows, and the fit finds it
     prior, err_prior = run(veh, LocalizationConfig())
     assert not prior.success or err_prior < 0.10, (prior.reason, err_prior)

@@ -51,7 +51,7 @@ class IndexConfig:
     yaw_cell_deg: float = 10.0  # vote cell for the yaw
     # candidate regions checked by the exact search at most: enough that a repeated world (a
     # lattice, a copied map) shows its repeats among them, so the answer is judged against them
-    # (issue 30: with 3, a 2 m lattice claimed the wrong copy in 16 of 272 runs)
+    # (with 3, 2 m jittered lattices were claimed at the wrong copy in 15 of 40 runs, docs/verification.md)
     max_candidates: int = 8
     competitor_vote_ratio: float = 0.1  # the runner-up region is checked exactly from this share of the winner's votes
     min_votes: int = 4  # a candidate needs this many (neighbourhood-summed) votes

@@ -193,7 +193,7 @@ def localize_large(
     # refined inlier counts against the winner's refined count, and every consistent set
     # (the other regions' cliques, the competitor inside the winner's crop) against the
     # winner's clique. A refined count against a raw clique flatters the winner: on a lattice
-    # every copy refines to nearly all the vehicle map's landmarks (issue 30)
+    # every copy refines to nearly all the vehicle map's landmarks (docs/verification.md)
     comp_clique, comp_refined, comp_region = best.competitor_size, 0, -1
     for i, r in done:
         if i != w and not _same_pose(r, best, cfg):

@@ -101,7 +101,7 @@ _TOLERANCE_EXPONENT = 0.65  # measured: largest ratio of chance sets 2.0 at 3x t
 #: 0.0006-0.025 deg/m, RMS 0.012; final position error 0.12-0.56 % of the path, RMS 0.31 % (an
 #: upper bound on the scale error: it holds the heading drift's lever too). The bend fit is
 #: regularised by it: two maps that do not fix the bend (few inliers, far from the query) fall
-#: back on what real odometry does, not on an unconstrained fit (metres; issue 30).
+#: back on what real odometry does, not on an unconstrained fit (metres).
 PRIOR_DRIFT_DEG_PER_M = 0.012
 PRIOR_SCALE_ERROR = 0.003
 
@@ -897,8 +897,9 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
 
 
 #: A bend the maps alone fit this many sigma (their standard error and the prior's combined) away
-#: from the prior's zero is one real odometry does not make: the prior is not applied (issue 30:
-#: a 0.1 deg/m map, shrunk towards the 0.012 deg/m prior, was claimed 14 cm off)
+#: from the prior's zero is one real odometry does not make: the prior is not applied. Shrunk
+#: towards the prior, a 0.1 deg/m map was claimed 14 cm off (tests/test_sighting_arcs.py), and
+#: at 2 sigma pair 10-14 (0.05 deg/m, 30 m window, 1.9 sigma) 10.9 cm off (docs/verification.md)
 PRIOR_CONFLICT_SIGMAS = 1.0
 
 
@@ -938,7 +939,7 @@ def fitted_predicted_error(bend: BendFit, cfg: "LocalizationConfig", registratio
     # counted `distortion_fit_sigmas` times, under the prior too: the fit's standard errors run
     # small on real maps (DRIFT_FLOOR_DEG_PER_M), and at 1 sigma under the prior, with no floor,
     # bent maps the inliers could not see (0.05-0.1 deg/m, 11 inliers, 30 m windows: pairs 4-14,
-    # 7-15) were claimed 21-24 cm off with 6.5-8.4 cm predicted (issue 30)
+    # 7-15) were claimed 21-24 cm off with 6.5-8.4 cm predicted
     k = cfg.distortion_fit_sigmas
     reg = np.asarray(registration_m, float)
     if not all(map(math.isfinite, (bend.shift_m, bend.sigma_m, bend.rotation_shift_deg, bend.rotation_sigma_deg,

@@ -206,7 +206,7 @@ RIGID_WINDOW = {"odometry_scale_error": 0.0, "odometry_heading_drift_deg_per_m":
 #: The loop's windows keep the bend fit they were measured with (docs/online-component.md):
 #: unconstrained by the one-shot's odometry prior, its sigma counted twice, the measured floor on
 #: top (the config's defaults without the prior). A calibrated window's drift is what the pose graph left, not raw odometry's, so the
-#: one-shot prior (issue 30) does not describe it; re-measuring the loop with it is open.
+#: one-shot prior does not describe it; re-measuring the loop with it is open.
 LOOP_BEND_FIT = {"odometry_prior_drift_deg_per_m": None, "odometry_prior_scale_error": None}
 
 
