@@ -116,8 +116,8 @@ def localize_cmd(
     dem: Optional[Path] = typer.Option(None, "--dem", help="LAC geometric map giving heights to a catalogue without z."),
     odometry_scale_error: Optional[float] = typer.Option(
         None, help="Bound on the vehicle map's relative scale error (its odometry's spec, 0.03 = 3 %; 0: a rigid "
-        "map). Without either bound the distortion is fitted from the maps under a prior of real rover odometry "
-        "(0.012 deg/m, 0.3 %; docs/verification.md)."
+        "map). Without either bound the distortion is fitted from the maps, under a prior of real rover odometry "
+        "(0.012 deg/m, 0.3 %; docs/verification.md) when the vehicle is a traverse CSV (its path known)."
     ),
     odometry_drift: Optional[float] = typer.Option(
         None, help="Bound on the odometry's heading drift, degrees per metre (0: a rigid map)."
