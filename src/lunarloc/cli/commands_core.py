@@ -191,8 +191,9 @@ def localize_cmd(
             f"no odometry bounds stated: fitted heading drift {math.degrees(f['drift_rad_per_m']):+.3f} "
             f"+- {math.degrees(f['drift_se']):.3f} deg/m, scale error {f['scale_error'] * 100:+.2f} "
             f"+- {f['scale_se'] * 100:.2f} % ({'along the given path' if f['path_given'] else 'path unknown: straight stand-in'}"
-            + ("" if cfg.odometry_prior_drift_deg_per_m is None else
-               f"; prior {cfg.odometry_prior_drift_deg_per_m:g} deg/m, {(cfg.odometry_prior_scale_error or 0) * 100:g} %")
+            + ("" if f.get("prior", "none") == "none" else
+               f"; odometry prior {cfg.odometry_prior_drift_deg_per_m:g} deg/m, "
+               f"{(cfg.odometry_prior_scale_error or 0) * 100:g} %: {f['prior']}")
             + ")"
         )
     if res.checks:
