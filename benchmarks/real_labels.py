@@ -105,7 +105,7 @@ def run(data_dir: Path, labels: dict, cfg=None, frames_wanted=None, misses: list
         figure_dir: Path | None = None) -> dict:
     import cv2
 
-    from lunarloc.geometry import pose_to_matrix
+    from lunarloc.core.geometry import pose_to_matrix
     from lunarloc.perception.camera import PinholeCamera, ipex_rig
     from lunarloc.perception.detector import Detector, DetectorConfig
 
@@ -186,7 +186,7 @@ def main(argv=None) -> int:
     data = a.data or default_data_dir()
     cfg = None
     if a.config is not None:
-        from lunarloc.config import load_config_file
+        from lunarloc.config.run import load_config_file
 
         cfg = load_config_file(a.config)[0].detector
     misses: list | None = [] if a.misses is not None else None
