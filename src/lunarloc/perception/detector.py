@@ -46,8 +46,10 @@ from lunarloc.perception.masks import (
     classify_mask,
     image_reject_reason,
     mask_stats,
+    size_from_sigma,
 )
 from lunarloc.perception.segment import ClassicalConfig, Segmenter, SegmenterKind, make_segmenter
+from lunarloc.perception.small_rocks import SmallRockConfig, detect_small_rocks, ground_plane
 from lunarloc.perception.stereo import (
     GroundConfig,
     HeightMap,
@@ -487,6 +489,13 @@ class DetectorConfig:
     # dropped when the lander's map position is given (LAC lander: legs and pads
     # ~1.9 m from its centre; fiducial panels and their shadows around it).
     lander_radius_m: float = 2.2
+    # Small rocks near the rover (3-8 cm wide within 6 m), which the height map's half-
+    # resolution heights cannot see: bright-blob candidates checked by a full-resolution
+    # stereo height above a local ground fitted around each (perception/small_rocks.py; needs
+    # the height map, so the classical segmenter with STEREO_POINTS). Detections it adds carry
+    # tentative "" and height_ring_m = their height above that ground. See docs/perception.md,
+    # "Thirteenth pass". small_rocks.enabled False = the detector before issue 29.
+    small_rocks: SmallRockConfig = field(default_factory=SmallRockConfig)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "segmenter", SegmenterKind(self.segmenter))
@@ -1021,6 +1030,10 @@ class Detector:
             for k in [k for k, d in enumerate(dets) if d.tentative][::-1]:
                 kept_recs[k].reason = RejectReason.TENTATIVE
                 del dets[k], kept_recs[k]
+        if (cfg.small_rocks.enabled and fc is cfg.height_filters and cfg.centre_method is CentreMethod.STEREO_POINTS
+                and np.isfinite(hm.depth).any()):
+            self._add_small_rocks(L, right, hm, masks, records, dets, T_rover_optical, T_map_rover, camera_name,
+                                  lander_xy)
         t3 = time.perf_counter()
         for k, v in (("segment", t2 - t1), ("filter", t3 - t2), ("stereo", t1 - t0)):
             tm[k] = tm.get(k, 0.0) + v
@@ -1031,6 +1044,53 @@ class Detector:
             cv2 = import_cv2()
             depth = cv2.resize(hm.depth, (L.shape[1], L.shape[0]), interpolation=cv2.INTER_NEAREST)
         return PairResult(camera_name, masks, records, dets, depth, hm if keep_depth else None)
+
+    def _add_small_rocks(self, L, right, hm: HeightMap, masks: InstanceMasks, records: list[MaskRecord],
+                         dets: list[Detection], T_rover_optical: np.ndarray, T_map_rover: np.ndarray | None,
+                         camera_name: str, lander_xy: np.ndarray | None) -> None:
+        """The small-rock stage (DetectorConfig.small_rocks): its rocks join `dets` (and their
+        masks `masks`, with records); candidates it judged no rock get records with the reason
+        FLAT (too low above their local ground for its noise) or NOT_A_ROCK."""
+        cfg = self.config
+        sc = cfg.small_rocks
+        H, W = L.shape
+        exclude = np.zeros((H, W), bool)
+        for r in records:  # pixels already explained: kept detections and bodies judged no rock
+            if r.reason is None or r.reason in (RejectReason.NOT_A_ROCK, RejectReason.DUPLICATE):
+                m = masks[r.mask_index]
+                h, w = m.crop.shape
+                exclude[m.v0:m.v0 + h, m.u0:m.u0 + w] |= m.crop
+        n_up = ground_plane(hm.points_rover, hm.depth, sc.ground_range_m)
+        up_optical = T_rover_optical[:3, :3].T @ n_up if n_up is not None else None
+        found = detect_small_rocks(L, to_gray_u8(right), hm.disparity, hm.scale, self.camera,
+                                   self.height_stereo.baseline_m, sc, up_optical, exclude, keep_rejected=True)
+        alpha = self.camera.alpha
+        ray_to = T_rover_optical[:3, 3]
+        for rock in found:
+            m = InstanceMask(int(rock.u0), int(rock.v0), np.asarray(rock.crop, bool))
+            masks.masks.append(m)
+            st = mask_stats(m, masks.image_shape, border_px=cfg.height_filters.border_px)
+            D = float(rock.depth_m)
+            s = size_from_sigma(st.sigma_px, D, alpha)
+            rec = MaskRecord(len(masks.masks) - 1, st, D, s, None)
+            records.append(rec)
+            if rock.reason is not None:
+                rec.reason = RejectReason.FLAT if rock.reason == "flat" else RejectReason.NOT_A_ROCK
+                continue
+            R_est = 0.5 * float(rock.width_m)
+            P_rov = transform_points(T_rover_optical, rock.points_optical)
+            # the centre: the visible surface's median, centre_range_factor x R farther along
+            # the viewing ray (as STEREO_POINTS' MEDIAN estimator)
+            med = np.median(P_rov, axis=0)
+            ray = med - ray_to
+            p_rover = med + ray / (np.linalg.norm(ray) + 1e-12) * cfg.centre_range_factor * R_est
+            p = transform_points(np.linalg.inv(T_rover_optical), p_rover[None])[0]
+            det = replace(_detection(camera_name, st, D, s, R_est, p, p_rover, T_map_rover),
+                          height_m=float(rock.top_m), height_ring_m=float(rock.top_m))
+            if self._on_lander(det, lander_xy):
+                rec.reason = RejectReason.ON_LANDER
+                continue
+            dets.append(det)
 
     # ------------------------------------------------------------------ one frame
     def detect_frame(
