@@ -225,22 +225,33 @@ def small_rock_candidates(left: np.ndarray, disparity_lowres: np.ndarray, scale:
 
 
 class _Matcher:
-    """Cached OpenCV SGBM objects for the windows' band matches."""
+    """Cached OpenCV SGBM objects for the windows' band matches, one per band width."""
 
-    def __init__(self, block_size: int, band_px: int) -> None:
-        import cv2
+    def __init__(self, block_size: int, band_px: int, max_band_px: int = 64) -> None:
+        self.bs, self.nd, self.max_nd = block_size, band_px, max(band_px, max_band_px)
+        self._m: dict[int, object] = {}
 
-        bs = block_size
-        self.bs, self.nd = bs, band_px
-        self.m = cv2.StereoSGBM_create(minDisparity=0, numDisparities=band_px, blockSize=bs, P1=8 * bs * bs,
-                                       P2=32 * bs * bs, disp12MaxDiff=1, uniquenessRatio=10, speckleWindowSize=0,
-                                       mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+    def _sgbm(self, nd: int):
+        m = self._m.get(nd)
+        if m is None:
+            import cv2
 
-    def window(self, L: np.ndarray, R: np.ndarray, u0: int, v0: int, u1: int, v1: int, d0: float):
-        """Full-resolution disparity of L[v0:v1, u0:u1] searched in [d0 - nd/2, d0 + nd/2)."""
-        H, W = L.shape
+            bs = self.bs
+            m = cv2.StereoSGBM_create(minDisparity=0, numDisparities=nd, blockSize=bs, P1=8 * bs * bs, P2=32 * bs * bs,
+                                      disp12MaxDiff=1, uniquenessRatio=10, speckleWindowSize=0,
+                                      mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+            self._m[nd] = m
+        return m
+
+    def window(self, L: np.ndarray, R: np.ndarray, u0: int, v0: int, u1: int, v1: int, d_lo: float, d_hi: float):
+        """Full-resolution disparity of L[v0:v1, u0:u1] (NaN invalid) searched over a band that
+        holds [d_lo, d_hi] (the window's disparities from the height map; near the rover the
+        ground's disparity changes by tens of pixels over a window) with a margin of half the
+        configured band each side, at most max_band_px wide."""
         nd, bs = self.nd, self.bs
-        dmin = max(int(np.floor(d0)) - nd // 2, 0)
+        span = (d_hi - d_lo) + nd
+        nd = int(min(np.ceil(span / 16.0) * 16, self.max_nd))
+        dmin = max(int(np.floor(0.5 * (d_lo + d_hi))) - nd // 2, 0)
         la = u0 - nd - bs
         if u0 - dmin < 0 or u1 <= u0 or v1 <= v0:
             return None
@@ -252,7 +263,7 @@ class _Matcher:
             o[:, -a:] = img[v0:v1, 0:b]
             return o
 
-        d = self.m.compute(cols(L, la, u1), cols(R, la - dmin, u1 - dmin)).astype(np.float32)[:, u0 - la:] / 16.0
+        d = self._sgbm(nd).compute(cols(L, la, u1), cols(R, la - dmin, u1 - dmin)).astype(np.float32)[:, u0 - la:] / 16.0
         d[(d <= 0) | (d >= nd - 1)] = np.nan
         return d + dmin
 
@@ -299,7 +310,11 @@ def detect_small_rocks(left: np.ndarray, right: np.ndarray, disparity_lowres: np
         M = int(max(cfg.window_min_margin_px, cfg.window_margin * max(bw, bh)))
         a0, b0 = max(u0 - M, 0), max(v0 - M, 0)
         a1, b1 = min(u0 + bw + M, W), min(v0 + bh + M, H)
-        d = mt.window(L, R, a0, b0, a1, b1, d0)
+        # the height map's disparities over the window (full-resolution pixels)
+        wd_ = disparity_lowres[b0 // scale:(b1 - 1) // scale + 1, a0 // scale:(a1 - 1) // scale + 1]
+        wd_ = wd_[np.isfinite(wd_)] * scale
+        lo, hi = (np.percentile(wd_, [5, 95]) if wd_.size >= 8 else (d0, d0))
+        d = mt.window(L, R, a0, b0, a1, b1, min(lo, d0), max(hi, d0))
         if d is None:
             continue
         blob = np.zeros(d.shape, np.uint8)
