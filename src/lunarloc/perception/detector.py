@@ -656,6 +656,8 @@ class Detection:
     # rejected it ("" = a firm detection); kept only when a neighbouring frame's firm
     # detection confirms it (see DetectorConfig.tentative_max_range_m)
     tentative: str = ""
+    # found by the small-rock stage (DetectorConfig.small_rocks), not by the height map
+    small_rock: bool = False
 
 
 @dataclass
@@ -1023,6 +1025,11 @@ class Detector:
             rec.tentative = det.tentative
             dets.append(det)
             kept_recs.append(rec)
+        if (cfg.small_rocks.enabled and fc is cfg.height_filters and cfg.centre_method is CentreMethod.STEREO_POINTS
+                and np.isfinite(hm.depth).any()):
+            # before the duplicate test: a small-rock detection beside a larger one is dropped there
+            self._add_small_rocks(L, right, hm, masks, records, dets, kept_recs, T_rover_optical, T_map_rover,
+                                  camera_name, lander_xy)
         for k in sorted(_duplicates_firm_first(dets, cfg.duplicate_overlap_ratio), reverse=True):
             kept_recs[k].reason = RejectReason.DUPLICATE
             del dets[k], kept_recs[k]
@@ -1030,10 +1037,6 @@ class Detector:
             for k in [k for k, d in enumerate(dets) if d.tentative][::-1]:
                 kept_recs[k].reason = RejectReason.TENTATIVE
                 del dets[k], kept_recs[k]
-        if (cfg.small_rocks.enabled and fc is cfg.height_filters and cfg.centre_method is CentreMethod.STEREO_POINTS
-                and np.isfinite(hm.depth).any()):
-            self._add_small_rocks(L, right, hm, masks, records, dets, T_rover_optical, T_map_rover, camera_name,
-                                  lander_xy)
         t3 = time.perf_counter()
         for k, v in (("segment", t2 - t1), ("filter", t3 - t2), ("stereo", t1 - t0)):
             tm[k] = tm.get(k, 0.0) + v
@@ -1046,7 +1049,7 @@ class Detector:
         return PairResult(camera_name, masks, records, dets, depth, hm if keep_depth else None)
 
     def _add_small_rocks(self, L, right, hm: HeightMap, masks: InstanceMasks, records: list[MaskRecord],
-                         dets: list[Detection], T_rover_optical: np.ndarray, T_map_rover: np.ndarray | None,
+                         dets: list[Detection], kept_recs: list[MaskRecord], T_rover_optical: np.ndarray, T_map_rover: np.ndarray | None,
                          camera_name: str, lander_xy: np.ndarray | None) -> None:
         """The small-rock stage (DetectorConfig.small_rocks): its rocks join `dets` (and their
         masks `masks`, with records); candidates it judged no rock get records with the reason
@@ -1060,6 +1063,9 @@ class Detector:
                 m = masks[r.mask_index]
                 h, w = m.crop.shape
                 exclude[m.v0:m.v0 + h, m.u0:m.u0 + w] |= m.crop
+        import cv2
+
+        exclude = cv2.dilate(exclude.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0  # and their edges
         n_up = ground_plane(hm.points_rover, hm.depth, sc.ground_range_m)
         up_optical = T_rover_optical[:3, :3].T @ n_up if n_up is not None else None
         found = detect_small_rocks(L, to_gray_u8(right), hm.disparity, hm.scale, self.camera,
@@ -1086,11 +1092,12 @@ class Detector:
             p_rover = med + ray / (np.linalg.norm(ray) + 1e-12) * cfg.centre_range_factor * R_est
             p = transform_points(np.linalg.inv(T_rover_optical), p_rover[None])[0]
             det = replace(_detection(camera_name, st, D, s, R_est, p, p_rover, T_map_rover),
-                          height_m=float(rock.top_m), height_ring_m=float(rock.top_m))
+                          height_m=float(rock.top_m), height_ring_m=float(rock.top_m), small_rock=True)
             if self._on_lander(det, lander_xy):
                 rec.reason = RejectReason.ON_LANDER
                 continue
             dets.append(det)
+            kept_recs.append(rec)
 
     # ------------------------------------------------------------------ one frame
     def detect_frame(

@@ -402,5 +402,7 @@ def detect_small_rocks(left: np.ndarray, right: np.ndarray, disparity_lowres: np
                 out.append(SmallRock(u0, v0, crop.copy(), P[idx[bl]], top, float(s), width, depth, "too_wide"))
             continue
         out.append(SmallRock(a0 + x0r, b0 + y0r, rock[y0r:y1r, x0r:x1r].copy(), P[sel], top, float(s), width, depth))
-        taken[b0 + y0r:b0 + y1r, a0 + x0r:a0 + x1r] = True
+        # the rock and one rock width around it: other bright fragments of it are not rocks again
+        g2 = max(x1r - x0r, y1r - y0r)
+        taken[max(b0 + y0r - g2, 0):b0 + y1r + g2, max(a0 + x0r - g2, 0):a0 + x1r + g2] = True
     return out
