@@ -65,7 +65,10 @@ def _render(roll_deg: float, rock: tuple[float, float, float, float] | None, see
             nrm = (Xs - C) / rad
             light = -n * 0.7 + e_lat * 0.7
             shade = 150 + 90 * np.clip(nrm @ (light / np.linalg.norm(light)), 0, 1)
-            img[hit] = shade[hit] + 8 * rng.normal(0, 1, np.count_nonzero(hit))
+            # its texture fixed to its surface (the same in both views)
+            ta = cv2.remap(tex, ((Xs @ e_lat) / res_m * 2 + 800).astype(np.float32),
+                           ((Xs @ e_fwd + Xs @ n) / res_m * 2).astype(np.float32), cv2.INTER_LINEAR)
+            img[hit] = shade[hit] + 0.3 * (ta[hit] - 100)
         out.append(np.clip(img, 0, 255).astype(np.uint8))
     return out
 
@@ -73,10 +76,12 @@ def _render(roll_deg: float, rock: tuple[float, float, float, float] | None, see
 def _small_rocks(L, R, cfg=None):
     det = Detector(DetectorConfig(), CAM)
     T_ro = ipex_rig(CAM)["FrontLeft"].T_rover_optical
-    hm = det.height_map(L, R, T_ro)
+    hm = det.height_map(L, R, T_ro)  # levelled on the stereo ground plane when tilted
     n_up = ground_plane(hm.points_rover, hm.depth)
-    up = T_ro[:3, :3].T @ n_up if n_up is not None else None
+    up = hm.T_rover_optical[:3, :3].T @ n_up if n_up is not None else None
     rocks = detect_small_rocks(L, R, hm.disparity, hm.scale, CAM, BASELINE_M, cfg or SmallRockConfig(), up)
+    if n_up is not None and hm.T_level_rover is not None:
+        n_up = hm.T_level_rover[:3, :3].T @ n_up  # back in the rover frame
     return rocks, n_up, T_ro
 
 
@@ -135,3 +140,31 @@ def test_the_detector_reports_the_small_rock_and_can_be_switched_off():
 def test_bad_settings_are_refused(bad):
     with pytest.raises(ConfigError):
         SmallRockConfig(**bad)
+
+
+def test_the_detector_sees_the_same_rock_on_level_ground_and_rolled_20_degrees():
+    """No level-rover assumption: the roll is unknown to the detector (the rover frame is all it
+    has); it levels its height map on the plane fitted to the pair's own stereo points. Rolled
+    20 degrees, a 0.1 m rock at 4 m is found as on level ground; in the rover frame unlevelled it
+    was lost (the ground cells then hold a 20-degree slope)."""
+    from dataclasses import replace
+
+    T_ro = ipex_rig(CAM)["FrontLeft"].T_rover_optical
+    x, z, rad, top = -0.5, 4.0, 0.1, 0.09
+    found = {}
+    for roll in (0.0, 20.0):
+        L, R = _render(roll, (x, z, rad, top), seed=3)
+        pr = Detector(DetectorConfig(), CAM).detect_pair(L, R, T_ro)
+        u, v = _uv(x, z, roll)
+        hits = [d for d in pr.detections if abs(d.uv[0] - u) < 30 and abs(d.uv[1] - v) < 30]
+        assert len(hits) == 1, (roll, [d.uv for d in pr.detections])
+        found[roll] = hits[0]
+        if roll:
+            unlevelled = Detector(replace(DetectorConfig(), level_from_stereo=False), CAM).detect_pair(L, R, T_ro)
+            assert not [d for d in unlevelled.detections if abs(d.uv[0] - u) < 30 and abs(d.uv[1] - v) < 30]
+    a, b = found[0.0], found[20.0]
+    assert abs(a.radius_m - b.radius_m) < 0.2 * a.radius_m and abs(a.height_m - b.height_m) < 0.02
+    assert abs(a.depth_m - b.depth_m) < 0.15
+    # p_rover stays in the rover frame: the rock's distance from the camera is the same
+    cam = T_ro[:3, 3]
+    assert abs(np.linalg.norm(a.p_rover - cam) - np.linalg.norm(b.p_rover - cam)) < 0.1

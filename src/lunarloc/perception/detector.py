@@ -496,6 +496,19 @@ class DetectorConfig:
     # tentative "" and height_ring_m = their height above that ground. See docs/perception.md,
     # "Thirteenth pass". small_rocks.enabled False = the detector before issue 29.
     small_rocks: SmallRockConfig = field(default_factory=SmallRockConfig)
+    # No level-rover assumption: the height map (its ground cells, every height, "up") is
+    # built in the rover frame turned so that its z axis is the normal of the plane fitted to
+    # the pair's own stereo points within small_rocks.ground_range_m (perception/small_rocks.
+    # ground_plane), when that normal lies more than level_min_deg from the rover's z. A rover
+    # rolled or pitched on a slope then sees the same heights as on level ground, whatever its
+    # roll and pitch (IMU, ground truth or unknown: the detector never uses them). Detections'
+    # p_rover / p_map stay in the rover / map frame. False = the rover frame (before issue 29).
+    # level_min_deg 8: the real LAC frames' fitted planes lie 2-5 degrees off the rover's z
+    # (the terrain's own slope ahead, which the ground cells follow; levelling frame 99 by 5
+    # degrees moved one shadow blob over the seed threshold), while a synthetic 0.1 m rock at
+    # 4 m on ground rolled 20 degrees is lost without levelling (10 degrees: found either way).
+    level_from_stereo: bool = True
+    level_min_deg: float = 8.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "segmenter", SegmenterKind(self.segmenter))
@@ -526,6 +539,9 @@ class DetectorConfig:
             raise ConfigError("radius_per_size must be > 0")
         if not (self.max_rock_height_m > 0 and self.max_rock_radius_m > 0 and self.lander_radius_m >= 0):
             raise ConfigError("max_rock_height_m and max_rock_radius_m must be > 0, lander_radius_m >= 0")
+        if not (isinstance(self.level_from_stereo, bool) and 0.0 <= self.level_min_deg < 90.0):
+            raise ConfigError(f"level_from_stereo={self.level_from_stereo!r} must be true or false and level_min_deg="
+                              f"{self.level_min_deg!r} in [0, 90)")
         if not (self.quadric_contrast_per_radius >= 0 and self.quadric_contrast_max_m >= 0):
             raise ConfigError("quadric_contrast_per_radius and quadric_contrast_max_m must be >= 0")
         if not (self.top_per_radius > 0 and self.top_noise_m >= 0):
@@ -750,6 +766,14 @@ class Detector:
         hm = ground_height_map(
             disp, k, self.camera, self.height_stereo.baseline_m, T_rover_optical, self.config.ground, nd - 1.0
         )
+        if self.config.level_from_stereo:
+            n = ground_plane(hm.points_rover, hm.depth, self.config.small_rocks.ground_range_m)
+            if n is not None and np.degrees(np.arccos(np.clip(n[2], -1.0, 1.0))) > self.config.level_min_deg:
+                T_level_rover = np.eye(4)
+                T_level_rover[:3, :3] = _rotation_onto_z(n)
+                hm = ground_height_map(disp, k, self.camera, self.height_stereo.baseline_m,
+                                       T_level_rover @ T_rover_optical, self.config.ground, nd - 1.0)
+                hm.T_level_rover = T_level_rover
         hm.valid_u0 = 0 if self.config.height_stereo.full_width else nd * k
         return hm
 
@@ -901,6 +925,13 @@ class Detector:
         c0 = time.process_time()
         t0 = time.perf_counter()
         hm = self.height_map(L, right, T_rover_optical)
+        T_rover_level = None
+        if hm.T_level_rover is not None:
+            # work in the levelled frame; p_rover goes back to the rover frame at the end
+            T_rover_level = invert_transform(hm.T_level_rover)
+            T_rover_optical = hm.T_rover_optical
+            if T_map_rover is not None:
+                T_map_rover = T_map_rover @ T_rover_level
         t1 = time.perf_counter()
         if getattr(self.segmenter, "uses_stereo", False):
             masks = self.segmenter.segment(L, height=hm)
@@ -1046,6 +1077,8 @@ class Detector:
         if keep_depth:
             cv2 = import_cv2()
             depth = cv2.resize(hm.depth, (L.shape[1], L.shape[0]), interpolation=cv2.INTER_NEAREST)
+        if T_rover_level is not None:
+            dets[:] = [replace(d, p_rover=transform_points(T_rover_level, d.p_rover[None])[0]) for d in dets]
         return PairResult(camera_name, masks, records, dets, depth, hm if keep_depth else None)
 
     def _add_small_rocks(self, L, right, hm: HeightMap, masks: InstanceMasks, records: list[MaskRecord],
@@ -1141,6 +1174,18 @@ class Detector:
             )
             out.pairs[-1].T_rover_optical = mounts[left_name].T_rover_optical
         return out
+
+
+def _rotation_onto_z(n: np.ndarray) -> np.ndarray:
+    """The smallest rotation (3x3) taking the unit vector `n` onto +z (Rodrigues)."""
+    n = np.asarray(n, float) / np.linalg.norm(n)
+    z = np.array([0.0, 0.0, 1.0])
+    v = np.cross(n, z)
+    s, c = float(np.linalg.norm(v)), float(np.dot(n, z))
+    if s < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + K + K @ K * ((1 - c) / s**2)
 
 
 def on_lander(

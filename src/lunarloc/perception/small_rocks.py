@@ -194,7 +194,10 @@ def small_rock_candidates(left: np.ndarray, disparity_lowres: np.ndarray, scale:
         Z = fx * baseline_m / d0
     ok = np.isfinite(Z) & (Z >= cfg.min_range_m) & (Z <= cfg.max_range_m)
     order = np.flatnonzero(ok)
-    order = order[np.argsort(-z[pv[order], pu[order]], kind="stable")]
+    # strongest first by the contrast summed around the peak (a rock's lit face, a few pixels
+    # across, before the single bright speckles of the regolith's texture)
+    zs = cv2.GaussianBlur(np.maximum(z, 0), (0, 0), 1.5)
+    order = order[np.argsort(-zs[pv[order], pu[order]], kind="stable")]
     out = []
     claimed = np.zeros(z.shape, bool)
     for i in order:
