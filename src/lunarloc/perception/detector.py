@@ -493,7 +493,7 @@ class DetectorConfig:
     # resolution heights cannot see: bright-blob candidates checked by a full-resolution
     # stereo height above a local ground fitted around each (perception/small_rocks.py; needs
     # the height map, so the classical segmenter with STEREO_POINTS). Detections it adds carry
-    # tentative "" and height_ring_m = their height above that ground. See docs/perception.md,
+    # tentative "", small_rock True, height_m their height above that ground. See docs/perception.md,
     # "Thirteenth pass". small_rocks.enabled False = the detector before issue 29.
     small_rocks: SmallRockConfig = field(default_factory=SmallRockConfig)
     # No level-rover assumption: the height map (its ground cells, every height, "up") is
@@ -672,8 +672,10 @@ class Detection:
     # rejected it ("" = a firm detection); kept only when a neighbouring frame's firm
     # detection confirms it (see DetectorConfig.tentative_max_range_m)
     tentative: str = ""
-    # found by the small-rock stage (DetectorConfig.small_rocks), not by the height map
+    # found by the small-rock stage (DetectorConfig.small_rocks), not by the height map; its
+    # local ground's residual spread (metres; NaN for the height map's detections)
     small_rock: bool = False
+    ground_noise_m: float = float("nan")
 
 
 @dataclass
@@ -1125,7 +1127,8 @@ class Detector:
             p_rover = med + ray / (np.linalg.norm(ray) + 1e-12) * cfg.centre_range_factor * R_est
             p = transform_points(np.linalg.inv(T_rover_optical), p_rover[None])[0]
             det = replace(_detection(camera_name, st, D, s, R_est, p, p_rover, T_map_rover),
-                          height_m=float(rock.top_m), height_ring_m=float(rock.top_m), small_rock=True)
+                          height_m=float(rock.top_m), small_rock=True,
+                          ground_noise_m=float(rock.noise_m))
             if self._on_lander(det, lander_xy):
                 rec.reason = RejectReason.ON_LANDER
                 continue
