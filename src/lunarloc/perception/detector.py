@@ -1104,7 +1104,8 @@ class Detector:
         n_up = ground_plane(hm.points_rover, hm.depth, sc.ground_range_m)
         up_optical = T_rover_optical[:3, :3].T @ n_up if n_up is not None else None
         found = detect_small_rocks(L, to_gray_u8(right), hm.disparity, hm.scale, self.camera,
-                                   self.height_stereo.baseline_m, sc, up_optical, exclude, keep_rejected=True)
+                                   self.height_stereo.baseline_m, sc, up_optical, exclude, keep_rejected=True,
+                                   height_lowres=hm.height)
         alpha = self.camera.alpha
         ray_to = T_rover_optical[:3, 3]
         for rock in found:
