@@ -1093,8 +1093,10 @@ class Detector:
         sc = cfg.small_rocks
         H, W = L.shape
         exclude = np.zeros((H, W), bool)
-        for r in records:  # pixels already explained: kept detections and bodies judged no rock
-            if r.reason is None or r.reason in (RejectReason.NOT_A_ROCK, RejectReason.DUPLICATE):
+        # pixels the height map already judged: its blobs, kept or rejected, but those too small
+        # or too far for it (a small or far rock's top is what it saw of one)
+        for r in records:
+            if r.reason not in (RejectReason.FLAT, RejectReason.TOO_SMALL, RejectReason.TOO_FAR):
                 m = masks[r.mask_index]
                 h, w = m.crop.shape
                 exclude[m.v0:m.v0 + h, m.u0:m.u0 + w] |= m.crop
