@@ -1978,6 +1978,7 @@ REASON_COLOURS_BGR = {
     RejectReason.DUPLICATE: (255, 128, 0),
     RejectReason.UNCONFIRMED: (200, 200, 255),
     RejectReason.TENTATIVE: (255, 200, 200),
+    RejectReason.FLAT: (128, 128, 128),
 }
 KEPT_COLOUR_BGR = (0, 255, 0)
 
