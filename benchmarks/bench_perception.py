@@ -173,7 +173,7 @@ class Accumulator:
         # per target match (r >= 0.1, range <= 5): the error's parts, for --breakdown
         self.target_rows: list[tuple] = []
         self.small_near = np.zeros(2, int)  # [hit, visible]: 0.05 <= r < 0.1 within 3 m
-        self.tiny_near = np.zeros(2, int)  # [hit, visible]: 0.025 <= r < 0.05 within 3 m (issue 29)
+        self.tiny_near = np.zeros(2, int)  # [hit, visible]: 0.025 <= r < 0.05 within 3 m
         self.times: dict[str, list[float]] = {}
         # false positives within 5 m by what lies under the detection's image centroid
         self.fp_causes: dict[str, int] = {k: 0 for k in FP_CAUSES}

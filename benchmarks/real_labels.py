@@ -104,12 +104,11 @@ def summarize(frames: list[dict]) -> dict:
 def run(data_dir: Path, labels: dict, cfg=None, frames_wanted=None, misses: list | None = None,
         figure_dir: Path | None = None) -> dict:
     import cv2
+    from bench_perception import miss_stage
 
     from lunarloc.core.geometry import pose_to_matrix
     from lunarloc.perception.camera import PinholeCamera, ipex_rig
     from lunarloc.perception.detector import Detector, DetectorConfig
-
-    from bench_perception import miss_stage
 
     cam = labels["camera"]
     det = Detector(cfg or DetectorConfig(), PinholeCamera(cam["width_px"], cam["height_px"], cam["hfov_deg"]))
@@ -214,7 +213,7 @@ def main(argv=None) -> int:
                 w.writeheader()
                 for r in misses:
                     w.writerow({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in r.items()})
-        print(f"missed rocks by stage: " + ", ".join(f"{k} {v}" for k, v in Counter(r['stage'] for r in misses).most_common()))
+        print("missed rocks by stage: " + ", ".join(f"{k} {v}" for k, v in Counter(r['stage'] for r in misses).most_common()))
         for r in misses:
             print(f"  {r['rock_id']:7s} {r['width_m']:.3f} m wide at {r['range_m']:.2f} m: {r['stage']}"
                   + (f" ({r['tentative_rules']})" if r.get("tentative_rules") else "")

@@ -47,7 +47,7 @@ def test_scoring_counts_rocks_false_and_no_fire_detections_and_ignores_uncertain
         {"id": "c", "box": [500, 500, 510, 510], "range_m": 3.0, "width_m": 0.03, "certain": False},
         {"id": "d", "box": [700, 300, 710, 310], "range_m": 6.5, "width_m": 0.03, "certain": True}],
         "no_fire": [{"what": "lander", "polygon": [[900, 0], [1200, 0], [1200, 300], [900, 300]]}]}  # fmt: skip
-    det = lambda u, v, z: SimpleNamespace(uv=(u, v), depth_m=z, radius_m=0.02)  # noqa: E731
+    det = lambda u, v, z: SimpleNamespace(uv=(u, v), depth_m=z, radius_m=0.02)
     dets = [det(110, 110, 2.1), det(110, 110, 4.0),  # on a; the second at twice its range: false
             det(505, 505, 3.0), det(705, 305, 6.4),  # an uncertain label; a rock beyond 6 m: on a rock
             det(1000, 100, 5.0), det(50, 600, 1.0)]  # fmt: skip  # on the lander; off everything
@@ -59,7 +59,7 @@ def test_scoring_counts_rocks_false_and_no_fire_detections_and_ignores_uncertain
 
 @pytest.mark.skipif(not (LAC_REAL / "ipex" / "FrontLeft_1_179.png").is_file(), reason=f"real LAC pairs not in {LAC_REAL}")
 def test_detector_on_the_labelled_real_pairs():
-    """The issue-29 detector on the four real pairs: every rock of 8 cm or more within 6 m found,
+    """The detector on the four real pairs: every rock of 8 cm or more within 6 m found,
     nothing on the lander or the rover's shadow, nine detections in ten on rocks. The figures
     (docs/perception.md, "Thirteenth pass") are 8/8, 0, 26 of 27 and 26 of 47 rocks; the bounds
     leave a margin. Without the small-rock stage it finds 11 of 47, so the recall bound can fail."""

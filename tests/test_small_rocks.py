@@ -11,7 +11,11 @@ import pytest
 from lunarloc.core.errors import ConfigError
 from lunarloc.perception.camera import PinholeCamera, ipex_rig
 from lunarloc.perception.detector import Detector, DetectorConfig
-from lunarloc.perception.small_rocks import SmallRockConfig, detect_small_rocks, ground_plane
+from lunarloc.perception.small_rocks import (
+    SmallRockConfig,
+    detect_small_rocks,
+    ground_plane,
+)
 
 CAM = PinholeCamera(1280, 720, 70.0)
 BASELINE_M = 0.162

@@ -494,7 +494,7 @@ class DetectorConfig:
     # stereo height above a local ground fitted around each (perception/small_rocks.py; needs
     # the height map, so the classical segmenter with STEREO_POINTS). Detections it adds carry
     # tentative "", small_rock True, height_m their height above that ground. See docs/perception.md,
-    # "Thirteenth pass". small_rocks.enabled False = the detector before issue 29.
+    # "Thirteenth pass". small_rocks.enabled False = the detector without it.
     small_rocks: SmallRockConfig = field(default_factory=SmallRockConfig)
     # No level-rover assumption: the height map (its ground cells, every height, "up") is
     # built in the rover frame turned so that its z axis is the normal of the plane fitted to
@@ -502,7 +502,7 @@ class DetectorConfig:
     # ground_plane), when that normal lies more than level_min_deg from the rover's z. A rover
     # rolled or pitched on a slope then sees the same heights as on level ground, whatever its
     # roll and pitch (IMU, ground truth or unknown: the detector never uses them). Detections'
-    # p_rover / p_map stay in the rover / map frame. False = the rover frame (before issue 29).
+    # p_rover / p_map stay in the rover / map frame. False = the rover frame (as before).
     # level_min_deg 8: the real LAC frames' fitted planes lie 2-5 degrees off the rover's z
     # (the terrain's own slope ahead, which the ground cells follow; levelling frame 99 by 5
     # degrees moved one shadow blob over the seed threshold), while a synthetic 0.1 m rock at

@@ -38,7 +38,7 @@ import numpy as np
 
 from lunarloc.core.errors import ConfigError
 
-__all__ = ["SmallRockConfig", "SmallRock", "ground_plane", "small_rock_candidates", "detect_small_rocks"]
+__all__ = ["SmallRock", "SmallRockConfig", "detect_small_rocks", "ground_plane", "small_rock_candidates"]
 
 
 @dataclass(frozen=True)
@@ -288,7 +288,7 @@ def _fit_plane(P: np.ndarray):
     """Least-squares plane of (N, 3) points: centroid and unit normal towards the optical origin."""
     c = P.mean(axis=0)
     Q = P - c
-    w, v = np.linalg.eigh(Q.T @ Q)
+    _, v = np.linalg.eigh(Q.T @ Q)
     n = v[:, 0]
     if np.dot(n, c) > 0:  # the camera (origin) lies on the normal's side
         n = -n
