@@ -11,6 +11,7 @@ Usage
     python benchmarks/bench_perception.py --speed ARCHIVE.lac             # time one front pair
     python benchmarks/bench_perception.py ARCHIVE.lac ... --misses MISSES.csv  # where each miss is lost, rocks missed most
     python benchmarks/bench_perception.py --pool RUN1.json RUN2.json ...  # pool earlier runs' sites, with intervals
+    python benchmarks/bench_perception.py --real-labels [DIR] [--misses M.csv]  # the labelled real LAC pairs
 
 Archives must come from `lunarloc simulate` (they hold ``custom/rocks.csv`` and the
 semantic images). The image size and field of view are read from each archive
@@ -704,7 +705,18 @@ def main(argv=None) -> int:
                     help="write each missed sighting of a rock r >= 0.1 m within 5 m, with the stage where it was "
                     "lost (the mask overlapping it most: its reject reason, or kept but off-centre; or no blob), to "
                     "this CSV, and print the counts by stage and the rocks missed most")
+    ap.add_argument("--real-labels", type=Path, nargs="?", const=Path(""), default=None, metavar="DIR",
+                    help="score the hand-labelled real LAC pairs (tests/data/lac_real_labels.json; images in DIR, default "
+                    "$LUNARLOC_LAC_REAL or ../shared/data/lac-real) with benchmarks/real_labels.py, with --config, "
+                    "--misses and --json passed on, and stop")
     a = ap.parse_args(argv)
+    if a.real_labels is not None:
+        import real_labels
+
+        args = (["--data", str(a.real_labels)] if str(a.real_labels) not in ("", ".") else [])
+        for flag, v in (("--config", a.config), ("--misses", a.misses), ("--json", a.json)):
+            args += [flag, str(v)] if v is not None else []
+        return real_labels.main(args)
     base = DetectorConfig()
     if a.config is not None:
         from lunarloc.config.run import load_config_file
