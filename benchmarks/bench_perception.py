@@ -709,13 +709,19 @@ def main(argv=None) -> int:
                     help="score the hand-labelled real LAC pairs (tests/data/lac_real_labels.json; images in DIR, default "
                     "$LUNARLOC_LAC_REAL or ../shared/data/lac-real) with benchmarks/real_labels.py, with --config, "
                     "--misses and --json passed on, and stop")
+    ap.add_argument("--small-rocks", action="store_true",
+                    help="turn the small-rock stage on (DetectorConfig.small_rocks.enabled; off by default)")
     a = ap.parse_args(argv)
+    if a.small_rocks and a.real_labels is None:
+        ap.error("--small-rocks goes with --real-labels; for archives give --config with "
+                 '{"detector": {"small_rocks": {"enabled": true}}}')
     if a.real_labels is not None:
         import real_labels
 
         args = (["--data", str(a.real_labels)] if str(a.real_labels) not in ("", ".") else [])
         for flag, v in (("--config", a.config), ("--misses", a.misses), ("--json", a.json)):
             args += [flag, str(v)] if v is not None else []
+        args += ["--small-rocks"] if a.small_rocks else []
         return real_labels.main(args)
     base = DetectorConfig()
     if a.config is not None:

@@ -1,6 +1,6 @@
 """Score the rock detector on the hand-labelled real LAC pairs (tests/data/lac_real_labels.json).
 
-    python benchmarks/real_labels.py [--data DIR] [--labels JSON] [--config RUN_CONFIG.json]
+    python benchmarks/real_labels.py [--data DIR] [--labels JSON] [--config RUN_CONFIG.json] [--small-rocks]
         [--frames lac99 ipex179 ...] [--misses OUT.csv] [--figure-dir DIR] [--json OUT.json]
 
 DIR defaults to $LUNARLOC_LAC_REAL or ../shared/data/lac-real. Each pair runs once through
@@ -178,6 +178,8 @@ def main(argv=None) -> int:
     ap.add_argument("--labels", type=Path, default=LABELS)
     ap.add_argument("--config", type=Path, default=None, help="a run configuration whose detector section is used")
     ap.add_argument("--frames", nargs="*", default=None)
+    ap.add_argument("--small-rocks", action="store_true",
+                    help="turn the small-rock stage on (DetectorConfig.small_rocks.enabled; off by default)")
     ap.add_argument("--misses", type=Path, default=None, help="write each missed rock and its stage to this CSV")
     ap.add_argument("--figure-dir", type=Path, default=None)
     ap.add_argument("--json", type=Path, default=None)
@@ -188,6 +190,14 @@ def main(argv=None) -> int:
         from lunarloc.config.run import load_config_file
 
         cfg = load_config_file(a.config)[0].detector
+    if a.small_rocks:
+        from dataclasses import replace
+
+        from lunarloc.perception.detector import DetectorConfig
+        from lunarloc.perception.small_rocks import SmallRockConfig
+
+        base = cfg or DetectorConfig()
+        cfg = replace(base, small_rocks=replace(base.small_rocks, enabled=True))
     misses: list | None = [] if a.misses is not None else None
     res = run(data, load_labels(a.labels), cfg, a.frames, misses, a.figure_dir)
     for f in res["frames"]:

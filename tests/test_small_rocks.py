@@ -125,17 +125,18 @@ def test_bare_ground_gives_no_small_rock_and_its_tilt_is_measured(roll_deg):
     assert np.degrees(np.arccos(np.clip(n_up @ up_rover, -1, 1))) < 2.0
 
 
-def test_the_detector_reports_the_small_rock_and_can_be_switched_off():
+def test_the_detector_reports_the_small_rock_when_the_stage_is_on_and_not_by_default():
     from dataclasses import replace
 
     L, R = _render(10.0, (-0.2, 2.0, 0.02, 0.02), seed=2)
     T_ro = ipex_rig(CAM)["FrontLeft"].T_rover_optical
-    on = Detector(DetectorConfig(), CAM).detect_pair(L, R, T_ro)
-    off_cfg = replace(DetectorConfig(), small_rocks=SmallRockConfig(enabled=False))
-    off = Detector(off_cfg, CAM).detect_pair(L, R, T_ro)
+    on_cfg = replace(DetectorConfig(), small_rocks=SmallRockConfig(enabled=True))
+    on = Detector(on_cfg, CAM).detect_pair(L, R, T_ro)
+    off = Detector(DetectorConfig(), CAM).detect_pair(L, R, T_ro)
     u, v = _uv(-0.2, 2.0, 10.0)
     hits = [d for d in on.detections if abs(d.uv[0] - u) < 25 and abs(d.uv[1] - v) < 25]
     assert len(hits) == 1 and abs(hits[0].depth_m - 2.0) < 0.25 and 0.01 < hits[0].radius_m < 0.05
+    assert hits[0].small_rock and not DetectorConfig().small_rocks.enabled
     assert not [d for d in off.detections if abs(d.uv[0] - u) < 25 and abs(d.uv[1] - v) < 25]
 
 

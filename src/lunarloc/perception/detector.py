@@ -494,7 +494,7 @@ class DetectorConfig:
     # stereo height above a local ground fitted around each (perception/small_rocks.py; needs
     # the height map, so the classical segmenter with STEREO_POINTS). Detections it adds carry
     # tentative "", small_rock True, height_m their height above that ground. See docs/perception.md,
-    # "Thirteenth pass". small_rocks.enabled False = the detector without it.
+    # "Thirteenth pass". Off by default (small_rocks.enabled; see SmallRockConfig.enabled).
     small_rocks: SmallRockConfig = field(default_factory=SmallRockConfig)
     # No level-rover assumption: the height map (its ground cells, every height, "up") is
     # built in the rover frame turned so that its z axis is the normal of the plane fitted to
