@@ -141,7 +141,9 @@ def test_the_detector_reports_the_small_rock_when_the_stage_is_on_and_not_by_def
 
 
 @pytest.mark.parametrize("bad", [dict(min_range_m=7.0), dict(block_size=4), dict(band_px=20), dict(max_tilt_deg=0.0),
-                                 dict(min_top_m=0.0), dict(max_candidates=-1), dict(contrast_z=0.0)])
+                                 dict(min_top_m=0.0), dict(max_candidates=-1), dict(contrast_z=0.0),
+                                 dict(max_aspect=float("nan")), dict(window_margin=0.0), dict(max_band_px=40),
+                                 dict(min_lowres_height_m=float("inf")), dict(low_top_snr=-1.0)])
 def test_bad_settings_are_refused(bad):
     with pytest.raises(ConfigError):
         SmallRockConfig(**bad)

@@ -121,6 +121,15 @@ class SmallRockConfig:
             raise ConfigError("min_top_m and max_top_per_width must be > 0, min_snr >= 0, max_tilt_deg in (0, 90]")
         if self.max_candidates < 0:
             raise ConfigError("max_candidates must be >= 0")
+        positive = ("max_aspect", "window_margin", "top_margin_m", "confident_top_m", "low_top_snr", "ground_range_m")
+        for name in positive:
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and np.isfinite(v) and v >= 0 and (v > 0 or name == "top_margin_m")):
+                raise ConfigError(f"{name}={v!r} must be a finite number > 0")
+        if not (np.isfinite(self.min_lowres_height_m) and self.min_lowres_height_m >= 0):
+            raise ConfigError(f"min_lowres_height_m={self.min_lowres_height_m!r} must be a finite number >= 0")
+        if self.max_band_px < self.band_px or self.max_band_px % 16 or self.min_ring_points < 6 or self.max_ring_points < 12:
+            raise ConfigError("max_band_px must be a multiple of 16 >= band_px, min_ring_points >= 6, max_ring_points >= 12")
 
 
 @dataclass
