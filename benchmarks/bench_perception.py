@@ -11,6 +11,7 @@ Usage
     python benchmarks/bench_perception.py --speed ARCHIVE.lac             # time one front pair
     python benchmarks/bench_perception.py ARCHIVE.lac ... --misses MISSES.csv  # where each miss is lost, rocks missed most
     python benchmarks/bench_perception.py --pool RUN1.json RUN2.json ...  # pool earlier runs' sites, with intervals
+    python benchmarks/bench_perception.py --real-labels [DIR] [--misses M.csv]  # the labelled real LAC pairs
 
 Archives must come from `lunarloc simulate` (they hold ``custom/rocks.csv`` and the
 semantic images). The image size and field of view are read from each archive
@@ -173,6 +174,7 @@ class Accumulator:
         # per target match (r >= 0.1, range <= 5): the error's parts, for --breakdown
         self.target_rows: list[tuple] = []
         self.small_near = np.zeros(2, int)  # [hit, visible]: 0.05 <= r < 0.1 within 3 m
+        self.tiny_near = np.zeros(2, int)  # [hit, visible]: 0.025 <= r < 0.05 within 3 m
         self.times: dict[str, list[float]] = {}
         # false positives within 5 m by what lies under the detection's image centroid
         self.fp_causes: dict[str, int] = {k: 0 for k in FP_CAUSES}
@@ -206,6 +208,7 @@ class Accumulator:
         self.rec += other.rec
         self.prec += other.prec
         self.small_near += other.small_near
+        self.tiny_near += other.tiny_near
         for k, v in other.fp_causes.items():
             self.fp_causes[k] += v
         for k in ("err3d", "err_xy", "err3d_surface", "err_target", "target_rows"):
@@ -257,6 +260,8 @@ class Accumulator:
                 self.rec[sb, rb, 1] += 1
                 small_near = 0.05 <= radii[j] < 0.1 and rng <= 3.0
                 self.small_near += [int(small_near and j in matched_rock), int(small_near)]
+                tiny_near = 0.025 <= radii[j] < 0.05 and rng <= 3.0
+                self.tiny_near += [int(tiny_near and j in matched_rock), int(tiny_near)]
                 if j not in matched_rock and self.misses is not None and radii[j] >= 0.1 and rng <= 5.0:
                     self.misses.append(dict(archive=self.archive, frame=fd.frame, camera=pair.camera, rock_id=r,
                                             radius_m=float(radii[j]), range_m=rng, **miss_stage(pair, rid == r)))
@@ -304,6 +309,8 @@ class Accumulator:
             "target_precision_est_r>=0.1_range<=5": float(prec_t[0] / max(prec_t[1], 1)),
             "recall_0.05<=r<0.1_range<=3": float(self.small_near[0] / max(self.small_near[1], 1)),
             "recall_0.05<=r<0.1_range<=3_counts": self.small_near.tolist(),
+            "recall_0.025<=r<0.05_range<=3": float(self.tiny_near[0] / max(self.tiny_near[1], 1)),
+            "recall_0.025<=r<0.05_range<=3_counts": self.tiny_near.tolist(),
             "frames_per_s": float(1.0 / max(sum(float(np.mean(v)) for k, v in self.times.items() if k != "cpu"), 1e-9)),
             # process CPU time per frame (all threads), when the detector reports it
             "cpu_ms_per_frame": float(1000.0 * np.mean(self.times["cpu"])) if "cpu" in self.times else float("nan"),
@@ -581,14 +588,15 @@ def lighting_label(path: Path) -> str:
 
 def print_groups(groups: dict[str, dict]) -> None:
     """One row per lighting: the issue's targets side by side."""
-    hdr = ("lighting", "frames", "P(<=5m)", "R(r>=.1,<=5m)", "R(.05-.1,<=3m)", "err50 cm", "err90 cm", "frames/s",
-           "CPU ms/frame")
+    hdr = ("lighting", "frames", "P(<=5m)", "R(r>=.1,<=5m)", "R(.05-.1,<=3m)", "R(.025-.05,<=3m)", "err50 cm",
+           "err90 cm", "frames/s", "CPU ms/frame")
     print(" | ".join(hdr))
     for name, s in groups.items():
         print(" | ".join([
             name, str(s["frames"]), f"{s['precision_range<=5']:.2f}", f"{s['target_recall_r>=0.1_range<=5']:.2f}",
-            f"{s['recall_0.05<=r<0.1_range<=3']:.2f}", f"{100 * s['centroid_err_target_median_m']:.1f}",
-            f"{100 * s['centroid_err_target_p90_m']:.1f}", f"{s['frames_per_s']:.1f}", f"{s['cpu_ms_per_frame']:.0f}",
+            f"{s['recall_0.05<=r<0.1_range<=3']:.2f}",
+            f"{s.get('recall_0.025<=r<0.05_range<=3', float('nan')):.2f} ({s.get('recall_0.025<=r<0.05_range<=3_counts', ['-', '-'])[1]})",
+            f"{100 * s['centroid_err_target_median_m']:.1f}", f"{100 * s['centroid_err_target_p90_m']:.1f}", f"{s['frames_per_s']:.1f}", f"{s['cpu_ms_per_frame']:.0f}",
         ]))  # fmt: skip
     ci = {name: s["site_bootstrap_ci90"] for name, s in groups.items() if s.get("site_bootstrap_ci90")}
     if ci:
@@ -697,7 +705,24 @@ def main(argv=None) -> int:
                     help="write each missed sighting of a rock r >= 0.1 m within 5 m, with the stage where it was "
                     "lost (the mask overlapping it most: its reject reason, or kept but off-centre; or no blob), to "
                     "this CSV, and print the counts by stage and the rocks missed most")
+    ap.add_argument("--real-labels", type=Path, nargs="?", const=Path(""), default=None, metavar="DIR",
+                    help="score the hand-labelled real LAC pairs (tests/data/lac_real_labels.json; images in DIR, default "
+                    "$LUNARLOC_LAC_REAL or ../shared/data/lac-real) with benchmarks/real_labels.py, with --config, "
+                    "--misses and --json passed on, and stop")
+    ap.add_argument("--small-rocks", action="store_true",
+                    help="turn the small-rock stage on (DetectorConfig.small_rocks.enabled; off by default)")
     a = ap.parse_args(argv)
+    if a.small_rocks and a.real_labels is None:
+        ap.error("--small-rocks goes with --real-labels; for archives give --config with "
+                 '{"detector": {"small_rocks": {"enabled": true}}}')
+    if a.real_labels is not None:
+        import real_labels
+
+        args = (["--data", str(a.real_labels)] if str(a.real_labels) not in ("", ".") else [])
+        for flag, v in (("--config", a.config), ("--misses", a.misses), ("--json", a.json)):
+            args += [flag, str(v)] if v is not None else []
+        args += ["--small-rocks"] if a.small_rocks else []
+        return real_labels.main(args)
     base = DetectorConfig()
     if a.config is not None:
         from lunarloc.config.run import load_config_file

@@ -21,10 +21,13 @@ from lunarloc.perception.detector import (
 )
 from lunarloc.perception.masks import MaskFilterConfig, RejectReason
 from lunarloc.perception.segment import ClassicalConfig
+from lunarloc.perception.small_rocks import SmallRockConfig
 
 # the shading-only segmenter and the paper's ray-shift centre (no height map)
 LEGACY = dict(classical=ClassicalConfig(use_height=False), centre_method="ray-shift")
 
+# the height map's rules alone: the small-rock stage off (it may see a rejected blob's rock)
+NO_SMALL = SmallRockConfig(enabled=False)
 CAM = PinholeCamera()
 B = 0.162
 
@@ -513,7 +516,8 @@ def _elongated_rock_kept_by_default(c, radius, off_cfg):
     T = rig["FrontLeft"].T_rover_optical
     from dataclasses import replace
 
-    off_cfg = replace(off_cfg, tentative_max_range_m=0.0)  # else a tentative (tests/test_tentative.py)
+    # else a tentative (tests/test_tentative.py) or a small rock (tests/test_small_rocks.py)
+    off_cfg = replace(off_cfg, tentative_max_range_m=0.0, small_rocks=NO_SMALL)
     off = Detector(off_cfg, CAM).detect_pair(left, right, T)
     assert off.detections == [] and [r.reason for r in off.records] == [RejectReason.ELONGATED]
     pr = Detector(DetectorConfig(), CAM).detect_pair(left, right, T)
@@ -531,7 +535,7 @@ def test_a_mid_range_rock_seen_as_a_flat_strip_is_kept():
     assert np.linalg.norm(d.p_rover[:2] - c[:2]) < 0.15
     assert d.extension_ratio <= DetectorConfig().strip_max_extension_ratio
     # a strip that goes on beyond its ends at its own height is a crest: rejected
-    crest = Detector(DetectorConfig(strip_max_extension_ratio=0.0, tentative_max_range_m=0.0), CAM).detect_pair(left, right, T)
+    crest = Detector(DetectorConfig(strip_max_extension_ratio=0.0, tentative_max_range_m=0.0, small_rocks=NO_SMALL), CAM).detect_pair(left, right, T)
     assert crest.detections == [] and [r.reason for r in crest.records] == [RejectReason.NOT_A_ROCK]
 
 
@@ -564,12 +568,12 @@ def test_a_large_rock_seen_as_a_raised_strip_is_kept():
     assert d.area_px >= cfg.raised_strip_min_area_px and d.height_quadric_m >= cfg.raised_strip_min_quadric_m
     assert np.linalg.norm(d.p_rover[:2] - c[:2]) < 0.1
     # a strip standing lower above its quadric ground than asked, or wider than allowed: rejected
-    for strict in (DetectorConfig(raised_strip_min_quadric_m=d.height_quadric_m + 0.01, tentative_max_range_m=0.0),
-                   DetectorConfig(raised_strip_max_radius_m=0.5 * d.radius_m, tentative_max_range_m=0.0)):
+    for strict in (DetectorConfig(raised_strip_min_quadric_m=d.height_quadric_m + 0.01, tentative_max_range_m=0.0, small_rocks=NO_SMALL),
+                   DetectorConfig(raised_strip_max_radius_m=0.5 * d.radius_m, tentative_max_range_m=0.0, small_rocks=NO_SMALL)):
         pr = Detector(strict, CAM).detect_pair(left, right, T)
         assert pr.detections == [] and [r.reason for r in pr.records] == [RejectReason.NOT_A_ROCK]
     # too few pixels to be a candidate: rejected as elongated, as before
-    pr = Detector(DetectorConfig(raised_strip_min_area_px=d.area_px + 1, tentative_max_range_m=0.0), CAM).detect_pair(left, right, T)
+    pr = Detector(DetectorConfig(raised_strip_min_area_px=d.area_px + 1, tentative_max_range_m=0.0, small_rocks=NO_SMALL), CAM).detect_pair(left, right, T)
     assert pr.detections == [] and [r.reason for r in pr.records] == [RejectReason.ELONGATED]
 
 

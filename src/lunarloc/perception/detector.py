@@ -46,8 +46,10 @@ from lunarloc.perception.masks import (
     classify_mask,
     image_reject_reason,
     mask_stats,
+    size_from_sigma,
 )
 from lunarloc.perception.segment import ClassicalConfig, Segmenter, SegmenterKind, make_segmenter
+from lunarloc.perception.small_rocks import SmallRockConfig, detect_small_rocks, ground_plane
 from lunarloc.perception.stereo import (
     GroundConfig,
     HeightMap,
@@ -487,6 +489,26 @@ class DetectorConfig:
     # dropped when the lander's map position is given (LAC lander: legs and pads
     # ~1.9 m from its centre; fiducial panels and their shadows around it).
     lander_radius_m: float = 2.2
+    # Small rocks near the rover (3-8 cm wide within 6 m), which the height map's half-
+    # resolution heights cannot see: bright-blob candidates checked by a full-resolution
+    # stereo height above a local ground fitted around each (perception/small_rocks.py; needs
+    # the height map, so the classical segmenter with STEREO_POINTS). Detections it adds carry
+    # tentative "", small_rock True, height_m their height above that ground. See docs/perception.md,
+    # "Thirteenth pass". Off by default (small_rocks.enabled; see SmallRockConfig.enabled).
+    small_rocks: SmallRockConfig = field(default_factory=SmallRockConfig)
+    # No level-rover assumption: the height map (its ground cells, every height, "up") is
+    # built in the rover frame turned so that its z axis is the normal of the plane fitted to
+    # the pair's own stereo points within small_rocks.ground_range_m (perception/small_rocks.
+    # ground_plane), when that normal lies more than level_min_deg from the rover's z. A rover
+    # rolled or pitched on a slope then sees the same heights as on level ground, whatever its
+    # roll and pitch (IMU, ground truth or unknown: the detector never uses them). Detections'
+    # p_rover / p_map stay in the rover / map frame. False = the rover frame (as before).
+    # level_min_deg 8: the real LAC frames' fitted planes lie 2-5 degrees off the rover's z
+    # (the terrain's own slope ahead, which the ground cells follow; levelling frame 99 by 5
+    # degrees moved one shadow blob over the seed threshold), while a synthetic 0.1 m rock at
+    # 4 m on ground rolled 20 degrees is lost without levelling (10 degrees: found either way).
+    level_from_stereo: bool = True
+    level_min_deg: float = 8.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "segmenter", SegmenterKind(self.segmenter))
@@ -517,6 +539,9 @@ class DetectorConfig:
             raise ConfigError("radius_per_size must be > 0")
         if not (self.max_rock_height_m > 0 and self.max_rock_radius_m > 0 and self.lander_radius_m >= 0):
             raise ConfigError("max_rock_height_m and max_rock_radius_m must be > 0, lander_radius_m >= 0")
+        if not (isinstance(self.level_from_stereo, bool) and 0.0 <= self.level_min_deg < 90.0):
+            raise ConfigError(f"level_from_stereo={self.level_from_stereo!r} must be true or false and level_min_deg="
+                              f"{self.level_min_deg!r} in [0, 90)")
         if not (self.quadric_contrast_per_radius >= 0 and self.quadric_contrast_max_m >= 0):
             raise ConfigError("quadric_contrast_per_radius and quadric_contrast_max_m must be >= 0")
         if not (self.top_per_radius > 0 and self.top_noise_m >= 0):
@@ -647,6 +672,10 @@ class Detection:
     # rejected it ("" = a firm detection); kept only when a neighbouring frame's firm
     # detection confirms it (see DetectorConfig.tentative_max_range_m)
     tentative: str = ""
+    # found by the small-rock stage (DetectorConfig.small_rocks), not by the height map; its
+    # local ground's residual spread (metres; NaN for the height map's detections)
+    small_rock: bool = False
+    ground_noise_m: float = float("nan")
 
 
 @dataclass
@@ -739,6 +768,14 @@ class Detector:
         hm = ground_height_map(
             disp, k, self.camera, self.height_stereo.baseline_m, T_rover_optical, self.config.ground, nd - 1.0
         )
+        if self.config.level_from_stereo:
+            n = ground_plane(hm.points_rover, hm.depth, self.config.small_rocks.ground_range_m)
+            if n is not None and np.degrees(np.arccos(np.clip(n[2], -1.0, 1.0))) > self.config.level_min_deg:
+                T_level_rover = np.eye(4)
+                T_level_rover[:3, :3] = _rotation_onto_z(n)
+                hm = ground_height_map(disp, k, self.camera, self.height_stereo.baseline_m,
+                                       T_level_rover @ T_rover_optical, self.config.ground, nd - 1.0)
+                hm.T_level_rover = T_level_rover
         hm.valid_u0 = 0 if self.config.height_stereo.full_width else nd * k
         return hm
 
@@ -890,6 +927,13 @@ class Detector:
         c0 = time.process_time()
         t0 = time.perf_counter()
         hm = self.height_map(L, right, T_rover_optical)
+        T_rover_level = None
+        if hm.T_level_rover is not None:
+            # work in the levelled frame; p_rover goes back to the rover frame at the end
+            T_rover_level = invert_transform(hm.T_level_rover)
+            T_rover_optical = hm.T_rover_optical
+            if T_map_rover is not None:
+                T_map_rover = T_map_rover @ T_rover_level
         t1 = time.perf_counter()
         if getattr(self.segmenter, "uses_stereo", False):
             masks = self.segmenter.segment(L, height=hm)
@@ -1014,6 +1058,11 @@ class Detector:
             rec.tentative = det.tentative
             dets.append(det)
             kept_recs.append(rec)
+        if (cfg.small_rocks.enabled and fc is cfg.height_filters and cfg.centre_method is CentreMethod.STEREO_POINTS
+                and np.isfinite(hm.depth).any()):
+            # before the duplicate test: a small-rock detection beside a larger one is dropped there
+            self._add_small_rocks(L, right, hm, masks, records, dets, kept_recs, T_rover_optical, T_map_rover,
+                                  camera_name, lander_xy)
         for k in sorted(_duplicates_firm_first(dets, cfg.duplicate_overlap_ratio), reverse=True):
             kept_recs[k].reason = RejectReason.DUPLICATE
             del dets[k], kept_recs[k]
@@ -1030,7 +1079,64 @@ class Detector:
         if keep_depth:
             cv2 = import_cv2()
             depth = cv2.resize(hm.depth, (L.shape[1], L.shape[0]), interpolation=cv2.INTER_NEAREST)
+        if T_rover_level is not None:
+            dets[:] = [replace(d, p_rover=transform_points(T_rover_level, d.p_rover[None])[0]) for d in dets]
         return PairResult(camera_name, masks, records, dets, depth, hm if keep_depth else None)
+
+    def _add_small_rocks(self, L, right, hm: HeightMap, masks: InstanceMasks, records: list[MaskRecord],
+                         dets: list[Detection], kept_recs: list[MaskRecord], T_rover_optical: np.ndarray, T_map_rover: np.ndarray | None,
+                         camera_name: str, lander_xy: np.ndarray | None) -> None:
+        """The small-rock stage (DetectorConfig.small_rocks): its rocks join `dets` (and their
+        masks `masks`, with records); candidates it judged no rock get records with the reason
+        FLAT (too low above their local ground for its noise) or NOT_A_ROCK."""
+        cfg = self.config
+        sc = cfg.small_rocks
+        H, W = L.shape
+        exclude = np.zeros((H, W), bool)
+        # pixels the height map already judged: its blobs, kept or rejected, but those too small
+        # or too far for it (a small or far rock's top is what it saw of one)
+        for r in records:
+            if r.reason not in (RejectReason.FLAT, RejectReason.TOO_SMALL, RejectReason.TOO_FAR):
+                m = masks[r.mask_index]
+                h, w = m.crop.shape
+                exclude[m.v0:m.v0 + h, m.u0:m.u0 + w] |= m.crop
+        import cv2
+
+        exclude = cv2.dilate(exclude.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0  # and their edges
+        n_up = ground_plane(hm.points_rover, hm.depth, sc.ground_range_m)
+        up_optical = T_rover_optical[:3, :3].T @ n_up if n_up is not None else None
+        found = detect_small_rocks(L, to_gray_u8(right), hm.disparity, hm.scale, self.camera,
+                                   self.height_stereo.baseline_m, sc, up_optical, exclude, keep_rejected=True,
+                                   height_lowres=hm.height)
+        alpha = self.camera.alpha
+        ray_to = T_rover_optical[:3, 3]
+        for rock in found:
+            m = InstanceMask(int(rock.u0), int(rock.v0), np.asarray(rock.crop, bool))
+            masks.masks.append(m)
+            st = mask_stats(m, masks.image_shape, border_px=cfg.height_filters.border_px)
+            D = float(rock.depth_m)
+            s = size_from_sigma(st.sigma_px, D, alpha)
+            rec = MaskRecord(len(masks.masks) - 1, st, D, s, None)
+            records.append(rec)
+            if rock.reason is not None:
+                rec.reason = RejectReason.FLAT if rock.reason == "flat" else RejectReason.NOT_A_ROCK
+                continue
+            R_est = 0.5 * float(rock.width_m)
+            P_rov = transform_points(T_rover_optical, rock.points_optical)
+            # the centre: the visible surface's median, centre_range_factor x R farther along
+            # the viewing ray (as STEREO_POINTS' MEDIAN estimator)
+            med = np.median(P_rov, axis=0)
+            ray = med - ray_to
+            p_rover = med + ray / (np.linalg.norm(ray) + 1e-12) * cfg.centre_range_factor * R_est
+            p = transform_points(np.linalg.inv(T_rover_optical), p_rover[None])[0]
+            det = replace(_detection(camera_name, st, D, s, R_est, p, p_rover, T_map_rover),
+                          height_m=float(rock.top_m), small_rock=True,
+                          ground_noise_m=float(rock.noise_m))
+            if self._on_lander(det, lander_xy):
+                rec.reason = RejectReason.ON_LANDER
+                continue
+            dets.append(det)
+            kept_recs.append(rec)
 
     # ------------------------------------------------------------------ one frame
     def detect_frame(
@@ -1074,6 +1180,18 @@ class Detector:
             )
             out.pairs[-1].T_rover_optical = mounts[left_name].T_rover_optical
         return out
+
+
+def _rotation_onto_z(n: np.ndarray) -> np.ndarray:
+    """The smallest rotation (3x3) taking the unit vector `n` onto +z (Rodrigues)."""
+    n = np.asarray(n, float) / np.linalg.norm(n)
+    z = np.array([0.0, 0.0, 1.0])
+    v = np.cross(n, z)
+    s, c = float(np.linalg.norm(v)), float(np.dot(n, z))
+    if s < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + K + K @ K * ((1 - c) / s**2)
 
 
 def on_lander(
@@ -1860,6 +1978,7 @@ REASON_COLOURS_BGR = {
     RejectReason.DUPLICATE: (255, 128, 0),
     RejectReason.UNCONFIRMED: (200, 200, 255),
     RejectReason.TENTATIVE: (255, 200, 200),
+    RejectReason.FLAT: (128, 128, 128),
 }
 KEPT_COLOUR_BGR = (0, 255, 0)
 

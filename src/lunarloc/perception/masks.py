@@ -214,6 +214,9 @@ class RejectReason(str, Enum):
     # a tentative mid-range detection (DetectorConfig.tentative_max_range_m) dropped
     # unconfirmed: detect_frame without keep_tentative, or no neighbouring frame saw it
     TENTATIVE = "tentative"
+    # a small-rock candidate (DetectorConfig.small_rocks) standing too low above its local
+    # ground for that ground's roughness
+    FLAT = "flat"
 
 
 @dataclass(frozen=True)

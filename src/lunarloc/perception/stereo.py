@@ -428,6 +428,10 @@ class HeightMap:
     scale: int
     valid_u0: int
     T_rover_optical: np.ndarray
+    # the levelling rotation (4x4) when the map was built in a frame levelled on the ground
+    # plane fitted to the stereo points (DetectorConfig.level_from_stereo): points_rover and
+    # T_rover_optical are then in that frame; None = the rover frame itself
+    T_level_rover: np.ndarray | None = None
 
     def lowres_index(self, mask) -> tuple[np.ndarray, np.ndarray]:
         """Unique low-resolution (rows, cols) covered by a full-resolution InstanceMask."""

@@ -1,0 +1,177 @@
+"""The small-rock stage (perception/small_rocks.py): a small rock on a textured plane, ray-cast
+into a synthetic stereo pair, is found from its full-resolution stereo height above a local
+ground, whether the ground is level or tilted (a rover rolled on a slope), and a bare plane
+gives nothing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lunarloc.core.errors import ConfigError
+from lunarloc.perception.camera import PinholeCamera, ipex_rig
+from lunarloc.perception.detector import Detector, DetectorConfig
+from lunarloc.perception.small_rocks import (
+    SmallRockConfig,
+    detect_small_rocks,
+    ground_plane,
+)
+
+CAM = PinholeCamera(1280, 720, 70.0)
+BASELINE_M = 0.162
+CAM_HEIGHT_M = 0.45
+
+
+def _render(roll_deg: float, rock: tuple[float, float, float, float] | None, seed: int = 0):
+    """Left and right images (uint8) of a plane CAM_HEIGHT_M below the cameras, rolled by
+    roll_deg about the optical axis, with an optional rock: a sphere (x_m, z_m, radius_m,
+    top_m) standing top_m above the plane at lateral x_m and depth z_m (before the roll).
+    The regolith is a smooth random texture fixed to the plane; the rock is brighter (lit)."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    res_m = 0.004  # texture pixels on the plane
+    tex = cv2.GaussianBlur(rng.normal(0, 1, (2600, 1600)).astype(np.float32), (0, 0), 1.2)
+    tex = 100 + 35 * tex / tex.std()
+    c, s = np.cos(np.radians(roll_deg)), np.sin(np.radians(roll_deg))
+    Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    n = Rz @ np.array([0.0, 1.0, 0.0])  # plane normal, pointing away from the cameras (y down)
+    e_lat, e_fwd = Rz @ np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])
+    sphere = None
+    if rock is not None:
+        x, z, rad, top = rock
+        g = CAM_HEIGHT_M * n + x * e_lat + z * e_fwd  # the ground point under the rock
+        sphere = (g - n * (top - rad), rad)
+    vv, uu = np.mgrid[0:CAM.height, 0:CAM.width].astype(float)
+    d = np.stack([(uu - CAM.cx) / CAM.fx, (vv - CAM.cy) / CAM.fx, np.ones_like(uu)], axis=-1)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    out = []
+    for ox in (0.0, BASELINE_M):
+        o = np.array([ox, 0.0, 0.0])
+        den = d @ n
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (CAM_HEIGHT_M - o @ n) / den
+        t[~(den > 1e-6)] = np.inf
+        X = o + np.where(np.isfinite(t), t, 0.0)[..., None] * d
+        a = (X @ e_lat) / res_m + 800
+        b = (X @ e_fwd) / res_m
+        img = cv2.remap(tex, a.astype(np.float32), b.astype(np.float32), cv2.INTER_LINEAR, borderValue=0)
+        img[~np.isfinite(t)] = 0
+        if sphere is not None:
+            C, rad = sphere
+            oc = o - C
+            bq = d @ oc
+            disc = bq * bq - (oc @ oc - rad * rad)
+            ts = -bq - np.sqrt(np.maximum(disc, 0))
+            Xs = o + ts[..., None] * d
+            hit = (disc > 0) & (ts > 0) & (ts < t) & ((Xs @ n) < CAM_HEIGHT_M)
+            # lit from above-right: brighter where the surface faces the light
+            nrm = (Xs - C) / rad
+            light = -n * 0.7 + e_lat * 0.7
+            shade = 150 + 90 * np.clip(nrm @ (light / np.linalg.norm(light)), 0, 1)
+            # its texture fixed to its surface (the same in both views)
+            ta = cv2.remap(tex, ((Xs @ e_lat) / res_m * 2 + 800).astype(np.float32),
+                           ((Xs @ e_fwd + Xs @ n) / res_m * 2).astype(np.float32), cv2.INTER_LINEAR)
+            img[hit] = shade[hit] + 0.3 * (ta[hit] - 100)
+        out.append(np.clip(img, 0, 255).astype(np.uint8))
+    return out
+
+
+def _small_rocks(L, R, cfg=None):
+    det = Detector(DetectorConfig(), CAM)
+    T_ro = ipex_rig(CAM)["FrontLeft"].T_rover_optical
+    hm = det.height_map(L, R, T_ro)  # levelled on the stereo ground plane when tilted
+    n_up = ground_plane(hm.points_rover, hm.depth)
+    up = hm.T_rover_optical[:3, :3].T @ n_up if n_up is not None else None
+    rocks = detect_small_rocks(L, R, hm.disparity, hm.scale, CAM, BASELINE_M, cfg or SmallRockConfig(), up)
+    if n_up is not None and hm.T_level_rover is not None:
+        n_up = hm.T_level_rover[:3, :3].T @ n_up  # back in the rover frame
+    return rocks, n_up, T_ro
+
+
+def _uv(x, z, roll_deg):
+    c, s = np.cos(np.radians(roll_deg)), np.sin(np.radians(roll_deg))
+    p = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.array([x, CAM_HEIGHT_M, z])
+    return CAM.cx + CAM.fx * p[0] / p[2], CAM.cy + CAM.fx * p[1] / p[2]
+
+
+@pytest.mark.parametrize("roll_deg", [0.0, 15.0])
+def test_a_small_rock_is_found_on_level_and_tilted_ground(roll_deg):
+    # a rock 5 cm wide standing 2.5 cm high, 2.5 m ahead: the half-resolution height map's
+    # thresholds (3.5 cm seeds) cannot see it
+    x, z, rad, top = 0.3, 2.5, 0.025, 0.025
+    L, R = _render(roll_deg, (x, z, rad, top))
+    rocks, _, _ = _small_rocks(L, R)
+    u, v = _uv(x, z, roll_deg)
+    near = [r for r in rocks if abs(r.u0 + r.crop.shape[1] / 2 - u) < 25 and abs(r.v0 + r.crop.shape[0] / 2 - v) < 25]
+    assert len(near) == 1, [(r.u0, r.v0, r.top_m) for r in rocks]
+    r = near[0]
+    assert 0.4 * top < r.top_m < 1.6 * top
+    assert abs(r.depth_m - z) < 0.25
+    assert 0.5 * 2 * rad < r.width_m < 2.0 * 2 * rad
+    assert len(rocks) == 1  # nothing else on the bare texture
+
+
+@pytest.mark.parametrize("roll_deg", [0.0, 15.0])
+def test_bare_ground_gives_no_small_rock_and_its_tilt_is_measured(roll_deg):
+    L, R = _render(roll_deg, None, seed=1)
+    rocks, n_up, T_ro = _small_rocks(L, R)
+    assert rocks == []
+    # the ground's normal from stereo alone: the plane's true up direction, in the rover frame
+    c, s = np.cos(np.radians(roll_deg)), np.sin(np.radians(roll_deg))
+    up_optical = -(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.array([0.0, 1.0, 0.0]))
+    up_rover = T_ro[:3, :3] @ up_optical
+    assert n_up is not None
+    assert np.degrees(np.arccos(np.clip(n_up @ up_rover, -1, 1))) < 2.0
+
+
+def test_the_detector_reports_the_small_rock_when_the_stage_is_on_and_not_by_default():
+    from dataclasses import replace
+
+    L, R = _render(10.0, (-0.2, 2.0, 0.02, 0.02), seed=2)
+    T_ro = ipex_rig(CAM)["FrontLeft"].T_rover_optical
+    on_cfg = replace(DetectorConfig(), small_rocks=SmallRockConfig(enabled=True))
+    on = Detector(on_cfg, CAM).detect_pair(L, R, T_ro)
+    off = Detector(DetectorConfig(), CAM).detect_pair(L, R, T_ro)
+    u, v = _uv(-0.2, 2.0, 10.0)
+    hits = [d for d in on.detections if abs(d.uv[0] - u) < 25 and abs(d.uv[1] - v) < 25]
+    assert len(hits) == 1 and abs(hits[0].depth_m - 2.0) < 0.25 and 0.01 < hits[0].radius_m < 0.05
+    assert hits[0].small_rock and not DetectorConfig().small_rocks.enabled
+    assert not [d for d in off.detections if abs(d.uv[0] - u) < 25 and abs(d.uv[1] - v) < 25]
+
+
+@pytest.mark.parametrize("bad", [dict(min_range_m=7.0), dict(block_size=4), dict(band_px=20), dict(max_tilt_deg=0.0),
+                                 dict(min_top_m=0.0), dict(max_candidates=-1), dict(contrast_z=0.0),
+                                 dict(max_aspect=float("nan")), dict(window_margin=0.0), dict(max_band_px=40),
+                                 dict(min_lowres_height_m=float("inf")), dict(low_top_snr=-1.0)])
+def test_bad_settings_are_refused(bad):
+    with pytest.raises(ConfigError):
+        SmallRockConfig(**bad)
+
+
+def test_the_detector_sees_the_same_rock_on_level_ground_and_rolled_20_degrees():
+    """No level-rover assumption: the roll is unknown to the detector (the rover frame is all it
+    has); it levels its height map on the plane fitted to the pair's own stereo points. Rolled
+    20 degrees, a 0.1 m rock at 4 m is found as on level ground; in the rover frame unlevelled it
+    was lost (the ground cells then hold a 20-degree slope)."""
+    from dataclasses import replace
+
+    T_ro = ipex_rig(CAM)["FrontLeft"].T_rover_optical
+    x, z, rad, top = -0.5, 4.0, 0.1, 0.09
+    found = {}
+    for roll in (0.0, 20.0):
+        L, R = _render(roll, (x, z, rad, top), seed=3)
+        pr = Detector(DetectorConfig(), CAM).detect_pair(L, R, T_ro)
+        u, v = _uv(x, z, roll)
+        hits = [d for d in pr.detections if abs(d.uv[0] - u) < 30 and abs(d.uv[1] - v) < 30]
+        assert len(hits) == 1, (roll, [d.uv for d in pr.detections])
+        found[roll] = hits[0]
+        if roll:
+            unlevelled = Detector(replace(DetectorConfig(), level_from_stereo=False), CAM).detect_pair(L, R, T_ro)
+            assert not [d for d in unlevelled.detections if abs(d.uv[0] - u) < 30 and abs(d.uv[1] - v) < 30]
+    a, b = found[0.0], found[20.0]
+    assert abs(a.radius_m - b.radius_m) < 0.2 * a.radius_m and abs(a.height_m - b.height_m) < 0.02
+    assert abs(a.depth_m - b.depth_m) < 0.15
+    # p_rover stays in the rover frame: the rock's distance from the camera is the same
+    cam = T_ro[:3, 3]
+    assert abs(np.linalg.norm(a.p_rover - cam) - np.linalg.norm(b.p_rover - cam)) < 0.1
