@@ -1,74 +1,183 @@
-"""A Lunar Autonomy Challenge agent that localizes against a reference rock map with lunarloc.
+"""A Lunar Autonomy Challenge leaderboard agent that localizes against a reference rock map
+with lunarloc. Give the leaderboard this file as the agent and a TOML file as its config::
 
-The LAC calls ``setup`` once, ``sensors``/``use_fiducials`` to configure the rover, then
-``run_step(input_data)`` every 20 Hz tick (camera images every other tick) and ``finalize``
-at the end. In the leaderboard this class would subclass ``leaderboard.autoagents.
-autonomous_agent.AutonomousAgent``, which provides the ``get_*`` methods; here they come
-from ``self.env``, any object with the same methods (the simulator's agent base, or
-:class:`lunarloc.PlaybackAgent` replaying a recording, as in ``tests/test_online_component.py``)::
+    python leaderboard/leaderboard_evaluator.py --agent=examples/lac_agent.py \\
+        --agent-config=lunarloc.toml ...
 
-    from lunarloc import PlaybackAgent
-    env = PlaybackAgent("traverse.lac")
-    agent = LunarLocAgent(env, "rocks.csv")
-    agent.setup()
-    while True:
-        agent.run_step(env.input_data())
-        if env.at_end():
-            break
-        env.step_frame()
-    agent.finalize()
+The leaderboard imports the file, calls ``get_entry_point()`` and builds the class with no
+arguments; then ``use_fiducials()``, ``setup(path_to_conf_file)``, ``sensors()``, and every
+20 Hz tick ``run_step(input_data)`` (images every other tick), ``finalize()`` at the end.
 
-Driving is not this example's subject: ``run_step`` returns a constant gentle command
-(a real agent plans here with ``self.estimate.T_map_rover``).
+Settings (``lunarloc.toml``; every key optional, relative paths from the TOML's folder)::
+
+    reference = "rocks.csv"   # the reference map (any format lunarloc.load_reference reads),
+                              # in the leaderboard's world frame; "" or absent: no reference
+    width = 1280              # front stereo pair resolution (the LAC allows up to 2448 x 2048)
+    height = 720
+    odometry = "visual"       # "visual" (stereo VO, IMU between pairs) or "imu"
+    output = "lunarloc-out"   # finalize() writes trajectory.csv and summary.json here; "" none
+    light_intensity = 1.0     # the front lamps (0-1)
+    loop_radius_m = 0.0       # radius of the loop driven about the lander; 0: the start's distance
+    speed_mps = 0.3           # driving speed (the leaderboard clamps to 0.49)
+    warm_up = true            # compile and warm caches in setup(), before the mission clock runs
+
+Without the leaderboard installed the class derives from lunarloc's mirror of its base
+class (:class:`lunarloc.LacAgentBase`), so :class:`lunarloc.PlaybackAgent` can replay a
+recording through it in the leaderboard's call order (``tests/test_online_component.py``).
+
+Driving is not lunarloc's job: ``run_step`` steers a loop about the lander from the
+estimated pose so that the rover moves and sees rocks; a team plans here instead. Mapping
+(the geometric map the LAC scores) is a hook: see ``MAPPER HOOK`` below.
 """
 
 from __future__ import annotations
 
-import collections
+import json
 import logging
+import math
+from pathlib import Path
 
-from lunarloc import CameraRig, OnlineLocalizer, load_reference
+import numpy as np
+
+import lunarloc
+from lunarloc import CameraRig, OnlineConfig, OnlineLocalizer, load_reference
+
+try:  # the leaderboard's own types when it is installed
+    import carla
+    from leaderboard.autoagents.autonomous_agent import AutonomousAgent
+
+    SensorPosition, VehicleVelocityControl = carla.SensorPosition, carla.VehicleVelocityControl
+except ImportError:  # lunarloc's mirror of them (same names, same behaviour)
+    from lunarloc import LacAgentBase as AutonomousAgent
+    from lunarloc import SensorPosition, VehicleVelocityControl
+
+try:
+    import tomllib
+except ImportError:  # Python 3.10 (the leaderboard's): lunarloc depends on tomli there
+    import tomli as tomllib
 
 log = logging.getLogger(__name__)
 
-CAMERAS = ("FrontLeft", "FrontRight")
+STEREO = ("FrontLeft", "FrontRight")
+DEFAULTS = {"reference": "", "width": 1280, "height": 720, "odometry": "visual", "output": "lunarloc-out",
+            "light_intensity": 1.0, "loop_radius_m": 0.0, "speed_mps": 0.3, "warm_up": True}  # fmt: skip
 
 
-class LunarLocAgent:
-    """LAC agent interface (``setup``, ``use_fiducials``, ``sensors``, ``run_step``, ``finalize``)."""
+def get_entry_point() -> str:
+    return "LunarLocAgent"
 
-    def __init__(self, env, reference_path: str, width: int = 1280, height: int = 720):
-        self.env = env  # provides get_mission_time(), get_imu_data(), ... (the LAC agent base class)
-        self.reference_path = reference_path
-        self.width, self.height = width, height
-        self.localizer: OnlineLocalizer | None = None
-        self.estimate = None
-        self.poses = collections.deque(maxlen=1200)  # (mission time s, T_map_rover) of the last minute: bounded
+
+class LunarLocAgent(AutonomousAgent):
+    """Localizes every tick (``self.estimate``) and drives a loop about the lander."""
 
     # -- configuration ----------------------------------------------------------------------
+    def setup(self, path_to_conf_file) -> None:
+        self.settings = settings = _read_settings(path_to_conf_file)
+        base = Path(path_to_conf_file).resolve().parent if path_to_conf_file else Path.cwd()
+        ref = settings["reference"]
+        self.reference = load_reference(base / ref) if ref else None
+        self.estimate = None
+        self.localizer = None
+        self._ticks = 0
+        self._rows = None
+        out = settings["output"]
+        self.output_dir = (base / out) if out else None
+        if self.output_dir is not None:
+            self.output_dir.mkdir(parents=True, exist_ok=True)
+            self._rows = open(self.output_dir / "trajectory.csv", "w", buffering=1 << 16)  # bounded memory
+            self._rows.write("mission_time_s,x_m,y_m,z_m,roll_rad,pitch_rad,yaw_rad,localized,fixes\n")
+        # the initial poses are known before the first tick; the camera poses are not (no vehicle
+        # status yet), so the rig starts as the LAC's known mounts, checked at the first tick
+        self.localizer = self._make_localizer(rig=None)
+        if settings["warm_up"]:
+            log.info("lunarloc warm-up took %.1f s", self.localizer.warm_up())
+        # where the loop goes: the lander's world position (the initial pose composed with the
+        # lander's pose relative to the rover), at the rover's starting distance from it
+        T0 = lunarloc.as_transform_matrix(self.get_initial_position(), "get_initial_position()")
+        T_rl = lunarloc.as_transform_matrix(self.get_initial_lander_position(), "get_initial_lander_position()")
+        self.lander_xy = (T0 @ T_rl)[:2, 3]
+        r0 = float(np.linalg.norm(T0[:2, 3] - self.lander_xy))
+        self.loop_radius_m = settings["loop_radius_m"] or min(max(r0, 3.5), 10.0)
+        self.mapper = None  # MAPPER HOOK (issue 28): a lunarloc.mapping mapper, built here
+
     def use_fiducials(self) -> bool:
-        return False  # the localization score counts only without fiducials
+        return False  # the localization points (150 of 1000) count only without fiducials
 
     def sensors(self) -> dict:
-        return {name: {"camera_active": True, "light_intensity": 1.0, "width": self.width, "height": self.height,
-                       "use_semantic": False} for name in CAMERAS}  # fmt: skip
+        s = self.settings
+        return {p: {"camera_active": p.name in STEREO, "light_intensity": s["light_intensity"] if p.name in STEREO else 0.0,
+                    "width": s["width"], "height": s["height"], "use_semantic": False}
+                for p in SensorPosition}  # fmt: skip
 
-    def setup(self, path_to_conf_file: str | None = None) -> None:
-        env = self.env
-        rig = CameraRig.from_sensors(self.sensors(), {c: env.get_camera_position(c) for c in CAMERAS})
-        self.localizer = OnlineLocalizer(load_reference(self.reference_path), env.get_initial_position(), rig=rig,
-                                         lander_pose=env.get_initial_lander_position())  # no rock fixes on the lander
-        self.localizer.warm_up()  # before the mission clock matters
+    def _make_localizer(self, rig) -> OnlineLocalizer:
+        s = self.settings
+        rig = rig or CameraRig.from_sensors(self.sensors())  # the LAC mounts at the configured size
+        return OnlineLocalizer(self.reference, self.get_initial_position(), rig=rig,
+                               config=OnlineConfig(visual_odometry=s["odometry"] == "visual"),
+                               lander_pose=self.get_initial_lander_position())  # fmt: skip
 
     # -- every tick ---------------------------------------------------------------------------
-    def run_step(self, input_data: dict):
-        env = self.env
-        self.estimate = self.localizer.update(env.get_mission_time(), input_data, env.get_imu_data(),
-                                              env.get_linear_speed(), env.get_angular_speed())  # fmt: skip
-        self.poses.append((self.estimate.mission_time_s, self.estimate.T_map_rover))
-        return (0.2, 0.0)  # VehicleVelocityControl(linear m/s, angular rad/s) in the LAC
+    def run_step(self, input_data):
+        if self._ticks == 0:  # the first tick has a vehicle status: check the camera mounts
+            poses = {p: self.get_camera_position(p) for p in SensorPosition if p.name in STEREO}
+            rig = CameraRig.from_sensors(self.sensors(), poses)
+            if not self.localizer.rig.same_mounts(rig):
+                log.warning("camera mounts differ from the LAC's: rebuilding the localizer with the reported ones")
+                self.localizer = self._make_localizer(rig)
+        self._ticks += 1
+        est = self.estimate = self.localizer.update(self.get_mission_time(), input_data, self.get_imu_data(),
+                                                    self.get_linear_speed(), self.get_angular_speed())  # fmt: skip
+        if self._rows is not None:
+            x, y, z, roll, pitch, yaw = lunarloc.matrix_to_pose(est.T_map_rover)
+            self._rows.write(f"{est.mission_time_s:.3f},{x:.4f},{y:.4f},{z:.4f},{roll:.5f},{pitch:.5f},{yaw:.5f},"
+                             f"{int(est.localized)},{est.fixes}\n")  # fmt: skip
+        if self.mapper is not None:  # MAPPER HOOK (issue 28): per tick, with the pose and the images
+            self.mapper.update(est, input_data)
+        return VehicleVelocityControl(*self._loop_command(est.T_map_rover))
+
+    def _loop_command(self, T_map_rover: np.ndarray) -> tuple[float, float]:
+        """(m/s, rad/s): follow the circle about the lander counter-clockwise, steering toward a
+        point on it 40 degrees ahead; turn in place when facing far off."""
+        p = T_map_rover[:2, 3] - self.lander_xy
+        heading = math.atan2(T_map_rover[1, 0], T_map_rover[0, 0])
+        a = math.atan2(p[1], p[0]) + math.radians(40)
+        target = self.loop_radius_m * np.array([math.cos(a), math.sin(a)]) - p
+        err = (math.atan2(target[1], target[0]) - heading + math.pi) % (2 * math.pi) - math.pi
+        w = max(-0.5, min(0.5, 1.2 * err))
+        v = self.settings["speed_mps"] if abs(err) < math.radians(45) else 0.0
+        return v, w
 
     def finalize(self) -> None:
-        if self.estimate is not None:
-            log.info("finished at t=%.1f s, localized=%s, %d fixes", self.estimate.mission_time_s,
-                     self.estimate.localized, self.estimate.fixes)  # fmt: skip
+        est = self.estimate
+        if self.mapper is not None:  # MAPPER HOOK (issue 28): fill the leaderboard's map
+            self.mapper.finalize(self.get_geometric_map())
+        if self._rows is not None:
+            self._rows.close()
+            summary = {"ticks": self._ticks, "localized": bool(est and est.localized), "fixes": est.fixes if est else 0,
+                       "mission_time_s": est.mission_time_s if est else 0.0,
+                       "final_T_map_rover": est.T_map_rover.tolist() if est else None,
+                       "settings": self.settings, "lunarloc": lunarloc.__version__}  # fmt: skip
+            (self.output_dir / "summary.json").write_text(json.dumps(summary, indent=1))
+        if est is not None:
+            log.info("finished at t=%.1f s, localized=%s, %d fixes", est.mission_time_s, est.localized, est.fixes)
+
+
+def _read_settings(path) -> dict:
+    """The TOML settings over the defaults; unknown keys and wrong types are errors."""
+    out = dict(DEFAULTS)
+    if not path:
+        return out
+    with open(path, "rb") as fh:
+        doc = tomllib.load(fh)
+    for key, value in doc.items():
+        if key not in DEFAULTS:
+            raise ValueError(f"{path}: unknown setting {key!r} (known: {', '.join(DEFAULTS)})")
+        want = type(DEFAULTS[key])
+        if want is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if not isinstance(value, want) or (want is int and isinstance(value, bool)):
+            raise ValueError(f"{path}: {key} must be a {want.__name__}, got {value!r}")
+        out[key] = value
+    if out["odometry"] not in ("visual", "imu"):
+        raise ValueError(f"{path}: odometry must be 'visual' or 'imu', got {out['odometry']!r}")
+    return out

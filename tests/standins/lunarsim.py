@@ -241,10 +241,12 @@ class Run:
 
 
 def run_agent(agent_file, conf_path, world: SimWorld, duration_s: float, *, evaluation: bool = True,
-              constants: Constants | None = None, score: bool = False, quiet: bool = True) -> Run:  # fmt: skip
+              constants: Constants | None = None, score: bool = False, quiet: bool = True,
+              observe=None) -> Run:  # fmt: skip
     """Load `agent_file` through the stand-in wrapper, set it up with `conf_path`, and run
     the mission for `duration_s` of mission time (or until the agent calls
-    ``mission_complete()``). ``run_step`` times and ``get_transform()`` calls are recorded."""
+    ``mission_complete()``). ``run_step`` times and ``get_transform()`` calls are recorded;
+    ``observe(agent)``, when given, is called after every ``run_step``."""
     constants = constants or Constants()
     t0 = time.perf_counter()
     wrapper = AgentWrapper(world, str(agent_file), "" if conf_path is None else str(conf_path), evaluation)
@@ -259,6 +261,8 @@ def run_agent(agent_file, conf_path, world: SimWorld, duration_s: float, *, eval
         finally:
             run.run_step_s.append(time.perf_counter() - s)
             run.truth.append(world.T_world_rover.copy())
+            if observe is not None:
+                observe(agent)
 
     def counted_get_transform():
         run.get_transform_calls += 1

@@ -1,0 +1,114 @@
+"""examples/lac_agent.py run as the LAC leaderboard runs an agent, closed loop, over simulated sites.
+
+Usage
+-----
+    python benchmarks/bench_lac_leaderboard.py --out bench-output/lac-leaderboard
+        [--seeds 301 302 303] [--sizes 640x360 1280x720] [--duration 150] [--rocks 386]
+        [--lighting sun+lamps] [--training]
+
+For every (site, size): the site is generated (``--rocks`` rocks, sun + lamps), its true rocks
+written as the reference map, and the agent file loaded through the stand-in leaderboard
+(``tests/standins``: ``get_entry_point()``, no-argument construction, ``setup(conf)``, the
+eight-position sensor check, per tick ``__call__`` -> ``run_step``, ``finalize``), in
+evaluation mode (``get_transform()`` is None) unless ``--training``. The rover is kinematic
+(it integrates the agent's velocity command; the agent drives a loop about the lander from
+its own estimate); the front pair is rendered at 10 Hz on the 20 Hz tick; the IMU is the
+leaderboard's (finite differences, world-frame gyro).
+
+Reported per run (JSON lines in ``OUT/results.jsonl``, a table on stdout): localized at the
+end, time of the first fix, final horizontal error and RMSE (all ticks; after the first fix)
+against the true pose, ``get_transform()`` calls, ``run_step`` median / p95 / max, the first
+tick's ``run_step``, ``setup`` time (warm-up included), distance driven. Timings are
+wall-clock on whatever machine runs this (rendering is outside ``run_step``); say whether it
+was under load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests" / "standins"))
+
+import lunarsim  # noqa: E402
+
+AGENT_FILE = ROOT / "examples" / "lac_agent.py"
+
+
+def run_one(seed: int, width: int, height: int, duration_s: float, rocks: int, lighting: str, out: Path,
+            evaluation: bool) -> dict:  # fmt: skip
+    d = out / f"site{seed}_{width}x{height}"
+    d.mkdir(parents=True, exist_ok=True)
+    world = lunarsim.SimWorld(seed, n_rocks=rocks, lighting=lighting)
+    world.write_reference(d / "rocks.csv")
+    conf = d / "lunarloc.toml"
+    conf.write_text(f'reference = "rocks.csv"\nwidth = {width}\nheight = {height}\noutput = "agent-output"\n')
+    est = []
+    t0 = time.perf_counter()
+    run = lunarsim.run_agent(AGENT_FILE, conf, world, duration_s, evaluation=evaluation,
+                             observe=lambda agent: est.append((agent.estimate.T_map_rover[:3, 3].copy(),
+                                                               agent.estimate.localized)))  # fmt: skip
+    wall = time.perf_counter() - t0
+    truth = np.array([T[:3, 3] for T in run.truth])
+    pos = np.array([p for p, _ in est])
+    loc = np.array([l for _, l in est])
+    err = np.linalg.norm(pos[:, :2] - truth[:, :2], axis=1)
+    first_fix = int(np.argmax(loc)) if loc.any() else None
+    steps = np.array(run.run_step_s) * 1e3
+    r = np.linalg.norm(truth[:, :2] - world.site.lander_xyz[:2], axis=1)
+    return {
+        "seed": seed, "width": width, "height": height, "duration_s": duration_s, "rocks": rocks,
+        "lighting": lighting, "evaluation": evaluation, "ticks": run.ticks,
+        "localized": bool(loc[-1]), "fixes": int(run.agent.estimate.fixes),
+        "first_fix_s": None if first_fix is None else round(first_fix * 0.05, 2),
+        "final_error_m": round(float(err[-1]), 4),
+        "rmse_m": round(float(np.sqrt(np.mean(err**2))), 4),
+        "rmse_after_fix_m": None if first_fix is None else round(float(np.sqrt(np.mean(err[first_fix:] ** 2))), 4),
+        "max_error_after_fix_m": None if first_fix is None else round(float(err[first_fix:].max()), 4),
+        "get_transform_calls": run.get_transform_calls,
+        "run_step_median_ms": round(float(np.median(steps)), 1),
+        "run_step_p95_ms": round(float(np.percentile(steps, 95)), 1),
+        "run_step_max_ms": round(float(steps.max()), 1),
+        "first_tick_ms": round(float(steps[0]), 1),
+        "setup_s": round(run.setup_s, 2),
+        "driven_m": round(float(np.linalg.norm(np.diff(truth[:, :2], axis=0), axis=1).sum()), 2),
+        "lander_distance_m": [round(float(r.min()), 2), round(float(r.max()), 2)],
+        "wall_s": round(wall, 1),
+    }
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", type=Path, default=Path("bench-output/lac-leaderboard"))
+    ap.add_argument("--seeds", type=int, nargs="+", default=[301, 302, 303])
+    ap.add_argument("--sizes", nargs="+", default=["640x360", "1280x720"])
+    ap.add_argument("--duration", type=float, default=150.0, help="mission seconds per run")
+    ap.add_argument("--rocks", type=int, default=386)
+    ap.add_argument("--lighting", default="sun+lamps")
+    ap.add_argument("--training", action="store_true", help="get_transform() answers (it stays uncalled)")
+    a = ap.parse_args(argv)
+    a.out.mkdir(parents=True, exist_ok=True)
+    results = a.out / "results.jsonl"
+    cols = ("seed", "width", "localized", "first_fix_s", "final_error_m", "rmse_m", "rmse_after_fix_m",
+            "get_transform_calls", "run_step_median_ms", "run_step_p95_ms", "run_step_max_ms", "first_tick_ms",
+            "setup_s", "driven_m")  # fmt: skip
+    print(" ".join(cols), flush=True)
+    for size in a.sizes:
+        w, h = (int(v) for v in size.lower().split("x"))
+        for seed in a.seeds:
+            row = run_one(seed, w, h, a.duration, a.rocks, a.lighting, a.out, not a.training)
+            with results.open("a") as fh:
+                fh.write(json.dumps(row) + "\n")
+            print(" ".join(str(row[c]) for c in cols), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
