@@ -40,7 +40,8 @@ from pathlib import Path
 import numpy as np
 
 import lunarloc
-from lunarloc import CameraRig, OnlineConfig, OnlineLocalizer, load_reference
+from lunarloc import CameraRig, OnlineConfig, OnlineLocalizer, as_transform_matrix, load_reference
+from lunarloc.core.geometry import matrix_to_pose
 
 try:  # the leaderboard's own types when it is installed
     import carla
@@ -93,8 +94,8 @@ class LunarLocAgent(AutonomousAgent):
             log.info("lunarloc warm-up took %.1f s", self.localizer.warm_up())
         # where the loop goes: the lander's world position (the initial pose composed with the
         # lander's pose relative to the rover), at the rover's starting distance from it
-        T0 = lunarloc.as_transform_matrix(self.get_initial_position(), "get_initial_position()")
-        T_rl = lunarloc.as_transform_matrix(self.get_initial_lander_position(), "get_initial_lander_position()")
+        T0 = as_transform_matrix(self.get_initial_position(), "get_initial_position()")
+        T_rl = as_transform_matrix(self.get_initial_lander_position(), "get_initial_lander_position()")
         self.lander_xy = (T0 @ T_rl)[:2, 3]
         r0 = float(np.linalg.norm(T0[:2, 3] - self.lander_xy))
         self.loop_radius_m = settings["loop_radius_m"] or min(max(r0, 3.5), 10.0)
@@ -128,7 +129,7 @@ class LunarLocAgent(AutonomousAgent):
         est = self.estimate = self.localizer.update(self.get_mission_time(), input_data, self.get_imu_data(),
                                                     self.get_linear_speed(), self.get_angular_speed())  # fmt: skip
         if self._rows is not None:
-            x, y, z, roll, pitch, yaw = lunarloc.matrix_to_pose(est.T_map_rover)
+            x, y, z, roll, pitch, yaw = matrix_to_pose(est.T_map_rover)
             self._rows.write(f"{est.mission_time_s:.3f},{x:.4f},{y:.4f},{z:.4f},{roll:.5f},{pitch:.5f},{yaw:.5f},"
                              f"{int(est.localized)},{est.fixes}\n")  # fmt: skip
         if self.mapper is not None:  # MAPPER HOOK (issue 28): per tick, with the pose and the images

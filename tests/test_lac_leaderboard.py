@@ -37,6 +37,14 @@ from leaderboard.utils.constants import Constants  # noqa: E402
 W, H = 640, 360
 
 
+@pytest.fixture(autouse=True)
+def fresh_agent_module():
+    """The leaderboard imports the agent file in a fresh process: drop a cached copy (another
+    test may have imported it without the leaderboard on the path)."""
+    sys.modules.pop(AGENT_FILE.stem, None)
+    yield
+
+
 def _conf(tmp_path, world, **extra) -> Path:
     ref = world.write_reference(tmp_path / "rocks.csv")
     lines = [f'reference = "{ref.name}"', f"width = {W}", f"height = {H}", 'output = "out"']
@@ -54,7 +62,7 @@ def test_standin_transforms_round_trip_and_are_right_handed():
     for _ in range(20):
         x, y, z = rng.uniform(-10, 10, 3)
         roll, pitch, yaw = rng.uniform(-1.2, 1.2, 3)
-        from lunarloc.geometry import pose_to_matrix
+        from lunarloc.core.geometry import pose_to_matrix
 
         T = pose_to_matrix(x, y, z, roll, pitch, yaw)
         lh = carla_transform_from_rh(T)
@@ -71,7 +79,7 @@ def test_standin_transforms_round_trip_and_are_right_handed():
 
 
 def test_standin_imu_is_a_world_frame_rate_and_a_body_frame_specific_force():
-    from lunarloc.geometry import pose_to_matrix
+    from lunarloc.core.geometry import pose_to_matrix
 
     class Vehicle:
         T = np.eye(4)

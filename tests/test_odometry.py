@@ -41,7 +41,7 @@ def drive(n=400, v=0.25, w=0.1, rover0=(2.0, -1.0, 0.3, 0.0, 0.0, 0.4), roll_tru
         up_body = R.T @ np.array([0.0, 0.0, 1.0])
         a_body = np.array([0.0, w * v, 0.0])  # centripetal
         f = a_body + G * up_body
-        gyro = R.T @ np.array([0.0, 0.0, w])
+        gyro = np.array([0.0, 0.0, w])  # world-frame rate, as the LAC leaderboard computes it
         states.append(dict(x=x[k], y=y[k], z=z0, roll=roll_true, pitch=0.0, yaw=yaw[k], accel_x=f[0], accel_y=f[1],
                            accel_z=f[2], gyro_x=gyro[0], gyro_y=gyro[1], gyro_z=gyro[2], mission_time=t[k],
                            linear_speed=v, angular_speed=w))  # fmt: skip

@@ -1,8 +1,8 @@
 """The per-tick component (lunarloc.OnlineLocalizer) driven as the LAC leaderboard drives an
-agent: examples/lac_agent.py replayed by PlaybackAgent at 20 Hz, images every other tick,
-no custom record read; and its answers to bad input."""
+agent: examples/lac_agent.py replayed by PlaybackAgent.run_agent at 20 Hz (the leaderboard's
+call order, SensorPosition keys, evaluation mode), images every other tick, no custom record
+read; and its answers to bad input."""
 
-import enum
 import sys
 from pathlib import Path
 
@@ -16,6 +16,8 @@ from lunarloc.io.maps import LandmarkMap
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
 from lac_agent import LunarLocAgent  # noqa: E402
+
+from lunarloc import SensorPosition  # noqa: E402
 
 W, H = 640, 360  # at 320x180 too few rocks are detected for a fix in a short traverse
 
@@ -38,32 +40,33 @@ def _refuse_custom(self, *a, **k):
     raise AssertionError("the agent read a custom record")
 
 
-# the LAC's camera keys are members of such an enum
-SensorPosition = enum.Enum("SensorPosition", "Front FrontLeft FrontRight Left Right BackLeft BackRight Back")
-
-
-def _drive(archive, reference_path, keys=str):
-    """Run the example agent as the leaderboard would; returns (times, estimates, ground truth, ticks with images)."""
+def _drive(archive, reference_path):
+    """Replay the example agent file through PlaybackAgent.run_agent, in the leaderboard's call
+    order (setup, sensor check, per tick __call__ -> run_step, finalize), evaluation mode;
+    returns (estimates, ground truth, ticks with images)."""
     from lunarloc.io.lac.archive import LacArchive
 
+    conf = Path(reference_path).with_suffix(".agent.toml")
+    conf.write_text(f'reference = "{Path(reference_path).resolve()}"\nwidth = {W}\nheight = {H}\noutput = ""\n')
     est, gt, image_ticks = [], [], 0
     with pytest.MonkeyPatch.context() as mp, PlaybackAgent(archive) as env:
         mp.setattr(LacArchive, "custom", _refuse_custom)  # no custom record (e.g. the simulator's odometry)
-        agent = LunarLocAgent(env, str(reference_path), W, H)
-        agent.setup()
-        while True:
-            data = env.input_data()
-            image_ticks += data["Grayscale"]["FrontLeft"] is not None
-            if keys is not str:
-                data = {"Grayscale": {keys(k): v for k, v in data["Grayscale"].items()}}
-            cmd = agent.run_step(data)
-            assert len(cmd) == 2
+        agent = LunarLocAgent()
+        inner = agent.run_step
+
+        def run_step(input_data):
+            nonlocal image_ticks
+            image_ticks += input_data["Grayscale"][SensorPosition.FrontLeft] is not None
+            assert all(isinstance(k, SensorPosition) for k in input_data["Grayscale"])  # enum keys only
+            cmd = inner(input_data)
+            assert type(cmd).__name__ == "VehicleVelocityControl"
             est.append(agent.estimate)
             gt.append(env.get_transform_matrix())
-            if env.at_end():
-                break
-            env.step_frame()
-        agent.finalize()
+            return cmd
+
+        agent.run_step = run_step
+        env.run_agent(agent, str(conf), evaluation=True)
+        assert agent.get_transform() is None  # evaluation
     return est, np.array(gt), image_ticks
 
 
@@ -100,7 +103,7 @@ def test_enum_camera_keys_and_a_shifted_reference(sim, tmp_path):
     table[:, 1] += 15.0
     np.savetxt(shifted, table, delimiter=",", header="id,x,y,z,radius", comments="")
     assert len(load_reference(shifted)) == len(ref)
-    est, gt, _ = _drive(archive, shifted, keys=lambda k: SensorPosition[k])
+    est, gt, _ = _drive(archive, shifted)
     err = np.array([np.linalg.norm(e.T_map_rover[:3, 3] - g[:3, 3]) for e, g in zip(est, gt)])
     assert not est[-1].localized or err.max() < 0.5
 

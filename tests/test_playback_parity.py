@@ -44,7 +44,7 @@ PUBLISHED = {
     "get_camera_position": "last row at or before the frame; before or unknown camera: zero pose",
     "get_light_position": "NotImplementedError",
 }
-OURS_ONLY = {"frame", "frame_index", "close", "get_transform_matrix", "frame_state", "archive"}
+OURS_ONLY = {"frame", "frame_index", "close", "get_transform_matrix", "frame_state", "archive", "run_agent"}
 
 PALETTE = {"rock": (42, 59, 108), "lander": (160, 190, 110), "fiducial": (30, 170, 250)}
 

@@ -54,6 +54,10 @@ __all__ = [
     "LacMapper",
     "LacMapperConfig",
     "write_geometric_map",
+    "as_transform_matrix",
+    "LacAgentBase",
+    "SensorPosition",
+    "VehicleVelocityControl",
 ]
 
 _LAZY = {  # imported on first use: OpenCV and the detector stay out of `import lunarloc`
@@ -66,6 +70,10 @@ _LAZY = {  # imported on first use: OpenCV and the detector stay out of `import 
     "LacMapper": "lunarloc.mapping.lac_map",
     "LacMapperConfig": "lunarloc.mapping.lac_map",
     "write_geometric_map": "lunarloc.mapping.lac_map",
+    "as_transform_matrix": "lunarloc.online.component",
+    "LacAgentBase": "lunarloc.io.lac.leaderboard",  # the leaderboard's types, mirrored
+    "SensorPosition": "lunarloc.io.lac.leaderboard",
+    "VehicleVelocityControl": "lunarloc.io.lac.leaderboard",
 }
 
 

@@ -43,10 +43,10 @@ from leaderboard.statistics.scores import mission_scores  # noqa: E402
 from leaderboard.utils.constants import Constants  # noqa: E402
 
 # ---- every lunarloc import of the harness
-from lunarloc.data.render import SEM_ROCK_OFFSET, RenderConfig, SiteRenderer, semantic_to_palette  # noqa: E402
-from lunarloc.data.rover import RoverConfig, terrain_pose  # noqa: E402
-from lunarloc.data.site import SiteConfig, generate_site  # noqa: E402
-from lunarloc.geometry import pose_to_matrix  # noqa: E402
+from lunarloc.sim.render import SEM_ROCK_OFFSET, RenderConfig, SiteRenderer, semantic_to_palette  # noqa: E402
+from lunarloc.sim.rover import RoverConfig, terrain_pose  # noqa: E402
+from lunarloc.sim.site import SiteConfig, generate_site  # noqa: E402
+from lunarloc.core.geometry import pose_to_matrix  # noqa: E402
 from lunarloc.perception.camera import T_CAM_OPTICAL, PinholeCamera  # noqa: E402
 
 SP = carla.SensorPosition

@@ -1,13 +1,19 @@
 """IMU dead reckoning: attitude from the gyro, roll and pitch held by gravity, distance from wheel speed.
 
 What a LAC agent senses each 20 Hz tick (``get_imu_data()``, ``get_linear_speed()``):
-the body-frame specific force ``f = R^T (a - g)`` (m/s^2; a rover at rest reads about
-``+1.62`` along z), the body angular rate (rad/s) and the rover's linear speed (m/s).
+the body-frame specific force ``f = R^T (a + g)`` (m/s^2; a rover at rest reads about
+``+1.62`` along z), the angular rate (rad/s) and the rover's linear speed (m/s). The
+leaderboard's ``agents/imu.py`` computes the rate from finite differences of the true
+attitude as the skew part of ``dR/dt R^T``: the *spatial* (world-frame) angular velocity,
+not the body rate (``R^T`` of it). ``ImuOdometryConfig.gyro_frame`` says which one the
+samples are: ``"world"`` (the default, the LAC's; lunarloc's simulator writes the same) or
+``"body"`` (a physical strapdown gyro).
 
 Model (per step k-1 -> k, ``dt`` from ``mission_time``):
 
-* attitude: ``R_k = R_{k-1} exp([w dt]x)`` with ``w`` the mean of the two gyro samples
-  (robust to whether a sample is the rate before or after its tick);
+* attitude: ``R_k = exp([w dt]x) R_{k-1}`` for world-frame rates, ``R_k = R_{k-1}
+  exp([w dt]x)`` for body rates, with ``w`` the mean of the two gyro samples (robust to
+  whether a sample is the rate before or after its tick);
 * roll and pitch: a complementary filter pulls the body "up" direction toward the
   accelerometer's gravity direction with time constant ``tilt_time_constant_s``, after
   removing the rover's own acceleration (``dv/dt`` along x, ``w x v`` from turning);
@@ -50,8 +56,11 @@ class ImuOdometryConfig:
     tilt_max_residual_mps2: float = 0.2  # no tilt correction while | |f| - g | exceeds this (bumps, slips)
     compensate_motion: bool = True  # remove dv/dt and w x v from the specific force before using it
     max_dt_s: float = 1.0  # a larger gap between ticks is an error (not a 20 Hz recording)
+    gyro_frame: str = "world"  # "world": the LAC leaderboard's rate (skew of dR/dt R^T); "body": R^T of it
 
     def __post_init__(self) -> None:
+        if self.gyro_frame not in ("world", "body"):
+            raise ConfigError(f"gyro_frame={self.gyro_frame!r} must be 'world' (the LAC's) or 'body'")
         if not self.gravity_mps2 > 0 or not self.tilt_time_constant_s > 0 or not self.max_dt_s > 0:
             raise ConfigError("gravity_mps2, tilt_time_constant_s and max_dt_s must be > 0")
         if not self.tilt_max_residual_mps2 >= 0:
@@ -147,18 +156,24 @@ def integrate_imu(samples: ImuSamples, T_map_rover0: np.ndarray, config: ImuOdom
     out[0] = T0
     out[0, :3, :3] = R
     g = cfg.gravity_mps2
+    world = cfg.gyro_frame == "world"
     for k in range(1, n):
         dt = float(dt_all[k - 1])
         wk = 0.5 * (w[k - 1] + w[k])
-        R_mid = R @ _exp_so3(0.5 * dt * wk)
+        if world:  # a spatial rate: R_k = exp(w dt) R_{k-1}
+            R_mid = _exp_so3(0.5 * dt * wk) @ R
+            R = _exp_so3(dt * wk) @ R
+        else:
+            R_mid = R @ _exp_so3(0.5 * dt * wk)
+            R = R @ _exp_so3(dt * wk)
         vk = 0.5 * (v[k - 1] + v[k])
         p = p + R_mid[:, 0] * (vk * dt)
-        R = R @ _exp_so3(dt * wk)
         # roll / pitch from the gravity direction (complementary filter)
         f = a[k].copy()
         if cfg.compensate_motion:
             dv = (v[k] - v[k - 1]) / dt
-            f -= np.array([dv, w[k][2] * v[k], -w[k][1] * v[k]])
+            wb = R.T @ w[k] if world else w[k]  # the body rate
+            f -= np.array([dv, wb[2] * v[k], -wb[1] * v[k]])
         fn = float(np.linalg.norm(f))
         if fn > 0 and abs(fn - g) <= cfg.tilt_max_residual_mps2:
             u_meas = f / fn

@@ -53,6 +53,7 @@ import numpy as np
 from lunarloc.core import validate
 from lunarloc.core.errors import ConfigError, InputError
 from lunarloc.core.geometry import invert_transform, pose_to_matrix
+from lunarloc.io.lac.leaderboard import camera_name, transform_to_matrix
 from lunarloc.io.maps import LandmarkMap
 from lunarloc.odometry.imu import ImuOdometryConfig, ImuSamples, integrate_imu
 from lunarloc.perception.camera import IPEX_STEREO_BASELINE_M, STEREO_PAIRS, CameraMount, PinholeCamera, ipex_rig
@@ -62,24 +63,19 @@ from lunarloc.online.loop import Attempt, LoopConfig, LoopState, image_localizat
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
-__all__ = ["CameraRig", "OnlineConfig", "Estimate", "OnlineLocalizer", "camera_name"]
+__all__ = ["CameraRig", "OnlineConfig", "Estimate", "OnlineLocalizer", "camera_name", "as_transform_matrix"]
 
 
 # --------------------------------------------------------------------------- inputs
 
 
-def camera_name(key) -> str:
-    """A camera key of ``input_data`` as a name: ``"FrontLeft"``, the LAC's
-    ``SensorPosition.FrontLeft`` enum member (its ``.name``) or its string form."""
-    name = getattr(key, "name", None)
-    if not isinstance(name, str):
-        name = str(key)
-    return name.rsplit(".", 1)[-1]
-
-
-def _as_T(pose, what: str) -> np.ndarray:
-    """A 4x4 transform from a 4x4 array, a 6-vector (x, y, z, roll, pitch, yaw) or a
-    Transform-like object with ``matrix()``/``get_matrix()``."""
+def as_transform_matrix(pose, what: str = "pose") -> np.ndarray:
+    """A 4x4 transform from a 4x4 array, a 6-vector (x, y, z, roll, pitch, yaw; m, rad), the
+    leaderboard's right-handed ``Transform`` (``location.x/y/z``, ``rotation.roll/pitch/yaw``
+    in radians, as the agent getters return it) or an object with ``matrix()`` /
+    ``get_matrix()``. CARLA's own left-handed ``carla.Transform`` is refused (InputError)."""
+    if hasattr(pose, "location") and hasattr(pose, "rotation"):
+        return transform_to_matrix(pose, what)
     for attr in ("matrix", "get_matrix"):
         f = getattr(pose, attr, None)
         if callable(f):
@@ -99,6 +95,9 @@ def _as_T(pose, what: str) -> np.ndarray:
     if a.shape != (4, 4):
         raise InputError(f"{what} must be a finite 4x4 transform or (x, y, z, roll, pitch, yaw); got shape {a.shape}")
     return validate.rigid_transform(a, what)  # orthonormal, det +1, last row 0 0 0 1
+
+
+_as_T = as_transform_matrix
 
 
 @dataclass(frozen=True)
@@ -177,6 +176,22 @@ class CameraRig:
     def mounts(self) -> dict[str, CameraMount]:
         return {n: CameraMount(n, T, self.camera) for n, T in self.T_rover_cam.items()}
 
+    @classmethod
+    def lac(cls, width: int = 1280, height: int = 720) -> CameraRig:
+        """The LAC's IPEx cameras (fixed 70 degree pinholes, the known mounts) at a resolution."""
+        cam = PinholeCamera(int(width), int(height), 70.0)
+        return cls(cam, {n: m.T_rover_cam for n, m in ipex_rig(cam).items()})
+
+    def same_mounts(self, other: CameraRig, tol_m: float = 1e-3, tol_rad: float = 1e-3) -> bool:
+        """Same intrinsics and, for the cameras both hold, the same poses within the tolerances."""
+        if self.camera != other.camera:
+            return False
+        for n in set(self.T_rover_cam) & set(other.T_rover_cam):
+            A, B = self.T_rover_cam[n], other.T_rover_cam[n]
+            if np.abs(A[:3, 3] - B[:3, 3]).max() > tol_m or np.abs(A[:3, :3] - B[:3, :3]).max() > tol_rad:
+                return False
+        return True
+
 
 @dataclass(frozen=True)
 class OnlineConfig:
@@ -238,10 +253,12 @@ class OnlineLocalizer:
         :mod:`lunarloc.pipeline.multirover` localizes their local maps in other rovers' maps).
         ``localized`` then stays False.
     initial_pose : the rover's pose in ``map`` at the first tick (the LAC's
-        ``get_initial_position()``: a Transform, a 4x4 or (x, y, z, roll, pitch, yaw)).
+        ``get_initial_position()``: the leaderboard's right-handed Transform, a 4x4 or
+        (x, y, z, roll, pitch, yaw); see :func:`as_transform_matrix`).
     config : :class:`OnlineConfig`.
-    rig : :class:`CameraRig` (intrinsics and mounts); default the LAC's IPEx rig at 1280x720,
-        or :meth:`CameraRig.from_sensors` / :meth:`CameraRig.from_calibration`.
+    rig : :class:`CameraRig` (intrinsics and mounts), e.g. :meth:`CameraRig.from_sensors` /
+        :meth:`CameraRig.from_calibration`; default the LAC's IPEx rig (fixed 70 degree
+        pinholes) at the resolution of the first images delivered (1280x720 until then).
     detector_config : default :func:`lunarloc.config.run.scaled_detector_config` at the rig's width.
     lander_pose : the lander's pose relative to the rover at the first tick (the LAC's
         ``get_initial_lander_position()``, in any form `initial_pose` takes); detections on
@@ -254,8 +271,7 @@ class OnlineLocalizer:
 
     def __init__(self, reference: LandmarkMap | None, initial_pose, config: OnlineConfig | None = None,
                  rig: CameraRig | None = None, detector_config=None, lander_pose=None, mapper=None):  # fmt: skip
-        from lunarloc.perception.detector import Detector, DetectorConfig
-        from lunarloc.perception.detector import scaled_detector_config
+        from lunarloc.perception.detector import DetectorConfig
 
         if config is not None:  # the types first: a string here was an AttributeError deep inside
             validate.instance(config, "config", OnlineConfig, "lunarloc.OnlineConfig")
@@ -285,20 +301,9 @@ class OnlineLocalizer:
         self._odometry_source = "visual" if cfg.visual_odometry else "imu"
         self.loop = LoopState(reference, self._loop_config, cfg.localization,
                               odometry=self._odometry_source)  # checks the reference (>= 3 landmarks)
-        self.detector = Detector(detector_config or scaled_detector_config(self.rig.camera.width), self.rig.camera)
-        self._mounts = self.rig.mounts()
-        self._pairs = [p for p in self.detector.config.pairs if p[0] in self._mounts and p[1] in self._mounts]
-        self._vo = None
-        if cfg.visual_odometry:
-            left, right = STEREO_PAIRS[0]
-            if left in self._mounts and right in self._mounts:
-                from lunarloc.odometry.visual import StereoVisualOdometry
-
-                self._vo = StereoVisualOdometry(self.rig.camera, self._mounts[left].T_rover_optical,
-                                                self._mounts[right].T_rover_optical)  # fmt: skip
-                from lunarloc.odometry.tilt import GravityAlignedChain
-
-                self._vo_chain = GravityAlignedChain(self._vo.config.gravity_tilt_gain)  # roll/pitch from gravity
+        self._rig_given = rig is not None  # else the LAC rig, sized to the first images delivered
+        self._detector_config = detector_config
+        self._use_rig(self.rig)
         # per-tick state (constant size)
         self._tick = 0
         self._t_prev: float | None = None
@@ -323,6 +328,25 @@ class OnlineLocalizer:
         # the pose returned at every tick (t, then the top 3x4 of T_map_rover): 104 bytes a tick,
         # 15 MB for a 2 h mission at 20 Hz; read with trajectory(), saved with write_trajectory()
         self._history = array.array("d")
+
+    def _use_rig(self, rig: CameraRig) -> None:
+        """Detector, mounts, stereo pairs and visual odometry for `rig`."""
+        from lunarloc.perception.detector import Detector, scaled_detector_config
+
+        self.rig = rig
+        self.detector = Detector(self._detector_config or scaled_detector_config(rig.camera.width), rig.camera)
+        self._mounts = rig.mounts()
+        self._pairs = [p for p in self.detector.config.pairs if p[0] in self._mounts and p[1] in self._mounts]
+        self._vo = None
+        if self.config.visual_odometry:
+            left, right = STEREO_PAIRS[0]
+            if left in self._mounts and right in self._mounts:
+                from lunarloc.odometry.tilt import GravityAlignedChain
+                from lunarloc.odometry.visual import StereoVisualOdometry
+
+                self._vo = StereoVisualOdometry(rig.camera, self._mounts[left].T_rover_optical,
+                                                self._mounts[right].T_rover_optical)  # fmt: skip
+                self._vo_chain = GravityAlignedChain(self._vo.config.gravity_tilt_gain)  # roll/pitch from gravity
 
     # -------------------------------------------------------------- public
     def warm_up(self) -> float:
@@ -371,9 +395,13 @@ class OnlineLocalizer:
 
     def update(self, mission_time_s: float, input_data: Mapping | None, imu, linear_speed: float,
                angular_speed: float, odometry=None) -> Estimate:  # fmt: skip
-        """One tick: the LAC's ``input_data`` (``{"Grayscale": {camera: image or None}}``),
-        ``get_imu_data()`` (6,), ``get_linear_speed()`` (m/s), ``get_angular_speed()`` (rad/s)
-        and optionally the caller's odometry ``T_odo_rover`` (4x4 or 6-vector, any fixed frame).
+        """One tick: the LAC's ``input_data`` as the leaderboard hands it (``{"Grayscale":
+        {camera: (H, W) uint8 image or None}, "Semantic": {...}}``; camera keys
+        ``SensorPosition`` members or names; views are fine; the semantic group is not used),
+        ``get_imu_data()`` (6,: body-frame specific force, world-frame angular rate, as the
+        leaderboard computes them; see :attr:`ImuOdometryConfig.gyro_frame`),
+        ``get_linear_speed()`` (m/s), ``get_angular_speed()`` (rad/s) and optionally the
+        caller's odometry ``T_odo_rover`` (4x4, 6-vector or Transform, any fixed frame).
         Raises InputError on malformed input (the component's state is then unchanged)."""
         t = self._check_time(mission_time_s)
         a = self._check_imu(imu, linear_speed, angular_speed)
@@ -488,12 +516,19 @@ class OnlineLocalizer:
         if names and not any(n in names for p in self._pairs for n in p):
             raise InputError(f"input_data['Grayscale'] has no stereo camera (has {', '.join(sorted(names))}); the component "
                              f"needs one of the pairs {', '.join('/'.join(p) for p in self._pairs)} active")  # fmt: skip
+        first = next((np.asarray(im) for im in group.values() if im is not None), None)
+        if first is not None and not self._rig_given and self._last_kf is None and self._vo_anchor is None \
+                and first.ndim == 2 and first.shape != (self.rig.camera.height, self.rig.camera.width):
+            h, w = first.shape  # the LAC's cameras are fixed pinholes: the intrinsics follow from the size
+            log.info("no rig given: the LAC rig at the delivered %dx%d", w, h)
+            self._use_rig(CameraRig.lac(w, h))
         c = self.rig.camera
         out = {}
         for key, img in group.items():
             name = camera_name(key)
             if img is not None:
                 img = validate.gray_image(img, f"input_data['Grayscale'][{name}]", (c.height, c.width))
+                img = np.ascontiguousarray(img)  # the leaderboard hands a view ([:, :, 0] of a BGRA buffer)
             out[name] = img
         return out
 

@@ -8,7 +8,8 @@ Frames and units
   (metres, radians).
 * IMU readings are in the rover frame: the accelerometer measures specific force
   (``R^T (a - g)``, so a rover at rest reads ``+1.62 m/s^2`` along z), the
-  gyroscope the body angular rate (rad/s).
+  gyroscope the world-frame angular rate (rad/s) as the LAC leaderboard computes it
+  (``ImuConfig.gyro_frame``; "body" for the body rate).
 * Time in seconds from the start of the traverse; state at ``rate_hz`` (20 Hz).
 
 The odometry estimate is dead reckoning: body-frame displacement with a scale
@@ -110,6 +111,11 @@ class ImuConfig:
     gyro_noise_rad_s: float = 0.002
     accel_bias_mps2: float = 0.0
     gyro_bias_rad_s: float = 0.0
+    gyro_frame: str = "world"  # the LAC leaderboard's convention (spatial rate); "body": the body rate
+
+    def __post_init__(self) -> None:
+        if self.gyro_frame not in ("world", "body"):
+            raise ConfigError(f"gyro_frame={self.gyro_frame!r} must be 'world' (the LAC's) or 'body'")
 
 
 @dataclass(frozen=True)
@@ -397,7 +403,10 @@ def _rotations(rpy: np.ndarray) -> np.ndarray:
 
 
 def simulate_imu(traj: Trajectory, seed: int = 0, config: ImuConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """IMU readings along a trajectory: (accel (N, 3) m/s^2, gyro (N, 3) rad/s), rover frame."""
+    """IMU readings along a trajectory: (accel (N, 3) m/s^2, the body-frame specific force;
+    gyro (N, 3) rad/s, the rate from state k to k+1: world-frame (the rotation vector of
+    ``R_{k+1} R_k^T``, as the LAC leaderboard's gyro) unless ``config.gyro_frame`` is "body"
+    (that of ``R_k^T R_{k+1}``))."""
     cfg = config or ImuConfig()
     rng = np.random.default_rng([int(seed), 0x1B0])
     n = len(traj)
@@ -414,7 +423,10 @@ def simulate_imu(traj: Trajectory, seed: int = 0, config: ImuConfig | None = Non
         from scipy.spatial.transform import Rotation
 
         dt = float(traj.t[1] - traj.t[0])
-        rel = np.einsum("nji,njk->nik", R[:-1], R[1:])  # R_k^T R_{k+1}
+        if cfg.gyro_frame == "world":
+            rel = np.einsum("nij,nkj->nik", R[1:], R[:-1])  # R_{k+1} R_k^T
+        else:
+            rel = np.einsum("nji,njk->nik", R[:-1], R[1:])  # R_k^T R_{k+1}
         w = Rotation.from_matrix(rel).as_rotvec() / dt
         gyro[:-1] = w
         gyro[-1] = w[-1]

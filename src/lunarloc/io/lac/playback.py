@@ -36,6 +36,13 @@ Semantics (as the LAC recorder stores data)
   recorded (``3.5``, a gap, a negative number) an IndexError, as published (both
   are :class:`~lunarloc.core.errors.InputError` too).
 
+Driving an agent: :meth:`PlaybackAgent.run_agent` replays the recording into a leaderboard
+agent (an agent file or object) exactly as the leaderboard drives one: its call order,
+``SensorPosition`` keys, only the active cameras, right-handed Transforms without a matrix
+method, ``get_transform()`` None in evaluation. The getters above keep the published
+agent's string keys (``tests/test_playback_parity.py``); they also take ``SensorPosition``
+members.
+
 Stepping is O(1) and image reads move forward through the archive, so replaying
 a whole archive frame by frame is linear in its length.
 """
@@ -50,6 +57,7 @@ from typing import Any
 import numpy as np
 
 from lunarloc.io.lac.archive import LacArchive
+from lunarloc.io.lac.leaderboard import camera_name
 from lunarloc.core.errors import InputError
 from lunarloc.core.geometry import matrix_to_pose, pose_to_matrix
 
@@ -291,11 +299,11 @@ class PlaybackAgent:
     def _camera_row(self, name: str) -> dict[str, Any] | None:
         """Last camera-table row at or before the current frame, or None (none yet, or a
         camera that never recorded / is not configured)."""
-        frames = self._cam_frames.get(name)
+        frames = self._cam_frames.get(camera_name(name))
         if frames is None or len(frames) == 0:
             return None
         k = int(np.searchsorted(frames, self.frame, side="right")) - 1
-        return None if k < 0 else self.archive.camera_frames(name).row(k)
+        return None if k < 0 else self.archive.camera_frames(camera_name(name)).row(k)
 
     def get_camera_state(self, name: str) -> bool:
         """Whether camera `name` is enabled at the current frame (False before its first row)."""
@@ -307,7 +315,7 @@ class PlaybackAgent:
         initial.toml's value. UnknownCameraError (a KeyError) for a camera not configured."""
         row = self._camera_row(name)
         if row is None:
-            cfg = self.archive.initial["cameras"].get(name)
+            cfg = self.archive.initial["cameras"].get(camera_name(name))
             if cfg is None:
                 raise UnknownCameraError(f"no camera named {name!r} in {self.archive.path}")
             return float(cfg.get("light_intensity", 0.0))
@@ -321,6 +329,78 @@ class PlaybackAgent:
         return Transform.from_xyzrpy(
             [row[k] for k in ("camera_x", "camera_y", "camera_z", "camera_roll", "camera_pitch", "camera_yaw")]
         )
+
+    # -- driving an agent as the leaderboard does -----------------------------------------
+    def run_agent(self, agent, path_to_conf_file: str = "", *, evaluation: bool = True, max_ticks: int | None = None,
+                  geometric_map=None) -> list:  # fmt: skip
+        """Replay the recording into a leaderboard agent in the leaderboard's own way and order:
+
+        1. `agent` is an agent file (built as the leaderboard builds it: ``get_entry_point()``,
+           no arguments; :func:`~lunarloc.io.lac.leaderboard.load_agent_file`) or an object;
+           ``use_fiducials()`` must return a bool;
+        2. ``set_geometric_map``, ``set_initial_position`` (the right-handed
+           :class:`~lunarloc.io.lac.leaderboard.Transform`), ``set_initial_lander_position``, then
+           ``setup(path_to_conf_file)``, with no vehicle status yet (the camera, speed and IMU
+           getters of the base class fail there, as in the leaderboard);
+        3. ``sensors()`` checked as the leaderboard checks it (all eight ``SensorPosition``
+           members, the four attributes, no semantic camera in evaluation);
+        4. per recorded frame from the cursor: ``set_imu_data``, then ``agent(mission_time,
+           status, input_data)`` (the base class calls ``run_step`` and checks that it returned
+           a ``VehicleVelocityControl``). ``input_data`` holds only the cameras the agent
+           activated, keyed by ``SensorPosition``, ``None`` without a recorded image, grayscale
+           as a non-contiguous (H, W) uint8 view as the leaderboard hands it; the status's
+           camera poses are right-handed Transforms, its ``transform`` None in evaluation;
+        5. ``finalize()`` after the last frame, ``max_ticks`` ticks or ``mission_complete()``.
+
+        The agent's commands do not move the recording. Returns the commands (clamped as the
+        base class clamps them). Errors of the agent's contract are InputError naming the step.
+        """
+        from lunarloc.io.lac.leaderboard import (SensorPosition, VehicleStatus, check_sensors, load_agent_file,
+                                                 transform_from_matrix)  # fmt: skip
+
+        if isinstance(agent, (str, os.PathLike)):
+            agent = load_agent_file(agent)
+        fiducials = agent.use_fiducials()
+        if not isinstance(fiducials, bool):
+            raise InputError(f"use_fiducials() must return a bool, got {fiducials!r}")
+        initial = self.archive.initial
+        agent.set_geometric_map(geometric_map)
+        agent.set_initial_position(transform_from_matrix(pose_to_matrix(*initial["rover"])))
+        agent.set_initial_lander_position(transform_from_matrix(pose_to_matrix(*initial["lander"])))
+        agent.setup(path_to_conf_file)
+        sensors = check_sensors(agent.sensors(), evaluation)
+        active = [p for p in SensorPosition if sensors[p.name]["camera_active"] not in (False, 0, "False", "false")]
+        semantic = {p for p in active if sensors[p.name].get("use_semantic", False)}
+        commands = []
+        while True:
+            input_data = {"Grayscale": {}, "Semantic": {}}
+            recorded = self.input_data()
+            for p in active:
+                img = recorded.get("Grayscale", {}).get(p.name)
+                if img is not None and img.ndim == 2:  # as the leaderboard hands it: [:, :, 0] of BGRA
+                    buf = np.empty(img.shape + (4,), np.uint8)
+                    buf[:, :, 0] = img
+                    img = buf[:, :, 0]
+                input_data["Grayscale"][p] = img
+                if p in semantic:
+                    input_data["Semantic"][p] = recorded.get("Semantic", {}).get(p.name)
+            state = {}
+            for p in SensorPosition:
+                known = p.name in initial["cameras"]
+                pose = transform_from_matrix(pose_to_matrix(*self.get_camera_position(p.name).as_tuple()))
+                state[p] = [self.get_camera_state(p.name) if known else False,
+                            self.get_light_state(p.name) if known else 0.0, pose, None]  # fmt: skip
+            truth = None if evaluation else transform_from_matrix(self.get_transform_matrix())
+            status = VehicleStatus(self.get_linear_speed(), self.get_angular_speed(), truth, state,
+                                   self.get_current_power())  # fmt: skip
+            agent.set_imu_data(self.get_imu_data())
+            out = agent(self.get_mission_time(), status, input_data)
+            commands.append(out[0] if isinstance(out, tuple) else out)  # the leaderboard's base class returns a pair
+            if self.at_end() or agent.has_finished() or (max_ticks is not None and len(commands) >= max_ticks):
+                break
+            self.step_frame()
+        agent.finalize()
+        return commands
 
     def input_data(self) -> dict[str, dict[str, np.ndarray | None]]:
         """``{"Grayscale": {name: (H, W) uint8 | None}, "Semantic": {name: image | None}}``.
