@@ -177,7 +177,7 @@ def _read_settings(path) -> dict:
         if want is float and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
         if not isinstance(value, want) or (want is int and isinstance(value, bool)):
-            raise ValueError(f"{path}: {key} must be a {want.__name__}, got {value!r}")
+            raise ValueError(f"{path}: {key} must be {want.__name__}, got {value!r}")
         out[key] = value
     if out["odometry"] not in ("visual", "imu"):
         raise ValueError(f"{path}: odometry must be 'visual' or 'imu', got {out['odometry']!r}")

@@ -45,6 +45,11 @@ def fresh_agent_module():
     yield
 
 
+@pytest.fixture(scope="module")
+def small_world():
+    return lunarsim.SimWorld(301, n_rocks=100)
+
+
 def _conf(tmp_path, world, **extra) -> Path:
     ref = world.write_reference(tmp_path / "rocks.csv")
     lines = [f'reference = "{ref.name}"', f"width = {W}", f"height = {H}", 'output = "out"']
@@ -122,8 +127,8 @@ def test_agent_file_loads_through_the_wrapper(tmp_path):
     assert wrapper.agent_fiducials is False  # the localization points need no fiducials
 
 
-def test_setup_runs_before_any_vehicle_status_and_configures_all_eight_sensors(tmp_path):
-    world = lunarsim.SimWorld(301, n_rocks=100)
+def test_setup_runs_before_any_vehicle_status_and_configures_all_eight_sensors(tmp_path, small_world):
+    world = small_world
     wrapper = AgentWrapper(world, str(AGENT_FILE), str(_conf(tmp_path, world)), evaluation=True)
     wrapper.setup(world.vehicle, world.lander, Constants())  # AgentSetupError if setup touched the status
     sensors = wrapper.agent.sensors()
@@ -133,8 +138,8 @@ def test_setup_runs_before_any_vehicle_status_and_configures_all_eight_sensors(t
     assert not any(c.get("use_semantic") for c in sensors.values())  # refused in evaluation
 
 
-def test_a_missing_reference_is_a_setup_error(tmp_path):
-    world = lunarsim.SimWorld(301, n_rocks=100)
+def test_a_missing_reference_is_a_setup_error(tmp_path, small_world):
+    world = small_world
     conf = tmp_path / "c.toml"
     conf.write_text('reference = "nowhere.csv"\n')
     wrapper = AgentWrapper(world, str(AGENT_FILE), str(conf), evaluation=True)
@@ -142,11 +147,24 @@ def test_a_missing_reference_is_a_setup_error(tmp_path):
         wrapper.setup(world.vehicle, world.lander, Constants())
 
 
+@pytest.mark.parametrize("text, match", [('refrence = "x.csv"', "unknown setting 'refrence'"),
+                                         ("width = '640'", "width must be int"),
+                                         ('odometry = "wheels"', "odometry must be")])  # fmt: skip
+def test_bad_settings_are_setup_errors_naming_the_key(tmp_path, small_world, text, match):
+    world = small_world
+    conf = tmp_path / "c.toml"
+    conf.write_text(text + "\n")
+    wrapper = AgentWrapper(world, str(AGENT_FILE), str(conf), evaluation=True)
+    with pytest.raises(AgentSetupError, match=match):
+        wrapper.setup(world.vehicle, world.lander, Constants())
+
+
 @pytest.fixture(scope="module")
 def closed_loop(tmp_path_factory):
-    """30 s of mission time over a 386-rock site, front pair at 640x360, evaluation mode."""
+    """30 s of mission time, front pair at 640x360, evaluation mode; 800 rocks so that a fix
+    comes early (the 386-rock sites of the benchmark take longer: docs/lac-leaderboard.md)."""
     tmp = tmp_path_factory.mktemp("lac")
-    world = lunarsim.SimWorld(301)
+    world = lunarsim.SimWorld(301, n_rocks=800)
     run = lunarsim.run_agent(AGENT_FILE, _conf(tmp, world), world, 30.0, evaluation=True)
     return run, world, tmp
 
