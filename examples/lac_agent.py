@@ -20,14 +20,16 @@ Settings (``lunarloc.toml``; every key optional, relative paths from the TOML's 
     loop_radius_m = 0.0       # radius of the loop driven about the lander; 0: the start's distance
     speed_mps = 0.3           # driving speed (the leaderboard clamps to 0.49)
     warm_up = true            # compile and warm caches in setup(), before the mission clock runs
+    lac_map = false           # fill the leaderboard's geometric map (lunarloc.LacMapper) in finalize()
 
 Without the leaderboard installed the class derives from lunarloc's mirror of its base
 class (:class:`lunarloc.LacAgentBase`), so :class:`lunarloc.PlaybackAgent` can replay a
 recording through it in the leaderboard's call order (``tests/test_online_component.py``).
 
 Driving is not lunarloc's job: ``run_step`` steers a loop about the lander from the
-estimated pose so that the rover moves and sees rocks; a team plans here instead. Mapping
-(the geometric map the LAC scores) is a hook: see ``MAPPER HOOK`` below.
+estimated pose so that the rover moves and sees rocks; a team plans here instead. The
+geometric map the LAC scores: ``lac_map = true`` has lunarloc's mapper fill it in
+``finalize()``; a team's own mapper goes into the ``MAPPER HOOK``.
 """
 
 from __future__ import annotations
@@ -40,7 +42,8 @@ from pathlib import Path
 import numpy as np
 
 import lunarloc
-from lunarloc import CameraRig, OnlineConfig, OnlineLocalizer, as_transform_matrix, load_reference
+from lunarloc import CameraRig, LacMapper, OnlineConfig, OnlineLocalizer, as_transform_matrix, load_reference
+from lunarloc import write_geometric_map
 from lunarloc.core.geometry import matrix_to_pose
 
 try:  # the leaderboard's own types when it is installed
@@ -61,7 +64,7 @@ log = logging.getLogger(__name__)
 
 STEREO = ("FrontLeft", "FrontRight")
 DEFAULTS = {"reference": "", "width": 1280, "height": 720, "odometry": "visual", "output": "lunarloc-out",
-            "light_intensity": 1.0, "loop_radius_m": 0.0, "speed_mps": 0.3, "warm_up": True}  # fmt: skip
+            "light_intensity": 1.0, "loop_radius_m": 0.0, "speed_mps": 0.3, "warm_up": True, "lac_map": False}  # fmt: skip
 
 
 def get_entry_point() -> str:
@@ -99,7 +102,7 @@ class LunarLocAgent(AutonomousAgent):
         self.lander_xy = (T0 @ T_rl)[:2, 3]
         r0 = float(np.linalg.norm(T0[:2, 3] - self.lander_xy))
         self.loop_radius_m = settings["loop_radius_m"] or min(max(r0, 3.5), 10.0)
-        self.mapper = None  # MAPPER HOOK (issue 28): a lunarloc.mapping mapper, built here
+        self.mapper = None  # MAPPER HOOK: a mapper of the team's own, fed every tick (see run_step)
 
     def use_fiducials(self) -> bool:
         return False  # the localization points (150 of 1000) count only without fiducials
@@ -113,9 +116,10 @@ class LunarLocAgent(AutonomousAgent):
     def _make_localizer(self, rig) -> OnlineLocalizer:
         s = self.settings
         rig = rig or CameraRig.from_sensors(self.sensors())  # the LAC mounts at the configured size
+        lac_mapper = LacMapper() if s["lac_map"] else None  # fed by the localizer at its keyframes
         return OnlineLocalizer(self.reference, self.get_initial_position(), rig=rig,
                                config=OnlineConfig(visual_odometry=s["odometry"] == "visual"),
-                               lander_pose=self.get_initial_lander_position())  # fmt: skip
+                               lander_pose=self.get_initial_lander_position(), mapper=lac_mapper)  # fmt: skip
 
     # -- every tick ---------------------------------------------------------------------------
     def run_step(self, input_data):
@@ -132,7 +136,7 @@ class LunarLocAgent(AutonomousAgent):
             x, y, z, roll, pitch, yaw = matrix_to_pose(est.T_map_rover)
             self._rows.write(f"{est.mission_time_s:.3f},{x:.4f},{y:.4f},{z:.4f},{roll:.5f},{pitch:.5f},{yaw:.5f},"
                              f"{int(est.localized)},{est.fixes}\n")  # fmt: skip
-        if self.mapper is not None:  # MAPPER HOOK (issue 28): per tick, with the pose and the images
+        if self.mapper is not None:  # MAPPER HOOK: per tick, with the pose and the images
             self.mapper.update(est, input_data)
         return VehicleVelocityControl(*self._loop_command(est.T_map_rover))
 
@@ -150,7 +154,10 @@ class LunarLocAgent(AutonomousAgent):
 
     def finalize(self) -> None:
         est = self.estimate
-        if self.mapper is not None:  # MAPPER HOOK (issue 28): fill the leaderboard's map
+        if self.localizer is not None and self.localizer.mapper is not None and self.get_geometric_map() is not None:
+            cells = write_geometric_map(self.localizer.mapper.grid(), self.get_geometric_map())
+            log.info("lunarloc wrote %d cells of the geometric map", cells)
+        if self.mapper is not None:  # MAPPER HOOK: fill the leaderboard's map
             self.mapper.finalize(self.get_geometric_map())
         if self._rows is not None:
             self._rows.close()
