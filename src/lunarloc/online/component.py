@@ -516,10 +516,12 @@ class OnlineLocalizer:
         if names and not any(n in names for p in self._pairs for n in p):
             raise InputError(f"input_data['Grayscale'] has no stereo camera (has {', '.join(sorted(names))}); the component "
                              f"needs one of the pairs {', '.join('/'.join(p) for p in self._pairs)} active")  # fmt: skip
-        first = next((np.asarray(im) for im in group.values() if im is not None), None)
-        if first is not None and not self._rig_given and self._last_kf is None and self._vo_anchor is None \
-                and first.ndim == 2 and first.shape != (self.rig.camera.height, self.rig.camera.width):
-            h, w = first.shape  # the LAC's cameras are fixed pinholes: the intrinsics follow from the size
+        first = next((getattr(im, "shape", None) for im in group.values() if im is not None), None)  # arrays only
+        if isinstance(first, tuple) and len(first) == 2 and 0 < first[0] <= 2048 and 0 < first[1] <= 2448 \
+                and not self._rig_given \
+                and self._last_kf is None and self._vo_anchor is None \
+                and first != (self.rig.camera.height, self.rig.camera.width):
+            h, w = (int(v) for v in first)  # the LAC's cameras are fixed pinholes: the intrinsics follow from the size
             log.info("no rig given: the LAC rig at the delivered %dx%d", w, h)
             self._use_rig(CameraRig.lac(w, h))
         c = self.rig.camera
