@@ -35,7 +35,7 @@ from lunarloc.association.graph import (
 from lunarloc.association.putative import putative_associations
 from lunarloc.core.errors import ConfigError, DegenerateGeometryError, InputError
 from lunarloc.core.geometry import (
-    arun, arun_yaw, as_points, exp_so3, invert_transform, make_transform, rot_z, tilt_angle, transform_points, yaw_of,
+    arun, arun_yaw, as_points, exp_so3, make_transform, tilt_angle, transform_points, yaw_of,
 )
 from lunarloc.io.maps import LandmarkMap, path_arc_length_m
 
@@ -1171,6 +1171,33 @@ def localize(
     than 3 landmarks, coincident or collinear landmarks). A failed localization is not
     an error: it returns ``success=False`` with a reason.
     """
+    # 1. the maps and the settings for them (a map without heights: 2D + yaw)
+    reference, vehicle, cfg = _prepare(reference, vehicle, config)
+    P = _Problem(reference, vehicle, cfg, timings={})
+    # 2. all-to-all putative associations, and the inliers chance alone would give
+    P.associate()
+    if P.num_associations == 0:
+        return P.refused("associations", 0, 1, ">=", "no putative associations (size pruning removed all)")
+    # 3. the densest consistent set (one sparse graph per yaw bin in gravity mode)
+    screen = P.search()
+    if screen is not None and not screen.passed:
+        return P.refused("screen", screen.score, screen.needed, ">=", _screen_reason(screen, cfg, P.required))
+    if len(P.best) < 3:
+        return P.refused("consistent_set", len(P.best), 3, ">=",
+                         f"no consistent set of 3 or more associations (largest: {len(P.best)})")
+    # 4. Arun's SVD on the set, refinement, robust re-weighting
+    why = P.register()
+    if why is not None:
+        return P.refused("registration", float("nan"), float("nan"), "<=", why, inliers=P.inl)
+    # 5. the error budget where the pose is used: registration, odometry distortion, chance
+    budget = P.error_budget(query_xyz, path_xyz)
+    # 6. the competing hypothesis and the table of named checks
+    return P.verify(budget, screen)
+
+
+def _prepare(reference, vehicle, config):
+    """The maps and the config localize() works with: a config of the right type, maps
+    without heights (a rock catalogue from above) flattened to 2D + yaw, the per-map settings."""
     if config is not None:
         from lunarloc.core.validate import instance
 
@@ -1183,160 +1210,224 @@ def localize(
         # 2D + yaw; the pose's height, roll and pitch are not determined (left 0)
         reference, vehicle = _flattened(reference), _flattened(vehicle)
         config = replace(config or LocalizationConfig(), mode=Mode.GRAVITY, registration=Registration.YAW)
-    Pr = _check_map(reference, "reference")
-    Pv = _check_map(vehicle, "vehicle")
-    cfg = (config or LocalizationConfig()).for_maps(reference, vehicle)
-    sigma_h, sigma_z = combined_sigma(reference, vehicle, cfg)
-    timings: dict[str, float] = {}
-    t0 = time.perf_counter()
-    assoc, node_of = putative_associations(
-        len(Pv), len(Pr), vehicle.sizes, reference.sizes, cfg.max_size_ratio
-    )
-    m = len(assoc)
-    timings["associations"] = time.perf_counter() - t0
-    chance = chance_clique_size(m, cfg.mode, cfg.epsilon_m, cfg.epsilon_z_m)
-    required = max(cfg.min_inliers, int(math.ceil(chance + cfg.chance_margin)))
-    if m == 0:
-        why = "no putative associations (size pruning removed all)"
-        return LocalizationResult(False, _nan_T(), np.zeros((0, 2), int), float("nan"), why, required_inliers=required,
-                                  timings=timings, checks=[Check("associations", 0, 1, False, ">=", why)])
+    _check_map(reference, "reference")
+    _check_map(vehicle, "vehicle")
+    return reference, vehicle, (config or LocalizationConfig()).for_maps(reference, vehicle)
 
-    t0 = time.perf_counter()
-    if cfg.mode is Mode.GRAVITY:
-        report: dict = {}
-        best, competitor, best_yaw, num_edges = _search_yaw_bins(Pv, Pr, node_of, cfg, required, report)
-    else:
-        best, competitor, num_edges = _search_3d(Pv, Pr, node_of, assoc, cfg)
-        best_yaw, report = None, {}
-    screen = report.get("screen")
-    if screen is not None:
-        timings["screen"] = report["screen_s"]
-        if not screen.passed:
-            why = (f"no consistent set large enough: the best of {screen.candidates} candidate poses voted by the "
-                   f"reference's rock triangles has {screen.score:.1f} inliers beyond chance ({screen.inliers} in all), "
-                   f"under {cfg.screen_fraction:g} x the {required} acceptance needs; the exhaustive search "
-                   f"(~{screen.incidences:.2g} graph edges) was not run")
-            return LocalizationResult(
-                False, _nan_T(), np.zeros((0, 2), int), float("nan"), why, required_inliers=required,
-                num_associations=m, timings=timings,
-                checks=[Check("screen", screen.score, screen.needed, False, ">=", why)])
-    timings["search"] = time.perf_counter() - t0 - timings.get("screen", 0.0)
-    base = dict(required_inliers=required, num_associations=m, num_edges=num_edges, timings=timings)
 
-    if len(best) < 3:
-        why = f"no consistent set of 3 or more associations (largest: {len(best)})"
-        return LocalizationResult(False, _nan_T(), np.zeros((0, 2), int), float("nan"), why, clique_size=len(best),
-                                  checks=[Check("consistent_set", len(best), 3, False, ">=", why)], **base)
+def _screen_reason(screen, cfg, required: int) -> str:
+    return (f"no consistent set large enough: the best of {screen.candidates} candidate poses voted by the "
+            f"reference's rock triangles has {screen.score:.1f} inliers beyond chance ({screen.inliers} in all), "
+            f"under {cfg.screen_fraction:g} x the {required} acceptance needs; the exhaustive search "
+            f"(~{screen.incidences:.2g} graph edges) was not run")
 
-    t0 = time.perf_counter()
-    inl = assoc[best]
-    try:
-        T = _register(Pv[inl[:, 0]], Pr[inl[:, 1]], cfg)
-    except DegenerateGeometryError as exc:
-        timings["registration"] = time.perf_counter() - t0
-        why = f"inliers are degenerate: {exc}"
-        return LocalizationResult(False, _nan_T(), inl, float("nan"), why, clique_size=len(best),
-                                  checks=[Check("registration", float("nan"), float("nan"), False, "<=", why)], **base)
-    if cfg.refine:
-        T, inl = _refine(T, Pv, Pr, inl, cfg)
-    try:
-        T_w, w = _register_robust(Pv[inl[:, 0]], Pr[inl[:, 1]], cfg, T) if cfg.refine else (T, np.ones(len(inl)))
-        T = T_w
-    except DegenerateGeometryError:
-        w = np.ones(len(inl))
-    query = Pv if query_xyz is None else as_points(query_xyz, "query points")
-    C_c, centre_ref = pose_covariance(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, cfg.registration_sigma_floor_m)
-    pred_fit = predicted_error(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, query, cfg.registration_sigma_floor_m)
-    path = None if path_xyz is None else as_points(path_xyz, "vehicle path")
-    bend = None
-    if cfg.odometry_bounds_stated:
-        distortion, distortion_rot = distortion_allowance(
-            query, Pv[inl[:, 0]], w, cfg.odometry_scale_error or 0.0,
-            math.radians(cfg.odometry_heading_drift_deg_per_m or 0.0), path,
+
+@dataclass
+class _Budget:
+    """What :meth:`_Problem.error_budget` found at the query points."""
+
+    query: np.ndarray
+    C_c: np.ndarray
+    centre_ref: np.ndarray
+    pred_fit: np.ndarray
+    pred: np.ndarray
+    distortion: np.ndarray
+    distortion_rot: np.ndarray
+    pred_rot_deg: float
+    bend: object
+    k_chance: float
+    near: int
+    near_exp: float
+    near_outer: float
+    dscale: float
+    scale_se: float
+
+
+class _Problem:
+    """One localize() call's state, step by step (each step one method)."""
+
+    def __init__(self, reference: LandmarkMap, vehicle: LandmarkMap, cfg: LocalizationConfig, timings: dict):
+        self.reference, self.vehicle, self.cfg, self.timings = reference, vehicle, cfg, timings
+        self.Pr, self.Pv = reference.positions_xyz, vehicle.positions_xyz
+        self.sigma_h, self.sigma_z = combined_sigma(reference, vehicle, cfg)
+        self.required, self.num_associations, self.num_edges = 0, 0, 0
+        self.best, self.inl = [], np.zeros((0, 2), int)
+
+    def base(self) -> dict:
+        """The result fields every outcome after the association step carries."""
+        return dict(required_inliers=self.required, num_associations=self.num_associations,
+                    num_edges=self.num_edges, timings=self.timings)  # fmt: skip
+
+    def refused(self, name, value, limit, op, why, inliers=None) -> LocalizationResult:
+        """A result that says why not: one failed check, no pose."""
+        fields = self.base() if name != "associations" else dict(required_inliers=self.required, timings=self.timings)
+        if name == "screen":
+            fields.pop("num_edges")
+        if name in ("consistent_set", "registration"):
+            fields["clique_size"] = len(self.best)
+        return LocalizationResult(False, _nan_T(), np.zeros((0, 2), int) if inliers is None else inliers,
+                                  float("nan"), why, checks=[Check(name, value, limit, False, op, why)], **fields)
+
+    def associate(self) -> None:
+        cfg, t0 = self.cfg, time.perf_counter()
+        self.assoc, self.node_of = putative_associations(
+            len(self.Pv), len(self.Pr), self.vehicle.sizes, self.reference.sizes, cfg.max_size_ratio
         )
-    else:  # no bounds stated: what the maps show of a bend or scale error, and how unsure that is
-        distortion, distortion_rot = np.array([math.inf]), np.array([math.inf])
-        if len(inl) >= cfg.min_inliers_distortion_fit:
-            arcs = ((vehicle.sighting_arc_m, vehicle.sighting_arc_min_m, vehicle.sighting_arc_max_m)
-                    if vehicle.has_sighting_arcs else None)
-            fit_args = (T, Pv, Pr, inl, query, path, math.sqrt((2 * sigma_h**2 + sigma_z**2) / 3),
-                        cfg.refine_radius_m, cfg.distortion_fit_rounds, arcs, cfg.max_sighting_span_m,
-                        cfg.min_inliers_distortion_fit)
-            bend = bending_fit(*fit_args)  # from the maps alone
-            prior = (None if cfg.odometry_prior_drift_deg_per_m is None else math.radians(cfg.odometry_prior_drift_deg_per_m),
-                     cfg.odometry_prior_scale_error)
-            # the prior is per metre of the odometry's path: without the path (a straight stand-in)
-            # there is no distance travelled for it to describe. It also narrowed a 6 m map against
-            # a LAC grid below its quantisation's error (tests/test_sighting_arcs.py)
-            if path is not None and any(v is not None for v in prior):
-                conflict = prior_conflict(bend, *prior)
-                if conflict <= PRIOR_CONFLICT_SIGMAS:
-                    bend = bending_fit(*fit_args, *prior)
-                    bend.prior = "applied"
-                else:  # the maps show a bend real odometry does not make: the prior does not describe them
-                    bend.prior = f"rejected: the maps' bend is {conflict:.1f} sigma from the prior"
-    pred = pred_fit + distortion  # the distortion is a bound (a bias), not a random error: added, not in quadrature
-    rot_sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(C_c[3:, 3:]))), 0.0)) if np.all(np.isfinite(C_c)) else math.inf
-    pred_rot_deg = math.degrees(rot_sigma + float(distortion_rot.max()))
-    if bend is not None:  # the registration counted once, with the bend's own uncertainty
-        pred, pred_rot_deg = fitted_predicted_error(bend, cfg, pred_fit, math.degrees(rot_sigma))
-        distortion, distortion_rot = pred - pred_fit, np.array([math.radians(pred_rot_deg) - rot_sigma])
-    # the chance envelope was measured on consistent cores: refinement's chance additions
-    # (more of them with a wider refinement radius) do not count towards beating it
-    core = len(best)
-    chance_gain = chance_refined(T, Pv, Pr, assoc[best][:, 0], cfg.refine_radius_m) if cfg.refine else 0.0
-    k_chance = min(len(inl), core + max(0.0, len(inl) - core - chance_gain))
-    near_outer = max(cfg.near_miss_outer_m, 3 * cfg.refine_radius_m)
-    near, near_exp = near_miss_excess(T, Pv, Pr, inl[:, 0], cfg.refine_radius_m, near_outer)
-    dscale, scale_se = scale_check(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, cfg.registration_sigma_floor_m)
-    timings["registration"] = time.perf_counter() - t0
+        self.num_associations = m = len(self.assoc)
+        self.timings["associations"] = time.perf_counter() - t0
+        self.chance = chance_clique_size(m, cfg.mode, cfg.epsilon_m, cfg.epsilon_z_m)
+        self.required = max(cfg.min_inliers, int(math.ceil(self.chance + cfg.chance_margin)))
 
-    # competitor in 6-DoF mode: best set among associations the winner does not explain
-    t0 = time.perf_counter()
-    if cfg.mode is Mode.SIX_DOF:
-        competitor = _competitor_3d(T, Pv, Pr, node_of, assoc, cfg)
-    else:
-        competitor = max(competitor, _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw, competitor))
-    timings["verification"] = time.perf_counter() - t0
+    def search(self):
+        """The densest consistent set and its competitor; the screen's verdict (None: not run)."""
+        cfg, t0 = self.cfg, time.perf_counter()
+        if cfg.mode is Mode.GRAVITY:
+            report: dict = {}
+            self.best, self.competitor, self.best_yaw, self.num_edges = _search_yaw_bins(
+                self.Pv, self.Pr, self.node_of, cfg, self.required, report)
+        else:
+            self.best, self.competitor, self.num_edges = _search_3d(self.Pv, self.Pr, self.node_of, self.assoc, cfg)
+            self.best_yaw, report = None, {}
+        screen = report.get("screen")
+        if screen is not None:
+            self.timings["screen"] = report["screen_s"]
+            if not screen.passed:
+                return screen
+        self.timings["search"] = time.perf_counter() - t0 - self.timings.get("screen", 0.0)
+        return screen
 
-    res = _residuals(T, Pv[inl[:, 0]], Pr[inl[:, 1]])
-    rmse = float(np.sqrt(np.mean(res**2)))
-    R = T[:3, :3]
-    out = LocalizationResult(
-        False, T, inl, rmse, "", clique_size=len(best), competitor_size=int(competitor),
-        predicted_error_m=float(pred.max()), scale_error=dscale,
-        yaw_deg=math.degrees(yaw_of(R)), tilt_deg=math.degrees(tilt_angle(R)),
-        distortion_error_m=float(distortion.max()), predicted_rotation_deg=pred_rot_deg, near_misses=near, near_misses_expected=near_exp,
-        covariance=covariance_at_origin(C_c, centre_ref) + distortion_covariance(
-            transform_points(T, query[int(np.argmax(pred_fit + distortion))][None])[0],
-            float(distortion.max()), float(distortion_rot.max())),
-        distortion_fit={} if bend is None else asdict(bend), **base,
-    )
-    Q = Pr[inl[:, 1]]
-    s = np.linalg.svd(Q - Q.mean(axis=0), compute_uv=False) / math.sqrt(len(Q))
-    k = len(inl)
-    gravity = cfg.mode is Mode.GRAVITY
-    ev = Evidence(
-        inliers=k, rmse_m=rmse, rmse_limit_m=rmse_limit(cfg, sigma_h, sigma_z, k), sigma_h_m=sigma_h, sigma_z_m=sigma_z,
-        extent_m=2 * s[0], planarity=s[1] / max(s[0], 1e-12),
-        tilt_deg=out.tilt_deg if gravity else None,
-        handedness=_handedness(Pv[inl[:, 0]], Q, np.random.default_rng(0)) if gravity else None,
-        scale_error=dscale, scale_se=scale_se, near_misses=near, near_misses_expected=near_exp,
-        near_inner_m=cfg.refine_radius_m, near_outer_m=near_outer,
-        predicted_error_m=float(pred.max()), distortion_error_m=float(distortion.max()),
-        predicted_rotation_deg=pred_rot_deg, distortion_rotation_deg=math.degrees(float(distortion_rot.max())),
-        inliers_beyond_chance=k_chance, required_inliers=required, chance_inliers=chance, num_associations=m,
-        competitor=int(competitor), distortion_fitted=bend is not None,
-    )
-    out.checks = verify(ev, cfg)
-    if screen is not None:  # it passed: shown first, as a check that refuses nothing further
-        out.checks.insert(0, Check("screen", screen.score, screen.needed, True, ">=",
-                                   "inliers beyond chance at the best pose voted by the reference's rock triangles"))
-    failed = [c for c in out.checks if not c.passed]
-    out.success = not failed
-    out.reason = failed[0].detail if failed else "ok"
-    log.info("localize: %s (%d inliers, rmse %.3f m)", out.reason, k, rmse)
-    return out
+    def register(self) -> str | None:
+        """T and the inliers (None), or why the set cannot be registered."""
+        cfg, Pv, Pr = self.cfg, self.Pv, self.Pr
+        self.t_register = time.perf_counter()
+        self.inl = inl = self.assoc[self.best]
+        try:
+            T = _register(Pv[inl[:, 0]], Pr[inl[:, 1]], cfg)
+        except DegenerateGeometryError as exc:
+            self.timings["registration"] = time.perf_counter() - self.t_register
+            return f"inliers are degenerate: {exc}"
+        if cfg.refine:
+            T, inl = _refine(T, Pv, Pr, inl, cfg)
+        try:
+            T_w, w = _register_robust(Pv[inl[:, 0]], Pr[inl[:, 1]], cfg, T) if cfg.refine else (T, np.ones(len(inl)))
+            T = T_w
+        except DegenerateGeometryError:
+            w = np.ones(len(inl))
+        self.T, self.inl, self.w = T, inl, w
+        return None
+
+    def error_budget(self, query_xyz, path_xyz) -> _Budget:
+        """The predicted error at the query points: the registration's covariance, the
+        odometry's distortion (stated bounds, or fitted from the maps with a prior), chance."""
+        cfg, T, Pv, Pr, inl, w = self.cfg, self.T, self.Pv, self.Pr, self.inl, self.w
+        query = Pv if query_xyz is None else as_points(query_xyz, "query points")
+        C_c, centre_ref = pose_covariance(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, cfg.registration_sigma_floor_m)
+        pred_fit = predicted_error(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, query, cfg.registration_sigma_floor_m)
+        path = None if path_xyz is None else as_points(path_xyz, "vehicle path")
+        bend = None
+        if cfg.odometry_bounds_stated:
+            distortion, distortion_rot = distortion_allowance(
+                query, Pv[inl[:, 0]], w, cfg.odometry_scale_error or 0.0,
+                math.radians(cfg.odometry_heading_drift_deg_per_m or 0.0), path,
+            )
+        else:  # no bounds stated: what the maps show of a bend or scale error, and how unsure that is
+            distortion, distortion_rot = np.array([math.inf]), np.array([math.inf])
+            if len(inl) >= cfg.min_inliers_distortion_fit:
+                bend = self._fitted_bend(query, path)
+        pred = pred_fit + distortion  # the distortion is a bound (a bias), not a random error: added, not in quadrature
+        rot_sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(C_c[3:, 3:]))), 0.0)) if np.all(np.isfinite(C_c)) else math.inf
+        pred_rot_deg = math.degrees(rot_sigma + float(distortion_rot.max()))
+        if bend is not None:  # the registration counted once, with the bend's own uncertainty
+            pred, pred_rot_deg = fitted_predicted_error(bend, cfg, pred_fit, math.degrees(rot_sigma))
+            distortion, distortion_rot = pred - pred_fit, np.array([math.radians(pred_rot_deg) - rot_sigma])
+        # the chance envelope was measured on consistent cores: refinement's chance additions
+        # (more of them with a wider refinement radius) do not count towards beating it
+        core = len(self.best)
+        chance_gain = chance_refined(T, Pv, Pr, self.assoc[self.best][:, 0], cfg.refine_radius_m) if cfg.refine else 0.0
+        k_chance = min(len(inl), core + max(0.0, len(inl) - core - chance_gain))
+        near_outer = max(cfg.near_miss_outer_m, 3 * cfg.refine_radius_m)
+        near, near_exp = near_miss_excess(T, Pv, Pr, inl[:, 0], cfg.refine_radius_m, near_outer)
+        dscale, scale_se = scale_check(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, cfg.registration_sigma_floor_m)
+        self.timings["registration"] = time.perf_counter() - self.t_register
+        return _Budget(query, C_c, centre_ref, pred_fit, pred, distortion, distortion_rot, pred_rot_deg, bend,
+                       k_chance, near, near_exp, near_outer, dscale, scale_se)  # fmt: skip
+
+    def _fitted_bend(self, query, path):
+        """The bend fitted from the maps alone, then with the odometry prior where the maps agree."""
+        cfg, vehicle = self.cfg, self.vehicle
+        arcs = ((vehicle.sighting_arc_m, vehicle.sighting_arc_min_m, vehicle.sighting_arc_max_m)
+                if vehicle.has_sighting_arcs else None)
+        fit_args = (self.T, self.Pv, self.Pr, self.inl, query, path,
+                    math.sqrt((2 * self.sigma_h**2 + self.sigma_z**2) / 3),
+                    cfg.refine_radius_m, cfg.distortion_fit_rounds, arcs, cfg.max_sighting_span_m,
+                    cfg.min_inliers_distortion_fit)
+        bend = bending_fit(*fit_args)  # from the maps alone
+        prior = (None if cfg.odometry_prior_drift_deg_per_m is None else math.radians(cfg.odometry_prior_drift_deg_per_m),
+                 cfg.odometry_prior_scale_error)
+        # the prior is per metre of the odometry's path: without the path (a straight stand-in)
+        # there is no distance travelled for it to describe. It also narrowed a 6 m map against
+        # a LAC grid below its quantisation's error (tests/test_sighting_arcs.py)
+        if path is not None and any(v is not None for v in prior):
+            conflict = prior_conflict(bend, *prior)
+            if conflict <= PRIOR_CONFLICT_SIGMAS:
+                bend = bending_fit(*fit_args, *prior)
+                bend.prior = "applied"
+            else:  # the maps show a bend real odometry does not make: the prior does not describe them
+                bend.prior = f"rejected: the maps' bend is {conflict:.1f} sigma from the prior"
+        return bend
+
+    def verify(self, b: _Budget, screen) -> LocalizationResult:
+        """The competing hypothesis, the result, and the table of named checks deciding it."""
+        cfg, T, Pv, Pr, inl = self.cfg, self.T, self.Pv, self.Pr, self.inl
+        # competitor in 6-DoF mode: best set among associations the winner does not explain
+        t0 = time.perf_counter()
+        if cfg.mode is Mode.SIX_DOF:
+            competitor = _competitor_3d(T, Pv, Pr, self.node_of, self.assoc, cfg)
+        else:
+            competitor = max(self.competitor, _competitor_same_yaw(T, Pv, Pr, self.node_of, self.assoc, cfg,
+                                                                   self.best_yaw, self.competitor))  # fmt: skip
+        self.timings["verification"] = time.perf_counter() - t0
+
+        res = _residuals(T, Pv[inl[:, 0]], Pr[inl[:, 1]])
+        rmse = float(np.sqrt(np.mean(res**2)))
+        R = T[:3, :3]
+        out = LocalizationResult(
+            False, T, inl, rmse, "", clique_size=len(self.best), competitor_size=int(competitor),
+            predicted_error_m=float(b.pred.max()), scale_error=b.dscale,
+            yaw_deg=math.degrees(yaw_of(R)), tilt_deg=math.degrees(tilt_angle(R)),
+            distortion_error_m=float(b.distortion.max()), predicted_rotation_deg=b.pred_rot_deg,
+            near_misses=b.near, near_misses_expected=b.near_exp,
+            covariance=covariance_at_origin(b.C_c, b.centre_ref) + distortion_covariance(
+                transform_points(T, b.query[int(np.argmax(b.pred_fit + b.distortion))][None])[0],
+                float(b.distortion.max()), float(b.distortion_rot.max())),
+            distortion_fit={} if b.bend is None else asdict(b.bend), **self.base(),
+        )
+        Q = Pr[inl[:, 1]]
+        s = np.linalg.svd(Q - Q.mean(axis=0), compute_uv=False) / math.sqrt(len(Q))
+        k = len(inl)
+        gravity = cfg.mode is Mode.GRAVITY
+        ev = Evidence(
+            inliers=k, rmse_m=rmse, rmse_limit_m=rmse_limit(cfg, self.sigma_h, self.sigma_z, k),
+            sigma_h_m=self.sigma_h, sigma_z_m=self.sigma_z,
+            extent_m=2 * s[0], planarity=s[1] / max(s[0], 1e-12),
+            tilt_deg=out.tilt_deg if gravity else None,
+            handedness=_handedness(Pv[inl[:, 0]], Q, np.random.default_rng(0)) if gravity else None,
+            scale_error=b.dscale, scale_se=b.scale_se, near_misses=b.near, near_misses_expected=b.near_exp,
+            near_inner_m=cfg.refine_radius_m, near_outer_m=b.near_outer,
+            predicted_error_m=float(b.pred.max()), distortion_error_m=float(b.distortion.max()),
+            predicted_rotation_deg=b.pred_rot_deg, distortion_rotation_deg=math.degrees(float(b.distortion_rot.max())),
+            inliers_beyond_chance=b.k_chance, required_inliers=self.required, chance_inliers=self.chance,
+            num_associations=self.num_associations, competitor=int(competitor), distortion_fitted=b.bend is not None,
+        )
+        out.checks = verify(ev, cfg)
+        if screen is not None:  # it passed: shown first, as a check that refuses nothing further
+            out.checks.insert(0, Check("screen", screen.score, screen.needed, True, ">=",
+                                       "inliers beyond chance at the best pose voted by the reference's rock triangles"))
+        failed = [c for c in out.checks if not c.passed]
+        out.success = not failed
+        out.reason = failed[0].detail if failed else "ok"
+        log.info("localize: %s (%d inliers, rmse %.3f m)", out.reason, k, rmse)
+        return out
 
 
 def _search_3d(Pv, Pr, node_of, assoc, cfg):
