@@ -75,7 +75,7 @@ def as_transform_matrix(pose, what: str = "pose") -> np.ndarray:
     in radians, as the agent getters return it) or an object with ``matrix()`` /
     ``get_matrix()``. CARLA's own left-handed ``carla.Transform`` is refused (InputError)."""
     if hasattr(pose, "location") and hasattr(pose, "rotation"):
-        return transform_to_matrix(pose, what)
+        return validate.rigid_transform(transform_to_matrix(pose, what), what)  # the same bounds as a matrix
     for attr in ("matrix", "get_matrix"):
         f = getattr(pose, attr, None)
         if callable(f):
@@ -97,8 +97,6 @@ def as_transform_matrix(pose, what: str = "pose") -> np.ndarray:
     return validate.rigid_transform(a, what)  # orthonormal, det +1, last row 0 0 0 1
 
 
-_as_T = as_transform_matrix
-
 
 @dataclass(frozen=True)
 class CameraRig:
@@ -109,7 +107,7 @@ class CameraRig:
     T_rover_cam: Mapping[str, np.ndarray] = field(default_factory=lambda: {n: m.T_rover_cam for n, m in ipex_rig().items()})
 
     def __post_init__(self) -> None:
-        poses = {camera_name(k): _as_T(v, f"pose of camera {camera_name(k)}") for k, v in dict(self.T_rover_cam).items()}
+        poses = {camera_name(k): as_transform_matrix(v, f"pose of camera {camera_name(k)}") for k, v in dict(self.T_rover_cam).items()}
         object.__setattr__(self, "T_rover_cam", poses)
 
     @classmethod
@@ -136,7 +134,7 @@ class CameraRig:
         cam = PinholeCamera(w, h, hfov_deg)
         poses = {n: m.T_rover_cam for n, m in ipex_rig(cam).items()}
         for key, p in dict(camera_poses or {}).items():
-            T = _as_T(p, f"pose of camera {camera_name(key)}")
+            T = as_transform_matrix(p, f"pose of camera {camera_name(key)}")
             if np.allclose(T, np.eye(4)):
                 continue  # a zero pose (PlaybackAgent before the camera's first row): keep the rig's
             poses[camera_name(key)] = T
@@ -284,9 +282,9 @@ class OnlineLocalizer:
         self.rig = rig or CameraRig()
         if not isinstance(self.rig, CameraRig):
             raise InputError(f"rig must be a CameraRig, got {type(self.rig).__name__}")
-        self.T_map_rover0 = _as_T(initial_pose, "initial_pose")
+        self.T_map_rover0 = as_transform_matrix(initial_pose, "initial_pose")
         # the lander's centre in map (= odometry at the start), for dropping detections on it
-        self._lander_xy = None if lander_pose is None else (self.T_map_rover0 @ _as_T(lander_pose, "lander_pose"))[:2, 3]
+        self._lander_xy = None if lander_pose is None else (self.T_map_rover0 @ as_transform_matrix(lander_pose, "lander_pose"))[:2, 3]
         self.reference = reference
         if reference is not None and len(reference) >= 1:
             d = np.linalg.norm(reference.positions_xyz[:, :2] - self.T_map_rover0[:2, 3], axis=1)
@@ -407,7 +405,7 @@ class OnlineLocalizer:
         a = self._check_imu(imu, linear_speed, angular_speed)
         linear_speed = float(linear_speed)
         images = self._images(input_data)
-        T_caller = None if odometry is None else _as_T(odometry, "odometry")
+        T_caller = None if odometry is None else as_transform_matrix(odometry, "odometry")
         pair = self._stereo_pair(images)  # may refuse: before any state changes
         if T_caller is not None and self._odometry_source is not None:
             self._odometry_source = None  # the caller's odometry: its bounds are not known, its windows' bend is fitted
