@@ -235,6 +235,7 @@ class Run:
     mission_time_s: float
     truth: list = field(default_factory=list)  # T_world_rover at each agent tick
     run_step_s: list = field(default_factory=list)
+    run_step_cpu_s: list = field(default_factory=list)  # process CPU time, robust to other load
     get_transform_calls: int = 0
     setup_s: float = 0.0
     scores: dict | None = None
@@ -255,11 +256,12 @@ def run_agent(agent_file, conf_path, world: SimWorld, duration_s: float, *, eval
     inner_run_step, inner_get_transform = agent.run_step, agent.get_transform
 
     def timed_run_step(input_data):
-        s = time.perf_counter()
+        s, c = time.perf_counter(), time.process_time()
         try:
             return inner_run_step(input_data)
         finally:
             run.run_step_s.append(time.perf_counter() - s)
+            run.run_step_cpu_s.append(time.process_time() - c)
             run.truth.append(world.T_world_rover.copy())
             if observe is not None:
                 observe(agent)
