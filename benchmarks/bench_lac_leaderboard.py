@@ -54,12 +54,18 @@ def run_one(seed: int, width: int, height: int, duration_s: float, rocks: int, l
     t0 = time.perf_counter()
     run = lunarsim.run_agent(AGENT_FILE, conf, world, duration_s, evaluation=evaluation,
                              observe=lambda agent: est.append((agent.estimate.T_map_rover[:3, 3].copy(),
-                                                               agent.estimate.localized)))  # fmt: skip
+                                                               agent.estimate.localized,
+                                                               agent.estimate.covariance[:3, :3].copy())))  # fmt: skip
     wall = time.perf_counter() - t0
     truth = np.array([T[:3, 3] for T in run.truth])
-    pos = np.array([p for p, _ in est])
-    loc = np.array([l for _, l in est])
+    pos = np.array([p for p, _, _ in est])
+    loc = np.array([l for _, l, _ in est])
+    cov = np.array([c for _, _, c in est])
     err = np.linalg.norm(pos[:, :2] - truth[:, :2], axis=1)
+    # the per-tick trace, to look at where the error grows: true and estimated positions (m),
+    # localized, the estimate's 3x3 position covariance (m^2)
+    np.savez_compressed(d / "trace.npz", t_s=np.arange(len(est)) * 0.05, truth_xyz=truth, est_xyz=pos,
+                        localized=loc, covariance_xyz=cov)  # fmt: skip
     first_fix = int(np.argmax(loc)) if loc.any() else None
     steps = np.array(run.run_step_s) * 1e3
     cpu = np.array(run.run_step_cpu_s) * 1e3
