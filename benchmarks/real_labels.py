@@ -13,7 +13,7 @@ rock's box grown by GROW_PX and its depth is within a factor 1.6 of the rock's r
 found when a detection is on it. Recall counts certain rocks with range <= recall_range_m (6 m);
 detections on uncertain rocks are ignored; every other detection is false, and those on a no-fire
 region (lander, rover shadow) are counted apart. For each missed rock, the stage that lost it
-(`bench_perception.miss_stage`: the mask overlapping its box most and that mask's reject reason,
+(`lunarloc.pipeline.perception_eval.miss_stage`: the mask overlapping its box most and that mask's reject reason,
 or no blob with the share of the box that has a height and the highest height there).
 """
 
@@ -104,11 +104,11 @@ def summarize(frames: list[dict]) -> dict:
 def run(data_dir: Path, labels: dict, cfg=None, frames_wanted=None, misses: list | None = None,
         figure_dir: Path | None = None) -> dict:
     import cv2
-    from bench_perception import miss_stage
 
     from lunarloc.core.geometry import pose_to_matrix
     from lunarloc.perception.camera import PinholeCamera, ipex_rig
     from lunarloc.perception.detector import Detector, DetectorConfig
+    from lunarloc.pipeline.perception_eval import miss_stage
 
     cam = labels["camera"]
     det = Detector(cfg or DetectorConfig(), PinholeCamera(cam["width_px"], cam["height_px"], cam["hfov_deg"]))

@@ -1,23 +1,14 @@
-"""benchmarks/bench_perception.py: where a missed rock was lost (--misses), and the targets'
-intervals with the sites resampled."""
-
-import importlib.util
-from pathlib import Path
+"""lunarloc.pipeline.perception_eval (behind benchmarks/bench_perception.py): where a missed
+rock was lost (--misses), and the targets' intervals with the sites resampled."""
 
 import numpy as np
+import pytest
 
+from lunarloc.core.errors import InputError
 from lunarloc.perception.detector import MaskRecord, PairResult
 from lunarloc.perception.masks import RejectReason, mask_stats, masks_from_labels
 from lunarloc.perception.stereo import HeightMap
-
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_perception.py"
-
-
-def _bench():
-    spec = importlib.util.spec_from_file_location("bench_perception", BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+from lunarloc.pipeline import perception_eval as bench
 
 
 def _pair(reasons, height=None):
@@ -31,7 +22,6 @@ def _pair(reasons, height=None):
 
 
 def test_a_miss_is_put_at_the_mask_overlapping_it_most_or_at_the_height_map():
-    bench = _bench()
     rock = np.zeros((40, 60), bool)
     rock[12:22, 20:34] = True  # mostly under the first mask
     got = bench.miss_stage(_pair([RejectReason.ELONGATED, None]), rock)
@@ -61,8 +51,6 @@ def test_a_miss_is_put_at_the_mask_overlapping_it_most_or_at_the_height_map():
 
 
 def test_misses_are_grouped_by_rock_most_missed_first():
-    bench = _bench()
-
     def row(archive, rock, frame, stage, rng):
         return dict(archive=archive, frame=frame, camera="FrontLeft", rock_id=rock, radius_m=0.2, range_m=rng,
                     stage=stage)
@@ -83,7 +71,6 @@ def _site(hit, total, tp, det, err):
 
 
 def test_site_intervals_resample_sites_not_sightings():
-    bench = _bench()
     assert bench.site_bootstrap({"site1": _site(9, 10, 9, 10, [0.03])}) == {}  # one site: nothing to resample
     # identical sites: the interval shrinks to the figure itself
     same = bench.site_bootstrap({f"site{i}": _site(9, 10, 19, 20, [0.02, 0.04]) for i in range(5)})
@@ -104,7 +91,6 @@ def test_site_intervals_resample_sites_not_sightings():
 
 
 def test_counts_are_kept_per_site_and_summed_over_lightings():
-    bench = _bench()
     groups = []
     for hits in ((3, 1), (2, 2)):  # two lightings; in each, sites 7 and 8
         g = bench.Accumulator()
@@ -128,12 +114,8 @@ def test_counts_are_kept_per_site_and_summed_over_lightings():
     assert 3 / 8 <= lo <= 0.5 <= hi <= 5 / 8
 
 
-def test_runs_pool_by_lighting_and_refuse_a_site_counted_twice(tmp_path, capsys):
+def test_runs_pool_by_lighting_and_refuse_a_site_counted_twice(tmp_path):
     import json
-
-    import pytest
-
-    bench = _bench()
 
     def run(path, lighting, sites):
         by_site = {k: {"target": [h, 10], "precision": [9, 10], "small": [1, 2], "err": [0.02, 0.04]}
@@ -146,28 +128,27 @@ def test_runs_pool_by_lighting_and_refuse_a_site_counted_twice(tmp_path, capsys)
     c = run(tmp_path / "c.json", "lamps", {"site1": 6})
     pooled = bench.pool_runs([a, b, c])
     assert sorted(pooled) == ["lamps", "sun 5"] and sorted(pooled["sun 5"]) == ["site1", "site2", "site3"]
-    rows = bench.print_pooled(pooled)
+    rows = bench.pooled_rows(pooled)
     assert rows["sun 5"]["target_recall_r>=0.1_range<=5"] == (0.8, [24, 30])
     assert rows["lamps"]["sites"] == 1 and rows["lamps"]["ci90"] == {}  # one site: no interval
-    assert "sun 5 | 3 | 0.900" in capsys.readouterr().out
-    with pytest.raises(SystemExit, match="site1 under sun 5 is in two runs"):
+    assert "sun 5 | 3 | 0.900" in "\n".join(bench.format_pooled(rows))
+    with pytest.raises(InputError, match="site1 under sun 5 is in two runs"):
         bench.pool_runs([a, a])
     old = tmp_path / "old.json"
     old.write_text(json.dumps({"by_lighting": {"sun 5": {"frames": 3}}}))
-    with pytest.raises(SystemExit, match="no per-site counts"):
+    with pytest.raises(InputError, match="no per-site counts"):
         bench.pool_runs([old])
     old.write_text("[1, 2]")  # not a run at all
-    with pytest.raises(SystemExit, match="no per-site counts"):
+    with pytest.raises(InputError, match="no per-site counts"):
         bench.pool_runs([old])
     old.write_text(json.dumps({"by_lighting": {"sun 5": {"by_site": {"site1": {"target": [1]}}}}}))
-    with pytest.raises(SystemExit, match="counts of site1 under sun 5 are malformed"):
+    with pytest.raises(InputError, match="counts of site1 under sun 5 are malformed"):
         bench.pool_runs([old])
-    with pytest.raises(SystemExit, match="cannot read"):
+    with pytest.raises(InputError, match="cannot read"):
         bench.pool_runs([tmp_path / "missing.json"])
 
 
 def test_the_centre_breakdown_has_a_row_for_all_target_matches():
-    bench = _bench()
     # (true radius, range, 3D error, horizontal, along, lateral, vertical, est/true radius, oracle)
     rows = [(0.12, 1.0, 0.02, 0.01, 0.0, 0.0, 0.0, 1.0, 0.01),
             (0.12, 3.0, 0.04, 0.03, 0.0, 0.0, 0.0, 1.0, 0.03),
