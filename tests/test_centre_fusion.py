@@ -148,13 +148,8 @@ def test_detect_archive_fuses_when_on_and_not_when_off(monkeypatch):
 
 
 def test_landmark_centres_benchmark_scores_landmarks_against_the_true_rocks():
-    import importlib.util
-    from pathlib import Path
+    from lunarloc.pipeline import landmark_centres as lc
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "landmark_centres.py"
-    spec = importlib.util.spec_from_file_location("landmark_centres", path)
-    lc = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(lc)
     rng = np.random.default_rng(7)
     rocks = np.array([[1, 4.0, 0.0, 0.1, 0.15], [2, 4.0, 1.5, 0.05, 0.06], [3, 6.0, -1.0, 0.1, 0.2]])
     frames = np.arange(8)
