@@ -291,7 +291,7 @@ def test_a_boulder_taller_than_wide_is_a_rock_not_a_knob(axes, centre):
     # matcher's disparity halo against the far background, cut off by the depth split
     # (depth_split_ratio 0.07), stands 0.33 m above the ground in front of it, 2 cm under
     # the perched limit for its 7 cm radius, and is kept: a known false detection of this
-    # scene (docs/perception.md, "Ninth pass"), not the boulder split in two.
+    # scene (docs/perception-history.md, "Ninth pass"), not the boulder split in two.
     def on_boulder(dets):
         return [d for d in dets if np.linalg.norm(d.p_rover[:2] - np.asarray(centre[:2])) < axes[0] + 0.05]
 

@@ -61,7 +61,7 @@ def test_scoring_counts_rocks_false_and_no_fire_detections_and_ignores_uncertain
 def test_detector_on_the_labelled_real_pairs():
     """The detector with the small-rock stage on, on the four real pairs: every rock of 8 cm or more within 6 m found,
     nothing on the lander or the rover's shadow, nine detections in ten on rocks. The figures
-    (docs/perception.md, "Thirteenth pass") are 8/8, 0, 26 of 27 and 26 of 47 rocks; the bounds
+    (docs/perception-history.md, "Thirteenth pass") are 8/8, 0, 26 of 27 and 26 of 47 rocks; the bounds
     leave a margin. Without the small-rock stage it finds 11 of 47, so the recall bound can fail."""
     from dataclasses import replace
 

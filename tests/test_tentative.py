@@ -1,5 +1,5 @@
 """Tentative mid-range detections, confirmed by a second view (DetectorConfig.tentative_*;
-docs/perception.md, "Seventh pass: tentative mid-range detections")."""
+docs/perception-history.md, "Seventh pass: tentative mid-range detections")."""
 
 from __future__ import annotations
 

@@ -118,7 +118,7 @@ class ClassicalConfig:
     # with a raised streak running to the border, two rocks touching along a crest);
     # a blob without a saddle is left whole. 0 = off (the default: on the tuning sites
     # 0.01 gave recall r >= 0.1 m, 5 m 0.88 -> 0.89 for 22 -> 26 false detections
-    # within 5 m, and precision is the target furthest from met; see docs/perception.md,
+    # within 5 m, and precision is the target furthest from met; see docs/perception-history.md,
     # "Fourth pass").
     height_split_step_m: float = 0.0
     height_split_eig_ratio: float = 20.0

@@ -80,7 +80,7 @@ class StereoConfig:
     # unlit ground above its top and its lower flanks take the ground's, so its height
     # blob is a strip rejected as elongated. `lift` brightens regions darker than
     # normalization_gain grey levels to it and leaves brighter ones as they are (the
-    # height map's matcher uses it; see docs/perception.md, "Fourth pass").
+    # height map's matcher uses it; see docs/perception-history.md, "Fourth pass").
     # `local-contrast` divides out every slow brightness change (shadows included).
     # The sky mask is always taken from the raw image.
     normalization: ImageNormalization = ImageNormalization.NONE
