@@ -214,8 +214,13 @@ def test_exclusion_disc_and_bad_inputs(rng):
     est = m.grid()
     r = np.hypot(est.array[:, :, 0], est.array[:, :, 1])
     assert est.observed.any() and not est.observed[r < 2.9].any()
-    with pytest.raises(InputError, match="4x4"):
+    with pytest.raises(InputError, match="frame 99: T_map_rover is not finite"):
         m.add_frame(99, np.full((4, 4), np.nan))
+    with pytest.raises(InputError, match="frame 99: T_map_rover must be a 4x4 transform, got shape"):
+        m.add_frame(99, np.eye(3))
+    with pytest.raises(InputError, match="frame 99: T_map_rover: the rotation block is not a rotation"):
+        m.add_frame(99, np.diag([1.1, 1.1, 1.1, 1.0]))  # a scale is not a pose
+    assert not m.repose(99, np.eye(4)) and 99 not in m.frame_ids  # nothing refused was added
     with pytest.raises(InputError, match="points_rover"):
         m.add_frame(99, np.eye(4), np.zeros((5, 2)))
     with pytest.raises(InputError, match="rocks_rover"):

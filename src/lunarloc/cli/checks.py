@@ -4,12 +4,12 @@ that must be finite and inside a stated range. Each failure is a ConfigError (ex
 from __future__ import annotations
 
 import enum
-import math
 from collections.abc import Iterable
 
 import typer
 
 from lunarloc.core.errors import ConfigError
+from lunarloc.core.validate import OPTION_WORDING, real
 
 OVERWRITE_OPT = typer.Option(False, "--overwrite", help="Replace existing outputs (refused otherwise).")
 ODOMETRY_METAVAR = "[visual|imu|record:NAME|ground-truth]"
@@ -56,16 +56,12 @@ def choice(value: str, valid: type[enum.Enum] | Iterable[str], option: str) -> s
 
 def number(value: float | None, option: str, lo: float | None = None, hi: float | None = None, *,
            lo_open: bool = False, hi_open: bool = False, unit: str = "") -> float | None:  # fmt: skip
-    """`value` if finite and within [lo, hi] (open ends with lo_open / hi_open); None passes."""
+    """`value` (unchanged) if finite and within [lo, hi] (open ends with lo_open / hi_open); None
+    passes. The check is :func:`lunarloc.core.validate.real`'s, worded for an option."""
     if value is None:
         return None
-    u = f" {unit}" if unit else ""
-    if not math.isfinite(value):
-        raise ConfigError(f"{option} must be a finite number; got {value}")
-    if lo is not None and (value < lo or (lo_open and value == lo)):
-        raise ConfigError(f"{option} must be {'>' if lo_open else '>='} {lo:g}{u}; got {value:g}")
-    if hi is not None and (value > hi or (hi_open and value == hi)):
-        raise ConfigError(f"{option} must be {'<' if hi_open else '<='} {hi:g}{u}; got {value:g}")
+    real(value, option, lo, hi, lo_open=lo_open, hi_open=hi_open, unit=unit, error=ConfigError,
+         wording=OPTION_WORDING)
     return value
 
 

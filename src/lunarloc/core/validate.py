@@ -27,12 +27,14 @@ from __future__ import annotations
 
 import math
 import numbers
+from dataclasses import dataclass
 
 import numpy as np
 
 from lunarloc.core.errors import ConfigError, InputError
 
 __all__ = [
+    "API_WORDING",
     "LAC_MAX_ANGULAR_SPEED_RADPS",
     "LAC_MAX_LINEAR_SPEED_MPS",
     "MAX_ABS_COORD_M",
@@ -41,7 +43,9 @@ __all__ = [
     "MAX_GYRO_RADPS",
     "MAX_LINEAR_SPEED_MPS",
     "MAX_MISSION_TIME_S",
+    "OPTION_WORDING",
     "RIGID_TOL",
+    "Wording",
     "gray_image",
     "imu_sample",
     "instance",
@@ -70,20 +74,35 @@ def _fmt(a) -> str:
     return "[" + ", ".join(f"{float(x):.4g}" for x in np.ravel(a)) + "]"
 
 
+@dataclass(frozen=True)
+class Wording:
+    """How :func:`real` words a refusal: the API's (``x must be >= 0 m, got -1``, ``x is not
+    finite (nan)``) or a command-line option's (``--x must be >= 0 m; got -1``, ``--x must be a
+    finite number; got nan``, the CLI's :func:`lunarloc.cli.checks.number`)."""
+
+    got: str  # between the rule and the value refused
+    not_finite: str  # the whole message for NaN / inf, with {name} and {value}
+
+
+API_WORDING = Wording(", got", "{name} is not finite ({value})")
+OPTION_WORDING = Wording("; got", "{name} must be a finite number; got {value}")
+
+
 def real(value, name: str, lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
-         unit: str = "", error: type = InputError) -> float:  # fmt: skip
-    """`value` as a finite float within [lo, hi] (lo excluded with lo_open); bools, strings and
-    None refused."""
+         hi_open: bool = False, unit: str = "", error: type = InputError,
+         wording: Wording = API_WORDING) -> float:  # fmt: skip
+    """`value` as a finite float within [lo, hi] (an end excluded with lo_open / hi_open); bools,
+    strings and None refused, with `error` worded as `wording` says."""
     u = f" {unit}" if unit else ""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
         raise error(f"{name} must be a number{u and ' in' + u}, got {type(value).__name__} {_short(value)}")
     v = float(value)
     if not math.isfinite(v):
-        raise error(f"{name} is not finite ({v})")
+        raise error(wording.not_finite.format(name=name, value=v))
     if lo is not None and (v < lo or (lo_open and v == lo)):
-        raise error(f"{name} must be {'>' if lo_open else '>='} {lo:g}{u}, got {v:g}")
-    if hi is not None and v > hi:
-        raise error(f"{name} must be <= {hi:g}{u}, got {v:g}")
+        raise error(f"{name} must be {'>' if lo_open else '>='} {lo:g}{u}{wording.got} {v:g}")
+    if hi is not None and (v > hi or (hi_open and v == hi)):
+        raise error(f"{name} must be {'<' if hi_open else '<='} {hi:g}{u}{wording.got} {v:g}")
     return v
 
 

@@ -55,6 +55,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from lunarloc.core.errors import ConfigError, InputError
+from lunarloc.core.validate import rigid_transform
 from lunarloc.io.overhead import LAC_CELL_M, LAC_CELLS, LAC_RAY_OFFSETS, UNFILLED, empty_lac_grid
 
 log = logging.getLogger(__name__)
@@ -160,10 +161,8 @@ class _Frame:
 
 
 def _check_T(T, what: str) -> np.ndarray:
-    T = np.asarray(T, dtype=float)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise InputError(f"{what}: expected a finite 4x4 transform, got shape {T.shape}")
-    return T
+    """`T` as a float64 4x4 rigid transform (:func:`lunarloc.core.validate.rigid_transform`)."""
+    return rigid_transform(T, what)
 
 
 class LacMapper:
