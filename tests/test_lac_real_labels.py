@@ -1,29 +1,24 @@
 """The hand labels of the four real LAC pairs (tests/data/lac_real_labels.json) and the detector
-scored on them (benchmarks/real_labels.py). The label checks always run; the scoring needs the
+scored on them (lunarloc.pipeline.real_labels, behind benchmarks/real_labels.py). The label checks always run; the scoring needs the
 images (../shared/data/lac-real or $LUNARLOC_LAC_REAL) and skips without them."""
 
 from __future__ import annotations
 
-import importlib.util
 import os
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 
+from lunarloc.pipeline import real_labels as b
+
 ROOT = Path(__file__).resolve().parents[1]
 LAC_REAL = Path(os.environ.get("LUNARLOC_LAC_REAL", ROOT / ".." / "shared" / "data" / "lac-real"))
-
-
-def _bench():
-    spec = importlib.util.spec_from_file_location("real_labels", ROOT / "benchmarks" / "real_labels.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+LABELS = ROOT / "tests" / "data" / "lac_real_labels.json"
 
 
 def test_labels_are_well_formed():
-    lab = _bench().load_labels()
+    lab = b.load_labels(LABELS)
     W, H = lab["camera"]["width_px"], lab["camera"]["height_px"]
     ids = [r["id"] for f in lab["frames"] for r in f["rocks"]]
     assert len(ids) == len(set(ids))
@@ -40,7 +35,6 @@ def test_labels_are_well_formed():
 
 
 def test_scoring_counts_rocks_false_and_no_fire_detections_and_ignores_uncertain_labels():
-    b = _bench()
     frame = {"name": "f", "rocks": [
         {"id": "a", "box": [100, 100, 120, 120], "range_m": 2.0, "width_m": 0.05, "certain": True},
         {"id": "b", "box": [300, 300, 310, 310], "range_m": 3.0, "width_m": 0.09, "certain": True},
@@ -68,9 +62,8 @@ def test_detector_on_the_labelled_real_pairs():
     from lunarloc.perception.detector import DetectorConfig
     from lunarloc.perception.small_rocks import SmallRockConfig
 
-    b = _bench()
     cfg = replace(DetectorConfig(), small_rocks=SmallRockConfig(enabled=True))
-    res = b.run(LAC_REAL, b.load_labels(), cfg)["summary"]
+    res = b.run(LAC_REAL, b.load_labels(LABELS), cfg)["summary"]
     assert res["on_no_fire"] == 0
     assert res["recall_ge_8cm"][2] >= 0.8
     assert res["precision"] >= 0.9
