@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from lunarloc.core.errors import ConfigError
+from lunarloc.perception.detector_config import MOVED_KEYS
 from lunarloc.perception.detector import (
     CentreEstimator,
     Detector,
@@ -138,7 +139,7 @@ def test_centre_settings_are_checked_and_round_trip(key, value, tmp_path):
     assert RunConfig.from_dict(cfg.to_dict()) == cfg
     got = getattr(cfg.detector, key)
     assert (got.value if isinstance(got, CentreEstimator) else got) == good
-    assert cfg.detector.to_dict()[key] == good
+    assert cfg.detector.to_dict()["centre"][MOVED_KEYS[key][1]] == good  # written in its section
 
 
 def test_blend_detector_places_a_rock_on_the_ground():

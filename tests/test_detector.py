@@ -540,7 +540,7 @@ def test_a_mid_range_rock_seen_as_a_flat_strip_is_kept():
 
 
 def test_only_elongated_masks_within_the_strip_limit_are_strips():
-    from lunarloc.perception.detector import _is_flat_strip
+    from lunarloc.perception.rules import is_flat_strip as _is_flat_strip
 
     cfg, fc = DetectorConfig(), MaskFilterConfig(tau_elong=20.0)
 
@@ -578,7 +578,7 @@ def test_a_large_rock_seen_as_a_raised_strip_is_kept():
 
 
 def test_strip_verdicts():
-    from lunarloc.perception.detector import _is_raised_strip, _strip_rejected
+    from lunarloc.perception.rules import is_raised_strip as _is_raised_strip, strip_rejected as _strip_rejected
 
     cfg, fc = DetectorConfig(), MaskFilterConfig(tau_elong=20.0)
 

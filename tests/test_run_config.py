@@ -165,8 +165,8 @@ TUNING = {  # section path -> today's value (the constant the code held before i
     ("index", "min_side_ratio"): 0.2,
     ("detector", "stereo", "p1_per_block_px2"): 24,
     ("detector", "stereo", "p2_per_block_px2"): 96,
-    ("detector", "fullres_p1_per_block_px2"): 8,
-    ("detector", "fullres_p2_per_block_px2"): 32,
+    ("detector", "points", "p1_per_block_px2"): 8,
+    ("detector", "points", "p2_per_block_px2"): 32,
 }
 
 
@@ -190,7 +190,7 @@ def test_tuning_constants_are_read_back(path, tmp_path):
     for k in path[:-1]:
         node = node.setdefault(k, {})
     node[path[-1]] = new
-    if path[-1] == "p1_per_block_px2" or path[-1] == "fullres_p1_per_block_px2":
+    if path[-1] == "p1_per_block_px2":
         node[path[-1].replace("p1", "p2")] = 1000  # keep P2 > P1
     p = tmp_path / "config.json"
     p.write_text(json.dumps(data))

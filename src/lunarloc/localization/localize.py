@@ -33,6 +33,7 @@ from lunarloc.association.graph import (
     RefPairIndex, graph_3d, sweep_bin_chunks, sweep_yaw_bins, vehicle_pairs, yaw_bin_chunks,
 )
 from lunarloc.association.putative import putative_associations
+from lunarloc.core.configs import check_settings, setting
 from lunarloc.core.errors import ConfigError, DegenerateGeometryError, InputError
 from lunarloc.core.geometry import (
     arun, arun_yaw, as_points, exp_so3, make_transform, tilt_angle, transform_points, yaw_of,
@@ -113,24 +114,24 @@ class LocalizationConfig:
     mode: Mode = Mode.GRAVITY
     solver: Solver = Solver.EXACT
     registration: Registration = Registration.SE3
-    epsilon_m: float = 0.05  # max disagreement of a pairwise (horizontal) distance for consistency
-    sigma_m: float | None = None  # CLIPPER weight scale exp(-c^2/2sigma^2); None -> epsilon/2
-    epsilon_z_m: float = 0.05  # gravity: max disagreement of a height difference (plus tilt allowance)
-    max_tilt_deg: float = 1.5  # gravity: residual tilt of the vehicle map after IMU levelling
-    yaw_step_deg: float = 2.0  # gravity: spacing of the relative-yaw bins
+    epsilon_m: float = setting(0.05, gt=0.0)  # max disagreement of a pairwise (horizontal) distance for consistency
+    sigma_m: float | None = setting(None, gt=0.0)  # CLIPPER weight scale exp(-c^2/2sigma^2); None -> epsilon/2
+    epsilon_z_m: float = setting(0.05, gt=0.0)  # gravity: max disagreement of a height difference (plus tilt allowance)
+    max_tilt_deg: float = setting(1.5, ge=0.0, lt=45.0)  # gravity: residual tilt of the vehicle map after IMU levelling
+    yaw_step_deg: float = setting(2.0, gt=0.0)  # gravity: spacing of the relative-yaw bins
     yaw_noise_factor: float = 1.5  # gravity: yaw tolerance of a pair at distance d is asin(k*eps/d)
-    max_size_ratio: float | None = None  # prune associations whose size ratio exceeds this (needs sizes)
+    max_size_ratio: float | None = setting(None, ge=1.0)  # prune associations whose size ratio exceeds this (needs sizes)
     max_edges: int = 30_000_000  # 6-DoF memory bound on the consistency graph
     refine: bool = True  # re-fit with mutual nearest neighbours under the estimate
-    refine_radius_m: float = 0.10  # max residual of a nearest-neighbour pair kept by refinement
+    refine_radius_m: float = setting(0.10, gt=0.0)  # max residual of a nearest-neighbour pair kept by refinement
     robust_scale_m: float = 0.02  # Cauchy scale of the robust (IRLS) re-weighting in refinement
-    irls_rounds: int = 5  # re-weighting rounds of the robust registration
-    refine_rounds: int = 3  # mutual-nearest-neighbour re-fits of refinement (fewer when the inliers settle)
-    registration_sigma_floor_m: float = 0.005  # floor on the residual noise scale in the covariance, predicted error and scale check
+    irls_rounds: int = setting(5, ge=1, le=100)  # re-weighting rounds of the robust registration
+    refine_rounds: int = setting(3, ge=1, le=100)  # mutual-nearest-neighbour re-fits of refinement (fewer when the inliers settle)
+    registration_sigma_floor_m: float = setting(0.005, gt=0.0)  # floor on the residual noise scale in the covariance, predicted error and scale check
     # --- acceptance (verification) ---
-    min_inliers: int = 6  # absolute floor on the inlier count
+    min_inliers: int = setting(6, ge=3)  # absolute floor on the inlier count
     chance_margin: float = 2.5  # inliers must exceed the chance envelope at this map size by this many
-    max_rmse_m: float = 0.05  # residual RMSE of the inliers after registration
+    max_rmse_m: float = setting(0.05, gt=0.0)  # residual RMSE of the inliers after registration
     min_extent_m: float = 1.0  # inliers must spread at least this far (largest principal std x 2)
     min_planarity: float = 0.05  # second/first principal std of the inliers (0 = collinear)
     min_handedness: float = 0.9  # gravity: share of inlier triangles with matching orientation
@@ -140,33 +141,33 @@ class LocalizationConfig:
     max_scale_error: float = 0.005  # a rigid map's inliers match the reference's scale within 0.5 % ...
     scale_sigmas: float = 3.0  # ... or within this many standard errors of the fitted scale
     # --- uncertainty of the maps (tolerances above are floors; the maps' own sigma raises them) ---
-    landmark_sigma_m: float = 0.0083  # horizontal 1-sigma per axis of a landmark whose map states none; added in quadrature to stated ones
-    landmark_sigma_z_m: float = 0.0083  # vertical, likewise
+    landmark_sigma_m: float = setting(0.0083, gt=0.0)  # horizontal 1-sigma per axis of a landmark whose map states none; added in quadrature to stated ones
+    landmark_sigma_z_m: float = setting(0.0083, gt=0.0)  # vertical, likewise
     rmse_confidence: float = 0.999  # chi-square acceptance of the inlier residuals at this confidence
-    search_sigmas: float = 2.0  # search tolerances >= this many sigma of a pairwise difference (sqrt(2) x combined sigma)
+    search_sigmas: float = setting(2.0, ge=0.0)  # search tolerances >= this many sigma of a pairwise difference (sqrt(2) x combined sigma)
     # --- screen before an exhaustive search that would be large (:func:`_screen`) ---
-    screen_min_incidences: float = 3e7  # predicted yaw-bin graph size from which the screen runs first (0: never)
-    screen_fraction: float = 0.5  # a candidate pose passes with this share of the required inliers beyond chance
-    screen_candidates: int = 8  # candidate poses of the triangle vote refined by the screen
+    screen_min_incidences: float = setting(3e7, ge=0.0)  # predicted yaw-bin graph size from which the screen runs first (0: never)
+    screen_fraction: float = setting(0.5, gt=0.0, le=1.0)  # a candidate pose passes with this share of the required inliers beyond chance
+    screen_candidates: int = setting(8, ge=1)  # candidate poses of the triangle vote refined by the screen
     # --- distortion (non-rigid vehicle maps: odometry scale error, heading drift) ---
-    near_miss_outer_m: float = 0.30  # vehicle landmarks landing refine_radius_m..this far from a reference rock are "near misses"
+    near_miss_outer_m: float = setting(0.30, gt=0.0)  # vehicle landmarks landing refine_radius_m..this far from a reference rock are "near misses"
     max_near_miss_z: float = 3.0  # refuse when near misses exceed chance by this many standard deviations ...
     min_near_misses: int = 5  # ... and there are at least this many of them
     # Bounds on the distortion of the odometry that built the vehicle map (its specification):
     # relative scale error and heading drift. None (both): not stated, the distortion is fitted
     # from the maps (:func:`bending_fit`) and its effect where the pose is used is added to the
     # predicted error. 0 states a rigid map (e.g. built from ground-truth poses).
-    odometry_scale_error: float | None = None
-    odometry_heading_drift_deg_per_m: float | None = None
+    odometry_scale_error: float | None = setting(None, ge=0.0)
+    odometry_heading_drift_deg_per_m: float | None = setting(None, ge=0.0)
     distortion_fit_sigmas: float = 2.0  # no bounds stated: allowance = fitted bend's shift + this many sigmas
     # no bounds stated: 1-sigma prior on the odometry's heading drift (deg/m) and scale error that
     # regularises the bend fit (None: unconstrained, the fit from the maps alone). Defaults: what
     # real rover odometry shows (PRIOR_DRIFT_DEG_PER_M, PRIOR_SCALE_ERROR; docs/verification.md)
-    odometry_prior_drift_deg_per_m: float | None = PRIOR_DRIFT_DEG_PER_M
-    odometry_prior_scale_error: float | None = PRIOR_SCALE_ERROR
-    distortion_fit_rounds: int = 3  # bent-model fits, inliers gathered again under the model between them
+    odometry_prior_drift_deg_per_m: float | None = setting(PRIOR_DRIFT_DEG_PER_M, gt=0.0)
+    odometry_prior_scale_error: float | None = setting(PRIOR_SCALE_ERROR, gt=0.0)
+    distortion_fit_rounds: int = setting(3, ge=1, le=100)  # bent-model fits, inliers gathered again under the model between them
     min_inliers_distortion_fit: int = 6  # fewer inliers cannot fix the 8 parameters of the bent model: no allowance, refused
-    max_sighting_span_m: float = 10.0  # a landmark seen over more path than this (passed twice) is left out of the bent-model fit
+    max_sighting_span_m: float = setting(10.0, gt=0.0)  # a landmark seen over more path than this (passed twice) is left out of the bent-model fit
     competitor_ratio: float = 1.5  # best must be this many times the best competing hypothesis
     competitor_yaw_sep_deg: float = 10.0  # hypotheses whose yaws differ more than this compete
     seed: int = 0  # CLIPPER initialisation
@@ -178,37 +179,7 @@ class LocalizationConfig:
         self.registration = Registration(self.registration)
         if self.registration is Registration.YAW and self.mode is not Mode.GRAVITY:
             raise ConfigError("yaw-only registration needs the gravity-aware mode")
-        for name in ("epsilon_m", "epsilon_z_m", "yaw_step_deg", "refine_radius_m", "max_rmse_m"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"{name} must be positive, got {getattr(self, name)}")
-        if self.sigma_m is not None and not self.sigma_m > 0:
-            raise ConfigError("sigma_m must be positive")
-        if not 0 <= self.max_tilt_deg < 45:
-            raise ConfigError("max_tilt_deg must be in [0, 45)")
-        if self.max_size_ratio is not None and not self.max_size_ratio >= 1:
-            raise ConfigError("max_size_ratio must be >= 1")
-        if self.min_inliers < 3:
-            raise ConfigError("min_inliers must be >= 3")
-        if not self.near_miss_outer_m > 0 or not self.landmark_sigma_m > 0 or not self.landmark_sigma_z_m > 0:
-            raise ConfigError("near_miss_outer_m, landmark_sigma_m and landmark_sigma_z_m must be positive")
-        if not self.screen_min_incidences >= 0 or not 0 < self.screen_fraction <= 1 or self.screen_candidates < 1:
-            raise ConfigError("screen_min_incidences must be >= 0, screen_fraction in (0, 1], screen_candidates >= 1")
-        for name in ("irls_rounds", "refine_rounds", "distortion_fit_rounds"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or not 1 <= v <= 100:
-                raise ConfigError(f"{name}={v!r} must be an integer in [1, 100]")
-        if not self.max_sighting_span_m > 0:
-            raise ConfigError(f"max_sighting_span_m must be positive, got {self.max_sighting_span_m}")
-        if not self.registration_sigma_floor_m > 0:
-            raise ConfigError(f"registration_sigma_floor_m must be positive, got {self.registration_sigma_floor_m}")
-        if not self.search_sigmas >= 0:
-            raise ConfigError(f"search_sigmas must be >= 0, got {self.search_sigmas}")
-        for name in ("odometry_prior_drift_deg_per_m", "odometry_prior_scale_error"):
-            v = getattr(self, name)
-            if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ConfigError(f"{name} must be positive (or None: no prior), got {v!r}")
-        if (self.odometry_scale_error or 0.0) < 0 or (self.odometry_heading_drift_deg_per_m or 0.0) < 0:
-            raise ConfigError("odometry_scale_error and odometry_heading_drift_deg_per_m must be >= 0")
+        check_settings(self)  # every range declared beside its field
 
     @property
     def odometry_bounds_stated(self) -> bool:

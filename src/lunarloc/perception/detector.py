@@ -10,6 +10,14 @@ centre of the rock (the paper assumes spherical objects), then into the rover fr
 (camera pose from the archive's camera table or the IPEx rig) and the map frame
 (rover pose: ground truth or odometry, the caller's choice).
 
+With the height map (the classical segmenter, STEREO_POINTS centres) one pair runs as these
+named steps (:meth:`Detector._detect_pair_height`): the levelled height map, the blobs cut
+at their depth steps, then per blob (:meth:`Detector._judge_mask`) the image filters, depth
+and size, the centre and the measures the rejection rules judge (the rule table of
+:mod:`lunarloc.perception.rules`, each switchable by ``rules.off``), the lander's footprint;
+then the small-rock stage, duplicates and unconfirmed tentatives. The settings are
+:class:`~lunarloc.perception.detector_config.DetectorConfig`'s sections.
+
 Frames: ``p_optical`` (OpenCV optical frame of the left camera), ``p_rover`` (rover
 body: x forward, y left, z up), ``p_map`` (site / world frame). Metres throughout.
 """
@@ -50,6 +58,21 @@ from lunarloc.perception.masks import (
 )
 from lunarloc.perception.segment import ClassicalConfig, Segmenter, SegmenterKind, make_segmenter
 from lunarloc.perception.small_rocks import SmallRockConfig, detect_small_rocks, ground_plane
+from lunarloc.perception.detector_config import (
+    CentreEstimator,
+    CentreFusion,
+    CentreMethod,
+    DetectorConfig,
+    PoseSource,
+)
+from lunarloc.perception.rules import (
+    TENTATIVE_RULES,
+    BlobMeasures,
+    fired_rules,
+    is_flat_strip,
+    is_raised_strip,
+    strip_rejected,
+)
 from lunarloc.perception.stereo import (
     GroundConfig,
     HeightMap,
@@ -89,543 +112,6 @@ logger = logging.getLogger(__name__)
 logger.addHandler(logging.NullHandler())
 
 
-class PoseSource(str, Enum):
-    """Which rover pose places detections in the map frame."""
-
-    GROUND_TRUTH = "ground-truth"
-    ODOMETRY = "odometry"
-
-
-class CentreMethod(str, Enum):
-    """How a kept mask becomes a 3D rock centre."""
-
-    # Depth at the image centroid, back-projected, then pushed along the viewing ray
-    # by the radius estimated from s_i (the paper's spherical-object assumption).
-    RAY_SHIFT = "ray-shift"
-    # From the mask's stereo points in the rover frame (low-resolution height map):
-    # lateral centre = mean lateral offset; range = median range of the visible
-    # surface + centre_range_factor * R; height = ground + visible top height -
-    # centre_height_factor * R, with R = 2 x the lateral standard deviation.
-    STEREO_POINTS = "stereo-points"
-
-
-class CentreEstimator(str, Enum):
-    """STEREO_POINTS: how the centre is placed from the mask's stereo points (see
-    docs/perception.md, "Sixth pass: centre")."""
-
-    # Along the viewing ray: median range of the visible surface + centre_range_factor
-    # x R; lateral: mean lateral offset; height: visible top - centre_height_factor x R.
-    MEDIAN = "median"
-    # Along the ray, a blend of that median anchor and a near anchor (a low quantile of
-    # the points' range + centre_near_range_factor x R); height from the visible top and
-    # the ground fitted in a ring around the blob (excluding it), see _centre_blend.
-    BLEND = "blend"
-
-
-class CentreFusion(str, Enum):
-    """How :func:`fuse_track_centres` combines the sightings of one rock from several frames:
-    MEAN (range-weighted mean of the map-frame centres) or MEDIAN (range-weighted median,
-    component by component)."""
-
-    MEAN = "mean"
-    MEDIAN = "median"
-
-
-def _height_stereo_default() -> StereoConfig:
-    return StereoConfig(
-        num_disparities=192, block_size=5, downscale=2, speckle_window_size=50, three_way=True, p1=8 * 25, p2=32 * 25,
-        full_width=True, normalization=ImageNormalization.LIFT,
-    )
-
-
-def _height_filters_default() -> MaskFilterConfig:
-    # The height map's SGBM searches 192 full-resolution pixels: depths down to
-    # fx * B / 192 ~ 0.77 m are measured, so rocks from 0.9 m on are kept; small rocks
-    # near the rover are kept when their masks are large (near_sigma_px; tuned on
-    # simulated site seed 0: recall of r < 0.1 m within 2.5 m 0.02 -> 0.37, precision
-    # there 0.75 -> 0.92).
-    return MaskFilterConfig(tau_elong=20.0, min_range_m=0.9, near_sigma_px=6.0)
-
-
-@dataclass(frozen=True)
-class DetectorConfig:
-    """Everything the detector depends on; defaults follow the paper's intent."""
-
-    # Segmentation backend; `weights` is the checkpoint path for fastsam.
-    segmenter: SegmenterKind = SegmenterKind.CLASSICAL
-    weights: str | None = None
-    # FastSAM's network input, long side in pixels (its default 1024; 640 costs about half)
-    fastsam_imgsz_px: int = 1024
-    classical: ClassicalConfig = field(default_factory=ClassicalConfig)
-    # Mask filters (size, elongation, border, range); see MaskFilterConfig.
-    filters: MaskFilterConfig = field(default_factory=MaskFilterConfig)
-    # SGBM parameters (LAC reference agent).
-    stereo: StereoConfig = field(default_factory=StereoConfig)
-    # Depth at the centroid: median of valid depths in a (2h+1)^2 window, h pixels.
-    depth_half_window_px: int = 3
-    # When the window has too few valid depths (textureless shadow), fall back to the
-    # median of the valid depths inside the whole mask (nearest-surface estimate).
-    depth_fallback_mask: bool = True
-    # Move the 3D centroid from the visible surface along the viewing ray by the
-    # estimated radius, to the centre of a sphere (LunarLoc assumes spherical rocks).
-    centre_correction: bool = True
-    # Radius estimate from the physical size: R = radius_per_size * s_i. A disc of
-    # radius r pixels has sigma = r / 2, so a whole sphere gives R = 2 s_i.
-    radius_per_size: float = 2.0
-    # (left, right) camera names processed each frame (front and rear pairs).
-    pairs: tuple[tuple[str, str], ...] = STEREO_PAIRS
-    # How masks become 3D centres (see CentreMethod). STEREO_POINTS needs the
-    # low-resolution stereo height map, which the classical segmenter uses anyway.
-    centre_method: CentreMethod = CentreMethod.STEREO_POINTS
-    # Low-resolution SGBM for the height map (1/2 resolution: 64 disparities there =
-    # the reference agent's 128 at full resolution, block 5 ~ its 11; 3-way mode).
-    height_stereo: StereoConfig = field(default_factory=_height_stereo_default)
-    # Mask filters for masks segmented from the height map (no cast shadows there,
-    # so elongation only has to stop wide flat domes from being dropped: a dome
-    # buried to 55 % seen from 0.3 m up has an eigenvalue ratio of ~10-15).
-    height_filters: MaskFilterConfig = field(default_factory=_height_filters_default)
-    # Ground surface fit for heights above the local ground.
-    ground: GroundConfig = field(default_factory=GroundConfig)
-    # STEREO_POINTS: the centre lies this many radii beyond the median range of the
-    # visible surface (a sphere's visible hemisphere averages 2/3 R in front of its
-    # centre; partly buried rocks less). Tuned on simulated site seed 0 with the
-    # full-resolution points below.
-    centre_range_factor: float = 0.5
-    # STEREO_POINTS: the centre lies this many radii below the visible top
-    # (simulated rocks: vertical semi-axis 0.55-0.85 x radius). Tuned on site 0.
-    centre_height_factor: float = 0.6
-    # STEREO_POINTS: the centre estimator (CentreEstimator; MEDIAN is the two lines above).
-    # BLEND's settings: the weight of the near anchor along the ray, its quantile of the
-    # points' range and its radius factor; the height is top - centre_ring_radius_factor x R
-    # - centre_ring_exposed_factor x (top - ring ground), the ground a plane fitted (one-
-    # sided robust) to the height map's points in a ring around the blob. Chosen on the
-    # tuning sites (17 archives); see docs/perception.md, "Sixth pass: centre".
-    centre_estimator: CentreEstimator = CentreEstimator.MEDIAN
-    centre_near_weight: float = 0.3
-    centre_near_quantile: float = 0.05
-    centre_near_range_factor: float = 0.81
-    centre_ring_radius_factor: float = 0.3
-    centre_ring_exposed_factor: float = 0.4
-    # BLEND: the near anchor is taken no nearer than the points' median range minus this
-    # many radii (a rock's visible surface spans about one radius in front of its median;
-    # a few stray ground or mismatched points in the mask must not pull it: on site 105
-    # one 0.13 m rock at 4.6 m was moved 18 cm nearer without it).
-    centre_near_clamp_radii: float = 1.0
-    # Centre from several views (detect_archive, :func:`fuse_track_centres`): each
-    # detection's map-frame centre becomes the range-weighted mean (or median,
-    # fuse_estimator) of its own and the sightings of the same rock in the frames around it:
-    # in each of the fuse_max_frames frames before it (and after it unless fuse_causal),
-    # the detection nearest to it horizontally, when within fuse_tol_m and when it is the
-    # nearest to that one in return. Weights are (1 m / range to the camera) **
-    # fuse_range_power. A single view's centre error depends on shape it cannot see;
-    # sightings from other viewpoints average part of it out. Off by default: on the 37
-    # tuning archives it lowers the detections' median target error 4.06 -> 3.59 cm
-    # (fuse_tol_m 0.2), but on the held-out sites looked at it is mixed (two of four sites
-    # worse with the mean, one with the median), the map's landmarks built from fused
-    # detections are no better (and their stated sigma collapses to 0: the sightings are
-    # no longer independent), and past frames alone (causal) give 4.06 -> 3.92. See
-    # docs/perception.md, "Seventh pass: centre from several views". fuse_tol_m 0 = off.
-    fuse_tol_m: float = 0.0
-    fuse_max_frames: int = 10
-    fuse_range_power: float = 0.0
-    fuse_causal: bool = False
-    fuse_estimator: CentreFusion = CentreFusion.MEAN
-    # STEREO_POINTS: recompute each kept mask's stereo points at full resolution (SGBM
-    # on the mask's box, disparities within fullres_span_px of the low-resolution
-    # median; ~1 ms per mask). The half-resolution map quantises depth: at 4 m a
-    # quarter low-res pixel is ~5 cm of range. False = low-resolution points only.
-    fullres_points: bool = True
-    # Width (pixels, multiple of 16) of the full-resolution disparity search band.
-    fullres_span_px: int = 16
-    # SGBM block (pixels, odd) of the full-resolution match, and its smoothness penalties
-    # P1, P2 per pixel of the block (P = value x block_size^2; one grayscale channel).
-    fullres_block_size: int = 5
-    fullres_p1_per_block_px2: int = 8
-    fullres_p2_per_block_px2: int = 32
-    # Pixels eroded from the mask before its full-resolution points are taken (the
-    # silhouette's pixels mix rock and background disparities).
-    fullres_erode_px: int = 2
-    # STEREO_POINTS: refine each kept mask's disparity at full resolution by masked
-    # template matching within this many pixels of the low-resolution value (0 = off).
-    refine_disparity_px: int = 0
-    # Pixels eroded from the mask before the match (SGBM fattens silhouettes by about
-    # half a block, ~4 full-resolution pixels here; background must not vote).
-    refine_erode_px: int = 4
-    # STEREO_POINTS: the radius from the mask's silhouette (radius_per_size x its
-    # horizontal pixel standard deviation x depth x alpha) rather than from the spread
-    # of its stereo points: the points miss the flanks (eroded, untextured or
-    # unmatched), so their spread gave 0.55-0.85 x the true radius and put centres
-    # 2-3 cm too high and large rocks' centres too near (tuning sites 0, 41, 42, 46,
-    # 47: radius 0.76 -> 0.93 x true, median centre error 4.7 -> 4.2 cm).
-    radius_from_silhouette: bool = True
-    # STEREO_POINTS: quantile of the mask's heights taken as its visible top (a high
-    # quantile, not the maximum: SGBM fattens silhouettes by a few pixels).
-    top_quantile: float = 0.9
-    # Nothing taller than this above the local ground (visible top, metres) or wider
-    # than max_rock_radius_m (estimated radius) is a rock: LAC rocks have radii up to
-    # ~1 m and vertical semi-axes up to 0.85 x radius; the lander's deck, tanks and
-    # panels stand 1-3 m high. STEREO_POINTS only (the visible top needs heights).
-    max_rock_height_m: float = 1.0
-    max_rock_radius_m: float = 1.2
-    # A rock's top stands at most about one radius above the ground around it; one
-    # whose top is more than height_per_radius * R + height_margin_m above the ground
-    # in front of it is a knob on a larger object (a boulder's surface, the lander).
-    # The margin allows for slopes (the ground in front is 0.3-1.5 m nearer).
-    height_per_radius: float = 1.5
-    height_margin_m: float = 0.25
-    # A rock's visible top stands at most 2 x its vertical semi-axis (<= 0.85 R) above
-    # the ground, and the radius estimate runs 0.5-0.9 x the true radius, so a blob
-    # whose top above the local ground exceeds top_per_radius * R + top_noise_m is a
-    # knob on something larger (diagnosed on held-out site 44, where a boulder beside
-    # the rover gave 18 such "small rocks"; 2.5 chosen on the tuning sites 0, 41-43,
-    # 46, 47: with the points' radius it lost 3 of 411 true detections and removed 5
-    # of 16 false ones).
-    top_per_radius: float = 2.5
-    top_noise_m: float = 0.02
-    # Both knob tests above judge a blob's height by its radius; a blob whose estimated
-    # radius reaches perched_max_radius_m is not a knob (the knobs they catch, on
-    # boulders and on the lander, measure under 0.1 m), and a boulder taller than it is
-    # wide, seen end-on, fails them (its radius comes from its narrow silhouette: one of
-    # 0.35 m stood 0.8-1.0 m above the ground in front). Such a blob is still held to
-    # max_rock_height_m. Session 13; 0 = every blob is tested (before).
-    perched_max_radius_m: float = 0.2
-    # A rock stands out of the ground around it: a blob whose top is less than
-    # min_contrast_m above the upper quartile of the heights in a ring 1-5 low-
-    # resolution pixels outside it is a stretch of a crest (a crater rim or a ridge
-    # that the ground cells cannot follow), not a rock. 0.015: the largest value that
-    # costs at most one true detection on the tuning sites (0, 41, 42, 46, 47: 1 of 362
-    # lost, 1 of 12 false ones removed; on the held-out site 44 archives where the
-    # crests were diagnosed it removes 4 of 27).
-    min_contrast_m: float = 0.015
-    # A rock's visible top stands 2 b (1 - burial) >= 0.9 b >= 0.5 R above the ground
-    # around it (vertical semi-axis b >= 0.55 R, at most half buried); a blob whose top
-    # stands less than quadric_contrast_per_radius x R above a quadric ground fitted to
-    # the stereo points in a ring around it is a stretch of crest or rim (the quadric
-    # follows a ridge through the blob; the 0.35 m ground cells cut under it). 0.3 (a
-    # margin for the radius estimate): the largest value that loses no true detection
-    # on the tuning sites (0, 41-43, 46, 47: 5 of 17 false detections within 5 m
-    # removed, 0 of 475 true ones lost; 0.35 loses 3). 0 = off. Blobs standing more
-    # than quadric_contrast_max_m above the quadric are never judged by it: around a
-    # large flat rock the ring lies on its skirt, which bends the quadric up into a
-    # dome (a 0.59 m boulder of held-out site 44 stood 0.13-0.17 m above it, under
-    # 0.3 R; any cap from 0.04 m up gives the same result on the tuning sites).
-    quadric_contrast_per_radius: float = 0.3
-    quadric_contrast_max_m: float = 0.05
-    # Framed by a nearer surface: above and beside a rock resting on the ground the
-    # image shows ground at its own range or farther, so a blob for which more than
-    # max_nearer_ring_fraction of the valid depths in the upper half of the ring 1-5
-    # low-resolution pixels around it are nearer than nearer_depth_ratio x its own depth
-    # lies on (or is a stereo mismatch on) a nearer surface: the face of a boulder
-    # beside the rover (held-out sites 44 and 62: knobs, and mismatches placed 4-5 m
-    # away on a boulder 1-2 m away). Tuning sites (0, 41-43, 46, 47, 81, 82; 13
-    # archives): true detections reach 0.25 at ratio 0.6, so 0.3 loses none of 890 (the
-    # tuning sites have no boulder beside the rover: it removes none of their 37 false
-    # ones either). 1.0 = off. See docs/perception.md, "Fourth pass".
-    max_nearer_ring_fraction: float = 0.3
-    nearer_depth_ratio: float = 0.6
-    # Overlapping duplicates: of two detections of one image whose centres are closer
-    # than (R1 + R2) / duplicate_overlap_ratio (1: their spheres overlap; 0.8: they come
-    # within 1.25 x touching), the smaller radius is dropped (two blobs of one rock, or
-    # a bump beside it; see overlapping_duplicates). Tuning sites:
-    # 0.8 removes 2 of 37 false detections within 5 m and none of 890 true ones (0.6-0.7
-    # remove 3, but 0.6 drops 14 true ones of held-out site 44's adjacent rocks). 0 = off.
-    duplicate_overlap_ratio: float = 0.8
-    # Crest, not rock: a rock ends at its silhouette, a stretch of crest (a crater rim,
-    # a ridge, the far edge of a long shadow, which the 0.35 m ground cells cut under)
-    # goes on. A blob of estimated radius under crest_max_radius_m (narrower than a
-    # ground cell) is rejected when, over the image columns one blob width beyond its
-    # left and right ends (its rows, one row either side), the median of the columns'
-    # highest heights above the local ground exceeds crest_extension_ratio x its own top
-    # (low-resolution heights) and is at most crest_extension_max_ratio x it: the blob
-    # is a crest's local high (the segmentation cuts a crest where it dips), so what
-    # goes on beyond it stands lower; ground standing far higher beside a blob is a
-    # larger raised body next to it (the real LAC frame: a rock on a ridge line, ratio
-    # 3.7). Tuning sites (13 archives): 0.6 removes 8 of 35 false detections within 5 m
-    # and 9 of 890 true ones (3 of 386 sightings of rocks r >= 0.1 m within 5 m); any
-    # cap from 1.5 to 3 gives the same there. See docs/perception.md, "Fourth pass".
-    # crest_extension_ratio 0 = off.
-    crest_extension_ratio: float = 0.6
-    crest_extension_max_ratio: float = 2.0
-    crest_max_radius_m: float = 0.12
-    # Flat strips of small rocks at mid range: at 2.5-5 m a 0.1-0.2 m rock is a low dome
-    # 20-30 pixels tall, and what of it stands above the height map's region threshold
-    # is its top plus the band above it that SGBM's block gives the rock's disparity: a
-    # strip 4-7 times wider than tall, which the height filters' tau_elong (20) rejects
-    # as elongated. A height blob rejected only for that, with an eigenvalue ratio up to
-    # strip_max_eig_ratio, goes on to the depth, size and not-a-rock tests and is kept
-    # when it ends at its sides as a rock does: its lateral extension ratio (see the
-    # crest rule; measured whatever its radius) is at most strip_max_extension_ratio (a
-    # NaN ratio rejects it). Tuning sites (17 archives): recall r >= 0.1 m within 5 m
-    # 0.86 -> 0.89, precision within 5 m 0.97 (no lighting below 0.95; 40 / 0.35 took sun 5
-    # to 0.949); see docs/perception.md, "Fifth pass". strip_max_eig_ratio 0 = off.
-    strip_max_eig_ratio: float = 30.0
-    strip_max_extension_ratio: float = 0.35
-    # Raised strips: a large rock's top at 2.5-5 m (or a 0.1-0.2 m rock's with the
-    # occlusion band SGBM adds at its left) is a strip with an eigenvalue ratio of 30-50,
-    # beyond strip_max_eig_ratio, or one that does not end at its sides (its flank runs
-    # on into the ground's rise). A height blob rejected only as elongated, with an
-    # eigenvalue ratio up to raised_strip_max_eig_ratio and at least
-    # raised_strip_min_area_px full-resolution pixels, goes on to the depth, size and
-    # not-a-rock tests and is kept when its visible top stands at least
-    # raised_strip_min_quadric_m above the quadric ground fitted around it (the height
-    # above the quadric of the quadric rule; 0.05 = quadric_contrast_max_m: a crest or rim
-    # strip follows the quadric) and its estimated radius is at most
-    # raised_strip_max_radius_m (larger ones were merged regions of several bodies). Terrain
-    # strips are thin (few rows) and low above the quadric; rock tops are not. Tuning
-    # sites (17 archives): of 40 such blobs within 5.5 m, 37 true (18 sightings of rocks
-    # r >= 0.1 m within 5 m) and 3 false, 2 of them merged regions of radius 0.68-0.71 m;
-    # any area limit from 560 to 700 and eigenvalue limit from 50 to 60 gives the same
-    # there. Recall r >= 0.1 m within 5 m 0.890 -> 0.920 at precision within 5 m 0.966
-    # (every lighting >= 0.95). See docs/perception.md, "Sixth pass".
-    # raised_strip_max_eig_ratio 0 = off.
-    raised_strip_max_eig_ratio: float = 50.0
-    raised_strip_min_area_px: int = 600
-    raised_strip_min_quadric_m: float = 0.05
-    raised_strip_max_radius_m: float = 0.5
-    # Depth steps: a height blob can join two bodies at different ranges that touch in
-    # the image (a rock seen above a nearer rock's top, a large rock in front of another);
-    # its centre then lies between them. A blob whose valid depths' 5-95 % quantiles
-    # differ by more than depth_split_ratio (relative) is cut at its depth steps: every
-    # blob pixel farther than (1 + depth_split_ratio) x a 4-neighbour's depth is cut, and
-    # the 4-connected parts left with at least the segmenter's height_min_area_px
-    # low-resolution pixels and a pixel above its height_seed_m become masks of their own
-    # (when two or more do; the blob stays whole otherwise). A smooth rock's surface
-    # changes depth by a few percent from one low-resolution pixel to the next (flat
-    # ground seen from the rover's cameras about 1.5 % per pixel at 4 m). Tuning sites
-    # (17 archives, with raised strips on): recall r >= 0.1 m within 5 m 0.920 -> 0.933,
-    # precision within 5 m 0.966 -> 0.971 (terrain false detections 37 -> 33: ground
-    # behind a rock no longer joins it); 0.07, 0.1 and 0.15 give 0.933-0.935 and
-    # 0.970-0.972. 0 = off. See docs/perception.md, "Sixth pass". 0.07 (was 0.1) with
-    # depth_split_step_px 2 (session 14): tuning sites (32 archives, 12 at night) target
-    # sightings 881 -> 890 of 944, false detections within 5 m 21 -> 22; held-out sites
-    # 161-164 and 191-194 (40 archives) 833 -> 840 of 945, false 55 -> 53. Either change
-    # alone gains little (0.1 with 2 pixels: 834 held-out). "Ninth pass".
-    depth_split_ratio: float = 0.07
-    # ... measured between pixels this many low-resolution pixels apart (along rows and
-    # columns), not only between 4-neighbours: SGBM's block and smoothness penalties
-    # spread a step between two bodies over a pixel or two, so no single pixel pair jumps
-    # by the ratio (a rock seen above a nearer rock's top, two rocks' tops joined behind
-    # a nearer one). Flat ground recedes about 3 % per 2 pixels at 4 m and 6 % at 8 m.
-    # 1 = 4-neighbours only (before session 14). See docs/perception.md, "Ninth pass".
-    depth_split_step_px: int = 2
-    # Rough surface, not rock: a rock is a smooth surface, so the full-resolution
-    # disparity over its (eroded) mask changes smoothly from pixel to pixel; a blob of
-    # stereo noise (a textureless shadow under a low sun: a boulder's, a crest's or the
-    # rover's own) is a patchwork of disparities. A blob is rejected when more than
-    # max_disparity_roughness of the second differences of its full-resolution
-    # disparity (rows and columns, three valid pixels of the mask in a line) exceed
-    # roughness_step_px (full-resolution pixels; SGBM's sub-pixel steps on a dome are
-    # a fraction of that). Geometry only: the same surface gives the same disparities
-    # whatever the light. Set on the tuning sites; see docs/perception.md, "Sixth pass:
-    # low sun". Needs fullres_points; max_disparity_roughness 1 = off.
-    max_disparity_roughness: float = 0.15
-    roughness_step_px: float = 1.0
-    # Low crest blobs are confirmed by a second view: a blob whose visible top stands
-    # less than confirm_max_top_m above the local ground and whose height goes on
-    # beyond its left and right ends at more than confirm_min_extension_ratio of its top
-    # (the crest test's ratio, measured whatever its radius) cannot be told from a small
-    # half-buried rock in one view. A rock stays put in the map frame; a bump of a crest
-    # or a shadow's edge does not (it moves along the crest, or is not seen again, as the
-    # viewpoint changes). Such a blob is kept only when a detection of the nearest
-    # earlier or later frame whose rover position lies at least confirm_min_baseline_m
-    # away (searched over confirm_max_frames frames each way) lies within confirm_tol_m
-    # of it horizontally in the map frame; with no such frame it is kept. Applied by
-    # detect_archive (it needs the map poses and one frame of look-ahead) and by
-    # confirm_across_frames; detect_frame alone marks the blob (needs_confirmation).
-    # Set on the tuning sites; see docs/perception.md, "Sixth pass: low sun".
-    # confirm_tol_m 0 = off.
-    confirm_tol_m: float = 0.2
-    confirm_max_top_m: float = 0.06
-    confirm_min_extension_ratio: float = 0.3
-    confirm_min_baseline_m: float = 0.1
-    confirm_max_frames: int = 10
-    # Tentative mid-range detections, confirmed by a second view: a height blob whose
-    # median depth lies within [tentative_min_range_m, tentative_max_range_m] and that one
-    # of the marginal rules rejects (TENTATIVE_RULES: elongated beyond the strip limits up
-    # to tentative_max_eig_ratio, too small, under the contrast floors, a crest verdict, a
-    # strip that fails its test) is kept as a tentative detection (Detection.tentative:
-    # the rule's name) instead of being dropped. detect_archive / confirm_across_frames
-    # keep a tentative only when a firm (not tentative) detection of at least
-    # tentative_min_views of the neighbouring frames (each at least
-    # confirm_min_baseline_m of rover travel away, up to confirm_max_frames frames each
-    # way) lies within tentative_tol_m of it horizontally in the map frame; with no such
-    # frame it is dropped. detect_frame drops tentatives unless asked to keep them
-    # (keep_tentative), so the online loop never sees one unconfirmed. Rules never made
-    # tentative: rough disparity (stereo noise), too tall / wide / perched / framed (large
-    # bodies, the lander). Set on the tuning sites (37 archives): recall r >= 0.1 m within
-    # 5 m 0.907 -> 0.939 at precision within 5 m 0.987 -> 0.988 (tolerance 0.15 m: 5 more
-    # false detections for 1 sighting; two views: a third of the gain; 5 or 6 m, eigenvalue
-    # limit 40-80: the same within 5 m). See docs/perception.md, "Seventh pass: tentative
-    # mid-range detections". tentative_max_range_m 0 = off.
-    tentative_max_range_m: float = 5.0
-    tentative_min_range_m: float = 2.0
-    tentative_max_eig_ratio: float = 60.0
-    tentative_tol_m: float = 0.1
-    # ... or, for a larger tentative, this many times its estimated radius: a large rock's
-    # centre moves with how much of it a view's mask holds (a strip along its top from
-    # 4-5 m, its whole face nearer), as the benchmark's match tolerance max(0.15 m, r)
-    # allows. 0.5 (session 15): tuning sites (52 archives) target sightings 1458 -> 1461
-    # of 1609 with the same 48 false detections within 5 m; 1.0: 1465 and 52. Held-out
-    # sites 201-204 (20 archives): 818 -> 822 of 855, false 17 -> 17. 0 = tentative_tol_m
-    # alone. See docs/perception.md, "Tenth pass".
-    tentative_tol_per_radius: float = 0.5
-    tentative_min_views: int = 1
-    # How many frames on each side may confirm a tentative: the first
-    # tentative_confirm_frames frames each way that lie at least confirm_min_baseline_m
-    # away (within confirm_max_frames). 1 = the nearest only. A mid-range rock seen
-    # tentatively from 4-5 m is often seen firmly only a few frames later, nearer.
-    tentative_confirm_frames: int = 3
-    # ... or when it is seen again, as any detection (tentative or firm) within the same
-    # tolerance, in at least this many of those frames (up to tentative_confirm_frames each
-    # way): a rock seen tentatively from 4-5 m down to 2.5 m, and never firmly, repeats;
-    # stereo noise and crest bumps rarely do three times. 0 = off. 3 (session 15): tuning
-    # sites (52 archives) target sightings 1461 -> 1467 of 1609, small-rock sightings 879 ->
-    # 887, true detections within 5 m 4679 -> 4747, false 48 -> 49; 4: no change. Held-out
-    # sites 201-204, 211-214 and 221-224 (60 archives): target 1690 -> 1691, true detections
-    # within 5 m 5496 -> 5542, false 96 -> 96. Session 13 tried this on 141-144 alone (no
-    # target sighting gained). See docs/perception.md, "Tenth pass".
-    tentative_min_repeats: int = 3
-    # Detections within this horizontal distance (metres) of the lander's centre are
-    # dropped when the lander's map position is given (LAC lander: legs and pads
-    # ~1.9 m from its centre; fiducial panels and their shadows around it).
-    lander_radius_m: float = 2.2
-    # Small rocks near the rover (3-8 cm wide within 6 m), which the height map's half-
-    # resolution heights cannot see: bright-blob candidates checked by a full-resolution
-    # stereo height above a local ground fitted around each (perception/small_rocks.py; needs
-    # the height map, so the classical segmenter with STEREO_POINTS). Detections it adds carry
-    # tentative "", small_rock True, height_m their height above that ground. See docs/perception.md,
-    # "Thirteenth pass". Off by default (small_rocks.enabled; see SmallRockConfig.enabled).
-    small_rocks: SmallRockConfig = field(default_factory=SmallRockConfig)
-    # No level-rover assumption: the height map (its ground cells, every height, "up") is
-    # built in the rover frame turned so that its z axis is the normal of the plane fitted to
-    # the pair's own stereo points within small_rocks.ground_range_m (perception/small_rocks.
-    # ground_plane), when that normal lies more than level_min_deg from the rover's z. A rover
-    # rolled or pitched on a slope then sees the same heights as on level ground, whatever its
-    # roll and pitch (IMU, ground truth or unknown: the detector never uses them). Detections'
-    # p_rover / p_map stay in the rover / map frame. False = the rover frame (as before).
-    # level_min_deg 8: the real LAC frames' fitted planes lie 2-5 degrees off the rover's z
-    # (the terrain's own slope ahead, which the ground cells follow; levelling frame 99 by 5
-    # degrees moved one shadow blob over the seed threshold), while a synthetic 0.1 m rock at
-    # 4 m on ground rolled 20 degrees is lost without levelling (10 degrees: found either way).
-    level_from_stereo: bool = True
-    level_min_deg: float = 8.0
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "segmenter", SegmenterKind(self.segmenter))
-        object.__setattr__(self, "centre_method", CentreMethod(self.centre_method))
-        object.__setattr__(self, "centre_estimator", CentreEstimator(self.centre_estimator))
-        if not (0.0 <= self.centre_near_weight <= 1.0 and 0.0 < self.centre_near_quantile <= 0.5):
-            raise ConfigError(f"centre_near_weight={self.centre_near_weight!r} must be in [0, 1] and "
-                              f"centre_near_quantile={self.centre_near_quantile!r} in (0, 0.5]")
-        if not (self.centre_near_range_factor >= 0 and self.centre_ring_radius_factor >= 0
-                and self.centre_ring_exposed_factor >= 0 and self.centre_near_clamp_radii >= 0):
-            raise ConfigError("centre_near_range_factor, centre_ring_radius_factor, centre_ring_exposed_factor and "
-                              "centre_near_clamp_radii must be >= 0")
-        object.__setattr__(self, "fuse_estimator", CentreFusion(self.fuse_estimator))
-        if not (self.fuse_tol_m >= 0.0 and self.fuse_range_power >= 0.0 and isinstance(self.fuse_causal, bool)):
-            raise ConfigError(f"fuse_tol_m={self.fuse_tol_m!r} and fuse_range_power={self.fuse_range_power!r} must be "
-                              f">= 0 (fuse_tol_m 0 = off), fuse_causal={self.fuse_causal!r} true or false")
-        if (not isinstance(self.fuse_max_frames, int) or isinstance(self.fuse_max_frames, bool)
-                or self.fuse_max_frames < 1):
-            raise ConfigError(f"fuse_max_frames={self.fuse_max_frames!r} must be an integer >= 1")
-        if not 0.0 < self.top_quantile <= 1.0:
-            raise ConfigError("top_quantile must be in (0, 1]")
-        if self.depth_half_window_px < 0:
-            raise ConfigError("depth_half_window_px must be >= 0")
-        if not 1 <= self.fullres_p1_per_block_px2 < self.fullres_p2_per_block_px2:
-            raise ConfigError(f"fullres_p1_per_block_px2={self.fullres_p1_per_block_px2}, fullres_p2_per_block_px2="
-                              f"{self.fullres_p2_per_block_px2}: need 1 <= p1 < p2 (SGBM wants P2 > P1)")
-        if self.radius_per_size <= 0:
-            raise ConfigError("radius_per_size must be > 0")
-        if not (self.max_rock_height_m > 0 and self.max_rock_radius_m > 0 and self.lander_radius_m >= 0):
-            raise ConfigError("max_rock_height_m and max_rock_radius_m must be > 0, lander_radius_m >= 0")
-        if not (isinstance(self.level_from_stereo, bool) and 0.0 <= self.level_min_deg < 90.0):
-            raise ConfigError(f"level_from_stereo={self.level_from_stereo!r} must be true or false and level_min_deg="
-                              f"{self.level_min_deg!r} in [0, 90)")
-        if not (self.quadric_contrast_per_radius >= 0 and self.quadric_contrast_max_m >= 0):
-            raise ConfigError("quadric_contrast_per_radius and quadric_contrast_max_m must be >= 0")
-        if not (self.top_per_radius > 0 and self.top_noise_m >= 0):
-            raise ConfigError("top_per_radius must be > 0 and top_noise_m >= 0")
-        if not self.perched_max_radius_m >= 0:
-            raise ConfigError(f"perched_max_radius_m={self.perched_max_radius_m!r} must be >= 0 (0 = test every blob)")
-        if not 0.0 <= self.max_nearer_ring_fraction <= 1.0:
-            raise ConfigError(f"max_nearer_ring_fraction={self.max_nearer_ring_fraction!r} must be in [0, 1] (1 = off)")
-        if not 0.0 < self.nearer_depth_ratio < 1.0:
-            raise ConfigError(f"nearer_depth_ratio={self.nearer_depth_ratio!r} must be in (0, 1)")
-        if not self.duplicate_overlap_ratio >= 0.0:
-            raise ConfigError(f"duplicate_overlap_ratio={self.duplicate_overlap_ratio!r} must be >= 0 (0 = off)")
-        if not (self.crest_extension_ratio >= 0.0 and self.crest_max_radius_m >= 0.0):
-            raise ConfigError(f"crest_extension_ratio={self.crest_extension_ratio!r} and crest_max_radius_m="
-                              f"{self.crest_max_radius_m!r} must be >= 0 (0 = off)")
-        if not self.crest_extension_max_ratio > self.crest_extension_ratio:
-            raise ConfigError(f"crest_extension_max_ratio={self.crest_extension_max_ratio!r} must exceed "
-                              f"crest_extension_ratio={self.crest_extension_ratio!r}")
-        if not (self.strip_max_eig_ratio >= 0.0 and self.strip_max_extension_ratio >= 0.0):
-            raise ConfigError(f"strip_max_eig_ratio={self.strip_max_eig_ratio!r} and strip_max_extension_ratio="
-                              f"{self.strip_max_extension_ratio!r} must be >= 0 (strip_max_eig_ratio 0 = off)")
-        if not (self.raised_strip_max_eig_ratio >= 0.0 and self.raised_strip_min_quadric_m >= 0.0
-                and self.raised_strip_max_radius_m > 0.0):
-            raise ConfigError(f"raised_strip_max_eig_ratio={self.raised_strip_max_eig_ratio!r} and "
-                              f"raised_strip_min_quadric_m={self.raised_strip_min_quadric_m!r} must be >= 0 (the first 0 = "
-                              f"off), raised_strip_max_radius_m={self.raised_strip_max_radius_m!r} > 0")
-        if not 0.0 <= self.depth_split_ratio < 10.0:
-            raise ConfigError(f"depth_split_ratio={self.depth_split_ratio!r} must be in [0, 10) (0 = off)")
-        if (not isinstance(self.depth_split_step_px, int) or isinstance(self.depth_split_step_px, bool)
-                or not 1 <= self.depth_split_step_px <= 8):
-            raise ConfigError(f"depth_split_step_px={self.depth_split_step_px!r} must be an integer in [1, 8]")
-        if (not isinstance(self.raised_strip_min_area_px, int) or isinstance(self.raised_strip_min_area_px, bool)
-                or self.raised_strip_min_area_px < 0):
-            raise ConfigError(f"raised_strip_min_area_px={self.raised_strip_min_area_px!r} must be an integer >= 0")
-        if not 0.0 < self.max_disparity_roughness <= 1.0:
-            raise ConfigError(f"max_disparity_roughness={self.max_disparity_roughness!r} must be in (0, 1] (1 = off)")
-        if not self.roughness_step_px > 0.0:
-            raise ConfigError(f"roughness_step_px={self.roughness_step_px!r} must be > 0 (full-resolution pixels)")
-        if not (self.confirm_tol_m >= 0.0 and self.confirm_max_top_m >= 0.0 and self.confirm_min_baseline_m >= 0.0):
-            raise ConfigError(f"confirm_tol_m={self.confirm_tol_m!r}, confirm_max_top_m={self.confirm_max_top_m!r} and "
-                              f"confirm_min_baseline_m={self.confirm_min_baseline_m!r} must be >= 0 (confirm_tol_m 0 = off)")
-        if not self.confirm_min_extension_ratio >= 0.0:
-            raise ConfigError(f"confirm_min_extension_ratio={self.confirm_min_extension_ratio!r} must be >= 0")
-        if (not isinstance(self.confirm_max_frames, int) or isinstance(self.confirm_max_frames, bool)
-                or self.confirm_max_frames < 1):
-            raise ConfigError(f"confirm_max_frames={self.confirm_max_frames!r} must be an integer >= 1")
-        if not (self.tentative_max_range_m >= 0.0 and self.tentative_min_range_m >= 0.0
-                and self.tentative_max_eig_ratio >= 0.0 and self.tentative_tol_m > 0.0
-                and self.tentative_tol_per_radius >= 0.0):
-            raise ConfigError(f"tentative_max_range_m={self.tentative_max_range_m!r}, tentative_min_range_m="
-                              f"{self.tentative_min_range_m!r} and tentative_max_eig_ratio={self.tentative_max_eig_ratio!r}"
-                              f" must be >= 0 (tentative_max_range_m 0 = off), tentative_tol_m="
-                              f"{self.tentative_tol_m!r} > 0 and tentative_tol_per_radius="
-                              f"{self.tentative_tol_per_radius!r} >= 0")
-        if self.tentative_max_range_m > 0 and not self.tentative_min_range_m < self.tentative_max_range_m:
-            raise ConfigError(f"tentative_min_range_m={self.tentative_min_range_m!r} must be under "
-                              f"tentative_max_range_m={self.tentative_max_range_m!r}")
-        if (not isinstance(self.tentative_min_views, int) or isinstance(self.tentative_min_views, bool)
-                or self.tentative_min_views not in (1, 2)):
-            raise ConfigError(f"tentative_min_views={self.tentative_min_views!r} must be 1 or 2 (neighbouring frames)")
-        if (not isinstance(self.tentative_min_repeats, int) or isinstance(self.tentative_min_repeats, bool)
-                or not 0 <= self.tentative_min_repeats <= 2 * self.confirm_max_frames):
-            raise ConfigError(f"tentative_min_repeats={self.tentative_min_repeats!r} must be an integer from 0 (off) to "
-                              f"2 x confirm_max_frames ({2 * self.confirm_max_frames})")
-        if (not isinstance(self.tentative_confirm_frames, int) or isinstance(self.tentative_confirm_frames, bool)
-                or not 1 <= self.tentative_confirm_frames <= self.confirm_max_frames):
-            raise ConfigError(f"tentative_confirm_frames={self.tentative_confirm_frames!r} must be an integer from 1 "
-                              f"to confirm_max_frames={self.confirm_max_frames!r}")
-        if self.segmenter is SegmenterKind.FASTSAM and not self.weights:
-            raise ConfigError("the fastsam segmenter needs weights (a FastSAM .pt path)")
-        if (not isinstance(self.fastsam_imgsz_px, int) or isinstance(self.fastsam_imgsz_px, bool)
-                or not 32 <= self.fastsam_imgsz_px <= 4096 or self.fastsam_imgsz_px % 32):
-            raise ConfigError(f"fastsam_imgsz_px={self.fastsam_imgsz_px!r} must be a multiple of 32 in [32, 4096]")
-
-    def to_dict(self) -> dict:
-        """Plain dict (Enums as values) to write next to results."""
-        d = asdict(self)
-        d["segmenter"] = self.segmenter.value
-        d["centre_method"] = self.centre_method.value
-        d["centre_estimator"] = self.centre_estimator.value
-        d["fuse_estimator"] = self.fuse_estimator.value
-        return d
-
-
 @dataclass(frozen=True)
 class Detection:
     """One kept mask lifted to 3D.
@@ -663,14 +149,14 @@ class Detection:
     # (NaN when not measured: blobs of radius >= crest_max_radius_m)
     extension_ratio: float = float("nan")
     # fraction of rough second differences of the full-resolution disparity (see
-    # DetectorConfig.max_disparity_roughness); NaN when not measured
+    # DetectorConfig.rules.max_disparity_roughness); NaN when not measured
     disparity_roughness: float = float("nan")
     # a low blob on a crest, to be confirmed by a neighbouring frame (see
-    # DetectorConfig.confirm_tol_m)
+    # DetectorConfig.confirm.tol_m)
     needs_confirmation: bool = False
     # a tentative mid-range detection: the name of the marginal rule that would have
     # rejected it ("" = a firm detection); kept only when a neighbouring frame's firm
-    # detection confirms it (see DetectorConfig.tentative_max_range_m)
+    # detection confirms it (see DetectorConfig.tentative.max_range_m)
     tentative: str = ""
     # found by the small-rock stage (DetectorConfig.small_rocks), not by the height map; its
     # local ground's residual spread (metres; NaN for the height map's detections)
@@ -726,6 +212,64 @@ class FrameDetections:
         return np.array(pts, dtype=float).reshape(-1, 3)
 
 
+@dataclass
+class _PairScene:
+    """What each mask of one stereo pair is judged against: the images, the height map, the
+    frames (levelled when the height map is), the filters of its masks and where it is placed."""
+
+    config: DetectorConfig
+    L: np.ndarray
+    right: np.ndarray
+    hm: HeightMap
+    image_shape: tuple[int, int]
+    fc: MaskFilterConfig
+    T_rover_optical: np.ndarray
+    T_map_rover: np.ndarray | None
+    camera_name: str
+    lander_xy: np.ndarray | None
+    _ground_points: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.T_optical_rover = np.linalg.inv(self.T_rover_optical)
+
+    @property
+    def stereo_rules(self) -> bool:
+        """Height blobs with STEREO_POINTS centres: the strips, the tentatives and the
+        small-rock stage apply."""
+        return self.fc is self.config.height_filters and self.config.centre.method is CentreMethod.STEREO_POINTS
+
+    @property
+    def tentative_on(self) -> bool:
+        return self.config.tentative.max_range_m > 0 and self.stereo_rules
+
+    @property
+    def ground_points(self) -> np.ndarray:
+        """Every 8th valid stereo point of the height map (rover frame): the ground in front
+        of a blob is read from these (computed on first use)."""
+        if self._ground_points is None:
+            self._ground_points = self.hm.points_rover[np.isfinite(self.hm.depth)][::8]
+        return self._ground_points
+
+    def admitted_elongated(self, reason: RejectReason | None, st: MaskStats) -> tuple[bool, bool, bool]:
+        """(strip, raised, long): whether a mask the image filters rejected as elongated goes on
+        as a flat strip, a raised strip candidate, or a tentative candidate elongated beyond the
+        strip limits (perception/rules.py)."""
+        r = self.config.rules
+        strip = is_flat_strip(reason, st, self.fc, r) and self.stereo_rules
+        raised = is_raised_strip(reason, st, self.fc, r) and self.stereo_rules
+        long_ = (self.tentative_on and not (strip or raised) and reason is RejectReason.ELONGATED
+                 and st.eig_ratio <= self.config.tentative.max_eig_ratio)
+        return strip, raised, long_
+
+
+def _drop_kept(dets: list[Detection], kept_recs: list[MaskRecord], indices, reason: RejectReason) -> None:
+    """Remove the detections at `indices` (and their records from `kept_recs`), setting the
+    records' reason."""
+    for k in sorted(indices, reverse=True):
+        kept_recs[k].reason = reason
+        del dets[k], kept_recs[k]
+
+
 class Detector:
     """Detect rocks in stereo frames. Build once; call :meth:`detect_frame` per frame.
 
@@ -754,7 +298,7 @@ class Detector:
     @property
     def uses_height(self) -> bool:
         """True when each pair needs the low-resolution stereo height map."""
-        return self.config.centre_method is CentreMethod.STEREO_POINTS or bool(
+        return self.config.centre.method is CentreMethod.STEREO_POINTS or bool(
             getattr(self.segmenter, "uses_stereo", False)
         )
 
@@ -768,9 +312,9 @@ class Detector:
         hm = ground_height_map(
             disp, k, self.camera, self.height_stereo.baseline_m, T_rover_optical, self.config.ground, nd - 1.0
         )
-        if self.config.level_from_stereo:
+        if self.config.level.from_stereo:
             n = ground_plane(hm.points_rover, hm.depth, self.config.small_rocks.ground_range_m)
-            if n is not None and np.degrees(np.arccos(np.clip(n[2], -1.0, 1.0))) > self.config.level_min_deg:
+            if n is not None and np.degrees(np.arccos(np.clip(n[2], -1.0, 1.0))) > self.config.level.min_deg:
                 T_level_rover = np.eye(4)
                 T_level_rover[:3, :3] = _rotation_onto_z(n)
                 hm = ground_height_map(disp, k, self.camera, self.height_stereo.baseline_m,
@@ -783,19 +327,19 @@ class Detector:
                         disparity_out: dict | None = None):
         """Rover-frame points of a mask from a full-resolution SGBM match in a narrow
         band around its low-resolution disparity `d_lr` (full-res pixels); the mask is
-        eroded by fullres_erode_px first. None when too few pixels match.
+        eroded by points.erode_px first. None when too few pixels match.
         disparity_out : if given, receives "disparity" (the crop's full-resolution
         disparity, NaN invalid) and "mask" (the eroded crop) when the match ran."""
         cv2 = import_cv2()
         cfg = self.config
-        d = mask_disparity_fullres(L, right, m.crop, m.u0, m.v0, d_lr, cfg.fullres_span_px, cfg.fullres_block_size,
-                                   p1_per_block_px2=cfg.fullres_p1_per_block_px2,
-                                   p2_per_block_px2=cfg.fullres_p2_per_block_px2)
+        d = mask_disparity_fullres(L, right, m.crop, m.u0, m.v0, d_lr, cfg.points.span_px, cfg.points.block_size,
+                                   p1_per_block_px2=cfg.points.p1_per_block_px2,
+                                   p2_per_block_px2=cfg.points.p2_per_block_px2)
         if d is None:
             return None
         crop = np.asarray(m.crop, bool)
-        if cfg.fullres_erode_px > 0:
-            k = 2 * cfg.fullres_erode_px + 1
+        if cfg.points.erode_px > 0:
+            k = 2 * cfg.points.erode_px + 1
             ce = cv2.erode(crop.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
             if np.count_nonzero(ce) >= 10:
                 crop = ce
@@ -813,7 +357,7 @@ class Detector:
         """True when the detection's map position lies in the lander's footprint."""
         if lander_xy is None or det.p_map is None:
             return False
-        return bool(on_lander(det.p_map[None], np.eye(4), lander_xy, self.config.lander_radius_m)[0])
+        return bool(on_lander(det.p_map[None], np.eye(4), lander_xy, self.config.rules.lander_radius_m)[0])
 
     # ------------------------------------------------------------------ one pair
     def _lift_centroid(self, cu: float, cv: float, D: float, s: float, T_rover_optical: np.ndarray):
@@ -821,8 +365,8 @@ class Detector:
         along the viewing ray by the estimated radius (the paper's spherical-rock model).
         Returns (p_optical, p_rover, radius_m)."""
         p = self.camera.backproject(np.array([[cu, cv]]), np.array([D]))[0]
-        R_est = self.config.radius_per_size * s
-        if self.config.centre_correction:
+        R_est = self.config.centre.radius_per_size * s
+        if self.config.centre.correction:
             p = p + p / np.linalg.norm(p) * R_est
         return p, transform_points(T_rover_optical, p[None])[0], R_est
 
@@ -845,9 +389,9 @@ class Detector:
         mask is rejected as NO_DEPTH). T_rover_optical : 4x4 pose of the left optical
         frame in the rover frame. T_map_rover : 4x4 rover pose in the map, or None.
         lander_xy : (2,) the lander's centre in the map frame (metres), or None;
-        detections within config.lander_radius_m of it are rejected (needs T_map_rover).
+        detections within config.rules.lander_radius_m of it are rejected (needs T_map_rover).
         keep_tentative : keep tentative detections (Detection.tentative; see
-        DetectorConfig.tentative_max_range_m), for confirm_across_frames to judge; by default
+        DetectorConfig.tentative.max_range_m), for confirm_across_frames to judge; by default
         they are dropped (their record's reason TENTATIVE).
         """
         cfg = self.config
@@ -888,7 +432,7 @@ class Detector:
             m = masks[rec.mask_index]
             cu, cv = rec.stats.centroid_uv
             D = (
-                _mask_depth(depth, m, cu, cv, cfg.depth_half_window_px, cfg.depth_fallback_mask)
+                _mask_depth(depth, m, cu, cv, cfg.centre.depth_half_window_px, cfg.centre.depth_fallback_mask)
                 if depth is not None
                 else float("nan")
             )
@@ -922,154 +466,32 @@ class Detector:
     ) -> PairResult:
         """detect_pair with the low-resolution stereo height map computed first (it feeds
         the segmenter when it uses stereo, and the centre estimate)."""
-        cfg = self.config
-        fc = cfg.filters
         c0 = time.process_time()
         t0 = time.perf_counter()
-        hm = self.height_map(L, right, T_rover_optical)
-        T_rover_level = None
-        if hm.T_level_rover is not None:
-            # work in the levelled frame; p_rover goes back to the rover frame at the end
-            T_rover_level = invert_transform(hm.T_level_rover)
-            T_rover_optical = hm.T_rover_optical
-            if T_map_rover is not None:
-                T_map_rover = T_map_rover @ T_rover_level
+        hm, T_rover_optical, T_map_rover, T_rover_level = self._levelled_height_map(L, right, T_rover_optical,
+                                                                                   T_map_rover)
         t1 = time.perf_counter()
-        if getattr(self.segmenter, "uses_stereo", False):
-            masks = self.segmenter.segment(L, height=hm)
-            fc = cfg.height_filters
-            masks = split_at_depth_steps(masks, hm, cfg.depth_split_ratio, cfg.classical.height_min_area_px,
-                                         cfg.classical.height_seed_m, cfg.depth_split_step_px)
-        else:
-            masks = self.segmenter.segment(L)
+        masks, fc = self._segment_blobs(L, hm)
         t2 = time.perf_counter()
+        scene = _PairScene(self.config, L, right, hm, masks.image_shape, fc, T_rover_optical, T_map_rover, camera_name,
+                           lander_xy)
         records: list[MaskRecord] = []
         dets: list[Detection] = []
-        alpha = self.camera.alpha
-        T_optical_rover = np.linalg.inv(T_rover_optical)
-        ground_pts = None  # stereo points for the not-a-rock check, on first use
-        tent_on = (cfg.tentative_max_range_m > 0 and fc is cfg.height_filters
-                   and cfg.centre_method is CentreMethod.STEREO_POINTS)
         kept_recs: list[MaskRecord] = []  # the record of each kept detection
         for i, m in enumerate(masks):
-            st = mask_stats(m, masks.image_shape, border_px=fc.border_px)
-            rec = MaskRecord(i, st, float("nan"), float("nan"), None)
+            rec, det = self._judge_mask(scene, i, m)
             records.append(rec)
-            rec.reason = image_reject_reason(st, fc)
-            strip = (_is_flat_strip(rec.reason, st, fc, cfg) and fc is cfg.height_filters
-                     and cfg.centre_method is CentreMethod.STEREO_POINTS)
-            raised = (_is_raised_strip(rec.reason, st, fc, cfg) and fc is cfg.height_filters
-                      and cfg.centre_method is CentreMethod.STEREO_POINTS)
-            # a tentative candidate rejected as elongated beyond the strip limits
-            long_ = (tent_on and not (strip or raised) and rec.reason is RejectReason.ELONGATED
-                     and st.eig_ratio <= cfg.tentative_max_eig_ratio)
-            if rec.reason is not None and not (strip or raised or long_):
-                continue
-            rows, cols = hm.lowres_index(m)
-            z = hm.depth[rows, cols]
-            ok = np.isfinite(z)
-            D = float(np.median(z[ok])) if np.count_nonzero(ok) >= 3 else float("nan")
-            reason, s = classify_mask(st, D, alpha, replace(fc, tau_elong=st.eig_ratio) if strip or raised or long_ else fc)
-            rec.depth_m, rec.size_m, rec.reason = D, s, reason
-            mid = bool(tent_on and cfg.tentative_min_range_m <= D <= cfg.tentative_max_range_m)
-            tent = "elongated" if long_ else ""
-            if reason is RejectReason.TOO_SMALL and mid and s > 0:
-                tent, rec.reason = "+".join(filter(None, (tent, "too_small"))), None
-            elif long_ and reason is None and not mid:
-                rec.reason = RejectReason.ELONGATED
-            if rec.reason is not None:
-                continue
-            if cfg.centre_method is CentreMethod.STEREO_POINTS:
-                P_rov = hm.points_rover[rows[ok], cols[ok]].astype(float)
-                if cfg.refine_disparity_px > 0:
-                    # full-resolution masked template match rescales the points' depths
-                    d_lr = float(np.median(hm.disparity[rows[ok], cols[ok]])) * hm.scale
-                    d_ref = refine_disparity(
-                        L, right, m.crop, m.u0, m.v0, d_lr, cfg.refine_disparity_px, cfg.refine_erode_px
-                    )
-                    if np.isfinite(d_ref) and d_ref > 0:
-                        P_opt = transform_points(T_optical_rover, P_rov) * (d_lr / d_ref)
-                        P_rov = transform_points(T_rover_optical, P_opt)
-                        D = D * d_lr / d_ref
-                        rec.depth_m = D
-                h_pts = hm.height[rows[ok], cols[ok]]
-                fr_disp: dict = {}
-                if cfg.fullres_points and P_rov.shape[0] >= 3:
-                    fr = self._fullres_points(L, right, m, float(np.median(hm.disparity[rows[ok], cols[ok]])) * hm.scale,
-                                              T_rover_optical, disparity_out=fr_disp)  # fmt: skip
-                    if fr is not None:
-                        ground = float(np.median(P_rov[:, 2] - h_pts))
-                        P_rov, h_pts = fr, fr[:, 2] - ground
-                R_sil = None
-                if cfg.radius_from_silhouette:
-                    # the silhouette's lateral spread: a disc or half-disc of radius R
-                    # has a horizontal standard deviation of R / 2
-                    R_sil = cfg.radius_per_size * float(np.sqrt(st.cov[0, 0])) * D * alpha
-                p_rover, R_est = _centre_for_mask(P_rov, h_pts, T_rover_optical[:3, 3], cfg, R_sil, hm.points_rover, rows, cols)
-                p = transform_points(T_optical_rover, p_rover[None])[0]
-                if ground_pts is None:
-                    ok_all = np.isfinite(hm.depth)
-                    ground_pts = hm.points_rover[ok_all][::8]
-                vis_h = _visible_height(P_rov[:, 2], h_pts, cfg.top_quantile)
-                top = float(np.quantile(h_pts, cfg.top_quantile))
-                h_sur = _height_above_surroundings(P_rov, p_rover, R_est, ground_pts, T_rover_optical[:3, 3], cfg.top_quantile)
-                perched = False
-                if np.isfinite(h_sur):
-                    vis_h = max(vis_h, h_sur)
-                    # a small blob standing far higher above the ground in front than its
-                    # size allows sits on something larger (a knob on a boulder)
-                    perched = h_sur > cfg.height_per_radius * R_est + cfg.height_margin_m
-                perched |= top > cfg.top_per_radius * R_est + cfg.top_noise_m
-                perched &= not (0 < cfg.perched_max_radius_m <= R_est)  # a boulder, not a knob
-                ring = _ring_height(hm.height, rows, cols)
-                quad = _height_above_quadric(hm.points_rover, rows, cols, P_rov, cfg.top_quantile)
-                contrast = bool(np.isfinite(ring) and top - ring < cfg.min_contrast_m)
-                quadric = bool(
-                    np.isfinite(quad) and quad < min(cfg.quadric_contrast_per_radius * R_est, cfg.quadric_contrast_max_m)
-                )
-                nearer = _nearer_ring_fraction(hm.depth, rows, cols, D, cfg.nearer_depth_ratio)
-                framed = bool(np.isfinite(nearer) and nearer > cfg.max_nearer_ring_fraction)
-                ext = (_lateral_extension_ratio(hm.height, rows, cols) if R_est < cfg.crest_max_radius_m or strip
-                       else float("nan"))
-                crest = cfg.crest_extension_ratio > 0 and cfg.crest_extension_ratio < ext <= cfg.crest_extension_max_ratio
-                strip_out = _strip_rejected(strip, raised, ext, quad, R_est, cfg)
-                rough = (disparity_roughness(fr_disp["disparity"], fr_disp["mask"], cfg.roughness_step_px)
-                         if fr_disp and cfg.max_disparity_roughness < 1.0 else float("nan"))
-                hard = (vis_h > cfg.max_rock_height_m or R_est > cfg.max_rock_radius_m or perched or framed
-                        or bool(rough > cfg.max_disparity_roughness))
-                soft = [n for n, f in (("contrast", contrast), ("quadric", quadric), ("crest", bool(crest)),
-                                       ("strip", strip_out)) if f]
-                if hard or (soft and not (mid and set(soft) <= TENTATIVE_RULES)):
-                    rec.reason = RejectReason.NOT_A_ROCK
-                    continue
-                tent = "+".join(filter(None, (tent, *soft)))
-            else:
-                p, p_rover, R_est = self._lift_centroid(*st.centroid_uv, D, s, T_rover_optical)
-            det = _detection(camera_name, st, D, s, R_est, p, p_rover, T_map_rover)
-            if cfg.centre_method is CentreMethod.STEREO_POINTS:
-                det = replace(det, height_m=top, height_front_m=h_sur, height_ring_m=ring, height_quadric_m=quad,
-                              nearer_ring_fraction=nearer, extension_ratio=ext)
-                det = replace(det, disparity_roughness=rough,
-                              needs_confirmation=_needs_confirmation(top, ext, hm.height, rows, cols, cfg),
-                              tentative=tent)
-            if self._on_lander(det, lander_xy):
-                rec.reason = RejectReason.ON_LANDER
-                continue
-            rec.tentative = det.tentative
-            dets.append(det)
-            kept_recs.append(rec)
-        if (cfg.small_rocks.enabled and fc is cfg.height_filters and cfg.centre_method is CentreMethod.STEREO_POINTS
-                and np.isfinite(hm.depth).any()):
+            if det is not None:
+                dets.append(det)
+                kept_recs.append(rec)
+        if self.config.small_rocks.enabled and scene.stereo_rules and np.isfinite(hm.depth).any():
             # before the duplicate test: a small-rock detection beside a larger one is dropped there
             self._add_small_rocks(L, right, hm, masks, records, dets, kept_recs, T_rover_optical, T_map_rover,
                                   camera_name, lander_xy)
-        for k in sorted(_duplicates_firm_first(dets, cfg.duplicate_overlap_ratio), reverse=True):
-            kept_recs[k].reason = RejectReason.DUPLICATE
-            del dets[k], kept_recs[k]
+        _drop_kept(dets, kept_recs, _duplicates_firm_first(dets, self.config.rules.duplicate_overlap_ratio),
+                   RejectReason.DUPLICATE)
         if not keep_tentative:
-            for k in [k for k, d in enumerate(dets) if d.tentative][::-1]:
-                kept_recs[k].reason = RejectReason.TENTATIVE
-                del dets[k], kept_recs[k]
+            _drop_kept(dets, kept_recs, [k for k, d in enumerate(dets) if d.tentative], RejectReason.TENTATIVE)
         t3 = time.perf_counter()
         for k, v in (("segment", t2 - t1), ("filter", t3 - t2), ("stereo", t1 - t0)):
             tm[k] = tm.get(k, 0.0) + v
@@ -1079,9 +501,148 @@ class Detector:
         if keep_depth:
             cv2 = import_cv2()
             depth = cv2.resize(hm.depth, (L.shape[1], L.shape[0]), interpolation=cv2.INTER_NEAREST)
-        if T_rover_level is not None:
+        if T_rover_level is not None:  # back from the levelled frame to the rover frame
             dets[:] = [replace(d, p_rover=transform_points(T_rover_level, d.p_rover[None])[0]) for d in dets]
         return PairResult(camera_name, masks, records, dets, depth, hm if keep_depth else None)
+
+    def _levelled_height_map(self, L, right, T_rover_optical: np.ndarray, T_map_rover: np.ndarray | None):
+        """The pair's height map, and the frames the pair is worked in: (height map,
+        T_rover_optical, T_map_rover, T_rover_level). When the height map is levelled
+        (LevelConfig), "rover" is the levelled frame and T_rover_level takes points back to the
+        rover frame; else the frames as given and None."""
+        hm = self.height_map(L, right, T_rover_optical)
+        if hm.T_level_rover is None:
+            return hm, T_rover_optical, T_map_rover, None
+        T_rover_level = invert_transform(hm.T_level_rover)
+        if T_map_rover is not None:
+            T_map_rover = T_map_rover @ T_rover_level
+        return hm, hm.T_rover_optical, T_map_rover, T_rover_level
+
+    def _segment_blobs(self, L, hm: HeightMap) -> tuple[InstanceMasks, MaskFilterConfig]:
+        """The masks of the left image and the filters that judge them: height blobs cut at
+        their depth steps and the height filters when the segmenter uses stereo, else its
+        masks and the plain filters."""
+        cfg = self.config
+        if not getattr(self.segmenter, "uses_stereo", False):
+            return self.segmenter.segment(L), cfg.filters
+        masks = self.segmenter.segment(L, height=hm)
+        masks = split_at_depth_steps(masks, hm, cfg.depth_split.ratio, cfg.classical.height_min_area_px,
+                                     cfg.classical.height_seed_m, cfg.depth_split.step_px)
+        return masks, cfg.height_filters
+
+    def _judge_mask(self, scene: _PairScene, i: int, m: InstanceMask) -> tuple[MaskRecord, Detection | None]:
+        """One mask of a pair: its record and its detection (None when rejected). The steps:
+        image filters (elongated strips may go on), depth and size, then, for STEREO_POINTS,
+        the centre and the measures the rejection rules judge (perception/rules.py), and last
+        the lander's footprint."""
+        cfg = self.config
+        st = mask_stats(m, scene.image_shape, border_px=scene.fc.border_px)
+        rec = MaskRecord(i, st, float("nan"), float("nan"), None)
+        rec.reason = image_reject_reason(st, scene.fc)
+        strip, raised, long_ = scene.admitted_elongated(rec.reason, st)
+        if rec.reason is not None and not (strip or raised or long_):
+            return rec, None
+        rows, cols = scene.hm.lowres_index(m)
+        ok = np.isfinite(scene.hm.depth[rows, cols])
+        D, s, mid, tent = self._depth_and_size(scene, rec, st, rows, cols, ok, strip or raised or long_, long_)
+        if rec.reason is not None:
+            return rec, None
+        if cfg.centre.method is CentreMethod.STEREO_POINTS:
+            D, p, p_rover, blob = self._measure_blob(scene, rec, m, st, rows, cols, ok, D, strip, raised)
+            hard, soft = fired_rules(blob, cfg.rules)
+            if hard or (soft and not (mid and set(soft) <= TENTATIVE_RULES)):
+                rec.reason = RejectReason.NOT_A_ROCK
+                return rec, None
+            det = replace(_detection(scene.camera_name, st, D, s, blob.radius_m, p, p_rover, scene.T_map_rover),
+                          height_m=blob.top_m, height_front_m=blob.front_m, height_ring_m=blob.ring_m,
+                          height_quadric_m=blob.quadric_m, nearer_ring_fraction=blob.nearer_fraction,
+                          extension_ratio=blob.extension_ratio, disparity_roughness=blob.roughness,
+                          needs_confirmation=_needs_confirmation(blob.top_m, blob.extension_ratio, scene.hm.height,
+                                                                 rows, cols, cfg),
+                          tentative="+".join(filter(None, (tent, *soft))))
+        else:
+            p, p_rover, R_est = self._lift_centroid(*st.centroid_uv, D, s, scene.T_rover_optical)
+            det = _detection(scene.camera_name, st, D, s, R_est, p, p_rover, scene.T_map_rover)
+        if self._on_lander(det, scene.lander_xy):
+            rec.reason = RejectReason.ON_LANDER
+            return rec, None
+        rec.tentative = det.tentative
+        return rec, det
+
+    def _depth_and_size(self, scene: _PairScene, rec: MaskRecord, st: MaskStats, rows, cols, ok, elongated_ok: bool,
+                        long_: bool) -> tuple[float, float, bool, str]:
+        """A blob's depth (median of its valid low-resolution depths) and size s_i, judged by
+        the range and size filters (an elongated blob let through is not judged elongated
+        again); sets the record's depth, size and reason. Returns (depth m, s_i m, in the
+        tentative range band, the tentative rules so far): a mid-range blob too small becomes
+        tentative, an elongated tentative candidate outside the band is rejected."""
+        cfg = self.config
+        z = scene.hm.depth[rows, cols]
+        D = float(np.median(z[ok])) if np.count_nonzero(ok) >= 3 else float("nan")
+        fc = replace(scene.fc, tau_elong=st.eig_ratio) if elongated_ok else scene.fc
+        reason, s = classify_mask(st, D, self.camera.alpha, fc)
+        rec.depth_m, rec.size_m, rec.reason = D, s, reason
+        mid = bool(scene.tentative_on and cfg.tentative.min_range_m <= D <= cfg.tentative.max_range_m)
+        tent = "elongated" if long_ else ""
+        if reason is RejectReason.TOO_SMALL and mid and s > 0:
+            tent, rec.reason = "+".join(filter(None, (tent, "too_small"))), None
+        elif long_ and reason is None and not mid:
+            rec.reason = RejectReason.ELONGATED
+        return D, s, mid, tent
+
+    def _measure_blob(self, scene: _PairScene, rec: MaskRecord, m: InstanceMask, st: MaskStats, rows, cols, ok,
+                      D: float, strip: bool, raised: bool):
+        """STEREO_POINTS: a kept blob's stereo points (full resolution when configured), its
+        centre and radius, and what the rules judge it by. Returns (depth m, possibly refined;
+        p_optical; p_rover; BlobMeasures)."""
+        cfg = self.config
+        hm, L, right = scene.hm, scene.L, scene.right
+        T_rover_optical = scene.T_rover_optical
+        P_rov = hm.points_rover[rows[ok], cols[ok]].astype(float)
+        if cfg.points.refine_disparity_px > 0:
+            # full-resolution masked template match rescales the points' depths
+            d_lr = float(np.median(hm.disparity[rows[ok], cols[ok]])) * hm.scale
+            d_ref = refine_disparity(
+                L, right, m.crop, m.u0, m.v0, d_lr, cfg.points.refine_disparity_px, cfg.points.refine_erode_px
+            )
+            if np.isfinite(d_ref) and d_ref > 0:
+                P_opt = transform_points(scene.T_optical_rover, P_rov) * (d_lr / d_ref)
+                P_rov = transform_points(T_rover_optical, P_opt)
+                D = D * d_lr / d_ref
+                rec.depth_m = D
+        h_pts = hm.height[rows[ok], cols[ok]]
+        fr_disp: dict = {}
+        if cfg.points.full_resolution and P_rov.shape[0] >= 3:
+            fr = self._fullres_points(L, right, m, float(np.median(hm.disparity[rows[ok], cols[ok]])) * hm.scale,
+                                      T_rover_optical, disparity_out=fr_disp)
+            if fr is not None:
+                ground = float(np.median(P_rov[:, 2] - h_pts))
+                P_rov, h_pts = fr, fr[:, 2] - ground
+        R_sil = None
+        if cfg.centre.radius_from_silhouette:
+            # the silhouette's lateral spread: a disc or half-disc of radius R
+            # has a horizontal standard deviation of R / 2
+            R_sil = cfg.centre.radius_per_size * float(np.sqrt(st.cov[0, 0])) * D * self.camera.alpha
+        p_rover, R_est = _centre_for_mask(P_rov, h_pts, T_rover_optical[:3, 3], cfg, R_sil, hm.points_rover, rows, cols)
+        p = transform_points(scene.T_optical_rover, p_rover[None])[0]
+        q = cfg.centre.top_quantile
+        vis_h = _visible_height(P_rov[:, 2], h_pts, q)
+        top = float(np.quantile(h_pts, q))
+        h_sur = _height_above_surroundings(P_rov, p_rover, R_est, scene.ground_points, T_rover_optical[:3, 3], q)
+        if np.isfinite(h_sur):
+            vis_h = max(vis_h, h_sur)
+        ext = (_lateral_extension_ratio(hm.height, rows, cols) if R_est < cfg.rules.crest_max_radius_m or strip
+               else float("nan"))
+        rough = (disparity_roughness(fr_disp["disparity"], fr_disp["mask"], cfg.rules.roughness_step_px)
+                 if fr_disp and cfg.rules.max_disparity_roughness < 1.0 else float("nan"))
+        blob = BlobMeasures(
+            radius_m=R_est, visible_height_m=vis_h, top_m=top, front_m=h_sur,
+            ring_m=_ring_height(hm.height, rows, cols),
+            quadric_m=_height_above_quadric(hm.points_rover, rows, cols, P_rov, q),
+            nearer_fraction=_nearer_ring_fraction(hm.depth, rows, cols, D, cfg.rules.nearer_depth_ratio),
+            extension_ratio=ext, roughness=rough, strip=strip, raised=raised,
+        )
+        return D, p, p_rover, blob
 
     def _add_small_rocks(self, L, right, hm: HeightMap, masks: InstanceMasks, records: list[MaskRecord],
                          dets: list[Detection], kept_recs: list[MaskRecord], T_rover_optical: np.ndarray, T_map_rover: np.ndarray | None,
@@ -1123,11 +684,11 @@ class Detector:
                 continue
             R_est = 0.5 * float(rock.width_m)
             P_rov = transform_points(T_rover_optical, rock.points_optical)
-            # the centre: the visible surface's median, centre_range_factor x R farther along
+            # the centre: the visible surface's median, centre.range_factor x R farther along
             # the viewing ray (as STEREO_POINTS' MEDIAN estimator)
             med = np.median(P_rov, axis=0)
             ray = med - ray_to
-            p_rover = med + ray / (np.linalg.norm(ray) + 1e-12) * cfg.centre_range_factor * R_est
+            p_rover = med + ray / (np.linalg.norm(ray) + 1e-12) * cfg.centre.range_factor * R_est
             p = transform_points(np.linalg.inv(T_rover_optical), p_rover[None])[0]
             det = replace(_detection(camera_name, st, D, s, R_est, p, p_rover, T_map_rover),
                           height_m=float(rock.top_m), small_rock=True,
@@ -1235,21 +796,13 @@ def _detection(camera_name, stats, D, s, R_est, p, p_rover, T_map_rover) -> Dete
     )
 
 
-def _is_flat_strip(reason: RejectReason | None, st, fc: MaskFilterConfig, cfg: DetectorConfig) -> bool:
-    """True for a mask that the image filters reject as elongated only, with an
-    eigenvalue ratio within cfg.strip_max_eig_ratio (a small rock's flat top strip at
-    mid range; see DetectorConfig.strip_max_eig_ratio)."""
-    return (reason is RejectReason.ELONGATED and cfg.strip_max_eig_ratio > fc.tau_elong
-            and st.eig_ratio <= cfg.strip_max_eig_ratio)
-
-
 def split_at_depth_steps(masks: InstanceMasks, height: HeightMap, step_ratio: float, min_area_px: int,
                          seed_m: float, step_px: int = 1) -> InstanceMasks:
-    """Masks cut at their depth steps (see DetectorConfig.depth_split_ratio): each mask of
+    """Masks cut at their depth steps (see DetectorConfig.depth_split.ratio): each mask of
     `masks` (full resolution, from the low-resolution `height` map) whose valid depths'
     5-95 % quantiles differ by more than `step_ratio` is cut where a pixel lies farther
     than (1 + step_ratio) x the depth of a pixel `step_px` low-resolution pixels above,
-    below, left or right of it (DetectorConfig.depth_split_step_px: SGBM spreads a step
+    below, left or right of it (DetectorConfig.depth_split.step_px: SGBM spreads a step
     over a pixel or two); when two or more 4-connected parts of
     at least `min_area_px` low-resolution pixels with a height above `seed_m` remain,
     they replace the mask (in its place), otherwise it stays whole. Pixels without a
@@ -1306,28 +859,6 @@ def _depth_parts(m, height: HeightMap, step_ratio: float, min_area_px: int, seed
     return parts if len(parts) >= 2 else None
 
 
-def _is_raised_strip(reason: RejectReason | None, st, fc: MaskFilterConfig, cfg: DetectorConfig) -> bool:
-    """True for a mask that the image filters reject as elongated only, with an eigenvalue
-    ratio within cfg.raised_strip_max_eig_ratio and at least cfg.raised_strip_min_area_px
-    pixels (a candidate raised strip; see DetectorConfig.raised_strip_max_eig_ratio)."""
-    return (reason is RejectReason.ELONGATED and cfg.raised_strip_max_eig_ratio > fc.tau_elong
-            and st.eig_ratio <= cfg.raised_strip_max_eig_ratio and st.area >= cfg.raised_strip_min_area_px)
-
-
-def _strip_rejected(strip: bool, raised: bool, ext: float, quad: float, radius_m: float, cfg: DetectorConfig) -> bool:
-    """Whether an elongated mask let through as a flat strip (`strip`) and/or a raised
-    strip candidate (`raised`) is still rejected: kept when it is a flat strip that ends
-    at its sides (extension ratio `ext` <= cfg.strip_max_extension_ratio) or a raised
-    strip whose top stands >= cfg.raised_strip_min_quadric_m above the quadric ground
-    (`quad`, metres) with an estimated radius `radius_m` <= cfg.raised_strip_max_radius_m.
-    NaN measures fail their test. False for a mask that is neither."""
-    if not (strip or raised):
-        return False
-    if strip and ext <= cfg.strip_max_extension_ratio:
-        return False
-    return not (raised and quad >= cfg.raised_strip_min_quadric_m and radius_m <= cfg.raised_strip_max_radius_m)
-
-
 def _centre_from_points(
     P: np.ndarray, h: np.ndarray, cam_rover: np.ndarray, cfg: DetectorConfig, radius_m: float | None = None
 ) -> tuple[np.ndarray, float]:
@@ -1337,18 +868,18 @@ def _centre_from_points(
     the local ground; cam_rover : camera position in the rover frame; radius_m : the
     radius when known otherwise (the silhouette's), else twice the points' lateral
     standard deviation (a disc or half-disc of radius R has a lateral std of R / 2).
-    The centre lies centre_range_factor * R beyond the median
-    range of the visible points and centre_height_factor * R below their top.
+    The centre lies centre.range_factor * R beyond the median
+    range of the visible points and centre.height_factor * R below their top.
     """
     P = np.asarray(P, float)
     fwd, perp, rng, lat = _ray_frame(P, cam_rover)
     R = max(2.0 * float(np.std(lat)) if radius_m is None else float(radius_m), 1e-3)
     ground = float(np.median(P[:, 2] - h))
-    top = float(np.quantile(h, cfg.top_quantile))
-    r_c = float(np.median(rng)) + cfg.centre_range_factor * R
+    top = float(np.quantile(h, cfg.centre.top_quantile))
+    r_c = float(np.median(rng)) + cfg.centre.range_factor * R
     l_c = float(np.mean(lat))
     xy = cam_rover[:2] + fwd * r_c + perp * l_c
-    z = ground + top - cfg.centre_height_factor * R
+    z = ground + top - cfg.centre.height_factor * R
     return np.array([xy[0], xy[1], z]), R
 
 
@@ -1366,11 +897,11 @@ def _ray_frame(P: np.ndarray, cam_rover: np.ndarray):
 
 def _centre_for_mask(P: np.ndarray, h: np.ndarray, cam_rover: np.ndarray, cfg: DetectorConfig, radius_m: float | None,
                      points: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, float]:
-    """Rock centre (rover frame) and radius of a kept mask by cfg.centre_estimator: P, h,
+    """Rock centre (rover frame) and radius of a kept mask by cfg.centre.estimator: P, h,
     cam_rover and radius_m as for _centre_from_points; `points` (H, W, 3) the height
     map's rover-frame points and (rows, cols) the blob's low-resolution pixels (BLEND
     fits the ground in a ring around it)."""
-    if cfg.centre_estimator is CentreEstimator.BLEND:
+    if cfg.centre.estimator is CentreEstimator.BLEND:
         return _centre_blend(P, h, cam_rover, cfg, radius_m, _ring_ground_plane(points, rows, cols))
     return _centre_from_points(P, h, cam_rover, cfg, radius_m)
 
@@ -1378,30 +909,30 @@ def _centre_for_mask(P: np.ndarray, h: np.ndarray, cam_rover: np.ndarray, cfg: D
 def _centre_blend(P: np.ndarray, h: np.ndarray, cam_rover: np.ndarray, cfg: DetectorConfig, radius_m: float | None,
                   plane: np.ndarray | None) -> tuple[np.ndarray, float]:
     """Rock centre (rover frame) and radius, CentreEstimator.BLEND. Along the viewing
-    ray, (1 - w) x (median range + centre_range_factor x R) + w x (near +
-    centre_near_range_factor x R), w = centre_near_weight, near = the points' range
-    quantile centre_near_quantile but no nearer than the median - centre_near_clamp_radii
+    ray, (1 - w) x (median range + centre.range_factor x R) + w x (near +
+    centre.near_range_factor x R), w = centre.near_weight, near = the points' range
+    quantile centre.near_quantile but no nearer than the median - centre.near_clamp_radii
     x R: the median of the visible surface moves with how much of the rock's top the
     mask holds, its near edge with the mask's lower part, and their errors are partly
     independent. Lateral: the points' mean lateral offset. Height: top -
-    centre_ring_radius_factor x R - centre_ring_exposed_factor x (top - g), g the ground
+    centre.ring_radius_factor x R - centre.ring_exposed_factor x (top - g), g the ground
     `plane` (z = c0 + c1 x + c2 y, rover frame; see _ring_ground_plane) under the centre:
     the exposed height 2 c (1 - burial) carries the vertical semi-axis c, which the
     radius alone fixes to +-0.15 R. Without a plane the height is MEDIAN's."""
     P = np.asarray(P, float)
     fwd, perp, rng, lat = _ray_frame(P, cam_rover)
     R = max(2.0 * float(np.std(lat)) if radius_m is None else float(radius_m), 1e-3)
-    w = cfg.centre_near_weight
+    w = cfg.centre.near_weight
     med = float(np.median(rng))
-    near = max(float(np.quantile(rng, cfg.centre_near_quantile)), med - cfg.centre_near_clamp_radii * R)
-    r_c = (1.0 - w) * (med + cfg.centre_range_factor * R) + w * (near + cfg.centre_near_range_factor * R)
+    near = max(float(np.quantile(rng, cfg.centre.near_quantile)), med - cfg.centre.near_clamp_radii * R)
+    r_c = (1.0 - w) * (med + cfg.centre.range_factor * R) + w * (near + cfg.centre.near_range_factor * R)
     xy = cam_rover[:2] + fwd * r_c + perp * float(np.mean(lat))
-    top = float(np.median(P[:, 2] - h)) + float(np.quantile(h, cfg.top_quantile))
+    top = float(np.median(P[:, 2] - h)) + float(np.quantile(h, cfg.centre.top_quantile))
     if plane is None:
-        z = top - cfg.centre_height_factor * R
+        z = top - cfg.centre.height_factor * R
     else:
         g = float(plane[0] + plane[1] * xy[0] + plane[2] * xy[1])
-        z = top - cfg.centre_ring_radius_factor * R - cfg.centre_ring_exposed_factor * (top - g)
+        z = top - cfg.centre.ring_radius_factor * R - cfg.centre.ring_exposed_factor * (top - g)
     return np.array([xy[0], xy[1], z]), R
 
 
@@ -1551,45 +1082,45 @@ def _lateral_extension_ratio(height: np.ndarray, rows: np.ndarray, cols: np.ndar
 
 def _needs_confirmation(top: float, ext: float, height: np.ndarray, rows: np.ndarray, cols: np.ndarray,
                         cfg: DetectorConfig) -> bool:
-    """True for a low blob on a crest (see DetectorConfig.confirm_tol_m): its visible top
-    under cfg.confirm_max_top_m and its lateral extension ratio (measured here when the
-    crest rule did not measure it) above cfg.confirm_min_extension_ratio."""
-    if cfg.confirm_tol_m <= 0 or not top < cfg.confirm_max_top_m:
+    """True for a low blob on a crest (see DetectorConfig.confirm.tol_m): its visible top
+    under cfg.confirm.max_top_m and its lateral extension ratio (measured here when the
+    crest rule did not measure it) above cfg.confirm.min_extension_ratio."""
+    if cfg.confirm.tol_m <= 0 or not top < cfg.confirm.max_top_m:
         return False
     if not np.isfinite(ext):
         ext = _lateral_extension_ratio(height, rows, cols)
-    return bool(ext > cfg.confirm_min_extension_ratio)
+    return bool(ext > cfg.confirm.min_extension_ratio)
 
 
 def confirm_across_frames(frames: Iterable[FrameDetections], config: DetectorConfig) -> Iterator[FrameDetections]:
     """Drop the detections marked needs_confirmation that no neighbouring frame confirms
-    (see DetectorConfig.confirm_tol_m); frames are yielded in order, each once its
-    later neighbour is known (at most config.confirm_max_frames frames of look-ahead).
+    (see DetectorConfig.confirm.tol_m); frames are yielded in order, each once its
+    later neighbour is known (at most config.confirm.max_frames frames of look-ahead).
 
     For each frame, its neighbours are the nearest earlier and the nearest later frame
-    whose rover position lies at least confirm_min_baseline_m away, within
-    confirm_max_frames frames. A marked detection is kept when any detection of either
-    neighbour lies within confirm_tol_m of it horizontally (map frame), or when neither
+    whose rover position lies at least confirm.min_baseline_m away, within
+    confirm.max_frames frames. A marked detection is kept when any detection of either
+    neighbour lies within confirm.tol_m of it horizontally (map frame), or when neither
     neighbour exists; otherwise it is removed from its pair and its record's reason set
     to UNCONFIRMED. Frames without a map pose (T_map_rover None) pass unchanged. Off
-    (a plain pass-through) when confirm_tol_m is 0.
+    (a plain pass-through) when confirm.tol_m is 0.
 
-    Tentative detections (Detection.tentative; DetectorConfig.tentative_max_range_m) are
+    Tentative detections (Detection.tentative; DetectorConfig.tentative.max_range_m) are
     judged more strictly: one is kept when a firm (not tentative) detection lies
-    within max(tentative_tol_m, tentative_tol_per_radius x its radius) of it horizontally
-    on config.tentative_min_views sides (1:
-    either), a side being its first config.tentative_confirm_frames frames that way at
-    least confirm_min_baseline_m away. Failing that, it is kept when any detection (a
+    within max(tentative.tol_m, tentative.tol_per_radius x its radius) of it horizontally
+    on config.tentative.min_views sides (1:
+    either), a side being its first config.tentative.confirm_frames frames that way at
+    least confirm.min_baseline_m away. Failing that, it is kept when any detection (a
     tentative too) lies within the same tolerance in at least
-    config.tentative_min_repeats of those frames (0: never). Otherwise, or with no map
-    pose, it is removed (reason TENTATIVE). They are judged even when confirm_tol_m is 0."""
+    config.tentative.min_repeats of those frames (0: never). Otherwise, or with no map
+    pose, it is removed (reason TENTATIVE). They are judged even when confirm.tol_m is 0."""
     from collections import deque
 
     cfg = config
-    if cfg.confirm_tol_m <= 0 and cfg.tentative_max_range_m <= 0:
+    if cfg.confirm.tol_m <= 0 and cfg.tentative.max_range_m <= 0:
         yield from frames
         return
-    past: deque[FrameDetections] = deque(maxlen=cfg.confirm_max_frames)
+    past: deque[FrameDetections] = deque(maxlen=cfg.confirm.max_frames)
     pending: list[FrameDetections] = []
 
     def pos(fd: FrameDetections):
@@ -1597,7 +1128,7 @@ def confirm_across_frames(frames: Iterable[FrameDetections], config: DetectorCon
 
     def far(a: FrameDetections, b: FrameDetections) -> bool:
         pa, pb = pos(a), pos(b)
-        return pa is not None and pb is not None and float(np.hypot(*(pa - pb))) >= cfg.confirm_min_baseline_m
+        return pa is not None and pb is not None and float(np.hypot(*(pa - pb))) >= cfg.confirm.min_baseline_m
 
     def near(Q: np.ndarray, p: np.ndarray, tol: float) -> bool:
         return Q.shape[0] > 0 and float(np.min(np.hypot(*(Q - p[:2]).T))) <= tol
@@ -1614,7 +1145,7 @@ def confirm_across_frames(frames: Iterable[FrameDetections], config: DetectorCon
             if any(d.tentative for d in fd.detections):
                 _drop(fd, lambda d: not d.tentative, RejectReason.TENTATIVE)
             return fd
-        K = cfg.tentative_confirm_frames
+        K = cfg.tentative.confirm_frames
         befores = [o for o in reversed(past) if far(fd, o)][:K]
         afters = [o for o in later if far(fd, o)][:K]
         views = befores[:1] + afters[:1]  # the crest rule asks the nearest frame each way
@@ -1625,34 +1156,34 @@ def confirm_across_frames(frames: Iterable[FrameDetections], config: DetectorCon
 
         def ok(d: Detection) -> bool:
             if d.tentative:
-                tol = max(cfg.tentative_tol_m, cfg.tentative_tol_per_radius * d.radius_m)
+                tol = max(cfg.tentative.tol_m, cfg.tentative.tol_per_radius * d.radius_m)
                 seen = sum(d.p_map is not None and near(F, d.p_map, tol) for F in sides)
-                if seen >= cfg.tentative_min_views:
+                if seen >= cfg.tentative.min_views:
                     return True
-                if cfg.tentative_min_repeats <= 0 or d.p_map is None:
+                if cfg.tentative.min_repeats <= 0 or d.p_map is None:
                     return False
                 # seen again, tentatively or firmly, in enough of the neighbouring frames
                 again = sum(near(any_xy(o), d.p_map, tol) for o in (*befores, *afters))
-                return again >= cfg.tentative_min_repeats
-            return (not d.needs_confirmation or d.p_map is None or not views or cfg.confirm_tol_m <= 0
-                    or near(Q, d.p_map, cfg.confirm_tol_m))
+                return again >= cfg.tentative.min_repeats
+            return (not d.needs_confirmation or d.p_map is None or not views or cfg.confirm.tol_m <= 0
+                    or near(Q, d.p_map, cfg.confirm.tol_m))
 
         _drop(fd, ok, None)
         return fd
 
     # frames of look-ahead a frame waits for: the later views that may confirm it
-    ahead = cfg.tentative_confirm_frames if cfg.tentative_max_range_m > 0 else 1
+    ahead = cfg.tentative.confirm_frames if cfg.tentative.max_range_m > 0 else 1
     for fd in frames:
         pending.append(fd)
-        while pending and (len(pending) > cfg.confirm_max_frames
+        while pending and (len(pending) > cfg.confirm.max_frames
                            or sum(far(pending[0], o) for o in pending[1:]) >= ahead):
             head = pending.pop(0)
-            out = resolve(head, pending[: cfg.confirm_max_frames])
+            out = resolve(head, pending[: cfg.confirm.max_frames])
             past.append(head)
             yield out
     while pending:
         head = pending.pop(0)
-        out = resolve(head, pending[: cfg.confirm_max_frames])
+        out = resolve(head, pending[: cfg.confirm.max_frames])
         past.append(head)
         yield out
 
@@ -1671,23 +1202,23 @@ def _drop(fd: FrameDetections, keep, reason: RejectReason | None) -> None:
 def fuse_track_centres(frames: Iterable[FrameDetections], config: DetectorConfig) -> Iterator[FrameDetections]:
     """Give each detection the centre of its track: its own map-frame centre combined with
     the sightings of the same rock in neighbouring frames (DetectorConfig.fuse_*); frames
-    are yielded in order, each once its fuse_max_frames later frames are known (at once
-    when fuse_causal). Off (a plain pass-through) when fuse_tol_m is 0.
+    are yielded in order, each once its track_fusion.max_frames later frames are known (at once
+    when track_fusion.causal). Off (a plain pass-through) when track_fusion.tol_m is 0.
 
-    A sighting of detection d (frame i) in frame j (|i - j| <= fuse_max_frames, j < i when
-    causal) is the detection of j nearest to d horizontally, when within fuse_tol_m and
+    A sighting of detection d (frame i) in frame j (|i - j| <= track_fusion.max_frames, j < i when
+    causal) is the detection of j nearest to d horizontally, when within track_fusion.tol_m and
     when d is the nearest of frame i's detections to it (mutual nearest: two rocks side by
-    side stay apart). d's new p_map is the range-weighted mean (fuse_estimator MEAN) or
+    side stay apart). d's new p_map is the range-weighted mean (track_fusion.estimator MEAN) or
     median (MEDIAN, per coordinate) of its own and its sightings' centres as first
-    detected (never already fused ones), weight (1 m / camera range) ** fuse_range_power;
+    detected (never already fused ones), weight (1 m / camera range) ** track_fusion.range_power;
     p_rover follows from the frame's pose and p_optical from the pair's camera pose
     (PairResult.T_rover_optical). A detection with no sighting, one without p_map and a
     frame without a pose keep their centres."""
     cfg = config
-    if cfg.fuse_tol_m <= 0:
+    if cfg.track_fusion.tol_m <= 0:
         yield from frames
         return
-    K, causal = cfg.fuse_max_frames, cfg.fuse_causal
+    K, causal = cfg.track_fusion.max_frames, cfg.track_fusion.causal
     window: list[tuple[FrameDetections, np.ndarray, np.ndarray]] = []  # (frame, centres (n, 3), weights (n,))
     done = 0  # frames of `window` already yielded
 
@@ -1695,7 +1226,7 @@ def fuse_track_centres(frames: Iterable[FrameDetections], config: DetectorConfig
         dets = fd.detections if fd.T_map_rover is not None else []
         P = np.array([d.p_map if d.p_map is not None else np.full(3, np.nan) for d in dets], float).reshape(-1, 3)
         rng = np.array([max(float(np.linalg.norm(d.p_optical)), 1e-3) for d in dets], float)
-        return fd, P, rng ** -cfg.fuse_range_power
+        return fd, P, rng ** -cfg.track_fusion.range_power
 
     def fuse(c: int) -> FrameDetections:
         fd, P, w = window[c]
@@ -1710,7 +1241,7 @@ def fuse_track_centres(frames: Iterable[FrameDetections], config: DetectorConfig
             D[~np.isfinite(D)] = np.inf
             a_best, b_best = D.argmin(axis=1), D.argmin(axis=0)
             for a, b in enumerate(a_best):
-                if D[a, b] <= cfg.fuse_tol_m and b_best[b] == a:
+                if D[a, b] <= cfg.track_fusion.tol_m and b_best[b] == a:
                     pts[a].append(Q[b])
                     wts[a].append(v[b])
         T_rover_map = invert_transform(np.asarray(fd.T_map_rover, float))
@@ -1719,7 +1250,7 @@ def fuse_track_centres(frames: Iterable[FrameDetections], config: DetectorConfig
             new = []
             for d in pair.detections:
                 if d.p_map is not None and len(pts[k]) > 1:
-                    p_map = _fused_centre(np.asarray(pts[k]), np.asarray(wts[k]), cfg.fuse_estimator)
+                    p_map = _fused_centre(np.asarray(pts[k]), np.asarray(wts[k]), cfg.track_fusion.estimator)
                     p_rover = transform_points(T_rover_map, p_map[None])[0]
                     p_opt = d.p_optical if pair.T_rover_optical is None else \
                         transform_points(invert_transform(pair.T_rover_optical), p_rover[None])[0]
@@ -1774,10 +1305,6 @@ def disparity_roughness(disparity: np.ndarray, mask: np.ndarray, step_px: float 
     return float(np.count_nonzero(vals > step_px)) / vals.size
 
 
-# The not-a-rock verdicts that a mid-range blob may survive as a tentative detection
-# (DetectorConfig.tentative_max_range_m): the ring contrast floor, the quadric floor, the
-# crest rule and a strip's failed test; never the rough, tall, wide, perched or framed ones.
-TENTATIVE_RULES = frozenset({"contrast", "quadric", "crest", "strip"})
 
 
 def _duplicates_firm_first(dets: list[Detection], overlap_ratio: float) -> list[int]:
@@ -1887,7 +1414,7 @@ def detect_archive(
 ) -> Iterator[FrameDetections]:
     """Run the detector over the frames of a LacArchive that have left images, then
     confirm low crest blobs across neighbouring frames (:func:`confirm_across_frames`,
-    DetectorConfig.confirm_tol_m) and, when DetectorConfig.fuse_tol_m > 0, give each
+    DetectorConfig.confirm.tol_m) and, when DetectorConfig.track_fusion.tol_m > 0, give each
     detection its track's centre from several views (:func:`fuse_track_centres`).
 
     pose : ground truth (frames.csv) or odometry (custom/odometry.csv) for the map frame.
