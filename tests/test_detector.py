@@ -345,6 +345,12 @@ def test_small_blob_standing_too_high_for_its_size_is_not_a_rock():
     assert np.isfinite(d.height_m) and d.height_m < DetectorConfig().top_per_radius * d.radius_m
     pr = Detector(DetectorConfig(top_per_radius=0.3, top_noise_m=0.0), CAM).detect_pair(left, right, T)
     assert not pr.detections and any(r.reason is RejectReason.NOT_A_ROCK for r in pr.records)
+    # the rule switched off by name (rules.off): the same strict scaling keeps it again, as it is
+    from dataclasses import replace
+
+    strict = DetectorConfig(top_per_radius=0.3, top_noise_m=0.0)
+    off = Detector(replace(strict, rules=replace(strict.rules, off=("perched",))), CAM).detect_pair(left, right, T)
+    assert len(off.detections) == 1 and off.detections[0].p_rover.tolist() == d.p_rover.tolist()
 
 
 def test_crest_stands_little_above_a_quadric_ground_and_a_rock_stands_out():
