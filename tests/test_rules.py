@@ -98,6 +98,10 @@ def test_detector_config_round_trips_through_json():
     d = json.loads(json.dumps(cfg.to_dict()))
     assert config_from_dict(DetectorConfig, d) == cfg
     assert config_to_dict(config_from_dict(DetectorConfig, d)) == d
+    import copy
+    import pickle
+
+    assert pickle.loads(pickle.dumps(cfg)) == cfg and copy.deepcopy(cfg) == cfg  # the flat-key reads stay out of the way
 
 
 def test_every_section_field_has_a_declared_range_or_is_not_a_number():
