@@ -262,6 +262,12 @@ class _PairScene:
         return strip, raised, long_
 
 
+def _full_size_depth(hm: HeightMap, shape: tuple[int, int]) -> np.ndarray:
+    """The height map's depth (optical z, metres) resized to the image (nearest neighbour)."""
+    cv2 = import_cv2()
+    return cv2.resize(hm.depth, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST)
+
+
 def _drop_kept(dets: list[Detection], kept_recs: list[MaskRecord], indices, reason: RejectReason) -> None:
     """Remove the detections at `indices` (and their records from `kept_recs`), setting the
     records' reason."""
@@ -475,15 +481,7 @@ class Detector:
         t2 = time.perf_counter()
         scene = _PairScene(self.config, L, right, hm, masks.image_shape, fc, T_rover_optical, T_map_rover, camera_name,
                            lander_xy)
-        records: list[MaskRecord] = []
-        dets: list[Detection] = []
-        kept_recs: list[MaskRecord] = []  # the record of each kept detection
-        for i, m in enumerate(masks):
-            rec, det = self._judge_mask(scene, i, m)
-            records.append(rec)
-            if det is not None:
-                dets.append(det)
-                kept_recs.append(rec)
+        records, dets, kept_recs = self._judge_masks(scene, masks)
         if self.config.small_rocks.enabled and scene.stereo_rules and np.isfinite(hm.depth).any():
             # before the duplicate test: a small-rock detection beside a larger one is dropped there
             self._add_small_rocks(L, right, hm, masks, records, dets, kept_recs, T_rover_optical, T_map_rover,
@@ -497,13 +495,24 @@ class Detector:
             tm[k] = tm.get(k, 0.0) + v
         # process CPU time of all three stages (all threads; less load-sensitive than wall)
         tm["cpu"] = tm.get("cpu", 0.0) + time.process_time() - c0
-        depth = None
-        if keep_depth:
-            cv2 = import_cv2()
-            depth = cv2.resize(hm.depth, (L.shape[1], L.shape[0]), interpolation=cv2.INTER_NEAREST)
         if T_rover_level is not None:  # back from the levelled frame to the rover frame
             dets[:] = [replace(d, p_rover=transform_points(T_rover_level, d.p_rover[None])[0]) for d in dets]
-        return PairResult(camera_name, masks, records, dets, depth, hm if keep_depth else None)
+        return PairResult(camera_name, masks, records, dets, _full_size_depth(hm, L.shape) if keep_depth else None,
+                          hm if keep_depth else None)
+
+    def _judge_masks(self, scene: _PairScene, masks: InstanceMasks):
+        """Every mask judged (:meth:`_judge_mask`): (records, detections, the record of each
+        detection)."""
+        records: list[MaskRecord] = []
+        dets: list[Detection] = []
+        kept_recs: list[MaskRecord] = []
+        for i, m in enumerate(masks):
+            rec, det = self._judge_mask(scene, i, m)
+            records.append(rec)
+            if det is not None:
+                dets.append(det)
+                kept_recs.append(rec)
+        return records, dets, kept_recs
 
     def _levelled_height_map(self, L, right, T_rover_optical: np.ndarray, T_map_rover: np.ndarray | None):
         """The pair's height map, and the frames the pair is worked in: (height map,
