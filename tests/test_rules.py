@@ -14,7 +14,15 @@ from lunarloc.core.configs import config_from_dict, config_to_dict
 from lunarloc.core.errors import ConfigError
 from lunarloc.perception.detector import DetectorConfig
 from lunarloc.perception.detector_config import MOVED_KEYS, RulesConfig
-from lunarloc.perception.rules import RULE_NAMES, RULES, TENTATIVE_RULES, BlobMeasures, fired_rules
+from lunarloc.perception.rules import (
+    RULE_NAMES,
+    RULES,
+    TENTATIVE_RULES,
+    BlobMeasures,
+    fired_rules,
+)
+import functools
+import operator
 
 NAN = float("nan")
 C = RulesConfig()
@@ -23,15 +31,15 @@ ROCK = BlobMeasures(radius_m=0.1, visible_height_m=0.08, top_m=0.08, front_m=0.1
                     nearer_fraction=0.0, extension_ratio=0.1, roughness=0.02)
 # per rule: measures that make it fire (and only it, on the plain rock)
 FIRING = {
-    "too_tall": dict(visible_height_m=C.max_rock_height_m + 0.1),
-    "too_wide": dict(radius_m=C.max_rock_radius_m + 0.1, quadric_m=1.0, front_m=0.5, top_m=0.5, visible_height_m=0.5),
-    "perched": dict(front_m=C.height_per_radius * 0.1 + C.height_margin_m + 0.05),
-    "framed": dict(nearer_fraction=C.max_nearer_ring_fraction + 0.1),
-    "rough": dict(roughness=C.max_disparity_roughness + 0.1),
-    "contrast": dict(ring_m=0.08 - C.min_contrast_m / 2),
-    "quadric": dict(quadric_m=0.5 * min(C.quadric_contrast_per_radius * 0.1, C.quadric_contrast_max_m)),
-    "crest": dict(extension_ratio=0.5 * (C.crest_extension_ratio + C.crest_extension_max_ratio)),
-    "strip": dict(strip=True, extension_ratio=C.strip_max_extension_ratio + 0.05),
+    "too_tall": {"visible_height_m": C.max_rock_height_m + 0.1},
+    "too_wide": {"radius_m": C.max_rock_radius_m + 0.1, "quadric_m": 1.0, "front_m": 0.5, "top_m": 0.5, "visible_height_m": 0.5},
+    "perched": {"front_m": C.height_per_radius * 0.1 + C.height_margin_m + 0.05},
+    "framed": {"nearer_fraction": C.max_nearer_ring_fraction + 0.1},
+    "rough": {"roughness": C.max_disparity_roughness + 0.1},
+    "contrast": {"ring_m": 0.08 - C.min_contrast_m / 2},
+    "quadric": {"quadric_m": 0.5 * min(C.quadric_contrast_per_radius * 0.1, C.quadric_contrast_max_m)},
+    "crest": {"extension_ratio": 0.5 * (C.crest_extension_ratio + C.crest_extension_max_ratio)},
+    "strip": {"strip": True, "extension_ratio": C.strip_max_extension_ratio + 0.05},
 }
 
 
@@ -56,7 +64,7 @@ def test_each_rule_fires_alone_and_is_switched_off_by_name(name):
 def test_nan_measures_fire_no_rule(name):
     b = BlobMeasures(radius_m=0.1, visible_height_m=NAN, top_m=NAN, front_m=NAN, ring_m=NAN, quadric_m=NAN,
                      nearer_fraction=NAN, extension_ratio=NAN, roughness=NAN)
-    assert name not in sum(fired_rules(b, C), [])
+    assert name not in functools.reduce(operator.iadd, fired_rules(b, C), [])
 
 
 def test_a_strip_must_prove_it_ends_at_its_sides():
@@ -66,15 +74,15 @@ def test_a_strip_must_prove_it_ends_at_its_sides():
 
 
 def test_perched_spares_a_boulder_and_judges_every_blob_at_zero():
-    high = dict(front_m=2.0, top_m=0.9, visible_height_m=0.9, quadric_m=0.9)
+    high = {"front_m": 2.0, "top_m": 0.9, "visible_height_m": 0.9, "quadric_m": 0.9}
     boulder = replace(ROCK, radius_m=C.perched_max_radius_m, **high)
     assert "perched" not in fired_rules(boulder, C)[0]
     assert "perched" in fired_rules(boulder, replace(C, perched_max_radius_m=0.0))[0]
 
 
 def test_the_thresholds_off_values_switch_their_rules_off():
-    for name, off in (("crest", dict(crest_extension_ratio=0.0)), ("quadric", dict(quadric_contrast_per_radius=0.0)),
-                      ("framed", dict(max_nearer_ring_fraction=1.0)), ("rough", dict(max_disparity_roughness=1.0))):
+    for name, off in (("crest", {"crest_extension_ratio": 0.0}), ("quadric", {"quadric_contrast_per_radius": 0.0}),
+                      ("framed", {"max_nearer_ring_fraction": 1.0}), ("rough", {"max_disparity_roughness": 1.0})):
         b = replace(ROCK, **FIRING[name])
         if name == "rough":
             b = replace(b, roughness=1.0)

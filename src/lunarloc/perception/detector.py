@@ -28,22 +28,26 @@ import csv
 import logging
 import time
 from collections.abc import Iterable, Iterator, Mapping
-from dataclasses import asdict, dataclass, field, replace
-from enum import Enum
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from lunarloc.core.errors import ConfigError, InputError, import_cv2
+from lunarloc.core.errors import InputError, import_cv2
 from lunarloc.core.geometry import invert_transform, pose_to_matrix, transform_points
-from lunarloc.perception.images import ImageNormalization
 from lunarloc.perception.camera import (
-    STEREO_PAIRS,
     CameraMount,
     PinholeCamera,
     camera_from_archive,
     ipex_rig,
     mounts_from_archive_row,
+)
+from lunarloc.perception.detector_config import (
+    CentreEstimator,
+    CentreFusion,
+    CentreMethod,
+    DetectorConfig,
+    PoseSource,
 )
 from lunarloc.perception.masks import (
     InstanceMask,
@@ -56,27 +60,23 @@ from lunarloc.perception.masks import (
     mask_stats,
     size_from_sigma,
 )
-from lunarloc.perception.segment import ClassicalConfig, Segmenter, SegmenterKind, make_segmenter
-from lunarloc.perception.small_rocks import SmallRockConfig, detect_small_rocks, ground_plane
-from lunarloc.perception.detector_config import (
-    CentreEstimator,
-    CentreFusion,
-    CentreMethod,
-    DetectorConfig,
-    PoseSource,
-)
 from lunarloc.perception.rules import (
     TENTATIVE_RULES,
     BlobMeasures,
     fired_rules,
     is_flat_strip,
     is_raised_strip,
-    strip_rejected,
+)
+from lunarloc.perception.segment import (
+    Segmenter,
+    make_segmenter,
+)
+from lunarloc.perception.small_rocks import (
+    detect_small_rocks,
+    ground_plane,
 )
 from lunarloc.perception.stereo import (
-    GroundConfig,
     HeightMap,
-    StereoConfig,
     StereoMatcher,
     depth_at,
     first_ground_row,
