@@ -9,7 +9,7 @@ refactor of the detector changed nothing (run it on two checkouts and compare th
 keeping tentatives and not. An archive: every frame through ``detect_archive`` (confirmation,
 tentatives) with the default config, the small-rock stage on, and track fusion on (fuse 0.2 m).
 Floats are written by repr, so equal digests mean bit-identical detections. Prints the digest and
-the number of entries; DIR of the real pairs as real_labels.py finds it ($LUNARLOC_LAC_REAL).
+the number of entries; the real pairs' images from $LUNARLOC_LAC_REAL or ../shared/data/lac-real.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import os
 import sys
 from dataclasses import fields, replace
 from pathlib import Path
@@ -24,7 +25,6 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
 
 
 def _value(v):
@@ -53,13 +53,13 @@ def _configs(fused: bool):
 
 def real_pairs() -> dict:
     import cv2
-    from real_labels import default_data_dir, load_labels
 
     from lunarloc.core.geometry import pose_to_matrix
     from lunarloc.perception.camera import PinholeCamera, ipex_rig
     from lunarloc.perception.detector import Detector
 
-    labels, data = load_labels(), default_data_dir()
+    labels = json.loads((HERE.parent / "tests" / "data" / "lac_real_labels.json").read_text())
+    data = Path(os.environ.get("LUNARLOC_LAC_REAL", HERE.parent.parent / "shared" / "data" / "lac-real"))
     cam = labels["camera"]
     out = {}
     for name, cfg in _configs(fused=False).items():
