@@ -30,6 +30,7 @@ def main() -> None:
     ap.add_argument("--modes", nargs="+", default=["share", "ref", "ref+share"], choices=["share", "ref", "ref+share", "ref0+share"],
                     help="ref0+share: only the first rover has the reference")
     ap.add_argument("--max-shared-sigma-ratio", type=float, default=None, help="MultiRoverConfig.max_shared_sigma_ratio")
+    ap.add_argument("--shared-bounds", default=None, choices=["sum", "rss", "own"], help="MultiRoverConfig.shared_bounds")
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args()
 
@@ -50,6 +51,8 @@ def main() -> None:
         cfg = MultiRoverConfig(run=run_cfg, share_maps="share" in mode)
         if a.max_shared_sigma_ratio is not None:
             cfg = replace(cfg, max_shared_sigma_ratio=a.max_shared_sigma_ratio)
+        if a.shared_bounds is not None:
+            cfg = replace(cfg, shared_bounds=a.shared_bounds)
         res = run_rovers(archives, ref, cfg)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         if a.out is not None:

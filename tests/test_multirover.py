@@ -174,6 +174,54 @@ def test_config_is_checked_and_serialised():
         MultiRoverConfig.from_dict({**d, "run": {**d["run"], "loop": {"window_m": "x"}}})
     with pytest.raises(ConfigError):
         replace(c, share_refresh_s=0.0)
+    for bad in ({"shared_bounds": "max"}, {"sigma_model": "x"}):
+        with pytest.raises(ConfigError, match=next(iter(bad))):
+            replace(c, **bad)
+
+
+def test_a_shared_attempt_states_both_maps_bounds():
+    """The window's stated bounds (its odometry source's) combined with the owner map's: a sum
+    (or in quadrature); either unknown: none stated (fitted); the precision limits raised to
+    the owner's sigma only where that is larger."""
+    from lunarloc.online.loop import image_localization_config
+    from lunarloc.pipeline.multirover import shared_localization
+
+    w = replace(image_localization_config(), odometry_scale_error=0.01, odometry_heading_drift_deg_per_m=0.06)
+    s = shared_localization(w, (0.01, 0.06), "sum")
+    assert (s.odometry_scale_error, s.odometry_heading_drift_deg_per_m) == pytest.approx((0.02, 0.12))
+    assert s.max_tilt_deg == pytest.approx(2 * w.max_tilt_deg)
+    r = shared_localization(w, (0.01, 0.06), "rss")
+    assert r.odometry_heading_drift_deg_per_m == pytest.approx(0.06 * 2**0.5)
+    assert shared_localization(w, (0.01, 0.06), "own") == w
+    f = shared_localization(w, None, "sum")  # the owner's odometry is not known: the bend is fitted
+    assert not f.odometry_bounds_stated
+    fitted = replace(w, odometry_scale_error=None, odometry_heading_drift_deg_per_m=None)
+    assert shared_localization(fitted, (0.01, 0.06), "sum") == fitted
+    lo = shared_localization(w, (0.01, 0.06), "sum", owner_sigma=(0.05, 0.5))  # a precise owner: limits kept
+    assert (lo.max_predicted_error_m, lo.max_predicted_rotation_deg) == (w.max_predicted_error_m, w.max_predicted_rotation_deg)
+    hi = shared_localization(w, (0.01, 0.06), "sum", owner_sigma=(0.4, 3.0))
+    assert (hi.max_predicted_error_m, hi.max_predicted_rotation_deg) == (0.4, 3.0)
+
+
+def test_caller_odometry_states_its_source_bounds():
+    """OnlineLocalizer fed the run's odometry source states that source's bounds, as `lunarloc
+    run` does; a caller's odometry of unknown accuracy leaves the windows' bend to be fitted."""
+    from lunarloc.online.component import OnlineLocalizer
+    from lunarloc.online.loop import OdometryBounds, stated_window_bounds
+
+    loc = OnlineLocalizer(None, np.eye(4))
+    loc.set_caller_odometry("visual")
+    b = loc.loop.config.odometry_bounds.visual
+    assert stated_window_bounds(loc.loop.localization) == (b.scale_error, b.heading_drift_deg_per_m)
+    img = {"Grayscale": {}}
+    loc.update(0.0, img, np.array([0, 0, 1.62, 0, 0, 0.0]), 0.0, 0.0, odometry=np.eye(4))
+    assert stated_window_bounds(loc.loop.localization) == (b.scale_error, b.heading_drift_deg_per_m)  # kept
+    loc.set_caller_odometry(OdometryBounds(0.02, 0.1))
+    assert stated_window_bounds(loc.loop.localization) == (0.02, 0.1)
+    loc.set_caller_odometry(None)
+    assert stated_window_bounds(loc.loop.localization) is None
+    with pytest.raises(InputError):
+        loc.set_caller_odometry(3)
 
 
 # --------------------------------------------------------------------------- sharing, with detections from the rock list

@@ -58,7 +58,7 @@ from lunarloc.io.maps import LandmarkMap
 from lunarloc.odometry.imu import ImuOdometryConfig, ImuSamples, integrate_imu
 from lunarloc.perception.camera import IPEX_STEREO_BASELINE_M, STEREO_PAIRS, CameraMount, PinholeCamera, ipex_rig
 from lunarloc.localization.localize import LocalizationConfig
-from lunarloc.online.loop import Attempt, LoopConfig, LoopState, image_localization_config, image_loop_config
+from lunarloc.online.loop import Attempt, LoopConfig, LoopState, OdometryBounds, image_localization_config, image_loop_config
 
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
@@ -390,6 +390,20 @@ class OnlineLocalizer:
     @property
     def localized(self) -> bool:
         return self._fixes > 0
+
+    def set_caller_odometry(self, source) -> None:
+        """Say which odometry the caller passes to :meth:`update` as ``odometry=``: a source
+        label (``visual``, ``record:NAME``, ``imu``, as
+        :attr:`lunarloc.odometry.source.OdometryTrajectory.label` writes it) or its
+        :class:`~lunarloc.online.loop.OdometryBounds`, so that the local windows state that
+        odometry's distortion bounds (``LoopConfig.window_bounds = "source"``), as ``lunarloc
+        run`` does for the same source. Without it the caller's odometry is of unknown
+        accuracy and each window's bend is fitted from its inliers. Call before the first
+        :meth:`update`; None goes back to unknown."""
+        if source is not None and not isinstance(source, (str, OdometryBounds)):
+            raise InputError(f"source must be an odometry source label or OdometryBounds, got {type(source).__name__}")
+        self._odometry_source = None  # update() keeps what the caller stated
+        self.loop.set_odometry(source)
 
     def update(self, mission_time_s: float, input_data: Mapping | None, imu, linear_speed: float,
                angular_speed: float, odometry=None) -> Estimate:  # fmt: skip

@@ -46,22 +46,68 @@ import os
 import re
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lunarloc.config.run import RunConfig, config_from_dict, config_to_dict
 from lunarloc.core.errors import ConfigError, InputError, LunarLocError
 from lunarloc.core.geometry import invert_transform, pose_to_matrix, yaw_of
-from lunarloc.online.loop import Attempt, LoopResult, interpolate_corrections
+from lunarloc.online.loop import Attempt, LoopResult, interpolate_corrections, stated_window_bounds
 from lunarloc.io.maps import LandmarkMap, aggregate_detections
+
+if TYPE_CHECKING:
+    from lunarloc.localization.localize import LocalizationConfig
 
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
 __all__ = ["MultiRoverConfig", "SharedAttempt", "RoverRun", "MultiRoverResult", "check_archives", "rover_names", "run_rovers",
            "write_rover_outputs"]  # fmt: skip
+
+
+SHARED_BOUNDS = ("sum", "rss", "own")
+
+
+def shared_localization(window: LocalizationConfig, owner_bounds: tuple[float, float] | None,
+                        how: str = "sum", owner_sigma: tuple[float, float] | None = None) -> LocalizationConfig:
+    """The localization a rover's local window is judged with in another rover's live map.
+
+    :func:`~lunarloc.localization.localize.localize` takes its reference as rigid and allows
+    for the vehicle map's bend from the odometry bounds the configuration states. A live map is
+    not rigid: the owner placed its landmarks with its own drifting odometry (corrected by its
+    pose graph). Where the window states bounds (scale error, heading drift per metre: its
+    source's, ``window``) and the owner's map was built under stated bounds too
+    (`owner_bounds`), the relative bend of the two maps is bounded by their sum (``how =
+    "sum"``), or in quadrature when the two drifts are taken as independent (``"rss"``);
+    ``"own"`` states the window's alone. Either unknown: none stated, the relative bend is
+    fitted from the inliers (as for a window of unknown odometry). The residual tilt allowed
+    (``max_tilt_deg``, each map levelled by its own rover's IMU) is combined by the same rule.
+
+    `owner_sigma` (m, deg): the largest uncertainty of the owner's own estimate over the
+    inliers of the registration. The pose a shared fix gives is no better known than the
+    owner's map, and it enters the pose graph with that uncertainty added
+    (:meth:`_Rover.try_shared`), so the registration need not be known more precisely than
+    it: the limits on the predicted position and rotation error (``max_predicted_error_m``,
+    ``max_predicted_rotation_deg``) are raised to it where it is larger. An owner with
+    reference fixes (centimetres) keeps the reference attempt's limits."""
+    if owner_sigma is not None:
+        window = replace(window, max_predicted_error_m=max(window.max_predicted_error_m, owner_sigma[0]),
+                         max_predicted_rotation_deg=max(window.max_predicted_rotation_deg, owner_sigma[1]))
+    own = stated_window_bounds(window)
+    if own is None:
+        return window
+    if owner_bounds is None:
+        return replace(window, odometry_scale_error=None, odometry_heading_drift_deg_per_m=None)
+    if how == "own":
+        return window
+    comb = (lambda a, b: a + b) if how == "sum" else math.hypot
+    # each map is levelled by its own rover's IMU, to within max_tilt_deg: the same rule
+    return replace(window, odometry_scale_error=comb(own[0], owner_bounds[0]),
+                   odometry_heading_drift_deg_per_m=comb(own[1], owner_bounds[1]),
+                   max_tilt_deg=min(comb(window.max_tilt_deg, window.max_tilt_deg), 44.0))
 
 
 @dataclass(frozen=True)
@@ -72,6 +118,14 @@ class MultiRoverConfig:
     share_maps: bool = False  # localize against the other rovers' live maps too
     share_refresh_s: float = 5.0  # a rover's live map is rebuilt at most this often (mission time) ...
     max_shared_sigma_ratio: float = 0.75  # a shared fix is used only if its sigma < this x the rover's own prediction
+    # the odometry bounds a shared attempt states (:func:`shared_localization`): both maps are
+    # bent by their rovers' odometry; "sum" adds the two rovers' bounds (worst case), "rss" adds
+    # them in quadrature (independent drifts), "own" states the local window's alone
+    shared_bounds: str = "sum"
+    # the uncertainty of each rover's estimate (its live map's owner sigma, its own prediction in
+    # the informativeness test, the crop): "source", its odometry's stated bounds over the distance
+    # since its last fix (at most the gate's model); "gate", the pose graph's gate drift model
+    sigma_model: str = "source"
     site_tolerance_m: float = 0.5  # the archives' landers must agree this well in the map frame
     site_tolerance_deg: float = 5.0  # ... and in heading
     clock_tolerance: float = 0.01  # relative difference of the archives' tick periods allowed
@@ -81,6 +135,10 @@ class MultiRoverConfig:
                                                    "site_tolerance_deg", "clock_tolerance") if not getattr(self, n) > 0]  # fmt: skip
         if bad:
             raise ConfigError(f"{', '.join(bad)}: must be > 0")
+        if self.sigma_model not in ("source", "gate"):
+            raise ConfigError(f"sigma_model={self.sigma_model!r}: use source or gate")
+        if self.shared_bounds not in SHARED_BOUNDS:
+            raise ConfigError(f"shared_bounds={self.shared_bounds!r}: use one of {', '.join(SHARED_BOUNDS)}")
 
     def to_dict(self) -> dict:
         return config_to_dict(self)
@@ -255,6 +313,12 @@ class _Rover:
         # without a reference every attempt ends "no reference map" (recorded by the loop,
         # dropped from the outputs) and only shared fixes correct the rover
         self.loc = OnlineLocalizer(reference, T0, online, rig, detector_config, lander)
+        # the odometry fed to it is the run's source: its windows state that source's bounds, as
+        # `lunarloc run` does (not a caller's odometry of unknown accuracy, whose bend is fitted)
+        self.loc.set_caller_odometry(od.label)
+        # the bounds this rover's map is built under (its windows' before any calibration), for
+        # the rovers localizing in it; None: not known (the bend is fitted)
+        self.map_bounds = stated_window_bounds(self.loc.loop.localization)
         self.detector_config = self.loc.detector.config
         self.camera = rig.camera
         self.rocks = ar.custom("rocks").to_array(("id", "x", "y", "z", "radius")) if "rocks" in ar.custom_records else None
@@ -267,6 +331,7 @@ class _Rover:
         self.shared: list[SharedAttempt] = []
         self.shared_att: list[Attempt] = []
         self.anchor = (0.0, 0.0)  # (m, rad) sigma of the rover's last fix when it was a shared one
+        self.sigma_model = cfg.sigma_model
         self.live: _LiveMap | None = None
 
     def close(self) -> None:
@@ -302,10 +367,30 @@ class _Rover:
         return est
 
     # ------------------------------------------------------------------ live map
+    def sigma(self, k: int) -> tuple[float, float]:
+        """(position m, yaw rad) sigma of keyframe k's estimate in ``map``, without the inherited
+        part: the odometry's stated bounds (scale error s, heading drift d per metre) over the
+        distance D since the last fix, from the gate's base sigmas b, b_yaw: yaw = hypot(b_yaw,
+        d D), position sqrt(b^2 + (s D)^2 + (yaw D / 2)^2) (``sigma_model = "source"``; the
+        form :meth:`~lunarloc.online.loop.LoopState.crop_sigma_m` sizes a reference crop with),
+        at most the gate's drift model; the gate's model itself where the bounds are not stated,
+        stated 0, or ``sigma_model = "gate"``."""
+        loop = self.loc.loop
+        gate_m, gate_yaw = loop.graph.predicted_sigma(k)
+        b = self.map_bounds
+        if self.sigma_model == "gate" or b is None or b == (0.0, 0.0):
+            return gate_m, gate_yaw
+        g = loop.config.fusion.gate
+        dd = loop.graph.distance_since_fix(k)
+        yaw = math.hypot(math.radians(g.base_sigma_yaw_deg), math.radians(b[1]) * dd)
+        pos = math.sqrt(g.base_sigma_m**2 + (b[0] * dd) ** 2 + (0.5 * yaw * dd) ** 2)
+        return min(pos, gate_m), min(yaw, gate_yaw)
+
     def owner_sigmas(self) -> tuple[np.ndarray, np.ndarray]:
-        """(position m, yaw rad) sigma of every keyframe's estimate in ``map``."""
-        g = self.loc.loop.graph
-        s = np.array([g.predicted_sigma(k) for k in range(len(self.loc.loop.keyframes))], float).reshape(-1, 2)
+        """(position m, yaw rad) sigma of every keyframe's estimate in ``map`` (:meth:`sigma`),
+        with the inherited sigma of its last fix when that was a shared one."""
+        n = len(self.loc.loop.keyframes)
+        s = np.array([self.sigma(k) for k in range(n)], float).reshape(-1, 2)
         return np.hypot(s[:, 0], self.anchor[0]), np.hypot(s[:, 1], self.anchor[1])
 
     def live_map(self, t: float, refresh_s: float) -> _LiveMap | None:
@@ -335,7 +420,8 @@ class _Rover:
         return self.live
 
     # ------------------------------------------------------------------ shared attempt
-    def try_shared(self, others: Sequence[_Rover], refresh_s: float, max_ratio: float = 0.75) -> SharedAttempt | None:
+    def try_shared(self, others: Sequence[_Rover], refresh_s: float, max_ratio: float = 0.75,
+                   shared_bounds: str = "sum") -> SharedAttempt | None:
         """Localize the newest keyframe's local map in the other rovers' live maps; the first
         accepted fix enters the pose graph. Returns the last attempt made (None: no local map)."""
         from lunarloc.localization.localize import localize
@@ -346,13 +432,12 @@ class _Rover:
         k = len(loop.keyframes) - 1
         f, t = self.ticks[-1]
         poses = loop.graph.poses()
-        win = loop.window(k)
-        P, F = loop.window_points(win, poses)
-        veh = aggregate_detections(P, F, cfg.aggregation, frame="estimate") if len(P) else None
-        if veh is None or len(veh) < cfg.min_window_landmarks:
+        # the local map of the reference attempt: its (adaptive) window, sighting arcs and all
+        win, _, _, _, veh, _ = loop.local_map(k, poses)
+        if len(veh) < cfg.min_window_landmarks:
             self.timings["sharing"] += time.perf_counter() - t_start
             return None
-        own_m, own_yaw = loop.graph.predicted_sigma(k)
+        own_m, own_yaw = self.sigma(k)
         own_m, own_yaw = math.hypot(own_m, self.anchor[0]), math.hypot(own_yaw, self.anchor[1])
         c = veh.positions_xyz[:, :2].mean(axis=0)
         radius = float(np.max(np.linalg.norm(veh.positions_xyz[:, :2] - c, axis=1)))
@@ -363,7 +448,7 @@ class _Rover:
                 continue
             # the crop allows for both rovers' uncertainty, per owner landmark
             d = np.linalg.norm(live.landmarks.positions_xyz[:, :2] - c, axis=1)
-            near = np.flatnonzero(d <= radius + 3 * np.hypot(own_m, live.owner_sigma_m) + cfg.crop_margin_m)
+            near = np.flatnonzero(d <= radius + cfg.crop_sigmas * np.hypot(own_m, live.owner_sigma_m) + cfg.crop_margin_m)
             att = SharedAttempt(self.name, other.name, t, f, len(veh), len(near), False, False, own_sigma_m=own_m)
             self.shared.append(att)
             if len(near) < 3:
@@ -372,7 +457,20 @@ class _Rover:
             ref = live.landmarks.subset(near)
             try:
                 # as the reference attempt: the pose judged at the rover now, along the window's path
-                res = localize(ref, veh, loop.window_localization(), query_xyz=poses[k : k + 1, :3], path_xyz=poses[win, :3])
+                window_cfg = loop.window_localization()
+                lcfg = shared_localization(window_cfg, other.map_bounds, shared_bounds)
+                res = localize(ref, veh, lcfg, query_xyz=poses[k : k + 1, :3], path_xyz=poses[win, :3])
+                # refused for precision alone where the owner's map is less precise than the limits:
+                # judged again with the limits at the owner's sigma over these inliers (the search is
+                # deterministic, so the same registration; every other check as before)
+                if not res.success and len(res.inliers):
+                    owner = (float(np.max(live.owner_sigma_m[res.inliers[:, 1]])),
+                             math.degrees(float(np.max(live.owner_sigma_yaw_rad[res.inliers[:, 1]]))))
+                    imprecise = not (res.predicted_error_m <= lcfg.max_predicted_error_m
+                                     and res.predicted_rotation_deg <= lcfg.max_predicted_rotation_deg)
+                    if imprecise and (owner[0] > lcfg.max_predicted_error_m or owner[1] > lcfg.max_predicted_rotation_deg):
+                        lcfg = shared_localization(window_cfg, other.map_bounds, shared_bounds, owner)
+                        res = localize(ref, veh, lcfg, query_xyz=poses[k : k + 1, :3], path_xyz=poses[win, :3])
             except LunarLocError as exc:
                 att.reason = f"{type(exc).__name__}: {exc}"
                 continue
@@ -390,7 +488,9 @@ class _Rover:
             pred = float(res.predicted_error_m) if math.isfinite(res.predicted_error_m) else cfg.fix_sigma_fallback_m
             om = float(np.max(live.owner_sigma_m[near[inl[:, 1]]]))
             oy = float(np.max(live.owner_sigma_yaw_rad[near[inl[:, 1]]]))
-            sig_m, sig_yaw = math.hypot(pred, om), math.hypot(pred / extent, oy)
+            # the registration's rotation error (its predicted one, else position over extent) and the owner's
+            rot = (math.radians(res.predicted_rotation_deg) if math.isfinite(res.predicted_rotation_deg) else pred / extent)
+            sig_m, sig_yaw = math.hypot(pred, om), math.hypot(rot, oy)
             att.owner_sigma_m, att.owner_sigma_yaw_deg = om, math.degrees(oy)
             att.fix_sigma_m, att.fix_sigma_yaw_deg = sig_m, math.degrees(sig_yaw)
             att.fix_error_m = float(np.linalg.norm(fix4[:3] - self.T_map_rover_true[-1][:3, 3]))
@@ -488,7 +588,8 @@ def run_rovers(
             r = rovers[i]
             est = r.tick()
             if cfg.share_maps and est.attempt is not None and not est.attempt.accepted:
-                r.try_shared([o for o in rovers if o is not r], cfg.share_refresh_s, cfg.max_shared_sigma_ratio)
+                r.try_shared([o for o in rovers if o is not r], cfg.share_refresh_s, cfg.max_shared_sigma_ratio,
+                             cfg.shared_bounds)
             done += 1
             if progress:
                 progress(done, total)
