@@ -62,10 +62,11 @@ def main() -> None:
             row = rows.setdefault(r["name"], {"path_m": r["path_length_m"], "odometry_rmse_m": r["ate_odometry"]["rmse_m"]})
             row[mode] = {"rmse_m": r["ate_corrected"]["rmse_m"], "online_rmse_m": r["ate_online"]["rmse_m"],
                          "max_m": r["ate_corrected"]["max_m"], "fixes": r["fixes"], "shared_fixes": r["shared_fixes"],
-                         "worst_shared_fix_m": r["max_shared_fix_error_m"]}  # fmt: skip
+                         "worst_shared_fix_m": r["max_shared_fix_error_m"],
+                         "worst_shared_fix_sigmas": r["max_shared_fix_error_sigmas"]}  # fmt: skip
         rows.setdefault("_time", {})[mode] = {"wall_s": round(wall, 1), "cpu_s": round(cpu, 1)}
         print(f"{mode}: {wall:.0f} s wall, {cpu:.0f} s CPU", flush=True)
-    head = "| rover | path m | odometry RMSE cm | " + " | ".join(f"{m}: corrected (online) RMSE cm, fixes (shared), worst shared fix cm" for m in a.modes) + " |"
+    head = "| rover | path m | odometry RMSE cm | " + " | ".join(f"{m}: corrected (online) RMSE cm, fixes (shared), worst shared fix cm (in its sigmas)" for m in a.modes) + " |"
     print(head)
     print("|" + "---|" * (3 + len(a.modes)))
     for name, row in rows.items():
@@ -74,7 +75,7 @@ def main() -> None:
         cells = []
         for m in a.modes:
             c = row[m]
-            w = "-" if c["worst_shared_fix_m"] is None else f"{100 * c['worst_shared_fix_m']:.1f}"
+            w = "-" if c["worst_shared_fix_m"] is None else f"{100 * c['worst_shared_fix_m']:.1f} ({c['worst_shared_fix_sigmas']:.2f} sigma)"
             cells.append(f"{100 * c['rmse_m']:.1f} ({100 * c['online_rmse_m']:.1f}), {c['fixes']} ({c['shared_fixes']}), {w}")
         print(f"| {name} | {row['path_m']:.1f} | {100 * row['odometry_rmse_m']:.1f} | " + " | ".join(cells) + " |")
     if a.out is not None:

@@ -198,6 +198,10 @@ class MultiRoverResult:
                    "shared_attempts": len(r.shared)}  # fmt: skip
             acc = [a.fix_error_m for a in r.shared if a.accepted and math.isfinite(a.fix_error_m)]
             row["max_shared_fix_error_m"] = round(max(acc), 4) if acc else None
+            # the worst accepted shared fix in units of the sigma it entered the pose graph with
+            rel = [a.fix_error_m / a.fix_sigma_m for a in r.shared if a.accepted and math.isfinite(a.fix_error_m)
+                   and a.fix_sigma_m > 0]  # fmt: skip
+            row["max_shared_fix_error_sigmas"] = round(max(rel), 2) if rel else None
             for k in ("ate_odometry", "ate_corrected", "ate_online"):
                 if k in s:
                     row[k] = s[k]
