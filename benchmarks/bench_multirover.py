@@ -31,6 +31,7 @@ def main() -> None:
                     help="ref0+share: only the first rover has the reference")
     ap.add_argument("--max-shared-sigma-ratio", type=float, default=None, help="MultiRoverConfig.max_shared_sigma_ratio")
     ap.add_argument("--shared-bounds", default=None, choices=["sum", "rss", "own"], help="MultiRoverConfig.shared_bounds")
+    ap.add_argument("--sigma-model", default=None, choices=["windows", "source", "gate"], help="MultiRoverConfig.sigma_model")
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args()
 
@@ -51,6 +52,8 @@ def main() -> None:
         cfg = MultiRoverConfig(run=run_cfg, share_maps="share" in mode)
         if a.max_shared_sigma_ratio is not None:
             cfg = replace(cfg, max_shared_sigma_ratio=a.max_shared_sigma_ratio)
+        if a.sigma_model is not None:
+            cfg = replace(cfg, sigma_model=a.sigma_model)
         if a.shared_bounds is not None:
             cfg = replace(cfg, shared_bounds=a.shared_bounds)
         res = run_rovers(archives, ref, cfg)

@@ -192,11 +192,13 @@ def test_a_shared_attempt_states_both_maps_bounds():
     assert s.max_tilt_deg == pytest.approx(2 * w.max_tilt_deg)
     r = shared_localization(w, (0.01, 0.06), "rss")
     assert r.odometry_heading_drift_deg_per_m == pytest.approx(0.06 * 2**0.5)
-    assert shared_localization(w, (0.01, 0.06), "own") == w
+    o = shared_localization(w, (0.01, 0.06), "own")
+    assert o.max_rmse_m == pytest.approx(w.max_rmse_m * 2**0.5)  # two noisy maps
+    assert replace(o, max_rmse_m=w.max_rmse_m) == w
     f = shared_localization(w, None, "sum")  # the owner's odometry is not known: the bend is fitted
     assert not f.odometry_bounds_stated
     fitted = replace(w, odometry_scale_error=None, odometry_heading_drift_deg_per_m=None)
-    assert shared_localization(fitted, (0.01, 0.06), "sum") == fitted
+    assert not shared_localization(fitted, (0.01, 0.06), "sum").odometry_bounds_stated
     lo = shared_localization(w, (0.01, 0.06), "sum", owner_sigma=(0.05, 0.5))  # a precise owner: limits kept
     assert (lo.max_predicted_error_m, lo.max_predicted_rotation_deg) == (w.max_predicted_error_m, w.max_predicted_rotation_deg)
     hi = shared_localization(w, (0.01, 0.06), "sum", owner_sigma=(0.4, 3.0))

@@ -86,13 +86,21 @@ def shared_localization(window: LocalizationConfig, owner_bounds: tuple[float, f
     fitted from the inliers (as for a window of unknown odometry). The residual tilt allowed
     (``max_tilt_deg``, each map levelled by its own rover's IMU) is combined by the same rule.
 
-    `owner_sigma` (m, deg): the largest uncertainty of the owner's own estimate over the
-    inliers of the registration. The pose a shared fix gives is no better known than the
-    owner's map, and it enters the pose graph with that uncertainty added
-    (:meth:`_Rover.try_shared`), so the registration need not be known more precisely than
-    it: the limits on the predicted position and rotation error (``max_predicted_error_m``,
-    ``max_predicted_rotation_deg``) are raised to it where it is larger. An owner with
-    reference fixes (centimetres) keeps the reference attempt's limits."""
+    `owner_sigma` (m, deg): how well the pose is known without this fix. Position: the larger
+    of the owner's uncertainty over the registration's inliers and the rover's own; a shared
+    fix enters the pose graph with the owner's uncertainty added to the registration's and is
+    used only when that is well below the rover's own (:meth:`_Rover.try_shared`), so the
+    registration need not be more precise than either. Rotation: the larger of the owner's and
+    the pose graph's own yaw prediction (its gate model); the fix is a pose fix whose yaw
+    enters with the registration's predicted rotation error added, so a rotation known less
+    well than the rover's heading still fixes the position (the predicted position error at
+    the rover already holds the rotation's lever). The limits on the predicted position and
+    rotation error (``max_predicted_error_m``, ``max_predicted_rotation_deg``) are raised to
+    these where they are larger; two rovers good to centimetres keep the reference attempt's.
+
+    Both maps hold landmarks from stereo detections, each as noisy as the one map of a
+    reference attempt: the residual RMSE floor (``max_rmse_m``) is combined in quadrature."""
+    window = replace(window, max_rmse_m=math.hypot(window.max_rmse_m, window.max_rmse_m))
     if owner_sigma is not None:
         window = replace(window, max_predicted_error_m=max(window.max_predicted_error_m, owner_sigma[0]),
                          max_predicted_rotation_deg=max(window.max_predicted_rotation_deg, owner_sigma[1]))
@@ -124,8 +132,9 @@ class MultiRoverConfig:
     shared_bounds: str = "sum"
     # the uncertainty of each rover's estimate (its live map's owner sigma, its own prediction in
     # the informativeness test, the crop): "source", its odometry's stated bounds over the distance
-    # since its last fix (at most the gate's model); "gate", the pose graph's gate drift model
-    sigma_model: str = "source"
+    # since its last fix (at most the gate's model); "windows", the same per loop window, windows
+    # independent (sqrt growth); "gate", the pose graph's gate drift model
+    sigma_model: str = "windows"
     site_tolerance_m: float = 0.5  # the archives' landers must agree this well in the map frame
     site_tolerance_deg: float = 5.0  # ... and in heading
     clock_tolerance: float = 0.01  # relative difference of the archives' tick periods allowed
@@ -135,8 +144,8 @@ class MultiRoverConfig:
                                                    "site_tolerance_deg", "clock_tolerance") if not getattr(self, n) > 0]  # fmt: skip
         if bad:
             raise ConfigError(f"{', '.join(bad)}: must be > 0")
-        if self.sigma_model not in ("source", "gate"):
-            raise ConfigError(f"sigma_model={self.sigma_model!r}: use source or gate")
+        if self.sigma_model not in ("windows", "source", "gate"):
+            raise ConfigError(f"sigma_model={self.sigma_model!r}: use windows, source or gate")
         if self.shared_bounds not in SHARED_BOUNDS:
             raise ConfigError(f"shared_bounds={self.shared_bounds!r}: use one of {', '.join(SHARED_BOUNDS)}")
 
@@ -171,7 +180,7 @@ class SharedAttempt:
     own_sigma_m: float = float("nan")  # the rover's own predicted sigma at the keyframe
     correction_m: float = float("nan")
     gate_d2: float = float("nan")
-    fix_error_m: float = float("nan")  # |fix - ground truth| (evaluation only)
+    fix_error_m: float = float("nan")  # |fix - ground truth| (evaluation only; for a refused registration, what it would have been)
 
 
 @dataclass
@@ -376,7 +385,10 @@ class _Rover:
         part: the odometry's stated bounds (scale error s, heading drift d per metre) over the
         distance D since the last fix, from the gate's base sigmas b, b_yaw: yaw = hypot(b_yaw,
         d D), position sqrt(b^2 + (s D)^2 + (yaw D / 2)^2) (``sigma_model = "source"``; the
-        form :meth:`~lunarloc.online.loop.LoopState.crop_sigma_m` sizes a reference crop with),
+        form :meth:`~lunarloc.online.loop.LoopState.crop_sigma_m` sizes a reference crop with;
+        ``"windows"``: the bounds hold per loop window of L = ``window_m`` metres, the windows'
+        errors independent, so beyond one window D in the scale and heading terms becomes
+        sqrt(L D)),
         at most the gate's drift model; the gate's model itself where the bounds are not stated,
         stated 0, or ``sigma_model = "gate"``."""
         loop = self.loc.loop
@@ -386,8 +398,12 @@ class _Rover:
             return gate_m, gate_yaw
         g = loop.config.fusion.gate
         dd = loop.graph.distance_since_fix(k)
-        yaw = math.hypot(math.radians(g.base_sigma_yaw_deg), math.radians(b[1]) * dd)
-        pos = math.sqrt(g.base_sigma_m**2 + (b[0] * dd) ** 2 + (0.5 * yaw * dd) ** 2)
+        # "windows": the bounds hold per window of window_m metres (what they were measured on),
+        # the windows' errors independent: they grow with sqrt(window_m D) beyond one window
+        L = loop.config.window_m
+        de = math.sqrt(L * dd) if self.sigma_model == "windows" and dd > L else dd
+        yaw = math.hypot(math.radians(g.base_sigma_yaw_deg), math.radians(b[1]) * de)
+        pos = math.sqrt(g.base_sigma_m**2 + (b[0] * de) ** 2 + (0.5 * yaw * dd) ** 2)
         return min(pos, gate_m), min(yaw, gate_yaw)
 
     def owner_sigmas(self) -> tuple[np.ndarray, np.ndarray]:
@@ -443,6 +459,7 @@ class _Rover:
             return None
         own_m, own_yaw = self.sigma(k)
         own_m, own_yaw = math.hypot(own_m, self.anchor[0]), math.hypot(own_yaw, self.anchor[1])
+        gate_yaw = math.hypot(loop.graph.predicted_sigma(k)[1], self.anchor[1])  # the pose graph's own yaw prediction
         c = veh.positions_xyz[:, :2].mean(axis=0)
         radius = float(np.max(np.linalg.norm(veh.positions_xyz[:, :2] - c, axis=1)))
         att = None
@@ -468,8 +485,8 @@ class _Rover:
                 # judged again with the limits at the owner's sigma over these inliers (the search is
                 # deterministic, so the same registration; every other check as before)
                 if not res.success and len(res.inliers):
-                    owner = (float(np.max(live.owner_sigma_m[res.inliers[:, 1]])),
-                             math.degrees(float(np.max(live.owner_sigma_yaw_rad[res.inliers[:, 1]]))))
+                    owner = (max(float(np.max(live.owner_sigma_m[res.inliers[:, 1]])), own_m),
+                             math.degrees(max(float(np.max(live.owner_sigma_yaw_rad[res.inliers[:, 1]])), gate_yaw)))
                     imprecise = not (res.predicted_error_m <= lcfg.max_predicted_error_m
                                      and res.predicted_rotation_deg <= lcfg.max_predicted_rotation_deg)
                     if imprecise and (owner[0] > lcfg.max_predicted_error_m or owner[1] > lcfg.max_predicted_rotation_deg):
@@ -480,11 +497,13 @@ class _Rover:
                 continue
             att.inliers, att.success, att.reason = res.num_inliers, bool(res.success), res.reason
             att.predicted_error_m = float(res.predicted_error_m)
-            if not res.success:
-                continue
             x, y, z, yaw = poses[k]
             roll, pitch = loop.keyframes[k].roll_pitch_rad
-            T_fix = res.T_ref_veh @ pose_to_matrix(x, y, z, roll, pitch, yaw)
+            if np.all(np.isfinite(res.T_ref_veh)):  # what the fix would be (evaluation, refused ones too)
+                T_fix = res.T_ref_veh @ pose_to_matrix(x, y, z, roll, pitch, yaw)
+                att.fix_error_m = float(np.linalg.norm(T_fix[:3, 3] - self.T_map_rover_true[-1][:3, 3]))
+            if not res.success:
+                continue
             fix4 = np.array([T_fix[0, 3], T_fix[1, 3], T_fix[2, 3], yaw_of(T_fix[:3, :3])])
             inl = res.inliers
             Vp = veh.positions_xyz[inl[:, 0]]
@@ -497,7 +516,6 @@ class _Rover:
             sig_m, sig_yaw = math.hypot(pred, om), math.hypot(rot, oy)
             att.owner_sigma_m, att.owner_sigma_yaw_deg = om, math.degrees(oy)
             att.fix_sigma_m, att.fix_sigma_yaw_deg = sig_m, math.degrees(sig_yaw)
-            att.fix_error_m = float(np.linalg.norm(fix4[:3] - self.T_map_rover_true[-1][:3, 3]))
             if sig_m >= max_ratio * own_m:
                 att.reason = (f"not informative: the fix ({sig_m * 100:.0f} cm, {other.name}'s estimate "
                               f"{om * 100:.0f} cm) is not below {max_ratio:g} x the rover's own prediction ({own_m * 100:.0f} cm)")  # fmt: skip
@@ -523,7 +541,7 @@ class _Rover:
         several owners, the accepted or last one; rovers.json has them all)."""
         a = Attempt(s.frame, s.time_s, k, s.landmarks, s.owner_landmarks, s.success, s.accepted, s.inliers,
                     f"map of {s.owner}: {s.reason}" if s.reason else f"map of {s.owner}", s.correction_m,
-                    float("nan"), s.gate_d2, s.predicted_error_m, s.fix_error_m)  # fmt: skip
+                    float("nan"), s.gate_d2, s.predicted_error_m, s.fix_error_m if s.success else float("nan"))  # fmt: skip
         if fix4 is not None:
             a.fix_xyz = [float(v) for v in fix4[:3]]
         return a
