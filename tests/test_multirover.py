@@ -117,6 +117,18 @@ def test_live_map_uncertainty_grows_with_the_owner_drift(tiny):
         s_m, s_yaw = r.owner_sigmas()
         assert len(s_m) == len(r.loc.loop.keyframes) > 5
         assert np.all(np.diff(s_m) >= -1e-12) and s_m[-1] > s_m[0]
+        # under stated bounds (visual's) the sigma follows them, at most the gate's model; per window
+        # (independent windows) it grows more slowly than linearly once past one window
+        k = len(r.loc.loop.keyframes) - 1
+        gate = r.loc.loop.graph.predicted_sigma(k)
+        r.map_bounds = (0.01, 0.06)
+        lin = (r.__setattr__("sigma_model", "source"), r.sigma(k))[1]
+        win = (r.__setattr__("sigma_model", "windows"), r.sigma(k))[1]
+        assert win[0] <= lin[0] <= gate[0] + 1e-12 and win[1] <= lin[1] <= gate[1] + 1e-12
+        if r.loc.loop.graph.distance_since_fix(k) > r.loc.loop.config.window_m:
+            assert win[0] < lin[0]
+        r.map_bounds = (0.0, 0.0)  # the record source is stated rigid: the gate's model
+        assert r.sigma(k) == gate
         r.anchor = (0.3, 0.01)  # its last fix was a shared one of 30 cm: every landmark inherits it
         s2, _ = r.owner_sigmas()
         assert np.all(s2 >= 0.3) and np.allclose(s2, np.hypot(s_m, 0.3))
