@@ -12,8 +12,10 @@ against a reference map and/or the other rovers' live maps (LunarLoc's multi-age
 3. **shared maps** (``share_maps``): when a rover's localization attempt at a keyframe did
    not give an accepted fix, its local map (the same window the reference attempt used) is
    localized in each other rover's *live map*, the rock landmarks that rover has placed so
-   far with its current pose estimates, by :func:`lunarloc.localization.localize.localize` with the same
-   configuration (so the same verification as a reference fix), then gated like any fix;
+   far with its current pose estimates, by :func:`lunarloc.localization.localize.localize` with the
+   same checks as a reference fix and what differs stated in its configuration
+   (:func:`shared_localization`: both maps' odometry bounds, precision no finer than the maps),
+   then gated like any fix;
 4. **outputs**: one :class:`~lunarloc.online.loop.LoopResult` per rover (the run folder of
    ``lunarloc run``, its ``config.json`` the RunConfig plus an ``info`` section) plus the
    shared attempts.
@@ -31,10 +33,11 @@ pose would average it down by sqrt(inliers) into false confidence. So the shared
 each landmark's own sighting sigma for the association, and records per landmark the
 owner's absolute sigma (position, yaw) there; an accepted registration becomes a pose fix
 whose sigmas are the registration's own combined in quadrature with the largest owner sigma
-among its inliers. The owner's sigma is its gate's drift model since its last fix
-(:meth:`lunarloc.fusion.posegraph.PoseGraph.predicted_sigma`), combined with the sigma of that fix
+among its inliers. The owner's sigma is its odometry's stated bounds since its last fix, per
+window (:meth:`_Rover.sigma`; at most the gate's drift model,
+:meth:`lunarloc.fusion.posegraph.PoseGraph.predicted_sigma`), combined with the sigma of that fix
 when it was itself a shared fix (a rover aligned to another inherits that rover's error). A
-shared fix is used only when it is more certain than the rover's own prediction.
+shared fix is used only when it is clearly more certain than the rover's own prediction.
 """
 
 from __future__ import annotations
