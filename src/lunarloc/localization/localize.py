@@ -1139,7 +1139,9 @@ def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
         "predicted_error", cfg.predicted_error_sigmas * ev.predicted_error_m, cfg.max_predicted_error_m,
         f"pose too uncertain where it is used: predicted error up to {cfg.predicted_error_sigmas:g} x "
         f"{ev.predicted_error_m * 100:.1f} cm (allowed {cfg.max_predicted_error_m * 100:.0f} cm"
-        f"{'' if ev.distortion_error_m == 0 else f'; odometry distortion up to {ev.distortion_error_m * 100:.1f} cm, {source}'})",
+        f"{'' if ev.distortion_error_m == 0 else f'; odometry distortion up to {ev.distortion_error_m * 100:.1f} cm, {source}'})"
+        + (": the maps cannot show the odometry beyond the rocks they share; state its bounds (0 for a map built "
+           "from ground-truth poses) to judge with them" if ev.distortion_fitted and ev.distortion_error_m > 0 else ""),
         "predicted position error where the pose is used (m)"))
     out.append(_at_most(
         "predicted_rotation", cfg.predicted_error_sigmas * ev.predicted_rotation_deg, cfg.max_predicted_rotation_deg,
