@@ -116,7 +116,7 @@ PRIOR_SCALE_ERROR = 0.003
 #: pairs claimed with the maps stated rigid (random rigid motions, seed 0): with the residual-based
 #: covariance alone the normalised position error at the rover (NEES, 3 dof) was under 3.53 for 40 %
 #: and under 14.16 for 80 % (over-confident: the 8-9 cm errors of pairs 1-15, 2-15, 3-15, 5-15 had
-#: 4-5 cm predicted); with these 64 % / 97 %. Checked on other inlier sets, the last 30 m and 60 m
+#: 4-5 cm predicted); with these 64 % / 96 %. Checked on other inlier sets, the last 30 m and 60 m
 #: of each vehicle traverse (57 and 105 claims): 60 / 96 % and 67 / 99 % (42 / 89 %, 45 / 87 % before).
 #: docs/calibration.md.
 CENTRE_BIAS_M = 0.002
