@@ -17,7 +17,7 @@ Null models with the rock density and structure of the real LunarLoc maps:
 
 For each pair the largest consistent set (exact maximum clique over all yaw bins) is
 recorded against the number of putative associations m. The acceptance rule in
-``lunarloc.localization.localize.chance_clique_size`` is an envelope over these maxima.
+``lunarloc.localization.chance.chance_clique_size`` is an envelope over these maxima.
 
 Usage: python benchmarks/chance_cliques.py [--data ../shared/data/lunarloc-data] [--out chance.json]
 """
@@ -34,7 +34,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lunarloc.pipeline.evaluation import find_traverses
-from lunarloc.localization.localize import LocalizationConfig, Mode, localize
+from lunarloc.localization.config import LocalizationConfig, Mode
+from lunarloc.localization.localize import localize
 from lunarloc.io.maps import LandmarkMap, load_traverse, traverse_map
 
 

@@ -11,7 +11,7 @@ Each family runs with the odometry bounds given to the localizer
 (``LocalizationConfig.odometry_scale_error`` / ``odometry_heading_drift_deg_per_m`` set
 to the family's magnitudes, as a rover's odometry specification would state them) and,
 with ``--without-bounds``, also without: the localizer then fits a bent and scaled model of
-the vehicle map to its inliers (``lunarloc.localization.localize.bending_fit``) and adds what that model
+the vehicle map to its inliers (``lunarloc.localization.bending.bending_fit``) and adds what that model
 moves, and cannot exclude, at the rover to the predicted error. The pose is judged at the rover's last position (``query_xyz``; the
 path goes in as ``path_xyz``). Reported per family: pairs correct (a rigid pose within
 10 cm / 1 deg at the rover exists and was found), localized (success claimed),
@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 
 from lunarloc.pipeline.evaluation import DriftModel, bench_pairs
-from lunarloc.localization.localize import LocalizationConfig
+from lunarloc.localization.config import LocalizationConfig
 
 SCALES = (0.005, 0.01, 0.02, 0.03, -0.01, -0.03)
 DRIFTS = ((0.025, 0.0), (0.05, 0.0), (0.1, 0.0), (0.05, 0.01))

@@ -17,7 +17,7 @@ import argparse
 import numpy as np
 
 from lunarloc.pipeline.evaluation import bench_pairs
-from lunarloc.localization.localize import LocalizationConfig
+from lunarloc.localization.config import LocalizationConfig
 from lunarloc.io.maps import AggregationConfig
 
 VARIANTS = {

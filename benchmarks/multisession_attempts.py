@@ -178,7 +178,7 @@ def _oracle_crop(state, ref, veh, Vt: np.ndarray, reference_xyz: np.ndarray, rad
     """What the chance test would require if the reference were cropped to the landmarks within
     r (horizontal) of the window landmarks' TRUE positions (an oracle crop: the best any prior
     could do), for each r: {"required_at_crop_<r>m": [reference landmarks kept, inliers required]}."""
-    from lunarloc.localization.localize import chance_clique_size
+    from lunarloc.localization.chance import chance_clique_size
 
     cfg = state.window_localization().for_maps(ref, veh)
     out = {}

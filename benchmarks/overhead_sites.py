@@ -23,7 +23,8 @@ import numpy as np
 from lunarloc.sim.simulate import simulate_site
 from lunarloc.pipeline.evaluation import random_vehicle_transform
 from lunarloc.core.geometry import invert_transform, transform_points
-from lunarloc.localization.localize import LocalizationConfig, localize
+from lunarloc.localization.config import LocalizationConfig
+from lunarloc.localization.localize import localize
 from lunarloc.io.maps import LandmarkMap
 from lunarloc.io.overhead import grid_landmarks, site_geometric_map
 from lunarloc.pipeline.reference import rocks_to_reference

@@ -34,7 +34,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from conftest import make_pair, rock_field  # noqa: E402
 
-from lunarloc.localization.localize import LocalizationConfig, localize  # noqa: E402
+from lunarloc.localization.config import LocalizationConfig  # noqa: E402
+from lunarloc.localization.localize import localize  # noqa: E402
 from lunarloc.io.maps import LandmarkMap  # noqa: E402
 
 

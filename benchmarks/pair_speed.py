@@ -26,7 +26,8 @@ import numpy as np
 
 import lunarloc.pipeline.evaluation as evaluation
 from lunarloc.pipeline.evaluation import bench_pairs, find_traverses
-from lunarloc.localization.localize import LocalizationConfig, localize
+from lunarloc.localization.config import LocalizationConfig
+from lunarloc.localization.localize import localize
 
 
 def main() -> None:

@@ -67,7 +67,8 @@ def child(n: int, method: str, trials: int, seed: int, null_trials: int = 0) -> 
     from lunarloc.sim.fields import uniform_rock_field, vehicle_window
     from lunarloc.pipeline.evaluation import _warm_up
     from lunarloc.core.geometry import rotation_angle, transform_points
-    from lunarloc.localization.localize import LocalizationConfig, localize
+    from lunarloc.localization.config import LocalizationConfig
+    from lunarloc.localization.localize import localize
     from lunarloc.localization.large import build_index, localize_large
 
     cfg = LocalizationConfig()

@@ -77,7 +77,8 @@ def test_missing_stale_or_broken_build_is_not_loaded(tmp_path, monkeypatch):
 _PAIR = """
 import sys, json, numpy as np
 from lunarloc.core.geometry import euler_to_rotation, make_transform, transform_points
-from lunarloc.localization.localize import LocalizationConfig, Mode, localize
+from lunarloc.localization.config import LocalizationConfig, Mode
+from lunarloc.localization.localize import localize
 from lunarloc.io.maps import LandmarkMap
 from lunarloc.association import aot
 rng = np.random.default_rng(3)

@@ -72,7 +72,8 @@ def test_shared_centre_bias_does_not_average_down():
     many inliers, the predicted error at their centroid keeps it (CENTRE_BIAS_M per horizontal
     axis); maps of independent errors (no sightings) average down as before."""
     from lunarloc.io.maps import LandmarkMap
-    from lunarloc.localization.localize import CENTRE_BIAS_M, LocalizationConfig, localize
+    from lunarloc.localization.config import CENTRE_BIAS_M, LocalizationConfig
+    from lunarloc.localization.localize import localize
 
     rng = np.random.default_rng(7)
     P = np.c_[rng.uniform(-8, 8, (120, 2)), rng.normal(0, 0.05, 120)]

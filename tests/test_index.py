@@ -11,7 +11,7 @@ from lunarloc.association.index import IndexConfig, ReferenceIndex, triangles
 from lunarloc.sim.fields import uniform_rock_field, vehicle_window
 from lunarloc.core.errors import ConfigError, DegenerateGeometryError, InputError
 from lunarloc.core.geometry import rotation_angle, transform_points
-from lunarloc.localization.localize import LocalizationConfig, Mode
+from lunarloc.localization.config import LocalizationConfig, Mode
 from lunarloc.localization.large import Search, build_index, localize_large
 from lunarloc.io.maps import LandmarkMap
 

@@ -8,7 +8,7 @@ from conftest import make_pair, random_T, rock_field
 from lunarloc import LandmarkMap, LocalizationConfig, localize
 from lunarloc.core.errors import ConfigError, DegenerateGeometryError, InputError
 from lunarloc.core.geometry import invert_transform, rotation_angle, transform_points
-from lunarloc.localization.localize import Mode, Solver
+from lunarloc.localization.config import Mode, Solver
 
 
 RIGID = LocalizationConfig(odometry_scale_error=0.0, odometry_heading_drift_deg_per_m=0.0)  # stated rigid
@@ -154,7 +154,7 @@ def test_result_json_round_trip(rng):
 def test_verify_is_a_table_of_named_checks(rng):
     from dataclasses import replace
 
-    from lunarloc.localization.localize import Evidence, verify
+    from lunarloc.localization.verify import Evidence, verify
 
     ref, veh, _, _ = make_pair(rng, n_ref=80, n_common=25, n_outliers=5)
     r = localize(ref, veh)
@@ -231,7 +231,7 @@ def test_scaled_map_gives_no_confident_wrong_pose(seed):
 
 
 def test_near_miss_excess_counts_displaced_partners(rng):
-    from lunarloc.localization.localize import near_miss_excess
+    from lunarloc.localization.chance import near_miss_excess
 
     ref = rock_field(rng, 400)
     veh = ref[:100].copy()
@@ -243,7 +243,7 @@ def test_near_miss_excess_counts_displaced_partners(rng):
 
 
 def test_distortion_allowance_and_odometry_bounds(rng):
-    from lunarloc.localization.localize import distortion_allowance
+    from lunarloc.localization.uncertainty import distortion_allowance
 
     q = np.array([[10.0, 0.0, 0.0]])
     inl = np.zeros((3, 3))
@@ -294,7 +294,7 @@ def test_real_scaled_vehicle_map_is_refused(real_data):
 
 
 def test_chance_envelope_grows_with_the_search_tolerance():
-    from lunarloc.localization.localize import chance_clique_size
+    from lunarloc.localization.chance import chance_clique_size
 
     m = 90_000
     base = chance_clique_size(m)
@@ -324,7 +324,7 @@ def _drifted_strip(rng, drift_deg_per_m, scale_error, length_m=30.0, n_rocks=70)
 
 
 def test_bending_fit_recovers_drift_and_scale():
-    from lunarloc.localization.localize import bending_fit
+    from lunarloc.localization.bending import bending_fit
 
     rng = np.random.default_rng(3)
     ref, veh, path, _, end_v = _drifted_strip(rng, 0.1, 0.01)
@@ -382,7 +382,7 @@ def test_bench_coverage_counts_errors_inside_the_predicted_sigmas():
 
 
 def test_distortion_covariance_moves_the_allowance_to_the_origin():
-    from lunarloc.localization.localize import distortion_covariance
+    from lunarloc.localization.uncertainty import distortion_covariance
 
     assert not distortion_covariance(np.array([10.0, 0, 0]), 0.0, 0.0).any()
     assert not distortion_covariance(np.array([10.0, 0, 0]), math.inf, 0.01).any()

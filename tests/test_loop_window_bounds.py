@@ -11,7 +11,7 @@ import pytest
 from lunarloc.config.run import RunConfig
 from lunarloc.core.errors import ConfigError, InputError
 from lunarloc.pipeline.evaluation import DriftModel
-from lunarloc.localization.localize import LocalizationConfig
+from lunarloc.localization.config import LocalizationConfig
 from lunarloc.online.loop import (LoopConfig, LoopState, OdometryBounds, SourceBounds, WindowBounds, image_localization_config,
                            window_localization)  # fmt: skip
 from lunarloc.io.maps import LandmarkMap

@@ -11,7 +11,8 @@ from conftest import random_T, rock_field
 from lunarloc.cli import main
 from lunarloc.core.errors import FileFormatError, InputError
 from lunarloc.core.geometry import invert_transform, transform_points
-from lunarloc.localization.localize import LocalizationConfig, localize
+from lunarloc.localization.config import LocalizationConfig
+from lunarloc.localization.localize import localize
 from lunarloc.io.maps import LandmarkMap, load_map, save_map
 from lunarloc.io.overhead import (
     LAC_CELL_M,

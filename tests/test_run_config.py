@@ -225,23 +225,25 @@ def test_localization_rounds_and_sigma_floor_are_used(monkeypatch):
     from lunarloc.core.geometry import make_transform, rot_z
     from lunarloc.io.maps import LandmarkMap
 
-    L = importlib.import_module("lunarloc.localization.localize")  # the module (the package exports a function of that name)
+    loc_config = importlib.import_module("lunarloc.localization.config")
+    loc_localize = importlib.import_module("lunarloc.localization.localize")
+    loc_register = importlib.import_module("lunarloc.localization.register")
     rng = np.random.default_rng(5)
     P = rng.uniform(-5, 5, (20, 3)) * [1, 1, 0.05]
     T = make_transform(rot_z(0.3), [1.0, -2.0, 0.0])
     Q = P @ T[:3, :3].T + T[:3, 3] + rng.normal(0, 0.002, P.shape)
     calls = []
-    real = L._register
-    monkeypatch.setattr(L, "_register", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = loc_register._register
+    monkeypatch.setattr(loc_register, "_register", lambda *a, **k: calls.append(1) or real(*a, **k))
     for rounds in (1, 4):
         calls.clear()
-        L._register_robust(P, Q, L.LocalizationConfig(irls_rounds=rounds))
+        loc_register._register_robust(P, Q, loc_config.LocalizationConfig(irls_rounds=rounds))
         assert len(calls) == rounds + 1  # the first fit, then one per round
     monkeypatch.undo()
     ref, veh = LandmarkMap(Q), LandmarkMap(P)
     rigid = {"max_predicted_error_m": 10.0, "odometry_scale_error": 0.0, "odometry_heading_drift_deg_per_m": 0.0}
-    small = L.localize(ref, veh, L.LocalizationConfig(**rigid))
-    big = L.localize(ref, veh, L.LocalizationConfig(registration_sigma_floor_m=0.05, **rigid))
+    small = loc_localize.localize(ref, veh, loc_config.LocalizationConfig(**rigid))
+    big = loc_localize.localize(ref, veh, loc_config.LocalizationConfig(registration_sigma_floor_m=0.05, **rigid))
     assert small.success and big.success
     assert big.predicted_error_m > 3 * small.predicted_error_m
 

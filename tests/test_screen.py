@@ -15,11 +15,13 @@ from lunarloc.association.putative import putative_associations
 from lunarloc.sim.fields import uniform_rock_field, vehicle_window
 from lunarloc.core.errors import ConfigError
 from lunarloc.core.geometry import invert_transform, transform_points
-from lunarloc.localization.localize import LocalizationConfig, localize, predicted_incidences
+from lunarloc.localization.config import LocalizationConfig
+from lunarloc.localization.localize import localize
+from lunarloc.localization.search import predicted_incidences
 from lunarloc.localization.large import build_index, localize_large
 from lunarloc.io.maps import LandmarkMap
 
-L = importlib.import_module("lunarloc.localization.localize")
+loc_search = importlib.import_module("lunarloc.localization.search")
 Q_SIGMA = 0.15 / math.sqrt(12)  # a 0.15 m grid's quantisation sigma
 
 
@@ -80,8 +82,8 @@ def test_predicted_incidences_bound_the_real_graph_size():
         cfg = LocalizationConfig(epsilon_m=eps, epsilon_z_m=eps, threads=1)
         Pv, Pr = veh.positions_xyz, ref.positions_xyz
         _, node_of = putative_associations(len(Pv), len(Pr), None, None, None)
-        real = sweep_yaw_bins(vehicle_pairs(Pv), L._ref_index(Pr, cfg), node_of, L._n_bins(cfg), L._chunk_bins(cfg),
-                              *L._graph_args(cfg), lambda *a: None, weights=False, workers=1)
+        real = sweep_yaw_bins(vehicle_pairs(Pv), loc_search._ref_index(Pr, cfg), node_of, loc_search._n_bins(cfg), loc_search._chunk_bins(cfg),
+                              *loc_search._graph_args(cfg), lambda *a: None, weights=False, workers=1)
         pred = predicted_incidences(Pv, Pr, cfg)
         assert real <= pred <= 3 * real, (eps, real, pred)
 
@@ -100,7 +102,7 @@ def test_vote_mode_finds_the_dense_place():
     true = np.array([2.0, -1.0, 0.5])
     votes = np.vstack([true + rng.normal(0, [0.02, 0.02, 0.003], (200, 3)),
                        np.c_[rng.uniform(-4, 8, (2000, 2)), rng.uniform(-math.pi, math.pi, 2000)]])
-    x, y, yaw = L._vote_mode(votes, 2.4, -1.3, 0.55)  # a candidate 0.5 m and 3 degrees off
+    x, y, yaw = loc_search._vote_mode(votes, 2.4, -1.3, 0.55)  # a candidate 0.5 m and 3 degrees off
     assert abs(x - 2.0) < 0.02 and abs(y + 1.0) < 0.02 and abs(yaw - 0.5) < 0.005
 
 

@@ -11,12 +11,14 @@ from lunarloc.association.clique import bin_clique_bounds, max_clique
 from lunarloc.association.graph import RefPairIndex, sweep_bin_chunks, sweep_yaw_bins, vehicle_pairs, yaw_bin_chunks
 from lunarloc.association.putative import putative_associations
 
-L = importlib.import_module("lunarloc.localization.localize")  # the module (the package re-exports the function)
+loc_chance = importlib.import_module("lunarloc.localization.chance")
+loc_config = importlib.import_module("lunarloc.localization.config")
+loc_search = importlib.import_module("lunarloc.localization.search")
 
 
 def _setup(rng, n_ref=90, n_common=25, n_outliers=15):
     ref, veh, _, _ = make_pair(rng, n_ref=n_ref, n_common=n_common, n_outliers=n_outliers, noise=0.01)
-    cfg = L.LocalizationConfig(threads=1)
+    cfg = loc_config.LocalizationConfig(threads=1)
     Pr, Pv = ref.positions_xyz, veh.positions_xyz
     _, node_of = putative_associations(len(Pv), len(Pr))
     return cfg, Pv, Pr, node_of
@@ -29,8 +31,8 @@ def _all_bins(cfg, Pv, Pr, node_of):
     def visit(b, _theta, eu, ev, _ew):
         graphs[b] = (eu.copy(), ev.copy())
 
-    sweep_yaw_bins(vehicle_pairs(Pv), L._ref_index(Pr, cfg), node_of, L._n_bins(cfg), L._chunk_bins(cfg),
-                   *L._graph_args(cfg), visit, weights=False, workers=1)
+    sweep_yaw_bins(vehicle_pairs(Pv), loc_search._ref_index(Pr, cfg), node_of, loc_search._n_bins(cfg), loc_search._chunk_bins(cfg),
+                   *loc_search._graph_args(cfg), visit, weights=False, workers=1)
     return graphs
 
 
@@ -49,7 +51,7 @@ def test_bin_bounds_bracket_the_maximum_clique(rng):
 
 def test_group_bounds_hold_on_every_yaw_bin(rng):
     cfg, Pv, Pr, node_of = _setup(rng)
-    upper, lower, _ = L._bin_bounds(Pv, vehicle_pairs(Pv), L._ref_index(Pr, cfg), node_of, cfg)
+    upper, lower, _ = loc_search._bin_bounds(Pv, vehicle_pairs(Pv), loc_search._ref_index(Pr, cfg), node_of, cfg)
     graphs = _all_bins(cfg, Pv, Pr, node_of)
     for b, (eu, ev) in graphs.items():
         omega = len(max_clique(node_of.size, eu, ev)) if len(eu) else 1
@@ -59,7 +61,7 @@ def test_group_bounds_hold_on_every_yaw_bin(rng):
 def test_some_bins_give_the_full_sweeps_graphs(rng):
     cfg, Pv, Pr, node_of = _setup(rng)
     graphs = _all_bins(cfg, Pv, Pr, node_of)
-    n_bins = L._n_bins(cfg)
+    n_bins = loc_search._n_bins(cfg)
     got = {}
 
     def visit_chunk(bins, ptr, su, sv, _sw):
@@ -67,8 +69,8 @@ def test_some_bins_give_the_full_sweeps_graphs(rng):
             got[b] = (su[ptr[t]:ptr[t + 1]].copy(), sv[ptr[t]:ptr[t + 1]].copy())
 
     wanted = [0, 5, 21, 22, 90, 177, 179]
-    sweep_bin_chunks(vehicle_pairs(Pv), L._ref_index(Pr, cfg), node_of, n_bins,
-                     yaw_bin_chunks(n_bins, L._chunk_bins(cfg), wanted), *L._graph_args(cfg), visit_chunk,
+    sweep_bin_chunks(vehicle_pairs(Pv), loc_search._ref_index(Pr, cfg), node_of, n_bins,
+                     yaw_bin_chunks(n_bins, loc_search._chunk_bins(cfg), wanted), *loc_search._graph_args(cfg), visit_chunk,
                      weights=False, workers=1)
     assert set(wanted) <= set(got)  # a grid chunk's span of wanted bins is generated
     assert not set(got) & {30, 100, 150}
@@ -80,9 +82,9 @@ def test_search_finds_the_exhaustive_winner_and_a_deciding_competitor(rng):
     for _ in range(3):
         cfg, Pv, Pr, node_of = _setup(rng)
         graphs = _all_bins(cfg, Pv, Pr, node_of)
-        n_bins = L._n_bins(cfg)
+        n_bins = loc_search._n_bins(cfg)
         omega = np.array([len(max_clique(node_of.size, *graphs[b])) if len(graphs[b][0]) else 0 for b in range(n_bins)])
-        best, competitor, yaw, _ = L._search_yaw_bins(Pv, Pr, node_of, cfg)
+        best, competitor, yaw, _ = loc_search._search_yaw_bins(Pv, Pr, node_of, cfg)
         assert len(best) == omega.max()
         step = 2 * math.pi / n_bins
         b_best = int(math.floor((yaw + math.pi) / step))
@@ -116,20 +118,20 @@ def test_search_tolerance_follows_the_maps_sigma(rng):
     from lunarloc.io.maps import LandmarkMap
 
     ref, veh, _, _ = make_pair(rng, n_ref=60, n_common=20, n_outliers=5)
-    cfg = L.LocalizationConfig()
+    cfg = loc_config.LocalizationConfig()
     plain = cfg.for_maps(ref, veh)  # default landmark sigma: the fixed tolerances are the floors
     assert plain.epsilon_m == cfg.epsilon_m and plain.epsilon_z_m == cfg.epsilon_z_m
     q = 0.15 / math.sqrt(12)  # a LAC grid's quantisation
     grid = LandmarkMap(ref.positions_xyz, sigma_xy_m=np.full(len(ref), q), sigma_z_m=np.full(len(ref), q))
     wide = cfg.for_maps(grid, veh)
-    sh, sz = L.combined_sigma(grid, veh, cfg)
+    sh, sz = loc_config.combined_sigma(grid, veh, cfg)
     assert math.isclose(wide.epsilon_m, cfg.search_sigmas * math.sqrt(2) * sh)
     assert math.isclose(wide.epsilon_z_m, cfg.search_sigmas * math.sqrt(2) * sz)
     assert wide.epsilon_m > 0.1
     # chance sets grow with the tolerance, and the envelope with them
     m = len(ref) * len(veh)
-    assert L.chance_clique_size(m, cfg.mode, wide.epsilon_m, wide.epsilon_z_m) > L.chance_clique_size(m, cfg.mode)
-    fixed = L.LocalizationConfig(search_sigmas=0).for_maps(grid, veh)
+    assert loc_chance.chance_clique_size(m, cfg.mode, wide.epsilon_m, wide.epsilon_z_m) > loc_chance.chance_clique_size(m, cfg.mode)
+    fixed = loc_config.LocalizationConfig(search_sigmas=0).for_maps(grid, veh)
     assert fixed.epsilon_m == cfg.epsilon_m
 
 
@@ -144,12 +146,12 @@ def test_same_yaw_competitor_from_the_kept_edges_equals_the_rebuilt_one(rng):
         cfg, Pv, Pr, node_of = _setup(rng, n_common=25, n_outliers=5)
         assoc = np.argwhere(node_of >= 0)
         assoc = assoc[np.argsort(node_of[assoc[:, 0], assoc[:, 1]])]
-        best, _competitor, yaw, _ = L._search_yaw_bins(Pv, Pr, node_of, cfg)
+        best, _competitor, yaw, _ = loc_search._search_yaw_bins(Pv, Pr, node_of, cfg)
         inl = assoc[best]
         T = arun(Pv[inl[:, 0]], Pr[inl[:, 1]])
         assert yaw.edges, "the search keeps the edges of the bins it built"
         yaw.best_size = 2  # lb0 = 1: every bin near the winner holding an edge is searched
-        kept = L._competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, yaw, 0)
+        kept = loc_search._competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, yaw, 0)
         yaw.edges = None
-        rebuilt = L._competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, yaw, 0)
+        rebuilt = loc_search._competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, yaw, 0)
         assert kept == rebuilt

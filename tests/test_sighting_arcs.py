@@ -11,7 +11,8 @@ import pytest
 from conftest import random_T, rock_field
 from lunarloc.core.errors import InputError
 from lunarloc.core.geometry import invert_transform, transform_points
-from lunarloc.localization.localize import LocalizationConfig, localize
+from lunarloc.localization.config import LocalizationConfig
+from lunarloc.localization.localize import localize
 from lunarloc.io.maps import (
     LandmarkMap,
     Traverse,
@@ -121,7 +122,7 @@ def test_revisited_landmarks_placed_where_seen_refuse_the_wrong_pose(monkeypatch
     legs come within sight of are left out and the bend is not determined: refused."""
     ref, veh, o, g = _revisit_case(0)
     noarcs = LandmarkMap(veh.positions_xyz, veh.sizes, veh.sightings, veh.frame, veh.sigma_xy_m, veh.sigma_z_m)
-    module = importlib.import_module("lunarloc.localization.localize")  # the package exports a function of that name
+    module = importlib.import_module("lunarloc.localization.bending")
 
     # the bend fit from the maps alone (no odometry prior): what the floor and the placement are about
     unconstrained = LocalizationConfig(odometry_prior_drift_deg_per_m=None, odometry_prior_scale_error=None)

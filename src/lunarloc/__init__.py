@@ -22,7 +22,9 @@ from lunarloc.core.runtime import ensure_numba_cache_dir
 ensure_numba_cache_dir()  # before numba is imported (read-only installs, unwritable $HOME)
 
 from lunarloc.core.errors import LunarLocError  # noqa: E402
-from lunarloc.localization.localize import LocalizationConfig, LocalizationResult, Mode, Solver, localize  # noqa: E402
+from lunarloc.localization.config import LocalizationConfig, Mode, Solver  # noqa: E402
+from lunarloc.localization.result import LocalizationResult  # noqa: E402
+from lunarloc.localization.localize import localize  # noqa: E402
 from lunarloc.io.maps import (  # noqa: E402
     AggregationConfig, LandmarkMap, VehicleInput, load_map, load_traverse, load_vehicle, save_map,
 )

@@ -14,7 +14,7 @@ from lunarloc.cli.checks import (
     JSON_OUT_OPT, JSON_STDOUT_OPT, OVERWRITE_OPT, check_json_out, enum_value, number, positive, write_json_out,
 )
 from lunarloc.localization.large import Search
-from lunarloc.localization.localize import Mode, Registration, Solver
+from lunarloc.localization.config import Mode, Registration, Solver
 
 bench_app = typer.Typer(help="Benchmarks that reproduce the published figures.", no_args_is_help=True)
 app.add_typer(bench_app, name="bench")
@@ -135,7 +135,7 @@ def localize_cmd(
     The same in Python: veh = load_vehicle(VEHICLE); localize(load_reference(REFERENCE), veh.map,
     query_xyz=veh.query_xyz, path_xyz=veh.path_xyz)."""
     from lunarloc.config.run import RunConfig, load_config_file
-    from lunarloc.localization.localize import LocalizationConfig
+    from lunarloc.localization.config import LocalizationConfig
     from lunarloc.localization.large import localize_large
     from lunarloc.localization.warmup import prepare_kernels
     from lunarloc.io.maps import load_vehicle
@@ -239,7 +239,7 @@ def bench_pairs_cmd(
 
     from lunarloc.pipeline.bench import pairs_problems, pairs_to_run, write_pairs
     from lunarloc.pipeline.evaluation import PAPER_PAIRS, DriftModel, bench_pairs, find_traverses
-    from lunarloc.localization.localize import LocalizationConfig
+    from lunarloc.localization.config import LocalizationConfig
     from lunarloc.io.outputs import check_output_dir
 
     mode, solver = enum_value(mode), enum_value(solver)

@@ -6,7 +6,7 @@ one back with ``--config FILE``; command-line options then override single setti
 
 - ``detector``: :class:`~lunarloc.perception.detector.DetectorConfig`, tuned at
   ``detector_tuned_width_px`` and scaled to the images' width by :func:`scaled_detector_config`;
-- ``localization``: :class:`~lunarloc.localization.localize.LocalizationConfig`;
+- ``localization``: :class:`~lunarloc.localization.config.LocalizationConfig`;
 - ``index``: :class:`~lunarloc.association.index.IndexConfig` (the rock-triangle index of
   large references, used by ``localize``'s indexed search);
 - ``loop``: :class:`~lunarloc.online.loop.LoopConfig` (local map, attempts, fusion);
@@ -34,7 +34,7 @@ from typing import Any
 from lunarloc.association.index import IndexConfig
 from lunarloc.core.configs import config_from_dict, config_to_dict
 from lunarloc.core.errors import ConfigError
-from lunarloc.localization.localize import LocalizationConfig
+from lunarloc.localization.config import LocalizationConfig
 from lunarloc.online.loop import LoopConfig, image_localization_config, image_loop_config, loop_localization_config
 from lunarloc.odometry.imu import ImuOdometryConfig
 from lunarloc.perception.detector import scaled_detector_config

@@ -102,7 +102,7 @@ class LandmarkMap:
         from that path's first pose (:func:`path_arc_length_m`): the mean over the landmark's
         detections, and their least and greatest. All three or none; None for maps not built
         by a vehicle (overhead grids, catalogues). The localizer's bend model
-        (:func:`lunarloc.localization.localize.bending_fit`) places each landmark there along the path it is
+        (:func:`lunarloc.localization.bending.bending_fit`) places each landmark there along the path it is
         given (``localize(path_xyz=)``, the same path from the same first pose); a wide span
         (min to max) marks a landmark the path passed more than once.
     """

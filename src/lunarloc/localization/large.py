@@ -37,10 +37,12 @@ import numpy as np
 from lunarloc.association.index import IndexConfig, ReferenceIndex
 from lunarloc.core.errors import ConfigError
 from lunarloc.core.geometry import yaw_of
-from lunarloc.localization.localize import (
-    Check, LocalizationConfig, LocalizationResult, Mode, _check_map, chance_clique_size, localize,
-)
 from lunarloc.io.maps import LandmarkMap
+from lunarloc.localization.chance import chance_clique_size
+from lunarloc.localization.config import LocalizationConfig, Mode
+from lunarloc.localization.localize import _check_map, localize
+from lunarloc.localization.result import LocalizationResult
+from lunarloc.localization.verify import Check
 
 log = logging.getLogger(__name__)
 

@@ -57,7 +57,7 @@ from lunarloc.io.lac.leaderboard import camera_name, transform_to_matrix
 from lunarloc.io.maps import LandmarkMap
 from lunarloc.odometry.imu import ImuOdometryConfig, ImuSamples, integrate_imu
 from lunarloc.perception.camera import IPEX_STEREO_BASELINE_M, STEREO_PAIRS, CameraMount, PinholeCamera, ipex_rig
-from lunarloc.localization.localize import LocalizationConfig
+from lunarloc.localization.config import LocalizationConfig
 from lunarloc.online.loop import Attempt, LoopConfig, LoopState, OdometryBounds, image_localization_config, image_loop_config
 
 log = logging.getLogger(__name__)

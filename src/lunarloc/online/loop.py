@@ -35,7 +35,8 @@ from lunarloc.core.errors import ConfigError, InputError, LunarLocError
 from lunarloc.fusion.factors import wrap_angle
 from lunarloc.fusion.posegraph import FusionConfig, Keyframe, PoseGraph
 from lunarloc.core.geometry import matrix_to_pose, pose_to_matrix, transform_points, yaw_of
-from lunarloc.localization.localize import LocalizationConfig, localize
+from lunarloc.localization.config import LocalizationConfig
+from lunarloc.localization.localize import localize
 from lunarloc.io.maps import AggregationConfig, LandmarkMap, aggregate_detections, detection_arcs_m
 
 log = logging.getLogger(__name__)
@@ -58,7 +59,7 @@ class FixKind(str, enum.Enum):
 class WindowBounds(str, enum.Enum):
     """How the loop states its windows' odometry distortion to the localizer (the
     ``odometry_scale_error`` / ``odometry_heading_drift_deg_per_m`` of the
-    :class:`~lunarloc.localization.localize.LocalizationConfig` each attempt runs with), when the
+    :class:`~lunarloc.localization.config.LocalizationConfig` each attempt runs with), when the
     localization settings state none themselves."""
 
     SOURCE = "source"  # the bounds of the odometry source in use (LoopConfig.odometry_bounds), added to the predicted error
@@ -81,7 +82,7 @@ class CropSigma(str, enum.Enum):
 @dataclass(frozen=True)
 class OdometryBounds:
     """Bounds on an odometry's distortion over a window: relative scale error and heading
-    drift per metre of path (what :func:`lunarloc.localization.localize.distortion_allowance` takes)."""
+    drift per metre of path (what :func:`lunarloc.localization.uncertainty.distortion_allowance` takes)."""
 
     scale_error: float = 0.0
     heading_drift_deg_per_m: float = 0.0
@@ -126,7 +127,7 @@ class SourceBounds:
 @dataclass(frozen=True)
 class LoopConfig:
     """Parameters of the online loop (distances in metres, times in seconds). The
-    localization it runs is configured apart (:class:`~lunarloc.localization.localize.LocalizationConfig`,
+    localization it runs is configured apart (:class:`~lunarloc.localization.config.LocalizationConfig`,
     the ``localization`` section of a :class:`~lunarloc.config.run.RunConfig`)."""
 
     localize_every_m: float = 1.5  # attempt a localization after this much odometry travel ...

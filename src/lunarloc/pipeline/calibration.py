@@ -49,7 +49,7 @@ from lunarloc.core.errors import LunarLocError
 from lunarloc.core.geometry import euler_to_rotation, invert_transform, make_transform, rotation_angle, transform_points
 from lunarloc.io.maps import LandmarkMap
 from lunarloc.localization.large import localize_large
-from lunarloc.localization.localize import LocalizationConfig
+from lunarloc.localization.config import LocalizationConfig
 from lunarloc.sim.fields import uniform_rock_field
 
 log = logging.getLogger(__name__)

@@ -35,7 +35,8 @@ from lunarloc.core.geometry import (
     rotation_angle,
     transform_points,
 )
-from lunarloc.localization.localize import LocalizationConfig, localize
+from lunarloc.localization.config import LocalizationConfig
+from lunarloc.localization.localize import localize
 from lunarloc.odometry.drift import DriftModel, drifted_path
 from lunarloc.io.maps import AggregationConfig, Traverse, aggregate_detections, detection_arcs_m, load_traverse
 

@@ -62,7 +62,7 @@ from lunarloc.online.loop import Attempt, LoopResult, interpolate_corrections, s
 from lunarloc.io.maps import LandmarkMap, aggregate_detections
 
 if TYPE_CHECKING:
-    from lunarloc.localization.localize import LocalizationConfig
+    from lunarloc.localization.config import LocalizationConfig
 
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
