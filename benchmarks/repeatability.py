@@ -59,7 +59,7 @@ def render_sessions(seed: int, style: str, duration: float, rate: float, out_dir
         p = out_dir / f"site{seed}_{style}_{plan}_{duration:g}s.lac"
         if not p.exists():
             sc = SimulationConfig(site=site_config(style), rover=RoverConfig(plan=plan), duration_s=duration,
-                                  image_rate_hz=rate, cameras=("FrontLeft", "FrontRight"), render=RenderConfig())
+                                  image_rate_hz=rate, cameras=("FrontLeft", "FrontRight"), render=RenderConfig.lac_style() if style == "lac" else RenderConfig())
             site = site or simulate_site(seed, sc)
             out_dir.mkdir(parents=True, exist_ok=True)
             t0 = time.process_time()
@@ -124,7 +124,7 @@ def main(argv=None) -> int:
     ap.add_argument("--min-sightings", type=int, default=3)
     ap.add_argument("--small-rocks", action="store_true", help="turn the small-rock stage on")
     ap.add_argument("--config", type=Path, default=None, help="a run configuration: its detector section")
-    ap.add_argument("--out-dir", type=Path, default=Path("bench-output/repeatability"))
+    ap.add_argument("--out-dir", type=Path, default=Path("bench-output/repeatability-v2"))
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
     cfg = DetectorConfig()

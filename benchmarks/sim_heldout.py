@@ -59,7 +59,8 @@ def render(seed: int, style: str, duration: float, rate: float, out_dir: Path) -
     if not p.exists():
         sc = SimulationConfig(site=SiteConfig.lac_style() if style == "lac" else SiteConfig(), duration_s=duration,
                               image_rate_hz=rate, cameras=("FrontLeft", "FrontRight"),
-                              render=RenderConfig(sun_elevation_deg=el, sun_azimuth_deg=az))
+                              render=RenderConfig.lac_style(sun_elevation_deg=el, sun_azimuth_deg=az) if style == "lac"
+                              else RenderConfig(sun_elevation_deg=el, sun_azimuth_deg=az))
         out_dir.mkdir(parents=True, exist_ok=True)
         t0 = time.process_time()
         simulate_traverse(simulate_site(seed, sc), p, 0, sc)
@@ -84,7 +85,7 @@ def main(argv=None) -> int:
     ap.add_argument("--style", choices=("lac", "default"), default="lac")
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--image-rate", type=float, default=0.5)
-    ap.add_argument("--out-dir", type=Path, default=Path("bench-output/heldout"))
+    ap.add_argument("--out-dir", type=Path, default=Path("bench-output/heldout-v2"))
     ap.add_argument("--only", choices=("off", "on"), default=None, help="run one configuration only")
     ap.add_argument("--config", type=Path, default=None, help="a run configuration: its detector section")
     ap.add_argument("--render-only", action="store_true", help="render the archives and stop")

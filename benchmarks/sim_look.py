@@ -95,7 +95,7 @@ def main(argv=None) -> int:
                             None)))
     site = generate_site(a.seed, SiteConfig.lac_style())
     el, az = sun_of(a.seed)
-    renderer = SiteRenderer(site, RenderConfig(sun_elevation_deg=el, sun_azimuth_deg=az))
+    renderer = SiteRenderer(site, RenderConfig.lac_style(sun_elevation_deg=el, sun_azimuth_deg=az))
     tr = plan_traverse(site, 60.0, traverse_seed(a.seed, 0))
     tilt = np.degrees(np.arccos(np.cos(tr.rpy[:, 0]) * np.cos(tr.rpy[:, 1])))
     step = 40  # the 0.5 Hz frames of sim_heldout.py

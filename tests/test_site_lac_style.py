@@ -59,3 +59,33 @@ def test_lac_style_overrides_and_validation():
                 dict(small_crater_radius_m=(0.0, 1.0)), dict(n_small_craters=-2)):
         with pytest.raises(ConfigError):
             generate_site(0, SiteConfig(**bad))
+
+
+def test_terrain_up_normal_removes_the_dark_crest_dots_and_is_off_by_default():
+    pytest.importorskip("trimesh")
+    pytest.importorskip("embreex")
+    from lunarloc.perception.camera import PinholeCamera, ipex_rig
+    from lunarloc.sim.render import SEM_GROUND, RenderConfig, SiteRenderer
+
+    assert RenderConfig().terrain_up_normal is False and RenderConfig.lac_style().terrain_up_normal is True
+    cfg = SiteConfig.lac_style(size_m=16.0, terrain_margin_m=4.0, n_rocks=60, n_small_rocks=100, n_small_craters=300,
+                               rover_start_xy=(-3.0, -2.0))
+    site = generate_site(2, cfg)
+    cam = PinholeCamera(640, 360)
+    mount = ipex_rig(cam)["FrontLeft"]
+    base = SiteRenderer(site, RenderConfig(lighting="sun", sun_elevation_deg=12.0))
+    up = base.with_config(RenderConfig.lac_style(lighting="sun", sun_elevation_deg=12.0))
+    dark_old, dark_new, differ = 0, 0, 0
+    for yaw in (0.0, 1.6, 3.2, 4.8):
+        pose = [-3.0, -2.0, float(site.terrain_height(-3.0, -2.0)) + 0.2, 0.0, 0.0, yaw]
+        g0, s0 = base.render_rover(pose, [mount])["FrontLeft"]
+        g1, s1 = up.render_rover(pose, [mount])["FrontLeft"]
+        np.testing.assert_array_equal(s0, s1)  # the geometry is the same; only the shading changes
+        ground = s0 == SEM_GROUND
+        # ground pixels at the ambient level (gray ~25: a cast shadow, or a crest pixel whose flipped
+        # normal faces away from the sun)
+        dark_old += int(np.count_nonzero(ground & (g0 < 40)))
+        dark_new += int(np.count_nonzero(ground & (g1 < 40)))
+        differ += int(np.count_nonzero(g0 != g1))
+    assert differ > 0
+    assert dark_new < dark_old
