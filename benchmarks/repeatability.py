@@ -33,8 +33,6 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
-
 from lunarloc.perception.detector import DetectorConfig, detect_archive
 from lunarloc.sim.repeatability import SightingLog, rock_under, summarise
 

@@ -38,9 +38,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_perception import Accumulator, print_groups, run_archive, site_bootstrap  # noqa: E402
+from bench_perception import Accumulator, print_groups, run_archive
 
-from lunarloc.perception.detector import DetectorConfig  # noqa: E402
+from lunarloc.perception.detector import DetectorConfig
 
 SUN_ELEVATIONS_DEG = (6.0, 12.0, 20.0)
 

@@ -60,6 +60,7 @@ def main(argv=None) -> int:
     import json
 
     from PIL import Image
+    from sim_heldout import sun_of
 
     from lunarloc.core.geometry import pose_to_matrix
     from lunarloc.perception.camera import PinholeCamera, ipex_rig
@@ -68,7 +69,6 @@ def main(argv=None) -> int:
     from lunarloc.sim.rover import plan_traverse
     from lunarloc.sim.simulate import traverse_seed
     from lunarloc.sim.site import SiteConfig, generate_site
-    from sim_heldout import sun_of
 
     def load(name):
         p = a.real / name

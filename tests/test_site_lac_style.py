@@ -55,8 +55,8 @@ def test_lac_style_site_has_small_rocks_rougher_terrain_and_tilts_the_rover():
 
 def test_lac_style_overrides_and_validation():
     assert SiteConfig.lac_style(n_small_rocks=0).n_small_rocks == 0
-    for bad in (dict(n_small_rocks=-1), dict(small_rock_radius_m=(0.05, 0.02)), dict(hummock_m=0.5),
-                dict(small_crater_radius_m=(0.0, 1.0)), dict(n_small_craters=-2)):
+    for bad in ({"n_small_rocks": -1}, {"small_rock_radius_m": (0.05, 0.02)}, {"hummock_m": 0.5},
+                {"small_crater_radius_m": (0.0, 1.0)}, {"n_small_craters": -2}):
         with pytest.raises(ConfigError):
             generate_site(0, SiteConfig(**bad))
 

@@ -157,7 +157,7 @@ def ground_plane(points_rover: np.ndarray, depth: np.ndarray, max_depth_m: float
     the rover frame's +z, i.e. the cameras' side of the ground). None when fewer than 50 points.
     `stride`: about one point in `stride` is used (every sqrt(stride)-th row and column of the
     map, so the full map is never indexed)."""
-    k = max(int(round(np.sqrt(stride))), 1)
+    k = max(round(float(np.sqrt(stride))), 1)
     D = depth[::k, ::k]
     ok = np.isfinite(D) & (D < max_depth_m)
     P = points_rover[::k, ::k][ok].astype(float)

@@ -203,7 +203,7 @@ class RenderConfig:
     terrain_up_normal: bool = False
 
     @classmethod
-    def lac_style(cls, **overrides) -> "RenderConfig":
+    def lac_style(cls, **overrides) -> RenderConfig:
         """The renderer settings that go with ``SiteConfig.lac_style()``: the terrain shaded
         with its upward normal at grazing views (``terrain_up_normal``). `overrides` replace
         any field."""

@@ -39,7 +39,7 @@ def rock_under(semantic: np.ndarray, uv, half_window_px: int = 3) -> int:
     sem = np.asarray(semantic)
     if sem.ndim != 2:
         raise InputError(f"semantic image must be (H, W), got shape {sem.shape}")
-    u, v = int(round(float(uv[0]))), int(round(float(uv[1])))
+    u, v = round(float(uv[0])), round(float(uv[1]))
     h = int(half_window_px)
     win = semantic_to_rock_id(sem[max(v - h, 0) : v + h + 1, max(u - h, 0) : u + h + 1])
     rid = win[win >= 0]

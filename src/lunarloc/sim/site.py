@@ -123,15 +123,15 @@ class SiteConfig:
     small_rock_radius_m: tuple[float, float] = (0.02, 0.05)  # their nominal radius range (power law)
 
     @classmethod
-    def lac_style(cls, **overrides) -> "SiteConfig":
+    def lac_style(cls, **overrides) -> SiteConfig:
         """A site that looks more like the LAC's real frames (issue 29): deeper, larger craters
         whose rims tilt the rover 10-20 degrees, a stronger rolling relief, many small fresh
         craters and hummocks that cast shadows under a low sun, and 600 extra rocks of 2-5 cm
         radius on top of the 386 of the LAC's size range. `overrides` replace any field."""
-        base = dict(
-            relief_m=1.6, n_craters=6, crater_radius_m=(1.5, 5.0), crater_depth_ratio=0.22,
-            n_small_craters=800, hummock_m=0.04, n_small_rocks=600,
-        )  # fmt: skip
+        base = {
+            "relief_m": 1.6, "n_craters": 6, "crater_radius_m": (1.5, 5.0), "crater_depth_ratio": 0.22,
+            "n_small_craters": 800, "hummock_m": 0.04, "n_small_rocks": 600,
+        }  # fmt: skip
         base.update(overrides)
         return cls(**base)
 
