@@ -36,8 +36,6 @@ from pathlib import Path
 from lunarloc.perception.detector import DetectorConfig, detect_archive
 from lunarloc.sim.repeatability import SightingLog, rock_under, summarise
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
 
 def site_config(style: str):
     from lunarloc.sim.site import SiteConfig
@@ -74,6 +72,7 @@ def log_session(path: Path, session: str, cfg: DetectorConfig, log: SightingLog,
     from lunarloc.io.lac.archive import LacArchive
     from lunarloc.perception.camera import camera_from_archive
     from lunarloc.perception.detector import Detector
+    from lunarloc.pipeline.perception_eval import lander_xy
 
     counts = {"on_rock": 0, "off_rock": 0, "beyond_range": 0}
     with LacArchive(path) as ar:
@@ -81,9 +80,7 @@ def log_session(path: Path, session: str, cfg: DetectorConfig, log: SightingLog,
         radii = {int(i): float(r) for i, r in zip(t["id"], t["radius"])}
         cam = camera_from_archive(ar)
         det = Detector(scaled_detector_config(cam.width, base=cfg), cam)
-        from bench_perception import _lander_xy
-
-        for fd in detect_archive(ar, det.config, "ground-truth", detector=det, lander_xy=_lander_xy(ar)):
+        for fd in detect_archive(ar, det.config, "ground-truth", detector=det, lander_xy=lander_xy(ar)):
             sems = {}
             for d in fd.detections:
                 if d.depth_m > max_range:

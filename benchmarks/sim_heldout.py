@@ -38,9 +38,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_perception import Accumulator, print_groups, run_archive
+from bench_perception import print_groups
 
 from lunarloc.perception.detector import DetectorConfig
+from lunarloc.pipeline.perception_eval import Accumulator, run_archive
 
 SUN_ELEVATIONS_DEG = (6.0, 12.0, 20.0)
 
