@@ -154,17 +154,23 @@ def ground_plane(points_rover: np.ndarray, depth: np.ndarray, max_depth_m: float
                  stride: int = 4) -> np.ndarray | None:
     """Unit normal (rover frame) of the plane fitted to the height map's points within
     `max_depth_m` (least squares, then once more within 3 MADs), pointing up (to the side of
-    the rover frame's +z, i.e. the cameras' side of the ground). None when fewer than 50 points."""
-    ok = np.isfinite(depth) & (depth < max_depth_m)
-    P = points_rover[ok][::stride].astype(float)
+    the rover frame's +z, i.e. the cameras' side of the ground). None when fewer than 50 points.
+    `stride`: about one point in `stride` is used (every sqrt(stride)-th row and column of the
+    map, so the full map is never indexed)."""
+    k = max(round(float(np.sqrt(stride))), 1)
+    D = depth[::k, ::k]
+    ok = np.isfinite(D) & (D < max_depth_m)
+    P = points_rover[::k, ::k][ok].astype(float)
     P = P[np.isfinite(P).all(axis=1)]
     if len(P) < 50:
         return None
     for _ in range(2):
         c = np.median(P, axis=0)
-        _, _, vt = np.linalg.svd(P - c, full_matrices=False)
-        n = vt[2]
-        r = (P - c) @ n
+        Q = P - c
+        # the plane's normal: the scatter matrix's least eigenvector (as the SVD's last right
+        # singular vector, without the (N, 3) left factor)
+        n = np.linalg.eigh(Q.T @ Q)[1][:, 0]
+        r = Q @ n
         s = 1.4826 * np.median(np.abs(r)) + 1e-6
         P = P[np.abs(r) < 3 * s]
         if len(P) < 50:

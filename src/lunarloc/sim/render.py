@@ -196,6 +196,18 @@ class RenderConfig:
     rock_albedo_spread: float = 0.12  # each rock's albedo within rock_albedo * (1 +- spread)
     rock_bump: float = 3.0  # scale of the rock surface roughness (normal bumps)
     highlight_knee: float = 0.75  # radiance above this is compressed smoothly toward 1 (lamp-lit near field)
+    # shade the terrain with its upward normal also where that faces away from the camera (a
+    # grazing view over a crest) instead of flipping it toward the camera, which turns such
+    # pixels black: rows of dark dots along every crest of a rough terrain (the LAC-look site).
+    # False (the default) keeps earlier renders bit for bit.
+    terrain_up_normal: bool = False
+
+    @classmethod
+    def lac_style(cls, **overrides) -> RenderConfig:
+        """The renderer settings that go with ``SiteConfig.lac_style()``: the terrain shaded
+        with its upward normal at grazing views (``terrain_up_normal``). `overrides` replace
+        any field."""
+        return cls(**{"terrain_up_normal": True, **overrides})
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "lighting", Lighting.parse(self.lighting))
@@ -335,7 +347,7 @@ def _shade_kernel_py(
     gx, gy, grid_x0, grid_y0, grid_inv_res, shift, sun, noise_tab, noise_inv, noise_off, noise_w, noise_bump,
     rock_albedo, ground_albedo, lander_albedo, albedo_texture, bump_strength, L, rock_facet,
     rock_bump, face_albedo, face_panel, panel_origin, panel_u, panel_v, panel_inv_size, panel_bits,
-    sun_on, lamp_pos, lamp_axis, lamp_power, cos_inner, cos_outer,
+    sun_on, lamp_pos, lamp_axis, lamp_power, cos_inner, cos_outer, terrain_up,
     out_direct, out_lamp, out_albedo, out_shadow_origin, out_need_shadow,
 ):  # pragma: no cover - compiled by numba
     """Per-hit shading (compiled with numba): hit point, normals, Lunar-Lambert under the sun
@@ -500,7 +512,7 @@ def _shade_kernel_py(
         nx_ /= nn
         ny_ /= nn
         nz_ /= nn
-        if nx_ * dx + ny_ * dy + nz_ * dz > 0:
+        if nx_ * dx + ny_ * dy + nz_ * dz > 0 and not (terrain_up and kind == 0):
             nx_ = -nx_
             ny_ = -ny_
             nz_ = -nz_
@@ -821,7 +833,7 @@ class SiteRenderer:
             self._panel_origin_f32, pn.u_axes.astype(np.float32), pn.v_axes.astype(np.float32),
             (1.0 / np.maximum(pn.size_m, 1e-9)).astype(np.float32), pn.bits.astype(np.float32),
             bool(cfg.sun_on), lamp_pos, lamp_axis, lamp_power, np.float32(cone[0]), np.float32(cone[1]),
-            direct, lamp, albedo, shadow_origin, need_shadow,
+            bool(cfg.terrain_up_normal), direct, lamp, albedo, shadow_origin, need_shadow,
         )  # fmt: skip
         if cfg.sun_on and cfg.shadows:
             lit = np.flatnonzero(need_shadow)

@@ -113,6 +113,27 @@ class SiteConfig:
     lander_keepout_m: float = 1.2  # no rocks / rover within lander_radius + keepout
     flatten_radius_m: float = 3.0  # terrain levelled under the lander within this radius
     rover_start_xy: tuple[float, float] = (-4.0, -3.0)  # every traverse starts here (metres)
+    # --- the LAC look (``SiteConfig.lac_style()``); all off by default, so the sites of
+    # existing seeds stay bit for bit the same. They draw from their own random streams.
+    n_small_craters: int = 0  # extra small craters (fresh, steep: shadows in the mid-field)
+    small_crater_radius_m: tuple[float, float] = (0.2, 1.0)  # their rim radius range
+    small_crater_depth_ratio: float = 0.18  # their depth / radius
+    hummock_m: float = 0.0  # std of extra terrain relief at about 0.3 m scale (metres; casts small shadows)
+    n_small_rocks: int = 0  # extra small rocks (the LAC's gravel), besides the n_rocks population
+    small_rock_radius_m: tuple[float, float] = (0.02, 0.05)  # their nominal radius range (power law)
+
+    @classmethod
+    def lac_style(cls, **overrides) -> SiteConfig:
+        """A site that looks more like the LAC's real frames (issue 29): deeper, larger craters
+        whose rims tilt the rover 10-20 degrees, a stronger rolling relief, many small fresh
+        craters and hummocks that cast shadows under a low sun, and 600 extra rocks of 2-5 cm
+        radius on top of the 386 of the LAC's size range. `overrides` replace any field."""
+        base = {
+            "relief_m": 1.6, "n_craters": 6, "crater_radius_m": (1.5, 5.0), "crater_depth_ratio": 0.22,
+            "n_small_craters": 800, "hummock_m": 0.04, "n_small_rocks": 600,
+        }  # fmt: skip
+        base.update(overrides)
+        return cls(**base)
 
     def validate(self) -> None:
         if self.size_m <= 4.0 * (self.lander_radius_m + self.lander_keepout_m) / 2:
@@ -129,6 +150,18 @@ class SiteConfig:
         b0, b1 = self.rock_burial
         if not 0.0 <= b0 <= b1 < 1.0:
             raise ConfigError(f"rock_burial={self.rock_burial} must satisfy 0 <= min <= max < 1")
+        if self.n_small_craters < 0 or self.n_small_rocks < 0:
+            raise ConfigError("n_small_craters and n_small_rocks must be >= 0")
+        lo, hi = self.small_crater_radius_m
+        if not 0 < lo < hi:
+            raise ConfigError(f"small_crater_radius_m={self.small_crater_radius_m} must satisfy 0 < min < max")
+        lo, hi = self.small_rock_radius_m
+        if not 0 < lo < hi:
+            raise ConfigError(f"small_rock_radius_m={self.small_rock_radius_m} must satisfy 0 < min < max")
+        if not 0.0 <= self.small_crater_depth_ratio <= 1.0 or not self.crater_depth_ratio >= 0.0:
+            raise ConfigError("crater depth ratios must be >= 0 (small craters <= 1)")
+        if not 0.0 <= self.hummock_m <= 0.2:
+            raise ConfigError(f"hummock_m={self.hummock_m} must be in [0, 0.2]")
         half = self.size_m / 2
         if max(abs(self.rover_start_xy[0]), abs(self.rover_start_xy[1])) > half - 1.0:
             raise ConfigError(f"rover_start_xy={self.rover_start_xy} is outside the site")
@@ -434,6 +467,22 @@ def generate_site(seed: int = 0, config: SiteConfig | None = None) -> Site:
                 break
         Z = Z + _crater_profile(np.hypot(X - c[0], Y - c[1]), R, cfg.crater_depth_ratio * R)
 
+    # the LAC look (off by default): small fresh craters and hummocks, from their own stream
+    extra = np.random.default_rng([int(seed), 0x5174])
+    if cfg.hummock_m > 0:
+        Z = Z + cfg.hummock_m * _smooth_noise(extra, X.shape, max(0.3 / cfg.resolution_m, 0.5))
+    if cfg.n_small_craters:
+        radii_c = sample_power_law(extra, cfg.n_small_craters, *cfg.small_crater_radius_m, 2.0)
+        centres_c = extra.uniform(-ext, ext, size=(cfg.n_small_craters, 2))
+        for R, c in zip(radii_c, centres_c):
+            w = 3.0 * R  # the rim's outer slope falls as r^-4: 1 % of the rim height at 3 R
+            i0, i1 = np.searchsorted(grid, [c[0] - w, c[0] + w])
+            j0, j1 = np.searchsorted(grid, [c[1] - w, c[1] + w])
+            if i1 <= i0 or j1 <= j0:
+                continue
+            r = np.hypot(X[j0:j1, i0:i1] - c[0], Y[j0:j1, i0:i1] - c[1])
+            Z[j0:j1, i0:i1] += _crater_profile(r, R, cfg.small_crater_depth_ratio * R)
+
     # level the ground under the lander (smooth blend)
     rr = np.hypot(X, Y)
     w = np.clip((rr - cfg.flatten_radius_m) / 2.0, 0.0, 1.0)
@@ -483,8 +532,54 @@ def generate_site(seed: int = 0, config: SiteConfig | None = None) -> Site:
         yaws=rng.uniform(0, 2 * np.pi, m),
         shape_seeds=rng.integers(0, 2**31 - 1, m),
     )
-    logger.debug("site seed=%d: %d rocks, relief %.2f m", seed, m, float(np.ptp(Z[ins])))
+    if cfg.n_small_rocks:
+        _add_small_rocks(site, np.random.default_rng([int(seed), 0x5175]), cfg, start, keep_r)
+    logger.debug("site seed=%d: %d rocks, relief %.2f m", seed, len(site.rocks), float(np.ptp(Z[ins])))
     return site
+
+
+def _add_small_rocks(site: Site, rng: np.random.Generator, cfg: SiteConfig, start: np.ndarray, keep_r: float) -> None:
+    """Append ``cfg.n_small_rocks`` small rocks (power-law radii in ``small_rock_radius_m``) to
+    `site.rocks`, clear of the other rocks, the lander and the rover start; their ids follow
+    the others'."""
+    half = cfg.size_m / 2.0
+    r0 = site.rocks
+    radii = sample_power_law(rng, cfg.n_small_rocks, *cfg.small_rock_radius_m, cfg.rock_size_exponent)
+    cand = rng.uniform(-half + 0.1, half - 0.1, size=(4 * len(radii), 2))
+    xy_all, r_all = r0.centers[:, :2].copy(), r0.radii.copy()
+    xy, rad = [], []
+    k = 0
+    for r in radii:
+        while k < len(cand):
+            p = cand[k]
+            k += 1
+            if np.hypot(*p) < keep_r + r or np.hypot(*(p - start)) < 1.0:
+                continue
+            if len(r_all) and np.any(np.hypot(*(xy_all - p).T) < 1.1 * (r_all + r)):
+                continue
+            xy.append(p)
+            rad.append(r)
+            xy_all = np.vstack([xy_all, p])
+            r_all = np.append(r_all, r)
+            break
+    m = len(rad)
+    if m == 0:
+        return
+    xy, rad = np.asarray(xy), np.asarray(rad)
+    axes = np.column_stack(
+        [rad * rng.uniform(0.85, 1.2, m), rad * rng.uniform(0.75, 1.1, m), rad * rng.uniform(0.55, 0.85, m)]
+    )
+    burial = rng.uniform(*cfg.rock_burial, size=m)
+    z = site.terrain_height(xy[:, 0], xy[:, 1]) + axes[:, 2] * (1.0 - 2.0 * burial)
+    n0 = len(r0)
+    site.rocks = Rocks(
+        ids=np.arange(n0 + m),
+        centers=np.vstack([r0.centers, np.column_stack([xy, z])]),
+        radii=np.concatenate([r0.radii, rad]),
+        axes=np.vstack([r0.axes, axes]),
+        yaws=np.concatenate([r0.yaws, rng.uniform(0, 2 * np.pi, m)]),
+        shape_seeds=np.concatenate([r0.shape_seeds, rng.integers(0, 2**31 - 1, m)]),
+    )
 
 
 def _empty_rocks() -> Rocks:

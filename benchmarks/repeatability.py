@@ -1,0 +1,173 @@
+"""Repeatability of the detector's rock positions over a traverse and across two sessions.
+
+Usage
+-----
+    python benchmarks/repeatability.py --seeds 300 301 [--style lac|default] [--duration 90]
+        [--image-rate 0.5] [--max-range 5] [--min-sightings 3] [--small-rocks] [--config RUN.json]
+        [--out-dir bench-output/repeatability] [--json OUT.json]
+    python benchmarks/repeatability.py --sessions A.lac B.lac [...]   # archives of one site
+
+For each site seed two sessions are rendered (front stereo pair, 1280x720): a survey
+(``TraversePlan.SURVEY``, a spiral around the lander) and a revisit of the surveyed ground
+(``TraversePlan.REVISIT``), both traverse index 0 and 1 of the site. The detector runs on
+every rendered frame as ``bench_perception.py`` runs it (``detect_archive``, the run
+configuration's detector scaled to the archive's width, the lander dropped) with the
+**ground-truth rover poses**, so the spread is perception's alone (no odometry drift).
+
+Each detection is tied to the rock under its image centroid in the semantic image
+(``lunarloc.sim.repeatability.rock_under``: no distance gate, so a misplaced detection of
+a rock counts against its spread); detections farther than ``--max-range`` metres (depth)
+are left out. Reported per true-radius band (``lunarloc.sim.repeatability.summarise``):
+the sighting deviation (each sighting's horizontal distance from its rock's session mean),
+the rock spread (its RMS per rock and session) and the session offset (the distance
+between a rock's two session means), each as count, median and p90. Target (issue 29):
+median <= 2 cm horizontal for r >= 0.1 m.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+from lunarloc.perception.detector import DetectorConfig, detect_archive
+from lunarloc.sim.repeatability import SightingLog, rock_under, summarise
+
+
+def site_config(style: str):
+    from lunarloc.sim.site import SiteConfig
+
+    return SiteConfig.lac_style() if style == "lac" else SiteConfig()
+
+
+def render_sessions(seed: int, style: str, duration: float, rate: float, out_dir: Path) -> list[Path]:
+    """Render (once) the survey and the revisit session of site `seed`."""
+    from lunarloc.sim.render import RenderConfig
+    from lunarloc.sim.rover import RoverConfig
+    from lunarloc.sim.simulate import SimulationConfig, simulate_site, simulate_traverse
+
+    out = []
+    site = None
+    for index, plan in enumerate(("survey", "revisit")):
+        p = out_dir / f"site{seed}_{style}_{plan}_{duration:g}s.lac"
+        if not p.exists():
+            sc = SimulationConfig(site=site_config(style), rover=RoverConfig(plan=plan), duration_s=duration,
+                                  image_rate_hz=rate, cameras=("FrontLeft", "FrontRight"), render=RenderConfig.lac_style() if style == "lac" else RenderConfig())
+            site = site or simulate_site(seed, sc)
+            out_dir.mkdir(parents=True, exist_ok=True)
+            t0 = time.process_time()
+            simulate_traverse(site, p, index, sc)
+            print(f"rendered {p} ({time.process_time() - t0:.0f} s CPU)", file=sys.stderr)
+        out.append(p)
+    return out
+
+
+def log_session(path: Path, session: str, cfg: DetectorConfig, log: SightingLog, max_range: float) -> dict:
+    """Detect over one archive (ground-truth poses) and log each detection's rock. Returns
+    the counts of detections: on a rock, on no rock, beyond range."""
+    from lunarloc.config.run import scaled_detector_config
+    from lunarloc.io.lac.archive import LacArchive
+    from lunarloc.perception.camera import camera_from_archive
+    from lunarloc.perception.detector import Detector
+    from lunarloc.pipeline.perception_eval import lander_xy
+
+    counts = {"on_rock": 0, "off_rock": 0, "beyond_range": 0}
+    with LacArchive(path) as ar:
+        t = ar.custom("rocks")
+        radii = {int(i): float(r) for i, r in zip(t["id"], t["radius"])}
+        cam = camera_from_archive(ar)
+        det = Detector(scaled_detector_config(cam.width, base=cfg), cam)
+        for fd in detect_archive(ar, det.config, "ground-truth", detector=det, lander_xy=lander_xy(ar)):
+            sems = {}
+            for d in fd.detections:
+                if d.depth_m > max_range:
+                    counts["beyond_range"] += 1
+                    continue
+                if d.camera not in sems:
+                    sems[d.camera] = ar.semantic(d.camera, fd.frame)
+                rock = rock_under(sems[d.camera], d.uv)
+                if rock < 0:
+                    counts["off_rock"] += 1
+                    continue
+                counts["on_rock"] += 1
+                log.add(session, rock, d.p_map[:2])
+    return {"radii": radii, **counts}
+
+
+def print_table(s: dict) -> None:
+    print("band (true r, m) | sightings: n, median, p90 cm | rock spread: rocks, median, p90 cm | "
+          "session offset: rocks, median, p90 cm")
+    for band, v in s.items():
+        row = [band]
+        for k in ("sighting_deviation", "rock_spread", "session_offset"):
+            st = v[k]
+            row.append(f"{st['n']}, {100 * st['median_m']:.1f}, {100 * st['p90_m']:.1f}")
+        print(" | ".join(row))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seeds", type=int, nargs="*", default=[])
+    ap.add_argument("--sessions", type=Path, nargs="*", default=[], help="archives of one site (each a session)")
+    ap.add_argument("--style", choices=("lac", "default"), default="lac", help="site style of rendered seeds")
+    ap.add_argument("--duration", type=float, default=90.0, help="seconds per session")
+    ap.add_argument("--image-rate", type=float, default=0.5, help="camera rate, Hz")
+    ap.add_argument("--max-range", type=float, default=5.0, help="leave out detections deeper than this, m")
+    ap.add_argument("--min-sightings", type=int, default=3)
+    ap.add_argument("--small-rocks", action="store_true", help="turn the small-rock stage on")
+    ap.add_argument("--config", type=Path, default=None, help="a run configuration: its detector section")
+    ap.add_argument("--out-dir", type=Path, default=Path("bench-output/repeatability-v2"))
+    ap.add_argument("--json", type=Path, default=None)
+    a = ap.parse_args(argv)
+    cfg = DetectorConfig()
+    if a.config is not None:
+        from lunarloc.config.run import load_config_file
+
+        cfg = load_config_file(a.config)[0].detector
+    if a.small_rocks:
+        cfg = replace(cfg, small_rocks=replace(cfg.small_rocks, enabled=True))
+    groups = [(f"site{s}", render_sessions(s, a.style, a.duration, a.image_rate, a.out_dir)) for s in a.seeds]
+    if a.sessions:
+        groups.append(("given", list(a.sessions)))
+    if not groups:
+        ap.error("give --seeds or --sessions")
+    log = SightingLog()
+    radii: dict[int, float] = {}
+    counts = {"on_rock": 0, "off_rock": 0, "beyond_range": 0}
+    c0 = time.process_time()
+    for name, paths in groups:
+        for p in paths:
+            out = log_session(p, f"{name}/{p.stem}", cfg, log, a.max_range)
+            # rock ids are per site: key them by site so two sites' rocks stay apart
+            for k in counts:
+                counts[k] += out[k]
+            radii.update({(name, r): v for r, v in out["radii"].items()})
+    # re-key the log by (site, rock) so rocks of different sites never pool
+    keyed = SightingLog()
+    keyed_radii: dict[int, float] = {}
+    ids: dict[tuple, int] = {}
+    for session, rocks in log.sightings.items():
+        site = session.split("/")[0]
+        for rock, pts in rocks.items():
+            k = ids.setdefault((site, rock), len(ids))
+            keyed_radii[k] = radii[(site, rock)]
+            for xy in pts:
+                keyed.add(session.split("/")[1], k, xy)
+    s = summarise(keyed, keyed_radii, a.min_sightings)
+    print(f"sites: {[g[0] for g in groups]}; detections within {a.max_range:g} m: {counts['on_rock']} on a rock, "
+          f"{counts['off_rock']} on no rock; {counts['beyond_range']} beyond; small rocks "
+          f"{'on' if cfg.small_rocks.enabled else 'off'}; ground-truth poses; {time.process_time() - c0:.0f} s CPU")
+    print_table(s)
+    if a.json:
+        a.json.parent.mkdir(parents=True, exist_ok=True)
+        a.json.write_text(json.dumps({"summary": s, "counts": counts, "archives": [str(p) for _, ps in groups for p in ps],
+                                      "small_rocks": cfg.small_rocks.enabled, "max_range_m": a.max_range,
+                                      "min_sightings": a.min_sightings}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
