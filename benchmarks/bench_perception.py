@@ -236,7 +236,7 @@ def main(argv=None) -> int:
 
         base = load_config_file(a.config)[0].detector
     if a.centre_method:
-        base = replace(base, centre_method=CentreMethod(a.centre_method))
+        base = replace(base, centre=replace(base.centre, method=CentreMethod(a.centre_method)))
     if a.pool is not None:
         try:
             pooled = print_pooled(pool_runs(a.pool))
@@ -274,7 +274,7 @@ def main(argv=None) -> int:
     if not archives:
         ap.error("give archives or --simulate SEED")
     cfg = replace(base, segmenter=a.segmenter or base.segmenter, weights=a.weights or base.weights,
-                  centre_correction=base.centre_correction and not a.no_centre_correction)
+                  centre=replace(base.centre, correction=base.centre.correction and not a.no_centre_correction))
     acc = Accumulator()
     acc.min_gt_px = a.min_gt_px
     det = None

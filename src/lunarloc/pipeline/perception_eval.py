@@ -260,7 +260,7 @@ class Accumulator:
             if i in matched_det:
                 self.prec[sb, rb, 0] += 1
             # surface (uncorrected) centroid error, for comparison
-            if i in matched_det and detector.config.centre_correction:
+            if i in matched_det and detector.config.centre.correction:
                 p = d.p_optical - d.p_optical / np.linalg.norm(d.p_optical) * d.radius_m
                 pm = transform_points(T_map_rover @ mounts[d.camera].T_rover_optical, p[None])[0]
                 self.err3d_surface.append(float(np.linalg.norm(pm - centres[matched_det[i]])))
@@ -436,14 +436,14 @@ def centre_error_parts(est: np.ndarray, true: np.ndarray, r_true: float, rng: fl
     v = v / max(float(np.linalg.norm(v)), 1e-9)
     along, lat = float(e[:2] @ v), float(-e[0] * v[1] + e[1] * v[0])
     oracle = float("nan")
-    if cfg.centre_method is CentreMethod.STEREO_POINTS:
+    if cfg.centre.method is CentreMethod.STEREO_POINTS:
         f = est[:2] - cam[:2]
         f = f / max(float(np.linalg.norm(f)), 1e-9)
         dR = r_true - r_est
-        k_along, k_z = cfg.centre_range_factor, cfg.centre_height_factor
-        if cfg.centre_estimator is CentreEstimator.BLEND:  # its radius terms (the near anchor unclamped)
-            w = cfg.centre_near_weight
-            k_along, k_z = (1 - w) * cfg.centre_range_factor + w * cfg.centre_near_range_factor, cfg.centre_ring_radius_factor
+        k_along, k_z = cfg.centre.range_factor, cfg.centre.height_factor
+        if cfg.centre.estimator is CentreEstimator.BLEND:  # its radius terms (the near anchor unclamped)
+            w = cfg.centre.near_weight
+            k_along, k_z = (1 - w) * cfg.centre.range_factor + w * cfg.centre.near_range_factor, cfg.centre.ring_radius_factor
         moved = est + dR * np.array([k_along * f[0], k_along * f[1], -k_z])
         oracle = float(np.linalg.norm(moved - true))
     return (float(r_true), float(rng), float(np.linalg.norm(e)), float(np.linalg.norm(e[:2])), along, lat, float(e[2]),
