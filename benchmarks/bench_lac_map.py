@@ -28,6 +28,7 @@ import json
 import resource
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -81,6 +82,8 @@ def score(a) -> None:
         light = (d / "lighting.txt").read_text().strip() if (d / "lighting.txt").is_file() else "?"
         truth = site_geometric_map(simulate_site(seed))
         cfg = RunConfig()
+        if a.small_rocks:  # the detector's small-rock stage: the rocks under 5 cm the any-ray rule flags
+            cfg = replace(cfg, detector=replace(cfg.detector, small_rocks=replace(cfg.detector.small_rocks, enabled=True)))
         mapper = LacMapper(mcfg)
         t0 = time.perf_counter()
         res = run(ArchiveSource(d / "traverse.lac", cfg.odometry, cfg.detector.pairs), load_reference(d / "rocks.csv"),
@@ -260,6 +263,8 @@ def main() -> None:
     s.add_argument("--figure-seed", type=int, default=None)
     s.add_argument("--mapper-config", default=None, help="JSON of LacMapperConfig fields")
     s.add_argument("--dump", action="store_true", help="pickle the mapper and poses into each site's folder")
+    s.add_argument("--no-small-rocks", dest="small_rocks", action="store_false",
+                   help="run the detector without its small-rock stage (on by default here: the map's rocks under 5 cm)")
     s = sub.add_parser("cost")
     s.add_argument("--archive", type=Path, required=True)
     s.add_argument("--frames", type=int, default=30)
