@@ -84,10 +84,10 @@ class LacMapperConfig:
     range_scale_m: float = 2.0  # bin weight count / (1 + (range / range_scale_m)^4)
     max_abs_z_m: float = 3.0  # rover-frame points higher or lower than this are dropped
     max_frames: int = 2000  # frames kept re-placeable; older ones are frozen at their pose
-    rock_min_sightings: int = 2  # frames that must detect a rock before it is mapped
+    rock_min_sightings: int = 3  # frames that must detect a rock (small_rock_m or larger) before it is mapped
     rock_merge_m: float = 0.10  # detections of different frames nearer than this are one rock
     rock_max_range_m: float = 6.0  # detections farther than this (horizontal, rover frame) are dropped
-    rock_radius_scale: float = 1.1  # footprint radius = scale x estimated radius + margin
+    rock_radius_scale: float = 1.05  # footprint radius = scale x estimated radius + margin
     rock_radius_margin_m: float = 0.0
     # small rocks (median radius under small_rock_m; the small-rock stage's finds): their own
     # sightings floor and footprint radius = radius + small_rock_margin_m (no scale)
