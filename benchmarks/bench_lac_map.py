@@ -15,6 +15,9 @@ Usage
     # 4. memory: the mapper fed for a long replay (the archive's frames cycled with their
     #    ground-truth poses, shifted around the site; the detector is not re-run)
     python benchmarks/bench_lac_map.py memory --archive A.lac --hours 2 --rate-hz 2
+    # 5. the agent (examples/lac_agent.py) through the stand-in leaderboard, lac_map off and on:
+    #    run_step CPU per tick, the map writing's share, cells written before finalize, scores
+    python benchmarks/bench_lac_map.py agent --out DIR [--seed 302] [--duration 60] [--width 640]
 
 Each site's truth is ``site_geometric_map(simulate_site(seed))`` (the LAC's 16-ray rule). "Seen"
 cells are those the ground-truth-placed frames observed (the same set for all three pose
@@ -108,7 +111,9 @@ def score(a) -> None:
                 "rock_cells_true_seen": s_seen["rock_cells_true"],
                 "seen_geometric": round(s_seen["geometric"], 4), "seen_rock_precision": round(s_seen["rock_precision"], 4),
                 "seen_rock_recall": round(s_seen["rock_recall"], 4), "seen_rock_f1": round(s_seen["rock_f1"], 4),
-                "all_geometric": round(s_all["geometric"], 4), "all_rock_f1": round(s_all["rock_f1"], 4),
+                "all_geometric": round(s_all["geometric"], 4), "all_rock_precision": round(s_all["rock_precision"], 4),
+                "all_rock_recall": round(s_all["rock_recall"], 4), "all_rock_f1": round(s_all["rock_f1"], 4),
+                "all_points_total": round(s_all["points"]["total"], 1),
                 "seen_points_geo_rock": round(s_seen["points"]["geometric_map"] + s_seen["points"]["rocks_map"], 1),
                 "all_points_geo_rock": round(s_all["points"]["geometric_map"] + s_all["points"]["rocks_map"], 1),
                 "interp_within_1m_geometric": _interp_share(est, truth, 1.0),
@@ -246,6 +251,43 @@ def memory(a) -> None:
     print(f"grid() after {n_total} frames: {1000 * (time.perf_counter() - t1):.0f} ms")
 
 
+def agent(a) -> None:
+    """examples/lac_agent.py through the stand-in leaderboard (tests/standins), closed loop,
+    with and without ``lac_map``: run_step CPU per tick, the map writing's share, the cells
+    written before finalize, and the final map's LAC scores."""
+    root = Path(__file__).resolve().parents[1]
+    sys.path.insert(0, str(root / "tests" / "standins"))
+    import lunarsim
+
+    agent_file = root / "examples" / "lac_agent.py"
+    for lac_map in (False, True):
+        world = lunarsim.SimWorld(a.seed, n_rocks=a.rocks)
+        d = a.out / f"agent_{a.seed}_{'map' if lac_map else 'nomap'}"
+        d.mkdir(parents=True, exist_ok=True)
+        world.write_reference(d / "rocks.csv")
+        conf = d / "lunarloc.toml"
+        conf.write_text(f'reference = "rocks.csv"\nwidth = {a.width}\nheight = {a.width * 9 // 16}\noutput = ""\n'
+                        f"lac_map = {str(lac_map).lower()}\nlac_map_cells_per_tick = {a.cells_per_tick}\n")  # fmt: skip
+        filled = []
+
+        def observe(ag):
+            gm = ag.get_geometric_map()
+            if gm is not None and len(filled) % 20 == 0:
+                filled.append(int(np.isfinite(gm.get_map_array()[:, :, 2]).sum()))
+            else:
+                filled.append(filled[-1] if filled else 0)
+
+        run = lunarsim.run_agent(agent_file, conf, world, a.duration, evaluation=True, score=True, observe=observe)
+        cpu = 1000 * np.array(run.run_step_cpu_s)
+        ag = run.agent
+        w = 1000 * np.array(ag.map_write_cpu_s) if lac_map else np.zeros(1)
+        sc = run.scores or {}
+        print(f"seed {a.seed} {a.width}px lac_map={lac_map}: {run.ticks} ticks, run_step CPU median {np.median(cpu):.1f} ms, "
+              f"p95 {np.percentile(cpu, 95):.1f}, max {cpu.max():.0f}; map writing per tick: median {np.median(w):.2f} ms, "
+              f"p99 {np.percentile(w, 99):.2f}, max {w.max():.1f} ms; cells in the map before finalize {filled[-1]}; "
+              f"finalize's whole-map write {1000 * (ag.map_finish_cpu_s or 0):.0f} ms CPU; scores {sc}", flush=True)  # fmt: skip
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -274,8 +316,15 @@ def main() -> None:
     s.add_argument("--hours", type=float, default=2.0)
     s.add_argument("--rate-hz", type=float, default=2.0)
     s.add_argument("--mapper-config", default=None)
+    s = sub.add_parser("agent")
+    s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--seed", type=int, default=302)
+    s.add_argument("--rocks", type=int, default=386)
+    s.add_argument("--duration", type=float, default=60.0)
+    s.add_argument("--width", type=int, default=640)
+    s.add_argument("--cells-per-tick", type=int, default=400)
     a = ap.parse_args()
-    {"simulate": simulate, "score": score, "cost": cost, "memory": memory}[a.cmd](a)
+    {"simulate": simulate, "score": score, "cost": cost, "memory": memory, "agent": agent}[a.cmd](a)
 
 
 if __name__ == "__main__":

@@ -111,6 +111,7 @@ class LunarLocAgent(AutonomousAgent):
         self.loop_radius_m = settings["loop_radius_m"] or min(max(r0, 3.5), 10.0)
         self.map_writer = None  # lac_map: lunarloc's mapper's writer into get_geometric_map() (first tick)
         self.map_write_cpu_s = []  # lac_map: CPU seconds of each tick's map writing
+        self.map_finish_cpu_s = None  # lac_map: CPU seconds of writing the whole map in finalize()
         self.mapper = None  # MAPPER HOOK: a mapper of the team's own, fed every tick (see run_step)
 
     def use_fiducials(self) -> bool:
@@ -188,8 +189,9 @@ class LunarLocAgent(AutonomousAgent):
         if self.localizer is not None and self.localizer.mapper is not None and self.get_geometric_map() is not None:
             if self.map_writer is None:
                 self.map_writer = LacMapWriter(self.localizer.mapper, self.get_geometric_map())
-            during = self.map_writer.cells_written
+            during, c = self.map_writer.cells_written, time.process_time()
             cells = self.map_writer.finish()
+            self.map_finish_cpu_s = time.process_time() - c
             log.info("lunarloc wrote %d cells of the geometric map (%d during the run)", cells, during)
         if self.mapper is not None:  # MAPPER HOOK: fill the leaderboard's map
             self.mapper.finalize(self.get_geometric_map())

@@ -21,10 +21,13 @@ the rays hits a rock. The mapper estimates both:
   the bins that fall in it (robust to stereo outliers and to a rock edge's few points), its
   uncertainty the weighted spread about that median (``height_sigma_m``).
 * **Rocks.** Detections are placed with their frame's pose; those of different frames within
-  ``rock_merge_m`` of each other are one rock; a rock seen in at least ``rock_min_sightings``
-  frames is kept with the median centre and radius, and every cell with **any** of its 16 ray
-  points within ``rock_radius_scale x radius + rock_radius_margin_m`` of the centre is flagged
-  (the LAC's any-ray rule).
+  ``rock_merge_m`` of each other are one rock, kept with the median centre and radius when
+  enough frames detected it: ``rock_min_sightings`` for a rock of ``small_rock_m`` radius or
+  more, ``small_rock_min_sightings`` for a smaller one (the detector's small-rock stage finds
+  those; the any-ray rule flags them). Every cell with **any** of its 16 ray points within
+  the footprint of the centre is flagged (the LAC's any-ray rule); the footprint radius is
+  ``rock_radius_scale x radius + rock_radius_margin_m``, for a small rock
+  ``radius + small_rock_margin_m``.
 * **Rock bumps** (off by default). With ``rock_bump_m`` set, observed cells standing that much
   or more above their local ground (the ``rock_ground_quantile`` percentile of the heights in
   a ``rock_ground_window_m`` square) are flagged too. On the tuning site it added more false
@@ -40,6 +43,12 @@ the rays hits a rock. The mapper estimates both:
   frozen into per-cell sums at their last pose (their heights then join each cell's median
   as one weighted mean) and can no longer move. Memory: the frozen sums (three N x N arrays)
   plus ``max_frames`` summaries (about 16 bytes a bin; :meth:`LacMapper.memory_bytes`).
+
+The live layer (:meth:`LacMapper.live_cells`, what :class:`LacMapWriter` writes into the
+leaderboard's map every tick): each frame folded in once at the pose it was added with
+(running weighted means, rock-footprint votes), the cells it changed marked for writing;
+cheap (the frame's bins), approximate (no re-placing, no medians); :meth:`LacMapper.grid`
+is the map for the end.
 
 Excluded areas (:meth:`LacMapper.exclude_disc`, e.g. the lander: its points are not terrain)
 drop the points and detections placed inside them; their cells are interpolated.
