@@ -270,7 +270,7 @@ def agent(a) -> None:
                         f"lac_map = {str(lac_map).lower()}\nlac_map_cells_per_tick = {a.cells_per_tick}\n")  # fmt: skip
         filled = []
 
-        def observe(ag):
+        def observe(ag, filled=filled):
             gm = ag.get_geometric_map()
             if gm is not None and len(filled) % 20 == 0:
                 filled.append(int(np.isfinite(gm.get_map_array()[:, :, 2]).sum()))

@@ -49,8 +49,8 @@ import numpy as np
 
 import lunarloc
 from lunarloc import CameraRig, LacMapper, OnlineConfig, OnlineLocalizer, as_transform_matrix, load_reference
-from lunarloc.mapping.lac_map import LacMapWriter
 from lunarloc.core.geometry import matrix_to_pose
+from lunarloc.mapping.lac_map import LacMapWriter
 
 try:  # the leaderboard's own types when it is installed
     import carla

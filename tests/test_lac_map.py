@@ -406,7 +406,7 @@ def test_small_rocks_have_their_own_sightings_floor_and_footprint_margin():
         return m.grid()
 
     est = mapper(small_rock_min_sightings=2, small_rock_margin_m=0.01, rock_radius_scale=1.1)
-    r = dict(((round(x, 2), round(y, 2)), rad) for x, y, rad in est.rocks)
+    r = {(round(x, 2), round(y, 2)): rad for x, y, rad in est.rocks}
     assert r[(1.0, 0.2)] == pytest.approx(0.04) and r[(1.5, -0.6)] == pytest.approx(0.22)  # r + margin; 1.1 x r
     est3 = mapper(small_rock_min_sightings=3)
     assert len(est3.rocks) == 1 and est3.rocks[0, :2] == pytest.approx([1.5, -0.6])  # two sightings: not enough
