@@ -11,7 +11,7 @@ Usage
     python benchmarks/bench_lac_map.py score --out DIR --seeds 281 282 283 284 285 [--json OUT.json]
         [--figure-seed 281]
     # 3. cost: detection vs mapping per stereo pair, CPU time (an archive at each resolution)
-    python benchmarks/bench_lac_map.py cost --archive A.lac [--frames 40]
+    python benchmarks/bench_lac_map.py cost --archive A.lac [--frames 40] [--small-rocks]
     # 4. memory: the mapper fed for a long replay (the archive's frames cycled with their
     #    ground-truth poses, shifted around the site; the detector is not re-run)
     python benchmarks/bench_lac_map.py memory --archive A.lac --hours 2 --rate-hz 2
@@ -174,6 +174,8 @@ def cost(a) -> None:
     from lunarloc.pipeline.runner import add_to_mapper
 
     cfg = RunConfig()
+    if a.small_rocks:  # the detector as the map's runs use it
+        cfg = replace(cfg, detector=replace(cfg.detector, small_rocks=replace(cfg.detector.small_rocks, enabled=True)))
     with LacArchive(a.archive) as ar:
         cam = camera_from_archive(ar)
         det = Detector(cfg.detector_for(cam.width), cam)
@@ -200,7 +202,8 @@ def cost(a) -> None:
     m.grid()
     t_grid = clock() - t0
     med = lambda v: 1000 * float(np.median(v))  # noqa: E731
-    print(f"{a.archive} {cam.width}x{cam.height}, {len(t_map)} pairs, CPU time (median): detection {med(t_det0):.1f} ms "
+    print(f"{a.archive} {cam.width}x{cam.height}, {len(t_map)} pairs, small-rock stage {'on' if a.small_rocks else 'off'}, "
+          f"CPU time (median): detection {med(t_det0):.1f} ms "
           f"(with the height map kept {med(t_det):.1f} ms), mapper add_frame {med(t_map):.2f} ms "
           f"({100 * med(t_map) / med(t_det0):.1f} % of detection); grid() of {len(m)} frames {1000 * t_grid:.0f} ms")  # fmt: skip
 
@@ -310,6 +313,7 @@ def main() -> None:
     s = sub.add_parser("cost")
     s.add_argument("--archive", type=Path, required=True)
     s.add_argument("--frames", type=int, default=30)
+    s.add_argument("--small-rocks", action="store_true", help="the detector with its small-rock stage (as score runs it)")
     s = sub.add_parser("memory")
     s.add_argument("--archive", type=Path, required=True)
     s.add_argument("--frames", type=int, default=60)
