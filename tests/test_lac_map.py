@@ -180,7 +180,7 @@ def test_bounded_memory_freezes_the_oldest_frames(rng):
 
 
 def test_rocks_need_two_sightings_and_mark_the_cells_any_ray_reaches(rng):
-    m = LacMapper(LacMapperConfig(size_m=9.0, fill="none"))
+    m = LacMapper(LacMapperConfig(size_m=9.0, fill="none", rock_min_sightings=2))  # the default is 3
     T0 = pose_to_matrix(-2.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     T1 = pose_to_matrix(-1.5, 0.5, 0.0, 0.0, 0.0, 0.0)
     rock_map = np.array([1.0, 0.2, 0.05])
@@ -405,11 +405,13 @@ def test_small_rocks_have_their_own_sightings_floor_and_footprint_margin():
             m.add_frame(k, T, None, np.array([rock, big]))
         return m.grid()
 
-    est = mapper(small_rock_min_sightings=2, small_rock_margin_m=0.01, rock_radius_scale=1.1)
+    est = mapper(rock_min_sightings=2, small_rock_min_sightings=2, small_rock_margin_m=0.01, rock_radius_scale=1.1)
     r = {(round(x, 2), round(y, 2)): rad for x, y, rad in est.rocks}
     assert r[(1.0, 0.2)] == pytest.approx(0.04) and r[(1.5, -0.6)] == pytest.approx(0.22)  # r + margin; 1.1 x r
-    est3 = mapper(small_rock_min_sightings=3)
+    est3 = mapper(rock_min_sightings=2, small_rock_min_sightings=3)
     assert len(est3.rocks) == 1 and est3.rocks[0, :2] == pytest.approx([1.5, -0.6])  # two sightings: not enough
+    default = mapper()  # 3 sightings for the larger rock, 2 for the small one
+    assert len(default.rocks) == 1 and default.rocks[0, :2] == pytest.approx([1.0, 0.2])
     with pytest.raises(ConfigError):
         LacMapperConfig(small_rock_min_sightings=0)
 
