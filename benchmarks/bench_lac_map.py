@@ -11,10 +11,13 @@ Usage
     python benchmarks/bench_lac_map.py score --out DIR --seeds 281 282 283 284 285 [--json OUT.json]
         [--figure-seed 281]
     # 3. cost: detection vs mapping per stereo pair, CPU time (an archive at each resolution)
-    python benchmarks/bench_lac_map.py cost --archive A.lac [--frames 40]
+    python benchmarks/bench_lac_map.py cost --archive A.lac [--frames 40] [--small-rocks]
     # 4. memory: the mapper fed for a long replay (the archive's frames cycled with their
     #    ground-truth poses, shifted around the site; the detector is not re-run)
     python benchmarks/bench_lac_map.py memory --archive A.lac --hours 2 --rate-hz 2
+    # 5. the agent (examples/lac_agent.py) through the stand-in leaderboard, lac_map off and on:
+    #    run_step CPU per tick, the map writing's share, cells written before finalize, scores
+    python benchmarks/bench_lac_map.py agent --out DIR [--seed 302] [--duration 60] [--width 640]
 
 Each site's truth is ``site_geometric_map(simulate_site(seed))`` (the LAC's 16-ray rule). "Seen"
 cells are those the ground-truth-placed frames observed (the same set for all three pose
@@ -28,6 +31,7 @@ import json
 import resource
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -81,6 +85,8 @@ def score(a) -> None:
         light = (d / "lighting.txt").read_text().strip() if (d / "lighting.txt").is_file() else "?"
         truth = site_geometric_map(simulate_site(seed))
         cfg = RunConfig()
+        if a.small_rocks:  # the detector's small-rock stage: the rocks under 5 cm the any-ray rule flags
+            cfg = replace(cfg, detector=replace(cfg.detector, small_rocks=replace(cfg.detector.small_rocks, enabled=True)))
         mapper = LacMapper(mcfg)
         t0 = time.perf_counter()
         res = run(ArchiveSource(d / "traverse.lac", cfg.odometry, cfg.detector.pairs), load_reference(d / "rocks.csv"),
@@ -105,7 +111,9 @@ def score(a) -> None:
                 "rock_cells_true_seen": s_seen["rock_cells_true"],
                 "seen_geometric": round(s_seen["geometric"], 4), "seen_rock_precision": round(s_seen["rock_precision"], 4),
                 "seen_rock_recall": round(s_seen["rock_recall"], 4), "seen_rock_f1": round(s_seen["rock_f1"], 4),
-                "all_geometric": round(s_all["geometric"], 4), "all_rock_f1": round(s_all["rock_f1"], 4),
+                "all_geometric": round(s_all["geometric"], 4), "all_rock_precision": round(s_all["rock_precision"], 4),
+                "all_rock_recall": round(s_all["rock_recall"], 4), "all_rock_f1": round(s_all["rock_f1"], 4),
+                "all_points_total": round(s_all["points"]["total"], 1),
                 "seen_points_geo_rock": round(s_seen["points"]["geometric_map"] + s_seen["points"]["rocks_map"], 1),
                 "all_points_geo_rock": round(s_all["points"]["geometric_map"] + s_all["points"]["rocks_map"], 1),
                 "interp_within_1m_geometric": _interp_share(est, truth, 1.0),
@@ -166,6 +174,8 @@ def cost(a) -> None:
     from lunarloc.pipeline.runner import add_to_mapper
 
     cfg = RunConfig()
+    if a.small_rocks:  # the detector as the map's runs use it
+        cfg = replace(cfg, detector=replace(cfg.detector, small_rocks=replace(cfg.detector.small_rocks, enabled=True)))
     with LacArchive(a.archive) as ar:
         cam = camera_from_archive(ar)
         det = Detector(cfg.detector_for(cam.width), cam)
@@ -192,7 +202,8 @@ def cost(a) -> None:
     m.grid()
     t_grid = clock() - t0
     med = lambda v: 1000 * float(np.median(v))  # noqa: E731
-    print(f"{a.archive} {cam.width}x{cam.height}, {len(t_map)} pairs, CPU time (median): detection {med(t_det0):.1f} ms "
+    print(f"{a.archive} {cam.width}x{cam.height}, {len(t_map)} pairs, small-rock stage {'on' if a.small_rocks else 'off'}, "
+          f"CPU time (median): detection {med(t_det0):.1f} ms "
           f"(with the height map kept {med(t_det):.1f} ms), mapper add_frame {med(t_map):.2f} ms "
           f"({100 * med(t_map) / med(t_det0):.1f} % of detection); grid() of {len(m)} frames {1000 * t_grid:.0f} ms")  # fmt: skip
 
@@ -243,6 +254,43 @@ def memory(a) -> None:
     print(f"grid() after {n_total} frames: {1000 * (time.perf_counter() - t1):.0f} ms")
 
 
+def agent(a) -> None:
+    """examples/lac_agent.py through the stand-in leaderboard (tests/standins), closed loop,
+    with and without ``lac_map``: run_step CPU per tick, the map writing's share, the cells
+    written before finalize, and the final map's LAC scores."""
+    root = Path(__file__).resolve().parents[1]
+    sys.path.insert(0, str(root / "tests" / "standins"))
+    import lunarsim
+
+    agent_file = root / "examples" / "lac_agent.py"
+    for lac_map in (False, True):
+        world = lunarsim.SimWorld(a.seed, n_rocks=a.rocks)
+        d = a.out / f"agent_{a.seed}_{'map' if lac_map else 'nomap'}"
+        d.mkdir(parents=True, exist_ok=True)
+        world.write_reference(d / "rocks.csv")
+        conf = d / "lunarloc.toml"
+        conf.write_text(f'reference = "rocks.csv"\nwidth = {a.width}\nheight = {a.width * 9 // 16}\noutput = ""\n'
+                        f"lac_map = {str(lac_map).lower()}\nlac_map_cells_per_tick = {a.cells_per_tick}\n")  # fmt: skip
+        filled = []
+
+        def observe(ag, filled=filled):
+            gm = ag.get_geometric_map()
+            if gm is not None and len(filled) % 20 == 0:
+                filled.append(int(np.isfinite(gm.get_map_array()[:, :, 2]).sum()))
+            else:
+                filled.append(filled[-1] if filled else 0)
+
+        run = lunarsim.run_agent(agent_file, conf, world, a.duration, evaluation=True, score=True, observe=observe)
+        cpu = 1000 * np.array(run.run_step_cpu_s)
+        ag = run.agent
+        w = 1000 * np.array(ag.map_write_cpu_s) if lac_map else np.zeros(1)
+        sc = run.scores or {}
+        print(f"seed {a.seed} {a.width}px lac_map={lac_map}: {run.ticks} ticks, run_step CPU median {np.median(cpu):.1f} ms, "
+              f"p95 {np.percentile(cpu, 95):.1f}, max {cpu.max():.0f}; map writing per tick: median {np.median(w):.2f} ms, "
+              f"p99 {np.percentile(w, 99):.2f}, max {w.max():.1f} ms; cells in the map before finalize {filled[-1]}; "
+              f"finalize's whole-map write {1000 * (ag.map_finish_cpu_s or 0):.0f} ms CPU; scores {sc}", flush=True)  # fmt: skip
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -260,17 +308,27 @@ def main() -> None:
     s.add_argument("--figure-seed", type=int, default=None)
     s.add_argument("--mapper-config", default=None, help="JSON of LacMapperConfig fields")
     s.add_argument("--dump", action="store_true", help="pickle the mapper and poses into each site's folder")
+    s.add_argument("--no-small-rocks", dest="small_rocks", action="store_false",
+                   help="run the detector without its small-rock stage (on by default here: the map's rocks under 5 cm)")
     s = sub.add_parser("cost")
     s.add_argument("--archive", type=Path, required=True)
     s.add_argument("--frames", type=int, default=30)
+    s.add_argument("--small-rocks", action="store_true", help="the detector with its small-rock stage (as score runs it)")
     s = sub.add_parser("memory")
     s.add_argument("--archive", type=Path, required=True)
     s.add_argument("--frames", type=int, default=60)
     s.add_argument("--hours", type=float, default=2.0)
     s.add_argument("--rate-hz", type=float, default=2.0)
     s.add_argument("--mapper-config", default=None)
+    s = sub.add_parser("agent")
+    s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--seed", type=int, default=302)
+    s.add_argument("--rocks", type=int, default=386)
+    s.add_argument("--duration", type=float, default=60.0)
+    s.add_argument("--width", type=int, default=640)
+    s.add_argument("--cells-per-tick", type=int, default=400)
     a = ap.parse_args()
-    {"simulate": simulate, "score": score, "cost": cost, "memory": memory}[a.cmd](a)
+    {"simulate": simulate, "score": score, "cost": cost, "memory": memory, "agent": agent}[a.cmd](a)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,10 @@ Settings (``lunarloc.toml``; every key optional, relative paths from the TOML's 
     loop_radius_m = 0.0       # radius of the loop driven about the lander; 0: the start's distance
     speed_mps = 0.3           # driving speed (the leaderboard clamps to 0.49)
     warm_up = true            # compile and warm caches in setup(), before the mission clock runs
-    lac_map = false           # fill the leaderboard's geometric map (lunarloc.LacMapper) in finalize()
+    lac_map = false           # fill the leaderboard's geometric map (lunarloc.LacMapper): cells as they
+                              # become confident during the run, the whole map in finalize()
+    lac_map_cells_per_tick = 400  # at most this many cells written a tick (bounds the tick's cost)
+    lac_map_small_rocks = true    # with lac_map: run the detector's small-rock stage (rocks under 5 cm)
 
 Without the leaderboard installed the class derives from lunarloc's mirror of its base
 class (:class:`lunarloc.LacAgentBase`), so :class:`lunarloc.PlaybackAgent` can replay a
@@ -28,8 +31,10 @@ recording through it in the leaderboard's call order (``tests/test_online_compon
 
 Driving is not lunarloc's job: ``run_step`` steers a loop about the lander from the
 estimated pose so that the rover moves and sees rocks; a team plans here instead. The
-geometric map the LAC scores: ``lac_map = true`` has lunarloc's mapper fill it in
-``finalize()``; a team's own mapper goes into the ``MAPPER HOOK``.
+geometric map the LAC scores: ``lac_map = true`` has lunarloc's mapper fill it, during the run
+(``lunarloc.mapping.lac_map.LacMapWriter.step`` every tick: the cells that became confident,
+at most ``lac_map_cells_per_tick`` a tick) and whole in ``finalize()``; a team's own mapper
+goes into the ``MAPPER HOOK``.
 """
 
 from __future__ import annotations
@@ -37,14 +42,15 @@ from __future__ import annotations
 import json
 import logging
 import math
+import time
 from pathlib import Path
 
 import numpy as np
 
 import lunarloc
 from lunarloc import CameraRig, LacMapper, OnlineConfig, OnlineLocalizer, as_transform_matrix, load_reference
-from lunarloc import write_geometric_map
 from lunarloc.core.geometry import matrix_to_pose
+from lunarloc.mapping.lac_map import LacMapWriter
 
 try:  # the leaderboard's own types when it is installed
     import carla
@@ -64,7 +70,8 @@ log = logging.getLogger(__name__)
 
 STEREO = ("FrontLeft", "FrontRight")
 DEFAULTS = {"reference": "", "width": 1280, "height": 720, "odometry": "visual", "output": "lunarloc-out",
-            "light_intensity": 1.0, "loop_radius_m": 0.0, "speed_mps": 0.3, "warm_up": True, "lac_map": False}  # fmt: skip
+            "light_intensity": 1.0, "loop_radius_m": 0.0, "speed_mps": 0.3, "warm_up": True, "lac_map": False,
+            "lac_map_cells_per_tick": 400, "lac_map_small_rocks": True}  # fmt: skip
 
 
 def get_entry_point() -> str:
@@ -102,6 +109,9 @@ class LunarLocAgent(AutonomousAgent):
         self.lander_xy = (T0 @ T_rl)[:2, 3]
         r0 = float(np.linalg.norm(T0[:2, 3] - self.lander_xy))
         self.loop_radius_m = settings["loop_radius_m"] or min(max(r0, 3.5), 10.0)
+        self.map_writer = None  # lac_map: lunarloc's mapper's writer into get_geometric_map() (first tick)
+        self.map_write_cpu_s = []  # lac_map: CPU seconds of each tick's map writing
+        self.map_finish_cpu_s = None  # lac_map: CPU seconds of writing the whole map in finalize()
         self.mapper = None  # MAPPER HOOK: a mapper of the team's own, fed every tick (see run_step)
 
     def use_fiducials(self) -> bool:
@@ -117,8 +127,18 @@ class LunarLocAgent(AutonomousAgent):
         s = self.settings
         rig = rig or CameraRig.from_sensors(self.sensors())  # the LAC mounts at the configured size
         lac_mapper = LacMapper() if s["lac_map"] else None  # fed by the localizer at its keyframes
+        detector_config = None
+        if s["lac_map"] and s["lac_map_small_rocks"]:  # the any-ray rule flags rocks under 5 cm: find them too
+            from dataclasses import replace
+
+            from lunarloc.perception.detector import DetectorConfig, scaled_detector_config
+
+            base = DetectorConfig()
+            base = replace(base, small_rocks=replace(base.small_rocks, enabled=True))
+            detector_config = scaled_detector_config(rig.camera.width, base)
+        self.map_writer = None  # a new mapper: a new writer at the next tick
         return OnlineLocalizer(self.reference, self.get_initial_position(), rig=rig,
-                               config=OnlineConfig(visual_odometry=s["odometry"] == "visual"),
+                               config=OnlineConfig(visual_odometry=s["odometry"] == "visual"), detector_config=detector_config,
                                lander_pose=self.get_initial_lander_position(), mapper=lac_mapper)  # fmt: skip
 
     # -- every tick ---------------------------------------------------------------------------
@@ -136,9 +156,21 @@ class LunarLocAgent(AutonomousAgent):
             x, y, z, roll, pitch, yaw = matrix_to_pose(est.T_map_rover)
             self._rows.write(f"{est.mission_time_s:.3f},{x:.4f},{y:.4f},{z:.4f},{roll:.5f},{pitch:.5f},{yaw:.5f},"
                              f"{int(est.localized)},{est.fixes}\n")  # fmt: skip
+        self._write_lac_map()
         if self.mapper is not None:  # MAPPER HOOK: per tick, with the pose and the images
             self.mapper.update(est, input_data)
         return VehicleVelocityControl(*self._loop_command(est.T_map_rover))
+
+    def _write_lac_map(self) -> None:
+        """lac_map: write the cells that became confident since the last tick (bounded)."""
+        if self.localizer.mapper is None or self.get_geometric_map() is None:
+            return
+        c = time.process_time()
+        if self.map_writer is None:
+            self.map_writer = LacMapWriter(self.localizer.mapper, self.get_geometric_map(),
+                                           max_cells_per_step=self.settings["lac_map_cells_per_tick"])  # fmt: skip
+        self.map_writer.step()
+        self.map_write_cpu_s.append(time.process_time() - c)
 
     def _loop_command(self, T_map_rover: np.ndarray) -> tuple[float, float]:
         """(m/s, rad/s): follow the circle about the lander counter-clockwise, steering toward a
@@ -155,8 +187,12 @@ class LunarLocAgent(AutonomousAgent):
     def finalize(self) -> None:
         est = self.estimate
         if self.localizer is not None and self.localizer.mapper is not None and self.get_geometric_map() is not None:
-            cells = write_geometric_map(self.localizer.mapper.grid(), self.get_geometric_map())
-            log.info("lunarloc wrote %d cells of the geometric map", cells)
+            if self.map_writer is None:
+                self.map_writer = LacMapWriter(self.localizer.mapper, self.get_geometric_map())
+            during, c = self.map_writer.cells_written, time.process_time()
+            cells = self.map_writer.finish()
+            self.map_finish_cpu_s = time.process_time() - c
+            log.info("lunarloc wrote %d cells of the geometric map (%d during the run)", cells, during)
         if self.mapper is not None:  # MAPPER HOOK: fill the leaderboard's map
             self.mapper.finalize(self.get_geometric_map())
         if self._rows is not None:
@@ -186,6 +222,8 @@ def _read_settings(path) -> dict:
         if not isinstance(value, want) or (want is int and isinstance(value, bool)):
             raise ValueError(f"{path}: {key} must be {want.__name__}, got {value!r}")
         out[key] = value
+    if out["lac_map_cells_per_tick"] < 1:
+        raise ValueError(f"{path}: lac_map_cells_per_tick must be >= 1, got {out['lac_map_cells_per_tick']}")
     if out["odometry"] not in ("visual", "imu"):
         raise ValueError(f"{path}: odometry must be 'visual' or 'imu', got {out['odometry']!r}")
     return out

@@ -53,7 +53,10 @@ def small_world():
 def _conf(tmp_path, world, **extra) -> Path:
     ref = world.write_reference(tmp_path / "rocks.csv")
     lines = [f'reference = "{ref.name}"', f"width = {W}", f"height = {H}", 'output = "out"']
-    lines += [f"{k} = {v!r}" if not isinstance(v, str) else f'{k} = "{v}"' for k, v in extra.items()]
+    def value(v):
+        return f'"{v}"' if isinstance(v, str) else str(v).lower() if isinstance(v, bool) else repr(v)
+
+    lines += [f"{k} = {value(v)}" for k, v in extra.items()]
     p = tmp_path / "lunarloc.toml"
     p.write_text("\n".join(lines) + "\n")
     return p
@@ -195,3 +198,36 @@ def test_finalize_writes_the_run(closed_loop):
 
     summary = json.loads((out / "summary.json").read_text())
     assert summary["ticks"] == 600 and summary["localized"] is True
+
+
+# ----------------------------------------------------------------------------- the LAC map
+
+
+def test_the_agent_writes_the_map_during_the_run_and_completes_it_in_finalize(tmp_path):
+    """lac_map = true: cells go into the leaderboard's GeometricMap while the mission runs
+    (as they become confident, at most lac_map_cells_per_tick a tick), and finalize() fills
+    every cell."""
+    world = lunarsim.SimWorld(302, n_rocks=800)
+    counts, last = [], {}
+
+    def observe(agent):
+        gm = agent.get_geometric_map()
+        a = gm.get_map_array()
+        done = np.isfinite(a[:, :, 2]) & np.isfinite(a[:, :, 3])
+        counts.append(int(done.sum()))
+        last["done"], last["height"] = done, a[:, :, 2].copy()
+
+    cap = 150
+    run = lunarsim.run_agent(AGENT_FILE, _conf(tmp_path, world, lac_map=True, lac_map_cells_per_tick=cap), world, 16.0,
+                             evaluation=True, observe=observe)  # fmt: skip
+    assert run.ticks == len(counts) == 320
+    steps = np.diff([0] + counts)
+    assert counts[-1] >= 300  # cells written before finalize
+    assert steps.max() <= cap  # at most `cap` a tick
+    assert np.count_nonzero(steps) >= 3  # written as the rover goes, not at once
+    assert len(run.agent.map_write_cpu_s) == run.ticks
+    truth = world.ground_truth_map(Constants())
+    during = last["done"]
+    assert np.mean(np.abs(last["height"] - truth[:, :, 2])[during] < 0.05) >= 0.8  # the live heights are right
+    final = run.agent.get_geometric_map().get_map_array()
+    assert np.isfinite(final[:, :, 2]).all() and np.isfinite(final[:, :, 3]).all()  # finalize fills every cell

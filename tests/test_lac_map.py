@@ -170,7 +170,8 @@ def test_bounded_memory_freezes_the_oldest_frames(rng):
         small.add_frame(k, T, pts)
         full.add_frame(k, T, pts)
     assert len(small) == 5 and small.frozen_frames == 25 and small.frame_ids == list(range(25, 30))
-    assert small.memory_bytes() < full.memory_bytes() / 3
+    fixed = LacMapper(LacMapperConfig(size_m=15.0)).memory_bytes()  # the per-cell arrays, no frame
+    assert small.memory_bytes() - fixed < (full.memory_bytes() - fixed) / 3
     assert not small.repose(0, poses[0]) and small.repose(29, poses[29])
     a, b = small.grid(), full.grid()
     assert np.array_equal(a.observed, b.observed)
@@ -179,7 +180,7 @@ def test_bounded_memory_freezes_the_oldest_frames(rng):
 
 
 def test_rocks_need_two_sightings_and_mark_the_cells_any_ray_reaches(rng):
-    m = LacMapper(LacMapperConfig(size_m=9.0, fill="none"))
+    m = LacMapper(LacMapperConfig(size_m=9.0, fill="none", rock_min_sightings=2))  # the default is 3
     T0 = pose_to_matrix(-2.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     T1 = pose_to_matrix(-1.5, 0.5, 0.0, 0.0, 0.0, 0.0)
     rock_map = np.array([1.0, 0.2, 0.05])
@@ -391,3 +392,94 @@ def test_a_bump_in_the_heights_is_a_rock_without_any_detection(rng):
     off = LacMapper(LacMapperConfig(size_m=15.0, fill="none"))  # the default: off
     off._frames = m._frames
     assert not (off.grid().array[:, :, 3] == 1).any()
+
+
+def test_small_rocks_have_their_own_sightings_floor_and_footprint_margin():
+    T = np.eye(4)
+    rock = [1.0, 0.2, 0.02, 0.03]  # a 3 cm rock (under small_rock_m)
+    big = [1.5, -0.6, 0.1, 0.2]
+
+    def mapper(**kw):
+        m = LacMapper(LacMapperConfig(size_m=9.0, fill="none", **kw))
+        for k in range(2):
+            m.add_frame(k, T, None, np.array([rock, big]))
+        return m.grid()
+
+    est = mapper(rock_min_sightings=2, small_rock_min_sightings=2, small_rock_margin_m=0.01, rock_radius_scale=1.1)
+    r = {(round(x, 2), round(y, 2)): rad for x, y, rad in est.rocks}
+    assert r[(1.0, 0.2)] == pytest.approx(0.04) and r[(1.5, -0.6)] == pytest.approx(0.22)  # r + margin; 1.1 x r
+    est3 = mapper(rock_min_sightings=2, small_rock_min_sightings=3)
+    assert len(est3.rocks) == 1 and est3.rocks[0, :2] == pytest.approx([1.5, -0.6])  # two sightings: not enough
+    default = mapper()  # 3 sightings for the larger rock, 2 for the small one
+    assert len(default.rocks) == 1 and default.rocks[0, :2] == pytest.approx([1.0, 0.2])
+    with pytest.raises(ConfigError):
+        LacMapperConfig(small_rock_min_sightings=0)
+
+
+def test_frame_inputs_puts_a_levelled_height_map_back_in_the_rover_frame(rng):
+    """DetectorConfig.level_from_stereo builds a tilted rover's height map in a frame levelled
+    on the ground: its points_rover are then not rover-frame points."""
+    from lunarloc.mapping.lac_map import frame_inputs
+
+    P_rover = rng.uniform(-2, 2, (50, 3))
+    T_level_rover = pose_to_matrix(0.0, 0.0, 0.0, 0.2, -0.15, 0.0)
+    P_level = (T_level_rover[:3, :3] @ P_rover.T).T
+    det = SimpleNamespace(p_rover=np.array([1.0, 0.0, 0.1]), radius_m=0.1)
+    fd = SimpleNamespace(pairs=[SimpleNamespace(height=SimpleNamespace(points_rover=P_level, T_level_rover=T_level_rover))],
+                         detections=[det])  # fmt: skip
+    pts, rocks = frame_inputs(fd)
+    np.testing.assert_allclose(pts, P_rover, atol=1e-5)
+    np.testing.assert_allclose(rocks, [[1.0, 0.0, 0.1, 0.1]])
+    fd.pairs[0].height.T_level_rover = None  # not levelled: as given
+    np.testing.assert_allclose(frame_inputs(fd)[0], P_level, atol=1e-6)
+
+
+def test_live_cells_are_bounded_handed_out_once_and_again_when_changed(rng):
+    poses = circle_poses(12)
+    m = LacMapper(LacMapperConfig(size_m=15.0))
+    p_rock = poses[2] @ [2.0, 0.0, 0.1, 1.0]  # a rock 2 m ahead of frame 2, detected by frames 1-3
+    for k, T in enumerate(poses[:6]):
+        rocks = np.array([[*(invert_transform(T) @ p_rock)[:3], 0.15]]) if 1 <= k <= 3 else None
+        m.add_frame(k, T, frame_points(T, rng, outliers=0.0), rocks)
+    i, j, h, rock = m.live_cells(min_weight=2.0, max_cells=100)
+    assert len(i) == 100
+    rest = m.live_cells(min_weight=2.0)
+    assert len(rest[0]) > 100 and m.live_cells(min_weight=2.0)[0].size == 0  # each once
+    grid0 = m.grid()
+    ii, jj = np.r_[i, rest[0]], np.r_[j, rest[1]]
+    hh = np.r_[h, rest[2]]
+    truth = true_cells(grid0.array)[ii, jj]
+    assert np.mean(np.abs(hh - truth) < 0.05) > 0.95  # confident cells hold the right heights
+    assert np.r_[rock, rest[3]].any()  # the rock seen by several frames
+    assert np.all(grid0.weight[ii, jj] >= 2.0)
+    T = poses[6]
+    m.add_frame(6, T, frame_points(T, rng, outliers=0.0))
+    again = m.live_cells(min_weight=2.0)
+    assert 0 < len(again[0])  # the new frame's cells, and only cells it touched
+    assert np.all(m.grid().weight[again[0], again[1]] > grid0.weight[again[0], again[1]])
+    with pytest.raises(InputError):
+        m.live_cells(min_weight=-1.0)
+
+
+def test_map_writer_writes_bounded_steps_then_the_whole_map(rng):
+    from lunarloc.mapping.lac_map import LacMapWriter
+
+    m = LacMapper(LacMapperConfig())
+    gm = FakeGeometricMap()
+    w = LacMapWriter(m, gm, min_weight=2.0, max_cells_per_step=150)
+    assert w.step() == 0  # nothing seen yet
+    steps = []
+    for k, T in enumerate(circle_poses(10)):
+        m.add_frame(k, T, frame_points(T, rng), np.array([[2.0, 0.0, 0.1, 0.15]]))
+        steps.append(w.step())
+    assert max(steps) == 150 and 0 < w.cells_written <= sum(steps)  # a cell a new frame changed is written again
+    arr = gm.get_map_array()
+    done = np.isfinite(arr[:, :, 2])
+    assert done.sum() == w.cells_written and np.all(np.isfinite(arr[done, 3]))
+    n = w.finish()
+    assert n == 180 * 180 and np.isfinite(arr[:, :, 2:]).all() and w.cells_written == 180 * 180
+    np.testing.assert_array_equal(arr[:, :, 2], m.grid().array[:, :, 2])
+    with pytest.raises(InputError, match="cells a side"):
+        LacMapWriter(m, FakeGeometricMap(60))
+    with pytest.raises(InputError):
+        LacMapWriter("not a mapper", gm)

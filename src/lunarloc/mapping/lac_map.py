@@ -21,10 +21,13 @@ the rays hits a rock. The mapper estimates both:
   the bins that fall in it (robust to stereo outliers and to a rock edge's few points), its
   uncertainty the weighted spread about that median (``height_sigma_m``).
 * **Rocks.** Detections are placed with their frame's pose; those of different frames within
-  ``rock_merge_m`` of each other are one rock; a rock seen in at least ``rock_min_sightings``
-  frames is kept with the median centre and radius, and every cell with **any** of its 16 ray
-  points within ``rock_radius_scale x radius + rock_radius_margin_m`` of the centre is flagged
-  (the LAC's any-ray rule).
+  ``rock_merge_m`` of each other are one rock, kept with the median centre and radius when
+  enough frames detected it: ``rock_min_sightings`` for a rock of ``small_rock_m`` radius or
+  more, ``small_rock_min_sightings`` for a smaller one (the detector's small-rock stage finds
+  those; the any-ray rule flags them). Every cell with **any** of its 16 ray points within
+  the footprint of the centre is flagged (the LAC's any-ray rule); the footprint radius is
+  ``rock_radius_scale x radius + rock_radius_margin_m``, for a small rock
+  ``radius + small_rock_margin_m``.
 * **Rock bumps** (off by default). With ``rock_bump_m`` set, observed cells standing that much
   or more above their local ground (the ``rock_ground_quantile`` percentile of the heights in
   a ``rock_ground_window_m`` square) are flagged too. On the tuning site it added more false
@@ -40,6 +43,12 @@ the rays hits a rock. The mapper estimates both:
   frozen into per-cell sums at their last pose (their heights then join each cell's median
   as one weighted mean) and can no longer move. Memory: the frozen sums (three N x N arrays)
   plus ``max_frames`` summaries (about 16 bytes a bin; :meth:`LacMapper.memory_bytes`).
+
+The live layer (:meth:`LacMapper.live_cells`, what :class:`LacMapWriter` writes into the
+leaderboard's map every tick): each frame folded in once at the pose it was added with
+(running weighted means, rock-footprint votes), the cells it changed marked for writing;
+cheap (the frame's bins), approximate (no re-placing, no medians); :meth:`LacMapper.grid`
+is the map for the end.
 
 Excluded areas (:meth:`LacMapper.exclude_disc`, e.g. the lander: its points are not terrain)
 drop the points and detections placed inside them; their cells are interpolated.
@@ -61,7 +70,7 @@ from lunarloc.io.overhead import LAC_CELL_M, LAC_CELLS, LAC_RAY_OFFSETS, UNFILLE
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
-__all__ = ["LacMapperConfig", "LacMapEstimate", "LacMapper", "write_geometric_map", "save_lac_map", "cells_path",
+__all__ = ["LacMapperConfig", "LacMapEstimate", "LacMapper", "LacMapWriter", "write_geometric_map", "save_lac_map", "cells_path",
            "load_observed_cells", "frame_inputs", "LANDER_EXCLUSION_M"]
 
 FILL_MODES = ("all", "near", "none")
@@ -84,11 +93,16 @@ class LacMapperConfig:
     range_scale_m: float = 2.0  # bin weight count / (1 + (range / range_scale_m)^4)
     max_abs_z_m: float = 3.0  # rover-frame points higher or lower than this are dropped
     max_frames: int = 2000  # frames kept re-placeable; older ones are frozen at their pose
-    rock_min_sightings: int = 2  # frames that must detect a rock before it is mapped
-    rock_merge_m: float = 0.15  # detections of different frames nearer than this are one rock
+    rock_min_sightings: int = 3  # frames that must detect a rock (small_rock_m or larger) before it is mapped
+    rock_merge_m: float = 0.10  # detections of different frames nearer than this are one rock
     rock_max_range_m: float = 6.0  # detections farther than this (horizontal, rover frame) are dropped
-    rock_radius_scale: float = 1.0  # footprint radius = scale x estimated radius + margin
+    rock_radius_scale: float = 1.05  # footprint radius = scale x estimated radius + margin
     rock_radius_margin_m: float = 0.0
+    # small rocks (median radius under small_rock_m; the small-rock stage's finds): their own
+    # sightings floor and footprint radius = radius + small_rock_margin_m (no scale)
+    small_rock_m: float = 0.05
+    small_rock_min_sightings: int = 2
+    small_rock_margin_m: float = 0.01
     rock_bump_m: float | None = None  # observed cells this high over their local ground are rock cells (None: off)
     rock_ground_window_m: float = 1.05  # the local ground: a low quantile of the heights in this square
     rock_ground_quantile: float = 30.0  # ... this percentile
@@ -105,8 +119,10 @@ class LacMapperConfig:
             raise ConfigError("need 0 <= min_range_m < max_range_m")
         if self.range_scale_m <= 0 or self.max_abs_z_m <= 0:
             raise ConfigError("range_scale_m and max_abs_z_m must be > 0")
-        if self.max_frames < 1 or self.rock_min_sightings < 1:
-            raise ConfigError("max_frames and rock_min_sightings must be >= 1")
+        if self.max_frames < 1 or self.rock_min_sightings < 1 or self.small_rock_min_sightings < 1:
+            raise ConfigError("max_frames, rock_min_sightings and small_rock_min_sightings must be >= 1")
+        if not (self.small_rock_m >= 0 and math.isfinite(self.small_rock_margin_m)):
+            raise ConfigError("small_rock_m must be >= 0, small_rock_margin_m finite")
         if self.rock_merge_m < 0 or self.rock_max_range_m <= 0 or self.rock_radius_scale < 0:
             raise ConfigError("rock_merge_m and rock_radius_scale must be >= 0, rock_max_range_m > 0")
         if self.fill not in FILL_MODES:
@@ -184,6 +200,14 @@ class LacMapper:
         self._frozen_rocks = np.zeros((0, 4))  # map-frame x, y, radius, seq
         self._discs: list[tuple[float, float, float]] = []
         self.frozen_frames = 0
+        # the live layer (live_cells): per-cell running sums at the poses frames were added
+        # with, rock-footprint votes, and the cells changed since they were last handed out
+        self._live_w = np.zeros(n * n)
+        self._live_wz = np.zeros(n * n)
+        self._live_votes = np.zeros(n * n, np.int32)
+        self._live_dirty = np.zeros(n * n, bool)
+        self._live_rock = np.zeros(n * n, bool)  # the flag last handed out
+        self._live_cursor = 0
         # the rover-frame bin lattice: keys in a (side x side) square
         self._half = int(math.ceil(cfg.max_range_m / cfg.bin_m)) + 1
         self._side = 2 * self._half + 1
@@ -211,6 +235,7 @@ class LacMapper:
         bins = self._summarise(points_rover, frame_id)
         rocks = self._rocks(rocks_rover, frame_id)
         old = self._frames.get(frame_id)
+        self._live_add(T, bins, rocks)
         if old is not None:
             old.T_map_rover = T
             old.bins = np.concatenate([old.bins, bins])
@@ -242,7 +267,52 @@ class LacMapper:
     def memory_bytes(self) -> int:
         """Bytes held: frame summaries, frozen sums and rocks."""
         n = sum(f.bins.nbytes + f.rocks.nbytes + f.T_map_rover.nbytes for f in self._frames.values())
-        return int(n + self._frozen_w.nbytes * 3 + self._frozen_rocks.nbytes)
+        live = self._live_w.nbytes + self._live_wz.nbytes + self._live_votes.nbytes + self._live_dirty.nbytes + self._live_rock.nbytes
+        return int(n + self._frozen_w.nbytes * 3 + self._frozen_rocks.nbytes + live)
+
+    # ------------------------------------------------------------------ the live layer
+    def _live_add(self, T: np.ndarray, bins: np.ndarray, rocks: np.ndarray) -> None:
+        """Fold one frame into the live layer at `T` (cost: its bins and detections)."""
+        fr = _Frame(T, bins, rocks)
+        c, z, w = self._place_bins(fr)
+        if len(c):
+            np.add.at(self._live_w, c, w)
+            np.add.at(self._live_wz, c, w * z)
+            self._live_dirty[c] = True
+        xy, r = self._place_rocks(fr)
+        if len(r):
+            cfg = self.config
+            r_fp = np.where(r < cfg.small_rock_m, r + cfg.small_rock_margin_m,
+                            cfg.rock_radius_scale * r + cfg.rock_radius_margin_m)  # fmt: skip
+            hit = np.flatnonzero(_rock_cells(np.column_stack([xy, np.maximum(r_fp, 0.0)]), self._grid0, cfg.cell_m))
+            self._live_votes[hit] += 1  # once per frame and cell
+            self._live_dirty[hit] = True
+
+    def live_cells(self, min_weight: float = 20.0, max_cells: int | None = None):
+        """Cells that changed since they were last handed out and hold at least `min_weight`
+        of stereo (the bins' weights, as :attr:`LacMapEstimate.weight`), at most `max_cells`
+        of them (the rest wait for the next call, which goes on in cell order from there).
+
+        The live layer is cheap and approximate: each frame is folded in once, at the pose it
+        was added with (a later :meth:`repose` does not move it), heights are weighted means
+        (not medians) and a cell is a rock cell when footprints of at least
+        ``rock_min_sightings`` frames cover it. It is what an agent writes during the run;
+        :meth:`grid` is the map (re-placed frames, medians, fused rocks, fill) for the end.
+        Returns ``(i, j, height_m, rock)`` arrays. Cost: O(cells) for the scan."""
+        if min_weight < 0 or (max_cells is not None and max_cells < 0):
+            raise InputError("live_cells: min_weight and max_cells must be >= 0")
+        ready = np.flatnonzero(self._live_dirty & (self._live_w >= max(min_weight, 1e-12)))
+        if max_cells is not None and len(ready) > max_cells:
+            # round robin: from where the last bounded call stopped, so no cell waits forever
+            k = int(np.searchsorted(ready, self._live_cursor))
+            ready = np.r_[ready[k:], ready[:k]][: int(max_cells)]
+            self._live_cursor = int(ready[-1]) + 1 if len(ready) else 0
+        self._live_dirty[ready] = False
+        n = self.config.cells
+        h = self._live_wz[ready] / self._live_w[ready]
+        rock = self._live_votes[ready] >= min(self.config.rock_min_sightings, self.config.small_rock_min_sightings)
+        self._live_rock[ready] = rock
+        return ready // n, ready % n, h, rock
 
     # ------------------------------------------------------------------ summaries
     def _summarise(self, points, frame_id) -> np.ndarray:
@@ -421,18 +491,23 @@ class LacMapper:
         # sightings: distinct frames per rock
         seen = np.unique(np.column_stack([labels, D[:, 3]]), axis=0)
         sightings = np.bincount(seen[:, 0].astype(np.int64), minlength=k)
-        keep = np.flatnonzero(sightings >= cfg.rock_min_sightings)
-        if len(keep) == 0:
-            return np.zeros((0, 3))
         order = np.argsort(labels, kind="stable")
-        starts = np.searchsorted(labels[order], keep)
-        ends = np.searchsorted(labels[order], keep, side="right")
-        out = np.empty((len(keep), 3))
-        for q, (a, b) in enumerate(zip(starts, ends)):
-            g = D[order[a:b]]
-            out[q] = (np.median(g[:, 0]), np.median(g[:, 1]),
-                      cfg.rock_radius_scale * np.median(g[:, 2]) + cfg.rock_radius_margin_m)  # fmt: skip
-        return out
+        starts = np.searchsorted(labels[order], np.arange(k))
+        ends = np.searchsorted(labels[order], np.arange(k), side="right")
+        out = []
+        for q in np.flatnonzero(sightings >= min(cfg.rock_min_sightings, cfg.small_rock_min_sightings)):
+            g = D[order[starts[q]:ends[q]]]
+            r = float(np.median(g[:, 2]))
+            if r < cfg.small_rock_m:
+                if sightings[q] < cfg.small_rock_min_sightings:
+                    continue
+                r_fp = r + cfg.small_rock_margin_m
+            else:
+                if sightings[q] < cfg.rock_min_sightings:
+                    continue
+                r_fp = cfg.rock_radius_scale * r + cfg.rock_radius_margin_m
+            out.append((np.median(g[:, 0]), np.median(g[:, 1]), max(r_fp, 0.0)))
+        return np.array(out, float).reshape(-1, 3)
 
 
 def _weighted_median(c: np.ndarray, z: np.ndarray, w: np.ndarray, size: int) -> np.ndarray:
@@ -538,19 +613,7 @@ def write_geometric_map(grid, geometric_map) -> int:
     arr = grid.array if isinstance(grid, LacMapEstimate) else np.asarray(grid, dtype=float)
     if arr.ndim != 3 or arr.shape[2] != 4 or arr.shape[0] != arr.shape[1]:
         raise InputError(f"expected an (N, N, 4) LAC map, got shape {arr.shape}")
-    for name in ("set_cell_height", "set_cell_rock"):
-        if not callable(getattr(geometric_map, name, None)):
-            raise InputError(f"the geometric map ({type(geometric_map).__name__}) has no {name}()")
-    n = arr.shape[0]
-    get_n = getattr(geometric_map, "get_cell_number", None)
-    if callable(get_n) and int(get_n()) != n:
-        raise InputError(f"the geometric map has {int(get_n())} cells a side, the mapper's {n}")
-    get_arr = getattr(geometric_map, "get_map_array", None)
-    if callable(get_arr):
-        target = np.asarray(get_arr(), dtype=float)
-        if target.shape[:2] == arr.shape[:2] and np.max(np.abs(target[:, :, :2] - arr[:, :, :2])) > 1e-6:
-            raise InputError("the geometric map's cell centres differ from the mapper's: is the mapper's "
-                             "centre_xy / size_m the map's?")  # fmt: skip
+    _check_target(geometric_map, arr)
     written = 0
     h, f = arr[:, :, 2], arr[:, :, 3]
     for i, j in zip(*np.nonzero(np.isfinite(h) | np.isfinite(f))):
@@ -566,6 +629,69 @@ def write_geometric_map(grid, geometric_map) -> int:
             both = False
         written += both
     return written
+
+
+def _check_target(geometric_map, arr: np.ndarray) -> None:
+    """InputError unless `geometric_map` has the setters and, where it says, `arr`'s cells."""
+    for name in ("set_cell_height", "set_cell_rock"):
+        if not callable(getattr(geometric_map, name, None)):
+            raise InputError(f"the geometric map ({type(geometric_map).__name__}) has no {name}()")
+    n = arr.shape[0]
+    get_n = getattr(geometric_map, "get_cell_number", None)
+    if callable(get_n) and int(get_n()) != n:
+        raise InputError(f"the geometric map has {int(get_n())} cells a side, the mapper's {n}")
+    get_arr = getattr(geometric_map, "get_map_array", None)
+    if callable(get_arr):
+        target = np.asarray(get_arr(), dtype=float)
+        if target.shape[:2] == arr.shape[:2] and np.max(np.abs(target[:, :, :2] - arr[:, :, :2])) > 1e-6:
+            raise InputError("the geometric map's cell centres differ from the mapper's: is the mapper's "
+                             "centre_xy / size_m the map's?")  # fmt: skip
+
+
+class LacMapWriter:
+    """Writes a :class:`LacMapper`'s map into the leaderboard's ``GeometricMap`` during the run.
+
+    :meth:`step` (call it every tick) writes the cells of the mapper's live layer
+    (:meth:`LacMapper.live_cells`) that became confident (at least `min_weight` of stereo) or
+    changed since, at most `max_cells_per_step` a call, so a tick's cost stays bounded;
+    :meth:`finish` (in ``finalize``) writes the whole map of :meth:`LacMapper.grid`
+    (re-placed frames, medians, fused rocks, interpolated cells) over it.
+
+    The target is checked once here (setters, cell count, cell centres: InputError)."""
+
+    def __init__(self, mapper: LacMapper, geometric_map, min_weight: float = 20.0, max_cells_per_step: int = 400):
+        if not isinstance(mapper, LacMapper):
+            raise InputError(f"LacMapWriter needs a LacMapper, got {type(mapper).__name__}")
+        if not (min_weight >= 0 and max_cells_per_step >= 1):
+            raise InputError("LacMapWriter: min_weight must be >= 0 and max_cells_per_step >= 1")
+        _check_target(geometric_map, mapper._grid0)
+        self.mapper, self.geometric_map = mapper, geometric_map
+        self.min_weight, self.max_cells_per_step = float(min_weight), int(max_cells_per_step)
+        n = mapper.config.cells
+        self._written = np.zeros((n, n), bool)
+
+    @property
+    def cells_written(self) -> int:
+        """Distinct cells written so far (height and flag)."""
+        return int(self._written.sum())
+
+    def step(self) -> int:
+        """Write up to ``max_cells_per_step`` confident cells; returns how many."""
+        i, j, h, rock = self.mapper.live_cells(self.min_weight, self.max_cells_per_step)
+        gm = self.geometric_map
+        for a, b, z, r in zip(i.tolist(), j.tolist(), h.tolist(), rock.tolist()):
+            gm.set_cell_height(a, b, z)
+            gm.set_cell_rock(a, b, r)
+        self._written[i, j] = True
+        return len(i)
+
+    def finish(self) -> int:
+        """Write the mapper's whole map (:func:`write_geometric_map` of ``grid()``); returns
+        the cells written."""
+        est = self.mapper.grid()
+        k = write_geometric_map(est, self.geometric_map)
+        self._written |= est.filled & np.isfinite(est.array[:, :, 3])
+        return k
 
 
 def save_lac_map(estimate: LacMapEstimate, path) -> tuple:
@@ -630,6 +756,10 @@ def frame_inputs(fd, detector=None, images=None) -> tuple[np.ndarray | None, np.
             if images.get(pair.camera) is not None and images.get(right) is not None:
                 hm = detector.height_map(images[pair.camera], images[right], pair.T_rover_optical)
         if hm is not None:
-            pts.append(np.asarray(hm.points_rover, np.float32).reshape(-1, 3))
+            P = np.asarray(hm.points_rover, np.float32).reshape(-1, 3)
+            T_level_rover = getattr(hm, "T_level_rover", None)
+            if T_level_rover is not None:  # a levelled height map (DetectorConfig.level_from_stereo): back to the rover frame
+                P = P @ np.asarray(T_level_rover, np.float32)[:3, :3]  # p_rover = R^T p_level
+            pts.append(P)
     rocks = np.array([[*d.p_rover, d.radius_m] for d in fd.detections], float).reshape(-1, 4)
     return (np.concatenate(pts) if pts else None), rocks
