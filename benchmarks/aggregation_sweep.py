@@ -20,16 +20,22 @@ from lunarloc.io.maps import AggregationConfig
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--data", default="../shared/data/lunarloc-data")
     ap.add_argument("--radii", default="0.05,0.1,0.2")
     ap.add_argument("--min-sightings", default="2,3,5,8")
     args = ap.parse_args()
-    print("radius_m min_sightings | ok/136 confident_wrong | median_inliers landmarks/map | median_s largest_pair_s")
+    print(
+        "radius_m min_sightings | ok/136 confident_wrong | median_inliers landmarks/map | median_s largest_pair_s"
+    )
     for radius in (float(x) for x in args.radii.split(",")):
         for ms in (int(x) for x in args.min_sightings.split(",")):
             t0 = time.perf_counter()
-            s = bench_pairs(args.data, agg_config=AggregationConfig(radius_m=radius, min_sightings=ms))
+            s = bench_pairs(
+                args.data, agg_config=AggregationConfig(radius_m=radius, min_sightings=ms)
+            )
             res = s.results
             big = max(res, key=lambda r: r.segs_ref * r.segs_veh)
             print(

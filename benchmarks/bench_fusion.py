@@ -47,7 +47,9 @@ def run(mod, K: int, window_m: float, seed: int = 0) -> dict:
         step = 1.03 * np.linalg.norm(p[i] - p[i - 1])
         o[i] = o[i - 1] + step * np.array([math.cos(oy[i - 1]), math.sin(oy[i - 1]), 0.0])
     lo, hi = p[:, :2].min(axis=0) - 3, p[:, :2].max(axis=0) + 3
-    rocks = np.column_stack([rng.uniform(lo, hi, (int(np.prod(hi - lo) / 2), 2)), np.zeros(int(np.prod(hi - lo) / 2))])
+    rocks = np.column_stack(
+        [rng.uniform(lo, hi, (int(np.prod(hi - lo) / 2), 2)), np.zeros(int(np.prod(hi - lo) / 2))]
+    )
     g = mod.PoseGraph()
     t_solve, n_solve = [], 0
     for i in range(K):
@@ -55,8 +57,17 @@ def run(mod, K: int, window_m: float, seed: int = 0) -> dict:
         near = rocks[np.linalg.norm(rocks[:, :2] - p[i, :2], axis=1) < 2.5][:8]
         c, s = math.cos(yaw[i]), math.sin(yaw[i])
         d = near - p[i]
-        det = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]]) + rng.normal(0, 0.01, d.shape)
-        g.add_landmark_observations([(i, j) for j in range(len(near))], [i] * len(near), det, np.zeros((len(near), 2)), near, 0.05)
+        det = np.column_stack(
+            [c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]]
+        ) + rng.normal(0, 0.01, d.shape)
+        g.add_landmark_observations(
+            [(i, j) for j in range(len(near))],
+            [i] * len(near),
+            det,
+            np.zeros((len(near), 2)),
+            near,
+            0.05,
+        )
         if i % 20 == 19:
             g.add_fix(i, np.r_[p[i] + rng.normal(0, 0.02, 3), yaw[i]], 0.03, 0.005)
         if i % 5 == 4:
@@ -70,11 +81,20 @@ def run(mod, K: int, window_m: float, seed: int = 0) -> dict:
     est = g.poses()
     rmse = math.sqrt(np.mean(np.sum((est[:, :3] - p) ** 2, axis=1)))
     odo = math.sqrt(np.mean(np.sum((o - p) ** 2, axis=1)))
-    return {"poses": est, "scale": g.scale, "t_window": np.array(t_solve), "t_full": t_full, "rmse": rmse, "odo": odo}
+    return {
+        "poses": est,
+        "scale": g.scale,
+        "t_window": np.array(t_solve),
+        "t_full": t_full,
+        "rmse": rmse,
+        "odo": odo,
+    }
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--keyframes", type=int, default=600)
     ap.add_argument("--window-m", type=float, default=10.0)
     ap.add_argument("--compare", default=None, help="another fusion.py to run the same scenario on")
@@ -84,14 +104,18 @@ def main() -> None:
         runs[args.compare] = run(_module(args.compare), args.keyframes, args.window_m)
     for name, r in runs.items():
         tw = r["t_window"] * 1e3
-        print(f"{name}: {args.keyframes} keyframes, RMSE {r['rmse']:.3f} m (odometry {r['odo']:.2f} m), scale {r['scale']:.4f}; "
-              f"window solve ms median {np.median(tw):.1f} p90 {np.percentile(tw, 90):.1f} max {tw.max():.1f}; "
-              f"full solve {r['t_full'] * 1e3:.0f} ms")  # fmt: skip
+        print(
+            f"{name}: {args.keyframes} keyframes, RMSE {r['rmse']:.3f} m (odometry {r['odo']:.2f} m), scale {r['scale']:.4f}; "
+            f"window solve ms median {np.median(tw):.1f} p90 {np.percentile(tw, 90):.1f} max {tw.max():.1f}; "
+            f"full solve {r['t_full'] * 1e3:.0f} ms"
+        )
     if args.compare:
         a, b = runs.values()
         dp = np.abs(a["poses"][:, :3] - b["poses"][:, :3]).max()
         dy = np.abs((a["poses"][:, 3] - b["poses"][:, 3] + math.pi) % (2 * math.pi) - math.pi).max()
-        print(f"largest difference: position {dp:.2e} m, yaw {dy:.2e} rad, scale {abs(a['scale'] - b['scale']):.2e}")
+        print(
+            f"largest difference: position {dp:.2e} m, yaw {dy:.2e} rad, scale {abs(a['scale'] - b['scale']):.2e}"
+        )
 
 
 if __name__ == "__main__":

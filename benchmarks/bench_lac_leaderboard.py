@@ -42,20 +42,40 @@ import lunarsim  # noqa: E402
 AGENT_FILE = ROOT / "examples" / "lac_agent.py"
 
 
-def run_one(seed: int, width: int, height: int, duration_s: float, rocks: int, lighting: str, out: Path,
-            evaluation: bool) -> dict:  # fmt: skip
+def run_one(
+    seed: int,
+    width: int,
+    height: int,
+    duration_s: float,
+    rocks: int,
+    lighting: str,
+    out: Path,
+    evaluation: bool,
+) -> dict:
     d = out / f"site{seed}_{width}x{height}"
     d.mkdir(parents=True, exist_ok=True)
     world = lunarsim.SimWorld(seed, n_rocks=rocks, lighting=lighting)
     world.write_reference(d / "rocks.csv")
     conf = d / "lunarloc.toml"
-    conf.write_text(f'reference = "rocks.csv"\nwidth = {width}\nheight = {height}\noutput = "agent-output"\n')
+    conf.write_text(
+        f'reference = "rocks.csv"\nwidth = {width}\nheight = {height}\noutput = "agent-output"\n'
+    )
     est = []
     t0 = time.perf_counter()
-    run = lunarsim.run_agent(AGENT_FILE, conf, world, duration_s, evaluation=evaluation,
-                             observe=lambda agent: est.append((agent.estimate.T_map_rover[:3, 3].copy(),
-                                                               agent.estimate.localized,
-                                                               agent.estimate.covariance[:3, :3].copy())))  # fmt: skip
+    run = lunarsim.run_agent(
+        AGENT_FILE,
+        conf,
+        world,
+        duration_s,
+        evaluation=evaluation,
+        observe=lambda agent: est.append(
+            (
+                agent.estimate.T_map_rover[:3, 3].copy(),
+                agent.estimate.localized,
+                agent.estimate.covariance[:3, :3].copy(),
+            )
+        ),
+    )
     wall = time.perf_counter() - t0
     truth = np.array([T[:3, 3] for T in run.truth])
     pos = np.array([p for p, _, _ in est])
@@ -64,21 +84,38 @@ def run_one(seed: int, width: int, height: int, duration_s: float, rocks: int, l
     err = np.linalg.norm(pos[:, :2] - truth[:, :2], axis=1)
     # the per-tick trace, to look at where the error grows: true and estimated positions (m),
     # localized, the estimate's 3x3 position covariance (m^2)
-    np.savez_compressed(d / "trace.npz", t_s=np.arange(len(est)) * 0.05, truth_xyz=truth, est_xyz=pos,
-                        localized=loc, covariance_xyz=cov)  # fmt: skip
+    np.savez_compressed(
+        d / "trace.npz",
+        t_s=np.arange(len(est)) * 0.05,
+        truth_xyz=truth,
+        est_xyz=pos,
+        localized=loc,
+        covariance_xyz=cov,
+    )
     first_fix = int(np.argmax(loc)) if loc.any() else None
     steps = np.array(run.run_step_s) * 1e3
     cpu = np.array(run.run_step_cpu_s) * 1e3
     r = np.linalg.norm(truth[:, :2] - world.site.lander_xyz[:2], axis=1)
     return {
-        "seed": seed, "width": width, "height": height, "duration_s": duration_s, "rocks": rocks,
-        "lighting": lighting, "evaluation": evaluation, "ticks": run.ticks,
-        "localized": bool(loc[-1]), "fixes": int(run.agent.estimate.fixes),
+        "seed": seed,
+        "width": width,
+        "height": height,
+        "duration_s": duration_s,
+        "rocks": rocks,
+        "lighting": lighting,
+        "evaluation": evaluation,
+        "ticks": run.ticks,
+        "localized": bool(loc[-1]),
+        "fixes": int(run.agent.estimate.fixes),
         "first_fix_s": None if first_fix is None else round(first_fix * 0.05, 2),
         "final_error_m": round(float(err[-1]), 4),
         "rmse_m": round(float(np.sqrt(np.mean(err**2))), 4),
-        "rmse_after_fix_m": None if first_fix is None else round(float(np.sqrt(np.mean(err[first_fix:] ** 2))), 4),
-        "max_error_after_fix_m": None if first_fix is None else round(float(err[first_fix:].max()), 4),
+        "rmse_after_fix_m": None
+        if first_fix is None
+        else round(float(np.sqrt(np.mean(err[first_fix:] ** 2))), 4),
+        "max_error_after_fix_m": None
+        if first_fix is None
+        else round(float(err[first_fix:].max()), 4),
         "get_transform_calls": run.get_transform_calls,
         "run_step_median_ms": round(float(np.median(steps)), 1),
         "run_step_p95_ms": round(float(np.percentile(steps, 95)), 1),
@@ -102,13 +139,30 @@ def main(argv=None) -> int:
     ap.add_argument("--duration", type=float, default=150.0, help="mission seconds per run")
     ap.add_argument("--rocks", type=int, default=386)
     ap.add_argument("--lighting", default="sun+lamps")
-    ap.add_argument("--training", action="store_true", help="get_transform() answers (it stays uncalled)")
+    ap.add_argument(
+        "--training", action="store_true", help="get_transform() answers (it stays uncalled)"
+    )
     a = ap.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
     results = a.out / "results.jsonl"
-    cols = ("seed", "width", "localized", "first_fix_s", "final_error_m", "rmse_m", "rmse_after_fix_m",
-            "get_transform_calls", "run_step_median_ms", "run_step_p95_ms", "run_step_max_ms", "first_tick_ms",
-            "run_step_cpu_median_ms", "run_step_cpu_p95_ms", "setup_s", "driven_m")  # fmt: skip
+    cols = (
+        "seed",
+        "width",
+        "localized",
+        "first_fix_s",
+        "final_error_m",
+        "rmse_m",
+        "rmse_after_fix_m",
+        "get_transform_calls",
+        "run_step_median_ms",
+        "run_step_p95_ms",
+        "run_step_max_ms",
+        "first_tick_ms",
+        "run_step_cpu_median_ms",
+        "run_step_cpu_p95_ms",
+        "setup_s",
+        "driven_m",
+    )
     print(" ".join(cols), flush=True)
     for size in a.sizes:
         w, h = (int(v) for v in size.lower().split("x"))

@@ -44,9 +44,16 @@ def simulate(a) -> None:
 
     for seed in a.seeds:
         light = "lamps" if seed in a.lamps_only else "sun+lamps"
-        cfg = SimulationConfig(duration_s=a.duration, image_rate_hz=a.image_rate, width=a.width, height=a.width * 9 // 16,
-                               cameras=("FrontLeft", "FrontRight"), semantic=False, rover=RoverConfig(plan="survey"),
-                               render=RenderConfig(lighting=light))  # fmt: skip
+        cfg = SimulationConfig(
+            duration_s=a.duration,
+            image_rate_hz=a.image_rate,
+            width=a.width,
+            height=a.width * 9 // 16,
+            cameras=("FrontLeft", "FrontRight"),
+            semantic=False,
+            rover=RoverConfig(plan="survey"),
+            render=RenderConfig(lighting=light),
+        )
         d = a.out / f"seed_{seed}"
         d.mkdir(parents=True, exist_ok=True)
         site = simulate_site(seed, cfg.site)
@@ -54,7 +61,9 @@ def simulate(a) -> None:
         (d / "lighting.txt").write_text(light + "\n")
         t0 = time.perf_counter()
         if not (d / "traverse.lac").is_file():
-            simulate_traverse(site, d / "traverse.lac", 0, cfg, renderer=SiteRenderer(site, cfg.render))
+            simulate_traverse(
+                site, d / "traverse.lac", 0, cfg, renderer=SiteRenderer(site, cfg.render)
+            )
         print(f"seed {seed} ({light}): {time.perf_counter() - t0:.0f} s", flush=True)
 
 
@@ -85,19 +94,38 @@ def score(a) -> None:
         light = (d / "lighting.txt").read_text().strip() if (d / "lighting.txt").is_file() else "?"
         truth = site_geometric_map(simulate_site(seed))
         cfg = RunConfig()
-        if a.small_rocks:  # the detector's small-rock stage: the rocks under 5 cm the any-ray rule flags
-            cfg = replace(cfg, detector=replace(cfg.detector, small_rocks=replace(cfg.detector.small_rocks, enabled=True)))
+        if (
+            a.small_rocks
+        ):  # the detector's small-rock stage: the rocks under 5 cm the any-ray rule flags
+            cfg = replace(
+                cfg,
+                detector=replace(
+                    cfg.detector, small_rocks=replace(cfg.detector.small_rocks, enabled=True)
+                ),
+            )
         mapper = LacMapper(mcfg)
         t0 = time.perf_counter()
-        res = run(ArchiveSource(d / "traverse.lac", cfg.odometry, cfg.detector.pairs), load_reference(d / "rocks.csv"),
-                  cfg, mapper=mapper)  # fmt: skip
+        res = run(
+            ArchiveSource(d / "traverse.lac", cfg.odometry, cfg.detector.pairs),
+            load_reference(d / "rocks.csv"),
+            cfg,
+            mapper=mapper,
+        )
         wall = time.perf_counter() - t0
         if a.dump:  # the mapper and the three pose sets, to re-score other mapper settings without re-running
             import pickle
 
             with open(d / "mapper_dump.pkl", "wb") as fh:
-                pickle.dump({"mapper": mapper, "frames": res.frames, "gt": res.T_map_rover_true, "odometry": res.T_odo_rover,
-                             "corrected": res.T_map_rover}, fh)  # fmt: skip
+                pickle.dump(
+                    {
+                        "mapper": mapper,
+                        "frames": res.frames,
+                        "gt": res.T_map_rover_true,
+                        "odometry": res.T_odo_rover,
+                        "corrected": res.T_map_rover,
+                    },
+                    fh,
+                )
         summ = res.summary()
         n_img = max(res.num_image_frames, 1)
         est_gt, all_gt, seen_gt = _scores(mapper, res.frames, res.T_map_rover_true, truth, None)
@@ -107,37 +135,62 @@ def score(a) -> None:
             out[name] = _scores(mapper, res.frames, T, truth, seen)
         for name, (est, s_all, s_seen) in out.items():
             row = {
-                "seed": seed, "lighting": light, "poses": name, "seen_cells": int(seen.sum()),
+                "seed": seed,
+                "lighting": light,
+                "poses": name,
+                "seen_cells": int(seen.sum()),
                 "rock_cells_true_seen": s_seen["rock_cells_true"],
-                "seen_geometric": round(s_seen["geometric"], 4), "seen_rock_precision": round(s_seen["rock_precision"], 4),
-                "seen_rock_recall": round(s_seen["rock_recall"], 4), "seen_rock_f1": round(s_seen["rock_f1"], 4),
-                "all_geometric": round(s_all["geometric"], 4), "all_rock_precision": round(s_all["rock_precision"], 4),
-                "all_rock_recall": round(s_all["rock_recall"], 4), "all_rock_f1": round(s_all["rock_f1"], 4),
+                "seen_geometric": round(s_seen["geometric"], 4),
+                "seen_rock_precision": round(s_seen["rock_precision"], 4),
+                "seen_rock_recall": round(s_seen["rock_recall"], 4),
+                "seen_rock_f1": round(s_seen["rock_f1"], 4),
+                "all_geometric": round(s_all["geometric"], 4),
+                "all_rock_precision": round(s_all["rock_precision"], 4),
+                "all_rock_recall": round(s_all["rock_recall"], 4),
+                "all_rock_f1": round(s_all["rock_f1"], 4),
                 "all_points_total": round(s_all["points"]["total"], 1),
-                "seen_points_geo_rock": round(s_seen["points"]["geometric_map"] + s_seen["points"]["rocks_map"], 1),
-                "all_points_geo_rock": round(s_all["points"]["geometric_map"] + s_all["points"]["rocks_map"], 1),
+                "seen_points_geo_rock": round(
+                    s_seen["points"]["geometric_map"] + s_seen["points"]["rocks_map"], 1
+                ),
+                "all_points_geo_rock": round(
+                    s_all["points"]["geometric_map"] + s_all["points"]["rocks_map"], 1
+                ),
                 "interp_within_1m_geometric": _interp_share(est, truth, 1.0),
                 "rocks_mapped": int(len(est.rocks)),
-                "ate_rmse_m": {"gt": 0.0, "odometry": summ["ate_odometry"]["rmse_m"],
-                               "corrected": summ["ate_corrected"]["rmse_m"]}[name],
-                "path_m": summ["path_length_m"], "image_frames": res.num_image_frames,
-                "detection_ms_per_frame": round(1000 * res.timings_s.get("detection", 0) / n_img, 1),
+                "ate_rmse_m": {
+                    "gt": 0.0,
+                    "odometry": summ["ate_odometry"]["rmse_m"],
+                    "corrected": summ["ate_corrected"]["rmse_m"],
+                }[name],
+                "path_m": summ["path_length_m"],
+                "image_frames": res.num_image_frames,
+                "detection_ms_per_frame": round(
+                    1000 * res.timings_s.get("detection", 0) / n_img, 1
+                ),
                 "lac_map_ms_per_frame": round(1000 * res.timings_s.get("lac_map", 0) / n_img, 2),
-                "loop_wall_s": round(wall, 1), "mapper_mb": round(mapper.memory_bytes() / 1e6, 2),
-            }  # fmt: skip
+                "loop_wall_s": round(wall, 1),
+                "mapper_mb": round(mapper.memory_bytes() / 1e6, 2),
+            }
             rows.append(row)
-            print(f"seed {seed} {light:9s} {name:9s}: seen {row['seen_cells']} cells: height {row['seen_geometric']:.3f}, "
-                  f"rock P {row['seen_rock_precision']:.2f} R {row['seen_rock_recall']:.2f} F1 {row['seen_rock_f1']:.3f} "
-                  f"({row['seen_points_geo_rock']:.0f} pts) | whole map: height {row['all_geometric']:.3f}, "
-                  f"F1 {row['all_rock_f1']:.3f} ({row['all_points_geo_rock']:.0f} pts) | ATE {row['ate_rmse_m']:.3f} m",
-                  flush=True)  # fmt: skip
+            print(
+                f"seed {seed} {light:9s} {name:9s}: seen {row['seen_cells']} cells: height {row['seen_geometric']:.3f}, "
+                f"rock P {row['seen_rock_precision']:.2f} R {row['seen_rock_recall']:.2f} F1 {row['seen_rock_f1']:.3f} "
+                f"({row['seen_points_geo_rock']:.0f} pts) | whole map: height {row['all_geometric']:.3f}, "
+                f"F1 {row['all_rock_f1']:.3f} ({row['all_points_geo_rock']:.0f} pts) | ATE {row['ate_rmse_m']:.3f} m",
+                flush=True,
+            )
         if a.figure_seed == seed:
             from lunarloc.viz import plot_lac_maps
 
             for name in ("gt", "corrected"):
                 est = out[name][0]
-                p = plot_lac_maps(est.array, truth, a.out / f"lac_map_seed{seed}_{name}.png", observed=seen,
-                                  title=f"site {seed} ({light}), {name} poses")  # fmt: skip
+                p = plot_lac_maps(
+                    est.array,
+                    truth,
+                    a.out / f"lac_map_seed{seed}_{name}.png",
+                    observed=seen,
+                    title=f"site {seed} ({light}), {name} poses",
+                )
                 print(f"wrote {p}")
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=1))
@@ -160,8 +213,10 @@ def _summary(rows) -> None:
         f = np.array([x["seen_rock_f1"] for x in r])
         ga = np.array([x["all_geometric"] for x in r])
         fa = np.array([x["all_rock_f1"] for x in r])
-        print(f"{name:9s}: seen height {g.mean():.3f} (min {g.min():.3f}), seen rock F1 {f.mean():.3f} (min {f.min():.3f}); "
-              f"whole map height {ga.mean():.3f}, F1 {fa.mean():.3f} over {len(r)} sites")  # fmt: skip
+        print(
+            f"{name:9s}: seen height {g.mean():.3f} (min {g.min():.3f}), seen rock F1 {f.mean():.3f} (min {f.min():.3f}); "
+            f"whole map height {ga.mean():.3f}, F1 {fa.mean():.3f} over {len(r)} sites"
+        )
 
 
 def cost(a) -> None:
@@ -175,16 +230,25 @@ def cost(a) -> None:
 
     cfg = RunConfig()
     if a.small_rocks:  # the detector as the map's runs use it
-        cfg = replace(cfg, detector=replace(cfg.detector, small_rocks=replace(cfg.detector.small_rocks, enabled=True)))
+        cfg = replace(
+            cfg,
+            detector=replace(
+                cfg.detector, small_rocks=replace(cfg.detector.small_rocks, enabled=True)
+            ),
+        )
     with LacArchive(a.archive) as ar:
         cam = camera_from_archive(ar)
         det = Detector(cfg.detector_for(cam.width), cam)
         mounts = ipex_rig(cam)
-        frames = [int(f) for f in ar.frame_numbers if ar.camera_row("FrontLeft", int(f))][: a.frames]
+        frames = [int(f) for f in ar.frame_numbers if ar.camera_row("FrontLeft", int(f))][
+            : a.frames
+        ]
         images = [{c: ar.grayscale(c, f) for c in ("FrontLeft", "FrontRight")} for f in frames]
     m = LacMapper()
     t_det0, t_det, t_map = [], [], []
-    clock = time.process_time  # CPU seconds of this process: robust to other jobs on a shared machine
+    clock = (
+        time.process_time
+    )  # CPU seconds of this process: robust to other jobs on a shared machine
     for k, im in enumerate(images):
         t0 = clock()
         det.detect_frame(im, mounts, None, k)
@@ -202,10 +266,12 @@ def cost(a) -> None:
     m.grid()
     t_grid = clock() - t0
     med = lambda v: 1000 * float(np.median(v))  # noqa: E731
-    print(f"{a.archive} {cam.width}x{cam.height}, {len(t_map)} pairs, small-rock stage {'on' if a.small_rocks else 'off'}, "
-          f"CPU time (median): detection {med(t_det0):.1f} ms "
-          f"(with the height map kept {med(t_det):.1f} ms), mapper add_frame {med(t_map):.2f} ms "
-          f"({100 * med(t_map) / med(t_det0):.1f} % of detection); grid() of {len(m)} frames {1000 * t_grid:.0f} ms")  # fmt: skip
+    print(
+        f"{a.archive} {cam.width}x{cam.height}, {len(t_map)} pairs, small-rock stage {'on' if a.small_rocks else 'off'}, "
+        f"CPU time (median): detection {med(t_det0):.1f} ms "
+        f"(with the height map kept {med(t_det):.1f} ms), mapper add_frame {med(t_map):.2f} ms "
+        f"({100 * med(t_map) / med(t_det0):.1f} % of detection); grid() of {len(m)} frames {1000 * t_grid:.0f} ms"
+    )
 
 
 def memory(a) -> None:
@@ -224,15 +290,21 @@ def memory(a) -> None:
         det = Detector(cfg.detector_for(cam.width), cam)
         mounts = ipex_rig(cam)
         fr = ar.frames
-        frames = [int(f) for f in ar.frame_numbers if ar.camera_row("FrontLeft", int(f))][: a.frames]
+        frames = [int(f) for f in ar.frame_numbers if ar.camera_row("FrontLeft", int(f))][
+            : a.frames
+        ]
         cached = []
         for f in frames:
             im = {c: ar.grayscale(c, f) for c in ("FrontLeft", "FrontRight")}
             fd = det.detect_frame(im, mounts, None, f, keep_depth=True)
-            pts = np.concatenate([p.height.points_rover.reshape(-1, 3) for p in fd.pairs if p.height is not None])
+            pts = np.concatenate(
+                [p.height.points_rover.reshape(-1, 3) for p in fd.pairs if p.height is not None]
+            )
             rocks = np.array([[*d.p_rover, d.radius_m] for d in fd.detections]).reshape(-1, 4)
             i = int(np.flatnonzero(np.asarray(fr["frame"]) == f)[0])
-            T = pose_to_matrix(fr["x"][i], fr["y"][i], fr["z"][i], fr["roll"][i], fr["pitch"][i], fr["yaw"][i])
+            T = pose_to_matrix(
+                fr["x"][i], fr["y"][i], fr["z"][i], fr["roll"][i], fr["pitch"][i], fr["yaw"][i]
+            )
             cached.append((T, pts, rocks))
     m = LacMapper(LacMapperConfig(**json.loads(a.mapper_config)) if a.mapper_config else None)
     n_total = int(a.hours * 3600 * a.rate_hz)
@@ -246,9 +318,12 @@ def memory(a) -> None:
         m.add_frame(k, S @ T, pts, rocks)
         if k + 1 in marks:
             rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-            print(f"{k + 1} frames ({(k + 1) / a.rate_hz / 3600:.2f} h): mapper holds {m.memory_bytes() / 1e6:.1f} MB "
-                  f"({len(m)} re-placeable frames, {m.frozen_frames} frozen), process max RSS {rss:.0f} MB "
-                  f"(+{rss - rss0:.0f} MB), {time.perf_counter() - t0:.0f} s", flush=True)  # fmt: skip
+            print(
+                f"{k + 1} frames ({(k + 1) / a.rate_hz / 3600:.2f} h): mapper holds {m.memory_bytes() / 1e6:.1f} MB "
+                f"({len(m)} re-placeable frames, {m.frozen_frames} frozen), process max RSS {rss:.0f} MB "
+                f"(+{rss - rss0:.0f} MB), {time.perf_counter() - t0:.0f} s",
+                flush=True,
+            )
     t1 = time.perf_counter()
     m.grid()
     print(f"grid() after {n_total} frames: {1000 * (time.perf_counter() - t1):.0f} ms")
@@ -269,8 +344,10 @@ def agent(a) -> None:
         d.mkdir(parents=True, exist_ok=True)
         world.write_reference(d / "rocks.csv")
         conf = d / "lunarloc.toml"
-        conf.write_text(f'reference = "rocks.csv"\nwidth = {a.width}\nheight = {a.width * 9 // 16}\noutput = ""\n'
-                        f"lac_map = {str(lac_map).lower()}\nlac_map_cells_per_tick = {a.cells_per_tick}\n")  # fmt: skip
+        conf.write_text(
+            f'reference = "rocks.csv"\nwidth = {a.width}\nheight = {a.width * 9 // 16}\noutput = ""\n'
+            f"lac_map = {str(lac_map).lower()}\nlac_map_cells_per_tick = {a.cells_per_tick}\n"
+        )
         filled = []
 
         def observe(ag, filled=filled):
@@ -280,19 +357,26 @@ def agent(a) -> None:
             else:
                 filled.append(filled[-1] if filled else 0)
 
-        run = lunarsim.run_agent(agent_file, conf, world, a.duration, evaluation=True, score=True, observe=observe)
+        run = lunarsim.run_agent(
+            agent_file, conf, world, a.duration, evaluation=True, score=True, observe=observe
+        )
         cpu = 1000 * np.array(run.run_step_cpu_s)
         ag = run.agent
         w = 1000 * np.array(ag.map_write_cpu_s) if lac_map else np.zeros(1)
         sc = run.scores or {}
-        print(f"seed {a.seed} {a.width}px lac_map={lac_map}: {run.ticks} ticks, run_step CPU median {np.median(cpu):.1f} ms, "
-              f"p95 {np.percentile(cpu, 95):.1f}, max {cpu.max():.0f}; map writing per tick: median {np.median(w):.2f} ms, "
-              f"p99 {np.percentile(w, 99):.2f}, max {w.max():.1f} ms; cells in the map before finalize {filled[-1]}; "
-              f"finalize's whole-map write {1000 * (ag.map_finish_cpu_s or 0):.0f} ms CPU; scores {sc}", flush=True)  # fmt: skip
+        print(
+            f"seed {a.seed} {a.width}px lac_map={lac_map}: {run.ticks} ticks, run_step CPU median {np.median(cpu):.1f} ms, "
+            f"p95 {np.percentile(cpu, 95):.1f}, max {cpu.max():.0f}; map writing per tick: median {np.median(w):.2f} ms, "
+            f"p99 {np.percentile(w, 99):.2f}, max {w.max():.1f} ms; cells in the map before finalize {filled[-1]}; "
+            f"finalize's whole-map write {1000 * (ag.map_finish_cpu_s or 0):.0f} ms CPU; scores {sc}",
+            flush=True,
+        )
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     sub = ap.add_subparsers(dest="cmd", required=True)
     s = sub.add_parser("simulate")
     s.add_argument("--out", type=Path, required=True)
@@ -307,13 +391,23 @@ def main() -> None:
     s.add_argument("--json", default=None)
     s.add_argument("--figure-seed", type=int, default=None)
     s.add_argument("--mapper-config", default=None, help="JSON of LacMapperConfig fields")
-    s.add_argument("--dump", action="store_true", help="pickle the mapper and poses into each site's folder")
-    s.add_argument("--no-small-rocks", dest="small_rocks", action="store_false",
-                   help="run the detector without its small-rock stage (on by default here: the map's rocks under 5 cm)")
+    s.add_argument(
+        "--dump", action="store_true", help="pickle the mapper and poses into each site's folder"
+    )
+    s.add_argument(
+        "--no-small-rocks",
+        dest="small_rocks",
+        action="store_false",
+        help="run the detector without its small-rock stage (on by default here: the map's rocks under 5 cm)",
+    )
     s = sub.add_parser("cost")
     s.add_argument("--archive", type=Path, required=True)
     s.add_argument("--frames", type=int, default=30)
-    s.add_argument("--small-rocks", action="store_true", help="the detector with its small-rock stage (as score runs it)")
+    s.add_argument(
+        "--small-rocks",
+        action="store_true",
+        help="the detector with its small-rock stage (as score runs it)",
+    )
     s = sub.add_parser("memory")
     s.add_argument("--archive", type=Path, required=True)
     s.add_argument("--frames", type=int, default=60)

@@ -49,33 +49,56 @@ def replay_odometry(archive: Path, seed: int, odo_cfg) -> np.ndarray:
 
     with LacArchive(archive) as ar:
         f = ar.frames
-        traj = Trajectory(t=np.asarray(f["mission_time"], float), xyz=np.column_stack([f["x"], f["y"], f["z"]]),
-                          rpy=np.column_stack([f["roll"], f["pitch"], f["yaw"]]),
-                          linear_speed=np.asarray(f["linear_speed"]), angular_speed=np.asarray(f["angular_speed"]))
+        traj = Trajectory(
+            t=np.asarray(f["mission_time"], float),
+            xyz=np.column_stack([f["x"], f["y"], f["z"]]),
+            rpy=np.column_stack([f["roll"], f["pitch"], f["yaw"]]),
+            linear_speed=np.asarray(f["linear_speed"]),
+            angular_speed=np.asarray(f["angular_speed"]),
+        )
     return simulate_odometry(traj, traverse_seed(seed, 1) + 1, odo_cfg)
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--out", type=Path, default=Path("bench-output/loop-sim"))
     ap.add_argument("--seeds", type=int, nargs="+", default=[13, 15, 16])
     ap.add_argument("--duration", type=float, default=470.0)
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--image-rate", type=float, default=2.0)
-    ap.add_argument("--rocks", type=int, default=386, help="rocks on the site (default: the LAC's 386; 800 before)")
+    ap.add_argument(
+        "--rocks",
+        type=int,
+        default=386,
+        help="rocks on the site (default: the LAC's 386; 800 before)",
+    )
     ap.add_argument("--reference", choices=["rocks", "images"], default="rocks")
-    ap.add_argument("--heading-bias-std", type=float, default=None,
-                    help="std of the odometry's initial gyro bias, rad/s (default OdometryConfig: 5e-4)")
+    ap.add_argument(
+        "--heading-bias-std",
+        type=float,
+        default=None,
+        help="std of the odometry's initial gyro bias, rad/s (default OdometryConfig: 5e-4)",
+    )
     a = ap.parse_args()
     rows = []
     for seed in a.seeds:
         d = a.out / f"seed_{seed}"
         d.mkdir(parents=True, exist_ok=True)
-        cfg = SimulationConfig(site=SiteConfig(n_rocks=a.rocks), duration_s=a.duration, image_rate_hz=a.image_rate,
-                               width=a.width, height=a.width * 9 // 16, cameras=("FrontLeft", "FrontRight"),
-                               semantic=False)  # fmt: skip
+        cfg = SimulationConfig(
+            site=SiteConfig(n_rocks=a.rocks),
+            duration_s=a.duration,
+            image_rate_hz=a.image_rate,
+            width=a.width,
+            height=a.width * 9 // 16,
+            cameras=("FrontLeft", "FrontRight"),
+            semantic=False,
+        )
         if a.heading_bias_std is not None:
-            cfg = replace(cfg, odometry=replace(cfg.odometry, heading_bias_rad_s=a.heading_bias_std))
+            cfg = replace(
+                cfg, odometry=replace(cfg.odometry, heading_bias_rad_s=a.heading_bias_std)
+            )
             sfx = f"_bias{a.heading_bias_std:g}"
         else:
             sfx = ""
@@ -99,17 +122,31 @@ def main() -> None:
         if a.heading_bias_std is not None:  # replay the same images with the stronger drift
             odometry = replay_odometry(veh, seed, cfg.odometry)
         t0 = time.perf_counter()
-        res = run(ArchiveSource(veh, run_cfg.odometry, odometry_poses=None if odometry is None else np.stack([pose_to_matrix(*p) for p in odometry])), ref, run_cfg)
+        res = run(
+            ArchiveSource(
+                veh,
+                run_cfg.odometry,
+                odometry_poses=None
+                if odometry is None
+                else np.stack([pose_to_matrix(*p) for p in odometry]),
+            ),
+            ref,
+            run_cfg,
+        )
         wall = time.perf_counter() - t0
         s = write_run(res, d / f"run_{a.reference}{sfx}")
-        s.update(seed=seed, simulate_s=round(t_sim, 1), loop_wall_s=round(wall, 1), reference=a.reference)
+        s.update(
+            seed=seed, simulate_s=round(t_sim, 1), loop_wall_s=round(wall, 1), reference=a.reference
+        )
         rows.append(s)
-        print(f"seed {seed}: {s['path_length_m']:.1f} m, odometry RMSE {s['ate_odometry']['rmse_m']:.3f} m "
-              f"(max {s['ate_odometry']['max_m']:.2f}), corrected RMSE {s['ate_corrected']['rmse_m']:.3f} m "
-              f"(max {s['ate_corrected']['max_m']:.3f}), online RMSE {s['ate_online']['rmse_m']:.3f} m, "
-              f"fixes {s['fixes']}/{s['attempts']}, worst fix {s['max_accepted_fix_error_m']}, "
-              f"RT fraction {s['real_time_fraction']:.3f} (loop wall {wall:.0f} s / {s['duration_s']:.0f} s)",
-              flush=True)  # fmt: skip
+        print(
+            f"seed {seed}: {s['path_length_m']:.1f} m, odometry RMSE {s['ate_odometry']['rmse_m']:.3f} m "
+            f"(max {s['ate_odometry']['max_m']:.2f}), corrected RMSE {s['ate_corrected']['rmse_m']:.3f} m "
+            f"(max {s['ate_corrected']['max_m']:.3f}), online RMSE {s['ate_online']['rmse_m']:.3f} m, "
+            f"fixes {s['fixes']}/{s['attempts']}, worst fix {s['max_accepted_fix_error_m']}, "
+            f"RT fraction {s['real_time_fraction']:.3f} (loop wall {wall:.0f} s / {s['duration_s']:.0f} s)",
+            flush=True,
+        )
     (a.out / f"bench_loop_sim_{a.reference}{sfx}.json").write_text(json.dumps(rows, indent=1))
 
 

@@ -25,13 +25,40 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", type=Path, required=True)
     ap.add_argument("--traverses", type=int, nargs="+", default=[0, 1])
-    ap.add_argument("--odometry", default=None, help="odometry source (default: the config's, else visual)")
-    ap.add_argument("--config", type=Path, default=None, help="every rover's RunConfig (a run folder's config.json)")
-    ap.add_argument("--modes", nargs="+", default=["share", "ref", "ref+share"], choices=["share", "ref", "ref+share", "ref0+share"],
-                    help="ref0+share: only the first rover has the reference")
-    ap.add_argument("--max-shared-sigma-ratio", type=float, default=None, help="MultiRoverConfig.max_shared_sigma_ratio")
-    ap.add_argument("--shared-bounds", default=None, choices=["sum", "rss", "own"], help="MultiRoverConfig.shared_bounds")
-    ap.add_argument("--sigma-model", default=None, choices=["windows", "source", "gate"], help="MultiRoverConfig.sigma_model")
+    ap.add_argument(
+        "--odometry", default=None, help="odometry source (default: the config's, else visual)"
+    )
+    ap.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        help="every rover's RunConfig (a run folder's config.json)",
+    )
+    ap.add_argument(
+        "--modes",
+        nargs="+",
+        default=["share", "ref", "ref+share"],
+        choices=["share", "ref", "ref+share", "ref0+share"],
+        help="ref0+share: only the first rover has the reference",
+    )
+    ap.add_argument(
+        "--max-shared-sigma-ratio",
+        type=float,
+        default=None,
+        help="MultiRoverConfig.max_shared_sigma_ratio",
+    )
+    ap.add_argument(
+        "--shared-bounds",
+        default=None,
+        choices=["sum", "rss", "own"],
+        help="MultiRoverConfig.shared_bounds",
+    )
+    ap.add_argument(
+        "--sigma-model",
+        default=None,
+        choices=["windows", "source", "gate"],
+        help="MultiRoverConfig.sigma_model",
+    )
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args()
 
@@ -62,14 +89,29 @@ def main() -> None:
             write_rover_outputs(res, a.out / mode.replace("+", "_"), plot=True)
         s = res.summary()
         for r in s["rovers"]:
-            row = rows.setdefault(r["name"], {"path_m": r["path_length_m"], "odometry_rmse_m": r["ate_odometry"]["rmse_m"]})
-            row[mode] = {"rmse_m": r["ate_corrected"]["rmse_m"], "online_rmse_m": r["ate_online"]["rmse_m"],
-                         "max_m": r["ate_corrected"]["max_m"], "fixes": r["fixes"], "shared_fixes": r["shared_fixes"],
-                         "worst_shared_fix_m": r["max_shared_fix_error_m"],
-                         "worst_shared_fix_sigmas": r["max_shared_fix_error_sigmas"]}  # fmt: skip
+            row = rows.setdefault(
+                r["name"],
+                {"path_m": r["path_length_m"], "odometry_rmse_m": r["ate_odometry"]["rmse_m"]},
+            )
+            row[mode] = {
+                "rmse_m": r["ate_corrected"]["rmse_m"],
+                "online_rmse_m": r["ate_online"]["rmse_m"],
+                "max_m": r["ate_corrected"]["max_m"],
+                "fixes": r["fixes"],
+                "shared_fixes": r["shared_fixes"],
+                "worst_shared_fix_m": r["max_shared_fix_error_m"],
+                "worst_shared_fix_sigmas": r["max_shared_fix_error_sigmas"],
+            }
         rows.setdefault("_time", {})[mode] = {"wall_s": round(wall, 1), "cpu_s": round(cpu, 1)}
         print(f"{mode}: {wall:.0f} s wall, {cpu:.0f} s CPU", flush=True)
-    head = "| rover | path m | odometry RMSE cm | " + " | ".join(f"{m}: corrected (online) RMSE cm, fixes (shared), worst shared fix cm (in its sigmas)" for m in a.modes) + " |"
+    head = (
+        "| rover | path m | odometry RMSE cm | "
+        + " | ".join(
+            f"{m}: corrected (online) RMSE cm, fixes (shared), worst shared fix cm (in its sigmas)"
+            for m in a.modes
+        )
+        + " |"
+    )
     print(head)
     print("|" + "---|" * (3 + len(a.modes)))
     for name, row in rows.items():
@@ -78,9 +120,19 @@ def main() -> None:
         cells = []
         for m in a.modes:
             c = row[m]
-            w = "-" if c["worst_shared_fix_m"] is None else f"{100 * c['worst_shared_fix_m']:.1f} ({c['worst_shared_fix_sigmas']:.2f} sigma)"
-            cells.append(f"{100 * c['rmse_m']:.1f} ({100 * c['online_rmse_m']:.1f}), {c['fixes']} ({c['shared_fixes']}), {w}")
-        print(f"| {name} | {row['path_m']:.1f} | {100 * row['odometry_rmse_m']:.1f} | " + " | ".join(cells) + " |")
+            w = (
+                "-"
+                if c["worst_shared_fix_m"] is None
+                else f"{100 * c['worst_shared_fix_m']:.1f} ({c['worst_shared_fix_sigmas']:.2f} sigma)"
+            )
+            cells.append(
+                f"{100 * c['rmse_m']:.1f} ({100 * c['online_rmse_m']:.1f}), {c['fixes']} ({c['shared_fixes']}), {w}"
+            )
+        print(
+            f"| {name} | {row['path_m']:.1f} | {100 * row['odometry_rmse_m']:.1f} | "
+            + " | ".join(cells)
+            + " |"
+        )
     if a.out is not None:
         a.out.mkdir(parents=True, exist_ok=True)
         (a.out / "bench.json").write_text(json.dumps(rows, indent=1))

@@ -49,7 +49,12 @@ from lunarloc.io.lac.archive import LacArchive
 from lunarloc.sim.rover import ImuConfig
 from lunarloc.sim.simulate import SimulationConfig, simulate_site, simulate_traverse
 from lunarloc.core.geometry import invert_transform
-from lunarloc.odometry.source import archive_odometry, ground_truth_poses, odometry_drift, parse_odometry_source
+from lunarloc.odometry.source import (
+    archive_odometry,
+    ground_truth_poses,
+    odometry_drift,
+    parse_odometry_source,
+)
 
 NOPRIOR = "visual-noprior"
 
@@ -75,7 +80,9 @@ def visual_noprior(archive, T_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray, d
     from lunarloc.odometry.visual import StereoVisualOdometry, front_pair_setup
 
     camera, T_l, T_r, left, right = front_pair_setup(archive)
-    frames = np.intersect1d(archive.camera_frames(left)["frame"], archive.camera_frames(right)["frame"]).astype(int)
+    frames = np.intersect1d(
+        archive.camera_frames(left)["frame"], archive.camera_frames(right)["frame"]
+    ).astype(int)
     index = {int(f): i for i, f in enumerate(archive.frame_numbers)}
     vo = StereoVisualOdometry(camera, T_l, T_r)
     T = np.empty((len(frames), 4, 4))
@@ -91,45 +98,84 @@ def visual_noprior(archive, T_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray, d
             fails += not vo.last_ok
     idx = np.array([index[int(f)] for f in frames])
     T_map = np.einsum("ij,njk->nik", T_gt[idx[0]] @ invert_transform(T[0]), T)
-    stats = {"pairs_per_s": round(len(frames) / busy, 2), "cpu_pairs_per_s": round(len(frames) / max(cpu, 1e-9), 2),
-             "cpu_ms_per_pair": round(1000 * cpu / len(frames), 1), "failures": fails, "time_s": round(busy, 3)}  # fmt: skip
+    stats = {
+        "pairs_per_s": round(len(frames) / busy, 2),
+        "cpu_pairs_per_s": round(len(frames) / max(cpu, 1e-9), 2),
+        "cpu_ms_per_pair": round(1000 * cpu / len(frames), 1),
+        "failures": fails,
+        "time_s": round(busy, 3),
+    }
     return idx, T_map, stats
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--out", type=Path, default=Path("bench-output/odometry"))
-    ap.add_argument("--source", "--sources", dest="sources", nargs="+", default=["imu", "record:odometry"])
+    ap.add_argument(
+        "--source", "--sources", dest="sources", nargs="+", default=["imu", "record:odometry"]
+    )
     ap.add_argument("--seeds", type=int, nargs="+", default=[13, 15, 16])
     ap.add_argument("--duration", type=float, default=470.0)
     ap.add_argument("--width", type=int, default=1280)
     ap.add_argument("--image-rate", type=float, default=2.0)
-    ap.add_argument("--gyro-bias", type=float, default=0.0, help="constant gyro bias of the simulated IMU, rad/s")
+    ap.add_argument(
+        "--gyro-bias",
+        type=float,
+        default=0.0,
+        help="constant gyro bias of the simulated IMU, rad/s",
+    )
     ap.add_argument("--keep-archives", action="store_true")
-    ap.add_argument("--distance", type=float, help="path length per traverse, metres (overrides --duration)")
-    ap.add_argument("--archives", type=Path, nargs="+", help="score these archives instead of simulating")
+    ap.add_argument(
+        "--distance", type=float, help="path length per traverse, metres (overrides --duration)"
+    )
+    ap.add_argument(
+        "--archives", type=Path, nargs="+", help="score these archives instead of simulating"
+    )
     args = ap.parse_args()
     sources = [s for s in args.sources if s == NOPRIOR or parse_odometry_source(s)]
-    needs_images = any(s == NOPRIOR or parse_odometry_source(s)[0].value == "visual" for s in sources)
+    needs_images = any(
+        s == NOPRIOR or parse_odometry_source(s)[0].value == "visual" for s in sources
+    )
     height = int(round(args.width * 9 / 16))
-    cfg = SimulationConfig(duration_s=args.duration, width=args.width, height=height, image_rate_hz=args.image_rate,
-                           cameras=("FrontLeft", "FrontRight") if needs_images else (), semantic=False,
-                           imu=ImuConfig(gyro_bias_rad_s=args.gyro_bias))  # fmt: skip
+    cfg = SimulationConfig(
+        duration_s=args.duration,
+        width=args.width,
+        height=height,
+        image_rate_hz=args.image_rate,
+        cameras=("FrontLeft", "FrontRight") if needs_images else (),
+        semantic=False,
+        imu=ImuConfig(gyro_bias_rad_s=args.gyro_bias),
+    )
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
-    print(f"{'seed':>4} {'source':>16} {'path m':>7} {'final %':>8} {'deg/m':>8} {'RMSE m':>7} {'time s':>7} {'pairs/s':>8} "
-          f"{'CPU ms/pair':>11}")  # fmt: skip
+    print(
+        f"{'seed':>4} {'source':>16} {'path m':>7} {'final %':>8} {'deg/m':>8} {'RMSE m':>7} {'time s':>7} {'pairs/s':>8} "
+        f"{'CPU ms/pair':>11}"
+    )
     # an archive is named by its stem, or by its folder and stem where stems repeat (.../s13/bare.lac)
     stems = [p.stem for p in args.archives or []]
-    named = [(p.stem if stems.count(p.stem) == 1 else f"{p.parent.name}/{p.stem}", p) for p in args.archives or []]
-    jobs = [(name, None) for name, _ in named] if args.archives else [(seed, seed) for seed in args.seeds]
+    named = [
+        (p.stem if stems.count(p.stem) == 1 else f"{p.parent.name}/{p.stem}", p)
+        for p in args.archives or []
+    ]
+    jobs = (
+        [(name, None) for name, _ in named]
+        if args.archives
+        else [(seed, seed) for seed in args.seeds]
+    )
     for name, seed in jobs:
         t_sim = None
         if seed is None:
             path = dict(named)[name]
         else:
             site = simulate_site(seed, cfg.site)
-            run_cfg = replace(cfg, duration_s=duration_for(site, args.distance, cfg)) if args.distance else replace(cfg)
+            run_cfg = (
+                replace(cfg, duration_s=duration_for(site, args.distance, cfg))
+                if args.distance
+                else replace(cfg)
+            )
             t0 = time.perf_counter()
             path, _ = simulate_traverse(site, args.out / f"traverse_{seed}.lac", 0, run_cfg)
             t_sim = round(time.perf_counter() - t0, 1)
@@ -147,23 +193,41 @@ def main() -> None:
                     traj = archive_odometry(ar, src)
                     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
                     d, label = odometry_drift(traj.T_map_rover, gt), traj.label
-                    pairs = int(traj.measured.sum()) if src == "visual" and traj.measured is not None else None
+                    pairs = (
+                        int(traj.measured.sum())
+                        if src == "visual" and traj.measured is not None
+                        else None
+                    )
                     # visual: image decoding and the IMU integration included
-                    extra = {"time_s": round(wall, 3), "pairs_per_s": round(pairs / wall, 2) if pairs else None,
-                             "cpu_pairs_per_s": round(pairs / max(cpu, 1e-9), 2) if pairs else None,
-                             "cpu_ms_per_pair": round(1000 * cpu / pairs, 1) if pairs else None,
-                             "failures": traj.failures}  # fmt: skip
-                row = {"seed": name, "source": label, "width": width, **extra, "simulate_s": t_sim, **d}
+                    extra = {
+                        "time_s": round(wall, 3),
+                        "pairs_per_s": round(pairs / wall, 2) if pairs else None,
+                        "cpu_pairs_per_s": round(pairs / max(cpu, 1e-9), 2) if pairs else None,
+                        "cpu_ms_per_pair": round(1000 * cpu / pairs, 1) if pairs else None,
+                        "failures": traj.failures,
+                    }
+                row = {
+                    "seed": name,
+                    "source": label,
+                    "width": width,
+                    **extra,
+                    "simulate_s": t_sim,
+                    **d,
+                }
                 rows.append(row)
                 pps = "-" if row["pairs_per_s"] is None else f"{row['pairs_per_s']:.1f}"
                 cms = "-" if row.get("cpu_ms_per_pair") is None else f"{row['cpu_ms_per_pair']:.1f}"
-                print(f"{name!s:>4} {label:>16} {d['path_length_m']:>7.1f} {d['final_error_pct']:>8.3f} "
-                      f"{d['heading_deg_per_m']:>8.5f} {d['rmse_m']:>7.3f} {row['time_s']:>7.2f} {pps:>8} {cms:>11}",
-                      flush=True)  # fmt: skip
+                print(
+                    f"{name!s:>4} {label:>16} {d['path_length_m']:>7.1f} {d['final_error_pct']:>8.3f} "
+                    f"{d['heading_deg_per_m']:>8.5f} {d['rmse_m']:>7.3f} {row['time_s']:>7.2f} {pps:>8} {cms:>11}",
+                    flush=True,
+                )
         if seed is not None and not args.keep_archives:
             path.unlink()
     out = args.out / "bench_odometry.json"
-    out.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "rows": rows}, indent=1))
+    out.write_text(
+        json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "rows": rows}, indent=1)
+    )
     print(f"wrote {out}")
 
 

@@ -47,8 +47,15 @@ def simulate(d: Path, seed: int, duration: float, width: int, rocks: int) -> tup
     d.mkdir(parents=True, exist_ok=True)
     lac, ref = d / "traverse.lac", d / "rocks.csv"
     if not lac.is_file():
-        cfg = SimulationConfig(site=SiteConfig(n_rocks=rocks), duration_s=duration, image_rate_hz=10.0, width=width,
-                               height=width * 9 // 16, cameras=("FrontLeft", "FrontRight"), semantic=False)  # fmt: skip
+        cfg = SimulationConfig(
+            site=SiteConfig(n_rocks=rocks),
+            duration_s=duration,
+            image_rate_hz=10.0,
+            width=width,
+            height=width * 9 // 16,
+            cameras=("FrontLeft", "FrontRight"),
+            semantic=False,
+        )
         site = simulate_site(seed, cfg.site)
         site.write_rocks_csv(ref)
         simulate_traverse(site, lac, 1, cfg)
@@ -62,8 +69,13 @@ def rss_mb() -> float:
 
 def stats_ms(t: list[float]) -> dict:
     a = 1000 * np.asarray(t)
-    return {"median_ms": round(float(np.median(a)), 3), "p99_ms": round(float(np.percentile(a, 99)), 3),
-            "max_ms": round(float(a.max()), 3), "max_at_call": int(a.argmax()), "n": int(len(a))}  # fmt: skip
+    return {
+        "median_ms": round(float(np.median(a)), 3),
+        "p99_ms": round(float(np.percentile(a, 99)), 3),
+        "max_ms": round(float(a.max()), 3),
+        "max_at_call": int(a.argmax()),
+        "n": int(len(a)),
+    }
 
 
 def make_localizer(env, ref_path: Path, max_keyframes: int) -> OnlineLocalizer:
@@ -73,8 +85,12 @@ def make_localizer(env, ref_path: Path, max_keyframes: int) -> OnlineLocalizer:
 
     cams = ("FrontLeft", "FrontRight")
     rig = CameraRig.from_sensors(env.sensors(), {c: env.get_camera_position(c) for c in cams})
-    loc = OnlineLocalizer(load_reference(ref_path), env.get_initial_position(),
-                          replace(OnlineConfig(), max_keyframes=max_keyframes), rig=rig)  # fmt: skip
+    loc = OnlineLocalizer(
+        load_reference(ref_path),
+        env.get_initial_position(),
+        replace(OnlineConfig(), max_keyframes=max_keyframes),
+        rig=rig,
+    )
     loc.warm_up()
     return loc
 
@@ -86,8 +102,13 @@ def run_traverse(lac: Path, ref: Path, max_keyframes: int) -> dict:
         while True:
             data = env.input_data()
             t0 = time.perf_counter()
-            e = loc.update(env.get_mission_time(), data, env.get_imu_data(), env.get_linear_speed(),
-                           env.get_angular_speed())  # fmt: skip
+            e = loc.update(
+                env.get_mission_time(),
+                data,
+                env.get_imu_data(),
+                env.get_linear_speed(),
+                env.get_angular_speed(),
+            )
             times.append(time.perf_counter() - t0)
             g = env.get_transform_matrix()
             err.append(float(np.linalg.norm(e.T_map_rover[:3, 3] - g[:3, 3])))
@@ -100,15 +121,22 @@ def run_traverse(lac: Path, ref: Path, max_keyframes: int) -> dict:
     first = localized.index(True) if any(localized) else None
     rmse = lambda x: round(float(np.sqrt(np.mean(x**2))), 4)  # noqa: E731
     return {
-        "ticks": len(err), "fixes": int(e.fixes), "first_fix_tick": first,
+        "ticks": len(err),
+        "fixes": int(e.fixes),
+        "first_fix_tick": first,
         "attempts": len(loc.recent_attempts),
-        "rmse_m": rmse(err), "rmse_after_first_fix_m": rmse(err[first:]) if first is not None else None,
-        "final_error_m": round(float(err[-1]), 4), "odometry_rmse_m": rmse(err_odo),
-        "odometry_final_error_m": round(float(err_odo[-1]), 4), "update": stats_ms(times),
-    }  # fmt: skip
+        "rmse_m": rmse(err),
+        "rmse_after_first_fix_m": rmse(err[first:]) if first is not None else None,
+        "final_error_m": round(float(err[-1]), 4),
+        "odometry_rmse_m": rmse(err_odo),
+        "odometry_final_error_m": round(float(err_odo[-1]), 4),
+        "update": stats_ms(times),
+    }
 
 
-def drifted(T_prev_gt, T_gt, T_prev_odo, scale=1.02, yaw_rate_rad_s=math.radians(0.5 / 60), dt=0.05):
+def drifted(
+    T_prev_gt, T_gt, T_prev_odo, scale=1.02, yaw_rate_rad_s=math.radians(0.5 / 60), dt=0.05
+):
     """Next odometry pose: the ground-truth motion with a scale error and a heading drift.
     The drift turns about the vertical (the odometry frame's z), as a gyro-bias heading drift
     does, so roll and pitch stay right (gravity keeps them; a drift about the body's z axis
@@ -120,14 +148,24 @@ def drifted(T_prev_gt, T_gt, T_prev_odo, scale=1.02, yaw_rate_rad_s=math.radians
     return T
 
 
-def run_long(lac: Path, ref: Path, hours: float, max_keyframes: int, rows: list, progress=print) -> list[dict]:
+def run_long(
+    lac: Path, ref: Path, hours: float, max_keyframes: int, rows: list, progress=print
+) -> list[dict]:
     with PlaybackAgent(lac) as env:
         loc = make_localizer(env, ref, max_keyframes)
         frames, cache = [], []
         while True:  # decode the lap once
             frames.append(env.frame)
-            cache.append((env.input_data(), env.get_imu_data(), env.get_linear_speed(), env.get_angular_speed(),
-                          env.get_transform_matrix(), env.get_mission_time()))  # fmt: skip
+            cache.append(
+                (
+                    env.input_data(),
+                    env.get_imu_data(),
+                    env.get_linear_speed(),
+                    env.get_angular_speed(),
+                    env.get_transform_matrix(),
+                    env.get_mission_time(),
+                )
+            )
             if env.at_end():
                 break
             env.step_frame()
@@ -148,18 +186,28 @@ def run_long(lac: Path, ref: Path, hours: float, max_keyframes: int, rows: list,
             t_mission += dt
         err = np.asarray(err)
         g = loc.loop.graph
-        row = {"lap": lap, "mission_time_h": round(t_mission / 3600, 4), "update": stats_ms(times),
-               "rss_mb": round(rss_mb(), 1), "keyframes_held": len(loc.loop.keyframes),
-               "observations_held": g.num_observations, "fixes_held": len(g.fixes), "reanchors": loc.reanchors,
-               "fixes_total": e.fixes, "lap_rmse_m": round(float(np.sqrt(np.mean(err**2))), 4),
-               "lap_max_error_m": round(float(err.max()), 4)}  # fmt: skip
+        row = {
+            "lap": lap,
+            "mission_time_h": round(t_mission / 3600, 4),
+            "update": stats_ms(times),
+            "rss_mb": round(rss_mb(), 1),
+            "keyframes_held": len(loc.loop.keyframes),
+            "observations_held": g.num_observations,
+            "fixes_held": len(g.fixes),
+            "reanchors": loc.reanchors,
+            "fixes_total": e.fixes,
+            "lap_rmse_m": round(float(np.sqrt(np.mean(err**2))), 4),
+            "lap_max_error_m": round(float(err.max()), 4),
+        }
         rows.append(row)
         progress(json.dumps(row))
     return rows
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--out", type=Path, default=Path("bench-output/online-component"))
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 13, 15])
     ap.add_argument("--duration", type=float, default=40.0)
@@ -180,7 +228,9 @@ def main() -> None:
             print(json.dumps(r), flush=True)
             (a.out / "bench_online_component.json").write_text(json.dumps(out, indent=1))
     if a.long_hours > 0:
-        lac, ref = simulate(a.out / f"seed_{a.long_seed}", a.long_seed, a.duration, a.width, a.rocks)
+        lac, ref = simulate(
+            a.out / f"seed_{a.long_seed}", a.long_seed, a.duration, a.width, a.rocks
+        )
 
         def progress(line):
             print(line, flush=True)

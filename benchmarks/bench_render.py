@@ -24,14 +24,23 @@ from lunarloc.perception.camera import PinholeCamera, ipex_rig
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--pairs", type=int, default=10, help="number of stereo pairs to time")
     ap.add_argument("--width", type=int, default=1280)
     ap.add_argument("--height", type=int, default=720)
-    ap.add_argument("--archive", type=float, default=0.0, help="also write a traverse of this many seconds")
+    ap.add_argument(
+        "--archive", type=float, default=0.0, help="also write a traverse of this many seconds"
+    )
     ap.add_argument("--image-rate", type=float, default=2.0)
-    ap.add_argument("--lighting", type=Lighting.parse, default=Lighting.SUN_LAMPS, help="sun, lamps or sun+lamps")
+    ap.add_argument(
+        "--lighting",
+        type=Lighting.parse,
+        default=Lighting.SUN_LAMPS,
+        help="sun, lamps or sun+lamps",
+    )
     ap.add_argument("--sun-elevation", type=float, default=RenderConfig.sun_elevation_deg)
     args = ap.parse_args()
 
@@ -41,7 +50,9 @@ def main() -> None:
     render_cfg = RenderConfig(lighting=args.lighting, sun_elevation_deg=args.sun_elevation)
     renderer = SiteRenderer(site, render_cfg)
     t2 = time.perf_counter()
-    print(f"site generation {t1 - t0:.2f} s, scene + BVH build {t2 - t1:.2f} s ({len(renderer.faces)} triangles)")
+    print(
+        f"site generation {t1 - t0:.2f} s, scene + BVH build {t2 - t1:.2f} s ({len(renderer.faces)} triangles)"
+    )
     rig = ipex_rig(PinholeCamera(args.width, args.height))
     pair = [rig["FrontLeft"], rig["FrontRight"]]
     traj = plan_traverse(site, 120.0, seed=traverse_seed(args.seed, 0))
@@ -60,11 +71,18 @@ def main() -> None:
         f"({1.0 / np.median(times):.2f} pairs/s); CPU time (all threads) median {np.median(cpu):.3f} s"
     )
     if args.archive > 0:
-        cfg = SimulationConfig(duration_s=args.archive, image_rate_hz=args.image_rate, width=args.width,
-                               height=args.height, render=render_cfg)  # fmt: skip
+        cfg = SimulationConfig(
+            duration_s=args.archive,
+            image_rate_hz=args.image_rate,
+            width=args.width,
+            height=args.height,
+            render=render_cfg,
+        )
         with tempfile.TemporaryDirectory() as tmp:
             t = time.perf_counter()
-            path, traj = simulate_traverse(site, Path(tmp) / "traverse.lac", 0, cfg, renderer=renderer)
+            path, traj = simulate_traverse(
+                site, Path(tmp) / "traverse.lac", 0, cfg, renderer=renderer
+            )
             dt = time.perf_counter() - t
             size = path.stat().st_size
         print(

@@ -25,8 +25,18 @@ import time
 import numpy as np
 
 from lunarloc.pipeline.calibration import (
-    CONFIGS, FAMILIES, NEES_68, NEES_997, REAL_CONFIGS, REAL_FAMILIES, SEARCHES, format_table, make_cases, run_cases,
-    run_real, summarise,
+    CONFIGS,
+    FAMILIES,
+    NEES_68,
+    NEES_997,
+    REAL_CONFIGS,
+    REAL_FAMILIES,
+    SEARCHES,
+    format_table,
+    make_cases,
+    run_cases,
+    run_real,
+    summarise,
 )
 
 
@@ -39,35 +49,53 @@ def real_pairs(outcomes) -> dict:
     paper = [o for o in rs if divmod(o.seed, 100) in PAPER_PAIRS]
     claims = [o for o in rs if o.claimed]
     d2 = np.array([o.nees for o in claims if math.isfinite(o.nees)])
-    return {"pairs": len(rs), "claimed": len(claims), "right": sum(o.right for o in claims),
-            "confident_wrong": sum(o.confident_wrong for o in rs), "paper_claimed": sum(o.claimed for o in paper),
-            "paper_right": sum(o.claimed and o.right for o in paper),
-            "nees_rover_68": float(np.mean(d2 <= NEES_68)) if len(d2) else None,
-            "nees_rover_997": float(np.mean(d2 <= NEES_997)) if len(d2) else None,
-            "refused": [f"{o.params['pair']}: {o.reason}" for o in rs if not o.claimed]}
+    return {
+        "pairs": len(rs),
+        "claimed": len(claims),
+        "right": sum(o.right for o in claims),
+        "confident_wrong": sum(o.confident_wrong for o in rs),
+        "paper_claimed": sum(o.claimed for o in paper),
+        "paper_right": sum(o.claimed and o.right for o in paper),
+        "nees_rover_68": float(np.mean(d2 <= NEES_68)) if len(d2) else None,
+        "nees_rover_997": float(np.mean(d2 <= NEES_997)) if len(d2) else None,
+        "refused": [f"{o.params['pair']}: {o.reason}" for o in rs if not o.claimed],
+    }
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--per-family", type=int, default=8)
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--families", default=",".join(FAMILIES))
     ap.add_argument("--searches", default=",".join(SEARCHES))
     ap.add_argument("--configs", default=",".join(CONFIGS))
-    ap.add_argument("--data", default=None, help="lunarloc-data folder: also the real families (136 pairs each)")
-    ap.add_argument("--real-families", default="real pairs",
-                    help=f"with --data: comma-separated, 'all' for every one of {', '.join(REAL_FAMILIES)}")
+    ap.add_argument(
+        "--data", default=None, help="lunarloc-data folder: also the real families (136 pairs each)"
+    )
+    ap.add_argument(
+        "--real-families",
+        default="real pairs",
+        help=f"with --data: comma-separated, 'all' for every one of {', '.join(REAL_FAMILIES)}",
+    )
     ap.add_argument("--real-configs", default=",".join(REAL_CONFIGS))
     ap.add_argument("--out", default="calibration.json")
     args = ap.parse_args()
     t0 = time.perf_counter()
     cases = make_cases(args.families.split(","), args.per_family, args.first_seed)
-    outs = run_cases(cases, args.configs.split(","), args.searches.split(","),
-                     progress=lambda o: print(f"  {o.family} #{o.seed} {o.config} {o.search}: "
-                                              f"{'claimed' if o.claimed else 'refused'}"
-                                              f"{' WRONG' if o.confident_wrong else ''} err {o.err_m:.3f} m "
-                                              f"pred {o.predicted_error_m:.3f} m NEES {o.nees:.2f} ({o.time_s:.1f} s)",
-                                              flush=True))
+    outs = run_cases(
+        cases,
+        args.configs.split(","),
+        args.searches.split(","),
+        progress=lambda o: print(
+            f"  {o.family} #{o.seed} {o.config} {o.search}: "
+            f"{'claimed' if o.claimed else 'refused'}"
+            f"{' WRONG' if o.confident_wrong else ''} err {o.err_m:.3f} m "
+            f"pred {o.predicted_error_m:.3f} m NEES {o.nees:.2f} ({o.time_s:.1f} s)",
+            flush=True,
+        ),
+    )
     rows = summarise(outs)
     print(format_table(rows))
     total_cw = sum(r["confident_wrong"] for r in rows)
@@ -78,13 +106,17 @@ def main() -> None:
         routs = run_real(args.data, fams, args.real_configs.split(","))
         rrows = summarise(routs)
         print(format_table(rrows))
-        print(f"confident-wrong on the real families: {sum(r['confident_wrong'] for r in rrows)} of {len(routs)} runs")
+        print(
+            f"confident-wrong on the real families: {sum(r['confident_wrong'] for r in rrows)} of {len(routs)} runs"
+        )
         result["real_rows"] = rrows
         result["real_outcomes"] = [o.to_dict() for o in routs]
         rp = real_pairs(routs)
         result["real_pairs"] = rp
-        print(f"136 real pairs, CLI default: claimed {rp['claimed']}, right {rp['right']}, confident-wrong "
-              f"{rp['confident_wrong']}; paper pairs claimed {rp['paper_claimed']} of 5")
+        print(
+            f"136 real pairs, CLI default: claimed {rp['claimed']}, right {rp['right']}, confident-wrong "
+            f"{rp['confident_wrong']}; paper pairs claimed {rp['paper_claimed']} of 5"
+        )
     with open(args.out, "w") as f:
         json.dump(result, f, indent=1, default=float)
 

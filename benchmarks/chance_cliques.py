@@ -54,23 +54,33 @@ EPSILON_M = 0.05
 
 def chance_size(ref, veh, mode, label=""):
     """(associations, largest consistent set) of an unrelated pair; records false accepts."""
-    r = localize(ref, veh, LocalizationConfig(mode=mode, epsilon_m=EPSILON_M, epsilon_z_m=EPSILON_M))
+    r = localize(
+        ref, veh, LocalizationConfig(mode=mode, epsilon_m=EPSILON_M, epsilon_z_m=EPSILON_M)
+    )
     if r.success:
         FALSE_ACCEPTS.append(label)
     return len(ref) * len(veh), r.clique_size
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--data", default="../shared/data/lunarloc-data")
     ap.add_argument("--out", default="chance.json")
     ap.add_argument("--mode", default="gravity")
     ap.add_argument("--synthetic", type=int, default=60, help="number of synthetic pairs")
     ap.add_argument("--synthetic-max", type=int, default=450, help="largest synthetic map")
     ap.add_argument("--skip-real", action="store_true", help="synthetic null model only")
-    ap.add_argument("--overhead", type=int, default=0, help="simulated sites whose LAC map is the reference")
-    ap.add_argument("--per-site", type=int, default=10, help="unrelated vehicle maps per overhead site")
-    ap.add_argument("--epsilon", type=float, default=0.05, help="consistency tolerance (m) of the search")
+    ap.add_argument(
+        "--overhead", type=int, default=0, help="simulated sites whose LAC map is the reference"
+    )
+    ap.add_argument(
+        "--per-site", type=int, default=10, help="unrelated vehicle maps per overhead site"
+    )
+    ap.add_argument(
+        "--epsilon", type=float, default=0.05, help="consistency tolerance (m) of the search"
+    )
     args = ap.parse_args()
     global EPSILON_M
     EPSILON_M = args.epsilon
@@ -94,7 +104,9 @@ def main() -> None:
     rng = np.random.default_rng(0)
     for t in range(args.synthetic):
         na, nb = (int(x) for x in rng.integers(20, args.synthetic_max, 2))
-        m, k = chance_size(synthetic_field(rng, na), synthetic_field(rng, nb), mode, f"synthetic {na}x{nb}")
+        m, k = chance_size(
+            synthetic_field(rng, na), synthetic_field(rng, nb), mode, f"synthetic {na}x{nb}"
+        )
         rows.append((na, nb, "synthetic", m, k))
         print(f"synthetic {na}x{nb}: m={m} chance clique={k}", flush=True)
     if args.overhead:
@@ -109,16 +121,20 @@ def main() -> None:
                 if r.success:
                     FALSE_ACCEPTS.append(f"overhead site {seed} x {nv}")
                 rows.append((len(ref), nv, "overhead", len(ref) * nv, r.clique_size))
-                print(f"overhead site {seed} ({len(ref)} rocks) x {nv}: m={len(ref) * nv} chance clique={r.clique_size} "
-                      f"inliers after refinement={r.num_inliers} required={r.required_inliers} accepted={r.success}",
-                      flush=True)
+                print(
+                    f"overhead site {seed} ({len(ref)} rocks) x {nv}: m={len(ref) * nv} chance clique={r.clique_size} "
+                    f"inliers after refinement={r.num_inliers} required={r.required_inliers} accepted={r.success}",
+                    flush=True,
+                )
     for kind in ("real-mirrored", "real-disjoint", "synthetic", "overhead"):
         sel = [r for r in rows if r[2] == kind]
         if sel:
             print(f"{kind}: {len(sel)} pairs, largest chance clique {max(r[4] for r in sel)}")
     fit = [r for r in rows if r[2] not in ("real-mirrored", "overhead")]
     if not fit:
-        print(f"false accepts (success claimed on unrelated maps): {len(FALSE_ACCEPTS)} {FALSE_ACCEPTS}")
+        print(
+            f"false accepts (success claimed on unrelated maps): {len(FALSE_ACCEPTS)} {FALSE_ACCEPTS}"
+        )
         return
     ms = np.array([r[3] for r in fit], float)
     ks = np.array([r[4] for r in fit], float)
@@ -126,8 +142,12 @@ def main() -> None:
     b = np.polyfit(np.log10(ms), ks, 1)[0]
     a = float(np.max(ks - b * np.log10(ms)))
     print(f"envelope: chance clique <= {a:.2f} + {b:.2f} * log10(m)  (max observed {ks.max():.0f})")
-    print(f"false accepts (success claimed on unrelated maps) with the current rule: {len(FALSE_ACCEPTS)} {FALSE_ACCEPTS}")
-    Path(args.out).write_text(json.dumps({"rows": rows, "envelope": [a, b], "false_accepts": FALSE_ACCEPTS}, indent=1))
+    print(
+        f"false accepts (success claimed on unrelated maps) with the current rule: {len(FALSE_ACCEPTS)} {FALSE_ACCEPTS}"
+    )
+    Path(args.out).write_text(
+        json.dumps({"rows": rows, "envelope": [a, b], "false_accepts": FALSE_ACCEPTS}, indent=1)
+    )
 
 
 if __name__ == "__main__":

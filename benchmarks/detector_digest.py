@@ -35,19 +35,34 @@ def _value(v):
 
 def pair_entry(pr) -> dict:
     """A PairResult's detections (every field) and records (index, reason, depth, size, tentative)."""
-    return dict(dets=[{f.name: _value(getattr(d, f.name)) for f in fields(d)} for d in pr.detections],
-                recs=[(r.mask_index, None if r.reason is None else r.reason.value, repr(r.depth_m), repr(r.size_m),
-                       r.tentative) for r in pr.records],
-                nmasks=len(pr.masks))
+    return dict(
+        dets=[{f.name: _value(getattr(d, f.name)) for f in fields(d)} for d in pr.detections],
+        recs=[
+            (
+                r.mask_index,
+                None if r.reason is None else r.reason.value,
+                repr(r.depth_m),
+                repr(r.size_m),
+                r.tentative,
+            )
+            for r in pr.records
+        ],
+        nmasks=len(pr.masks),
+    )
 
 
 def _configs(fused: bool):
     from lunarloc.perception.detector import DetectorConfig
 
     base = DetectorConfig()
-    out = {"default": base, "small": replace(base, small_rocks=replace(base.small_rocks, enabled=True))}
+    out = {
+        "default": base,
+        "small": replace(base, small_rocks=replace(base.small_rocks, enabled=True)),
+    }
     if fused:
-        out["fused"] = DetectorConfig(fuse_tol_m=0.2)  # the flat key: loads on both sides of the sections
+        out["fused"] = DetectorConfig(
+            fuse_tol_m=0.2
+        )  # the flat key: loads on both sides of the sections
     return out
 
 
@@ -59,7 +74,9 @@ def real_pairs() -> dict:
     from lunarloc.perception.detector import Detector
 
     labels = json.loads((HERE.parent / "tests" / "data" / "lac_real_labels.json").read_text())
-    data = Path(os.environ.get("LUNARLOC_LAC_REAL", HERE.parent.parent / "shared" / "data" / "lac-real"))
+    data = Path(
+        os.environ.get("LUNARLOC_LAC_REAL", HERE.parent.parent / "shared" / "data" / "lac-real")
+    )
     cam = labels["camera"]
     out = {}
     for name, cfg in _configs(fused=False).items():
@@ -76,7 +93,9 @@ def real_pairs() -> dict:
                 T = pose_to_matrix(*[float(p[k]) for k in ("x", "y", "z", "roll", "pitch", "yaw")])
                 lander = np.zeros(2)
             for keep in (False, True):
-                pr = det.detect_pair(L, R, T_ro, T, "FrontLeft", lander_xy=lander, keep_tentative=keep)
+                pr = det.detect_pair(
+                    L, R, T_ro, T, "FrontLeft", lander_xy=lander, keep_tentative=keep
+                )
                 out[f"{name}/{fr['name']}/kt{int(keep)}"] = pair_entry(pr)
     return out
 
@@ -94,7 +113,9 @@ def archive_frames(path: Path) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("source", help="'real' or a .lac archive")
     ap.add_argument("--out", type=Path, default=None, help="write the JSON here")
     a = ap.parse_args(argv)

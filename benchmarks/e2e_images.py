@@ -74,8 +74,11 @@ def _run(cmd: list[str], log: list[str]) -> str:
     if r.returncode != 0:
         sys.stderr.write(r.stdout + r.stderr)
         raise SystemExit(f"command failed ({r.returncode}): {shown}")
-    print(f"  ({time.perf_counter() - t0:.0f} s) {r.stdout.strip().splitlines()[-1] if r.stdout.strip() else ''}",
-          file=sys.stderr, flush=True)  # fmt: skip
+    print(
+        f"  ({time.perf_counter() - t0:.0f} s) {r.stdout.strip().splitlines()[-1] if r.stdout.strip() else ''}",
+        file=sys.stderr,
+        flush=True,
+    )
     return r.stdout
 
 
@@ -87,38 +90,75 @@ def simulate(a, log: list[str]) -> list[Path]:
     paths = [a.out / f"traverse_{i}.lac" for i in range(a.traverses)]
     if all(p.exists() for p in paths):
         return paths
-    if a.rocks is None and a.vehicle_image_rate is None and a.plan == "random" and a.reference_duration is None:
-        cmd = _lunarloc() + [
-            "simulate", "--seed", str(a.seed), "--traverses", str(a.traverses), "--out", str(a.out),
-            "--duration", f"{a.duration:g}", "--image-rate", f"{a.image_rate:g}", "--width", str(a.width),
-            "--height", str(a.height), "--no-semantic", "--lighting", a.lighting, "--sun-elevation", f"{a.sun_elevation:g}",
-        ] + ([] if a.all_cameras else ["--front-only"])  # fmt: skip
+    if (
+        a.rocks is None
+        and a.vehicle_image_rate is None
+        and a.plan == "random"
+        and a.reference_duration is None
+    ):
+        cmd = (
+            _lunarloc()
+            + [
+                "simulate",
+                "--seed",
+                str(a.seed),
+                "--traverses",
+                str(a.traverses),
+                "--out",
+                str(a.out),
+                "--duration",
+                f"{a.duration:g}",
+                "--image-rate",
+                f"{a.image_rate:g}",
+                "--width",
+                str(a.width),
+                "--height",
+                str(a.height),
+                "--no-semantic",
+                "--lighting",
+                a.lighting,
+                "--sun-elevation",
+                f"{a.sun_elevation:g}",
+            ]
+            + ([] if a.all_cameras else ["--front-only"])
+        )
         _run(cmd, log)
     else:
         from dataclasses import replace
 
         from lunarloc.sim.render import RenderConfig
-        from lunarloc.sim.simulate import ALL_CAMERAS, SimulationConfig, simulate_site, simulate_traverse
+        from lunarloc.sim.simulate import (
+            ALL_CAMERAS,
+            SimulationConfig,
+            simulate_site,
+            simulate_traverse,
+        )
         from lunarloc.sim.site import SiteConfig
 
         site_cfg = SiteConfig() if a.rocks is None else replace(SiteConfig(), n_rocks=a.rocks)
         cfg = SimulationConfig(
-            site=site_cfg, duration_s=a.duration, image_rate_hz=a.image_rate,
-            width=a.width, height=a.height, semantic=False,
+            site=site_cfg,
+            duration_s=a.duration,
+            image_rate_hz=a.image_rate,
+            width=a.width,
+            height=a.height,
+            semantic=False,
             cameras=ALL_CAMERAS if a.all_cameras else ("FrontLeft", "FrontRight"),
             render=RenderConfig(sun_elevation_deg=a.sun_elevation, lighting=a.lighting),
-        )  # fmt: skip
+        )
         veh_rate = a.vehicle_image_rate or a.image_rate
         ref_cfg = replace(cfg, duration_s=a.reference_duration or a.duration)
         veh_cfg = replace(cfg, image_rate_hz=veh_rate)
         if a.plan == "survey":
             ref_cfg = replace(ref_cfg, rover=replace(cfg.rover, plan="survey"))
             veh_cfg = replace(veh_cfg, rover=replace(cfg.rover, plan="revisit"))
-        log.append(f"python: simulate_traverse(simulate_site({a.seed}, cfg), traverse_i.lac, i, cfg) with SimulationConfig("
-                   f"site=SiteConfig(n_rocks={site_cfg.n_rocks}), duration_s={a.duration:g}, image_rate_hz={a.image_rate:g} "
-                   f"(vehicle traverses {veh_rate:g}), width={a.width}, height={a.height}, semantic=False, "
-                   f"render=RenderConfig(sun_elevation_deg={a.sun_elevation:g}, lighting={a.lighting!r}), cameras=...), "
-                   f"plan {a.plan} (reference {ref_cfg.rover.plan}, {ref_cfg.duration_s:g} s; vehicles {veh_cfg.rover.plan})")  # fmt: skip
+        log.append(
+            f"python: simulate_traverse(simulate_site({a.seed}, cfg), traverse_i.lac, i, cfg) with SimulationConfig("
+            f"site=SiteConfig(n_rocks={site_cfg.n_rocks}), duration_s={a.duration:g}, image_rate_hz={a.image_rate:g} "
+            f"(vehicle traverses {veh_rate:g}), width={a.width}, height={a.height}, semantic=False, "
+            f"render=RenderConfig(sun_elevation_deg={a.sun_elevation:g}, lighting={a.lighting!r}), cameras=...), "
+            f"plan {a.plan} (reference {ref_cfg.rover.plan}, {ref_cfg.duration_s:g} s; vehicles {veh_cfg.rover.plan})"
+        )
         print(f"$ {log[-1]}", file=sys.stderr, flush=True)
         t0 = time.perf_counter()
         site = simulate_site(a.seed, cfg)
@@ -141,8 +181,12 @@ def _truth(archive: Path) -> dict:
         odo_frames = ar.custom("odometry")["frame"]
     last = int(frames[-1])
     k = int(np.flatnonzero(odo_frames == last)[0])
-    return {"gt_last": gt[-1], "odo_last": odo[k], "path_m": float(np.linalg.norm(np.diff(gt, axis=0), axis=1).sum()),
-            "gt_xyz": gt}
+    return {
+        "gt_last": gt[-1],
+        "odo_last": odo[k],
+        "path_m": float(np.linalg.norm(np.diff(gt, axis=0), axis=1).sum()),
+        "gt_xyz": gt,
+    }
 
 
 def _odometry_source(run_dir: Path) -> str | None:
@@ -157,13 +201,19 @@ def _fix_record(run_dir: Path) -> dict:
     """Of a run's accepted fixes: the worst one's error and predicted error (m), and the
     first one's time (s from the run's first attempt's clock)."""
     atts = [a for a in json.loads((run_dir / "attempts.json").read_text()) if a["accepted"]]
-    scored = [a for a in atts if a.get("fix_error_m") is not None and math.isfinite(a["fix_error_m"])]
+    scored = [
+        a for a in atts if a.get("fix_error_m") is not None and math.isfinite(a["fix_error_m"])
+    ]
     worst = max(scored, key=lambda a: a["fix_error_m"]) if scored else None
-    return {"worst_fix_predicted_m": None if worst is None else worst["predicted_error_m"],
-            "first_fix_time_s": atts[0]["time_s"] if atts else None}
+    return {
+        "worst_fix_predicted_m": None if worst is None else worst["predicted_error_m"],
+        "first_fix_time_s": atts[0]["time_s"] if atts else None,
+    }
 
 
-def _landmark_rocks(map_path: Path, det_path: Path, gt_det_path: Path, rocks: np.ndarray, radius_m: float = 0.10):
+def _landmark_rocks(
+    map_path: Path, det_path: Path, gt_det_path: Path, rocks: np.ndarray, radius_m: float = 0.10
+):
     """Ground-truth rock of each landmark of a map (-1: none within max(0.15 m, r)) and
     its distance, by the landmark's detections seen with ground-truth poses.
 
@@ -195,19 +245,33 @@ def _landmark_rocks(map_path: Path, det_path: Path, gt_det_path: Path, rocks: np
 
 def _map_quality(ids: np.ndarray, dist: np.ndarray) -> dict:
     ok = ids >= 0
-    return {"landmarks": int(len(ids)), "on_rock": int(ok.sum()),
-            "median_err_m": float(np.median(dist[ok])) if ok.any() else float("nan")}  # fmt: skip
+    return {
+        "landmarks": int(len(ids)),
+        "on_rock": int(ok.sum()),
+        "median_err_m": float(np.median(dist[ok])) if ok.any() else float("nan"),
+    }
 
 
-def _errors(T: np.ndarray | None, veh_map: Path, truth_veh: dict, ref_pose: str, veh_pose: str) -> dict:
+def _errors(
+    T: np.ndarray | None, veh_map: Path, truth_veh: dict, ref_pose: str, veh_pose: str
+) -> dict:
     from lunarloc.io.maps import load_map
 
     nan = float("nan")
-    out = {"err_origin_m": nan, "err_landmarks_median_m": nan, "err_landmarks_max_m": nan,
-           "rot_deg": nan, "err_last_m": nan, "odometry_only_err_last_m": nan, "t_norm_m": nan}  # fmt: skip
+    out = {
+        "err_origin_m": nan,
+        "err_landmarks_median_m": nan,
+        "err_landmarks_max_m": nan,
+        "rot_deg": nan,
+        "err_last_m": nan,
+        "odometry_only_err_last_m": nan,
+        "t_norm_m": nan,
+    }
     p_veh_last = truth_veh["gt_last"] if veh_pose == "gt" else truth_veh["odo_last"]
     if veh_pose == "odo":
-        out["odometry_only_err_last_m"] = float(np.linalg.norm(truth_veh["odo_last"] - truth_veh["gt_last"]))
+        out["odometry_only_err_last_m"] = float(
+            np.linalg.norm(truth_veh["odo_last"] - truth_veh["gt_last"])
+        )
     if T is None:
         return out
     R, t = T[:3, :3], T[:3, 3]
@@ -226,40 +290,82 @@ def _errors(T: np.ndarray | None, veh_map: Path, truth_veh: dict, ref_pose: str,
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", type=Path, required=True, help="working folder (archives, detections, maps)")
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument(
+        "--out", type=Path, required=True, help="working folder (archives, detections, maps)"
+    )
     ap.add_argument("--seed", type=int, default=21)
     ap.add_argument("--traverses", type=int, default=2)
     ap.add_argument("--duration", type=float, default=150.0)
     ap.add_argument("--image-rate", type=float, default=1.0)
     ap.add_argument("--width", type=int, default=1280)
     ap.add_argument("--height", type=int, default=720)
-    ap.add_argument("--rocks", type=int, default=None, help="rocks on the site (default: the site's 386)")
+    ap.add_argument(
+        "--rocks", type=int, default=None, help="rocks on the site (default: the site's 386)"
+    )
     ap.add_argument("--lighting", default="sun+lamps", help="sun | lamps | sun+lamps")
     ap.add_argument("--sun-elevation", type=float, default=12.0, help="degrees (<= 0: night)")
-    ap.add_argument("--vehicle-image-rate", type=float, default=None,
-                    help="camera rate of the vehicle traverses, Hz (default: --image-rate)")  # fmt: skip
-    ap.add_argument("--all-cameras", action="store_true", help="record the rear pair too (default: front only)")
+    ap.add_argument(
+        "--vehicle-image-rate",
+        type=float,
+        default=None,
+        help="camera rate of the vehicle traverses, Hz (default: --image-rate)",
+    )
+    ap.add_argument(
+        "--all-cameras", action="store_true", help="record the rear pair too (default: front only)"
+    )
     ap.add_argument("--min-sightings", type=int, nargs="+", default=[5, 2])
     ap.add_argument("--epsilon", type=float, nargs="+", default=[0.05, 0.08])
-    ap.add_argument("--poses", nargs="+", default=[f"{r}/{v}" for r, v in PAIRS],
-                    help="reference/vehicle pose pairs among gt/gt odo/odo gt/odo")  # fmt: skip
-    ap.add_argument("--online", action="store_true",
-                    help="also run `lunarloc run` on every vehicle traverse against the reference map built with "
-                         "ground-truth poses (each --min-sightings), and report the online trajectory's RMSE")  # fmt: skip
-    ap.add_argument("--plan", choices=["random", "survey"], default="random",
-                    help="random: every traverse drives random legs from the site's start; survey: the reference "
-                         "surveys around the lander and the vehicles revisit that ground from other starts")  # fmt: skip
-    ap.add_argument("--reference-duration", type=float, default=None, help="reference traverse, s (default --duration)")
-    ap.add_argument("--odometry", default=None,
-                    help="`lunarloc run --odometry` for --online (default: run's own, visual odometry)")  # fmt: skip
-    ap.add_argument("--run-config", type=Path, default=None,
-                    help="`lunarloc run --config` for --online (e.g. a config.json with the loop's adaptive window)")  # fmt: skip
-    ap.add_argument("--run-tag", default="",
-                    help="suffix of the --online run folders (runs whose folder exists are not run again)")  # fmt: skip
-    ap.add_argument("--detect-config", type=Path, default=None,
-                    help="run config for `lunarloc detect` (e.g. a detector setting's before/after; use a fresh --out"
-                         " holding links to the archives, as detections and maps already there are reused)")
+    ap.add_argument(
+        "--poses",
+        nargs="+",
+        default=[f"{r}/{v}" for r, v in PAIRS],
+        help="reference/vehicle pose pairs among gt/gt odo/odo gt/odo",
+    )
+    ap.add_argument(
+        "--online",
+        action="store_true",
+        help="also run `lunarloc run` on every vehicle traverse against the reference map built with "
+        "ground-truth poses (each --min-sightings), and report the online trajectory's RMSE",
+    )
+    ap.add_argument(
+        "--plan",
+        choices=["random", "survey"],
+        default="random",
+        help="random: every traverse drives random legs from the site's start; survey: the reference "
+        "surveys around the lander and the vehicles revisit that ground from other starts",
+    )
+    ap.add_argument(
+        "--reference-duration",
+        type=float,
+        default=None,
+        help="reference traverse, s (default --duration)",
+    )
+    ap.add_argument(
+        "--odometry",
+        default=None,
+        help="`lunarloc run --odometry` for --online (default: run's own, visual odometry)",
+    )
+    ap.add_argument(
+        "--run-config",
+        type=Path,
+        default=None,
+        help="`lunarloc run --config` for --online (e.g. a config.json with the loop's adaptive window)",
+    )
+    ap.add_argument(
+        "--run-tag",
+        default="",
+        help="suffix of the --online run folders (runs whose folder exists are not run again)",
+    )
+    ap.add_argument(
+        "--detect-config",
+        type=Path,
+        default=None,
+        help="run config for `lunarloc detect` (e.g. a detector setting's before/after; use a fresh --out"
+        " holding links to the archives, as detections and maps already there are reused)",
+    )
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
@@ -269,7 +375,9 @@ def main(argv=None) -> int:
     archives = simulate(a, log)
     rocks_t = np.genfromtxt(a.out / "rocks.csv", delimiter=",", names=True)
     rocks = np.column_stack([rocks_t["x"], rocks_t["y"], rocks_t["z"], rocks_t["radius"]])
-    needed = ["gt"] + sorted({p for pr in pairs for p in pr} - {"gt"})  # gt first: odo maps are judged by it
+    needed = ["gt"] + sorted(
+        {p for pr in pairs for p in pr} - {"gt"}
+    )  # gt first: odo maps are judged by it
     rock_of: dict[Path, np.ndarray] = {}
     # detections and maps
     maps: dict[tuple[int, str, int], Path] = {}
@@ -278,12 +386,19 @@ def main(argv=None) -> int:
         for pose in needed:
             det = a.out / f"det_{i}_{pose}.csv"
             if not det.exists():
-                _run(_lunarloc() + ["detect", str(arch), "-o", str(det), "--pose", POSES[pose]]
-                     + ([] if a.detect_config is None else ["--config", str(a.detect_config)]), log)
+                _run(
+                    _lunarloc()
+                    + ["detect", str(arch), "-o", str(det), "--pose", POSES[pose]]
+                    + ([] if a.detect_config is None else ["--config", str(a.detect_config)]),
+                    log,
+                )
             for ms in a.min_sightings:
                 m = a.out / f"map_{i}_{pose}_ms{ms}.csv"
                 if not m.exists():
-                    _run(_lunarloc() + ["map", str(det), "-o", str(m), "--min-sightings", str(ms)], log)
+                    _run(
+                        _lunarloc() + ["map", str(det), "-o", str(m), "--min-sightings", str(ms)],
+                        log,
+                    )
                 maps[i, pose, ms] = m
                 ids, dist = _landmark_rocks(m, det, a.out / f"det_{i}_gt.csv", rocks)
                 rock_of[m] = ids
@@ -295,23 +410,36 @@ def main(argv=None) -> int:
             for ms in a.min_sightings:
                 ref, veh = maps[0, rp, ms], maps[i, vp, ms]
                 for eps in a.epsilon:
-                    out = _run(_lunarloc() + ["localize", str(ref), str(veh), "--json", "--epsilon", f"{eps:g}"], log)
+                    out = _run(
+                        _lunarloc()
+                        + ["localize", str(ref), str(veh), "--json", "--epsilon", f"{eps:g}"],
+                        log,
+                    )
                     res = json.loads(out.strip().splitlines()[-1])
-                    T = np.array([[math.nan if v is None else v for v in r] for r in res["T_ref_veh"]], float)
+                    T = np.array(
+                        [[math.nan if v is None else v for v in r] for r in res["T_ref_veh"]], float
+                    )
                     T = T if np.all(np.isfinite(T)) else None
                     inl = np.asarray(res["inliers"], int).reshape(-1, 2)  # [vehicle, reference]
                     rv, rr = rock_of[veh][inl[:, 0]], rock_of[ref][inl[:, 1]]
                     correct = int(np.count_nonzero((rv >= 0) & (rv == rr)))
                     shared = len((set(rock_of[veh].tolist()) & set(rock_of[ref].tolist())) - {-1})
                     row = {
-                        "ref": f"0:{rp}", "veh": f"{i}:{vp}", "min_sightings": ms, "epsilon_m": eps,
+                        "ref": f"0:{rp}",
+                        "veh": f"{i}:{vp}",
+                        "min_sightings": ms,
+                        "epsilon_m": eps,
                         "ref_landmarks": quality[ref.name]["landmarks"],
-                        "veh_landmarks": quality[veh.name]["landmarks"], "shared_rocks": shared,
-                        "inliers": res["num_inliers"], "correct_inliers": correct, "required": res["required_inliers"],
-                        "success": res["success"], "reason": res["reason"],
+                        "veh_landmarks": quality[veh.name]["landmarks"],
+                        "shared_rocks": shared,
+                        "inliers": res["num_inliers"],
+                        "correct_inliers": correct,
+                        "required": res["required_inliers"],
+                        "success": res["success"],
+                        "reason": res["reason"],
                         "rmse_m": res["residual_rmse_m"],
                         **_errors(T, veh, truth[i], rp, vp),
-                    }  # fmt: skip
+                    }
                     rows.append(row)
     online = []
     if a.online:
@@ -320,29 +448,61 @@ def main(argv=None) -> int:
                 odo_tag = "" if a.odometry is None else "_" + a.odometry.replace(":", "-")
                 run_dir = a.out / f"run_{i}_ms{ms}{odo_tag}{'_' + a.run_tag if a.run_tag else ''}"
                 if not (run_dir / "summary.json").exists():
-                    _run(_lunarloc() + ["run", str(archives[i]), "--reference", str(maps[0, "gt", ms]), "--out",
-                                        str(run_dir), "--no-plot"]
-                         + ([] if a.odometry is None else ["--odometry", a.odometry])
-                         + ([] if a.run_config is None else ["--config", str(a.run_config)]), log)  # fmt: skip
+                    _run(
+                        _lunarloc()
+                        + [
+                            "run",
+                            str(archives[i]),
+                            "--reference",
+                            str(maps[0, "gt", ms]),
+                            "--out",
+                            str(run_dir),
+                            "--no-plot",
+                        ]
+                        + ([] if a.odometry is None else ["--odometry", a.odometry])
+                        + ([] if a.run_config is None else ["--config", str(a.run_config)]),
+                        log,
+                    )
                 rs = json.loads((run_dir / "summary.json").read_text())
-                online.append({
-                    "veh": i, "min_sightings": ms, "ref_landmarks": rs["reference_landmarks"],
-                    "attempts": rs["attempts"], "localized": rs["localized"], "fixes": rs["fixes"],
-                    "online_rmse_m": rs["ate_online"]["rmse_m"], "corrected_rmse_m": rs["ate_corrected"]["rmse_m"],
-                    "odometry_rmse_m": rs["ate_odometry"]["rmse_m"], "path_m": rs["path_length_m"],
-                    "worst_fix_m": rs.get("max_accepted_fix_error_m"),
-                    **_fix_record(run_dir),
-                    "odometry_source": _odometry_source(run_dir),
-                })  # fmt: skip
+                online.append(
+                    {
+                        "veh": i,
+                        "min_sightings": ms,
+                        "ref_landmarks": rs["reference_landmarks"],
+                        "attempts": rs["attempts"],
+                        "localized": rs["localized"],
+                        "fixes": rs["fixes"],
+                        "online_rmse_m": rs["ate_online"]["rmse_m"],
+                        "corrected_rmse_m": rs["ate_corrected"]["rmse_m"],
+                        "odometry_rmse_m": rs["ate_odometry"]["rmse_m"],
+                        "path_m": rs["path_length_m"],
+                        "worst_fix_m": rs.get("max_accepted_fix_error_m"),
+                        **_fix_record(run_dir),
+                        "odometry_source": _odometry_source(run_dir),
+                    }
+                )
     summary = {
         "online": online,
         "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(a).items()},
         "commands": log,
-        "traverses": [{"archive": str(p), "path_m": t["path_m"],
-                       "odometry_err_last_m": float(np.linalg.norm(t["odo_last"] - t["gt_last"])),
-                       **({} if i == 0 else {f"share_near_reference_{d:g}m": path_share_near(t["gt_xyz"], truth[0]["gt_xyz"], d)
-                                             for d in (1.5, 3.0)})}
-                      for i, (p, t) in enumerate(zip(archives, truth))],  # fmt: skip
+        "traverses": [
+            {
+                "archive": str(p),
+                "path_m": t["path_m"],
+                "odometry_err_last_m": float(np.linalg.norm(t["odo_last"] - t["gt_last"])),
+                **(
+                    {}
+                    if i == 0
+                    else {
+                        f"share_near_reference_{d:g}m": path_share_near(
+                            t["gt_xyz"], truth[0]["gt_xyz"], d
+                        )
+                        for d in (1.5, 3.0)
+                    }
+                ),
+            }
+            for i, (p, t) in enumerate(zip(archives, truth))
+        ],
         "maps": quality,
         "results": rows,
         "wall_s": time.perf_counter() - t_start,
@@ -369,38 +529,60 @@ def print_table(s: dict) -> None:
 
     for t in s["traverses"]:
         err = 100 * t["odometry_err_last_m"]
-        near = "".join(f", {100 * v:.0f} % of it within {k.rsplit('_', 1)[1]} of the reference path"
-                       for k, v in t.items() if k.startswith("share_near_reference_"))
-        print(f"{t['archive']}: path {t['path_m']:.1f} m, odometry error at the end {err:.1f} cm{near}")
-    print("maps: landmarks; within max(0.15 m, r) of a true rock (odometry maps: judged by the same detections"
-          " with ground-truth poses), median distance:")  # fmt: skip
+        near = "".join(
+            f", {100 * v:.0f} % of it within {k.rsplit('_', 1)[1]} of the reference path"
+            for k, v in t.items()
+            if k.startswith("share_near_reference_")
+        )
+        print(
+            f"{t['archive']}: path {t['path_m']:.1f} m, odometry error at the end {err:.1f} cm{near}"
+        )
+    print(
+        "maps: landmarks; within max(0.15 m, r) of a true rock (odometry maps: judged by the same detections"
+        " with ground-truth poses), median distance:"
+    )
     for name, q in s["maps"].items():
-        print(f"  {name}: {q['landmarks']}, {q['on_rock']} on a rock, median {cm(q['median_err_m'])} cm")
+        print(
+            f"  {name}: {q['landmarks']}, {q['on_rock']} on a rock, median {cm(q['median_err_m'])} cm"
+        )
     cols = [  # (header, width, cell)
-        ("ref", 6, lambda r: r["ref"]), ("veh", 6, lambda r: r["veh"]), ("ms", 3, lambda r: r["min_sightings"]),
-        ("eps", 5, lambda r: f"{r['epsilon_m']:.2f}"), ("L_ref", 5, lambda r: r["ref_landmarks"]),
-        ("L_veh", 5, lambda r: r["veh_landmarks"]), ("shared", 6, lambda r: r["shared_rocks"]),
+        ("ref", 6, lambda r: r["ref"]),
+        ("veh", 6, lambda r: r["veh"]),
+        ("ms", 3, lambda r: r["min_sightings"]),
+        ("eps", 5, lambda r: f"{r['epsilon_m']:.2f}"),
+        ("L_ref", 5, lambda r: r["ref_landmarks"]),
+        ("L_veh", 5, lambda r: r["veh_landmarks"]),
+        ("shared", 6, lambda r: r["shared_rocks"]),
         ("inl", 4, lambda r: r["inliers"]),
-        ("good", 4, lambda r: r["correct_inliers"]), ("req", 4, lambda r: r["required"]),
-        ("ok", 3, lambda r: "yes" if r["success"] else "no"), ("rmse", 5, lambda r: cm(r["rmse_m"])),
-        ("e_orig", 6, lambda r: cm(r["err_origin_m"])), ("e_lm50", 6, lambda r: cm(r["err_landmarks_median_m"])),
-        ("e_lmMx", 6, lambda r: cm(r["err_landmarks_max_m"])), ("e_last", 6, lambda r: cm(r["err_last_m"])),
-        ("odo", 6, lambda r: cm(r["odometry_only_err_last_m"])), ("|t|", 6, lambda r: cm(r["t_norm_m"])),
+        ("good", 4, lambda r: r["correct_inliers"]),
+        ("req", 4, lambda r: r["required"]),
+        ("ok", 3, lambda r: "yes" if r["success"] else "no"),
+        ("rmse", 5, lambda r: cm(r["rmse_m"])),
+        ("e_orig", 6, lambda r: cm(r["err_origin_m"])),
+        ("e_lm50", 6, lambda r: cm(r["err_landmarks_median_m"])),
+        ("e_lmMx", 6, lambda r: cm(r["err_landmarks_max_m"])),
+        ("e_last", 6, lambda r: cm(r["err_last_m"])),
+        ("odo", 6, lambda r: cm(r["odometry_only_err_last_m"])),
+        ("|t|", 6, lambda r: cm(r["t_norm_m"])),
         ("rot", 5, lambda r: "-" if not math.isfinite(r["rot_deg"]) else f"{r['rot_deg']:.2f}"),
-    ]  # fmt: skip
+    ]
     print(LEGEND)
     print(" ".join(f"{h:>{w}}" for h, w, _ in cols) + "  reason")
     for r in s["results"]:
         print(" ".join(f"{str(f(r)):>{w}}" for _, w, f in cols) + f"  {r['reason']}")
     if s.get("online"):
-        print("online (`lunarloc run` of the vehicle traverse against the ground-truth-pose reference map): "
-              "ATE RMSE of the online, corrected and odometry-only trajectories, cm")  # fmt: skip
+        print(
+            "online (`lunarloc run` of the vehicle traverse against the ground-truth-pose reference map): "
+            "ATE RMSE of the online, corrected and odometry-only trajectories, cm"
+        )
         print("veh ms L_ref attempts localized fixes online corrected odometry path_m worst_fix")
         for r in s["online"]:
-            print(f"{r['veh']:>3} {r['min_sightings']:>2} {r['ref_landmarks']:>5} {r['attempts']:>8} {r['localized']:>9} "
-                  f"{r['fixes']:>5} {cm(r['online_rmse_m']):>6} {cm(r['corrected_rmse_m']):>9} "
-                  f"{cm(r['odometry_rmse_m']):>8} {r['path_m']:>6.1f} {cm(r.get('worst_fix_m')):>9}"
-                  f"  ({r.get('odometry_source')})")  # fmt: skip
+            print(
+                f"{r['veh']:>3} {r['min_sightings']:>2} {r['ref_landmarks']:>5} {r['attempts']:>8} {r['localized']:>9} "
+                f"{r['fixes']:>5} {cm(r['online_rmse_m']):>6} {cm(r['corrected_rmse_m']):>9} "
+                f"{cm(r['odometry_rmse_m']):>8} {r['path_m']:>6.1f} {cm(r.get('worst_fix_m')):>9}"
+                f"  ({r.get('odometry_source')})"
+            )
     print(f"wall time {s['wall_s']:.0f} s")
 
 

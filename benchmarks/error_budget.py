@@ -24,23 +24,32 @@ VARIANTS = {
     "clique only (Arun on the max clique)": (LocalizationConfig(refine=False), None),
     "+ NN refinement, no robust weights": (LocalizationConfig(robust_scale_m=1e3), None),
     "+ robust (Cauchy IRLS) = default": (LocalizationConfig(), None),
-    "default, more landmarks (min_sightings 3)": (LocalizationConfig(), AggregationConfig(min_sightings=3)),
+    "default, more landmarks (min_sightings 3)": (
+        LocalizationConfig(),
+        AggregationConfig(min_sightings=3),
+    ),
 }
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--data", default="../shared/data/lunarloc-data")
     args = ap.parse_args()
-    print("variant | correct (<10 cm, <1 deg) | err@rover cm median/p90/max | err@origin cm median/max | "
-          "rot deg median/max | rotation x lever share of err@rover (median) | lever m median")
+    print(
+        "variant | correct (<10 cm, <1 deg) | err@rover cm median/p90/max | err@origin cm median/max | "
+        "rot deg median/max | rotation x lever share of err@rover (median) | lever m median"
+    )
     for name, (cfg, agg) in VARIANTS.items():
         s = bench_pairs(args.data, loc_config=cfg, agg_config=agg)
         r = [x for x in s.results if np.isfinite(x.err_rover_m)]
         er = np.array([x.err_rover_m for x in r]) * 100
         eo = np.array([x.err_origin_m for x in r]) * 100
         rot = np.array([x.rot_err_deg for x in r])
-        share = np.array([min(x.rotation_part_m / x.err_rover_m, 9.99) for x in r if x.err_rover_m > 0])
+        share = np.array(
+            [min(x.rotation_part_m / x.err_rover_m, 9.99) for x in r if x.err_rover_m > 0]
+        )
         lever = np.array([x.lever_m for x in r])
         print(
             f"{name} | {s.n_correct}/{s.n_pairs} | {np.median(er):.1f}/{np.percentile(er, 90):.1f}/{er.max():.1f} | "

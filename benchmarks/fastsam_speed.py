@@ -89,10 +89,25 @@ def measure_image(seg, L: np.ndarray, repeats: int) -> dict:
         res, w, c = _timed(lambda: seg.predict(L))
         masks, _, cm = _timed(lambda: seg.masks_from(res, L.shape))
         sp = res.speed if res is not None else {}
-        rows.append((sp.get("preprocess", 0) + sp.get("inference", 0), sp.get("postprocess", 0), w, c, cm, len(masks)))
+        rows.append(
+            (
+                sp.get("preprocess", 0) + sp.get("inference", 0),
+                sp.get("postprocess", 0),
+                w,
+                c,
+                cm,
+                len(masks),
+            )
+        )
     cols = list(zip(*rows))
-    return {"net_ms": _median(cols[0]), "post_ms": _median(cols[1]), "image_s": _median(cols[2]),
-            "image_cpu_s": _median(cols[3]), "lunarloc_cpu_ms": 1e3 * _median(cols[4]), "masks": int(_median(cols[5]))}  # fmt: skip
+    return {
+        "net_ms": _median(cols[0]),
+        "post_ms": _median(cols[1]),
+        "image_s": _median(cols[2]),
+        "image_cpu_s": _median(cols[3]),
+        "lunarloc_cpu_ms": 1e3 * _median(cols[4]),
+        "masks": int(_median(cols[5])),
+    }
 
 
 def measure_pair(seg, L: np.ndarray, R: np.ndarray, repeats: int) -> dict:
@@ -100,7 +115,11 @@ def measure_pair(seg, L: np.ndarray, R: np.ndarray, repeats: int) -> dict:
     from lunarloc.perception.camera import PinholeCamera, ipex_rig
     from lunarloc.perception.detector import Detector, DetectorConfig
 
-    det = Detector(DetectorConfig(segmenter="fastsam", weights=str(seg.weights)), PinholeCamera(1280, 720, 70.0), segmenter=seg)
+    det = Detector(
+        DetectorConfig(segmenter="fastsam", weights=str(seg.weights)),
+        PinholeCamera(1280, 720, 70.0),
+        segmenter=seg,
+    )
     T = ipex_rig(det.camera)["FrontLeft"].T_rover_optical
     det.detect_pair(L, R, T)
     walls, cpus = [], []
@@ -118,7 +137,9 @@ def net_only(pt: Path, onnx: Path | None, imgsz: int, shape: tuple[int, int], re
 
     H, W = shape
     r = imgsz / max(H, W)
-    h, w = (int(math.ceil(round(v * r) / 32) * 32) for v in (H, W))  # ultralytics' rectangular letterbox
+    h, w = (
+        int(math.ceil(round(v * r) / 32) * 32) for v in (H, W)
+    )  # ultralytics' rectangular letterbox
     x = np.random.default_rng(0).uniform(0, 1, (1, 3, h, w)).astype(np.float32)
     out = {"input": f"{w}x{h}"}
     threads = torch.get_num_threads()
@@ -139,34 +160,52 @@ def net_only(pt: Path, onnx: Path | None, imgsz: int, shape: tuple[int, int], re
         sess = ort.InferenceSession(str(onnx), so, providers=["CPUExecutionProvider"])
         feed = {sess.get_inputs()[0].name: x}
         sess.run(None, feed)
-        out["onnx_cpu_s"] = _median([_timed(lambda: sess.run(None, feed))[2] for _ in range(repeats)])
+        out["onnx_cpu_s"] = _median(
+            [_timed(lambda: sess.run(None, feed))[2] for _ in range(repeats)]
+        )
     return out
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--left", type=Path, default=LAC_REAL / "FrontLeft_99.png")
     ap.add_argument("--right", type=Path, default=LAC_REAL / "FrontRight_99.png")
-    ap.add_argument("--archive", type=Path, default=None, help="take the first front pair of this .lac instead")
+    ap.add_argument(
+        "--archive", type=Path, default=None, help="take the first front pair of this .lac instead"
+    )
     ap.add_argument("--scales", nargs="+", default=["s", "x"], choices=["n", "s", "x"])
     ap.add_argument("--imgsz", nargs="+", type=int, default=[1024, 640])
     ap.add_argument("--backends", nargs="+", default=["torch", "onnx"], choices=["torch", "onnx"])
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--mask-load", action="store_true", help="add per-image rows at confidence 0 (many masks)")
-    ap.add_argument("--net-only", action="store_true", help="add the one-thread forward-pass comparison")
+    ap.add_argument(
+        "--mask-load", action="store_true", help="add per-image rows at confidence 0 (many masks)"
+    )
+    ap.add_argument(
+        "--net-only", action="store_true", help="add the one-thread forward-pass comparison"
+    )
     ap.add_argument("--no-pair", action="store_true", help="skip the detector's per-pair timing")
-    ap.add_argument("--work", type=Path, default=Path("/tmp/fastsam"), help="where the weightless networks go")
+    ap.add_argument(
+        "--work", type=Path, default=Path("/tmp/fastsam"), help="where the weightless networks go"
+    )
     args = ap.parse_args(argv)
 
     missing = [m for m in ("torch", "ultralytics") if importlib.util.find_spec(m) is None]
     if missing:
-        print(f"skipped: {', '.join(missing)} not installed (pip install torch==2.13.0, then "
-              "pip install torchvision==0.28.0 --no-deps and -e '.[fastsam-onnx]'; see docs/perception.md)")  # fmt: skip
+        print(
+            f"skipped: {', '.join(missing)} not installed (pip install torch==2.13.0, then "
+            "pip install torchvision==0.28.0 --no-deps and -e '.[fastsam-onnx]'; see docs/perception.md)"
+        )
         return 0
     backends = list(args.backends)
-    no_onnx = [m for m in ("onnx", "onnxslim", "onnxruntime") if importlib.util.find_spec(m) is None]
+    no_onnx = [
+        m for m in ("onnx", "onnxslim", "onnxruntime") if importlib.util.find_spec(m) is None
+    ]
     if "onnx" in backends and no_onnx:
-        print(f"ONNX rows skipped: {', '.join(no_onnx)} not installed (pip install -e '.[fastsam-onnx]')")
+        print(
+            f"ONNX rows skipped: {', '.join(no_onnx)} not installed (pip install -e '.[fastsam-onnx]')"
+        )
         backends.remove("onnx")
     import os
 
@@ -174,7 +213,11 @@ def main(argv=None) -> int:
     os.environ.setdefault("YOLO_CONFIG_DIR", str(args.work / "ultralytics-settings"))
     import torch
 
-    from lunarloc.perception.fastsam import FastSamSegmenter, build_untrained_checkpoint, export_onnx
+    from lunarloc.perception.fastsam import (
+        FastSamSegmenter,
+        build_untrained_checkpoint,
+        export_onnx,
+    )
 
     L, R, source = _load_frame(args)
     weights: dict[tuple[str, str], Path] = {}
@@ -189,10 +232,14 @@ def main(argv=None) -> int:
                 export_onnx(pt)
             weights["onnx", s] = onnx
 
-    print(f"# FastSAM on the CPU: {source} {L.shape[1]}x{L.shape[0]}, torch {torch.__version__}, "
-          f"os.cpu_count() {os.cpu_count()}, median of {args.repeats}, load average {os.getloadavg()[0]:.1f}")  # fmt: skip
-    print("| runtime | net | imgsz | conf | masks | network ms | post ms | image wall s | image CPU s | lunarloc CPU ms "
-          "| pair wall s | pair CPU s |")  # fmt: skip
+    print(
+        f"# FastSAM on the CPU: {source} {L.shape[1]}x{L.shape[0]}, torch {torch.__version__}, "
+        f"os.cpu_count() {os.cpu_count()}, median of {args.repeats}, load average {os.getloadavg()[0]:.1f}"
+    )
+    print(
+        "| runtime | net | imgsz | conf | masks | network ms | post ms | image wall s | image CPU s | lunarloc CPU ms "
+        "| pair wall s | pair CPU s |"
+    )
     print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     runs = [(b, s, z, 0.4, True) for b in backends for s in args.scales for z in args.imgsz]
     if args.mask_load:
@@ -201,17 +248,24 @@ def main(argv=None) -> int:
         seg = FastSamSegmenter(weights[b, s], imgsz=z, conf=conf)
         m = measure_image(seg, L, args.repeats)
         p = measure_pair(seg, L, R, args.repeats) if pair and not args.no_pair else {}
-        print(f"| {b} | FastSAM-{s} | {z} | {conf:g} | {m['masks']} | {m['net_ms']:.0f} | {m['post_ms']:.0f} "
-              f"| {m['image_s']:.2f} | {m['image_cpu_s']:.2f} | {m['lunarloc_cpu_ms']:.0f} "
-              f"| {p.get('pair_s', float('nan')):.2f} | {p.get('pair_cpu_s', float('nan')):.2f} |", flush=True)  # fmt: skip
+        print(
+            f"| {b} | FastSAM-{s} | {z} | {conf:g} | {m['masks']} | {m['net_ms']:.0f} | {m['post_ms']:.0f} "
+            f"| {m['image_s']:.2f} | {m['image_cpu_s']:.2f} | {m['lunarloc_cpu_ms']:.0f} "
+            f"| {p.get('pair_s', float('nan')):.2f} | {p.get('pair_cpu_s', float('nan')):.2f} |",
+            flush=True,
+        )
     if args.net_only:
         print("\n| net | imgsz | input | torch CPU s (1 thread) | onnxruntime CPU s (1 thread) |")
         print("|---|---:|---|---:|---:|")
         for s in args.scales:
             for z in args.imgsz:
-                r = net_only(weights["torch", s], weights.get(("onnx", s)), z, L.shape, args.repeats)
-                print(f"| FastSAM-{s} | {z} | {r['input']} | {r['torch_cpu_s']:.2f} | {r.get('onnx_cpu_s', float('nan')):.2f} |",
-                      flush=True)  # fmt: skip
+                r = net_only(
+                    weights["torch", s], weights.get(("onnx", s)), z, L.shape, args.repeats
+                )
+                print(
+                    f"| FastSAM-{s} | {z} | {r['input']} | {r['torch_cpu_s']:.2f} | {r.get('onnx_cpu_s', float('nan')):.2f} |",
+                    flush=True,
+                )
     print(f"# load average at the end {os.getloadavg()[0]:.1f}")
     return 0
 

@@ -27,13 +27,21 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--src", type=Path, default=ROOT / "src", help="the src/ folder whose lunarloc to test")
+    ap.add_argument(
+        "--src", type=Path, default=ROOT / "src", help="the src/ folder whose lunarloc to test"
+    )
     ap.add_argument("--json", type=Path, help="write every outcome here")
     ap.add_argument("--no-slow", action="store_true", help="leave out the few slow cases")
     ap.add_argument("--max-gib", type=float, default=12.0, help="address-space cap (GiB)")
     ap.add_argument("--only", default="", help="run only cases whose name contains this")
-    ap.add_argument("--kinds", default="", help="comma-separated kinds to run (csv,npz,lac,option,output,api,campaign,config,score,archive)")
-    ap.add_argument("--case-timeout", type=int, default=60, help="seconds before a case counts as a hang")
+    ap.add_argument(
+        "--kinds",
+        default="",
+        help="comma-separated kinds to run (csv,npz,lac,option,output,api,campaign,config,score,archive)",
+    )
+    ap.add_argument(
+        "--case-timeout", type=int, default=60, help="seconds before a case counts as a hang"
+    )
     args = ap.parse_args()
     sys.path.insert(0, str(args.src.resolve()))
     sys.path.insert(0, str(ROOT / "tests"))
@@ -50,7 +58,11 @@ def main() -> None:
     warm_up()  # compile the kernels first: a cold numba cache is not a hang of the first case that localizes
     print(f"kernels warmed up in {time.perf_counter() - tw:.0f} s", flush=True)
     kinds = set(filter(None, args.kinds.split(",")))
-    cases = [c for c in corpus(include_slow=not args.no_slow) if args.only in c.name and (not kinds or c.kind in kinds)]
+    cases = [
+        c
+        for c in corpus(include_slow=not args.no_slow)
+        if args.only in c.name and (not kinds or c.kind in kinds)
+    ]
     results = []
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="hostile-") as tmp:
@@ -61,7 +73,9 @@ def main() -> None:
             except MemoryError:
                 from _hostile import Outcome
 
-                o = Outcome(case.name, case.kind, "traceback", None, "MemoryError while building or running")
+                o = Outcome(
+                    case.name, case.kind, "traceback", None, "MemoryError while building or running"
+                )
             o.detail["time_s"] = round(time.perf_counter() - ts, 3)
             results.append(o)
             if o.outcome not in ("clear error", "correct result"):

@@ -91,7 +91,9 @@ def evaluate(poses: list[np.ndarray]) -> dict:
         T = integrate_imu(s, poses[0], ImuOdometryConfig(gyro_frame=frame))
         yaw_err = []
         for Te, Tt in zip(T, poses):
-            R = Tt[:3, :3].T @ Te[:3, :3]  # heading error: yaw of the relative rotation about the true up
+            R = (
+                Tt[:3, :3].T @ Te[:3, :3]
+            )  # heading error: yaw of the relative rotation about the true up
             d = R[:, 0] - R[2, 0] * np.array([0, 0, 1.0])
             yaw_err.append(abs(math.degrees(math.atan2(d[1], d[0]))))
         pos_err = np.linalg.norm(T[-1][:2, 3] - poses[-1][:2, 3])
@@ -107,13 +109,17 @@ def main(argv=None) -> int:
     drives = {f"slope-{t}": slope_drive(t, a.seconds) for t in (10, 20, 30, 40)}
     for seed in a.seeds:
         drives[f"site{seed}"] = site_drive(seed, a.seconds)
-    print("drive  max_tilt_deg  | gyro read as body: heading end / worst (deg), position end (m) "
-          "| as world: heading end / worst, position end")
+    print(
+        "drive  max_tilt_deg  | gyro read as body: heading end / worst (deg), position end (m) "
+        "| as world: heading end / worst, position end"
+    )
     for name, poses in drives.items():
         tilt = max(math.degrees(math.acos(min(1.0, T[2, 2]))) for T in poses)
         r = evaluate(poses)
         b, w = r["body"], r["world"]
-        print(f"{name:10s} {tilt:5.1f} | {b[0]:6.2f} / {b[1]:6.2f}  {b[2]:6.2f} | {w[0]:6.2f} / {w[1]:6.2f}  {w[2]:6.2f}")
+        print(
+            f"{name:10s} {tilt:5.1f} | {b[0]:6.2f} / {b[1]:6.2f}  {b[2]:6.2f} | {w[0]:6.2f} / {w[1]:6.2f}  {w[2]:6.2f}"
+        )
     return 0
 
 

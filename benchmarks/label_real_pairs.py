@@ -24,9 +24,18 @@ def disparity(left: np.ndarray, right: np.ndarray, n_disp: int = 256) -> np.ndar
 
     lp = cv2.copyMakeBorder(left, 0, 0, n_disp, 0, cv2.BORDER_CONSTANT, value=0)
     rp = cv2.copyMakeBorder(right, 0, 0, n_disp, 0, cv2.BORDER_CONSTANT, value=0)
-    sg = cv2.StereoSGBM_create(minDisparity=0, numDisparities=n_disp, blockSize=5, P1=8 * 25, P2=32 * 25,
-                               uniquenessRatio=5, speckleWindowSize=100, speckleRange=2, disp12MaxDiff=1,
-                               mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+    sg = cv2.StereoSGBM_create(
+        minDisparity=0,
+        numDisparities=n_disp,
+        blockSize=5,
+        P1=8 * 25,
+        P2=32 * 25,
+        uniquenessRatio=5,
+        speckleWindowSize=100,
+        speckleRange=2,
+        disp12MaxDiff=1,
+        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    )
     d = sg.compute(lp, rp).astype(np.float32)[:, n_disp:] / 16.0
     d[d <= 0] = np.nan
     return d
@@ -35,10 +44,10 @@ def disparity(left: np.ndarray, right: np.ndarray, n_disp: int = 256) -> np.ndar
 def measure(d: np.ndarray, box) -> tuple[float, float]:
     x0, y0, x1, y1 = box
     w, h = x1 - x0, y1 - y0
-    sub = d[y0 + h // 4:y1 - h // 4 + 1, x0 + w // 4:x1 - w // 4 + 1]
+    sub = d[y0 + h // 4 : y1 - h // 4 + 1, x0 + w // 4 : x1 - w // 4 + 1]
     v = sub[np.isfinite(sub)]
     if v.size < 3:
-        sub = d[max(0, y0 - 3):y1 + 3, max(0, x0 - 3):x1 + 3]
+        sub = d[max(0, y0 - 3) : y1 + 3, max(0, x0 - 3) : x1 + 3]
         v = sub[np.isfinite(sub)]
     if v.size < 3:
         return float("nan"), float("nan")
@@ -50,16 +59,46 @@ def tile(img: np.ndarray, box, scale: int) -> np.ndarray:
     import cv2
 
     x0, y0, x1, y1 = box
-    big = cv2.cvtColor(cv2.resize(img[y0:y1, x0:x1], None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC),
-                       cv2.COLOR_GRAY2BGR)
+    big = cv2.cvtColor(
+        cv2.resize(img[y0:y1, x0:x1], None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC),
+        cv2.COLOR_GRAY2BGR,
+    )
     for x in range((x0 // 10 + 1) * 10, x1, 10):
-        cv2.line(big, ((x - x0) * scale, 0), ((x - x0) * scale, 12 if x % 100 == 0 else 5), (0, 200, 0), 1)
+        cv2.line(
+            big,
+            ((x - x0) * scale, 0),
+            ((x - x0) * scale, 12 if x % 100 == 0 else 5),
+            (0, 200, 0),
+            1,
+        )
         if x % 40 == 0:
-            cv2.putText(big, str(x), ((x - x0) * scale + 2, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 255, 255), 1)
+            cv2.putText(
+                big,
+                str(x),
+                ((x - x0) * scale + 2, 12),
+                cv2.FONT_HERSHEY_SIMPLEX,
+                0.35,
+                (0, 255, 255),
+                1,
+            )
     for y in range((y0 // 10 + 1) * 10, y1, 10):
-        cv2.line(big, (0, (y - y0) * scale), (12 if y % 100 == 0 else 5, (y - y0) * scale), (0, 200, 0), 1)
+        cv2.line(
+            big,
+            (0, (y - y0) * scale),
+            (12 if y % 100 == 0 else 5, (y - y0) * scale),
+            (0, 200, 0),
+            1,
+        )
         if y % 40 == 0:
-            cv2.putText(big, str(y), (2, (y - y0) * scale - 2), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 255, 255), 1)
+            cv2.putText(
+                big,
+                str(y),
+                (2, (y - y0) * scale - 2),
+                cv2.FONT_HERSHEY_SIMPLEX,
+                0.35,
+                (0, 255, 255),
+                1,
+            )
     return big
 
 

@@ -42,12 +42,20 @@ SUN_ELEVATION_DEG = 6.0
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--real", type=Path, default=Path("../shared/data/lac-real"))
     ap.add_argument("--seed", type=int, default=0, help="our site's seed")
     ap.add_argument("--out", type=Path, default=Path("docs/images/lac_vs_sim.png"))
-    ap.add_argument("--semantic-out", type=Path, default=None, help="also save our semantic image (LAC palette)")
-    ap.add_argument("--detections", action="store_true", help="draw the detector's masks and detections on each panel")
+    ap.add_argument(
+        "--semantic-out", type=Path, default=None, help="also save our semantic image (LAC palette)"
+    )
+    ap.add_argument(
+        "--detections",
+        action="store_true",
+        help="draw the detector's masks and detections on each panel",
+    )
     args = ap.parse_args()
 
     real_png, pose_json = args.real / "FrontLeft_99.png", args.real / "pose_99.json"
@@ -60,11 +68,16 @@ def main() -> int:
     pose = json.loads(pose_json.read_text())
     real_right = args.real / "FrontRight_99.png"
     if args.detections and not real_right.exists():
-        print(f"no FrontRight_99.png under {args.real}: --detections needs the stereo pair", file=sys.stderr)
+        print(
+            f"no FrontRight_99.png under {args.real}: --detections needs the stereo pair",
+            file=sys.stderr,
+        )
         return 2
 
     site = generate_site(args.seed)
-    xyz, rpy = terrain_pose(site, np.array([pose["x"]]), np.array([pose["y"]]), np.array([pose["yaw"]]), RoverConfig())
+    xyz, rpy = terrain_pose(
+        site, np.array([pose["x"]]), np.array([pose["y"]]), np.array([pose["yaw"]]), RoverConfig()
+    )
     rover = np.concatenate([xyz[0], rpy[0]])
     camera = PinholeCamera(real.shape[1], real.shape[0])
     rig = ipex_rig(camera)
@@ -79,14 +92,29 @@ def main() -> int:
     for title, cfg in (
         (f"lunarloc, sun+lamps (sun {SUN_ELEVATION_DEG:g} deg)", base),
         ("lunarloc, sun only", replace(base, lighting=Lighting.SUN)),
-        ("lunarloc, lamps only at night (sun -5 deg)", replace(base, lighting=Lighting.LAMPS, sun_elevation_deg=-5.0)),
+        (
+            "lunarloc, lamps only at night (sun -5 deg)",
+            replace(base, lighting=Lighting.LAMPS, sun_elevation_deg=-5.0),
+        ),
     ):
         mounts = [mount, rig["FrontRight"]] if args.detections else [mount]
         views = renderer.with_config(cfg).render_rover(rover, mounts)
         gray, sem = views["FrontLeft"]
         if args.detections:
-            img = _detected(gray, views["FrontRight"][0], pose_to_matrix(*rover), site.lander_xyz[:2], camera, rig)
-            panels.append((title, _outline_rocks(img, sem, site, pose_to_matrix(*rover) @ mount.T_rover_optical)))
+            img = _detected(
+                gray,
+                views["FrontRight"][0],
+                pose_to_matrix(*rover),
+                site.lander_xyz[:2],
+                camera,
+                rig,
+            )
+            panels.append(
+                (
+                    title,
+                    _outline_rocks(img, sem, site, pose_to_matrix(*rover) @ mount.T_rover_optical),
+                )
+            )
         else:
             panels.append((title, gray))
         if cfg is base and args.semantic_out is not None:
@@ -100,10 +128,16 @@ def main() -> int:
 
     fig, axes = plt.subplots(2, 2, figsize=(12.8, 7.6))
     for ax, (title, img) in zip(axes.ravel(), panels):
-        ax.imshow(img, cmap="gray", vmin=0, vmax=255, interpolation="antialiased")  # RGB when detected
+        ax.imshow(
+            img, cmap="gray", vmin=0, vmax=255, interpolation="antialiased"
+        )  # RGB when detected
         ax.set_title(title, fontsize=10)
         ax.axis("off")
-    what = "detections (green, +), rejected masks by filter; yellow: our true rocks r >= 0.1 m within 6 m" if args.detections else ""
+    what = (
+        "detections (green, +), rejected masks by filter; yellow: our true rocks r >= 0.1 m within 6 m"
+        if args.detections
+        else ""
+    )
     fig.suptitle(
         f"Real LAC frame vs lunarloc at the same rover x, y, yaw (site seed {args.seed}; our rocks and terrain)"
         + (f"\n{what}" if what else ""),
@@ -121,9 +155,18 @@ def _detected(left, right, T_map_rover, lander_xy, camera, rig) -> np.ndarray:
     from lunarloc.perception.detector import Detector, DetectorConfig, debug_overlay
 
     det = Detector(DetectorConfig(), camera)
-    pr = det.detect_pair(left, right, rig["FrontLeft"].T_rover_optical, T_map_rover, "FrontLeft",
-                         lander_xy=np.asarray(lander_xy, float))  # fmt: skip
-    print(f"  {len(pr.detections)} detections: " + ", ".join(f"{d.depth_m:.1f} m r {d.radius_m:.2f}" for d in pr.detections))
+    pr = det.detect_pair(
+        left,
+        right,
+        rig["FrontLeft"].T_rover_optical,
+        T_map_rover,
+        "FrontLeft",
+        lander_xy=np.asarray(lander_xy, float),
+    )
+    print(
+        f"  {len(pr.detections)} detections: "
+        + ", ".join(f"{d.depth_m:.1f} m r {d.radius_m:.2f}" for d in pr.detections)
+    )
     return debug_overlay(left, pr)[:, : left.shape[1], ::-1].copy()
 
 

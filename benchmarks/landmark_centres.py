@@ -44,20 +44,32 @@ def print_table(res: dict) -> None:
     def cm(x):
         return f"{100 * x:4.1f}"
 
-    print("group | what | items | matched | target n: 3D median/p90, horizontal median/p90, |z| median (cm) | all n: 3D median")
+    print(
+        "group | what | items | matched | target n: 3D median/p90, horizontal median/p90, |z| median (cm) | all n: 3D median"
+    )
     for g, v in res.items():
         for k, s in v.items():
             t, a = s["target"], s["all"]
-            print(f"{g} | {k} | {s['items']} | {s['matched']} | {t['n']}: {cm(t['3d_median_m'])}/{cm(t['3d_p90_m'])}, "
-                  f"{cm(t['xy_median_m'])}/{cm(t['xy_p90_m'])}, {cm(t['z_abs_median_m'])} | {a['n']}: {cm(a['3d_median_m'])}")
+            print(
+                f"{g} | {k} | {s['items']} | {s['matched']} | {t['n']}: {cm(t['3d_median_m'])}/{cm(t['3d_p90_m'])}, "
+                f"{cm(t['xy_median_m'])}/{cm(t['xy_p90_m'])}, {cm(t['z_abs_median_m'])} | {a['n']}: {cm(a['3d_median_m'])}"
+            )
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("archives", nargs="*", type=Path)
-    ap.add_argument("--det", type=Path, action="append", default=[], help="detections CSV (ground-truth poses)")
-    ap.add_argument("--rocks", type=Path, action="append", default=[], help="rocks.csv of each --det, in order")
-    ap.add_argument("--config", type=Path, default=None, help="run configuration JSON (its detector section)")
+    ap.add_argument(
+        "--det", type=Path, action="append", default=[], help="detections CSV (ground-truth poses)"
+    )
+    ap.add_argument(
+        "--rocks", type=Path, action="append", default=[], help="rocks.csv of each --det, in order"
+    )
+    ap.add_argument(
+        "--config", type=Path, default=None, help="run configuration JSON (its detector section)"
+    )
     ap.add_argument("--min-sightings", type=int, nargs="+", default=[3, 5])
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
@@ -68,7 +80,9 @@ def main(argv=None) -> int:
     from lunarloc.config.run import RunConfig, load_config_file
 
     cfg = (load_config_file(a.config)[0] if a.config else RunConfig()).detector
-    trs = [archive_traverse(p, cfg) for p in a.archives] + [csv_traverse(d, r) for d, r in zip(a.det, a.rocks)]
+    trs = [archive_traverse(p, cfg) for p in a.archives] + [
+        csv_traverse(d, r) for d, r in zip(a.det, a.rocks)
+    ]
     res = evaluate(trs, a.min_sightings)
     print_table(res)
     if a.json:

@@ -37,7 +37,9 @@ import numpy as np
 BANDS = [(0.0, 0.05), (0.05, 0.1), (0.1, 0.2), (0.2, 10.0)]
 
 
-def _seen_rocks(archive: Path, rocks: np.ndarray, max_range_m: float = 6.0, hfov_deg: float = 70.0) -> np.ndarray:
+def _seen_rocks(
+    archive: Path, rocks: np.ndarray, max_range_m: float = 6.0, hfov_deg: float = 70.0
+) -> np.ndarray:
     """Boolean (N,): rocks within max_range_m of the FrontLeft camera and inside its
     horizontal field of view at some image frame (occlusion ignored)."""
     from lunarloc.io.lac.archive import LacArchive
@@ -54,7 +56,11 @@ def _seen_rocks(archive: Path, rocks: np.ndarray, max_range_m: float = 6.0, hfov
             s = rec.state
             T = pose_to_matrix(s["x"], s["y"], s["z"], s["roll"], s["pitch"], s["yaw"]) @ T_rc
             p = (rocks[:, :3] - T[:3, 3]) @ T[:3, :3]  # optical frame: z forward, x right
-            ok = (p[:, 2] > 0.5) & (np.hypot(p[:, 0], p[:, 2]) < max_range_m) & (np.abs(np.arctan2(p[:, 0], p[:, 2])) < half)
+            ok = (
+                (p[:, 2] > 0.5)
+                & (np.hypot(p[:, 0], p[:, 2]) < max_range_m)
+                & (np.abs(np.arctan2(p[:, 0], p[:, 2])) < half)
+            )
             seen |= ok
     return seen
 
@@ -64,36 +70,65 @@ def evaluate(trav, rocks: np.ndarray, seen: np.ndarray, every: int, min_sighting
 
     keep_frames = np.asarray(trav.frames)[::every]
     sel = np.isin(trav.detection_frame, keep_frames)
-    sub = Traverse(keep_frames, np.asarray(trav.rover_xyz)[::every], trav.detections_xyz[sel], trav.detection_frame[sel])
+    sub = Traverse(
+        keep_frames,
+        np.asarray(trav.rover_xyz)[::every],
+        trav.detections_xyz[sel],
+        trav.detection_frame[sel],
+    )
     lm = traverse_map(sub, replace(AggregationConfig(), min_sightings=min_sightings))
     P = lm.positions_xyz
-    d = np.linalg.norm(P[:, None, :] - rocks[None, :, :3], axis=2) if len(P) else np.zeros((0, len(rocks)))
+    d = (
+        np.linalg.norm(P[:, None, :] - rocks[None, :, :3], axis=2)
+        if len(P)
+        else np.zeros((0, len(rocks)))
+    )
     j = d.argmin(axis=1) if len(P) else np.zeros(0, int)
     on = d[np.arange(len(P)), j] <= np.maximum(0.15, rocks[j, 3]) if len(P) else np.zeros(0, bool)
     mapped = np.zeros(len(rocks), bool)
     mapped[j[on]] = True
     # sightings of each true rock: detections within max(0.15, r) of it, distinct frames
     D = sub.detections_xyz
-    dd = np.linalg.norm(D[:, None, :] - rocks[None, :, :3], axis=2) if len(D) else np.zeros((0, len(rocks)))
+    dd = (
+        np.linalg.norm(D[:, None, :] - rocks[None, :, :3], axis=2)
+        if len(D)
+        else np.zeros((0, len(rocks)))
+    )
     near = dd <= np.maximum(0.15, rocks[:, 3])[None, :]
-    frames_per_rock = np.array([len(np.unique(sub.detection_frame[near[:, k]])) for k in range(len(rocks))])
-    out = {"every": every, "min_sightings": min_sightings, "detections": int(len(D)), "landmarks": int(len(P)),
-           "on_rock": int(on.sum()), "bands": {}}  # fmt: skip
+    frames_per_rock = np.array(
+        [len(np.unique(sub.detection_frame[near[:, k]])) for k in range(len(rocks))]
+    )
+    out = {
+        "every": every,
+        "min_sightings": min_sightings,
+        "detections": int(len(D)),
+        "landmarks": int(len(P)),
+        "on_rock": int(on.sum()),
+        "bands": {},
+    }
     for lo, hi in BANDS:
         b = (rocks[:, 3] >= lo) & (rocks[:, 3] < hi)
         det_b = b & (frames_per_rock > 0)
         out["bands"][f"{lo:g}-{hi:g}"] = {
-            "seen": int((b & seen).sum()), "detected": int(det_b.sum()), "mapped": int((b & mapped).sum()),
-            "median_frames_per_detected_rock": float(np.median(frames_per_rock[det_b])) if det_b.any() else 0.0,
-        }  # fmt: skip
+            "seen": int((b & seen).sum()),
+            "detected": int(det_b.sum()),
+            "mapped": int((b & mapped).sum()),
+            "median_frames_per_detected_rock": float(np.median(frames_per_rock[det_b]))
+            if det_b.any()
+            else 0.0,
+        }
     return out
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--archive", type=Path, required=True)
     ap.add_argument("--rocks", type=Path, required=True)
-    ap.add_argument("--det", action="append", required=True, help="NAME=detections.csv (ground-truth poses)")
+    ap.add_argument(
+        "--det", action="append", required=True, help="NAME=detections.csv (ground-truth poses)"
+    )
     ap.add_argument("--every", type=int, nargs="+", default=[1, 2, 4])
     ap.add_argument("--min-sightings", type=int, nargs="+", default=[2, 3, 5])
     ap.add_argument("--json", type=Path, default=None)
@@ -113,14 +148,24 @@ def main(argv=None) -> int:
                 r["detector"] = name
                 rows.append(r)
     band_names = [f"{lo:g}-{hi:g}" for lo, hi in BANDS]
-    print("rocks seen within 6 m (by radius band " + ", ".join(band_names) + "): "
-          + ", ".join(str(rows[0]["bands"][b]["seen"]) for b in band_names))  # fmt: skip
-    print("detector | every | min_sightings | detections | landmarks | on rock | mapped/seen per band | frames per detected rock")
+    print(
+        "rocks seen within 6 m (by radius band "
+        + ", ".join(band_names)
+        + "): "
+        + ", ".join(str(rows[0]["bands"][b]["seen"]) for b in band_names)
+    )
+    print(
+        "detector | every | min_sightings | detections | landmarks | on rock | mapped/seen per band | frames per detected rock"
+    )
     for r in rows:
         bands = " ".join(f"{r['bands'][b]['mapped']}/{r['bands'][b]['seen']}" for b in band_names)
-        fpr = " ".join(f"{r['bands'][b]['median_frames_per_detected_rock']:.0f}" for b in band_names)
-        print(f"{r['detector']} | {r['every']} | {r['min_sightings']} | {r['detections']} | {r['landmarks']} | "
-              f"{r['on_rock']} | {bands} | {fpr}")  # fmt: skip
+        fpr = " ".join(
+            f"{r['bands'][b]['median_frames_per_detected_rock']:.0f}" for b in band_names
+        )
+        print(
+            f"{r['detector']} | {r['every']} | {r['min_sightings']} | {r['detections']} | {r['landmarks']} | "
+            f"{r['on_rock']} | {bands} | {fpr}"
+        )
     if a.json:
         a.json.write_text(json.dumps(rows, indent=1))
     return 0

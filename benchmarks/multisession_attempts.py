@@ -50,7 +50,9 @@ def cache_vehicle(site: Path) -> Path:
         return out
     cfg = RunConfig()
     arch = site / "traverse_1.lac"
-    rows: dict[str, list] = {k: [] for k in ("frames", "times", "T_visual", "T_true", "keyframe", "ndet")}
+    rows: dict[str, list] = {
+        k: [] for k in ("frames", "times", "T_visual", "T_true", "keyframe", "ndet")
+    }
     dets = []
     with ArchiveSource(arch, cfg.odometry, cfg.detector.pairs) as src:
         det = Detector(cfg.detector_for(src.camera.width), src.camera)
@@ -62,13 +64,24 @@ def cache_vehicle(site: Path) -> Path:
                 d = np.array([x.p_rover for x in fd.detections], float).reshape(-1, 3)
                 dets.append(d)
                 n = len(d)
-            for k, v in (("frames", fr.frame), ("times", fr.time_s), ("T_visual", fr.T_odo_rover),
-                         ("T_true", fr.T_map_rover_true), ("keyframe", fr.keyframe), ("ndet", n)):  # fmt: skip
+            for k, v in (
+                ("frames", fr.frame),
+                ("times", fr.time_s),
+                ("T_visual", fr.T_odo_rover),
+                ("T_true", fr.T_map_rover_true),
+                ("keyframe", fr.keyframe),
+                ("ndet", n),
+            ):
                 rows[k].append(v)
     with ArchiveSource(arch, OdometryConfig(source="record:odometry"), cfg.detector.pairs) as src:
         T_record = np.array([fr.T_odo_rover for fr in src])
-    np.savez(out, **{k: np.array(v) for k, v in rows.items()}, T_record=T_record, lander_xy=lander,
-             det=np.concatenate(dets) if dets else np.zeros((0, 3)))  # fmt: skip
+    np.savez(
+        out,
+        **{k: np.array(v) for k, v in rows.items()},
+        T_record=T_record,
+        lander_xy=lander,
+        det=np.concatenate(dets) if dets else np.zeros((0, 3)),
+    )
     return out
 
 
@@ -126,25 +139,53 @@ def _diagnosing_loop(truth: dict):
                 loop_module.localize = localize
             kfs = self.graph.keyframes
             path = np.array([kf.path_m for kf in kfs])
-            row = {"frame": frame, "time_s": t, "window_m": round(float(path[k] - path[win[0]]), 2),
-                   "landmarks": att.landmarks, "reference": att.reference_landmarks, "inliers": att.inliers,
-                   "accepted": att.accepted, "fix_error_m": att.fix_error_m, "predicted_error_m": att.predicted_error_m,
-                   "reason": att.reason}  # fmt: skip
+            row = {
+                "frame": frame,
+                "time_s": t,
+                "window_m": round(float(path[k] - path[win[0]]), 2),
+                "landmarks": att.landmarks,
+                "reference": att.reference_landmarks,
+                "inliers": att.inliers,
+                "accepted": att.accepted,
+                "fix_error_m": att.fix_error_m,
+                "predicted_error_m": att.predicted_error_m,
+                "reason": att.reason,
+            }
             if "veh" in seen:
                 ref, veh, res = seen["ref"], seen["veh"], seen["res"]
-                G = [transform(truth["T_true"][truth["index"][kfs[j].frame]], kfs[j].detections_rover) for j in win
-                     if len(kfs[j].detections_rover)]  # fmt: skip
+                G = [
+                    transform(
+                        truth["T_true"][truth["index"][kfs[j].frame]], kfs[j].detections_rover
+                    )
+                    for j in win
+                    if len(kfs[j].detections_rover)
+                ]
                 G = np.concatenate(G) if G else np.zeros((0, 3))
                 V = veh.positions_xyz
                 _, near = cKDTree(V).query(P, distance_upper_bound=self.config.aggregation.radius_m)
-                vid = np.array([rock_ids(np.median(G[near == i], axis=0)[None], truth["rocks"])[0] if np.any(near == i)
-                                else -1 for i in range(len(V))])  # fmt: skip
+                vid = np.array(
+                    [
+                        rock_ids(np.median(G[near == i], axis=0)[None], truth["rocks"])[0]
+                        if np.any(near == i)
+                        else -1
+                        for i in range(len(V))
+                    ]
+                )
                 rid = rock_ids(ref.positions_xyz, truth["rocks"])
                 # each vehicle landmark where ground-truth poses place it, against the reference
-                Vt = np.array([np.median(G[near == i], axis=0) if np.any(near == i) else np.full(3, np.nan)
-                               for i in range(len(V))]).reshape(-1, 3)  # fmt: skip
-                dref = (np.linalg.norm(Vt[:, None, :] - truth["reference_xyz"][None], axis=2).min(axis=1)
-                        if len(truth["reference_xyz"]) else np.full(len(V), np.inf))  # fmt: skip
+                Vt = np.array(
+                    [
+                        np.median(G[near == i], axis=0) if np.any(near == i) else np.full(3, np.nan)
+                        for i in range(len(V))
+                    ]
+                ).reshape(-1, 3)
+                dref = (
+                    np.linalg.norm(Vt[:, None, :] - truth["reference_xyz"][None], axis=2).min(
+                        axis=1
+                    )
+                    if len(truth["reference_xyz"])
+                    else np.full(len(V), np.inf)
+                )
                 T_true = truth["T_true"][truth["index"][frame]]
                 would = float("nan")
                 if np.all(np.isfinite(res.T_ref_veh)):
@@ -155,26 +196,41 @@ def _diagnosing_loop(truth: dict):
                 window_rocks = set(vid[vid >= 0].tolist())
                 missing = window_rocks - truth["reference_rocks"]
                 inl = res.inliers
-                row.update({
-                    "on_rock": len(window_rocks),
-                    "in_reference": len(window_rocks & truth["reference_rocks"]),
-                    "in_crop": len(window_rocks & set(rid[rid >= 0].tolist())),
-                    "missing_reference_sightings": sorted(int(truth["sightings"][r]) for r in missing),
-                    "true_inliers": int(np.sum((vid[inl[:, 0]] >= 0) & (vid[inl[:, 0]] == rid[inl[:, 1]]))) if len(inl) else 0,
-                    "required": res.required_inliers, "associations": res.num_associations,
-                    "overlap_0.1m": int(np.sum(dref <= 0.1)),
-                    "failed_checks": [c.name for c in res.checks if not c.passed],
-                    "would_be_error_m": would, **_oracle_crop(self, ref, veh, Vt, truth["reference_xyz"]),
-                    "odometry_error_m": float(np.linalg.norm(
-                        truth["T_odo"][truth["index"][frame]][:3, 3] - T_true[:3, 3])),
-                })  # fmt: skip
+                row.update(
+                    {
+                        "on_rock": len(window_rocks),
+                        "in_reference": len(window_rocks & truth["reference_rocks"]),
+                        "in_crop": len(window_rocks & set(rid[rid >= 0].tolist())),
+                        "missing_reference_sightings": sorted(
+                            int(truth["sightings"][r]) for r in missing
+                        ),
+                        "true_inliers": int(
+                            np.sum((vid[inl[:, 0]] >= 0) & (vid[inl[:, 0]] == rid[inl[:, 1]]))
+                        )
+                        if len(inl)
+                        else 0,
+                        "required": res.required_inliers,
+                        "associations": res.num_associations,
+                        "overlap_0.1m": int(np.sum(dref <= 0.1)),
+                        "failed_checks": [c.name for c in res.checks if not c.passed],
+                        "would_be_error_m": would,
+                        **_oracle_crop(self, ref, veh, Vt, truth["reference_xyz"]),
+                        "odometry_error_m": float(
+                            np.linalg.norm(
+                                truth["T_odo"][truth["index"][frame]][:3, 3] - T_true[:3, 3]
+                            )
+                        ),
+                    }
+                )
             self.rows.append(row)
             return att
 
     return DiagnosingLoop
 
 
-def _oracle_crop(state, ref, veh, Vt: np.ndarray, reference_xyz: np.ndarray, radii=(0.5, 1.0, 2.0)) -> dict:
+def _oracle_crop(
+    state, ref, veh, Vt: np.ndarray, reference_xyz: np.ndarray, radii=(0.5, 1.0, 2.0)
+) -> dict:
     """What the chance test would require if the reference were cropped to the landmarks within
     r (horizontal) of the window landmarks' TRUE positions (an oracle crop: the best any prior
     could do), for each r: {"required_at_crop_<r>m": [reference landmarks kept, inliers required]}."""
@@ -184,12 +240,22 @@ def _oracle_crop(state, ref, veh, Vt: np.ndarray, reference_xyz: np.ndarray, rad
     out = {}
     ok = np.all(np.isfinite(Vt), axis=1)
     for r in radii:
-        d = (np.linalg.norm(Vt[ok][:, None, :2] - reference_xyz[None, :, :2], axis=2).min(axis=0)
-             if np.any(ok) else np.full(len(reference_xyz), np.inf))
+        d = (
+            np.linalg.norm(Vt[ok][:, None, :2] - reference_xyz[None, :, :2], axis=2).min(axis=0)
+            if np.any(ok)
+            else np.full(len(reference_xyz), np.inf)
+        )
         n = int(np.sum(d <= r))
         m = len(veh) * n
-        need = max(cfg.min_inliers, int(np.ceil(chance_clique_size(m, cfg.mode, cfg.epsilon_m, cfg.epsilon_z_m)
-                                                + cfg.chance_margin)))
+        need = max(
+            cfg.min_inliers,
+            int(
+                np.ceil(
+                    chance_clique_size(m, cfg.mode, cfg.epsilon_m, cfg.epsilon_z_m)
+                    + cfg.chance_margin
+                )
+            ),
+        )
         out[f"required_at_crop_{r:g}m"] = [n, need]
     return out
 
@@ -198,8 +264,14 @@ def transform(T: np.ndarray, P: np.ndarray) -> np.ndarray:
     return P @ T[:3, :3].T + T[:3, 3]
 
 
-def replay(site: Path, min_sightings: int, odometry: str, loop_overrides: dict, diagnose: bool,
-           localization_overrides: dict | None = None):
+def replay(
+    site: Path,
+    min_sightings: int,
+    odometry: str,
+    loop_overrides: dict,
+    diagnose: bool,
+    localization_overrides: dict | None = None,
+):
     from lunarloc.config.run import RunConfig, config_from_dict
     from lunarloc.online.loop import LoopState
     from lunarloc.perception.detector import on_lander
@@ -212,11 +284,17 @@ def replay(site: Path, min_sightings: int, odometry: str, loop_overrides: dict, 
     if diagnose:
         rocks = _rocks(site)
         rid = rock_ids(ref.positions_xyz, rocks)
-        cls = _diagnosing_loop({"T_true": z["T_true"], "index": {int(f): i for i, f in enumerate(z["frames"])},
-                                "rocks": rocks, "reference_rocks": set(rid[rid >= 0].tolist()),
-                                "reference_xyz": ref.positions_xyz,
-                                "T_odo": z["T_visual"] if odometry == "visual" else z["T_record"],
-                                "sightings": _reference_sightings(site, rocks)})  # fmt: skip
+        cls = _diagnosing_loop(
+            {
+                "T_true": z["T_true"],
+                "index": {int(f): i for i, f in enumerate(z["frames"])},
+                "rocks": rocks,
+                "reference_rocks": set(rid[rid >= 0].tolist()),
+                "reference_xyz": ref.positions_xyz,
+                "T_odo": z["T_visual"] if odometry == "visual" else z["T_record"],
+                "sightings": _reference_sightings(site, rocks),
+            }
+        )
     else:
         cls = LoopState
     loc = dataclasses.replace(cfg.localization, **(localization_overrides or {}))
@@ -232,25 +310,61 @@ def replay(site: Path, min_sightings: int, odometry: str, loop_overrides: dict, 
             offset += z["ndet"][i]
             if len(z["lander_xy"]):
                 d = d[~on_lander(d, T[i], z["lander_xy"])]
-        state.step(int(z["frames"][i]), float(z["times"][i]), T[i], d, z["T_true"][i], keyframe=bool(z["keyframe"][i]))
+        state.step(
+            int(z["frames"][i]),
+            float(z["times"][i]),
+            T[i],
+            d,
+            z["T_true"][i],
+            keyframe=bool(z["keyframe"][i]),
+        )
     res = state.finish(int(np.sum(z["keyframe"])))
     s = res.summary()
-    fixes = [[round(a.fix_error_m, 4), round(a.predicted_error_m, 4), round(a.window_m, 1), a.time_s]
-             for a in res.attempts if a.accepted]  # fmt: skip
-    return {"site": site.name, "min_sightings": min_sightings, "odometry": odometry, "loop": loop_overrides,
-            "attempts": s["attempts"], "fixes": s["fixes"], "online_rmse_m": s["ate_online"]["rmse_m"],
-            "corrected_rmse_m": s["ate_corrected"]["rmse_m"], "odometry_rmse_m": s["ate_odometry"]["rmse_m"],
-            "accepted_fixes": fixes, "first_fix_s": fixes[0][3] if fixes else None,
-            "cpu_s": round(time.process_time() - t0, 2), "per_attempt": state.rows}  # fmt: skip
+    fixes = [
+        [round(a.fix_error_m, 4), round(a.predicted_error_m, 4), round(a.window_m, 1), a.time_s]
+        for a in res.attempts
+        if a.accepted
+    ]
+    return {
+        "site": site.name,
+        "min_sightings": min_sightings,
+        "odometry": odometry,
+        "loop": loop_overrides,
+        "attempts": s["attempts"],
+        "fixes": s["fixes"],
+        "online_rmse_m": s["ate_online"]["rmse_m"],
+        "corrected_rmse_m": s["ate_corrected"]["rmse_m"],
+        "odometry_rmse_m": s["ate_odometry"]["rmse_m"],
+        "accepted_fixes": fixes,
+        "first_fix_s": fixes[0][3] if fixes else None,
+        "cpu_s": round(time.process_time() - t0, 2),
+        "per_attempt": state.rows,
+    }
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("sites", type=Path, nargs="+")
-    ap.add_argument("--min-sightings", type=int, nargs="+", default=[5], help="reference map(s) map_0_gt_ms<M>.csv")
-    ap.add_argument("--odometry", nargs="+", default=["visual"], choices=["visual", "record:odometry"])
-    ap.add_argument("--loop", default="{}", help="LoopConfig overrides as JSON (on RunConfig()'s image defaults)")
-    ap.add_argument("--attempts", action="store_true", help="print and keep the per-attempt diagnosis")
+    ap.add_argument(
+        "--min-sightings",
+        type=int,
+        nargs="+",
+        default=[5],
+        help="reference map(s) map_0_gt_ms<M>.csv",
+    )
+    ap.add_argument(
+        "--odometry", nargs="+", default=["visual"], choices=["visual", "record:odometry"]
+    )
+    ap.add_argument(
+        "--loop",
+        default="{}",
+        help="LoopConfig overrides as JSON (on RunConfig()'s image defaults)",
+    )
+    ap.add_argument(
+        "--attempts", action="store_true", help="print and keep the per-attempt diagnosis"
+    )
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
     overrides = json.loads(a.loop)
@@ -261,12 +375,26 @@ def main(argv=None) -> int:
                 r = replay(site, ms, odo, overrides, a.attempts)
                 out.append(r)
                 worst = max(r["accepted_fixes"], default=None)
-                print(f"{site.name} ms{ms} {odo:16s} fixes {r['fixes']}/{r['attempts']} online {100 * r['online_rmse_m']:.1f} cm"
-                      f" corrected {100 * r['corrected_rmse_m']:.1f} odometry {100 * r['odometry_rmse_m']:.1f}"
-                      f" first fix {r['first_fix_s']} s worst fix "
-                      + ("-" if worst is None else f"{100 * worst[0]:.1f} cm (predicted {100 * worst[1]:.1f})"))  # fmt: skip
+                print(
+                    f"{site.name} ms{ms} {odo:16s} fixes {r['fixes']}/{r['attempts']} online {100 * r['online_rmse_m']:.1f} cm"
+                    f" corrected {100 * r['corrected_rmse_m']:.1f} odometry {100 * r['odometry_rmse_m']:.1f}"
+                    f" first fix {r['first_fix_s']} s worst fix "
+                    + (
+                        "-"
+                        if worst is None
+                        else f"{100 * worst[0]:.1f} cm (predicted {100 * worst[1]:.1f})"
+                    )
+                )
                 for row in r["per_attempt"]:
-                    print("   ", json.dumps({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}))
+                    print(
+                        "   ",
+                        json.dumps(
+                            {
+                                k: (round(v, 3) if isinstance(v, float) else v)
+                                for k, v in row.items()
+                            }
+                        ),
+                    )
     if a.json:
         a.json.write_text(json.dumps(out, indent=1, default=float))
     return 0

@@ -40,20 +40,40 @@ from lunarloc.io.maps import LandmarkMap  # noqa: E402
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--epsilon", type=float, nargs="+", default=[0.05, 0.10, 0.15])
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--search-sigmas", type=float, default=None,
-                    help="LocalizationConfig.search_sigmas (default: the config's; 0 = the given epsilon exactly)")
-    ap.add_argument("--threads", type=int, default=None, help="search threads (default: the config's)")
-    ap.add_argument("--unrelated", type=int, default=1, help="unrelated vehicle maps per tolerance (alternately whole site / 14 m patch)")
-    ap.add_argument("--no-screen", action="store_true", help="no screen before the exhaustive search")
+    ap.add_argument(
+        "--search-sigmas",
+        type=float,
+        default=None,
+        help="LocalizationConfig.search_sigmas (default: the config's; 0 = the given epsilon exactly)",
+    )
+    ap.add_argument(
+        "--threads", type=int, default=None, help="search threads (default: the config's)"
+    )
+    ap.add_argument(
+        "--unrelated",
+        type=int,
+        default=1,
+        help="unrelated vehicle maps per tolerance (alternately whole site / 14 m patch)",
+    )
+    ap.add_argument(
+        "--no-screen", action="store_true", help="no screen before the exhaustive search"
+    )
     args = ap.parse_args()
     rng = np.random.default_rng(0)
     ref, veh, T, _ = make_pair(rng, n_ref=600, n_common=100, n_outliers=50, noise=0.03)
     q = 0.15 / math.sqrt(12)
-    ref = LandmarkMap(ref.positions_xyz, sigma_xy_m=np.full(len(ref), q), sigma_z_m=np.full(len(ref), q))
-    unrelated = [LandmarkMap(rock_field(rng, 150, size=27.0 if k % 2 == 0 else 14.0)) for k in range(args.unrelated)]
+    ref = LandmarkMap(
+        ref.positions_xyz, sigma_xy_m=np.full(len(ref), q), sigma_z_m=np.full(len(ref), q)
+    )
+    unrelated = [
+        LandmarkMap(rock_field(rng, 150, size=27.0 if k % 2 == 0 else 14.0))
+        for k in range(args.unrelated)
+    ]
     localize(LandmarkMap(ref.positions_xyz[:40]), LandmarkMap(veh.positions_xyz[:20]))  # compile
     for eps in args.epsilon:
         kw = {} if args.search_sigmas is None else {"search_sigmas": args.search_sigmas}
@@ -62,7 +82,9 @@ def main() -> None:
         if args.no_screen:
             kw["screen_min_incidences"] = 0
         cfg = LocalizationConfig(epsilon_m=eps, epsilon_z_m=eps, **kw)
-        for name, v in [("true pair", veh)] + [(f"unrelated{k}", u) for k, u in enumerate(unrelated)]:
+        for name, v in [("true pair", veh)] + [
+            (f"unrelated{k}", u) for k, u in enumerate(unrelated)
+        ]:
             walls, cpus = [], []
             for _ in range(args.repeat):
                 t0, c0 = time.perf_counter(), time.process_time()
@@ -73,16 +95,22 @@ def main() -> None:
             if name == "true pair" and r.success:
                 E = r.T_ref_veh @ np.linalg.inv(T)
                 err = f", error {np.linalg.norm(E[:3, 3]) * 100:.1f} cm at the origin"
-            run = cfg.for_maps(ref, v)  # the tolerances the search ran at (raised to the maps' sigma)
+            run = cfg.for_maps(
+                ref, v
+            )  # the tolerances the search ran at (raised to the maps' sigma)
             screen = next((c for c in r.checks if c.name == "screen"), None)
             if "screen" not in r.timings:
                 how = "no screen"
             else:
-                how = (f"screen {'passed' if screen.passed else 'refused'}: {screen.value:.1f} inliers beyond chance, "
-                       f"passing needs {screen.limit:.1f}")
-            print(f"epsilon {eps * 100:4.0f} cm (search {run.epsilon_m * 100:.1f} / {run.epsilon_z_m * 100:.1f} cm) {name:10s}: wall {np.median(walls):6.2f} s, CPU {np.median(cpus):6.2f} s; "
-                  f"success {r.success} ({r.num_inliers} inliers, clique {r.clique_size}, need {r.required_inliers}{err}; {how})",
-                  flush=True)
+                how = (
+                    f"screen {'passed' if screen.passed else 'refused'}: {screen.value:.1f} inliers beyond chance, "
+                    f"passing needs {screen.limit:.1f}"
+                )
+            print(
+                f"epsilon {eps * 100:4.0f} cm (search {run.epsilon_m * 100:.1f} / {run.epsilon_z_m * 100:.1f} cm) {name:10s}: wall {np.median(walls):6.2f} s, CPU {np.median(cpus):6.2f} s; "
+                f"success {r.success} ({r.num_inliers} inliers, clique {r.clique_size}, need {r.required_inliers}{err}; {how})",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

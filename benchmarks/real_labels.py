@@ -34,18 +34,32 @@ LABELS = HERE.parent / "tests" / "data" / "lac_real_labels.json"
 
 
 def default_data_dir() -> Path:
-    return Path(os.environ.get("LUNARLOC_LAC_REAL", HERE.parent.parent / "shared" / "data" / "lac-real"))
+    return Path(
+        os.environ.get("LUNARLOC_LAC_REAL", HERE.parent.parent / "shared" / "data" / "lac-real")
+    )
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--data", type=Path, default=None)
     ap.add_argument("--labels", type=Path, default=LABELS)
-    ap.add_argument("--config", type=Path, default=None, help="a run configuration whose detector section is used")
+    ap.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        help="a run configuration whose detector section is used",
+    )
     ap.add_argument("--frames", nargs="*", default=None)
-    ap.add_argument("--small-rocks", action="store_true",
-                    help="turn the small-rock stage on (DetectorConfig.small_rocks.enabled; off by default)")
-    ap.add_argument("--misses", type=Path, default=None, help="write each missed rock and its stage to this CSV")
+    ap.add_argument(
+        "--small-rocks",
+        action="store_true",
+        help="turn the small-rock stage on (DetectorConfig.small_rocks.enabled; off by default)",
+    )
+    ap.add_argument(
+        "--misses", type=Path, default=None, help="write each missed rock and its stage to this CSV"
+    )
     ap.add_argument("--figure-dir", type=Path, default=None)
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
@@ -69,16 +83,25 @@ def main(argv=None) -> int:
         raise SystemExit(str(e)) from None
     for f in res["frames"]:
         s = summarize([f])
-        print(f"{f['frame']:9s} rocks {s['recall_all'][0]:2d}/{s['recall_all'][1]:2d}  >=8cm {s['recall_ge_8cm'][0]}/"
-              f"{s['recall_ge_8cm'][1]}  detections {s['detections']:2d}: on rocks {s['on_rocks']}, false {s['false']}"
-              f" (no-fire {s['on_no_fire']}), uncertain {s['on_uncertain']}")
+        print(
+            f"{f['frame']:9s} rocks {s['recall_all'][0]:2d}/{s['recall_all'][1]:2d}  >=8cm {s['recall_ge_8cm'][0]}/"
+            f"{s['recall_ge_8cm'][1]}  detections {s['detections']:2d}: on rocks {s['on_rocks']}, false {s['false']}"
+            f" (no-fire {s['on_no_fire']}), uncertain {s['on_uncertain']}"
+        )
     s = res["summary"]
-    print("all: recall {0[0]}/{0[1]} = {0[2]}; >= 8 cm {1[0]}/{1[1]} = {1[2]}; < 8 cm {2[0]}/{2[1]} = {2[2]}".format(
-        s["recall_all"], s["recall_ge_8cm"], s["recall_lt_8cm"]))
-    print("     by range: " + ", ".join(f"{k} {v[0]}/{v[1]}" for k, v in s["recall_by_range"].items()))
-    print(f"     detections {s['detections']}: on rocks {s['on_rocks']}, false {s['false']} (on no-fire regions "
-          f"{s['on_no_fire']}), on uncertain labels {s['on_uncertain']}; precision {s['precision']}; "
-          f"{s['wall_ms_per_pair_median']} ms per pair (wall, median)")
+    print(
+        "all: recall {0[0]}/{0[1]} = {0[2]}; >= 8 cm {1[0]}/{1[1]} = {1[2]}; < 8 cm {2[0]}/{2[1]} = {2[2]}".format(
+            s["recall_all"], s["recall_ge_8cm"], s["recall_lt_8cm"]
+        )
+    )
+    print(
+        "     by range: " + ", ".join(f"{k} {v[0]}/{v[1]}" for k, v in s["recall_by_range"].items())
+    )
+    print(
+        f"     detections {s['detections']}: on rocks {s['on_rocks']}, false {s['false']} (on no-fire regions "
+        f"{s['on_no_fire']}), on uncertain labels {s['on_uncertain']}; precision {s['precision']}; "
+        f"{s['wall_ms_per_pair_median']} ms per pair (wall, median)"
+    )
     if misses is not None:
         import csv
         from collections import Counter
@@ -89,13 +112,23 @@ def main(argv=None) -> int:
                 w = csv.DictWriter(fh, fieldnames=list(misses[0]))
                 w.writeheader()
                 for r in misses:
-                    w.writerow({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in r.items()})
-        print("missed rocks by stage: " + ", ".join(f"{k} {v}" for k, v in Counter(r['stage'] for r in misses).most_common()))
+                    w.writerow(
+                        {k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in r.items()}
+                    )
+        print(
+            "missed rocks by stage: "
+            + ", ".join(f"{k} {v}" for k, v in Counter(r["stage"] for r in misses).most_common())
+        )
         for r in misses:
-            print(f"  {r['rock_id']:7s} {r['width_m']:.3f} m wide at {r['range_m']:.2f} m: {r['stage']}"
-                  + (f" ({r['tentative_rules']})" if r.get("tentative_rules") else "")
-                  + (f" valid {r['valid_fraction']:.2f} max height {r['max_height_m']:.3f} m"
-                     if r["stage"] == "no-blob" else f" overlap {r['overlap']:.2f}"))
+            print(
+                f"  {r['rock_id']:7s} {r['width_m']:.3f} m wide at {r['range_m']:.2f} m: {r['stage']}"
+                + (f" ({r['tentative_rules']})" if r.get("tentative_rules") else "")
+                + (
+                    f" valid {r['valid_fraction']:.2f} max height {r['max_height_m']:.3f} m"
+                    if r["stage"] == "no-blob"
+                    else f" overlap {r['overlap']:.2f}"
+                )
+            )
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)
         a.json.write_text(json.dumps(res, indent=1))

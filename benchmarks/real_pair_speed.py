@@ -25,9 +25,16 @@ PAIRS = [("FrontLeft_99.png", "FrontRight_99.png")] + [
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", type=Path, default=Path(os.environ.get("LUNARLOC_LAC_REAL",
-                                                                     HERE.parent.parent / "shared/data/lac-real")))
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument(
+        "--data",
+        type=Path,
+        default=Path(
+            os.environ.get("LUNARLOC_LAC_REAL", HERE.parent.parent / "shared/data/lac-real")
+        ),
+    )
     ap.add_argument("--repeat", type=int, default=3)
     a = ap.parse_args(argv)
     import cv2
@@ -35,8 +42,13 @@ def main(argv=None) -> int:
     from lunarloc.perception.camera import PinholeCamera, ipex_rig
     from lunarloc.perception.detector import Detector, DetectorConfig
 
-    pairs = [(cv2.imread(str(a.data / left), cv2.IMREAD_GRAYSCALE), cv2.imread(str(a.data / right), cv2.IMREAD_GRAYSCALE))
-             for left, right in PAIRS]
+    pairs = [
+        (
+            cv2.imread(str(a.data / left), cv2.IMREAD_GRAYSCALE),
+            cv2.imread(str(a.data / right), cv2.IMREAD_GRAYSCALE),
+        )
+        for left, right in PAIRS
+    ]
     if any(p is None for pair in pairs for p in pair):
         print(f"the real LAC pairs are not under {a.data}", file=sys.stderr)
         return 2
@@ -53,8 +65,10 @@ def main(argv=None) -> int:
                 det.detect_pair(left, right, T)
                 n += 1
         cpu, wall = (time.process_time() - c0) / n, (time.perf_counter() - w0) / n
-        print(f"small rocks {'on ' if on else 'off'}: {1000 * cpu:.0f} ms CPU per pair ({1 / cpu:.1f} pairs/s CPU), "
-              f"{1000 * wall:.0f} ms wall; load average {os.getloadavg()[0]:.1f}")
+        print(
+            f"small rocks {'on ' if on else 'off'}: {1000 * cpu:.0f} ms CPU per pair ({1 / cpu:.1f} pairs/s CPU), "
+            f"{1000 * wall:.0f} ms wall; load average {os.getloadavg()[0]:.1f}"
+        )
     return 0
 
 

@@ -19,9 +19,17 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-CASES = ("campaign/grid-1e9-combinations", "campaign/grid-1e6-combinations", "campaign/grid-10001-combinations",
-         "campaign/job-duration_s-1000000000.0", "config/run-epsilon-10", "config/bench-loop-epsilon-10",
-         "config/demo-scenario-duration-1e9", "config/run-deep-nesting", "campaign/spec-deep-nesting")  # fmt: skip
+CASES = (
+    "campaign/grid-1e9-combinations",
+    "campaign/grid-1e6-combinations",
+    "campaign/grid-10001-combinations",
+    "campaign/job-duration_s-1000000000.0",
+    "config/run-epsilon-10",
+    "config/bench-loop-epsilon-10",
+    "config/demo-scenario-duration-1e9",
+    "config/run-deep-nesting",
+    "campaign/spec-deep-nesting",
+)
 
 CHILD = r"""
 import json, resource, sys, tempfile, time
@@ -45,7 +53,9 @@ print("RESULT " + json.dumps({"case": NAME, "outcome": o.outcome, "rc": o.rc, "w
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--src", type=Path, default=ROOT / "src")
-    ap.add_argument("--timeout", type=int, default=60, help="seconds before a case counts as a hang")
+    ap.add_argument(
+        "--timeout", type=int, default=60, help="seconds before a case counts as a hang"
+    )
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     rows = []
@@ -53,17 +63,34 @@ def main() -> None:
     print("| case | outcome | time to outcome (s) | peak RSS (MiB) | growth over imports (MiB) |")
     print("|---|---|---|---|---|")
     for name in CASES:
-        code = CHILD.replace("SRC", repr(str(args.src.resolve()))).replace("TESTS", repr(str(ROOT / "tests")))
+        code = CHILD.replace("SRC", repr(str(args.src.resolve()))).replace(
+            "TESTS", repr(str(ROOT / "tests"))
+        )
         code = code.replace("NAME", repr(name)).replace("TIMEOUT", str(args.timeout))
-        p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=args.timeout + 120, check=False)
+        p = subprocess.run(
+            [sys.executable, "-c", code],
+            capture_output=True,
+            text=True,
+            timeout=args.timeout + 120,
+            check=False,
+        )
         line = next((l for l in p.stdout.splitlines() if l.startswith("RESULT ")), None)
         if line is None:
-            r = {"case": name, "outcome": f"child failed (exit {p.returncode})", "wall_s": None, "peak_rss_mib": None,
-                 "growth_mib": None, "message": p.stderr[-300:]}  # fmt: skip
+            r = {
+                "case": name,
+                "outcome": f"child failed (exit {p.returncode})",
+                "wall_s": None,
+                "peak_rss_mib": None,
+                "growth_mib": None,
+                "message": p.stderr[-300:],
+            }
         else:
             r = json.loads(line[7:])
         rows.append(r)
-        print(f"| {name} | {r['outcome']} | {r['wall_s']} | {r['peak_rss_mib']} | {r['growth_mib']} |", flush=True)
+        print(
+            f"| {name} | {r['outcome']} | {r['wall_s']} | {r['peak_rss_mib']} | {r['growth_mib']} |",
+            flush=True,
+        )
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
 

@@ -43,7 +43,9 @@ def site_config(style: str):
     return SiteConfig.lac_style() if style == "lac" else SiteConfig()
 
 
-def render_sessions(seed: int, style: str, duration: float, rate: float, out_dir: Path) -> list[Path]:
+def render_sessions(
+    seed: int, style: str, duration: float, rate: float, out_dir: Path
+) -> list[Path]:
     """Render (once) the survey and the revisit session of site `seed`."""
     from lunarloc.sim.render import RenderConfig
     from lunarloc.sim.rover import RoverConfig
@@ -54,8 +56,14 @@ def render_sessions(seed: int, style: str, duration: float, rate: float, out_dir
     for index, plan in enumerate(("survey", "revisit")):
         p = out_dir / f"site{seed}_{style}_{plan}_{duration:g}s.lac"
         if not p.exists():
-            sc = SimulationConfig(site=site_config(style), rover=RoverConfig(plan=plan), duration_s=duration,
-                                  image_rate_hz=rate, cameras=("FrontLeft", "FrontRight"), render=RenderConfig.lac_style() if style == "lac" else RenderConfig())
+            sc = SimulationConfig(
+                site=site_config(style),
+                rover=RoverConfig(plan=plan),
+                duration_s=duration,
+                image_rate_hz=rate,
+                cameras=("FrontLeft", "FrontRight"),
+                render=RenderConfig.lac_style() if style == "lac" else RenderConfig(),
+            )
             site = site or simulate_site(seed, sc)
             out_dir.mkdir(parents=True, exist_ok=True)
             t0 = time.process_time()
@@ -65,7 +73,9 @@ def render_sessions(seed: int, style: str, duration: float, rate: float, out_dir
     return out
 
 
-def log_session(path: Path, session: str, cfg: DetectorConfig, log: SightingLog, max_range: float) -> dict:
+def log_session(
+    path: Path, session: str, cfg: DetectorConfig, log: SightingLog, max_range: float
+) -> dict:
     """Detect over one archive (ground-truth poses) and log each detection's rock. Returns
     the counts of detections: on a rock, on no rock, beyond range."""
     from lunarloc.config.run import scaled_detector_config
@@ -80,7 +90,9 @@ def log_session(path: Path, session: str, cfg: DetectorConfig, log: SightingLog,
         radii = {int(i): float(r) for i, r in zip(t["id"], t["radius"])}
         cam = camera_from_archive(ar)
         det = Detector(scaled_detector_config(cam.width, base=cfg), cam)
-        for fd in detect_archive(ar, det.config, "ground-truth", detector=det, lander_xy=lander_xy(ar)):
+        for fd in detect_archive(
+            ar, det.config, "ground-truth", detector=det, lander_xy=lander_xy(ar)
+        ):
             sems = {}
             for d in fd.detections:
                 if d.depth_m > max_range:
@@ -98,8 +110,10 @@ def log_session(path: Path, session: str, cfg: DetectorConfig, log: SightingLog,
 
 
 def print_table(s: dict) -> None:
-    print("band (true r, m) | sightings: n, median, p90 cm | rock spread: rocks, median, p90 cm | "
-          "session offset: rocks, median, p90 cm")
+    print(
+        "band (true r, m) | sightings: n, median, p90 cm | rock spread: rocks, median, p90 cm | "
+        "session offset: rocks, median, p90 cm"
+    )
     for band, v in s.items():
         row = [band]
         for k in ("sighting_deviation", "rock_spread", "session_offset"):
@@ -109,16 +123,26 @@ def print_table(s: dict) -> None:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--seeds", type=int, nargs="*", default=[])
-    ap.add_argument("--sessions", type=Path, nargs="*", default=[], help="archives of one site (each a session)")
-    ap.add_argument("--style", choices=("lac", "default"), default="lac", help="site style of rendered seeds")
+    ap.add_argument(
+        "--sessions", type=Path, nargs="*", default=[], help="archives of one site (each a session)"
+    )
+    ap.add_argument(
+        "--style", choices=("lac", "default"), default="lac", help="site style of rendered seeds"
+    )
     ap.add_argument("--duration", type=float, default=90.0, help="seconds per session")
     ap.add_argument("--image-rate", type=float, default=0.5, help="camera rate, Hz")
-    ap.add_argument("--max-range", type=float, default=5.0, help="leave out detections deeper than this, m")
+    ap.add_argument(
+        "--max-range", type=float, default=5.0, help="leave out detections deeper than this, m"
+    )
     ap.add_argument("--min-sightings", type=int, default=3)
     ap.add_argument("--small-rocks", action="store_true", help="turn the small-rock stage on")
-    ap.add_argument("--config", type=Path, default=None, help="a run configuration: its detector section")
+    ap.add_argument(
+        "--config", type=Path, default=None, help="a run configuration: its detector section"
+    )
     ap.add_argument("--out-dir", type=Path, default=Path("bench-output/repeatability-v2"))
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
@@ -129,7 +153,10 @@ def main(argv=None) -> int:
         cfg = load_config_file(a.config)[0].detector
     if a.small_rocks:
         cfg = replace(cfg, small_rocks=replace(cfg.small_rocks, enabled=True))
-    groups = [(f"site{s}", render_sessions(s, a.style, a.duration, a.image_rate, a.out_dir)) for s in a.seeds]
+    groups = [
+        (f"site{s}", render_sessions(s, a.style, a.duration, a.image_rate, a.out_dir))
+        for s in a.seeds
+    ]
     if a.sessions:
         groups.append(("given", list(a.sessions)))
     if not groups:
@@ -157,15 +184,27 @@ def main(argv=None) -> int:
             for xy in pts:
                 keyed.add(session.split("/")[1], k, xy)
     s = summarise(keyed, keyed_radii, a.min_sightings)
-    print(f"sites: {[g[0] for g in groups]}; detections within {a.max_range:g} m: {counts['on_rock']} on a rock, "
-          f"{counts['off_rock']} on no rock; {counts['beyond_range']} beyond; small rocks "
-          f"{'on' if cfg.small_rocks.enabled else 'off'}; ground-truth poses; {time.process_time() - c0:.0f} s CPU")
+    print(
+        f"sites: {[g[0] for g in groups]}; detections within {a.max_range:g} m: {counts['on_rock']} on a rock, "
+        f"{counts['off_rock']} on no rock; {counts['beyond_range']} beyond; small rocks "
+        f"{'on' if cfg.small_rocks.enabled else 'off'}; ground-truth poses; {time.process_time() - c0:.0f} s CPU"
+    )
     print_table(s)
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps({"summary": s, "counts": counts, "archives": [str(p) for _, ps in groups for p in ps],
-                                      "small_rocks": cfg.small_rocks.enabled, "max_range_m": a.max_range,
-                                      "min_sightings": a.min_sightings}, indent=2))
+        a.json.write_text(
+            json.dumps(
+                {
+                    "summary": s,
+                    "counts": counts,
+                    "archives": [str(p) for _, ps in groups for p in ps],
+                    "small_rocks": cfg.small_rocks.enabled,
+                    "max_range_m": a.max_range,
+                    "min_sightings": a.min_sightings,
+                },
+                indent=2,
+            )
+        )
     return 0
 
 

@@ -80,8 +80,15 @@ def child(n: int, method: str, trials: int, seed: int, null_trials: int = 0) -> 
     # null trials: windows cut from an unrelated field of the same size must be refused
     other = uniform_rock_field(np.random.default_rng(seed + 1000), n)
     nulls = [vehicle_window(rng, other, n_win) for _ in range(null_trials)]
-    out = {"n_ref": n, "method": method, "n_veh": n_win, "trials": [], "null_accepted": 0,
-           "null_trials": null_trials, "rss_before_mb": _rss_mb("VmRSS")}
+    out = {
+        "n_ref": n,
+        "method": method,
+        "n_veh": n_win,
+        "trials": [],
+        "null_accepted": 0,
+        "null_trials": null_trials,
+        "rss_before_mb": _rss_mb("VmRSS"),
+    }
     index = None
     if method == "indexed":
         _reset_peak()
@@ -95,8 +102,11 @@ def child(n: int, method: str, trials: int, seed: int, null_trials: int = 0) -> 
         out["index_mb"] = index.nbytes / 2**20
         out["max_side_m"] = index.max_side_m
     for w in nulls:
-        r = (localize(ref, w.vehicle, cfg) if method == "full"
-             else localize_large(ref, w.vehicle, cfg, index=index, search="indexed"))
+        r = (
+            localize(ref, w.vehicle, cfg)
+            if method == "full"
+            else localize_large(ref, w.vehicle, cfg, index=index, search="indexed")
+        )
         out["null_accepted"] += bool(r.success)
     for w in wins:
         _reset_peak()
@@ -113,21 +123,42 @@ def child(n: int, method: str, trials: int, seed: int, null_trials: int = 0) -> 
         if np.all(np.isfinite(r.T_ref_veh)):
             # error where it matters: at the vehicle map's landmarks (not the far-away origin)
             P = w.vehicle.positions_xyz
-            err_m = float(np.max(np.linalg.norm(transform_points(r.T_ref_veh, P) - transform_points(w.T_ref_veh, P), axis=1)))
+            err_m = float(
+                np.max(
+                    np.linalg.norm(
+                        transform_points(r.T_ref_veh, P) - transform_points(w.T_ref_veh, P), axis=1
+                    )
+                )
+            )
             err_deg = math.degrees(rotation_angle(r.T_ref_veh[:3, :3] @ w.T_ref_veh[:3, :3].T))
         else:
             err_m = err_deg = float("nan")
         right = bool(r.success and err_m < 0.2 and err_deg < 1.0)
-        out["trials"].append({"time_s": dt, "cpu_s": cpu, "peak_mb": peak, "considered": int(considered),
-                              "success": bool(r.success), "right": right, "err_m": err_m,
-                              "inliers": r.num_inliers, "reason": r.reason,
-                              "candidates": len(getattr(r, "candidates", []))})
+        out["trials"].append(
+            {
+                "time_s": dt,
+                "cpu_s": cpu,
+                "peak_mb": peak,
+                "considered": int(considered),
+                "success": bool(r.success),
+                "right": right,
+                "err_m": err_m,
+                "inliers": r.num_inliers,
+                "reason": r.reason,
+                "candidates": len(getattr(r, "candidates", [])),
+            }
+        )
     return out
 
 
 # harder vehicle windows: (detection probability, outlier fraction, landmarks, noise per axis m)
-STRESS = [(0.5, 0.15, 150, 0.015), (0.85, 0.4, 150, 0.015), (0.85, 0.15, 60, 0.015),
-          (0.85, 0.15, 150, 0.025), (0.3, 0.15, 80, 0.015)]
+STRESS = [
+    (0.5, 0.15, 150, 0.015),
+    (0.85, 0.4, 150, 0.015),
+    (0.85, 0.15, 60, 0.015),
+    (0.85, 0.15, 150, 0.025),
+    (0.3, 0.15, 80, 0.015),
+]
 
 
 def stress(n: int, trials: int, seed: int) -> None:
@@ -149,21 +180,47 @@ def stress(n: int, trials: int, seed: int) -> None:
         right = accepted = 0
         times = []
         for t in range(trials):
-            w = vehicle_window(np.random.default_rng([seed, t]), ref, nv, outlier_fraction=of, detect_prob=dp,
-                               noise_m=noise)
+            w = vehicle_window(
+                np.random.default_rng([seed, t]),
+                ref,
+                nv,
+                outlier_fraction=of,
+                detect_prob=dp,
+                noise_m=noise,
+            )
             t0 = time.perf_counter()
             r = localize_large(ref, w.vehicle, index=index, search="indexed")
             times.append(time.perf_counter() - t0)
             P = w.vehicle.positions_xyz
-            err = np.max(np.linalg.norm(transform_points(r.T_ref_veh, P) - transform_points(w.T_ref_veh, P), axis=1))
+            err = np.max(
+                np.linalg.norm(
+                    transform_points(r.T_ref_veh, P) - transform_points(w.T_ref_veh, P), axis=1
+                )
+            )
             accepted += r.success
             right += bool(r.success and err < 0.2)
-        print(f"| {dp:.0%} | {of:.0%} | {nv} | {noise} | {right}/{trials} | {accepted}/{trials} | {_median(times):.2f} |")
+        print(
+            f"| {dp:.0%} | {of:.0%} | {nv} | {noise} | {right}/{trials} | {accepted}/{trials} | {_median(times):.2f} |"
+        )
 
 
-def run_size(n: int, method: str, trials: int, seed: int, timeout_s: float, null_trials: int = 0) -> dict:
-    cmd = [sys.executable, __file__, "--child", str(n), "--method", method, "--trials", str(trials),
-           "--seed", str(seed), "--null-trials", str(null_trials)]
+def run_size(
+    n: int, method: str, trials: int, seed: int, timeout_s: float, null_trials: int = 0
+) -> dict:
+    cmd = [
+        sys.executable,
+        __file__,
+        "--child",
+        str(n),
+        "--method",
+        method,
+        "--trials",
+        str(trials),
+        "--seed",
+        str(seed),
+        "--null-trials",
+        str(null_trials),
+    ]
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
     except subprocess.TimeoutExpired:
@@ -180,8 +237,11 @@ def _median(xs):
 
 
 def fit_exponent(rows: list, key: str = "time_s", min_n: int = 1000) -> float:
-    pts = [(math.log(r["n_ref"]), math.log(r[key])) for r in rows
-           if "skipped" not in r and r["n_ref"] >= min_n and r.get(key, 0) > 0]
+    pts = [
+        (math.log(r["n_ref"]), math.log(r[key]))
+        for r in rows
+        if "skipped" not in r and r["n_ref"] >= min_n and r.get(key, 0) > 0
+    ]
     if len(pts) < 2:
         return float("nan")
     mx = sum(p[0] for p in pts) / len(pts)
@@ -193,47 +253,78 @@ def summarise(r: dict) -> dict:
     if "skipped" in r:
         return r
     t = r["trials"]
-    s = {"n_ref": r["n_ref"], "method": r["method"], "n_veh": r["n_veh"],
-         "considered": int(_median([x["considered"] for x in t])),
-         "time_s": _median([x["time_s"] for x in t]), "cpu_s": _median([x["cpu_s"] for x in t]), "peak_mb": max(x["peak_mb"] for x in t),
-         "right": sum(x["right"] for x in t), "trials": len(t),
-         "wrong_accepted": sum(x["success"] and not x["right"] for x in t),
-         "reasons": sorted({x["reason"] for x in t if not x["right"]}),
-         "null_accepted": r.get("null_accepted", 0), "null_trials": r.get("null_trials", 0),
-         "rss_before_mb": r.get("rss_before_mb")}
-    for k in ("index_s", "index_cpu_s", "index_peak_mb", "index_triangles", "index_mb", "max_side_m"):
+    s = {
+        "n_ref": r["n_ref"],
+        "method": r["method"],
+        "n_veh": r["n_veh"],
+        "considered": int(_median([x["considered"] for x in t])),
+        "time_s": _median([x["time_s"] for x in t]),
+        "cpu_s": _median([x["cpu_s"] for x in t]),
+        "peak_mb": max(x["peak_mb"] for x in t),
+        "right": sum(x["right"] for x in t),
+        "trials": len(t),
+        "wrong_accepted": sum(x["success"] and not x["right"] for x in t),
+        "reasons": sorted({x["reason"] for x in t if not x["right"]}),
+        "null_accepted": r.get("null_accepted", 0),
+        "null_trials": r.get("null_trials", 0),
+        "rss_before_mb": r.get("rss_before_mb"),
+    }
+    for k in (
+        "index_s",
+        "index_cpu_s",
+        "index_peak_mb",
+        "index_triangles",
+        "index_mb",
+        "max_side_m",
+    ):
         if k in r:
             s[k] = r[k]
     return s
 
 
 def table(rows: list) -> str:
-    lines = ["| method | reference rocks | associations considered | wall time (s, median) | CPU time (s) | "
-             "index build (s, once per map) | peak memory (MB) | right | unrelated accepted |",
-             "|---|---:|---:|---:|---:|---:|---:|---|---|"]
+    lines = [
+        "| method | reference rocks | associations considered | wall time (s, median) | CPU time (s) | "
+        "index build (s, once per map) | peak memory (MB) | right | unrelated accepted |",
+        "|---|---:|---:|---:|---:|---:|---:|---|---|",
+    ]
     for r in rows:
         if "skipped" in r:
-            lines.append(f"| {r['method']} | {r['n_ref']:,} | - | - | - | - | - | skipped: {r['skipped']} | - |")
+            lines.append(
+                f"| {r['method']} | {r['n_ref']:,} | - | - | - | - | - | skipped: {r['skipped']} | - |"
+            )
             continue
         idx = f"{r['index_s']:.2f}" if "index_s" in r else "-"
         cpu = f"{r['cpu_s']:.3f}"
         mem = max(r["peak_mb"], r.get("index_peak_mb", 0.0))
-        lines.append(f"| {r['method']} | {r['n_ref']:,} | {r['considered']:,} | {r['time_s']:.3f} | {cpu} | {idx} | "
-                     f"{mem:.0f} | {r['right']}/{r['trials']} | {r['null_accepted']}/{r['null_trials']} |")
+        lines.append(
+            f"| {r['method']} | {r['n_ref']:,} | {r['considered']:,} | {r['time_s']:.3f} | {cpu} | {idx} | "
+            f"{mem:.0f} | {r['right']}/{r['trials']} | {r['null_accepted']}/{r['null_trials']} |"
+        )
     return "\n".join(lines)
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--sizes", default=",".join(map(str, SIZES)))
     ap.add_argument("--methods", default="full,indexed")
     ap.add_argument("--trials", type=int, default=3)
-    ap.add_argument("--null-trials", type=int, default=2, help="unrelated windows per size (must be refused)")
+    ap.add_argument(
+        "--null-trials", type=int, default=2, help="unrelated windows per size (must be refused)"
+    )
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--time-limit", type=float, default=120.0, help="stop a method's larger sizes past this (s)")
-    ap.add_argument("--memory-limit-gb", type=float, default=4.0, help="skip full searches estimated above this")
+    ap.add_argument(
+        "--time-limit", type=float, default=120.0, help="stop a method's larger sizes past this (s)"
+    )
+    ap.add_argument(
+        "--memory-limit-gb", type=float, default=4.0, help="skip full searches estimated above this"
+    )
     ap.add_argument("--out", default="scaling.json")
-    ap.add_argument("--stress", type=int, metavar="N", help="only the harder-window variants on an N-rock field")
+    ap.add_argument(
+        "--stress", type=int, metavar="N", help="only the harder-window variants on an N-rock field"
+    )
     ap.add_argument("--child", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--method", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -253,27 +344,52 @@ def main() -> None:
             if stop:
                 r = {"n_ref": n, "method": method, "skipped": stop}
             elif method == "full" and est_gb >= args.memory_limit_gb:
-                r = {"n_ref": n, "method": method,
-                     "skipped": f"N^2 pair index ~{est_gb:.0f} GB > {args.memory_limit_gb:g} GB"}
+                r = {
+                    "n_ref": n,
+                    "method": method,
+                    "skipped": f"N^2 pair index ~{est_gb:.0f} GB > {args.memory_limit_gb:g} GB",
+                }
             else:
-                r = summarise(run_size(n, method, args.trials, args.seed, args.time_limit * (args.trials + 2 + args.null_trials),
-                                       args.null_trials))
+                r = summarise(
+                    run_size(
+                        n,
+                        method,
+                        args.trials,
+                        args.seed,
+                        args.time_limit * (args.trials + 2 + args.null_trials),
+                        args.null_trials,
+                    )
+                )
                 if "skipped" not in r and r["time_s"] > args.time_limit:
                     stop = f"{n:,} rocks already took {r['time_s']:.0f} s > {args.time_limit:g} s"
             print(json.dumps(r), flush=True)
             rows.append(r)
-    result = {"rows": rows, "cpu_count": os.cpu_count(),
-              "load_avg": os.getloadavg(),
-              "exponents": {m: fit_exponent([r for r in rows if r["method"] == m])
-                            for m in args.methods.split(",")},
-              "cpu_exponents": {m: fit_exponent([r for r in rows if r["method"] == m], "cpu_s")
-                                for m in args.methods.split(",")},
-              "index_build_exponent": fit_exponent([r for r in rows if r["method"] == "indexed"], "index_s")}
+    result = {
+        "rows": rows,
+        "cpu_count": os.cpu_count(),
+        "load_avg": os.getloadavg(),
+        "exponents": {
+            m: fit_exponent([r for r in rows if r["method"] == m]) for m in args.methods.split(",")
+        },
+        "cpu_exponents": {
+            m: fit_exponent([r for r in rows if r["method"] == m], "cpu_s")
+            for m in args.methods.split(",")
+        },
+        "index_build_exponent": fit_exponent(
+            [r for r in rows if r["method"] == "indexed"], "index_s"
+        ),
+    }
     with open(args.out, "w") as f:
         json.dump(result, f, indent=1)
     print(table(rows))
-    print("fitted exponent of wall time (N_ref >= 1000): " + ", ".join(f"{m} {e:.2f}" for m, e in result["exponents"].items()))
-    print("fitted exponent of CPU time (N_ref >= 1000): " + ", ".join(f"{m} {e:.2f}" for m, e in result["cpu_exponents"].items()))
+    print(
+        "fitted exponent of wall time (N_ref >= 1000): "
+        + ", ".join(f"{m} {e:.2f}" for m, e in result["exponents"].items())
+    )
+    print(
+        "fitted exponent of CPU time (N_ref >= 1000): "
+        + ", ".join(f"{m} {e:.2f}" for m, e in result["cpu_exponents"].items())
+    )
     print(f"fitted exponent of the index build time: {result['index_build_exponent']:.2f}")
 
 

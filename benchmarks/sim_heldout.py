@@ -58,10 +58,15 @@ def render(seed: int, style: str, duration: float, rate: float, out_dir: Path) -
     el, az = sun_of(seed)
     p = out_dir / f"site{seed}_{style}_el{el:g}_az{az:g}_{duration:g}s.lac"
     if not p.exists():
-        sc = SimulationConfig(site=SiteConfig.lac_style() if style == "lac" else SiteConfig(), duration_s=duration,
-                              image_rate_hz=rate, cameras=("FrontLeft", "FrontRight"),
-                              render=RenderConfig.lac_style(sun_elevation_deg=el, sun_azimuth_deg=az) if style == "lac"
-                              else RenderConfig(sun_elevation_deg=el, sun_azimuth_deg=az))
+        sc = SimulationConfig(
+            site=SiteConfig.lac_style() if style == "lac" else SiteConfig(),
+            duration_s=duration,
+            image_rate_hz=rate,
+            cameras=("FrontLeft", "FrontRight"),
+            render=RenderConfig.lac_style(sun_elevation_deg=el, sun_azimuth_deg=az)
+            if style == "lac"
+            else RenderConfig(sun_elevation_deg=el, sun_azimuth_deg=az),
+        )
         out_dir.mkdir(parents=True, exist_ok=True)
         t0 = time.process_time()
         simulate_traverse(simulate_site(seed, sc), p, 0, sc)
@@ -81,14 +86,20 @@ def tiny_interval(per_site: list[np.ndarray], n_boot: int = 2000, seed: int = 0)
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--seeds", type=int, nargs="+", required=True)
     ap.add_argument("--style", choices=("lac", "default"), default="lac")
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--image-rate", type=float, default=0.5)
     ap.add_argument("--out-dir", type=Path, default=Path("bench-output/heldout-v2"))
-    ap.add_argument("--only", choices=("off", "on"), default=None, help="run one configuration only")
-    ap.add_argument("--config", type=Path, default=None, help="a run configuration: its detector section")
+    ap.add_argument(
+        "--only", choices=("off", "on"), default=None, help="run one configuration only"
+    )
+    ap.add_argument(
+        "--config", type=Path, default=None, help="a run configuration: its detector section"
+    )
     ap.add_argument("--render-only", action="store_true", help="render the archives and stop")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
@@ -100,8 +111,10 @@ def main(argv=None) -> int:
         from lunarloc.config.run import load_config_file
 
         base = load_config_file(a.config)[0].detector
-    configs = {"off": replace(base, small_rocks=replace(base.small_rocks, enabled=False)),
-               "on": replace(base, small_rocks=replace(base.small_rocks, enabled=True))}
+    configs = {
+        "off": replace(base, small_rocks=replace(base.small_rocks, enabled=False)),
+        "on": replace(base, small_rocks=replace(base.small_rocks, enabled=True)),
+    }
     if a.only:
         configs = {a.only: configs[a.only]}
     groups, out = {}, {}
@@ -120,15 +133,30 @@ def main(argv=None) -> int:
         s["detect_cpu_s"] = time.process_time() - c0
         groups[f"small rocks {name}"] = s
         out[name] = s
-    print(f"seeds {a.seeds} ({a.style} style); sun per seed: " + ", ".join(f"{s}: {sun_of(s)}" for s in a.seeds))
+    print(
+        f"seeds {a.seeds} ({a.style} style); sun per seed: "
+        + ", ".join(f"{s}: {sun_of(s)}" for s in a.seeds)
+    )
     print_groups(groups)
     for name, s in groups.items():
-        print(f"{name}: R(.025-.05,<=3m) 90 % interval {s['site_bootstrap_ci90']['recall_0.025<=r<0.05_range<=3']}; "
-              f"detection {s['detect_cpu_s']:.0f} s CPU over {s['frames']} frames")
+        print(
+            f"{name}: R(.025-.05,<=3m) 90 % interval {s['site_bootstrap_ci90']['recall_0.025<=r<0.05_range<=3']}; "
+            f"detection {s['detect_cpu_s']:.0f} s CPU over {s['frames']} frames"
+        )
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps({"seeds": a.seeds, "style": a.style, "archives": [str(p) for p in archives],
-                                      "results": out}, indent=2, default=str))
+        a.json.write_text(
+            json.dumps(
+                {
+                    "seeds": a.seeds,
+                    "style": a.style,
+                    "archives": [str(p) for p in archives],
+                    "results": out,
+                },
+                indent=2,
+                default=str,
+            )
+        )
     return 0
 
 

@@ -30,7 +30,10 @@ def _overlay(det, left, right, T_ro, T_map_rover, lander_xy):
     from lunarloc.perception.detector import debug_overlay
 
     pr = det.detect_pair(left, right, T_ro, T_map_rover, "FrontLeft", lander_xy=lander_xy)
-    print(f"  {len(pr.detections)} detections: " + ", ".join(f"{d.depth_m:.1f} m r {d.radius_m:.2f}" for d in pr.detections))
+    print(
+        f"  {len(pr.detections)} detections: "
+        + ", ".join(f"{d.depth_m:.1f} m r {d.radius_m:.2f}" for d in pr.detections)
+    )
     return debug_overlay(left, pr)[:, : left.shape[1], ::-1].copy()
 
 
@@ -45,13 +48,17 @@ def _outline(img, sem, site, cam_xyz, max_range=6.0):
         r = float(site.rocks.radii[k])
         if r < 0.025 or np.linalg.norm(site.rocks.centers[k] - cam_xyz) > max_range:
             continue
-        contours, _ = cv2.findContours((ids == k).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        contours, _ = cv2.findContours(
+            (ids == k).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE
+        )
         cv2.drawContours(img, contours, -1, (255, 255, 0) if r >= 0.1 else (0, 255, 255), 1)
     return img
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--real", type=Path, default=Path("../shared/data/lac-real"))
     ap.add_argument("--seed", type=int, default=300)
     ap.add_argument("--small-rocks", action="store_true")
@@ -87,12 +94,28 @@ def main(argv=None) -> int:
     pose = json.loads((a.real / "pose_99.json").read_text())
     T99 = pose_to_matrix(*[float(pose[k]) for k in ("x", "y", "z", "roll", "pitch", "yaw")])
     print("real FrontLeft 99")
-    panels.append(("real LAC, FrontLeft 99", _overlay(det, load("FrontLeft_99.png"), load("FrontRight_99.png"), T_ro,
-                                                      T99, np.zeros(2))))
+    panels.append(
+        (
+            "real LAC, FrontLeft 99",
+            _overlay(
+                det, load("FrontLeft_99.png"), load("FrontRight_99.png"), T_ro, T99, np.zeros(2)
+            ),
+        )
+    )
     print("real ipex 185")
-    panels.append(("real LAC, ipex 185 (tilted on a crater rim)",
-                   _overlay(det, load("ipex/FrontLeft_1_185.png"), load("ipex/FrontRight_1_185.png"), T_ro, None,
-                            None)))
+    panels.append(
+        (
+            "real LAC, ipex 185 (tilted on a crater rim)",
+            _overlay(
+                det,
+                load("ipex/FrontLeft_1_185.png"),
+                load("ipex/FrontRight_1_185.png"),
+                T_ro,
+                None,
+                None,
+            ),
+        )
+    )
     site = generate_site(a.seed, SiteConfig.lac_style())
     el, az = sun_of(a.seed)
     renderer = SiteRenderer(site, RenderConfig.lac_style(sun_elevation_deg=el, sun_azimuth_deg=az))
@@ -110,7 +133,12 @@ def main(argv=None) -> int:
         T = pose_to_matrix(*p)
         img = _overlay(det, gl, gr, T_ro, T, site.lander_xyz[:2])
         img = _outline(img, sem, site, (T @ T_ro)[:3, 3])
-        panels.append((f"lunarloc LAC look, seed {a.seed} frame {k}: tilt {tilt[k]:.0f} deg, sun {el:g} deg", img))
+        panels.append(
+            (
+                f"lunarloc LAC look, seed {a.seed} frame {k}: tilt {tilt[k]:.0f} deg, sun {el:g} deg",
+                img,
+            )
+        )
 
     import matplotlib
 
@@ -122,9 +150,12 @@ def main(argv=None) -> int:
         ax.imshow(img, interpolation="antialiased")
         ax.set_title(title, fontsize=10)
         ax.axis("off")
-    fig.suptitle("Real LAC frames (top) and lunarloc's LAC-look site (bottom), detections drawn (small-rock stage "
-                 f"{'on' if a.small_rocks else 'off'}: green +)\nsimulated: true rocks within 6 m outlined, yellow "
-                 "r >= 0.1 m, cyan 0.025-0.1 m", fontsize=11)
+    fig.suptitle(
+        "Real LAC frames (top) and lunarloc's LAC-look site (bottom), detections drawn (small-rock stage "
+        f"{'on' if a.small_rocks else 'off'}: green +)\nsimulated: true rocks within 6 m outlined, yellow "
+        "r >= 0.1 m, cyan 0.025-0.1 m",
+        fontsize=11,
+    )
     fig.tight_layout()
     a.out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(a.out, dpi=100)

@@ -71,15 +71,32 @@ def _pair(data: Path, out: Path) -> tuple[Path, Path]:
     import numpy as np
 
     from lunarloc.core.geometry import euler_to_rotation, make_transform, transform_points
-    from lunarloc.io.maps import AggregationConfig, LandmarkMap, aggregate_detections, load_traverse, save_map
+    from lunarloc.io.maps import (
+        AggregationConfig,
+        LandmarkMap,
+        aggregate_detections,
+        load_traverse,
+        save_map,
+    )
 
     maps = []
     for k in (3, 7):
         t = load_traverse(data / "csv" / f"traverse_{k}.csv")
-        maps.append(aggregate_detections(t.detections_xyz, t.detection_frame, AggregationConfig(), frame=t.name))
+        maps.append(
+            aggregate_detections(
+                t.detections_xyz, t.detection_frame, AggregationConfig(), frame=t.name
+            )
+        )
     ref, m = maps
     T = make_transform(euler_to_rotation(0.004, -0.006, 1.9), np.array([37.0, -12.0, 0.4]))
-    veh = LandmarkMap(transform_points(T, m.positions_xyz), m.sizes, m.sightings, "vehicle", m.sigma_xy_m, m.sigma_z_m)
+    veh = LandmarkMap(
+        transform_points(T, m.positions_xyz),
+        m.sizes,
+        m.sightings,
+        "vehicle",
+        m.sigma_xy_m,
+        m.sigma_z_m,
+    )
     paths = out / "reference.csv", out / "vehicle.csv"
     save_map(ref, paths[0])
     save_map(veh, paths[1])
@@ -102,20 +119,38 @@ def _run(cmd: list[str], env: dict) -> tuple[float, float]:
 def _report(name: str, runs: list[tuple[float, float]]) -> None:
     walls = [w for w, _ in runs]
     cpus = [c for _, c in runs]
-    print(f"{name}: {len(runs)} runs; wall median {statistics.median(walls):.2f} s (min {min(walls):.2f}, "
-          f"max {max(walls):.2f}); CPU median {statistics.median(cpus):.2f} s (min {min(cpus):.2f}, max {max(cpus):.2f})")
+    print(
+        f"{name}: {len(runs)} runs; wall median {statistics.median(walls):.2f} s (min {min(walls):.2f}, "
+        f"max {max(walls):.2f}); CPU median {statistics.median(cpus):.2f} s (min {min(cpus):.2f}, max {max(cpus):.2f})"
+    )
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", type=Path, required=True, help="lunarloc-data folder (csv/traverse_N.csv)")
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument(
+        "--data", type=Path, required=True, help="lunarloc-data folder (csv/traverse_N.csv)"
+    )
     ap.add_argument("--runs", type=int, default=5, help="warm runs")
-    ap.add_argument("--cold-runs", type=int, default=5, help="cold runs (each compiles every kernel)")
-    ap.add_argument("--split", action="store_true", help="also time the stages of one warm call in one process")
-    ap.add_argument("--jit", action="store_true", help="warm runs on numba's cache only (LUNARLOC_AOT=0)")
-    ap.add_argument("--other-python", type=Path, help="interleave each warm run with one under this interpreter")
-    ap.add_argument("--src", type=Path, help="run the lunarloc found in this source folder (PYTHONPATH), e.g. an "
-                    "older commit unpacked with `git archive REV src | tar -x -C DIR` (pass DIR/src)")
+    ap.add_argument(
+        "--cold-runs", type=int, default=5, help="cold runs (each compiles every kernel)"
+    )
+    ap.add_argument(
+        "--split", action="store_true", help="also time the stages of one warm call in one process"
+    )
+    ap.add_argument(
+        "--jit", action="store_true", help="warm runs on numba's cache only (LUNARLOC_AOT=0)"
+    )
+    ap.add_argument(
+        "--other-python", type=Path, help="interleave each warm run with one under this interpreter"
+    )
+    ap.add_argument(
+        "--src",
+        type=Path,
+        help="run the lunarloc found in this source folder (PYTHONPATH), e.g. an "
+        "older commit unpacked with `git archive REV src | tar -x -C DIR` (pass DIR/src)",
+    )
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="lunarloc-start-") as tmp:
         ref, veh = _pair(args.data, Path(tmp))

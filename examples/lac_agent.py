@@ -48,7 +48,14 @@ from pathlib import Path
 import numpy as np
 
 import lunarloc
-from lunarloc import CameraRig, LacMapper, OnlineConfig, OnlineLocalizer, as_transform_matrix, load_reference
+from lunarloc import (
+    CameraRig,
+    LacMapper,
+    OnlineConfig,
+    OnlineLocalizer,
+    as_transform_matrix,
+    load_reference,
+)
 from lunarloc.core.geometry import matrix_to_pose
 from lunarloc.mapping.lac_map import LacMapWriter
 
@@ -69,9 +76,20 @@ except ImportError:  # Python 3.10 (the leaderboard's): lunarloc depends on toml
 log = logging.getLogger(__name__)
 
 STEREO = ("FrontLeft", "FrontRight")
-DEFAULTS = {"reference": "", "width": 1280, "height": 720, "odometry": "visual", "output": "lunarloc-out",
-            "light_intensity": 1.0, "loop_radius_m": 0.0, "speed_mps": 0.3, "warm_up": True, "lac_map": False,
-            "lac_map_cells_per_tick": 400, "lac_map_small_rocks": True}  # fmt: skip
+DEFAULTS = {
+    "reference": "",
+    "width": 1280,
+    "height": 720,
+    "odometry": "visual",
+    "output": "lunarloc-out",
+    "light_intensity": 1.0,
+    "loop_radius_m": 0.0,
+    "speed_mps": 0.3,
+    "warm_up": True,
+    "lac_map": False,
+    "lac_map_cells_per_tick": 400,
+    "lac_map_small_rocks": True,
+}
 
 
 def get_entry_point() -> str:
@@ -95,8 +113,12 @@ class LunarLocAgent(AutonomousAgent):
         self.output_dir = (base / out) if out else None
         if self.output_dir is not None:
             self.output_dir.mkdir(parents=True, exist_ok=True)
-            self._rows = open(self.output_dir / "trajectory.csv", "w", buffering=1 << 16)  # bounded memory
-            self._rows.write("mission_time_s,x_m,y_m,z_m,roll_rad,pitch_rad,yaw_rad,localized,fixes\n")
+            self._rows = open(
+                self.output_dir / "trajectory.csv", "w", buffering=1 << 16
+            )  # bounded memory
+            self._rows.write(
+                "mission_time_s,x_m,y_m,z_m,roll_rad,pitch_rad,yaw_rad,localized,fixes\n"
+            )
         # the initial poses are known before the first tick; the camera poses are not (no vehicle
         # status yet), so the rig starts as the LAC's known mounts, checked at the first tick
         self.localizer = self._make_localizer(rig=None)
@@ -105,11 +127,15 @@ class LunarLocAgent(AutonomousAgent):
         # where the loop goes: the lander's world position (the initial pose composed with the
         # lander's pose relative to the rover), at the rover's starting distance from it
         T0 = as_transform_matrix(self.get_initial_position(), "get_initial_position()")
-        T_rl = as_transform_matrix(self.get_initial_lander_position(), "get_initial_lander_position()")
+        T_rl = as_transform_matrix(
+            self.get_initial_lander_position(), "get_initial_lander_position()"
+        )
         self.lander_xy = (T0 @ T_rl)[:2, 3]
         r0 = float(np.linalg.norm(T0[:2, 3] - self.lander_xy))
         self.loop_radius_m = settings["loop_radius_m"] or min(max(r0, 3.5), 10.0)
-        self.map_writer = None  # lac_map: lunarloc's mapper's writer into get_geometric_map() (first tick)
+        self.map_writer = (
+            None  # lac_map: lunarloc's mapper's writer into get_geometric_map() (first tick)
+        )
         self.map_write_cpu_s = []  # lac_map: CPU seconds of each tick's map writing
         self.map_finish_cpu_s = None  # lac_map: CPU seconds of writing the whole map in finalize()
         self.mapper = None  # MAPPER HOOK: a mapper of the team's own, fed every tick (see run_step)
@@ -119,16 +145,25 @@ class LunarLocAgent(AutonomousAgent):
 
     def sensors(self) -> dict:
         s = self.settings
-        return {p: {"camera_active": p.name in STEREO, "light_intensity": s["light_intensity"] if p.name in STEREO else 0.0,
-                    "width": s["width"], "height": s["height"], "use_semantic": False}
-                for p in SensorPosition}  # fmt: skip
+        return {
+            p: {
+                "camera_active": p.name in STEREO,
+                "light_intensity": s["light_intensity"] if p.name in STEREO else 0.0,
+                "width": s["width"],
+                "height": s["height"],
+                "use_semantic": False,
+            }
+            for p in SensorPosition
+        }
 
     def _make_localizer(self, rig) -> OnlineLocalizer:
         s = self.settings
         rig = rig or CameraRig.from_sensors(self.sensors())  # the LAC mounts at the configured size
         lac_mapper = LacMapper() if s["lac_map"] else None  # fed by the localizer at its keyframes
         detector_config = None
-        if s["lac_map"] and s["lac_map_small_rocks"]:  # the any-ray rule flags rocks under 5 cm: find them too
+        if (
+            s["lac_map"] and s["lac_map_small_rocks"]
+        ):  # the any-ray rule flags rocks under 5 cm: find them too
             from dataclasses import replace
 
             from lunarloc.perception.detector import DetectorConfig, scaled_detector_config
@@ -137,9 +172,15 @@ class LunarLocAgent(AutonomousAgent):
             base = replace(base, small_rocks=replace(base.small_rocks, enabled=True))
             detector_config = scaled_detector_config(rig.camera.width, base)
         self.map_writer = None  # a new mapper: a new writer at the next tick
-        return OnlineLocalizer(self.reference, self.get_initial_position(), rig=rig,
-                               config=OnlineConfig(visual_odometry=s["odometry"] == "visual"), detector_config=detector_config,
-                               lander_pose=self.get_initial_lander_position(), mapper=lac_mapper)  # fmt: skip
+        return OnlineLocalizer(
+            self.reference,
+            self.get_initial_position(),
+            rig=rig,
+            config=OnlineConfig(visual_odometry=s["odometry"] == "visual"),
+            detector_config=detector_config,
+            lander_pose=self.get_initial_lander_position(),
+            mapper=lac_mapper,
+        )
 
     # -- every tick ---------------------------------------------------------------------------
     def run_step(self, input_data):
@@ -147,15 +188,24 @@ class LunarLocAgent(AutonomousAgent):
             poses = {p: self.get_camera_position(p) for p in SensorPosition if p.name in STEREO}
             rig = CameraRig.from_sensors(self.sensors(), poses)
             if not self.localizer.rig.same_mounts(rig):
-                log.warning("camera mounts differ from the LAC's: rebuilding the localizer with the reported ones")
+                log.warning(
+                    "camera mounts differ from the LAC's: rebuilding the localizer with the reported ones"
+                )
                 self.localizer = self._make_localizer(rig)
         self._ticks += 1
-        est = self.estimate = self.localizer.update(self.get_mission_time(), input_data, self.get_imu_data(),
-                                                    self.get_linear_speed(), self.get_angular_speed())  # fmt: skip
+        est = self.estimate = self.localizer.update(
+            self.get_mission_time(),
+            input_data,
+            self.get_imu_data(),
+            self.get_linear_speed(),
+            self.get_angular_speed(),
+        )
         if self._rows is not None:
             x, y, z, roll, pitch, yaw = matrix_to_pose(est.T_map_rover)
-            self._rows.write(f"{est.mission_time_s:.3f},{x:.4f},{y:.4f},{z:.4f},{roll:.5f},{pitch:.5f},{yaw:.5f},"
-                             f"{int(est.localized)},{est.fixes}\n")  # fmt: skip
+            self._rows.write(
+                f"{est.mission_time_s:.3f},{x:.4f},{y:.4f},{z:.4f},{roll:.5f},{pitch:.5f},{yaw:.5f},"
+                f"{int(est.localized)},{est.fixes}\n"
+            )
         self._write_lac_map()
         if self.mapper is not None:  # MAPPER HOOK: per tick, with the pose and the images
             self.mapper.update(est, input_data)
@@ -167,8 +217,11 @@ class LunarLocAgent(AutonomousAgent):
             return
         c = time.process_time()
         if self.map_writer is None:
-            self.map_writer = LacMapWriter(self.localizer.mapper, self.get_geometric_map(),
-                                           max_cells_per_step=self.settings["lac_map_cells_per_tick"])  # fmt: skip
+            self.map_writer = LacMapWriter(
+                self.localizer.mapper,
+                self.get_geometric_map(),
+                max_cells_per_step=self.settings["lac_map_cells_per_tick"],
+            )
         self.map_writer.step()
         self.map_write_cpu_s.append(time.process_time() - c)
 
@@ -186,24 +239,40 @@ class LunarLocAgent(AutonomousAgent):
 
     def finalize(self) -> None:
         est = self.estimate
-        if self.localizer is not None and self.localizer.mapper is not None and self.get_geometric_map() is not None:
+        if (
+            self.localizer is not None
+            and self.localizer.mapper is not None
+            and self.get_geometric_map() is not None
+        ):
             if self.map_writer is None:
                 self.map_writer = LacMapWriter(self.localizer.mapper, self.get_geometric_map())
             during, c = self.map_writer.cells_written, time.process_time()
             cells = self.map_writer.finish()
             self.map_finish_cpu_s = time.process_time() - c
-            log.info("lunarloc wrote %d cells of the geometric map (%d during the run)", cells, during)
+            log.info(
+                "lunarloc wrote %d cells of the geometric map (%d during the run)", cells, during
+            )
         if self.mapper is not None:  # MAPPER HOOK: fill the leaderboard's map
             self.mapper.finalize(self.get_geometric_map())
         if self._rows is not None:
             self._rows.close()
-            summary = {"ticks": self._ticks, "localized": bool(est and est.localized), "fixes": est.fixes if est else 0,
-                       "mission_time_s": est.mission_time_s if est else 0.0,
-                       "final_T_map_rover": est.T_map_rover.tolist() if est else None,
-                       "settings": self.settings, "lunarloc": lunarloc.__version__}  # fmt: skip
+            summary = {
+                "ticks": self._ticks,
+                "localized": bool(est and est.localized),
+                "fixes": est.fixes if est else 0,
+                "mission_time_s": est.mission_time_s if est else 0.0,
+                "final_T_map_rover": est.T_map_rover.tolist() if est else None,
+                "settings": self.settings,
+                "lunarloc": lunarloc.__version__,
+            }
             (self.output_dir / "summary.json").write_text(json.dumps(summary, indent=1))
         if est is not None:
-            log.info("finished at t=%.1f s, localized=%s, %d fixes", est.mission_time_s, est.localized, est.fixes)
+            log.info(
+                "finished at t=%.1f s, localized=%s, %d fixes",
+                est.mission_time_s,
+                est.localized,
+                est.fixes,
+            )
 
 
 def _read_settings(path) -> dict:
@@ -223,7 +292,9 @@ def _read_settings(path) -> dict:
             raise ValueError(f"{path}: {key} must be {want.__name__}, got {value!r}")
         out[key] = value
     if out["lac_map_cells_per_tick"] < 1:
-        raise ValueError(f"{path}: lac_map_cells_per_tick must be >= 1, got {out['lac_map_cells_per_tick']}")
+        raise ValueError(
+            f"{path}: lac_map_cells_per_tick must be >= 1, got {out['lac_map_cells_per_tick']}"
+        )
     if out["odometry"] not in ("visual", "imu"):
         raise ValueError(f"{path}: odometry must be 'visual' or 'imu', got {out['odometry']!r}")
     return out

@@ -27,7 +27,15 @@ from typing import Callable
 
 import numpy as np
 
-OUTCOMES = ("clear error", "correct result", "traceback", "silent garbage", "internal error", "hang", "other")
+OUTCOMES = (
+    "clear error",
+    "correct result",
+    "traceback",
+    "silent garbage",
+    "internal error",
+    "hang",
+    "other",
+)
 
 
 class CaseTimeout(BaseException):
@@ -74,7 +82,7 @@ def traverse_text(n_frames: int = 40, rock_xyz: np.ndarray | None = None, seed: 
     rk = rocks() if rock_xyz is None else rock_xyz
     lines = ["frame,x,y,z,detections,boulders"]
     for f in range(1, n_frames + 1):
-        seen = rk[(f % 4)::4]
+        seen = rk[(f % 4) :: 4]
         pts = seen + r.normal(0, 0.005, seen.shape)
         body = ", ".join(f"({x!r}, {y!r}, {z!r})" for x, y, z in pts.tolist())
         lines.append(f'{f},{0.05 * f!r},0.0,0.0,{len(pts)},"[{body}]"')
@@ -122,8 +130,10 @@ def npy_header(shape, dtype="<f8") -> bytes:
 # ----------------------------------------------------------------------------- .lac archives
 
 W, H = 64, 36
-FRAME_COLS = ("frame,x,y,z,roll,pitch,yaw,accel_x,accel_y,accel_z,gyro_x,gyro_y,gyro_z,"
-              "mission_time,power,linear_speed,angular_speed,cover_angle")  # fmt: skip
+FRAME_COLS = (
+    "frame,x,y,z,roll,pitch,yaw,accel_x,accel_y,accel_z,gyro_x,gyro_y,gyro_z,"
+    "mission_time,power,linear_speed,angular_speed,cover_angle"
+)
 CAM_COLS = "frame,enable,camera_x,camera_y,camera_z,camera_roll,camera_pitch,camera_yaw,light_intensity,grayscale,semantic"
 
 
@@ -137,6 +147,7 @@ def png_bytes(img: np.ndarray) -> bytes:
 
 def png_bomb(w: int = 16000, h: int = 16000) -> bytes:
     """A small PNG whose header declares w x h pixels (decoding would need w*h bytes)."""
+
     def chunk(t: bytes, d: bytes) -> bytes:
         return struct.pack(">I", len(d)) + t + d + struct.pack(">I", zlib.crc32(t + d) & 0xFFFFFFFF)
 
@@ -154,26 +165,42 @@ def lac_members(n_frames: int = 21, initial: str | None = None) -> dict[str, byt
         f"[cameras.FrontRight]\ncamera_active = true\nlight_intensity = 1.0\nwidth = {W}\nheight = {H}\nuse_semantic = false\n"
     )
     m: dict[str, bytes] = {"initial.toml": initial.encode()}
-    m["metadata.toml"] = (f'data_spec = "0.1"\ndescription = "fuzz"\nstart_time = "2025-01-01 00:00:00"\n'
-                          f'end_time = "2025-01-01 00:00:01"\nframes = {n_frames}\n').encode()  # fmt: skip
-    rows = [FRAME_COLS] + [f"{f},{0.05 * f!r},0.0,0.0" + ",0.0" * 9 + f",{0.05 * f!r}" + ",0.0" * 4 for f in range(n_frames)]
+    m["metadata.toml"] = (
+        f'data_spec = "0.1"\ndescription = "fuzz"\nstart_time = "2025-01-01 00:00:00"\n'
+        f'end_time = "2025-01-01 00:00:01"\nframes = {n_frames}\n'
+    ).encode()
+    rows = [FRAME_COLS] + [
+        f"{f},{0.05 * f!r},0.0,0.0" + ",0.0" * 9 + f",{0.05 * f!r}" + ",0.0" * 4
+        for f in range(n_frames)
+    ]
     m["frames.csv"] = ("\n".join(rows) + "\n").encode()
     r = np.random.default_rng(3)
     for cam, y in (("FrontLeft", 0.081), ("FrontRight", -0.081)):
         crow = [CAM_COLS]
         for f in range(0, n_frames, 10):
             fname = f"{cam}_grayscale_{f}.png"
-            m[f"cameras/{cam}/grayscale/{fname}"] = png_bytes(r.integers(0, 255, (H, W), dtype=np.uint8))
+            m[f"cameras/{cam}/grayscale/{fname}"] = png_bytes(
+                r.integers(0, 255, (H, W), dtype=np.uint8)
+            )
             crow.append(f"{f},True,0.28,{y},0.131,0.0,0.0,0.0,1.0,{fname},")
         m[f"cameras/{cam}/{cam}_frames.csv"] = ("\n".join(crow) + "\n").encode()
-    odo = ["frame,x,y,z,roll,pitch,yaw"] + [f"{f},{0.05 * f!r},0.0,0.0,0.0,0.0,0.0" for f in range(n_frames)]
+    odo = ["frame,x,y,z,roll,pitch,yaw"] + [
+        f"{f},{0.05 * f!r},0.0,0.0,0.0,0.0,0.0" for f in range(n_frames)
+    ]
     m["custom/odometry.csv"] = ("\n".join(odo) + "\n").encode()
     rk = rocks(12)
-    m["custom/rocks.csv"] = ("id,x,y,z,radius\n" + "".join(f"{i},{a!r},{b!r},{c!r},0.2\n" for i, (a, b, c) in enumerate(rk.tolist()))).encode()
+    m["custom/rocks.csv"] = (
+        "id,x,y,z,radius\n"
+        + "".join(f"{i},{a!r},{b!r},{c!r},0.2\n" for i, (a, b, c) in enumerate(rk.tolist()))
+    ).encode()
     return m
 
 
-def tar_bytes(members: dict[str, bytes], fmt=tarfile.PAX_FORMAT, extra: list[tuple[tarfile.TarInfo, bytes]] = ()) -> bytes:
+def tar_bytes(
+    members: dict[str, bytes],
+    fmt=tarfile.PAX_FORMAT,
+    extra: list[tuple[tarfile.TarInfo, bytes]] = (),
+) -> bytes:
     buf = io.BytesIO()
     with tarfile.open(fileobj=buf, mode="w", format=fmt) as tf:
         for info, data in extra:
@@ -207,7 +234,11 @@ def map_file_ok(name: str, min_landmarks: int = 1, max_landmarks: int | None = N
 
         m = load_map(folder / name)
         n = len(m)
-        return bool(np.all(np.isfinite(m.positions_xyz))) and n >= min_landmarks and (max_landmarks is None or n <= max_landmarks)
+        return (
+            bool(np.all(np.isfinite(m.positions_xyz)))
+            and n >= min_landmarks
+            and (max_landmarks is None or n <= max_landmarks)
+        )
 
     return check
 
@@ -252,8 +283,14 @@ def _csv_cases() -> list[Case]:
     trav("utf8-bom", "\ufeff" + good, "ok")
     trav("crlf", good.replace("\n", "\r\n"), "ok")
     trav("trailing-blank-lines", good + "\n\n\n", "ok")
-    trav("latin1", good.replace("boulders", "boulders") .encode() + "# caf\u00e9\n".encode("latin-1"))
-    trav("latin1-header", "fr\u00e9me,x,y,z,detections,boulders\n".encode("latin-1") + good.split("\n", 1)[1].encode())
+    trav(
+        "latin1", good.replace("boulders", "boulders").encode() + "# caf\u00e9\n".encode("latin-1")
+    )
+    trav(
+        "latin1-header",
+        "fr\u00e9me,x,y,z,detections,boulders\n".encode("latin-1")
+        + good.split("\n", 1)[1].encode(),
+    )
     trav("utf16-bom", good.encode("utf-16"))
     trav("utf16-le-nobom", good.encode("utf-16-le"))
     trav("utf32", good.encode("utf-32"))
@@ -270,13 +307,19 @@ def _csv_cases() -> list[Case]:
     trav("two-tuples", lines[0] + '\n1,0,0,0,3,"[(1.0, 2.0), (3.0, 4.0), (5.0, 6.0)]"\n')
     trav("two-tuples-count2", lines[0] + '\n1,0,0,0,2,"[(1.0, 2.0), (3.0, 4.0), (5.0, 6.0)]"\n')
     trav("four-tuple", lines[0] + '\n1,0,0,0,1,"[(1.0, 2.0, 3.0, 4.0)]"\n')
-    trav("injection", lines[0] + "\n1,0,0,0,1,\"[(__import__('os').system('touch x3'), 2.0, 3.0)]\"\n")
+    trav(
+        "injection",
+        lines[0] + "\n1,0,0,0,1,\"[(__import__('os').system('touch x3'), 2.0, 3.0)]\"\n",
+    )
     trav("dict", lines[0] + '\n1,0,0,0,1,"[{1.0: 2.0, 3.0: 4.0}]"\n')
-    trav("deep-nesting", lines[0] + "\n1,0,0,0,1,\"" + "[" * 5000 + "1.0, 2.0, 3.0" + "]" * 5000 + "\"\n")
+    trav(
+        "deep-nesting",
+        lines[0] + '\n1,0,0,0,1,"' + "[" * 5000 + "1.0, 2.0, 3.0" + "]" * 5000 + '"\n',
+    )
     trav("nested-tuple", lines[0] + '\n1,0,0,0,1,"[((1.0, 2.0, 3.0),)]"\n')
     trav("underscore-boulder", lines[0] + '\n1,0,0,0,1,"[(1_000, 2.0, 3.0)]"\n')
-    trav("underscore-x", lines[0] + '\n1,1_000,0,0,0,[]\n')
-    trav("underscore-frame", lines[0] + '\n1_0,0,0,0,0,[]\n')
+    trav("underscore-x", lines[0] + "\n1,1_000,0,0,0,[]\n")
+    trav("underscore-frame", lines[0] + "\n1_0,0,0,0,0,[]\n")
     trav("hex-number", lines[0] + '\n1,0,0,0,1,"[(0x10, 2.0, 3.0)]"\n')
     trav("complex-number", lines[0] + '\n1,0,0,0,1,"[(1+2j, 2.0, 3.0)]"\n')
     trav("string-in-tuple", lines[0] + "\n1,0,0,0,1,\"[('a', 2.0, 3.0)]\"\n")
@@ -284,7 +327,10 @@ def _csv_cases() -> list[Case]:
     trav("inf-x", lines[0] + "\n1,inf,0,0,0,[]\n")
     trav("nan-x", lines[0] + "\n1,nan,0,0,0,[]\n")
     trav("overflow-boulder", lines[0] + '\n1,0,0,0,1,"[(1e400, 2.0, 3.0)]"\n')
-    trav("absurd-1e200", lines[0] + '\n1,0,0,0,1,"[(1e200, 2.0, 3.0)]"\n2,0,0,0,1,"[(1e200, 2.0, 3.0)]"\n')
+    trav(
+        "absurd-1e200",
+        lines[0] + '\n1,0,0,0,1,"[(1e200, 2.0, 3.0)]"\n2,0,0,0,1,"[(1e200, 2.0, 3.0)]"\n',
+    )
     trav("absurd-rover", lines[0] + "\n1,1e200,0,0,0,[]\n2,-1e200,0,0,0,[]\n")
     trav("count-mismatch", lines[0] + '\n1,0,0,0,2,"[(1.0, 2.0, 3.0)]"\n')
     trav("negative-count", lines[0] + '\n1,0,0,0,-1,"[]"\n')
@@ -292,18 +338,45 @@ def _csv_cases() -> list[Case]:
     trav("huge-frame", lines[0] + "\n99999999999999999999999,0,0,0,0,[]\n")
     trav("frame-1e30", lines[0] + "\n1e30,0,0,0,0,[]\n")
     trav("not-a-list", lines[0] + '\n1,0,0,0,1,"(1.0, 2.0, 3.0)"\n')
-    trav("empty-list-ok", lines[0] + "\n1,0,0,0,0,[]\n2,0.1,0,0,0,[]\n", "ok", map_file_ok("m.csv", 0, 0))
-    trav("trailing-comma-ok", lines[0] + '\n' + "\n".join(f'{f},0,0,0,1,"[(1.0, 2.0, 3.0),]"' for f in range(1, 10)) + "\n",
-         "ok", map_file_ok("m.csv", 1, 1))
+    trav(
+        "empty-list-ok",
+        lines[0] + "\n1,0,0,0,0,[]\n2,0.1,0,0,0,[]\n",
+        "ok",
+        map_file_ok("m.csv", 0, 0),
+    )
+    trav(
+        "trailing-comma-ok",
+        lines[0]
+        + "\n"
+        + "\n".join(f'{f},0,0,0,1,"[(1.0, 2.0, 3.0),]"' for f in range(1, 10))
+        + "\n",
+        "ok",
+        map_file_ok("m.csv", 1, 1),
+    )
     big = rocks(6000, seed=5)
     body = ", ".join(f"({a!r}, {b!r}, {c!r})" for a, b, c in big.tolist())
     big_rows = "\n".join(f'{f},0,0,0,{len(big)},"[{body}]"' for f in range(1, 3))
-    trav("6000-rocks-field", lines[0] + "\n" + big_rows + "\n", "ok", map_file_ok("m.csv", 5000, 6000), ("--min-sightings", "2"))
-    trav("field-over-limit", lines[0] + '\n1,0,0,0,1,"[' + " " * (9 * 1024 * 1024) + '(1.0, 2.0, 3.0)]"\n')
+    trav(
+        "6000-rocks-field",
+        lines[0] + "\n" + big_rows + "\n",
+        "ok",
+        map_file_ok("m.csv", 5000, 6000),
+        ("--min-sightings", "2"),
+    )
+    trav(
+        "field-over-limit",
+        lines[0] + '\n1,0,0,0,1,"[' + " " * (9 * 1024 * 1024) + '(1.0, 2.0, 3.0)]"\n',
+    )
     trav("very-long-line", "x" * 3_000_000)
     trav("directory-as-input", "", extra=())
     C[-1].build = lambda d: ["map", str(d), "-o", str(d / "m.csv")]
-    C.append(Case("csv/missing-file", "csv", lambda d: ["map", str(d / "nope.csv"), "-o", str(d / "m.csv")]))
+    C.append(
+        Case(
+            "csv/missing-file",
+            "csv",
+            lambda d: ["map", str(d / "nope.csv"), "-o", str(d / "m.csv")],
+        )
+    )
 
     # landmark-map CSVs through `localize`
     def lmap(name, text, expect="error", check=None):
@@ -368,9 +441,24 @@ def _npz_cases() -> list[Case]:
 
     valid = npz_bytes(members(positions_xyz=pos, frame=np.array("ref")))
     npz("valid", valid, "ok", json_localized(True))
-    npz("valid-compressed", npz_bytes(members(positions_xyz=pos), compress=True), "ok", json_localized(True))
-    npz("float32-ok", npz_bytes(members(positions_xyz=pos.astype(np.float32))), "ok", json_localized(None))
-    npz("fortran-ok", npz_bytes(members(positions_xyz=np.asfortranarray(pos))), "ok", json_localized(True))
+    npz(
+        "valid-compressed",
+        npz_bytes(members(positions_xyz=pos), compress=True),
+        "ok",
+        json_localized(True),
+    )
+    npz(
+        "float32-ok",
+        npz_bytes(members(positions_xyz=pos.astype(np.float32))),
+        "ok",
+        json_localized(None),
+    )
+    npz(
+        "fortran-ok",
+        npz_bytes(members(positions_xyz=np.asfortranarray(pos))),
+        "ok",
+        json_localized(True),
+    )
     npz("empty-file", b"")
     npz("truncated-half", valid[: len(valid) // 2])
     npz("truncated-tail", valid[:-10])
@@ -387,10 +475,21 @@ def _npz_cases() -> list[Case]:
     npz("absurd", npz_bytes(members(positions_xyz=pos * 1e200)))
     npz("sizes-mismatch", npz_bytes(members(positions_xyz=pos, sizes=np.ones(2))))
     npz("frame-int-array", npz_bytes(members(positions_xyz=pos, frame=np.arange(3))))
-    npz("huge-declared-shape", npz_bytes({"positions_xyz.npy": npy_header((10**12, 3)) + b"\0" * 64}))
+    npz(
+        "huge-declared-shape",
+        npz_bytes({"positions_xyz.npy": npy_header((10**12, 3)) + b"\0" * 64}),
+    )
     npz("shape-data-mismatch", npz_bytes({"positions_xyz.npy": npy_header((1000, 3)) + b"\0" * 48}))
-    npz("bad-header", npz_bytes({"positions_xyz.npy": b"\x93NUMPY\x01\x00\x10\x00{'descr': 'zz'}  \n"}))
-    npz("many-members", npz_bytes({f"a{i}.npy": npy_bytes(np.zeros(1)) for i in range(100)} | members(positions_xyz=pos)))
+    npz(
+        "bad-header",
+        npz_bytes({"positions_xyz.npy": b"\x93NUMPY\x01\x00\x10\x00{'descr': 'zz'}  \n"}),
+    )
+    npz(
+        "many-members",
+        npz_bytes(
+            {f"a{i}.npy": npy_bytes(np.zeros(1)) for i in range(100)} | members(positions_xyz=pos)
+        ),
+    )
 
     def bomb(d: Path) -> list[str]:
         # 600 MiB of zeros declared as a (26214400, 3) float64 array, deflated to ~0.6 MB
@@ -406,7 +505,18 @@ def _npz_cases() -> list[Case]:
         return ["localize", str(p), str(q), "--json"]
 
     C.append(Case("npz/bomb-600MiB", "npz", bomb, slow=True))
-    C.append(Case("npz/directory", "npz", lambda d: ["localize", str((d / "x.npz").mkdir() or d / "x.npz"), str(write(d, "b.csv", map_text())), "--json"]))
+    C.append(
+        Case(
+            "npz/directory",
+            "npz",
+            lambda d: [
+                "localize",
+                str((d / "x.npz").mkdir() or d / "x.npz"),
+                str(write(d, "b.csv", map_text())),
+                "--json",
+            ],
+        )
+    )
     rng = np.random.default_rng(RNG_SEED + 1)
     for i in range(15):
         b = bytearray(valid)
@@ -425,17 +535,45 @@ def _lac_cases() -> list[Case]:
             if cmd == "info":
                 return ["info", str(p)]
             if cmd == "run":
-                r = write(d, "rocks.csv", "id,x,y,z,radius\n" + "".join(f"{i},{a!r},{b!r},{c!r},0.2\n" for i, (a, b, c) in enumerate(rocks(12).tolist())))
-                return ["run", str(p), "--reference", str(r), "-o", str(d / "run"), "--no-plot", *extra]
+                r = write(
+                    d,
+                    "rocks.csv",
+                    "id,x,y,z,radius\n"
+                    + "".join(
+                        f"{i},{a!r},{b!r},{c!r},0.2\n"
+                        for i, (a, b, c) in enumerate(rocks(12).tolist())
+                    ),
+                )
+                return [
+                    "run",
+                    str(p),
+                    "--reference",
+                    str(r),
+                    "-o",
+                    str(d / "run"),
+                    "--no-plot",
+                    *extra,
+                ]
             return ["detect", str(p), "-o", str(d / "det.csv")]
 
         C.append(Case(f"lac/{name}", "lac", build, expect, check, slow))
 
     M = lac_members
     lac("valid", lambda: lac_bytes(M()), "ok", stdout_has("frames      : 21"))
-    lac("valid-ustar", lambda: lac_bytes(M(), fmt=tarfile.USTAR_FORMAT), "ok", stdout_has("frames      : 21"))
-    lac("valid-width-strings", lambda: lac_bytes(M(initial=M()["initial.toml"].decode().replace(f"width = {W}", f'width = "{W}"'))),
-        "ok", stdout_has("frames      : 21"))
+    lac(
+        "valid-ustar",
+        lambda: lac_bytes(M(), fmt=tarfile.USTAR_FORMAT),
+        "ok",
+        stdout_has("frames      : 21"),
+    )
+    lac(
+        "valid-width-strings",
+        lambda: lac_bytes(
+            M(initial=M()["initial.toml"].decode().replace(f"width = {W}", f'width = "{W}"'))
+        ),
+        "ok",
+        stdout_has("frames      : 21"),
+    )
     lac("empty-file", lambda: b"")
     lac("not-gzip", lambda: b"hello world" * 100)
     lac("gzip-of-garbage", lambda: gzip.compress(np.random.default_rng(2).bytes(4000)))
@@ -449,36 +587,138 @@ def _lac_cases() -> list[Case]:
     lac("no-frames", lambda: lac_bytes(with_member("frames.csv", None)))
     lac("no-metadata", lambda: lac_bytes(with_member("metadata.toml", None)))
     lac("bad-toml", lambda: lac_bytes(with_member("initial.toml", "cameras = [[[")))
-    lac("deep-toml", lambda: lac_bytes(with_member("initial.toml", "a = " + "[" * 20000 + "]" * 20000 + "\n")))
-    lac("toml-not-utf8", lambda: lac_bytes(with_member("initial.toml", b"fiducials = false\n# \xff\xfe\n")))
-    lac("huge-toml", lambda: lac_bytes(with_member("metadata.toml", 'description = "' + "x" * (2 * 1024**2) + '"\n')))
-    lac("cameras-not-table", lambda: lac_bytes(with_member("initial.toml", "fiducials = false\nlander = [0.0]\nrover = [0.0]\ncameras = 3\n")))
+    lac(
+        "deep-toml",
+        lambda: lac_bytes(with_member("initial.toml", "a = " + "[" * 20000 + "]" * 20000 + "\n")),
+    )
+    lac(
+        "toml-not-utf8",
+        lambda: lac_bytes(with_member("initial.toml", b"fiducials = false\n# \xff\xfe\n")),
+    )
+    lac(
+        "huge-toml",
+        lambda: lac_bytes(
+            with_member("metadata.toml", 'description = "' + "x" * (2 * 1024**2) + '"\n')
+        ),
+    )
+    lac(
+        "cameras-not-table",
+        lambda: lac_bytes(
+            with_member(
+                "initial.toml", "fiducials = false\nlander = [0.0]\nrover = [0.0]\ncameras = 3\n"
+            )
+        ),
+    )
     ini = M()["initial.toml"].decode()
-    lac("width-abc", lambda: lac_bytes(M(initial=ini.replace(f"width = {W}", 'width = "abc"', 1))), cmd="detect")
-    lac("width-negative", lambda: lac_bytes(M(initial=ini.replace(f"width = {W}", "width = -5", 1))), cmd="detect")
-    lac("width-float", lambda: lac_bytes(M(initial=ini.replace(f"width = {W}", "width = 64.5", 1))), cmd="detect")
-    lac("width-bool", lambda: lac_bytes(M(initial=ini.replace(f"width = {W}", "width = true", 1))), cmd="detect")
-    lac("fov-180", lambda: lac_bytes(M(initial=ini.replace("use_semantic = false", "use_semantic = false\nfov = 180.0", 1))), cmd="detect")
-    lac("fov-nan", lambda: lac_bytes(M(initial=ini.replace("use_semantic = false", "use_semantic = false\nfov = nan", 1))), cmd="detect")
-    lac("fov-text", lambda: lac_bytes(M(initial=ini.replace("use_semantic = false", 'use_semantic = false\nfov = "wide"', 1))), cmd="detect")
+    lac(
+        "width-abc",
+        lambda: lac_bytes(M(initial=ini.replace(f"width = {W}", 'width = "abc"', 1))),
+        cmd="detect",
+    )
+    lac(
+        "width-negative",
+        lambda: lac_bytes(M(initial=ini.replace(f"width = {W}", "width = -5", 1))),
+        cmd="detect",
+    )
+    lac(
+        "width-float",
+        lambda: lac_bytes(M(initial=ini.replace(f"width = {W}", "width = 64.5", 1))),
+        cmd="detect",
+    )
+    lac(
+        "width-bool",
+        lambda: lac_bytes(M(initial=ini.replace(f"width = {W}", "width = true", 1))),
+        cmd="detect",
+    )
+    lac(
+        "fov-180",
+        lambda: lac_bytes(
+            M(initial=ini.replace("use_semantic = false", "use_semantic = false\nfov = 180.0", 1))
+        ),
+        cmd="detect",
+    )
+    lac(
+        "fov-nan",
+        lambda: lac_bytes(
+            M(initial=ini.replace("use_semantic = false", "use_semantic = false\nfov = nan", 1))
+        ),
+        cmd="detect",
+    )
+    lac(
+        "fov-text",
+        lambda: lac_bytes(
+            M(initial=ini.replace("use_semantic = false", 'use_semantic = false\nfov = "wide"', 1))
+        ),
+        cmd="detect",
+    )
     frames = M()["frames.csv"].decode()
     fl = frames.splitlines()
-    lac("frame-1e30", lambda: lac_bytes(with_member("frames.csv", frames.replace("\n5,", "\n1e30,", 1))))
-    lac("frame-text", lambda: lac_bytes(with_member("frames.csv", frames.replace("\n5,", "\nfive,", 1))))
-    lac("frame-duplicate", lambda: lac_bytes(with_member("frames.csv", "\n".join(fl[:5] + fl[4:]) + "\n")))
-    lac("frame-decreasing", lambda: lac_bytes(with_member("frames.csv", "\n".join([fl[0]] + fl[1:][::-1]) + "\n")))
-    lac("frames-missing-column", lambda: lac_bytes(with_member("frames.csv", "\n".join(l.rsplit(",", 1)[0] for l in fl) + "\n")))
+    lac(
+        "frame-1e30",
+        lambda: lac_bytes(with_member("frames.csv", frames.replace("\n5,", "\n1e30,", 1))),
+    )
+    lac(
+        "frame-text",
+        lambda: lac_bytes(with_member("frames.csv", frames.replace("\n5,", "\nfive,", 1))),
+    )
+    lac(
+        "frame-duplicate",
+        lambda: lac_bytes(with_member("frames.csv", "\n".join(fl[:5] + fl[4:]) + "\n")),
+    )
+    lac(
+        "frame-decreasing",
+        lambda: lac_bytes(with_member("frames.csv", "\n".join([fl[0]] + fl[1:][::-1]) + "\n")),
+    )
+    lac(
+        "frames-missing-column",
+        lambda: lac_bytes(
+            with_member("frames.csv", "\n".join(l.rsplit(",", 1)[0] for l in fl) + "\n")
+        ),
+    )
     lac("frames-ragged", lambda: lac_bytes(with_member("frames.csv", frames + "1,2,3\n")))
-    lac("frames-text-value", lambda: lac_bytes(with_member("frames.csv", frames.replace("\n5,0.25", "\n5,abc", 1))))
-    lac("frames-latin1", lambda: lac_bytes(with_member("frames.csv", frames.encode() + "# caf\u00e9\n".encode("latin-1"))))
+    lac(
+        "frames-text-value",
+        lambda: lac_bytes(with_member("frames.csv", frames.replace("\n5,0.25", "\n5,abc", 1))),
+    )
+    lac(
+        "frames-latin1",
+        lambda: lac_bytes(
+            with_member("frames.csv", frames.encode() + "# caf\u00e9\n".encode("latin-1"))
+        ),
+    )
     lac("frames-utf16", lambda: lac_bytes(with_member("frames.csv", frames.encode("utf-16"))))
-    lac("frames-huge-field", lambda: lac_bytes(with_member("frames.csv", frames + '21,"' + "9" * (2 * 1024**2) + '"' + ",0" * 17 + "\n")))
-    lac("frames-300MiB-newlines", lambda: lac_bytes(with_member("frames.csv", frames.encode() + b"\n" * (300 * 1024**2))), slow=True)
-    lac("frames-1M-blank-lines", lambda: lac_bytes(with_member("frames.csv", frames.encode() + b"\n" * (1024**2))), "ok",
-        stdout_has("frames      : 21"))
+    lac(
+        "frames-huge-field",
+        lambda: lac_bytes(
+            with_member(
+                "frames.csv", frames + '21,"' + "9" * (2 * 1024**2) + '"' + ",0" * 17 + "\n"
+            )
+        ),
+    )
+    lac(
+        "frames-300MiB-newlines",
+        lambda: lac_bytes(with_member("frames.csv", frames.encode() + b"\n" * (300 * 1024**2))),
+        slow=True,
+    )
+    lac(
+        "frames-1M-blank-lines",
+        lambda: lac_bytes(with_member("frames.csv", frames.encode() + b"\n" * (1024**2))),
+        "ok",
+        stdout_has("frames      : 21"),
+    )
     lac("frames-empty", lambda: lac_bytes(with_member("frames.csv", b"")))
-    lac("camera-table-missing-column", lambda: lac_bytes(with_member("cameras/FrontLeft/FrontLeft_frames.csv", "frame,enable\n0,True\n")))
-    lac("image-missing", lambda: lac_bytes(with_member("cameras/FrontLeft/grayscale/FrontLeft_grayscale_10.png", None)))
+    lac(
+        "camera-table-missing-column",
+        lambda: lac_bytes(
+            with_member("cameras/FrontLeft/FrontLeft_frames.csv", "frame,enable\n0,True\n")
+        ),
+    )
+    lac(
+        "image-missing",
+        lambda: lac_bytes(
+            with_member("cameras/FrontLeft/grayscale/FrontLeft_grayscale_10.png", None)
+        ),
+    )
 
     def long_name():
         info = tarfile.TarInfo("././@LongLink")
@@ -500,31 +740,113 @@ def _lac_cases() -> list[Case]:
 
     lac("tar-pax-3MiB", pax_huge)
     # commands that read images / records
-    lac("detect-png-bomb", lambda: lac_bytes(with_member("cameras/FrontLeft/grayscale/FrontLeft_grayscale_0.png", png_bomb())), cmd="detect")
-    lac("detect-corrupt-png", lambda: lac_bytes(with_member("cameras/FrontLeft/grayscale/FrontLeft_grayscale_0.png", b"\x89PNG\r\n\x1a\nbroken")), cmd="detect")
-    lac("detect-nan-pose", lambda: lac_bytes(with_member("frames.csv", frames.replace("\n0,0.0,0.0,0.0", "\n0,,0.0,0.0", 1))), cmd="detect")
-    lac("detect-valid", lambda: lac_bytes(M()), "ok", lambda d, s: (d / "det.csv").is_file(), cmd="detect", slow=True)
+    lac(
+        "detect-png-bomb",
+        lambda: lac_bytes(
+            with_member("cameras/FrontLeft/grayscale/FrontLeft_grayscale_0.png", png_bomb())
+        ),
+        cmd="detect",
+    )
+    lac(
+        "detect-corrupt-png",
+        lambda: lac_bytes(
+            with_member(
+                "cameras/FrontLeft/grayscale/FrontLeft_grayscale_0.png", b"\x89PNG\r\n\x1a\nbroken"
+            )
+        ),
+        cmd="detect",
+    )
+    lac(
+        "detect-nan-pose",
+        lambda: lac_bytes(
+            with_member("frames.csv", frames.replace("\n0,0.0,0.0,0.0", "\n0,,0.0,0.0", 1))
+        ),
+        cmd="detect",
+    )
+    lac(
+        "detect-valid",
+        lambda: lac_bytes(M()),
+        "ok",
+        lambda d, s: (d / "det.csv").is_file(),
+        cmd="detect",
+        slow=True,
+    )
     odo = M()["custom/odometry.csv"].decode()
     # a broken odometry record is an error when the run is told to use it; by default `run`
     # uses visual odometry and never reads the record (issue 9: bare LAC archives run)
     rec = ("--odometry", "record:odometry")
-    lac("run-odometry-text", lambda: lac_bytes(with_member("custom/odometry.csv", odo.replace("\n5,0.25", "\n5,fast", 1))), cmd="run", extra=rec)
+    lac(
+        "run-odometry-text",
+        lambda: lac_bytes(
+            with_member("custom/odometry.csv", odo.replace("\n5,0.25", "\n5,fast", 1))
+        ),
+        cmd="run",
+        extra=rec,
+    )
     # no frame column: one row per frame is how one recorder generation wrote custom records
     # (aligned in order, with a warning); any other row count cannot be aligned
-    lac("run-odometry-no-frame-short", lambda: lac_bytes(with_member("custom/odometry.csv", "\n".join(l.split(",", 1)[1] for l in odo.splitlines()[:-3]) + "\n")), cmd="run", extra=rec)
-    lac("run-odometry-frame-text", lambda: lac_bytes(with_member("custom/odometry.csv", odo.replace("\n5,", "\nfive,", 1))), cmd="run", extra=rec)
-    lac("run-no-odometry", lambda: lac_bytes(with_member("custom/odometry.csv", None)), cmd="run", extra=rec)
-    lac("run-bad-odometry-source", lambda: lac_bytes(M()), cmd="run", extra=("--odometry", "wheels"))
-    lac("run-no-odometry-default-visual", lambda: lac_bytes(with_member("custom/odometry.csv", None)), "ok",
-        lambda d, s: (d / "run" / "summary.json").is_file(), cmd="run", slow=True)
-    lac("run-width-abc", lambda: lac_bytes(M(initial=ini.replace(f"width = {W}", 'width = "abc"', 1))), cmd="run")
-    C.append(Case("lac/detect-directory", "lac", lambda d: ["detect", str(d), "-o", str(d / "det.csv")]))
-    C.append(Case("lac/run-directory", "lac", lambda d: ["run", str(d), "--reference", str(write(d, "b.csv", map_text())), "-o", str(d / "run")]))
+    lac(
+        "run-odometry-no-frame-short",
+        lambda: lac_bytes(
+            with_member(
+                "custom/odometry.csv",
+                "\n".join(l.split(",", 1)[1] for l in odo.splitlines()[:-3]) + "\n",
+            )
+        ),
+        cmd="run",
+        extra=rec,
+    )
+    lac(
+        "run-odometry-frame-text",
+        lambda: lac_bytes(with_member("custom/odometry.csv", odo.replace("\n5,", "\nfive,", 1))),
+        cmd="run",
+        extra=rec,
+    )
+    lac(
+        "run-no-odometry",
+        lambda: lac_bytes(with_member("custom/odometry.csv", None)),
+        cmd="run",
+        extra=rec,
+    )
+    lac(
+        "run-bad-odometry-source", lambda: lac_bytes(M()), cmd="run", extra=("--odometry", "wheels")
+    )
+    lac(
+        "run-no-odometry-default-visual",
+        lambda: lac_bytes(with_member("custom/odometry.csv", None)),
+        "ok",
+        lambda d, s: (d / "run" / "summary.json").is_file(),
+        cmd="run",
+        slow=True,
+    )
+    lac(
+        "run-width-abc",
+        lambda: lac_bytes(M(initial=ini.replace(f"width = {W}", 'width = "abc"', 1))),
+        cmd="run",
+    )
+    C.append(
+        Case("lac/detect-directory", "lac", lambda d: ["detect", str(d), "-o", str(d / "det.csv")])
+    )
+    C.append(
+        Case(
+            "lac/run-directory",
+            "lac",
+            lambda d: [
+                "run",
+                str(d),
+                "--reference",
+                str(write(d, "b.csv", map_text())),
+                "-o",
+                str(d / "run"),
+            ],
+        )
+    )
     C.append(Case("lac/info-directory", "lac", lambda d: ["info", str(d)]))
     valid = lac_bytes(M())
     tar = tar_bytes(M())
     text_members = [k for k in M() if not k.endswith(".png")]
     for i in range(24):
+
         def data(i=i):
             r = np.random.default_rng(RNG_SEED + 100 + i)
             if i < 6:  # the compressed stream (the gzip CRC must catch it)
@@ -576,7 +898,15 @@ def _option_cases() -> list[Case]:
     for v in ("0.5", "nan"):
         loc(f"-max-size-ratio-{v}", "--max-size-ratio", v)
     loc("-epsilon-0.1-ok", "--epsilon", "0.1", expect="ok", check=json_localized(True))
-    loc("-6dof-clipper-ok", "--mode", "6dof", "--solver", "clipper", expect="ok", check=json_localized(None))
+    loc(
+        "-6dof-clipper-ok",
+        "--mode",
+        "6dof",
+        "--solver",
+        "clipper",
+        expect="ok",
+        check=json_localized(None),
+    )
     loc("-unknown-option", "--bogus")
 
     def mapc(name, *opts, expect="error", check=None):
@@ -621,7 +951,15 @@ def _option_cases() -> list[Case]:
         def build(d: Path) -> list[str]:
             (d / "data" / "csv").mkdir(parents=True)
             write(d, "data/csv/traverse_1.csv", traverse_text())
-            return ["bench", *opts[:1], "--data", str(d / "data"), "--out", str(d / "bo"), *opts[1:]]
+            return [
+                "bench",
+                *opts[:1],
+                "--data",
+                str(d / "data"),
+                "--out",
+                str(d / "bo"),
+                *opts[1:],
+            ]
 
         C.append(Case(f"option/bench{name}", "option", build))
 
@@ -634,15 +972,33 @@ def _option_cases() -> list[Case]:
     bench("-loop-drift-inf", "loop", "--heading-drift", "inf")
 
     def sim(name, *opts):
-        C.append(Case(f"option/simulate{name}", "option", lambda d: ["simulate", "--out", str(d / "sim"), "--traverses", "0", *opts]))
+        C.append(
+            Case(
+                f"option/simulate{name}",
+                "option",
+                lambda d: ["simulate", "--out", str(d / "sim"), "--traverses", "0", *opts],
+            )
+        )
 
     sim("-duration-nan", "--duration", "nan")
     sim("-duration-neg", "--duration", "-1")
     sim("-width-0", "--width", "0")
     sim("-image-rate-0", "--image-rate", "0")
     sim("-image-rate-100", "--image-rate", "100")
-    C.append(Case("option/demo-duration-inf", "option", lambda d: ["demo", "--out", str(d / "demo"), "--duration", "inf"]))
-    C.append(Case("option/demo-width-huge", "option", lambda d: ["demo", "--out", str(d / "demo"), "--width", "100000"]))
+    C.append(
+        Case(
+            "option/demo-duration-inf",
+            "option",
+            lambda d: ["demo", "--out", str(d / "demo"), "--duration", "inf"],
+        )
+    )
+    C.append(
+        Case(
+            "option/demo-width-huge",
+            "option",
+            lambda d: ["demo", "--out", str(d / "demo"), "--width", "100000"],
+        )
+    )
     C.append(Case("option/no-such-command", "option", lambda d: ["no-such-command"]))
     C.append(Case("option/missing-argument", "option", lambda d: ["map"]))
     return C
@@ -659,16 +1015,32 @@ def _output_cases() -> list[Case]:
         C.append(Case(f"output/map-{name}", "output", build, expect, check))
 
     mapo("existing", lambda d: write(d, "m.csv", "old"))
-    mapo("existing-overwrite", lambda d: write(d, "m.csv", "old"), "ok", map_file_ok("m.csv"), ("--overwrite",))
+    mapo(
+        "existing-overwrite",
+        lambda d: write(d, "m.csv", "old"),
+        "ok",
+        map_file_ok("m.csv"),
+        ("--overwrite",),
+    )
     mapo("directory", lambda d: (d / "m.csv").mkdir() or d / "m.csv")
-    mapo("directory-overwrite", lambda d: (d / "m.csv").mkdir() or d / "m.csv", extra=("--overwrite",))
+    mapo(
+        "directory-overwrite",
+        lambda d: (d / "m.csv").mkdir() or d / "m.csv",
+        extra=("--overwrite",),
+    )
     mapo("under-a-file", lambda d: write(d, "f", "x") / "m.csv")
     mapo("deep-under-a-file", lambda d: write(d, "f", "x") / "a" / "b" / "m.csv")
     mapo("bad-suffix", lambda d: d / "m.txt")
     mapo("no-suffix", lambda d: d / "m")
-    mapo("new-parents-ok", lambda d: d / "a" / "b" / "m.csv", "ok", lambda d, s: (d / "a" / "b" / "m.csv").is_file())
+    mapo(
+        "new-parents-ok",
+        lambda d: d / "a" / "b" / "m.csv",
+        "ok",
+        lambda d, s: (d / "a" / "b" / "m.csv").is_file(),
+    )
     mapo("npz-ok", lambda d: d / "m.npz", "ok", map_file_ok("m.npz"))
     if os.getuid() != 0:  # root writes anywhere
+
         def ro(d: Path) -> Path:
             (d / "ro").mkdir()
             (d / "ro").chmod(0o555)
@@ -692,13 +1064,27 @@ def _output_cases() -> list[Case]:
             (out / n).write_text("old")
 
     run_into("previous-run", old_run)
-    run_into("previous-run-overwrite", old_run, "ok", run_folder_ok("run", stale="map.png"), ("--overwrite",))
+    run_into(
+        "previous-run-overwrite",
+        old_run,
+        "ok",
+        run_folder_ok("run", stale="map.png"),
+        ("--overwrite",),
+    )
     run_into("a-file", lambda out: out.write_text("x"))
 
     def run_under_file(d: Path) -> list[str]:
         a = write(d, "a.lac", lac_bytes(lac_members()))
         r = write(d, "b.csv", map_text())
-        return ["run", str(a), "--reference", str(r), "-o", str(write(d, "f", "x") / "run"), "--no-plot"]
+        return [
+            "run",
+            str(a),
+            "--reference",
+            str(r),
+            "-o",
+            str(write(d, "f", "x") / "run"),
+            "--no-plot",
+        ]
 
     C.append(Case("output/run-under-a-file", "output", run_under_file))
 
@@ -737,15 +1123,52 @@ def _output_cases() -> list[Case]:
 
     bench_out("out-is-file", lambda d: write(d, "bo", "x"))
     bench_out("previous", lambda d: (d / "bo").mkdir() or write(d, "bo/pairs.json", "{}").parent)
-    C.append(Case("output/simulate-into-file", "output", lambda d: ["simulate", "--out", str(write(d, "s", "x")), "--traverses", "0"]))
-    C.append(Case("output/simulate-previous", "output",
-                  lambda d: ["simulate", "--out", str(write(d, "s/rocks.csv", "x").parent), "--traverses", "0"]))  # fmt: skip
-    C.append(Case("output/demo-previous-run", "output",
-                  lambda d: ["demo", "--out", str(write(d, "demo/summary.json", "{}").parent)]))  # fmt: skip
+    C.append(
+        Case(
+            "output/simulate-into-file",
+            "output",
+            lambda d: ["simulate", "--out", str(write(d, "s", "x")), "--traverses", "0"],
+        )
+    )
+    C.append(
+        Case(
+            "output/simulate-previous",
+            "output",
+            lambda d: [
+                "simulate",
+                "--out",
+                str(write(d, "s/rocks.csv", "x").parent),
+                "--traverses",
+                "0",
+            ],
+        )
+    )
+    C.append(
+        Case(
+            "output/demo-previous-run",
+            "output",
+            lambda d: ["demo", "--out", str(write(d, "demo/summary.json", "{}").parent)],
+        )
+    )
     C.append(Case("output/plot-not-a-run", "output", lambda d: ["plot", str(d)]))
-    C.append(Case("output/plot-damaged-run", "output", lambda d: (
-        [write(d, f"r/{n}", "garbage\n") for n in ("trajectory.tum", "trajectory_odometry.tum", "attempts.json", "summary.json")]
-        and ["plot", str(d / "r")])))  # fmt: skip
+    C.append(
+        Case(
+            "output/plot-damaged-run",
+            "output",
+            lambda d: (
+                [
+                    write(d, f"r/{n}", "garbage\n")
+                    for n in (
+                        "trajectory.tum",
+                        "trajectory_odometry.tum",
+                        "attempts.json",
+                        "summary.json",
+                    )
+                ]
+                and ["plot", str(d / "r")]
+            ),
+        )
+    )
     return C
 
 
@@ -755,7 +1178,14 @@ def corpus(include_slow: bool = True) -> list[Case]:
     tests/_hostile_surfaces.py."""
     from _hostile_surfaces import surface_cases
 
-    cases = _csv_cases() + _npz_cases() + _lac_cases() + _option_cases() + _output_cases() + surface_cases()
+    cases = (
+        _csv_cases()
+        + _npz_cases()
+        + _lac_cases()
+        + _option_cases()
+        + _output_cases()
+        + surface_cases()
+    )
     names = [c.name for c in cases]
     assert len(names) == len(set(names)), "case names must be unique"
     return [c for c in cases if include_slow or not c.slow]
@@ -784,6 +1214,7 @@ def run_case(case: Case, folder: Path, main=None, timeout_s: int = 0) -> Outcome
     """Build and run `case` in `folder` (in-process) and classify the outcome; with
     `timeout_s`, a case still running after that many seconds is stopped and called a hang."""
     import signal
+
     if main is None:
         from lunarloc.cli.app import main
     folder.mkdir(parents=True, exist_ok=True)
@@ -823,18 +1254,36 @@ def run_case(case: Case, folder: Path, main=None, timeout_s: int = 0) -> Outcome
         return Outcome(case.name, case.kind, "hang", None, f"still running after {timeout_s} s")
     msg = (_lines(se) or [""])[-1][:300]
     if escaped is not None or "Traceback (most recent call last)" in so + se:
-        return Outcome(case.name, case.kind, "traceback", rc, f"{type(escaped).__name__ if escaped else ''} {msg}".strip())
+        return Outcome(
+            case.name,
+            case.kind,
+            "traceback",
+            rc,
+            f"{type(escaped).__name__ if escaped else ''} {msg}".strip(),
+        )
     if rc == 70 or (rc not in (0, 1, 2, 130) and "internal error" in se):
         return Outcome(case.name, case.kind, "internal error", rc, msg)
     if rc == 0:
         if case.expect == "error":
-            return Outcome(case.name, case.kind, "silent garbage", rc, "accepted " + so.strip().splitlines()[-1][:200] if so.strip() else "accepted")
+            return Outcome(
+                case.name,
+                case.kind,
+                "silent garbage",
+                rc,
+                "accepted " + so.strip().splitlines()[-1][:200] if so.strip() else "accepted",
+            )
         try:
             good = case.check is None or case.check(folder, so)
         except Exception as exc:  # noqa: BLE001 - unreadable output = garbage
             good = False
             msg = f"output check raised {type(exc).__name__}: {exc}"[:300]
-        return Outcome(case.name, case.kind, "correct result" if good else "silent garbage", rc, "" if good else msg)
+        return Outcome(
+            case.name,
+            case.kind,
+            "correct result" if good else "silent garbage",
+            rc,
+            "" if good else msg,
+        )
     if rc == 2 and case.expect in ("error", "either") and _clear_error(se):
         return Outcome(case.name, case.kind, "clear error", rc, msg)
     return Outcome(case.name, case.kind, "other", rc, msg)
@@ -876,7 +1325,9 @@ def _run_call(case: Case, folder: Path, timeout_s: int = 0) -> Outcome:
             return Outcome(case.name, case.kind, "other", None, msg)
         if isinstance(exc, LunarLocError) and case.expect in ("error", "either"):
             if case.names and case.names not in str(exc):
-                return Outcome(case.name, case.kind, "other", None, f"does not name {case.names!r}: {msg}")
+                return Outcome(
+                    case.name, case.kind, "other", None, f"does not name {case.names!r}: {msg}"
+                )
             return Outcome(case.name, case.kind, "clear error", None, msg)
         if isinstance(exc, LunarLocError):
             return Outcome(case.name, case.kind, "other", None, f"refused valid input: {msg}")
@@ -884,10 +1335,17 @@ def _run_call(case: Case, folder: Path, timeout_s: int = 0) -> Outcome:
             return Outcome(case.name, case.kind, "internal error", None, msg)
         return Outcome(case.name, case.kind, "traceback", None, msg)
     if case.expect == "error":
-        return Outcome(case.name, case.kind, "silent garbage", None, f"returned {type(result).__name__}")
+        return Outcome(
+            case.name, case.kind, "silent garbage", None, f"returned {type(result).__name__}"
+        )
     try:
         good = case.check is None or bool(case.check(folder, result))
     except Exception as e:  # noqa: BLE001 - an unreadable result is garbage
         good, result = False, f"check raised {type(e).__name__}: {e}"
-    return Outcome(case.name, case.kind, "correct result" if good else "silent garbage", None,
-                   "" if good else f"result failed its check {str(result)[:200]}")
+    return Outcome(
+        case.name,
+        case.kind,
+        "correct result" if good else "silent garbage",
+        None,
+        "" if good else f"result failed its check {str(result)[:200]}",
+    )

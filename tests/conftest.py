@@ -13,7 +13,10 @@ from lunarloc.io.maps import LandmarkMap
 import os
 
 # the paper's 17 traverses; LUNARLOC_DATA points elsewhere (tests skip when absent)
-REAL_DATA = Path(os.environ.get("LUNARLOC_DATA") or Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "lunarloc-data")
+REAL_DATA = Path(
+    os.environ.get("LUNARLOC_DATA")
+    or Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "lunarloc-data"
+)
 
 
 def rock_field(rng: np.random.Generator, n: int, size: float = 27.0) -> np.ndarray:
@@ -23,9 +26,13 @@ def rock_field(rng: np.random.Generator, n: int, size: float = 27.0) -> np.ndarr
     return np.c_[xy, z]
 
 
-def random_T(rng: np.random.Generator, max_tilt_deg: float = 1.0, max_t: float = 100.0) -> np.ndarray:
+def random_T(
+    rng: np.random.Generator, max_tilt_deg: float = 1.0, max_t: float = 100.0
+) -> np.ndarray:
     roll, pitch = np.radians(rng.uniform(-max_tilt_deg, max_tilt_deg, 2))
-    return make_transform(euler_to_rotation(roll, pitch, rng.uniform(-np.pi, np.pi)), rng.uniform(-max_t, max_t, 3))
+    return make_transform(
+        euler_to_rotation(roll, pitch, rng.uniform(-np.pi, np.pi)), rng.uniform(-max_t, max_t, 3)
+    )
 
 
 def make_pair(rng, n_ref=150, n_common=40, n_outliers=20, noise=0.01, max_tilt_deg=1.0):

@@ -81,9 +81,17 @@ def test_version(capsys):
     assert capsys.readouterr().out.strip() == f"lunarloc {lunarloc.__version__}"
 
 
-@pytest.mark.parametrize("args, level", [([], logging.WARNING), (["-v"], logging.INFO), (["-vv"], logging.DEBUG),
-                                         (["-q"], logging.ERROR), (["--log-level", "debug"], logging.DEBUG),
-                                         (["-q", "--log-level", "info"], logging.INFO)])
+@pytest.mark.parametrize(
+    "args, level",
+    [
+        ([], logging.WARNING),
+        (["-v"], logging.INFO),
+        (["-vv"], logging.DEBUG),
+        (["-q"], logging.ERROR),
+        (["--log-level", "debug"], logging.DEBUG),
+        (["-q", "--log-level", "info"], logging.INFO),
+    ],
+)
 def test_log_level_options(args, level, tmp_path, rng):
     a = save_map(LandmarkMap(rng.uniform(-10, 10, (20, 3))), tmp_path / "a.csv")
     assert main([*args, "localize", str(a), str(a), "--json"]) == 0
@@ -124,7 +132,18 @@ def test_bench_commands_share_heading_drift(tmp_path, capsys):
         out = capsys.readouterr().out
         assert "--heading-drift" in out and "--drift " not in out  # the old name stays, hidden
         # the hidden alias still parses: the failure is about the missing data, not the option
-        rc = main(["bench", cmd, "--data", str(tmp_path / "missing"), "--out", str(tmp_path / cmd), "--drift", "0.1"])
+        rc = main(
+            [
+                "bench",
+                cmd,
+                "--data",
+                str(tmp_path / "missing"),
+                "--out",
+                str(tmp_path / cmd),
+                "--drift",
+                "0.1",
+            ]
+        )
         err = capsys.readouterr().err
         assert rc == 2 and "No such option" not in err, err
 
@@ -174,9 +193,25 @@ def test_load_vehicle_gives_what_the_cli_uses(tmp_path, rng, capsys):
     assert np.allclose(v.query_xyz, v.path_xyz[-1:])
     from lunarloc import LocalizationConfig
 
-    rigid = LocalizationConfig(odometry_scale_error=0.0, odometry_heading_drift_deg_per_m=0.0)  # a rigid map
+    rigid = LocalizationConfig(
+        odometry_scale_error=0.0, odometry_heading_drift_deg_per_m=0.0
+    )  # a rigid map
     res = localize(load_reference(r), v.map, rigid, **v.localize_kwargs())
-    assert main(["localize", str(r), str(t), "--json", "--odometry-scale-error", "0", "--odometry-drift", "0"]) == 0
+    assert (
+        main(
+            [
+                "localize",
+                str(r),
+                str(t),
+                "--json",
+                "--odometry-scale-error",
+                "0",
+                "--odometry-drift",
+                "0",
+            ]
+        )
+        == 0
+    )
     d = json.loads(capsys.readouterr().out)
     assert res.success and d["success"], res.reason
     assert np.allclose(np.array(d["T_ref_veh"]), res.T_ref_veh, atol=1e-9)
@@ -189,14 +224,22 @@ def test_load_vehicle_gives_what_the_cli_uses(tmp_path, rng, capsys):
 def test_readme_pair_3_5_api_and_cli_agree(capsys):
     import os
 
-    data = Path(os.environ.get("LUNARLOC_DATA", ROOT.parent / "shared" / "data" / "lunarloc-data")) / "csv"
+    data = (
+        Path(os.environ.get("LUNARLOC_DATA", ROOT.parent / "shared" / "data" / "lunarloc-data"))
+        / "csv"
+    )
     if not (data / "traverse_3.csv").is_file():
         pytest.skip("lunarloc-data not present")
     from lunarloc import load_reference, load_vehicle, localize
 
     v = load_vehicle(data / "traverse_5.csv")
-    res = localize(load_reference(data / "traverse_3.csv"), v.map, query_xyz=v.query_xyz, path_xyz=v.path_xyz)
-    assert main(["localize", str(data / "traverse_3.csv"), str(data / "traverse_5.csv"), "--json"]) == 0
+    res = localize(
+        load_reference(data / "traverse_3.csv"), v.map, query_xyz=v.query_xyz, path_xyz=v.path_xyz
+    )
+    assert (
+        main(["localize", str(data / "traverse_3.csv"), str(data / "traverse_5.csv"), "--json"])
+        == 0
+    )
     d = json.loads(capsys.readouterr().out)
     assert res.success == d["success"]
     assert np.allclose(np.array(d["T_ref_veh"]), res.T_ref_veh, atol=1e-9)
@@ -211,7 +254,9 @@ def test_tum_and_kitti_writers_round_trip(tmp_path):
     from lunarloc.core.geometry import pose_to_matrix
     from lunarloc.io.trajectory import read_kitti, read_tum
 
-    T = np.stack([pose_to_matrix(0.5 * i, -0.2 * i, 0.01 * i, 0.01, -0.02, 0.3 * i) for i in range(5)])
+    T = np.stack(
+        [pose_to_matrix(0.5 * i, -0.2 * i, 0.01 * i, 0.01, -0.02, 0.3 * i) for i in range(5)]
+    )
     t = np.arange(5) * 0.5
     times, poses = read_tum(write_tum(tmp_path / "a.tum", t, T))
     assert np.allclose(times, t) and np.allclose(poses[:, :3], T[:, :3, 3], atol=1e-6)
@@ -232,7 +277,9 @@ def test_online_localizer_keeps_and_writes_its_trajectory(tmp_path):
 
     rig = CameraRig.from_calibration(160, 90, fx=114.25)
     rng = np.random.default_rng(3)
-    loc = OnlineLocalizer(LandmarkMap(np.c_[rng.uniform(-10, 10, (50, 2)), np.zeros(50)]), np.zeros(6), rig=rig)
+    loc = OnlineLocalizer(
+        LandmarkMap(np.c_[rng.uniform(-10, 10, (50, 2)), np.zeros(50)]), np.zeros(6), rig=rig
+    )
     imu = np.array([0.0, 0.0, 1.62, 0.0, 0.0, 0.0])
     returned = []
     for i in range(30):
@@ -243,7 +290,9 @@ def test_online_localizer_keeps_and_writes_its_trajectory(tmp_path):
     assert np.allclose(T_hist, np.stack(returned))
     t2, poses = read_tum(loc.write_trajectory(tmp_path / "online.tum"))
     assert np.allclose(t2, times) and np.allclose(poses[:, :3], T_hist[:, :3, 3], atol=1e-6)
-    assert np.allclose(read_kitti(loc.write_trajectory(tmp_path / "online.kitti", "kitti")), T_hist, atol=1e-8)
+    assert np.allclose(
+        read_kitti(loc.write_trajectory(tmp_path / "online.kitti", "kitti")), T_hist, atol=1e-8
+    )
     from lunarloc.core.errors import InputError
 
     with pytest.raises(InputError):
@@ -273,7 +322,9 @@ def test_kernel_preparation_is_announced_and_done_once(monkeypatch, caplog):
         second = aot.prepare_kernels(exercise)
     assert calls == [1] and first.source in ("cache", "compiled") and second.source == "ready"
     text = caplog.text
-    assert "preparing the association kernels" in text and "not counted as localization time" in text
+    assert (
+        "preparing the association kernels" in text and "not counted as localization time" in text
+    )
 
 
 def test_localize_prepares_kernels_before_its_first_stage(monkeypatch, rng):
@@ -285,7 +336,9 @@ def test_localize_prepares_kernels_before_its_first_stage(monkeypatch, rng):
     monkeypatch.setattr(aot, "aot_status", lambda: "not built")
     monkeypatch.setattr(L, "warm_kernels", lambda: order.append("prepare") or 0.5)
     real = L.putative_associations
-    monkeypatch.setattr(L, "putative_associations", lambda *a, **k: order.append("associations") or real(*a, **k))
+    monkeypatch.setattr(
+        L, "putative_associations", lambda *a, **k: order.append("associations") or real(*a, **k)
+    )
     ref, veh, _, _ = make_pair(rng, n_ref=40, n_common=20, n_outliers=0)
     L.localize(ref, veh)
     L.localize(ref, veh)
@@ -309,9 +362,16 @@ def test_works_without_numba_pycc(tmp_path):
     ref, veh, _, _ = make_pair(rng, n_ref=50, n_common=25, n_outliers=0)
     save_map(ref, tmp_path / "r.csv")
     save_map(veh, tmp_path / "v.csv")
-    env = {"LUNARLOC_AOT": "0", **{k: v for k, v in __import__("os").environ.items() if k != "LUNARLOC_AOT"}}
-    env["LUNARLOC_AOT"] = "0"  # never load a build made elsewhere: the JIT path is the one under test
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=900, env=env)
+    env = {
+        "LUNARLOC_AOT": "0",
+        **{k: v for k, v in __import__("os").environ.items() if k != "LUNARLOC_AOT"},
+    }
+    env["LUNARLOC_AOT"] = (
+        "0"  # never load a build made elsewhere: the JIT path is the one under test
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=900, env=env
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "ahead-of-time kernels not built" in proc.stderr
     lines = proc.stdout.splitlines()
@@ -326,7 +386,10 @@ def test_simulate_without_sim_extra_writes_nothing(tmp_path, monkeypatch, capsys
     for mod in ("trimesh", "embreex", "embreex.rtcore_scene", "embreex.mesh_construction"):
         monkeypatch.setitem(sys.modules, mod, None)
     out = tmp_path / "sim"
-    assert main(["simulate", "--out", str(out), "--duration", "2", "--width", "64", "--height", "36"]) == 2
+    assert (
+        main(["simulate", "--out", str(out), "--duration", "2", "--width", "64", "--height", "36"])
+        == 2
+    )
     err = capsys.readouterr().err
     assert "lunarloc[sim]" in err
     assert not out.exists() or not any(out.iterdir())

@@ -17,7 +17,9 @@ from lunarloc.association import aot
 def _python(code: str, **env) -> subprocess.CompletedProcess:
     full = {k: v for k, v in os.environ.items() if k != "LUNARLOC_AOT"}
     full.update(env)
-    proc = subprocess.run([sys.executable, "-c", code], env=full, capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-c", code], env=full, capture_output=True, text=True, timeout=600
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return proc
 
@@ -28,13 +30,17 @@ def _built() -> bool:
 
 def test_import_lunarloc_does_not_import_numba():
     # the kernels are compiled or loaded at their first call, not at import
-    out = _python("import sys, lunarloc, lunarloc.localization.localize, lunarloc.association.graph\n"
-                  "print('numba' in sys.modules)").stdout.split()
+    out = _python(
+        "import sys, lunarloc, lunarloc.localization.localize, lunarloc.association.graph\n"
+        "print('numba' in sys.modules)"
+    ).stdout.split()
     assert out == ["False"]
 
 
 def test_argument_checks_are_exact():
-    checks = aot._compile_checks([["array", "<i4", 1], ["scalar", "i8"], ["scalar", "f8"], ["scalar", "b1"]])
+    checks = aot._compile_checks(
+        [["array", "<i4", 1], ["scalar", "i8"], ["scalar", "f8"], ["scalar", "b1"]]
+    )
     a = np.arange(6, dtype=np.int32)
     assert aot._matches(checks, (a, 3, 0.5, True))
     assert aot._matches(checks, (a, np.int64(3), np.float64(0.5), np.bool_(False)))
@@ -100,7 +106,9 @@ def test_jit_fallback_gives_the_answer_when_disabled():
     assert all(r[0] and r[1] >= 40 for r in res["results"]), res["results"]
 
 
-@pytest.mark.skipif(not _built(), reason="ahead-of-time kernels not built here (`lunarloc warm-up` builds them)")
+@pytest.mark.skipif(
+    not _built(), reason="ahead-of-time kernels not built here (`lunarloc warm-up` builds them)"
+)
 def test_built_kernels_skip_numba_and_agree_with_the_jit():
     aot_res = json.loads(_python(_PAIR).stdout)
     jit_res = json.loads(_python(_PAIR, LUNARLOC_AOT="0").stdout)
@@ -110,7 +118,9 @@ def test_built_kernels_skip_numba_and_agree_with_the_jit():
     assert aot_res["results"] == jit_res["results"]
 
 
-@pytest.mark.skipif(not _built(), reason="ahead-of-time kernels not built here (`lunarloc warm-up` builds them)")
+@pytest.mark.skipif(
+    not _built(), reason="ahead-of-time kernels not built here (`lunarloc warm-up` builds them)"
+)
 def test_a_signature_not_built_falls_back_to_the_jit():
     code = (
         "import sys, numpy as np\n"
@@ -127,7 +137,9 @@ def test_a_signature_not_built_falls_back_to_the_jit():
     assert lines == ["False", "True float64 True"]
 
 
-@pytest.mark.skipif(not _built(), reason="ahead-of-time kernels not built here (`lunarloc warm-up` builds them)")
+@pytest.mark.skipif(
+    not _built(), reason="ahead-of-time kernels not built here (`lunarloc warm-up` builds them)"
+)
 def test_a_module_from_another_build_is_not_loaded(tmp_path):
     import shutil
 

@@ -17,7 +17,10 @@ def _pair(reasons, height=None):
     lab[10:20, 10:30] = 1
     lab[25:35, 40:55] = 2
     masks = masks_from_labels(lab)
-    recs = [MaskRecord(i, mask_stats(m, masks.image_shape), 3.0, 0.05, r) for i, (m, r) in enumerate(zip(masks, reasons))]
+    recs = [
+        MaskRecord(i, mask_stats(m, masks.image_shape), 3.0, 0.05, r)
+        for i, (m, r) in enumerate(zip(masks, reasons))
+    ]
     return PairResult("FrontLeft", masks, recs, [], None, height)
 
 
@@ -47,31 +50,55 @@ def test_a_miss_is_put_at_the_mask_overlapping_it_most_or_at_the_height_map():
     near = np.zeros((40, 60), bool)
     near[12:22, 30:38] = True  # columns 15-18 low-res: heights of 2 cm; no mask there
     got = bench.miss_stage(_pair([None, None], hm), near)
-    assert got["stage"] == "no-blob" and got["valid_fraction"] == 1.0 and got["max_height_m"] == 0.02
+    assert (
+        got["stage"] == "no-blob" and got["valid_fraction"] == 1.0 and got["max_height_m"] == 0.02
+    )
 
 
 def test_misses_are_grouped_by_rock_most_missed_first():
     def row(archive, rock, frame, stage, rng):
-        return dict(archive=archive, frame=frame, camera="FrontLeft", rock_id=rock, radius_m=0.2, range_m=rng,
-                    stage=stage)
+        return dict(
+            archive=archive,
+            frame=frame,
+            camera="FrontLeft",
+            rock_id=rock,
+            radius_m=0.2,
+            range_m=rng,
+            stage=stage,
+        )
 
-    rows = [row("a.lac", 7, 0, "elongated", 4.5), row("b.lac", 7, 0, "kept", 3.0), row("a.lac", 7, 40, "elongated", 3.9),
-            row("a.lac", 7, 80, "tentative", 3.2), row("a.lac", 3, 0, "no-blob", 2.0)]
+    rows = [
+        row("a.lac", 7, 0, "elongated", 4.5),
+        row("b.lac", 7, 0, "kept", 3.0),
+        row("a.lac", 7, 40, "elongated", 3.9),
+        row("a.lac", 7, 80, "tentative", 3.2),
+        row("a.lac", 3, 0, "no-blob", 2.0),
+    ]
     got = bench.misses_by_rock(rows)
     # the same id in two archives is two rocks; the most missed first
-    assert [(g["archive"], g["rock_id"], g["missed"]) for g in got] == [("a.lac", 7, 3), ("a.lac", 3, 1), ("b.lac", 7, 1)]
+    assert [(g["archive"], g["rock_id"], g["missed"]) for g in got] == [
+        ("a.lac", 7, 3),
+        ("a.lac", 3, 1),
+        ("b.lac", 7, 1),
+    ]
     assert got[0]["stages"] == [("elongated", 2), ("tentative", 1)]
     assert (got[0]["range_min_m"], got[0]["range_max_m"]) == (3.2, 4.5)
     assert bench.misses_by_rock([]) == []
 
 
 def _site(hit, total, tp, det, err):
-    return {"target": np.array([hit, total]), "precision": np.array([tp, det]), "small": np.array([0, 0]),
-            "err": list(err)}
+    return {
+        "target": np.array([hit, total]),
+        "precision": np.array([tp, det]),
+        "small": np.array([0, 0]),
+        "err": list(err),
+    }
 
 
 def test_site_intervals_resample_sites_not_sightings():
-    assert bench.site_bootstrap({"site1": _site(9, 10, 9, 10, [0.03])}) == {}  # one site: nothing to resample
+    assert (
+        bench.site_bootstrap({"site1": _site(9, 10, 9, 10, [0.03])}) == {}
+    )  # one site: nothing to resample
     # identical sites: the interval shrinks to the figure itself
     same = bench.site_bootstrap({f"site{i}": _site(9, 10, 19, 20, [0.02, 0.04]) for i in range(5)})
     assert same["target_recall_r>=0.1_range<=5"] == [0.9, 0.9]
@@ -118,8 +145,10 @@ def test_runs_pool_by_lighting_and_refuse_a_site_counted_twice(tmp_path):
     import json
 
     def run(path, lighting, sites):
-        by_site = {k: {"target": [h, 10], "precision": [9, 10], "small": [1, 2], "err": [0.02, 0.04]}
-                   for k, h in sites.items()}
+        by_site = {
+            k: {"target": [h, 10], "precision": [9, 10], "small": [1, 2], "err": [0.02, 0.04]}
+            for k, h in sites.items()
+        }
         path.write_text(json.dumps({"by_lighting": {lighting: {"by_site": by_site}}}))
         return path
 
@@ -127,7 +156,11 @@ def test_runs_pool_by_lighting_and_refuse_a_site_counted_twice(tmp_path):
     b = run(tmp_path / "b.json", "sun 5", {"site3": 8})
     c = run(tmp_path / "c.json", "lamps", {"site1": 6})
     pooled = bench.pool_runs([a, b, c])
-    assert sorted(pooled) == ["lamps", "sun 5"] and sorted(pooled["sun 5"]) == ["site1", "site2", "site3"]
+    assert sorted(pooled) == ["lamps", "sun 5"] and sorted(pooled["sun 5"]) == [
+        "site1",
+        "site2",
+        "site3",
+    ]
     rows = bench.pooled_rows(pooled)
     assert rows["sun 5"]["target_recall_r>=0.1_range<=5"] == (0.8, [24, 30])
     assert rows["lamps"]["sites"] == 1 and rows["lamps"]["ci90"] == {}  # one site: no interval
@@ -150,10 +183,16 @@ def test_runs_pool_by_lighting_and_refuse_a_site_counted_twice(tmp_path):
 
 def test_the_centre_breakdown_has_a_row_for_all_target_matches():
     # (true radius, range, 3D error, horizontal, along, lateral, vertical, est/true radius, oracle)
-    rows = [(0.12, 1.0, 0.02, 0.01, 0.0, 0.0, 0.0, 1.0, 0.01),
-            (0.12, 3.0, 0.04, 0.03, 0.0, 0.0, 0.0, 1.0, 0.03),
-            (0.35, 3.0, 0.10, 0.08, 0.0, 0.0, 0.0, 0.8, 0.05)]
+    rows = [
+        (0.12, 1.0, 0.02, 0.01, 0.0, 0.0, 0.0, 1.0, 0.01),
+        (0.12, 3.0, 0.04, 0.03, 0.0, 0.0, 0.0, 1.0, 0.03),
+        (0.35, 3.0, 0.10, 0.08, 0.0, 0.0, 0.0, 0.8, 0.05),
+    ]
     got = bench.centre_breakdown(rows)
-    assert got["all"]["n"] == 3 and got["all"]["median_m"] == 0.04 and got["all"]["true_radius_oracle_median_m"] == 0.03
+    assert (
+        got["all"]["n"] == 3
+        and got["all"]["median_m"] == 0.04
+        and got["all"]["true_radius_oracle_median_m"] == 0.03
+    )
     assert got["radius 0.1-0.15"]["n"] == 2 and got["radius 0.3-0.5"]["median_m"] == 0.10
     assert got["range 2.5-5"]["n"] == 2 and "radius 0.15-0.2" not in got

@@ -11,7 +11,14 @@ import pytest
 
 from lunarloc.core.geometry import make_transform, rot_z
 from lunarloc.pipeline.calibration import (
-    FAMILIES, NEES_68, NEES_997, Outcome, make_cases, nees_at, run_case, summarise,
+    FAMILIES,
+    NEES_68,
+    NEES_997,
+    Outcome,
+    make_cases,
+    nees_at,
+    run_case,
+    summarise,
 )
 
 # (family, seed, search, config): the repeated worlds through the indexed search (lattices 2 and 5
@@ -21,7 +28,11 @@ from lunarloc.pipeline.calibration import (
 FAST = (
     [("lattice", 2, "indexed", "cli default"), ("lattice", 5, "auto", "cli default")]
     + [("copied map", 0, "indexed", "cli default"), ("motifs", 0, "indexed", "stated rigid")]
-    + [(f, 0, "auto", "cli default") for f in FAMILIES if f not in ("lattice", "copied map", "motifs")]
+    + [
+        (f, 0, "auto", "cli default")
+        for f in FAMILIES
+        if f not in ("lattice", "copied map", "motifs")
+    ]
 )
 
 
@@ -31,7 +42,8 @@ def test_no_confident_wrong(family, seed, search, config):
     o = run_case(case, config, search)
     assert not o.confident_wrong, (
         f"{family} #{seed} ({config}, {search}): claimed a pose {o.err_m:.3f} m / {o.rot_err_deg:.1f} deg off with "
-        f"{o.predicted_error_m * 100:.1f} cm predicted")
+        f"{o.predicted_error_m * 100:.1f} cm predicted"
+    )
     if case.family == "wrong site":
         assert not o.claimed
 
@@ -47,7 +59,14 @@ def test_summarise_counts_confident_wrong_and_nees_shares():
     def out(claimed, right, nees):
         return Outcome("f", 0, "c", "s", claimed, right, 0.0, 0.0, 0.01, nees, "", 0.0)
 
-    rows = summarise([out(True, True, 1.0), out(True, True, 5.0), out(True, False, 1e6), out(False, False, math.nan)])
+    rows = summarise(
+        [
+            out(True, True, 1.0),
+            out(True, True, 5.0),
+            out(True, False, 1e6),
+            out(False, False, math.nan),
+        ]
+    )
     (r,) = rows
     assert (r["cases"], r["claimed"], r["right"], r["confident_wrong"]) == (4, 3, 2, 1)
     assert r["nees_68"] == pytest.approx(1 / 3) and r["nees_997"] == pytest.approx(2 / 3)
@@ -83,19 +102,26 @@ def test_shared_centre_bias_does_not_average_down():
     cfg = LocalizationConfig(odometry_scale_error=0.0, odometry_heading_drift_deg_per_m=0.0)
     plain = localize(LandmarkMap(P), LandmarkMap(Q), cfg, query_xyz=centre)
     n = np.ones(len(P))
-    built = localize(LandmarkMap(P, sightings=n), LandmarkMap(Q, sightings=n), cfg, query_xyz=centre)
+    built = localize(
+        LandmarkMap(P, sightings=n), LandmarkMap(Q, sightings=n), cfg, query_xyz=centre
+    )
     assert plain.success and built.success
     assert plain.predicted_error_m < CENTRE_BIAS_M  # 120 inliers: the residuals' part is small
     assert built.predicted_error_m >= math.sqrt(2) * CENTRE_BIAS_M  # both horizontal axes
     # the covariance carries it too (translation block, about the origin: the bias plus the lever of the yaw part)
-    assert np.trace(built.covariance[:2, :2]) > np.trace(plain.covariance[:2, :2]) + CENTRE_BIAS_M**2
+    assert (
+        np.trace(built.covariance[:2, :2]) > np.trace(plain.covariance[:2, :2]) + CENTRE_BIAS_M**2
+    )
 
 
 # (family, reference, vehicle): the real pairs bent beyond the odometry prior that a narrower
 # bend claimed wrong (docs/verification.md: 7-15 21 cm off at 0.1 deg/m, 4-14 24 cm off and 10-14
 # 10.9 cm off at 0.05 deg/m, 30 m windows), and the paper's five pairs
-BENT = [("real drift 0.1 deg/m 30 m", 7, 15), ("real drift 0.05 deg/m 30 m", 4, 14),
-        ("real drift 0.05 deg/m 30 m", 10, 14)]
+BENT = [
+    ("real drift 0.1 deg/m 30 m", 7, 15),
+    ("real drift 0.05 deg/m 30 m", 4, 14),
+    ("real drift 0.05 deg/m 30 m", 10, 14),
+]
 PAPER = [(3, 5), (3, 7), (5, 7), (5, 12), (7, 12)]
 _LOADED: dict = {}  # the traverses, loaded once for the tests below
 
@@ -105,7 +131,9 @@ def test_real_bent_pairs_are_not_claimed_wrong_by_default(real_data):
 
     for fam, a, b in BENT:
         (o,) = run_real(real_data, [fam], ["cli default"], pairs=[(a, b)], cache=_LOADED)
-        assert not o.confident_wrong, f"{fam} {a}-{b}: {o.err_m * 100:.1f} cm off, {o.predicted_error_m * 100:.1f} cm predicted"
+        assert not o.confident_wrong, (
+            f"{fam} {a}-{b}: {o.err_m * 100:.1f} cm off, {o.predicted_error_m * 100:.1f} cm predicted"
+        )
 
 
 def test_real_paper_pairs_stated_rigid_claimed_with_a_consistent_covariance(real_data):
@@ -114,7 +142,9 @@ def test_real_paper_pairs_stated_rigid_claimed_with_a_consistent_covariance(real
     one wrong."""
     from lunarloc.pipeline.calibration import run_real
 
-    outs = run_real(real_data, ["real pairs"], ["stated bounds", "cli default"], pairs=PAPER, cache=_LOADED)
+    outs = run_real(
+        real_data, ["real pairs"], ["stated bounds", "cli default"], pairs=PAPER, cache=_LOADED
+    )
     for o in outs:
         assert not o.confident_wrong, (o.params, o.config)
         if o.config == "stated bounds":

@@ -52,17 +52,27 @@ def test_bad_specs_are_clear_errors(tmp_path, text, match):
 
 
 def test_cli_bad_spec_exits_2_without_traceback(tmp_path, capsys):
-    assert main(["campaign", str(_spec(tmp_path, "[grid]\nseed = [")), "-o", str(tmp_path / "o")]) == 2
+    assert (
+        main(["campaign", str(_spec(tmp_path, "[grid]\nseed = [")), "-o", str(tmp_path / "o")]) == 2
+    )
     err = capsys.readouterr().err
     assert "not a valid TOML" in err and "Traceback" not in err
     assert main(["campaign", str(tmp_path / "missing.toml"), "-o", str(tmp_path / "o")]) == 2
 
 
 def _fake_summary(cfg: ScenarioConfig) -> dict:
-    return {"reference_landmarks": 50, "vehicle_landmarks": 30, "attempts": 4, "fixes": 2,
-            "ate_odometry": {"rmse_m": 0.2}, "ate_corrected": {"rmse_m": 0.03 + cfg.seed * 1e-4},
-            "final_error_odometry_m": 0.3, "final_error_corrected_m": 0.02, "max_accepted_fix_error_m": 0.04,
-            "real_time_fraction": 0.1}  # fmt: skip
+    return {
+        "reference_landmarks": 50,
+        "vehicle_landmarks": 30,
+        "attempts": 4,
+        "fixes": 2,
+        "ate_odometry": {"rmse_m": 0.2},
+        "ate_corrected": {"rmse_m": 0.03 + cfg.seed * 1e-4},
+        "final_error_odometry_m": 0.3,
+        "final_error_corrected_m": 0.02,
+        "max_accepted_fix_error_m": 0.04,
+        "real_time_fraction": 0.1,
+    }
 
 
 def test_failed_job_is_recorded_and_rerun_skips_finished_jobs(tmp_path, monkeypatch):
@@ -106,7 +116,9 @@ def test_check_failure_is_a_result_not_a_crash(tmp_path, monkeypatch):
     res = camp.run_campaign(camp.CampaignSpec(grid={"seed": [4]}), tmp_path / "o", scheduler="sync")
     assert res.rows[0]["status"] == "ok" and "no localization fix" in res.rows[0]["check"]
     # not passed: a rerun tries it again only if it failed; a check result is final
-    res2 = camp.run_campaign(camp.CampaignSpec(grid={"seed": [4]}), tmp_path / "o", scheduler="sync")
+    res2 = camp.run_campaign(
+        camp.CampaignSpec(grid={"seed": [4]}), tmp_path / "o", scheduler="sync"
+    )
     assert res2.skipped == 1
 
 
@@ -114,8 +126,11 @@ def test_check_failure_is_a_result_not_a_crash(tmp_path, monkeypatch):
 def test_real_job_on_a_local_dask_cluster(tmp_path):
     pytest.importorskip("dask.distributed")
     pytest.importorskip("embreex")
-    spec = camp.CampaignSpec(name="tiny", job={"duration_s": 4.0, "reference_duration_s": 12.0, "width": 320,
-                                               "n_rocks": 1500}, grid={"seed": [5]})  # fmt: skip
+    spec = camp.CampaignSpec(
+        name="tiny",
+        job={"duration_s": 4.0, "reference_duration_s": 12.0, "width": 320, "n_rocks": 1500},
+        grid={"seed": [5]},
+    )
     res = camp.run_campaign(spec, tmp_path / "o", workers=1)
     assert "local cluster" in res.scheduler
     row = res.rows[0]

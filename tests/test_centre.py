@@ -112,7 +112,9 @@ def test_blend_height_follows_the_ring_ground_and_its_range_the_near_edge():
     assert p_far[0] > p[0] and p_far[0] != pytest.approx(p_far0[0], abs=1e-4)
     # stray points far in front of the rock (ground or mismatches in the mask, here 13 %)
     # move the near anchor by at most centre_near_clamp_radii x R
-    stray = np.vstack([P, np.column_stack([np.full(200, 2.3), np.full(200, 0.2), np.full(200, g + 0.01)])])
+    stray = np.vstack(
+        [P, np.column_stack([np.full(200, 2.3), np.full(200, 0.2), np.full(200, g + 0.01)])]
+    )
     p_stray, _ = _centre_blend(stray, stray[:, 2] - g, CAM_ROVER, cfg, R, plane)
     assert abs(p_stray[0] - p[0]) < 0.05
     loose = DetectorConfig(centre_estimator=CentreEstimator.BLEND, centre_near_clamp_radii=10.0)
@@ -120,19 +122,34 @@ def test_blend_height_follows_the_ring_ground_and_its_range_the_near_edge():
     assert p_stray[0] - p_loose[0] > 0.05
 
 
-@pytest.mark.parametrize("key, value", [
-    ("centre_estimator", "ellipsoid"), ("centre_near_weight", 1.5), ("centre_near_weight", -0.1),
-    ("centre_near_quantile", 0.0), ("centre_near_quantile", 0.6), ("centre_near_range_factor", -0.1),
-    ("centre_ring_radius_factor", -0.1), ("centre_ring_exposed_factor", -0.1), ("centre_near_clamp_radii", -1.0),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "key, value",
+    [
+        ("centre_estimator", "ellipsoid"),
+        ("centre_near_weight", 1.5),
+        ("centre_near_weight", -0.1),
+        ("centre_near_quantile", 0.0),
+        ("centre_near_quantile", 0.6),
+        ("centre_near_range_factor", -0.1),
+        ("centre_ring_radius_factor", -0.1),
+        ("centre_ring_exposed_factor", -0.1),
+        ("centre_near_clamp_radii", -1.0),
+    ],
+)
 def test_centre_settings_are_checked_and_round_trip(key, value, tmp_path):
     from lunarloc.config.run import RunConfig, load_config_file
 
     with pytest.raises(ConfigError, match=key):
         RunConfig.from_dict({"detector": {key: value}})
-    good = {"centre_estimator": "blend", "centre_near_weight": 0.5, "centre_near_quantile": 0.1,
-            "centre_near_range_factor": 0.7, "centre_ring_radius_factor": 0.2, "centre_ring_exposed_factor": 0.5,
-            "centre_near_clamp_radii": 0.8}[key]
+    good = {
+        "centre_estimator": "blend",
+        "centre_near_weight": 0.5,
+        "centre_near_quantile": 0.1,
+        "centre_near_range_factor": 0.7,
+        "centre_ring_radius_factor": 0.2,
+        "centre_ring_exposed_factor": 0.5,
+        "centre_near_clamp_radii": 0.8,
+    }[key]
     p = tmp_path / "config.json"
     p.write_text(json.dumps({"detector": {key: good}}))
     cfg, _ = load_config_file(p)

@@ -32,11 +32,30 @@ def _frame(k: int, x_rover: float, centres_map, with_mount: bool = True) -> Fram
         p_map = np.asarray(p, float)
         p_rover = transform_points(invert_transform(T), p_map[None])[0]
         p_opt = transform_points(invert_transform(T_ROVER_OPTICAL), p_rover[None])[0]
-        dets.append(Detection("FrontLeft", (640.0, 400.0), float(p_opt[2]), 5.0, 1.5, 300, 0.06, 0.12, p_opt, p_rover,
-                              p_map))
+        dets.append(
+            Detection(
+                "FrontLeft",
+                (640.0, 400.0),
+                float(p_opt[2]),
+                5.0,
+                1.5,
+                300,
+                0.06,
+                0.12,
+                p_opt,
+                p_rover,
+                p_map,
+            )
+        )
     recs = [MaskRecord(i, None, 3.0, 0.06, None) for i in range(len(dets))]
-    pair = PairResult("FrontLeft", InstanceMasks((720, 1280)), recs, dets, None,
-                      T_rover_optical=T_ROVER_OPTICAL if with_mount else None)
+    pair = PairResult(
+        "FrontLeft",
+        InstanceMasks((720, 1280)),
+        recs,
+        dets,
+        None,
+        T_rover_optical=T_ROVER_OPTICAL if with_mount else None,
+    )
     return FrameDetections(k, T, [pair])
 
 
@@ -65,7 +84,10 @@ def test_off_is_todays_output_and_a_lone_detection_keeps_its_centre():
     out = list(fuse_track_centres(frames, DetectorConfig(fuse_tol_m=0.0)))
     assert [id(d) for f in out for d in f.detections] == ids  # the very same objects, untouched
     # a rock seen in one frame only, and another whose other sightings lie beyond the tolerance
-    lone = [_frame(0, 0.0, [[3.0, 0.5, 0.0], [4.0, -1.0, 0.0]]), _frame(1, 0.3, [[4.0, -1.0 + 0.25, 0.0]])]
+    lone = [
+        _frame(0, 0.0, [[3.0, 0.5, 0.0], [4.0, -1.0, 0.0]]),
+        _frame(1, 0.3, [[4.0, -1.0 + 0.25, 0.0]]),
+    ]
     first = [d.p_map.copy() for d in lone[0].detections]
     out = list(fuse_track_centres(lone, DetectorConfig(fuse_tol_m=0.2)))
     assert all(np.array_equal(d.p_map, p) for d, p in zip(out[0].detections, first))
@@ -75,7 +97,10 @@ def test_off_is_todays_output_and_a_lone_detection_keeps_its_centre():
 def test_two_rocks_side_by_side_stay_apart_and_frames_are_consistent():
     # two rocks 0.15 m apart (within the tolerance): mutual nearest sightings keep them apart
     a, b = np.array([5.0, 0.0, 0.0]), np.array([5.0, 0.15, 0.0])
-    frames = [_frame(k, 0.3 * k, [a + [0.01 * (-1) ** k, 0, 0], b + [0, 0.01 * (-1) ** k, 0]]) for k in range(6)]
+    frames = [
+        _frame(k, 0.3 * k, [a + [0.01 * (-1) ** k, 0, 0], b + [0, 0.01 * (-1) ** k, 0]])
+        for k in range(6)
+    ]
     out = list(fuse_track_centres(frames, DetectorConfig(fuse_tol_m=0.2)))
     for f in out:
         pa, pb = (d.p_map for d in f.detections)
@@ -111,10 +136,17 @@ def test_without_a_camera_pose_p_optical_is_left_alone():
     assert list(fuse_track_centres([nopose], DetectorConfig(fuse_tol_m=0.2)))[0] is nopose
 
 
-@pytest.mark.parametrize("key, value", [
-    ("fuse_tol_m", -0.1), ("fuse_range_power", -1.0), ("fuse_max_frames", 0), ("fuse_max_frames", 2.5),
-    ("fuse_causal", "yes"), ("fuse_estimator", "mode"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "key, value",
+    [
+        ("fuse_tol_m", -0.1),
+        ("fuse_range_power", -1.0),
+        ("fuse_max_frames", 0),
+        ("fuse_max_frames", 2.5),
+        ("fuse_causal", "yes"),
+        ("fuse_estimator", "mode"),
+    ],
+)
 def test_fusion_settings_are_checked_and_round_trip(key, value, tmp_path):
     import json
 
@@ -122,8 +154,13 @@ def test_fusion_settings_are_checked_and_round_trip(key, value, tmp_path):
 
     with pytest.raises(ConfigError):
         RunConfig.from_dict({"detector": {key: value}})
-    good = {"fuse_tol_m": 0.25, "fuse_range_power": 1.5, "fuse_max_frames": 4, "fuse_causal": True,
-            "fuse_estimator": "median"}[key]
+    good = {
+        "fuse_tol_m": 0.25,
+        "fuse_range_power": 1.5,
+        "fuse_max_frames": 4,
+        "fuse_causal": True,
+        "fuse_estimator": "median",
+    }[key]
     p = tmp_path / "config.json"
     p.write_text(json.dumps({"detector": {key: good}}))
     cfg, _ = load_config_file(p)
@@ -140,7 +177,10 @@ def test_detect_archive_fuses_when_on_and_not_when_off(monkeypatch):
         return iter([_frame(k, 0.3 * k, [rock + offs[k]]) for k in range(4)])
 
     monkeypatch.setattr(detector_mod, "_detect_archive_frames", frames)
-    for cfg, fused in ((DetectorConfig(fuse_tol_m=0.0), False), (DetectorConfig(fuse_tol_m=0.2), True)):
+    for cfg, fused in (
+        (DetectorConfig(fuse_tol_m=0.0), False),
+        (DetectorConfig(fuse_tol_m=0.2), True),
+    ):
         out = list(detector_mod.detect_archive(None, cfg, detector=detector_mod.Detector(cfg)))
         got = np.array([f.detections[0].p_map for f in out])
         assert np.allclose(got, rock + np.mean(offs, axis=0)) == fused
@@ -151,7 +191,9 @@ def test_landmark_centres_benchmark_scores_landmarks_against_the_true_rocks():
     from lunarloc.pipeline import landmark_centres as lc
 
     rng = np.random.default_rng(7)
-    rocks = np.array([[1, 4.0, 0.0, 0.1, 0.15], [2, 4.0, 1.5, 0.05, 0.06], [3, 6.0, -1.0, 0.1, 0.2]])
+    rocks = np.array(
+        [[1, 4.0, 0.0, 0.1, 0.15], [2, 4.0, 1.5, 0.05, 0.06], [3, 6.0, -1.0, 0.1, 0.2]]
+    )
     frames = np.arange(8)
     rover = np.column_stack([0.3 * frames, np.zeros(8), np.zeros(8)])
     D, DF, R = [], [], []
@@ -167,5 +209,7 @@ def test_landmark_centres_benchmark_scores_landmarks_against_the_true_rocks():
     assert det["matched"] == 24 and lm["items"] == 3 and lm["matched"] == 3
     # r >= 0.1 m: rocks 1 and 3; detections only within 5 m (rock 3 from 4 of the 8 frames)
     assert lm["target"]["n"] == 2 and det["target"]["n"] == 8 + 4
-    assert lm["all"]["3d_median_m"] < det["all"]["3d_median_m"]  # the cluster's median averages the noise
+    assert (
+        lm["all"]["3d_median_m"] < det["all"]["3d_median_m"]
+    )  # the cluster's median averages the noise
     assert set(res) == {"x", "all"}

@@ -30,7 +30,10 @@ def _gate(data: Path, out: Path) -> subprocess.CompletedProcess:
     if not (ROOT / ".venv" / "bin" / "lunarloc").exists():
         pytest.skip("the gate runs the project's .venv (make venv)")
     return subprocess.run(
-        ["bash", str(GATE), str(data), str(out), "--paper"], capture_output=True, text=True, timeout=300
+        ["bash", str(GATE), str(data), str(out), "--paper"],
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
 
 
@@ -50,4 +53,3 @@ def test_gate_exits_2_on_a_folder_without_traverses(tmp_path):
     proc = _gate(tmp_path / "empty", tmp_path / "out")
     assert proc.returncode == 2, proc.stdout + proc.stderr
     assert "Traceback" not in proc.stderr
-

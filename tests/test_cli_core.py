@@ -93,15 +93,25 @@ def test_lazy_command_table_matches_registered_commands():
 
     app_mod = importlib.import_module("lunarloc.cli.app")
     app_mod._register_commands()
-    registered = {c.name for c in app_mod.app.registered_commands} | {g.name for g in app_mod.app.registered_groups}
+    registered = {c.name for c in app_mod.app.registered_commands} | {
+        g.name for g in app_mod.app.registered_groups
+    }
     assert registered == set(app_mod._MODULES_OF_COMMAND)
     for name, modules in app_mod._MODULES_OF_COMMAND.items():
-        owners = [m for m in modules if any(
-            getattr(c.callback, "__module__", "") == f"lunarloc.cli.{m}" for c in app_mod.app.registered_commands
-            if c.name == name)]
+        owners = [
+            m
+            for m in modules
+            if any(
+                getattr(c.callback, "__module__", "") == f"lunarloc.cli.{m}"
+                for c in app_mod.app.registered_commands
+                if c.name == name
+            )
+        ]
         if name != "bench":  # a group: its subcommands live in several modules
             assert owners == list(modules), name
-    assert set(m for ms in app_mod._MODULES_OF_COMMAND.values() for m in ms) == set(app_mod._COMMAND_MODULES)
+    assert set(m for ms in app_mod._MODULES_OF_COMMAND.values() for m in ms) == set(
+        app_mod._COMMAND_MODULES
+    )
 
 
 def test_help_lists_every_command(capsys):
@@ -118,9 +128,13 @@ def test_localize_imports_only_its_module(tmp_path):
     import subprocess
     import sys
 
-    code = ("import sys; from lunarloc.cli import main; main(['localize', '--help']); "
-            "print(sorted(m for m in sys.modules if m.startswith('lunarloc.cli.commands_')))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    code = (
+        "import sys; from lunarloc.cli import main; main(['localize', '--help']); "
+        "print(sorted(m for m in sys.modules if m.startswith('lunarloc.cli.commands_')))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout
     assert out.strip().splitlines()[-1] == "['lunarloc.cli.commands_core']"
 
 
@@ -132,10 +146,14 @@ def test_localize_traverse_vehicle_uses_its_path(tmp_path, rng, capsys):
 
     rocks = np.c_[rng.uniform(0, 20, 70), rng.uniform(-4, 4, 70), rng.uniform(-0.05, 0.05, 70)]
     c, s_ = np.cos(0.6), np.sin(0.6)
-    T_ref_veh = make_transform(np.array([[c, -s_, 0], [s_, c, 0], [0, 0, 1]]), np.array([3.0, -2.0, 0.1]))
+    T_ref_veh = make_transform(
+        np.array([[c, -s_, 0], [s_, c, 0], [0, 0, 1]]), np.array([3.0, -2.0, 0.1])
+    )
     ref_p = save_map(LandmarkMap(transform_points(T_ref_veh, rocks)), tmp_path / "ref.csv")
     lines = ["frame,x,y,z,detections,boulders"]
-    for f, x in enumerate(np.arange(0.0, 20.01, 0.25)):  # the rover drives along x, seeing rocks within 4 m
+    for f, x in enumerate(
+        np.arange(0.0, 20.01, 0.25)
+    ):  # the rover drives along x, seeing rocks within 4 m
         near = rocks[np.linalg.norm(rocks[:, :2] - [x, 0.0], axis=1) < 4.0]
         det = near + rng.normal(0, 0.005, near.shape)
         b = "[" + ", ".join(f"({p:.6f}, {q:.6f}, {r:.6f})" for p, q, r in det) + "]"

@@ -31,8 +31,20 @@ def test_info_is_registered_on_the_lunarloc_app():
 def archive(tmp_path):
     path = tmp_path / "traverse_1.lac"
     cams = {
-        "FrontLeft": {"camera_active": True, "light_intensity": 1.0, "width": W, "height": H, "use_semantic": True},
-        "FrontRight": {"camera_active": True, "light_intensity": 1.0, "width": W, "height": H, "use_semantic": False},
+        "FrontLeft": {
+            "camera_active": True,
+            "light_intensity": 1.0,
+            "width": W,
+            "height": H,
+            "use_semantic": True,
+        },
+        "FrontRight": {
+            "camera_active": True,
+            "light_intensity": 1.0,
+            "width": W,
+            "height": H,
+            "use_semantic": False,
+        },
     }
     init = {"fiducials": False, "lander": [0.0] * 6, "rover": [0.0] * 6, "cameras": cams}
     g = np.zeros((H, W), np.uint8)
@@ -40,10 +52,20 @@ def archive(tmp_path):
         for f in range(31):
             w.add_frame(f, x=0.1 * f, mission_time=0.05 * f)  # 3 m in 1.5 s
             if f % 10 == 0:
-                w.add_camera_frame("FrontLeft", f, [0.28, 0.081, 0.131, 0, 0, 0], grayscale=g, semantic=g)
+                w.add_camera_frame(
+                    "FrontLeft", f, [0.28, 0.081, 0.131, 0, 0, 0], grayscale=g, semantic=g
+                )
                 w.add_camera_frame("FrontRight", f, [0.28, -0.081, 0.131, 0, 0, 0], grayscale=g)
-        w.add_custom("rocks", ["id", "x", "y", "z", "radius"], [[0, 1.0, 0.5, 0.0, 0.2], [1, 2.0, -0.4, 0.0, 0.1]])
-        w.add_custom("odometry", ["frame", "x", "y", "z", "roll", "pitch", "yaw"], [[0, 0, 0, 0, 0, 0, 0], [30, 3.1, 0.1, 0, 0, 0, 0]])
+        w.add_custom(
+            "rocks",
+            ["id", "x", "y", "z", "radius"],
+            [[0, 1.0, 0.5, 0.0, 0.2], [1, 2.0, -0.4, 0.0, 0.1]],
+        )
+        w.add_custom(
+            "odometry",
+            ["frame", "x", "y", "z", "roll", "pitch", "yaw"],
+            [[0, 0, 0, 0, 0, 0, 0], [30, 3.1, 0.1, 0, 0, 0, 0]],
+        )
     return path
 
 
@@ -78,7 +100,8 @@ def test_info_bad_archive_raises_archive_error(tmp_path):
 
 
 @pytest.mark.skipif(
-    importlib.util.find_spec("lunarloc.cli.commands_core") is None, reason="CLI core commands not registered yet"
+    importlib.util.find_spec("lunarloc.cli.commands_core") is None,
+    reason="CLI core commands not registered yet",
 )
 def test_info_bad_archive_one_line_error(tmp_path, capsys):
     from lunarloc.cli.app import main

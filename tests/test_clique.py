@@ -62,6 +62,8 @@ def test_clipper_returns_a_clique_and_finds_planted(rng):
 def test_putative_associations_size_pruning():
     assoc, node_of = putative_associations(3, 4)
     assert assoc.shape == (12, 2) and node_of.max() == 11
-    assoc, node_of = putative_associations(2, 2, np.array([1.0, 2.0]), np.array([1.1, 4.0]), max_size_ratio=1.5)
+    assoc, node_of = putative_associations(
+        2, 2, np.array([1.0, 2.0]), np.array([1.1, 4.0]), max_size_ratio=1.5
+    )
     assert {tuple(map(int, a)) for a in assoc} == {(0, 0)}  # 2/1.1 and 4/2 exceed 1.5
     assert node_of[0, 1] == -1

@@ -42,7 +42,9 @@ def stereo_scene(rock_uv=(640, 420), rock_depth=3.0, rock_r_px=40, ground_depth=
     d_r = np.float32(CAM.fx * B / rock_depth)
     pad = int(d_r) + 4
     tex = 150 + cv2.GaussianBlur(rng.normal(0, 14, (H, W + pad)).astype(np.float32), (0, 0), 1.3)
-    rock_tex = 215 + cv2.GaussianBlur(rng.normal(0, 8, (H, W + pad)).astype(np.float32), (0, 0), 1.3)
+    rock_tex = 215 + cv2.GaussianBlur(
+        rng.normal(0, 8, (H, W + pad)).astype(np.float32), (0, 0), 1.3
+    )
     v, u = np.mgrid[:H, :W].astype(np.float32)
 
     def view(shift_sign):
@@ -64,9 +66,13 @@ def test_detects_rock_at_known_depth_and_places_it_in_map():
     left, right = stereo_scene()
     rig = ipex_rig(CAM)
     T_map_rover = pose_to_matrix(2.0, -1.0, 0.3, 0.0, 0.0, np.radians(30))
-    cfg = DetectorConfig(filters=MaskFilterConfig(s_min_m=0.01, s_max_m=1.0), centre_correction=False, **LEGACY)
+    cfg = DetectorConfig(
+        filters=MaskFilterConfig(s_min_m=0.01, s_max_m=1.0), centre_correction=False, **LEGACY
+    )
     det = Detector(cfg, CAM)
-    fd = det.detect_frame({"FrontLeft": left, "FrontRight": right}, rig, T_map_rover, frame=7, keep_depth=True)
+    fd = det.detect_frame(
+        {"FrontLeft": left, "FrontRight": right}, rig, T_map_rover, frame=7, keep_depth=True
+    )
     assert fd.frame == 7 and fd.pairs[0].depth is not None
     kept = [d for d in fd.detections if abs(d.uv[0] - 640) < 3 and abs(d.uv[1] - 420) < 3]
     assert len(kept) == 1
@@ -75,7 +81,9 @@ def test_detects_rock_at_known_depth_and_places_it_in_map():
     assert d.size_m == pytest.approx(20 * 3.0 / CAM.fx, rel=0.1)  # sigma = r/2 = 20 px
     expect_opt = CAM.backproject(np.array([[640.0, 420.0]]), np.array([3.0]))[0]
     assert np.allclose(d.p_optical, expect_opt, atol=0.06)
-    assert np.allclose(d.p_rover, transform_points(rig["FrontLeft"].T_rover_optical, d.p_optical[None])[0])
+    assert np.allclose(
+        d.p_rover, transform_points(rig["FrontLeft"].T_rover_optical, d.p_optical[None])[0]
+    )
     assert np.allclose(d.p_map, transform_points(T_map_rover, d.p_rover[None])[0])
     # the rock is in front of the rover, the optical axis is the rover's x axis
     assert d.p_rover[0] == pytest.approx(0.28 + 3.0, abs=0.1)
@@ -98,11 +106,19 @@ def test_centre_correction_moves_along_the_ray():
 
 def test_filters_reject_with_reasons():
     left, right = stereo_scene(rock_depth=3.0)
-    det = Detector(DetectorConfig(filters=MaskFilterConfig(s_min_m=0.2, s_max_m=1.0), **LEGACY), CAM)
+    det = Detector(
+        DetectorConfig(filters=MaskFilterConfig(s_min_m=0.2, s_max_m=1.0), **LEGACY), CAM
+    )
     pr = det.detect_pair(left, right, np.eye(4))
-    rock = [r for r in pr.records if np.hypot(r.stats.centroid_uv[0] - 640, r.stats.centroid_uv[1] - 420) < 3][0]
+    rock = [
+        r
+        for r in pr.records
+        if np.hypot(r.stats.centroid_uv[0] - 640, r.stats.centroid_uv[1] - 420) < 3
+    ][0]
     assert rock.reason is RejectReason.TOO_SMALL
-    pr = Detector(DetectorConfig(), CAM).detect_pair(left, None, np.eye(4))  # no right image: no depth
+    pr = Detector(DetectorConfig(), CAM).detect_pair(
+        left, None, np.eye(4)
+    )  # no right image: no depth
     assert all(r.reason is not None for r in pr.records) and not pr.detections
 
 
@@ -120,7 +136,9 @@ def _bilinear_reflect(img, x, y):
 
     h, w = img.shape
     xa, xb, ya, yb = mirror(x0, w), mirror(x0 + 1, w), mirror(y0, h), mirror(y0 + 1, h)
-    return (img[ya, xa] * (1 - fx) + img[ya, xb] * fx) * (1 - fy) + (img[yb, xa] * (1 - fx) + img[yb, xb] * fx) * fy
+    return (img[ya, xa] * (1 - fx) + img[ya, xb] * fx) * (1 - fy) + (
+        img[yb, xa] * (1 - fx) + img[yb, xb] * fx
+    ) * fy
 
 
 def ground_scene(centre=(3.28, 0.1, -0.15), radius=0.15, seed=1, axes=None):
@@ -239,7 +257,9 @@ def test_too_tall_and_lander_footprint_are_rejected():
     det = Detector(DetectorConfig(), CAM)
     kept = det.detect_pair(left, right, rig_T, T_map_rover)
     assert len(kept.detections) == 1
-    lander_xy = transform_points(T_map_rover, (c + [1.5, 0.0, 0.0])[None])[0, :2]  # 1.5 m beyond the rock
+    lander_xy = transform_points(T_map_rover, (c + [1.5, 0.0, 0.0])[None])[
+        0, :2
+    ]  # 1.5 m beyond the rock
     pr = det.detect_pair(left, right, rig_T, T_map_rover, lander_xy=lander_xy)
     assert not pr.detections and any(r.reason is RejectReason.ON_LANDER for r in pr.records)
     far = det.detect_pair(left, right, rig_T, T_map_rover, lander_xy=lander_xy + [3.0, 3.0])
@@ -251,15 +271,24 @@ def test_cli_detect_lander_xy_drops_detections_on_the_lander(tmp_path):
     from lunarloc.sim.simulate import SimulationConfig, simulate_dataset
     from lunarloc.io.maps import load_traverse
 
-    cfg = SimulationConfig(duration_s=6.0, image_rate_hz=2.0, width=320, height=180,
-                           cameras=("FrontLeft", "FrontRight"), semantic=False)  # fmt: skip
+    cfg = SimulationConfig(
+        duration_s=6.0,
+        image_rate_hz=2.0,
+        width=320,
+        height=180,
+        cameras=("FrontLeft", "FrontRight"),
+        semantic=False,
+    )
     simulate_dataset(0, 1, tmp_path, cfg)
     arch = str(tmp_path / "traverse_0.lac")
     assert main(["detect", arch, "-o", str(tmp_path / "a.csv")]) == 0
     all_xyz = load_traverse(tmp_path / "a.csv").detections_xyz
     assert len(all_xyz) > 0
     xy = all_xyz[0, :2]
-    assert main(["detect", arch, "-o", str(tmp_path / "b.csv"), "--lander-xy", f"{xy[0]},{xy[1]}"]) == 0
+    assert (
+        main(["detect", arch, "-o", str(tmp_path / "b.csv"), "--lander-xy", f"{xy[0]},{xy[1]}"])
+        == 0
+    )
     kept = load_traverse(tmp_path / "b.csv").detections_xyz
     assert len(kept) < len(all_xyz)
     assert np.all(np.hypot(*(kept[:, :2] - xy).T) > DetectorConfig().lander_radius_m)
@@ -272,7 +301,9 @@ def test_height_above_surroundings_sees_a_knob_on_a_large_object():
     rng = np.random.default_rng(0)
     ground = np.c_[rng.uniform(0, 6, (4000, 2)) - [0, 3], rng.normal(0, 0.005, 4000)]  # flat, z = 0
     cam = np.array([0.0, 0.0, 0.35])
-    knob = np.array([[4.0, 0.0, 0.6], [4.0, 0.02, 0.62], [4.02, 0.0, 0.58]])  # 0.6 m up, on a boulder
+    knob = np.array(
+        [[4.0, 0.0, 0.6], [4.0, 0.02, 0.62], [4.02, 0.0, 0.58]]
+    )  # 0.6 m up, on a boulder
     h = _height_above_surroundings(knob, knob.mean(0), 0.02, ground, cam, 0.9)
     assert h == pytest.approx(0.61, abs=0.03)
     cfg = DetectorConfig()
@@ -280,20 +311,27 @@ def test_height_above_surroundings_sees_a_knob_on_a_large_object():
     assert np.isnan(_height_above_surroundings(knob, knob.mean(0), 0.02, ground[:5], cam, 0.9))
 
 
-@pytest.mark.parametrize("axes, centre", [((0.3, 0.3, 0.55), (3.5, 0.2, 0.2)), ((0.35, 0.35, 0.6), (4.0, 0.0, 0.2))])
+@pytest.mark.parametrize(
+    "axes, centre", [((0.3, 0.3, 0.55), (3.5, 0.2, 0.2)), ((0.35, 0.35, 0.6), (4.0, 0.0, 0.2))]
+)
 def test_a_boulder_taller_than_wide_is_a_rock_not_a_knob(axes, centre):
     # seen end-on, its silhouette gives a radius of about 0.3 m while it stands 0.75-0.8 m
     # above the ground: the knob tests alone would call it perched on something larger
     left, right, rig = ground_scene(centre, axes=axes)
     T = rig["FrontLeft"].T_rover_optical
     found = Detector(DetectorConfig(), CAM).detect_pair(left, right, T).detections
+
     # one detection on the boulder. Beside the second boulder (0.47 m from its axis) the
     # matcher's disparity halo against the far background, cut off by the depth split
     # (depth_split_ratio 0.07), stands 0.33 m above the ground in front of it, 2 cm under
     # the perched limit for its 7 cm radius, and is kept: a known false detection of this
     # scene (docs/perception-history.md, "Ninth pass"), not the boulder split in two.
     def on_boulder(dets):
-        return [d for d in dets if np.linalg.norm(d.p_rover[:2] - np.asarray(centre[:2])) < axes[0] + 0.05]
+        return [
+            d
+            for d in dets
+            if np.linalg.norm(d.p_rover[:2] - np.asarray(centre[:2])) < axes[0] + 0.05
+        ]
 
     on_it = on_boulder(found)
     assert len(on_it) == 1 and len(found) <= 2
@@ -301,7 +339,9 @@ def test_a_boulder_taller_than_wide_is_a_rock_not_a_knob(axes, centre):
     assert np.linalg.norm(d.p_rover[:2] - np.asarray(centre[:2])) < 0.15 and d.radius_m >= 0.2
     # every blob tested, as before: rejected as not a rock
     before = Detector(DetectorConfig(perched_max_radius_m=0.0), CAM).detect_pair(left, right, T)
-    assert on_boulder(before.detections) == [] and RejectReason.NOT_A_ROCK in [r.reason for r in before.records]
+    assert on_boulder(before.detections) == [] and RejectReason.NOT_A_ROCK in [
+        r.reason for r in before.records
+    ]
 
 
 def test_perched_max_radius_is_checked_and_round_trips():
@@ -343,13 +383,17 @@ def test_small_blob_standing_too_high_for_its_size_is_not_a_rock():
     assert len(pr.detections) == 1
     d = pr.detections[0]
     assert np.isfinite(d.height_m) and d.height_m < DetectorConfig().top_per_radius * d.radius_m
-    pr = Detector(DetectorConfig(top_per_radius=0.3, top_noise_m=0.0), CAM).detect_pair(left, right, T)
+    pr = Detector(DetectorConfig(top_per_radius=0.3, top_noise_m=0.0), CAM).detect_pair(
+        left, right, T
+    )
     assert not pr.detections and any(r.reason is RejectReason.NOT_A_ROCK for r in pr.records)
     # the rule switched off by name (rules.off): the same strict scaling keeps it again, as it is
     from dataclasses import replace
 
     strict = DetectorConfig(top_per_radius=0.3, top_noise_m=0.0)
-    off = Detector(replace(strict, rules=replace(strict.rules, off=("perched",))), CAM).detect_pair(left, right, T)
+    off = Detector(replace(strict, rules=replace(strict.rules, off=("perched",))), CAM).detect_pair(
+        left, right, T
+    )
     assert len(off.detections) == 1 and off.detections[0].p_rover.tolist() == d.p_rover.tolist()
 
 
@@ -421,7 +465,9 @@ def _det(p, radius):
     from lunarloc.perception.detector import Detection
 
     p = np.asarray(p, float)
-    return Detection("FrontLeft", (0.0, 0.0), float(p[0]), 5.0, 1.0, 100, radius / 2, radius, p, p, p)
+    return Detection(
+        "FrontLeft", (0.0, 0.0), float(p[0]), 5.0, 1.0, 100, radius / 2, radius, p, p, p
+    )
 
 
 def test_overlapping_detections_keep_the_larger_one():
@@ -438,16 +484,29 @@ def test_overlapping_detections_keep_the_larger_one():
     assert overlapping_duplicates([a, b], 1.0) == []
     assert len(overlapping_duplicates([a, b], 0.5)) == 1
     # a chain: the middle one is dropped by the largest, the far one stays
-    c1, c2, c3 = _det([1.0, 0.0, 0.0], 0.2), _det([1.0, 0.25, 0.0], 0.1), _det([1.0, 0.5, 0.0], 0.08)
+    c1, c2, c3 = (
+        _det([1.0, 0.0, 0.0], 0.2),
+        _det([1.0, 0.25, 0.0], 0.1),
+        _det([1.0, 0.5, 0.0], 0.08),
+    )
     assert overlapping_duplicates([c1, c2, c3], 1.0) == [1]
 
 
-@pytest.mark.parametrize("key, value", [
-    ("max_nearer_ring_fraction", 1.5), ("max_nearer_ring_fraction", -0.1), ("nearer_depth_ratio", 1.0),
-    ("nearer_depth_ratio", 0.0), ("duplicate_overlap_ratio", -1.0), ("crest_extension_ratio", -0.1),
-    ("crest_max_radius_m", -0.01), ("crest_extension_max_ratio", 0.5), ("strip_max_eig_ratio", -1.0),
-    ("strip_max_extension_ratio", -0.1),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "key, value",
+    [
+        ("max_nearer_ring_fraction", 1.5),
+        ("max_nearer_ring_fraction", -0.1),
+        ("nearer_depth_ratio", 1.0),
+        ("nearer_depth_ratio", 0.0),
+        ("duplicate_overlap_ratio", -1.0),
+        ("crest_extension_ratio", -0.1),
+        ("crest_max_radius_m", -0.01),
+        ("crest_extension_max_ratio", 0.5),
+        ("strip_max_eig_ratio", -1.0),
+        ("strip_max_extension_ratio", -0.1),
+    ],
+)
 def test_precision_rule_settings_are_checked_and_round_trip(key, value, tmp_path):
     import json
 
@@ -455,9 +514,16 @@ def test_precision_rule_settings_are_checked_and_round_trip(key, value, tmp_path
 
     with pytest.raises(ConfigError, match=key):
         RunConfig.from_dict({"detector": {key: value}})
-    good = {"max_nearer_ring_fraction": 0.3, "nearer_depth_ratio": 0.6, "duplicate_overlap_ratio": 0.5,
-            "crest_extension_ratio": 0.75, "crest_max_radius_m": 0.2, "crest_extension_max_ratio": 3.0,
-            "strip_max_eig_ratio": 40.0, "strip_max_extension_ratio": 0.3}[key]
+    good = {
+        "max_nearer_ring_fraction": 0.3,
+        "nearer_depth_ratio": 0.6,
+        "duplicate_overlap_ratio": 0.5,
+        "crest_extension_ratio": 0.75,
+        "crest_max_radius_m": 0.2,
+        "crest_extension_max_ratio": 3.0,
+        "strip_max_eig_ratio": 40.0,
+        "strip_max_extension_ratio": 0.3,
+    }[key]
     p = tmp_path / "config.json"
     p.write_text(json.dumps({"detector": {key: good}}))
     cfg, _ = load_config_file(p)
@@ -511,7 +577,9 @@ def test_default_rules_keep_a_lone_small_rock_on_flat_ground():
     d = pr.detections[0]
     assert np.linalg.norm(d.p_rover[:2] - c[:2]) < 0.08
     assert d.nearer_ring_fraction < DetectorConfig().max_nearer_ring_fraction
-    assert d.extension_ratio < 0.5 * DetectorConfig().crest_extension_ratio  # measured (R < 0.12 m), and low
+    assert (
+        d.extension_ratio < 0.5 * DetectorConfig().crest_extension_ratio
+    )  # measured (R < 0.12 m), and low
 
 
 def _elongated_rock_kept_by_default(c, radius, off_cfg):
@@ -536,12 +604,23 @@ def test_a_mid_range_rock_seen_as_a_flat_strip_is_kept():
     # the height map's region threshold is a strip (eigenvalue ratio ~23, above the
     # height filters' tau_elong of 20); the strip rule keeps it, where it ends at its sides
     c = np.array([4.0, 0.0, -0.29])
-    left, right, T, d = _elongated_rock_kept_by_default(c, 0.16, DetectorConfig(strip_max_eig_ratio=0.0))
-    assert DetectorConfig().height_filters.tau_elong < d.eig_ratio <= DetectorConfig().strip_max_eig_ratio
+    left, right, T, d = _elongated_rock_kept_by_default(
+        c, 0.16, DetectorConfig(strip_max_eig_ratio=0.0)
+    )
+    assert (
+        DetectorConfig().height_filters.tau_elong
+        < d.eig_ratio
+        <= DetectorConfig().strip_max_eig_ratio
+    )
     assert np.linalg.norm(d.p_rover[:2] - c[:2]) < 0.15
     assert d.extension_ratio <= DetectorConfig().strip_max_extension_ratio
     # a strip that goes on beyond its ends at its own height is a crest: rejected
-    crest = Detector(DetectorConfig(strip_max_extension_ratio=0.0, tentative_max_range_m=0.0, small_rocks=NO_SMALL), CAM).detect_pair(left, right, T)
+    crest = Detector(
+        DetectorConfig(
+            strip_max_extension_ratio=0.0, tentative_max_range_m=0.0, small_rocks=NO_SMALL
+        ),
+        CAM,
+    ).detect_pair(left, right, T)
     assert crest.detections == [] and [r.reason for r in crest.records] == [RejectReason.NOT_A_ROCK]
 
 
@@ -559,7 +638,9 @@ def test_only_elongated_masks_within_the_strip_limit_are_strips():
     S.eig_ratio = cfg.strip_max_eig_ratio + 1.0
     assert not _is_flat_strip(RejectReason.ELONGATED, S, fc, cfg)
     S.eig_ratio = 25.0
-    assert not _is_flat_strip(RejectReason.ELONGATED, S, fc, DetectorConfig(strip_max_eig_ratio=0.0))
+    assert not _is_flat_strip(
+        RejectReason.ELONGATED, S, fc, DetectorConfig(strip_max_eig_ratio=0.0)
+    )
 
 
 def test_a_large_rock_seen_as_a_raised_strip_is_kept():
@@ -568,23 +649,46 @@ def test_a_large_rock_seen_as_a_raised_strip_is_kept():
     # and it does not end at its sides); it stands well above the quadric ground around
     # it, so the raised-strip rule keeps it
     c = np.array([4.0, 0.0, -0.2 - 0.5 + 0.1])
-    left, right, T, d = _elongated_rock_kept_by_default(c, 0.5, DetectorConfig(raised_strip_max_eig_ratio=0.0))
+    left, right, T, d = _elongated_rock_kept_by_default(
+        c, 0.5, DetectorConfig(raised_strip_max_eig_ratio=0.0)
+    )
     cfg = DetectorConfig()
     assert cfg.height_filters.tau_elong < d.eig_ratio <= cfg.raised_strip_max_eig_ratio
-    assert d.area_px >= cfg.raised_strip_min_area_px and d.height_quadric_m >= cfg.raised_strip_min_quadric_m
+    assert (
+        d.area_px >= cfg.raised_strip_min_area_px
+        and d.height_quadric_m >= cfg.raised_strip_min_quadric_m
+    )
     assert np.linalg.norm(d.p_rover[:2] - c[:2]) < 0.1
     # a strip standing lower above its quadric ground than asked, or wider than allowed: rejected
-    for strict in (DetectorConfig(raised_strip_min_quadric_m=d.height_quadric_m + 0.01, tentative_max_range_m=0.0, small_rocks=NO_SMALL),
-                   DetectorConfig(raised_strip_max_radius_m=0.5 * d.radius_m, tentative_max_range_m=0.0, small_rocks=NO_SMALL)):
+    for strict in (
+        DetectorConfig(
+            raised_strip_min_quadric_m=d.height_quadric_m + 0.01,
+            tentative_max_range_m=0.0,
+            small_rocks=NO_SMALL,
+        ),
+        DetectorConfig(
+            raised_strip_max_radius_m=0.5 * d.radius_m,
+            tentative_max_range_m=0.0,
+            small_rocks=NO_SMALL,
+        ),
+    ):
         pr = Detector(strict, CAM).detect_pair(left, right, T)
         assert pr.detections == [] and [r.reason for r in pr.records] == [RejectReason.NOT_A_ROCK]
     # too few pixels to be a candidate: rejected as elongated, as before
-    pr = Detector(DetectorConfig(raised_strip_min_area_px=d.area_px + 1, tentative_max_range_m=0.0, small_rocks=NO_SMALL), CAM).detect_pair(left, right, T)
+    pr = Detector(
+        DetectorConfig(
+            raised_strip_min_area_px=d.area_px + 1, tentative_max_range_m=0.0, small_rocks=NO_SMALL
+        ),
+        CAM,
+    ).detect_pair(left, right, T)
     assert pr.detections == [] and [r.reason for r in pr.records] == [RejectReason.ELONGATED]
 
 
 def test_strip_verdicts():
-    from lunarloc.perception.rules import is_raised_strip as _is_raised_strip, strip_rejected as _strip_rejected
+    from lunarloc.perception.rules import (
+        is_raised_strip as _is_raised_strip,
+        strip_rejected as _strip_rejected,
+    )
 
     cfg, fc = DetectorConfig(), MaskFilterConfig(tau_elong=20.0)
 
@@ -592,13 +696,21 @@ def test_strip_verdicts():
         eig_ratio, area = 40.0, 800
 
     assert _is_raised_strip(RejectReason.ELONGATED, S, fc, cfg)
-    assert not _is_raised_strip(RejectReason.BORDER, S, fc, cfg) and not _is_raised_strip(None, S, fc, cfg)
-    assert not _is_raised_strip(RejectReason.ELONGATED, S, fc, DetectorConfig(raised_strip_max_eig_ratio=0.0))
+    assert not _is_raised_strip(RejectReason.BORDER, S, fc, cfg) and not _is_raised_strip(
+        None, S, fc, cfg
+    )
+    assert not _is_raised_strip(
+        RejectReason.ELONGATED, S, fc, DetectorConfig(raised_strip_max_eig_ratio=0.0)
+    )
     S.area = cfg.raised_strip_min_area_px - 1
     assert not _is_raised_strip(RejectReason.ELONGATED, S, fc, cfg)
     S.area, S.eig_ratio = 800, cfg.raised_strip_max_eig_ratio + 1.0
     assert not _is_raised_strip(RejectReason.ELONGATED, S, fc, cfg)
-    q_ok, q_low, R_ok = cfg.raised_strip_min_quadric_m + 0.01, cfg.raised_strip_min_quadric_m - 0.01, 0.2
+    q_ok, q_low, R_ok = (
+        cfg.raised_strip_min_quadric_m + 0.01,
+        cfg.raised_strip_min_quadric_m - 0.01,
+        0.2,
+    )
     ext_ok, ext_bad = cfg.strip_max_extension_ratio - 0.05, cfg.strip_max_extension_ratio + 0.2
     # neither kind: no verdict here
     assert not _strip_rejected(False, False, np.nan, np.nan, R_ok, cfg)
@@ -618,8 +730,15 @@ def _height_map(depth, height, scale=2):
     from lunarloc.perception.stereo import HeightMap
 
     h, w = depth.shape
-    return HeightMap(np.where(np.isfinite(depth), 30.0 / depth, np.nan), depth, np.zeros((h, w, 3)), height, scale, 0,
-                     np.eye(4))
+    return HeightMap(
+        np.where(np.isfinite(depth), 30.0 / depth, np.nan),
+        depth,
+        np.zeros((h, w, 3)),
+        height,
+        scale,
+        0,
+        np.eye(4),
+    )
 
 
 def _blob_12x20(k=2):
@@ -685,15 +804,27 @@ def test_a_depth_step_spread_over_two_pixels_is_cut_when_measured_two_pixels_apa
     # ground receding 3 % per pixel (flat ground seen at about 8 m) is not cut two pixels apart
     ground = depth.copy()
     ground[10:22, 10:30] = 8.0 * 1.03 ** np.arange(11, -1, -1)[:, None]
-    assert len(split_at_depth_steps(masks, _height_map(ground, height), 0.07, 10, 0.035, step_px=2)) == 1
+    assert (
+        len(split_at_depth_steps(masks, _height_map(ground, height), 0.07, 10, 0.035, step_px=2))
+        == 1
+    )
 
 
-@pytest.mark.parametrize("key, bad, good", [
-    ("raised_strip_max_eig_ratio", -1.0, 40.0), ("raised_strip_min_area_px", -5, 400),
-    ("raised_strip_min_area_px", 2.5, 400), ("raised_strip_min_quadric_m", -0.01, 0.04),
-    ("raised_strip_max_radius_m", 0.0, 0.6), ("depth_split_ratio", -0.1, 0.15), ("depth_split_ratio", 12.0, 0.2),
-    ("depth_split_step_px", 0, 1), ("depth_split_step_px", 1.5, 3), ("depth_split_step_px", 9, 4),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "key, bad, good",
+    [
+        ("raised_strip_max_eig_ratio", -1.0, 40.0),
+        ("raised_strip_min_area_px", -5, 400),
+        ("raised_strip_min_area_px", 2.5, 400),
+        ("raised_strip_min_quadric_m", -0.01, 0.04),
+        ("raised_strip_max_radius_m", 0.0, 0.6),
+        ("depth_split_ratio", -0.1, 0.15),
+        ("depth_split_ratio", 12.0, 0.2),
+        ("depth_split_step_px", 0, 1),
+        ("depth_split_step_px", 1.5, 3),
+        ("depth_split_step_px", 9, 4),
+    ],
+)
 def test_raised_strip_and_depth_split_settings_are_checked_and_round_trip(key, bad, good, tmp_path):
     import json
 
@@ -713,7 +844,11 @@ def test_disparity_roughness_tells_a_smooth_surface_from_stereo_noise():
     r, c = np.mgrid[0:40, 0:60].astype(float)
     inside = ((r - 20) / 18) ** 2 + ((c - 30) / 27) ** 2 < 1.0
     # a rock: a dome 4 px of disparity high on a ground plane tilted 0.3 px per row
-    dome = 30.0 + 0.3 * r + 4.0 * np.sqrt(np.clip(1.0 - ((r - 20) / 18) ** 2 - ((c - 30) / 27) ** 2, 0.0, None))
+    dome = (
+        30.0
+        + 0.3 * r
+        + 4.0 * np.sqrt(np.clip(1.0 - ((r - 20) / 18) ** 2 - ((c - 30) / 27) ** 2, 0.0, None))
+    )
     sub_px = np.round(dome * 16.0) / 16.0  # SGBM's 1/16 px steps
     rng = np.random.default_rng(5)
     # stereo noise in a textureless shadow: patches of disparities jumping by pixels
@@ -741,9 +876,15 @@ def test_a_rock_is_kept_with_a_smooth_disparity_and_the_rule_is_wired():
         # counting SGBM's sub-pixel steps as jumps makes any surface rough
         "fine": DetectorConfig(roughness_step_px=1e-3, max_disparity_roughness=1e-3),
     }
-    runs = {k: Detector(cfg, CAM).detect_pair(left, right, rig["FrontLeft"].T_rover_optical) for k, cfg in configs.items()}
+    runs = {
+        k: Detector(cfg, CAM).detect_pair(left, right, rig["FrontLeft"].T_rover_optical)
+        for k, cfg in configs.items()
+    }
     assert [len(runs[k].detections) for k in configs] == [1, 1, 0]
-    assert runs["default"].detections[0].disparity_roughness < 0.5 * DetectorConfig().max_disparity_roughness
+    assert (
+        runs["default"].detections[0].disparity_roughness
+        < 0.5 * DetectorConfig().max_disparity_roughness
+    )
     assert np.isnan(runs["off"].detections[0].disparity_roughness)
     assert RejectReason.NOT_A_ROCK in [r.reason for r in runs["fine"].records]
 
@@ -760,7 +901,9 @@ def _frame(k, x_rover, dets):
     T[0, 3] = x_rover
     ds = [_replace(_det(p, 0.08), needs_confirmation=flag) for p, flag in dets]
     recs = [MaskRecord(i, None, 3.0, 0.04, None) for i in range(len(ds))]
-    return FrameDetections(k, T, [PairResult("FrontLeft", InstanceMasks((720, 1280)), recs, ds, None)])
+    return FrameDetections(
+        k, T, [PairResult("FrontLeft", InstanceMasks((720, 1280)), recs, ds, None)]
+    )
 
 
 def test_a_low_crest_blob_is_kept_only_when_a_neighbouring_frame_sees_it_at_the_same_place():
@@ -769,24 +912,38 @@ def test_a_low_crest_blob_is_kept_only_when_a_neighbouring_frame_sees_it_at_the_
     cfg = DetectorConfig()
     rock, crest = [4.0, 0.5, 0.0], [4.5, -0.5, 0.0]
     moving = [[4.5 + 0.4 * k, -0.5, 0.0] for k in range(4)]  # a bump that moves along a crest
-    frames = [_frame(k, 0.5 * k, [(rock, True), (moving[k], True), ([6.0, 1.0, 0.0], False)]) for k in range(4)]
+    frames = [
+        _frame(k, 0.5 * k, [(rock, True), (moving[k], True), ([6.0, 1.0, 0.0], False)])
+        for k in range(4)
+    ]
     out = list(confirm_across_frames(frames, cfg))
     assert [f.frame for f in out] == [0, 1, 2, 3]
     for f in out:
         got = [d.p_map[:2].tolist() for d in f.detections]
-        assert [4.0, 0.5] in got and [6.0, 1.0] in got  # the rock stays put; unmarked ones are never judged
+        assert [4.0, 0.5] in got and [
+            6.0,
+            1.0,
+        ] in got  # the rock stays put; unmarked ones are never judged
         assert len(got) == 2  # the moving bump is dropped in every frame
         assert [r.reason for r in f.pairs[0].records].count(RejectReason.UNCONFIRMED) == 1
     # a marked blob seen again within confirm_tol_m of where it was: kept
     near = [crest, [crest[0] + 0.5 * cfg.confirm_tol_m, crest[1], 0.0]]
-    out = list(confirm_across_frames([_frame(k, 0.5 * k, [(near[k], True)]) for k in range(2)], cfg))
+    out = list(
+        confirm_across_frames([_frame(k, 0.5 * k, [(near[k], True)]) for k in range(2)], cfg)
+    )
     assert all(len(f.detections) == 1 for f in out)
     # no neighbour far enough (the rover stands still, or a single frame): no verdict, kept
-    still = list(confirm_across_frames([_frame(k, 0.0, [(moving[k], True)]) for k in range(3)], cfg))
+    still = list(
+        confirm_across_frames([_frame(k, 0.0, [(moving[k], True)]) for k in range(3)], cfg)
+    )
     assert all(len(f.detections) == 1 for f in still)
     # off: everything passes
-    off = list(confirm_across_frames([_frame(k, 0.5 * k, [(moving[k], True)]) for k in range(3)],
-                                     DetectorConfig(confirm_tol_m=0.0)))
+    off = list(
+        confirm_across_frames(
+            [_frame(k, 0.5 * k, [(moving[k], True)]) for k in range(3)],
+            DetectorConfig(confirm_tol_m=0.0),
+        )
+    )
     assert all(len(f.detections) == 1 for f in off)
 
 
@@ -802,17 +959,31 @@ def test_only_low_blobs_on_a_crest_need_confirmation():
     lone = np.zeros(r.shape)
     lone[blob] = 0.045
     low = cfg.confirm_max_top_m * 0.75
-    assert _needs_confirmation(low, float("nan"), crest, rows, cols, cfg)  # measured here: it goes on
+    assert _needs_confirmation(
+        low, float("nan"), crest, rows, cols, cfg
+    )  # measured here: it goes on
     assert not _needs_confirmation(low, float("nan"), lone, rows, cols, cfg)  # ends at its sides
-    assert not _needs_confirmation(cfg.confirm_max_top_m * 1.5, 0.9, crest, rows, cols, cfg)  # stands high: a rock
-    assert not _needs_confirmation(low, 0.9, crest, rows, cols, DetectorConfig(confirm_tol_m=0.0))  # off
+    assert not _needs_confirmation(
+        cfg.confirm_max_top_m * 1.5, 0.9, crest, rows, cols, cfg
+    )  # stands high: a rock
+    assert not _needs_confirmation(
+        low, 0.9, crest, rows, cols, DetectorConfig(confirm_tol_m=0.0)
+    )  # off
 
 
-@pytest.mark.parametrize("key, value", [
-    ("max_disparity_roughness", 0.0), ("max_disparity_roughness", 1.5), ("roughness_step_px", 0.0),
-    ("confirm_tol_m", -0.1), ("confirm_max_top_m", -0.01), ("confirm_min_extension_ratio", -0.1),
-    ("confirm_min_baseline_m", -1.0), ("confirm_max_frames", 0),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "key, value",
+    [
+        ("max_disparity_roughness", 0.0),
+        ("max_disparity_roughness", 1.5),
+        ("roughness_step_px", 0.0),
+        ("confirm_tol_m", -0.1),
+        ("confirm_max_top_m", -0.01),
+        ("confirm_min_extension_ratio", -0.1),
+        ("confirm_min_baseline_m", -1.0),
+        ("confirm_max_frames", 0),
+    ],
+)
 def test_low_sun_settings_are_checked_and_round_trip(key, value, tmp_path):
     import json
 
@@ -820,8 +991,15 @@ def test_low_sun_settings_are_checked_and_round_trip(key, value, tmp_path):
 
     with pytest.raises(ConfigError, match=key):
         RunConfig.from_dict({"detector": {key: value}})
-    good = {"max_disparity_roughness": 0.2, "roughness_step_px": 1.5, "confirm_tol_m": 0.3, "confirm_max_top_m": 0.05,
-            "confirm_min_extension_ratio": 0.4, "confirm_min_baseline_m": 0.2, "confirm_max_frames": 5}[key]
+    good = {
+        "max_disparity_roughness": 0.2,
+        "roughness_step_px": 1.5,
+        "confirm_tol_m": 0.3,
+        "confirm_max_top_m": 0.05,
+        "confirm_min_extension_ratio": 0.4,
+        "confirm_min_baseline_m": 0.2,
+        "confirm_max_frames": 5,
+    }[key]
     p = tmp_path / "config.json"
     p.write_text(json.dumps({"detector": {key: good}}))
     cfg, _ = load_config_file(p)

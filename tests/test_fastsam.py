@@ -42,9 +42,13 @@ def test_bad_arguments_fail_before_any_heavy_import(tmp_path, monkeypatch):
         export_onnx(tmp_path / "missing.pt")
     onnx = tmp_path / "FastSAM-s.onnx"
     onnx.write_bytes(b"not a model")
-    monkeypatch.setenv("YOLO_CONFIG_DIR", str(tmp_path / "cfg"))  # ultralytics' settings, if it is imported here
+    monkeypatch.setenv(
+        "YOLO_CONFIG_DIR", str(tmp_path / "cfg")
+    )  # ultralytics' settings, if it is imported here
     monkeypatch.setitem(__import__("sys").modules, "onnxruntime", None)  # as if not installed
-    with pytest.raises(DependencyError, match=r"lunarloc\[fastsam"):  # torch, ultralytics or onnxruntime missing
+    with pytest.raises(
+        DependencyError, match=r"lunarloc\[fastsam"
+    ):  # torch, ultralytics or onnxruntime missing
         make_segmenter("fastsam", weights=str(onnx))
 
 
@@ -52,13 +56,19 @@ def test_bad_arguments_fail_before_any_heavy_import(tmp_path, monkeypatch):
 def untrained_checkpoint(tmp_path_factory):
     pytest.importorskip("torch")
     d = tmp_path_factory.mktemp("fastsam")
-    os.environ.setdefault("YOLO_CONFIG_DIR", str(d / "cfg"))  # keep ultralytics' settings out of $HOME
+    os.environ.setdefault(
+        "YOLO_CONFIG_DIR", str(d / "cfg")
+    )  # keep ultralytics' settings out of $HOME
     pytest.importorskip("ultralytics")
-    return build_untrained_checkpoint(d / "untrained-yolov8n-seg.pt", "n", seed=0)  # random init, same every run
+    return build_untrained_checkpoint(
+        d / "untrained-yolov8n-seg.pt", "n", seed=0
+    )  # random init, same every run
 
 
 def test_fastsam_inference_path_on_cpu(untrained_checkpoint):
-    seg = make_segmenter("fastsam", weights=str(untrained_checkpoint), imgsz=320, conf=0.0, iou=0.9, device="cpu")
+    seg = make_segmenter(
+        "fastsam", weights=str(untrained_checkpoint), imgsz=320, conf=0.0, iou=0.9, device="cpu"
+    )
     rng = np.random.default_rng(0)
     img = (rng.uniform(0, 255, (180, 320))).astype(np.uint8)
     out = seg.segment(img)
@@ -102,10 +112,14 @@ def test_detector_runs_fastsam_masks_through_its_filters(untrained_checkpoint):
 
     cam = PinholeCamera(320, 180, 70.0)
     seg = make_segmenter("fastsam", weights=str(untrained_checkpoint), imgsz=320, conf=0.0)
-    det = Detector(DetectorConfig(segmenter="fastsam", weights=str(untrained_checkpoint)), cam, segmenter=seg)
+    det = Detector(
+        DetectorConfig(segmenter="fastsam", weights=str(untrained_checkpoint)), cam, segmenter=seg
+    )
     rng = np.random.default_rng(2)
     left = rng.uniform(0, 255, (180, 320)).astype(np.uint8)
-    res = det.detect_pair(left, np.roll(left, -4, axis=1), ipex_rig(cam)["FrontLeft"].T_rover_optical)
+    res = det.detect_pair(
+        left, np.roll(left, -4, axis=1), ipex_rig(cam)["FrontLeft"].T_rover_optical
+    )
     assert len(res.masks) > 0 and len(res.records) == len(res.masks)
     # every mask was judged: rejected with a reason, or kept as one finite detection
     assert sum(r.reason is None for r in res.records) == len(res.detections)
@@ -118,12 +132,28 @@ def test_detect_cli_with_fastsam_weights_end_to_end(untrained_checkpoint, tmp_pa
     from lunarloc.cli import main
     from lunarloc.sim.simulate import SimulationConfig, simulate_dataset
 
-    cfg = SimulationConfig(duration_s=2.0, image_rate_hz=2.0, width=320, height=180,
-                           cameras=("FrontLeft", "FrontRight"), semantic=False)  # fmt: skip
+    cfg = SimulationConfig(
+        duration_s=2.0,
+        image_rate_hz=2.0,
+        width=320,
+        height=180,
+        cameras=("FrontLeft", "FrontRight"),
+        semantic=False,
+    )
     simulate_dataset(0, 1, tmp_path, cfg)
     out = tmp_path / "det.csv"
-    rc = main(["detect", str(tmp_path / "traverse_0.lac"), "-o", str(out), "--segmenter", "fastsam",
-               "--weights", str(untrained_checkpoint)])  # fmt: skip
+    rc = main(
+        [
+            "detect",
+            str(tmp_path / "traverse_0.lac"),
+            "-o",
+            str(out),
+            "--segmenter",
+            "fastsam",
+            "--weights",
+            str(untrained_checkpoint),
+        ]
+    )
     assert rc == 0
     assert out.read_text().startswith("frame,x,y,z,detections")
     rec = json.loads(out.with_name("det.csv.config.json").read_text())
@@ -159,5 +189,7 @@ def test_fastsam_input_size_is_a_validated_config_field():
 def test_detector_builds_fastsam_at_the_configured_size(untrained_checkpoint):
     from lunarloc.perception.detector import Detector, DetectorConfig
 
-    det = Detector(DetectorConfig(segmenter="fastsam", weights=str(untrained_checkpoint), fastsam_imgsz_px=320))
+    det = Detector(
+        DetectorConfig(segmenter="fastsam", weights=str(untrained_checkpoint), fastsam_imgsz_px=320)
+    )
     assert det.segmenter.imgsz == 320

@@ -109,12 +109,17 @@ def _level_detections(rocks, p, yaw, rp):
     r, pi = rp
     cr, sr, cp, sp = math.cos(r), math.sin(r), math.cos(pi), math.sin(pi)
     c, s = math.cos(yaw), math.sin(yaw)
-    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]]) \
-        @ np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])  # fmt: skip
+    R = (
+        np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+        @ np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+        @ np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    )
     return (rocks - p) @ R  # rows: R.T @ (rock - p)
 
 
-def _graph_with_everything(K=60, scale=1.03, bias=5e-4, config=None, seed=3, obs_noise=0.0, fix_noise=0.0, odo_noise=0.0):
+def _graph_with_everything(
+    K=60, scale=1.03, bias=5e-4, config=None, seed=3, obs_noise=0.0, fix_noise=0.0, odo_noise=0.0
+):
     """Drifting odometry (scale and heading bias), tilted rover, landmarks every keyframe
     and a pose fix every 15th: returns (graph, true positions, true yaw)."""
     rng = np.random.default_rng(seed)
@@ -128,9 +133,17 @@ def _graph_with_everything(K=60, scale=1.03, bias=5e-4, config=None, seed=3, obs
         rp = (0.05 * math.sin(i / 4), 0.04 * math.cos(i / 3))
         near = rocks[np.linalg.norm(rocks[:, :2] - p[i, :2], axis=1) < 2.5][:8]
         det = _level_detections(near, p[i], yaw[i], rp) + rng.normal(0, obs_noise, (len(near), 3))
-        g.add_keyframe(float(i), np.r_[o[i], oy[i]], frame=10 * i, roll_pitch_rad=rp, detections_rover=det,
-                       path_m=0.31 * i)
-        g.add_landmark_observations([(i, j) for j in range(len(near))], [i] * len(near), det, [rp] * len(near), near, 0.03)
+        g.add_keyframe(
+            float(i),
+            np.r_[o[i], oy[i]],
+            frame=10 * i,
+            roll_pitch_rad=rp,
+            detections_rover=det,
+            path_m=0.31 * i,
+        )
+        g.add_landmark_observations(
+            [(i, j) for j in range(len(near))], [i] * len(near), det, [rp] * len(near), near, 0.03
+        )
         if i % 15 == 14:
             g.add_fix(i, np.r_[p[i] + rng.normal(0, fix_noise, 3), yaw[i]], 0.02, 0.003)
     return g, p, yaw
@@ -160,14 +173,22 @@ def test_exact_measurements_have_zero_residual_at_the_truth():
 
 
 def test_derived_sparsity_covers_the_numerical_jacobian():
-    g, _, _ = _graph_with_everything(K=30, odo_noise=0.01)  # noise: no step exactly along the heading
+    g, _, _ = _graph_with_everything(
+        K=30, odo_noise=0.01
+    )  # noise: no step exactly along the heading
     rng = np.random.default_rng(0)
     K = len(g)
     first = 5
     layout = StateLayout(K)
     factors = g.factors(first)
     kinds = {type(f).__name__ for f in factors}
-    assert kinds == {"OdometryFactor", "PoseFixFactor", "LandmarkFactor", "BiasWalkFactor", "PriorFactor"}
+    assert kinds == {
+        "OdometryFactor",
+        "PoseFixFactor",
+        "LandmarkFactor",
+        "BiasWalkFactor",
+        "PriorFactor",
+    }
     active = layout.active(first, True)
     S = jacobian_sparsity(factors, active, layout.size).toarray()
     z = g.state() + rng.normal(0, 0.05, layout.size)
@@ -214,7 +235,11 @@ def test_keyframe_record_carries_the_loop_data_and_the_correction():
 
 def test_without_calibration_scale_and_bias_stay_put():
     g, p, _ = _graph_with_everything(K=40, config=FusionConfig(calibrate=False))
-    assert {type(f).__name__ for f in g.factors()} == {"OdometryFactor", "PoseFixFactor", "LandmarkFactor"}
+    assert {type(f).__name__ for f in g.factors()} == {
+        "OdometryFactor",
+        "PoseFixFactor",
+        "LandmarkFactor",
+    }
     g.solve()
     assert g.scale == 1.0 and np.all(g.biases == 0.0)
     assert np.linalg.norm(g.poses()[:, :3] - p, axis=1).max() < 0.05
@@ -226,5 +251,7 @@ def test_factor_kinds_give_their_residual_dimensions():
     f = OdometryFactor(L, [0, 1], odo, [1.0, 1.0], FusionConfig().noise)
     assert f.columns.shape == (2, 10) and f.dim == 4
     assert PoseFixFactor(L, [2], odo[2], 0.1, 0.01).columns.tolist() == [[8, 9, 10, 11]]
-    lm = LandmarkFactor(L, [1, 2], np.ones((2, 3)), np.zeros((2, 2)), np.zeros((2, 3)), [0.05, 0.05])
+    lm = LandmarkFactor(
+        L, [1, 2], np.ones((2, 3)), np.zeros((2, 2)), np.zeros((2, 3)), [0.05, 0.05]
+    )
     assert lm.residual(np.zeros((2, 4))).shape == (2, 3)

@@ -14,7 +14,12 @@ from lunarloc.fusion.posegraph import (
     PoseGraph,
     ReferenceErrorModel,
 )
-from lunarloc.fusion.factors import SharedLandmarkFactor, StateLayout, jacobian_sparsity, stacked_residual
+from lunarloc.fusion.factors import (
+    SharedLandmarkFactor,
+    StateLayout,
+    jacobian_sparsity,
+    stacked_residual,
+)
 
 SIGMA_OBS = 0.05  # the detection's own sigma (m)
 SIGMA_REF = 0.05  # each reference rock's stated sigma per axis (m)
@@ -25,17 +30,30 @@ def _standing_rover(model: ReferenceErrorModel, n_a=20, n_good=2, sigma_a=SIGMA_
     """A rover standing still for `n_a` keyframes (loose start, exact odometry). Rock A (2, 0)
     is stated `BIAS` off along x and seen in every keyframe; rocks B (-2, 0), C (0, 2), D (0, -2)
     are exact and seen in the first `n_good` keyframes. Placed so that x decouples from yaw."""
-    noise = OdometryNoise(start_sigma_m=10.0, start_sigma_yaw_rad=1.0, trans_floor_m=1e-5, yaw_floor_rad=1e-6)
+    noise = OdometryNoise(
+        start_sigma_m=10.0, start_sigma_yaw_rad=1.0, trans_floor_m=1e-5, yaw_floor_rad=1e-6
+    )
     g = PoseGraph(FusionConfig(noise=noise, calibrate=False, loss="linear", reference_error=model))
-    rocks = {"A": np.array([2.0, 0, 0]), "B": np.array([-2.0, 0, 0]), "C": np.array([0, 2.0, 0]),
-             "D": np.array([0, -2.0, 0])}  # fmt: skip
+    rocks = {
+        "A": np.array([2.0, 0, 0]),
+        "B": np.array([-2.0, 0, 0]),
+        "C": np.array([0, 2.0, 0]),
+        "D": np.array([0, -2.0, 0]),
+    }
     for k in range(n_a):
         g.add_keyframe(float(k), [0.0, 0.0, 0.0, 0.0])
         seen = ["A"] + (["B", "C", "D"] if k < n_good else [])
         targets = [rocks[r] + (np.array([BIAS, 0, 0]) if r == "A" else 0.0) for r in seen]
-        g.add_landmark_observations([(k, r) for r in seen], [k] * len(seen), [rocks[r] for r in seen],
-                                    np.zeros((len(seen), 2)), targets, SIGMA_OBS, seen,
-                                    [sigma_a if r == "A" else SIGMA_REF for r in seen])  # fmt: skip
+        g.add_landmark_observations(
+            [(k, r) for r in seen],
+            [k] * len(seen),
+            [rocks[r] for r in seen],
+            np.zeros((len(seen), 2)),
+            targets,
+            SIGMA_OBS,
+            seen,
+            [sigma_a if r == "A" else SIGMA_REF for r in seen],
+        )
     g.solve()
     return g
 
@@ -47,7 +65,9 @@ def test_a_biased_rock_tied_many_times_pulls_by_its_share_only():
     # the exact least-squares answer with the ties' true covariance s_obs^2 I + s_ref^2 1 1^T:
     # a rock tied n times is one measurement of variance s_obs^2 / n + s_ref^2
     w_a = 1 / (SIGMA_OBS**2 / n_a + SIGMA_REF**2)
-    w_good = 3 / (SIGMA_OBS**2 / n_good + SIGMA_REF**2)  # B, C and D all fix x (C and D's yaw terms cancel)
+    w_good = 3 / (
+        SIGMA_OBS**2 / n_good + SIGMA_REF**2
+    )  # B, C and D all fix x (C and D's yaw terms cancel)
     share = BIAS * w_a / (w_a + w_good)
     assert np.all(np.abs(shared[:, 0] - share) < 2e-3), (shared[:, 0], share)
     # tied as independent, A's n ties outvote the others': the pull is n_a / (n_a + 3 n_good) of the bias
@@ -91,7 +111,9 @@ def _drive(model: ReferenceErrorModel, seed: int, sigma_ref=0.043, n_rocks=60):
     o = np.zeros((K, 3))
     for i in range(1, K):
         o[i] = o[i - 1] + 1.02 * 0.3 * np.array([math.cos(oy[i - 1]), math.sin(oy[i - 1]), 0.0])
-    rocks = np.column_stack([rng.uniform(-2, 32, n_rocks), rng.uniform(-6, 6, n_rocks), np.zeros(n_rocks)])
+    rocks = np.column_stack(
+        [rng.uniform(-2, 32, n_rocks), rng.uniform(-6, 6, n_rocks), np.zeros(n_rocks)]
+    )
     rocks[:, 1] += np.interp(rocks[:, 0], p[:, 0], p[:, 1])
     stated = rocks + rng.uniform(-0.075, 0.075, rocks.shape) * [1, 1, 0]  # quantised to 15 cm cells
     g = PoseGraph(FusionConfig(reference_error=model))
@@ -103,8 +125,16 @@ def _drive(model: ReferenceErrorModel, seed: int, sigma_ref=0.043, n_rocks=60):
         det = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]])
         det += rng.normal(0, 0.02, det.shape)
         sig = np.column_stack([np.full(len(near), sigma_ref)] * 2 + [np.full(len(near), 0.01)])
-        g.add_landmark_observations([(i, int(j)) for j in near], [i] * len(near), det, np.zeros((len(near), 2)),
-                                    stated[near], 0.03, near.tolist(), sig)  # fmt: skip
+        g.add_landmark_observations(
+            [(i, int(j)) for j in near],
+            [i] * len(near),
+            det,
+            np.zeros((len(near), 2)),
+            stated[near],
+            0.03,
+            near.tolist(),
+            sig,
+        )
         if i % 5 == 4:
             g.solve(active_window_m=10.0)
     g.solve()
@@ -145,15 +175,22 @@ def test_bad_tie_inputs():
     with pytest.raises(InputError, match="landmark_sigma_xyz"):
         g.add_landmark_observations([0], [0], [[1, 0, 0]], [[0, 0]], [[1, 0, 0]], 0.05, ["r"])
     with pytest.raises(InputError, match=">= 0"):
-        g.add_landmark_observations([0], [0], [[1, 0, 0]], [[0, 0]], [[1, 0, 0]], 0.05, ["r"], [-0.01])
+        g.add_landmark_observations(
+            [0], [0], [[1, 0, 0]], [[0, 0]], [[1, 0, 0]], 0.05, ["r"], [-0.01]
+        )
     g.add_landmark_observations([0], [0], [[1, 0, 0]], [[0, 0]], [[1, 0, 0]], 0.05, ["r"], [0.02])
     with pytest.raises(InputError, match="two different positions"):
-        g.add_landmark_observations([1], [0], [[1, 0, 0]], [[0, 0]], [[1.5, 0, 0]], 0.05, ["r"], [0.02])
+        g.add_landmark_observations(
+            [1], [0], [[1, 0, 0]], [[0, 0]], [[1.5, 0, 0]], 0.05, ["r"], [0.02]
+        )
 
 
 def test_run_config_round_trips_the_tie_model_and_names_a_bad_key():
-    cfg = RunConfig().with_options(loop__fusion=FusionConfig(reference_error=ReferenceErrorModel.INDEPENDENT,
-                                                             observation_sigma_m=0.04))  # fmt: skip
+    cfg = RunConfig().with_options(
+        loop__fusion=FusionConfig(
+            reference_error=ReferenceErrorModel.INDEPENDENT, observation_sigma_m=0.04
+        )
+    )
     back = RunConfig.from_dict(cfg.to_dict())
     assert back == cfg and back.loop.fusion.reference_error is ReferenceErrorModel.INDEPENDENT
     assert cfg.to_dict()["loop"]["fusion"]["reference_error"] == "independent"
@@ -177,19 +214,36 @@ def test_the_loop_ties_detections_to_the_full_references_rocks_with_their_sigmas
 
     rocks, trav = synthetic_traverse(length_m=12.0)
     rng = np.random.default_rng(4)
-    sig_xy = rng.uniform(0.01, 0.05, len(rocks))  # per-rock stated sigmas, as a grid or catalogue gives
-    ref = LandmarkMap(rocks + rng.normal(0, 1, rocks.shape) * np.c_[sig_xy, sig_xy, np.zeros(len(rocks))],
-                      sigma_xy_m=sig_xy, sigma_z_m=np.full(len(rocks), 0.02))  # fmt: skip
+    sig_xy = rng.uniform(
+        0.01, 0.05, len(rocks)
+    )  # per-rock stated sigmas, as a grid or catalogue gives
+    ref = LandmarkMap(
+        rocks + rng.normal(0, 1, rocks.shape) * np.c_[sig_xy, sig_xy, np.zeros(len(rocks))],
+        sigma_xy_m=sig_xy,
+        sigma_z_m=np.full(len(rocks), 0.02),
+    )
     cfg = RunConfig.for_detections()
     loop = LoopState(ref, cfg.loop, cfg.localization)
     with TraverseCsvSource(trav, DriftModel(0.1, 0.03)) as src:
         for f in src:
-            loop.step(f.frame, f.time_s, f.T_odo_rover, f.detections_rover, f.T_map_rover_true, keyframe=f.keyframe)
+            loop.step(
+                f.frame,
+                f.time_s,
+                f.T_odo_rover,
+                f.detections_rover,
+                f.T_map_rover_true,
+                keyframe=f.keyframe,
+            )
     g = loop.graph
     assert sum(a.accepted for a in loop.attempts) >= 2 and len(g.reference_landmarks) >= 5
-    for key, r in g.reference_landmarks.items():  # keyed by the index in the full reference, not the crop's
+    for (
+        key,
+        r,
+    ) in g.reference_landmarks.items():  # keyed by the index in the full reference, not the crop's
         assert np.array_equal(r.target_xyz, ref.positions_xyz[key])
-        assert r.sigma_xyz.tolist() == pytest.approx([sig_xy[key], sig_xy[key], 0.02])  # as the map states
+        assert r.sigma_xyz.tolist() == pytest.approx(
+            [sig_xy[key], sig_xy[key], 0.02]
+        )  # as the map states
     # ties made by different attempts share their rock's one error
     tied_at = {}
     for o in g.observations.values():
@@ -203,11 +257,23 @@ def test_a_reference_stated_exact_is_tied_alone_as_before():
     g = PoseGraph()
     g.add_keyframe(0.0, [0, 0, 0, 0])
     g.add_keyframe(1.0, [0.3, 0, 0, 0])
-    g.add_landmark_observations([0, 1], [0, 1], [[1, 0, 0], [0.7, 0, 0]], np.zeros((2, 2)), [[1, 0, 0]] * 2, 0.05,
-                                ["exact", "exact"], np.zeros((2, 3)))  # fmt: skip
+    g.add_landmark_observations(
+        [0, 1],
+        [0, 1],
+        [[1, 0, 0], [0.7, 0, 0]],
+        np.zeros((2, 2)),
+        [[1, 0, 0]] * 2,
+        0.05,
+        ["exact", "exact"],
+        np.zeros((2, 3)),
+    )
     assert g.reference_landmarks == {} and all(o.landmark is None for o in g.observations.values())
-    g.add_landmark_observations([2], [1], [[0.7, 1, 0]], [[0, 0]], [[1, 1, 0]], 0.05, ["grid"], [[0.043, 0.043, 0.0]])
-    assert g.reference_landmarks["grid"].sigma_xyz[2] > 0  # an axis stated exact keeps a finite prior
+    g.add_landmark_observations(
+        [2], [1], [[0.7, 1, 0]], [[0, 0]], [[1, 1, 0]], 0.05, ["grid"], [[0.043, 0.043, 0.0]]
+    )
+    assert (
+        g.reference_landmarks["grid"].sigma_xyz[2] > 0
+    )  # an axis stated exact keeps a finite prior
     assert {type(f).__name__ for f in g.factors()} >= {"LandmarkFactor", "SharedLandmarkFactor"}
 
 
@@ -216,7 +282,9 @@ def test_the_reference_error_prior_stays_out_of_the_robust_loss():
 
     g = _standing_rover(ReferenceErrorModel.SHARED, n_a=3, n_good=1)
     factors = g.factors()
-    assert robust_loss([f for f in factors if f.robust], "soft_l1") == "soft_l1"  # unchanged without priors
+    assert (
+        robust_loss([f for f in factors if f.robust], "soft_l1") == "soft_l1"
+    )  # unchanged without priors
     loss = robust_loss(factors, "soft_l1")
     rows = np.concatenate([np.full(len(f) * f.dim, f.robust) for f in factors])
     z = np.full(len(rows), 16.0)  # residuals of 4 loss scales

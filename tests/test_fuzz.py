@@ -20,20 +20,37 @@ import pytest
 import _hostile as H
 from lunarloc.cli.app import main
 
-CASES = H.corpus(include_slow=False)  # the few multi-second cases run in benchmarks/hostile_inputs.py
+CASES = H.corpus(
+    include_slow=False
+)  # the few multi-second cases run in benchmarks/hostile_inputs.py
 
 
 def test_corpus_is_large_and_covers_every_kind():
     kinds = {c.kind for c in CASES}
     assert len(CASES) >= 450
-    assert kinds == {"csv", "npz", "lac", "option", "output", "api", "campaign", "config", "score", "archive"}
+    assert kinds == {
+        "csv",
+        "npz",
+        "lac",
+        "option",
+        "output",
+        "api",
+        "campaign",
+        "config",
+        "score",
+        "archive",
+    }
     assert all(sum(c.kind == k for c in CASES) >= 15 for k in kinds)
 
 
 @pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
 def test_hostile_input(case, tmp_path):
     o = H.run_case(case, tmp_path / "case", timeout_s=120)  # a hang fails the case, not the suite
-    want = {"error": ("clear error",), "ok": ("correct result",), "either": ("clear error", "correct result")}
+    want = {
+        "error": ("clear error",),
+        "ok": ("correct result",),
+        "either": ("clear error", "correct result"),
+    }
     assert o.outcome in want[case.expect], f"{case.name}: {o.outcome} (exit {o.rc}): {o.message}"
     if o.outcome == "clear error":
         assert "Traceback" not in o.message
@@ -120,10 +137,14 @@ def test_unexpected_exception_is_one_line_and_debug_shows_traceback(tmp_path, mo
     args = ["map", str(_traverse(tmp_path)), "-o", str(tmp_path / "m.csv")]
     assert main(args) == 70
     err = capsys.readouterr().err
-    assert err.strip() == "internal error: RuntimeError: boom (rerun with --debug for the traceback)"
+    assert (
+        err.strip() == "internal error: RuntimeError: boom (rerun with --debug for the traceback)"
+    )
     assert main(["--debug", *args]) == 70
     err = capsys.readouterr().err
-    assert "Traceback (most recent call last)" in err and err.strip().endswith("(rerun with --debug for the traceback)")
+    assert "Traceback (most recent call last)" in err and err.strip().endswith(
+        "(rerun with --debug for the traceback)"
+    )
 
 
 def test_debug_shows_the_traceback_of_input_errors_too(tmp_path, capsys):
@@ -153,8 +174,12 @@ def test_demo_check_failure_exits_1(monkeypatch, tmp_path):
     import lunarloc.cli.commands_run as cr
     import lunarloc.pipeline.scenario as scenario
 
-    fake = {"fixes": 0, "ate_odometry": {"rmse_m": 1.0, "max_m": 1.0}, "ate_corrected": {"rmse_m": 1.0, "max_m": 1.0},
-            "ate_online": {"rmse_m": 1.0, "max_m": 1.0}}  # fmt: skip
+    fake = {
+        "fixes": 0,
+        "ate_odometry": {"rmse_m": 1.0, "max_m": 1.0},
+        "ate_corrected": {"rmse_m": 1.0, "max_m": 1.0},
+        "ate_online": {"rmse_m": 1.0, "max_m": 1.0},
+    }
     monkeypatch.setattr(scenario, "run_scenario", lambda *a, **k: fake)
     monkeypatch.setattr(cr, "_print_summary", lambda *a, **k: None)
     assert main(["demo", "--out", str(tmp_path / "d")]) == 1
@@ -180,24 +205,35 @@ def test_npz_bomb_and_huge_shape_are_refused_without_allocating(tmp_path, monkey
     from lunarloc.io import inputs
     from lunarloc.io.maps import load_map
 
-    monkeypatch.setattr(inputs, "MAX_NPZ_MEMBER_BYTES", 32 * 1024**2)  # the mechanism, at a test-sized limit
+    monkeypatch.setattr(
+        inputs, "MAX_NPZ_MEMBER_BYTES", 32 * 1024**2
+    )  # the mechanism, at a test-sized limit
     bomb = tmp_path / "bomb.npz"
     n = 48 * 1024**2 // 24
-    with zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED) as zf, zf.open("positions_xyz.npy", "w", force_zip64=True) as fh:
+    with (
+        zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED) as zf,
+        zf.open("positions_xyz.npy", "w", force_zip64=True) as fh,
+    ):
         fh.write(H.npy_header((n, 3)))
         chunk = b"\0" * (8 * 1024**2)
         for _ in range(n * 24 // len(chunk)):
             fh.write(chunk)
     assert bomb.stat().st_size < 2 * 1024**2
     assert _peak_mib(lambda: load_map(bomb)) < 8
-    shape = H.write(tmp_path, "shape.npz", H.npz_bytes({"positions_xyz.npy": H.npy_header((10**12, 3)) + b"\0" * 64}))
+    shape = H.write(
+        tmp_path,
+        "shape.npz",
+        H.npz_bytes({"positions_xyz.npy": H.npy_header((10**12, 3)) + b"\0" * 64}),
+    )
     assert _peak_mib(lambda: load_map(shape)) < 8
 
 
 def test_lac_member_of_newlines_is_refused_with_bounded_memory(tmp_path, monkeypatch):
     import lunarloc.io.lac.archive as lac
 
-    monkeypatch.setattr(lac, "MAX_TABLE_BYTES", 16 * 1024**2)  # the mechanism, at a test-sized limit
+    monkeypatch.setattr(
+        lac, "MAX_TABLE_BYTES", 16 * 1024**2
+    )  # the mechanism, at a test-sized limit
     LacArchive = lac.LacArchive
     m = H.lac_members()
     m["frames.csv"] += b"\n" * (lac.MAX_TABLE_BYTES + 1)
@@ -227,7 +263,9 @@ def test_traverse_csv_memory_is_proportional_to_its_content(tmp_path):
     size_mib = p.stat().st_size / 1024**2
     peak = _peak_mib(lambda: load_traverse(p))
     assert size_mib > 2
-    assert peak < size_mib + 4, f"{peak:.1f} MiB for a {size_mib:.1f} MiB file"  # Python lists: ~3.5x
+    assert peak < size_mib + 4, (
+        f"{peak:.1f} MiB for a {size_mib:.1f} MiB file"
+    )  # Python lists: ~3.5x
 
 
 def test_library_writer_never_replaces_a_device_or_folder(tmp_path):
@@ -236,7 +274,9 @@ def test_library_writer_never_replaces_a_device_or_folder(tmp_path):
 
     lm = LandmarkMap(H.rocks(5))
     with pytest.raises(OutputError, match="not a regular file"):
-        save_map(lm, (tmp_path / "m.csv").mkdir() or tmp_path / "m.csv")  # a folder named like a map
+        save_map(
+            lm, (tmp_path / "m.csv").mkdir() or tmp_path / "m.csv"
+        )  # a folder named like a map
     if os.path.exists("/dev/null"):
         from lunarloc.io.outputs import atomic_open
 

@@ -24,14 +24,21 @@ CASES = range(200)
 
 
 def _random_transform(rng, yaw_only=False):
-    R = rot_z(rng.uniform(-np.pi, np.pi)) if yaw_only else exp_so3(rng.normal(size=3) * rng.uniform(0, 3))
+    R = (
+        rot_z(rng.uniform(-np.pi, np.pi))
+        if yaw_only
+        else exp_so3(rng.normal(size=3) * rng.uniform(0, 3))
+    )
     return make_transform(R, rng.normal(0, 50, 3))
 
 
 def _is_rigid(T):
     R = T[:3, :3]
-    return (np.allclose(R.T @ R, np.eye(3), atol=1e-9) and np.isclose(np.linalg.det(R), 1.0, atol=1e-9)
-            and np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]))
+    return (
+        np.allclose(R.T @ R, np.eye(3), atol=1e-9)
+        and np.isclose(np.linalg.det(R), 1.0, atol=1e-9)
+        and np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0])
+    )
 
 
 @pytest.mark.parametrize("solver", [arun, arun_yaw])
@@ -75,6 +82,14 @@ def test_transforms_invert_and_poses_round_trip():
         assert np.allclose(invert_transform(invert_transform(T)), T, atol=1e-9)
         assert np.allclose(pose_to_matrix(*matrix_to_pose(T)), T, atol=1e-9)
         pts = rng.normal(0, 20, (10, 3))
-        assert np.allclose(transform_points(invert_transform(T), transform_points(T, pts)), pts, atol=1e-8)
-        roll, pitch, yaw = rng.uniform(-np.pi, np.pi), rng.uniform(-1.5, 1.5), rng.uniform(-np.pi, np.pi)
-        assert np.allclose(rotation_to_euler(euler_to_rotation(roll, pitch, yaw)), (roll, pitch, yaw), atol=1e-9)
+        assert np.allclose(
+            transform_points(invert_transform(T), transform_points(T, pts)), pts, atol=1e-8
+        )
+        roll, pitch, yaw = (
+            rng.uniform(-np.pi, np.pi),
+            rng.uniform(-1.5, 1.5),
+            rng.uniform(-np.pi, np.pi),
+        )
+        assert np.allclose(
+            rotation_to_euler(euler_to_rotation(roll, pitch, yaw)), (roll, pitch, yaw), atol=1e-9
+        )

@@ -23,7 +23,9 @@ from lunarloc.core.geometry import pose_to_matrix
 
 def test_rigid_transform_tolerance_is_the_stated_one():
     R = pose_to_matrix(1.0, 2.0, 0.3, 0.02, -0.01, 2.0)
-    assert validate.rigid_transform(R.astype(np.float32), "T").dtype == np.float64  # float32 round-off passes
+    assert (
+        validate.rigid_transform(R.astype(np.float32), "T").dtype == np.float64
+    )  # float32 round-off passes
     near = R.copy()
     near[:3, :3] *= 1 + 0.2 * validate.RIGID_TOL  # R^T R off by 0.4 tol, det by 0.6 tol: inside
     validate.rigid_transform(near, "T")
@@ -59,18 +61,31 @@ def test_a_refused_tick_leaves_the_component_as_it_was():
     twin that never saw the bad calls."""
     a, b = S._loc(), S._loc()
     rng = np.random.default_rng(5)
-    bad_calls = [dict(linear_speed=1e300), dict(imu=[1e308] * 6), dict(odometry=np.diag([2.0, 2.0, 2.0, 1.0])),
-                 dict(input_data={"Grayscale": np.zeros((720, 1280), np.uint8)}), dict(mission_time_s=1e300)]  # fmt: skip
+    bad_calls = [
+        dict(linear_speed=1e300),
+        dict(imu=[1e308] * 6),
+        dict(odometry=np.diag([2.0, 2.0, 2.0, 1.0])),
+        dict(input_data={"Grayscale": np.zeros((720, 1280), np.uint8)}),
+        dict(mission_time_s=1e300),
+    ]
     for i in range(40):
         imu = S.IMU_REST + rng.normal(0, 0.01, 6)
         if i % 8 == 3:
-            args = {"mission_time_s": 0.05 * i, "input_data": None, "imu": imu, "linear_speed": 0.2, "angular_speed": 0.1,
-                    **bad_calls[(i // 8) % len(bad_calls)]}  # fmt: skip
+            args = {
+                "mission_time_s": 0.05 * i,
+                "input_data": None,
+                "imu": imu,
+                "linear_speed": 0.2,
+                "angular_speed": 0.1,
+                **bad_calls[(i // 8) % len(bad_calls)],
+            }
             with pytest.raises(LunarLocError):
                 a.update(**args)
         ea = a.update(0.05 * i, None, imu, 0.2, 0.1)
         eb = b.update(0.05 * i, None, imu, 0.2, 0.1)
-        assert np.array_equal(ea.T_map_rover, eb.T_map_rover) and np.array_equal(ea.covariance, eb.covariance)
+        assert np.array_equal(ea.T_map_rover, eb.T_map_rover) and np.array_equal(
+            ea.covariance, eb.covariance
+        )
         assert S.rigid_ok(ea.T_map_rover)
 
 
@@ -92,18 +107,38 @@ def _peak_mib(fn) -> tuple[float, BaseException | None]:
 def test_a_huge_campaign_is_refused_from_its_axes_with_bounded_memory(tmp_path):
     from lunarloc.pipeline.campaign import load_spec
 
-    spec = H.write(tmp_path, "s.toml", S.spec_text(grid={"seed": list(range(1000)), "n_rocks": list(range(3, 1003)),
-                                                        "sun_azimuth_deg": [float(a) for a in range(1000)]}))  # fmt: skip
+    spec = H.write(
+        tmp_path,
+        "s.toml",
+        S.spec_text(
+            grid={
+                "seed": list(range(1000)),
+                "n_rocks": list(range(3, 1003)),
+                "sun_azimuth_deg": [float(a) for a in range(1000)],
+            }
+        ),
+    )
     peak, err = _peak_mib(lambda: load_spec(spec))
-    assert isinstance(err, LunarLocError) and "1000000000 jobs" in str(err) and "limited to 10000" in str(err)
-    assert peak < 8, f"{peak:.1f} MiB to refuse a 10^9-job grid"  # before: 1.56 GB and still building at 60 s
+    assert (
+        isinstance(err, LunarLocError)
+        and "1000000000 jobs" in str(err)
+        and "limited to 10000" in str(err)
+    )
+    assert peak < 8, (
+        f"{peak:.1f} MiB to refuse a 10^9-job grid"
+    )  # before: 1.56 GB and still building at 60 s
 
 
 def test_a_bad_value_deep_in_an_axis_is_refused_before_any_job(tmp_path):
     from lunarloc.pipeline.campaign import load_spec
 
-    spec = H.write(tmp_path, "s.toml", S.spec_text(grid={"seed": [1, 2], "sun_elevation_deg": [10.0, 1000.0]}))
-    with pytest.raises(LunarLocError, match=r"grid axis 'sun_elevation_deg', value 2: sun_elevation_deg must be <= 90"):
+    spec = H.write(
+        tmp_path, "s.toml", S.spec_text(grid={"seed": [1, 2], "sun_elevation_deg": [10.0, 1000.0]})
+    )
+    with pytest.raises(
+        LunarLocError,
+        match=r"grid axis 'sun_elevation_deg', value 2: sun_elevation_deg must be <= 90",
+    ):
         load_spec(spec)
 
 
@@ -117,7 +152,10 @@ def test_the_epsilon_cap_is_the_same_from_an_option_and_from_a_config_file(tmp_p
     assert main(["localize", str(a), str(a), "--epsilon", "0.31"]) == 2
     assert main(["localize", str(a), str(a), "--config", str(c)]) == 2
     err = capsys.readouterr().err
-    assert "--epsilon must be <= 0.3 m" in err and "localization.epsilon_m: 0.31 outside (0, 0.3] m" in err
+    assert (
+        "--epsilon must be <= 0.3 m" in err
+        and "localization.epsilon_m: 0.31 outside (0, 0.3] m" in err
+    )
 
 
 # ----------------------------------------------------------------------------- atomic outputs
@@ -169,7 +207,9 @@ def test_interrupted_overwrite_leaves_no_temporary_and_no_partial_run(tmp_path, 
 
     monkeypatch.setattr(runs, "write_tum", second_interrupted)
     assert main(_run_args(tmp_path, "--no-plot", "--overwrite")) == 130
-    assert _leftovers(tmp_path / "run") == []  # the old run cleared by --overwrite, nothing of the new one
+    assert (
+        _leftovers(tmp_path / "run") == []
+    )  # the old run cleared by --overwrite, nothing of the new one
 
 
 def test_an_interrupted_campaign_removes_its_workers_temporary_files(tmp_path, monkeypatch):
@@ -203,7 +243,12 @@ def test_odometry_outputs_need_overwrite_and_are_complete(tmp_path, capsys):
     tum = H.write(tmp_path, "o.tum", "old\n")
     assert main(["odometry", str(a), "-o", str(tum)]) == 2
     assert tum.read_text() == "old\n" and "pass --overwrite" in capsys.readouterr().err
-    assert main(["odometry", str(a), "-o", str(tum), "--json", str(tmp_path / "o.json"), "--overwrite"]) == 0
+    assert (
+        main(
+            ["odometry", str(a), "-o", str(tum), "--json", str(tmp_path / "o.json"), "--overwrite"]
+        )
+        == 0
+    )
     assert len(tum.read_text().splitlines()) == 21
     d = json.loads((tmp_path / "o.json").read_text())
     assert all(np.isfinite(v) for v in d.values() if isinstance(v, float))
@@ -214,9 +259,24 @@ def test_a_campaign_at_the_limits_is_accepted(tmp_path):
     setting at its stated bound."""
     from lunarloc.pipeline.campaign import MAX_JOBS, load_spec
 
-    spec = H.write(tmp_path, "s.toml", S.spec_text(
-        {"duration_s": 3600.0, "reference_duration_s": 3600.0, "image_rate_hz": 10.0, "width": 4096,
-         "sun_azimuth_deg": -360.0, "min_reference_landmarks": 100_000},
-        grid={"seed": list(range(100)), "n_rocks": list(range(3, 103)), "sun_elevation_deg": [90.0]}))  # fmt: skip
+    spec = H.write(
+        tmp_path,
+        "s.toml",
+        S.spec_text(
+            {
+                "duration_s": 3600.0,
+                "reference_duration_s": 3600.0,
+                "image_rate_hz": 10.0,
+                "width": 4096,
+                "sun_azimuth_deg": -360.0,
+                "min_reference_landmarks": 100_000,
+            },
+            grid={
+                "seed": list(range(100)),
+                "n_rocks": list(range(3, 103)),
+                "sun_elevation_deg": [90.0],
+            },
+        ),
+    )
     s = load_spec(spec)
     assert s.size == MAX_JOBS and len(s.jobs()) == MAX_JOBS

@@ -110,11 +110,15 @@ def test_bad_inputs_give_clear_errors(field5k):
     with pytest.raises(InputError, match="vehicle map is empty"):
         localize_large(ref, LandmarkMap(np.zeros((0, 3))), index=index)
     with pytest.raises(DegenerateGeometryError, match="collinear"):
-        localize_large(ref, LandmarkMap(np.c_[np.arange(5.0), np.zeros(5), np.zeros(5)]), index=index)
+        localize_large(
+            ref, LandmarkMap(np.c_[np.arange(5.0), np.zeros(5), np.zeros(5)]), index=index
+        )
     with pytest.raises(ConfigError, match="search must be one of"):
         localize_large(ref, win.vehicle, search="fast")
     with pytest.raises(ConfigError, match="gravity-aware"):
-        localize_large(ref, win.vehicle, LocalizationConfig(mode=Mode.SIX_DOF), search=Search.INDEXED)
+        localize_large(
+            ref, win.vehicle, LocalizationConfig(mode=Mode.SIX_DOF), search=Search.INDEXED
+        )
     with pytest.raises(ConfigError, match="another reference map"):
         localize_large(ref.subset(np.arange(100)), win.vehicle, index=index, search="indexed")
     with pytest.raises(ConfigError, match="neighbours"):
@@ -122,7 +126,9 @@ def test_bad_inputs_give_clear_errors(field5k):
     with pytest.raises(InputError, match="finite"):
         ReferenceIndex(np.full((5, 3), np.nan), 0.05)
     with pytest.raises(InputError, match="does not fit"):
-        vehicle_window(np.random.default_rng(0), uniform_rock_field(np.random.default_rng(0), 100), 150)
+        vehicle_window(
+            np.random.default_rng(0), uniform_rock_field(np.random.default_rng(0), 100), 150
+        )
 
 
 def test_cli_localize_uses_the_index_for_a_large_reference(tmp_path, capsys):

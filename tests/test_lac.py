@@ -26,11 +26,34 @@ W, H = 32, 24
 
 def _initial(**over):
     cams = {
-        "FrontLeft": {"camera_active": True, "light_intensity": 1.0, "width": W, "height": H, "use_semantic": True},
-        "FrontRight": {"camera_active": True, "light_intensity": 0.5, "width": W, "height": H, "use_semantic": False},
-        "Back": {"camera_active": False, "light_intensity": 0.0, "width": W, "height": H, "use_semantic": False},
+        "FrontLeft": {
+            "camera_active": True,
+            "light_intensity": 1.0,
+            "width": W,
+            "height": H,
+            "use_semantic": True,
+        },
+        "FrontRight": {
+            "camera_active": True,
+            "light_intensity": 0.5,
+            "width": W,
+            "height": H,
+            "use_semantic": False,
+        },
+        "Back": {
+            "camera_active": False,
+            "light_intensity": 0.0,
+            "width": W,
+            "height": H,
+            "use_semantic": False,
+        },
     }
-    init = {"fiducials": False, "lander": [0, 0, 0, 0, 0, 0.1], "rover": [1, 2, 0, 0, 0, 0.5], "cameras": cams}
+    init = {
+        "fiducials": False,
+        "lander": [0, 0, 0, 0, 0, 0.1],
+        "rover": [1, 2, 0, 0, 0, 0.5],
+        "cameras": cams,
+    }
     init.update(over)
     return init
 
@@ -42,23 +65,55 @@ def write_sample(path, n_frames=8, image_every=2, seed=0, **writer_kw):
     with LacWriter(path, _initial(), description="unit test", **writer_kw) as w:
         for f in range(1, n_frames + 1):
             st = {
-                "x": f * 0.1, "y": 1.0 / 3.0 * f, "z": -0.01 * f, "roll": 1e-3 * f, "pitch": -2e-3, "yaw": 0.1 * f,
-                "accel_x": 0.01, "accel_z": 1.62, "gyro_z": 0.02, "mission_time": 0.05 * f,
-                "power": 500.0 - f, "linear_speed": 0.3, "angular_speed": 0.02, "cover_angle": 1.2,
-            }  # fmt: skip
+                "x": f * 0.1,
+                "y": 1.0 / 3.0 * f,
+                "z": -0.01 * f,
+                "roll": 1e-3 * f,
+                "pitch": -2e-3,
+                "yaw": 0.1 * f,
+                "accel_x": 0.01,
+                "accel_z": 1.62,
+                "gyro_z": 0.02,
+                "mission_time": 0.05 * f,
+                "power": 500.0 - f,
+                "linear_speed": 0.3,
+                "angular_speed": 0.02,
+                "cover_angle": 1.2,
+            }
             w.add_frame(f, **st)
             states[f] = st
             if f % image_every == 0:
                 g = rng.integers(0, 256, (H, W), dtype=np.uint8)
                 s = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
                 g2 = rng.integers(0, 256, (H, W), dtype=np.uint8)
-                w.add_camera_frame("FrontLeft", f, [0.28, 0.081, 0.131, 0, 0, 0], light_intensity=1.0, grayscale=g, semantic=s)
-                w.add_camera_frame("FrontRight", f, [0.28, -0.081, 0.131, 0, 0, 0], light_intensity=0.5, grayscale=g2)
+                w.add_camera_frame(
+                    "FrontLeft",
+                    f,
+                    [0.28, 0.081, 0.131, 0, 0, 0],
+                    light_intensity=1.0,
+                    grayscale=g,
+                    semantic=s,
+                )
+                w.add_camera_frame(
+                    "FrontRight",
+                    f,
+                    [0.28, -0.081, 0.131, 0, 0, 0],
+                    light_intensity=0.5,
+                    grayscale=g2,
+                )
                 images[("FrontLeft", f, "grayscale")] = g
                 images[("FrontLeft", f, "semantic")] = s
                 images[("FrontRight", f, "grayscale")] = g2
-        w.add_custom("rocks", ["id", "x", "y", "z", "radius"], [[1, 2.5, -3.25, 0.0, 0.1], [2, 0.1, 0.2, 0.3, 0.05]])
-        w.add_custom("odometry", ["frame", "x", "y", "z", "roll", "pitch", "yaw"], np.array([[1, 0.1, 0.2, 0, 0, 0, 0.3]]))
+        w.add_custom(
+            "rocks",
+            ["id", "x", "y", "z", "radius"],
+            [[1, 2.5, -3.25, 0.0, 0.1], [2, 0.1, 0.2, 0.3, 0.05]],
+        )
+        w.add_custom(
+            "odometry",
+            ["frame", "x", "y", "z", "roll", "pitch", "yaw"],
+            np.array([[1, 0.1, 0.2, 0, 0, 0, 0.3]]),
+        )
     return states, images
 
 
@@ -93,15 +148,22 @@ def test_round_trip_exact(tmp_path):
                 # what float_text wrote, bit-exact; the value itself within 15 significant digits
                 assert a.frames[k][i] == float(float_text(v)), (f, k)
                 assert a.frames[k][i] == pytest.approx(v, rel=5e-15, abs=1e-22)
-        assert a.frames["x"][a.frame_numbers.tolist().index(1)] == 0.1  # shortest repr kept when pandas-exact
+        assert (
+            a.frames["x"][a.frame_numbers.tolist().index(1)] == 0.1
+        )  # shortest repr kept when pandas-exact
         assert a.metadata["frames"] == 8
         assert a.metadata["data_spec"] == DATA_SPEC and not a.lander_stored_in_map_frame
         assert a.metadata["description"] == "unit test"
         assert a.metadata["start_time"] and a.metadata["end_time"]
         assert a.initial["rover"] == [1.0, 2.0, 0.0, 0.0, 0.0, 0.5]
-        assert all(isinstance(v, float) for v in a.initial["lander"])  # homogeneous for the `toml` package
+        assert all(
+            isinstance(v, float) for v in a.initial["lander"]
+        )  # homogeneous for the `toml` package
         assert a.initial["cameras"]["Back"]["camera_active"] is False
-        assert a.cameras == ["FrontLeft", "FrontRight"]  # Back recorded nothing: no table, as the LAC recorder
+        assert a.cameras == [
+            "FrontLeft",
+            "FrontRight",
+        ]  # Back recorded nothing: no table, as the LAC recorder
         assert a.image_count("FrontLeft") == 4 and a.image_count("FrontLeft", "semantic") == 4
         assert a.image_count("FrontRight", "semantic") == 0 and a.image_count("Back") == 0
         assert a.camera_frames("FrontLeft").columns == list(CAMERA_COLUMNS)
@@ -129,16 +191,28 @@ def test_layout_matches_lac_recorder(tmp_path):
     with tarfile.open(path, "r:gz") as tf:
         names = tf.getnames()
     assert names[0] == "initial.toml"
-    assert {"metadata.toml", "frames.csv", ".gitignore", "cameras/FrontLeft/FrontLeft_frames.csv",
-            "cameras/FrontLeft/grayscale/FrontLeft_grayscale_2.png",
-            "cameras/FrontLeft/semantic/FrontLeft_semantic_2.png",
-            "custom/rocks.csv"} <= set(names)  # fmt: skip
+    assert {
+        "metadata.toml",
+        "frames.csv",
+        ".gitignore",
+        "cameras/FrontLeft/FrontLeft_frames.csv",
+        "cameras/FrontLeft/grayscale/FrontLeft_grayscale_2.png",
+        "cameras/FrontLeft/semantic/FrontLeft_semantic_2.png",
+        "custom/rocks.csv",
+    } <= set(names)
     assert not any(n.startswith(("./", "/")) for n in names)
     m = members_of(path)
     header, first = m["cameras/FrontLeft/FrontLeft_frames.csv"].decode().splitlines()[:2]
     assert header == ",".join(CAMERA_COLUMNS)
-    assert first.split(",")[1] == "True" and first.endswith("FrontLeft_grayscale_2.png,FrontLeft_semantic_2.png")
-    assert m["cameras/FrontRight/FrontRight_frames.csv"].decode().splitlines()[1].endswith("FrontRight_grayscale_2.png,")
+    assert first.split(",")[1] == "True" and first.endswith(
+        "FrontLeft_grayscale_2.png,FrontLeft_semantic_2.png"
+    )
+    assert (
+        m["cameras/FrontRight/FrontRight_frames.csv"]
+        .decode()
+        .splitlines()[1]
+        .endswith("FrontRight_grayscale_2.png,")
+    )
     assert m["frames.csv"].decode().splitlines()[0] == ",".join(FRAME_COLUMNS)
 
 
@@ -165,7 +239,9 @@ def test_semantic_uint16_and_gray_semantic_round_trip(tmp_path):
         w.add_frame(0)
         w.add_frame(1)
         w.add_camera_frame("FrontLeft", 0, [0] * 6, grayscale=g, semantic=sem16)
-        w.add_camera_frame("FrontLeft", 1, [0] * 6, grayscale=g, semantic=(sem16 % 256).astype(np.uint8))
+        w.add_camera_frame(
+            "FrontLeft", 1, [0] * 6, grayscale=g, semantic=(sem16 % 256).astype(np.uint8)
+        )
     with LacArchive(path) as a:
         s0, s1 = a.semantic("FrontLeft", 0), a.semantic("FrontLeft", 1)
         assert s0.dtype == np.uint16 and np.array_equal(s0, sem16)
@@ -183,18 +259,27 @@ def test_reads_recorder_style_archive(tmp_path):
     Image.fromarray(gray).save(png, format="PNG")
     Image.fromarray(gray).save(jpg, format="JPEG", quality=100)
     initial = (
-        'fiducials = true\nlander = [ 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,]\nrover = [ 1.5, -2.0, 0.1, 0.0, 0.0, 3.1,]\n\n'
+        "fiducials = true\nlander = [ 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,]\nrover = [ 1.5, -2.0, 0.1, 0.0, 0.0, 3.1,]\n\n"
         '[cameras.FrontLeft]\ncamera_active = true\nlight_intensity = 1.0\nwidth = "32"\nheight = "24"\n'
         'use_semantic = false\n\n[cameras.Left]\ncamera_active = false\nlight_intensity = 0\nwidth = "32"\n'
         'height = "24"\nuse_semantic = false\n'
     )
     metadata = 'data_spec = "0.1"\ndescription = ""\nstart_time = "2025-03-01 10:00:00"\nend_time = "2025-03-01 10:01:00"\nframes = 3\n'
-    frames = ",".join(FRAME_COLUMNS) + "\n" + "".join(
-        f"{f},{0.1 * f},0.2,0.0,0.0,0.0,0.5,0.0,0.0,1.62,0.0,0.0,0.0,{0.05 * f},100.0,0.3,0.0,0.0\n" for f in (1, 2, 3)
+    frames = (
+        ",".join(FRAME_COLUMNS)
+        + "\n"
+        + "".join(
+            f"{f},{0.1 * f},0.2,0.0,0.0,0.0,0.5,0.0,0.0,1.62,0.0,0.0,0.0,{0.05 * f},100.0,0.3,0.0,0.0\n"
+            for f in (1, 2, 3)
+        )
     )
-    cam = ",".join(CAMERA_COLUMNS) + "\n" + (
-        "2,True,0.28,0.081,0.131,0.0,0.0,0.0,1.0,FrontLeft_grayscale_2.png,\n"
-        "3,True,0.28,0.081,0.131,0.0,0.0,0.0,1.0,FrontLeft_grayscale_3.jpg,\n"
+    cam = (
+        ",".join(CAMERA_COLUMNS)
+        + "\n"
+        + (
+            "2,True,0.28,0.081,0.131,0.0,0.0,0.0,1.0,FrontLeft_grayscale_2.png,\n"
+            "3,True,0.28,0.081,0.131,0.0,0.0,0.0,1.0,FrontLeft_grayscale_3.jpg,\n"
+        )
     )
     path = tar_gz(
         tmp_path / "sim-2025-03-01_10.00.00.lac",
@@ -229,7 +314,9 @@ def test_tolerates_dot_prefix_and_top_level_folder(tmp_path):
         path = tar_gz(tmp_path / f"re{len(prefix)}.lac", {prefix + k: v for k, v in m.items()})
         with LacArchive(path) as a:
             assert a.n_frames == 2
-            assert np.array_equal(a.grayscale("FrontLeft", 2), images[("FrontLeft", 2, "grayscale")])
+            assert np.array_equal(
+                a.grayscale("FrontLeft", 2), images[("FrontLeft", 2, "grayscale")]
+            )
 
 
 # ----------------------------------------------------------------------- random access
@@ -237,8 +324,12 @@ def test_tolerates_dot_prefix_and_top_level_folder(tmp_path):
 
 def test_indexed_gzip_reader_random_seeks_match():
     rng = np.random.default_rng(3)
-    payload = rng.integers(0, 256, 300_000, dtype=np.uint8).tobytes() + bytes(100_000) + b"abc" * 50_000
-    blob = gzip.compress(payload[:200_000], compresslevel=1) + gzip.compress(payload[200_000:])  # multi-member
+    payload = (
+        rng.integers(0, 256, 300_000, dtype=np.uint8).tobytes() + bytes(100_000) + b"abc" * 50_000
+    )
+    blob = gzip.compress(payload[:200_000], compresslevel=1) + gzip.compress(
+        payload[200_000:]
+    )  # multi-member
     r = _IndexedGzipReader(io.BytesIO(blob), spacing=16 * 1024)
     assert r.read_to_end() == len(payload)
     assert r.n_checkpoints > 10
@@ -269,7 +360,9 @@ def test_sequential_iteration_is_forward_only(tmp_path, monkeypatch):
     with LacArchive(path, checkpoint_spacing=2048) as a:
         restores = []
         orig = _IndexedGzipReader._restore
-        monkeypatch.setattr(_IndexedGzipReader, "_restore", lambda self, k: (restores.append(k), orig(self, k)))
+        monkeypatch.setattr(
+            _IndexedGzipReader, "_restore", lambda self, k: (restores.append(k), orig(self, k))
+        )
         n = sum(len(r.grayscale) + len(r.semantic) for r in a.iter_frames())
         assert n == 90
         assert len(restores) <= 1  # one jump back to the first image, then forward only
@@ -338,7 +431,7 @@ def test_missing_required_member(tmp_path, member):
 
 def test_initial_missing_key_and_bad_toml(tmp_path):
     m = _good_members(tmp_path)
-    m["initial.toml"] = b'lander = [0.0,0.0,0.0,0.0,0.0,0.0]\n[cameras]\n'
+    m["initial.toml"] = b"lander = [0.0,0.0,0.0,0.0,0.0,0.0]\n[cameras]\n"
     _raises(tar_gz(tmp_path / "k.lac", m), "initial.toml", "fiducials")
     m["initial.toml"] = b"this is = = not toml"
     _raises(tar_gz(tmp_path / "t.lac", m), "initial.toml", "invalid TOML")
@@ -350,7 +443,9 @@ def test_missing_columns(tmp_path):
     cols = lines[0].split(",")
     j = cols.index("yaw")
     m2 = dict(m)
-    m2["frames.csv"] = "\n".join(",".join(c for i, c in enumerate(ln.split(",")) if i != j) for ln in lines).encode()
+    m2["frames.csv"] = "\n".join(
+        ",".join(c for i, c in enumerate(ln.split(",")) if i != j) for ln in lines
+    ).encode()
     _raises(tar_gz(tmp_path / "f.lac", m2), "frames.csv", "yaw")
     cam = "cameras/FrontLeft/FrontLeft_frames.csv"
     lines = m[cam].decode().splitlines()
@@ -394,7 +489,10 @@ def test_undecodable_image_names_member(tmp_path):
     m = _good_members(tmp_path)
     member = "cameras/FrontLeft/grayscale/FrontLeft_grayscale_2.png"
     m[member] = b"not a png"
-    with LacArchive(tar_gz(tmp_path / "png.lac", m)) as a, pytest.raises(ArchiveError, match=member):
+    with (
+        LacArchive(tar_gz(tmp_path / "png.lac", m)) as a,
+        pytest.raises(ArchiveError, match=member),
+    ):
         a.grayscale("FrontLeft", 2)
 
 

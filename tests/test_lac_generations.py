@@ -27,7 +27,13 @@ import tarfile
 import numpy as np
 import pytest
 
-from lunarloc.io.lac.archive import FRAME_COLUMNS, LacArchive, LacWriter, float_text, lander_pose_map
+from lunarloc.io.lac.archive import (
+    FRAME_COLUMNS,
+    LacArchive,
+    LacWriter,
+    float_text,
+    lander_pose_map,
+)
 from lunarloc.core.errors import ArchiveError
 
 W, H = 32, 24
@@ -49,14 +55,18 @@ def initial_toml(numpy2: bool = True, *, semantic_front: bool = True) -> bytes:
         active = cam != "BackLeft"
         sem = semantic_front and cam == "Front"
         light = "1.0" if cam == "Front" else "0"
-        text += (f"\n[cameras.{cam}]\ncamera_active = {str(active).lower()}\nlight_intensity = {light}\n"
-                 f'width = "{W}"\nheight = "{H}"\nuse_semantic = {str(sem).lower()}\n')  # fmt: skip
+        text += (
+            f"\n[cameras.{cam}]\ncamera_active = {str(active).lower()}\nlight_intensity = {light}\n"
+            f'width = "{W}"\nheight = "{H}"\nuse_semantic = {str(sem).lower()}\n'
+        )
     return text.encode()
 
 
 def metadata_toml(frames: int) -> bytes:
-    return (f'data_spec = "0.1"\ndescription = ""\nstart_time = "2025-04-21 20:00:00"\n'
-            f'end_time = "2025-04-21 20:01:00"\nframes = {frames}\n').encode()  # fmt: skip
+    return (
+        f'data_spec = "0.1"\ndescription = ""\nstart_time = "2025-04-21 20:00:00"\n'
+        f'end_time = "2025-04-21 20:01:00"\nframes = {frames}\n'
+    ).encode()
 
 
 def frames_csv(n: int, *, speed_text=None, gyro_text=None) -> tuple[bytes, np.ndarray]:
@@ -64,8 +74,25 @@ def frames_csv(n: int, *, speed_text=None, gyro_text=None) -> tuple[bytes, np.nd
     rows, states = [], []
     for k in range(n):
         t = 0.05 * k
-        st = [-3.5 + 0.2 * t, 6.25, 0.4, 0.0, 0.0, 0.0, 0.0, 0.0, 1.622, 0.0, 0.0, 0.0, t, 283.0 - t / 120,
-              0.2, 0.0, 0.0]  # fmt: skip
+        st = [
+            -3.5 + 0.2 * t,
+            6.25,
+            0.4,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            1.622,
+            0.0,
+            0.0,
+            0.0,
+            t,
+            283.0 - t / 120,
+            0.2,
+            0.0,
+            0.0,
+        ]
         states.append(st)
         cells = [str(k + 1)] + [repr(float(v)) for v in st]
         if speed_text is not None and k == 3:
@@ -97,7 +124,11 @@ def tar_members(path, members: list[tuple[str, bytes]]):
     return path
 
 
-_POSE = {"FrontLeft": "0.28,0.081,0.131", "FrontRight": "0.28,-0.081,0.131", "Front": "0.28,0.0,0.131"}
+_POSE = {
+    "FrontLeft": "0.28,0.081,0.131",
+    "FrontRight": "0.28,-0.081,0.131",
+    "Front": "0.28,0.0,0.131",
+}
 
 
 def g0_archive(path, n=6):
@@ -115,9 +146,12 @@ def g0_archive(path, n=6):
                 members.append((name, _png(img)))
                 images[(cam, k)] = img
             rows.append(f"{k},True,{_POSE[cam]},0.0,0.0,0.0,0,{_POSE[cam]},0.0,0.0,0.0,{name},")
-        tables[cam] = ("frame,enable,camera_x,camera_y,camera_z,camera_roll,camera_pitch,camera_yaw,light_intensity,"
-                       "light_x,light_y,light_z,light_roll,light_pitch,light_yaw,grayscale,semantic\n"
-                       + "\n".join(rows) + "\n").encode()  # fmt: skip
+        tables[cam] = (
+            "frame,enable,camera_x,camera_y,camera_z,camera_roll,camera_pitch,camera_yaw,light_intensity,"
+            "light_x,light_y,light_z,light_roll,light_pitch,light_yaw,grayscale,semantic\n"
+            + "\n".join(rows)
+            + "\n"
+        ).encode()
     frames, states = frames_csv(n)
     members += [("metadata.toml", metadata_toml(n)), ("frames.csv", frames)]
     members += [(f"images/{c}/{c}_frames.csv", t) for c, t in tables.items()]
@@ -125,7 +159,9 @@ def g0_archive(path, n=6):
     return tar_members(path, members), states, images
 
 
-def g2_archive(path, n=6, *, images_from=("FrontLeft", "FrontRight"), fmt="PNG", custom=True, numpy2=True):
+def g2_archive(
+    path, n=6, *, images_from=("FrontLeft", "FrontRight"), fmt="PNG", custom=True, numpy2=True
+):
     """MAPLE recorder of 2025-04-21 afternoon: cameras/, bare names, 1-byte empty tables."""
     rng = np.random.default_rng(1)
     members = [("initial.toml", initial_toml(numpy2=numpy2, semantic_front=False))]
@@ -139,13 +175,17 @@ def g2_archive(path, n=6, *, images_from=("FrontLeft", "FrontRight"), fmt="PNG",
             members.append((f"cameras/{cam}/grayscale/{name}", _png(img, fmt)))
             images[(cam, k)] = img
             rows.append(f"{k},True,{_POSE[cam]},0.0,0.0,0.0,0,{name},")
-        tables[cam] = ("frame,enable,camera_x,camera_y,camera_z,camera_roll,camera_pitch,camera_yaw,light_intensity,"
-                       "grayscale,semantic\n" + "\n".join(rows) + "\n").encode()  # fmt: skip
+        tables[cam] = (
+            "frame,enable,camera_x,camera_y,camera_z,camera_roll,camera_pitch,camera_yaw,light_intensity,"
+            "grayscale,semantic\n" + "\n".join(rows) + "\n"
+        ).encode()
     frames, states = frames_csv(n)
     members += [("metadata.toml", metadata_toml(n)), ("frames.csv", frames)]
     members += [(f"cameras/{c}/{c}_frames.csv", tables.get(c, b"\n")) for c in CAMS]
     if custom:
-        members.append(("custom/estimate.csv", b"x,y\n" + b"".join(b"%d.5,0.25\n" % k for k in range(n))))
+        members.append(
+            ("custom/estimate.csv", b"x,y\n" + b"".join(b"%d.5,0.25\n" % k for k in range(n)))
+        )
     return tar_members(path, members), states, images
 
 
@@ -161,7 +201,10 @@ def test_g0_images_layout_member_paths_and_every_frame_rows(tmp_path):
             np.testing.assert_array_equal(a.grayscale(cam, k), img)
         assert a.grayscale("FrontLeft", 3) is None  # a row without an image
         assert a.initial["rover"] == [-3.5, 6.25, 0.4, 0.01, -0.02, 1.2]  # "1.5"-style strings
-        assert a.initial["cameras"]["Front"]["width"] == W and a.initial["cameras"]["Front"]["light_intensity"] == 1.0
+        assert (
+            a.initial["cameras"]["Front"]["width"] == W
+            and a.initial["cameras"]["Front"]["light_intensity"] == 1.0
+        )
         assert a.initial_raw["cameras"]["Front"]["width"] == str(W)
         np.testing.assert_array_equal(a.poses(), states[:, :6])
 
@@ -175,10 +218,15 @@ def test_g2_one_byte_tables_and_numbers_as_strings(tmp_path, numpy2):
         assert a.camera_frames("Front").n_rows == 0 and a.image_count("Front") == 0
         assert a.initial["lander"] == [1.5, -7.25, -0.4, 0.0, 0.0, -1.2]
         assert all(isinstance(v, float) for v in a.initial["rover"])
-        assert a.initial["cameras"]["FrontLeft"]["height"] == H and a.initial["cameras"]["FrontLeft"]["light_intensity"] == 0.0
+        assert (
+            a.initial["cameras"]["FrontLeft"]["height"] == H
+            and a.initial["cameras"]["FrontLeft"]["light_intensity"] == 0.0
+        )
         for (cam, k), img in images.items():
             np.testing.assert_array_equal(a.grayscale(cam, k), img)
-        assert a.custom_records == ["estimate"] and a.custom("estimate").n_rows == 6  # no frame column
+        assert (
+            a.custom_records == ["estimate"] and a.custom("estimate").n_rows == 6
+        )  # no frame column
 
 
 def test_jpeg_images(tmp_path):
@@ -225,17 +273,27 @@ def _members(path) -> dict[str, bytes]:
 
 
 def _initial(lander, rover):
-    cam = {"camera_active": True, "light_intensity": 0.0, "width": W, "height": H, "use_semantic": False}
+    cam = {
+        "camera_active": True,
+        "light_intensity": 0.0,
+        "width": W,
+        "height": H,
+        "use_semantic": False,
+    }
     return {"fiducials": False, "lander": lander, "rover": rover, "cameras": {"FrontLeft": cam}}
 
 
 def test_lander_is_rover_relative_and_map_pose_composes(tmp_path):
     rover = [-3.5, 6.25, 0.4, 0.0, 0.0, np.pi / 2]
-    with LacWriter(tmp_path / "a.lac", _initial([7.0, 2.0, -0.4, 0.0, 0.0, -np.pi / 2], rover)) as w:
+    with LacWriter(
+        tmp_path / "a.lac", _initial([7.0, 2.0, -0.4, 0.0, 0.0, -np.pi / 2], rover)
+    ) as w:
         w.add_frame(0)
     with LacArchive(tmp_path / "a.lac") as a:
         assert not a.lander_stored_in_map_frame
-        np.testing.assert_allclose(a.lander_pose_map(), [-5.5, 13.25, 0.0, 0.0, 0.0, 0.0], atol=1e-12)
+        np.testing.assert_allclose(
+            a.lander_pose_map(), [-5.5, 13.25, 0.0, 0.0, 0.0, 0.0], atol=1e-12
+        )
 
 
 def test_legacy_lunarloc_archive_with_map_frame_lander_is_converted(tmp_path):
@@ -250,7 +308,9 @@ def test_legacy_lunarloc_archive_with_map_frame_lander_is_converted(tmp_path):
     with LacArchive(legacy) as a:
         assert a.lander_stored_in_map_frame
         np.testing.assert_allclose(a.lander_pose_map(), lander_map, atol=1e-12)
-        np.testing.assert_allclose(a.initial["lander"][:3], [-6.25, -3.5, -0.4], atol=1e-12)  # ahead-left is +x+y: behind and right
+        np.testing.assert_allclose(
+            a.initial["lander"][:3], [-6.25, -3.5, -0.4], atol=1e-12
+        )  # ahead-left is +x+y: behind and right
         assert a.initial_raw["lander"] == lander_map
     with pytest.raises(ValueError, match="map-frame lander"):
         LacWriter(tmp_path / "refused.lac", _initial(lander_map, rover), data_spec="lunarloc-sim")
@@ -265,28 +325,50 @@ def test_simulator_writes_a_rover_relative_lander(tmp_path):
     with LacArchive(path) as a:
         np.testing.assert_allclose(a.lander_pose_map(), site.lander_pose, atol=1e-9)
         np.testing.assert_allclose(lander_pose_map(a.initial_raw), site.lander_pose, atol=1e-9)
-        assert np.linalg.norm(a.initial["lander"][:2]) == pytest.approx(np.linalg.norm(traj.xyz[0, :2] - site.lander_xyz[:2]), abs=0.5)
+        assert np.linalg.norm(a.initial["lander"][:2]) == pytest.approx(
+            np.linalg.norm(traj.xyz[0, :2] - site.lander_xyz[:2]), abs=0.5
+        )
 
 
 # ------------------------------------------------------------------------------- float text
 
 
-@pytest.mark.parametrize("value", [0.1 + 0.2, 0.15000000000000002, -0.00445413312008323, 1e-5 / 3, 2.7755575615628914e-17,
-                                   123.456, 1e300, -0.0, 0.05 * 7, 1.0 / 3.0])  # fmt: skip
+@pytest.mark.parametrize(
+    "value",
+    [
+        0.1 + 0.2,
+        0.15000000000000002,
+        -0.00445413312008323,
+        1e-5 / 3,
+        2.7755575615628914e-17,
+        123.456,
+        1e300,
+        -0.0,
+        0.05 * 7,
+        1.0 / 3.0,
+    ],
+)
 def test_float_text_is_read_the_same_by_a_correctly_rounding_and_pandas_parser(value):
     from lunarloc.io.lac.writer import _pandas_exact
 
     text = float_text(value)
     assert float(text) == pytest.approx(value, rel=5e-15, abs=1e-22)
     if abs(value) < 1e30:
-        assert _pandas_exact(text), text  # digits < 2**53 and a power of ten pandas divides by exactly
+        assert _pandas_exact(text), (
+            text
+        )  # digits < 2**53 and a power of ten pandas divides by exactly
 
 
 def test_float_text_against_pandas():
     pd = pytest.importorskip("pandas")
     rng = np.random.default_rng(3)
-    vals = np.concatenate([rng.normal(size=3000), rng.normal(size=3000) * 10.0 ** rng.integers(-25, 10, 3000),
-                           np.arange(300) * 0.05])  # fmt: skip
+    vals = np.concatenate(
+        [
+            rng.normal(size=3000),
+            rng.normal(size=3000) * 10.0 ** rng.integers(-25, 10, 3000),
+            np.arange(300) * 0.05,
+        ]
+    )
     text = "v\n" + "\n".join(float_text(v) for v in vals) + "\n"
     back = pd.read_csv(io.StringIO(text))["v"].to_numpy()
     ours = np.array([float(s) for s in text.split("\n")[1:-1]])
@@ -296,7 +378,10 @@ def test_float_text_against_pandas():
 def test_readme_layout_images_folder_with_bare_names(tmp_path):
     """The layout the READMEs draw: images/<Cam>/<Cam>_frames.csv with bare file names."""
     path, _, images = g2_archive(tmp_path / "g2.lac")
-    moved = {(n.replace("cameras/", "images/", 1) if n.startswith("cameras/") else n): d for n, d in _members(path).items()}
+    moved = {
+        (n.replace("cameras/", "images/", 1) if n.startswith("cameras/") else n): d
+        for n, d in _members(path).items()
+    }
     with LacArchive(tar_members(tmp_path / "readme.lac", list(moved.items()))) as a:
         assert a.cameras == ["FrontLeft", "FrontRight"]
         for (cam, k), img in images.items():

@@ -29,7 +29,11 @@ pytest.importorskip("embreex", reason="the closed-loop harness renders with luna
 import carla  # noqa: E402  (the stand-in)
 import lunarsim  # noqa: E402
 from leaderboard.agents.agent_wrapper import AgentSetupError, AgentWrapper  # noqa: E402
-from leaderboard.agents.coordinate_conversion import carla_transform_from_rh, rh_matrix, toRHCStransform  # noqa: E402
+from leaderboard.agents.coordinate_conversion import (
+    carla_transform_from_rh,
+    rh_matrix,
+    toRHCStransform,
+)  # noqa: E402
 from leaderboard.agents.geometric_map import GeometricMap  # noqa: E402
 from leaderboard.agents.imu import IMU  # noqa: E402
 from leaderboard.utils.constants import Constants  # noqa: E402
@@ -53,8 +57,11 @@ def small_world():
 def _conf(tmp_path, world, **extra) -> Path:
     ref = world.write_reference(tmp_path / "rocks.csv")
     lines = [f'reference = "{ref.name}"', f"width = {W}", f"height = {H}", 'output = "out"']
+
     def value(v):
-        return f'"{v}"' if isinstance(v, str) else str(v).lower() if isinstance(v, bool) else repr(v)
+        return (
+            f'"{v}"' if isinstance(v, str) else str(v).lower() if isinstance(v, bool) else repr(v)
+        )
 
     lines += [f"{k} = {value(v)}" for k, v in extra.items()]
     p = tmp_path / "lunarloc.toml"
@@ -76,7 +83,9 @@ def test_standin_transforms_round_trip_and_are_right_handed():
         lh = carla_transform_from_rh(T)
         assert lh.location.y == pytest.approx(-y)  # CARLA is left-handed
         rh = toRHCStransform(lh)
-        assert (rh.rotation.roll, rh.rotation.pitch, rh.rotation.yaw) == pytest.approx((roll, pitch, yaw))
+        assert (rh.rotation.roll, rh.rotation.pitch, rh.rotation.yaw) == pytest.approx(
+            (roll, pitch, yaw)
+        )
         np.testing.assert_allclose(rh_matrix(rh), T, atol=1e-12)
         # the left-handed matrix is the right-handed one mirrored in y
         S = np.diag([1.0, -1.0, 1.0, 1.0])
@@ -102,9 +111,13 @@ def test_standin_imu_is_a_world_frame_rate_and_a_body_frame_specific_force():
         v.T = pose_to_matrix(0.1 * k, 0.0, 0.0, 0.0, math.radians(30), 0.4 * 0.05 * k)
         out.append(imu.get_data())
     np.testing.assert_allclose(out[0], [0, 0, 1.622, 0, 0, 0])
-    np.testing.assert_allclose(out[3][3:], [0, 0, 0.4], atol=0.02)  # spatial rate: (0, 0, w), not R^T (0, 0, w)
+    np.testing.assert_allclose(
+        out[3][3:], [0, 0, 0.4], atol=0.02
+    )  # spatial rate: (0, 0, w), not R^T (0, 0, w)
     R = v.T[:3, :3]
-    np.testing.assert_allclose(out[3][:3], R.T @ [0, 0, 1.622], atol=1e-9)  # at constant velocity: R^T g
+    np.testing.assert_allclose(
+        out[3][:3], R.T @ [0, 0, 1.622], atol=1e-9
+    )  # at constant velocity: R^T g
 
 
 def test_standin_geometric_map_indexing():
@@ -114,7 +127,11 @@ def test_standin_geometric_map_indexing():
     assert gm.get_cell_indexes(-13.5 + 0.075, 0.0) == (0, 90)
     assert gm.get_cell_indexes(13.6, 0.0)[0] is None and gm.get_height(20.0, 0.0) is None
     assert gm.set_height(1.0, -2.0, 0.25) and gm.get_height(1.0, -2.0) == 0.25
-    assert gm.get_rock(1.0, -2.0) == -np.inf and gm.set_rock(1.0, -2.0, True) and gm.get_rock(1.0, -2.0) is True
+    assert (
+        gm.get_rock(1.0, -2.0) == -np.inf
+        and gm.set_rock(1.0, -2.0, True)
+        and gm.get_rock(1.0, -2.0) is True
+    )
     assert not gm.set_rock(99.0, 0.0, True)
 
 
@@ -130,10 +147,14 @@ def test_agent_file_loads_through_the_wrapper(tmp_path):
     assert wrapper.agent_fiducials is False  # the localization points need no fiducials
 
 
-def test_setup_runs_before_any_vehicle_status_and_configures_all_eight_sensors(tmp_path, small_world):
+def test_setup_runs_before_any_vehicle_status_and_configures_all_eight_sensors(
+    tmp_path, small_world
+):
     world = small_world
     wrapper = AgentWrapper(world, str(AGENT_FILE), str(_conf(tmp_path, world)), evaluation=True)
-    wrapper.setup(world.vehicle, world.lander, Constants())  # AgentSetupError if setup touched the status
+    wrapper.setup(
+        world.vehicle, world.lander, Constants()
+    )  # AgentSetupError if setup touched the status
     sensors = wrapper.agent.sensors()
     assert set(sensors) == set(carla.SensorPosition)
     active = {p for p, c in sensors.items() if c["camera_active"]}
@@ -150,9 +171,14 @@ def test_a_missing_reference_is_a_setup_error(tmp_path, small_world):
         wrapper.setup(world.vehicle, world.lander, Constants())
 
 
-@pytest.mark.parametrize("text, match", [('refrence = "x.csv"', "unknown setting 'refrence'"),
-                                         ("width = '640'", "width must be int"),
-                                         ('odometry = "wheels"', "odometry must be")])  # fmt: skip
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ('refrence = "x.csv"', "unknown setting 'refrence'"),
+        ("width = '640'", "width must be int"),
+        ('odometry = "wheels"', "odometry must be"),
+    ],
+)
 def test_bad_settings_are_setup_errors_naming_the_key(tmp_path, small_world, text, match):
     world = small_world
     conf = tmp_path / "c.toml"
@@ -218,8 +244,14 @@ def test_the_agent_writes_the_map_during_the_run_and_completes_it_in_finalize(tm
         last["done"], last["height"] = done, a[:, :, 2].copy()
 
     cap = 150
-    run = lunarsim.run_agent(AGENT_FILE, _conf(tmp_path, world, lac_map=True, lac_map_cells_per_tick=cap), world, 16.0,
-                             evaluation=True, observe=observe)  # fmt: skip
+    run = lunarsim.run_agent(
+        AGENT_FILE,
+        _conf(tmp_path, world, lac_map=True, lac_map_cells_per_tick=cap),
+        world,
+        16.0,
+        evaluation=True,
+        observe=observe,
+    )
     assert run.ticks == len(counts) == 320
     steps = np.diff([0] + counts)
     assert counts[-1] >= 300  # cells written before finalize
@@ -228,6 +260,10 @@ def test_the_agent_writes_the_map_during_the_run_and_completes_it_in_finalize(tm
     assert len(run.agent.map_write_cpu_s) == run.ticks
     truth = world.ground_truth_map(Constants())
     during = last["done"]
-    assert np.mean(np.abs(last["height"] - truth[:, :, 2])[during] < 0.05) >= 0.8  # the live heights are right
+    assert (
+        np.mean(np.abs(last["height"] - truth[:, :, 2])[during] < 0.05) >= 0.8
+    )  # the live heights are right
     final = run.agent.get_geometric_map().get_map_array()
-    assert np.isfinite(final[:, :, 2]).all() and np.isfinite(final[:, :, 3]).all()  # finalize fills every cell
+    assert (
+        np.isfinite(final[:, :, 2]).all() and np.isfinite(final[:, :, 3]).all()
+    )  # finalize fills every cell

@@ -136,7 +136,9 @@ def test_heights_are_robust_to_outliers_and_unseen_cells_are_interpolated(rng):
     assert np.array_equal(est.interpolated, ~est.observed)
     near = est.interpolated & (est.fill_distance_m <= 0.5)
     assert near.any() and np.mean(err[near] < 0.05) > 0.6
-    assert np.all(np.isfinite(est.height_sigma_m[est.observed])) and np.all(np.isnan(est.height_sigma_m[~est.observed]))
+    assert np.all(np.isfinite(est.height_sigma_m[est.observed])) and np.all(
+        np.isnan(est.height_sigma_m[~est.observed])
+    )
     none = LacMapper(LacMapperConfig(size_m=15.0, fill="none"))
     none.add_frame(0, circle_poses()[0], frame_points(circle_poses()[0], rng))
     g = none.grid()
@@ -154,7 +156,10 @@ def test_repose_moves_what_a_frame_placed(rng):
         m.add_frame(k, S, pts, rocks)  # placed with a wrong pose, as odometry would
         good.add_frame(k, T, pts, rocks)
     bad = m.grid()
-    assert np.mean(np.abs(bad.array[bad.observed, 2] - true_cells(bad.array)[bad.observed]) < 0.05) < 0.7
+    assert (
+        np.mean(np.abs(bad.array[bad.observed, 2] - true_cells(bad.array)[bad.observed]) < 0.05)
+        < 0.7
+    )
     assert all(m.repose(k, T) for k, T in enumerate(poses))
     assert not m.repose("never added", poses[0])
     a, b = m.grid(), good.grid()
@@ -180,7 +185,9 @@ def test_bounded_memory_freezes_the_oldest_frames(rng):
 
 
 def test_rocks_need_two_sightings_and_mark_the_cells_any_ray_reaches(rng):
-    m = LacMapper(LacMapperConfig(size_m=9.0, fill="none", rock_min_sightings=2))  # the default is 3
+    m = LacMapper(
+        LacMapperConfig(size_m=9.0, fill="none", rock_min_sightings=2)
+    )  # the default is 3
     T0 = pose_to_matrix(-2.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     T1 = pose_to_matrix(-1.5, 0.5, 0.0, 0.0, 0.0, 0.0)
     rock_map = np.array([1.0, 0.2, 0.05])
@@ -217,9 +224,13 @@ def test_exclusion_disc_and_bad_inputs(rng):
     assert est.observed.any() and not est.observed[r < 2.9].any()
     with pytest.raises(InputError, match="frame 99: T_map_rover is not finite"):
         m.add_frame(99, np.full((4, 4), np.nan))
-    with pytest.raises(InputError, match="frame 99: T_map_rover must be a 4x4 transform, got shape"):
+    with pytest.raises(
+        InputError, match="frame 99: T_map_rover must be a 4x4 transform, got shape"
+    ):
         m.add_frame(99, np.eye(3))
-    with pytest.raises(InputError, match="frame 99: T_map_rover: the rotation block is not a rotation"):
+    with pytest.raises(
+        InputError, match="frame 99: T_map_rover: the rotation block is not a rotation"
+    ):
         m.add_frame(99, np.diag([1.1, 1.1, 1.1, 1.0]))  # a scale is not a pose
     assert not m.repose(99, np.eye(4)) and 99 not in m.frame_ids  # nothing refused was added
     with pytest.raises(InputError, match="points_rover"):
@@ -295,15 +306,41 @@ def test_cli_score_seen_only_and_figure(tmp_path, rng, capsys):
     truth[:, :, 3] = 0
     np.save(tmp_path / "truth.npy", truth)
     save_lac_map(est, tmp_path / "map.npy")
-    assert main(["score", str(tmp_path / "map.npy"), str(tmp_path / "truth.npy"), "--json", "--seen-only"]) == 0
+    assert (
+        main(
+            [
+                "score",
+                str(tmp_path / "map.npy"),
+                str(tmp_path / "truth.npy"),
+                "--json",
+                "--seen-only",
+            ]
+        )
+        == 0
+    )
     seen = json.loads(capsys.readouterr().out)
     assert seen["cells"] == int(est.observed.sum()) and seen["geometric"] > 0.95
-    assert main(["score", str(tmp_path / "map.npy"), str(tmp_path / "truth.npy"), "--mission-time", "600",
-                 "--figure", str(tmp_path / "cmp.png")]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "score",
+                str(tmp_path / "map.npy"),
+                str(tmp_path / "truth.npy"),
+                "--mission-time",
+                "600",
+                "--figure",
+                str(tmp_path / "cmp.png"),
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "LAC points" in out and (tmp_path / "cmp.png").stat().st_size > 10_000
     (tmp_path / "other.npy").write_bytes((tmp_path / "truth.npy").read_bytes())
-    assert main(["score", str(tmp_path / "other.npy"), str(tmp_path / "truth.npy"), "--seen-only"]) == 2
+    assert (
+        main(["score", str(tmp_path / "other.npy"), str(tmp_path / "truth.npy"), "--seen-only"])
+        == 2
+    )
     assert "cells.npz" in capsys.readouterr().err
 
 
@@ -316,8 +353,14 @@ def tiny_sim(tmp_path_factory):
     from lunarloc.sim.simulate import SimulationConfig, simulate_dataset
 
     out = tmp_path_factory.mktemp("lacmap")
-    cfg = SimulationConfig(duration_s=6.0, image_rate_hz=2.0, width=640, height=360,
-                           cameras=("FrontLeft", "FrontRight"), semantic=False)  # fmt: skip
+    cfg = SimulationConfig(
+        duration_s=6.0,
+        image_rate_hz=2.0,
+        width=640,
+        height=360,
+        cameras=("FrontLeft", "FrontRight"),
+        semantic=False,
+    )
     simulate_dataset(0, 1, out, cfg)
     return out
 
@@ -326,18 +369,48 @@ def test_run_writes_the_lac_map_and_score_reads_it(tiny_sim, tmp_path, capsys):
     from lunarloc.cli import main
 
     lac = tmp_path / "lac.npy"
-    assert main(["run", str(tiny_sim / "traverse_0.lac"), "--reference", str(tiny_sim / "rocks.csv"),
-                 "-o", str(tmp_path / "run"), "--lac-map", str(lac), "--no-plot"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "run",
+                str(tiny_sim / "traverse_0.lac"),
+                "--reference",
+                str(tiny_sim / "rocks.csv"),
+                "-o",
+                str(tmp_path / "run"),
+                "--lac-map",
+                str(lac),
+                "--no-plot",
+            ]
+        )
+        == 0
+    )
     assert "LAC map:" in capsys.readouterr().out
     assert lac.is_file() and (tmp_path / "lac.cells.npz").is_file()
-    assert main(["score", str(lac), str(tiny_sim / "geometric_map.npy"), "--json", "--seen-only"]) == 0
+    assert (
+        main(["score", str(lac), str(tiny_sim / "geometric_map.npy"), "--json", "--seen-only"]) == 0
+    )
     s = json.loads(capsys.readouterr().out)
     # a few metres of a traverse: the cells the cameras saw are mostly right in height
     assert s["cells"] > 200 and s["geometric"] > 0.7, s
     assert s["cells_filled"] == 180 * 180  # fill=all
     # an existing map is refused before anything runs
-    assert main(["run", str(tiny_sim / "traverse_0.lac"), "--reference", str(tiny_sim / "rocks.csv"),
-                 "-o", str(tmp_path / "run2"), "--lac-map", str(lac), "--no-plot"]) == 2  # fmt: skip
+    assert (
+        main(
+            [
+                "run",
+                str(tiny_sim / "traverse_0.lac"),
+                "--reference",
+                str(tiny_sim / "rocks.csv"),
+                "-o",
+                str(tmp_path / "run2"),
+                "--lac-map",
+                str(lac),
+                "--no-plot",
+            ]
+        )
+        == 2
+    )
     assert "exists" in capsys.readouterr().err
 
 
@@ -349,11 +422,20 @@ def test_online_localizer_feeds_its_mapper(tiny_sim):
     mapper = LacMapper()
     kfs = 0
     with PlaybackAgent(tiny_sim / "traverse_0.lac") as env:
-        loc = OnlineLocalizer(load_reference(tiny_sim / "rocks.csv"), env.get_initial_position(),
-                              rig=CameraRig.from_sensors(env.sensors()), mapper=mapper)  # fmt: skip
+        loc = OnlineLocalizer(
+            load_reference(tiny_sim / "rocks.csv"),
+            env.get_initial_position(),
+            rig=CameraRig.from_sensors(env.sensors()),
+            mapper=mapper,
+        )
         while True:
-            e = loc.update(env.get_mission_time(), env.input_data(), env.get_imu_data(), env.get_linear_speed(),
-                           env.get_angular_speed())  # fmt: skip
+            e = loc.update(
+                env.get_mission_time(),
+                env.input_data(),
+                env.get_imu_data(),
+                env.get_linear_speed(),
+                env.get_angular_speed(),
+            )
             kfs += e.keyframe
             if env.at_end():
                 break
@@ -405,11 +487,20 @@ def test_small_rocks_have_their_own_sightings_floor_and_footprint_margin():
             m.add_frame(k, T, None, np.array([rock, big]))
         return m.grid()
 
-    est = mapper(rock_min_sightings=2, small_rock_min_sightings=2, small_rock_margin_m=0.01, rock_radius_scale=1.1)
+    est = mapper(
+        rock_min_sightings=2,
+        small_rock_min_sightings=2,
+        small_rock_margin_m=0.01,
+        rock_radius_scale=1.1,
+    )
     r = {(round(x, 2), round(y, 2)): rad for x, y, rad in est.rocks}
-    assert r[(1.0, 0.2)] == pytest.approx(0.04) and r[(1.5, -0.6)] == pytest.approx(0.22)  # r + margin; 1.1 x r
+    assert r[(1.0, 0.2)] == pytest.approx(0.04) and r[(1.5, -0.6)] == pytest.approx(
+        0.22
+    )  # r + margin; 1.1 x r
     est3 = mapper(rock_min_sightings=2, small_rock_min_sightings=3)
-    assert len(est3.rocks) == 1 and est3.rocks[0, :2] == pytest.approx([1.5, -0.6])  # two sightings: not enough
+    assert len(est3.rocks) == 1 and est3.rocks[0, :2] == pytest.approx(
+        [1.5, -0.6]
+    )  # two sightings: not enough
     default = mapper()  # 3 sightings for the larger rock, 2 for the small one
     assert len(default.rocks) == 1 and default.rocks[0, :2] == pytest.approx([1.0, 0.2])
     with pytest.raises(ConfigError):
@@ -425,8 +516,14 @@ def test_frame_inputs_puts_a_levelled_height_map_back_in_the_rover_frame(rng):
     T_level_rover = pose_to_matrix(0.0, 0.0, 0.0, 0.2, -0.15, 0.0)
     P_level = (T_level_rover[:3, :3] @ P_rover.T).T
     det = SimpleNamespace(p_rover=np.array([1.0, 0.0, 0.1]), radius_m=0.1)
-    fd = SimpleNamespace(pairs=[SimpleNamespace(height=SimpleNamespace(points_rover=P_level, T_level_rover=T_level_rover))],
-                         detections=[det])  # fmt: skip
+    fd = SimpleNamespace(
+        pairs=[
+            SimpleNamespace(
+                height=SimpleNamespace(points_rover=P_level, T_level_rover=T_level_rover)
+            )
+        ],
+        detections=[det],
+    )
     pts, rocks = frame_inputs(fd)
     np.testing.assert_allclose(pts, P_rover, atol=1e-5)
     np.testing.assert_allclose(rocks, [[1.0, 0.0, 0.1, 0.1]])
@@ -472,7 +569,9 @@ def test_map_writer_writes_bounded_steps_then_the_whole_map(rng):
     for k, T in enumerate(circle_poses(10)):
         m.add_frame(k, T, frame_points(T, rng), np.array([[2.0, 0.0, 0.1, 0.15]]))
         steps.append(w.step())
-    assert max(steps) == 150 and 0 < w.cells_written <= sum(steps)  # a cell a new frame changed is written again
+    assert max(steps) == 150 and 0 < w.cells_written <= sum(
+        steps
+    )  # a cell a new frame changed is written again
     arr = gm.get_map_array()
     done = np.isfinite(arr[:, :, 2])
     assert done.sum() == w.cells_written and np.all(np.isfinite(arr[done, 3]))

@@ -15,18 +15,27 @@ from lunarloc.core.geometry import pose_to_matrix
 from lunarloc.perception.camera import PinholeCamera, ipex_rig
 from lunarloc.perception.detector import Detector, DetectorConfig
 
-LAC_REAL = Path(os.environ.get("LUNARLOC_LAC_REAL", Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "lac-real"))
+LAC_REAL = Path(
+    os.environ.get(
+        "LUNARLOC_LAC_REAL",
+        Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "lac-real",
+    )
+)
 FILES = ("FrontLeft_99.png", "FrontRight_99.png", "pose_99.json")
 
 pytestmark = pytest.mark.skipif(
-    not all((LAC_REAL / f).is_file() for f in FILES), reason=f"real LAC frame not found in {LAC_REAL}"
+    not all((LAC_REAL / f).is_file() for f in FILES),
+    reason=f"real LAC frame not found in {LAC_REAL}",
 )
 
 # image boxes (u0, v0, u1, v1) of what the frame shows (README of the data): the
 # lander, and the rocks near the rover
 LANDER_BOX = (770, 40, 1160, 395)
-NEAR_ROCKS = {"boulder ahead left": (205, 400, 335, 510), "bottom centre": (455, 498, 498, 535),
-              "bottom right": (1128, 594, 1192, 640)}  # fmt: skip
+NEAR_ROCKS = {
+    "boulder ahead left": (205, 400, 335, 510),
+    "bottom centre": (455, 498, 498, 535),
+    "bottom right": (1128, 594, 1192, 640),
+}
 
 
 @pytest.fixture(scope="module")
@@ -40,7 +49,9 @@ def frame():
     det = Detector(DetectorConfig(), PinholeCamera(1280, 720, 70.0))
     T_rover_optical = ipex_rig(det.camera)["FrontLeft"].T_rover_optical
     # the lander stands at the site centre (the map origin)
-    with_lander = det.detect_pair(left, right, T_rover_optical, T_map_rover, "FrontLeft", lander_xy=np.zeros(2))
+    with_lander = det.detect_pair(
+        left, right, T_rover_optical, T_map_rover, "FrontLeft", lander_xy=np.zeros(2)
+    )
     without = det.detect_pair(left, right, T_rover_optical, T_map_rover, "FrontLeft")
     return with_lander, without
 

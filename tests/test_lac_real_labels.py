@@ -27,20 +27,57 @@ def test_labels_are_well_formed():
         for r in f["rocks"]:
             x0, y0, x1, y1 = r["box"]
             assert 0 <= x0 < x1 <= W and 0 <= y0 < y1 <= H, r
-            assert 0.5 < r["range_m"] < 20 and 0.005 < r["width_m"] < 0.5 and isinstance(r["certain"], bool), r
+            assert (
+                0.5 < r["range_m"] < 20
+                and 0.005 < r["width_m"] < 0.5
+                and isinstance(r["certain"], bool)
+            ), r
         for z in f["no_fire"]:
             assert len(z["polygon"]) >= 3 and z["what"]
-    target = [r for f in lab["frames"] for r in f["rocks"] if r["certain"] and r["range_m"] <= lab["recall_range_m"]]
+    target = [
+        r
+        for f in lab["frames"]
+        for r in f["rocks"]
+        if r["certain"] and r["range_m"] <= lab["recall_range_m"]
+    ]
     assert len(target) == 47 and sum(r["width_m"] >= 0.08 for r in target) == 8
 
 
 def test_scoring_counts_rocks_false_and_no_fire_detections_and_ignores_uncertain_labels():
-    frame = {"name": "f", "rocks": [
-        {"id": "a", "box": [100, 100, 120, 120], "range_m": 2.0, "width_m": 0.05, "certain": True},
-        {"id": "b", "box": [300, 300, 310, 310], "range_m": 3.0, "width_m": 0.09, "certain": True},
-        {"id": "c", "box": [500, 500, 510, 510], "range_m": 3.0, "width_m": 0.03, "certain": False},
-        {"id": "d", "box": [700, 300, 710, 310], "range_m": 6.5, "width_m": 0.03, "certain": True}],
-        "no_fire": [{"what": "lander", "polygon": [[900, 0], [1200, 0], [1200, 300], [900, 300]]}]}  # fmt: skip
+    frame = {
+        "name": "f",
+        "rocks": [
+            {
+                "id": "a",
+                "box": [100, 100, 120, 120],
+                "range_m": 2.0,
+                "width_m": 0.05,
+                "certain": True,
+            },
+            {
+                "id": "b",
+                "box": [300, 300, 310, 310],
+                "range_m": 3.0,
+                "width_m": 0.09,
+                "certain": True,
+            },
+            {
+                "id": "c",
+                "box": [500, 500, 510, 510],
+                "range_m": 3.0,
+                "width_m": 0.03,
+                "certain": False,
+            },
+            {
+                "id": "d",
+                "box": [700, 300, 710, 310],
+                "range_m": 6.5,
+                "width_m": 0.03,
+                "certain": True,
+            },
+        ],
+        "no_fire": [{"what": "lander", "polygon": [[900, 0], [1200, 0], [1200, 300], [900, 300]]}],
+    }
     det = lambda u, v, z: SimpleNamespace(uv=(u, v), depth_m=z, radius_m=0.02)
     dets = [det(110, 110, 2.1), det(110, 110, 4.0),  # on a; the second at twice its range: false
             det(505, 505, 3.0), det(705, 305, 6.4),  # an uncertain label; a rock beyond 6 m: on a rock
@@ -51,7 +88,10 @@ def test_scoring_counts_rocks_false_and_no_fire_detections_and_ignores_uncertain
     assert s["precision"] == pytest.approx(2 / 5)
 
 
-@pytest.mark.skipif(not (LAC_REAL / "ipex" / "FrontLeft_1_179.png").is_file(), reason=f"real LAC pairs not in {LAC_REAL}")
+@pytest.mark.skipif(
+    not (LAC_REAL / "ipex" / "FrontLeft_1_179.png").is_file(),
+    reason=f"real LAC pairs not in {LAC_REAL}",
+)
 def test_detector_on_the_labelled_real_pairs():
     """The detector with the small-rock stage on, on the four real pairs: every rock of 8 cm or more within 6 m found,
     nothing on the lander or the rover's shadow, nine detections in ten on rocks. The figures

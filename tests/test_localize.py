@@ -11,7 +11,9 @@ from lunarloc.core.geometry import invert_transform, rotation_angle, transform_p
 from lunarloc.localization.config import Mode, Solver
 
 
-RIGID = LocalizationConfig(odometry_scale_error=0.0, odometry_heading_drift_deg_per_m=0.0)  # stated rigid
+RIGID = LocalizationConfig(
+    odometry_scale_error=0.0, odometry_heading_drift_deg_per_m=0.0
+)  # stated rigid
 
 
 def pose_error(T_est, T_true):
@@ -33,7 +35,10 @@ def test_round_trip_gravity_exact(seed):
     assert r.num_inliers >= 30
 
 
-@pytest.mark.parametrize("mode,solver", [(Mode.SIX_DOF, Solver.EXACT), (Mode.GRAVITY, Solver.CLIPPER), (Mode.SIX_DOF, Solver.CLIPPER)])
+@pytest.mark.parametrize(
+    "mode,solver",
+    [(Mode.SIX_DOF, Solver.EXACT), (Mode.GRAVITY, Solver.CLIPPER), (Mode.SIX_DOF, Solver.CLIPPER)],
+)
 def test_round_trip_other_modes(rng, mode, solver):
     ref, veh, T, _ = make_pair(rng, n_ref=80, n_common=25, n_outliers=10, noise=0.01)
     r = localize(ref, veh, LocalizationConfig(mode=mode, solver=solver))
@@ -112,7 +117,11 @@ def test_partial_overlap_with_many_outliers(rng):
     [
         (np.zeros((0, 3)), "empty", InputError),
         (np.zeros((1, 3)), "at least 3", InputError),
-        (np.c_[np.arange(10.0), 2 * np.arange(10.0), np.zeros(10)], "collinear", DegenerateGeometryError),
+        (
+            np.c_[np.arange(10.0), 2 * np.arange(10.0), np.zeros(10)],
+            "collinear",
+            DegenerateGeometryError,
+        ),
         (np.ones((5, 3)), "coincide", DegenerateGeometryError),
     ],
 )
@@ -160,15 +169,45 @@ def test_verify_is_a_table_of_named_checks(rng):
     r = localize(ref, veh)
     names = [c.name for c in r.checks]
     assert r.success and all(c.passed for c in r.checks)
-    for name in ("residual_rmse", "extent", "planarity", "tilt", "handedness", "scale", "near_misses",
-                 "predicted_error", "predicted_rotation", "inliers_vs_chance", "winner_margin"):
+    for name in (
+        "residual_rmse",
+        "extent",
+        "planarity",
+        "tilt",
+        "handedness",
+        "scale",
+        "near_misses",
+        "predicted_error",
+        "predicted_rotation",
+        "inliers_vs_chance",
+        "winner_margin",
+    ):
         assert name in names
     ev = Evidence(
-        inliers=12, rmse_m=0.01, rmse_limit_m=0.05, sigma_h_m=0.01, sigma_z_m=0.01, extent_m=5.0, planarity=0.5,
-        tilt_deg=0.1, handedness=1.0, scale_error=0.0, scale_se=0.001, near_misses=0, near_misses_expected=1.0,
-        near_inner_m=0.1, near_outer_m=0.3, predicted_error_m=0.02, distortion_error_m=0.0,
-        predicted_rotation_deg=0.1, distortion_rotation_deg=0.0, inliers_beyond_chance=12, required_inliers=9,
-        chance_inliers=6.0, num_associations=1000, competitor=4,
+        inliers=12,
+        rmse_m=0.01,
+        rmse_limit_m=0.05,
+        sigma_h_m=0.01,
+        sigma_z_m=0.01,
+        extent_m=5.0,
+        planarity=0.5,
+        tilt_deg=0.1,
+        handedness=1.0,
+        scale_error=0.0,
+        scale_se=0.001,
+        near_misses=0,
+        near_misses_expected=1.0,
+        near_inner_m=0.1,
+        near_outer_m=0.3,
+        predicted_error_m=0.02,
+        distortion_error_m=0.0,
+        predicted_rotation_deg=0.1,
+        distortion_rotation_deg=0.0,
+        inliers_beyond_chance=12,
+        required_inliers=9,
+        chance_inliers=6.0,
+        num_associations=1000,
+        competitor=4,
     )
     cfg = LocalizationConfig()
     assert all(c.passed for c in verify(ev, cfg))
@@ -178,8 +217,12 @@ def test_verify_is_a_table_of_named_checks(rng):
     assert failed == ["scale", "winner_margin"]
     assert "not rigid" in next(c.detail for c in checks if not c.passed)
     # a check fails exactly at its limit's far side, not at the limit
-    assert next(c for c in verify(replace(ev, rmse_m=0.05), cfg) if c.name == "residual_rmse").passed
-    assert not next(c for c in verify(replace(ev, rmse_m=0.0501), cfg) if c.name == "residual_rmse").passed
+    assert next(
+        c for c in verify(replace(ev, rmse_m=0.05), cfg) if c.name == "residual_rmse"
+    ).passed
+    assert not next(
+        c for c in verify(replace(ev, rmse_m=0.0501), cfg) if c.name == "residual_rmse"
+    ).passed
     # outside the gravity-aware mode tilt and handedness are not tested
     assert "tilt" not in [c.name for c in verify(replace(ev, tilt_deg=None, handedness=None), cfg)]
 
@@ -195,7 +238,9 @@ def test_scaled_vehicle_map_is_not_trusted(rng):
     ref, veh, T, _ = make_pair(rng, n_ref=150, n_common=40, n_outliers=0, noise=0.005)
     c = veh.positions_xyz.mean(axis=0)
     scaled = LandmarkMap(c + 1.02 * (veh.positions_xyz - c))
-    loose = LocalizationConfig(epsilon_m=0.15, max_rmse_m=0.2)  # isolate the scale check from the RMSE check
+    loose = LocalizationConfig(
+        epsilon_m=0.15, max_rmse_m=0.2
+    )  # isolate the scale check from the RMSE check
     r = localize(ref, scaled, loose)
     assert not r.success
     assert "not rigid" in r.reason and r.scale_error > 0.015
@@ -227,7 +272,10 @@ def test_scaled_map_gives_no_confident_wrong_pose(seed):
     ref, veh, T, true_xyz = _scaled_field_pair(np.random.default_rng(seed), 1.0)
     r = localize(ref, veh, loose)
     assert r.success, r.reason
-    assert np.linalg.norm(transform_points(r.T_ref_veh, veh.positions_xyz) - true_xyz, axis=1).max() < 0.05
+    assert (
+        np.linalg.norm(transform_points(r.T_ref_veh, veh.positions_xyz) - true_xyz, axis=1).max()
+        < 0.05
+    )
 
 
 def test_near_miss_excess_counts_displaced_partners(rng):
@@ -250,7 +298,10 @@ def test_distortion_allowance_and_odometry_bounds(rng):
     pos, rot = distortion_allowance(q, inl, np.ones(3), 0.01, 0.0)
     assert pos[0] == pytest.approx(0.10) and rot[0] == 0
     # heading drift over a path 25 m long from the inliers to the query (lever 10 m)
-    path = np.r_[np.c_[np.linspace(0, 0, 6), np.linspace(0, 7.5, 6)], np.c_[np.linspace(0, 10, 11), np.full(11, 7.5)]]
+    path = np.r_[
+        np.c_[np.linspace(0, 0, 6), np.linspace(0, 7.5, 6)],
+        np.c_[np.linspace(0, 10, 11), np.full(11, 7.5)],
+    ]
     path = np.r_[path, np.c_[np.full(8, 10.0), np.linspace(7.5, 0, 8)]]
     path = np.c_[path, np.zeros(len(path))]
     pos, rot = distortion_allowance(q, inl, np.ones(3), 0.0, math.radians(0.1), path)
@@ -271,7 +322,9 @@ def test_covariance_covers_the_truth():
     for seed in range(40):
         rng = np.random.default_rng(200 + seed)
         ref, veh, T, _ = make_pair(rng, n_ref=120, n_common=30, n_outliers=5, noise=0.02)
-        r = localize(ref, veh, RIGID)  # the registration's covariance alone: the maps are rigid by construction
+        r = localize(
+            ref, veh, RIGID
+        )  # the registration's covariance alone: the maps are rigid by construction
         assert r.success, r.reason
         E = r.T_ref_veh @ invert_transform(T)
         err = -E[:3, 3]  # T_true = exp(xi) T_est: xi's translation is minus E's (small angles)
@@ -298,7 +351,9 @@ def test_chance_envelope_grows_with_the_search_tolerance():
 
     m = 90_000
     base = chance_clique_size(m)
-    assert chance_clique_size(m, epsilon_m=0.03, epsilon_z_m=0.03) == base  # never below the measured one
+    assert (
+        chance_clique_size(m, epsilon_m=0.03, epsilon_z_m=0.03) == base
+    )  # never below the measured one
     wide = chance_clique_size(m, epsilon_m=0.15, epsilon_z_m=0.15)
     # measured: chance sets up to 2.0x larger at 3x the tolerance (benchmarks/chance_cliques.py --epsilon)
     assert wide >= 2.0 * base
@@ -371,14 +426,37 @@ def test_bench_coverage_counts_errors_inside_the_predicted_sigmas():
     E = np.eye(4)
     E[:3, 3] = [0.03, 0.0, 0.0]
     assert covariance_d2(E, np.diag([0.01**2] * 3 + [1e-6] * 3)) == pytest.approx(9.0)
-    rows = [PairResult(1, 2, 10, 10, 8, True, True, 0.01, e, 0.1, 0.0, "ok", predicted_error_m=0.02,
-                       predicted_rotation_deg=0.2, covariance_d2=d2)
-            for e, d2 in ((0.01, 1.0), (0.03, 5.0), (0.07, 20.0))]
-    rows.append(PairResult(1, 3, 10, 10, 0, False, False, math.nan, math.nan, math.nan, 0.0, "refused"))
+    rows = [
+        PairResult(
+            1,
+            2,
+            10,
+            10,
+            8,
+            True,
+            True,
+            0.01,
+            e,
+            0.1,
+            0.0,
+            "ok",
+            predicted_error_m=0.02,
+            predicted_rotation_deg=0.2,
+            covariance_d2=d2,
+        )
+        for e, d2 in ((0.01, 1.0), (0.03, 5.0), (0.07, 20.0))
+    ]
+    rows.append(
+        PairResult(1, 3, 10, 10, 0, False, False, math.nan, math.nan, math.nan, 0.0, "refused")
+    )
     c = BenchSummary(rows).coverage()
     assert c["n"] == 3
-    assert c["position_1sigma"] == pytest.approx(1 / 3) and c["position_3sigma"] == pytest.approx(2 / 3)
-    assert c["covariance_1sigma"] == pytest.approx(1 / 3) and c["covariance_3sigma"] == pytest.approx(2 / 3)
+    assert c["position_1sigma"] == pytest.approx(1 / 3) and c["position_3sigma"] == pytest.approx(
+        2 / 3
+    )
+    assert c["covariance_1sigma"] == pytest.approx(1 / 3) and c[
+        "covariance_3sigma"
+    ] == pytest.approx(2 / 3)
 
 
 def test_distortion_covariance_moves_the_allowance_to_the_origin():

@@ -12,8 +12,15 @@ from lunarloc.config.run import RunConfig
 from lunarloc.core.errors import ConfigError, InputError
 from lunarloc.pipeline.evaluation import DriftModel
 from lunarloc.localization.config import LocalizationConfig
-from lunarloc.online.loop import (LoopConfig, LoopState, OdometryBounds, SourceBounds, WindowBounds, image_localization_config,
-                           window_localization)  # fmt: skip
+from lunarloc.online.loop import (
+    LoopConfig,
+    LoopState,
+    OdometryBounds,
+    SourceBounds,
+    WindowBounds,
+    image_localization_config,
+    window_localization,
+)
 from lunarloc.io.maps import LandmarkMap
 from lunarloc.pipeline.runner import odometry_of
 
@@ -21,7 +28,9 @@ from lunarloc.pipeline.runner import odometry_of
 def test_each_source_has_its_bounds():
     b = SourceBounds()
     assert b.for_source("visual") == b.visual
-    assert b.for_source("record:odometry") == b.record and b.for_source("record:orbslam") == b.record
+    assert (
+        b.for_source("record:odometry") == b.record and b.for_source("record:orbslam") == b.record
+    )
     assert b.for_source("imu") is None  # not measured: fitted
     assert b.for_source("ground-truth (evaluation only)") == OdometryBounds(0.0, 0.0)
     assert b.for_source("override") is None and b.for_source("") is None  # not known: fitted
@@ -49,7 +58,9 @@ def test_loop_state_takes_the_source_bounds():
     assert state.localization.odometry_scale_error == SourceBounds().visual.scale_error > 0
     # a source whose bounds are None (or a custom table's) has its windows' bend fitted
     fitted = LoopConfig(odometry_bounds=SourceBounds(visual=None))
-    assert not LoopState(ref, fitted, image_localization_config(), odometry="visual").localization.odometry_bounds_stated
+    assert not LoopState(
+        ref, fitted, image_localization_config(), odometry="visual"
+    ).localization.odometry_bounds_stated
     state.set_odometry(OdometryBounds(0.005, 0.01))
     assert state.localization.odometry_heading_drift_deg_per_m == 0.01
     state.set_odometry(None)
@@ -63,7 +74,9 @@ def test_traverse_source_states_its_simulated_drift():
     from lunarloc.pipeline.sources import TraverseCsvSource
 
     _, trav = synthetic_traverse(length_m=5.0)
-    assert odometry_of(TraverseCsvSource(trav, DriftModel(0.05, -0.02))) == OdometryBounds(0.02, 0.05)
+    assert odometry_of(TraverseCsvSource(trav, DriftModel(0.05, -0.02))) == OdometryBounds(
+        0.02, 0.05
+    )
 
     class Archive:  # what pipeline.run reads of an ArchiveSource
         odometry_label = "visual"
@@ -74,10 +87,17 @@ def test_traverse_source_states_its_simulated_drift():
 def test_bounds_settings_round_trip_and_refuse_bad_values():
     cfg = RunConfig().with_options(loop__window_bounds="fitted")
     assert cfg.loop.window_bounds is WindowBounds.FITTED
-    custom = RunConfig.from_dict({"loop": {"odometry_bounds": {"visual": {"scale_error": 0.02,
-                                                                        "heading_drift_deg_per_m": 0.1}}}})  # fmt: skip
+    custom = RunConfig.from_dict(
+        {
+            "loop": {
+                "odometry_bounds": {"visual": {"scale_error": 0.02, "heading_drift_deg_per_m": 0.1}}
+            }
+        }
+    )
     assert custom.loop.odometry_bounds.visual == OdometryBounds(0.02, 0.1)
-    assert custom.loop.odometry_bounds.record == SourceBounds().record  # the others keep their defaults
+    assert (
+        custom.loop.odometry_bounds.record == SourceBounds().record
+    )  # the others keep their defaults
     none = RunConfig.from_dict({"loop": {"odometry_bounds": {"record": None}}})
     assert none.loop.odometry_bounds.record is None
     for c in (cfg, custom, none, RunConfig.for_detections()):
@@ -95,17 +115,25 @@ def _scaled_window_run(window_bounds: str, scale_error: float = 0.02, every_m: f
     ahead), its odometry `scale_error` too long: the loop's windows are bent (stretched) by it.
     The reference is the true rocks. Returns the accepted attempts (fix error, predicted)."""
     rng = np.random.default_rng(3)
-    rocks = np.column_stack([rng.uniform(-3, 33, 260), rng.uniform(-6, 12, 260), rng.uniform(0.0, 0.2, 260)])
+    rocks = np.column_stack(
+        [rng.uniform(-3, 33, 260), rng.uniform(-6, 12, 260), rng.uniform(0.0, 0.2, 260)]
+    )
     ref = LandmarkMap(rocks, frame="map")
     loop = LoopConfig(window_m=8.0, localize_every_m=every_m, window_bounds=window_bounds)
-    state = LoopState(ref, loop, image_localization_config(), odometry=OdometryBounds(scale_error, 0.0))
+    state = LoopState(
+        ref, loop, image_localization_config(), odometry=OdometryBounds(scale_error, 0.0)
+    )
     dt, v = 0.5, 0.5
     x = np.zeros(3)
     yaw = 0.0
     odo = np.zeros(3)
     for i in range(int(24 / (v * dt))):
         T_true = np.eye(4)
-        T_true[:3, :3] = [[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0], [0, 0, 1]]
+        T_true[:3, :3] = [
+            [math.cos(yaw), -math.sin(yaw), 0],
+            [math.sin(yaw), math.cos(yaw), 0],
+            [0, 0, 1],
+        ]
         T_true[:3, 3] = x
         T_odo = T_true.copy()
         T_odo[:3, 3] = odo
@@ -138,18 +166,28 @@ def test_calibrated_windows_are_fitted_after_the_set_fixes():
 
     ref = LandmarkMap(np.random.default_rng(0).uniform(-5, 5, (10, 3)))
     src = OdometryBounds(0.02, 0.05)
-    state = LoopState(ref, LoopConfig(calibrated_after_fixes=2), image_localization_config(), odometry=src)
+    state = LoopState(
+        ref, LoopConfig(calibrated_after_fixes=2), image_localization_config(), odometry=src
+    )
     for accepted in (True, False, True):
         assert state.window_localization().odometry_scale_error == 0.02  # not yet calibrated
         state.attempts.append(Attempt(0, 0.0, 0, 10, 10, accepted, accepted))
     assert not state.window_localization().odometry_bounds_stated  # 2 fixes: the bend is fitted
     # rigid windows, bounds the localization states itself, and 0 (the default) never switch
-    for loop, loc in ((LoopConfig(calibrated_after_fixes=2, window_bounds="rigid"), image_localization_config()),
-                      (LoopConfig(calibrated_after_fixes=2), image_localization_config(odometry_scale_error=0.01)),
-                      (LoopConfig(), image_localization_config())):  # fmt: skip
+    for loop, loc in (
+        (LoopConfig(calibrated_after_fixes=2, window_bounds="rigid"), image_localization_config()),
+        (
+            LoopConfig(calibrated_after_fixes=2),
+            image_localization_config(odometry_scale_error=0.01),
+        ),
+        (LoopConfig(), image_localization_config()),
+    ):
         s = LoopState(ref, loop, loc, odometry=src)
         s.attempts.extend([Attempt(0, 0.0, 0, 10, 10, True, True)] * 3)
         assert s.window_localization() == s.localization and s.localization.odometry_bounds_stated
-    assert RunConfig.for_detections().loop.calibrated_after_fixes == 2 and RunConfig().loop.calibrated_after_fixes == 0
+    assert (
+        RunConfig.for_detections().loop.calibrated_after_fixes == 2
+        and RunConfig().loop.calibrated_after_fixes == 0
+    )
     with pytest.raises(ConfigError, match="calibrated_after_fixes"):
         LoopConfig(calibrated_after_fixes=-1)

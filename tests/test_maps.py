@@ -34,7 +34,12 @@ def test_landmark_map_validation():
 
 @pytest.mark.parametrize("suffix", [".csv", ".npz"])
 def test_map_round_trip(tmp_path, rng, suffix):
-    m = LandmarkMap(rng.normal(size=(12, 3)), sizes=rng.uniform(0.1, 1, 12), sightings=np.arange(12), frame="site")
+    m = LandmarkMap(
+        rng.normal(size=(12, 3)),
+        sizes=rng.uniform(0.1, 1, 12),
+        sightings=np.arange(12),
+        frame="site",
+    )
     p = save_map(m, tmp_path / f"m{suffix}")
     back = load_map(p)
     assert np.allclose(back.positions_xyz, m.positions_xyz, atol=1e-6)
@@ -65,7 +70,9 @@ def test_map_csv_errors_name_file_and_line(tmp_path):
 
 
 def test_traverse_loader(tmp_path):
-    p = write_traverse(tmp_path / "t.csv", [(1, (0, 0, 0), []), (2, (0.1, 0, 0), [(1, 2, 3), (4.5, -5e-1, 6)])])
+    p = write_traverse(
+        tmp_path / "t.csv", [(1, (0, 0, 0), []), (2, (0.1, 0, 0), [(1, 2, 3), (4.5, -5e-1, 6)])]
+    )
     assert is_traverse_csv(p)
     t = load_traverse(p)
     assert t.frames.tolist() == [1, 2]
@@ -115,7 +122,9 @@ def test_aggregation_one_landmark_per_rock(rng):
     m = aggregate_detections(np.vstack(det), np.concatenate(frames), AggregationConfig())
     assert len(m) == 4
     order = np.argsort(m.positions_xyz[:, 0] + 10 * m.positions_xyz[:, 1])
-    assert np.allclose(m.positions_xyz[order], rocks[np.argsort(rocks[:, 0] + 10 * rocks[:, 1])], atol=0.02)
+    assert np.allclose(
+        m.positions_xyz[order], rocks[np.argsort(rocks[:, 0] + 10 * rocks[:, 1])], atol=0.02
+    )
     assert np.all(m.sightings == 10)
 
 

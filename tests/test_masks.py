@@ -71,7 +71,9 @@ def test_masks_from_labels():
 
 
 def test_size_and_filters_in_order():
-    cfg = MaskFilterConfig(s_min_m=0.04, s_max_m=0.5, tau_elong=4.0, max_range_m=8.0, min_range_m=1.3)
+    cfg = MaskFilterConfig(
+        s_min_m=0.04, s_max_m=0.5, tau_elong=4.0, max_range_m=8.0, min_range_m=1.3
+    )
     alpha = 1.0 / 914.0
     shape = (720, 1280)
     s = mask_stats(InstanceMask.from_full(_disc(shape, 640, 400, 20)), shape)
@@ -79,7 +81,10 @@ def test_size_and_filters_in_order():
     assert size_from_sigma(10, 4.0, alpha) == pytest.approx(0.04376, rel=1e-3)
     assert classify_mask(s, 4.0, alpha, cfg)[0] is None
     assert classify_mask(s, 3.0, alpha, cfg)[0] is RejectReason.TOO_SMALL
-    assert classify_mask(s, 100.0, alpha, MaskFilterConfig(max_range_m=200))[0] is RejectReason.TOO_LARGE
+    assert (
+        classify_mask(s, 100.0, alpha, MaskFilterConfig(max_range_m=200))[0]
+        is RejectReason.TOO_LARGE
+    )
     assert classify_mask(s, 9.0, alpha, cfg)[0] is RejectReason.TOO_FAR
     assert classify_mask(s, 1.2, alpha, MaskFilterConfig(s_min_m=0.001))[0] is RejectReason.TOO_NEAR
     assert classify_mask(s, float("nan"), alpha, cfg)[0] is RejectReason.NO_DEPTH
@@ -111,4 +116,6 @@ def test_small_rock_close_by_is_kept_when_its_mask_is_large():
     assert classify_mask(big, 1.5, alpha, on)[0] is None
     # the same physical size far away spans too few pixels; a tiny one near is still dropped
     assert classify_mask(small, 3.0, alpha, on)[0] is RejectReason.TOO_SMALL
-    assert classify_mask(big, 0.6, alpha, on)[0] is RejectReason.TOO_SMALL  # s = 0.005 < near_s_min_m
+    assert (
+        classify_mask(big, 0.6, alpha, on)[0] is RejectReason.TOO_SMALL
+    )  # s = 0.005 < near_s_min_m

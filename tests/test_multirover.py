@@ -27,9 +27,16 @@ def _sim(out, seed, n, duration, width=W, rover=None):
     from lunarloc.sim.simulate import SimulationConfig, simulate_dataset
     from lunarloc.sim.site import SiteConfig
 
-    cfg = SimulationConfig(site=SiteConfig(n_rocks=800), duration_s=duration, image_rate_hz=2.0, width=width,
-                           height=width * 9 // 16, cameras=("FrontLeft", "FrontRight"), semantic=False,
-                           rover=rover or RoverConfig())  # fmt: skip
+    cfg = SimulationConfig(
+        site=SiteConfig(n_rocks=800),
+        duration_s=duration,
+        image_rate_hz=2.0,
+        width=width,
+        height=width * 9 // 16,
+        cameras=("FrontLeft", "FrontRight"),
+        semantic=False,
+        rover=rover or RoverConfig(),
+    )
     return simulate_dataset(seed, n, out, cfg)
 
 
@@ -47,22 +54,52 @@ def test_two_rovers_write_one_run_folder_each(tiny, tmp_path, capsys):
 
     out = tmp_path / "out"
     given = tmp_path / "given.json"  # --config applies to every rover; options given override it
-    given.write_text(json.dumps(RunConfig().with_options(loop__window_m=6.5, odometry__source="imu").to_dict()))
-    rc = main(["run", str(a), str(b), "--reference", str(out_dir / "rocks.csv"), "--share-maps", "-o", str(out),
-               "--config", str(given), "--odometry", "record:odometry"])  # fmt: skip
+    given.write_text(
+        json.dumps(RunConfig().with_options(loop__window_m=6.5, odometry__source="imu").to_dict())
+    )
+    rc = main(
+        [
+            "run",
+            str(a),
+            str(b),
+            "--reference",
+            str(out_dir / "rocks.csv"),
+            "--share-maps",
+            "-o",
+            str(out),
+            "--config",
+            str(given),
+            "--odometry",
+            "record:odometry",
+        ]
+    )
     assert rc == 0, capsys.readouterr().err
     doc = json.loads((out / "rovers.json").read_text())
     assert [r["name"] for r in doc["rovers"]] == ["traverse_0", "traverse_1"]
     assert (out / "map_all.png").is_file()
     for name, lac in (("traverse_0", a), ("traverse_1", b)):
         d = out / name
-        for f in ("trajectory.tum", "trajectory_odometry.tum", "trajectory_groundtruth.tum", "attempts.csv",
-                  "summary.json", "config.json", "map.png"):  # fmt: skip
+        for f in (
+            "trajectory.tum",
+            "trajectory_odometry.tum",
+            "trajectory_groundtruth.tum",
+            "attempts.csv",
+            "summary.json",
+            "config.json",
+            "map.png",
+        ):
             assert (d / f).is_file(), f
         s = json.loads((d / "summary.json").read_text())
-        assert s["frames"] == 161 and s["image_frames"] == 17  # every tick of its archive, images at 2 Hz
-        cfg_doc = json.loads((d / "config.json").read_text())  # a single run's config.json: RunConfig + info
-        assert cfg_doc["info"]["archive"] == str(lac) and cfg_doc["info"]["multirover"]["share_maps"] is True
+        assert (
+            s["frames"] == 161 and s["image_frames"] == 17
+        )  # every tick of its archive, images at 2 Hz
+        cfg_doc = json.loads(
+            (d / "config.json").read_text()
+        )  # a single run's config.json: RunConfig + info
+        assert (
+            cfg_doc["info"]["archive"] == str(lac)
+            and cfg_doc["info"]["multirover"]["share_maps"] is True
+        )
         used = RunConfig.from_dict(cfg_doc)
         assert used.loop.window_m == 6.5 and used.odometry.source == "record:odometry"
         # the failing bound: whatever the fixes, a rover ends no worse than its odometry + 5 cm
@@ -134,7 +171,9 @@ def test_live_map_uncertainty_grows_with_the_owner_drift(tiny):
         assert np.all(s2 >= 0.3) and np.allclose(s2, np.hypot(s_m, 0.3))
         live = r.live_map(1e9, 0.0)
         if live is not None and len(live.landmarks):
-            assert live.owner_sigma_m.shape == (len(live.landmarks),) and np.all(live.owner_sigma_m >= 0.3)
+            assert live.owner_sigma_m.shape == (len(live.landmarks),) and np.all(
+                live.owner_sigma_m >= 0.3
+            )
     finally:
         r.close()
 
@@ -198,9 +237,15 @@ def test_a_shared_attempt_states_both_maps_bounds():
     from lunarloc.online.loop import image_localization_config
     from lunarloc.pipeline.multirover import shared_localization
 
-    w = replace(image_localization_config(), odometry_scale_error=0.01, odometry_heading_drift_deg_per_m=0.06)
+    w = replace(
+        image_localization_config(),
+        odometry_scale_error=0.01,
+        odometry_heading_drift_deg_per_m=0.06,
+    )
     s = shared_localization(w, (0.01, 0.06), "sum")
-    assert (s.odometry_scale_error, s.odometry_heading_drift_deg_per_m) == pytest.approx((0.02, 0.12))
+    assert (s.odometry_scale_error, s.odometry_heading_drift_deg_per_m) == pytest.approx(
+        (0.02, 0.12)
+    )
     assert s.max_tilt_deg == pytest.approx(2 * w.max_tilt_deg)
     r = shared_localization(w, (0.01, 0.06), "rss")
     assert r.odometry_heading_drift_deg_per_m == pytest.approx(0.06 * 2**0.5)
@@ -211,8 +256,13 @@ def test_a_shared_attempt_states_both_maps_bounds():
     assert not f.odometry_bounds_stated
     fitted = replace(w, odometry_scale_error=None, odometry_heading_drift_deg_per_m=None)
     assert not shared_localization(fitted, (0.01, 0.06), "sum").odometry_bounds_stated
-    lo = shared_localization(w, (0.01, 0.06), "sum", owner_sigma=(0.05, 0.5))  # a precise owner: limits kept
-    assert (lo.max_predicted_error_m, lo.max_predicted_rotation_deg) == (w.max_predicted_error_m, w.max_predicted_rotation_deg)
+    lo = shared_localization(
+        w, (0.01, 0.06), "sum", owner_sigma=(0.05, 0.5)
+    )  # a precise owner: limits kept
+    assert (lo.max_predicted_error_m, lo.max_predicted_rotation_deg) == (
+        w.max_predicted_error_m,
+        w.max_predicted_rotation_deg,
+    )
     hi = shared_localization(w, (0.01, 0.06), "sum", owner_sigma=(0.4, 3.0))
     assert (hi.max_predicted_error_m, hi.max_predicted_rotation_deg) == (0.4, 3.0)
 
@@ -229,7 +279,10 @@ def test_caller_odometry_states_its_source_bounds():
     assert stated_window_bounds(loc.loop.localization) == (b.scale_error, b.heading_drift_deg_per_m)
     img = {"Grayscale": {}}
     loc.update(0.0, img, np.array([0, 0, 1.62, 0, 0, 0.0]), 0.0, 0.0, odometry=np.eye(4))
-    assert stated_window_bounds(loc.loop.localization) == (b.scale_error, b.heading_drift_deg_per_m)  # kept
+    assert stated_window_bounds(loc.loop.localization) == (
+        b.scale_error,
+        b.heading_drift_deg_per_m,
+    )  # kept
     loc.set_caller_odometry(OdometryBounds(0.02, 0.1))
     assert stated_window_bounds(loc.loop.localization) == (0.02, 0.1)
     loc.set_caller_odometry(None)
@@ -268,7 +321,11 @@ def _rock_detector(mp, rocks_csv, noise_m=0.05, max_range_m=6.0, hfov_deg=70.0):
     def detect(self, images):
         p = transform_points(invert_transform(self._T_true), rocks)
         r = np.hypot(p[:, 0], p[:, 1])
-        seen = (p[:, 0] > 0.5) & (r < max_range_m) & (np.abs(np.degrees(np.arctan2(p[:, 1], p[:, 0]))) < hfov_deg / 2)
+        seen = (
+            (p[:, 0] > 0.5)
+            & (r < max_range_m)
+            & (np.abs(np.degrees(np.arctan2(p[:, 1], p[:, 0]))) < hfov_deg / 2)
+        )
         return p[seen] + rng.normal(0, noise_m, (int(seen.sum()), 3))
 
     mp.setattr(mr._Rover, "tick", tick)
@@ -280,7 +337,9 @@ def _run(paths, rocks_csv, reference=None, shift_owner_m=None):
 
     with pytest.MonkeyPatch.context() as mp:
         _rock_detector(mp, rocks_csv)
-        if shift_owner_m is not None:  # traverse_0's live map is off by a rigid shift its sigma does not admit
+        if (
+            shift_owner_m is not None
+        ):  # traverse_0's live map is off by a rigid shift its sigma does not admit
             orig = mr._Rover.live_map
 
             def live_map(self, t, refresh_s):
@@ -288,9 +347,17 @@ def _run(paths, rocks_csv, reference=None, shift_owner_m=None):
                 if m is None or self.name != "traverse_0":
                     return m
                 lm = m.landmarks
-                shifted = mr.LandmarkMap(lm.positions_xyz + [shift_owner_m, 0.0, 0.0], lm.sizes, lm.sightings, lm.frame,
-                                         lm.sigma_xy_m, lm.sigma_z_m)  # fmt: skip
-                return mr._LiveMap(shifted, m.owner_sigma_m, m.owner_sigma_yaw_rad, m.key, m.built_t)
+                shifted = mr.LandmarkMap(
+                    lm.positions_xyz + [shift_owner_m, 0.0, 0.0],
+                    lm.sizes,
+                    lm.sightings,
+                    lm.frame,
+                    lm.sigma_xy_m,
+                    lm.sigma_z_m,
+                )
+                return mr._LiveMap(
+                    shifted, m.owner_sigma_m, m.owner_sigma_yaw_rad, m.key, m.built_t
+                )
 
             mp.setattr(mr._Rover, "live_map", live_map)
         return mr.run_rovers(paths, reference, _cfg(share_maps=True))

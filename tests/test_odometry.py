@@ -25,7 +25,13 @@ from lunarloc.odometry.source import (
 
 G = 1.622
 DT = 0.05
-CAM = {"camera_active": True, "light_intensity": 0.0, "width": 16, "height": 12, "use_semantic": False}
+CAM = {
+    "camera_active": True,
+    "light_intensity": 0.0,
+    "width": 16,
+    "height": 12,
+    "use_semantic": False,
+}
 
 
 def drive(n=400, v=0.25, w=0.1, rover0=(2.0, -1.0, 0.3, 0.0, 0.0, 0.4), roll_true=0.0):
@@ -42,16 +48,36 @@ def drive(n=400, v=0.25, w=0.1, rover0=(2.0, -1.0, 0.3, 0.0, 0.0, 0.4), roll_tru
         a_body = np.array([0.0, w * v, 0.0])  # centripetal
         f = a_body + G * up_body
         gyro = np.array([0.0, 0.0, w])  # world-frame rate, as the LAC leaderboard computes it
-        states.append(dict(x=x[k], y=y[k], z=z0, roll=roll_true, pitch=0.0, yaw=yaw[k], accel_x=f[0], accel_y=f[1],
-                           accel_z=f[2], gyro_x=gyro[0], gyro_y=gyro[1], gyro_z=gyro[2], mission_time=t[k],
-                           linear_speed=v, angular_speed=w))  # fmt: skip
+        states.append(
+            dict(
+                x=x[k],
+                y=y[k],
+                z=z0,
+                roll=roll_true,
+                pitch=0.0,
+                yaw=yaw[k],
+                accel_x=f[0],
+                accel_y=f[1],
+                accel_z=f[2],
+                gyro_x=gyro[0],
+                gyro_y=gyro[1],
+                gyro_z=gyro[2],
+                mission_time=t[k],
+                linear_speed=v,
+                angular_speed=w,
+            )
+        )
     return states
 
 
 def write(path, states, *, rover0=None, customs=(), lander=(5.0, 0.0, 0.0, 0.0, 0.0, 0.0)):
     s0 = states[0]
     rover = rover0 or [s0["x"], s0["y"], s0["z"], s0["roll"], s0["pitch"], s0["yaw"]]
-    init = {"lander": list(lander), "rover": list(rover), "cameras": {"FrontLeft": dict(CAM), "FrontRight": dict(CAM)}}
+    init = {
+        "lander": list(lander),
+        "rover": list(rover),
+        "cameras": {"FrontLeft": dict(CAM), "FrontRight": dict(CAM)},
+    }
     with LacWriter(path, init) as w:
         for k, st in enumerate(states):
             w.add_frame(k, **st)
@@ -63,10 +89,15 @@ def write(path, states, *, rover0=None, customs=(), lander=(5.0, 0.0, 0.0, 0.0, 
 @pytest.fixture
 def arc(tmp_path):
     states = drive()
-    poses = [[k, s["x"] + 10, s["y"] - 5, s["z"], s["roll"], s["pitch"], s["yaw"]] for k, s in enumerate(states)]
+    poses = [
+        [k, s["x"] + 10, s["y"] - 5, s["z"], s["roll"], s["pitch"], s["yaw"]]
+        for k, s in enumerate(states)
+    ]
     mats = [[k, *pose_to_matrix(*p[1:])[:4].ravel()] for k, p in enumerate(poses) if k % 10 == 0]
-    customs = [("shifted", ["frame", "x", "y", "z", "roll", "pitch", "yaw"], poses),
-               ("orbslam", ["frame"] + [f"m{i}{j}" for i in range(4) for j in range(4)], mats)]  # fmt: skip
+    customs = [
+        ("shifted", ["frame", "x", "y", "z", "roll", "pitch", "yaw"], poses),
+        ("orbslam", ["frame"] + [f"m{i}{j}" for i in range(4) for j in range(4)], mats),
+    ]
     return write(tmp_path / "arc.lac", states, customs=customs), states
 
 
@@ -174,20 +205,39 @@ def _set_cell(line: int, column: str, text: str):
 def test_missing_and_corrupt_records(arc, tmp_path):
     path, _ = arc
     with LacArchive(path) as a:
-        with pytest.raises(ArchiveError, match=r"no custom record 'nope' \(custom records: orbslam, shifted\)"):
+        with pytest.raises(
+            ArchiveError, match=r"no custom record 'nope' \(custom records: orbslam, shifted\)"
+        ):
             archive_odometry(a, "record:nope")
     cases = {
         "empty": (b"\n", "empty"),
         "header only": (b"frame,x,y,z,roll,pitch,yaw\n", "empty"),
         "columns": (b"frame,a,b\n0,1,2\n", "x,y,z,roll,pitch,yaw or m00..m33"),
-        "text": (b"frame,x,y,z,roll,pitch,yaw\n0,0,0,0,0,0,0\n1,0.1,oops,0,0,0,0\n", "'y' holds 'oops' at line 3"),
-        "nan": (b"frame,x,y,z,roll,pitch,yaw\n0,0,0,0,0,0,0\n1,,0,0,0,0,0\n", "'x' is empty or not finite at line 3"),
-        "duplicate": (b"frame,x,y,z,roll,pitch,yaw\n0,0,0,0,0,0,0\n0,0,0,0,0,0,0\n", "appears twice"),
-        "not a rotation": (b"frame," + ",".join(f"m{i}{j}" for i in range(3) for j in range(4)).encode()
-                           + b"\n0,2,0,0,0,0,1,0,0,0,0,1,0\n", "not a rotation"),  # fmt: skip
+        "text": (
+            b"frame,x,y,z,roll,pitch,yaw\n0,0,0,0,0,0,0\n1,0.1,oops,0,0,0,0\n",
+            "'y' holds 'oops' at line 3",
+        ),
+        "nan": (
+            b"frame,x,y,z,roll,pitch,yaw\n0,0,0,0,0,0,0\n1,,0,0,0,0,0\n",
+            "'x' is empty or not finite at line 3",
+        ),
+        "duplicate": (
+            b"frame,x,y,z,roll,pitch,yaw\n0,0,0,0,0,0,0\n0,0,0,0,0,0,0\n",
+            "appears twice",
+        ),
+        "not a rotation": (
+            b"frame,"
+            + ",".join(f"m{i}{j}" for i in range(3) for j in range(4)).encode()
+            + b"\n0,2,0,0,0,0,1,0,0,0,0,1,0\n",
+            "not a rotation",
+        ),
     }
     for i, (text, msg) in enumerate(cases.values()):
-        bad = _rewrite(path, tmp_path / f"bad{i}.lac", lambda n, d, t=text: t if n == "custom/shifted.csv" else d)
+        bad = _rewrite(
+            path,
+            tmp_path / f"bad{i}.lac",
+            lambda n, d, t=text: t if n == "custom/shifted.csv" else d,
+        )
         with LacArchive(bad) as a, pytest.raises(ArchiveError, match=msg) as exc:
             archive_odometry(a, "record:shifted")
         assert "custom/shifted.csv" in str(exc.value) and "\n" not in str(exc.value)
@@ -200,7 +250,9 @@ def test_imu_column_of_text_and_nan_speed(arc, tmp_path):
         LacArchive(_rewrite(path, tmp_path / "t.lac", _set_cell(5, "gyro_z", "n/a")))
 
     with LacArchive(_rewrite(path, tmp_path / "n.lac", _set_cell(7, "linear_speed", ""))) as a:
-        with pytest.raises(InputError, match=r"'linear_speed' is not a finite number at frame 6 \(line 8"):
+        with pytest.raises(
+            InputError, match=r"'linear_speed' is not a finite number at frame 6 \(line 8"
+        ):
             archive_odometry(a, "imu")
         archive_odometry(a, "ground-truth")  # the pose columns are fine
 
@@ -211,18 +263,26 @@ def test_camera_table_listing_absent_images(tmp_path):
     buf = io.BytesIO()
     Image.fromarray(np.zeros((12, 16), np.uint8)).save(buf, format="PNG")
     path = write(tmp_path / "c.lac", drive(n=5))
-    table = (b"frame,enable,camera_x,camera_y,camera_z,camera_roll,camera_pitch,camera_yaw,light_intensity,grayscale,semantic\n"
-             b"2,True,0.28,0.081,0.131,0,0,0,0,FrontLeft_grayscale_2.png,\n"
-             b"4,True,0.28,0.081,0.131,0,0,0,0,FrontLeft_grayscale_4.png,\n")  # fmt: skip
+    table = (
+        b"frame,enable,camera_x,camera_y,camera_z,camera_roll,camera_pitch,camera_yaw,light_intensity,grayscale,semantic\n"
+        b"2,True,0.28,0.081,0.131,0,0,0,0,FrontLeft_grayscale_2.png,\n"
+        b"4,True,0.28,0.081,0.131,0,0,0,0,FrontLeft_grayscale_4.png,\n"
+    )
 
-    members = {**_members(path), "cameras/FrontLeft/FrontLeft_frames.csv": table,
-               "cameras/FrontLeft/grayscale/FrontLeft_grayscale_2.png": buf.getvalue()}  # no image of frame 4
+    members = {
+        **_members(path),
+        "cameras/FrontLeft/FrontLeft_frames.csv": table,
+        "cameras/FrontLeft/grayscale/FrontLeft_grayscale_2.png": buf.getvalue(),
+    }  # no image of frame 4
     with tarfile.open(tmp_path / "c3.lac", "w:gz") as tf:
         for name, data in members.items():
             info = tarfile.TarInfo(name)
             info.size = len(data)
             tf.addfile(info, io.BytesIO(data))
-    with pytest.raises(ArchiveError, match=r"FrontLeft_grayscale_4.png: image listed in .*line 3 \(frame 4\) is absent"):
+    with pytest.raises(
+        ArchiveError,
+        match=r"FrontLeft_grayscale_4.png: image listed in .*line 3 \(frame 4\) is absent",
+    ):
         LacArchive(tmp_path / "c3.lac")
 
 
@@ -239,9 +299,28 @@ def test_odometry_command(arc, tmp_path, capsys):
 
     path, _ = arc
     out = tmp_path / "o" / "imu.tum"
-    assert main(["odometry", str(path), "--source", "imu", "-o", str(out), "--json", str(tmp_path / "d.json")]) == 0
+    assert (
+        main(
+            [
+                "odometry",
+                str(path),
+                "--source",
+                "imu",
+                "-o",
+                str(out),
+                "--json",
+                str(tmp_path / "d.json"),
+            ]
+        )
+        == 0
+    )
     text = capsys.readouterr().out
-    assert "odometry imu" in text and "final error" in text and "heading error" in text and "RMSE" in text
+    assert (
+        "odometry imu" in text
+        and "final error" in text
+        and "heading error" in text
+        and "RMSE" in text
+    )
     rows = np.loadtxt(out)
     assert rows.shape == (400, 8)
     d = json.loads((tmp_path / "d.json").read_text())
@@ -258,10 +337,20 @@ def bare_image_archive(tmp_path_factory):
     from lunarloc.sim.simulate import SimulationConfig, simulate_dataset
 
     out = tmp_path_factory.mktemp("bare")
-    cfg = SimulationConfig(duration_s=6.0, image_rate_hz=2.0, width=320, height=180,
-                           cameras=("FrontLeft", "FrontRight"), semantic=False)  # fmt: skip
+    cfg = SimulationConfig(
+        duration_s=6.0,
+        image_rate_hz=2.0,
+        width=320,
+        height=180,
+        cameras=("FrontLeft", "FrontRight"),
+        semantic=False,
+    )
     simulate_dataset(0, 1, out, cfg)
-    bare = _rewrite(out / "traverse_0.lac", out / "bare.lac", lambda n, d: None if n.startswith("custom/") else d)
+    bare = _rewrite(
+        out / "traverse_0.lac",
+        out / "bare.lac",
+        lambda n, d: None if n.startswith("custom/") else d,
+    )
     return bare, out / "rocks.csv"
 
 
@@ -272,11 +361,39 @@ def test_run_on_a_bare_archive_names_its_odometry(bare_image_archive, tmp_path, 
     with LacArchive(bare) as a:
         assert a.custom_records == [] and default_odometry_source(a) == "visual"
     out = tmp_path / "run"
-    assert main(["run", str(bare), "--reference", str(rocks), "-o", str(out), "--odometry", "imu", "--no-plot"]) == 0
+    assert (
+        main(
+            [
+                "run",
+                str(bare),
+                "--reference",
+                str(rocks),
+                "-o",
+                str(out),
+                "--odometry",
+                "imu",
+                "--no-plot",
+            ]
+        )
+        == 0
+    )
     assert json.loads((out / "config.json").read_text())["info"]["odometry_source"] == "imu"
     assert "odometry: imu" in capsys.readouterr().out
-    assert main(["run", str(bare), "--reference", str(rocks), "-o", str(tmp_path / "run2"), "--odometry",
-                 "record:odometry"]) == 2  # fmt: skip
+    assert (
+        main(
+            [
+                "run",
+                str(bare),
+                "--reference",
+                str(rocks),
+                "-o",
+                str(tmp_path / "run2"),
+                "--odometry",
+                "record:odometry",
+            ]
+        )
+        == 2
+    )
     assert "no custom record 'odometry'" in capsys.readouterr().err
 
 
@@ -307,6 +424,8 @@ def test_a_record_with_every_frame_needs_no_imu(arc, tmp_path):
     path, _ = arc
 
     with LacArchive(_rewrite(path, tmp_path / "g.lac", _set_cell(3, "gyro_x", ""))) as a:
-        np.testing.assert_allclose(archive_odometry(a, "record:shifted").T_map_rover, ground_truth_poses(a), atol=1e-9)
+        np.testing.assert_allclose(
+            archive_odometry(a, "record:shifted").T_map_rover, ground_truth_poses(a), atol=1e-9
+        )
         with pytest.raises(InputError, match="'gyro_x' is not a finite number at frame 2"):
             archive_odometry(a, "record:orbslam")  # every 10th frame: the IMU bridges the others

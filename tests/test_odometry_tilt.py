@@ -9,7 +9,13 @@ import numpy as np
 import pytest
 
 from lunarloc.core.errors import ConfigError, InputError
-from lunarloc.core.geometry import invert_transform, matrix_to_pose, pose_to_matrix, rotation_angle, yaw_of
+from lunarloc.core.geometry import (
+    invert_transform,
+    matrix_to_pose,
+    pose_to_matrix,
+    rotation_angle,
+    yaw_of,
+)
 from lunarloc.odometry.tilt import GravityAlignedChain, align_tilt
 
 
@@ -17,7 +23,9 @@ def _R(roll, pitch, yaw):
     return pose_to_matrix(0, 0, 0, roll, pitch, yaw)[:3, :3]
 
 
-@pytest.mark.parametrize("roll,pitch,yaw", [(0.03, -0.02, 1.0), (-0.05, 0.04, -2.5), (0.0, 0.0, 0.3)])
+@pytest.mark.parametrize(
+    "roll,pitch,yaw", [(0.03, -0.02, 1.0), (-0.05, 0.04, -2.5), (0.0, 0.0, 0.3)]
+)
 def test_align_tilt_takes_gravity_up_and_keeps_heading(roll, pitch, yaw):
     R_true = _R(0.01, -0.015, yaw)
     R_drifted = _R(roll, pitch, yaw)
@@ -63,6 +71,7 @@ def test_chain_removes_visual_tilt_drift_and_the_height_drift_it_causes():
     chain, plain = GravityAlignedChain(), GravityAlignedChain(gain=0.0)
     fused = np.stack([chain.add(T, I, truth[0]) for T, I in zip(vo, imu)])
     raw = np.stack([plain.add(T, I, truth[0]) for T, I in zip(vo, imu)])
+
     def up_error_deg(est):  # angle between the estimated and the true "up" in the rover frame
         return [math.degrees(math.acos(min(1.0, e[2, :3] @ t[2, :3]))) for e, t in zip(est, truth)]
 

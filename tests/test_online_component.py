@@ -30,8 +30,15 @@ def sim(tmp_path_factory):
     from lunarloc.sim.site import SiteConfig
 
     out = tmp_path_factory.mktemp("online")
-    cfg = SimulationConfig(site=SiteConfig(n_rocks=800), duration_s=24.0, image_rate_hz=10.0, width=W, height=H,
-                           cameras=("FrontLeft", "FrontRight"), semantic=False)  # fmt: skip
+    cfg = SimulationConfig(
+        site=SiteConfig(n_rocks=800),
+        duration_s=24.0,
+        image_rate_hz=10.0,
+        width=W,
+        height=H,
+        cameras=("FrontLeft", "FrontRight"),
+        semantic=False,
+    )
     simulate_dataset(0, 1, out, cfg)
     return out / "traverse_0.lac", out / "rocks.csv"
 
@@ -47,17 +54,23 @@ def _drive(archive, reference_path):
     from lunarloc.io.lac.archive import LacArchive
 
     conf = Path(reference_path).with_suffix(".agent.toml")
-    conf.write_text(f'reference = "{Path(reference_path).resolve()}"\nwidth = {W}\nheight = {H}\noutput = ""\n')
+    conf.write_text(
+        f'reference = "{Path(reference_path).resolve()}"\nwidth = {W}\nheight = {H}\noutput = ""\n'
+    )
     est, gt, image_ticks = [], [], 0
     with pytest.MonkeyPatch.context() as mp, PlaybackAgent(archive) as env:
-        mp.setattr(LacArchive, "custom", _refuse_custom)  # no custom record (e.g. the simulator's odometry)
+        mp.setattr(
+            LacArchive, "custom", _refuse_custom
+        )  # no custom record (e.g. the simulator's odometry)
         agent = LunarLocAgent()
         inner = agent.run_step
 
         def run_step(input_data):
             nonlocal image_ticks
             image_ticks += input_data["Grayscale"][SensorPosition.FrontLeft] is not None
-            assert all(isinstance(k, SensorPosition) for k in input_data["Grayscale"])  # enum keys only
+            assert all(
+                isinstance(k, SensorPosition) for k in input_data["Grayscale"]
+            )  # enum keys only
             cmd = inner(input_data)
             assert type(cmd).__name__ == "VehicleVelocityControl"
             est.append(agent.estimate)
@@ -124,10 +137,27 @@ def test_bad_input_is_a_clear_error(sim):
     img = np.zeros((H, W), np.uint8)
     loc.update(0.0, {"Grayscale": {"FrontLeft": None, "FrontRight": None}}, IMU_REST, 0.0, 0.0)
     cases = [
-        ((0.05, {"Grayscale": {"FrontLeft": np.zeros((10, 10), np.uint8), "FrontRight": img}}, IMU_REST), "image shape"),
-        ((0.05, {"Grayscale": {"FrontLeft": np.zeros((H, W, 3), np.uint8), "FrontRight": img}}, IMU_REST), "image shape"),
+        (
+            (
+                0.05,
+                {"Grayscale": {"FrontLeft": np.zeros((10, 10), np.uint8), "FrontRight": img}},
+                IMU_REST,
+            ),
+            "image shape",
+        ),
+        (
+            (
+                0.05,
+                {"Grayscale": {"FrontLeft": np.zeros((H, W, 3), np.uint8), "FrontRight": img}},
+                IMU_REST,
+            ),
+            "image shape",
+        ),
         ((0.05, {"Grayscale": {"FrontLeft": img}}, IMU_REST), "FrontRight is missing"),
-        ((0.05, {"Grayscale": {"FrontLeft": img, "FrontRight": None}}, IMU_REST), "FrontRight is None"),
+        (
+            (0.05, {"Grayscale": {"FrontLeft": img, "FrontRight": None}}, IMU_REST),
+            "FrontRight is None",
+        ),
         ((0.05, {"Grayscale": {"Left": img, "Right": img}}, IMU_REST), "no stereo camera"),
         ((0.05, None, np.array([0, 0, np.nan, 0, 0, 0])), "not finite"),
         ((0.05, None, np.zeros(3)), "6 numbers"),
@@ -169,7 +199,14 @@ def test_caller_odometry_is_anchored_at_the_initial_pose(sim):
     rng = np.random.default_rng(1)
     for i in range(20):
         T_map_rover = T0.matrix() @ pose_to_matrix(0.01 * i, 0.002 * i, 0.0, 0.0, 0.0, 0.01 * i)
-        e = loc.update(0.05 * i, None, IMU_REST + rng.normal(0, 1e-3, 6), 0.2, 0.2, odometry=T_odo_map @ T_map_rover)
+        e = loc.update(
+            0.05 * i,
+            None,
+            IMU_REST + rng.normal(0, 1e-3, 6),
+            0.2,
+            0.2,
+            odometry=T_odo_map @ T_map_rover,
+        )
         assert np.allclose(e.T_map_rover, T_map_rover, atol=1e-9)
     assert np.allclose(invert_transform(e.T_map_rover) @ T_map_rover, np.eye(4), atol=1e-9)
 
@@ -177,13 +214,19 @@ def test_caller_odometry_is_anchored_at_the_initial_pose(sim):
 def test_calibration_rig():
     rig = CameraRig.from_calibration(320, 180, fx=228.5, baseline_m=0.2)
     assert rig.camera.fx == pytest.approx(228.5)
-    assert rig.T_rover_cam["FrontLeft"][1, 3] - rig.T_rover_cam["FrontRight"][1, 3] == pytest.approx(0.2)
+    assert rig.T_rover_cam["FrontLeft"][1, 3] - rig.T_rover_cam["FrontRight"][
+        1, 3
+    ] == pytest.approx(0.2)
     with pytest.raises(InputError, match="principal point"):
         CameraRig.from_calibration(320, 180, fx=228.5, cx=100.0)
     with pytest.raises(InputError, match="no active stereo camera"):
         CameraRig.from_sensors({"Left": {"camera_active": True, "width": 320, "height": 180}})
-    rig = CameraRig.from_sensors({SensorPosition.FrontLeft: {"width": "320", "height": "180"},
-                                  "SensorPosition.FrontRight": {"width": 320, "height": 180}})  # fmt: skip
+    rig = CameraRig.from_sensors(
+        {
+            SensorPosition.FrontLeft: {"width": "320", "height": "180"},
+            "SensorPosition.FrontRight": {"width": 320, "height": 180},
+        }
+    )
     assert rig.camera.width == 320 and "FrontLeft" in rig.T_rover_cam
 
 
@@ -204,7 +247,14 @@ def test_history_stays_bounded_across_reanchors():
     for i in range(600):
         T = pose_to_matrix(0.01 * i, 0.0, 0.0, 0.0, 0.0, 0.002 * i)
         img = blank if i % 2 == 0 else None
-        e = loc.update(0.05 * i, {"Grayscale": {"FrontLeft": img, "FrontRight": img}}, IMU_REST, 0.2, 0.04, odometry=T)
+        e = loc.update(
+            0.05 * i,
+            {"Grayscale": {"FrontLeft": img, "FrontRight": img}},
+            IMU_REST,
+            0.2,
+            0.04,
+            odometry=T,
+        )
         held.append(len(loc.loop.keyframes))
         assert np.allclose(e.T_map_rover, T, atol=1e-6)
     assert max(held) <= 50 and loc.reanchors >= 2
@@ -221,7 +271,9 @@ def test_detections_on_the_lander_are_dropped(sim, monkeypatch):
     monkeypatch.setattr(loc, "_detect", lambda images: np.array([on_lander[:3], rock]))
     seen = []
     step = loc.loop.step
-    monkeypatch.setattr(loc.loop, "step", lambda *a, **k: (seen.append(a[3].copy()), step(*a, **k))[1])
+    monkeypatch.setattr(
+        loc.loop, "step", lambda *a, **k: (seen.append(a[3].copy()), step(*a, **k))[1]
+    )
     img = np.zeros((H, W), np.uint8)
     loc.update(0.0, {"Grayscale": {"FrontLeft": img, "FrontRight": img}}, IMU_REST, 0.0, 0.0)
     assert len(seen) == 1 and np.allclose(seen[0], [rock])
@@ -230,7 +282,9 @@ def test_detections_on_the_lander_are_dropped(sim, monkeypatch):
     monkeypatch.setattr(loc2, "_detect", lambda images: np.array([on_lander[:3], rock]))
     seen2 = []
     step2 = loc2.loop.step
-    monkeypatch.setattr(loc2.loop, "step", lambda *a, **k: (seen2.append(a[3].copy()), step2(*a, **k))[1])
+    monkeypatch.setattr(
+        loc2.loop, "step", lambda *a, **k: (seen2.append(a[3].copy()), step2(*a, **k))[1]
+    )
     loc2.update(0.0, {"Grayscale": {"FrontLeft": img, "FrontRight": img}}, IMU_REST, 0.0, 0.0)
     assert len(seen2[0]) == 2
 
@@ -255,15 +309,23 @@ def test_no_reference_map(monkeypatch):
             monkeypatch.setattr(loc, "_detect", lambda images, det=det: det)
             img = blank if i % 2 == 0 else None
             # the speed: the LAC's limit (the API refuses more than twice it); the caller's odometry moves the rover
-            e = loc.update(0.05 * i, {"Grayscale": {"FrontLeft": img, "FrontRight": img}}, IMU_REST, 0.49, 0.0,
-                           odometry=T)  # fmt: skip
+            e = loc.update(
+                0.05 * i,
+                {"Grayscale": {"FrontLeft": img, "FrontRight": img}},
+                IMU_REST,
+                0.49,
+                0.0,
+                odometry=T,
+            )
             if e.attempt is not None:
                 attempts.append(e.attempt)
             assert reference is not None or np.allclose(e.T_map_rover, T, atol=1e-9)
         return loc, attempts, e
 
     loc, attempts, e = drive(None)
-    assert len(attempts) >= 3 and all(a.reason == "no reference map" and not a.accepted for a in attempts)
+    assert len(attempts) >= 3 and all(
+        a.reason == "no reference map" and not a.accepted for a in attempts
+    )
     assert attempts[-1].landmarks >= 6  # a local map was built for each
     assert not e.localized and loc.loop.has_reference is False
     _, attempts_ref, e_ref = drive(LandmarkMap(rocks))

@@ -30,7 +30,9 @@ def test_no_opencv_wheel_is_a_hard_dependency():
     hard = [_name(r) for r in project["dependencies"]]
     assert "numpy" in hard  # the parse found the real list
     assert not [n for n in hard if n.startswith("opencv")]
-    assert [_name(r) for r in project["optional-dependencies"]["opencv"]] == ["opencv-python-headless"]
+    assert [_name(r) for r in project["optional-dependencies"]["opencv"]] == [
+        "opencv-python-headless"
+    ]
 
 
 def test_missing_opencv_raises_the_install_hint(monkeypatch):

@@ -74,11 +74,15 @@ def test_grid_rocks_follow_the_grouping_rule(rng):
 def test_localize_vehicle_map_in_a_lac_grid(rng):
     g, centres = grid_with_rocks(rng, 300)
     ref = grid_landmarks(g)
-    pick = np.flatnonzero(np.linalg.norm(ref.positions_xyz[:, :2] - ref.positions_xyz[0, :2], axis=1) < 7)
+    pick = np.flatnonzero(
+        np.linalg.norm(ref.positions_xyz[:, :2] - ref.positions_xyz[0, :2], axis=1) < 7
+    )
     # the vehicle sees the true rock centres (not quantised) with 1 cm noise
     true = ref.positions_xyz[pick].copy()
     order = np.argmin(np.linalg.norm(true[:, None, :2] - centres[None], axis=2), axis=1)
-    true[:, :2] = centres[order] + rng.normal(0, 0.03, (len(pick), 2))  # within a cell of the grid's centroid
+    true[:, :2] = centres[order] + rng.normal(
+        0, 0.03, (len(pick), 2)
+    )  # within a cell of the grid's centroid
     T = random_T(rng, max_tilt_deg=0.5)
     veh = LandmarkMap(transform_points(invert_transform(T), true + rng.normal(0, 0.01, true.shape)))
     r = localize(ref, veh, RIGID)
@@ -99,7 +103,9 @@ def test_site_geometric_map_and_its_rocks():
     ref = grid_landmarks(g)
     big = site.rocks.radii > 0.15
     # every large rock has a grid rock within one cell of its centre
-    d = np.linalg.norm(site.rocks.centers[big, None, :2] - ref.positions_xyz[None, :, :2], axis=2).min(axis=1)
+    d = np.linalg.norm(
+        site.rocks.centers[big, None, :2] - ref.positions_xyz[None, :, :2], axis=2
+    ).min(axis=1)
     assert np.median(d) < LAC_CELL_M
     # a vehicle map of the true rocks of one area localizes in the grid
     truth = rocks_to_reference(site.rocks.table())
@@ -109,28 +115,44 @@ def test_site_geometric_map_and_its_rocks():
     T = random_T(rng, max_tilt_deg=0.3)
     r = localize(ref, LandmarkMap(transform_points(invert_transform(T), P)), RIGID)
     assert r.success, r.reason
-    assert np.linalg.norm(transform_points(r.T_ref_veh @ invert_transform(T), P) - P, axis=1).max() < 0.10
+    assert (
+        np.linalg.norm(transform_points(r.T_ref_veh @ invert_transform(T), P) - P, axis=1).max()
+        < 0.10
+    )
 
 
 def test_catalogue_with_and_without_heights(tmp_path, rng):
     xyz = rock_field(rng, 200)
     radius = rng.uniform(0.05, 0.4, len(xyz))
     p3 = tmp_path / "cat3.csv"
-    p3.write_text("x,y,z,radius\n" + "".join(f"{x},{y},{z},{r}\n" for (x, y, z), r in zip(xyz, radius)))
+    p3.write_text(
+        "x,y,z,radius\n" + "".join(f"{x},{y},{z},{r}\n" for (x, y, z), r in zip(xyz, radius))
+    )
     p2 = tmp_path / "cat2.csv"
-    p2.write_text("radius,x,y,sigma_m\n" + "".join(f"{r},{x},{y},0.02\n" for (x, y, _), r in zip(xyz, radius)))
+    p2.write_text(
+        "radius,x,y,sigma_m\n" + "".join(f"{r},{x},{y},0.02\n" for (x, y, _), r in zip(xyz, radius))
+    )
     c3 = load_reference(p3)
-    assert c3.has_heights and np.allclose(c3.positions_xyz, xyz) and np.allclose(c3.sizes, 2 * radius)
+    assert (
+        c3.has_heights and np.allclose(c3.positions_xyz, xyz) and np.allclose(c3.sizes, 2 * radius)
+    )
     c2 = load_reference(p2)
     assert not c2.has_heights and np.allclose(c2.sigma_xy_m, 0.02)
     common = np.argsort(np.linalg.norm(xyz[:, :2] - xyz[0, :2], axis=1))[:35]
     T = random_T(rng, max_tilt_deg=0.0)
-    veh = LandmarkMap(transform_points(invert_transform(T), xyz[common] + rng.normal(0, 0.01, (35, 3))))
+    veh = LandmarkMap(
+        transform_points(invert_transform(T), xyz[common] + rng.normal(0, 0.01, (35, 3)))
+    )
     for ref in (c3, c2):
         r = localize(ref, veh)
         assert r.success, r.reason
         E = r.T_ref_veh @ invert_transform(T)
-        assert np.linalg.norm(transform_points(E, xyz[common])[:, :2] - xyz[common][:, :2], axis=1).max() < 0.05
+        assert (
+            np.linalg.norm(
+                transform_points(E, xyz[common])[:, :2] - xyz[common][:, :2], axis=1
+            ).max()
+            < 0.05
+        )
     # heights from a DEM: the grid's nearest cell
     dem = empty_lac_grid()
     dem[:, :, 2] = 0.5
@@ -197,11 +219,19 @@ def test_score_and_lac_grid_from_landmarks(rng):
     with pytest.raises(InputError, match="shape"):
         score_geometric_map(truth[:100, :100], truth)
     # landmarks -> grid -> landmarks keeps the rocks
-    lm = LandmarkMap(np.array([[1.0, 2.0, 0.3], [-5.0, 4.0, 0.1], [6.0, -7.0, 0.2]]), sizes=np.array([0.5, 0.3, 0.2]))
+    lm = LandmarkMap(
+        np.array([[1.0, 2.0, 0.3], [-5.0, 4.0, 0.1], [6.0, -7.0, 0.2]]),
+        sizes=np.array([0.5, 0.3, 0.2]),
+    )
     g = landmarks_to_lac_grid(lm)
     back = grid_landmarks(g)
     assert len(back) == 3
-    assert np.linalg.norm(back.positions_xyz[:, None, :2] - lm.positions_xyz[None, :, :2], axis=2).min(axis=0).max() < 0.1
+    assert (
+        np.linalg.norm(back.positions_xyz[:, None, :2] - lm.positions_xyz[None, :, :2], axis=2)
+        .min(axis=0)
+        .max()
+        < 0.1
+    )
 
 
 def test_cli_localize_score_and_map_grid(tmp_path, rng, capsys):
@@ -210,11 +240,26 @@ def test_cli_localize_score_and_map_grid(tmp_path, rng, capsys):
     g, centres = grid_with_rocks(rng, 250)
     np.save(tmp_path / "map.npy", g)
     ref = grid_landmarks(g)
-    pick = np.flatnonzero(np.linalg.norm(ref.positions_xyz[:, :2] - ref.positions_xyz[3, :2], axis=1) < 7)
+    pick = np.flatnonzero(
+        np.linalg.norm(ref.positions_xyz[:, :2] - ref.positions_xyz[3, :2], axis=1) < 7
+    )
     veh = LandmarkMap(ref.positions_xyz[pick] + rng.normal(0, 0.01, (len(pick), 3)))
     save_map(veh, tmp_path / "veh.csv")
-    assert main(["localize", str(tmp_path / "map.npy"), str(tmp_path / "veh.csv"), "--json",
-                 "--odometry-scale-error", "0", "--odometry-drift", "0"]) == 0
+    assert (
+        main(
+            [
+                "localize",
+                str(tmp_path / "map.npy"),
+                str(tmp_path / "veh.csv"),
+                "--json",
+                "--odometry-scale-error",
+                "0",
+                "--odometry-drift",
+                "0",
+            ]
+        )
+        == 0
+    )
     d = json.loads(capsys.readouterr().out)
     assert d["success"] is True and len(d["covariance"]) == 6
     assert np.allclose(np.array(d["T_ref_veh"])[:3, 3], 0, atol=0.05)
@@ -233,7 +278,9 @@ def test_sigma_columns_round_trip_and_old_files_load(tmp_path, rng):
     m = LandmarkMap(rock_field(rng, 10), sigma_xy_m=np.full(10, 0.04), sigma_z_m=np.full(10, 0.02))
     for suffix in (".csv", ".npz"):
         back = load_map(save_map(m, tmp_path / f"m{suffix}"))
-        assert np.allclose(back.sigma_xy_m, 0.04, atol=1e-6) and np.allclose(back.sigma_z_m, 0.02, atol=1e-6)
+        assert np.allclose(back.sigma_xy_m, 0.04, atol=1e-6) and np.allclose(
+            back.sigma_z_m, 0.02, atol=1e-6
+        )
     old = tmp_path / "old.csv"
     old.write_text("x,y,z\n0,0,0\n1,0,0\n0,1,0\n")
     assert load_map(old).sigma_xy_m is None
@@ -251,7 +298,9 @@ def test_simulate_writes_the_ground_truth_geometric_map(tmp_path, monkeypatch):
     g = load_lac_grid(tmp_path / "geometric_map.npy")
     assert g.shape == (80, 80, 4)  # 12 m in 0.15 m cells
     assert g[:, :, 3].sum() > 0 and np.ptp(g[:, :, 2]) > 0
-    assert np.allclose(g[1, 0, :2] - g[0, 0, :2], [LAC_CELL_M, 0]) and np.allclose(g[0, 1, :2] - g[0, 0, :2], [0, LAC_CELL_M])
+    assert np.allclose(g[1, 0, :2] - g[0, 0, :2], [LAC_CELL_M, 0]) and np.allclose(
+        g[0, 1, :2] - g[0, 0, :2], [0, LAC_CELL_M]
+    )
 
 
 def test_online_loop_with_a_geometric_map_reference(tmp_path):
@@ -264,10 +313,15 @@ def test_online_loop_with_a_geometric_map_reference(tmp_path):
 
     rocks, trav = synthetic_traverse(length_m=20.0)
     keep = np.all(np.abs(rocks[:, :2]) < 13.3, axis=1)
-    np.save(tmp_path / "map.npy", landmarks_to_lac_grid(LandmarkMap(rocks[keep], sizes=np.full(keep.sum(), 0.1))))
+    np.save(
+        tmp_path / "map.npy",
+        landmarks_to_lac_grid(LandmarkMap(rocks[keep], sizes=np.full(keep.sum(), 0.1))),
+    )
     ref = load_reference(tmp_path / "map.npy")
     assert ref.sigma_xy_m is not None and len(ref) > 0.8 * keep.sum()
-    s = run(TraverseCsvSource(trav, DriftModel(0.1, 0.03)), ref, RunConfig.for_detections()).summary()
+    s = run(
+        TraverseCsvSource(trav, DriftModel(0.1, 0.03)), ref, RunConfig.for_detections()
+    ).summary()
     assert s["fixes"] >= 3
     assert s["max_accepted_fix_error_m"] < 0.2
     assert s["ate_corrected"]["rmse_m"] < s["ate_odometry"]["rmse_m"] / 2
@@ -281,12 +335,16 @@ def test_grid_header_checked_before_allocating(tmp_path):
 
     huge = tmp_path / "huge.npy"
     with open(huge, "wb") as fh:
-        np.lib.format.write_array_header_1_0(fh, {"descr": "<f8", "fortran_order": False, "shape": (100000, 100000, 4)})
+        np.lib.format.write_array_header_1_0(
+            fh, {"descr": "<f8", "fortran_order": False, "shape": (100000, 100000, 4)}
+        )
     with pytest.raises(FileFormatError, match="outside"):
         load_lac_grid(huge)
     short = tmp_path / "short.npy"
     with open(short, "wb") as fh:
-        np.lib.format.write_array_header_1_0(fh, {"descr": "<f8", "fortran_order": False, "shape": (180, 180, 4)})
+        np.lib.format.write_array_header_1_0(
+            fh, {"descr": "<f8", "fortran_order": False, "shape": (180, 180, 4)}
+        )
         fh.write(b"\0" * 1000)
     with pytest.raises(FileFormatError, match="truncated"):
         load_lac_grid(short)

@@ -40,23 +40,49 @@ def test_loop_reduces_drift(loop_run):
 
 def test_outputs_are_written(loop_run, tmp_path):
     s = write_run(loop_run, tmp_path)
-    for name in ("trajectory.tum", "trajectory_online.tum", "trajectory_odometry.tum", "trajectory_groundtruth.tum",
-                 "attempts.csv", "attempts.json", "vehicle_map.csv", "config.json", "summary.json"):
+    for name in (
+        "trajectory.tum",
+        "trajectory_online.tum",
+        "trajectory_odometry.tum",
+        "trajectory_groundtruth.tum",
+        "attempts.csv",
+        "attempts.json",
+        "vehicle_map.csv",
+        "config.json",
+        "summary.json",
+    ):
         assert (tmp_path / name).is_file(), name
     t, poses = read_tum(tmp_path / "trajectory.tum")
     assert len(t) == len(loop_run.frames) and poses.shape[1] == 6
     line = (tmp_path / "trajectory.tum").read_text().splitlines()[0].split()
     assert len(line) == 8  # timestamp tx ty tz qx qy qz qw
     summary = json.loads((tmp_path / "summary.json").read_text())
-    assert set(summary["time_per_image_frame_ms"]) >= {"detection", "mapping", "association", "fusion"}
+    assert set(summary["time_per_image_frame_ms"]) >= {
+        "detection",
+        "mapping",
+        "association",
+        "fusion",
+    }
     attempts = json.loads((tmp_path / "attempts.json").read_text())
-    assert len(attempts) == summary["attempts"] and {"success", "inliers", "reason", "correction_m"} <= set(attempts[0])
+    assert len(attempts) == summary["attempts"] and {
+        "success",
+        "inliers",
+        "reason",
+        "correction_m",
+    } <= set(attempts[0])
     assert json.loads((tmp_path / "config.json").read_text())["loop"]["fix_kind"] == "landmarks"
     back = read_run(tmp_path)
     assert back.summary == summary and len(back.attempts) == len(attempts)
     assert np.allclose(back.corrected[:, :3], loop_run.T_map_rover[:, :3, 3], atol=1e-6)
-    assert loop_run.T_map_rover.shape == (len(t), 4, 4) and loop_run.T_odo_rover.shape == (len(t), 4, 4)
-    assert back.ground_truth is not None and RunConfig.from_dict(back.config) == RunConfig.for_detections()
+    assert loop_run.T_map_rover.shape == (len(t), 4, 4) and loop_run.T_odo_rover.shape == (
+        len(t),
+        4,
+        4,
+    )
+    assert (
+        back.ground_truth is not None
+        and RunConfig.from_dict(back.config) == RunConfig.for_detections()
+    )
 
 
 def test_wrong_reference_gives_no_fixes():
@@ -68,7 +94,14 @@ def test_wrong_reference_gives_no_fixes():
 
 
 def test_rocks_reference(tmp_path):
-    rows = np.array([[0, 1.0, 2.0, -0.1, 0.3], [1, 3.0, 1.0, 0.0, 0.02], [2, 0.0, 5.0, 0.1, 0.2], [3, 4.0, 4.0, 0.0, 0.1]])
+    rows = np.array(
+        [
+            [0, 1.0, 2.0, -0.1, 0.3],
+            [1, 3.0, 1.0, 0.0, 0.02],
+            [2, 0.0, 5.0, 0.1, 0.2],
+            [3, 4.0, 4.0, 0.0, 0.1],
+        ]
+    )
     ref = rocks_to_reference(rows)
     assert len(ref) == 3  # the 2 cm rock is too small to be detected
     assert ref.positions_xyz[0, 2] == pytest.approx(-0.1 + 0.1 * 0.3)
@@ -105,14 +138,18 @@ def test_config_validation():
 
 
 @pytest.mark.realdata
-@pytest.mark.skipif(not (DATA / "csv" / "traverse_9.csv").is_file(), reason="LunarLoc data not present")
+@pytest.mark.skipif(
+    not (DATA / "csv" / "traverse_9.csv").is_file(), reason="LunarLoc data not present"
+)
 def test_real_traverse_loop():
     from lunarloc.io.maps import aggregate_detections, load_traverse
 
     veh = load_traverse(DATA / "csv" / "traverse_6.csv")
     ref_t = load_traverse(DATA / "csv" / "traverse_9.csv")
     ref = aggregate_detections(ref_t.detections_xyz, ref_t.detection_frame, frame="map")
-    s = run(TraverseCsvSource(veh, DriftModel(0.05, 0.02)), ref, RunConfig.for_detections()).summary()
+    s = run(
+        TraverseCsvSource(veh, DriftModel(0.05, 0.02)), ref, RunConfig.for_detections()
+    ).summary()
     assert s["fixes"] > 0
     assert s["ate_corrected"]["rmse_m"] < s["ate_odometry"]["rmse_m"]
 
@@ -131,8 +168,14 @@ def test_loop_judges_the_pose_at_the_rover(monkeypatch):
 
     monkeypatch.setattr(loop_mod, "localize", spy)
     rocks, trav = synthetic_traverse(length_m=8.0)
-    res = run(TraverseCsvSource(trav, DriftModel(0.1, 0.03)), LandmarkMap(rocks), RunConfig.for_detections())
-    assert seen and len(seen) == sum(a.landmarks >= 6 and a.reference_landmarks >= 3 for a in res.attempts)
+    res = run(
+        TraverseCsvSource(trav, DriftModel(0.1, 0.03)),
+        LandmarkMap(rocks),
+        RunConfig.for_detections(),
+    )
+    assert seen and len(seen) == sum(
+        a.landmarks >= 6 and a.reference_landmarks >= 3 for a in res.attempts
+    )
     for q, path in seen:
         assert q.shape == (1, 3) and path.ndim == 2 and path.shape[1] == 3 and len(path) >= 2
         assert np.allclose(q[0], path[-1])  # the rover is at the window's newest keyframe

@@ -16,10 +16,27 @@ FL_POSE = [0.28, 0.081, 0.131, 0.0, 0.0, 0.0]
 
 def _write(path, n_frames=10, first_image=3, every=2):
     cams = {
-        "FrontLeft": {"camera_active": True, "light_intensity": 0.25, "width": W, "height": H, "use_semantic": True},
-        "BackLeft": {"camera_active": False, "light_intensity": 0.0, "width": W, "height": H, "use_semantic": False},
+        "FrontLeft": {
+            "camera_active": True,
+            "light_intensity": 0.25,
+            "width": W,
+            "height": H,
+            "use_semantic": True,
+        },
+        "BackLeft": {
+            "camera_active": False,
+            "light_intensity": 0.0,
+            "width": W,
+            "height": H,
+            "use_semantic": False,
+        },
     }
-    init = {"fiducials": True, "lander": [0.1, 0.2, 0.3, 0.0, 0.0, 1.0], "rover": [1.0, 2.0, 0.0, 0.0, 0.0, 0.5], "cameras": cams}
+    init = {
+        "fiducials": True,
+        "lander": [0.1, 0.2, 0.3, 0.0, 0.0, 1.0],
+        "rover": [1.0, 2.0, 0.0, 0.0, 0.0, 0.5],
+        "cameras": cams,
+    }
     rng = np.random.default_rng(7)
     poses, images = {}, {}
     with LacWriter(path, init) as w:
@@ -27,15 +44,32 @@ def _write(path, n_frames=10, first_image=3, every=2):
             pose = np.array([float(float_text(v)) for v in rng.normal(size=6)])  # as stored
             poses[f] = pose
             w.add_frame(
-                f, x=pose[0], y=pose[1], z=pose[2], roll=pose[3], pitch=pose[4], yaw=pose[5],
-                accel_x=0.1 * f, accel_y=0.2, accel_z=1.62, gyro_x=0.01, gyro_y=0.02, gyro_z=0.03 * f,
-                mission_time=0.05 * f, power=300.0 - f, linear_speed=0.3, angular_speed=-0.1, cover_angle=0.7,
-            )  # fmt: skip
+                f,
+                x=pose[0],
+                y=pose[1],
+                z=pose[2],
+                roll=pose[3],
+                pitch=pose[4],
+                yaw=pose[5],
+                accel_x=0.1 * f,
+                accel_y=0.2,
+                accel_z=1.62,
+                gyro_x=0.01,
+                gyro_y=0.02,
+                gyro_z=0.03 * f,
+                mission_time=0.05 * f,
+                power=300.0 - f,
+                linear_speed=0.3,
+                angular_speed=-0.1,
+                cover_angle=0.7,
+            )
             if f >= first_image and (f - first_image) % every == 0:
                 g = rng.integers(0, 256, (H, W), dtype=np.uint8)
                 s = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
                 light = 1.0 if f > 5 else 0.5
-                w.add_camera_frame("FrontLeft", f, FL_POSE, light_intensity=light, grayscale=g, semantic=s)
+                w.add_camera_frame(
+                    "FrontLeft", f, FL_POSE, light_intensity=light, grayscale=g, semantic=s
+                )
                 images[f] = (g, s)
     return poses, images
 
@@ -65,16 +99,23 @@ def test_round_trip_poses_and_images(archive):
             np.testing.assert_allclose(imu, [0.1 * f, 0.2, 1.62, 0.01, 0.02, 0.03 * f], rtol=5e-15)
             assert agent.get_mission_time() == pytest.approx(0.05 * f, rel=5e-15)
             assert agent.get_linear_speed() == 0.3 and agent.get_angular_speed() == -0.1
-            assert agent.get_current_power() == 300.0 - f and agent.get_radiator_cover_angle() == 0.7
+            assert (
+                agent.get_current_power() == 300.0 - f and agent.get_radiator_cover_angle() == 0.7
+            )
             data = agent.input_data()
             assert set(data) == {"Grayscale", "Semantic"}
             if f in images:
-                assert list(data["Grayscale"]) == ["FrontLeft", "BackLeft"] and list(data["Semantic"]) == ["FrontLeft"]
+                assert list(data["Grayscale"]) == ["FrontLeft", "BackLeft"] and list(
+                    data["Semantic"]
+                ) == ["FrontLeft"]
                 assert data["Grayscale"]["BackLeft"] is None
                 np.testing.assert_array_equal(data["Grayscale"]["FrontLeft"], images[f][0])
                 np.testing.assert_array_equal(data["Semantic"]["FrontLeft"], images[f][1])
             else:  # every configured camera, None without an image (as published)
-                assert data == {"Grayscale": {"FrontLeft": None, "BackLeft": None}, "Semantic": {"FrontLeft": None}}
+                assert data == {
+                    "Grayscale": {"FrontLeft": None, "BackLeft": None},
+                    "Semantic": {"FrontLeft": None},
+                }
             if agent.at_end():
                 break
             assert agent.step_frame() == f + 1
@@ -98,9 +139,14 @@ def test_camera_state_follows_last_row(archive):
     with PlaybackAgent(path) as agent:
         # before the first camera row, as published: False, a zero pose, initial.toml's light
         assert agent.frame == 0
-        assert agent.get_camera_state("FrontLeft") is False and agent.get_light_state("FrontLeft") == 0.25
+        assert (
+            agent.get_camera_state("FrontLeft") is False
+            and agent.get_light_state("FrontLeft") == 0.25
+        )
         assert agent.get_camera_position("FrontLeft").as_tuple() == (0.0,) * 6
-        assert agent.get_camera_state("BackLeft") is False and agent.get_light_state("BackLeft") == 0.0
+        assert (
+            agent.get_camera_state("BackLeft") is False and agent.get_light_state("BackLeft") == 0.0
+        )
         agent.set_frame(3)
         assert agent.get_camera_state("FrontLeft") is True
         agent.set_frame(4)  # last row is frame 3
@@ -120,10 +166,16 @@ def test_set_frame_and_random_access(archive):
             assert agent.set_frame(f) == f
             assert agent.get_transform().as_tuple() == tuple(poses[f])
             if f in images:
-                np.testing.assert_array_equal(agent.input_data()["Grayscale"]["FrontLeft"], images[f][0])
-        with pytest.raises(ValueError, match="frame 42"):  # past the end: ValueError, as in lac_data
+                np.testing.assert_array_equal(
+                    agent.input_data()["Grayscale"]["FrontLeft"], images[f][0]
+                )
+        with pytest.raises(
+            ValueError, match="frame 42"
+        ):  # past the end: ValueError, as in lac_data
             agent.set_frame(42)
-        with pytest.raises(IndexError, match="3.5"):  # not a recorded frame: IndexError, as in lac_data
+        with pytest.raises(
+            IndexError, match="3.5"
+        ):  # not a recorded frame: IndexError, as in lac_data
             agent.set_frame(3.5)
         assert agent.set_frame(4.0) == 4
         agent.set_frame(0)
@@ -137,7 +189,9 @@ def test_full_playback_is_forward_only(tmp_path, monkeypatch):
         with PlaybackAgent(archive) as agent:
             restores = []
             orig = _IndexedGzipReader._restore
-            monkeypatch.setattr(_IndexedGzipReader, "_restore", lambda self, k: (restores.append(k), orig(self, k)))
+            monkeypatch.setattr(
+                _IndexedGzipReader, "_restore", lambda self, k: (restores.append(k), orig(self, k))
+            )
             n = 0
             for _ in agent:
                 n += sum(v is not None for v in agent.input_data()["Grayscale"].values())

@@ -44,7 +44,15 @@ PUBLISHED = {
     "get_camera_position": "last row at or before the frame; before or unknown camera: zero pose",
     "get_light_position": "NotImplementedError",
 }
-OURS_ONLY = {"frame", "frame_index", "close", "get_transform_matrix", "frame_state", "archive", "run_agent"}
+OURS_ONLY = {
+    "frame",
+    "frame_index",
+    "close",
+    "get_transform_matrix",
+    "frame_state",
+    "archive",
+    "run_agent",
+}
 
 PALETTE = {"rock": (42, 59, 108), "lander": (160, 190, 110), "fiducial": (30, 170, 250)}
 
@@ -52,17 +60,40 @@ PALETTE = {"rock": (42, 59, 108), "lander": (160, 190, 110), "fiducial": (30, 17
 @pytest.fixture
 def agent(tmp_path):
     cams = {
-        "FrontLeft": {"camera_active": True, "light_intensity": 0.5, "width": W, "height": H, "use_semantic": True},
-        "Right": {"camera_active": False, "light_intensity": 0.25, "width": W, "height": H, "use_semantic": False},
+        "FrontLeft": {
+            "camera_active": True,
+            "light_intensity": 0.5,
+            "width": W,
+            "height": H,
+            "use_semantic": True,
+        },
+        "Right": {
+            "camera_active": False,
+            "light_intensity": 0.25,
+            "width": W,
+            "height": H,
+            "use_semantic": False,
+        },
     }
-    init = {"fiducials": True, "lander": [6.0, -1.0, -0.4, 0.0, 0.0, 0.2], "rover": [1.0, 2.0, 0.3, 0.0, 0.0, 0.5],
-            "cameras": cams}  # fmt: skip
+    init = {
+        "fiducials": True,
+        "lander": [6.0, -1.0, -0.4, 0.0, 0.0, 0.2],
+        "rover": [1.0, 2.0, 0.3, 0.0, 0.0, 0.5],
+        "cameras": cams,
+    }
     rng = np.random.default_rng(5)
     gray, sem = {}, {}
     with LacWriter(tmp_path / "p.lac", init) as w:
         for f in (0, 1, 2, 3, 5, 6):  # frame 4 missing: a gap
-            st = {k: float(float_text(v)) for k, v in zip(("x", "y", "yaw", "gyro_z", "power", "cover_angle"), rng.normal(size=6))}
-            w.add_frame(f, mission_time=0.05 * f, linear_speed=0.2, angular_speed=0.01, accel_z=1.622, **st)
+            st = {
+                k: float(float_text(v))
+                for k, v in zip(
+                    ("x", "y", "yaw", "gyro_z", "power", "cover_angle"), rng.normal(size=6)
+                )
+            }
+            w.add_frame(
+                f, mission_time=0.05 * f, linear_speed=0.2, angular_speed=0.01, accel_z=1.622, **st
+            )
             if f in (2, 5):
                 gray[f] = rng.integers(0, 256, (H, W), dtype=np.uint8)
                 s = np.zeros((H, W, 3), np.uint8)
@@ -70,8 +101,14 @@ def agent(tmp_path):
                 s[H // 2 :] = PALETTE["lander"]
                 s[0, 0] = PALETTE["fiducial"]
                 sem[f] = s
-                w.add_camera_frame("FrontLeft", f, [0.28, 0.081, 0.131, 0, 0, 0], light_intensity=1.0, grayscale=gray[f],
-                                   semantic=sem[f])  # fmt: skip
+                w.add_camera_frame(
+                    "FrontLeft",
+                    f,
+                    [0.28, 0.081, 0.131, 0, 0, 0],
+                    light_intensity=1.0,
+                    grayscale=gray[f],
+                    semantic=sem[f],
+                )
     with PlaybackAgent(tmp_path / "p.lac") as ag:
         yield ag, gray, sem
 
@@ -96,7 +133,14 @@ def test_not_recorded_getters_raise_as_published(agent, name):
 def test_cursor(agent):
     ag, _, _ = agent
     assert ag.frame == 0 and not ag.at_end()
-    assert [ag.step_frame() for _ in range(6)] == [1, 2, 3, 5, 6, 6]  # skips the gap, stays at the end
+    assert [ag.step_frame() for _ in range(6)] == [
+        1,
+        2,
+        3,
+        5,
+        6,
+        6,
+    ]  # skips the gap, stays at the end
     assert ag.at_end()
     with pytest.raises(ValueError, match="out of range"):
         ag.set_frame(7)
@@ -115,11 +159,27 @@ def test_constants_and_state(agent):
     assert ag.get_initial_lander_position().as_tuple() == (6.0, -1.0, -0.4, 0.0, 0.0, 0.2)
     row = ag.archive.frame_state(0)
     t = ag.get_transform()
-    assert isinstance(t, Transform) and (t.location.x, t.location.y, t.rotation.yaw) == (row["x"], row["y"], row["yaw"])
-    assert ag.get_mission_time() == 0.0 and ag.get_linear_speed() == 0.2 and ag.get_angular_speed() == 0.01
-    assert ag.get_current_power() == row["power"] and ag.get_radiator_cover_angle() == row["cover_angle"]
+    assert isinstance(t, Transform) and (t.location.x, t.location.y, t.rotation.yaw) == (
+        row["x"],
+        row["y"],
+        row["yaw"],
+    )
+    assert (
+        ag.get_mission_time() == 0.0
+        and ag.get_linear_speed() == 0.2
+        and ag.get_angular_speed() == 0.01
+    )
+    assert (
+        ag.get_current_power() == row["power"]
+        and ag.get_radiator_cover_angle() == row["cover_angle"]
+    )
     imu = ag.get_imu_data()
-    assert isinstance(imu, np.ndarray) and imu.shape == (6,) and imu[2] == 1.622 and imu[5] == row["gyro_z"]
+    assert (
+        isinstance(imu, np.ndarray)
+        and imu.shape == (6,)
+        and imu[2] == 1.622
+        and imu[5] == row["gyro_z"]
+    )
 
 
 def test_cameras_before_during_after_rows(agent):
@@ -128,7 +188,10 @@ def test_cameras_before_during_after_rows(agent):
     assert ag.get_camera_state("FrontLeft") is False and ag.get_camera_state("Right") is False
     assert ag.get_camera_position("FrontLeft").as_tuple() == (0.0,) * 6
     assert ag.get_light_state("FrontLeft") == 0.5 and ag.get_light_state("Right") == 0.25
-    assert ag.get_camera_state("Nope") is False and ag.get_camera_position("Nope").as_tuple() == (0.0,) * 6
+    assert (
+        ag.get_camera_state("Nope") is False
+        and ag.get_camera_position("Nope").as_tuple() == (0.0,) * 6
+    )
     with pytest.raises(KeyError):
         ag.get_light_state("Nope")
     ag.set_frame(3)  # last row at or before: frame 2
@@ -155,8 +218,18 @@ def test_input_data_and_semantic_palette(agent):
 
 
 def test_input_data_without_semantic_cameras_has_no_semantic_group(tmp_path):
-    cam = {"camera_active": True, "light_intensity": 0.0, "width": W, "height": H, "use_semantic": False}
-    with LacWriter(tmp_path / "g.lac", {"lander": [0.0] * 6, "rover": [0.0] * 6, "cameras": {"FrontLeft": cam}}) as w:
+    cam = {
+        "camera_active": True,
+        "light_intensity": 0.0,
+        "width": W,
+        "height": H,
+        "use_semantic": False,
+    }
+    with LacWriter(
+        tmp_path / "g.lac", {"lander": [0.0] * 6, "rover": [0.0] * 6, "cameras": {"FrontLeft": cam}}
+    ) as w:
         w.add_frame(0)
     with PlaybackAgent(tmp_path / "g.lac") as ag:
-        assert ag.input_data() == {"Grayscale": {"FrontLeft": None}}  # as published (a defaultdict's keys)
+        assert ag.input_data() == {
+            "Grayscale": {"FrontLeft": None}
+        }  # as published (a defaultdict's keys)

@@ -19,7 +19,11 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "lunarloc"
 def _read_only_tree(root: Path) -> None:
     for p in sorted(root.rglob("*"), reverse=True) + [root]:
         mode = p.stat().st_mode
-        p.chmod(mode & ~(stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH) | stat.S_IROTH | (stat.S_IXOTH if p.is_dir() else 0))
+        p.chmod(
+            mode & ~(stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH)
+            | stat.S_IROTH
+            | (stat.S_IXOTH if p.is_dir() else 0)
+        )
 
 
 @pytest.fixture()
@@ -31,8 +35,14 @@ def readonly_install():
     (base / "tmp").mkdir()
     (base / "tmp").chmod(0o1777)
     _read_only_tree(base / "site")
-    env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "XDG_CACHE_HOME", "PYTHONPATH")}
-    env.update(PYTHONPATH=str(base / "site"), HOME=str(base / "site" / "home"), TMPDIR=str(base / "tmp"))
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ("NUMBA_CACHE_DIR", "XDG_CACHE_HOME", "PYTHONPATH")
+    }
+    env.update(
+        PYTHONPATH=str(base / "site"), HOME=str(base / "site" / "home"), TMPDIR=str(base / "tmp")
+    )
     yield base, env
     for p in [base, *base.rglob("*")]:
         if p.is_dir():
@@ -46,10 +56,18 @@ def _run(args, env):
         # root ignores file modes: drop the capabilities that bypass them so the install
         # really is read-only (and $HOME unwritable) for the child
         if not shutil.which("setpriv"):
-            pytest.skip("running as root without setpriv: cannot make files read-only for the child")
+            pytest.skip(
+                "running as root without setpriv: cannot make files read-only for the child"
+            )
         prefix = ["setpriv", "--bounding-set=-dac_override,-dac_read_search,-fowner", "--"]
-    proc = subprocess.run([*prefix, sys.executable, *args], env=env, capture_output=True, text=True, timeout=300,
-                          cwd="/")  # fmt: skip
+    proc = subprocess.run(
+        [*prefix, sys.executable, *args],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd="/",
+    )
     if prefix and proc.returncode != 0 and proc.stderr.startswith("setpriv:"):
         pytest.skip(f"cannot drop capabilities here: {proc.stderr.strip()}")
     return proc
@@ -57,8 +75,10 @@ def _run(args, env):
 
 def test_import_and_help_from_a_read_only_install(readonly_install):
     base, env = readonly_install
-    code = ("import os, lunarloc; from lunarloc.association import clique; "
-            "print(lunarloc.__file__); print(os.environ.get('NUMBA_CACHE_DIR'))")  # fmt: skip
+    code = (
+        "import os, lunarloc; from lunarloc.association import clique; "
+        "print(lunarloc.__file__); print(os.environ.get('NUMBA_CACHE_DIR'))"
+    )
     proc = _run(["-c", code], env)
     assert proc.returncode == 0, proc.stderr[-2000:]
     file_line, cache_line = proc.stdout.split("\n")[:2]

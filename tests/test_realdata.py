@@ -23,7 +23,9 @@ def test_paper_pairs_localize_under_2cm(real_data):
 
 def test_drift_simulation_moves_detections(real_data):
     t = load_traverse(real_data / "csv" / "traverse_5.csv")
-    det, rover, T_last = drifted_detections(t, DriftModel(heading_drift_deg_per_m=0.5, scale_error=0.02))
+    det, rover, T_last = drifted_detections(
+        t, DriftModel(heading_drift_deg_per_m=0.5, scale_error=0.02)
+    )
     assert det.shape == t.detections_xyz.shape
     end_err = np.linalg.norm(rover[-1] - t.rover_xyz[-1])
     assert end_err > 0.01 * t.path_length

@@ -62,7 +62,15 @@ def test_normalized_low_resolution_match_recovers_the_disparity_and_keeps_the_sk
     left, right = _lamp_lit_pair(24)
     left[:16] = 0  # black sky above the horizon
     right[:16] = 0
-    base = dict(num_disparities=64, block_size=5, downscale=2, three_way=True, p1=200, p2=800, full_width=True)
+    base = dict(
+        num_disparities=64,
+        block_size=5,
+        downscale=2,
+        three_way=True,
+        p1=200,
+        p2=800,
+        full_width=True,
+    )
     m = StereoMatcher(StereoConfig(**base, normalization=method), cam)
     assert m.config.normalization is ImageNormalization(method)
     d = m.disparity_lowres(left, right, sky_level=6)
@@ -81,20 +89,33 @@ def test_stereo_normalization_round_trips_and_bad_values_name_the_key():
     back = RunConfig.from_dict(d)
     assert back.detector.height_stereo.normalization is ImageNormalization.NONE
     assert back.to_dict() == d
-    for key, value in (("normalization", "gamma"), ("normalization_gain", 0), ("normalization_sigma_frac", 0.7)):
+    for key, value in (
+        ("normalization", "gamma"),
+        ("normalization_gain", 0),
+        ("normalization_sigma_frac", 0.7),
+    ):
         with pytest.raises(ConfigError, match=f"detector.height_stereo.*{key}"):
             RunConfig.from_dict({"detector": {"height_stereo": {key: value}}})
     with pytest.raises(ConfigError, match="normalization"):
         StereoConfig(normalization="gamma")
-    assert DetectorConfig().stereo.normalization is ImageNormalization.NONE  # the full-resolution matcher
+    assert (
+        DetectorConfig().stereo.normalization is ImageNormalization.NONE
+    )  # the full-resolution matcher
 
 
 def _height_map(H: np.ndarray):
     from lunarloc.perception.stereo import HeightMap
 
     h, w = H.shape
-    return HeightMap(np.full((h, w), 10.0, np.float32), np.full((h, w), 3.0, np.float32),
-                     np.zeros((h, w, 3), np.float32), H.astype(np.float32), 2, 0, np.eye(4))  # fmt: skip
+    return HeightMap(
+        np.full((h, w), 10.0, np.float32),
+        np.full((h, w), 3.0, np.float32),
+        np.zeros((h, w, 3), np.float32),
+        H.astype(np.float32),
+        2,
+        0,
+        np.eye(4),
+    )
 
 
 def _dome(shape, cu: float, cv: float, top_m: float, radius_px: float) -> np.ndarray:
@@ -155,9 +176,12 @@ def test_a_rock_merged_with_a_streak_cut_by_the_border_becomes_a_mask_of_its_own
     u0, _, u1, _ = kept[0].bbox
     assert 2 * 60 <= u0 and u1 <= 2 * 90  # the rock (low-resolution columns 63-87), full resolution
     whole = ClassicalSegmenter(ClassicalConfig(height_split_step_m=0.0)).segment(
-        np.full((120, 240), 128, np.uint8), height=_height_map(H))  # fmt: skip
+        np.full((120, 240), 128, np.uint8), height=_height_map(H)
+    )
     # unsplit, the one blob runs out of the image (dropped, or rejected as cut by the border)
-    assert not [m for m in whole if image_reject_reason(mask_stats(m, whole.image_shape), fc) is None]
+    assert not [
+        m for m in whole if image_reject_reason(mask_stats(m, whole.image_shape), fc) is None
+    ]
 
 
 def test_split_settings_round_trip_and_bad_values_name_the_key():
@@ -165,6 +189,10 @@ def test_split_settings_round_trip_and_bad_values_name_the_key():
     assert d["detector"]["classical"]["height_split_step_m"] == 0.0
     d["detector"]["classical"]["height_split_step_m"] = 0.02
     assert RunConfig.from_dict(d).detector.classical.height_split_step_m == pytest.approx(0.02)
-    for key, value in (("height_split_step_m", -0.01), ("height_split_eig_ratio", 0.5), ("height_split_grow_px", -1)):
+    for key, value in (
+        ("height_split_step_m", -0.01),
+        ("height_split_eig_ratio", 0.5),
+        ("height_split_grow_px", -1),
+    ):
         with pytest.raises(ConfigError, match=f"detector.classical.*{key}"):
             RunConfig.from_dict({"detector": {"classical": {key: value}}})

@@ -33,7 +33,9 @@ from lunarloc.sim.site import SiteConfig, generate_site  # noqa: E402
 from lunarloc.core.geometry import invert_transform, pose_to_matrix, transform_points  # noqa: E402
 from lunarloc.perception.camera import PinholeCamera, ipex_rig  # noqa: E402
 
-SMALL = SiteConfig(size_m=16.0, terrain_margin_m=4.0, resolution_m=0.15, n_rocks=150, rover_start_xy=(-3.0, -2.0))
+SMALL = SiteConfig(
+    size_m=16.0, terrain_margin_m=4.0, resolution_m=0.15, n_rocks=150, rover_start_xy=(-3.0, -2.0)
+)
 CAM = PinholeCamera(320, 180)
 
 
@@ -65,8 +67,16 @@ def test_projected_rocks_land_in_their_semantic_mask(site, renderer, traj):
             _, sem = renderer.render([T_world_opt], CAM)[0]
             P = transform_points(invert_transform(T_world_opt), top)
             uv, z = CAM.project(P)
-            ok = (z > 0.3) & (uv[:, 0] > 2) & (uv[:, 0] < CAM.width - 3) & (uv[:, 1] > 2) & (uv[:, 1] < CAM.height - 3)
-            ok &= CAM.fx * 0.4 * rk.axes[:, 2] / np.maximum(z, 1e-9) > 2.0  # at least ~2 px of rock around it
+            ok = (
+                (z > 0.3)
+                & (uv[:, 0] > 2)
+                & (uv[:, 0] < CAM.width - 3)
+                & (uv[:, 1] > 2)
+                & (uv[:, 1] < CAM.height - 3)
+            )
+            ok &= (
+                CAM.fx * 0.4 * rk.axes[:, 2] / np.maximum(z, 1e-9) > 2.0
+            )  # at least ~2 px of rock around it
             idx = np.flatnonzero(ok)
             # unoccluded: the first hit along the ray from the camera to the point is that rock
             o = np.repeat(T_world_opt[None, :3, 3], len(idx), axis=0)
@@ -88,7 +98,9 @@ def test_sky_black_and_semantic_encoding(site, renderer, traj):
     sky = sem == 0
     assert sky[:20].mean() > 0.9  # the top of a level camera's view is sky
     assert np.all(gray[sky] == 0)
-    assert np.percentile(gray[sem == SEM_GROUND], 75) > 60  # mostly lit (a hill or the lander may shade some)
+    assert (
+        np.percentile(gray[sem == SEM_GROUND], 75) > 60
+    )  # mostly lit (a hill or the lander may shade some)
     labels = np.unique(sem)
     assert set(labels[labels < SEM_ROCK_OFFSET]) <= {SEM_SKY, SEM_GROUND, SEM_LANDER, SEM_FIDUCIAL}
     assert np.all(semantic_to_rock_id(sem)[sem >= SEM_ROCK_OFFSET] < len(site.rocks))
@@ -123,7 +135,9 @@ def test_cast_shadow_on_the_side_away_from_the_sun(site, renderer):
             u, v = np.round(uv[0]).astype(int)
             ground &= bool(sem[v, u] == SEM_GROUND)
             vals[side] = int(gray[v, u])
-        if not ground or vals["sun"] < 60:  # another rock there, or the lit side shaded by something else
+        if (
+            not ground or vals["sun"] < 60
+        ):  # another rock there, or the lit side shaded by something else
             continue
         checked += 1
         assert vals["shadow"] < 0.4 * vals["sun"], (k, vals)
@@ -169,7 +183,9 @@ def test_lamps_brighten_the_near_field_more_than_the_far(renderer, traj):
     # the archive's light_intensity scales the lamps: half intensity, less light
     rig = ipex_rig(CAM)
     r2 = renderer.with_config(replace(sun, lighting=Lighting.SUN_LAMPS))
-    g_half = r2.render_rover(pose, [rig["FrontLeft"]], light_intensity=0.5)["FrontLeft"][0].astype(float)
+    g_half = r2.render_rover(pose, [rig["FrontLeft"]], light_intensity=0.5)["FrontLeft"][0].astype(
+        float
+    )
     assert np.median(g_sun[near]) < np.median(g_half[near]) < np.median(g_both[near])
 
 
@@ -187,7 +203,9 @@ def test_night_lamps_light_the_near_ground_and_the_sky_stays_black(renderer, tra
     g_lamps, _, _ = _front(renderer, pose, RenderConfig(lighting=Lighting.LAMPS))
     np.testing.assert_array_equal(g, g_lamps)
     # no sun and no lamps: all black
-    g_dark, _, _ = _front(renderer, pose, RenderConfig(lighting=Lighting.SUN, sun_elevation_deg=-5.0))
+    g_dark, _, _ = _front(
+        renderer, pose, RenderConfig(lighting=Lighting.SUN, sun_elevation_deg=-5.0)
+    )
     assert g_dark.max() == 0
     # a rear lamp does not light the front camera's view
     T = pose_to_matrix(*pose)
@@ -195,7 +213,9 @@ def test_night_lamps_light_the_near_ground_and_the_sky_stays_black(renderer, tra
     assert inten.tolist() == [0.0, 0.0, 1.0, 1.0]
     rig = ipex_rig(CAM)
     r = renderer.with_config(RenderConfig(lighting=Lighting.LAMPS))
-    g_rear = r.render_rover(pose, [rig["FrontLeft"]], light_intensity={"BackLeft": 1.0, "BackRight": 1.0})
+    g_rear = r.render_rover(
+        pose, [rig["FrontLeft"]], light_intensity={"BackLeft": 1.0, "BackRight": 1.0}
+    )
     assert np.median(g_rear["FrontLeft"][0][near]) < 0.2 * np.median(g[near])
 
 
@@ -228,7 +248,11 @@ def test_lander_and_fiducials_labelled_and_palette(site, renderer):
     T = np.eye(4)
     T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
     T[:3, 3] = eye
-    cfg = RenderConfig(lighting=Lighting.SUN, sun_elevation_deg=20.0, sun_azimuth_deg=np.degrees(np.arctan2(n[1], n[0])))
+    cfg = RenderConfig(
+        lighting=Lighting.SUN,
+        sun_elevation_deg=20.0,
+        sun_azimuth_deg=np.degrees(np.arctan2(n[1], n[0])),
+    )
     gray, sem = renderer.with_config(cfg).render([T], CAM)[0]
     assert (sem == SEM_LANDER).sum() > 500
     fid = sem == SEM_FIDUCIAL
@@ -245,7 +269,9 @@ def test_lander_and_fiducials_labelled_and_palette(site, renderer):
     assert pal.shape == sem.shape + (3,) and pal.dtype == np.uint8
     colours = {tuple(int(c) for c in v) for v in np.unique(pal.reshape(-1, 3), axis=0)}
     assert colours <= set(LAC_PALETTE.values())
-    np.testing.assert_array_equal(pal[fid], np.broadcast_to(LAC_PALETTE["fiducial"], (fid.sum(), 3)))
+    np.testing.assert_array_equal(
+        pal[fid], np.broadcast_to(LAC_PALETTE["fiducial"], (fid.sum(), 3))
+    )
     np.testing.assert_array_equal(pal[sem == SEM_LANDER][0], LAC_PALETTE["lander"])
 
 
@@ -256,7 +282,12 @@ def test_palette_semantics_have_exactly_the_palette_colours(site, renderer, traj
     assert rock.sum() > 20
     pal = semantic_to_palette(sem)
     expected = np.zeros_like(pal)
-    for label, name in ((SEM_SKY, "sky"), (SEM_GROUND, "ground"), (SEM_LANDER, "lander"), (SEM_FIDUCIAL, "fiducial")):
+    for label, name in (
+        (SEM_SKY, "sky"),
+        (SEM_GROUND, "ground"),
+        (SEM_LANDER, "lander"),
+        (SEM_FIDUCIAL, "fiducial"),
+    ):
         expected[sem == label] = LAC_PALETTE[name]
     expected[rock] = LAC_PALETTE["rock"]
     np.testing.assert_array_equal(pal, expected)
@@ -301,9 +332,15 @@ def test_archive_palette_semantics_and_light_intensity(tmp_path):
     lac = pytest.importorskip("lunarloc.io.lac.archive")
     from lunarloc.sim.simulate import SimulationConfig, simulate_site, simulate_traverse
 
-    small = SiteConfig(size_m=14.0, terrain_margin_m=3.0, resolution_m=0.2, n_rocks=80, rover_start_xy=(-3.0, -2.0))
-    base = dict(site=small, duration_s=1.0, image_rate_hz=2.0, width=64, height=36, cameras=("FrontLeft",))
-    cfg = SimulationConfig(**base, semantic_format="palette", render=RenderConfig(lamp_intensity=0.7))
+    small = SiteConfig(
+        size_m=14.0, terrain_margin_m=3.0, resolution_m=0.2, n_rocks=80, rover_start_xy=(-3.0, -2.0)
+    )
+    base = dict(
+        site=small, duration_s=1.0, image_rate_hz=2.0, width=64, height=36, cameras=("FrontLeft",)
+    )
+    cfg = SimulationConfig(
+        **base, semantic_format="palette", render=RenderConfig(lamp_intensity=0.7)
+    )
     site = simulate_site(2, cfg)
     path, _ = simulate_traverse(site, tmp_path / "p.lac", 0, cfg)
     with lac.LacArchive(path) as a:
@@ -329,4 +366,6 @@ def test_bad_rover_pose_is_an_input_error(renderer, traj):
     with pytest.raises(InputError, match="T_world_rover"):
         renderer.render([T], CAM, T_world_rover=bad)
     with pytest.raises(InputError, match="light_intensity"):
-        renderer.render([T], CAM, T_world_rover=pose_to_matrix(*traj.poses[0]), light_intensity=-0.1)
+        renderer.render(
+            [T], CAM, T_world_rover=pose_to_matrix(*traj.poses[0]), light_intensity=-0.1
+        )

@@ -17,7 +17,9 @@ def test_rock_under_takes_the_majority_rock_of_the_window():
     assert rock_under(sem, (18.4, 15)) == 7  # 7 covers more of the 7x7 window than 9
     assert rock_under(sem, (22, 15)) == 9  # and here 9 does
     assert rock_under(sem, (30, 30)) == -1  # ground
-    assert rock_under(sem, (20, 9)) == -1  # on the rock's edge: rocks cover less than half the window
+    assert (
+        rock_under(sem, (20, 9)) == -1
+    )  # on the rock's edge: rocks cover less than half the window
     assert rock_under(sem, (0, 0)) == -1  # the window is clipped at the border
     with pytest.raises(InputError):
         rock_under(sem[None], (1, 1))
@@ -33,7 +35,11 @@ def test_spread_and_session_offset_by_band():
     for session in ("A", "B"):
         for rock in (1, 2, 3):
             for _ in range(400):
-                log.add(session, rock, np.asarray(truth[rock]) + shift[session] + rng.normal(0, sigma[rock], 2))
+                log.add(
+                    session,
+                    rock,
+                    np.asarray(truth[rock]) + shift[session] + rng.normal(0, sigma[rock], 2),
+                )
     log.add("A", 4, (5.0, 5.0))  # too few sightings: left out
     log.add("A", 4, (5.1, 5.0))
     s = summarise(log, radii, min_sightings=3)

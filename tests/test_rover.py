@@ -80,10 +80,17 @@ def test_odometry_drifts(traj):
     assert err[-1] > 0.01 * traj.path_length()
     assert err[len(err) // 4] < err[-1]  # grows with distance
     perfect = simulate_odometry(
-        traj, seed=0,
-        config=OdometryConfig(scale_error=0, distance_noise=0, heading_bias_rad_s=0, heading_bias_walk=0,
-                              heading_noise_rad=0, tilt_noise_rad=0),
-    )  # fmt: skip
+        traj,
+        seed=0,
+        config=OdometryConfig(
+            scale_error=0,
+            distance_noise=0,
+            heading_bias_rad_s=0,
+            heading_bias_walk=0,
+            heading_noise_rad=0,
+            tilt_noise_rad=0,
+        ),
+    )
     np.testing.assert_allclose(perfect[:, :3], traj.xyz, atol=1e-6)
 
 
@@ -117,7 +124,9 @@ def test_survey_circles_the_lander_from_the_start(site, survey):
     r0 = float(np.hypot(*(site.rover_start_xy - site.lander_xyz[:2])))
     r = np.hypot(*(survey.xyz[:, :2] - site.lander_xyz[:2]).T)
     assert r.min() > r0 - 2.5 and r.max() < r0 + 2.5 + 2.0
-    turned = np.degrees(np.abs(_angle_about(site, survey.xyz)[-1] - _angle_about(site, survey.xyz)[0]))
+    turned = np.degrees(
+        np.abs(_angle_about(site, survey.xyz)[-1] - _angle_about(site, survey.xyz)[0])
+    )
     assert turned > 300.0  # about one lap in 150 s at the LAC's 0.3 m/s
     big = site.rocks.radii >= RoverConfig().avoid_rock_radius_m
     d = np.linalg.norm(survey.xyz[:, None, :2] - site.rocks.centers[None, big, :2], axis=2)
@@ -130,7 +139,9 @@ def test_revisit_starts_elsewhere_and_drives_surveyed_ground(site, survey):
     assert np.linalg.norm(veh.xyz[0, :2] - survey.xyz[0, :2]) > 3.0
     r0 = float(np.hypot(*(site.rover_start_xy - site.lander_xyz[:2])))
     r_wp = np.hypot(*(veh.waypoints - site.lander_xyz[:2]).T)
-    assert np.all(r_wp >= r0 + cfg.revisit_band_m[0] - 1e-9) and np.all(r_wp <= r0 + cfg.revisit_band_m[1] + 1e-9)
+    assert np.all(r_wp >= r0 + cfg.revisit_band_m[0] - 1e-9) and np.all(
+        r_wp <= r0 + cfg.revisit_band_m[1] + 1e-9
+    )
     assert veh.path_length() > 15.0
     assert path_share_near(veh.xyz, survey.xyz, 3.0) > 0.8
 

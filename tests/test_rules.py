@@ -27,17 +27,34 @@ import operator
 NAN = float("nan")
 C = RulesConfig()
 # a plain rock: 0.1 m radius, 0.08 m high, standing out of everything around it
-ROCK = BlobMeasures(radius_m=0.1, visible_height_m=0.08, top_m=0.08, front_m=0.1, ring_m=0.0, quadric_m=0.06,
-                    nearer_fraction=0.0, extension_ratio=0.1, roughness=0.02)
+ROCK = BlobMeasures(
+    radius_m=0.1,
+    visible_height_m=0.08,
+    top_m=0.08,
+    front_m=0.1,
+    ring_m=0.0,
+    quadric_m=0.06,
+    nearer_fraction=0.0,
+    extension_ratio=0.1,
+    roughness=0.02,
+)
 # per rule: measures that make it fire (and only it, on the plain rock)
 FIRING = {
     "too_tall": {"visible_height_m": C.max_rock_height_m + 0.1},
-    "too_wide": {"radius_m": C.max_rock_radius_m + 0.1, "quadric_m": 1.0, "front_m": 0.5, "top_m": 0.5, "visible_height_m": 0.5},
+    "too_wide": {
+        "radius_m": C.max_rock_radius_m + 0.1,
+        "quadric_m": 1.0,
+        "front_m": 0.5,
+        "top_m": 0.5,
+        "visible_height_m": 0.5,
+    },
     "perched": {"front_m": C.height_per_radius * 0.1 + C.height_margin_m + 0.05},
     "framed": {"nearer_fraction": C.max_nearer_ring_fraction + 0.1},
     "rough": {"roughness": C.max_disparity_roughness + 0.1},
     "contrast": {"ring_m": 0.08 - C.min_contrast_m / 2},
-    "quadric": {"quadric_m": 0.5 * min(C.quadric_contrast_per_radius * 0.1, C.quadric_contrast_max_m)},
+    "quadric": {
+        "quadric_m": 0.5 * min(C.quadric_contrast_per_radius * 0.1, C.quadric_contrast_max_m)
+    },
     "crest": {"extension_ratio": 0.5 * (C.crest_extension_ratio + C.crest_extension_max_ratio)},
     "strip": {"strip": True, "extension_ratio": C.strip_max_extension_ratio + 0.05},
 }
@@ -62,8 +79,17 @@ def test_each_rule_fires_alone_and_is_switched_off_by_name(name):
 
 @pytest.mark.parametrize("name", sorted(set(RULE_NAMES) - {"strip"}))
 def test_nan_measures_fire_no_rule(name):
-    b = BlobMeasures(radius_m=0.1, visible_height_m=NAN, top_m=NAN, front_m=NAN, ring_m=NAN, quadric_m=NAN,
-                     nearer_fraction=NAN, extension_ratio=NAN, roughness=NAN)
+    b = BlobMeasures(
+        radius_m=0.1,
+        visible_height_m=NAN,
+        top_m=NAN,
+        front_m=NAN,
+        ring_m=NAN,
+        quadric_m=NAN,
+        nearer_fraction=NAN,
+        extension_ratio=NAN,
+        roughness=NAN,
+    )
     assert name not in functools.reduce(operator.iadd, fired_rules(b, C), [])
 
 
@@ -81,8 +107,12 @@ def test_perched_spares_a_boulder_and_judges_every_blob_at_zero():
 
 
 def test_the_thresholds_off_values_switch_their_rules_off():
-    for name, off in (("crest", {"crest_extension_ratio": 0.0}), ("quadric", {"quadric_contrast_per_radius": 0.0}),
-                      ("framed", {"max_nearer_ring_fraction": 1.0}), ("rough", {"max_disparity_roughness": 1.0})):
+    for name, off in (
+        ("crest", {"crest_extension_ratio": 0.0}),
+        ("quadric", {"quadric_contrast_per_radius": 0.0}),
+        ("framed", {"max_nearer_ring_fraction": 1.0}),
+        ("rough", {"max_disparity_roughness": 1.0}),
+    ):
         b = replace(ROCK, **FIRING[name])
         if name == "rough":
             b = replace(b, roughness=1.0)
@@ -102,31 +132,51 @@ def test_rule_table_order_names_tentatives_as_before():
 
 # ---------------------------------------------------------------------- the config
 def test_detector_config_round_trips_through_json():
-    cfg = DetectorConfig(fuse_tol_m=0.2, centre_estimator="blend", rules=RulesConfig(off=("crest",)))
+    cfg = DetectorConfig(
+        fuse_tol_m=0.2, centre_estimator="blend", rules=RulesConfig(off=("crest",))
+    )
     d = json.loads(json.dumps(cfg.to_dict()))
     assert config_from_dict(DetectorConfig, d) == cfg
     assert config_to_dict(config_from_dict(DetectorConfig, d)) == d
     import copy
     import pickle
 
-    assert pickle.loads(pickle.dumps(cfg)) == cfg and copy.deepcopy(cfg) == cfg  # the flat-key reads stay out of the way
+    assert (
+        pickle.loads(pickle.dumps(cfg)) == cfg and copy.deepcopy(cfg) == cfg
+    )  # the flat-key reads stay out of the way
 
 
 def test_every_section_field_has_a_declared_range_or_is_not_a_number():
-    for section in ("level", "depth_split", "centre", "points", "rules", "confirm", "tentative", "track_fusion"):
+    for section in (
+        "level",
+        "depth_split",
+        "centre",
+        "points",
+        "rules",
+        "confirm",
+        "tentative",
+        "track_fusion",
+    ):
         sec = getattr(DetectorConfig(), section)
         for f in fields(sec):
             if isinstance(getattr(sec, f.name), (int, float)):
                 assert "range" in f.metadata, f"{section}.{f.name}"
 
 
-@pytest.mark.parametrize("data, key", [
-    ({"centre": {"near_weight": 1.5}}, "near_weight"), ({"track_fusion": {"max_frames": 0}}, "max_frames"),
-    ({"tentative": {"min_views": 3}}, "min_views"), ({"level": {"min_deg": 90.0}}, "min_deg"),
-    ({"rules": {"max_disparity_roughness": 0.0}}, "max_disparity_roughness"),
-    ({"points": {"p1_per_block_px2": 40}}, "p1_per_block_px2"), ({"fastsam_imgsz_px": 1000}, "fastsam_imgsz_px"),
-    ({"level": {"from_stereo": 1}}, "from_stereo"), ({"depth_split": {"step_px": 1.5}}, "step_px"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "data, key",
+    [
+        ({"centre": {"near_weight": 1.5}}, "near_weight"),
+        ({"track_fusion": {"max_frames": 0}}, "max_frames"),
+        ({"tentative": {"min_views": 3}}, "min_views"),
+        ({"level": {"min_deg": 90.0}}, "min_deg"),
+        ({"rules": {"max_disparity_roughness": 0.0}}, "max_disparity_roughness"),
+        ({"points": {"p1_per_block_px2": 40}}, "p1_per_block_px2"),
+        ({"fastsam_imgsz_px": 1000}, "fastsam_imgsz_px"),
+        ({"level": {"from_stereo": 1}}, "from_stereo"),
+        ({"depth_split": {"step_px": 1.5}}, "step_px"),
+    ],
+)
 def test_ranges_are_checked_when_loaded(data, key):
     with pytest.raises(ConfigError, match=key):
         config_from_dict(DetectorConfig, data)
@@ -140,17 +190,29 @@ def test_ranges_are_checked_when_built_in_code():
 
 
 def test_old_flat_keys_load_and_read_as_before():
-    old = json.loads((Path(__file__).parent / "data" / "run_config_flat_detector.json").read_text())["detector"]
+    old = json.loads(
+        (Path(__file__).parent / "data" / "run_config_flat_detector.json").read_text()
+    )["detector"]
     cfg = config_from_dict(DetectorConfig, old)
     assert cfg.track_fusion.tol_m == 0.2 and cfg.centre.estimator.value == "blend"
-    assert cfg.tentative.min_repeats == 4 and cfg.level.min_deg == 5.0 and cfg.rules.crest_extension_ratio == 0.5
+    assert (
+        cfg.tentative.min_repeats == 4
+        and cfg.level.min_deg == 5.0
+        and cfg.rules.crest_extension_ratio == 0.5
+    )
     assert cfg.points.span_px == 32
     # every other setting as the file gives it, read through the old names
     for k, v in old.items():
         if k in MOVED_KEYS:
             assert config_to_dict(getattr(cfg, k)) == v, k
-    assert cfg == DetectorConfig(fuse_tol_m=0.2, centre_estimator="blend", tentative_min_repeats=4, level_min_deg=5.0,
-                                 crest_extension_ratio=0.5, fullres_span_px=32)
+    assert cfg == DetectorConfig(
+        fuse_tol_m=0.2,
+        centre_estimator="blend",
+        tentative_min_repeats=4,
+        level_min_deg=5.0,
+        crest_extension_ratio=0.5,
+        fullres_span_px=32,
+    )
 
 
 def test_a_key_given_flat_and_in_its_section_is_refused():

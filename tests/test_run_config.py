@@ -13,9 +13,17 @@ from lunarloc.core.errors import ConfigError
 from lunarloc.online.loop import FixKind, LoopConfig
 
 
-@pytest.mark.parametrize("cfg", [RunConfig(), RunConfig.for_detections(),
-                                 RunConfig(loop=LoopConfig(window_m=5.0, fix_kind="pose"),
-                                           odometry=OdometryConfig(source="imu", scale_error=-0.01))])  # fmt: skip
+@pytest.mark.parametrize(
+    "cfg",
+    [
+        RunConfig(),
+        RunConfig.for_detections(),
+        RunConfig(
+            loop=LoopConfig(window_m=5.0, fix_kind="pose"),
+            odometry=OdometryConfig(source="imu", scale_error=-0.01),
+        ),
+    ],
+)
 def test_round_trip_through_json(cfg):
     d = json.loads(json.dumps(cfg.to_dict()))
     back = RunConfig.from_dict(d)
@@ -24,20 +32,23 @@ def test_round_trip_through_json(cfg):
     assert isinstance(back.loop.fix_kind, FixKind) and isinstance(back.detector.pairs, tuple)
 
 
-@pytest.mark.parametrize("data, key", [
-    ({"loop": {"window_m": 0}}, "window_m"),
-    ({"loop": {"window": 8}}, "loop.window"),
-    ({"loop": {"aggregation": {"radius_m": "x"}}}, "loop.aggregation.radius_m"),
-    ({"localization": {"mode": "3d"}}, "localization.mode"),
-    ({"localization": {"epsilon_m": float("nan")}}, "localization.epsilon_m"),
-    ({"detector": {"stereo": {"num_disparities": 1.5}}}, "detector.stereo.num_disparities"),
-    ({"detector": {"pairs": [["FrontLeft"]]}}, "detector.pairs[0]"),
-    ({"odometry": {"source": "wheels"}}, "wheels"),
-    ({"odometry": {"visual": {"max_features": True}}}, "visual.max_features"),
-    ({"loop": {"crop_reference": "yes"}}, "loop.crop_reference"),
-    ({"sensors": {}}, "sensors"),
-    ({"loop": [1, 2]}, "loop"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "data, key",
+    [
+        ({"loop": {"window_m": 0}}, "window_m"),
+        ({"loop": {"window": 8}}, "loop.window"),
+        ({"loop": {"aggregation": {"radius_m": "x"}}}, "loop.aggregation.radius_m"),
+        ({"localization": {"mode": "3d"}}, "localization.mode"),
+        ({"localization": {"epsilon_m": float("nan")}}, "localization.epsilon_m"),
+        ({"detector": {"stereo": {"num_disparities": 1.5}}}, "detector.stereo.num_disparities"),
+        ({"detector": {"pairs": [["FrontLeft"]]}}, "detector.pairs[0]"),
+        ({"odometry": {"source": "wheels"}}, "wheels"),
+        ({"odometry": {"visual": {"max_features": True}}}, "visual.max_features"),
+        ({"loop": {"crop_reference": "yes"}}, "loop.crop_reference"),
+        ({"sensors": {}}, "sensors"),
+        ({"loop": [1, 2]}, "loop"),
+    ],
+)
 def test_bad_settings_name_the_key(data, key):
     with pytest.raises(ConfigError, match=key.replace("[", r"\[").replace("]", r"\]")):
         RunConfig.from_dict(data)
@@ -58,7 +69,11 @@ def test_info_and_extra_sections_are_skipped(tmp_path):
 
 def test_options_override_the_file():
     cfg = RunConfig().with_options(loop__window_m=6.0, loop__fix_kind=None, odometry__source="imu")
-    assert cfg.loop.window_m == 6.0 and cfg.loop.fix_kind is FixKind.LANDMARKS and cfg.odometry.source == "imu"
+    assert (
+        cfg.loop.window_m == 6.0
+        and cfg.loop.fix_kind is FixKind.LANDMARKS
+        and cfg.odometry.source == "imu"
+    )
     with pytest.raises(ConfigError, match="loop"):
         RunConfig().with_options(loop__window_m=-1.0)
     # settings of one section are applied together: fastsam needs weights
@@ -74,7 +89,11 @@ def test_nested_defaults_kept_for_missing_keys():
 def test_scaling_base_is_a_setting():
     a = RunConfig().detector_for(640)
     b = RunConfig(detector_tuned_width_px=640).detector_for(640)
-    assert a.stereo.num_disparities < b.stereo.num_disparities == RunConfig().detector.stereo.num_disparities
+    assert (
+        a.stereo.num_disparities
+        < b.stereo.num_disparities
+        == RunConfig().detector.stereo.num_disparities
+    )
 
 
 def _write_traverse_csv(path, trav):
@@ -93,29 +112,105 @@ def test_bench_loop_repeated_from_its_config_gives_the_same_outputs(tmp_path, ca
     data = tmp_path / "data" / "csv"
     data.mkdir(parents=True)
     for k, seed in ((1, 0), (2, 0)):
-        _write_traverse_csv(data / f"traverse_{k}.csv", synthetic_traverse(seed=seed, length_m=10.0 if k == 1 else 14.0)[1])
+        _write_traverse_csv(
+            data / f"traverse_{k}.csv",
+            synthetic_traverse(seed=seed, length_m=10.0 if k == 1 else 14.0)[1],
+        )
     first = tmp_path / "first"
-    assert main(["bench", "loop", "--data", str(tmp_path / "data"), "--out", str(first), "--heading-drift", "0.1",
-                 "--scale-error", "0.03"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "bench",
+                "loop",
+                "--data",
+                str(tmp_path / "data"),
+                "--out",
+                str(first),
+                "--heading-drift",
+                "0.1",
+                "--scale-error",
+                "0.03",
+            ]
+        )
+        == 0
+    )
     cfg = json.loads((first / "traverse_1" / "config.json").read_text())
-    assert cfg["odometry"]["heading_drift_deg_per_m"] == 0.1 and cfg["info"]["traverse"] == "traverse_1"
+    assert (
+        cfg["odometry"]["heading_drift_deg_per_m"] == 0.1
+        and cfg["info"]["traverse"] == "traverse_1"
+    )
     again = tmp_path / "again"
-    assert main(["bench", "loop", "--data", str(tmp_path / "data"), "--out", str(again), "--config",
-                 str(first / "traverse_1" / "config.json")]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "bench",
+                "loop",
+                "--data",
+                str(tmp_path / "data"),
+                "--out",
+                str(again),
+                "--config",
+                str(first / "traverse_1" / "config.json"),
+            ]
+        )
+        == 0
+    )
     for k in (1, 2):
         for name in ("trajectory.tum", "trajectory_online.tum", "vehicle_map.csv", "config.json"):
-            assert (first / f"traverse_{k}" / name).read_bytes() == (again / f"traverse_{k}" / name).read_bytes(), name
-        a, b = (json.loads((d / f"traverse_{k}" / "attempts.json").read_text()) for d in (first, again))
-        strip = lambda rows: [{k: v for k, v in r.items() if not k.startswith("time_")} for r in rows]  # noqa: E731
+            assert (first / f"traverse_{k}" / name).read_bytes() == (
+                again / f"traverse_{k}" / name
+            ).read_bytes(), name
+        a, b = (
+            json.loads((d / f"traverse_{k}" / "attempts.json").read_text()) for d in (first, again)
+        )
+        strip = lambda rows: [
+            {k: v for k, v in r.items() if not k.startswith("time_")} for r in rows
+        ]  # noqa: E731
         assert strip(a) == strip(b) and len(a) > 0
     # an option overrides the file: another drift, another odometry
     other = tmp_path / "other"
-    assert main(["bench", "loop", "--data", str(tmp_path / "data"), "--out", str(other), "--config",
-                 str(first / "traverse_1" / "config.json"), "--heading-drift", "0.0", "--traverses", "1"]) == 0  # fmt: skip
-    assert json.loads((other / "traverse_1" / "config.json").read_text())["odometry"]["heading_drift_deg_per_m"] == 0.0
+    assert (
+        main(
+            [
+                "bench",
+                "loop",
+                "--data",
+                str(tmp_path / "data"),
+                "--out",
+                str(other),
+                "--config",
+                str(first / "traverse_1" / "config.json"),
+                "--heading-drift",
+                "0.0",
+                "--traverses",
+                "1",
+            ]
+        )
+        == 0
+    )
+    assert (
+        json.loads((other / "traverse_1" / "config.json").read_text())["odometry"][
+            "heading_drift_deg_per_m"
+        ]
+        == 0.0
+    )
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"loop": {"window_m": "wide"}}))
-    assert main(["bench", "loop", "--data", str(tmp_path / "data"), "--out", str(tmp_path / "x"), "--config", str(bad)]) == 2
+    assert (
+        main(
+            [
+                "bench",
+                "loop",
+                "--data",
+                str(tmp_path / "data"),
+                "--out",
+                str(tmp_path / "x"),
+                "--config",
+                str(bad),
+            ]
+        )
+        == 2
+    )
     assert "loop.window_m" in capsys.readouterr().err
 
 
@@ -135,13 +230,31 @@ def test_localize_takes_and_reports_its_config(tmp_path, capsys):
     _localize_maps(tmp_path)
     cfg = tmp_path / "cfg.json"
     cfg.write_text(json.dumps({"localization": {"epsilon_m": 0.04, "min_inliers": 7}}))
-    assert main(["localize", str(tmp_path / "ref.csv"), str(tmp_path / "veh.csv"), "--json", "--config", str(cfg),
-                 "--epsilon", "0.06"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "localize",
+                str(tmp_path / "ref.csv"),
+                str(tmp_path / "veh.csv"),
+                "--json",
+                "--config",
+                str(cfg),
+                "--epsilon",
+                "0.06",
+            ]
+        )
+        == 0
+    )
     out = json.loads(capsys.readouterr().out)
     assert out["success"] and out["config"]["localization"]["epsilon_m"] == 0.06  # the option wins
     assert out["config"]["localization"]["min_inliers"] == 7  # the file's setting is kept
     cfg.write_text(json.dumps({"localization": {"epsilon": 0.04}}))
-    assert main(["localize", str(tmp_path / "ref.csv"), str(tmp_path / "veh.csv"), "--config", str(cfg)]) == 2
+    assert (
+        main(
+            ["localize", str(tmp_path / "ref.csv"), str(tmp_path / "veh.csv"), "--config", str(cfg)]
+        )
+        == 2
+    )
     assert "localization.epsilon" in capsys.readouterr().err
 
 
@@ -202,16 +315,19 @@ def test_tuning_constants_are_read_back(path, tmp_path):
     assert RunConfig.from_dict(cfg.to_dict()) == cfg
 
 
-@pytest.mark.parametrize("data, key", [
-    ({"localization": {"irls_rounds": 0}}, "irls_rounds"),
-    ({"localization": {"refine_rounds": 1.5}}, "localization.refine_rounds"),
-    ({"localization": {"distortion_fit_rounds": -1}}, "distortion_fit_rounds"),
-    ({"localization": {"registration_sigma_floor_m": 0}}, "registration_sigma_floor_m"),
-    ({"index": {"neighbours": 2}}, "neighbours"),
-    ({"index": {"triangles": 2}}, "index.triangles"),
-    ({"detector": {"stereo": {"p1_per_block_px2": 200}}}, "p1_per_block_px2"),
-    ({"detector": {"fullres_p2_per_block_px2": 4}}, "fullres_p2_per_block_px2"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "data, key",
+    [
+        ({"localization": {"irls_rounds": 0}}, "irls_rounds"),
+        ({"localization": {"refine_rounds": 1.5}}, "localization.refine_rounds"),
+        ({"localization": {"distortion_fit_rounds": -1}}, "distortion_fit_rounds"),
+        ({"localization": {"registration_sigma_floor_m": 0}}, "registration_sigma_floor_m"),
+        ({"index": {"neighbours": 2}}, "neighbours"),
+        ({"index": {"triangles": 2}}, "index.triangles"),
+        ({"detector": {"stereo": {"p1_per_block_px2": 200}}}, "p1_per_block_px2"),
+        ({"detector": {"fullres_p2_per_block_px2": 4}}, "fullres_p2_per_block_px2"),
+    ],
+)
 def test_bad_tuning_constants_name_the_key(data, key):
     with pytest.raises(ConfigError, match=key):
         RunConfig.from_dict(data)
@@ -241,9 +357,15 @@ def test_localization_rounds_and_sigma_floor_are_used(monkeypatch):
         assert len(calls) == rounds + 1  # the first fit, then one per round
     monkeypatch.undo()
     ref, veh = LandmarkMap(Q), LandmarkMap(P)
-    rigid = {"max_predicted_error_m": 10.0, "odometry_scale_error": 0.0, "odometry_heading_drift_deg_per_m": 0.0}
+    rigid = {
+        "max_predicted_error_m": 10.0,
+        "odometry_scale_error": 0.0,
+        "odometry_heading_drift_deg_per_m": 0.0,
+    }
     small = loc_localize.localize(ref, veh, loc_config.LocalizationConfig(**rigid))
-    big = loc_localize.localize(ref, veh, loc_config.LocalizationConfig(registration_sigma_floor_m=0.05, **rigid))
+    big = loc_localize.localize(
+        ref, veh, loc_config.LocalizationConfig(registration_sigma_floor_m=0.05, **rigid)
+    )
     assert small.success and big.success
     assert big.predicted_error_m > 3 * small.predicted_error_m
 
@@ -254,13 +376,24 @@ def test_index_section_reaches_localize(tmp_path, capsys):
 
     _localize_maps(tmp_path)
     cfg = tmp_path / "cfg.json"
-    args = ["localize", str(tmp_path / "ref.csv"), str(tmp_path / "veh.csv"), "--json", "--search", "indexed"]
+    args = [
+        "localize",
+        str(tmp_path / "ref.csv"),
+        str(tmp_path / "veh.csv"),
+        "--json",
+        "--search",
+        "indexed",
+    ]
     assert main(args) == 0
     assert json.loads(capsys.readouterr().out)["success"]
     cfg.write_text(json.dumps({"index": {"min_votes": 100_000}}))  # no region gets that many votes
     assert main([*args, "--config", str(cfg)]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert out["config"]["index"]["min_votes"] == 100_000 and not out["success"] and not out["candidates"]
+    assert (
+        out["config"]["index"]["min_votes"] == 100_000
+        and not out["success"]
+        and not out["candidates"]
+    )
 
 
 def test_the_demo_odometry_source_is_set_in_one_place():
@@ -283,7 +416,9 @@ def test_a_section_given_in_part_keeps_the_rest_of_its_own_default():
     from lunarloc.perception.detector import DetectorConfig
 
     hs = DetectorConfig().height_stereo
-    cfg = RunConfig.from_dict({"detector": {"height_stereo": {"uniqueness_ratio": hs.uniqueness_ratio + 1}}, "loop": {}})
+    cfg = RunConfig.from_dict(
+        {"detector": {"height_stereo": {"uniqueness_ratio": hs.uniqueness_ratio + 1}}, "loop": {}}
+    )
     assert cfg.detector.height_stereo == replace(hs, uniqueness_ratio=hs.uniqueness_ratio + 1)
     assert cfg.detector.height_stereo.downscale == hs.downscale != 1
     assert cfg.detector.height_filters == DetectorConfig().height_filters

@@ -15,14 +15,18 @@ def test_defaults_are_the_lac_density_and_a_survey():
         ScenarioConfig(plan="zigzag")
 
 
-@pytest.mark.parametrize("plan, expected", [("survey", ["survey", "revisit"]), ("random", ["random", "random"])])
+@pytest.mark.parametrize(
+    "plan, expected", [("survey", ["survey", "revisit"]), ("random", ["random", "random"])]
+)
 def test_reference_and_vehicle_plans(monkeypatch, tmp_path, plan, expected):
     import lunarloc.sim.render as render
     import lunarloc.sim.simulate as sim
 
     seen = []
 
-    def fake_traverse(site, path, index, cfg, renderer=None):  # records the plan; stops at the vehicle
+    def fake_traverse(
+        site, path, index, cfg, renderer=None
+    ):  # records the plan; stops at the vehicle
         seen.append(TraversePlan.parse(cfg.rover.plan).value)
         if len(seen) == 2:
             raise RuntimeError("stop here")

@@ -68,7 +68,9 @@ def test_true_pair_passes_the_screen_and_the_exact_search_decides(overhead_pair)
 
 def test_screen_does_not_run_below_its_graph_size(overhead_pair):
     ref, veh, _, _ = overhead_pair
-    res = localize(ref, veh, LocalizationConfig(epsilon_m=0.15, epsilon_z_m=0.15))  # default: 3e7, far above
+    res = localize(
+        ref, veh, LocalizationConfig(epsilon_m=0.15, epsilon_z_m=0.15)
+    )  # default: 3e7, far above
     assert "screen" not in res.timings and res.success
 
 
@@ -82,8 +84,17 @@ def test_predicted_incidences_bound_the_real_graph_size():
         cfg = LocalizationConfig(epsilon_m=eps, epsilon_z_m=eps, threads=1)
         Pv, Pr = veh.positions_xyz, ref.positions_xyz
         _, node_of = putative_associations(len(Pv), len(Pr), None, None, None)
-        real = sweep_yaw_bins(vehicle_pairs(Pv), loc_search._ref_index(Pr, cfg), node_of, loc_search._n_bins(cfg), loc_search._chunk_bins(cfg),
-                              *loc_search._graph_args(cfg), lambda *a: None, weights=False, workers=1)
+        real = sweep_yaw_bins(
+            vehicle_pairs(Pv),
+            loc_search._ref_index(Pr, cfg),
+            node_of,
+            loc_search._n_bins(cfg),
+            loc_search._chunk_bins(cfg),
+            *loc_search._graph_args(cfg),
+            lambda *a: None,
+            weights=False,
+            workers=1,
+        )
         pred = predicted_incidences(Pv, Pr, cfg)
         assert real <= pred <= 3 * real, (eps, real, pred)
 
@@ -100,8 +111,12 @@ def test_screen_config_is_checked():
 def test_vote_mode_finds_the_dense_place():
     rng = np.random.default_rng(0)
     true = np.array([2.0, -1.0, 0.5])
-    votes = np.vstack([true + rng.normal(0, [0.02, 0.02, 0.003], (200, 3)),
-                       np.c_[rng.uniform(-4, 8, (2000, 2)), rng.uniform(-math.pi, math.pi, 2000)]])
+    votes = np.vstack(
+        [
+            true + rng.normal(0, [0.02, 0.02, 0.003], (200, 3)),
+            np.c_[rng.uniform(-4, 8, (2000, 2)), rng.uniform(-math.pi, math.pi, 2000)],
+        ]
+    )
     x, y, yaw = loc_search._vote_mode(votes, 2.4, -1.3, 0.55)  # a candidate 0.5 m and 3 degrees off
     assert abs(x - 2.0) < 0.02 and abs(y + 1.0) < 0.02 and abs(yaw - 0.5) < 0.005
 
@@ -126,7 +141,9 @@ def test_indexed_search_on_a_quantised_map_uses_the_derived_tolerance(caplog):
     given at the wrong tolerance is rebuilt."""
     rng = np.random.default_rng(11)
     field = uniform_rock_field(rng, 2500)
-    quantised = np.c_[np.floor(field.positions_xyz[:, :2] / 0.15) * 0.15 + 0.075, field.positions_xyz[:, 2]]
+    quantised = np.c_[
+        np.floor(field.positions_xyz[:, :2] / 0.15) * 0.15 + 0.075, field.positions_xyz[:, 2]
+    ]
     ref = _grid_reference(quantised)
     win = vehicle_window(np.random.default_rng(1), field, 150)
     cfg = LocalizationConfig()
@@ -136,6 +153,9 @@ def test_indexed_search_on_a_quantised_map_uses_the_derived_tolerance(caplog):
         res = localize_large(ref, win.vehicle, cfg, index=narrow, search="indexed")
     assert "rebuilt" in caplog.text
     assert res.success, res.reason
-    d = np.linalg.norm(transform_points(res.T_ref_veh, win.vehicle.positions_xyz)
-                       - transform_points(win.T_ref_veh, win.vehicle.positions_xyz), axis=1)
+    d = np.linalg.norm(
+        transform_points(res.T_ref_veh, win.vehicle.positions_xyz)
+        - transform_points(win.T_ref_veh, win.vehicle.positions_xyz),
+        axis=1,
+    )
     assert d.max() < 0.15

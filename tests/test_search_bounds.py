@@ -8,7 +8,13 @@ import numpy as np
 
 from conftest import make_pair
 from lunarloc.association.clique import bin_clique_bounds, max_clique
-from lunarloc.association.graph import RefPairIndex, sweep_bin_chunks, sweep_yaw_bins, vehicle_pairs, yaw_bin_chunks
+from lunarloc.association.graph import (
+    RefPairIndex,
+    sweep_bin_chunks,
+    sweep_yaw_bins,
+    vehicle_pairs,
+    yaw_bin_chunks,
+)
 from lunarloc.association.putative import putative_associations
 
 loc_chance = importlib.import_module("lunarloc.localization.chance")
@@ -17,7 +23,9 @@ loc_search = importlib.import_module("lunarloc.localization.search")
 
 
 def _setup(rng, n_ref=90, n_common=25, n_outliers=15):
-    ref, veh, _, _ = make_pair(rng, n_ref=n_ref, n_common=n_common, n_outliers=n_outliers, noise=0.01)
+    ref, veh, _, _ = make_pair(
+        rng, n_ref=n_ref, n_common=n_common, n_outliers=n_outliers, noise=0.01
+    )
     cfg = loc_config.LocalizationConfig(threads=1)
     Pr, Pv = ref.positions_xyz, veh.positions_xyz
     _, node_of = putative_associations(len(Pv), len(Pr))
@@ -31,8 +39,17 @@ def _all_bins(cfg, Pv, Pr, node_of):
     def visit(b, _theta, eu, ev, _ew):
         graphs[b] = (eu.copy(), ev.copy())
 
-    sweep_yaw_bins(vehicle_pairs(Pv), loc_search._ref_index(Pr, cfg), node_of, loc_search._n_bins(cfg), loc_search._chunk_bins(cfg),
-                   *loc_search._graph_args(cfg), visit, weights=False, workers=1)
+    sweep_yaw_bins(
+        vehicle_pairs(Pv),
+        loc_search._ref_index(Pr, cfg),
+        node_of,
+        loc_search._n_bins(cfg),
+        loc_search._chunk_bins(cfg),
+        *loc_search._graph_args(cfg),
+        visit,
+        weights=False,
+        workers=1,
+    )
     return graphs
 
 
@@ -51,7 +68,9 @@ def test_bin_bounds_bracket_the_maximum_clique(rng):
 
 def test_group_bounds_hold_on_every_yaw_bin(rng):
     cfg, Pv, Pr, node_of = _setup(rng)
-    upper, lower, _ = loc_search._bin_bounds(Pv, vehicle_pairs(Pv), loc_search._ref_index(Pr, cfg), node_of, cfg)
+    upper, lower, _ = loc_search._bin_bounds(
+        Pv, vehicle_pairs(Pv), loc_search._ref_index(Pr, cfg), node_of, cfg
+    )
     graphs = _all_bins(cfg, Pv, Pr, node_of)
     for b, (eu, ev) in graphs.items():
         omega = len(max_clique(node_of.size, eu, ev)) if len(eu) else 1
@@ -66,12 +85,20 @@ def test_some_bins_give_the_full_sweeps_graphs(rng):
 
     def visit_chunk(bins, ptr, su, sv, _sw):
         for t, b in enumerate(bins):
-            got[b] = (su[ptr[t]:ptr[t + 1]].copy(), sv[ptr[t]:ptr[t + 1]].copy())
+            got[b] = (su[ptr[t] : ptr[t + 1]].copy(), sv[ptr[t] : ptr[t + 1]].copy())
 
     wanted = [0, 5, 21, 22, 90, 177, 179]
-    sweep_bin_chunks(vehicle_pairs(Pv), loc_search._ref_index(Pr, cfg), node_of, n_bins,
-                     yaw_bin_chunks(n_bins, loc_search._chunk_bins(cfg), wanted), *loc_search._graph_args(cfg), visit_chunk,
-                     weights=False, workers=1)
+    sweep_bin_chunks(
+        vehicle_pairs(Pv),
+        loc_search._ref_index(Pr, cfg),
+        node_of,
+        n_bins,
+        yaw_bin_chunks(n_bins, loc_search._chunk_bins(cfg), wanted),
+        *loc_search._graph_args(cfg),
+        visit_chunk,
+        weights=False,
+        workers=1,
+    )
     assert set(wanted) <= set(got)  # a grid chunk's span of wanted bins is generated
     assert not set(got) & {30, 100, 150}
     for b in got:
@@ -83,7 +110,12 @@ def test_search_finds_the_exhaustive_winner_and_a_deciding_competitor(rng):
         cfg, Pv, Pr, node_of = _setup(rng)
         graphs = _all_bins(cfg, Pv, Pr, node_of)
         n_bins = loc_search._n_bins(cfg)
-        omega = np.array([len(max_clique(node_of.size, *graphs[b])) if len(graphs[b][0]) else 0 for b in range(n_bins)])
+        omega = np.array(
+            [
+                len(max_clique(node_of.size, *graphs[b])) if len(graphs[b][0]) else 0
+                for b in range(n_bins)
+            ]
+        )
         best, competitor, yaw, _ = loc_search._search_yaw_bins(Pv, Pr, node_of, cfg)
         assert len(best) == omega.max()
         step = 2 * math.pi / n_bins
@@ -108,10 +140,16 @@ def test_reference_pair_index_matches_a_sort(rng):
     abin = np.minimum(((phi + math.pi) / idx.angle_cell).astype(np.int64), idx.n_angle - 1)
     o = np.argsort(dbin * idx.n_angle + abin, kind="stable")
     assert np.array_equal(idx.a, a[o]) and np.array_equal(idx.b, b[o])
-    assert np.array_equal(idx.dh, dh[o]) and np.array_equal(idx.phi, phi[o]) and np.array_equal(idx.dz, d[o, 2])
+    assert (
+        np.array_equal(idx.dh, dh[o])
+        and np.array_equal(idx.phi, phi[o])
+        and np.array_equal(idx.dz, d[o, 2])
+    )
     cells = dbin * idx.n_angle + abin
     assert np.array_equal(idx.abin, abin[o]) and idx.row_ptr[-1] == len(a)
-    assert np.array_equal(idx.row_ptr[:-1], np.searchsorted(cells[o], np.arange(idx.n_dist) * idx.n_angle))
+    assert np.array_equal(
+        idx.row_ptr[:-1], np.searchsorted(cells[o], np.arange(idx.n_dist) * idx.n_angle)
+    )
 
 
 def test_search_tolerance_follows_the_maps_sigma(rng):
@@ -122,7 +160,9 @@ def test_search_tolerance_follows_the_maps_sigma(rng):
     plain = cfg.for_maps(ref, veh)  # default landmark sigma: the fixed tolerances are the floors
     assert plain.epsilon_m == cfg.epsilon_m and plain.epsilon_z_m == cfg.epsilon_z_m
     q = 0.15 / math.sqrt(12)  # a LAC grid's quantisation
-    grid = LandmarkMap(ref.positions_xyz, sigma_xy_m=np.full(len(ref), q), sigma_z_m=np.full(len(ref), q))
+    grid = LandmarkMap(
+        ref.positions_xyz, sigma_xy_m=np.full(len(ref), q), sigma_z_m=np.full(len(ref), q)
+    )
     wide = cfg.for_maps(grid, veh)
     sh, sz = loc_config.combined_sigma(grid, veh, cfg)
     assert math.isclose(wide.epsilon_m, cfg.search_sigmas * math.sqrt(2) * sh)
@@ -130,7 +170,9 @@ def test_search_tolerance_follows_the_maps_sigma(rng):
     assert wide.epsilon_m > 0.1
     # chance sets grow with the tolerance, and the envelope with them
     m = len(ref) * len(veh)
-    assert loc_chance.chance_clique_size(m, cfg.mode, wide.epsilon_m, wide.epsilon_z_m) > loc_chance.chance_clique_size(m, cfg.mode)
+    assert loc_chance.chance_clique_size(
+        m, cfg.mode, wide.epsilon_m, wide.epsilon_z_m
+    ) > loc_chance.chance_clique_size(m, cfg.mode)
     fixed = loc_config.LocalizationConfig(search_sigmas=0).for_maps(grid, veh)
     assert fixed.epsilon_m == cfg.epsilon_m
 

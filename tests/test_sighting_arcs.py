@@ -27,8 +27,13 @@ from lunarloc.io.maps import (
 
 def _arc_map(rng, n=12):
     mean = rng.uniform(0, 40, n)
-    return LandmarkMap(rock_field(rng, n), sigma_xy_m=np.full(n, 0.01), sighting_arc_m=mean,
-                       sighting_arc_min_m=mean - rng.uniform(0, 2, n), sighting_arc_max_m=mean + rng.uniform(0, 2, n))
+    return LandmarkMap(
+        rock_field(rng, n),
+        sigma_xy_m=np.full(n, 0.01),
+        sighting_arc_m=mean,
+        sighting_arc_min_m=mean - rng.uniform(0, 2, n),
+        sighting_arc_max_m=mean + rng.uniform(0, 2, n),
+    )
 
 
 @pytest.mark.parametrize("suffix", [".csv", ".npz"])
@@ -53,9 +58,19 @@ def test_sighting_arcs_are_checked(rng):
     with pytest.raises(InputError, match="all three or none"):
         LandmarkMap(P, sighting_arc_m=np.ones(3))
     with pytest.raises(InputError, match="min <= mean <= max"):
-        LandmarkMap(P, sighting_arc_m=np.ones(3), sighting_arc_min_m=np.full(3, 2.0), sighting_arc_max_m=np.full(3, 3.0))
+        LandmarkMap(
+            P,
+            sighting_arc_m=np.ones(3),
+            sighting_arc_min_m=np.full(3, 2.0),
+            sighting_arc_max_m=np.full(3, 3.0),
+        )
     with pytest.raises(InputError, match="sighting_arc_m"):
-        LandmarkMap(P, sighting_arc_m=np.array([1.0, -1, 1]), sighting_arc_min_m=np.zeros(3), sighting_arc_max_m=np.ones(3))
+        LandmarkMap(
+            P,
+            sighting_arc_m=np.array([1.0, -1, 1]),
+            sighting_arc_min_m=np.zeros(3),
+            sighting_arc_max_m=np.ones(3),
+        )
     with pytest.raises(InputError, match="detection's frame"):
         detection_arcs_m(np.zeros((2, 3)), [0, 1], [0, 5])
 
@@ -70,9 +85,17 @@ def test_aggregation_keeps_where_each_landmark_was_seen_from():
     assert np.allclose(arcs, det_frame - 100)
     m = aggregate_detections(det, det_frame, detection_arc_m=arcs)
     a, b = np.argsort(m.positions_xyz[:, 0])[::-1]
-    assert m.sighting_arc_m[a] == pytest.approx(3.0) and (m.sighting_arc_min_m[a], m.sighting_arc_max_m[a]) == (2, 4)
-    assert m.sighting_arc_m[b] == pytest.approx(5.0) and (m.sighting_arc_min_m[b], m.sighting_arc_max_m[b]) == (1, 9)
-    assert not aggregate_detections(det, det_frame).has_sighting_arcs  # without arcs: None, as before
+    assert m.sighting_arc_m[a] == pytest.approx(3.0) and (
+        m.sighting_arc_min_m[a],
+        m.sighting_arc_max_m[a],
+    ) == (2, 4)
+    assert m.sighting_arc_m[b] == pytest.approx(5.0) and (
+        m.sighting_arc_min_m[b],
+        m.sighting_arc_max_m[b],
+    ) == (1, 9)
+    assert not aggregate_detections(
+        det, det_frame
+    ).has_sighting_arcs  # without arcs: None, as before
     trav = Traverse(frames, path, det, det_frame, "t")
     assert np.allclose(traverse_map(trav).sighting_arc_m, m.sighting_arc_m)
     assert np.allclose(path_arc_length_m(path), np.arange(11.0))
@@ -88,8 +111,13 @@ def _revisit_case(seed, drift_deg_per_m=0.1):
 
     rng = np.random.default_rng(seed)
     th = np.linspace(-np.pi / 2, np.pi / 2, 20)[1:-1]
-    xy = np.vstack([np.c_[np.arange(0, 30, 0.25), np.zeros(120)], np.c_[30 + 1.5 * np.cos(th), 1.5 + 1.5 * np.sin(th)],
-                    np.c_[np.arange(30, -0.01, -0.25), np.full(121, 3.0)]])
+    xy = np.vstack(
+        [
+            np.c_[np.arange(0, 30, 0.25), np.zeros(120)],
+            np.c_[30 + 1.5 * np.cos(th), 1.5 + 1.5 * np.sin(th)],
+            np.c_[np.arange(30, -0.01, -0.25), np.full(121, 3.0)],
+        ]
+    )
     g = np.c_[xy, np.zeros(len(xy))]
     o, psi = drifted_path(g, DriftModel(drift_deg_per_m, 0.0))
     arc = path_arc_length_m(o)
@@ -101,11 +129,16 @@ def _revisit_case(seed, drift_deg_per_m=0.1):
         bearing = (np.arctan2(rel[:, 1], rel[:, 0]) - heading[f] + np.pi) % (2 * np.pi) - np.pi
         r = rel[(np.linalg.norm(rel[:, :2], axis=1) < 6) & (np.abs(bearing) < np.radians(60))]
         c, s = math.cos(psi[f]), math.sin(psi[f])
-        dets.append(o[f] + np.c_[c * r[:, 0] - s * r[:, 1], s * r[:, 0] + c * r[:, 1], r[:, 2]]
-                    + rng.normal(0, 0.004, (len(r), 3)))
+        dets.append(
+            o[f]
+            + np.c_[c * r[:, 0] - s * r[:, 1], s * r[:, 0] + c * r[:, 1], r[:, 2]]
+            + rng.normal(0, 0.004, (len(r), 3))
+        )
         frames.append(np.full(len(r), f))
         arcs.append(np.full(len(r), arc[f]))
-    veh = aggregate_detections(np.vstack(dets), np.concatenate(frames), frame="veh", detection_arc_m=np.concatenate(arcs))
+    veh = aggregate_detections(
+        np.vstack(dets), np.concatenate(frames), frame="veh", detection_arc_m=np.concatenate(arcs)
+    )
     patch = (rocks[:, 0] > 7) & (rocks[:, 0] < 15)
     others = np.c_[rng.uniform(-20, 50, (150, 2)) + [0, 20], rng.normal(0, 0.1, 150)]
     return LandmarkMap(np.vstack([rocks[patch], others])), veh, o, g
@@ -121,11 +154,15 @@ def test_revisited_landmarks_placed_where_seen_refuse_the_wrong_pose(monkeypatch
     drift and refuses, with or without the floor; without sighting arcs, the landmarks both
     legs come within sight of are left out and the bend is not determined: refused."""
     ref, veh, o, g = _revisit_case(0)
-    noarcs = LandmarkMap(veh.positions_xyz, veh.sizes, veh.sightings, veh.frame, veh.sigma_xy_m, veh.sigma_z_m)
+    noarcs = LandmarkMap(
+        veh.positions_xyz, veh.sizes, veh.sightings, veh.frame, veh.sigma_xy_m, veh.sigma_z_m
+    )
     module = importlib.import_module("lunarloc.localization.bending")
 
     # the bend fit from the maps alone (no odometry prior): what the floor and the placement are about
-    unconstrained = LocalizationConfig(odometry_prior_drift_deg_per_m=None, odometry_prior_scale_error=None)
+    unconstrained = LocalizationConfig(
+        odometry_prior_drift_deg_per_m=None, odometry_prior_scale_error=None
+    )
 
     def run(v, cfg=unconstrained):
         r = localize(ref, v, cfg, query_xyz=o[-1:], path_xyz=o)
@@ -144,11 +181,15 @@ def test_revisited_landmarks_placed_where_seen_refuse_the_wrong_pose(monkeypatch
         mp.setattr(module, "SIGHTING_RANGE_M", 0.0)
         mp.setattr(module, "PASS_MARGIN_M", 0.0)
         old, err = run(noarcs)
-    assert old.success and err > 0.10 and old.distortion_fit["placement"] == "nearest path point"  # confident, wrong
+    assert (
+        old.success and err > 0.10 and old.distortion_fit["placement"] == "nearest path point"
+    )  # confident, wrong
     assert abs(math.degrees(old.distortion_fit["drift_rad_per_m"])) < 0.01  # sure that nothing bent
     for r in (new, run(veh)[0]):
         assert r.distortion_fit["placement"] == "sightings" and r.distortion_fit["left_out"] == 0
-        assert abs(math.degrees(r.distortion_fit["drift_rad_per_m"]) - 0.1) < 0.02  # the drift is found
+        assert (
+            abs(math.degrees(r.distortion_fit["drift_rad_per_m"]) - 0.1) < 0.02
+        )  # the drift is found
         assert not r.success and "fitted from the maps" in r.reason, (r.reason, err_new)
     fallback, _ = run(noarcs)
     assert not fallback.success and fallback.distortion_fit["left_out"] > 0
@@ -186,6 +227,8 @@ def test_max_sighting_span_is_a_run_setting(tmp_path):
     p = tmp_path / "config.json"
     p.write_text(json.dumps({"localization": {"max_sighting_span_m": 25.0}}))
     cfg, _ = load_config_file(p)
-    assert cfg.localization.max_sighting_span_m == 25.0 and RunConfig.from_dict(cfg.to_dict()) == cfg
+    assert (
+        cfg.localization.max_sighting_span_m == 25.0 and RunConfig.from_dict(cfg.to_dict()) == cfg
+    )
     with pytest.raises(ConfigError, match="max_sighting_span_m"):
         LocalizationConfig(max_sighting_span_m=0.0)

@@ -11,7 +11,9 @@ from lunarloc.sim.simulate import SimulationConfig, simulate_site, simulate_trav
 from lunarloc.sim.site import SiteConfig  # noqa: E402
 from lunarloc.core.errors import ConfigError  # noqa: E402
 
-SMALL_SITE = SiteConfig(size_m=14.0, terrain_margin_m=3.0, resolution_m=0.2, n_rocks=80, rover_start_xy=(-3.0, -2.0))
+SMALL_SITE = SiteConfig(
+    size_m=14.0, terrain_margin_m=3.0, resolution_m=0.2, n_rocks=80, rover_start_xy=(-3.0, -2.0)
+)
 
 
 def _cfg(**kw):
@@ -27,7 +29,9 @@ def test_traverse_round_trip(tmp_path):
     path, traj = simulate_traverse(site, tmp_path / "t.lac", 0, cfg)
     with lac.LacArchive(path) as a:
         assert a.n_frames == len(traj) == 61
-        np.testing.assert_allclose(a.poses(), traj.poses, rtol=5e-15, atol=1e-22)  # 15-digit floats (pandas-safe)
+        np.testing.assert_allclose(
+            a.poses(), traj.poses, rtol=5e-15, atol=1e-22
+        )  # 15-digit floats (pandas-safe)
         assert set(a.cameras) == {"FrontLeft", "FrontRight", "BackLeft", "BackRight"}
         assert a.image_count("FrontLeft") == 7  # frames 0, 10, ..., 60
         g = a.grayscale("FrontLeft", 10)
@@ -44,7 +48,9 @@ def test_traverse_round_trip(tmp_path):
     from lunarloc.perception.camera import PinholeCamera, ipex_rig
 
     rig = ipex_rig(PinholeCamera(64, 36))
-    g2, s2 = SiteRenderer(site, cfg.render).render_rover(traj.poses[10], [rig["FrontLeft"]])["FrontLeft"]
+    g2, s2 = SiteRenderer(site, cfg.render).render_rover(traj.poses[10], [rig["FrontLeft"]])[
+        "FrontLeft"
+    ]
     np.testing.assert_array_equal(g, g2)
     np.testing.assert_array_equal(s, s2)
 
@@ -74,16 +80,35 @@ def test_cli_simulate(tmp_path, monkeypatch):
 
     from lunarloc.sim.site import generate_site
 
-    monkeypatch.setattr(sim, "simulate_site", lambda seed, config=None: generate_site(seed, SMALL_SITE))
+    monkeypatch.setattr(
+        sim, "simulate_site", lambda seed, config=None: generate_site(seed, SMALL_SITE)
+    )
     res = CliRunner().invoke(
         app,
-        ["simulate", "--seed", "1", "--traverses", "2", "--out", str(tmp_path), "--duration", "1",
-         "--width", "48", "--height", "27", "--front-only"],
-    )  # fmt: skip
+        [
+            "simulate",
+            "--seed",
+            "1",
+            "--traverses",
+            "2",
+            "--out",
+            str(tmp_path),
+            "--duration",
+            "1",
+            "--width",
+            "48",
+            "--height",
+            "27",
+            "--front-only",
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert (tmp_path / "rocks.csv").exists()
     assert (tmp_path / "traverse_0.lac").exists() and (tmp_path / "traverse_1.lac").exists()
     lac = pytest.importorskip("lunarloc.io.lac.archive")
-    with lac.LacArchive(tmp_path / "traverse_0.lac") as a0, lac.LacArchive(tmp_path / "traverse_1.lac") as a1:
+    with (
+        lac.LacArchive(tmp_path / "traverse_0.lac") as a0,
+        lac.LacArchive(tmp_path / "traverse_1.lac") as a1,
+    ):
         np.testing.assert_allclose(a0.poses()[0, :2], a1.poses()[0, :2])  # same start
         assert a0.image_count("FrontLeft") == 3 and a0.image_count("BackLeft") == 0

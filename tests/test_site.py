@@ -89,7 +89,9 @@ def test_rocks_are_irregular_not_ellipsoids(site):
     devs = []
     for k in np.argsort(-rk.radii)[:10]:
         c, s = np.cos(rk.yaws[k]), np.sin(rk.yaws[k])
-        local = (meshes[k].vertices - rk.centers[k]) @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        local = (meshes[k].vertices - rk.centers[k]) @ np.array(
+            [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+        )
         r_ell = np.linalg.norm(local / rk.axes[k], axis=1)  # 1 on the ellipsoid
         devs.append(np.std(r_ell))
         assert r_ell.max() < 1.3 and r_ell.min() > 0.5
@@ -107,7 +109,9 @@ def test_lander_fiducial_panels_follow_the_lac_layout(site):
     np.testing.assert_allclose(np.linalg.norm(p.normals, axis=1), 1.0)
     assert np.all(np.abs(p.normals[:, 2]) < 1e-12)
     # outward: the normal points away from the lander's axis
-    assert np.all(np.einsum("ij,ij->i", p.normals[:, :2], p.centers[:, :2] - site.lander_xyz[:2]) > 0)
+    assert np.all(
+        np.einsum("ij,ij->i", p.normals[:, :2], p.centers[:, :2] - site.lander_xyz[:2]) > 0
+    )
     # u right, v down, both in the panel's plane
     np.testing.assert_allclose(np.einsum("ij,ij->i", p.u_axes, p.normals), 0.0, atol=1e-12)
     np.testing.assert_allclose(p.v_axes, np.broadcast_to([0.0, 0.0, -1.0], p.v_axes.shape))

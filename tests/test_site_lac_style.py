@@ -22,7 +22,9 @@ def test_extras_off_by_default_and_drawn_from_their_own_stream():
     np.testing.assert_array_equal(more.rocks_table()[:n], base.rocks_table())
     extra = more.rocks_table()[n:]
     assert 60 <= len(extra) <= 80
-    np.testing.assert_array_equal(extra[:, 0], np.arange(n, n + len(extra)))  # ids follow the others'
+    np.testing.assert_array_equal(
+        extra[:, 0], np.arange(n, n + len(extra))
+    )  # ids follow the others'
     lo, hi = cfg.small_rock_radius_m
     assert extra[:, 4].min() >= lo and extra[:, 4].max() <= hi
     # clear of the other rocks and of the lander
@@ -39,7 +41,9 @@ def test_lac_style_site_has_small_rocks_rougher_terrain_and_tilts_the_rover():
     r = site.rocks.radii
     assert np.count_nonzero(r < 0.05) > 500 and r.min() < 0.025
     assert np.count_nonzero(r >= 0.1) >= 30  # the LAC-sized population is still there
-    assert abs(float(site.terrain_height(0.0, 0.0))) < 1e-6  # the lander still stands level at z = 0
+    assert (
+        abs(float(site.terrain_height(0.0, 0.0))) < 1e-6
+    )  # the lander still stands level at z = 0
     # slope statistics: the LAC look is much rougher than the default site
     gy, gx = np.gradient(site.heights, site.config.resolution_m)
     gy0, gx0 = np.gradient(generate_site(11).heights, 0.1)
@@ -55,8 +59,13 @@ def test_lac_style_site_has_small_rocks_rougher_terrain_and_tilts_the_rover():
 
 def test_lac_style_overrides_and_validation():
     assert SiteConfig.lac_style(n_small_rocks=0).n_small_rocks == 0
-    for bad in ({"n_small_rocks": -1}, {"small_rock_radius_m": (0.05, 0.02)}, {"hummock_m": 0.5},
-                {"small_crater_radius_m": (0.0, 1.0)}, {"n_small_craters": -2}):
+    for bad in (
+        {"n_small_rocks": -1},
+        {"small_rock_radius_m": (0.05, 0.02)},
+        {"hummock_m": 0.5},
+        {"small_crater_radius_m": (0.0, 1.0)},
+        {"n_small_craters": -2},
+    ):
         with pytest.raises(ConfigError):
             generate_site(0, SiteConfig(**bad))
 
@@ -67,9 +76,18 @@ def test_terrain_up_normal_removes_the_dark_crest_dots_and_is_off_by_default():
     from lunarloc.perception.camera import PinholeCamera, ipex_rig
     from lunarloc.sim.render import SEM_GROUND, RenderConfig, SiteRenderer
 
-    assert RenderConfig().terrain_up_normal is False and RenderConfig.lac_style().terrain_up_normal is True
-    cfg = SiteConfig.lac_style(size_m=16.0, terrain_margin_m=4.0, n_rocks=60, n_small_rocks=100, n_small_craters=300,
-                               rover_start_xy=(-3.0, -2.0))
+    assert (
+        RenderConfig().terrain_up_normal is False
+        and RenderConfig.lac_style().terrain_up_normal is True
+    )
+    cfg = SiteConfig.lac_style(
+        size_m=16.0,
+        terrain_margin_m=4.0,
+        n_rocks=60,
+        n_small_rocks=100,
+        n_small_craters=300,
+        rover_start_xy=(-3.0, -2.0),
+    )
     site = generate_site(2, cfg)
     cam = PinholeCamera(640, 360)
     mount = ipex_rig(cam)["FrontLeft"]

@@ -42,7 +42,7 @@ def _render(roll_deg: float, rock: tuple[float, float, float, float] | None, see
         x, z, rad, top = rock
         g = CAM_HEIGHT_M * n + x * e_lat + z * e_fwd  # the ground point under the rock
         sphere = (g - n * (top - rad), rad)
-    vv, uu = np.mgrid[0:CAM.height, 0:CAM.width].astype(float)
+    vv, uu = np.mgrid[0 : CAM.height, 0 : CAM.width].astype(float)
     d = np.stack([(uu - CAM.cx) / CAM.fx, (vv - CAM.cy) / CAM.fx, np.ones_like(uu)], axis=-1)
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     out = []
@@ -55,7 +55,9 @@ def _render(roll_deg: float, rock: tuple[float, float, float, float] | None, see
         X = o + np.where(np.isfinite(t), t, 0.0)[..., None] * d
         a = (X @ e_lat) / res_m + 800
         b = (X @ e_fwd) / res_m
-        img = cv2.remap(tex, a.astype(np.float32), b.astype(np.float32), cv2.INTER_LINEAR, borderValue=0)
+        img = cv2.remap(
+            tex, a.astype(np.float32), b.astype(np.float32), cv2.INTER_LINEAR, borderValue=0
+        )
         img[~np.isfinite(t)] = 0
         if sphere is not None:
             C, rad = sphere
@@ -70,8 +72,12 @@ def _render(roll_deg: float, rock: tuple[float, float, float, float] | None, see
             light = -n * 0.7 + e_lat * 0.7
             shade = 150 + 90 * np.clip(nrm @ (light / np.linalg.norm(light)), 0, 1)
             # its texture fixed to its surface (the same in both views)
-            ta = cv2.remap(tex, ((Xs @ e_lat) / res_m * 2 + 800).astype(np.float32),
-                           ((Xs @ e_fwd + Xs @ n) / res_m * 2).astype(np.float32), cv2.INTER_LINEAR)
+            ta = cv2.remap(
+                tex,
+                ((Xs @ e_lat) / res_m * 2 + 800).astype(np.float32),
+                ((Xs @ e_fwd + Xs @ n) / res_m * 2).astype(np.float32),
+                cv2.INTER_LINEAR,
+            )
             img[hit] = shade[hit] + 0.3 * (ta[hit] - 100)
         out.append(np.clip(img, 0, 255).astype(np.uint8))
     return out
@@ -83,7 +89,9 @@ def _small_rocks(L, R, cfg=None):
     hm = det.height_map(L, R, T_ro)  # levelled on the stereo ground plane when tilted
     n_up = ground_plane(hm.points_rover, hm.depth)
     up = hm.T_rover_optical[:3, :3].T @ n_up if n_up is not None else None
-    rocks = detect_small_rocks(L, R, hm.disparity, hm.scale, CAM, BASELINE_M, cfg or SmallRockConfig(), up)
+    rocks = detect_small_rocks(
+        L, R, hm.disparity, hm.scale, CAM, BASELINE_M, cfg or SmallRockConfig(), up
+    )
     if n_up is not None and hm.T_level_rover is not None:
         n_up = hm.T_level_rover[:3, :3].T @ n_up  # back in the rover frame
     return rocks, n_up, T_ro
@@ -103,7 +111,11 @@ def test_a_small_rock_is_found_on_level_and_tilted_ground(roll_deg):
     L, R = _render(roll_deg, (x, z, rad, top))
     rocks, _, _ = _small_rocks(L, R)
     u, v = _uv(x, z, roll_deg)
-    near = [r for r in rocks if abs(r.u0 + r.crop.shape[1] / 2 - u) < 25 and abs(r.v0 + r.crop.shape[0] / 2 - v) < 25]
+    near = [
+        r
+        for r in rocks
+        if abs(r.u0 + r.crop.shape[1] / 2 - u) < 25 and abs(r.v0 + r.crop.shape[0] / 2 - v) < 25
+    ]
     assert len(near) == 1, [(r.u0, r.v0, r.top_m) for r in rocks]
     r = near[0]
     assert 0.4 * top < r.top_m < 1.6 * top
@@ -119,7 +131,9 @@ def test_bare_ground_gives_no_small_rock_and_its_tilt_is_measured(roll_deg):
     assert rocks == []
     # the ground's normal from stereo alone: the plane's true up direction, in the rover frame
     c, s = np.cos(np.radians(roll_deg)), np.sin(np.radians(roll_deg))
-    up_optical = -(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.array([0.0, 1.0, 0.0]))
+    up_optical = -(
+        np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.array([0.0, 1.0, 0.0])
+    )
     up_rover = T_ro[:3, :3] @ up_optical
     assert n_up is not None
     assert np.degrees(np.arccos(np.clip(n_up @ up_rover, -1, 1))) < 2.0
@@ -140,10 +154,23 @@ def test_the_detector_reports_the_small_rock_when_the_stage_is_on_and_not_by_def
     assert not [d for d in off.detections if abs(d.uv[0] - u) < 25 and abs(d.uv[1] - v) < 25]
 
 
-@pytest.mark.parametrize("bad", [dict(min_range_m=7.0), dict(block_size=4), dict(band_px=20), dict(max_tilt_deg=0.0),
-                                 dict(min_top_m=0.0), dict(max_candidates=-1), dict(contrast_z=0.0),
-                                 dict(max_aspect=float("nan")), dict(window_margin=0.0), dict(max_band_px=40),
-                                 dict(min_lowres_height_m=float("inf")), dict(low_top_snr=-1.0)])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        dict(min_range_m=7.0),
+        dict(block_size=4),
+        dict(band_px=20),
+        dict(max_tilt_deg=0.0),
+        dict(min_top_m=0.0),
+        dict(max_candidates=-1),
+        dict(contrast_z=0.0),
+        dict(max_aspect=float("nan")),
+        dict(window_margin=0.0),
+        dict(max_band_px=40),
+        dict(min_lowres_height_m=float("inf")),
+        dict(low_top_snr=-1.0),
+    ],
+)
 def test_bad_settings_are_refused(bad):
     with pytest.raises(ConfigError):
         SmallRockConfig(**bad)
@@ -167,8 +194,12 @@ def test_the_detector_sees_the_same_rock_on_level_ground_and_rolled_20_degrees()
         assert len(hits) == 1, (roll, [d.uv for d in pr.detections])
         found[roll] = hits[0]
         if roll:
-            unlevelled = Detector(replace(DetectorConfig(), level_from_stereo=False), CAM).detect_pair(L, R, T_ro)
-            assert not [d for d in unlevelled.detections if abs(d.uv[0] - u) < 30 and abs(d.uv[1] - v) < 30]
+            unlevelled = Detector(
+                replace(DetectorConfig(), level_from_stereo=False), CAM
+            ).detect_pair(L, R, T_ro)
+            assert not [
+                d for d in unlevelled.detections if abs(d.uv[0] - u) < 30 and abs(d.uv[1] - v) < 30
+            ]
     a, b = found[0.0], found[20.0]
     assert abs(a.radius_m - b.radius_m) < 0.2 * a.radius_m and abs(a.height_m - b.height_m) < 0.02
     assert abs(a.depth_m - b.depth_m) < 0.15

@@ -25,14 +25,20 @@ from test_detector import CAM, ground_scene
 # the mid-range strip of test_detector's flat-strip test with both strip rules off: rejected
 # as elongated today; the tentative rule (2.5-6 m) keeps it for a second view to confirm
 # (the small-rock stage off: it may see the lit top of this rock on its own, tests/test_small_rocks.py)
-STRIPS_OFF = DetectorConfig(strip_max_eig_ratio=0.0, raised_strip_max_eig_ratio=0.0, tentative_max_range_m=0.0,
-                            small_rocks=SmallRockConfig(enabled=False))
+STRIPS_OFF = DetectorConfig(
+    strip_max_eig_ratio=0.0,
+    raised_strip_max_eig_ratio=0.0,
+    tentative_max_range_m=0.0,
+    small_rocks=SmallRockConfig(enabled=False),
+)
 TENTATIVE = replace(STRIPS_OFF, tentative_max_range_m=6.0, tentative_min_range_m=2.0)
 
 
 def _pair(cfg, c, keep_tentative):
     left, right, rig = ground_scene(tuple(c), 0.16)
-    return Detector(cfg, CAM).detect_pair(left, right, rig["FrontLeft"].T_rover_optical, keep_tentative=keep_tentative)
+    return Detector(cfg, CAM).detect_pair(
+        left, right, rig["FrontLeft"].T_rover_optical, keep_tentative=keep_tentative
+    )
 
 
 def test_a_mid_range_blob_that_a_marginal_rule_rejects_becomes_a_tentative_detection():
@@ -46,18 +52,24 @@ def test_a_mid_range_blob_that_a_marginal_rule_rejects_becomes_a_tentative_detec
     assert np.linalg.norm(d.p_rover[:2] - c[:2]) < 0.15
     # without keep_tentative (detect_frame's default: the online loop) it never comes out
     dropped = _pair(TENTATIVE, c, keep_tentative=False)
-    assert dropped.detections == [] and [r.reason for r in dropped.records] == [RejectReason.TENTATIVE]
+    assert dropped.detections == [] and [r.reason for r in dropped.records] == [
+        RejectReason.TENTATIVE
+    ]
     assert dropped.records[0].tentative == "elongated"  # the record keeps why it was tentative
     left, right, rig = ground_scene(tuple(c), 0.16)
     images = {"FrontLeft": left, "FrontRight": right}
     assert Detector(TENTATIVE, CAM).detect_frame(images, rig).detections == []
-    assert [d.tentative for d in Detector(TENTATIVE, CAM).detect_frame(images, rig, keep_tentative=True).detections] \
-        == ["elongated"]
+    assert [
+        d.tentative
+        for d in Detector(TENTATIVE, CAM).detect_frame(images, rig, keep_tentative=True).detections
+    ] == ["elongated"]
     # nearer than tentative_min_range_m: rejected as today
     near = _pair(replace(TENTATIVE, tentative_min_range_m=4.5), c, keep_tentative=True)
     assert near.detections == [] and [r.reason for r in near.records] == [RejectReason.ELONGATED]
     # beyond tentative_max_eig_ratio: rejected as today
-    long_ = _pair(replace(TENTATIVE, tentative_max_eig_ratio=d.eig_ratio - 1.0), c, keep_tentative=True)
+    long_ = _pair(
+        replace(TENTATIVE, tentative_max_eig_ratio=d.eig_ratio - 1.0), c, keep_tentative=True
+    )
     assert long_.detections == [] and [r.reason for r in long_.records] == [RejectReason.ELONGATED]
 
 
@@ -67,20 +79,28 @@ def test_the_off_switch_and_firm_detections_are_untouched():
     a = _pair(DetectorConfig(tentative_max_range_m=0.0), c, keep_tentative=True).detections
     b = _pair(DetectorConfig(), c, keep_tentative=True).detections
     assert len(a) == len(b) == 1 and b[0].tentative == ""
-    assert np.array_equal(a[0].p_map if a[0].p_map is not None else a[0].p_rover,
-                          b[0].p_map if b[0].p_map is not None else b[0].p_rover)
+    assert np.array_equal(
+        a[0].p_map if a[0].p_map is not None else a[0].p_rover,
+        b[0].p_map if b[0].p_map is not None else b[0].p_rover,
+    )
 
 
 def _det(p, tentative=""):
     p = np.asarray(p, float)
-    return Detection("FrontLeft", (0.0, 0.0), 4.0, 5.0, 1.0, 100, 0.05, 0.1, p, p, p, tentative=tentative)
+    return Detection(
+        "FrontLeft", (0.0, 0.0), 4.0, 5.0, 1.0, 100, 0.05, 0.1, p, p, p, tentative=tentative
+    )
 
 
 def _frame(k, x_rover, dets, pose=True):
     T = np.eye(4)
     T[0, 3] = x_rover
     recs = [MaskRecord(i, None, 4.0, 0.05, None) for i in range(len(dets))]
-    return FrameDetections(k, T if pose else None, [PairResult("FrontLeft", InstanceMasks((720, 1280)), recs, dets, None)])
+    return FrameDetections(
+        k,
+        T if pose else None,
+        [PairResult("FrontLeft", InstanceMasks((720, 1280)), recs, dets, None)],
+    )
 
 
 ROCK = [4.0, 0.5, 0.0]
@@ -93,26 +113,36 @@ def _run(cfg, frames):
 
 
 def test_a_tentative_that_another_view_confirms_is_kept_and_one_no_view_confirms_is_dropped():
-    cfg = replace(DetectorConfig(), tentative_max_range_m=6.0, tentative_tol_m=0.1, confirm_tol_m=0.2)
+    cfg = replace(
+        DetectorConfig(), tentative_max_range_m=6.0, tentative_tol_m=0.1, confirm_tol_m=0.2
+    )
     tol = cfg.tentative_tol_m
     seen = [0.5 * tol, 0.0, 0.0]
     # frame 0 tentative; frame 1 (0.5 m on) has a firm detection within tol: kept
-    out = _run(cfg, [_frame(0, 0.0, [_det(ROCK, "too_small")]), _frame(1, 0.5, [_det(np.add(ROCK, seen))])])
+    out = _run(
+        cfg, [_frame(0, 0.0, [_det(ROCK, "too_small")]), _frame(1, 0.5, [_det(np.add(ROCK, seen))])]
+    )
     assert len(out[0].detections) == 1 and out[0].detections[0].tentative == "too_small"
     # the other view's detection lies beyond tentative_tol_m (though within the crest rule's
     # confirm_tol_m): dropped, and its record says why
     off = [1.5 * tol, 0.0, 0.0]
     assert 1.5 * tol < cfg.confirm_tol_m
-    out = _run(cfg, [_frame(0, 0.0, [_det(ROCK, "too_small")]), _frame(1, 0.5, [_det(np.add(ROCK, off))])])
+    out = _run(
+        cfg, [_frame(0, 0.0, [_det(ROCK, "too_small")]), _frame(1, 0.5, [_det(np.add(ROCK, off))])]
+    )
     assert out[0].detections == [] and out[0].pairs[0].records[0].reason is RejectReason.TENTATIVE
     # another view's tentative detection confirms nothing
     out = _run(cfg, [_frame(0, 0.0, [_det(ROCK, "crest")]), _frame(1, 0.5, [_det(ROCK, "crest")])])
     assert all(f.detections == [] for f in out)
     # no other view (a single frame, the rover standing still, no map pose): dropped
     assert _run(cfg, [_frame(0, 0.0, [_det(ROCK, "elongated")])])[0].detections == []
-    still = _run(cfg, [_frame(k, 0.0, [_det(ROCK, "elongated"), _det([5.0, 0.0, 0.0])]) for k in range(3)])
+    still = _run(
+        cfg, [_frame(k, 0.0, [_det(ROCK, "elongated"), _det([5.0, 0.0, 0.0])]) for k in range(3)]
+    )
     assert all([d.tentative for d in f.detections] == [""] for f in still)
-    nopose = _run(cfg, [_frame(k, 0.5 * k, [_det(ROCK, "elongated")], pose=False) for k in range(2)])
+    nopose = _run(
+        cfg, [_frame(k, 0.5 * k, [_det(ROCK, "elongated")], pose=False) for k in range(2)]
+    )
     assert all(f.detections == [] for f in nopose)
 
 
@@ -121,8 +151,11 @@ def test_two_views_needed_when_asked():
     two = replace(one, tentative_min_views=2)
 
     def frames(firm_after):
-        return [_frame(0, 0.0, [_det(ROCK)]), _frame(1, 0.5, [_det(ROCK, "quadric")]),
-                _frame(2, 1.0, [_det(ROCK)] if firm_after else [])]
+        return [
+            _frame(0, 0.0, [_det(ROCK)]),
+            _frame(1, 0.5, [_det(ROCK, "quadric")]),
+            _frame(2, 1.0, [_det(ROCK)] if firm_after else []),
+        ]
 
     assert len(_run(one, frames(False))[1].detections) == 1  # the earlier view alone
     assert _run(two, frames(False))[1].detections == []
@@ -134,7 +167,12 @@ def test_a_later_firm_view_confirms_when_asked_to_look_that_far():
     # view each way frame 0 cannot be confirmed; with three it can, and frames of nothing
     # but tentatives still confirm nothing
     # (repeats of the tentative itself confirm it too by default; that rule is tested below)
-    one = replace(DetectorConfig(), tentative_max_range_m=6.0, tentative_confirm_frames=1, tentative_min_repeats=0)
+    one = replace(
+        DetectorConfig(),
+        tentative_max_range_m=6.0,
+        tentative_confirm_frames=1,
+        tentative_min_repeats=0,
+    )
     three = replace(one, tentative_confirm_frames=3)
 
     def frames(firm_last):
@@ -148,7 +186,9 @@ def test_a_later_firm_view_confirms_when_asked_to_look_that_far():
     late = frames(False) + [_frame(4, 2.0, [_det(ROCK)])]
     assert [len(f.detections) for f in _run(three, late)] == [0, 1, 1, 1, 1]
     # frames closer than confirm_min_baseline_m do not count as views
-    crawl = [_frame(k, 0.01 * k, [_det(ROCK, "too_small")]) for k in range(3)] + [_frame(3, 0.5, [_det(ROCK)])]
+    crawl = [_frame(k, 0.01 * k, [_det(ROCK, "too_small")]) for k in range(3)] + [
+        _frame(3, 0.5, [_det(ROCK)])
+    ]
     assert [len(f.detections) for f in _run(one, crawl)] == [1, 1, 1, 1]
 
 
@@ -156,7 +196,12 @@ def test_a_large_tentative_is_confirmed_within_a_share_of_its_radius():
     # a large rock's centre moves with how much of it each view's mask holds: a tentative
     # of radius 0.4 m whose firm view lies 0.15 m away is kept at 0.5 x radius (0.2 m) and
     # dropped with the fixed 0.1 m alone; a small one (0.1 m) at 0.15 m is dropped either way
-    cfg = replace(DetectorConfig(), tentative_max_range_m=6.0, tentative_tol_m=0.1, tentative_tol_per_radius=0.5)
+    cfg = replace(
+        DetectorConfig(),
+        tentative_max_range_m=6.0,
+        tentative_tol_m=0.1,
+        tentative_tol_per_radius=0.5,
+    )
     fixed = replace(cfg, tentative_tol_per_radius=0.0)
 
     def frames(radius_m):
@@ -174,10 +219,18 @@ def test_a_tentative_seen_again_in_enough_neighbouring_frames_is_kept():
     # a rock seen only tentatively, never firmly, in four frames 0.5 m apart: each frame sees
     # it again in three of its neighbouring frames (three each way at most), so with
     # tentative_min_repeats 3 all four are kept; with 0 (off) or 4, none
-    cfg = replace(DetectorConfig(), tentative_max_range_m=6.0, tentative_confirm_frames=3, tentative_min_repeats=3)
+    cfg = replace(
+        DetectorConfig(),
+        tentative_max_range_m=6.0,
+        tentative_confirm_frames=3,
+        tentative_min_repeats=3,
+    )
 
     def frames(n, step_m=0.0):
-        return [_frame(k, 0.5 * k, [_det(np.add(ROCK, [step_m * k, 0.0, 0.0]), "too_small")]) for k in range(n)]
+        return [
+            _frame(k, 0.5 * k, [_det(np.add(ROCK, [step_m * k, 0.0, 0.0]), "too_small")])
+            for k in range(n)
+        ]
 
     assert [len(f.detections) for f in _run(cfg, frames(4))] == [1, 1, 1, 1]
     assert all(f.detections == [] for f in _run(replace(cfg, tentative_min_repeats=0), frames(4)))
@@ -191,17 +244,32 @@ def test_a_tentative_seen_again_in_enough_neighbouring_frames_is_kept():
 
 def test_confirmation_off_passes_everything_through():
     off = replace(DetectorConfig(), confirm_tol_m=0.0, tentative_max_range_m=0.0)
-    fr = [_frame(0, 0.0, [_det(ROCK, "crest"), replace(_det([6.0, 0.0, 0.0]), needs_confirmation=True)])]
+    fr = [
+        _frame(
+            0, 0.0, [_det(ROCK, "crest"), replace(_det([6.0, 0.0, 0.0]), needs_confirmation=True)]
+        )
+    ]
     assert len(_run(off, fr)[0].detections) == 2
 
 
-@pytest.mark.parametrize("key, value", [
-    ("tentative_max_range_m", -1.0), ("tentative_min_range_m", -0.5), ("tentative_max_eig_ratio", -1.0),
-    ("tentative_tol_m", 0.0), ("tentative_min_views", 3), ("tentative_min_views", 1.5),
-    ("tentative_confirm_frames", 0), ("tentative_confirm_frames", 11), ("tentative_confirm_frames", 2.5),
-    ("tentative_tol_per_radius", -0.1), ("tentative_min_repeats", -1), ("tentative_min_repeats", 21),
-    ("tentative_min_repeats", 2.5),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "key, value",
+    [
+        ("tentative_max_range_m", -1.0),
+        ("tentative_min_range_m", -0.5),
+        ("tentative_max_eig_ratio", -1.0),
+        ("tentative_tol_m", 0.0),
+        ("tentative_min_views", 3),
+        ("tentative_min_views", 1.5),
+        ("tentative_confirm_frames", 0),
+        ("tentative_confirm_frames", 11),
+        ("tentative_confirm_frames", 2.5),
+        ("tentative_tol_per_radius", -0.1),
+        ("tentative_min_repeats", -1),
+        ("tentative_min_repeats", 21),
+        ("tentative_min_repeats", 2.5),
+    ],
+)
 def test_tentative_settings_are_checked_and_round_trip(key, value):
     import json
 
@@ -209,12 +277,23 @@ def test_tentative_settings_are_checked_and_round_trip(key, value):
 
     with pytest.raises(ConfigError, match=key):
         RunConfig.from_dict({"detector": {key: value}})
-    good = {"tentative_max_range_m": 5.5, "tentative_min_range_m": 3.0, "tentative_max_eig_ratio": 45.0,
-            "tentative_tol_m": 0.12, "tentative_min_views": 2, "tentative_confirm_frames": 4,
-            "tentative_tol_per_radius": 0.8, "tentative_min_repeats": 4}[key]
+    good = {
+        "tentative_max_range_m": 5.5,
+        "tentative_min_range_m": 3.0,
+        "tentative_max_eig_ratio": 45.0,
+        "tentative_tol_m": 0.12,
+        "tentative_min_views": 2,
+        "tentative_confirm_frames": 4,
+        "tentative_tol_per_radius": 0.8,
+        "tentative_min_repeats": 4,
+    }[key]
     cfg = RunConfig.from_dict({"detector": {key: good}})
-    assert getattr(cfg.detector, key) == good and getattr(cfg.detector, key) != getattr(DetectorConfig(), key)
-    assert RunConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg  # through a config file's JSON
+    assert getattr(cfg.detector, key) == good and getattr(cfg.detector, key) != getattr(
+        DetectorConfig(), key
+    )
+    assert (
+        RunConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    )  # through a config file's JSON
 
 
 def test_the_range_band_must_be_a_band():

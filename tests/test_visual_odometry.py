@@ -45,15 +45,25 @@ def _simulate(tmp_path_factory, lighting: str):
     from lunarloc.sim.simulate import SimulationConfig, simulate_site, simulate_traverse
     from lunarloc.sim.site import SiteConfig
 
-    site_cfg = SiteConfig(size_m=14.0, terrain_margin_m=3.0, resolution_m=0.2, n_rocks=80, rover_start_xy=(-3.0, -2.0))
+    site_cfg = SiteConfig(
+        size_m=14.0, terrain_margin_m=3.0, resolution_m=0.2, n_rocks=80, rover_start_xy=(-3.0, -2.0)
+    )
     from lunarloc.sim.render import RenderConfig
 
     cfg = SimulationConfig(
-        site=site_cfg, duration_s=12.0, image_rate_hz=2.0, width=W, height=H,
-        cameras=("FrontLeft", "FrontRight"), semantic=False, render=RenderConfig(lighting=lighting),
-    )  # fmt: skip
+        site=site_cfg,
+        duration_s=12.0,
+        image_rate_hz=2.0,
+        width=W,
+        height=H,
+        cameras=("FrontLeft", "FrontRight"),
+        semantic=False,
+        render=RenderConfig(lighting=lighting),
+    )
     site = simulate_site(3, cfg)
-    path, _ = simulate_traverse(site, tmp_path_factory.mktemp("vo") / f"t-{lighting.replace('+', '-')}.lac", 0, cfg)
+    path, _ = simulate_traverse(
+        site, tmp_path_factory.mktemp("vo") / f"t-{lighting.replace('+', '-')}.lac", 0, cfg
+    )
     with LacArchive(path) as a:
         frames = a.camera_frames("FrontLeft")["frame"].astype(int)
         index = {int(f): i for i, f in enumerate(a.frame_numbers)}
@@ -74,7 +84,10 @@ def _errors(T_est, T_true):
     final_m = float(np.linalg.norm(est[-1, :3, 3] - tru[-1, :3, 3]))
     rot_deg = float(np.degrees(rotation_angle(est[-1, :3, :3].T @ tru[-1, :3, :3])))
     steps = [
-        np.linalg.norm((invert_transform(est[i - 1]) @ est[i])[:3, 3] - (invert_transform(tru[i - 1]) @ tru[i])[:3, 3])
+        np.linalg.norm(
+            (invert_transform(est[i - 1]) @ est[i])[:3, 3]
+            - (invert_transform(tru[i - 1]) @ tru[i])[:3, 3]
+        )
         for i in range(1, len(est))
     ]
     return length, final_m, rot_deg, max(steps)
@@ -236,7 +249,9 @@ def test_config_round_trip_and_validation():
 def test_archive_without_front_images_is_refused(tmp_path):
     from lunarloc.io.lac.archive import LacArchive, LacWriter
 
-    cams = {n: {"camera_active": False, "width": W, "height": H} for n in ("FrontLeft", "FrontRight")}
+    cams = {
+        n: {"camera_active": False, "width": W, "height": H} for n in ("FrontLeft", "FrontRight")
+    }
     path = tmp_path / "noimg.lac"
     with LacWriter(path, {"lander": [0.0] * 6, "rover": [0.0] * 6, "cameras": cams}) as w:
         w.add_frame(0, x=0.0, y=0.0, z=0.0, roll=0.0, pitch=0.0, yaw=0.0)
@@ -258,17 +273,31 @@ def test_local_contrast_removes_the_flow_bias_of_a_camera_fixed_light():
     big = (big - big.min()) / (big.max() - big.min())
     y, x = np.mgrid[0:h, 0:w].astype(np.float32)
     cone = np.exp(-((x - w / 2) ** 2 / (2 * 200**2) + (y - h) ** 2 / (2 * 150**2)))
-    moved = cv2.warpAffine(big, np.float32([[1, 0, 0], [0, 1, shift]]), (w + 40, h + 40), flags=cv2.INTER_CUBIC)
+    moved = cv2.warpAffine(
+        big, np.float32([[1, 0, 0], [0, 1, shift]]), (w + 40, h + 40), flags=cv2.INTER_CUBIC
+    )
     # albedo 150 +- 50 grey levels times the cone: nothing saturates
-    a, b = (np.clip(10 + cone * (150 + 100 * (t[20 : 20 + h, 20 : 20 + w] - 0.5)), 0, 255).astype(np.uint8)
-            for t in (big, moved))  # fmt: skip
+    a, b = (
+        np.clip(10 + cone * (150 + 100 * (t[20 : 20 + h, 20 : 20 + w] - 0.5)), 0, 255).astype(
+            np.uint8
+        )
+        for t in (big, moved)
+    )
     pts = cv2.goodFeaturesToTrack(a, 400, 0.01, 10).reshape(-1, 2)
-    pts = pts[(pts[:, 1] > 40) & (pts[:, 1] < h - 40) & (pts[:, 0] > 40) & (pts[:, 0] < w - 40)].astype(np.float32)
+    pts = pts[
+        (pts[:, 1] > 40) & (pts[:, 1] < h - 40) & (pts[:, 0] > 40) & (pts[:, 0] < w - 40)
+    ].astype(np.float32)
     bias = {}
     for norm in ("none", "local-contrast"):
-        vo = StereoVisualOdometry(camera, rig["FrontLeft"].T_rover_optical, rig["FrontRight"].T_rover_optical,
-                                  VisualOdometryConfig(normalization=norm))  # fmt: skip
-        uv, st, _ = cv2.calcOpticalFlowPyrLK(vo._normalize(a), vo._normalize(b), pts, None, **vo._lk)
+        vo = StereoVisualOdometry(
+            camera,
+            rig["FrontLeft"].T_rover_optical,
+            rig["FrontRight"].T_rover_optical,
+            VisualOdometryConfig(normalization=norm),
+        )
+        uv, st, _ = cv2.calcOpticalFlowPyrLK(
+            vo._normalize(a), vo._normalize(b), pts, None, **vo._lk
+        )
         ok = st.ravel() == 1
         assert ok.sum() > 200
         bias[norm] = float((uv - pts)[ok, 1].mean()) - shift
@@ -291,4 +320,6 @@ def test_normalization_is_a_checked_enum_that_round_trips():
     vo = StereoVisualOdometry(CAMERA, T_LEFT, T_RIGHT, VisualOdometryConfig(normalization="none"))
     assert vo._normalize(img) is img
     out = StereoVisualOdometry(CAMERA, T_LEFT, T_RIGHT)._normalize(img)
-    assert out.dtype == np.uint8 and out.shape == img.shape and np.all(out == 128)  # flat: no contrast
+    assert (
+        out.dtype == np.uint8 and out.shape == img.shape and np.all(out == 128)
+    )  # flat: no contrast

@@ -16,11 +16,20 @@ from lunarloc.viz import plot_run
 
 def test_plot_run_writes_figures(tmp_path):
     rocks, trav = synthetic_traverse(length_m=10.0)
-    res = run(TraverseCsvSource(trav, DriftModel(0.1, 0.03)), LandmarkMap(rocks), RunConfig.for_detections())
+    res = run(
+        TraverseCsvSource(trav, DriftModel(0.1, 0.03)),
+        LandmarkMap(rocks),
+        RunConfig.for_detections(),
+    )
     res.rocks = np.column_stack([np.arange(len(rocks)), rocks, np.full(len(rocks), 0.1)])
-    res.example = {"image": (np.random.default_rng(0).uniform(0, 255, (90, 160))).astype(np.uint8),
-                   "uv": np.array([[40.0, 50.0]]), "radius_px": np.array([5.0]), "depth_m": np.array([3.2]),
-                   "frame": 10, "camera": "FrontLeft"}
+    res.example = {
+        "image": (np.random.default_rng(0).uniform(0, 255, (90, 160))).astype(np.uint8),
+        "uv": np.array([[40.0, 50.0]]),
+        "radius_px": np.array([5.0]),
+        "depth_m": np.array([3.2]),
+        "frame": 10,
+        "camera": "FrontLeft",
+    }
     write_run(res, tmp_path)
     paths = plot_run(tmp_path, tmp_path / "fig")
     assert sorted(p.name for p in paths) == ["error.png", "frame.png", "map.png"]

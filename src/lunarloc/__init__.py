@@ -26,7 +26,13 @@ from lunarloc.localization.config import LocalizationConfig, Mode, Solver  # noq
 from lunarloc.localization.result import LocalizationResult  # noqa: E402
 from lunarloc.localization.localize import localize  # noqa: E402
 from lunarloc.io.maps import (  # noqa: E402
-    AggregationConfig, LandmarkMap, VehicleInput, load_map, load_traverse, load_vehicle, save_map,
+    AggregationConfig,
+    LandmarkMap,
+    VehicleInput,
+    load_map,
+    load_traverse,
+    load_vehicle,
+    save_map,
 )
 from lunarloc.io.trajectory import write_kitti, write_tum  # noqa: E402
 
@@ -85,5 +91,6 @@ def __getattr__(name: str):
 
         return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'lunarloc' has no attribute {name!r}")
+
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())

@@ -1,1 +1,4 @@
-import sys; from lunarloc.cli import main; sys.exit(main())
+import sys
+from lunarloc.cli import main
+
+sys.exit(main())

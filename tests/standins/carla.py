@@ -55,8 +55,10 @@ class VehicleVelocityControl:
         self.angular_target_velocity = float(angular_target_velocity)
 
     def __repr__(self) -> str:
-        return (f"VehicleVelocityControl(linear_target_velocity={self.linear_target_velocity}, "
-                f"angular_target_velocity={self.angular_target_velocity})")
+        return (
+            f"VehicleVelocityControl(linear_target_velocity={self.linear_target_velocity}, "
+            f"angular_target_velocity={self.angular_target_velocity})"
+        )
 
 
 # ----------------------------------------------------------------------------- left-handed geometry
@@ -99,14 +101,25 @@ class Transform:
 
     def get_matrix(self) -> list[list[float]]:
         """4x4 (list of rows) mapping local to world, left-handed."""
-        cy, sy = math.cos(math.radians(self.rotation.yaw)), math.sin(math.radians(self.rotation.yaw))
-        cp, sp = math.cos(math.radians(self.rotation.pitch)), math.sin(math.radians(self.rotation.pitch))
-        cr, sr = math.cos(math.radians(self.rotation.roll)), math.sin(math.radians(self.rotation.roll))
+        cy, sy = (
+            math.cos(math.radians(self.rotation.yaw)),
+            math.sin(math.radians(self.rotation.yaw)),
+        )
+        cp, sp = (
+            math.cos(math.radians(self.rotation.pitch)),
+            math.sin(math.radians(self.rotation.pitch)),
+        )
+        cr, sr = (
+            math.cos(math.radians(self.rotation.roll)),
+            math.sin(math.radians(self.rotation.roll)),
+        )
         loc = self.location
-        return [[cp * cy, cy * sp * sr - sy * cr, -cy * sp * cr - sy * sr, loc.x],
-                [cp * sy, sy * sp * sr + cy * cr, -sy * sp * cr + cy * sr, loc.y],
-                [sp, -cp * sr, cp * cr, loc.z],
-                [0.0, 0.0, 0.0, 1.0]]  # fmt: skip
+        return [
+            [cp * cy, cy * sp * sr - sy * cr, -cy * sp * cr - sy * sr, loc.x],
+            [cp * sy, sy * sp * sr + cy * cr, -sy * sp * cr + cy * sr, loc.y],
+            [sp, -cp * sr, cp * cr, loc.z],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
 
     def get_inverse_matrix(self) -> list[list[float]]:
         return np.linalg.inv(np.array(self.get_matrix())).tolist()
@@ -116,7 +129,9 @@ class Transform:
         return Location(*p[:3])
 
     def inverse_transform(self, location: Location) -> Location:
-        p = np.array(self.get_inverse_matrix()) @ np.array([location.x, location.y, location.z, 1.0])
+        p = np.array(self.get_inverse_matrix()) @ np.array(
+            [location.x, location.y, location.z, 1.0]
+        )
         return Location(*p[:3])
 
     def __repr__(self) -> str:

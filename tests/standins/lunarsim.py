@@ -72,7 +72,12 @@ LIGHT_MOUNTS = {
     SP.Front: (0.636, 0.0147, 0.023, 0.0, math.pi / 2, 0.0),
     SP.Back: (-0.562, -0.013, 0.144, 0.0, -0.524, 0.0),
 }
-RENDERED_LAMPS = ("FrontLeft", "FrontRight", "BackLeft", "BackRight")  # the lamps lunarloc's renderer models
+RENDERED_LAMPS = (
+    "FrontLeft",
+    "FrontRight",
+    "BackLeft",
+    "BackRight",
+)  # the lamps lunarloc's renderer models
 
 
 class _Actor:
@@ -104,7 +109,9 @@ class SimVehicle:
     def get_front_arm_angle(self) -> float:
         return 0.0
 
-    get_back_arm_angle = get_front_drums_speed = get_back_drums_speed = get_radiator_cover_angle = get_front_arm_angle
+    get_back_arm_angle = get_front_drums_speed = get_back_drums_speed = get_radiator_cover_angle = (
+        get_front_arm_angle
+    )
 
     def get_current_power(self) -> float:
         return 283.0
@@ -131,7 +138,10 @@ class SimVehicle:
         self.light_state[p] = float(value)
 
     def apply_velocity_control(self, control: carla.VehicleVelocityControl) -> None:
-        self.command = (float(control.linear_target_velocity), -float(control.angular_target_velocity))
+        self.command = (
+            float(control.linear_target_velocity),
+            -float(control.angular_target_velocity),
+        )
 
 
 class SimWorld:
@@ -140,15 +150,26 @@ class SimWorld:
 
     delta_seconds = 0.05
 
-    def __init__(self, seed: int, n_rocks: int = 386, lighting: str = "sun+lamps", start=None, slip: float = 0.0,
-                 render: RenderConfig | None = None):  # fmt: skip
+    def __init__(
+        self,
+        seed: int,
+        n_rocks: int = 386,
+        lighting: str = "sun+lamps",
+        start=None,
+        slip: float = 0.0,
+        render: RenderConfig | None = None,
+    ):
         self.site = generate_site(seed, SiteConfig(n_rocks=n_rocks))
         self.renderer = SiteRenderer(self.site, render or RenderConfig(lighting=lighting))
         self.rover_cfg = RoverConfig()
         if start is None:
             x, y = self.site.rover_start_xy
             lx, ly = self.site.lander_xyz[:2]
-            start = (x, y, math.atan2(x - lx, -(y - ly)))  # tangent, counter-clockwise about the lander
+            start = (
+                x,
+                y,
+                math.atan2(x - lx, -(y - ly)),
+            )  # tangent, counter-clockwise about the lander
         self.x, self.y, self.yaw = (float(v) for v in start)
         self.slip = float(slip)
         self.vehicle = SimVehicle(self)
@@ -182,9 +203,15 @@ class SimWorld:
         for p, size in cameras.items():
             by_size.setdefault(tuple(size), []).append(p)
         for (w, h), ps in by_size.items():
-            poses = [self.T_world_rover @ pose_to_matrix(*CAMERA_MOUNTS[p]) @ T_CAM_OPTICAL for p in ps]
-            shots = self.renderer.render(poses, PinholeCamera(w, h, 70.0), T_world_rover=self.T_world_rover,
-                                         light_intensity=lamps)  # fmt: skip
+            poses = [
+                self.T_world_rover @ pose_to_matrix(*CAMERA_MOUNTS[p]) @ T_CAM_OPTICAL for p in ps
+            ]
+            shots = self.renderer.render(
+                poses,
+                PinholeCamera(w, h, 70.0),
+                T_world_rover=self.T_world_rover,
+                light_intensity=lamps,
+            )
             for p, (gray, sem) in zip(ps, shots):
                 bgra = np.empty((h, w, 4), np.uint8)
                 bgra[:, :, :3] = gray[:, :, None]
@@ -241,16 +268,27 @@ class Run:
     scores: dict | None = None
 
 
-def run_agent(agent_file, conf_path, world: SimWorld, duration_s: float, *, evaluation: bool = True,
-              constants: Constants | None = None, score: bool = False, quiet: bool = True,
-              observe=None) -> Run:  # fmt: skip
+def run_agent(
+    agent_file,
+    conf_path,
+    world: SimWorld,
+    duration_s: float,
+    *,
+    evaluation: bool = True,
+    constants: Constants | None = None,
+    score: bool = False,
+    quiet: bool = True,
+    observe=None,
+) -> Run:
     """Load `agent_file` through the stand-in wrapper, set it up with `conf_path`, and run
     the mission for `duration_s` of mission time (or until the agent calls
     ``mission_complete()``). ``run_step`` times and ``get_transform()`` calls are recorded;
     ``observe(agent)``, when given, is called after every ``run_step``."""
     constants = constants or Constants()
     t0 = time.perf_counter()
-    wrapper = AgentWrapper(world, str(agent_file), "" if conf_path is None else str(conf_path), evaluation)
+    wrapper = AgentWrapper(
+        world, str(agent_file), "" if conf_path is None else str(conf_path), evaluation
+    )
     agent = wrapper.agent
     run = Run(agent=agent, ticks=0, mission_time_s=0.0)
     inner_run_step, inner_get_transform = agent.run_step, agent.get_transform
@@ -275,7 +313,9 @@ def run_agent(agent_file, conf_path, world: SimWorld, duration_s: float, *, eval
     stdout = sys.stdout
     try:
         if quiet:
-            sys.stdout = open(os.devnull, "w")  # the base class prints a line per tick, as the real one does
+            sys.stdout = open(
+                os.devnull, "w"
+            )  # the base class prints a line per tick, as the real one does
         wrapper.setup(world.vehicle, world.lander, constants)
         run.setup_s = time.perf_counter() - t0
         manager.run()
@@ -285,6 +325,11 @@ def run_agent(agent_file, conf_path, world: SimWorld, duration_s: float, *, eval
             sys.stdout = stdout
     run.ticks, run.mission_time_s = manager.ticks, manager.mission_duration_s
     if score:
-        run.scores = mission_scores(world.ground_truth_map(constants), wrapper.get_agent_map(), run.mission_time_s,
-                                    wrapper.agent_fiducials, constants)  # fmt: skip
+        run.scores = mission_scores(
+            world.ground_truth_map(constants),
+            wrapper.get_agent_map(),
+            run.mission_time_s,
+            wrapper.agent_fiducials,
+            constants,
+        )
     return run

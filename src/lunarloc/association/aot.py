@@ -41,8 +41,18 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["njit", "Kernel", "jit_only", "aot_status", "build_aot", "AotBuild", "AOT_MODULE", "prepare_kernels",
-           "KernelPreparation", "exercising"]
+__all__ = [
+    "njit",
+    "Kernel",
+    "jit_only",
+    "aot_status",
+    "build_aot",
+    "AotBuild",
+    "AOT_MODULE",
+    "prepare_kernels",
+    "KernelPreparation",
+    "exercising",
+]
 
 AOT_MODULE = "_aot_kernels"
 """Name of the ahead-of-time extension module (in this package)."""
@@ -149,7 +159,10 @@ def jit_only():
 # --------------------------------------------------------------------------- argument checks
 
 _SCALARS = {
-    "i8": (int, np.int64), "i4": (np.int32,), "f8": (float, np.float64), "f4": (np.float32,),
+    "i8": (int, np.int64),
+    "i4": (np.int32,),
+    "f8": (float, np.float64),
+    "f4": (np.float32,),
     "b1": (bool, np.bool_),
 }
 """Scalar codes of the table and the Python types numba types the same way (``int`` is
@@ -188,6 +201,7 @@ def _matches(checks: tuple, args: tuple) -> bool:
 
 # --------------------------------------------------------------------------- loading
 
+
 def _table_path(folder: Path) -> Path:
     return folder / f"{AOT_MODULE}.json"
 
@@ -224,19 +238,25 @@ def _load_table(folder: Path = _HERE) -> dict:
     current, built = _sources(), meta.get("sources") or {}
     if built != current:
         changed = sorted(k for k in set(current) | set(built) if current.get(k) != built.get(k))
-        _STATE["reason"] = f"stale: built from other sources of {', '.join(changed)} (run `lunarloc warm-up`)"
+        _STATE["reason"] = (
+            f"stale: built from other sources of {', '.join(changed)} (run `lunarloc warm-up`)"
+        )
         return {}
     try:
         import importlib.util
 
-        spec = importlib.util.spec_from_file_location(f"{__package__}.{AOT_MODULE}", folder / str(meta.get("module")))
+        spec = importlib.util.spec_from_file_location(
+            f"{__package__}.{AOT_MODULE}", folder / str(meta.get("module"))
+        )
         if spec is None or spec.loader is None:
             raise ImportError(f"not an extension module: {meta.get('module')}")
         mod = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(mod)
         if mod.aot_build_id() != meta.get("build_id"):  # a module from another build than the table
             raise ImportError("build id differs from the table's")
-    except Exception as exc:  # missing, broken, foreign or mismatched binary: the JIT path still works
+    except (
+        Exception
+    ) as exc:  # missing, broken, foreign or mismatched binary: the JIT path still works
         _STATE["reason"] = f"cannot load {meta.get('module')}: {type(exc).__name__}: {exc}"
         return {}
     table: dict = {}
@@ -288,8 +308,12 @@ class KernelPreparation:
     detail: str = ""
 
     def to_dict(self) -> dict:
-        return {"source": self.source, "seconds": round(self.seconds, 3), "compiled": self.compiled,
-                "detail": self.detail}
+        return {
+            "source": self.source,
+            "seconds": round(self.seconds, 3),
+            "compiled": self.compiled,
+            "detail": self.detail,
+        }
 
 
 @contextmanager
@@ -324,16 +348,23 @@ def prepare_kernels(exercise) -> KernelPreparation:
     with _PREP_LOCK:
         done = _PREP["done"]
         if done is not None:
-            return KernelPreparation("ready", 0.0, detail=f"done earlier in this process ({done.source})")
+            return KernelPreparation(
+                "ready", 0.0, detail=f"done earlier in this process ({done.source})"
+            )
         t0 = time.perf_counter()
         status = aot_status()
         if status.startswith("loaded"):
             _PREP["done"] = KernelPreparation("aot", time.perf_counter() - t0, detail=status)
             logger.debug("association kernels: ahead-of-time module %s", status)
             return _PREP["done"]
-        announce = threading.Timer(ANNOUNCE_AFTER_S, logger.warning, args=(
-            "preparing the association kernels: numba compiles them on the first use after install (up to a "
-            "minute, once; cached for later runs; `lunarloc warm-up` does it ahead of time) ...",))  # fmt: skip
+        announce = threading.Timer(
+            ANNOUNCE_AFTER_S,
+            logger.warning,
+            args=(
+                "preparing the association kernels: numba compiles them on the first use after install (up to a "
+                "minute, once; cached for later runs; `lunarloc warm-up` does it ahead of time) ...",
+            ),
+        )
         announce.daemon = True
         before = _compiled_signatures()
         announce.start()
@@ -349,19 +380,28 @@ def prepare_kernels(exercise) -> KernelPreparation:
             done = KernelPreparation("ready", seconds, 0, "warmed up earlier in this process")
         elif compiled:
             done = KernelPreparation("compiled", seconds, compiled, why)
-            logger.warning("association kernels compiled in %.1f s (%d signatures; cached for later runs; not "
-                           "counted as localization time)", seconds, compiled)  # fmt: skip
+            logger.warning(
+                "association kernels compiled in %.1f s (%d signatures; cached for later runs; not "
+                "counted as localization time)",
+                seconds,
+                compiled,
+            )
         else:
             done = KernelPreparation("cache", seconds, 0, why)
             # announced above (a slow load, a busy machine): the closing line at the same level
-            logger.log(logging.WARNING if seconds >= ANNOUNCE_AFTER_S else logging.INFO,
-                       "association kernels loaded from numba's cache in %.2f s (%s; not counted as "
-                       "localization time)", seconds, why)  # fmt: skip
+            logger.log(
+                logging.WARNING if seconds >= ANNOUNCE_AFTER_S else logging.INFO,
+                "association kernels loaded from numba's cache in %.2f s (%s; not counted as "
+                "localization time)",
+                seconds,
+                why,
+            )
         _PREP["done"] = done
         return done
 
 
 # --------------------------------------------------------------------------- building
+
 
 @dataclass
 class AotBuild:
@@ -451,10 +491,14 @@ def build_aot(exercise, folder: Path | None = None, *, verbose: bool = False) ->
                     continue
                 export = f"k{n}_{k.func.__name__.strip('_')}"
                 cc.export(export, k.dispatcher.overloads[sig].signature)(k.func)
-                kernels.setdefault(k.key, []).append({"export": export, "args": spec, "numba_signature": str(sig)})
+                kernels.setdefault(k.key, []).append(
+                    {"export": export, "args": spec, "numba_signature": str(sig)}
+                )
                 n += 1
         if n == 0:
-            return AotBuild(None, 0, time.perf_counter() - t0, "no kernel signature to compile", skipped)
+            return AotBuild(
+                None, 0, time.perf_counter() - t0, "no kernel signature to compile", skipped
+            )
         saved = pycc_compiler.Flags
         pycc_compiler.Flags = _NoGilFlags
         try:
@@ -463,13 +507,27 @@ def build_aot(exercise, folder: Path | None = None, *, verbose: bool = False) ->
                 cc.compile()
         finally:
             pycc_compiler.Flags = saved
-        built = [p for p in Path(tmp).iterdir() if p.name.startswith(AOT_MODULE) and p.suffix in (".so", ".pyd")]
+        built = [
+            p
+            for p in Path(tmp).iterdir()
+            if p.name.startswith(AOT_MODULE) and p.suffix in (".so", ".pyd")
+        ]
         if len(built) != 1:
-            raise RuntimeError(f"numba.pycc wrote {[p.name for p in Path(tmp).iterdir()]}, expected one {AOT_MODULE} module")
+            raise RuntimeError(
+                f"numba.pycc wrote {[p.name for p in Path(tmp).iterdir()]}, expected one {AOT_MODULE} module"
+            )
         import numba
 
-        meta = {"format": AOT_FORMAT, "module": built[0].name, "build_id": build_id, "sources": _sources(), "numba": numba.__version__,
-                "python": sys.version.split()[0], "target_cpu": cc.target_cpu, "kernels": kernels}
+        meta = {
+            "format": AOT_FORMAT,
+            "module": built[0].name,
+            "build_id": build_id,
+            "sources": _sources(),
+            "numba": numba.__version__,
+            "python": sys.version.split()[0],
+            "target_cpu": cc.target_cpu,
+            "kernels": kernels,
+        }
         folder.mkdir(parents=True, exist_ok=True)
         table = _table_path(folder)
         table.unlink(missing_ok=True)  # no table names a half-written module

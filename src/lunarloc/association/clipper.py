@@ -40,7 +40,9 @@ def clipper_clique(
     used, inv = np.unique(np.r_[eu, ev], return_inverse=True)
     eu, ev = inv[: len(eu)], inv[len(eu) :]
     n = len(used)
-    W = sp.coo_matrix((np.r_[ew, ew].astype(float), (np.r_[eu, ev], np.r_[ev, eu])), shape=(n, n)).tocsr()
+    W = sp.coo_matrix(
+        (np.r_[ew, ew].astype(float), (np.r_[eu, ev], np.r_[ev, eu])), shape=(n, n)
+    ).tocsr()
     A = W.copy()
     A.data[:] = 1.0
     rng = np.random.default_rng(seed)

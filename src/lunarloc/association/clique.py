@@ -386,7 +386,9 @@ def _peeled_max_clique(eu: np.ndarray, ev: np.ndarray, lb: int, scratch: np.ndar
     return out
 
 
-def peel(eu: np.ndarray, ev: np.ndarray, lower_bound: int, scratch: np.ndarray | None = None) -> np.ndarray:
+def peel(
+    eu: np.ndarray, ev: np.ndarray, lower_bound: int, scratch: np.ndarray | None = None
+) -> np.ndarray:
     """Boolean mask of the edges that survive removing, repeatedly, every vertex of
     degree < lower_bound: only those can belong to a clique larger than lower_bound."""
     eu = np.ascontiguousarray(eu, dtype=np.int32)
@@ -401,7 +403,9 @@ def peel(eu: np.ndarray, ev: np.ndarray, lower_bound: int, scratch: np.ndarray |
     return keep
 
 
-def max_clique(n: int, eu: np.ndarray, ev: np.ndarray, lower_bound: int = 0, scratch: np.ndarray | None = None) -> np.ndarray:
+def max_clique(
+    n: int, eu: np.ndarray, ev: np.ndarray, lower_bound: int = 0, scratch: np.ndarray | None = None
+) -> np.ndarray:
     """Vertices of a maximum clique of an undirected graph with `n` vertices and edges
     (eu[k], ev[k]); empty if no clique has more than `lower_bound` vertices.
 
@@ -445,7 +449,7 @@ def _bin_bounds(ptr: np.ndarray, su: np.ndarray, sv: np.ndarray, scratch: np.nda
         ne = ptr[k + 1] - e0
         if ne <= 0:
             continue
-        m = _relabel_into(su[e0:e0 + ne], sv[e0:e0 + ne], keep_all[:ne], scratch, tu, tv, oldid)
+        m = _relabel_into(su[e0 : e0 + ne], sv[e0 : e0 + ne], keep_all[:ne], scratch, tu, tv, oldid)
         _csr_into(m, tu, tv, ne, indptr, fill, indices)
         core, order = core_numbers(m, indptr[: m + 1], indices[: indptr[m]])
         top = order[m - 1]
@@ -484,5 +488,9 @@ def bin_clique_bounds(ptr: np.ndarray, su: np.ndarray, sv: np.ndarray, scratch: 
     """(upper, lower) bounds on the maximum clique of each bin's graph of one chunk
     (edges su/sv[ptr[k]:ptr[k+1]], association ids < len(scratch); scratch: int32 filled
     with -1, restored). Bins without edges give (0, 0)."""
-    return _bin_bounds(np.asarray(ptr, dtype=np.int64), np.ascontiguousarray(su, dtype=np.int32),
-                       np.ascontiguousarray(sv, dtype=np.int32), scratch)
+    return _bin_bounds(
+        np.asarray(ptr, dtype=np.int64),
+        np.ascontiguousarray(su, dtype=np.int32),
+        np.ascontiguousarray(sv, dtype=np.int32),
+        scratch,
+    )

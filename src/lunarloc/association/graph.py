@@ -28,7 +28,14 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from lunarloc.association.aot import njit
 
-__all__ = ["graph_3d", "RefPairIndex", "sweep_bin_chunks", "sweep_yaw_bins", "vehicle_pairs", "yaw_bin_chunks"]
+__all__ = [
+    "graph_3d",
+    "RefPairIndex",
+    "sweep_bin_chunks",
+    "sweep_yaw_bins",
+    "vehicle_pairs",
+    "yaw_bin_chunks",
+]
 
 
 @njit(cache=True)
@@ -146,7 +153,9 @@ class RefPairIndex:
     def __init__(self, ref_xyz: np.ndarray, dist_cell_m: float, angle_cell_rad: float):
         q = np.ascontiguousarray(ref_xyz, dtype=np.float64)
         n = len(q)
-        d = (q[None, :, :] - q[:, None, :]).reshape(-1, 3)  # row a * n + b: q[b] - q[a] (diagonal dropped below)
+        d = (q[None, :, :] - q[:, None, :]).reshape(
+            -1, 3
+        )  # row a * n + b: q[b] - q[a] (diagonal dropped below)
         dh = np.hypot(d[:, 0], d[:, 1])
         phi = np.arctan2(d[:, 1], d[:, 0])
         self.dist_cell = float(dist_cell_m)
@@ -154,7 +163,15 @@ class RefPairIndex:
         self.angle_cell = 2 * math.pi / self.n_angle
         self.n_dist = int(dh.max() / self.dist_cell) + 2 if n > 1 else 1
         self.a, self.b, self.dh, self.phi, self.dz, self.abin, self.row_ptr = _bucket_pairs(
-            n, dh, phi, np.ascontiguousarray(d[:, 2]), self.dist_cell, self.n_dist, self.angle_cell, self.n_angle)
+            n,
+            dh,
+            phi,
+            np.ascontiguousarray(d[:, 2]),
+            self.dist_cell,
+            self.n_dist,
+            self.angle_cell,
+            self.n_angle,
+        )
 
 
 @njit(cache=True, nogil=True)
@@ -240,9 +257,33 @@ def _wrap(x):
 
 @njit(cache=True, nogil=True, boundscheck=False)
 def _yaw_chunk_incidences(
-    pi, pj, pdh, pphi, pdz,
-    qa, qb, qdh, qphi, qdz, abin, row_ptr, n_dist, n_angle, dist_cell, angle_cell,
-    node_of, bin0, k_first, k_last, n_bins, eps_h, eps_z, tan_tilt, k_yaw, sigma, want_w,
+    pi,
+    pj,
+    pdh,
+    pphi,
+    pdz,
+    qa,
+    qb,
+    qdh,
+    qphi,
+    qdz,
+    abin,
+    row_ptr,
+    n_dist,
+    n_angle,
+    dist_cell,
+    angle_cell,
+    node_of,
+    bin0,
+    k_first,
+    k_last,
+    n_bins,
+    eps_h,
+    eps_z,
+    tan_tilt,
+    k_yaw,
+    sigma,
+    want_w,
 ):
     """Edges of the yaw bins bin0 + k, k in [k_first, k_last], bucketed by bin: (ptr, u, v, w)
     with bin bin0 + k_first + t's edges at ptr[t]:ptr[t + 1].
@@ -381,8 +422,22 @@ def yaw_bin_chunks(n_bins: int, chunk_bins: int, bins) -> list[tuple[int, int, i
     return [(b0, ks[0], ks[-1]) for b0, ks in out.items()]
 
 
-def sweep_bin_chunks(vpairs, index: RefPairIndex, node_of, n_bins: int, chunks, eps_h, eps_z, tan_tilt, k_yaw,
-                     sigma, visit_chunk, *, weights: bool = True, workers: int = 2) -> int:
+def sweep_bin_chunks(
+    vpairs,
+    index: RefPairIndex,
+    node_of,
+    n_bins: int,
+    chunks,
+    eps_h,
+    eps_z,
+    tan_tilt,
+    k_yaw,
+    sigma,
+    visit_chunk,
+    *,
+    weights: bool = True,
+    workers: int = 2,
+) -> int:
     """Build the consistency graphs of the yaw bins of `chunks` ((bin0, k_first, k_last)
     from :func:`yaw_bin_chunks`, run in the given order) and hand each chunk to
     ``visit_chunk(bins, ptr, eu, ev, ew)``: bin ``bins[t]``'s edges are ``eu/ev/ew[ptr[t]:ptr[t + 1]]``.
@@ -395,11 +450,33 @@ def sweep_bin_chunks(vpairs, index: RefPairIndex, node_of, n_bins: int, chunks, 
     def run_chunk(c):
         b0, k_first, k_last = c
         ptr, su, sv, sw = _yaw_chunk_incidences(
-            pi, pj, pdh, pphi, pdz,
-            index.a, index.b, index.dh, index.phi, index.dz, index.abin, index.row_ptr,
-            index.n_dist, index.n_angle, index.dist_cell, index.angle_cell,
-            node_of, b0, k_first, k_last, n_bins, float(eps_h), float(eps_z), float(tan_tilt), float(k_yaw),
-            float(sigma), bool(weights),
+            pi,
+            pj,
+            pdh,
+            pphi,
+            pdz,
+            index.a,
+            index.b,
+            index.dh,
+            index.phi,
+            index.dz,
+            index.abin,
+            index.row_ptr,
+            index.n_dist,
+            index.n_angle,
+            index.dist_cell,
+            index.angle_cell,
+            node_of,
+            b0,
+            k_first,
+            k_last,
+            n_bins,
+            float(eps_h),
+            float(eps_z),
+            float(tan_tilt),
+            float(k_yaw),
+            float(sigma),
+            bool(weights),
         )
         visit_chunk([(b0 + k) % n_bins for k in range(k_first, k_last + 1)], ptr, su, sv, sw)
         return len(su)
@@ -421,13 +498,30 @@ def _thread_pool(workers: int) -> ThreadPoolExecutor:
     with _POOLS_LOCK:
         pool = _POOLS.get(workers)
         if pool is None:
-            pool = _POOLS[workers] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="lunarloc-yaw")
+            pool = _POOLS[workers] = ThreadPoolExecutor(
+                max_workers=workers, thread_name_prefix="lunarloc-yaw"
+            )
         return pool
 
 
-def sweep_yaw_bins(vpairs, index: RefPairIndex, node_of, n_bins: int, chunk_bins: int,
-                   eps_h, eps_z, tan_tilt, k_yaw, sigma, visit, *, weights: bool = True,
-                   bin_start: int = 0, bin_count: int | None = None, workers: int = 2) -> int:
+def sweep_yaw_bins(
+    vpairs,
+    index: RefPairIndex,
+    node_of,
+    n_bins: int,
+    chunk_bins: int,
+    eps_h,
+    eps_z,
+    tan_tilt,
+    k_yaw,
+    sigma,
+    visit,
+    *,
+    weights: bool = True,
+    bin_start: int = 0,
+    bin_count: int | None = None,
+    workers: int = 2,
+) -> int:
     """Build the consistency graph of every relative-yaw bin and hand it to
     ``visit(bin, theta, eu, ev, ew)`` (edges between association ids from `node_of`).
 
@@ -445,5 +539,18 @@ def sweep_yaw_bins(vpairs, index: RefPairIndex, node_of, n_bins: int, chunk_bins
             visit(b, -math.pi + (b + 0.5) * step, su[sl], sv[sl], sw[sl])
 
     chunks = yaw_bin_chunks(n_bins, chunk_bins, range(bin_start, bin_start + bin_count))
-    return sweep_bin_chunks(vpairs, index, node_of, n_bins, chunks, eps_h, eps_z, tan_tilt, k_yaw, sigma,
-                            visit_chunk, weights=weights, workers=workers)
+    return sweep_bin_chunks(
+        vpairs,
+        index,
+        node_of,
+        n_bins,
+        chunks,
+        eps_h,
+        eps_z,
+        tan_tilt,
+        k_yaw,
+        sigma,
+        visit_chunk,
+        weights=weights,
+        workers=workers,
+    )

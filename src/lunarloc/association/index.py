@@ -53,9 +53,13 @@ class IndexConfig:
     # lattice, a copied map) shows its repeats among them, so the answer is judged against them
     # (with 3, 2 m jittered lattices were claimed at the wrong copy in 15 of 40 runs, docs/verification.md)
     max_candidates: int = 8
-    competitor_vote_ratio: float = 0.1  # the runner-up region is checked exactly from this share of the winner's votes
+    competitor_vote_ratio: float = (
+        0.1  # the runner-up region is checked exactly from this share of the winner's votes
+    )
     min_votes: int = 4  # a candidate needs this many (neighbourhood-summed) votes
-    candidate_separation_m: float = 4.0  # candidates closer than this (and within 2 yaw cells) are one
+    candidate_separation_m: float = (
+        4.0  # candidates closer than this (and within 2 yaw cells) are one
+    )
     # reference rocks within this of the placed vehicle map are kept: at least the separation of
     # two candidates, so that a competitor merged into a candidate by the non-maximum
     # suppression (a copy shifted by less than the separation) lies inside its crop, where the
@@ -71,13 +75,20 @@ class IndexConfig:
             raise ConfigError(f"max_side_m must be positive, got {self.max_side_m}")
         if not 0 <= self.min_side_ratio < 1:
             raise ConfigError(f"min_side_ratio must be in [0, 1), got {self.min_side_ratio}")
-        for name in ("translation_cell_m", "yaw_cell_deg", "candidate_separation_m", "crop_margin_m"):
+        for name in (
+            "translation_cell_m",
+            "yaw_cell_deg",
+            "candidate_separation_m",
+            "crop_margin_m",
+        ):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name} must be positive, got {getattr(self, name)}")
         if self.max_candidates < 1 or self.min_votes < 1 or self.chunk_pairs < 1:
             raise ConfigError("max_candidates, min_votes and chunk_pairs must be >= 1")
         if not 0 <= self.competitor_vote_ratio <= 1:
-            raise ConfigError(f"competitor_vote_ratio must be in [0, 1], got {self.competitor_vote_ratio}")
+            raise ConfigError(
+                f"competitor_vote_ratio must be in [0, 1], got {self.competitor_vote_ratio}"
+            )
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -86,7 +97,9 @@ class IndexConfig:
 # --------------------------------------------------------------------------- triangles
 
 
-def triangles(xy: np.ndarray, max_side: float, min_side: float, chunk_pairs: int = 200_000) -> np.ndarray:
+def triangles(
+    xy: np.ndarray, max_side: float, min_side: float, chunk_pairs: int = 200_000
+) -> np.ndarray:
     """Every triangle (i, j, k), i < j < k, of points whose three horizontal sides lie
     in [min_side, max_side], as an (T, 3) int64 array. Work and memory are linear in
     the number of close pairs, enumerated `chunk_pairs` pairs at a time."""
@@ -126,8 +139,14 @@ def _canonical(xyz: np.ndarray, tri: np.ndarray):
     (vertices (T,3), sorted sides (T,3), counter-clockwise (T,) bool)."""
     xy = xyz[:, :2]
     a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    opp = np.stack([np.linalg.norm(xy[b] - xy[c], axis=1), np.linalg.norm(xy[a] - xy[c], axis=1),
-                    np.linalg.norm(xy[a] - xy[b], axis=1)], axis=1)
+    opp = np.stack(
+        [
+            np.linalg.norm(xy[b] - xy[c], axis=1),
+            np.linalg.norm(xy[a] - xy[c], axis=1),
+            np.linalg.norm(xy[a] - xy[b], axis=1),
+        ],
+        axis=1,
+    )
     o = np.argsort(opp, axis=1)
     v = np.take_along_axis(tri, o, axis=1)
     s = np.take_along_axis(opp, o, axis=1)
@@ -151,8 +170,12 @@ class Candidate:
     votes: int
 
     def to_dict(self) -> dict:
-        return {"x_m": round(self.x_m, 3), "y_m": round(self.y_m, 3),
-                "yaw_deg": round(math.degrees(self.yaw_rad), 2), "votes": int(self.votes)}
+        return {
+            "x_m": round(self.x_m, 3),
+            "y_m": round(self.y_m, 3),
+            "yaw_deg": round(math.degrees(self.yaw_rad), 2),
+            "votes": int(self.votes),
+        }
 
 
 @dataclass
@@ -165,7 +188,9 @@ class Votes:
     lookups: int
     matches: int
     centre_xy: np.ndarray  # the vehicle-frame point whose reference position was voted for
-    votes_xy_yaw: np.ndarray | None = None  # (matches, 3): every match's vote (x, y of the centre, yaw rad)
+    votes_xy_yaw: np.ndarray | None = (
+        None  # (matches, 3): every match's vote (x, y of the centre, yaw rad)
+    )
 
 
 class ReferenceIndex:
@@ -176,7 +201,9 @@ class ReferenceIndex:
         cfg = config or IndexConfig()
         P = np.ascontiguousarray(ref_xyz, dtype=np.float64)
         if P.ndim != 2 or P.shape[1] != 3 or len(P) < 3:
-            raise InputError(f"the reference index needs an (N >= 3, 3) array of rock positions, got shape {P.shape}")
+            raise InputError(
+                f"the reference index needs an (N >= 3, 3) array of rock positions, got shape {P.shape}"
+            )
         if not np.all(np.isfinite(P)):
             raise InputError("reference positions must be finite")
         if not epsilon_m > 0:
@@ -218,7 +245,13 @@ class ReferenceIndex:
         q = np.clip(q, 0, self.nq - 1)
         return ((ccw.astype(np.int64) * self.nq + q[:, 0]) * self.nq + q[:, 1]) * self.nq + q[:, 2]
 
-    def vote(self, veh_xyz: np.ndarray, epsilon_z_m: float, tan_tilt: float, max_triangles: int | None = None) -> Votes:
+    def vote(
+        self,
+        veh_xyz: np.ndarray,
+        epsilon_z_m: float,
+        tan_tilt: float,
+        max_triangles: int | None = None,
+    ) -> Votes:
         """Match the vehicle map's triangles against the index and vote for poses.
         `max_triangles`: vote with at most this many of the vehicle map's triangles (evenly
         spread over its list; a quick look at a dense map, whose true pose keeps the same
@@ -227,7 +260,9 @@ class ReferenceIndex:
         V = np.ascontiguousarray(veh_xyz, dtype=np.float64)
         eps = self.epsilon_m
         centre = np.median(V[:, :2], axis=0)
-        tri = triangles(V[:, :2], self.max_side_m + eps, max(self.min_side_m - eps, 0.0), cfg.chunk_pairs)
+        tri = triangles(
+            V[:, :2], self.max_side_m + eps, max(self.min_side_m - eps, 0.0), cfg.chunk_pairs
+        )
         if max_triangles is not None and len(tri) > max_triangles:
             tri = tri[np.linspace(0, len(tri) - 1, max(int(max_triangles), 1)).astype(np.int64)]
         v, s, ccw = _canonical(V, tri)
@@ -265,7 +300,8 @@ class ReferenceIndex:
             rz = self.xyz[self.vertices[tr], 2]
             ztol = epsilon_z_m + tan_tilt * self.max_side_m
             ok = (np.abs((vz[:, 1] - vz[:, 0]) - (rz[:, 1] - rz[:, 0])) < ztol) & (
-                np.abs((vz[:, 2] - vz[:, 0]) - (rz[:, 2] - rz[:, 0])) < ztol)
+                np.abs((vz[:, 2] - vz[:, 0]) - (rz[:, 2] - rz[:, 0])) < ztol
+            )
             tv_all.append(tv[ok])
             tr_all.append(tr[ok])
         tv = np.concatenate(tv_all) if tv_all else np.zeros(0, np.int64)
@@ -277,8 +313,10 @@ class ReferenceIndex:
         pr = self.xyz[self.vertices[tr], :2]
         cv, cr = pv.mean(axis=1), pr.mean(axis=1)
         a, b = pv - cv[:, None], pr - cr[:, None]
-        yaw = np.arctan2(np.sum(a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0], axis=1),
-                         np.sum(a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1], axis=1))
+        yaw = np.arctan2(
+            np.sum(a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0], axis=1),
+            np.sum(a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1], axis=1),
+        )
         cy, sy = np.cos(yaw), np.sin(yaw)
         dx, dy = centre[0] - cv[:, 0], centre[1] - cv[:, 1]
         x = cr[:, 0] + cy * dx - sy * dy
@@ -312,13 +350,29 @@ class ReferenceIndex:
             if score[t] < cfg.min_votes or len(out) >= cfg.max_candidates:
                 break
             cells = (uk[t] - uyaw[t] + offs)[:, None] + (uyaw[t] + np.arange(-1, 2)) % nk
-            near = order[np.concatenate([np.arange(lo, hi) for lo, hi in zip(
-                np.searchsorted(skey, cells.ravel(), "left"), np.searchsorted(skey, cells.ravel(), "right"))])]
-            c = Candidate(float(np.median(x[near])), float(np.median(y[near])),
-                          float(np.angle(np.mean(np.exp(1j * yaw[near])))), int(score[t]))
-            if any(math.hypot(c.x_m - o.x_m, c.y_m - o.y_m) < cfg.candidate_separation_m
-                   and abs((c.yaw_rad - o.yaw_rad + math.pi) % (2 * math.pi) - math.pi)
-                   < math.radians(2 * cfg.yaw_cell_deg) for o in out):
+            near = order[
+                np.concatenate(
+                    [
+                        np.arange(lo, hi)
+                        for lo, hi in zip(
+                            np.searchsorted(skey, cells.ravel(), "left"),
+                            np.searchsorted(skey, cells.ravel(), "right"),
+                        )
+                    ]
+                )
+            ]
+            c = Candidate(
+                float(np.median(x[near])),
+                float(np.median(y[near])),
+                float(np.angle(np.mean(np.exp(1j * yaw[near])))),
+                int(score[t]),
+            )
+            if any(
+                math.hypot(c.x_m - o.x_m, c.y_m - o.y_m) < cfg.candidate_separation_m
+                and abs((c.yaw_rad - o.yaw_rad + math.pi) % (2 * math.pi) - math.pi)
+                < math.radians(2 * cfg.yaw_cell_deg)
+                for o in out
+            ):
                 continue
             out.append(c)
         return out
@@ -328,7 +382,13 @@ class ReferenceIndex:
         the candidate pose (sorted)."""
         c, s = math.cos(candidate.yaw_rad), math.sin(candidate.yaw_rad)
         d = veh_xyz[:, :2] - centre_xy
-        placed = np.c_[candidate.x_m + c * d[:, 0] - s * d[:, 1], candidate.y_m + s * d[:, 0] + c * d[:, 1]]
+        placed = np.c_[
+            candidate.x_m + c * d[:, 0] - s * d[:, 1], candidate.y_m + s * d[:, 0] + c * d[:, 1]
+        ]
         hits = self.tree_xy.query_ball_point(placed, self.config.crop_margin_m, return_sorted=False)
-        idx = np.unique(np.concatenate([np.asarray(h, np.int64) for h in hits])) if len(hits) else np.zeros(0, np.int64)
+        idx = (
+            np.unique(np.concatenate([np.asarray(h, np.int64) for h in hits]))
+            if len(hits)
+            else np.zeros(0, np.int64)
+        )
         return idx

@@ -22,6 +22,7 @@ class LogLevel(str, enum.Enum):
     WARNING = "warning"
     ERROR = "error"
 
+
 app = typer.Typer(
     name="lunarloc",
     help="Rock-landmark global localization for planetary rovers (LunarLoc).",
@@ -44,18 +45,32 @@ def console(stderr: bool = False):
 
 
 _COMMAND_MODULES = (
-    "commands_core", "commands_data", "commands_sim", "commands_perception", "commands_run",
-    "commands_campaign", "commands_setup", "commands_odometry", "commands_overhead",
+    "commands_core",
+    "commands_data",
+    "commands_sim",
+    "commands_perception",
+    "commands_run",
+    "commands_campaign",
+    "commands_setup",
+    "commands_odometry",
+    "commands_overhead",
 )
 """Every command module; importing one registers its commands on `app`."""
 
 _MODULES_OF_COMMAND = {
-    "map": ("commands_core",), "localize": ("commands_core",),
+    "map": ("commands_core",),
+    "localize": ("commands_core",),
     "bench": ("commands_core", "commands_run"),  # `bench pairs` and `bench loop`
-    "info": ("commands_data",), "simulate": ("commands_sim",), "detect": ("commands_perception",),
-    "run": ("commands_run",), "plot": ("commands_run",), "demo": ("commands_run",),
-    "campaign": ("commands_campaign",), "warm-up": ("commands_setup",),
-    "odometry": ("commands_odometry",), "score": ("commands_overhead",),
+    "info": ("commands_data",),
+    "simulate": ("commands_sim",),
+    "detect": ("commands_perception",),
+    "run": ("commands_run",),
+    "plot": ("commands_run",),
+    "demo": ("commands_run",),
+    "campaign": ("commands_campaign",),
+    "warm-up": ("commands_setup",),
+    "odometry": ("commands_odometry",),
+    "score": ("commands_overhead",),
 }
 """Where each top-level command lives, so that a call imports only its own module (the
 renderer, OpenCV, fusion and the campaign engine stay out of `lunarloc localize`). A name
@@ -70,7 +85,11 @@ def _register_commands(argv: list[str] | None = None) -> None:
     import importlib
 
     first = next((a for a in (argv or ()) if not a.startswith("-")), None)
-    if argv is not None and first in _MODULES_OF_COMMAND and "--help" not in argv[: argv.index(first)]:
+    if (
+        argv is not None
+        and first in _MODULES_OF_COMMAND
+        and "--help" not in argv[: argv.index(first)]
+    ):
         names = _MODULES_OF_COMMAND[first]
     else:
         names = _COMMAND_MODULES
@@ -104,18 +123,32 @@ def log_level(verbose: int, quiet: bool, level: str | None) -> int:
 
 @app.callback()
 def _root(
-    debug: bool = typer.Option(False, "--debug", help="Show the Python traceback of any error (for bug reports)."),
-    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
-                                 help="Print the version and exit."),
-    verbose: int = typer.Option(0, "-v", "--verbose", count=True,
-                                help="More log lines on stderr: -v progress notes (INFO), -vv debugging."),
+    debug: bool = typer.Option(
+        False, "--debug", help="Show the Python traceback of any error (for bug reports)."
+    ),
+    version: bool = typer.Option(
+        False, "--version", callback=_version, is_eager=True, help="Print the version and exit."
+    ),
+    verbose: int = typer.Option(
+        0,
+        "-v",
+        "--verbose",
+        count=True,
+        help="More log lines on stderr: -v progress notes (INFO), -vv debugging.",
+    ),
     quiet: bool = typer.Option(False, "-q", "--quiet", help="Only errors on stderr (no warnings)."),
-    level: Optional[LogLevel] = typer.Option(None, "--log-level", case_sensitive=False,
-                                             help="Log level on stderr (overrides -v/-q; default warning)."),
+    level: Optional[LogLevel] = typer.Option(
+        None,
+        "--log-level",
+        case_sensitive=False,
+        help="Log level on stderr (overrides -v/-q; default warning).",
+    ),
 ) -> None:
     """Rock-landmark global localization for planetary rovers (LunarLoc)."""
     _STATE["debug"] = debug
-    logging.getLogger().setLevel(log_level(verbose, quiet, level.value if level is not None else None))
+    logging.getLogger().setLevel(
+        log_level(verbose, quiet, level.value if level is not None else None)
+    )
 
 
 def _one_line(text: str, limit: int = 400) -> str:
@@ -140,7 +173,9 @@ def main(argv: list[str] | None = None) -> int:
     numba kernel to return. Outputs are written atomically, so a killed run leaves at most
     a hidden ``.NAME.tmp-*`` file, never a truncated output under its real name."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    logging.getLogger().setLevel(logging.WARNING)  # the default of every call (-v/-q/--log-level change it)
+    logging.getLogger().setLevel(
+        logging.WARNING
+    )  # the default of every call (-v/-q/--log-level change it)
     _STATE["debug"] = False
     args = sys.argv[1:] if argv is None else list(argv)
     _register_commands(args)
@@ -176,16 +211,25 @@ def _run(argv: list[str] | None) -> int:
         if exc.errno is None:
             return _internal(exc)
         write = exc.errno in (errno.ENOSPC, errno.EROFS, errno.EDQUOT)
-        return _fail(f"error: {file_error(exc.filename or '(unnamed file)', exc, 'write' if write else 'read')}",
-                     EXIT_USAGE, exc)  # fmt: skip
+        return _fail(
+            f"error: {file_error(exc.filename or '(unnamed file)', exc, 'write' if write else 'read')}",
+            EXIT_USAGE,
+            exc,
+        )
     except MemoryError as exc:
-        return _fail("error: out of memory (the input is larger than this machine can hold)", EXIT_INTERNAL, exc)
+        return _fail(
+            "error: out of memory (the input is larger than this machine can hold)",
+            EXIT_INTERNAL,
+            exc,
+        )
     except SystemExit as exc:
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else EXIT_USAGE)
     except Exception as exc:
         # usage errors (bad option, unknown command): click's ClickException, which newer
         # typer releases vendor; recognised by its interface rather than its module
-        if callable(getattr(exc, "show", None)) and isinstance(getattr(exc, "exit_code", None), int):
+        if callable(getattr(exc, "show", None)) and isinstance(
+            getattr(exc, "exit_code", None), int
+        ):
             exc.show()
             return exc.exit_code
         return _internal(exc)
@@ -195,8 +239,11 @@ def _run(argv: list[str] | None) -> int:
 
 
 def _internal(exc: BaseException) -> int:
-    return _fail(f"internal error: {type(exc).__name__}: {exc} (rerun with --debug for the traceback)",
-                 EXIT_INTERNAL, exc)  # fmt: skip
+    return _fail(
+        f"internal error: {type(exc).__name__}: {exc} (rerun with --debug for the traceback)",
+        EXIT_INTERNAL,
+        exc,
+    )
 
 
 if __name__ == "__main__":  # pragma: no cover

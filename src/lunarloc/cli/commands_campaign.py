@@ -13,14 +13,21 @@ from lunarloc.cli.app import app, console
 @app.command("campaign")
 def campaign_cmd(
     spec: Optional[Path] = typer.Argument(None, help="Campaign spec (TOML); see --example."),
-    out: Optional[Path] = typer.Option(None, "-o", "--out", help="Output folder (jobs/, results.csv, summary.png)."),
+    out: Optional[Path] = typer.Option(
+        None, "-o", "--out", help="Output folder (jobs/, results.csv, summary.png)."
+    ),
     scheduler: Optional[str] = typer.Option(
-        None, "--scheduler",
+        None,
+        "--scheduler",
         help="Dask scheduler address (tcp://host:8786); 'sync' runs the jobs one after another here; "
         "default: a local cluster.",
-    ),  # fmt: skip
-    workers: Optional[int] = typer.Option(None, "--workers", min=1, max=256, help="Local cluster workers (default: cores)."),
-    example: bool = typer.Option(False, "--example", help="Print a small valid spec (8 jobs) and exit."),
+    ),
+    workers: Optional[int] = typer.Option(
+        None, "--workers", min=1, max=256, help="Local cluster workers (default: cores)."
+    ),
+    example: bool = typer.Option(
+        False, "--example", help="Print a small valid spec (8 jobs) and exit."
+    ),
 ) -> None:
     """Run a grid of simulate -> map -> run -> score jobs (site seeds x sun x rock density ...)
     on Dask; failed jobs are reported, finished ones skipped on a rerun. Exit 1 when a job
@@ -33,7 +40,9 @@ def campaign_cmd(
     if spec is None or out is None:
         raise typer.BadParameter("give SPEC and -o OUT (or --example to print a spec)")
     if scheduler is not None and workers is not None:
-        raise typer.BadParameter("--workers sizes the local cluster; it does not go with --scheduler")
+        raise typer.BadParameter(
+            "--workers sizes the local cluster; it does not go with --scheduler"
+        )
     if scheduler not in (None, "sync"):
         from lunarloc.pipeline.campaign import check_scheduler_address
 
@@ -60,7 +69,16 @@ def campaign_cmd(
     from rich.table import Table
 
     t = Table(title=f"campaign '{s.name}' ({res.scheduler})")
-    for col in ("job", "status", "check", "ref lm", "fixes", "odo RMSE cm", "corr RMSE cm", "wall s"):
+    for col in (
+        "job",
+        "status",
+        "check",
+        "ref lm",
+        "fixes",
+        "odo RMSE cm",
+        "corr RMSE cm",
+        "wall s",
+    ):
         t.add_column(col, justify="left" if col in ("job", "status") else "right")
 
     def cm(v):
@@ -68,14 +86,22 @@ def campaign_cmd(
 
     for r in res.rows:
         chk = r.get("check", "")
-        t.add_row(r["job"], r["status"] if r["status"] == "ok" else f"[red]{r['status']}[/red]",
-                  chk if chk in ("pass", "") else f"[yellow]{chk}[/yellow]",
-                  str(r.get("reference_landmarks", "-")), str(r.get("fixes", "-")), cm(r.get("odometry_rmse_m")),
-                  cm(r.get("corrected_rmse_m")), f"{r.get('wall_s', 0):.0f}")  # fmt: skip
+        t.add_row(
+            r["job"],
+            r["status"] if r["status"] == "ok" else f"[red]{r['status']}[/red]",
+            chk if chk in ("pass", "") else f"[yellow]{chk}[/yellow]",
+            str(r.get("reference_landmarks", "-")),
+            str(r.get("fixes", "-")),
+            cm(r.get("odometry_rmse_m")),
+            cm(r.get("corrected_rmse_m")),
+            f"{r.get('wall_s', 0):.0f}",
+        )
     con.print(t)
     counts = ", ".join(f"{v} {k}" for k, v in sorted(res.counts.items()))
     counts += f", {sum(r.get('check') == 'pass' for r in res.rows)} passed the check"
-    con.print(f"{len(res.rows)} jobs ({counts}; {res.skipped} finished earlier, skipped) in {res.wall_s:.0f} s wall")
+    con.print(
+        f"{len(res.rows)} jobs ({counts}; {res.skipped} finished earlier, skipped) in {res.wall_s:.0f} s wall"
+    )
     con.print(f"wrote {res.table_csv}" + (f" and {res.figure}" if res.figure else ""))
     if any(r["status"] != "ok" or r.get("check") != "pass" for r in res.rows):
         raise typer.Exit(1)

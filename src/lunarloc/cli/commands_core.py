@@ -11,12 +11,21 @@ import typer
 
 from lunarloc.cli.app import app, console
 from lunarloc.cli.checks import (
-    JSON_OUT_OPT, JSON_STDOUT_OPT, OVERWRITE_OPT, check_json_out, enum_value, number, positive, write_json_out,
+    JSON_OUT_OPT,
+    JSON_STDOUT_OPT,
+    OVERWRITE_OPT,
+    check_json_out,
+    enum_value,
+    number,
+    positive,
+    write_json_out,
 )
 from lunarloc.localization.large import Search
 from lunarloc.localization.config import Mode, Registration, Solver
 
-bench_app = typer.Typer(help="Benchmarks that reproduce the published figures.", no_args_is_help=True)
+bench_app = typer.Typer(
+    help="Benchmarks that reproduce the published figures.", no_args_is_help=True
+)
 app.add_typer(bench_app, name="bench")
 
 
@@ -31,8 +40,12 @@ def _agg(radius: Optional[float], min_sightings: Optional[int]):
     )
 
 
-RADIUS_OPT = typer.Option(None, "--radius", help="Clustering radius in metres (default from AggregationConfig).")
-SIGHT_OPT = typer.Option(None, "--min-sightings", min=1, max=1_000_000, help="Detections needed per landmark.")
+RADIUS_OPT = typer.Option(
+    None, "--radius", help="Clustering radius in metres (default from AggregationConfig)."
+)
+SIGHT_OPT = typer.Option(
+    None, "--min-sightings", min=1, max=1_000_000, help="Detections needed per landmark."
+)
 MAX_EPSILON_M = 0.3
 """Largest --epsilon accepted: beyond it nearly every pair of associations is 'consistent' and
 the consistency graph grows quadratically in memory (6.5 GB measured at 5 m)."""
@@ -48,9 +61,13 @@ def _map_suffix(out: Path) -> None:
 @app.command("map")
 def map_cmd(
     traverse: Path = typer.Argument(..., help="Traverse CSV (frame,x,y,z,detections,boulders)."),
-    out: Optional[Path] = typer.Option(None, "-o", "--out", help="Output landmark map (.csv or .npz)."),
+    out: Optional[Path] = typer.Option(
+        None, "-o", "--out", help="Output landmark map (.csv or .npz)."
+    ),
     lac_grid: Optional[Path] = typer.Option(
-        None, "--lac-grid", help="Also write the rocks as a LAC geometric map (.npy, 180 x 180 cells of 0.15 m)."
+        None,
+        "--lac-grid",
+        help="Also write the rocks as a LAC geometric map (.npy, 180 x 180 cells of 0.15 m).",
     ),
     radius: Optional[float] = RADIUS_OPT,
     min_sightings: Optional[int] = SIGHT_OPT,
@@ -62,7 +79,9 @@ def map_cmd(
     from lunarloc.io.outputs import check_output_file
 
     if out is None and lac_grid is None:
-        raise InputError("nothing to write: give -o/--out MAP (.csv/.npz) and/or --lac-grid GRID.npy")
+        raise InputError(
+            "nothing to write: give -o/--out MAP (.csv/.npz) and/or --lac-grid GRID.npy"
+        )
     if out is not None:
         _map_suffix(out)
         check_output_file(out, overwrite, "landmark map")  # before the computation, not after
@@ -95,29 +114,45 @@ def map_cmd(
 @app.command("localize")
 def localize_cmd(
     reference: Path = typer.Argument(
-        ..., help="Reference map: landmark CSV/.npz, traverse CSV, rocks.csv, LAC geometric map (.npy) or rock catalogue CSV."
+        ...,
+        help="Reference map: landmark CSV/.npz, traverse CSV, rocks.csv, LAC geometric map (.npy) or rock catalogue CSV.",
     ),
     vehicle: Path = typer.Argument(
-        ..., help="Vehicle map: landmark CSV/.npz or traverse CSV (then its path is used: the pose is judged at the "
-        "traverse's last position, and a fitted distortion places each landmark where it was seen from)."
+        ...,
+        help="Vehicle map: landmark CSV/.npz or traverse CSV (then its path is used: the pose is judged at the "
+        "traverse's last position, and a fitted distortion places each landmark where it was seen from).",
     ),
     as_json: bool = JSON_STDOUT_OPT,
     json_out: Optional[Path] = JSON_OUT_OPT,
     config: Optional[Path] = typer.Option(
-        None, "--config", help="Run configuration (its localization section is used); options given override it."
+        None,
+        "--config",
+        help="Run configuration (its localization section is used); options given override it.",
     ),
-    mode: Optional[Mode] = typer.Option(None, help="gravity (IMU-levelled maps, default) or 6dof (any rotation)."),
-    solver: Optional[Solver] = typer.Option(None, help="exact (maximum clique, default) or clipper."),
-    epsilon: Optional[float] = typer.Option(None, help=f"Pairwise distance tolerance in metres, in (0, {MAX_EPSILON_M:g}] (default 0.05)."),
-    registration: Optional[Registration] = typer.Option(None, help="se3 (default) or yaw (4-DoF, exactly levelled maps)."),
+    mode: Optional[Mode] = typer.Option(
+        None, help="gravity (IMU-levelled maps, default) or 6dof (any rotation)."
+    ),
+    solver: Optional[Solver] = typer.Option(
+        None, help="exact (maximum clique, default) or clipper."
+    ),
+    epsilon: Optional[float] = typer.Option(
+        None,
+        help=f"Pairwise distance tolerance in metres, in (0, {MAX_EPSILON_M:g}] (default 0.05).",
+    ),
+    registration: Optional[Registration] = typer.Option(
+        None, help="se3 (default) or yaw (4-DoF, exactly levelled maps)."
+    ),
     max_size_ratio: Optional[float] = typer.Option(
         None, help="Prune associations whose size ratio exceeds this (maps with a size column)."
     ),
-    dem: Optional[Path] = typer.Option(None, "--dem", help="LAC geometric map giving heights to a catalogue without z."),
+    dem: Optional[Path] = typer.Option(
+        None, "--dem", help="LAC geometric map giving heights to a catalogue without z."
+    ),
     odometry_scale_error: Optional[float] = typer.Option(
-        None, help="Bound on the vehicle map's relative scale error (its odometry's spec, 0.03 = 3 %; 0: a rigid "
+        None,
+        help="Bound on the vehicle map's relative scale error (its odometry's spec, 0.03 = 3 %; 0: a rigid "
         "map). Without either bound the distortion is fitted from the maps, under a prior of real rover odometry "
-        "(0.012 deg/m, 0.3 %; docs/verification.md) when the vehicle is a traverse CSV (its path known)."
+        "(0.012 deg/m, 0.3 %; docs/verification.md) when the vehicle is a traverse CSV (its path known).",
     ),
     odometry_drift: Optional[float] = typer.Option(
         None, help="Bound on the odometry's heading drift, degrees per metre (0: a rigid map)."
@@ -125,8 +160,9 @@ def localize_cmd(
     radius: Optional[float] = RADIUS_OPT,
     min_sightings: Optional[int] = SIGHT_OPT,
     search: Search = typer.Option(
-        Search.AUTO.value, help="full (every association), indexed (rock-triangle index, for large references) "
-        "or auto (indexed from 2,000 reference rocks)."
+        Search.AUTO.value,
+        help="full (every association), indexed (rock-triangle index, for large references) "
+        "or auto (indexed from 2,000 reference rocks).",
     ),
     overwrite: bool = OVERWRITE_OPT,
 ) -> None:
@@ -141,45 +177,70 @@ def localize_cmd(
     from lunarloc.io.maps import load_vehicle
     from lunarloc.pipeline.reference import load_reference
 
-    mode, solver, registration, search = (enum_value(v) for v in (mode, solver, registration, search))
+    mode, solver, registration, search = (
+        enum_value(v) for v in (mode, solver, registration, search)
+    )
     positive(epsilon, "--epsilon", MAX_EPSILON_M, "m")
     check_json_out(json_out, overwrite)
     number(max_size_ratio, "--max-size-ratio", 1.0, 1e6)
     # one-shot: odometry bounds not stated unless given (the distortion is fitted from the maps)
-    run_cfg = load_config_file(config)[0] if config is not None else RunConfig.for_detections(localization=LocalizationConfig())
+    run_cfg = (
+        load_config_file(config)[0]
+        if config is not None
+        else RunConfig.for_detections(localization=LocalizationConfig())
+    )
     run_cfg = run_cfg.with_options(
-        localization__mode=mode, localization__solver=solver, localization__epsilon_m=epsilon,
-        localization__registration=registration, localization__max_size_ratio=max_size_ratio,
+        localization__mode=mode,
+        localization__solver=solver,
+        localization__epsilon_m=epsilon,
+        localization__registration=registration,
+        localization__max_size_ratio=max_size_ratio,
         localization__odometry_scale_error=odometry_scale_error,
         localization__odometry_heading_drift_deg_per_m=odometry_drift,
-    )  # fmt: skip
+    )
     cfg: LocalizationConfig = run_cfg.localization
     agg = _agg(radius, min_sightings)
     ref = load_reference(reference, agg, dem=dem)
-    v = load_vehicle(vehicle, agg)  # a traverse CSV: its map, the path that built it and the rover's last position
+    v = load_vehicle(
+        vehicle, agg
+    )  # a traverse CSV: its map, the path that built it and the rover's last position
     veh = v.map
-    kernels = prepare_kernels()  # compiled or loaded here, announced, and never counted in the result's time
-    res = localize_large(ref, veh, cfg, run_cfg.index, search=search, query_xyz=v.query_xyz, path_xyz=v.path_xyz)
+    kernels = (
+        prepare_kernels()
+    )  # compiled or loaded here, announced, and never counted in the result's time
+    res = localize_large(
+        ref, veh, cfg, run_cfg.index, search=search, query_xyz=v.query_xyz, path_xyz=v.path_xyz
+    )
     if as_json or json_out is not None:
         from lunarloc.io.runs import to_json_ready
 
-        doc = {**res.to_dict(), "config": to_json_ready(run_cfg.to_dict()), "kernels": kernels.to_dict()}
+        doc = {
+            **res.to_dict(),
+            "config": to_json_ready(run_cfg.to_dict()),
+            "kernels": kernels.to_dict(),
+        }
         write_json_out(doc, json_out, as_json)
         if as_json:
             return
 
     con = console()
-    status = "[green]localized[/green]" if res.success else f"[red]not localized[/red]: {res.reason}"
+    status = (
+        "[green]localized[/green]" if res.success else f"[red]not localized[/red]: {res.reason}"
+    )
     from lunarloc.pipeline.reference import reference_summary
 
-    con.print(f"{vehicle.name} ({len(veh)} landmarks) in {reference.name} ({reference_summary(reference, ref)}): {status}")
+    con.print(
+        f"{vehicle.name} ({len(veh)} landmarks) in {reference.name} ({reference_summary(reference, ref)}): {status}"
+    )
     con.print(
         f"inliers {res.num_inliers} (needed {res.required_inliers}, competitor {res.competitor_size}), "
         f"RMSE {res.residual_rmse_m * 100:.2f} cm, yaw {res.yaw_deg:.2f} deg, tilt {res.tilt_deg:.2f} deg, "
         f"{res.time_s * 1000:.0f} ms"
     )
     if res.search == "indexed":
-        con.print(f"indexed search: {len(res.candidates)} candidate region(s), answer from candidate {res.winner + 1}")
+        con.print(
+            f"indexed search: {len(res.candidates)} candidate region(s), answer from candidate {res.winner + 1}"
+        )
     if math.isfinite(res.predicted_error_m):
         con.print(
             f"predicted 1-sigma error {res.predicted_error_m * 100:.1f} cm, {res.predicted_rotation_deg:.2f} deg; "
@@ -191,9 +252,12 @@ def localize_cmd(
             f"no odometry bounds stated: fitted heading drift {math.degrees(f['drift_rad_per_m']):+.3f} "
             f"+- {math.degrees(f['drift_se']):.3f} deg/m, scale error {f['scale_error'] * 100:+.2f} "
             f"+- {f['scale_se'] * 100:.2f} % ({'along the given path' if f['path_given'] else 'path unknown: straight stand-in'}"
-            + ("" if f.get("prior", "none") == "none" else
-               f"; odometry prior {cfg.odometry_prior_drift_deg_per_m:g} deg/m, "
-               f"{(cfg.odometry_prior_scale_error or 0) * 100:g} %: {f['prior']}")
+            + (
+                ""
+                if f.get("prior", "none") == "none"
+                else f"; odometry prior {cfg.odometry_prior_drift_deg_per_m:g} deg/m, "
+                f"{(cfg.odometry_prior_scale_error or 0) * 100:g} %: {f['prior']}"
+            )
             + ")"
         )
     if res.checks:
@@ -203,8 +267,13 @@ def localize_cmd(
         for col in ("check", "value", "", "limit", "passed"):
             table.add_column(col, justify="left" if col == "check" else "right")
         for c in res.checks:
-            table.add_row(c.name, f"{c.value:.4g}", c.relation, f"{c.limit:.4g}",
-                          "yes" if c.passed else "[red]no[/red]")
+            table.add_row(
+                c.name,
+                f"{c.value:.4g}",
+                c.relation,
+                f"{c.limit:.4g}",
+                "yes" if c.passed else "[red]no[/red]",
+            )
         con.print(table)
     if res.success:  # no transform for a pose that is not trusted
         con.print("T_ref_veh =")
@@ -214,12 +283,20 @@ def localize_cmd(
 
 @bench_app.command("pairs")
 def bench_pairs_cmd(
-    data: Path = typer.Option(..., "--data", help="lunarloc-data folder (with csv/traverse_N.csv)."),
-    out: Path = typer.Option(Path("bench-output"), "--out", help="Folder for pairs.csv and pairs.json."),
+    data: Path = typer.Option(
+        ..., "--data", help="lunarloc-data folder (with csv/traverse_N.csv)."
+    ),
+    out: Path = typer.Option(
+        Path("bench-output"), "--out", help="Folder for pairs.csv and pairs.json."
+    ),
     only_paper: bool = typer.Option(False, "--paper", help="Only the paper's five pairs."),
     seed: int = typer.Option(0, help="Seed of the random vehicle transforms."),
-    heading_drift: float = typer.Option(0.0, "--heading-drift", help="Simulated heading drift, degrees per metre travelled."),
-    drift: Optional[float] = typer.Option(None, "--drift", hidden=True, help="Old name of --heading-drift."),
+    heading_drift: float = typer.Option(
+        0.0, "--heading-drift", help="Simulated heading drift, degrees per metre travelled."
+    ),
+    drift: Optional[float] = typer.Option(
+        None, "--drift", hidden=True, help="Old name of --heading-drift."
+    ),
     scale_error: float = typer.Option(0.0, help="Simulated odometry scale error (0.01 = 1%)."),
     window: Optional[float] = typer.Option(
         None, help="Vehicle map from the last WINDOW metres of the path only (use with drift)."
@@ -227,10 +304,13 @@ def bench_pairs_cmd(
     mode: Mode = typer.Option(Mode.GRAVITY.value, help="gravity or 6dof."),
     solver: Solver = typer.Option(Solver.EXACT.value, help="exact or clipper."),
     odometry_bounds: bool = typer.Option(
-        True, "--odometry-bounds/--no-odometry-bounds",
+        True,
+        "--odometry-bounds/--no-odometry-bounds",
         help="Tell the localizer the simulated drift as its odometry's bounds (scale, heading drift).",
     ),
-    check: bool = typer.Option(False, "--check", help="Exit 1 unless the acceptance targets are met."),
+    check: bool = typer.Option(
+        False, "--check", help="Exit 1 unless the acceptance targets are met."
+    ),
     overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """Localize traverse pairs of the LunarLoc dataset; table on screen, CSV + JSON in --out."""
@@ -243,7 +323,9 @@ def bench_pairs_cmd(
     from lunarloc.io.outputs import check_output_dir
 
     mode, solver = enum_value(mode), enum_value(solver)
-    drift = heading_drift if drift is None else drift  # --drift: the old name, kept as a hidden alias
+    drift = (
+        heading_drift if drift is None else drift
+    )  # --drift: the old name, kept as a hidden alias
     number(drift, "--heading-drift", 0.0, 10.0, unit="deg/m")
     number(scale_error, "--scale-error", -0.5, 0.5)
     positive(window, "--window", 1e6, "m")
@@ -251,7 +333,8 @@ def bench_pairs_cmd(
 
     pairs = pairs_to_run(find_traverses(data), only_paper)
     cfg = LocalizationConfig(
-        mode=mode, solver=solver,
+        mode=mode,
+        solver=solver,
         odometry_scale_error=abs(scale_error) if odometry_bounds else None,
         odometry_heading_drift_deg_per_m=abs(drift) if odometry_bounds else None,
     )
@@ -259,24 +342,53 @@ def bench_pairs_cmd(
     with Progress(console=con, transient=True) as prog:
         task = prog.add_task("localizing pairs", total=len(pairs))
         summary = bench_pairs(
-            data, pairs, seed=seed, loc_config=cfg, drift=DriftModel(drift, scale_error), window_m=window,
-            progress=lambda r: prog.update(task, advance=1, description=f"pair {r.reference}-{r.vehicle}"),
+            data,
+            pairs,
+            seed=seed,
+            loc_config=cfg,
+            drift=DriftModel(drift, scale_error),
+            window_m=window,
+            progress=lambda r: prog.update(
+                task, advance=1, description=f"pair {r.reference}-{r.vehicle}"
+            ),
         )
     res = summary.results
     table = Table(title="LunarLoc traverse pairs (reference - vehicle)")
-    for col in ("pair", "segs ref", "segs veh", "inliers", "err@origin cm", "err@rover cm", "rot deg",
-                "success", "correct", "time s", "reason"):
+    for col in (
+        "pair",
+        "segs ref",
+        "segs veh",
+        "inliers",
+        "err@origin cm",
+        "err@rover cm",
+        "rot deg",
+        "success",
+        "correct",
+        "time s",
+        "reason",
+    ):
         if col == "reason":
             table.add_column(col, no_wrap=True, overflow="ellipsis", max_width=48)
         else:
             table.add_column(col, justify="right")
     paper = [r for r in res if (r.reference, r.vehicle) in PAPER_PAIRS]
-    shown = paper + [r for r in res if (r.reference, r.vehicle) not in PAPER_PAIRS and not (r.success and r.correct)]
+    shown = paper + [
+        r
+        for r in res
+        if (r.reference, r.vehicle) not in PAPER_PAIRS and not (r.success and r.correct)
+    ]
     for r in shown:
         table.add_row(
-            f"{r.reference}-{r.vehicle}", str(r.segs_ref), str(r.segs_veh), str(r.inliers),
-            f"{r.err_origin_m * 100:.2f}", f"{r.err_rover_m * 100:.2f}", f"{r.rot_err_deg:.3f}",
-            "yes" if r.success else "[red]no[/red]", "yes" if r.correct else "[red]no[/red]", f"{r.time_s:.3f}",
+            f"{r.reference}-{r.vehicle}",
+            str(r.segs_ref),
+            str(r.segs_veh),
+            str(r.inliers),
+            f"{r.err_origin_m * 100:.2f}",
+            f"{r.err_rover_m * 100:.2f}",
+            f"{r.rot_err_deg:.3f}",
+            "yes" if r.success else "[red]no[/red]",
+            "yes" if r.correct else "[red]no[/red]",
+            f"{r.time_s:.3f}",
             "" if r.success else r.reason[:60],
         )
     con.print(table)
@@ -287,7 +399,9 @@ def bench_pairs_cmd(
         f"time median {d['median_time_s']:.3f} s, max {d['max_time_s']:.3f} s"
     )
     big = max(res, key=lambda r: r.segs_ref * r.segs_veh)
-    con.print(f"largest pair {big.reference}-{big.vehicle} ({big.segs_ref}x{big.segs_veh} landmarks): {big.time_s:.3f} s")
+    con.print(
+        f"largest pair {big.reference}-{big.vehicle} ({big.segs_ref}x{big.segs_veh} landmarks): {big.time_s:.3f} s"
+    )
     csv_path, json_path = write_pairs(summary, out)
     con.print(f"wrote {csv_path} and {json_path}")
     if check:

@@ -54,10 +54,17 @@ def _plot(archive, out: Path) -> None:
     if "rocks" in archive.custom_records:
         rocks = archive.custom("rocks")
         if all(c in rocks for c in ("x", "y", "radius")):
-            circles = [Circle((x, y), r) for x, y, r in zip(rocks["x"], rocks["y"], rocks["radius"])]
-            ax.add_collection(PatchCollection(circles, facecolor="0.55", edgecolor="0.3", linewidth=0.3))
+            circles = [
+                Circle((x, y), r) for x, y, r in zip(rocks["x"], rocks["y"], rocks["radius"])
+            ]
+            ax.add_collection(
+                PatchCollection(circles, facecolor="0.55", edgecolor="0.3", linewidth=0.3)
+            )
             r = rocks["radius"][:, None]
-            xy += [np.stack([rocks["x"], rocks["y"]], axis=1) - r, np.stack([rocks["x"], rocks["y"]], axis=1) + r]
+            xy += [
+                np.stack([rocks["x"], rocks["y"]], axis=1) - r,
+                np.stack([rocks["x"], rocks["y"]], axis=1) + r,
+            ]
             ax.plot([], [], "o", color="0.55", label=f"rocks ({rocks.n_rows})")
     p = archive.positions()
     if len(p):
@@ -92,7 +99,9 @@ def _plot(archive, out: Path) -> None:
 @app.command("info")
 def info(
     archive_path: Path = typer.Argument(..., help="A .lac archive."),
-    plot: Path | None = typer.Option(None, "--plot", help="Write a top-down plot of the trajectory (and rocks) to this PNG."),
+    plot: Path | None = typer.Option(
+        None, "--plot", help="Write a top-down plot of the trajectory (and rocks) to this PNG."
+    ),
     overwrite: bool = OVERWRITE_OPT,
 ) -> None:
     """Summarise a .lac archive: frames, duration, cameras, image counts, path length, custom records."""
@@ -104,7 +113,9 @@ def info(
 
     if plot is not None:
         if plot.suffix.lower() not in PLOT_SUFFIXES:
-            raise ConfigError(f"--plot {plot}: unknown image format {plot.suffix!r} (use {', '.join(PLOT_SUFFIXES)})")
+            raise ConfigError(
+                f"--plot {plot}: unknown image format {plot.suffix!r} (use {', '.join(PLOT_SUFFIXES)})"
+            )
         check_output_file(plot, overwrite, "plot")
 
     con = console()
@@ -114,7 +125,9 @@ def info(
         con.print(f"[bold]{archive_path}[/bold]")
         if md.get("description"):
             con.print(f"  description : {md['description']}")
-        con.print(f"  data_spec   : {md.get('data_spec', '?')}   recorded {md.get('start_time', '?')} .. {md.get('end_time', '?')}")
+        con.print(
+            f"  data_spec   : {md.get('data_spec', '?')}   recorded {md.get('start_time', '?')} .. {md.get('end_time', '?')}"
+        )
         frames = s["frames"]
         span = f" ({s['first_frame']}..{s['last_frame']})" if frames else ""
         con.print(f"  frames      : {frames}{span}")
@@ -124,7 +137,14 @@ def info(
         for col in ("camera", "active", "size", "rows", "grayscale", "semantic"):
             cam_table.add_column(col, justify="left" if col == "camera" else "right")
         for c in s["cameras"]:
-            cam_table.add_row(c["name"], "yes" if c["active"] else "no", c["size"], str(c["rows"]), str(c["grayscale"]), str(c["semantic"]))
+            cam_table.add_row(
+                c["name"],
+                "yes" if c["active"] else "no",
+                c["size"],
+                str(c["rows"]),
+                str(c["grayscale"]),
+                str(c["semantic"]),
+            )
         con.print(cam_table)
         if s["custom"]:
             rec_table = RichTable(title="custom records", show_edge=False)
@@ -139,4 +159,3 @@ def info(
         if plot is not None:
             _plot(archive, plot)
             con.print(f"plot written to {plot}")
-

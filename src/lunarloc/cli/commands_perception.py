@@ -16,27 +16,47 @@ from lunarloc.perception.segment import SegmenterKind
 @app.command("detect")
 def detect(
     archive: Path = typer.Argument(..., help="input .lac archive (front/rear stereo images)"),
-    output: Path = typer.Option(..., "-o", "--output", help="detections CSV (frame,x,y,z,detections,boulders)"),
-    config: Optional[Path] = typer.Option(
-        None, "--config", help="run configuration (a config.json written by detect or run); options given override it"
+    output: Path = typer.Option(
+        ..., "-o", "--output", help="detections CSV (frame,x,y,z,detections,boulders)"
     ),
-    segmenter: Optional[SegmenterKind] = typer.Option(None, "--segmenter", help="default from the config: classical"),
-    weights: Optional[Path] = typer.Option(None, "--weights", help="FastSAM checkpoint (.pt) for --segmenter fastsam"),
-    pose: PoseSource = typer.Option(PoseSource.GROUND_TRUTH.value, "--pose", help="rover pose for the map frame"),
+    config: Optional[Path] = typer.Option(
+        None,
+        "--config",
+        help="run configuration (a config.json written by detect or run); options given override it",
+    ),
+    segmenter: Optional[SegmenterKind] = typer.Option(
+        None, "--segmenter", help="default from the config: classical"
+    ),
+    weights: Optional[Path] = typer.Option(
+        None, "--weights", help="FastSAM checkpoint (.pt) for --segmenter fastsam"
+    ),
+    pose: PoseSource = typer.Option(
+        PoseSource.GROUND_TRUTH.value, "--pose", help="rover pose for the map frame"
+    ),
     odometry: Optional[str] = typer.Option(
-        None, "--odometry", metavar=ODOMETRY_METAVAR,
+        None,
+        "--odometry",
+        metavar=ODOMETRY_METAVAR,
         help="place detections with this odometry source instead of --pose: "
         "visual | imu | record:NAME | ground-truth (evaluation only)",
-    ),  # fmt: skip
-    debug_dir: Optional[Path] = typer.Option(None, "--debug-dir", help="write overlay images (masks by filter, depth) here"),
-    every: int = typer.Option(1, "--every", min=1, max=1_000_000, help="process every N-th camera frame"),
+    ),
+    debug_dir: Optional[Path] = typer.Option(
+        None, "--debug-dir", help="write overlay images (masks by filter, depth) here"
+    ),
+    every: int = typer.Option(
+        1, "--every", min=1, max=1_000_000, help="process every N-th camera frame"
+    ),
     no_centre_correction: bool = typer.Option(
-        False, "--no-centre-correction", help="keep the visible-surface centroid (no sphere-centre shift)"
+        False,
+        "--no-centre-correction",
+        help="keep the visible-surface centroid (no sphere-centre shift)",
     ),
     overwrite: bool = OVERWRITE_OPT,
     lander_xy: Optional[str] = typer.Option(
-        None, "--lander-xy", help="X,Y: the lander's centre in the map frame (m); detections on it are dropped "
-        "(default: from the archive's initial.toml)"
+        None,
+        "--lander-xy",
+        help="X,Y: the lander's centre in the map frame (m); detections on it are dropped "
+        "(default: from the archive's initial.toml)",
     ),
 ) -> None:
     """Segment rocks in the left images, lift them to 3D with stereo, write the traverse CSV
@@ -59,9 +79,12 @@ def detect(
     if debug_dir is not None:
         check_output_dir(debug_dir, True, ())
     cfg = load_config_file(config)[0] if config is not None else RunConfig()
-    cfg = cfg.with_options(detector__segmenter=segmenter, detector__weights=str(weights) if weights else None,
-                           detector__centre_correction=False if no_centre_correction else None,
-                           odometry__source=odometry)  # fmt: skip
+    cfg = cfg.with_options(
+        detector__segmenter=segmenter,
+        detector__weights=str(weights) if weights else None,
+        detector__centre_correction=False if no_centre_correction else None,
+        odometry__source=odometry,
+    )
     lander = None
     if lander_xy is not None:
         import math
@@ -76,15 +99,25 @@ def detect(
             raise ConfigError(f"--lander-xy takes X,Y in metres (finite), got {lander_xy!r}")
     if debug_dir is not None:
         make_dir(debug_dir)
-    with tqdm(unit="frame", desc="detect", dynamic_ncols=True) as bar:  # closed before an error prints
+    with tqdm(
+        unit="frame", desc="detect", dynamic_ncols=True
+    ) as bar:  # closed before an error prints
 
         def prog(n, total, detections):
             bar.total = total
             bar.update(n - bar.n)
             bar.set_postfix(det=detections)
 
-        res = detect_pipeline(archive, output, cfg, pose=pose, every=every, debug_dir=debug_dir, lander_xy=lander,
-                              progress=prog)  # fmt: skip
+        res = detect_pipeline(
+            archive,
+            output,
+            cfg,
+            pose=pose,
+            every=every,
+            debug_dir=debug_dir,
+            lander_xy=lander,
+            progress=prog,
+        )
     typer.echo(
         f"{res.frames} frames, {res.detections} detections placed with {res.pose_label} poses -> {output} "
         f"({res.frames_per_s:.2f} frames/s; per frame: "

@@ -11,8 +11,10 @@ from lunarloc.cli.app import app
 @app.command("warm-up")
 def warm_up_cmd(
     aot: bool = typer.Option(
-        True, "--aot/--no-aot", help="Also compile the kernels ahead of time (needs a C compiler; a process "
-        "that finds them neither imports numba nor waits for it). Without them numba's cache is used."
+        True,
+        "--aot/--no-aot",
+        help="Also compile the kernels ahead of time (needs a C compiler; a process "
+        "that finds them neither imports numba nor waits for it). Without them numba's cache is used.",
     ),
 ) -> None:
     """Compile (or load from numba's cache) every association kernel, then compile them ahead
@@ -27,11 +29,21 @@ def warm_up_cmd(
 
     try:
         r = build_kernels()
-    except Exception as exc:  # no compiler, no Python headers, a read-only install: the JIT path works
+    except (
+        Exception
+    ) as exc:  # no compiler, no Python headers, a read-only install: the JIT path works
         msg = " ".join(f"{type(exc).__name__}: {exc}".split())[:300]
-        typer.echo(f"warning: ahead-of-time kernels not built ({msg}); numba's cache is used instead", err=True)
+        typer.echo(
+            f"warning: ahead-of-time kernels not built ({msg}); numba's cache is used instead",
+            err=True,
+        )
         return
     if r.path is None:
-        typer.echo(f"warning: ahead-of-time kernels not built ({r.reason}); numba's cache is used instead", err=True)
+        typer.echo(
+            f"warning: ahead-of-time kernels not built ({r.reason}); numba's cache is used instead",
+            err=True,
+        )
         return
-    typer.echo(f"ahead-of-time kernels: {r.signatures} signatures compiled in {r.seconds:.1f} s -> {r.path.name}")
+    typer.echo(
+        f"ahead-of-time kernels: {r.signatures} signatures compiled in {r.seconds:.1f} s -> {r.path.name}"
+    )

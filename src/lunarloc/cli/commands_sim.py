@@ -15,29 +15,50 @@ from lunarloc.cli.checks import OVERWRITE_OPT, number, positive
 def simulate(
     out: Path = typer.Option(..., "--out", help="Output folder (rocks.csv, traverse_<i>.lac)."),
     seed: int = typer.Option(0, "--seed", help="Site seed (same seed, same site)."),
-    traverses: int = typer.Option(1, "--traverses", min=0, max=1000, help="Number of traverse archives."),
+    traverses: int = typer.Option(
+        1, "--traverses", min=0, max=1000, help="Number of traverse archives."
+    ),
     duration: float = typer.Option(120.0, "--duration", help="Traverse length in seconds."),
     width: int = typer.Option(1280, "--width", help="Image width in pixels."),
     height: int = typer.Option(720, "--height", help="Image height in pixels."),
-    image_rate: float = typer.Option(2.0, "--image-rate", help="Camera rate in Hz (divides 20 Hz, at most 10)."),
+    image_rate: float = typer.Option(
+        2.0, "--image-rate", help="Camera rate in Hz (divides 20 Hz, at most 10)."
+    ),
     sun_elevation: float = typer.Option(
-        12.0, "--sun-elevation", min=-90.0, max=90.0,
+        12.0,
+        "--sun-elevation",
+        min=-90.0,
+        max=90.0,
         help="Sun elevation in degrees (5-30 typical; <= 0: below the horizon, night).",
     ),
-    sun_azimuth: float = typer.Option(135.0, "--sun-azimuth", help="Sun azimuth in degrees from the site +x axis."),
+    sun_azimuth: float = typer.Option(
+        135.0, "--sun-azimuth", help="Sun azimuth in degrees from the site +x axis."
+    ),
     lighting: Lighting = typer.Option(
-        Lighting.SUN_LAMPS, "--lighting", help="What lights the scene: the sun, the rover's lamps, or both."
+        Lighting.SUN_LAMPS,
+        "--lighting",
+        help="What lights the scene: the sun, the rover's lamps, or both.",
     ),
     lamp_intensity: float = typer.Option(
-        1.0, "--lamp-intensity", min=0.0, max=1.0, help="Lamp intensity 0-1 (the archive's light_intensity)."
+        1.0,
+        "--lamp-intensity",
+        min=0.0,
+        max=1.0,
+        help="Lamp intensity 0-1 (the archive's light_intensity).",
     ),
     semantic_format: SemanticFormat = typer.Option(
-        SemanticFormat.IDS, "--semantic", help="Semantic images as per-rock ids (uint16) or in the LAC palette (RGB)."
+        SemanticFormat.IDS,
+        "--semantic",
+        help="Semantic images as per-rock ids (uint16) or in the LAC palette (RGB).",
     ),
-    front_only: bool = typer.Option(False, "--front-only", help="Record only the front stereo pair."),
+    front_only: bool = typer.Option(
+        False, "--front-only", help="Record only the front stereo pair."
+    ),
     no_semantic: bool = typer.Option(False, "--no-semantic", help="Do not store semantic images."),
     example_images: Path | None = typer.Option(
-        None, "--example-images", help="Only write the two example images (FrontLeft grayscale + semantic) here."
+        None,
+        "--example-images",
+        help="Only write the two example images (FrontLeft grayscale + semantic) here.",
     ),
     overwrite: bool = OVERWRITE_OPT,
 ) -> None:
@@ -56,13 +77,29 @@ def simulate(
     if example_images is not None:
         check_output_dir(example_images, True, ())
     else:
-        check_output_dir(out, overwrite, ("rocks.csv", "simulation.json", *(f"traverse_{i}.lac" for i in range(traverses))), marker=None)
+        check_output_dir(
+            out,
+            overwrite,
+            ("rocks.csv", "simulation.json", *(f"traverse_{i}.lac" for i in range(traverses))),
+            marker=None,
+        )
     from dataclasses import replace
 
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeRemainingColumn,
+    )
 
     from lunarloc.sim.render import RenderConfig
-    from lunarloc.sim.simulate import ALL_CAMERAS, SimulationConfig, simulate_dataset, write_example_images
+    from lunarloc.sim.simulate import (
+        ALL_CAMERAS,
+        SimulationConfig,
+        simulate_dataset,
+        write_example_images,
+    )
 
     cfg = SimulationConfig(
         duration_s=duration,
@@ -73,7 +110,10 @@ def simulate(
         semantic=not no_semantic,
         semantic_format=semantic_format,
         render=replace(
-            RenderConfig(), sun_elevation_deg=sun_elevation, sun_azimuth_deg=sun_azimuth, lighting=lighting,
+            RenderConfig(),
+            sun_elevation_deg=sun_elevation,
+            sun_azimuth_deg=sun_azimuth,
+            lighting=lighting,
             lamp_intensity=lamp_intensity,
         ),
     )

@@ -35,12 +35,25 @@ from lunarloc.association.index import IndexConfig
 from lunarloc.core.configs import config_from_dict, config_to_dict
 from lunarloc.core.errors import ConfigError
 from lunarloc.localization.config import LocalizationConfig
-from lunarloc.online.loop import LoopConfig, image_localization_config, image_loop_config, loop_localization_config
+from lunarloc.online.loop import (
+    LoopConfig,
+    image_localization_config,
+    image_loop_config,
+    loop_localization_config,
+)
 from lunarloc.odometry.imu import ImuOdometryConfig
 from lunarloc.perception.detector import scaled_detector_config
 
-__all__ = ["RunConfig", "OdometryConfig", "config_to_dict", "config_from_dict", "scaled_detector_config",
-           "load_config_file", "check_limits", "SETTING_LIMITS"]  # fmt: skip
+__all__ = [
+    "RunConfig",
+    "OdometryConfig",
+    "config_to_dict",
+    "config_from_dict",
+    "scaled_detector_config",
+    "load_config_file",
+    "check_limits",
+    "SETTING_LIMITS",
+]
 
 INFO_SECTION = "info"
 MAX_CONFIG_BYTES = 4 * 1024**2  # a run configuration is a few kB
@@ -73,16 +86,26 @@ class OdometryConfig:
         if self.visual is None:
             object.__setattr__(self, "visual", VisualOdometryConfig())
         elif isinstance(self.visual, Mapping):
-            object.__setattr__(self, "visual", config_from_dict(VisualOdometryConfig, self.visual, "visual"))
+            object.__setattr__(
+                self, "visual", config_from_dict(VisualOdometryConfig, self.visual, "visual")
+            )
         elif not isinstance(self.visual, VisualOdometryConfig):
-            raise ConfigError(f"visual: expected VisualOdometryConfig settings, got {type(self.visual).__name__}")
+            raise ConfigError(
+                f"visual: expected VisualOdometryConfig settings, got {type(self.visual).__name__}"
+            )
         if self.source is not None:
             from lunarloc.odometry.source import parse_odometry_source
 
             parse_odometry_source(self.source)  # ConfigError naming the valid sources
-        if not (0 <= self.heading_drift_deg_per_m <= 10 and -0.5 <= self.scale_error <= 0.5 and 0 < self.rate_hz <= 1000):
-            raise ConfigError(f"heading_drift_deg_per_m={self.heading_drift_deg_per_m} (0..10), scale_error="
-                              f"{self.scale_error} (-0.5..0.5), rate_hz={self.rate_hz} (0..1000]")  # fmt: skip
+        if not (
+            0 <= self.heading_drift_deg_per_m <= 10
+            and -0.5 <= self.scale_error <= 0.5
+            and 0 < self.rate_hz <= 1000
+        ):
+            raise ConfigError(
+                f"heading_drift_deg_per_m={self.heading_drift_deg_per_m} (0..10), scale_error="
+                f"{self.scale_error} (-0.5..0.5), rate_hz={self.rate_hz} (0..1000]"
+            )
 
     @property
     def drift(self):
@@ -104,7 +127,9 @@ class RunConfig:
     runs on images (``lunarloc run``, ``demo``); :meth:`for_detections` gives those of runs on
     the real dataset's detections (``bench loop``)."""
 
-    detector: Any = field(default_factory=_detector_default)  # DetectorConfig, at detector_tuned_width_px
+    detector: Any = field(
+        default_factory=_detector_default
+    )  # DetectorConfig, at detector_tuned_width_px
     detector_tuned_width_px: int = 1280  # the detector's pixel sizes are tuned at this image width
     localization: LocalizationConfig = field(default_factory=image_localization_config)
     index: IndexConfig = field(default_factory=IndexConfig)
@@ -115,19 +140,33 @@ class RunConfig:
         from lunarloc.perception.detector import DetectorConfig
 
         if isinstance(self.detector, Mapping):
-            object.__setattr__(self, "detector", config_from_dict(DetectorConfig, self.detector, "detector"))
+            object.__setattr__(
+                self, "detector", config_from_dict(DetectorConfig, self.detector, "detector")
+            )
         elif not isinstance(self.detector, DetectorConfig):
-            raise ConfigError(f"detector: expected DetectorConfig settings, got {type(self.detector).__name__}")
-        if not isinstance(self.detector_tuned_width_px, int) or not 64 <= self.detector_tuned_width_px <= 8192:
-            raise ConfigError(f"detector_tuned_width_px={self.detector_tuned_width_px!r} must be an integer in [64, 8192]")
+            raise ConfigError(
+                f"detector: expected DetectorConfig settings, got {type(self.detector).__name__}"
+            )
+        if (
+            not isinstance(self.detector_tuned_width_px, int)
+            or not 64 <= self.detector_tuned_width_px <= 8192
+        ):
+            raise ConfigError(
+                f"detector_tuned_width_px={self.detector_tuned_width_px!r} must be an integer in [64, 8192]"
+            )
 
     @classmethod
     def for_detections(cls, **overrides) -> RunConfig:
         """Runs on the LunarLoc dataset's detections (no images): the default localization
         and a 12 m local map. Its windows state the simulated drift until the pose graph has
         calibrated it (2 fixes), then their bend is fitted (docs/online-component.md)."""
-        return cls(**{"localization": loop_localization_config(), "loop": LoopConfig(calibrated_after_fixes=2),
-                      **overrides})  # fmt: skip
+        return cls(
+            **{
+                "localization": loop_localization_config(),
+                "loop": LoopConfig(calibrated_after_fixes=2),
+                **overrides,
+            }
+        )
 
     def detector_for(self, width: int):
         """The detector's config for images `width` pixels wide."""
@@ -140,8 +179,12 @@ class RunConfig:
     def from_dict(cls, data: Mapping, extra_sections: tuple[str, ...] = ()) -> RunConfig:
         """From :meth:`to_dict`'s output; the ``info`` section and `extra_sections` are skipped."""
         if not isinstance(data, Mapping):
-            raise ConfigError(f"a run configuration is a table of sections, got {type(data).__name__}")
-        return config_from_dict(cls, {k: v for k, v in data.items() if k not in (INFO_SECTION, *extra_sections)})
+            raise ConfigError(
+                f"a run configuration is a table of sections, got {type(data).__name__}"
+            )
+        return config_from_dict(
+            cls, {k: v for k, v in data.items() if k not in (INFO_SECTION, *extra_sections)}
+        )
 
     def with_options(self, **settings) -> RunConfig:
         """A copy with settings given as ``section__name=value`` (None: keep), e.g.
@@ -167,7 +210,11 @@ class RunConfig:
 #: a rate), any other low end inclusive. Beyond these, every number in a configuration must
 #: lie within +-MAX_SETTING_MAGNITUDE.
 SETTING_LIMITS: dict[str, tuple[float, float, str]] = {
-    "localization.epsilon_m": (0.0, 0.3, "m"),  # the consistency graph grows with it (docs/robustness.md)
+    "localization.epsilon_m": (
+        0.0,
+        0.3,
+        "m",
+    ),  # the consistency graph grows with it (docs/robustness.md)
     "localization.epsilon_z_m": (0.0, 0.3, "m"),
     "localization.sigma_m": (0.0, 0.3, "m"),
     "localization.refine_radius_m": (0.0, 10.0, "m"),
@@ -186,7 +233,11 @@ SETTING_LIMITS: dict[str, tuple[float, float, str]] = {
     "loop.keyframe_every_s": (1e-3, 1e7, "s"),
     "loop.keyframe_max_interval_s": (1e-3, 1e7, "s"),
     "loop.min_window_landmarks": (3, 1_000_000, ""),
-    "odometry.heading_drift_deg_per_m": (-1.0, 10.0, "deg/m"),  # the low end: OdometryConfig's (>= 0)
+    "odometry.heading_drift_deg_per_m": (
+        -1.0,
+        10.0,
+        "deg/m",
+    ),  # the low end: OdometryConfig's (>= 0)
     "odometry.scale_error": (-0.5, 0.5, ""),
     "odometry.rate_hz": (0.0, 1000.0, "Hz"),
 }
@@ -217,11 +268,15 @@ def check_limits(cfg: RunConfig) -> RunConfig:
             raise ConfigError(f"{key}: {v!r} outside {rng}{' ' + unit if unit else ''}")
     for key, v in values.items():
         if abs(v) > MAX_SETTING_MAGNITUDE:
-            raise ConfigError(f"{key}: {v!r} beyond +-{MAX_SETTING_MAGNITUDE:g}, not a plausible setting")
+            raise ConfigError(
+                f"{key}: {v!r} beyond +-{MAX_SETTING_MAGNITUDE:g}, not a plausible setting"
+            )
     return cfg
 
 
-def load_config_file(path: str | Path, extra_sections: tuple[str, ...] = ()) -> tuple[RunConfig, dict]:
+def load_config_file(
+    path: str | Path, extra_sections: tuple[str, ...] = ()
+) -> tuple[RunConfig, dict]:
     """A :class:`RunConfig` from a JSON file (a run folder's ``config.json`` or one written by
     ``--config``'s commands), and the `extra_sections` it holds. Errors name the file."""
     from lunarloc.io.inputs import check_input_file

@@ -52,7 +52,9 @@ def config_from_dict(cls, data, where: str = "", base=None):
     one the config refuses is a ConfigError naming the key (``where`` is the section path)."""
     label = where or cls.__name__
     if not isinstance(data, Mapping):
-        raise ConfigError(f"{label}: expected a table of settings, got {type(data).__name__} {data!r:.60}")
+        raise ConfigError(
+            f"{label}: expected a table of settings, got {type(data).__name__} {data!r:.60}"
+        )
     old = [k for k in data if k in getattr(cls, "MOVED_KEYS", {})]
     if old:
         try:
@@ -65,8 +67,15 @@ def config_from_dict(cls, data, where: str = "", base=None):
     if unknown:
         key = f"{where}.{unknown[0]}" if where else str(unknown[0])
         raise ConfigError(f"unknown setting {key!r} (known in {label}: {', '.join(known)})")
-    kwargs = {k: _convert(hints[k], v, f"{where}.{k}" if where else k,
-                          getattr(base, k) if base is not None else _field_default(cls, k)) for k, v in data.items()}
+    kwargs = {
+        k: _convert(
+            hints[k],
+            v,
+            f"{where}.{k}" if where else k,
+            getattr(base, k) if base is not None else _field_default(cls, k),
+        )
+        for k, v in data.items()
+    }
     try:
         return replace(base, **kwargs) if base is not None else cls(**kwargs)
     except ConfigError as exc:
@@ -123,7 +132,9 @@ def _to_enum(tp, v, key, default):
     try:
         return tp(v)
     except ValueError:
-        raise ConfigError(f"{key}: {v!r} is not one of {', '.join(str(m.value) for m in tp)}") from None
+        raise ConfigError(
+            f"{key}: {v!r} is not one of {', '.join(str(m.value) for m in tp)}"
+        ) from None
 
 
 def _to_tuple(tp, v, key, default):
@@ -134,7 +145,11 @@ def _to_tuple(tp, v, key, default):
         return tuple(_convert(args[0], x, f"{key}[{i}]") for i, x in enumerate(v))
     if args and len(args) != len(v):
         raise ConfigError(f"{key}: expected {len(args)} values, got {len(v)}")
-    return tuple(_convert(a, x, f"{key}[{i}]") for i, (a, x) in enumerate(zip(args, v))) if args else tuple(v)
+    return (
+        tuple(_convert(a, x, f"{key}[{i}]") for i, (a, x) in enumerate(zip(args, v)))
+        if args
+        else tuple(v)
+    )
 
 
 def _to_bool(tp, v, key, default):
@@ -180,9 +195,13 @@ class Range:
     def contains(self, v) -> bool:
         if self.choices is not None:
             return v in self.choices
-        return ((self.ge is None or v >= self.ge) and (self.gt is None or v > self.gt)
-                and (self.le is None or v <= self.le) and (self.lt is None or v < self.lt)
-                and (self.multiple_of is None or v % self.multiple_of == 0))
+        return (
+            (self.ge is None or v >= self.ge)
+            and (self.gt is None or v > self.gt)
+            and (self.le is None or v <= self.le)
+            and (self.lt is None or v < self.lt)
+            and (self.multiple_of is None or v % self.multiple_of == 0)
+        )
 
     def describe(self) -> str:
         """The range as text: ``[0, 1]``, ``(0, 0.5]``, ``>= 0``, ``one of 1, 2``."""
@@ -200,8 +219,17 @@ class Range:
         return f"any{mult}"
 
 
-def setting(default=MISSING, *, default_factory=MISSING, ge=None, gt=None, le=None, lt=None, choices=None,
-            multiple_of=None):
+def setting(
+    default=MISSING,
+    *,
+    default_factory=MISSING,
+    ge=None,
+    gt=None,
+    le=None,
+    lt=None,
+    choices=None,
+    multiple_of=None,
+):
     """A dataclass field whose range is stated where it is declared (see :class:`Range`);
     :func:`check_settings` checks it."""
     rng = Range(ge, gt, le, lt, None if choices is None else tuple(choices), multiple_of)
@@ -221,7 +249,9 @@ def _type_ok(tp, v) -> bool:
     if tp is int:
         return isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_))
     if tp is float:
-        return (isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_)) and math.isfinite(v))
+        return (
+            isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_)) and math.isfinite(v)
+        )
     return True
 
 
@@ -237,7 +267,10 @@ def check_settings(obj) -> None:
         if rng is None:
             continue
         v, tp = getattr(obj, f.name), hints[f.name]
-        if typing.get_origin(tp) in (typing.Union, types.UnionType):  # an optional setting: None passes
+        if typing.get_origin(tp) in (
+            typing.Union,
+            types.UnionType,
+        ):  # an optional setting: None passes
             if v is None and type(None) in typing.get_args(tp):
                 continue
             tp = next((a for a in typing.get_args(tp) if a is not type(None)), tp)
@@ -265,7 +298,9 @@ def nest_moved_keys(cls, data: Mapping, tables: bool = False) -> dict:
         if isinstance(base, Mapping):
             twice = [old for new, (old, _) in values.items() if new in base]
             if twice:
-                raise ConfigError(f"{twice[0]!r} given twice: flat and as {section}.{moved[twice[0]][1]}")
+                raise ConfigError(
+                    f"{twice[0]!r} given twice: flat and as {section}.{moved[twice[0]][1]}"
+                )
             out[section] = {**base, **{new: v for new, (_, v) in values.items()}}
             continue
         if base is MISSING:

@@ -94,7 +94,9 @@ def make_transform(R: np.ndarray, t) -> np.ndarray:
     return T
 
 
-def pose_to_matrix(x: float, y: float, z: float, roll: float, pitch: float, yaw: float) -> np.ndarray:
+def pose_to_matrix(
+    x: float, y: float, z: float, roll: float, pitch: float, yaw: float
+) -> np.ndarray:
     """4x4 transform of a pose given as position and LAC Euler angles (radians)."""
     return make_transform(euler_to_rotation(roll, pitch, yaw), (x, y, z))
 
@@ -209,7 +211,9 @@ def arun_yaw(src, dst, weights=None, *, min_spread: float = 1e-3) -> np.ndarray:
     A = src[:, :2] - mu_s[:2]
     B = dst[:, :2] - mu_d[:2]
     if np.sqrt(w @ (A**2).sum(axis=1)) < min_spread:
-        raise DegenerateGeometryError("source points coincide horizontally: the yaw is undetermined")
+        raise DegenerateGeometryError(
+            "source points coincide horizontally: the yaw is undetermined"
+        )
     sxx = w @ (A[:, 0] * B[:, 0] + A[:, 1] * B[:, 1])
     sxy = w @ (A[:, 0] * B[:, 1] - A[:, 1] * B[:, 0])
     R = rot_z(float(np.arctan2(sxy, sxx)))

@@ -16,8 +16,11 @@ def ate(est: np.ndarray, gt: np.ndarray) -> dict:
     max of the 3D error and RMSE of the horizontal error, metres."""
     e = np.linalg.norm(est[:, :3] - gt[:, :3], axis=1)
     eh = np.linalg.norm(est[:, :2] - gt[:, :2], axis=1)
-    return {"rmse_m": round(float(np.sqrt(np.mean(e**2))), 4), "max_m": round(float(e.max()), 4),
-            "rmse_xy_m": round(float(np.sqrt(np.mean(eh**2))), 4)}  # fmt: skip
+    return {
+        "rmse_m": round(float(np.sqrt(np.mean(e**2))), 4),
+        "max_m": round(float(e.max()), 4),
+        "rmse_xy_m": round(float(np.sqrt(np.mean(eh**2))), 4),
+    }
 
 
 def path_length(P: np.ndarray) -> float:

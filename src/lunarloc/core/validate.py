@@ -52,7 +52,7 @@ __all__ = [
     "integer",
     "real",
     "rigid_transform",
-]  # fmt: skip
+]
 
 RIGID_TOL = 1e-4
 MAX_ABS_COORD_M = 1e7
@@ -88,14 +88,25 @@ API_WORDING = Wording(", got", "{name} is not finite ({value})")
 OPTION_WORDING = Wording("; got", "{name} must be a finite number; got {value}")
 
 
-def real(value, name: str, lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
-         hi_open: bool = False, unit: str = "", error: type = InputError,
-         wording: Wording = API_WORDING) -> float:  # fmt: skip
+def real(
+    value,
+    name: str,
+    lo: float | None = None,
+    hi: float | None = None,
+    *,
+    lo_open: bool = False,
+    hi_open: bool = False,
+    unit: str = "",
+    error: type = InputError,
+    wording: Wording = API_WORDING,
+) -> float:
     """`value` as a finite float within [lo, hi] (an end excluded with lo_open / hi_open); bools,
     strings and None refused, with `error` worded as `wording` says."""
     u = f" {unit}" if unit else ""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
-        raise error(f"{name} must be a number{u and ' in' + u}, got {type(value).__name__} {_short(value)}")
+        raise error(
+            f"{name} must be a number{u and ' in' + u}, got {type(value).__name__} {_short(value)}"
+        )
     v = float(value)
     if not math.isfinite(v):
         raise error(wording.not_finite.format(name=name, value=v))
@@ -106,17 +117,23 @@ def real(value, name: str, lo: float | None = None, hi: float | None = None, *, 
     return v
 
 
-def integer(value, name: str, lo: int | None = None, hi: int | None = None, error: type = InputError) -> int:
+def integer(
+    value, name: str, lo: int | None = None, hi: int | None = None, error: type = InputError
+) -> int:
     """`value` as an int within [lo, hi]; bools and non-integral numbers refused."""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
         raise error(f"{name} must be an integer, got {type(value).__name__} {_short(value)}")
     v = int(value)
     if (lo is not None and v < lo) or (hi is not None and v > hi):
-        raise error(f"{name} must be an integer in [{lo if lo is not None else '-inf'}, {hi if hi is not None else 'inf'}], got {v}")
+        raise error(
+            f"{name} must be an integer in [{lo if lo is not None else '-inf'}, {hi if hi is not None else 'inf'}], got {v}"
+        )
     return v
 
 
-def rigid_transform(T, name: str, tol: float = RIGID_TOL, max_abs_m: float = MAX_ABS_COORD_M) -> np.ndarray:
+def rigid_transform(
+    T, name: str, tol: float = RIGID_TOL, max_abs_m: float = MAX_ABS_COORD_M
+) -> np.ndarray:
     """`T` as a float64 4x4 if it is a rigid transform (module docstring), else InputError
     saying what is wrong with it."""
     raw = np.asarray(T)
@@ -134,8 +151,10 @@ def rigid_transform(T, name: str, tol: float = RIGID_TOL, max_abs_m: float = MAX
     det = float(np.linalg.det(R))
     if ortho > tol or abs(det - 1.0) > tol:
         what = "a reflection" if det < 0 else ("singular" if abs(det) < tol else "not a rotation")
-        raise InputError(f"{name}: the rotation block is {what} (max |R^T R - I| = {ortho:.3g}, det = {det:.6g}; "
-                         f"a rigid transform needs both within {tol:g} of a rotation)")  # fmt: skip
+        raise InputError(
+            f"{name}: the rotation block is {what} (max |R^T R - I| = {ortho:.3g}, det = {det:.6g}; "
+            f"a rigid transform needs both within {tol:g} of a rotation)"
+        )
     if float(np.max(np.abs(a[:3, 3]))) > max_abs_m:
         raise InputError(f"{name}: translation {_fmt(a[:3, 3])} m beyond +-{max_abs_m:g} m")
     return a
@@ -144,29 +163,41 @@ def rigid_transform(T, name: str, tol: float = RIGID_TOL, max_abs_m: float = MAX
 def imu_sample(imu, name: str = "imu") -> np.ndarray:
     """`imu` as a float64 (6,) ``[ax, ay, az, wx, wy, wz]`` within MAX_ACCEL_MPS2 / MAX_GYRO_RADPS."""
     if imu is None or isinstance(imu, (str, bytes, dict)):
-        raise InputError(f"{name} must be 6 numbers [ax, ay, az, wx, wy, wz] (m/s^2, rad/s), got {type(imu).__name__}")
+        raise InputError(
+            f"{name} must be 6 numbers [ax, ay, az, wx, wy, wz] (m/s^2, rad/s), got {type(imu).__name__}"
+        )
     try:
         raw = np.asarray(imu)
     except (TypeError, ValueError):
-        raise InputError(f"{name} must be 6 numbers [ax, ay, az, wx, wy, wz], got {_short(imu)}") from None
+        raise InputError(
+            f"{name} must be 6 numbers [ax, ay, az, wx, wy, wz], got {_short(imu)}"
+        ) from None
     if raw.dtype.kind not in "fiu":
-        raise InputError(f"{name} must be 6 numbers [ax, ay, az, wx, wy, wz], got dtype {raw.dtype}")
+        raise InputError(
+            f"{name} must be 6 numbers [ax, ay, az, wx, wy, wz], got dtype {raw.dtype}"
+        )
     a = raw.astype(float).reshape(-1)
     if a.shape != (6,):
-        raise InputError(f"{name} must be 6 numbers [ax, ay, az, wx, wy, wz] (m/s^2, rad/s), got {a.size}")
+        raise InputError(
+            f"{name} must be 6 numbers [ax, ay, az, wx, wy, wz] (m/s^2, rad/s), got {a.size}"
+        )
     if not np.all(np.isfinite(a)):
         raise InputError(f"{name} is not finite ({_fmt(a)})")
     if np.max(np.abs(a[:3])) > MAX_ACCEL_MPS2 or np.max(np.abs(a[3:])) > MAX_GYRO_RADPS:
-        raise InputError(f"{name} {_fmt(a)} is beyond physical bounds (|accel| <= {MAX_ACCEL_MPS2:g} m/s^2, "
-                         f"|rate| <= {MAX_GYRO_RADPS:g} rad/s)")  # fmt: skip
+        raise InputError(
+            f"{name} {_fmt(a)} is beyond physical bounds (|accel| <= {MAX_ACCEL_MPS2:g} m/s^2, "
+            f"|rate| <= {MAX_GYRO_RADPS:g} rad/s)"
+        )
     return a
 
 
 def instance(value, name: str, cls: type, hint: str = ""):
     """`value` if an instance of `cls`, else ConfigError naming the argument and the type."""
     if not isinstance(value, cls):
-        raise ConfigError(f"{name} must be a {cls.__name__}{f' ({hint})' if hint else ''}, got {type(value).__name__} "
-                          f"{_short(value)}")  # fmt: skip
+        raise ConfigError(
+            f"{name} must be a {cls.__name__}{f' ({hint})' if hint else ''}, got {type(value).__name__} "
+            f"{_short(value)}"
+        )
     return value
 
 
@@ -175,17 +206,23 @@ def gray_image(img, name: str, shape: tuple[int, int]) -> np.ndarray:
     is converted) of `shape`."""
     if not isinstance(img, np.ndarray):
         if not isinstance(img, (list, tuple)):
-            raise InputError(f"{name} must be a ({shape[0]}, {shape[1]}) uint8 array, got {type(img).__name__}")
+            raise InputError(
+                f"{name} must be a ({shape[0]}, {shape[1]}) uint8 array, got {type(img).__name__}"
+            )
         try:
             img = np.asarray(img)
         except (TypeError, ValueError):
-            raise InputError(f"{name} must be a ({shape[0]}, {shape[1]}) uint8 array, got a ragged list") from None
+            raise InputError(
+                f"{name} must be a ({shape[0]}, {shape[1]}) uint8 array, got a ragged list"
+            ) from None
         if img.dtype.kind in "iu" and img.size and (img.min() < 0 or img.max() > 255):
             raise InputError(f"{name}: values must be in [0, 255], got {img.min()} .. {img.max()}")
         img = img.astype(np.uint8) if img.dtype.kind in "iu" else img
     if img.shape != tuple(shape):
-        raise InputError(f"{name}: image shape {img.shape}, expected ({shape[0]}, {shape[1]}) grayscale "
-                         "(the rig's size; see CameraRig)")  # fmt: skip
+        raise InputError(
+            f"{name}: image shape {img.shape}, expected ({shape[0]}, {shape[1]}) grayscale "
+            "(the rig's size; see CameraRig)"
+        )
     if img.dtype != np.uint8:
         raise InputError(f"{name} must be a uint8 grayscale image, got dtype {img.dtype}")
     return img

@@ -9,15 +9,25 @@ import numpy as np
 
 from lunarloc.core.errors import ConfigError
 
-__all__ = ["StateLayout", "Factor", "OdometryFactor", "BiasWalkFactor", "PriorFactor", "PoseFixFactor",
-           "LandmarkFactor", "SharedLandmarkFactor", "jacobian_sparsity", "robust_loss", "stacked_residual",
-           "wrap_angle"]  # fmt: skip
+__all__ = [
+    "StateLayout",
+    "Factor",
+    "OdometryFactor",
+    "BiasWalkFactor",
+    "PriorFactor",
+    "PoseFixFactor",
+    "LandmarkFactor",
+    "SharedLandmarkFactor",
+    "jacobian_sparsity",
+    "robust_loss",
+    "stacked_residual",
+    "wrap_angle",
+]
 
 
 def wrap_angle(a):
     """Wrap radians to [-pi, pi)."""
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
-
 
 
 class StateLayout:
@@ -64,7 +74,9 @@ class Factor:
 
     dim: int = 0
     reads: np.ndarray | None = None  # (dim, m) bool; None: every row reads every column
-    robust: bool = True  # False: a Gaussian prior, kept out of the robust loss (see :func:`robust_loss`)
+    robust: bool = (
+        True  # False: a Gaussian prior, kept out of the robust loss (see :func:`robust_loss`)
+    )
     columns: np.ndarray
 
     def __len__(self) -> int:
@@ -77,7 +89,9 @@ class Factor:
 def _rotate_z(psi: np.ndarray, xyz: np.ndarray) -> np.ndarray:
     """Rotate (n, 3) vectors by yaw ``psi`` (n,) about z."""
     c, s = np.cos(psi), np.sin(psi)
-    return np.stack([c * xyz[:, 0] - s * xyz[:, 1], s * xyz[:, 0] + c * xyz[:, 1], xyz[:, 2]], axis=1)
+    return np.stack(
+        [c * xyz[:, 0] - s * xyz[:, 1], s * xyz[:, 0] + c * xyz[:, 1], xyz[:, 2]], axis=1
+    )
 
 
 class OdometryFactor(Factor):
@@ -86,10 +100,15 @@ class OdometryFactor(Factor):
 
     dim = 4
     #                  x_i y_i z_i psi_i x_j y_j z_j psi_j b_i k
-    reads = np.array([[1, 1, 0, 1, 1, 1, 0, 0, 0, 1],  # along-track (heading frame of i)
-                      [1, 1, 0, 1, 1, 1, 0, 0, 0, 1],  # cross-track
-                      [0, 0, 1, 0, 0, 0, 1, 0, 0, 1],  # vertical
-                      [0, 0, 0, 1, 0, 0, 0, 1, 1, 0]], bool)  # yaw  # fmt: skip
+    reads = np.array(
+        [
+            [1, 1, 0, 1, 1, 1, 0, 0, 0, 1],  # along-track (heading frame of i)
+            [1, 1, 0, 1, 1, 1, 0, 0, 0, 1],  # cross-track
+            [0, 0, 1, 0, 0, 0, 1, 0, 0, 1],  # vertical
+            [0, 0, 0, 1, 0, 0, 0, 1, 1, 0],
+        ],
+        bool,
+    )  # yaw
 
     def __init__(self, layout: StateLayout, i, odo_pose4: np.ndarray, moving_time_s, noise):
         i = np.asarray(i, int).reshape(-1)
@@ -97,9 +116,13 @@ class OdometryFactor(Factor):
         self.d = _rotate_z(-a[:, 3], b[:, :3] - a[:, :3])  # odometry step in the heading frame of i
         self.dpsi = wrap_angle(b[:, 3] - a[:, 3])
         self.tau = np.asarray(moving_time_s, float).reshape(-1)
-        self.sigma_m = np.sqrt(noise.trans_floor_m**2 + (noise.trans_rel * np.linalg.norm(self.d, axis=1)) ** 2)[:, None]
+        self.sigma_m = np.sqrt(
+            noise.trans_floor_m**2 + (noise.trans_rel * np.linalg.norm(self.d, axis=1)) ** 2
+        )[:, None]
         self.sigma_yaw = np.sqrt(noise.yaw_floor_rad**2 + noise.yaw_noise_rad_sqrt_s**2 * self.tau)
-        self.columns = np.column_stack([layout.pose(i), layout.pose(i + 1), layout.bias(i), np.full(len(i), layout.scale)])
+        self.columns = np.column_stack(
+            [layout.pose(i), layout.pose(i + 1), layout.bias(i), np.full(len(i), layout.scale)]
+        )
 
     def residual(self, v):
         local = _rotate_z(-v[:, 3], v[:, 4:7] - v[:, 0:3])
@@ -115,7 +138,9 @@ class BiasWalkFactor(Factor):
 
     def __init__(self, layout: StateLayout, i, moving_time_s, noise):
         i = np.asarray(i, int).reshape(-1)
-        self.sigma = noise.bias_walk_rad_s_sqrt_s * np.sqrt(np.maximum(np.asarray(moving_time_s, float), 1e-3))
+        self.sigma = noise.bias_walk_rad_s_sqrt_s * np.sqrt(
+            np.maximum(np.asarray(moving_time_s, float), 1e-3)
+        )
         self.columns = np.column_stack([layout.bias(i), layout.bias(i + 1)])
 
     def residual(self, v):
@@ -153,8 +178,12 @@ class PoseFixFactor(Factor):
         self.columns = layout.pose(kf)
 
     def residual(self, v):
-        return np.column_stack([(v[:, :3] - self.pose4[:, :3]) / self.sigma_m,
-                                wrap_angle(v[:, 3] - self.pose4[:, 3]) / self.sigma_yaw])  # fmt: skip
+        return np.column_stack(
+            [
+                (v[:, :3] - self.pose4[:, :3]) / self.sigma_m,
+                wrap_angle(v[:, 3] - self.pose4[:, 3]) / self.sigma_yaw,
+            ]
+        )
 
 
 class LandmarkFactor(Factor):
@@ -163,7 +192,9 @@ class LandmarkFactor(Factor):
     applied once here). Columns: the keyframe's pose (4)."""
 
     dim = 3
-    reads = np.array([[1, 0, 0, 1], [0, 1, 0, 1], [0, 0, 1, 0]], bool)  # x and y turn with yaw; z does not
+    reads = np.array(
+        [[1, 0, 0, 1], [0, 1, 0, 1], [0, 0, 1, 0]], bool
+    )  # x and y turn with yaw; z does not
 
     def __init__(self, layout: StateLayout, keyframes, p_rover, roll_pitch_rad, targets, sigma_m):
         kf = np.asarray(keyframes, int).reshape(-1)
@@ -189,16 +220,18 @@ class SharedLandmarkFactor(LandmarkFactor):
     :class:`PriorFactor` per component."""
 
     #                  x  y  z  psi ex ey ez
-    reads = np.array([[1, 0, 0, 1, 1, 0, 0],
-                      [0, 1, 0, 1, 0, 1, 0],
-                      [0, 0, 1, 0, 0, 0, 1]], bool)  # fmt: skip
+    reads = np.array([[1, 0, 0, 1, 1, 0, 0], [0, 1, 0, 1, 0, 1, 0], [0, 0, 1, 0, 0, 0, 1]], bool)
 
-    def __init__(self, layout: StateLayout, keyframes, landmarks, p_rover, roll_pitch_rad, targets, sigma_m):
+    def __init__(
+        self, layout: StateLayout, keyframes, landmarks, p_rover, roll_pitch_rad, targets, sigma_m
+    ):
         super().__init__(layout, keyframes, p_rover, roll_pitch_rad, targets, sigma_m)
         self.columns = np.column_stack([self.columns, layout.landmark(landmarks)])
 
     def residual(self, v):
-        return (_rotate_z(v[:, 3], self.p_level) + v[:, :3] - self.targets - v[:, 4:7]) / self.sigma_m
+        return (
+            _rotate_z(v[:, 3], self.p_level) + v[:, :3] - self.targets - v[:, 4:7]
+        ) / self.sigma_m
 
 
 def jacobian_sparsity(factors: list[Factor], active: np.ndarray, state_size: int):
@@ -218,7 +251,9 @@ def jacobian_sparsity(factors: list[Factor], active: np.ndarray, state_size: int
         r0 += n * f.dim
     rr, cc = np.concatenate(rows), np.concatenate(cols)
     keep = cc >= 0
-    S = coo_matrix((np.ones(int(keep.sum())), (rr[keep], cc[keep])), shape=(r0, len(active))).tocsr()
+    S = coo_matrix(
+        (np.ones(int(keep.sum())), (rr[keep], cc[keep])), shape=(r0, len(active))
+    ).tocsr()
     S.data[:] = 1.0
     return S
 
@@ -233,7 +268,13 @@ def _loss_rho(name: str, z: np.ndarray) -> np.ndarray:
     if name == "huber":
         big = z > 1
         r = np.sqrt(np.where(big, z, 1.0))
-        return np.stack([np.where(big, 2 * r - 1, z), np.where(big, 1 / r, 1.0), np.where(big, -0.5 / r**3, 0.0)])
+        return np.stack(
+            [
+                np.where(big, 2 * r - 1, z),
+                np.where(big, 1 / r, 1.0),
+                np.where(big, -0.5 / r**3, 0.0),
+            ]
+        )
     if name == "cauchy":
         t = 1 + z
         return np.stack([np.log1p(z), 1 / t, -1 / t**2])
@@ -249,7 +290,11 @@ def robust_loss(factors: list[Factor], name: str):
     is no measurement that can be an outlier; robust, a reference rock's error would grow
     cheaply and let the trajectory wander with its rocks), which stay quadratic. Just `name`
     when every factor is robust."""
-    mask = np.concatenate([np.full(len(f) * f.dim, f.robust) for f in factors]) if factors else np.zeros(0, bool)
+    mask = (
+        np.concatenate([np.full(len(f) * f.dim, f.robust) for f in factors])
+        if factors
+        else np.zeros(0, bool)
+    )
     if mask.all():
         return name
 

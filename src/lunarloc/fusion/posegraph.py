@@ -76,9 +76,17 @@ log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
 __all__ = [
-    "OdometryNoise", "GateConfig", "ReferenceErrorModel", "FusionConfig", "Fix", "GateResult", "Keyframe",
-    "LandmarkObservation", "ReferenceLandmark", "PoseGraph",
-]  # fmt: skip
+    "OdometryNoise",
+    "GateConfig",
+    "ReferenceErrorModel",
+    "FusionConfig",
+    "Fix",
+    "GateResult",
+    "Keyframe",
+    "LandmarkObservation",
+    "ReferenceLandmark",
+    "PoseGraph",
+]
 
 
 @dataclass(frozen=True)
@@ -103,7 +111,9 @@ class GateConfig:
     enabled: bool = True
     probability: float = 0.999  # chi-square quantile (4 DoF) a consistent fix stays within
     base_sigma_m: float = 0.05  # position sigma right after an accepted fix (m)
-    rate_m_per_m: float = 0.05  # added position sigma per metre travelled since then (5 % of distance)
+    rate_m_per_m: float = (
+        0.05  # added position sigma per metre travelled since then (5 % of distance)
+    )
     base_sigma_yaw_deg: float = 0.5  # yaw sigma right after an accepted fix
     yaw_rate_deg_per_s: float = 0.05  # added yaw sigma per second since then (3 deg/min)
     yaw_rate_deg_per_m: float = 0.5  # added yaw sigma per metre since then
@@ -123,7 +133,9 @@ class ReferenceErrorModel(str, enum.Enum):
     """How the reference landmarks' own position error enters the landmark ties."""
 
     SHARED = "shared"  # one error 3-vector per reference landmark, shared by its ties, prior its stated sigma
-    INDEPENDENT = "independent"  # each tie alone with observation_sigma_m; the reference's sigma is ignored
+    INDEPENDENT = (
+        "independent"  # each tie alone with observation_sigma_m; the reference's sigma is ignored
+    )
 
 
 @dataclass(frozen=True)
@@ -138,8 +150,12 @@ class FusionConfig:
     max_nfev: int = 50  # least-squares function evaluations per solve
     loss: str = "soft_l1"  # robust loss of least_squares (residuals are in sigmas)
     loss_scale: float = 3.0  # residuals beyond ~this many sigmas lose influence
-    observation_sigma_m: float = 0.05  # landmark tie: the detection's own error (m; INDEPENDENT: and the reference's)
-    reference_error: ReferenceErrorModel = ReferenceErrorModel.SHARED  # how a reference landmark's own error enters its ties
+    observation_sigma_m: float = (
+        0.05  # landmark tie: the detection's own error (m; INDEPENDENT: and the reference's)
+    )
+    reference_error: ReferenceErrorModel = (
+        ReferenceErrorModel.SHARED
+    )  # how a reference landmark's own error enters its ties
 
     def __post_init__(self) -> None:
         if not 0 < self.gate.probability < 1:
@@ -152,8 +168,10 @@ class FusionConfig:
         try:
             object.__setattr__(self, "reference_error", ReferenceErrorModel(self.reference_error))
         except ValueError:
-            raise ConfigError(f"reference_error={self.reference_error!r}: use one of "
-                              f"{', '.join(m.value for m in ReferenceErrorModel)}") from None  # fmt: skip
+            raise ConfigError(
+                f"reference_error={self.reference_error!r}: use one of "
+                f"{', '.join(m.value for m in ReferenceErrorModel)}"
+            ) from None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -238,7 +256,9 @@ class LandmarkObservation:
     roll_pitch_rad: np.ndarray
     target_xyz: np.ndarray
     sigma_m: float
-    landmark: object = None  # the reference landmark's key (:class:`ReferenceLandmark`); None: tied alone
+    landmark: object = (
+        None  # the reference landmark's key (:class:`ReferenceLandmark`); None: tied alone
+    )
 
 
 @dataclass
@@ -279,8 +299,17 @@ class PoseGraph:
     def __len__(self) -> int:
         return len(self.keyframes)
 
-    def add_keyframe(self, t: float, odo_pose4, moving_time_s: float | None = None, *, frame: int | None = None,
-                     roll_pitch_rad=(0.0, 0.0), detections_rover=None, path_m: float | None = None) -> int:  # fmt: skip
+    def add_keyframe(
+        self,
+        t: float,
+        odo_pose4,
+        moving_time_s: float | None = None,
+        *,
+        frame: int | None = None,
+        roll_pitch_rad=(0.0, 0.0),
+        detections_rover=None,
+        path_m: float | None = None,
+    ) -> int:
         """Add a keyframe at time `t` (s) with odometry pose (x, y, z, yaw); returns its index.
 
         The new keyframe's estimate is the last estimate propagated by the calibrated
@@ -295,7 +324,11 @@ class PoseGraph:
         prev = self.keyframes[-1] if n else None
         if prev is not None and t < prev.t_s:
             raise InputError(f"keyframe time {t} is before the previous one {prev.t_s}")
-        det = np.zeros((0, 3)) if detections_rover is None else np.asarray(detections_rover, float).reshape(-1, 3)
+        det = (
+            np.zeros((0, 3))
+            if detections_rover is None
+            else np.asarray(detections_rover, float).reshape(-1, 3)
+        )
         rp = (float(roll_pitch_rad[0]), float(roll_pitch_rad[1]))
         if prev is None:
             kf = Keyframe(0, float(t), q, q.copy(), 0.0, 0.0, 0.0, frame, rp, det, path_m)
@@ -303,7 +336,9 @@ class PoseGraph:
             tau = float(t - prev.t_s if moving_time_s is None else moving_time_s)
             c, s = math.cos(prev.odo_pose4[3]), math.sin(prev.odo_pose4[3])
             dx, dy, dz = q[:3] - prev.odo_pose4[:3]
-            d = np.array([c * dx + s * dy, -s * dx + c * dy, dz])  # odometry step in the heading frame
+            d = np.array(
+                [c * dx + s * dy, -s * dx + c * dy, dz]
+            )  # odometry step in the heading frame
             dpsi = float(wrap_angle(q[3] - prev.odo_pose4[3]))
             e, b = prev.estimate_pose4, prev.bias_rad_s
             c, s = math.cos(e[3]), math.sin(e[3])
@@ -342,7 +377,9 @@ class PoseGraph:
         g = self.config.gate
         dd = max(self.keyframes[i].distance_m - self._last_fix_dist, 0.0)
         dt = max(self.keyframes[i].t_s - self._last_fix_time, 0.0)
-        yaw = math.radians(math.hypot(g.base_sigma_yaw_deg, g.yaw_rate_deg_per_s * dt + g.yaw_rate_deg_per_m * dd))
+        yaw = math.radians(
+            math.hypot(g.base_sigma_yaw_deg, g.yaw_rate_deg_per_s * dt + g.yaw_rate_deg_per_m * dd)
+        )
         # heading uncertainty swings the position sideways by about yaw * distance / 2
         pos = math.sqrt(g.base_sigma_m**2 + (g.rate_m_per_m * dd) ** 2 + (0.5 * yaw * dd) ** 2)
         return pos, yaw
@@ -350,7 +387,9 @@ class PoseGraph:
     # ------------------------------------------------------------------ fixes
     def _fix_sigmas(self, sigma_m: float, sigma_yaw_rad: float) -> tuple[float, float]:
         c = self.config
-        return max(float(sigma_m), c.min_fix_sigma_m), max(float(sigma_yaw_rad), math.radians(c.min_fix_sigma_yaw_deg))
+        return max(float(sigma_m), c.min_fix_sigma_m), max(
+            float(sigma_yaw_rad), math.radians(c.min_fix_sigma_yaw_deg)
+        )
 
     def gate(self, i: int, pose4, sigma_m: float, sigma_yaw_rad: float) -> GateResult:
         """Chi-square test of a fix of keyframe i against its current prediction."""
@@ -379,8 +418,17 @@ class PoseGraph:
         self.fixes.append(Fix(i, np.asarray(pose4, float).reshape(4), sm, sy))
         self._fixed_at(i)
 
-    def add_landmark_observations(self, keys, keyframes, p_rover, roll_pitch, targets, sigma_m: float,
-                                  landmarks=None, landmark_sigma_xyz=None) -> None:  # fmt: skip
+    def add_landmark_observations(
+        self,
+        keys,
+        keyframes,
+        p_rover,
+        roll_pitch,
+        targets,
+        sigma_m: float,
+        landmarks=None,
+        landmark_sigma_xyz=None,
+    ) -> None:
         """Landmark fixes: detection ``p_rover`` (rover frame) made at keyframe ``k`` is the
         reference landmark ``target`` (map frame). Residual ``T_k(p_rover) - target`` with
         ``T_k`` = (x, y, z, yaw) of the keyframe and its odometry roll/pitch, in units of the
@@ -405,7 +453,9 @@ class PoseGraph:
         if landmarks is not None:
             landmarks = list(landmarks)
             if landmark_sigma_xyz is None:
-                raise InputError("landmark observations: landmarks given without landmark_sigma_xyz")
+                raise InputError(
+                    "landmark observations: landmarks given without landmark_sigma_xyz"
+                )
             S = np.asarray(landmark_sigma_xyz, float)
             S = np.repeat(S.reshape(-1, 1), 3, axis=1) if S.ndim == 1 else S.reshape(-1, 3)
             if not len(landmarks) == len(S) == len(kf):
@@ -419,7 +469,9 @@ class PoseGraph:
                 ref = self.reference_landmarks.get(lm)
                 if ref is None:
                     sig = np.maximum(S[n], MIN_REFERENCE_SIGMA_M)
-                    self.reference_landmarks[lm] = ReferenceLandmark(len(self.reference_landmarks), q.copy(), sig)
+                    self.reference_landmarks[lm] = ReferenceLandmark(
+                        len(self.reference_landmarks), q.copy(), sig
+                    )
                 elif not np.allclose(ref.target_xyz, q):
                     raise InputError(f"reference landmark {lm!r} tied at two different positions")
             self.observations[key] = LandmarkObservation(int(k), p, rp, q, float(sigma_m), lm)

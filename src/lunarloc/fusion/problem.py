@@ -36,6 +36,7 @@ def first_active(graph, active_window_m: float | None) -> int:
     dist = np.array([kf.distance_m for kf in graph.keyframes])
     return min(int(np.searchsorted(dist, dist[-1] - active_window_m)), len(graph) - 1)
 
+
 def build_factors(graph, first: int = 0) -> list[Factor]:
     """The factors touching keyframes ``first..K-1`` (older ones are held fixed)."""
     K, nz, calib = len(graph), graph.config.noise, graph.config.calibrate
@@ -49,13 +50,27 @@ def build_factors(graph, first: int = 0) -> list[Factor]:
         out.append(PoseFixFactor(L, [0], odo[0], nz.start_sigma_m, nz.start_sigma_yaw_rad))
     fixes = [f for f in graph.fixes if f.keyframe >= first]
     if fixes:
-        out.append(PoseFixFactor(L, [f.keyframe for f in fixes], [f.pose4 for f in fixes],
-                                 [f.sigma_m for f in fixes], [f.sigma_yaw_rad for f in fixes]))  # fmt: skip
+        out.append(
+            PoseFixFactor(
+                L,
+                [f.keyframe for f in fixes],
+                [f.pose4 for f in fixes],
+                [f.sigma_m for f in fixes],
+                [f.sigma_yaw_rad for f in fixes],
+            )
+        )
     obs = [o for o in graph.observations.values() if o.keyframe >= first and o.landmark is None]
     if obs:
-        out.append(LandmarkFactor(L, [o.keyframe for o in obs], [o.p_rover for o in obs],
-                                  [o.roll_pitch_rad for o in obs], [o.target_xyz for o in obs],
-                                  [o.sigma_m for o in obs]))  # fmt: skip
+        out.append(
+            LandmarkFactor(
+                L,
+                [o.keyframe for o in obs],
+                [o.p_rover for o in obs],
+                [o.roll_pitch_rad for o in obs],
+                [o.target_xyz for o in obs],
+                [o.sigma_m for o in obs],
+            )
+        )
     out += _shared_factors(graph, L, first)
     if calib:
         out.append(BiasWalkFactor(L, e, tau, nz))
@@ -64,11 +79,18 @@ def build_factors(graph, first: int = 0) -> list[Factor]:
             out.append(PriorFactor(L.bias([0]), 0.0, nz.bias_sigma_rad_s))
     return out
 
+
 def free_landmarks(graph, first: int = 0) -> list[int]:
     """Indices of the reference landmarks a solve from keyframe `first` frees: those tied
     to a free keyframe."""
-    return sorted({graph.reference_landmarks[o.landmark].index for o in graph.observations.values()
-                   if o.landmark is not None and o.keyframe >= first})  # fmt: skip
+    return sorted(
+        {
+            graph.reference_landmarks[o.landmark].index
+            for o in graph.observations.values()
+            if o.landmark is not None and o.keyframe >= first
+        }
+    )
+
 
 def _shared_factors(graph, L: StateLayout, first: int) -> list[Factor]:
     """Ties to the reference landmarks a solve frees (with their ties from held keyframes
@@ -78,14 +100,29 @@ def _shared_factors(graph, L: StateLayout, first: int) -> list[Factor]:
     if not free:
         return []
     refs = graph.reference_landmarks
-    obs = [o for o in graph.observations.values() if o.landmark is not None and refs[o.landmark].index in free]
-    ties = SharedLandmarkFactor(L, [o.keyframe for o in obs], [refs[o.landmark].index for o in obs],
-                                [o.p_rover for o in obs], [o.roll_pitch_rad for o in obs],
-                                [o.target_xyz for o in obs], [o.sigma_m for o in obs])  # fmt: skip
+    obs = [
+        o
+        for o in graph.observations.values()
+        if o.landmark is not None and refs[o.landmark].index in free
+    ]
+    ties = SharedLandmarkFactor(
+        L,
+        [o.keyframe for o in obs],
+        [refs[o.landmark].index for o in obs],
+        [o.p_rover for o in obs],
+        [o.roll_pitch_rad for o in obs],
+        [o.target_xyz for o in obs],
+        [o.sigma_m for o in obs],
+    )
     lms = [r for r in refs.values() if r.index in free]
-    prior = PriorFactor(L.landmark([r.index for r in lms]).ravel(), 0.0,
-                        np.concatenate([r.sigma_xyz for r in lms]), robust=False)  # fmt: skip
+    prior = PriorFactor(
+        L.landmark([r.index for r in lms]).ravel(),
+        0.0,
+        np.concatenate([r.sigma_xyz for r in lms]),
+        robust=False,
+    )
     return [ties, prior]
+
 
 def state_vector(graph) -> np.ndarray:
     """Full state vector (see :class:`StateLayout`); without calibration the biases are 0
@@ -96,6 +133,7 @@ def state_vector(graph) -> np.ndarray:
     for r in graph.reference_landmarks.values():
         e[r.index] = r.offset_xyz
     return np.r_[graph.poses().ravel(), b, graph.scale if calib else 1.0, e.ravel()]
+
 
 def solve(graph, active_window_m: float | None = None) -> float:
     """Re-optimise the keyframes (all, or those within `active_window_m` metres of
@@ -116,16 +154,33 @@ def solve(graph, active_window_m: float | None = None) -> float:
         z[active] = x
         return stacked_residual(factors, z)
 
-    res = least_squares(fun, z[active].copy(), jac_sparsity=jacobian_sparsity(factors, active, layout.size),
-                        method="trf", x_scale="jac", max_nfev=cfg.max_nfev, loss=robust_loss(factors, cfg.loss),
-                        f_scale=cfg.loss_scale, ftol=1e-8, xtol=1e-8, gtol=1e-8)  # fmt: skip
+    res = least_squares(
+        fun,
+        z[active].copy(),
+        jac_sparsity=jacobian_sparsity(factors, active, layout.size),
+        method="trf",
+        x_scale="jac",
+        max_nfev=cfg.max_nfev,
+        loss=robust_loss(factors, cfg.loss),
+        f_scale=cfg.loss_scale,
+        ftol=1e-8,
+        xtol=1e-8,
+        gtol=1e-8,
+    )
     z[active] = res.x
     _write_back(graph, z, layout)
     graph.num_solves += 1
-    log.debug("pose graph: %d keyframes (%d active), %d factors (%s), cost %.3g, scale %.4f",
-              len(graph), len(graph) - first, sum(len(f) for f in factors),
-              ", ".join(f"{type(f).__name__} {len(f)}" for f in factors), res.cost, graph.scale)  # fmt: skip
+    log.debug(
+        "pose graph: %d keyframes (%d active), %d factors (%s), cost %.3g, scale %.4f",
+        len(graph),
+        len(graph) - first,
+        sum(len(f) for f in factors),
+        ", ".join(f"{type(f).__name__} {len(f)}" for f in factors),
+        res.cost,
+        graph.scale,
+    )
     return float(res.cost)
+
 
 def _write_back(graph, z: np.ndarray, layout: StateLayout) -> None:
     P = z[: 4 * layout.K].reshape(-1, 4).copy()

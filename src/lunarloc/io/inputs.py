@@ -18,7 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
-from lunarloc.core.errors import FileFormatError, LimitError, NotAFileError, UnreadableFileError, file_error
+from lunarloc.core.errors import (
+    FileFormatError,
+    LimitError,
+    NotAFileError,
+    UnreadableFileError,
+    file_error,
+)
 
 __all__ = [
     "MAX_CSV_BYTES",
@@ -49,7 +55,9 @@ MAX_ABS_COORD_M = 1.0e7
 """Landmark and pose coordinates beyond +-10,000 km (several Moon radii) are refused as absurd."""
 
 
-def check_input_file(path: str | os.PathLike, max_bytes: int | None = None, what: str = "input") -> Path:
+def check_input_file(
+    path: str | os.PathLike, max_bytes: int | None = None, what: str = "input"
+) -> Path:
     """Return `path` as a Path after checking that it is a readable regular file no larger
     than `max_bytes`; raises MissingFileError, NotAFileError, UnreadableFileError or LimitError."""
     p = Path(path)
@@ -60,7 +68,9 @@ def check_input_file(path: str | os.PathLike, max_bytes: int | None = None, what
     if stat.S_ISDIR(st.st_mode):
         raise NotAFileError(f"{p}: is a folder, expected a {what} file")
     if not stat.S_ISREG(st.st_mode):
-        raise NotAFileError(f"{p}: not a regular file (a device, pipe or socket), expected a {what} file")
+        raise NotAFileError(
+            f"{p}: not a regular file (a device, pipe or socket), expected a {what} file"
+        )
     if not os.access(p, os.R_OK):
         raise UnreadableFileError(f"{p}: permission denied (read)")
     if max_bytes is not None and st.st_size > max_bytes:
@@ -70,8 +80,12 @@ def check_input_file(path: str | os.PathLike, max_bytes: int | None = None, what
     return p
 
 
-_BOMS = ((b"\xff\xfe\x00\x00", "UTF-32"), (b"\x00\x00\xfe\xff", "UTF-32"), (b"\xff\xfe", "UTF-16"),
-         (b"\xfe\xff", "UTF-16"))  # fmt: skip
+_BOMS = (
+    (b"\xff\xfe\x00\x00", "UTF-32"),
+    (b"\x00\x00\xfe\xff", "UTF-32"),
+    (b"\xff\xfe", "UTF-16"),
+    (b"\xfe\xff", "UTF-16"),
+)
 
 
 def open_text(path: str | os.PathLike, max_bytes: int = MAX_CSV_BYTES, what: str = "CSV"):
@@ -85,9 +99,13 @@ def open_text(path: str | os.PathLike, max_bytes: int = MAX_CSV_BYTES, what: str
             head = fh.read(4)
         for bom, name in _BOMS:
             if head.startswith(bom):
-                raise FileFormatError(f"{p}: {name} text; lunarloc reads UTF-8 (save the file as UTF-8)")
+                raise FileFormatError(
+                    f"{p}: {name} text; lunarloc reads UTF-8 (save the file as UTF-8)"
+                )
         if head[:2].count(0) and len(head) >= 2:
-            raise FileFormatError(f"{p}: binary data or UTF-16 text without a byte-order mark; expected UTF-8 {what}")
+            raise FileFormatError(
+                f"{p}: binary data or UTF-16 text without a byte-order mark; expected UTF-8 {what}"
+            )
         return open(p, encoding="utf-8-sig", newline="")  # noqa: SIM115 - the caller closes it
     except OSError as exc:
         raise file_error(p, exc) from None
@@ -96,7 +114,9 @@ def open_text(path: str | os.PathLike, max_bytes: int = MAX_CSV_BYTES, what: str
 def decode_error(path, exc: UnicodeDecodeError, line: int | None = None) -> FileFormatError:
     """One-line error for a decoding failure at (about) `line`."""
     where = f"{path}:{line}" if line else f"{path}"
-    return FileFormatError(f"{where}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x}); save the file as UTF-8")
+    return FileFormatError(
+        f"{where}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x}); save the file as UTF-8"
+    )
 
 
 @contextlib.contextmanager
@@ -115,14 +135,18 @@ def csv_error(path, line: int, exc: csv.Error) -> FileFormatError:
     """One-line error for a csv module error (e.g. a field over the limit) at `line`."""
     msg = str(exc)
     if "field larger than field limit" in msg:
-        return LimitError(f"{path}:{line}: a field is longer than the {MAX_CSV_FIELD_CHARS:,} character limit")
+        return LimitError(
+            f"{path}:{line}: a field is longer than the {MAX_CSV_FIELD_CHARS:,} character limit"
+        )
     return FileFormatError(f"{path}:{line}: malformed CSV ({msg})")
 
 
 _REAL_KINDS = "fiub"  # float, signed int, unsigned int, bool
 
 
-def load_npz_arrays(path: str | os.PathLike, max_member_bytes: int | None = None) -> dict[str, np.ndarray]:
+def load_npz_arrays(
+    path: str | os.PathLike, max_member_bytes: int | None = None
+) -> dict[str, np.ndarray]:
     """All arrays of an `.npz` file, each checked before it is allocated: the file must be a
     zip of ``.npy`` members (at most :data:`MAX_NPZ_MEMBERS`), each header must declare a
     real (float, int, bool) or string dtype, a shape whose byte size is within
@@ -156,16 +180,27 @@ def load_npz_arrays(path: str | os.PathLike, max_member_bytes: int | None = None
                     )
                 out[name[:-4]] = _read_npy_member(p, zf, info, max_member_bytes)
         return out
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, ValueError, OSError, NotImplementedError,
-            RuntimeError) as exc:  # zipfile: unsupported compression/encryption flags, passwords
+    except (
+        zipfile.BadZipFile,
+        zipfile.LargeZipFile,
+        EOFError,
+        ValueError,
+        OSError,
+        NotImplementedError,
+        RuntimeError,
+    ) as exc:  # zipfile: unsupported compression/encryption flags, passwords
         if isinstance(exc, (FileFormatError, LimitError)):
             raise
         if isinstance(exc, OSError) and exc.errno is not None:
             raise file_error(p, exc) from None
-        raise FileFormatError(f"{p}: corrupt or truncated .npz archive ({type(exc).__name__}: {exc})") from None
+        raise FileFormatError(
+            f"{p}: corrupt or truncated .npz archive ({type(exc).__name__}: {exc})"
+        ) from None
 
 
-def _read_npy_member(p: Path, zf: zipfile.ZipFile, info: zipfile.ZipInfo, max_bytes: int) -> np.ndarray:
+def _read_npy_member(
+    p: Path, zf: zipfile.ZipFile, info: zipfile.ZipInfo, max_bytes: int
+) -> np.ndarray:
     name = info.filename
     with zf.open(info) as fh:
         try:
@@ -186,7 +221,9 @@ def _read_npy_member(p: Path, zf: zipfile.ZipFile, info: zipfile.ZipInfo, max_by
         nbytes = math.prod(shape) * dtype.itemsize
         header_len = fh.tell()
         if nbytes > max_bytes:
-            raise LimitError(f"{p}: member {name} declares shape {shape} ({nbytes / 1024**3:.1f} GiB), over the limit")
+            raise LimitError(
+                f"{p}: member {name} declares shape {shape} ({nbytes / 1024**3:.1f} GiB), over the limit"
+            )
         if nbytes + header_len != info.file_size:
             raise FileFormatError(
                 f"{p}: member {name} declares shape {shape} {dtype} ({nbytes} bytes) but holds "

@@ -61,7 +61,14 @@ _TUPLE = rf"\(\s*{_VAL}\s*,\s*{_VAL}\s*,\s*{_VAL}\s*,?\s*\)"
 _BOULDERS = re.compile(rf"\[\s*(?:{_TUPLE}(?:\s*,\s*{_TUPLE})*\s*,?\s*)?\]", re.IGNORECASE)
 
 
-ROCK_COLUMNS = ["id", "x", "y", "z", "radius"]  # a rock list CSV (simulated sites, the LAC rock catalogue)
+ROCK_COLUMNS = [
+    "id",
+    "x",
+    "y",
+    "z",
+    "radius",
+]  # a rock list CSV (simulated sites, the LAC rock catalogue)
+
 
 def parse_boulders(text: str) -> np.ndarray:
     """(N, 3) float array from a boulders field ``[(x, y, z), ...]`` (the LunarLoc dataset
@@ -74,6 +81,7 @@ def parse_boulders(text: str) -> np.ndarray:
         raise ValueError("boulders must be a list like [(x, y, z), ...] of plain numbers")
     vals = np.array(_NUMBER.findall(t), dtype=float)
     return vals.reshape(-1, 3)
+
 
 #: LandmarkMap's optional sighting arc-length fields (all three or none)
 _ARC_FIELDS = ("sighting_arc_m", "sighting_arc_min_m", "sighting_arc_max_m")
@@ -134,9 +142,13 @@ class LandmarkMap:
         given = [getattr(self, name) is not None for name in _ARC_FIELDS]
         if any(given) and not all(given):
             raise InputError(f"{', '.join(_ARC_FIELDS)} go together: give all three or none")
-        if all(given) and not np.all((self.sighting_arc_min_m <= self.sighting_arc_m + 1e-5)
-                                     & (self.sighting_arc_m <= self.sighting_arc_max_m + 1e-5)):
-            raise InputError("sighting arc lengths must satisfy min <= mean <= max for every landmark")
+        if all(given) and not np.all(
+            (self.sighting_arc_min_m <= self.sighting_arc_m + 1e-5)
+            & (self.sighting_arc_m <= self.sighting_arc_max_m + 1e-5)
+        ):
+            raise InputError(
+                "sighting arc lengths must satisfy min <= mean <= max for every landmark"
+            )
 
     @property
     def has_sighting_arcs(self) -> bool:
@@ -144,8 +156,16 @@ class LandmarkMap:
         return self.sighting_arc_m is not None
 
     def _arcs(self, idx=None) -> dict:
-        return {name: (None if getattr(self, name) is None else getattr(self, name) if idx is None
-                       else getattr(self, name)[idx]) for name in _ARC_FIELDS}
+        return {
+            name: (
+                None
+                if getattr(self, name) is None
+                else getattr(self, name)
+                if idx is None
+                else getattr(self, name)[idx]
+            )
+            for name in _ARC_FIELDS
+        }
 
     def __len__(self) -> int:
         return len(self.positions_xyz)
@@ -171,8 +191,13 @@ class LandmarkMap:
     def transformed(self, T_new_frame: np.ndarray, frame: str | None = None) -> "LandmarkMap":
         """Copy with positions mapped by `T_new_frame` (4x4) into a new frame."""
         return LandmarkMap(
-            transform_points(T_new_frame, self.positions_xyz), self.sizes, self.sightings, frame or self.frame,
-            self.sigma_xy_m, self.sigma_z_m, **self._arcs(),
+            transform_points(T_new_frame, self.positions_xyz),
+            self.sizes,
+            self.sightings,
+            frame or self.frame,
+            self.sigma_xy_m,
+            self.sigma_z_m,
+            **self._arcs(),
         )
 
 
@@ -180,7 +205,9 @@ def _check_coordinates(xyz: np.ndarray, name: str) -> None:
     """Refuse absurd coordinates (beyond +-MAX_ABS_COORD_M): they overflow distance sums."""
     if xyz.size and float(np.max(np.abs(xyz))) > _inputs.MAX_ABS_COORD_M:
         bad = int(np.flatnonzero(np.any(np.abs(xyz) > _inputs.MAX_ABS_COORD_M, axis=1))[0])
-        raise InputError(f"{name}: coordinate beyond +-{_inputs.MAX_ABS_COORD_M:g} m (row {bad}); not a map in metres")
+        raise InputError(
+            f"{name}: coordinate beyond +-{_inputs.MAX_ABS_COORD_M:g} m (row {bad}); not a map in metres"
+        )
 
 
 @dataclass
@@ -236,7 +263,9 @@ def load_traverse(path: str | Path) -> Traverse:
     """
     path = Path(path)
     with _inputs.open_text(path, what="traverse CSV") as fh, _inputs.csv_field_limit():
-        reader = csv.reader(fh, strict=True)  # strict: a quote left open at the end of the file is an error
+        reader = csv.reader(
+            fh, strict=True
+        )  # strict: a quote left open at the end of the file is an error
         try:
             return _read_traverse_rows(path, reader)
         except UnicodeDecodeError as exc:
@@ -249,7 +278,12 @@ def _read_traverse_rows(path: Path, reader) -> Traverse:
     import array
 
     # typed arrays, 8 bytes per value: memory follows the file's content, not its row count
-    frames, rover, dets, det_frame = array.array("q"), array.array("d"), array.array("d"), array.array("q")
+    frames, rover, dets, det_frame = (
+        array.array("q"),
+        array.array("d"),
+        array.array("d"),
+        array.array("q"),
+    )
     try:
         header = next(reader)
     except StopIteration:
@@ -289,7 +323,9 @@ def _read_traverse_rows(path: Path, reader) -> Traverse:
         if max(map(abs, xyz)) > _inputs.MAX_ABS_COORD_M or (
             values.size and np.max(np.abs(values)) > _inputs.MAX_ABS_COORD_M
         ):
-            raise FileFormatError(f"{path}:{line}: coordinate beyond +-{_inputs.MAX_ABS_COORD_M:g} m")
+            raise FileFormatError(
+                f"{path}:{line}: coordinate beyond +-{_inputs.MAX_ABS_COORD_M:g} m"
+            )
         frames.append(frame)
         rover.extend(xyz)
         if count:
@@ -298,7 +334,9 @@ def _read_traverse_rows(path: Path, reader) -> Traverse:
     if not frames:
         raise FileFormatError(f"{path}: no data rows")
     return Traverse(
-        frames=np.frombuffer(frames, dtype=np.int64),  # views of the typed arrays (writable, no copy)
+        frames=np.frombuffer(
+            frames, dtype=np.int64
+        ),  # views of the typed arrays (writable, no copy)
         rover_xyz=np.frombuffer(rover, dtype=np.float64).reshape(-1, 3),
         detections_xyz=np.frombuffer(dets, dtype=np.float64).reshape(-1, 3),
         detection_frame=np.frombuffer(det_frame, dtype=np.int64),
@@ -339,7 +377,9 @@ class AggregationConfig:
     """
 
     radius_m: float = 0.10  # DBSCAN eps: neighbours within this distance belong to one rock
-    min_sightings: int = 5  # DBSCAN min_samples: detections needed to make a landmark (drops one-off noise)
+    min_sightings: int = (
+        5  # DBSCAN min_samples: detections needed to make a landmark (drops one-off noise)
+    )
     min_frames: int = 2  # a landmark must be seen in at least this many distinct frames
 
     def __post_init__(self) -> None:
@@ -372,7 +412,9 @@ def aggregate_detections(
     if detection_arc_m is not None:
         arc = np.asarray(detection_arc_m, dtype=float).reshape(-1)
         if arc.shape[0] != len(pts) or not np.all(np.isfinite(arc)) or np.any(arc < 0):
-            raise InputError(f"detection_arc_m must hold {len(pts)} finite non-negative values, got {arc.shape[0]}")
+            raise InputError(
+                f"detection_arc_m must hold {len(pts)} finite non-negative values, got {arc.shape[0]}"
+            )
     no_arcs = {} if arc is None else {name: np.zeros(0) for name in _ARC_FIELDS}
     if len(pts) == 0:
         return LandmarkMap(np.zeros((0, 3)), sightings=np.zeros(0), frame=frame, **no_arcs)
@@ -403,9 +445,14 @@ def aggregate_detections(
         return LandmarkMap(np.zeros((0, 3)), sightings=np.zeros(0), frame=frame, **no_arcs)
     sig = np.asarray(spreads, dtype=float).reshape(-1, 2)
     A = np.asarray(arcs, dtype=float).reshape(-1, 3)
-    return LandmarkMap(np.asarray(centres), sightings=np.asarray(counts, dtype=float), frame=frame,
-                       sigma_xy_m=sig[:, 0], sigma_z_m=sig[:, 1],
-                       **({} if arc is None else dict(zip(_ARC_FIELDS, A.T))))
+    return LandmarkMap(
+        np.asarray(centres),
+        sightings=np.asarray(counts, dtype=float),
+        frame=frame,
+        sigma_xy_m=sig[:, 0],
+        sigma_z_m=sig[:, 1],
+        **({} if arc is None else dict(zip(_ARC_FIELDS, A.T))),
+    )
 
 
 def sighting_sigma(points_xyz: np.ndarray, n_independent: int) -> tuple[float, float]:
@@ -423,10 +470,16 @@ def path_arc_length_m(path_xyz: np.ndarray) -> np.ndarray:
     """(F,) horizontal distance travelled along a path (F, 3) from its first pose: the arc
     length in which :class:`LandmarkMap` states where a landmark was seen from."""
     P = np.asarray(path_xyz, dtype=float).reshape(-1, 3)
-    return np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(P[:, :2], axis=0), axis=1))] if len(P) else np.zeros(0)
+    return (
+        np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(P[:, :2], axis=0), axis=1))]
+        if len(P)
+        else np.zeros(0)
+    )
 
 
-def detection_arcs_m(path_xyz: np.ndarray, path_frame: np.ndarray, detection_frame: np.ndarray) -> np.ndarray:
+def detection_arcs_m(
+    path_xyz: np.ndarray, path_frame: np.ndarray, detection_frame: np.ndarray
+) -> np.ndarray:
     """(D,) arc length along `path_xyz` (F, 3; its poses numbered by `path_frame` (F,)) at which
     each detection was taken (its frame `detection_frame` (D,)). InputError if a detection's
     frame is not a pose of the path."""
@@ -447,8 +500,13 @@ def traverse_map(traverse: Traverse, config: AggregationConfig | None = None) ->
     """Landmark map of a traverse's detections (frame name = traverse name), with where along
     the traverse's path each landmark was seen from (arc length from its first frame)."""
     arcs = detection_arcs_m(traverse.rover_xyz, traverse.frames, traverse.detection_frame)
-    return aggregate_detections(traverse.detections_xyz, traverse.detection_frame, config, frame=traverse.name,
-                                detection_arc_m=arcs)
+    return aggregate_detections(
+        traverse.detections_xyz,
+        traverse.detection_frame,
+        config,
+        frame=traverse.name,
+        detection_arc_m=arcs,
+    )
 
 
 __all__.append("traverse_map")
@@ -473,7 +531,9 @@ def save_map(landmarks: LandmarkMap, path: str | Path) -> Path:
         from lunarloc.io.outputs import atomic_path
 
         with atomic_path(path) as tmp:
-            np.savez(tmp, positions_xyz=landmarks.positions_xyz, frame=np.array(landmarks.frame), **extra)
+            np.savez(
+                tmp, positions_xyz=landmarks.positions_xyz, frame=np.array(landmarks.frame), **extra
+            )
         return path
     if suffix != ".csv":
         raise InputError(f"{path}: unknown map format '{suffix}' (use .csv or .npz)")
@@ -506,7 +566,9 @@ _SIGMA_COLUMNS = {"sigma_xy": "sigma_xy_m", "sigma_z": "sigma_z_m"}
 _ARC_COLUMNS = dict(zip(("sighting_arc", "sighting_arc_min", "sighting_arc_max"), _ARC_FIELDS))
 
 
-def read_numeric_csv(path: str | Path, required: tuple[str, ...], what: str = "CSV") -> tuple[str | None, list[str], np.ndarray]:
+def read_numeric_csv(
+    path: str | Path, required: tuple[str, ...], what: str = "CSV"
+) -> tuple[str | None, list[str], np.ndarray]:
     """Stream a numeric CSV (``#`` comment lines first, a header, rows of plain numbers) into
     an (N, columns) float64 array: (frame name from ``# frame: NAME`` or None, header, table).
 
@@ -521,7 +583,9 @@ def read_numeric_csv(path: str | Path, required: tuple[str, ...], what: str = "C
         try:
             for k, line in enumerate(fh, start=1):
                 if len(line) > _inputs.MAX_CSV_FIELD_CHARS:
-                    raise LimitError(f"{path}:{k}: line longer than {_inputs.MAX_CSV_FIELD_CHARS:,} characters")
+                    raise LimitError(
+                        f"{path}:{k}: line longer than {_inputs.MAX_CSV_FIELD_CHARS:,} characters"
+                    )
                 if line.startswith("#"):
                     m = re.match(r"#\s*frame:\s*(.+)", line)
                     if m and header is None:
@@ -534,10 +598,14 @@ def read_numeric_csv(path: str | Path, required: tuple[str, ...], what: str = "C
                     header = [h.strip().lower() for h in parts]
                     for col in required:
                         if col not in header:
-                            raise FileFormatError(f"{path}:{k}: missing column '{col}' (need {','.join(required)}; got {','.join(header)})")
+                            raise FileFormatError(
+                                f"{path}:{k}: missing column '{col}' (need {','.join(required)}; got {','.join(header)})"
+                            )
                     continue
                 if len(parts) != len(header):
-                    raise FileFormatError(f"{path}:{k}: expected {len(header)} fields, got {len(parts)}")
+                    raise FileFormatError(
+                        f"{path}:{k}: expected {len(header)} fields, got {len(parts)}"
+                    )
                 if len(values) >= _inputs.MAX_CSV_ROWS * len(header):
                     raise LimitError(f"{path}:{k}: more than {_inputs.MAX_CSV_ROWS:,} rows")
                 try:
@@ -565,7 +633,11 @@ def _load_map_csv(path: Path) -> LandmarkMap:
             table[:, idx["size"]] if "size" in idx else None,
             table[:, idx["sightings"]] if "sightings" in idx else None,
             frame=frame or path.stem,
-            **{name: table[:, idx[col]] for col, name in (*_SIGMA_COLUMNS.items(), *_ARC_COLUMNS.items()) if col in idx},
+            **{
+                name: table[:, idx[col]]
+                for col, name in (*_SIGMA_COLUMNS.items(), *_ARC_COLUMNS.items())
+                if col in idx
+            },
         )
     except InputError as exc:
         raise FileFormatError(f"{path}: {exc}") from None
@@ -617,8 +689,12 @@ def load_vehicle(path: str | Path, config: AggregationConfig | None = None) -> V
     if path.suffix.lower() != ".npz" and is_traverse_csv(path):
         trav = load_traverse(path)
         path_xyz = np.asarray(trav.rover_xyz, dtype=float)
-        return VehicleInput(traverse_map(trav, config), path_xyz, path_xyz[-1:].copy() if len(path_xyz) else None,
-                            "traverse")  # fmt: skip
+        return VehicleInput(
+            traverse_map(trav, config),
+            path_xyz,
+            path_xyz[-1:].copy() if len(path_xyz) else None,
+            "traverse",
+        )
     return VehicleInput(load_map(path, config))
 
 
@@ -630,17 +706,30 @@ def _load_map_npz(path: Path) -> LandmarkMap:
     (:func:`lunarloc.io.inputs.load_npz_arrays`)."""
     z = _inputs.load_npz_arrays(path)
     if "positions_xyz" not in z:
-        raise FileFormatError(f"{path}: not a lunarloc .npz map (no 'positions_xyz' array; has {', '.join(z) or 'none'})")
+        raise FileFormatError(
+            f"{path}: not a lunarloc .npz map (no 'positions_xyz' array; has {', '.join(z) or 'none'})"
+        )
     for name, arr in z.items():
         if name != "frame" and arr.dtype.kind not in "fiub":
-            raise FileFormatError(f"{path}: array '{name}' holds {arr.dtype} values, expected numbers")
+            raise FileFormatError(
+                f"{path}: array '{name}' holds {arr.dtype} values, expected numbers"
+            )
     frame = z.get("frame")
     if frame is not None and (frame.ndim != 0 or frame.dtype.kind != "U"):
-        raise FileFormatError(f"{path}: 'frame' must be a single string, got {frame.dtype} of shape {frame.shape}")
+        raise FileFormatError(
+            f"{path}: 'frame' must be a single string, got {frame.dtype} of shape {frame.shape}"
+        )
     try:
-        return LandmarkMap(z["positions_xyz"], z.get("sizes"), z.get("sightings"),
-                           str(frame) if frame is not None else path.stem,
-                           **{name: z[name] for name in (*_SIGMA_COLUMNS.values(), *_ARC_COLUMNS.values())
-                              if name in z})  # fmt: skip
+        return LandmarkMap(
+            z["positions_xyz"],
+            z.get("sizes"),
+            z.get("sightings"),
+            str(frame) if frame is not None else path.stem,
+            **{
+                name: z[name]
+                for name in (*_SIGMA_COLUMNS.values(), *_ARC_COLUMNS.values())
+                if name in z
+            },
+        )
     except InputError as exc:
         raise FileFormatError(f"{path}: {exc}") from None

@@ -23,13 +23,33 @@ from pathlib import Path
 
 from lunarloc.core.errors import OutputError, file_error
 
-__all__ = ["check_output_file", "check_output_dir", "atomic_path", "atomic_open", "RUN_FILES", "remove_partial_outputs"]
+__all__ = [
+    "check_output_file",
+    "check_output_dir",
+    "atomic_path",
+    "atomic_open",
+    "RUN_FILES",
+    "remove_partial_outputs",
+]
 
 RUN_FILES = (
-    "trajectory.tum", "trajectory_online.tum", "trajectory_odometry.tum", "trajectory_groundtruth.tum",
-    "attempts.csv", "attempts.json", "vehicle_map.csv", "vehicle_map_odometry.csv", "reference_map.csv",
-    "rocks.csv", "example_frame.npz", "config.json", "summary.json", "map.png", "error.png", "frame.png",
-)  # fmt: skip
+    "trajectory.tum",
+    "trajectory_online.tum",
+    "trajectory_odometry.tum",
+    "trajectory_groundtruth.tum",
+    "attempts.csv",
+    "attempts.json",
+    "vehicle_map.csv",
+    "vehicle_map_odometry.csv",
+    "reference_map.csv",
+    "rocks.csv",
+    "example_frame.npz",
+    "config.json",
+    "summary.json",
+    "map.png",
+    "error.png",
+    "frame.png",
+)
 """Files a run folder (``lunarloc run``, ``lunarloc demo``) holds; ``summary.json`` marks one."""
 
 
@@ -64,7 +84,9 @@ def _writable_dir(d: Path, target: Path) -> None:
         raise OutputError(f"{target}: folder {probe} is not writable")
 
 
-def check_output_file(path: str | os.PathLike, overwrite: bool = False, what: str = "output") -> Path:
+def check_output_file(
+    path: str | os.PathLike, overwrite: bool = False, what: str = "output"
+) -> Path:
     """Check, before computing, that `path` can be written as a file; returns it as a Path."""
     p = Path(path)
     if p.is_dir():
@@ -78,8 +100,12 @@ def check_output_file(path: str | os.PathLike, overwrite: bool = False, what: st
     return p
 
 
-def check_output_dir(path: str | os.PathLike, overwrite: bool = False, names=RUN_FILES,
-                     marker: str | None = "summary.json") -> Path:  # fmt: skip
+def check_output_dir(
+    path: str | os.PathLike,
+    overwrite: bool = False,
+    names=RUN_FILES,
+    marker: str | None = "summary.json",
+) -> Path:
     """Check, before computing, that folder `path` can receive outputs named `names`.
 
     Refused: `path` is a file; its parent is not writable; it holds any of `names` (a
@@ -95,8 +121,10 @@ def check_output_dir(path: str | os.PathLike, overwrite: bool = False, names=RUN
         old = [n for n in names if (p / n).exists()]
         if old and not overwrite:
             kind = "a previous run" if marker and marker in old else "earlier outputs"
-            raise OutputError(f"{p}: holds {kind} ({', '.join(old[:3])}{', ...' if len(old) > 3 else ''}); "
-                              "pass --overwrite to replace it")  # fmt: skip
+            raise OutputError(
+                f"{p}: holds {kind} ({', '.join(old[:3])}{', ...' if len(old) > 3 else ''}); "
+                "pass --overwrite to replace it"
+            )
         for n in old:
             try:
                 (p / n).unlink()
@@ -129,7 +157,9 @@ def atomic_path(path: str | os.PathLike):
         raise OutputError(f"{target}: exists and is not a regular file")
     make_dir(target.parent if str(target.parent) else Path("."))
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.tmp-", suffix=target.suffix, dir=target.parent)
+        fd, tmp = tempfile.mkstemp(
+            prefix=f".{target.stem}.tmp-", suffix=target.suffix, dir=target.parent
+        )
     except OSError as exc:
         raise file_error(target, exc, "write") from None
     tmp_path = Path(tmp)
@@ -143,7 +173,11 @@ def atomic_path(path: str | os.PathLike):
     except BaseException as exc:
         with contextlib.suppress(OSError):
             tmp_path.unlink()
-        if isinstance(exc, OSError) and exc.errno is not None and not isinstance(exc, FileNotFoundError):
+        if (
+            isinstance(exc, OSError)
+            and exc.errno is not None
+            and not isinstance(exc, FileNotFoundError)
+        ):
             raise file_error(target, exc, "write") from None
         raise
 

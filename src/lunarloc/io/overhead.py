@@ -74,7 +74,12 @@ UNFILLED = -np.inf
 #: the LAC's mission time limit (s): the productivity rate is its cells over this time
 LAC_MISSION_S = 24 * 3600.0
 #: the LAC's points: geometric map, rock map, mapping productivity, no fiducials
-LAC_POINTS = {"geometric_map": 300.0, "rocks_map": 300.0, "mapping_productivity": 250.0, "localization": 150.0}
+LAC_POINTS = {
+    "geometric_map": 300.0,
+    "rocks_map": 300.0,
+    "mapping_productivity": 250.0,
+    "localization": 150.0,
+}
 _CATALOGUE_COLUMNS = ("x", "y", "z", "radius", "sigma_m")
 _HEIGHT_SIGMA_M = 0.01  # a grid rock's height: not quantised, but its cells' heights vary
 
@@ -97,7 +102,9 @@ class OverheadConfig:
 # --------------------------------------------------------------------------- LAC grid
 
 
-def validate_lac_grid(grid, name: str = "geometric map", allow_unfilled: bool = False) -> np.ndarray:
+def validate_lac_grid(
+    grid, name: str = "geometric map", allow_unfilled: bool = False
+) -> np.ndarray:
     """Check a LAC geometric map array and return it as float64 (N, M, 4).
 
     allow_unfilled : accept the LAC's "not completed" value (-inf) as a height or rock
@@ -105,7 +112,9 @@ def validate_lac_grid(grid, name: str = "geometric map", allow_unfilled: bool = 
     Raises InputError for a wrong shape or dtype, non-finite coordinates or heights,
     irregular cell spacing, or rock flags outside [0, 1]."""
     arr = np.asarray(grid)
-    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+    if arr.dtype == object or not (
+        np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
+    ):
         raise InputError(f"{name}: expected a numeric array, got dtype {arr.dtype}")
     if arr.ndim != 3 or arr.shape[2] != 4 or arr.shape[0] < 2 or arr.shape[1] < 2:
         raise InputError(
@@ -118,11 +127,15 @@ def validate_lac_grid(grid, name: str = "geometric map", allow_unfilled: bool = 
             bad &= ~(arr[:, :, k] == UNFILLED)
         if np.any(bad):
             i, j = np.argwhere(bad)[0]
-            raise InputError(f"{name}: {int(bad.sum())} cell(s) with a non-finite {what} (first: cell [{i}, {j}])")
+            raise InputError(
+                f"{name}: {int(bad.sum())} cell(s) with a non-finite {what} (first: cell [{i}, {j}])"
+            )
     flag = arr[:, :, 3]
     flag = flag[flag != UNFILLED] if allow_unfilled else flag
     if np.any(flag < 0) or np.any(flag > 1):
-        raise InputError(f"{name}: rock flags must lie in [0, 1] (got {flag.min():g} .. {flag.max():g})")
+        raise InputError(
+            f"{name}: rock flags must lie in [0, 1] (got {flag.min():g} .. {flag.max():g})"
+        )
     cell = _cell_size(arr)
     if not cell > 0:
         raise InputError(f"{name}: cell centres do not form a regular grid")
@@ -175,10 +188,14 @@ def _check_npy_header(path: Path) -> None:
     except (OSError, ValueError, EOFError) as exc:
         raise FileFormatError(f"{path}: not a NumPy .npy array ({exc})") from None
     if dtype.kind not in "fiub" or len(shape) != 3 or shape[2] != 4 or shape[0] != shape[1]:
-        raise FileFormatError(f"{path}: expected an (N, N, 4) array of numbers (x, y, height, rock flag), "
-                              f"got dtype {dtype} of shape {shape}")  # fmt: skip
+        raise FileFormatError(
+            f"{path}: expected an (N, N, 4) array of numbers (x, y, height, rock flag), "
+            f"got dtype {dtype} of shape {shape}"
+        )
     if not 1 <= shape[0] <= MAX_GRID_CELLS:
-        raise FileFormatError(f"{path}: a {shape[0]} x {shape[1]} grid is outside 1..{MAX_GRID_CELLS} cells a side")
+        raise FileFormatError(
+            f"{path}: a {shape[0]} x {shape[1]} grid is outside 1..{MAX_GRID_CELLS} cells a side"
+        )
     need = int(np.prod(shape)) * dtype.itemsize
     if path.stat().st_size - header_end < need:
         raise FileFormatError(f"{path}: truncated: the header declares {need} bytes of data")
@@ -200,8 +217,10 @@ def grid_landmarks(grid, config: OverheadConfig | None = None, frame: str = "lac
     cell = _cell_size(g)
     rock = g[:, :, 3] >= cfg.rock_flag_threshold
     if not np.any(rock):
-        raise InputError("geometric map has no rock cells (rock flag >= "
-                         f"{cfg.rock_flag_threshold:g}): nothing to localize against")
+        raise InputError(
+            "geometric map has no rock cells (rock flag >= "
+            f"{cfg.rock_flag_threshold:g}): nothing to localize against"
+        )
     labels, n = ndimage.label(rock, structure=np.ones((3, 3), dtype=bool))
     idx = np.arange(1, n + 1)
     count = ndimage.sum_labels(np.ones_like(labels), labels, idx)
@@ -218,12 +237,20 @@ def grid_landmarks(grid, config: OverheadConfig | None = None, frame: str = "lac
     visible = np.maximum(top - ground, 0.0)
     heights = has_heights(g)
     z = (ground + 0.5 * visible) if heights else np.zeros(n)
-    sigma_z = np.hypot(0.25 * visible, _HEIGHT_SIGMA_M) if heights else np.full(n, NO_HEIGHT_SIGMA_M)
+    sigma_z = (
+        np.hypot(0.25 * visible, _HEIGHT_SIGMA_M) if heights else np.full(n, NO_HEIGHT_SIGMA_M)
+    )
     size = 2.0 * np.sqrt(count * cell * cell / math.pi)
-    log.info("geometric map: %d rock cells in %d rocks (%d kept)", int(rock.sum()), n, int(keep.sum()))
+    log.info(
+        "geometric map: %d rock cells in %d rocks (%d kept)", int(rock.sum()), n, int(keep.sum())
+    )
     return LandmarkMap(
-        np.c_[cx, cy, z][keep], sizes=size[keep], sightings=count[keep].astype(float), frame=frame,
-        sigma_xy_m=(q / np.sqrt(count))[keep], sigma_z_m=sigma_z[keep],
+        np.c_[cx, cy, z][keep],
+        sizes=size[keep],
+        sightings=count[keep].astype(float),
+        frame=frame,
+        sigma_xy_m=(q / np.sqrt(count))[keep],
+        sigma_z_m=sigma_z[keep],
     )
 
 
@@ -250,7 +277,9 @@ def is_rock_catalogue(path: str | Path) -> bool:
     return {"x", "y", "radius"} <= set(cols) and set(cols) <= set(_CATALOGUE_COLUMNS)
 
 
-def load_rock_catalogue(path: str | Path, dem=None, config: OverheadConfig | None = None) -> LandmarkMap:
+def load_rock_catalogue(
+    path: str | Path, dem=None, config: OverheadConfig | None = None
+) -> LandmarkMap:
     """A rock catalogue CSV (``x, y[, z], radius[, sigma_m]``) as a landmark map.
 
     Without ``z``: heights from `dem` (a LAC geometric map array or a path to one), else
@@ -268,10 +297,14 @@ def load_rock_catalogue(path: str | Path, dem=None, config: OverheadConfig | Non
             raise FileFormatError(f"{path}: empty file") from None
         missing = [c for c in ("x", "y", "radius") if c not in header]
         if missing:
-            raise FileFormatError(f"{path}:1: missing column(s) {', '.join(missing)} (catalogue: x, y[, z], radius[, sigma_m])")
+            raise FileFormatError(
+                f"{path}:1: missing column(s) {', '.join(missing)} (catalogue: x, y[, z], radius[, sigma_m])"
+            )
         unknown = [c for c in header if c not in _CATALOGUE_COLUMNS]
         if unknown:
-            raise FileFormatError(f"{path}:1: unknown column(s) {', '.join(unknown)} (catalogue: x, y[, z], radius[, sigma_m])")
+            raise FileFormatError(
+                f"{path}:1: unknown column(s) {', '.join(unknown)} (catalogue: x, y[, z], radius[, sigma_m])"
+            )
         col = {c: header.index(c) for c in header}
         lines, rows = [], []
         for row in reader:
@@ -290,7 +323,9 @@ def load_rock_catalogue(path: str | Path, dem=None, config: OverheadConfig | Non
     checks = [(~np.isfinite(t).all(axis=1), lambda r: "non-finite value")]
     for name in ("radius", "sigma_m"):
         if name in col:
-            checks.append((t[:, col[name]] < 0, lambda r, name=name: f"negative {name} {t[r, col[name]]:g}"))
+            checks.append(
+                (t[:, col[name]] < 0, lambda r, name=name: f"negative {name} {t[r, col[name]]:g}")
+            )
     for bad, message in checks:
         if np.any(bad):
             r = int(np.argmax(bad))
@@ -307,20 +342,28 @@ def load_rock_catalogue(path: str | Path, dem=None, config: OverheadConfig | Non
         z, sig_z = _dem_height(grid, xy), np.full(len(t), _cell_size(grid) / math.sqrt(12.0))
     else:
         z, sig_z = np.zeros(len(t)), np.full(len(t), NO_HEIGHT_SIGMA_M)
-    return LandmarkMap(np.c_[xy, z], sizes=2.0 * t[:, col["radius"]], frame=path.stem,
-                       sigma_xy_m=sig_xy, sigma_z_m=sig_z)
+    return LandmarkMap(
+        np.c_[xy, z],
+        sizes=2.0 * t[:, col["radius"]],
+        frame=path.stem,
+        sigma_xy_m=sig_xy,
+        sigma_z_m=sig_z,
+    )
 
 
 # --------------------------------------------------------------------------- writing LAC maps
 
 
-def empty_lac_grid(size_m: float = LAC_CELL_M * LAC_CELLS, cell_m: float = LAC_CELL_M,
-                   centre_xy=(0.0, 0.0)) -> np.ndarray:
+def empty_lac_grid(
+    size_m: float = LAC_CELL_M * LAC_CELLS, cell_m: float = LAC_CELL_M, centre_xy=(0.0, 0.0)
+) -> np.ndarray:
     """A LAC-layout grid (N, N, 4): cell centres in x (first index) and y (second), heights
     and rock flags zero."""
     n = int(round(size_m / cell_m))
     if n < 2:
-        raise InputError(f"a grid of {size_m} m in {cell_m} m cells has fewer than 2 cells per side")
+        raise InputError(
+            f"a grid of {size_m} m in {cell_m} m cells has fewer than 2 cells per side"
+        )
     c = (np.arange(n) - (n - 1) / 2.0) * cell_m
     gx, gy = np.meshgrid(c + centre_xy[0], c + centre_xy[1], indexing="ij")
     out = np.zeros((n, n, 4))
@@ -391,8 +434,12 @@ def write_site_geometric_map(site, path: str | Path, rule: str = "lac") -> Path:
     return path
 
 
-def landmarks_to_lac_grid(landmarks: LandmarkMap, size_m: float = LAC_CELL_M * LAC_CELLS,
-                          cell_m: float = LAC_CELL_M, default_size_m: float = 0.15) -> np.ndarray:
+def landmarks_to_lac_grid(
+    landmarks: LandmarkMap,
+    size_m: float = LAC_CELL_M * LAC_CELLS,
+    cell_m: float = LAC_CELL_M,
+    default_size_m: float = 0.15,
+) -> np.ndarray:
     """A team's LAC map from a landmark map (site frame): every cell whose centre lies
     within a landmark's radius (size / 2; `default_size_m` where sizes are unknown; at
     least the cell holding its centre) is flagged a rock. Heights: where landmarks are,
@@ -412,7 +459,10 @@ def landmarks_to_lac_grid(landmarks: LandmarkMap, size_m: float = LAC_CELL_M * L
         hits = tree.query_ball_point(p[:2], max(s / 2.0, 1e-9))
         _, nearest = tree.query(p[:2])
         flag[hits] = 1.0
-        if abs(cells[nearest, 0] - p[0]) <= cell_m / 2 and abs(cells[nearest, 1] - p[1]) <= cell_m / 2:
+        if (
+            abs(cells[nearest, 0] - p[0]) <= cell_m / 2
+            and abs(cells[nearest, 1] - p[1]) <= cell_m / 2
+        ):
             flag[nearest] = 1.0
     _, j = cKDTree(P[:, :2]).query(cells)
     grid[:, :, 2] = P[j, 2].reshape(grid.shape[:2])
@@ -427,8 +477,15 @@ def landmarks_to_lac_grid(landmarks: LandmarkMap, size_m: float = LAC_CELL_M * L
 MAX_HEIGHT_TOLERANCE_M = 1.0
 
 
-def score_geometric_map(produced, truth, height_tolerance_m: float = 0.05, *, cells=None,
-                        mission_time_s: float | None = None, fiducials_used: bool = False) -> dict:
+def score_geometric_map(
+    produced,
+    truth,
+    height_tolerance_m: float = 0.05,
+    *,
+    cells=None,
+    mission_time_s: float | None = None,
+    fiducials_used: bool = False,
+) -> dict:
     """The LAC's map scores of `produced` against `truth` (same grid), with the scorer's rules:
 
     ``geometric``: share of cells whose height error is below `height_tolerance_m` (an
@@ -447,13 +504,24 @@ def score_geometric_map(produced, truth, height_tolerance_m: float = 0.05, *, ce
     the tolerance is not in (0, 1] m (a negative or NaN one scored every map 0.0)."""
     from lunarloc.core.validate import real
 
-    real(height_tolerance_m, "height_tolerance_m", 0.0, MAX_HEIGHT_TOLERANCE_M, lo_open=True, unit="m")
+    real(
+        height_tolerance_m,
+        "height_tolerance_m",
+        0.0,
+        MAX_HEIGHT_TOLERANCE_M,
+        lo_open=True,
+        unit="m",
+    )
     p = validate_lac_grid(produced, "produced map", allow_unfilled=True)
     t = validate_lac_grid(truth, "true map")
     if p.shape != t.shape:
-        raise InputError(f"produced map has shape {p.shape}, the true map {t.shape}: not the same grid")
+        raise InputError(
+            f"produced map has shape {p.shape}, the true map {t.shape}: not the same grid"
+        )
     if np.max(np.abs(p[:, :, :2] - t[:, :, :2])) > 1e-6:
-        raise InputError("produced and true maps have different cell centres (x, y): not the same grid")
+        raise InputError(
+            "produced and true maps have different cell centres (x, y): not the same grid"
+        )
     if cells is None:
         sel = np.ones(p.shape[:2], dtype=bool)
     else:

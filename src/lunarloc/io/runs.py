@@ -29,7 +29,10 @@ import numpy as np
 
 from lunarloc.core.errors import FileFormatError
 
-from lunarloc.io.trajectory import read_tum, write_tum  # their home is io.trajectory; kept importable here
+from lunarloc.io.trajectory import (
+    read_tum,
+    write_tum,
+)  # their home is io.trajectory; kept importable here
 
 __all__ = ["write_tum", "read_tum", "write_run", "read_run", "RunFolder", "to_json_ready"]
 
@@ -71,19 +74,35 @@ def write_run(result, outdir: str | Path, before_summary=None) -> dict:
         w.writeheader()
         for a in result.attempts:
             w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in a.row().items()})
-    write_text(out / "attempts.json", json.dumps([to_json_ready(asdict(a)) for a in result.attempts], indent=1))
+    write_text(
+        out / "attempts.json",
+        json.dumps([to_json_ready(asdict(a)) for a in result.attempts], indent=1),
+    )
     save_map(result.vehicle_map, out / "vehicle_map.csv")
     save_map(result.vehicle_map_odometry, out / "vehicle_map_odometry.csv")
     save_map(result.reference, out / "reference_map.csv")
     if result.rocks is not None:
         with atomic_path(out / "rocks.csv") as tmp:
-            np.savetxt(tmp, result.rocks, delimiter=",", header=",".join(ROCK_COLUMNS), comments="",
-                       fmt=["%d", "%.5f", "%.5f", "%.5f", "%.5f"])  # fmt: skip
+            np.savetxt(
+                tmp,
+                result.rocks,
+                delimiter=",",
+                header=",".join(ROCK_COLUMNS),
+                comments="",
+                fmt=["%d", "%.5f", "%.5f", "%.5f", "%.5f"],
+            )
     if result.example is not None:
         ex = result.example
         with atomic_path(out / "example_frame.npz") as tmp:
-            np.savez_compressed(tmp, image=ex["image"], uv=ex["uv"], radius_px=ex["radius_px"],
-                                depth_m=ex["depth_m"], frame=ex["frame"], camera=ex["camera"])  # fmt: skip
+            np.savez_compressed(
+                tmp,
+                image=ex["image"],
+                uv=ex["uv"],
+                radius_px=ex["radius_px"],
+                depth_m=ex["depth_m"],
+                frame=ex["frame"],
+                camera=ex["camera"],
+            )
     write_text(out / "config.json", json.dumps(to_json_ready(result.config), indent=2, default=str))
     summary = result.summary()
     if before_summary is not None:
@@ -119,15 +138,24 @@ def read_run(outdir: str | Path, summary: dict | None = None) -> RunFolder:
     it is not one or a file is damaged. `summary`: the summary not yet written (figures drawn
     before ``summary.json``, see :func:`write_run`)."""
     outdir = Path(outdir)
-    missing = [n for n in RUN_FILES_NEEDED if not (outdir / n).is_file() and not (n == "summary.json" and summary is not None)]
+    missing = [
+        n
+        for n in RUN_FILES_NEEDED
+        if not (outdir / n).is_file() and not (n == "summary.json" and summary is not None)
+    ]
     if missing:
         raise FileFormatError(f"{outdir}: not a lunarloc run folder (missing {', '.join(missing)})")
     try:
         return _read_run(outdir, summary)
-    except (ValueError, IndexError) as exc:  # json, TUM or CSV contents; LunarLocErrors pass through
+    except (
+        ValueError,
+        IndexError,
+    ) as exc:  # json, TUM or CSV contents; LunarLocErrors pass through
         if isinstance(exc, FileFormatError):
             raise
-        raise FileFormatError(f"{outdir}: damaged run folder ({type(exc).__name__}: {str(exc)[:120]})") from None
+        raise FileFormatError(
+            f"{outdir}: damaged run folder ({type(exc).__name__}: {str(exc)[:120]})"
+        ) from None
 
 
 def _read_run(outdir: Path, summary: dict | None = None) -> RunFolder:
@@ -137,15 +165,25 @@ def _read_run(outdir: Path, summary: dict | None = None) -> RunFolder:
         return read_tum(outdir / name)[1] if (outdir / name).is_file() else None
 
     def xyz(name):
-        return load_map(outdir / name).positions_xyz if (outdir / name).is_file() else np.zeros((0, 3))
+        return (
+            load_map(outdir / name).positions_xyz if (outdir / name).is_file() else np.zeros((0, 3))
+        )
 
     t, corrected = read_tum(outdir / "trajectory.tum")
     rocks = outdir / "rocks.csv"
     cfg = outdir / "config.json"
     return RunFolder(
-        outdir, t, corrected, tum("trajectory_odometry.tum"), tum("trajectory_online.tum"),
-        tum("trajectory_groundtruth.tum"), json.loads((outdir / "attempts.json").read_text()),
-        summary if summary is not None else json.loads((outdir / "summary.json").read_text()), json.loads(cfg.read_text()) if cfg.is_file() else None,
-        xyz("reference_map.csv"), xyz("vehicle_map.csv"), xyz("vehicle_map_odometry.csv"),
+        outdir,
+        t,
+        corrected,
+        tum("trajectory_odometry.tum"),
+        tum("trajectory_online.tum"),
+        tum("trajectory_groundtruth.tum"),
+        json.loads((outdir / "attempts.json").read_text()),
+        summary if summary is not None else json.loads((outdir / "summary.json").read_text()),
+        json.loads(cfg.read_text()) if cfg.is_file() else None,
+        xyz("reference_map.csv"),
+        xyz("vehicle_map.csv"),
+        xyz("vehicle_map_odometry.csv"),
         np.loadtxt(rocks, delimiter=",", skiprows=1, ndmin=2) if rocks.is_file() else None,
-    )  # fmt: skip
+    )

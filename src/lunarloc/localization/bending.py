@@ -20,6 +20,7 @@ from lunarloc.localization.config import LocalizationConfig
 
 log = logging.getLogger(__name__)
 
+
 @dataclass
 class BendFit:
     """A non-rigid model of the vehicle map fitted to its inliers (:func:`bending_fit`): the
@@ -60,7 +61,9 @@ class BendFit:
     left_out: int = 0
     floor_sigma_m: float = 0.0
     rotation_floor_sigma_deg: float = 0.0
-    prior: str = "none"  # the odometry prior: "applied", "rejected: ..." (prior-data conflict) or "none"
+    prior: str = (
+        "none"  # the odometry prior: "applied", "rejected: ..." (prior-data conflict) or "none"
+    )
 
 
 def _straight_path(points_xyz: np.ndarray, step_m: float = 0.25) -> np.ndarray:
@@ -85,9 +88,15 @@ class _Unbender:
     def __init__(self, path_xyz: np.ndarray, spacing_m: float = 0.25):
         path = np.asarray(path_xyz, float)
         arc = path_arc_length_m(path)
-        keep = np.unique(np.r_[np.searchsorted(arc, np.arange(0.0, arc[-1], spacing_m)), len(path) - 1])
-        self.path = path[keep]  # one point every spacing_m: the model's cost does not grow with the frame rate
-        self.arc = arc[keep]  # the given path's own arc length at the kept points (where sightings are stated)
+        keep = np.unique(
+            np.r_[np.searchsorted(arc, np.arange(0.0, arc[-1], spacing_m)), len(path) - 1]
+        )
+        self.path = path[
+            keep
+        ]  # one point every spacing_m: the model's cost does not grow with the frame rate
+        self.arc = arc[
+            keep
+        ]  # the given path's own arc length at the kept points (where sightings are stated)
         self.steps = np.diff(self.path, axis=0)
         self.s = np.r_[0.0, np.cumsum(np.linalg.norm(self.steps[:, :2], axis=1))]
         self.tree = cKDTree(self.path[:, :2])
@@ -101,8 +110,11 @@ class _Unbender:
         """The path point at each arc length (m from the path's first pose)."""
         a = np.clip(np.asarray(arc_m, float), 0.0, self.arc[-1])
         j = np.clip(np.searchsorted(self.arc, a), 1, max(len(self.arc) - 1, 1))
-        return np.where(np.abs(self.arc[j - 1] - a) <= np.abs(self.arc[j] - a), j - 1, j) if len(self.arc) > 1 else \
-            np.zeros(len(a), int)
+        return (
+            np.where(np.abs(self.arc[j - 1] - a) <= np.abs(self.arc[j] - a), j - 1, j)
+            if len(self.arc) > 1
+            else np.zeros(len(a), int)
+        )
 
     def passes(self, points_xyz: np.ndarray, range_m: float, margin_m: float) -> np.ndarray:
         """How many separate passes of the path come within sight of each point: path points
@@ -125,17 +137,25 @@ class _Unbender:
             a = -delta * self.s[1:]
             c, sn = np.cos(a), np.sin(a)
             st = self.steps
-            turned = np.stack([c * st[:, 0] - sn * st[:, 1], sn * st[:, 0] + c * st[:, 1], st[:, 2]], axis=1)
-            path = self.path[0] + np.vstack([np.zeros((1, 3)), np.cumsum(turned / (1.0 + kappa), axis=0)])
+            turned = np.stack(
+                [c * st[:, 0] - sn * st[:, 1], sn * st[:, 0] + c * st[:, 1], st[:, 2]], axis=1
+            )
+            path = self.path[0] + np.vstack(
+                [np.zeros((1, 3)), np.cumsum(turned / (1.0 + kappa), axis=0)]
+            )
             self._last = ((delta, kappa), path)
         return self._last[1]
 
-    def __call__(self, points_xyz: np.ndarray, idx: np.ndarray, delta: float, kappa: float) -> np.ndarray:
+    def __call__(
+        self, points_xyz: np.ndarray, idx: np.ndarray, delta: float, kappa: float
+    ) -> np.ndarray:
         path = self._bent_path(float(delta), float(kappa))
         rel = np.asarray(points_xyz, float) - self.path[idx]
         b = -delta * self.s[idx]
         cb, sb = np.cos(b), np.sin(b)
-        return path[idx] + np.stack([cb * rel[:, 0] - sb * rel[:, 1], sb * rel[:, 0] + cb * rel[:, 1], rel[:, 2]], axis=1)
+        return path[idx] + np.stack(
+            [cb * rel[:, 0] - sb * rel[:, 1], sb * rel[:, 0] + cb * rel[:, 1], rel[:, 2]], axis=1
+        )
 
     def heading(self, idx: np.ndarray, delta: float) -> np.ndarray:
         """Heading correction (rad) the model applies at path points `idx`."""
@@ -159,7 +179,9 @@ DRIFT_FLOOR_DEG_PER_M = 0.02
 SCALE_FLOOR = 0.002
 
 
-def _sighting_placement(unb: "_Unbender", Pv: np.ndarray, given: bool, sighting_arcs, max_span_m: float):
+def _sighting_placement(
+    unb: "_Unbender", Pv: np.ndarray, given: bool, sighting_arcs, max_span_m: float
+):
     """Where along the path each vehicle landmark was seen from (index into ``unb.path``),
     whether that is known well enough to take part in the bend fit (its arc span at most
     `max_span_m`), and the source: ``"sightings"`` (the map's sighting arcs, mean placed),
@@ -170,16 +192,37 @@ def _sighting_placement(unb: "_Unbender", Pv: np.ndarray, given: bool, sighting_
         mean, lo, hi = (np.asarray(a, float) for a in sighting_arcs)
         if len(mean) == len(Pv) and (not len(hi) or float(hi.max()) <= unb.arc[-1] * 1.01 + 0.5):
             return unb.index_at_arc(mean), (hi - lo) <= max_span_m, "sightings"
-        log.warning("bend fit: the vehicle map's sighting arcs (up to %.1f m) do not fit the given path (%.1f m);"
-                    " using each landmark's nearest path point", float(hi.max()) if len(hi) else 0.0, unb.arc[-1])
+        log.warning(
+            "bend fit: the vehicle map's sighting arcs (up to %.1f m) do not fit the given path (%.1f m);"
+            " using each landmark's nearest path point",
+            float(hi.max()) if len(hi) else 0.0,
+            unb.arc[-1],
+        )
     if given:
-        return unb.index(Pv), unb.passes(Pv, SIGHTING_RANGE_M, PASS_MARGIN_M) <= 1, "nearest path point"
+        return (
+            unb.index(Pv),
+            unb.passes(Pv, SIGHTING_RANGE_M, PASS_MARGIN_M) <= 1,
+            "nearest path point",
+        )
     return unb.index(Pv), np.ones(len(Pv), bool), "straight stand-in"
 
 
-def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius_m: float, rounds: int = 3,
-                sighting_arcs=None, max_sighting_span_m: float = 10.0, min_inliers: int = 6,
-                prior_drift_rad_per_m: float | None = None, prior_scale_error: float | None = None) -> BendFit:
+def bending_fit(
+    T,
+    Pv,
+    Pr,
+    inl,
+    query_xyz,
+    path_xyz,
+    sigma_axis_m: float,
+    radius_m: float,
+    rounds: int = 3,
+    sighting_arcs=None,
+    max_sighting_span_m: float = 10.0,
+    min_inliers: int = 6,
+    prior_drift_rad_per_m: float | None = None,
+    prior_scale_error: float | None = None,
+) -> BendFit:
     """Fit a bent (heading drift) and scaled (path scale error) model of the vehicle map to
     its inliers, starting from the rigid fit T: parameters rotation vector, translation, drift
     per metre and scale error, by least squares on the 3D residuals over `sigma_axis_m` (the
@@ -215,7 +258,9 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
     tree = cKDTree(Pr)
     R0 = Rotation.from_matrix(T[:3, :3]).as_rotvec()
 
-    def model_T(x):  # Rodrigues: scipy's Rotation costs ~25 us a call here, called ~100 times per fit
+    def model_T(
+        x,
+    ):  # Rodrigues: scipy's Rotation costs ~25 us a call here, called ~100 times per fit
         return make_transform(exp_so3(x[:3]), x[3:6])
 
     def apply(x, P, idx):
@@ -226,11 +271,29 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
     pairs = pairs[known[pairs[:, 0]]]
     if len(pairs) < max(min_inliers, 3):  # the 8 parameters are not determined by what is left
         inf = math.inf
-        return BendFit(0.0, inf, 0.0, inf, inf, inf, inf, inf, 0.0, int(len(pairs)), bool(given), source,
-                       int(len(inl) - len(pairs)), inf, inf)
+        return BendFit(
+            0.0,
+            inf,
+            0.0,
+            inf,
+            inf,
+            inf,
+            inf,
+            inf,
+            0.0,
+            int(len(pairs)),
+            bool(given),
+            source,
+            int(len(inl) - len(pairs)),
+            inf,
+            inf,
+        )
     left_out = int(len(inl) - len(pairs))
-    prior_sd = (np.array([prior_drift_rad_per_m or math.inf, prior_scale_error or math.inf])
-                if (prior_drift_rad_per_m or prior_scale_error) else None)
+    prior_sd = (
+        np.array([prior_drift_rad_per_m or math.inf, prior_scale_error or math.inf])
+        if (prior_drift_rad_per_m or prior_scale_error)
+        else None
+    )
     chi2_rigid = chi2_bent = 0.0
     first_round = True
     for _ in range(rounds):
@@ -241,8 +304,13 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
             geo = ((apply(xx, Pv[v], idx_all[v]) - Pr[r]) / sigma_axis_m).ravel()
             return np.r_[geo, xx[6:8] / prior_sd] if prior_sd is not None else geo
 
-        sol = least_squares(resid, x, x_scale=np.r_[np.full(3, 1e-3), np.full(3, 1e-2), 1e-4, 1e-3], method="lm",
-                            max_nfev=200)
+        sol = least_squares(
+            resid,
+            x,
+            x_scale=np.r_[np.full(3, 1e-3), np.full(3, 1e-2), 1e-4, 1e-3],
+            method="lm",
+            max_nfev=200,
+        )
         if first_round:  # on the rigid fit's own inliers
             chi2_rigid, chi2_bent = float(np.sum(resid(x) ** 2)), float(np.sum(sol.fun**2))
             first_round = False
@@ -263,7 +331,9 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
     # residuals noisier than the stated sigma widen the data's part of the covariance (not the prior's)
     s2 = max(1.0, float(np.sum(sol.fun[geo] ** 2)) / dof)
     J = J.copy()
-    J[geo] /= math.sqrt(s2)  # the geometric rows at the noise they show; from here on C = (J^T J)^-1
+    J[geo] /= math.sqrt(
+        s2
+    )  # the geometric rows at the noise they show; from here on C = (J^T J)^-1
     try:
         C = np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
@@ -273,7 +343,10 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
         R = model_T(xx)[:3, :3]
         h = unb.heading(idx_q, xx[6])  # yaw_of(R @ rot_z(h)) for every h at once
         c, s = np.cos(h), np.sin(h)
-        return np.r_[apply(xx, q, idx_q).ravel(), np.arctan2(R[1, 0] * c + R[1, 1] * s, R[0, 0] * c + R[0, 1] * s)]
+        return np.r_[
+            apply(xx, q, idx_q).ravel(),
+            np.arctan2(R[1, 0] * c + R[1, 1] * s, R[0, 0] * c + R[0, 1] * s),
+        ]
 
     f0 = at_query(x)
     Jq = np.empty((len(f0), 8))
@@ -283,7 +356,9 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
         dx[i] = h
         Jq[:, i] = (at_query(x + dx) - at_query(x - dx)) / (2 * h)
     n = len(q)
-    var = np.einsum("ij,jk,ik->i", Jq, C, Jq) if np.all(np.isfinite(C)) else np.full(len(f0), np.inf)
+    var = (
+        np.einsum("ij,jk,ik->i", Jq, C, Jq) if np.all(np.isfinite(C)) else np.full(len(f0), np.inf)
+    )
     # The bent model's uncertainty at the query points holds the rigid pose's own, which the
     # predicted error counts once as the registration's: only the increase over the rigid
     # model fitted to the same residuals is the bend's. For nested least squares that is the
@@ -307,15 +382,23 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
     pos_var = var[: 3 * n].reshape(-1, 3).sum(axis=1)
     pos_floor = var_floor[: 3 * n].reshape(-1, 3).sum(axis=1)
     shift = np.linalg.norm(f0[: 3 * n].reshape(-1, 3) - transform_points(T, q), axis=1)
-    dyaw = np.abs((f0[3 * n:] - yaw_of(T[:3, :3]) + math.pi) % (2 * math.pi) - math.pi)
+    dyaw = np.abs((f0[3 * n :] - yaw_of(T[:3, :3]) + math.pi) % (2 * math.pi) - math.pi)
     return BendFit(
-        drift_rad_per_m=float(x[6]), drift_se=float(math.sqrt(max(C[6, 6], 0.0))), scale_error=float(x[7]),
-        scale_se=float(math.sqrt(max(C[7, 7], 0.0))), shift_m=float(shift.max()),
-        sigma_m=float(math.sqrt(max(pos_var.max(), 0.0))), rotation_shift_deg=math.degrees(float(dyaw.max())),
-        rotation_sigma_deg=math.degrees(math.sqrt(max(float(var[3 * n:].max()), 0.0))), chi2_drop=chi2_rigid - chi2_bent,
-        inliers=int(used), path_given=bool(given), placement=source, left_out=left_out,
+        drift_rad_per_m=float(x[6]),
+        drift_se=float(math.sqrt(max(C[6, 6], 0.0))),
+        scale_error=float(x[7]),
+        scale_se=float(math.sqrt(max(C[7, 7], 0.0))),
+        shift_m=float(shift.max()),
+        sigma_m=float(math.sqrt(max(pos_var.max(), 0.0))),
+        rotation_shift_deg=math.degrees(float(dyaw.max())),
+        rotation_sigma_deg=math.degrees(math.sqrt(max(float(var[3 * n :].max()), 0.0))),
+        chi2_drop=chi2_rigid - chi2_bent,
+        inliers=int(used),
+        path_given=bool(given),
+        placement=source,
+        left_out=left_out,
         floor_sigma_m=float(math.sqrt(max(pos_floor.max(), 0.0))),
-        rotation_floor_sigma_deg=math.degrees(math.sqrt(max(float(var_floor[3 * n:].max()), 0.0))),
+        rotation_floor_sigma_deg=math.degrees(math.sqrt(max(float(var_floor[3 * n :].max()), 0.0))),
     )
 
 
@@ -326,14 +409,18 @@ def bending_fit(T, Pv, Pr, inl, query_xyz, path_xyz, sigma_axis_m: float, radius
 PRIOR_CONFLICT_SIGMAS = 1.0
 
 
-def prior_conflict(bend: "BendFit", prior_drift_rad_per_m: float | None, prior_scale_error: float | None) -> float:
+def prior_conflict(
+    bend: "BendFit", prior_drift_rad_per_m: float | None, prior_scale_error: float | None
+) -> float:
     """How far, in sigmas, the bend fitted from the maps alone lies from the zero-mean odometry
     prior: the larger of drift and scale, each over the root sum of squares of its standard
     error and the prior's sigma (a parameter without a prior does not count). Infinite when the
     fit is not finite."""
     out = 0.0
-    for est, se, sd in ((bend.drift_rad_per_m, bend.drift_se, prior_drift_rad_per_m),
-                        (bend.scale_error, bend.scale_se, prior_scale_error)):
+    for est, se, sd in (
+        (bend.drift_rad_per_m, bend.drift_se, prior_drift_rad_per_m),
+        (bend.scale_error, bend.scale_se, prior_scale_error),
+    ):
         if sd is None:
             continue
         if not (math.isfinite(est) and math.isfinite(se)):
@@ -342,8 +429,12 @@ def prior_conflict(bend: "BendFit", prior_drift_rad_per_m: float | None, prior_s
     return out
 
 
-def fitted_predicted_error(bend: BendFit, cfg: "LocalizationConfig", registration_m: np.ndarray,
-                           registration_rot_deg: float) -> tuple[np.ndarray, float]:
+def fitted_predicted_error(
+    bend: BendFit,
+    cfg: "LocalizationConfig",
+    registration_m: np.ndarray,
+    registration_rot_deg: float,
+) -> tuple[np.ndarray, float]:
     """Predicted 1-sigma position error (m, per query point) and rotation error (deg) when no
     odometry bounds are stated and the distortion is fitted from the maps: the fitted bend's
     shift (a bias) plus the random part, the registration's sigma and `distortion_fit_sigmas`
@@ -365,10 +456,25 @@ def fitted_predicted_error(bend: BendFit, cfg: "LocalizationConfig", registratio
     # 7-15) were claimed 21-24 cm off with 6.5-8.4 cm predicted
     k = cfg.distortion_fit_sigmas
     reg = np.asarray(registration_m, float)
-    if not all(map(math.isfinite, (bend.shift_m, bend.sigma_m, bend.rotation_shift_deg, bend.rotation_sigma_deg,
-                                   bend.floor_sigma_m, bend.rotation_floor_sigma_deg, registration_rot_deg))):
+    if not all(
+        map(
+            math.isfinite,
+            (
+                bend.shift_m,
+                bend.sigma_m,
+                bend.rotation_shift_deg,
+                bend.rotation_sigma_deg,
+                bend.floor_sigma_m,
+                bend.rotation_floor_sigma_deg,
+                registration_rot_deg,
+            ),
+        )
+    ):
         return np.full(reg.shape, math.inf), math.inf
     pos = bend.shift_m + np.sqrt(reg**2 + (k * bend.sigma_m) ** 2 + bend.floor_sigma_m**2)
-    rot = bend.rotation_shift_deg + math.sqrt(registration_rot_deg**2 + (k * bend.rotation_sigma_deg) ** 2
-                                              + bend.rotation_floor_sigma_deg**2)
+    rot = bend.rotation_shift_deg + math.sqrt(
+        registration_rot_deg**2
+        + (k * bend.rotation_sigma_deg) ** 2
+        + bend.rotation_floor_sigma_deg**2
+    )
     return pos, rot

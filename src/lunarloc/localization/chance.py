@@ -13,8 +13,12 @@ from lunarloc.core.geometry import (
 from lunarloc.localization.config import Mode
 
 
-def chance_clique_size(num_associations: int, mode: "Mode" = Mode.GRAVITY, epsilon_m: float = 0.05,
-                       epsilon_z_m: float = 0.05) -> float:
+def chance_clique_size(
+    num_associations: int,
+    mode: "Mode" = Mode.GRAVITY,
+    epsilon_m: float = 0.05,
+    epsilon_z_m: float = 0.05,
+) -> float:
     """Upper envelope of the largest consistent set found between UNRELATED maps with
     `num_associations` putative associations (measured; see docs/results.md, "The acceptance rule").
 
@@ -30,19 +34,28 @@ def chance_clique_size(num_associations: int, mode: "Mode" = Mode.GRAVITY, epsil
     ``--epsilon 0.08 / 0.15`` (see _TOLERANCE_EXPONENT).
     """
     a, b = _CHANCE_MODEL[Mode(mode)]
-    rho = max(1.0, math.sqrt(max(epsilon_m, 1e-9) * max(epsilon_z_m if Mode(mode) is Mode.GRAVITY else epsilon_m, 1e-9))
-              / _CHANCE_EPSILON_M)
+    rho = max(
+        1.0,
+        math.sqrt(
+            max(epsilon_m, 1e-9)
+            * max(epsilon_z_m if Mode(mode) is Mode.GRAVITY else epsilon_m, 1e-9)
+        )
+        / _CHANCE_EPSILON_M,
+    )
     return (a + b * math.log10(max(num_associations, 1))) * rho**_TOLERANCE_EXPONENT
 
 
 # (intercept, slope per decade of associations); measured by benchmarks/chance_cliques.py
 _CHANCE_MODEL = {Mode.GRAVITY: (-0.30, 1.83), Mode.SIX_DOF: (-3.69, 2.35)}
-_CHANCE_EPSILON_M = 0.05  # the search tolerance (horizontal and vertical) the envelope was measured at
+_CHANCE_EPSILON_M = (
+    0.05  # the search tolerance (horizontal and vertical) the envelope was measured at
+)
 _TOLERANCE_EXPONENT = 0.65  # measured: largest ratio of chance sets 2.0 at 3x the tolerance, 1.33 at 1.6x (gamma 0.63, 0.61)
 
 
-def near_miss_excess(T, Pv, Pr, inlier_veh: np.ndarray, inner_m: float, outer_m: float,
-                     density_radius_m: float = 1.5) -> tuple[int, float]:
+def near_miss_excess(
+    T, Pv, Pr, inlier_veh: np.ndarray, inner_m: float, outer_m: float, density_radius_m: float = 1.5
+) -> tuple[int, float]:
     """(observed, expected by chance) number of non-inlier vehicle landmarks whose nearest
     reference landmark under T lies between `inner_m` and `outer_m`.
 
@@ -60,17 +73,22 @@ def near_miss_excess(T, Pv, Pr, inlier_veh: np.ndarray, inner_m: float, outer_m:
     tree = cKDTree(Pr)
     d, _ = tree.query(Pt[rest])
     observed = int(np.sum((d > inner_m) & (d < outer_m)))
-    return observed, float(_chance_in_band(tree, Pt[rest], inner_m, outer_m, density_radius_m).sum())
+    return observed, float(
+        _chance_in_band(tree, Pt[rest], inner_m, outer_m, density_radius_m).sum()
+    )
 
 
-def _chance_in_band(tree: cKDTree, points: np.ndarray, inner_m: float, outer_m: float,
-                    density_radius_m: float = 1.5) -> np.ndarray:
+def _chance_in_band(
+    tree: cKDTree, points: np.ndarray, inner_m: float, outer_m: float, density_radius_m: float = 1.5
+) -> np.ndarray:
     """Probability that the nearest reference landmark of each point lies between inner_m
     and outer_m by chance, from the local reference density (rocks within
     `density_radius_m`, a horizontal Poisson model)."""
     counts = tree.query_ball_point(points, density_radius_m, return_length=True)
     lam = np.asarray(counts, float) / (math.pi * density_radius_m**2)
-    return np.exp(-lam * math.pi * inner_m**2) * (1 - np.exp(-lam * math.pi * (outer_m**2 - inner_m**2)))
+    return np.exp(-lam * math.pi * inner_m**2) * (
+        1 - np.exp(-lam * math.pi * (outer_m**2 - inner_m**2))
+    )
 
 
 def chance_refined(T, Pv, Pr, core_veh: np.ndarray, radius_m: float) -> float:

@@ -76,12 +76,21 @@ class LargeResult(LocalizationResult):
 
     def to_dict(self) -> dict:
         d = super().to_dict()
-        d.update(search=self.search, candidates=self.candidates, winner=self.winner, considered=self.considered)
+        d.update(
+            search=self.search,
+            candidates=self.candidates,
+            winner=self.winner,
+            considered=self.considered,
+        )
         return d
 
 
-def build_index(reference: LandmarkMap, config: LocalizationConfig | None = None,
-                index_config: IndexConfig | None = None, vehicle: LandmarkMap | None = None) -> ReferenceIndex:
+def build_index(
+    reference: LandmarkMap,
+    config: LocalizationConfig | None = None,
+    index_config: IndexConfig | None = None,
+    vehicle: LandmarkMap | None = None,
+) -> ReferenceIndex:
     """The constellation index of `reference` for localization with `config`, at the
     search's tolerance: `config`'s epsilon raised to what the maps' uncertainty needs
     (:meth:`LocalizationConfig.for_maps`; without `vehicle`, a vehicle map that states no
@@ -92,11 +101,15 @@ def build_index(reference: LandmarkMap, config: LocalizationConfig | None = None
     return ReferenceIndex(P, _index_epsilon(reference, vehicle, cfg), index_config)
 
 
-def _index_epsilon(reference: LandmarkMap, vehicle: LandmarkMap | None, cfg: LocalizationConfig) -> float:
+def _index_epsilon(
+    reference: LandmarkMap, vehicle: LandmarkMap | None, cfg: LocalizationConfig
+) -> float:
     """The horizontal search tolerance of this pair of maps (the vehicle map stating no
     sigma when it is not given): what the triangle sides are compared at."""
     if vehicle is None:
-        vehicle = LandmarkMap(reference.positions_xyz[:1])  # no stated sigma: the config's landmark sigma
+        vehicle = LandmarkMap(
+            reference.positions_xyz[:1]
+        )  # no stated sigma: the config's landmark sigma
     return cfg.for_maps(reference, vehicle).epsilon_m
 
 
@@ -126,12 +139,17 @@ def localize_large(
     # 1. the maps, and which search runs: the plain localize() on the whole map, or the index
     search, Pr, Pv = _resolve_search(search, reference, vehicle, cfg, icfg, index)
     if search is Search.FULL:
-        return _from(localize(reference, vehicle, cfg, query_xyz=query_xyz, path_xyz=path_xyz), search="full",
-                     considered=len(Pr) * len(Pv))
+        return _from(
+            localize(reference, vehicle, cfg, query_xyz=query_xyz, path_xyz=path_xyz),
+            search="full",
+            considered=len(Pr) * len(Pv),
+        )
     # 2. the index of the reference's rock triangles, at the tolerance the crops are searched at
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    fm = cfg.for_maps(reference, vehicle)  # the crops are searched at the maps' tolerances: so are index and chance
+    fm = cfg.for_maps(
+        reference, vehicle
+    )  # the crops are searched at the maps' tolerances: so are index and chance
     index = _index_at(index, Pr, fm.epsilon_m, icfg)
     timings["index"] = time.perf_counter() - t0
     # 3. the vehicle's triangles vote for poses: the candidate regions
@@ -157,32 +175,53 @@ def _resolve_search(search, reference, vehicle, cfg, icfg, index):
     try:
         search = Search(search)
     except ValueError:
-        raise ConfigError(f"search must be one of {[s.value for s in Search]}, got {search!r}") from None
+        raise ConfigError(
+            f"search must be one of {[s.value for s in Search]}, got {search!r}"
+        ) from None
     Pr = _check_map(reference, "reference")
     Pv = _check_map(vehicle, "vehicle")
     if search is Search.AUTO:
-        search = Search.INDEXED if (len(Pr) >= icfg.auto_min_reference and cfg.mode is Mode.GRAVITY) else Search.FULL
+        search = (
+            Search.INDEXED
+            if (len(Pr) >= icfg.auto_min_reference and cfg.mode is Mode.GRAVITY)
+            else Search.FULL
+        )
     if search is Search.INDEXED:
         if cfg.mode is not Mode.GRAVITY:
-            raise ConfigError("the indexed search needs the gravity-aware mode (rover maps levelled by the IMU)")
+            raise ConfigError(
+                "the indexed search needs the gravity-aware mode (rover maps levelled by the IMU)"
+            )
         if index is not None and (len(index.xyz) != len(Pr) or not np.array_equal(index.xyz, Pr)):
             raise ConfigError("the given index was built for another reference map")
     return search, Pr, Pv
 
 
-def _index_at(index: ReferenceIndex | None, Pr: np.ndarray, epsilon_m: float, icfg: IndexConfig) -> ReferenceIndex:
+def _index_at(
+    index: ReferenceIndex | None, Pr: np.ndarray, epsilon_m: float, icfg: IndexConfig
+) -> ReferenceIndex:
     """`index` if it was built at `epsilon_m`, else a new index of `Pr` at that tolerance."""
     if index is not None and math.isclose(index.epsilon_m, epsilon_m, rel_tol=1e-9):
         return index
     if index is not None:
-        log.info("localize_large: index built at %.4f m, the maps need %.4f m: rebuilt", index.epsilon_m, epsilon_m)
+        log.info(
+            "localize_large: index built at %.4f m, the maps need %.4f m: rebuilt",
+            index.epsilon_m,
+            epsilon_m,
+        )
     return ReferenceIndex(Pr, epsilon_m, icfg)
 
 
 def _required_whole_reference(m_full: int, cfg: LocalizationConfig, fm: LocalizationConfig) -> int:
     """The inliers an answer needs to beat chance against the whole reference."""
-    return max(cfg.min_inliers, int(math.ceil(
-        chance_clique_size(m_full, cfg.mode, fm.epsilon_m, fm.epsilon_z_m) + cfg.chance_margin)))
+    return max(
+        cfg.min_inliers,
+        int(
+            math.ceil(
+                chance_clique_size(m_full, cfg.mode, fm.epsilon_m, fm.epsilon_z_m)
+                + cfg.chance_margin
+            )
+        ),
+    )
 
 
 @dataclass
@@ -210,7 +249,8 @@ def _search_crops(reference, vehicle, cfg, icfg, index, votes, Pv, query_xyz, pa
     crops = _Crops(considered=votes.lookups)
     for cand in votes.candidates:
         if any(r is not None and r.success for r in crops.results) and (
-                cand.votes < icfg.competitor_vote_ratio * votes.candidates[0].votes):
+            cand.votes < icfg.competitor_vote_ratio * votes.candidates[0].votes
+        ):
             # too few votes to compete: votes grow as the cube of a region's consistent
             # set, so a region with 1/competitor_ratio of the inliers has ~30 % of the votes
             crops.skip({**cand.to_dict(), "checked": False})
@@ -218,41 +258,71 @@ def _search_crops(reference, vehicle, cfg, icfg, index, votes, Pv, query_xyz, pa
         crop = index.crop(Pv, votes.centre_xy, cand)
         row = {**cand.to_dict(), "checked": True, "crop_rocks": int(len(crop))}
         if len(crop) < 3:
-            crops.skip({**row, "success": False, "inliers": 0, "clique": 0,
-                        "reason": "fewer than 3 rocks in the crop"})
+            crops.skip(
+                {
+                    **row,
+                    "success": False,
+                    "inliers": 0,
+                    "clique": 0,
+                    "reason": "fewer than 3 rocks in the crop",
+                }
+            )
             continue
         r = localize(reference.subset(crop), vehicle, cfg, query_xyz=query_xyz, path_xyz=path_xyz)
         crops.considered += r.num_associations
         if len(r.inliers):
             r.inliers = np.c_[r.inliers[:, 0], crop[r.inliers[:, 1]]]  # crop rows -> reference rows
-        row.update(success=bool(r.success), inliers=r.num_inliers, clique=r.clique_size, reason=r.reason)
+        row.update(
+            success=bool(r.success), inliers=r.num_inliers, clique=r.clique_size, reason=r.reason
+        )
         crops.rows.append(row)
         crops.results.append(r)
     return crops
 
 
-def _no_region(votes, icfg: IndexConfig, crops: _Crops, required: int, m_full: int, timings: dict) -> LargeResult:
+def _no_region(
+    votes, icfg: IndexConfig, crops: _Crops, required: int, m_full: int, timings: dict
+) -> LargeResult:
     """The refusal when no candidate region could be searched."""
-    why = ("no candidate region: no vehicle triangle matched the reference index" if not votes.matches
-           else f"no candidate region with {icfg.min_votes} or more votes ({votes.matches} triangle matches)")
-    return LargeResult(False, np.full((4, 4), np.nan), np.zeros((0, 2), int), float("nan"), why,
-                       required_inliers=required, num_associations=m_full, timings=timings,
-                       search="indexed", candidates=crops.rows, considered=crops.considered)
+    why = (
+        "no candidate region: no vehicle triangle matched the reference index"
+        if not votes.matches
+        else f"no candidate region with {icfg.min_votes} or more votes ({votes.matches} triangle matches)"
+    )
+    return LargeResult(
+        False,
+        np.full((4, 4), np.nan),
+        np.zeros((0, 2), int),
+        float("nan"),
+        why,
+        required_inliers=required,
+        num_associations=m_full,
+        timings=timings,
+        search="indexed",
+        candidates=crops.rows,
+        considered=crops.considered,
+    )
 
 
-def _judge(crops: _Crops, cfg: LocalizationConfig, required: int, m_full: int, timings: dict) -> LargeResult:
+def _judge(
+    crops: _Crops, cfg: LocalizationConfig, required: int, m_full: int, timings: dict
+) -> LargeResult:
     """The winner (a verified answer first, then the largest inlier set) with the chance
     and margin checks again, against the whole reference and every competing hypothesis;
     a failed check turns a success into a refusal."""
     done = crops.checked()
     w, best = max(done, key=lambda ir: (ir[1].success, ir[1].num_inliers, ir[1].clique_size))
     comp_clique, comp_refined, comp_region = _competitors(done, w, best, cfg)
-    out = _from(best, search="indexed", candidates=crops.rows, winner=w, considered=crops.considered)
+    out = _from(
+        best, search="indexed", candidates=crops.rows, winner=w, considered=crops.considered
+    )
     out.timings = timings
     out.required_inliers = max(required, best.required_inliers)
     out.num_associations = m_full
     out.competitor_size = int(max(comp_clique, comp_refined))
-    whole = _whole_reference_checks(out, best.clique_size, comp_clique, comp_refined, comp_region, m_full, cfg)
+    whole = _whole_reference_checks(
+        out, best.clique_size, comp_clique, comp_refined, comp_region, m_full, cfg
+    )
     out.checks = list(out.checks) + whole
     if out.success and not all(c.passed for c in whole):
         out.success = False
@@ -261,7 +331,9 @@ def _judge(crops: _Crops, cfg: LocalizationConfig, required: int, m_full: int, t
     return out
 
 
-def _competitors(done: list, w: int, best: LocalizationResult, cfg: LocalizationConfig) -> tuple[int, int, int]:
+def _competitors(
+    done: list, w: int, best: LocalizationResult, cfg: LocalizationConfig
+) -> tuple[int, int, int]:
     """The best competing hypothesis found anywhere, like against like: (largest competing
     consistent set, largest competing refined inlier count, the region holding that count
     or -1). The other regions' refined counts are set against the winner's refined count,
@@ -278,8 +350,15 @@ def _competitors(done: list, w: int, best: LocalizationResult, cfg: Localization
     return comp_clique, comp_refined, comp_region
 
 
-def _whole_reference_checks(out: LargeResult, clique: int, comp_clique: int, comp_refined: int, comp_region: int,
-                            m_full: int, cfg: LocalizationConfig) -> list[Check]:
+def _whole_reference_checks(
+    out: LargeResult,
+    clique: int,
+    comp_clique: int,
+    comp_refined: int,
+    comp_region: int,
+    m_full: int,
+    cfg: LocalizationConfig,
+) -> list[Check]:
     """The chance check against the whole reference and the two winner-margin checks."""
     k = out.num_inliers
     ratio = cfg.competitor_ratio
@@ -287,18 +366,38 @@ def _whole_reference_checks(out: LargeResult, clique: int, comp_clique: int, com
     ok_refined = k >= ratio * comp_refined
     ok_clique = clique >= ratio * comp_clique
     return [
-        Check("inliers_vs_chance_whole_reference", k, out.required_inliers, ok_chance, ">=",
-              "inliers against the chance envelope of the whole reference" if ok_chance else
-              f"{k} inliers is too few to beat chance in the whole reference ({m_full} associations; "
-              f"need {out.required_inliers})"),
-        Check("winner_margin_regions", k, ratio * comp_refined, ok_refined, ">=",
-              f"refined inliers against {ratio:g} x the best competing candidate region's" if ok_refined else
-              f"ambiguous: {k} inliers vs {comp_refined} in a competing candidate region "
-              f"(candidate {comp_region + 1}; a repeated pattern)"),
-        Check("winner_margin_cliques", clique, ratio * comp_clique, ok_clique, ">=",
-              f"consistent set against {ratio:g} x the best competing one (inside the crop and in other regions)"
-              if ok_clique else
-              f"ambiguous: a consistent set of {clique} vs a competing one of {comp_clique}"),
+        Check(
+            "inliers_vs_chance_whole_reference",
+            k,
+            out.required_inliers,
+            ok_chance,
+            ">=",
+            "inliers against the chance envelope of the whole reference"
+            if ok_chance
+            else f"{k} inliers is too few to beat chance in the whole reference ({m_full} associations; "
+            f"need {out.required_inliers})",
+        ),
+        Check(
+            "winner_margin_regions",
+            k,
+            ratio * comp_refined,
+            ok_refined,
+            ">=",
+            f"refined inliers against {ratio:g} x the best competing candidate region's"
+            if ok_refined
+            else f"ambiguous: {k} inliers vs {comp_refined} in a competing candidate region "
+            f"(candidate {comp_region + 1}; a repeated pattern)",
+        ),
+        Check(
+            "winner_margin_cliques",
+            clique,
+            ratio * comp_clique,
+            ok_clique,
+            ">=",
+            f"consistent set against {ratio:g} x the best competing one (inside the crop and in other regions)"
+            if ok_clique
+            else f"ambiguous: a consistent set of {clique} vs a competing one of {comp_clique}",
+        ),
     ]
 
 
@@ -306,6 +405,11 @@ def _same_pose(a: LocalizationResult, b: LocalizationResult, cfg: LocalizationCo
     """Two answers that are the same hypothesis (overlapping candidate crops)."""
     if not (np.all(np.isfinite(a.T_ref_veh)) and np.all(np.isfinite(b.T_ref_veh))):
         return False
-    dyaw = abs((yaw_of(a.T_ref_veh[:3, :3]) - yaw_of(b.T_ref_veh[:3, :3]) + math.pi) % (2 * math.pi) - math.pi)
-    return bool(np.linalg.norm(a.T_ref_veh[:2, 3] - b.T_ref_veh[:2, 3]) < 1.0
-                and dyaw < math.radians(cfg.competitor_yaw_sep_deg))
+    dyaw = abs(
+        (yaw_of(a.T_ref_veh[:3, :3]) - yaw_of(b.T_ref_veh[:3, :3]) + math.pi) % (2 * math.pi)
+        - math.pi
+    )
+    return bool(
+        np.linalg.norm(a.T_ref_veh[:2, 3] - b.T_ref_veh[:2, 3]) < 1.0
+        and dyaw < math.radians(cfg.competitor_yaw_sep_deg)
+    )

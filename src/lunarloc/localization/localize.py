@@ -78,8 +78,18 @@ from lunarloc.localization.verify import Check, Evidence, verify
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Mode", "Registration", "Solver", "LocalizationConfig", "LocalizationResult", "Check", "Evidence", "verify",
-           "localize", "chance_clique_size"]
+__all__ = [
+    "Mode",
+    "Registration",
+    "Solver",
+    "LocalizationConfig",
+    "LocalizationResult",
+    "Check",
+    "Evidence",
+    "verify",
+    "localize",
+    "chance_clique_size",
+]
 
 
 def _check_map(m: LandmarkMap, name: str) -> np.ndarray:
@@ -89,7 +99,9 @@ def _check_map(m: LandmarkMap, name: str) -> np.ndarray:
     if len(P) == 0:
         raise InputError(f"{name} map is empty: no landmarks to localize with")
     if len(P) < 3:
-        raise InputError(f"{name} map has {len(P)} landmark(s); at least 3 are needed to fix a pose")
+        raise InputError(
+            f"{name} map has {len(P)} landmark(s); at least 3 are needed to fix a pose"
+        )
     spread = np.linalg.svd(P - P.mean(axis=0), compute_uv=False)
     if spread[0] < 1e-6:
         raise DegenerateGeometryError(f"{name} landmarks all coincide: the pose is undetermined")
@@ -100,11 +112,12 @@ def _check_map(m: LandmarkMap, name: str) -> np.ndarray:
     return P
 
 
-
-
 def localize(
-    reference: LandmarkMap, vehicle: LandmarkMap, config: LocalizationConfig | None = None,
-    query_xyz: np.ndarray | None = None, path_xyz: np.ndarray | None = None,
+    reference: LandmarkMap,
+    vehicle: LandmarkMap,
+    config: LocalizationConfig | None = None,
+    query_xyz: np.ndarray | None = None,
+    path_xyz: np.ndarray | None = None,
 ) -> LocalizationResult:
     """Find ``T_ref_veh`` aligning `vehicle` to `reference`, or say why it can't be trusted.
 
@@ -124,14 +137,23 @@ def localize(
     # 2. all-to-all putative associations, and the inliers chance alone would give
     P.associate()
     if P.num_associations == 0:
-        return P.refused("associations", 0, 1, ">=", "no putative associations (size pruning removed all)")
+        return P.refused(
+            "associations", 0, 1, ">=", "no putative associations (size pruning removed all)"
+        )
     # 3. the densest consistent set (one sparse graph per yaw bin in gravity mode)
     screen = P.search()
     if screen is not None and not screen.passed:
-        return P.refused("screen", screen.score, screen.needed, ">=", _screen_reason(screen, cfg, P.required))
+        return P.refused(
+            "screen", screen.score, screen.needed, ">=", _screen_reason(screen, cfg, P.required)
+        )
     if len(P.best) < 3:
-        return P.refused("consistent_set", len(P.best), 3, ">=",
-                         f"no consistent set of 3 or more associations (largest: {len(P.best)})")
+        return P.refused(
+            "consistent_set",
+            len(P.best),
+            3,
+            ">=",
+            f"no consistent set of 3 or more associations (largest: {len(P.best)})",
+        )
     # 4. Arun's SVD on the set, refinement, robust re-weighting
     why = P.register()
     if why is not None:
@@ -150,23 +172,29 @@ def _prepare(reference, vehicle, config):
 
         instance(config, "config", LocalizationConfig, "lunarloc.LocalizationConfig")
     prepare_kernels()  # first call of a process: compile or load the kernels before any stage timer starts
-    if isinstance(reference, LandmarkMap) and isinstance(vehicle, LandmarkMap) and not (
-        reference.has_heights and vehicle.has_heights
+    if (
+        isinstance(reference, LandmarkMap)
+        and isinstance(vehicle, LandmarkMap)
+        and not (reference.has_heights and vehicle.has_heights)
     ):
         # a map without heights (a rock catalogue from above): associate and register in
         # 2D + yaw; the pose's height, roll and pitch are not determined (left 0)
         reference, vehicle = _flattened(reference), _flattened(vehicle)
-        config = replace(config or LocalizationConfig(), mode=Mode.GRAVITY, registration=Registration.YAW)
+        config = replace(
+            config or LocalizationConfig(), mode=Mode.GRAVITY, registration=Registration.YAW
+        )
     _check_map(reference, "reference")
     _check_map(vehicle, "vehicle")
     return reference, vehicle, (config or LocalizationConfig()).for_maps(reference, vehicle)
 
 
 def _screen_reason(screen, cfg, required: int) -> str:
-    return (f"no consistent set large enough: the best of {screen.candidates} candidate poses voted by the "
-            f"reference's rock triangles has {screen.score:.1f} inliers beyond chance ({screen.inliers} in all), "
-            f"under {cfg.screen_fraction:g} x the {required} acceptance needs; the exhaustive search "
-            f"(~{screen.incidences:.2g} graph edges) was not run")
+    return (
+        f"no consistent set large enough: the best of {screen.candidates} candidate poses voted by the "
+        f"reference's rock triangles has {screen.score:.1f} inliers beyond chance ({screen.inliers} in all), "
+        f"under {cfg.screen_fraction:g} x the {required} acceptance needs; the exhaustive search "
+        f"(~{screen.incidences:.2g} graph edges) was not run"
+    )
 
 
 @dataclass
@@ -193,28 +221,47 @@ class _Budget:
 class _Problem:
     """One localize() call's state, step by step (each step one method)."""
 
-    def __init__(self, reference: LandmarkMap, vehicle: LandmarkMap, cfg: LocalizationConfig, timings: dict):
+    def __init__(
+        self, reference: LandmarkMap, vehicle: LandmarkMap, cfg: LocalizationConfig, timings: dict
+    ):
         self.reference, self.vehicle, self.cfg, self.timings = reference, vehicle, cfg, timings
         self.Pr, self.Pv = reference.positions_xyz, vehicle.positions_xyz
         self.sigma_h, self.sigma_z = combined_sigma(reference, vehicle, cfg)
-        self.built_from_detections = sum(m.sightings is not None for m in (reference, vehicle))  # 0, 1 or 2 maps
+        self.built_from_detections = sum(
+            m.sightings is not None for m in (reference, vehicle)
+        )  # 0, 1 or 2 maps
         self.required, self.num_associations, self.num_edges = 0, 0, 0
         self.best, self.inl = [], np.zeros((0, 2), int)
 
     def base(self) -> dict:
         """The result fields every outcome after the association step carries."""
-        return dict(required_inliers=self.required, num_associations=self.num_associations,
-                    num_edges=self.num_edges, timings=self.timings)  # fmt: skip
+        return dict(
+            required_inliers=self.required,
+            num_associations=self.num_associations,
+            num_edges=self.num_edges,
+            timings=self.timings,
+        )
 
     def refused(self, name, value, limit, op, why, inliers=None) -> LocalizationResult:
         """A result that says why not: one failed check, no pose."""
-        fields = self.base() if name != "associations" else dict(required_inliers=self.required, timings=self.timings)
+        fields = (
+            self.base()
+            if name != "associations"
+            else dict(required_inliers=self.required, timings=self.timings)
+        )
         if name == "screen":
             fields.pop("num_edges")
         if name in ("consistent_set", "registration"):
             fields["clique_size"] = len(self.best)
-        return LocalizationResult(False, _nan_T(), np.zeros((0, 2), int) if inliers is None else inliers,
-                                  float("nan"), why, checks=[Check(name, value, limit, False, op, why)], **fields)
+        return LocalizationResult(
+            False,
+            _nan_T(),
+            np.zeros((0, 2), int) if inliers is None else inliers,
+            float("nan"),
+            why,
+            checks=[Check(name, value, limit, False, op, why)],
+            **fields,
+        )
 
     def associate(self) -> None:
         cfg, t0 = self.cfg, time.perf_counter()
@@ -232,9 +279,12 @@ class _Problem:
         if cfg.mode is Mode.GRAVITY:
             report: dict = {}
             self.best, self.competitor, self.best_yaw, self.num_edges = _search_yaw_bins(
-                self.Pv, self.Pr, self.node_of, cfg, self.required, report)
+                self.Pv, self.Pr, self.node_of, cfg, self.required, report
+            )
         else:
-            self.best, self.competitor, self.num_edges = _search_3d(self.Pv, self.Pr, self.node_of, self.assoc, cfg)
+            self.best, self.competitor, self.num_edges = _search_3d(
+                self.Pv, self.Pr, self.node_of, self.assoc, cfg
+            )
             self.best_yaw, report = None, {}
         screen = report.get("screen")
         if screen is not None:
@@ -257,7 +307,11 @@ class _Problem:
         if cfg.refine:
             T, inl = _refine(T, Pv, Pr, inl, cfg)
         try:
-            T_w, w = _register_robust(Pv[inl[:, 0]], Pr[inl[:, 1]], cfg, T) if cfg.refine else (T, np.ones(len(inl)))
+            T_w, w = (
+                _register_robust(Pv[inl[:, 0]], Pr[inl[:, 1]], cfg, T)
+                if cfg.refine
+                else (T, np.ones(len(inl)))
+            )
             T = T_w
         except DegenerateGeometryError:
             w = np.ones(len(inl))
@@ -269,52 +323,109 @@ class _Problem:
         odometry's distortion (stated bounds, or fitted from the maps with a prior), chance."""
         cfg, T, Pv, Pr, inl, w = self.cfg, self.T, self.Pv, self.Pr, self.inl, self.w
         query = Pv if query_xyz is None else as_points(query_xyz, "query points")
-        C_c, centre_ref = pose_covariance(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, cfg.registration_sigma_floor_m)
+        C_c, centre_ref = pose_covariance(
+            T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, cfg.registration_sigma_floor_m
+        )
         # plus the error the inliers share and their residuals cannot show (CENTRE_BIAS_M): each map
         # built from detections (sightings given) brings its own centre bias, measured for two
-        C_c = C_c + self.built_from_detections / 2 * shared_bias_covariance(cfg.centre_bias_m, cfg.centre_bias_yaw_deg)
+        C_c = C_c + self.built_from_detections / 2 * shared_bias_covariance(
+            cfg.centre_bias_m, cfg.centre_bias_yaw_deg
+        )
         pred_fit = error_at(C_c, centre_ref, T, query)
         path = None if path_xyz is None else as_points(path_xyz, "vehicle path")
         bend = None
         if cfg.odometry_bounds_stated:
             distortion, distortion_rot = distortion_allowance(
-                query, Pv[inl[:, 0]], w, cfg.odometry_scale_error or 0.0,
-                math.radians(cfg.odometry_heading_drift_deg_per_m or 0.0), path,
+                query,
+                Pv[inl[:, 0]],
+                w,
+                cfg.odometry_scale_error or 0.0,
+                math.radians(cfg.odometry_heading_drift_deg_per_m or 0.0),
+                path,
             )
         else:  # no bounds stated: what the maps show of a bend or scale error, and how unsure that is
             distortion, distortion_rot = np.array([math.inf]), np.array([math.inf])
             if len(inl) >= cfg.min_inliers_distortion_fit:
                 bend = self._fitted_bend(query, path)
-        pred = pred_fit + distortion  # the distortion is a bound (a bias), not a random error: added, not in quadrature
-        rot_sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(C_c[3:, 3:]))), 0.0)) if np.all(np.isfinite(C_c)) else math.inf
+        pred = (
+            pred_fit + distortion
+        )  # the distortion is a bound (a bias), not a random error: added, not in quadrature
+        rot_sigma = (
+            math.sqrt(max(float(np.max(np.linalg.eigvalsh(C_c[3:, 3:]))), 0.0))
+            if np.all(np.isfinite(C_c))
+            else math.inf
+        )
         pred_rot_deg = math.degrees(rot_sigma + float(distortion_rot.max()))
         if bend is not None:  # the registration counted once, with the bend's own uncertainty
-            pred, pred_rot_deg = fitted_predicted_error(bend, cfg, pred_fit, math.degrees(rot_sigma))
-            distortion, distortion_rot = pred - pred_fit, np.array([math.radians(pred_rot_deg) - rot_sigma])
+            pred, pred_rot_deg = fitted_predicted_error(
+                bend, cfg, pred_fit, math.degrees(rot_sigma)
+            )
+            distortion, distortion_rot = (
+                pred - pred_fit,
+                np.array([math.radians(pred_rot_deg) - rot_sigma]),
+            )
         # the chance envelope was measured on consistent cores: refinement's chance additions
         # (more of them with a wider refinement radius) do not count towards beating it
         core = len(self.best)
-        chance_gain = chance_refined(T, Pv, Pr, self.assoc[self.best][:, 0], cfg.refine_radius_m) if cfg.refine else 0.0
+        chance_gain = (
+            chance_refined(T, Pv, Pr, self.assoc[self.best][:, 0], cfg.refine_radius_m)
+            if cfg.refine
+            else 0.0
+        )
         k_chance = min(len(inl), core + max(0.0, len(inl) - core - chance_gain))
         near_outer = max(cfg.near_miss_outer_m, 3 * cfg.refine_radius_m)
         near, near_exp = near_miss_excess(T, Pv, Pr, inl[:, 0], cfg.refine_radius_m, near_outer)
-        dscale, scale_se = scale_check(T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, cfg.registration_sigma_floor_m)
+        dscale, scale_se = scale_check(
+            T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, cfg.registration_sigma_floor_m
+        )
         self.timings["registration"] = time.perf_counter() - self.t_register
-        return _Budget(query, C_c, centre_ref, pred_fit, pred, distortion, distortion_rot, pred_rot_deg, bend,
-                       k_chance, near, near_exp, near_outer, dscale, scale_se)  # fmt: skip
+        return _Budget(
+            query,
+            C_c,
+            centre_ref,
+            pred_fit,
+            pred,
+            distortion,
+            distortion_rot,
+            pred_rot_deg,
+            bend,
+            k_chance,
+            near,
+            near_exp,
+            near_outer,
+            dscale,
+            scale_se,
+        )
 
     def _fitted_bend(self, query, path):
         """The bend fitted from the maps alone, then with the odometry prior where the maps agree."""
         cfg, vehicle = self.cfg, self.vehicle
-        arcs = ((vehicle.sighting_arc_m, vehicle.sighting_arc_min_m, vehicle.sighting_arc_max_m)
-                if vehicle.has_sighting_arcs else None)
-        fit_args = (self.T, self.Pv, self.Pr, self.inl, query, path,
-                    math.sqrt((2 * self.sigma_h**2 + self.sigma_z**2) / 3),
-                    cfg.refine_radius_m, cfg.distortion_fit_rounds, arcs, cfg.max_sighting_span_m,
-                    cfg.min_inliers_distortion_fit)
+        arcs = (
+            (vehicle.sighting_arc_m, vehicle.sighting_arc_min_m, vehicle.sighting_arc_max_m)
+            if vehicle.has_sighting_arcs
+            else None
+        )
+        fit_args = (
+            self.T,
+            self.Pv,
+            self.Pr,
+            self.inl,
+            query,
+            path,
+            math.sqrt((2 * self.sigma_h**2 + self.sigma_z**2) / 3),
+            cfg.refine_radius_m,
+            cfg.distortion_fit_rounds,
+            arcs,
+            cfg.max_sighting_span_m,
+            cfg.min_inliers_distortion_fit,
+        )
         bend = bending_fit(*fit_args)  # from the maps alone
-        prior = (None if cfg.odometry_prior_drift_deg_per_m is None else math.radians(cfg.odometry_prior_drift_deg_per_m),
-                 cfg.odometry_prior_scale_error)
+        prior = (
+            None
+            if cfg.odometry_prior_drift_deg_per_m is None
+            else math.radians(cfg.odometry_prior_drift_deg_per_m),
+            cfg.odometry_prior_scale_error,
+        )
         # the prior is per metre of the odometry's path: without the path (a straight stand-in)
         # there is no distance travelled for it to describe. It also narrowed a 6 m map against
         # a LAC grid below its quantisation's error (tests/test_sighting_arcs.py)
@@ -335,57 +446,99 @@ class _Problem:
         if cfg.mode is Mode.SIX_DOF:
             competitor = _competitor_3d(T, Pv, Pr, self.node_of, self.assoc, cfg)
         else:
-            competitor = max(self.competitor, _competitor_same_yaw(T, Pv, Pr, self.node_of, self.assoc, cfg,
-                                                                   self.best_yaw, self.competitor))  # fmt: skip
+            competitor = max(
+                self.competitor,
+                _competitor_same_yaw(
+                    T, Pv, Pr, self.node_of, self.assoc, cfg, self.best_yaw, self.competitor
+                ),
+            )
         self.timings["verification"] = time.perf_counter() - t0
 
         res = _residuals(T, Pv[inl[:, 0]], Pr[inl[:, 1]])
         rmse = float(np.sqrt(np.mean(res**2)))
         R = T[:3, :3]
         out = LocalizationResult(
-            False, T, inl, rmse, "", clique_size=len(self.best), competitor_size=int(competitor),
-            predicted_error_m=float(b.pred.max()), scale_error=b.dscale,
-            yaw_deg=math.degrees(yaw_of(R)), tilt_deg=math.degrees(tilt_angle(R)),
-            distortion_error_m=float(b.distortion.max()), predicted_rotation_deg=b.pred_rot_deg,
-            near_misses=b.near, near_misses_expected=b.near_exp,
-            covariance=covariance_at_origin(b.C_c, b.centre_ref) + distortion_covariance(
+            False,
+            T,
+            inl,
+            rmse,
+            "",
+            clique_size=len(self.best),
+            competitor_size=int(competitor),
+            predicted_error_m=float(b.pred.max()),
+            scale_error=b.dscale,
+            yaw_deg=math.degrees(yaw_of(R)),
+            tilt_deg=math.degrees(tilt_angle(R)),
+            distortion_error_m=float(b.distortion.max()),
+            predicted_rotation_deg=b.pred_rot_deg,
+            near_misses=b.near,
+            near_misses_expected=b.near_exp,
+            covariance=covariance_at_origin(b.C_c, b.centre_ref)
+            + distortion_covariance(
                 transform_points(T, b.query[int(np.argmax(b.pred_fit + b.distortion))][None])[0],
-                float(b.distortion.max()), float(b.distortion_rot.max())),
-            distortion_fit={} if b.bend is None else asdict(b.bend), **self.base(),
+                float(b.distortion.max()),
+                float(b.distortion_rot.max()),
+            ),
+            distortion_fit={} if b.bend is None else asdict(b.bend),
+            **self.base(),
         )
         Q = Pr[inl[:, 1]]
         s = np.linalg.svd(Q - Q.mean(axis=0), compute_uv=False) / math.sqrt(len(Q))
         k = len(inl)
         gravity = cfg.mode is Mode.GRAVITY
         ev = Evidence(
-            inliers=k, rmse_m=rmse, rmse_limit_m=rmse_limit(cfg, self.sigma_h, self.sigma_z, k),
-            sigma_h_m=self.sigma_h, sigma_z_m=self.sigma_z,
-            extent_m=2 * s[0], planarity=s[1] / max(s[0], 1e-12),
+            inliers=k,
+            rmse_m=rmse,
+            rmse_limit_m=rmse_limit(cfg, self.sigma_h, self.sigma_z, k),
+            sigma_h_m=self.sigma_h,
+            sigma_z_m=self.sigma_z,
+            extent_m=2 * s[0],
+            planarity=s[1] / max(s[0], 1e-12),
             tilt_deg=out.tilt_deg if gravity else None,
             handedness=_handedness(Pv[inl[:, 0]], Q, np.random.default_rng(0)) if gravity else None,
-            scale_error=b.dscale, scale_se=b.scale_se, near_misses=b.near, near_misses_expected=b.near_exp,
-            near_inner_m=cfg.refine_radius_m, near_outer_m=b.near_outer,
-            predicted_error_m=float(b.pred.max()), distortion_error_m=float(b.distortion.max()),
-            predicted_rotation_deg=b.pred_rot_deg, distortion_rotation_deg=math.degrees(float(b.distortion_rot.max())),
-            inliers_beyond_chance=b.k_chance, required_inliers=self.required, chance_inliers=self.chance,
-            num_associations=self.num_associations, competitor=int(competitor), distortion_fitted=b.bend is not None,
+            scale_error=b.dscale,
+            scale_se=b.scale_se,
+            near_misses=b.near,
+            near_misses_expected=b.near_exp,
+            near_inner_m=cfg.refine_radius_m,
+            near_outer_m=b.near_outer,
+            predicted_error_m=float(b.pred.max()),
+            distortion_error_m=float(b.distortion.max()),
+            predicted_rotation_deg=b.pred_rot_deg,
+            distortion_rotation_deg=math.degrees(float(b.distortion_rot.max())),
+            inliers_beyond_chance=b.k_chance,
+            required_inliers=self.required,
+            chance_inliers=self.chance,
+            num_associations=self.num_associations,
+            competitor=int(competitor),
+            distortion_fitted=b.bend is not None,
         )
         out.checks = verify(ev, cfg)
         if screen is not None:  # it passed: shown first, as a check that refuses nothing further
-            out.checks.insert(0, Check("screen", screen.score, screen.needed, True, ">=",
-                                       "inliers beyond chance at the best pose voted by the reference's rock triangles"))
+            out.checks.insert(
+                0,
+                Check(
+                    "screen",
+                    screen.score,
+                    screen.needed,
+                    True,
+                    ">=",
+                    "inliers beyond chance at the best pose voted by the reference's rock triangles",
+                ),
+            )
         failed = [c for c in out.checks if not c.passed]
         out.success = not failed
         out.reason = failed[0].detail if failed else "ok"
         log.info("localize: %s (%d inliers, rmse %.3f m)", out.reason, k, rmse)
         return out
+
+
 """Edges (8 bytes each) of the built bins the search keeps for the same-yaw competitor
 search, which needs the graphs of the bins around the winner again (13-15: 1.4 million
 edges in all); beyond it the competitor rebuilds the bins it needs."""
 """Vehicle triangles the screen votes with at most: the vote's cost grows with them (a
 150-landmark map at 15 cm: 6300 triangles, 117 000 matches, 0.3 s); the true pose keeps its
 share of the votes in a sample."""
-
 
 
 _WARM: bool | str = False
@@ -419,7 +572,7 @@ def warm_kernels(force: bool = False, jit: bool = False) -> float:
     T = make_transform(euler_to_rotation(0.0, 0.0, 0.7), np.array([3.0, -2.0, 0.1]))
     veh_xyz = transform_points(np.linalg.inv(T), ref_xyz[:40]) + rng.normal(0, 0.005, (40, 3))
     ref, veh = LandmarkMap(ref_xyz, frame="ref"), LandmarkMap(veh_xyz, frame="veh")
-    with exercising(), (jit_only() if jit else contextlib.nullcontext()):
+    with exercising(), jit_only() if jit else contextlib.nullcontext():
         for mode in Mode:
             for solver in Solver:
                 localize(ref, veh, LocalizationConfig(mode=mode, solver=solver))

@@ -24,7 +24,9 @@ def rmse_limit(cfg: "LocalizationConfig", sigma_h: float, sigma_z: float, k: int
     i.e. RMSE <= sigma_r sqrt(q / 3k). Never below cfg.max_rmse_m (the floor)."""
     dof = max(3 * k - 6, 1)
     sr = math.sqrt(2 * sigma_h**2 + sigma_z**2)
-    return max(cfg.max_rmse_m, sr * math.sqrt(_chi2_ppf(cfg.rmse_confidence, dof) / (3 * max(k, 1))))
+    return max(
+        cfg.max_rmse_m, sr * math.sqrt(_chi2_ppf(cfg.rmse_confidence, dof) / (3 * max(k, 1)))
+    )
 
 
 def _chi2_ppf(q: float, dof: int) -> float:
@@ -39,8 +41,17 @@ def _flattened(m: LandmarkMap) -> LandmarkMap:
     """The map with every height 0 and no vertical uncertainty (2D association)."""
     P = m.positions_xyz.copy()
     P[:, 2] = 0.0
-    return LandmarkMap(P, m.sizes, m.sightings, m.frame, m.sigma_xy_m, None, m.sighting_arc_m,
-                       m.sighting_arc_min_m, m.sighting_arc_max_m)
+    return LandmarkMap(
+        P,
+        m.sizes,
+        m.sightings,
+        m.frame,
+        m.sigma_xy_m,
+        None,
+        m.sighting_arc_m,
+        m.sighting_arc_min_m,
+        m.sighting_arc_max_m,
+    )
 
 
 def _yaw_only(cfg: LocalizationConfig, k: int) -> bool:
@@ -94,7 +105,9 @@ def _refine(T, Pv, Pr, inl, cfg):
             T_new, _ = _register_robust(Pv[pairs[:, 0]], Pr[pairs[:, 1]], cfg)
         except DegenerateGeometryError:
             break
-        same = len(pairs) == len(best_inl) and np.array_equal(np.sort(pairs[:, 0]), np.sort(best_inl[:, 0]))
+        same = len(pairs) == len(best_inl) and np.array_equal(
+            np.sort(pairs[:, 0]), np.sort(best_inl[:, 0])
+        )
         best_T, best_inl = T_new, pairs
         if same:
             break

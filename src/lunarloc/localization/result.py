@@ -49,8 +49,12 @@ class LocalizationResult:
     near_misses_expected: float = float("nan")
     covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
     timings: dict = field(default_factory=dict)
-    checks: list = field(default_factory=list)  # the acceptance tests (:class:`Check`) of :func:`verify`
-    distortion_fit: dict = field(default_factory=dict)  # :class:`BendFit` when no odometry bounds were stated
+    checks: list = field(
+        default_factory=list
+    )  # the acceptance tests (:class:`Check`) of :func:`verify`
+    distortion_fit: dict = field(
+        default_factory=dict
+    )  # :class:`BendFit` when no odometry bounds were stated
 
     @property
     def num_inliers(self) -> int:

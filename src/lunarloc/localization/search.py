@@ -29,7 +29,9 @@ from lunarloc.localization.config import LocalizationConfig, Solver
 from lunarloc.localization.register import _refine
 
 
-def _solve(solver: Solver, n: int, eu, ev, ew, lower_bound: int, seed: int, scratch=None) -> np.ndarray:
+def _solve(
+    solver: Solver, n: int, eu, ev, ew, lower_bound: int, seed: int, scratch=None
+) -> np.ndarray:
     if solver is Solver.EXACT:
         return max_clique(n, eu, ev, lower_bound, scratch)
     if lower_bound > 0 and len(eu):
@@ -55,7 +57,9 @@ def _search_3d(Pv, Pr, node_of, assoc, cfg):
 
 def _explained(T, Pv, Pr, assoc, radius):
     """Associations consistent with T (their landmarks land within `radius`)."""
-    d = np.linalg.norm(transform_points(T, Pv)[assoc[:, 0]] - Pr[assoc[:, 1]], axis=1)  # each landmark moved once
+    d = np.linalg.norm(
+        transform_points(T, Pv)[assoc[:, 0]] - Pr[assoc[:, 1]], axis=1
+    )  # each landmark moved once
     return d < radius
 
 
@@ -79,8 +83,17 @@ def _sweep(Pv, Pr, node_of, cfg, visit, bin_start: int = 0, bin_count: int | Non
     """Run `visit(bin, theta, eu, ev, ew)` on the consistency graph of every yaw bin."""
     n_bins = _n_bins(cfg)
     return sweep_yaw_bins(
-        vehicle_pairs(Pv), _ref_index(Pr, cfg), node_of, n_bins, _chunk_bins(cfg), *_graph_args(cfg), visit,
-        weights=cfg.solver is Solver.CLIPPER, bin_start=bin_start, bin_count=bin_count, workers=cfg.threads,
+        vehicle_pairs(Pv),
+        _ref_index(Pr, cfg),
+        node_of,
+        n_bins,
+        _chunk_bins(cfg),
+        *_graph_args(cfg),
+        visit,
+        weights=cfg.solver is Solver.CLIPPER,
+        bin_start=bin_start,
+        bin_count=bin_count,
+        workers=cfg.threads,
     )
 
 
@@ -90,10 +103,18 @@ def _chunk_bins(cfg) -> int:
 
 def _graph_args(cfg) -> tuple:
     """(eps_h, eps_z, tan_tilt, k_yaw, sigma) of the yaw-bin consistency graphs."""
-    return (cfg.epsilon_m, cfg.epsilon_z_m, math.tan(math.radians(cfg.max_tilt_deg)), cfg.yaw_noise_factor, cfg.sigma)
+    return (
+        cfg.epsilon_m,
+        cfg.epsilon_z_m,
+        math.tan(math.radians(cfg.max_tilt_deg)),
+        cfg.yaw_noise_factor,
+        cfg.sigma,
+    )
 
 
-_PARALLEL_MIN_WORK = 2e8  # vehicle pairs x reference pairs below which a sweep runs on the calling thread
+_PARALLEL_MIN_WORK = (
+    2e8  # vehicle pairs x reference pairs below which a sweep runs on the calling thread
+)
 
 
 def _workers(cfg, vp, index: RefPairIndex, share: float = 1.0) -> int:
@@ -103,7 +124,9 @@ def _workers(cfg, vp, index: RefPairIndex, share: float = 1.0) -> int:
 
 
 def _ref_index(Pr, cfg) -> RefPairIndex:
-    return RefPairIndex(Pr, dist_cell_m=max(cfg.epsilon_m / 2, 0.01), angle_cell_rad=math.radians(1.0))
+    return RefPairIndex(
+        Pr, dist_cell_m=max(cfg.epsilon_m / 2, 0.01), angle_cell_rad=math.radians(1.0)
+    )
 
 
 class _Scratch(threading.local):
@@ -137,7 +160,11 @@ def _bin_bounds(Pv, vp, index, node_of, cfg) -> tuple[np.ndarray, np.ndarray, in
     n_bins = _n_bins(cfg)
     groups = min(_bound_groups(int(np.count_nonzero(node_of >= 0))), max(1, len(Pv) // 8))
     if groups == 1:
-        return np.full(n_bins, np.iinfo(np.int64).max, dtype=np.int64), np.zeros(n_bins, dtype=np.int64), 0
+        return (
+            np.full(n_bins, np.iinfo(np.int64).max, dtype=np.int64),
+            np.zeros(n_bins, dtype=np.int64),
+            0,
+        )
     upper = np.zeros(n_bins, dtype=np.int64)
     lower = np.ones(n_bins, dtype=np.int64)
     scratch = _Scratch(int(node_of.size))
@@ -155,11 +182,22 @@ def _bin_bounds(Pv, vp, index, node_of, cfg) -> tuple[np.ndarray, np.ndarray, in
         def visit_chunk(bins, ptr, su, sv, _sw):
             ub, lb = bin_clique_bounds(ptr, su, sv, scratch.arr)
             with lock:
-                upper[bins] += np.maximum(ub, 1)  # a group with no edge in a bin still holds one member
+                upper[bins] += np.maximum(
+                    ub, 1
+                )  # a group with no edge in a bin still holds one member
                 np.maximum.at(lower, bins, lb)
 
-        edges += sweep_bin_chunks(vpg, index, node_of, n_bins, chunks, *_graph_args(cfg), visit_chunk,
-                                  weights=False, workers=workers)
+        edges += sweep_bin_chunks(
+            vpg,
+            index,
+            node_of,
+            n_bins,
+            chunks,
+            *_graph_args(cfg),
+            visit_chunk,
+            weights=False,
+            workers=workers,
+        )
     return upper, lower, edges
 
 
@@ -170,7 +208,9 @@ class _BestYaw(float):
     index: RefPairIndex
     upper: np.ndarray
     best_size: int
-    edges: dict | None  # bin -> (eu, ev) of the bins the search built (exact solver, up to _EDGE_CACHE_MAX)
+    edges: (
+        dict | None
+    )  # bin -> (eu, ev) of the bins the search built (exact solver, up to _EDGE_CACHE_MAX)
 
 
 _EDGE_CACHE_MAX = 8_000_000
@@ -240,7 +280,7 @@ def _search_yaw_bins(Pv, Pr, node_of, cfg, required: int | None = None, report: 
                 if kept[0] + len(su) <= _EDGE_CACHE_MAX:
                     kept[0] += len(su)
                     for t, b in enumerate(bins):
-                        edges[b] = (su[ptr[t]:ptr[t + 1]], sv[ptr[t]:ptr[t + 1]])
+                        edges[b] = (su[ptr[t] : ptr[t + 1]], sv[ptr[t] : ptr[t + 1]])
         for t in sorted(range(len(bins)), key=lambda t: -upper[bins[t]]):
             b = bins[t]
             with lock:
@@ -261,14 +301,25 @@ def _search_yaw_bins(Pv, Pr, node_of, cfg, required: int | None = None, report: 
 
     def sweep(bins) -> int:
         chunks = yaw_bin_chunks(n_bins, _chunk_bins(cfg), bins)
-        chunks.sort(key=lambda c: -int(upper[c[0] + c[1]: c[0] + c[2] + 1].max()))
+        chunks.sort(key=lambda c: -int(upper[c[0] + c[1] : c[0] + c[2] + 1].max()))
         share = sum(c[2] - c[1] + 1 for c in chunks) / n_bins
-        return sweep_bin_chunks(vp, index, node_of, n_bins, chunks, *_graph_args(cfg), visit_chunk,
-                                weights=cfg.solver is Solver.CLIPPER, workers=_workers(cfg, vp, index, share))
+        return sweep_bin_chunks(
+            vp,
+            index,
+            node_of,
+            n_bins,
+            chunks,
+            *_graph_args(cfg),
+            visit_chunk,
+            weights=cfg.solver is Solver.CLIPPER,
+            workers=_workers(cfg, vp, index, share),
+        )
 
     top = int(np.argmax(upper))
     if upper[top] < np.iinfo(np.int64).max:
-        total_edges += sweep([top])  # the most promising bin first: its clique raises lb for the rest
+        total_edges += sweep(
+            [top]
+        )  # the most promising bin first: its clique raises lb for the rest
     lb = lb_now()
     rest = [b for b in np.flatnonzero(upper > lb).tolist() if b not in found]
     total_edges += sweep(rest)
@@ -279,7 +330,10 @@ def _search_yaw_bins(Pv, Pr, node_of, cfg, required: int | None = None, report: 
     b_best = min(b for b, c in found.items() if len(c) == size)
 
     far = _far_mask(n_bins, sep_bins)[b_best]
-    second = max([state["floor"], int(lower[far].max(initial=0))] + [len(c) for b, c in found.items() if far[b]])
+    second = max(
+        [state["floor"], int(lower[far].max(initial=0))]
+        + [len(c) for b, c in found.items() if far[b]]
+    )
     best_yaw = _BestYaw(-math.pi + (b_best + 0.5) * step)
     best_yaw.index, best_yaw.upper, best_yaw.best_size, best_yaw.edges = index, upper, size, edges
     return found[b_best], int(second), best_yaw, total_edges
@@ -304,7 +358,9 @@ def _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw, floor: int = 
     if isinstance(best_yaw, _BestYaw):  # reuse the main search's index and bounds
         index = best_yaw.index
         lb0 = max(floor, int(best_yaw.best_size // cfg.competitor_ratio))
-        bins = [b for b in bins if best_yaw.upper[b] > lb0]  # removing associations only lowers the bound
+        bins = [
+            b for b in bins if best_yaw.upper[b] > lb0
+        ]  # removing associations only lowers the bound
     if not bins:
         return floor
     state = {"best": lb0}  # only a set larger than this can matter
@@ -316,7 +372,16 @@ def _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw, floor: int = 
         for t in range(len(bins_)):
             if ptr[t + 1] > ptr[t]:
                 sl = slice(ptr[t], ptr[t + 1])
-                c = _solve(cfg.solver, n_assoc, su[sl], sv[sl], sw[sl], state["best"], cfg.seed, scratch.arr)
+                c = _solve(
+                    cfg.solver,
+                    n_assoc,
+                    su[sl],
+                    sv[sl],
+                    sw[sl],
+                    state["best"],
+                    cfg.seed,
+                    scratch.arr,
+                )
                 with lock:
                     state["best"] = max(state["best"], len(c))
 
@@ -339,16 +404,27 @@ def _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw, floor: int = 
             return state["best"] if state["best"] > lb0 else floor
     vp = vehicle_pairs(Pv)
     index = index if index is not None else _ref_index(Pr, cfg)
-    sweep_bin_chunks(vp, index, node2, n_bins, yaw_bin_chunks(n_bins, _chunk_bins(cfg), bins), *_graph_args(cfg),
-                     visit_chunk, weights=cfg.solver is Solver.CLIPPER,
-                     workers=_workers(cfg, vp, index, len(bins) / n_bins))
+    sweep_bin_chunks(
+        vp,
+        index,
+        node2,
+        n_bins,
+        yaw_bin_chunks(n_bins, _chunk_bins(cfg), bins),
+        *_graph_args(cfg),
+        visit_chunk,
+        weights=cfg.solver is Solver.CLIPPER,
+        workers=_workers(cfg, vp, index, len(bins) / n_bins),
+    )
     return state["best"] if state["best"] > lb0 else floor
 
 
-
-
-def predicted_incidences(Pv: np.ndarray, Pr: np.ndarray, cfg: LocalizationConfig, vp=None,
-                          index: RefPairIndex | None = None) -> float:
+def predicted_incidences(
+    Pv: np.ndarray,
+    Pr: np.ndarray,
+    cfg: LocalizationConfig,
+    vp=None,
+    index: RefPairIndex | None = None,
+) -> float:
     """Estimated size of the gravity-aware search's yaw-bin consistency graphs: edge
     incidences summed over the bins, before the height test (so an over-estimate).
 
@@ -372,8 +448,11 @@ def predicted_incidences(Pv: np.ndarray, Pr: np.ndarray, cfg: LocalizationConfig
     k_eps = cfg.yaw_noise_factor * eps
     tan_tilt = math.tan(math.radians(cfg.max_tilt_deg))
     with np.errstate(divide="ignore", invalid="ignore"):
-        tol = np.where(dmin > k_eps, 0.5 * step + np.arcsin(np.minimum(k_eps / dmin, 1.0))
-                       + tan_tilt * np.abs(dz) / dmin, math.pi)
+        tol = np.where(
+            dmin > k_eps,
+            0.5 * step + np.arcsin(np.minimum(k_eps / dmin, 1.0)) + tan_tilt * np.abs(dz) / dmin,
+            math.pi,
+        )
     bins = np.minimum(np.maximum(2 * tol / step, 1.0), _n_bins(cfg))
     return float(np.sum(within * bins))
 
@@ -395,8 +474,14 @@ class Screen:
     inliers: int = 0
 
 
-def _screen(Pv: np.ndarray, Pr: np.ndarray, cfg: LocalizationConfig, required: int, vp=None,
-            index: RefPairIndex | None = None) -> Screen | None:
+def _screen(
+    Pv: np.ndarray,
+    Pr: np.ndarray,
+    cfg: LocalizationConfig,
+    required: int,
+    vp=None,
+    index: RefPairIndex | None = None,
+) -> Screen | None:
     """Cheap refusal before an exhaustive search that would be large.
 
     Runs only when the yaw-bin graphs would hold at least ``screen_min_incidences``
@@ -419,8 +504,12 @@ def _screen(Pv: np.ndarray, Pr: np.ndarray, cfg: LocalizationConfig, required: i
     from lunarloc.association.index import IndexConfig, ReferenceIndex
 
     needed = cfg.screen_fraction * required
-    tri = ReferenceIndex(Pr, cfg.epsilon_m, IndexConfig(max_candidates=cfg.screen_candidates))  # rock triangles
-    votes = tri.vote(Pv, cfg.epsilon_z_m, math.tan(math.radians(cfg.max_tilt_deg)), _SCREEN_TRIANGLES)
+    tri = ReferenceIndex(
+        Pr, cfg.epsilon_m, IndexConfig(max_candidates=cfg.screen_candidates)
+    )  # rock triangles
+    votes = tri.vote(
+        Pv, cfg.epsilon_z_m, math.tan(math.radians(cfg.max_tilt_deg)), _SCREEN_TRIANGLES
+    )
     if not votes.candidates:
         return Screen(True, float("nan"), needed, 0, incidences)
     best, best_inliers = 0.0, 0  # inliers beyond chance: none until a candidate shows some
@@ -431,14 +520,19 @@ def _screen(Pv: np.ndarray, Pr: np.ndarray, cfg: LocalizationConfig, required: i
         T[:2, :2] = [[c, -s], [s, c]]
         T[:2, 3] = np.array([x, y]) - T[:2, :2] @ votes.centre_xy
         Pt = transform_points(T, Pv)
-        d, j = tri.tree_xy.query(Pt[:, :2])  # the vote fixes x, y and yaw; the height from the nearest rocks
+        d, j = tri.tree_xy.query(
+            Pt[:, :2]
+        )  # the vote fixes x, y and yaw; the height from the nearest rocks
         near = d < cfg.refine_radius_m
         if near.sum() < 3:  # nothing to refine from: no more than chance here
             continue
         T[2, 3] = float(np.median((Pr[j, 2] - Pt[:, 2])[near]))
         try:
             T, inl = _refine(T, Pv, Pr, np.zeros((0, 2), np.int64), cfg)
-        except (DegenerateGeometryError, InputError):  # fewer than 3 (or collinear) mutual neighbours in 3D
+        except (
+            DegenerateGeometryError,
+            InputError,
+        ):  # fewer than 3 (or collinear) mutual neighbours in 3D
             continue
         score = len(inl) - chance_refined(T, Pv, Pr, np.zeros(0, np.int64), cfg.refine_radius_m)
         if score > best:
@@ -448,8 +542,13 @@ def _screen(Pv: np.ndarray, Pr: np.ndarray, cfg: LocalizationConfig, required: i
     return Screen(best >= needed, best, needed, len(votes.candidates), incidences, best_inliers)
 
 
-def _vote_mode(votes: np.ndarray, x: float, y: float, yaw: float,
-               windows=((1.0, 10.0), (0.5, 5.0), (0.25, 2.5), (0.25, 2.5))) -> tuple[float, float, float]:
+def _vote_mode(
+    votes: np.ndarray,
+    x: float,
+    y: float,
+    yaw: float,
+    windows=((1.0, 10.0), (0.5, 5.0), (0.25, 2.5), (0.25, 2.5)),
+) -> tuple[float, float, float]:
     """The densest place of the triangle votes (x, y, yaw rad) near a candidate: the median
     of the votes within a window around the estimate, the window shrinking (metres,
     degrees). A candidate is the median of a 6 m x 30 deg neighbourhood that chance votes
@@ -457,8 +556,11 @@ def _vote_mode(votes: np.ndarray, x: float, y: float, yaw: float,
     refinement to lock on; the true votes agree within centimetres."""
     for half_m, half_deg in windows:
         dyaw = (votes[:, 2] - yaw + math.pi) % (2 * math.pi) - math.pi
-        near = (np.abs(votes[:, 0] - x) < half_m) & (np.abs(votes[:, 1] - y) < half_m) & (
-            np.abs(dyaw) < math.radians(half_deg))
+        near = (
+            (np.abs(votes[:, 0] - x) < half_m)
+            & (np.abs(votes[:, 1] - y) < half_m)
+            & (np.abs(dyaw) < math.radians(half_deg))
+        )
         if near.sum() < 3:
             break
         x, y = float(np.median(votes[near, 0])), float(np.median(votes[near, 1]))

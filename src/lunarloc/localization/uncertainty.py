@@ -70,13 +70,17 @@ def covariance_at_origin(C_c: np.ndarray, c: np.ndarray) -> np.ndarray:
     return A @ C_c @ A.T
 
 
-def distortion_covariance(point_ref: np.ndarray, position_m: float, rotation_rad: float) -> np.ndarray:
+def distortion_covariance(
+    point_ref: np.ndarray, position_m: float, rotation_rad: float
+) -> np.ndarray:
     """6x6 pose-error covariance about the reference origin of a distortion allowance at a
     reference-frame point: `position_m` as one sigma of horizontal position there (split
     over x and y) and `rotation_rad` as one sigma of yaw. Zero when there is no allowance,
     and when it is not finite (the pose is refused then)."""
     C = np.zeros((6, 6))
-    if not (position_m > 0 or rotation_rad > 0) or not (math.isfinite(position_m) and math.isfinite(rotation_rad)):
+    if not (position_m > 0 or rotation_rad > 0) or not (
+        math.isfinite(position_m) and math.isfinite(rotation_rad)
+    ):
         return C
     C[0, 0] = C[1, 1] = position_m**2 / 2
     C[5, 5] = rotation_rad**2
@@ -89,8 +93,9 @@ def shared_bias_covariance(bias_m: float, bias_yaw_deg: float) -> np.ndarray:
     return np.diag([bias_m**2, bias_m**2, 0.0, 0.0, 0.0, math.radians(bias_yaw_deg) ** 2])
 
 
-def predicted_error(T, P, Q, weights, query_xyz, sigma_floor: float = 0.005,
-                    shared_bias: np.ndarray | None = None) -> np.ndarray:
+def predicted_error(
+    T, P, Q, weights, query_xyz, sigma_floor: float = 0.005, shared_bias: np.ndarray | None = None
+) -> np.ndarray:
     """1-sigma position error (m) of the registration T at each vehicle-frame query point:
     the error at q has covariance A C A^T with A = [I, -[q - c]x] (see :func:`pose_covariance`),
     C the residuals' covariance plus `shared_bias` (:func:`shared_bias_covariance`) when given."""
@@ -120,12 +125,20 @@ def _arc_length_at(path_xyz: np.ndarray, *points_xyz: np.ndarray) -> list[np.nda
     path for all the sets (a path at the frame rate holds thousands of poses)."""
     path = np.asarray(path_xyz, float)
     s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))]
-    tree = cKDTree(path[:, :2], balanced_tree=False, compact_nodes=False)  # built for a few queries: the quick build
+    tree = cKDTree(
+        path[:, :2], balanced_tree=False, compact_nodes=False
+    )  # built for a few queries: the quick build
     return [s[tree.query(np.asarray(p, float)[:, :2])[1]] for p in points_xyz]
 
 
-def distortion_allowance(query_xyz, inliers_xyz, weights, scale_error: float, heading_drift_rad_per_m: float,
-                         path_xyz: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def distortion_allowance(
+    query_xyz,
+    inliers_xyz,
+    weights,
+    scale_error: float,
+    heading_drift_rad_per_m: float,
+    path_xyz: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Position (m) and rotation (rad) error a non-rigid vehicle map can add at each query
     point beyond what the rigid fit sees, from bounds on its odometry's distortion.
 

@@ -70,8 +70,18 @@ from lunarloc.io.overhead import LAC_CELL_M, LAC_CELLS, LAC_RAY_OFFSETS, UNFILLE
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
-__all__ = ["LacMapperConfig", "LacMapEstimate", "LacMapper", "LacMapWriter", "write_geometric_map", "save_lac_map", "cells_path",
-           "load_observed_cells", "frame_inputs", "LANDER_EXCLUSION_M"]
+__all__ = [
+    "LacMapperConfig",
+    "LacMapEstimate",
+    "LacMapper",
+    "LacMapWriter",
+    "write_geometric_map",
+    "save_lac_map",
+    "cells_path",
+    "load_observed_cells",
+    "frame_inputs",
+    "LANDER_EXCLUSION_M",
+]
 
 FILL_MODES = ("all", "near", "none")
 
@@ -93,9 +103,13 @@ class LacMapperConfig:
     range_scale_m: float = 2.0  # bin weight count / (1 + (range / range_scale_m)^4)
     max_abs_z_m: float = 3.0  # rover-frame points higher or lower than this are dropped
     max_frames: int = 2000  # frames kept re-placeable; older ones are frozen at their pose
-    rock_min_sightings: int = 3  # frames that must detect a rock (small_rock_m or larger) before it is mapped
+    rock_min_sightings: int = (
+        3  # frames that must detect a rock (small_rock_m or larger) before it is mapped
+    )
     rock_merge_m: float = 0.10  # detections of different frames nearer than this are one rock
-    rock_max_range_m: float = 6.0  # detections farther than this (horizontal, rover frame) are dropped
+    rock_max_range_m: float = (
+        6.0  # detections farther than this (horizontal, rover frame) are dropped
+    )
     rock_radius_scale: float = 1.05  # footprint radius = scale x estimated radius + margin
     rock_radius_margin_m: float = 0.0
     # small rocks (median radius under small_rock_m; the small-rock stage's finds): their own
@@ -103,8 +117,12 @@ class LacMapperConfig:
     small_rock_m: float = 0.05
     small_rock_min_sightings: int = 2
     small_rock_margin_m: float = 0.01
-    rock_bump_m: float | None = None  # observed cells this high over their local ground are rock cells (None: off)
-    rock_ground_window_m: float = 1.05  # the local ground: a low quantile of the heights in this square
+    rock_bump_m: float | None = (
+        None  # observed cells this high over their local ground are rock cells (None: off)
+    )
+    rock_ground_window_m: float = (
+        1.05  # the local ground: a low quantile of the heights in this square
+    )
     rock_ground_quantile: float = 30.0  # ... this percentile
     fill: str = "all"  # unseen cells: all | near | none (module docstring)
     fill_max_m: float = 1.0  # `near`: fill within this distance of a seen cell
@@ -112,7 +130,9 @@ class LacMapperConfig:
     def __post_init__(self) -> None:
         n = self.size_m / self.cell_m
         if not (self.cell_m > 0 and n >= 2 and abs(n - round(n)) < 1e-6):
-            raise ConfigError(f"size_m={self.size_m} must be a whole number (>= 2) of cells of cell_m={self.cell_m}")
+            raise ConfigError(
+                f"size_m={self.size_m} must be a whole number (>= 2) of cells of cell_m={self.cell_m}"
+            )
         if not 0 < self.bin_m <= self.cell_m:
             raise ConfigError(f"bin_m={self.bin_m} must be in (0, cell_m]")
         if not 0 <= self.min_range_m < self.max_range_m:
@@ -120,11 +140,15 @@ class LacMapperConfig:
         if self.range_scale_m <= 0 or self.max_abs_z_m <= 0:
             raise ConfigError("range_scale_m and max_abs_z_m must be > 0")
         if self.max_frames < 1 or self.rock_min_sightings < 1 or self.small_rock_min_sightings < 1:
-            raise ConfigError("max_frames, rock_min_sightings and small_rock_min_sightings must be >= 1")
+            raise ConfigError(
+                "max_frames, rock_min_sightings and small_rock_min_sightings must be >= 1"
+            )
         if not (self.small_rock_m >= 0 and math.isfinite(self.small_rock_margin_m)):
             raise ConfigError("small_rock_m must be >= 0, small_rock_margin_m finite")
         if self.rock_merge_m < 0 or self.rock_max_range_m <= 0 or self.rock_radius_scale < 0:
-            raise ConfigError("rock_merge_m and rock_radius_scale must be >= 0, rock_max_range_m > 0")
+            raise ConfigError(
+                "rock_merge_m and rock_radius_scale must be >= 0, rock_max_range_m > 0"
+            )
         if self.fill not in FILL_MODES:
             raise ConfigError(f"fill={self.fill!r}: one of {', '.join(FILL_MODES)}")
         if self.fill_max_m < 0:
@@ -132,7 +156,9 @@ class LacMapperConfig:
         if self.rock_bump_m is not None and not self.rock_bump_m > 0:
             raise ConfigError("rock_bump_m must be > 0 (or None)")
         if self.rock_ground_window_m < 2 * self.cell_m or not 0 <= self.rock_ground_quantile <= 100:
-            raise ConfigError("rock_ground_window_m must span >= 2 cells, rock_ground_quantile lie in [0, 100]")
+            raise ConfigError(
+                "rock_ground_window_m must span >= 2 cells, rock_ground_quantile lie in [0, 100]"
+            )
 
     @property
     def cells(self) -> int:
@@ -217,8 +243,14 @@ class LacMapper:
         """Drop points and detections placed within `radius_m` of `centre_xy` (map frame),
         e.g. the lander (its body and legs are not terrain)."""
         c = np.asarray(centre_xy, float).reshape(-1)
-        if c.shape[0] < 2 or not np.all(np.isfinite(c[:2])) or not (math.isfinite(radius_m) and radius_m > 0):
-            raise InputError(f"exclude_disc: need a finite centre (x, y) and radius > 0, got {centre_xy}, {radius_m}")
+        if (
+            c.shape[0] < 2
+            or not np.all(np.isfinite(c[:2]))
+            or not (math.isfinite(radius_m) and radius_m > 0)
+        ):
+            raise InputError(
+                f"exclude_disc: need a finite centre (x, y) and radius > 0, got {centre_xy}, {radius_m}"
+            )
         self._discs.append((float(c[0]), float(c[1]), float(radius_m)))
 
     def add_frame(self, frame_id, T_map_rover, points_rover=None, rocks_rover=None) -> int:
@@ -266,8 +298,16 @@ class LacMapper:
 
     def memory_bytes(self) -> int:
         """Bytes held: frame summaries, frozen sums and rocks."""
-        n = sum(f.bins.nbytes + f.rocks.nbytes + f.T_map_rover.nbytes for f in self._frames.values())
-        live = self._live_w.nbytes + self._live_wz.nbytes + self._live_votes.nbytes + self._live_dirty.nbytes + self._live_rock.nbytes
+        n = sum(
+            f.bins.nbytes + f.rocks.nbytes + f.T_map_rover.nbytes for f in self._frames.values()
+        )
+        live = (
+            self._live_w.nbytes
+            + self._live_wz.nbytes
+            + self._live_votes.nbytes
+            + self._live_dirty.nbytes
+            + self._live_rock.nbytes
+        )
         return int(n + self._frozen_w.nbytes * 3 + self._frozen_rocks.nbytes + live)
 
     # ------------------------------------------------------------------ the live layer
@@ -282,9 +322,14 @@ class LacMapper:
         xy, r = self._place_rocks(fr)
         if len(r):
             cfg = self.config
-            r_fp = np.where(r < cfg.small_rock_m, r + cfg.small_rock_margin_m,
-                            cfg.rock_radius_scale * r + cfg.rock_radius_margin_m)  # fmt: skip
-            hit = np.flatnonzero(_rock_cells(np.column_stack([xy, np.maximum(r_fp, 0.0)]), self._grid0, cfg.cell_m))
+            r_fp = np.where(
+                r < cfg.small_rock_m,
+                r + cfg.small_rock_margin_m,
+                cfg.rock_radius_scale * r + cfg.rock_radius_margin_m,
+            )
+            hit = np.flatnonzero(
+                _rock_cells(np.column_stack([xy, np.maximum(r_fp, 0.0)]), self._grid0, cfg.cell_m)
+            )
             self._live_votes[hit] += 1  # once per frame and cell
             self._live_dirty[hit] = True
 
@@ -310,7 +355,9 @@ class LacMapper:
         self._live_dirty[ready] = False
         n = self.config.cells
         h = self._live_wz[ready] / self._live_w[ready]
-        rock = self._live_votes[ready] >= min(self.config.rock_min_sightings, self.config.small_rock_min_sightings)
+        rock = self._live_votes[ready] >= min(
+            self.config.rock_min_sightings, self.config.small_rock_min_sightings
+        )
         self._live_rock[ready] = rock
         return ready // n, ready % n, h, rock
 
@@ -321,7 +368,9 @@ class LacMapper:
             return np.zeros((0, 4), np.float32)
         P = np.asarray(points, dtype=np.float32)
         if P.ndim < 1 or P.shape[-1] != 3:
-            raise InputError(f"frame {frame_id}: points_rover must be (..., 3), got shape {P.shape}")
+            raise InputError(
+                f"frame {frame_id}: points_rover must be (..., 3), got shape {P.shape}"
+            )
         P = P.reshape(-1, 3)
         x, y, z = P[:, 0], P[:, 1], P[:, 2]
         with np.errstate(invalid="ignore"):
@@ -351,10 +400,16 @@ class LacMapper:
         if R.size == 0:
             return np.zeros((0, 4), np.float32)
         if R.ndim != 2 or R.shape[1] not in (3, 4):
-            raise InputError(f"frame {frame_id}: rocks_rover must be (M, 3) or (M, 4), got shape {R.shape}")
+            raise InputError(
+                f"frame {frame_id}: rocks_rover must be (M, 3) or (M, 4), got shape {R.shape}"
+            )
         if R.shape[1] == 3:
             R = np.column_stack([R, np.zeros(len(R))])
-        ok = np.all(np.isfinite(R), axis=1) & (R[:, 3] >= 0) & (np.hypot(R[:, 0], R[:, 1]) <= cfg.rock_max_range_m)
+        ok = (
+            np.all(np.isfinite(R), axis=1)
+            & (R[:, 3] >= 0)
+            & (np.hypot(R[:, 0], R[:, 1]) <= cfg.rock_max_range_m)
+        )
         return R[ok].astype(np.float32)
 
     def _freeze(self, frame_id, fr: _Frame) -> None:
@@ -366,7 +421,9 @@ class LacMapper:
         self._frozen_wz2 += np.bincount(c, w * z * z, minlength=n * n).reshape(n, n)
         xy, r = self._place_rocks(fr)
         if len(xy):
-            self._frozen_rocks = np.concatenate([self._frozen_rocks, np.column_stack([xy, r, np.full(len(r), fr.seq)])])
+            self._frozen_rocks = np.concatenate(
+                [self._frozen_rocks, np.column_stack([xy, r, np.full(len(r), fr.seq)])]
+            )
         self.frozen_frames += 1
         log.debug("mapper: froze frame %s (%d bins)", frame_id, len(fr.bins))
 
@@ -430,7 +487,9 @@ class LacMapper:
             fzw2 = self._frozen_wz2.reshape(-1)
             if len(fz):  # the frozen cells' own spread about their mean
                 mean_f = self._frozen_wz.reshape(-1)[fz] / self._frozen_w.reshape(-1)[fz]
-                spread2[fz] += np.maximum(fzw2[fz] - self._frozen_w.reshape(-1)[fz] * mean_f**2, 0.0)
+                spread2[fz] += np.maximum(
+                    fzw2[fz] - self._frozen_w.reshape(-1)[fz] * mean_f**2, 0.0
+                )
             with np.errstate(invalid="ignore", divide="ignore"):
                 sigma = np.sqrt(spread2 / weight)
         observed = (weight > 0).reshape(n, n)
@@ -450,7 +509,9 @@ class LacMapper:
         out[:, :, 3] = np.where(flags, 1.0, out[:, :, 3])
         # a flagged cell with no height yet: its height from its neighbourhood is unknown, but
         # a flag without a height scores as filled only when both are set; give it the nearest
-        out[:, :, 2] = np.where(flags & ~np.isfinite(out[:, :, 2]), _nearest_fill(out[:, :, 2]), out[:, :, 2])
+        out[:, :, 2] = np.where(
+            flags & ~np.isfinite(out[:, :, 2]), _nearest_fill(out[:, :, 2]), out[:, :, 2]
+        )
         return LacMapEstimate(out, observed, interpolated, sigma, weight.reshape(n, n), dist, rocks)
 
     def _bumps(self, h: np.ndarray, observed: np.ndarray) -> np.ndarray:
@@ -481,12 +542,18 @@ class LacMapper:
         from scipy.sparse.csgraph import connected_components
         from scipy.spatial import cKDTree
 
-        pairs = cKDTree(D[:, :2]).query_pairs(cfg.rock_merge_m, output_type="ndarray") if cfg.rock_merge_m > 0 else None
+        pairs = (
+            cKDTree(D[:, :2]).query_pairs(cfg.rock_merge_m, output_type="ndarray")
+            if cfg.rock_merge_m > 0
+            else None
+        )
         if pairs is None or len(pairs) == 0:
             labels = np.arange(len(D))
             k = len(D)
         else:
-            adj = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(D), len(D)))
+            adj = coo_matrix(
+                (np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(D), len(D))
+            )
             k, labels = connected_components(adj, directed=False)
         # sightings: distinct frames per rock
         seen = np.unique(np.column_stack([labels, D[:, 3]]), axis=0)
@@ -495,8 +562,10 @@ class LacMapper:
         starts = np.searchsorted(labels[order], np.arange(k))
         ends = np.searchsorted(labels[order], np.arange(k), side="right")
         out = []
-        for q in np.flatnonzero(sightings >= min(cfg.rock_min_sightings, cfg.small_rock_min_sightings)):
-            g = D[order[starts[q]:ends[q]]]
+        for q in np.flatnonzero(
+            sightings >= min(cfg.rock_min_sightings, cfg.small_rock_min_sightings)
+        ):
+            g = D[order[starts[q] : ends[q]]]
             r = float(np.median(g[:, 2]))
             if r < cfg.small_rock_m:
                 if sightings[q] < cfg.small_rock_min_sightings:
@@ -592,7 +661,9 @@ def _rock_cells(rocks: np.ndarray, grid: np.ndarray, cell_m: float) -> np.ndarra
         dx = np.min(np.abs(xs[i0:i1, None] + off[None, :] - x), axis=1)
         dy = np.min(np.abs(ys[j0:j1, None] + off[None, :] - y), axis=1)
         hit = dx[:, None] ** 2 + dy[None, :] ** 2 <= r * r
-        if r == 0 or not hit.any():  # a point rock or one between the rays: the cell holding its centre
+        if (
+            r == 0 or not hit.any()
+        ):  # a point rock or one between the rays: the cell holding its centre
             i, j = int((x - lo_x) // cell_m), int((y - lo_y) // cell_m)
             if 0 <= i < n and 0 <= j < n:
                 flags[i, j] = True
@@ -643,9 +714,14 @@ def _check_target(geometric_map, arr: np.ndarray) -> None:
     get_arr = getattr(geometric_map, "get_map_array", None)
     if callable(get_arr):
         target = np.asarray(get_arr(), dtype=float)
-        if target.shape[:2] == arr.shape[:2] and np.max(np.abs(target[:, :, :2] - arr[:, :, :2])) > 1e-6:
-            raise InputError("the geometric map's cell centres differ from the mapper's: is the mapper's "
-                             "centre_xy / size_m the map's?")  # fmt: skip
+        if (
+            target.shape[:2] == arr.shape[:2]
+            and np.max(np.abs(target[:, :, :2] - arr[:, :, :2])) > 1e-6
+        ):
+            raise InputError(
+                "the geometric map's cell centres differ from the mapper's: is the mapper's "
+                "centre_xy / size_m the map's?"
+            )
 
 
 class LacMapWriter:
@@ -659,7 +735,13 @@ class LacMapWriter:
 
     The target is checked once here (setters, cell count, cell centres: InputError)."""
 
-    def __init__(self, mapper: LacMapper, geometric_map, min_weight: float = 20.0, max_cells_per_step: int = 400):
+    def __init__(
+        self,
+        mapper: LacMapper,
+        geometric_map,
+        min_weight: float = 20.0,
+        max_cells_per_step: int = 400,
+    ):
         if not isinstance(mapper, LacMapper):
             raise InputError(f"LacMapWriter needs a LacMapper, got {type(mapper).__name__}")
         if not (min_weight >= 0 and max_cells_per_step >= 1):
@@ -708,9 +790,15 @@ def save_lac_map(estimate: LacMapEstimate, path) -> tuple:
     with atomic_open(path, "wb") as fh:
         np.save(fh, estimate.array)
     with atomic_open(side, "wb") as fh:
-        np.savez_compressed(fh, observed=estimate.observed, interpolated=estimate.interpolated,
-                            height_sigma_m=estimate.height_sigma_m, weight=estimate.weight,
-                            fill_distance_m=estimate.fill_distance_m, rocks=estimate.rocks)  # fmt: skip
+        np.savez_compressed(
+            fh,
+            observed=estimate.observed,
+            interpolated=estimate.interpolated,
+            height_sigma_m=estimate.height_sigma_m,
+            weight=estimate.weight,
+            fill_distance_m=estimate.fill_distance_m,
+            rocks=estimate.rocks,
+        )
     return path, side
 
 
@@ -729,15 +817,19 @@ def load_observed_cells(path, shape: tuple[int, int]) -> np.ndarray:
 
     side = cells_path(path)
     if not side.is_file():
-        raise FileFormatError(f"{side}: no such file (the cells the cameras saw are written next to a map by "
-                              f"`lunarloc run --lac-map`)")  # fmt: skip
+        raise FileFormatError(
+            f"{side}: no such file (the cells the cameras saw are written next to a map by "
+            f"`lunarloc run --lac-map`)"
+        )
     try:
         with np.load(side, allow_pickle=False) as z:
             obs = np.asarray(z["observed"])
     except (OSError, ValueError, KeyError, EOFError) as exc:
         raise FileFormatError(f"{side}: not a map's cell file ({exc})") from None
     if obs.shape != tuple(shape) or obs.dtype != bool:
-        raise FileFormatError(f"{side}: observed mask of shape {obs.shape} and dtype {obs.dtype}, expected bool {tuple(shape)}")
+        raise FileFormatError(
+            f"{side}: observed mask of shape {obs.shape} and dtype {obs.dtype}, expected bool {tuple(shape)}"
+        )
     return obs
 
 
@@ -751,14 +843,21 @@ def frame_inputs(fd, detector=None, images=None) -> tuple[np.ndarray | None, np.
     pts = []
     for pair in fd.pairs:
         hm = getattr(pair, "height", None)
-        if hm is None and detector is not None and images and getattr(pair, "T_rover_optical", None) is not None:
+        if (
+            hm is None
+            and detector is not None
+            and images
+            and getattr(pair, "T_rover_optical", None) is not None
+        ):
             right = next((b for a, b in detector.config.pairs if a == pair.camera), None)
             if images.get(pair.camera) is not None and images.get(right) is not None:
                 hm = detector.height_map(images[pair.camera], images[right], pair.T_rover_optical)
         if hm is not None:
             P = np.asarray(hm.points_rover, np.float32).reshape(-1, 3)
             T_level_rover = getattr(hm, "T_level_rover", None)
-            if T_level_rover is not None:  # a levelled height map (DetectorConfig.level_from_stereo): back to the rover frame
+            if (
+                T_level_rover is not None
+            ):  # a levelled height map (DetectorConfig.level_from_stereo): back to the rover frame
                 P = P @ np.asarray(T_level_rover, np.float32)[:3, :3]  # p_rover = R^T p_level
             pts.append(P)
     rocks = np.array([[*d.p_rover, d.radius_m] for d in fd.detections], float).reshape(-1, 4)

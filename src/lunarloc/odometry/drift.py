@@ -37,5 +37,7 @@ def drifted_path(rover_xyz: np.ndarray, drift: DriftModel) -> tuple[np.ndarray, 
     dist = np.cumsum(np.linalg.norm(step[:, :2], axis=1))
     psi = np.radians(drift.heading_drift_deg_per_m) * dist
     c, s = np.cos(psi), np.sin(psi)
-    rot_step = np.stack([c * step[:, 0] - s * step[:, 1], s * step[:, 0] + c * step[:, 1], step[:, 2]], axis=1)
+    rot_step = np.stack(
+        [c * step[:, 0] - s * step[:, 1], s * step[:, 0] + c * step[:, 1], step[:, 2]], axis=1
+    )
     return g[0] + np.cumsum((1.0 + drift.scale_error) * rot_step, axis=0), psi

@@ -38,8 +38,14 @@ import numpy as np
 from lunarloc.core.errors import ConfigError, InputError
 from lunarloc.core.geometry import exp_so3 as _exp_so3
 
-__all__ = ["ImuOdometryConfig", "ImuSamples", "integrate_imu", "relative_motions", "imu_samples_from_archive",
-           "imu_odometry"]
+__all__ = [
+    "ImuOdometryConfig",
+    "ImuSamples",
+    "integrate_imu",
+    "relative_motions",
+    "imu_samples_from_archive",
+    "imu_odometry",
+]
 
 logger = logging.getLogger(__name__)
 logger.addHandler(logging.NullHandler())
@@ -52,15 +58,23 @@ class ImuOdometryConfig:
     """Dead-reckoning parameters (SI units)."""
 
     gravity_mps2: float = 1.622  # lunar gravity (LAC)
-    tilt_time_constant_s: float = 2.0  # roll/pitch converge to the accelerometer's with this time constant
-    tilt_max_residual_mps2: float = 0.2  # no tilt correction while | |f| - g | exceeds this (bumps, slips)
+    tilt_time_constant_s: float = (
+        2.0  # roll/pitch converge to the accelerometer's with this time constant
+    )
+    tilt_max_residual_mps2: float = (
+        0.2  # no tilt correction while | |f| - g | exceeds this (bumps, slips)
+    )
     compensate_motion: bool = True  # remove dv/dt and w x v from the specific force before using it
     max_dt_s: float = 1.0  # a larger gap between ticks is an error (not a 20 Hz recording)
-    gyro_frame: str = "world"  # "world": the LAC leaderboard's rate (skew of dR/dt R^T); "body": R^T of it
+    gyro_frame: str = (
+        "world"  # "world": the LAC leaderboard's rate (skew of dR/dt R^T); "body": R^T of it
+    )
 
     def __post_init__(self) -> None:
         if self.gyro_frame not in ("world", "body"):
-            raise ConfigError(f"gyro_frame={self.gyro_frame!r} must be 'world' (the LAC's) or 'body'")
+            raise ConfigError(
+                f"gyro_frame={self.gyro_frame!r} must be 'world' (the LAC's) or 'body'"
+            )
         if not self.gravity_mps2 > 0 or not self.tilt_time_constant_s > 0 or not self.max_dt_s > 0:
             raise ConfigError("gravity_mps2, tilt_time_constant_s and max_dt_s must be > 0")
         if not self.tilt_max_residual_mps2 >= 0:
@@ -106,22 +120,32 @@ def imu_samples_from_archive(archive) -> ImuSamples:
     # 1e300 m/s was integrated into a trajectory and written as a result
     from lunarloc.core import validate
 
-    for c, lim in ((IMU_COLUMNS[0], validate.MAX_ACCEL_MPS2), (IMU_COLUMNS[1], validate.MAX_ACCEL_MPS2),
-                   (IMU_COLUMNS[2], validate.MAX_ACCEL_MPS2), (IMU_COLUMNS[3], validate.MAX_GYRO_RADPS),
-                   (IMU_COLUMNS[4], validate.MAX_GYRO_RADPS), (IMU_COLUMNS[5], validate.MAX_GYRO_RADPS),
-                   ("linear_speed", validate.MAX_LINEAR_SPEED_MPS), ("mission_time", validate.MAX_MISSION_TIME_S)):  # fmt: skip
+    for c, lim in (
+        (IMU_COLUMNS[0], validate.MAX_ACCEL_MPS2),
+        (IMU_COLUMNS[1], validate.MAX_ACCEL_MPS2),
+        (IMU_COLUMNS[2], validate.MAX_ACCEL_MPS2),
+        (IMU_COLUMNS[3], validate.MAX_GYRO_RADPS),
+        (IMU_COLUMNS[4], validate.MAX_GYRO_RADPS),
+        (IMU_COLUMNS[5], validate.MAX_GYRO_RADPS),
+        ("linear_speed", validate.MAX_LINEAR_SPEED_MPS),
+        ("mission_time", validate.MAX_MISSION_TIME_S),
+    ):
         bad = np.flatnonzero(np.abs(cols[c]) > lim)
         if len(bad):
             i = int(bad[0])
-            raise InputError(f"{where}: '{c}' = {cols[c][i]:.4g} at frame {int(frames[i])} (line {i + 2}) is beyond "
-                             f"physical bounds (+-{lim:g}; {len(bad)} such row(s))")  # fmt: skip
+            raise InputError(
+                f"{where}: '{c}' = {cols[c][i]:.4g} at frame {int(frames[i])} (line {i + 2}) is beyond "
+                f"physical bounds (+-{lim:g}; {len(bad)} such row(s))"
+            )
     t = cols["mission_time"]
     if len(t) > 1:
         dt = np.diff(t)
         bad = np.flatnonzero(dt <= 0)
         if len(bad):
             i = int(bad[0]) + 1
-            raise InputError(f"{where}: mission_time does not increase at frame {int(frames[i])} (line {i + 2})")
+            raise InputError(
+                f"{where}: mission_time does not increase at frame {int(frames[i])} (line {i + 2})"
+            )
     accel = np.column_stack([cols[c] for c in IMU_COLUMNS[:3]])
     gyro = np.column_stack([cols[c] for c in IMU_COLUMNS[3:]])
     return ImuSamples(frames, t, accel, gyro, cols["linear_speed"])
@@ -136,7 +160,9 @@ def _orthonormalize(R: np.ndarray) -> np.ndarray:
     return R
 
 
-def integrate_imu(samples: ImuSamples, T_map_rover0: np.ndarray, config: ImuOdometryConfig | None = None) -> np.ndarray:
+def integrate_imu(
+    samples: ImuSamples, T_map_rover0: np.ndarray, config: ImuOdometryConfig | None = None
+) -> np.ndarray:
     """Dead-reckoned ``T_map_rover`` (F, 4, 4) for every tick, starting at `T_map_rover0`."""
     cfg = config or ImuOdometryConfig()
     n = len(samples)
@@ -150,7 +176,9 @@ def integrate_imu(samples: ImuSamples, T_map_rover0: np.ndarray, config: ImuOdom
     dt_all = np.diff(t)
     if len(dt_all) and float(dt_all.max()) > cfg.max_dt_s:
         i = int(np.argmax(dt_all)) + 1
-        raise InputError(f"{dt_all.max():.3f} s between ticks at frame {int(samples.frames[i])} (max {cfg.max_dt_s} s)")
+        raise InputError(
+            f"{dt_all.max():.3f} s between ticks at frame {int(samples.frames[i])} (max {cfg.max_dt_s} s)"
+        )
     R = _orthonormalize(T0[:3, :3])
     p = T0[:3, 3].copy()
     out[0] = T0

@@ -60,7 +60,9 @@ def read_record_poses(archive, name: str) -> tuple[np.ndarray, np.ndarray]:
         frames = _numbers(table, "frame", member)
         if np.any(frames != np.round(frames)):
             i = int(np.flatnonzero(frames != np.round(frames))[0])
-            raise ArchiveError(f"{member}: frame {table['frame'][i]!r} at line {i + 2} is not an integer")
+            raise ArchiveError(
+                f"{member}: frame {table['frame'][i]!r} at line {i + 2} is not an integer"
+            )
         frames = frames.astype(np.int64)
     elif table.n_rows == archive.n_frames:
         logger.warning("%s: no 'frame' column; rows taken as frames.csv's frames in order", member)
@@ -81,7 +83,9 @@ def read_record_poses(archive, name: str) -> tuple[np.ndarray, np.ndarray]:
         bad = np.flatnonzero((err > _ROTATION_TOLERANCE) | (det < 0))
         if len(bad):
             i = int(bad[0])
-            raise ArchiveError(f"{member}: line {i + 2} (frame {frames[i]}): m00..m22 is not a rotation matrix")
+            raise ArchiveError(
+                f"{member}: line {i + 2} (frame {frames[i]}): m00..m22 is not a rotation matrix"
+            )
         U, _, Vt = np.linalg.svd(R)
         T[:, :3, :3] = U @ Vt  # remove the rounding of the stored digits
     order = np.argsort(frames, kind="stable")
@@ -99,9 +103,13 @@ def _numbers(table, column: str, member: str) -> np.ndarray:
             try:
                 float(x)
             except (TypeError, ValueError):
-                raise ArchiveError(f"{member}: column '{column}' holds {x!r} at line {i + 2}, not a number") from None
+                raise ArchiveError(
+                    f"{member}: column '{column}' holds {x!r} at line {i + 2}, not a number"
+                ) from None
     v = v.astype(float)
     bad = np.flatnonzero(~np.isfinite(v))
     if len(bad):
-        raise ArchiveError(f"{member}: column '{column}' is empty or not finite at line {int(bad[0]) + 2}")
+        raise ArchiveError(
+            f"{member}: column '{column}' is empty or not finite at line {int(bad[0]) + 2}"
+        )
     return v

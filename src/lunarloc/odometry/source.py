@@ -106,7 +106,9 @@ def parse_odometry_source(text: str | OdometrySource) -> tuple[OdometrySource, s
     try:
         src = OdometrySource(head.strip().lower())
     except ValueError:
-        choices = ", ".join(["record:NAME", *(s.value for s in OdometrySource if s is not OdometrySource.RECORD)])
+        choices = ", ".join(
+            ["record:NAME", *(s.value for s in OdometrySource if s is not OdometrySource.RECORD)]
+        )
         raise ConfigError(f"unknown odometry source {raw!r}; choose one of {choices}") from None
     if src is OdometrySource.RECORD:
         name = name.strip() if sep else DEFAULT_RECORD
@@ -122,8 +124,20 @@ def _front_pair_frames(archive) -> list[int]:
     left, right = FRONT_PAIR
     if left not in archive.cameras or right not in archive.cameras:
         return []
-    a = {int(f) for f, g in zip(archive.camera_frames(left)["frame"], archive.camera_frames(left)["grayscale"]) if g}
-    b = {int(f) for f, g in zip(archive.camera_frames(right)["frame"], archive.camera_frames(right)["grayscale"]) if g}
+    a = {
+        int(f)
+        for f, g in zip(
+            archive.camera_frames(left)["frame"], archive.camera_frames(left)["grayscale"]
+        )
+        if g
+    }
+    b = {
+        int(f)
+        for f, g in zip(
+            archive.camera_frames(right)["frame"], archive.camera_frames(right)["grayscale"]
+        )
+        if g
+    }
     return sorted(a & b)
 
 
@@ -134,7 +148,11 @@ def default_odometry_source(archive) -> str:
 
 def ground_truth_poses(archive) -> np.ndarray:
     """(F, 4, 4) ``T_map_rover`` from frames.csv (evaluation only)."""
-    return np.stack([pose_to_matrix(*p) for p in archive.poses()]) if archive.n_frames else np.zeros((0, 4, 4))
+    return (
+        np.stack([pose_to_matrix(*p) for p in archive.poses()])
+        if archive.n_frames
+        else np.zeros((0, 4, 4))
+    )
 
 
 def archive_odometry(
@@ -165,6 +183,7 @@ def archive_odometry(
     if src is OdometrySource.IMU:
         _, T = imu_odometry(archive, imu_config)
         return OdometryTrajectory(frames, times, T, src.value, False, np.ones(len(frames), bool))
+
     # record and visual: measured poses at some frames, IMU in between
     def imu_poses() -> np.ndarray:
         return integrate_imu(imu_samples_from_archive(archive), T0, imu_config)
@@ -179,23 +198,36 @@ def archive_odometry(
         index = {int(f): i for i, f in enumerate(frames)}
         missing = [int(f) for f in rec_frames if int(f) not in index]
         if missing:
-            logger.warning("%s: record %s has %d frame(s) not in frames.csv (first %d); ignored",
-                           archive.path, name, len(missing), missing[0])  # fmt: skip
+            logger.warning(
+                "%s: record %s has %d frame(s) not in frames.csv (first %d); ignored",
+                archive.path,
+                name,
+                len(missing),
+                missing[0],
+            )
         keep = [i for i, f in enumerate(rec_frames) if int(f) in index]
         if not keep:
             raise InputError(f"{archive.path}: custom/{name}.csv shares no frame with frames.csv")
         rec_frames, T_rec = rec_frames[keep], T_rec[keep]
         measured = {index[int(f)]: T for f, T in zip(rec_frames, T_rec)}
         # a record with every frame needs no IMU (nor a clean IMU column)
-        rel = imu_rel() if len(measured) < len(frames) else np.tile(np.eye(4), (len(frames) - 1, 1, 1))
+        rel = (
+            imu_rel()
+            if len(measured) < len(frames)
+            else np.tile(np.eye(4), (len(frames) - 1, 1, 1))
+        )
         T = _bridge(len(frames), T0, rel, measured)
         mask = np.zeros(len(frames), bool)
         mask[list(measured)] = True
         return OdometryTrajectory(frames, times, T, f"record:{name}", False, mask)
-    return _visual(archive, frames, times, T0, imu_poses, progress, visual_config)  # IMU once the pairs are known
+    return _visual(
+        archive, frames, times, T0, imu_poses, progress, visual_config
+    )  # IMU once the pairs are known
 
 
-def _bridge(n: int, T0: np.ndarray, imu_rel: np.ndarray, measured: dict[int, np.ndarray]) -> np.ndarray:
+def _bridge(
+    n: int, T0: np.ndarray, imu_rel: np.ndarray, measured: dict[int, np.ndarray]
+) -> np.ndarray:
     """Per-frame poses: IMU propagation from `T0` up to the first measured frame, whose
     measured pose anchors the measurement frame there (``T_map_meas``); later measured
     frames are ``T_map_meas @ T_meas_rover``, frames in between propagate the last pose."""
@@ -232,8 +264,12 @@ def _visual(archive, frames, times, T0, imu_poses, progress, visual_config) -> O
     # optical-frame mounts (OpenCV axes), which the visual odometry takes
     rows = {cam: archive.camera_row(cam, pair_frames[0]) for cam in FRONT_PAIR}
     mounts = mounts_from_archive_row(rows, camera)
-    vo = StereoVisualOdometry(camera, mounts[FRONT_PAIR[0]].T_rover_optical, mounts[FRONT_PAIR[1]].T_rover_optical,
-                              visual_config)  # fmt: skip
+    vo = StereoVisualOdometry(
+        camera,
+        mounts[FRONT_PAIR[0]].T_rover_optical,
+        mounts[FRONT_PAIR[1]].T_rover_optical,
+        visual_config,
+    )
     index = {int(f): i for i, f in enumerate(frames)}
     pair_idx = sorted(index[f] for f in pair_frames if f in index)
     n = len(frames)
@@ -258,7 +294,9 @@ def _visual(archive, frames, times, T0, imu_poses, progress, visual_config) -> O
             last = i
             if progress is not None:
                 progress(k_next, len(pair_idx))
-    return OdometryTrajectory(frames, times, out, OdometrySource.VISUAL.value, False, measured, failures)
+    return OdometryTrajectory(
+        frames, times, out, OdometrySource.VISUAL.value, False, measured, failures
+    )
 
 
 def odometry_drift(T_est: np.ndarray, T_gt: np.ndarray) -> dict:
@@ -270,7 +308,9 @@ def odometry_drift(T_est: np.ndarray, T_gt: np.ndarray) -> dict:
     """
     E, G = np.asarray(T_est, float), np.asarray(T_gt, float)
     if E.shape != G.shape or E.ndim != 3 or len(E) == 0:
-        raise InputError(f"trajectories must be (F, 4, 4) of equal length, got {E.shape} and {G.shape}")
+        raise InputError(
+            f"trajectories must be (F, 4, 4) of equal length, got {E.shape} and {G.shape}"
+        )
     pe, pg = E[:, :3, 3], G[:, :3, 3]
     path = float(np.linalg.norm(np.diff(pg, axis=0), axis=1).sum()) if len(pg) > 1 else 0.0
     err = np.linalg.norm(pe - pg, axis=1)

@@ -70,7 +70,9 @@ class GravityAlignedChain:
         self._T_map_last: np.ndarray | None = None
         self._T_odo_last: np.ndarray | None = None
 
-    def add(self, T_odo_rover: np.ndarray, T_map_imu: np.ndarray, T_map_start: np.ndarray | None = None) -> np.ndarray:
+    def add(
+        self, T_odo_rover: np.ndarray, T_map_imu: np.ndarray, T_map_start: np.ndarray | None = None
+    ) -> np.ndarray:
         """The corrected ``T_map_rover`` at this pair (4x4)."""
         T_odo = np.asarray(T_odo_rover, float)
         if self._T_map_last is None:

@@ -61,16 +61,30 @@ class VisualOdometryConfig:
     # -- features (keyframes)
     max_features: int = 600  # corners detected per keyframe
     feature_quality: float = 0.005  # goodFeaturesToTrack qualityLevel (fraction of the best corner)
-    min_feature_distance_frac: float = 0.012  # min distance between corners, fraction of the image width
+    min_feature_distance_frac: float = (
+        0.012  # min distance between corners, fraction of the image width
+    )
     border_px: int = 8  # corners closer than this to the image border are not used
-    normalization: ImageNormalization = ImageNormalization.LOCAL_CONTRAST  # applied before detection, stereo and tracking
-    normalization_sigma_frac: float = 0.01  # local-contrast: Gaussian sigma, fraction of the image width ...
-    normalization_min_sigma_px: float = 6.0  # ... and at least this (small images: a tiny sigma keeps only noise)
-    normalization_gain: float = 255.0  # local-contrast: grey levels per unit of relative contrast (centred on 128)
-    detect_max_width_px: int = 640  # corners are detected on the image reduced to at most this width
+    normalization: ImageNormalization = (
+        ImageNormalization.LOCAL_CONTRAST
+    )  # applied before detection, stereo and tracking
+    normalization_sigma_frac: float = (
+        0.01  # local-contrast: Gaussian sigma, fraction of the image width ...
+    )
+    normalization_min_sigma_px: float = (
+        6.0  # ... and at least this (small images: a tiny sigma keeps only noise)
+    )
+    normalization_gain: float = (
+        255.0  # local-contrast: grey levels per unit of relative contrast (centred on 128)
+    )
+    detect_max_width_px: int = (
+        640  # corners are detected on the image reduced to at most this width
+    )
     sky_threshold: int = 6  # pixels at or below this grey level are sky (or unlit void)
     sky_dilate_frac: float = 0.01  # grow the sky mask by this fraction of the width (horizon edge)
-    body_mask_bottom_frac: float = 0.0  # rows hidden at the image bottom (rover body), fraction of height
+    body_mask_bottom_frac: float = (
+        0.0  # rows hidden at the image bottom (rover body), fraction of height
+    )
     # -- stereo (LK along the row; a flat window because the ground's disparity grows
     # ~0.5 px per image row at the IPEx camera height, which a square window smears)
     stereo_window_width_px: int = 21
@@ -82,7 +96,9 @@ class VisualOdometryConfig:
     max_depth_m: float = 40.0  # points farther than this are dropped
     min_depth_m: float = 0.3  # and nearer than this
     # -- tracking
-    lk_window_px: int = 15  # Lucas-Kanade window side (larger windows smear the ground's perspective change)
+    lk_window_px: int = (
+        15  # Lucas-Kanade window side (larger windows smear the ground's perspective change)
+    )
     lk_max_level: int = 4  # pyramid levels above the full image
     lk_iterations: int = 30
     fb_check_px: float = 1.0  # forward-backward tracking error allowed
@@ -94,11 +110,15 @@ class VisualOdometryConfig:
     min_inlier_ratio: float = 0.35  # inliers / tracked points below this: fall back
     max_translation_per_frame_m: float = 1.0  # larger steps are rejected as failures
     max_rotation_per_frame_deg: float = 45.0
-    max_prior_rotation_gap_deg: float = 5.0  # visual vs prior rotation disagreement that rejects the visual step
+    max_prior_rotation_gap_deg: float = (
+        5.0  # visual vs prior rotation disagreement that rejects the visual step
+    )
     # -- keyframes
     keyframe_min_tracked: int = 120  # re-detect when fewer keyframe points remain inliers
     keyframe_min_fraction: float = 0.5  # ... or fewer than this fraction of the keyframe's points
-    keyframe_max_translation_m: float = 1.5  # ... or the rover moved farther than this from the keyframe
+    keyframe_max_translation_m: float = (
+        1.5  # ... or the rover moved farther than this from the keyframe
+    )
     constant_velocity: bool = True  # without a prior, predict the next pose by the last motion
     # -- fusion with the IMU (lunarloc.odometry.tilt.GravityAlignedChain, used where an IMU
     # attitude exists: archive odometry and the online component; the class itself ignores it)
@@ -150,7 +170,9 @@ class VisualOdometryConfig:
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
-            raise ConfigError(f"VisualOdometryConfig: invalid {', '.join(f'{k}={getattr(self, k)!r}' for k in bad)}")
+            raise ConfigError(
+                f"VisualOdometryConfig: invalid {', '.join(f'{k}={getattr(self, k)!r}' for k in bad)}"
+            )
 
     def to_dict(self) -> dict:
         return {**asdict(self), "normalization": self.normalization.value}
@@ -167,12 +189,20 @@ class VisualOdometryConfig:
 def _as_transform(T, name: str) -> np.ndarray:
     arr = np.asarray(T, dtype=float) if T is not None else None
     if arr is None or arr.shape != (4, 4):
-        raise InputError(f"{name} must be a 4x4 transform, got {None if arr is None else arr.shape}")
+        raise InputError(
+            f"{name} must be a 4x4 transform, got {None if arr is None else arr.shape}"
+        )
     if not np.all(np.isfinite(arr)):
         raise InputError(f"{name} contains NaN or infinite values")
     R = arr[:3, :3]
-    if not np.allclose(R.T @ R, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0 or not np.allclose(arr[3], [0, 0, 0, 1]):
-        raise InputError(f"{name} is not a rigid transform (rotation not orthonormal or bottom row not 0 0 0 1)")
+    if (
+        not np.allclose(R.T @ R, np.eye(3), atol=1e-5)
+        or np.linalg.det(R) < 0
+        or not np.allclose(arr[3], [0, 0, 0, 1])
+    ):
+        raise InputError(
+            f"{name} is not a rigid transform (rotation not orthonormal or bottom row not 0 0 0 1)"
+        )
     return arr
 
 
@@ -221,9 +251,11 @@ class StereoVisualOdometry:
         T_rover_right = _as_transform(T_rover_right, "T_rover_right")
         T_left_right = invert_transform(self.T_rover_left) @ T_rover_right
         self.baseline_m = float(T_left_right[0, 3])
-        if rotation_angle(T_left_right[:3, :3]) > np.radians(0.1) or self.baseline_m <= 0 or np.hypot(
-            T_left_right[1, 3], T_left_right[2, 3]
-        ) > 1e-3 * max(self.baseline_m, 1e-9):
+        if (
+            rotation_angle(T_left_right[:3, :3]) > np.radians(0.1)
+            or self.baseline_m <= 0
+            or np.hypot(T_left_right[1, 3], T_left_right[2, 3]) > 1e-3 * max(self.baseline_m, 1e-9)
+        ):
             raise InputError(
                 "the stereo pair is not rectified: the right camera must be parallel to the left one and "
                 f"offset along its +x axis (got offset {np.round(T_left_right[:3, 3], 4).tolist()} m)"
@@ -258,7 +290,9 @@ class StereoVisualOdometry:
         self._last_motion = np.eye(4)  # rover motion of the last frame (constant-velocity model)
         self.last_inliers = 0
 
-    def update(self, left: np.ndarray, right: np.ndarray, prior_T_prev_curr: np.ndarray | None = None) -> np.ndarray:
+    def update(
+        self, left: np.ndarray, right: np.ndarray, prior_T_prev_curr: np.ndarray | None = None
+    ) -> np.ndarray:
         """Add one rectified stereo pair; return ``T_odo_rover`` (4x4) at this pair.
 
         `prior_T_prev_curr` is the rover motion since the previous pair from another
@@ -266,7 +300,11 @@ class StereoVisualOdometry:
         and as the estimate when vision fails. Without it a failed frame holds the pose.
         """
         raw_left, right = self._check_images(left, right)
-        prior = None if prior_T_prev_curr is None else _as_transform(prior_T_prev_curr, "prior_T_prev_curr")
+        prior = (
+            None
+            if prior_T_prev_curr is None
+            else _as_transform(prior_T_prev_curr, "prior_T_prev_curr")
+        )
         left, right = self._normalize(raw_left), self._normalize(right)
         self._raw_left = raw_left  # the sky mask is taken from the raw image
         first = self.n_frames == 0
@@ -276,7 +314,11 @@ class StereoVisualOdometry:
             self._prev_left = left
             return self.T_odo_rover.copy()
         T_prev = self.T_odo_rover
-        predicted = prior if prior is not None else (self._last_motion if self.config.constant_velocity else np.eye(4))
+        predicted = (
+            prior
+            if prior is not None
+            else (self._last_motion if self.config.constant_velocity else np.eye(4))
+        )
         T_new = self._track(left, T_prev @ predicted, prior)
         if T_new is None:
             T_new = T_prev @ (prior if prior is not None else np.eye(4))
@@ -288,7 +330,10 @@ class StereoVisualOdometry:
             if (
                 self.last_inliers < self.config.keyframe_min_tracked
                 or self.last_inliers < self.config.keyframe_min_fraction * kf.n_initial
-                or np.linalg.norm(invert_transform(kf.T_odo_rover)[:3, :3] @ (T_new[:3, 3] - kf.T_odo_rover[:3, 3]))
+                or np.linalg.norm(
+                    invert_transform(kf.T_odo_rover)[:3, :3]
+                    @ (T_new[:3, 3] - kf.T_odo_rover[:3, 3])
+                )
                 > self.config.keyframe_max_translation_m
             ):
                 self._new_keyframe(left, right, T_new)
@@ -308,7 +353,9 @@ class StereoVisualOdometry:
             if img.dtype != np.uint8:
                 raise InputError(f"{name} image must be uint8 grayscale, got dtype {img.dtype}")
             if img.shape != (H, W):
-                raise InputError(f"{name} image must have shape ({H}, {W}) for this camera, got {img.shape}")
+                raise InputError(
+                    f"{name} image must have shape ({H}, {W}) for this camera, got {img.shape}"
+                )
             out.append(np.ascontiguousarray(img))
         return out[0], out[1]
 
@@ -350,12 +397,22 @@ class StereoVisualOdometry:
         scale = max(1, int(np.ceil(W / c.detect_max_width_px)))
 
         def reduce(img):
-            return img if scale == 1 else cv2.resize(img, (W // scale, H // scale), interpolation=cv2.INTER_AREA)
+            return (
+                img
+                if scale == 1
+                else cv2.resize(img, (W // scale, H // scale), interpolation=cv2.INTER_AREA)
+            )
 
         small = reduce(left)
-        mask = self._feature_mask(reduce(self._raw_left if self._raw_left is not None else left), scale)
+        mask = self._feature_mask(
+            reduce(self._raw_left if self._raw_left is not None else left), scale
+        )
         corners = cv2.goodFeaturesToTrack(
-            small, c.max_features, c.feature_quality, max(1.0, c.min_feature_distance_frac * small.shape[1]), mask=mask
+            small,
+            c.max_features,
+            c.feature_quality,
+            max(1.0, c.min_feature_distance_frac * small.shape[1]),
+            mask=mask,
         )
         if corners is None:
             return None
@@ -390,7 +447,9 @@ class StereoVisualOdometry:
             & (np.linalg.norm(back - uv_l, axis=1) <= c.stereo_check_px)
             & (disp >= c.min_disparity_px)
         )
-        depth = np.where(ok, fx * b / np.maximum(disp.astype(np.float64), 1e-6), np.inf)  # float64 on numpy 1 too
+        depth = np.where(
+            ok, fx * b / np.maximum(disp.astype(np.float64), 1e-6), np.inf
+        )  # float64 on numpy 1 too
         ok &= (depth >= c.min_depth_m) & (depth <= c.max_depth_m)
         if ok.sum() < c.min_inliers:
             return False
@@ -404,7 +463,12 @@ class StereoVisualOdometry:
     def _project(self, points_kf: np.ndarray, T_cur_kf_opt: np.ndarray) -> np.ndarray:
         P = points_kf @ T_cur_kf_opt[:3, :3].T + T_cur_kf_opt[:3, 3]
         z = np.maximum(P[:, 2], 1e-3)
-        return np.column_stack([self.camera.fx * P[:, 0] / z + self.camera.cx, self.camera.fy * P[:, 1] / z + self.camera.cy])
+        return np.column_stack(
+            [
+                self.camera.fx * P[:, 0] / z + self.camera.cx,
+                self.camera.fy * P[:, 1] / z + self.camera.cy,
+            ]
+        )
 
     def _rover_to_optical(self, T_rover_a_b: np.ndarray) -> np.ndarray:
         """Rover motion (rover frame a -> b) as the left camera's motion (optical a -> b)."""
@@ -419,17 +483,29 @@ class StereoVisualOdometry:
         # Predicted left-camera pose of the keyframe seen from the current frame.
         T_kf_cur_pred = self._rover_to_optical(invert_transform(kf.T_odo_rover) @ T_odo_pred)
         T_cur_kf_pred = invert_transform(T_kf_cur_pred)
-        T_prev_kf = invert_transform(self._rover_to_optical(invert_transform(kf.T_odo_rover) @ self.T_odo_rover))
+        T_prev_kf = invert_transform(
+            self._rover_to_optical(invert_transform(kf.T_odo_rover) @ self.T_odo_rover)
+        )
         # Seed each track with its last position plus the predicted image shift (a
         # shift, not an absolute projection, so a point's depth error does not bias it).
         prev_uv = kf.uv
         shift = self._project(kf.points_kf, T_cur_kf_pred) - self._project(kf.points_kf, T_prev_kf)
         guess = (prev_uv + shift).astype(np.float32)
         uv, st, _ = cv2.calcOpticalFlowPyrLK(
-            self._prev_left, image, prev_uv, guess.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk
+            self._prev_left,
+            image,
+            prev_uv,
+            guess.copy(),
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+            **self._lk,
         )
         back, st2, _ = cv2.calcOpticalFlowPyrLK(
-            image, self._prev_left, uv, prev_uv.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk
+            image,
+            self._prev_left,
+            uv,
+            prev_uv.copy(),
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+            **self._lk,
         )
         H, W = self.camera.height, self.camera.width
         ok = (
@@ -450,12 +526,30 @@ class StereoVisualOdometry:
         rvec0, _ = cv2.Rodrigues(T_cur_kf_pred[:3, :3])
         tvec0 = T_cur_kf_pred[:3, 3].reshape(3, 1).copy()
         found, rvec, tvec, inl = cv2.solvePnPRansac(
-            obj, img, self.K, None, rvec0.copy(), tvec0.copy(), useExtrinsicGuess=False,
-            iterationsCount=c.ransac_iterations, reprojectionError=c.ransac_reprojection_px,
-            confidence=c.ransac_confidence, flags=cv2.SOLVEPNP_P3P,
-        )  # fmt: skip
-        if not found or inl is None or len(inl) < c.min_inliers or len(inl) < c.min_inlier_ratio * n:
-            logger.debug("frame %d: PnP failed (%s inliers of %d)", self.n_frames, None if inl is None else len(inl), n)
+            obj,
+            img,
+            self.K,
+            None,
+            rvec0.copy(),
+            tvec0.copy(),
+            useExtrinsicGuess=False,
+            iterationsCount=c.ransac_iterations,
+            reprojectionError=c.ransac_reprojection_px,
+            confidence=c.ransac_confidence,
+            flags=cv2.SOLVEPNP_P3P,
+        )
+        if (
+            not found
+            or inl is None
+            or len(inl) < c.min_inliers
+            or len(inl) < c.min_inlier_ratio * n
+        ):
+            logger.debug(
+                "frame %d: PnP failed (%s inliers of %d)",
+                self.n_frames,
+                None if inl is None else len(inl),
+                n,
+            )
             return None
         inl = inl.ravel()
         # Refine on the inliers, then re-select them with the refined pose (the RANSAC
@@ -463,13 +557,23 @@ class StereoVisualOdometry:
         for _ in range(2):
             rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], self.K, None, rvec, tvec)
             proj, _ = cv2.projectPoints(obj, rvec, tvec, self.K, None)
-            inl = np.flatnonzero(np.linalg.norm(proj.reshape(-1, 2) - img, axis=1) <= c.ransac_reprojection_px)
+            inl = np.flatnonzero(
+                np.linalg.norm(proj.reshape(-1, 2) - img, axis=1) <= c.ransac_reprojection_px
+            )
             if len(inl) < c.min_inliers:
                 return None
-        logger.debug("frame %d: %d of %d keyframe points tracked, %d PnP inliers", self.n_frames, n, len(ok), len(inl))
+        logger.debug(
+            "frame %d: %d of %d keyframe points tracked, %d PnP inliers",
+            self.n_frames,
+            n,
+            len(ok),
+            len(inl),
+        )
         R, _ = cv2.Rodrigues(rvec)
         T_cur_kf = make_transform(R, tvec.ravel())
-        T_odo_new = kf.T_odo_rover @ self.T_rover_left @ invert_transform(T_cur_kf) @ self.T_left_rover
+        T_odo_new = (
+            kf.T_odo_rover @ self.T_rover_left @ invert_transform(T_cur_kf) @ self.T_left_rover
+        )
         step = invert_transform(self.T_odo_rover) @ T_odo_new
         if (
             np.linalg.norm(step[:3, 3]) > c.max_translation_per_frame_m
@@ -477,7 +581,11 @@ class StereoVisualOdometry:
         ):
             logger.debug("frame %d: implausible step rejected", self.n_frames)
             return None
-        if prior is not None and np.degrees(rotation_angle(step[:3, :3].T @ prior[:3, :3])) > c.max_prior_rotation_gap_deg:
+        if (
+            prior is not None
+            and np.degrees(rotation_angle(step[:3, :3].T @ prior[:3, :3]))
+            > c.max_prior_rotation_gap_deg
+        ):
             logger.debug("frame %d: visual rotation disagrees with the prior", self.n_frames)
             return None
         # Keep the inlier tracks only (outliers are moving shadows, bad depths, occlusions).
@@ -506,15 +614,25 @@ def front_pair_setup(archive) -> tuple[PinholeCamera, np.ndarray, np.ndarray, st
     for name in (left_name, right_name):
         table = archive.camera_frames(name) if name in archive.cameras else None
         if table is None or len(table) == 0:
-            raise InputError(f"{archive.path}: no {name} images, visual odometry needs the front stereo pair")
+            raise InputError(
+                f"{archive.path}: no {name} images, visual odometry needs the front stereo pair"
+            )
         rows[name] = table.row(0)
     camera = camera_from_archive(archive)
     mounts = mounts_from_archive_row(rows, camera)
-    return camera, mounts[left_name].T_rover_optical, mounts[right_name].T_rover_optical, left_name, right_name
+    return (
+        camera,
+        mounts[left_name].T_rover_optical,
+        mounts[right_name].T_rover_optical,
+        left_name,
+        right_name,
+    )
 
 
 def visual_odometry_frames(
-    archive, config: VisualOdometryConfig | None = None, progress: Callable[[int, int], None] | None = None
+    archive,
+    config: VisualOdometryConfig | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Run :class:`StereoVisualOdometry` over the front-pair images of an archive (no prior).
 
@@ -533,7 +651,9 @@ def visual_odometry_frames(
             return visual_odometry_frames(opened, config, progress)
     archive = getattr(archive, "archive", archive)
     camera, T_rover_left, T_rover_right, left_name, right_name = front_pair_setup(archive)
-    frames = np.intersect1d(archive.camera_frames(left_name)["frame"], archive.camera_frames(right_name)["frame"])
+    frames = np.intersect1d(
+        archive.camera_frames(left_name)["frame"], archive.camera_frames(right_name)["frame"]
+    )
     frames = frames.astype(np.int64)
     vo = StereoVisualOdometry(camera, T_rover_left, T_rover_right, config)
     out = np.empty((len(frames), 4, 4))
@@ -547,7 +667,9 @@ def visual_odometry_frames(
             left = images.get((left_name, int(f), "grayscale"))
             right = images.get((right_name, int(f), "grayscale"))
             if left is None or right is None:
-                raise InputError(f"{archive.path}: frame {int(f)} lists a {left_name}/{right_name} image that is missing")
+                raise InputError(
+                    f"{archive.path}: frame {int(f)} lists a {left_name}/{right_name} image that is missing"
+                )
             out[start + i] = vo.update(left, right)
             if progress is not None:
                 progress(start + i + 1, len(frames))

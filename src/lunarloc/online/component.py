@@ -56,14 +56,34 @@ from lunarloc.core.geometry import invert_transform, pose_to_matrix
 from lunarloc.io.lac.leaderboard import camera_name, transform_to_matrix
 from lunarloc.io.maps import LandmarkMap
 from lunarloc.odometry.imu import ImuOdometryConfig, ImuSamples, integrate_imu
-from lunarloc.perception.camera import IPEX_STEREO_BASELINE_M, STEREO_PAIRS, CameraMount, PinholeCamera, ipex_rig
+from lunarloc.perception.camera import (
+    IPEX_STEREO_BASELINE_M,
+    STEREO_PAIRS,
+    CameraMount,
+    PinholeCamera,
+    ipex_rig,
+)
 from lunarloc.localization.config import LocalizationConfig
-from lunarloc.online.loop import Attempt, LoopConfig, LoopState, OdometryBounds, image_localization_config, image_loop_config
+from lunarloc.online.loop import (
+    Attempt,
+    LoopConfig,
+    LoopState,
+    OdometryBounds,
+    image_localization_config,
+    image_loop_config,
+)
 
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
-__all__ = ["CameraRig", "OnlineConfig", "Estimate", "OnlineLocalizer", "camera_name", "as_transform_matrix"]
+__all__ = [
+    "CameraRig",
+    "OnlineConfig",
+    "Estimate",
+    "OnlineLocalizer",
+    "camera_name",
+    "as_transform_matrix",
+]
 
 
 # --------------------------------------------------------------------------- inputs
@@ -75,7 +95,9 @@ def as_transform_matrix(pose, what: str = "pose") -> np.ndarray:
     in radians, as the agent getters return it) or an object with ``matrix()`` /
     ``get_matrix()``. CARLA's own left-handed ``carla.Transform`` is refused (InputError)."""
     if hasattr(pose, "location") and hasattr(pose, "rotation"):
-        return validate.rigid_transform(transform_to_matrix(pose, what), what)  # the same bounds as a matrix
+        return validate.rigid_transform(
+            transform_to_matrix(pose, what), what
+        )  # the same bounds as a matrix
     for attr in ("matrix", "get_matrix"):
         f = getattr(pose, attr, None)
         if callable(f):
@@ -87,15 +109,18 @@ def as_transform_matrix(pose, what: str = "pose") -> np.ndarray:
             raise TypeError
         a = raw.astype(float)
     except (TypeError, ValueError):
-        raise InputError(f"{what} must be a 4x4 transform, a 6-vector or a Transform, got {type(pose).__name__}") from None
+        raise InputError(
+            f"{what} must be a 4x4 transform, a 6-vector or a Transform, got {type(pose).__name__}"
+        ) from None
     if a.shape == (6,):
         if not np.all(np.isfinite(a)):
             raise InputError(f"{what} (x, y, z, roll, pitch, yaw) is not finite: {a.tolist()}")
         a = pose_to_matrix(*a)
     if a.shape != (4, 4):
-        raise InputError(f"{what} must be a finite 4x4 transform or (x, y, z, roll, pitch, yaw); got shape {a.shape}")
+        raise InputError(
+            f"{what} must be a finite 4x4 transform or (x, y, z, roll, pitch, yaw); got shape {a.shape}"
+        )
     return validate.rigid_transform(a, what)  # orthonormal, det +1, last row 0 0 0 1
-
 
 
 @dataclass(frozen=True)
@@ -104,14 +129,21 @@ class CameraRig:
     (``T_rover_cam``, LAC axes: x along the optical axis, y left, z up)."""
 
     camera: PinholeCamera = field(default_factory=PinholeCamera)
-    T_rover_cam: Mapping[str, np.ndarray] = field(default_factory=lambda: {n: m.T_rover_cam for n, m in ipex_rig().items()})
+    T_rover_cam: Mapping[str, np.ndarray] = field(
+        default_factory=lambda: {n: m.T_rover_cam for n, m in ipex_rig().items()}
+    )
 
     def __post_init__(self) -> None:
-        poses = {camera_name(k): as_transform_matrix(v, f"pose of camera {camera_name(k)}") for k, v in dict(self.T_rover_cam).items()}
+        poses = {
+            camera_name(k): as_transform_matrix(v, f"pose of camera {camera_name(k)}")
+            for k, v in dict(self.T_rover_cam).items()
+        }
         object.__setattr__(self, "T_rover_cam", poses)
 
     @classmethod
-    def from_sensors(cls, sensors: Mapping, camera_poses: Mapping | None = None, hfov_deg: float = 70.0) -> CameraRig:
+    def from_sensors(
+        cls, sensors: Mapping, camera_poses: Mapping | None = None, hfov_deg: float = 70.0
+    ) -> CameraRig:
         """From an agent's ``sensors()`` ({camera: {width, height, ...}}) and, optionally, the
         camera poses it reports (``get_camera_position(name)``: Transform, 4x4 or 6-vector);
         cameras without a pose get the IPEx rig's. All stereo cameras must share one size."""
@@ -123,13 +155,19 @@ class CameraRig:
                     continue
                 sizes[name] = (int(c.get("width", 1280)), int(c.get("height", 720)))
             except (AttributeError, TypeError, ValueError):
-                raise InputError(f"sensors(): camera {name} has no usable width/height ({c!r})") from None
+                raise InputError(
+                    f"sensors(): camera {name} has no usable width/height ({c!r})"
+                ) from None
         stereo = {n: s for n, s in sizes.items() if any(n in p for p in STEREO_PAIRS)}
         if not stereo:
-            raise InputError(f"sensors(): no active stereo camera ({', '.join(n for p in STEREO_PAIRS for n in p)}); "
-                             f"active: {', '.join(sizes) or 'none'}")  # fmt: skip
+            raise InputError(
+                f"sensors(): no active stereo camera ({', '.join(n for p in STEREO_PAIRS for n in p)}); "
+                f"active: {', '.join(sizes) or 'none'}"
+            )
         if len(set(stereo.values())) > 1:
-            raise InputError(f"sensors(): stereo cameras differ in size {stereo}; one intrinsic model is supported")
+            raise InputError(
+                f"sensors(): stereo cameras differ in size {stereo}; one intrinsic model is supported"
+            )
         w, h = next(iter(stereo.values()))
         cam = PinholeCamera(w, h, hfov_deg)
         poses = {n: m.T_rover_cam for n, m in ipex_rig(cam).items()}
@@ -141,9 +179,17 @@ class CameraRig:
         return cls(cam, poses)
 
     @classmethod
-    def from_calibration(cls, width: int, height: int, fx: float, fy: float | None = None, cx: float | None = None,
-                         cy: float | None = None, baseline_m: float = IPEX_STEREO_BASELINE_M,
-                         T_rover_cam: Mapping | None = None) -> CameraRig:  # fmt: skip
+    def from_calibration(
+        cls,
+        width: int,
+        height: int,
+        fx: float,
+        fy: float | None = None,
+        cx: float | None = None,
+        cy: float | None = None,
+        baseline_m: float = IPEX_STEREO_BASELINE_M,
+        T_rover_cam: Mapping | None = None,
+    ) -> CameraRig:
         """From one's own calibration: pixels ``fx, fy, cx, cy``, the stereo ``baseline_m`` (the
         IPEx rig's layout with that baseline) or explicit ``T_rover_cam`` poses. The camera
         model is a centred square-pixel pinhole: ``fy`` must equal ``fx`` and ``(cx, cy)`` be the
@@ -156,9 +202,15 @@ class CameraRig:
         cy = (height - 1) / 2 if cy is None else cy
         if not (fx > 0 and width > 0 and height > 0):
             raise InputError(f"calibration: fx={fx}, width={width}, height={height} must be > 0")
-        if abs(fy - fx) > 1e-3 * fx or abs(cx - (width - 1) / 2) > 1.0 or abs(cy - (height - 1) / 2) > 1.0:
-            raise InputError(f"calibration: fx={fx}, fy={fy}, cx={cx}, cy={cy}: the camera model needs fy == fx and "
-                             f"the principal point at the image centre ({(width - 1) / 2}, {(height - 1) / 2}); rectify first")  # fmt: skip
+        if (
+            abs(fy - fx) > 1e-3 * fx
+            or abs(cx - (width - 1) / 2) > 1.0
+            or abs(cy - (height - 1) / 2) > 1.0
+        ):
+            raise InputError(
+                f"calibration: fx={fx}, fy={fy}, cx={cx}, cy={cy}: the camera model needs fy == fx and "
+                f"the principal point at the image centre ({(width - 1) / 2}, {(height - 1) / 2}); rectify first"
+            )
         cam = PinholeCamera(int(width), int(height), math.degrees(2 * math.atan(width / 2 / fx)))
         if T_rover_cam is None:
             if not baseline_m > 0:
@@ -186,7 +238,10 @@ class CameraRig:
             return False
         for n in set(self.T_rover_cam) & set(other.T_rover_cam):
             A, B = self.T_rover_cam[n], other.T_rover_cam[n]
-            if np.abs(A[:3, 3] - B[:3, 3]).max() > tol_m or np.abs(A[:3, :3] - B[:3, :3]).max() > tol_rad:
+            if (
+                np.abs(A[:3, 3] - B[:3, 3]).max() > tol_m
+                or np.abs(A[:3, :3] - B[:3, :3]).max() > tol_rad
+            ):
                 return False
         return True
 
@@ -198,25 +253,42 @@ class OnlineConfig:
     loop: LoopConfig = field(default_factory=image_loop_config)
     localization: LocalizationConfig = field(default_factory=image_localization_config)
     imu: ImuOdometryConfig = field(default_factory=ImuOdometryConfig)
-    visual_odometry: bool = True  # stereo VO on image ticks (else IMU only) when no odometry is passed
+    visual_odometry: bool = (
+        True  # stereo VO on image ticks (else IMU only) when no odometry is passed
+    )
     keyframe_min_travel_m: float = 0.05  # an image tick is a keyframe after this much travel ...
     keyframe_min_turn_deg: float = 2.0  # ... or this much turning ...
     keyframe_max_interval_s: float = 2.0  # ... or this long since the last keyframe
     max_keyframes: int = 1500  # re-anchor the pose graph when it holds this many keyframes
-    reference_max_distance_m: float = 50.0  # the reference must have a landmark this close to the initial pose
+    reference_max_distance_m: float = (
+        50.0  # the reference must have a landmark this close to the initial pose
+    )
     initial_sigma_m: float = 0.05  # uncertainty of the initial pose (position) ...
     initial_sigma_yaw_deg: float = 0.5  # ... and heading
     tilt_sigma_deg: float = 0.5  # roll / pitch sigma reported in the covariance (gravity-levelled)
     max_recent_attempts: int = 100  # localization attempts kept in `recent_attempts`
 
     def __post_init__(self) -> None:
-        validate.integer(self.max_keyframes, "max_keyframes", 50, 10**9, ConfigError)  # 10**9: never re-anchor
+        validate.integer(
+            self.max_keyframes, "max_keyframes", 50, 10**9, ConfigError
+        )  # 10**9: never re-anchor
         validate.integer(self.max_recent_attempts, "max_recent_attempts", 0, 10**6, ConfigError)
-        for name in ("keyframe_min_travel_m", "keyframe_min_turn_deg", "keyframe_max_interval_s",
-                     "reference_max_distance_m", "initial_sigma_m", "initial_sigma_yaw_deg", "tilt_sigma_deg"):  # fmt: skip
+        for name in (
+            "keyframe_min_travel_m",
+            "keyframe_min_turn_deg",
+            "keyframe_max_interval_s",
+            "reference_max_distance_m",
+            "initial_sigma_m",
+            "initial_sigma_yaw_deg",
+            "tilt_sigma_deg",
+        ):
             validate.real(getattr(self, name), name, 0.0, lo_open=True, error=ConfigError)
-        for name, cls in (("loop", LoopConfig), ("localization", LocalizationConfig), ("imu", ImuOdometryConfig),
-                          ("visual_odometry", bool)):  # fmt: skip
+        for name, cls in (
+            ("loop", LoopConfig),
+            ("localization", LocalizationConfig),
+            ("imu", ImuOdometryConfig),
+            ("visual_odometry", bool),
+        ):
             validate.instance(getattr(self, name), name, cls)
 
     def to_dict(self) -> dict:
@@ -267,38 +339,62 @@ class OnlineLocalizer:
         re-placed with their corrected poses; ``mapper.grid()`` is the LAC map so far.
     """
 
-    def __init__(self, reference: LandmarkMap | None, initial_pose, config: OnlineConfig | None = None,
-                 rig: CameraRig | None = None, detector_config=None, lander_pose=None, mapper=None):  # fmt: skip
+    def __init__(
+        self,
+        reference: LandmarkMap | None,
+        initial_pose,
+        config: OnlineConfig | None = None,
+        rig: CameraRig | None = None,
+        detector_config=None,
+        lander_pose=None,
+        mapper=None,
+    ):
         from lunarloc.perception.detector import DetectorConfig
 
         if config is not None:  # the types first: a string here was an AttributeError deep inside
             validate.instance(config, "config", OnlineConfig, "lunarloc.OnlineConfig")
         if detector_config is not None:
-            validate.instance(detector_config, "detector_config", DetectorConfig, "lunarloc.perception.detector.DetectorConfig")
+            validate.instance(
+                detector_config,
+                "detector_config",
+                DetectorConfig,
+                "lunarloc.perception.detector.DetectorConfig",
+            )
         if reference is not None and not isinstance(reference, LandmarkMap):
-            raise InputError(f"reference must be a LandmarkMap (see lunarloc.load_reference) or None, "
-                             f"got {type(reference).__name__}")
+            raise InputError(
+                f"reference must be a LandmarkMap (see lunarloc.load_reference) or None, "
+                f"got {type(reference).__name__}"
+            )
         self.config = cfg = config or OnlineConfig()
         self.rig = rig or CameraRig()
         if not isinstance(self.rig, CameraRig):
             raise InputError(f"rig must be a CameraRig, got {type(self.rig).__name__}")
         self.T_map_rover0 = as_transform_matrix(initial_pose, "initial_pose")
         # the lander's centre in map (= odometry at the start), for dropping detections on it
-        self._lander_xy = None if lander_pose is None else (self.T_map_rover0 @ as_transform_matrix(lander_pose, "lander_pose"))[:2, 3]
+        self._lander_xy = (
+            None
+            if lander_pose is None
+            else (self.T_map_rover0 @ as_transform_matrix(lander_pose, "lander_pose"))[:2, 3]
+        )
         self.reference = reference
         if reference is not None and len(reference) >= 1:
             d = np.linalg.norm(reference.positions_xyz[:, :2] - self.T_map_rover0[:2, 3], axis=1)
             if float(d.min()) > cfg.reference_max_distance_m:
                 raise InputError(
                     f"the reference map has no landmark within {cfg.reference_max_distance_m:g} m of the initial pose "
-                    f"({float(d.min()):.1f} m to the nearest): is it in another frame than the initial pose?")  # fmt: skip
-        noise = replace(cfg.loop.fusion.noise, start_sigma_m=cfg.initial_sigma_m,
-                        start_sigma_yaw_rad=math.radians(cfg.initial_sigma_yaw_deg))  # fmt: skip
+                    f"({float(d.min()):.1f} m to the nearest): is it in another frame than the initial pose?"
+                )
+        noise = replace(
+            cfg.loop.fusion.noise,
+            start_sigma_m=cfg.initial_sigma_m,
+            start_sigma_yaw_rad=math.radians(cfg.initial_sigma_yaw_deg),
+        )
         self._loop_config = replace(cfg.loop, fusion=replace(cfg.loop.fusion, noise=noise))
         # its windows state the bounds of the odometry that places them (LoopConfig.window_bounds)
         self._odometry_source = "visual" if cfg.visual_odometry else "imu"
-        self.loop = LoopState(reference, self._loop_config, cfg.localization,
-                              odometry=self._odometry_source)  # checks the reference (>= 3 landmarks)
+        self.loop = LoopState(
+            reference, self._loop_config, cfg.localization, odometry=self._odometry_source
+        )  # checks the reference (>= 3 landmarks)
         self._rig_given = rig is not None  # else the LAC rig, sized to the first images delivered
         self._detector_config = detector_config
         self._use_rig(self.rig)
@@ -308,7 +404,9 @@ class OnlineLocalizer:
         self._imu_prev: np.ndarray | None = None
         self._speed_prev = 0.0
         self._T_map_imu = self.T_map_rover0.copy()  # IMU dead reckoning
-        self._T_map_odo = self.T_map_rover0.copy()  # odometry (visual / IMU / caller), odo == map at start
+        self._T_map_odo = (
+            self.T_map_rover0.copy()
+        )  # odometry (visual / IMU / caller), odo == map at start
         self._vo_anchor = None  # (T_map_odo at the last VO pair, T_map_imu there)
         self._T_odo_caller = None  # T_odo_caller: the caller's odometry frame in ours
         self._T_loop_odo = np.eye(4)  # the loop's odometry frame <- odo (changes at re-anchors)
@@ -316,7 +414,9 @@ class OnlineLocalizer:
         self._fixes = 0
         self._sigmas = (cfg.initial_sigma_m, math.radians(cfg.initial_sigma_yaw_deg))
         self.reanchors = 0
-        self.recent_attempts: collections.deque[Attempt] = collections.deque(maxlen=cfg.max_recent_attempts)
+        self.recent_attempts: collections.deque[Attempt] = collections.deque(
+            maxlen=cfg.max_recent_attempts
+        )
         self.mapper = mapper  # the LAC map: fed at keyframes, see _feed_mapper
         self._fd = None  # the last keyframe's detector output (for the mapper)
         if mapper is not None and self._lander_xy is not None:
@@ -332,9 +432,13 @@ class OnlineLocalizer:
         from lunarloc.perception.detector import Detector, scaled_detector_config
 
         self.rig = rig
-        self.detector = Detector(self._detector_config or scaled_detector_config(rig.camera.width), rig.camera)
+        self.detector = Detector(
+            self._detector_config or scaled_detector_config(rig.camera.width), rig.camera
+        )
         self._mounts = rig.mounts()
-        self._pairs = [p for p in self.detector.config.pairs if p[0] in self._mounts and p[1] in self._mounts]
+        self._pairs = [
+            p for p in self.detector.config.pairs if p[0] in self._mounts and p[1] in self._mounts
+        ]
         self._vo = None
         if self.config.visual_odometry:
             left, right = STEREO_PAIRS[0]
@@ -342,9 +446,14 @@ class OnlineLocalizer:
                 from lunarloc.odometry.tilt import GravityAlignedChain
                 from lunarloc.odometry.visual import StereoVisualOdometry
 
-                self._vo = StereoVisualOdometry(rig.camera, self._mounts[left].T_rover_optical,
-                                                self._mounts[right].T_rover_optical)  # fmt: skip
-                self._vo_chain = GravityAlignedChain(self._vo.config.gravity_tilt_gain)  # roll/pitch from gravity
+                self._vo = StereoVisualOdometry(
+                    rig.camera,
+                    self._mounts[left].T_rover_optical,
+                    self._mounts[right].T_rover_optical,
+                )
+                self._vo_chain = GravityAlignedChain(
+                    self._vo.config.gravity_tilt_gain
+                )  # roll/pitch from gravity
 
     # -------------------------------------------------------------- public
     def warm_up(self) -> float:
@@ -371,7 +480,9 @@ class OnlineLocalizer:
         from lunarloc.io.maps import aggregate_detections
 
         pts = np.random.default_rng(0).uniform(-3, 3, (20, 3))
-        aggregate_detections(np.r_[pts, pts + 0.01], np.repeat([0, 1], 20), self._loop_config.aggregation)
+        aggregate_detections(
+            np.r_[pts, pts + 0.01], np.repeat([0, 1], 20), self._loop_config.aggregation
+        )
         c = self.rig.camera
         blank = np.zeros((c.height, c.width), np.uint8)
         blank[c.height // 2 :] = 90
@@ -382,7 +493,11 @@ class OnlineLocalizer:
             from lunarloc.odometry.visual import StereoVisualOdometry
 
             left, right = STEREO_PAIRS[0]
-            vo = StereoVisualOdometry(self.rig.camera, self._mounts[left].T_rover_optical, self._mounts[right].T_rover_optical)
+            vo = StereoVisualOdometry(
+                self.rig.camera,
+                self._mounts[left].T_rover_optical,
+                self._mounts[right].T_rover_optical,
+            )
             vo.update(blank, blank)
             vo.update(blank, blank)
         return time.perf_counter() - t0
@@ -401,12 +516,21 @@ class OnlineLocalizer:
         accuracy and each window's bend is fitted from its inliers. Call before the first
         :meth:`update`; None goes back to unknown."""
         if source is not None and not isinstance(source, (str, OdometryBounds)):
-            raise InputError(f"source must be an odometry source label or OdometryBounds, got {type(source).__name__}")
+            raise InputError(
+                f"source must be an odometry source label or OdometryBounds, got {type(source).__name__}"
+            )
         self._odometry_source = None  # update() keeps what the caller stated
         self.loop.set_odometry(source)
 
-    def update(self, mission_time_s: float, input_data: Mapping | None, imu, linear_speed: float,
-               angular_speed: float, odometry=None) -> Estimate:  # fmt: skip
+    def update(
+        self,
+        mission_time_s: float,
+        input_data: Mapping | None,
+        imu,
+        linear_speed: float,
+        angular_speed: float,
+        odometry=None,
+    ) -> Estimate:
         """One tick: the LAC's ``input_data`` as the leaderboard hands it (``{"Grayscale":
         {camera: (H, W) uint8 image or None}, "Semantic": {...}}``; camera keys
         ``SensorPosition`` members or names; views are fine; the semantic group is not used),
@@ -422,14 +546,21 @@ class OnlineLocalizer:
         T_caller = None if odometry is None else as_transform_matrix(odometry, "odometry")
         pair = self._stereo_pair(images)  # may refuse: before any state changes
         if T_caller is not None and self._odometry_source is not None:
-            self._odometry_source = None  # the caller's odometry: its bounds are not known, its windows' bend is fitted
+            self._odometry_source = (
+                None  # the caller's odometry: its bounds are not known, its windows' bend is fitted
+            )
             self.loop.set_odometry(None)
         # ---- odometry
         if self._t_prev is None:
             T_imu = self._T_map_imu
         else:
-            s = ImuSamples(np.arange(2), np.array([self._t_prev, t]), np.stack([self._imu_prev[:3], a[:3]]),
-                           np.stack([self._imu_prev[3:], a[3:]]), np.array([self._speed_prev, float(linear_speed)]))  # fmt: skip
+            s = ImuSamples(
+                np.arange(2),
+                np.array([self._t_prev, t]),
+                np.stack([self._imu_prev[:3], a[:3]]),
+                np.stack([self._imu_prev[3:], a[3:]]),
+                np.array([self._speed_prev, float(linear_speed)]),
+            )
             T_imu = integrate_imu(s, self._T_map_imu, self.config.imu)[1]
         if T_caller is not None:
             if self._T_odo_caller is None:
@@ -456,7 +587,9 @@ class OnlineLocalizer:
                 det = det[~on_lander(det, T_odo, self._lander_xy)]
             if len(self.loop.keyframes) >= self.config.max_keyframes:
                 self._reanchor()
-            attempt = self.loop.step(self._tick, t, self._T_loop_odo @ T_odo, det, None, keyframe=True)
+            attempt = self.loop.step(
+                self._tick, t, self._T_loop_odo @ T_odo, det, None, keyframe=True
+            )
             self._last_kf = (t, T_odo)
             k = len(self.loop.keyframes) - 1
             self._sigmas = self.loop.graph.predicted_sigma(k)
@@ -498,10 +631,14 @@ class OnlineLocalizer:
             validate.real(t, "mission_time_s", 0.0, validate.MAX_MISSION_TIME_S, unit="s")
         if self._t_prev is not None:
             if t <= self._t_prev:
-                raise InputError(f"mission_time_s went backwards or stood still: {t:.3f} s after {self._t_prev:.3f} s")
+                raise InputError(
+                    f"mission_time_s went backwards or stood still: {t:.3f} s after {self._t_prev:.3f} s"
+                )
             if t - self._t_prev > self.config.imu.max_dt_s:
-                raise InputError(f"{t - self._t_prev:.3f} s since the previous tick (max {self.config.imu.max_dt_s:g} s): "
-                                 "call update() every tick")  # fmt: skip
+                raise InputError(
+                    f"{t - self._t_prev:.3f} s since the previous tick (max {self.config.imu.max_dt_s:g} s): "
+                    "call update() every tick"
+                )
         return t
 
     @staticmethod
@@ -519,21 +656,37 @@ class OnlineLocalizer:
         if input_data is None:
             return {}
         if not isinstance(input_data, Mapping):
-            raise InputError(f"input_data must be a dict like {{'Grayscale': {{camera: image}}}}, got {type(input_data).__name__}")
+            raise InputError(
+                f"input_data must be a dict like {{'Grayscale': {{camera: image}}}}, got {type(input_data).__name__}"
+            )
         group = input_data.get("Grayscale")
         group = {} if group is None else group
         if not isinstance(group, Mapping):
-            raise InputError(f"input_data['Grayscale'] must be a dict {{camera: image or None}}, got {type(group).__name__}")
+            raise InputError(
+                f"input_data['Grayscale'] must be a dict {{camera: image or None}}, got {type(group).__name__}"
+            )
         names = {camera_name(k) for k in group}
         if names and not any(n in names for p in self._pairs for n in p):
-            raise InputError(f"input_data['Grayscale'] has no stereo camera (has {', '.join(sorted(names))}); the component "
-                             f"needs one of the pairs {', '.join('/'.join(p) for p in self._pairs)} active")  # fmt: skip
-        first = next((getattr(im, "shape", None) for im in group.values() if im is not None), None)  # arrays only
-        if isinstance(first, tuple) and len(first) == 2 and 0 < first[0] <= 2048 and 0 < first[1] <= 2448 \
-                and not self._rig_given \
-                and self._last_kf is None and self._vo_anchor is None \
-                and first != (self.rig.camera.height, self.rig.camera.width):
-            h, w = (int(v) for v in first)  # the LAC's cameras are fixed pinholes: the intrinsics follow from the size
+            raise InputError(
+                f"input_data['Grayscale'] has no stereo camera (has {', '.join(sorted(names))}); the component "
+                f"needs one of the pairs {', '.join('/'.join(p) for p in self._pairs)} active"
+            )
+        first = next(
+            (getattr(im, "shape", None) for im in group.values() if im is not None), None
+        )  # arrays only
+        if (
+            isinstance(first, tuple)
+            and len(first) == 2
+            and 0 < first[0] <= 2048
+            and 0 < first[1] <= 2448
+            and not self._rig_given
+            and self._last_kf is None
+            and self._vo_anchor is None
+            and first != (self.rig.camera.height, self.rig.camera.width)
+        ):
+            h, w = (
+                int(v) for v in first
+            )  # the LAC's cameras are fixed pinholes: the intrinsics follow from the size
             log.info("no rig given: the LAC rig at the delivered %dx%d", w, h)
             self._use_rig(CameraRig.lac(w, h))
         c = self.rig.camera
@@ -541,8 +694,12 @@ class OnlineLocalizer:
         for key, img in group.items():
             name = camera_name(key)
             if img is not None:
-                img = validate.gray_image(img, f"input_data['Grayscale'][{name}]", (c.height, c.width))
-                img = np.ascontiguousarray(img)  # the leaderboard hands a view ([:, :, 0] of a BGRA buffer)
+                img = validate.gray_image(
+                    img, f"input_data['Grayscale'][{name}]", (c.height, c.width)
+                )
+                img = np.ascontiguousarray(
+                    img
+                )  # the leaderboard hands a view ([:, :, 0] of a BGRA buffer)
             out[name] = img
         return out
 
@@ -554,8 +711,10 @@ class OnlineLocalizer:
             has_l, has_r = images.get(left) is not None, images.get(right) is not None
             if has_l != has_r:
                 missing = right if has_l else left
-                raise InputError(f"input_data: {left if has_l else right} has an image but {missing} "
-                                 f"{'is missing' if missing not in images else 'is None'}: a stereo pair is captured together")  # fmt: skip
+                raise InputError(
+                    f"input_data: {left if has_l else right} has an image but {missing} "
+                    f"{'is missing' if missing not in images else 'is None'}: a stereo pair is captured together"
+                )
             if has_l and found is None:
                 found = (left, right)
         return found
@@ -583,12 +742,19 @@ class OnlineLocalizer:
         c = self.config
         rel = invert_transform(T_kf) @ T_odo
         turn = math.degrees(abs(math.atan2(rel[1, 0], rel[0, 0])))
-        return (np.linalg.norm(rel[:3, 3]) >= c.keyframe_min_travel_m or turn >= c.keyframe_min_turn_deg
-                or t - t_kf >= c.keyframe_max_interval_s)  # fmt: skip
+        return (
+            np.linalg.norm(rel[:3, 3]) >= c.keyframe_min_travel_m
+            or turn >= c.keyframe_min_turn_deg
+            or t - t_kf >= c.keyframe_max_interval_s
+        )
 
     def _detect(self, images: dict) -> np.ndarray:
-        imgs = {n: im for n, im in images.items() if im is not None and any(n in p for p in self._pairs)}
-        fd = self.detector.detect_frame(imgs, self._mounts, None, self._tick, keep_depth=self.mapper is not None)
+        imgs = {
+            n: im for n, im in images.items() if im is not None and any(n in p for p in self._pairs)
+        }
+        fd = self.detector.detect_frame(
+            imgs, self._mounts, None, self._tick, keep_depth=self.mapper is not None
+        )
         self._fd = fd if self.mapper is not None else None
         return np.array([d.p_rover for d in fd.detections], float).reshape(-1, 3)
 
@@ -605,19 +771,37 @@ class OnlineLocalizer:
         keep = old.window(n - 1)[-self.config.max_keyframes // 3 :]
         poses = old.graph.poses()
         sm, sy = old.graph.predicted_sigma(int(keep[0]))
-        noise = replace(cfg.fusion.noise, start_sigma_m=max(sm, cfg.fusion.noise.start_sigma_m),
-                        start_sigma_yaw_rad=max(sy, cfg.fusion.noise.start_sigma_yaw_rad))  # fmt: skip
-        new = LoopState(self.reference, replace(cfg, fusion=replace(cfg.fusion, noise=noise)), self.config.localization,
-                        odometry=old.odometry)
-        new._last_attempt_dist = new._last_attempt_t = math.inf  # no attempts while the window is re-fed
+        noise = replace(
+            cfg.fusion.noise,
+            start_sigma_m=max(sm, cfg.fusion.noise.start_sigma_m),
+            start_sigma_yaw_rad=max(sy, cfg.fusion.noise.start_sigma_yaw_rad),
+        )
+        new = LoopState(
+            self.reference,
+            replace(cfg, fusion=replace(cfg.fusion, noise=noise)),
+            self.config.localization,
+            odometry=old.odometry,
+        )
+        new._last_attempt_dist = new._last_attempt_t = (
+            math.inf
+        )  # no attempts while the window is re-fed
         for k in keep:
             kf = old.keyframes[k]
             x, y, z, yaw = poses[k]
             roll, pitch = kf.roll_pitch_rad
-            new.step(kf.frame, kf.t_s, pose_to_matrix(x, y, z, roll, pitch, yaw), kf.detections_rover, None, keyframe=True)
+            new.step(
+                kf.frame,
+                kf.t_s,
+                pose_to_matrix(x, y, z, roll, pitch, yaw),
+                kf.detections_rover,
+                None,
+                keyframe=True,
+            )
         g_old, g_new = old.graph, new.graph
         # the gate's drift model continues from the last fix (distance and time since it)
-        g_new._last_fix_dist = g_new.keyframes[-1].distance_m - (g_old.keyframes[-1].distance_m - g_old._last_fix_dist)
+        g_new._last_fix_dist = g_new.keyframes[-1].distance_m - (
+            g_old.keyframes[-1].distance_m - g_old._last_fix_dist
+        )
         g_new._last_fix_time = g_old._last_fix_time
         new._last_attempt_dist = new._dist - (old._dist - old._last_attempt_dist)
         new._last_attempt_t = old._last_attempt_t
@@ -644,4 +828,3 @@ class OnlineLocalizer:
                 x, y, z, yaw = (float(v) for v in kf.estimate_pose4)
                 roll, pitch = kf.roll_pitch_rad
                 self.mapper.repose(kf.frame, pose_to_matrix(x, y, z, roll, pitch, yaw))
-

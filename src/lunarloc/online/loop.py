@@ -42,8 +42,18 @@ from lunarloc.io.maps import AggregationConfig, LandmarkMap, aggregate_detection
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
-__all__ = ["FixKind", "CropSigma", "LoopConfig", "IMAGE_WINDOW_M", "image_localization_config", "image_loop_config", "Attempt", "LoopResult",
-           "LoopState", "interpolate_corrections"]  # fmt: skip
+__all__ = [
+    "FixKind",
+    "CropSigma",
+    "LoopConfig",
+    "IMAGE_WINDOW_M",
+    "image_localization_config",
+    "image_loop_config",
+    "Attempt",
+    "LoopResult",
+    "LoopState",
+    "interpolate_corrections",
+]
 
 
 # --------------------------------------------------------------------------- configuration
@@ -52,7 +62,9 @@ __all__ = ["FixKind", "CropSigma", "LoopConfig", "IMAGE_WINDOW_M", "image_locali
 class FixKind(str, enum.Enum):
     """How an accepted localization enters the pose graph."""
 
-    LANDMARKS = "landmarks"  # each detection of an inlier rock is tied to its reference landmark (default)
+    LANDMARKS = (
+        "landmarks"  # each detection of an inlier rock is tied to its reference landmark (default)
+    )
     POSE = "pose"  # one pose fix of the newest keyframe (extrapolates the rigid fit to the rover)
 
 
@@ -94,8 +106,10 @@ class OdometryBounds:
                 raise ConfigError(f"{name}={v!r} must be >= 0 and finite")
 
     def localization_overrides(self) -> dict:
-        return {"odometry_scale_error": float(self.scale_error),
-                "odometry_heading_drift_deg_per_m": float(self.heading_drift_deg_per_m)}  # fmt: skip
+        return {
+            "odometry_scale_error": float(self.scale_error),
+            "odometry_heading_drift_deg_per_m": float(self.heading_drift_deg_per_m),
+        }
 
 
 @dataclass(frozen=True)
@@ -120,8 +134,12 @@ class SourceBounds:
         ``imu``, ``ground-truth``, as :attr:`lunarloc.odometry.source.OdometryTrajectory.label`
         writes it); None for any other, or one whose bounds are None (fitted)."""
         head = str(label).split(":")[0].split(" ")[0].strip().lower()
-        return {"visual": self.visual, "imu": self.imu, "record": self.record,
-                "ground-truth": self.ground_truth}.get(head)  # fmt: skip
+        return {
+            "visual": self.visual,
+            "imu": self.imu,
+            "record": self.record,
+            "ground-truth": self.ground_truth,
+        }.get(head)
 
 
 @dataclass(frozen=True)
@@ -142,52 +160,85 @@ class LoopConfig:
     crop_reference: bool = True  # localize against the reference near the predicted window only
     crop_sigmas: float = 3.0  # crop radius = window radius + crop_sigmas x predicted sigma ...
     crop_margin_m: float = 2.0  # ... + this margin
-    crop_sigma: CropSigma = CropSigma.GATE  # the predicted sigma the crop is sized by: the gate's model or the window's odometry bounds
+    crop_sigma: CropSigma = (
+        CropSigma.GATE
+    )  # the predicted sigma the crop is sized by: the gate's model or the window's odometry bounds
     fix_sigma_fallback_m: float = 0.05  # a fix's sigma when the localizer predicts none
     fix_kind: FixKind = FixKind.LANDMARKS  # how fixes enter the pose graph
-    active_window_m: float = 40.0  # each solve re-optimises keyframes of the last active_window_m metres
-    keyframe_every_s: float = 0.5  # traverse-CSV source: keyframe period (frames with detections) ...
+    active_window_m: float = (
+        40.0  # each solve re-optimises keyframes of the last active_window_m metres
+    )
+    keyframe_every_s: float = (
+        0.5  # traverse-CSV source: keyframe period (frames with detections) ...
+    )
     keyframe_max_interval_s: float = 2.0  # ... and a keyframe at least this often
-    aggregation: AggregationConfig = field(default_factory=lambda: AggregationConfig(min_sightings=2, min_frames=2))
+    aggregation: AggregationConfig = field(
+        default_factory=lambda: AggregationConfig(min_sightings=2, min_frames=2)
+    )
     fusion: FusionConfig = field(default_factory=FusionConfig)
     # how each window's odometry distortion is stated to the localizer (when the localization
     # settings state no odometry bounds): the source's bounds (odometry_bounds), fitted, or rigid
     window_bounds: WindowBounds = WindowBounds.SOURCE
-    calibrated_after_fixes: int = 0  # > 0: after this many fixes the source's bounds give way to a fitted bend
+    calibrated_after_fixes: int = (
+        0  # > 0: after this many fixes the source's bounds give way to a fitted bend
+    )
     odometry_bounds: SourceBounds = field(default_factory=SourceBounds)
 
     def __post_init__(self) -> None:
-        for name in ("localize_every_m", "localize_every_s", "window_m", "crop_sigmas", "fix_sigma_fallback_m",
-                     "keyframe_every_s", "keyframe_max_interval_s"):  # fmt: skip
+        for name in (
+            "localize_every_m",
+            "localize_every_s",
+            "window_m",
+            "crop_sigmas",
+            "fix_sigma_fallback_m",
+            "keyframe_every_s",
+            "keyframe_max_interval_s",
+        ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and 0 < v < math.inf):
                 raise ConfigError(f"{name}={v!r} must be positive and finite")
-        if not (isinstance(self.crop_margin_m, (int, float)) and 0 <= self.crop_margin_m < math.inf):
+        if not (
+            isinstance(self.crop_margin_m, (int, float)) and 0 <= self.crop_margin_m < math.inf
+        ):
             raise ConfigError(f"crop_margin_m={self.crop_margin_m!r} must be >= 0 and finite")
         try:
             object.__setattr__(self, "fix_kind", FixKind(self.fix_kind))
         except ValueError:
-            raise ConfigError(f"fix_kind={self.fix_kind!r}: use one of {', '.join(k.value for k in FixKind)}") from None
+            raise ConfigError(
+                f"fix_kind={self.fix_kind!r}: use one of {', '.join(k.value for k in FixKind)}"
+            ) from None
         try:
             object.__setattr__(self, "crop_sigma", CropSigma(self.crop_sigma))
         except ValueError:
-            raise ConfigError(f"crop_sigma={self.crop_sigma!r}: use one of {', '.join(k.value for k in CropSigma)}") from None
+            raise ConfigError(
+                f"crop_sigma={self.crop_sigma!r}: use one of {', '.join(k.value for k in CropSigma)}"
+            ) from None
         try:
             object.__setattr__(self, "window_bounds", WindowBounds(self.window_bounds))
         except ValueError:
-            raise ConfigError(f"window_bounds={self.window_bounds!r}: use one of "
-                              f"{', '.join(k.value for k in WindowBounds)}") from None  # fmt: skip
+            raise ConfigError(
+                f"window_bounds={self.window_bounds!r}: use one of "
+                f"{', '.join(k.value for k in WindowBounds)}"
+            ) from None
         if not isinstance(self.min_window_landmarks, int) or self.min_window_landmarks < 3:
-            raise ConfigError(f"min_window_landmarks={self.min_window_landmarks!r} must be an integer >= 3")
+            raise ConfigError(
+                f"min_window_landmarks={self.min_window_landmarks!r} must be an integer >= 3"
+            )
         c = self.calibrated_after_fixes
         if not isinstance(c, int) or isinstance(c, bool) or c < 0:
-            raise ConfigError(f"calibrated_after_fixes={c!r} must be an integer >= 0 (0: the source's bounds throughout)")
+            raise ConfigError(
+                f"calibrated_after_fixes={c!r} must be an integer >= 0 (0: the source's bounds throughout)"
+            )
         t = self.window_target_landmarks
         if not isinstance(t, int) or isinstance(t, bool) or t < 0:
-            raise ConfigError(f"window_target_landmarks={t!r} must be an integer >= 0 (0: fixed window)")
+            raise ConfigError(
+                f"window_target_landmarks={t!r} must be an integer >= 0 (0: fixed window)"
+            )
         w = self.window_max_m
         if not (isinstance(w, (int, float)) and not isinstance(w, bool) and 0 <= w < math.inf):
-            raise ConfigError(f"window_max_m={w!r} must be >= 0 and finite (at most window_m: fixed window)")
+            raise ConfigError(
+                f"window_max_m={w!r} must be >= 0 and finite (at most window_m: fixed window)"
+            )
 
     def to_dict(self) -> dict:
         from lunarloc.core.configs import config_to_dict
@@ -221,8 +272,17 @@ def image_localization_config(**overrides) -> LocalizationConfig:
     """Localization settings for detections from simulated stereo images (noisier than the
     real dataset's): 8 cm consistency tolerance and residual RMSE, refinement radius 16 cm,
     predicted error up to 15 cm. No odometry bounds: the loop states each window's."""
-    return LocalizationConfig(**{"epsilon_m": 0.08, "epsilon_z_m": 0.08, "max_rmse_m": 0.08, "refine_radius_m": 0.16,
-                                 "max_predicted_error_m": 0.15, **LOOP_BEND_FIT, **overrides})  # fmt: skip
+    return LocalizationConfig(
+        **{
+            "epsilon_m": 0.08,
+            "epsilon_z_m": 0.08,
+            "max_rmse_m": 0.08,
+            "refine_radius_m": 0.16,
+            "max_predicted_error_m": 0.15,
+            **LOOP_BEND_FIT,
+            **overrides,
+        }
+    )
 
 
 def image_loop_config(**overrides) -> LoopConfig:
@@ -231,8 +291,15 @@ def image_loop_config(**overrides) -> LoopConfig:
     (not when stated rigid, :meth:`LoopState.local_map`), and a reference crop sized by the
     window's odometry bounds (``crop_sigma = "source"``). Measured on the multi-session sites:
     docs/online-component.md (multi-session runs without a fix)."""
-    return LoopConfig(**{"window_m": IMAGE_WINDOW_M, "window_target_landmarks": 20, "window_max_m": 12.0,
-                         "crop_sigma": CropSigma.SOURCE, **overrides})  # fmt: skip
+    return LoopConfig(
+        **{
+            "window_m": IMAGE_WINDOW_M,
+            "window_target_landmarks": 20,
+            "window_max_m": 12.0,
+            "crop_sigma": CropSigma.SOURCE,
+            **overrides,
+        }
+    )
 
 
 def stated_window_bounds(localization: LocalizationConfig) -> tuple[float, float] | None:
@@ -240,11 +307,15 @@ def stated_window_bounds(localization: LocalizationConfig) -> tuple[float, float
     a bound not given counting 0; None where it states none (the bend is fitted)."""
     if not localization.odometry_bounds_stated:
         return None
-    return (float(localization.odometry_scale_error or 0.0), float(localization.odometry_heading_drift_deg_per_m or 0.0))
+    return (
+        float(localization.odometry_scale_error or 0.0),
+        float(localization.odometry_heading_drift_deg_per_m or 0.0),
+    )
 
 
-def window_localization(localization: LocalizationConfig, loop: LoopConfig,
-                        source_bounds: OdometryBounds | None) -> LocalizationConfig:
+def window_localization(
+    localization: LocalizationConfig, loop: LoopConfig, source_bounds: OdometryBounds | None
+) -> LocalizationConfig:
     """The localization a loop window is judged with: `localization` as given when it states
     odometry bounds itself (a run configuration of its own, ``bench loop --odometry-bounds``);
     else the loop's ``window_bounds``: ``source`` states `source_bounds` (the odometry source's,
@@ -254,7 +325,11 @@ def window_localization(localization: LocalizationConfig, loop: LoopConfig,
         return localization
     if loop.window_bounds is WindowBounds.RIGID:
         return replace(localization, **RIGID_WINDOW)
-    return localization if source_bounds is None else replace(localization, **source_bounds.localization_overrides())
+    return (
+        localization
+        if source_bounds is None
+        else replace(localization, **source_bounds.localization_overrides())
+    )
 
 
 # --------------------------------------------------------------------------- results
@@ -283,7 +358,9 @@ class Attempt:
     inlier_reference_xyz: list | None = None
     time_mapping_s: float = 0.0
     time_association_s: float = 0.0
-    window_m: float = float("nan")  # window length used: window_m, or longer where the adaptive window grew
+    window_m: float = float(
+        "nan"
+    )  # window length used: window_m, or longer where the adaptive window grew
 
     def row(self) -> dict:
         d = asdict(self)
@@ -330,8 +407,16 @@ class LoopResult:
             "frames": int(len(self.frames)),
             "image_frames": int(self.num_image_frames),
             "duration_s": round(self.duration_s, 3),
-            "path_length_m": round(path_length((self.T_map_rover_true if self.T_map_rover_true is not None
-                                                else self.T_odo_rover)[:, :3, 3]), 3),
+            "path_length_m": round(
+                path_length(
+                    (
+                        self.T_map_rover_true
+                        if self.T_map_rover_true is not None
+                        else self.T_odo_rover
+                    )[:, :3, 3]
+                ),
+                3,
+            ),
             "reference_landmarks": len(self.reference),
             "vehicle_landmarks": len(self.vehicle_map),
             "attempts": len(self.attempts),
@@ -344,16 +429,28 @@ class LoopResult:
         out["max_accepted_fix_error_m"] = round(max(acc), 4) if acc else None
         if self.T_map_rover_true is not None:
             gt = self.T_map_rover_true[:, :3, 3]
-            for name, T in (("odometry", self.T_odo_rover), ("corrected", self.T_map_rover), ("online", self.T_map_rover_online)):
+            for name, T in (
+                ("odometry", self.T_odo_rover),
+                ("corrected", self.T_map_rover),
+                ("online", self.T_map_rover_online),
+            ):
                 out[f"ate_{name}"] = ate(T[:, :3, 3], gt)
-            out["final_error_odometry_m"] = round(float(np.linalg.norm(self.T_odo_rover[-1, :3, 3] - gt[-1])), 4)
-            out["final_error_corrected_m"] = round(float(np.linalg.norm(self.T_map_rover[-1, :3, 3] - gt[-1])), 4)
+            out["final_error_odometry_m"] = round(
+                float(np.linalg.norm(self.T_odo_rover[-1, :3, 3] - gt[-1])), 4
+            )
+            out["final_error_corrected_m"] = round(
+                float(np.linalg.norm(self.T_map_rover[-1, :3, 3] - gt[-1])), 4
+            )
         total = sum(self.timings_s.values())
         n = max(self.num_image_frames, 1)
         out["time_total_s"] = round(total, 3)
-        out["time_per_image_frame_ms"] = {k: round(1000 * v / n, 2) for k, v in self.timings_s.items()}
+        out["time_per_image_frame_ms"] = {
+            k: round(1000 * v / n, 2) for k, v in self.timings_s.items()
+        }
         out["time_stage_total_s"] = {k: round(v, 3) for k, v in self.timings_s.items()}
-        out["real_time_fraction"] = round(total / self.duration_s, 4) if self.duration_s > 0 else None
+        out["real_time_fraction"] = (
+            round(total / self.duration_s, 4) if self.duration_s > 0 else None
+        )
         return out
 
 
@@ -373,17 +470,26 @@ class LoopState:
     a caller can localize elsewhere) and end with the reason "no reference map".
     """
 
-    def __init__(self, reference: LandmarkMap | None, config: LoopConfig | None = None,
-                 localization: LocalizationConfig | None = None, odometry: str | OdometryBounds | None = None):  # fmt: skip
+    def __init__(
+        self,
+        reference: LandmarkMap | None,
+        config: LoopConfig | None = None,
+        localization: LocalizationConfig | None = None,
+        odometry: str | OdometryBounds | None = None,
+    ):
         from lunarloc.localization.warmup import warm_up
 
         warm_up()  # compile before any stage timer starts: compile time is not run time
         if reference is not None and not isinstance(reference, LandmarkMap):
             raise InputError("reference must be a LandmarkMap or None")
         if reference is not None and len(reference) < 3:
-            raise InputError(f"reference map has {len(reference)} landmark(s); at least 3 are needed")
+            raise InputError(
+                f"reference map has {len(reference)} landmark(s); at least 3 are needed"
+            )
         self.has_reference = reference is not None
-        self.reference = reference if reference is not None else LandmarkMap(np.zeros((0, 3)), frame="map")
+        self.reference = (
+            reference if reference is not None else LandmarkMap(np.zeros((0, 3)), frame="map")
+        )
         self.config = config or LoopConfig()
         self._localization = localization or loop_localization_config()
         self.set_odometry(odometry)
@@ -397,7 +503,9 @@ class LoopState:
         self.T_odo_rover: list[np.ndarray] = []
         self.T_map_rover_online: list[np.ndarray] = []
         self.T_map_rover_true: list[np.ndarray | None] = []
-        self._q_prev: np.ndarray | None = None  # the previous frame's odometry (x, y, z, roll, pitch, yaw)
+        self._q_prev: np.ndarray | None = (
+            None  # the previous frame's odometry (x, y, z, roll, pitch, yaw)
+        )
         self.attempts: list[Attempt] = []
         self.timings = {"detection": 0.0, "mapping": 0.0, "association": 0.0, "fusion": 0.0}
         self._dist = 0.0
@@ -411,17 +519,30 @@ class LoopState:
         ``record:odometry``, ...; or its bounds directly; None: not known), whose bounds the
         windows state under ``window_bounds = "source"`` (:func:`window_localization`)."""
         if odometry is not None and not isinstance(odometry, (str, OdometryBounds)):
-            raise InputError(f"odometry must be a source name or OdometryBounds, got {type(odometry).__name__}")
+            raise InputError(
+                f"odometry must be a source name or OdometryBounds, got {type(odometry).__name__}"
+            )
         self.odometry = odometry
-        bounds = odometry if not isinstance(odometry, str) else self.config.odometry_bounds.for_source(odometry)
+        bounds = (
+            odometry
+            if not isinstance(odometry, str)
+            else self.config.odometry_bounds.for_source(odometry)
+        )
         self.localization = window_localization(self._localization, self.config, bounds)
         # the source's bounds describe the raw odometry: once the pose graph has calibrated it
         # (calibrated_after_fixes accepted fixes), what is left of a window's bend is fitted
-        from_source = (self.config.window_bounds is WindowBounds.SOURCE and bounds is not None
-                       and not self._localization.odometry_bounds_stated)  # fmt: skip
-        self._calibrated_localization = (replace(self.localization, odometry_scale_error=None,
-                                                 odometry_heading_drift_deg_per_m=None)
-                                         if from_source else self.localization)  # fmt: skip
+        from_source = (
+            self.config.window_bounds is WindowBounds.SOURCE
+            and bounds is not None
+            and not self._localization.odometry_bounds_stated
+        )
+        self._calibrated_localization = (
+            replace(
+                self.localization, odometry_scale_error=None, odometry_heading_drift_deg_per_m=None
+            )
+            if from_source
+            else self.localization
+        )
 
     def window_localization(self) -> LocalizationConfig:
         """The localization the next window is judged with: :attr:`localization`, or once
@@ -440,8 +561,15 @@ class LoopState:
         return self.graph.keyframes
 
     # -------------------------------------------------------------- per frame
-    def step(self, frame: int, t: float, T_odo_rover: np.ndarray, detections_rover: np.ndarray | None = None,
-             T_map_rover_true: np.ndarray | None = None, keyframe: bool | None = None) -> Attempt | None:  # fmt: skip
+    def step(
+        self,
+        frame: int,
+        t: float,
+        T_odo_rover: np.ndarray,
+        detections_rover: np.ndarray | None = None,
+        T_map_rover_true: np.ndarray | None = None,
+        keyframe: bool | None = None,
+    ) -> Attempt | None:
         """Feed one frame (its odometry pose, 4x4); returns the localization attempt made at it,
         if any. The frame's odometry, online estimate and ground truth are kept as 4x4 transforms."""
         T_odo_rover = np.array(T_odo_rover, float)
@@ -455,26 +583,39 @@ class LoopState:
         self.frames.append(int(frame))
         self.times.append(float(t))
         self.T_odo_rover.append(T_odo_rover)
-        self.T_map_rover_true.append(None if T_map_rover_true is None else np.array(T_map_rover_true, float))
+        self.T_map_rover_true.append(
+            None if T_map_rover_true is None else np.array(T_map_rover_true, float)
+        )
         is_kf = (detections_rover is not None) if keyframe is None else keyframe
         attempt = None
         if is_kf or not self.graph.keyframes:
-            attempt = self._keyframe(frame, t, q, np.zeros((0, 3)) if detections_rover is None else detections_rover)
+            attempt = self._keyframe(
+                frame, t, q, np.zeros((0, 3)) if detections_rover is None else detections_rover
+            )
         self.T_map_rover_online.append(self.T_map_odo @ T_odo_rover)
         return attempt
 
     def _keyframe(self, frame, t, q, det) -> Attempt | None:
         t0 = time.perf_counter()
-        k = self.graph.add_keyframe(t, (q[0], q[1], q[2], q[5]), self._moving_since_kf if self.graph.keyframes else None,
-                                    frame=int(frame), roll_pitch_rad=(float(q[3]), float(q[4])),
-                                    detections_rover=det, path_m=self._dist)  # fmt: skip
+        k = self.graph.add_keyframe(
+            t,
+            (q[0], q[1], q[2], q[5]),
+            self._moving_since_kf if self.graph.keyframes else None,
+            frame=int(frame),
+            roll_pitch_rad=(float(q[3]), float(q[4])),
+            detections_rover=det,
+            path_m=self._dist,
+        )
         self._moving_since_kf = 0.0
         self.timings["fusion"] += time.perf_counter() - t0
         if self._last_attempt_t is None:
             self._last_attempt_t = t
         attempt = None
         cfg = self.config
-        if self._dist - self._last_attempt_dist >= cfg.localize_every_m or t - self._last_attempt_t >= cfg.localize_every_s:
+        if (
+            self._dist - self._last_attempt_dist >= cfg.localize_every_m
+            or t - self._last_attempt_t >= cfg.localize_every_s
+        ):
             self._last_attempt_dist, self._last_attempt_t = self._dist, t
             attempt = self._attempt(k, frame, t)
             self.attempts.append(attempt)
@@ -488,7 +629,9 @@ class LoopState:
         """Indices of the keyframes whose detections form keyframe k's local map: those of the
         last `length_m` (default ``window_m``) metres of odometry path up to it (and any after it)."""
         path = np.array([kf.path_m for kf in self.graph.keyframes])
-        return np.flatnonzero(path >= path[k] - (self.config.window_m if length_m is None else length_m))
+        return np.flatnonzero(
+            path >= path[k] - (self.config.window_m if length_m is None else length_m)
+        )
 
     def local_map(self, k: int, poses4: np.ndarray):
         """Keyframe k's local map, its detections placed with `poses4`: (window keyframes,
@@ -507,13 +650,29 @@ class LoopState:
         while True:
             win = self.window(k, length)
             P, F, I = self.window_points(win, poses4, with_index=True)
-            veh = aggregate_detections(P, F, cfg.aggregation, frame="estimate", detection_arc_m=detection_arcs_m(
-                poses4[win, :3], win, F)) if len(P) else LandmarkMap(np.zeros((0, 3)))  # arcs along the window's path
-            if len(veh) >= cfg.window_target_landmarks or length >= cfg.window_max_m or win[0] == 0 or not grows:
+            veh = (
+                aggregate_detections(
+                    P,
+                    F,
+                    cfg.aggregation,
+                    frame="estimate",
+                    detection_arc_m=detection_arcs_m(poses4[win, :3], win, F),
+                )
+                if len(P)
+                else LandmarkMap(np.zeros((0, 3)))
+            )  # arcs along the window's path
+            if (
+                len(veh) >= cfg.window_target_landmarks
+                or length >= cfg.window_max_m
+                or win[0] == 0
+                or not grows
+            ):
                 return win, P, F, I, veh, length
             length = min(length + cfg.window_m / 2, cfg.window_max_m)
 
-    def window_points(self, keyframes: np.ndarray, poses4: np.ndarray | None, with_index: bool = False):
+    def window_points(
+        self, keyframes: np.ndarray, poses4: np.ndarray | None, with_index: bool = False
+    ):
         """Detections of `keyframes` placed with `poses4` (estimate) or odometry (None):
         (points (N, 3), keyframe of each (N,)[, index of each within its keyframe (N,)])."""
         pts, fr, ix = [], [], []
@@ -583,7 +742,13 @@ class LoopState:
         try:
             # the pose is judged where it is used (the rover now, keyframe k) and the distance
             # travelled between inliers and rover is measured along the window's path
-            res = localize(ref, veh, self.window_localization(), query_xyz=poses[k : k + 1, :3], path_xyz=poses[win, :3])
+            res = localize(
+                ref,
+                veh,
+                self.window_localization(),
+                query_xyz=poses[k : k + 1, :3],
+                path_xyz=poses[win, :3],
+            )
         except LunarLocError as exc:
             att.time_association_s = time.perf_counter() - t0
             self.timings["association"] += att.time_association_s
@@ -604,7 +769,11 @@ class LoopState:
         inl = res.inliers
         Vp = veh.positions_xyz[inl[:, 0]]
         extent = max(float(np.max(np.linalg.norm(Vp[:, :2] - Vp[:, :2].mean(axis=0), axis=1))), 1.0)
-        sig_m = float(res.predicted_error_m) if math.isfinite(res.predicted_error_m) else cfg.fix_sigma_fallback_m
+        sig_m = (
+            float(res.predicted_error_m)
+            if math.isfinite(res.predicted_error_m)
+            else cfg.fix_sigma_fallback_m
+        )
         g = self.graph.gate(k, fix4, sig_m, sig_m / extent)
         att.gate_d2 = g.d2
         att.correction_m = float(np.linalg.norm(g.innovation[:3]))
@@ -627,8 +796,16 @@ class LoopState:
         self.timings["fusion"] += time.perf_counter() - t0
         return att
 
-    def _add_observations(self, veh: LandmarkMap, inl: np.ndarray, ref: LandmarkMap, P, F, I,
-                          ref_index: np.ndarray | None = None) -> None:  # fmt: skip
+    def _add_observations(
+        self,
+        veh: LandmarkMap,
+        inl: np.ndarray,
+        ref: LandmarkMap,
+        P,
+        F,
+        I,
+        ref_index: np.ndarray | None = None,
+    ) -> None:
         """Tie every window detection of an inlier vehicle landmark to its reference landmark
         (`ref_index`: the index of each of `ref`'s landmarks in the full reference, which names
         the landmark whose error its ties share; its sigma is the one the reference states,
@@ -649,12 +826,26 @@ class LoopState:
         rock = (np.arange(len(ref)) if ref_index is None else np.asarray(ref_index))[inl[lm, 1]]
         sig_xy, sig_z = self.reference_sigmas
         sig = np.column_stack([sig_xy[rock], sig_xy[rock], sig_z[rock]])
-        self.graph.add_landmark_observations(keys, kf, p_rover, rp, targets, self.config.fusion.observation_sigma_m,
-                                             rock.tolist(), sig)  # fmt: skip
+        self.graph.add_landmark_observations(
+            keys,
+            kf,
+            p_rover,
+            rp,
+            targets,
+            self.config.fusion.observation_sigma_m,
+            rock.tolist(),
+            sig,
+        )
 
     # -------------------------------------------------------------- end of run
-    def finish(self, num_image_frames: int, source: str = "", rocks=None, example=None,
-               config: dict | None = None) -> LoopResult:  # fmt: skip
+    def finish(
+        self,
+        num_image_frames: int,
+        source: str = "",
+        rocks=None,
+        example=None,
+        config: dict | None = None,
+    ) -> LoopResult:
         """Final pose-graph solve and the smoothed (continuous) trajectory. `config`: the
         run's full configuration as written to its run folder."""
         t0 = time.perf_counter()
@@ -671,16 +862,45 @@ class LoopState:
         P, F = self.window_points(all_kf, poses)
         Po, Fo = self.window_points(all_kf, None)
         agg = self.config.aggregation
-        vmap = aggregate_detections(P, F, agg, frame="map") if len(P) else LandmarkMap(np.zeros((0, 3)), frame="map")
-        vodo = aggregate_detections(Po, Fo, agg, frame="odometry") if len(Po) else LandmarkMap(np.zeros((0, 3)), frame="odometry")
-        gt = None if any(g is None for g in self.T_map_rover_true) else np.asarray(self.T_map_rover_true).reshape(-1, 4, 4)
-        return LoopResult(frames, times, T_odo, np.asarray(self.T_map_rover_online).reshape(-1, 4, 4), corrected, gt,
-                          self.attempts, vmap, vodo,
-                          self.reference, dict(self.timings), num_image_frames, config or {}, self.graph.scale,
-                          rocks, example, source)  # fmt: skip
+        vmap = (
+            aggregate_detections(P, F, agg, frame="map")
+            if len(P)
+            else LandmarkMap(np.zeros((0, 3)), frame="map")
+        )
+        vodo = (
+            aggregate_detections(Po, Fo, agg, frame="odometry")
+            if len(Po)
+            else LandmarkMap(np.zeros((0, 3)), frame="odometry")
+        )
+        gt = (
+            None
+            if any(g is None for g in self.T_map_rover_true)
+            else np.asarray(self.T_map_rover_true).reshape(-1, 4, 4)
+        )
+        return LoopResult(
+            frames,
+            times,
+            T_odo,
+            np.asarray(self.T_map_rover_online).reshape(-1, 4, 4),
+            corrected,
+            gt,
+            self.attempts,
+            vmap,
+            vodo,
+            self.reference,
+            dict(self.timings),
+            num_image_frames,
+            config or {},
+            self.graph.scale,
+            rocks,
+            example,
+            source,
+        )
 
 
-def interpolate_corrections(T_kf: np.ndarray, kf_t: np.ndarray, times: np.ndarray, T_odo_rover: np.ndarray) -> np.ndarray:
+def interpolate_corrections(
+    T_kf: np.ndarray, kf_t: np.ndarray, times: np.ndarray, T_odo_rover: np.ndarray
+) -> np.ndarray:
     """Apply per-keyframe corrections T_map_odo (K, 4, 4), linearly interpolated in time
     (translation and yaw), to every frame's odometry pose (F, 4, 4): a continuous trajectory
     T_map_rover (F, 4, 4)."""
@@ -690,7 +910,9 @@ def interpolate_corrections(T_kf: np.ndarray, kf_t: np.ndarray, times: np.ndarra
     out = np.empty((len(times), 4, 4))
     for n in range(len(times)):
         c, s = math.cos(ya[n]), math.sin(ya[n])
-        T = np.array([[c, -s, 0, tx[0][n]], [s, c, 0, tx[1][n]], [0, 0, 1, tx[2][n]], [0, 0, 0, 1.0]])
+        T = np.array(
+            [[c, -s, 0, tx[0][n]], [s, c, 0, tx[1][n]], [0, 0, 1, tx[2][n]], [0, 0, 0, 1.0]]
+        )
         out[n] = T @ T_odo_rover[n]
     return out
 
@@ -699,5 +921,7 @@ def stated_sigmas(m: LandmarkMap) -> tuple[np.ndarray, np.ndarray]:
     """A map's per-landmark (horizontal per axis, vertical) 1-sigma as it states them, 0 where
     it states none (a catalogue without sigmas, a simulated site's exact ``rocks.csv``)."""
     n = len(m)
-    return (np.zeros(n) if m.sigma_xy_m is None else m.sigma_xy_m.copy(),
-            np.zeros(n) if m.sigma_z_m is None else m.sigma_z_m.copy())  # fmt: skip
+    return (
+        np.zeros(n) if m.sigma_xy_m is None else m.sigma_xy_m.copy(),
+        np.zeros(n) if m.sigma_z_m is None else m.sigma_z_m.copy(),
+    )

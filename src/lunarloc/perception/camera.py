@@ -140,7 +140,9 @@ def ipex_rig(camera: PinholeCamera | None = None) -> dict[str, CameraMount]:
     }
 
 
-def mounts_from_archive_row(rows: Mapping[str, Mapping], camera: PinholeCamera) -> dict[str, CameraMount]:
+def mounts_from_archive_row(
+    rows: Mapping[str, Mapping], camera: PinholeCamera
+) -> dict[str, CameraMount]:
     """Camera mounts from an archive frame's camera-table rows (camera_x..camera_yaw,
     the camera body pose in the rover frame); cameras without a pose use the IPEx rig."""
     rig = ipex_rig(camera)

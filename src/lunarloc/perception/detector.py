@@ -236,7 +236,10 @@ class _PairScene:
     def stereo_rules(self) -> bool:
         """Height blobs with STEREO_POINTS centres: the strips, the tentatives and the
         small-rock stage apply."""
-        return self.fc is self.config.height_filters and self.config.centre.method is CentreMethod.STEREO_POINTS
+        return (
+            self.fc is self.config.height_filters
+            and self.config.centre.method is CentreMethod.STEREO_POINTS
+        )
 
     @property
     def tentative_on(self) -> bool:
@@ -250,15 +253,21 @@ class _PairScene:
             self._ground_points = self.hm.points_rover[np.isfinite(self.hm.depth)][::8]
         return self._ground_points
 
-    def admitted_elongated(self, reason: RejectReason | None, st: MaskStats) -> tuple[bool, bool, bool]:
+    def admitted_elongated(
+        self, reason: RejectReason | None, st: MaskStats
+    ) -> tuple[bool, bool, bool]:
         """(strip, raised, long): whether a mask the image filters rejected as elongated goes on
         as a flat strip, a raised strip candidate, or a tentative candidate elongated beyond the
         strip limits (perception/rules.py)."""
         r = self.config.rules
         strip = is_flat_strip(reason, st, self.fc, r) and self.stereo_rules
         raised = is_raised_strip(reason, st, self.fc, r) and self.stereo_rules
-        long_ = (self.tentative_on and not (strip or raised) and reason is RejectReason.ELONGATED
-                 and st.eig_ratio <= self.config.tentative.max_eig_ratio)
+        long_ = (
+            self.tentative_on
+            and not (strip or raised)
+            and reason is RejectReason.ELONGATED
+            and st.eig_ratio <= self.config.tentative.max_eig_ratio
+        )
         return strip, raised, long_
 
 
@@ -268,7 +277,9 @@ def _full_size_depth(hm: HeightMap, shape: tuple[int, int]) -> np.ndarray:
     return cv2.resize(hm.depth, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST)
 
 
-def _drop_kept(dets: list[Detection], kept_recs: list[MaskRecord], indices, reason: RejectReason) -> None:
+def _drop_kept(
+    dets: list[Detection], kept_recs: list[MaskRecord], indices, reason: RejectReason
+) -> None:
     """Remove the detections at `indices` (and their records from `kept_recs`), setting the
     records' reason."""
     for k in sorted(indices, reverse=True):
@@ -295,7 +306,9 @@ class Detector:
         self.config = config or DetectorConfig()
         self.camera = camera or PinholeCamera()
         self.segmenter = segmenter or make_segmenter(
-            self.config.segmenter, weights=self.config.weights, classical=self.config.classical,
+            self.config.segmenter,
+            weights=self.config.weights,
+            classical=self.config.classical,
             imgsz=self.config.fastsam_imgsz_px,
         )
         self.stereo = StereoMatcher(self.config.stereo, self.camera)
@@ -308,7 +321,9 @@ class Detector:
             getattr(self.segmenter, "uses_stereo", False)
         )
 
-    def height_map(self, left: np.ndarray, right: np.ndarray, T_rover_optical: np.ndarray) -> HeightMap:
+    def height_map(
+        self, left: np.ndarray, right: np.ndarray, T_rover_optical: np.ndarray
+    ) -> HeightMap:
         """Low-resolution disparity, rover-frame points and heights above the local ground."""
         sky = self.config.classical.sky_level
         v0 = first_ground_row(left, sky)
@@ -316,21 +331,45 @@ class Detector:
         k = self.config.height_stereo.downscale
         nd = self.height_stereo.num_disparities_lowres
         hm = ground_height_map(
-            disp, k, self.camera, self.height_stereo.baseline_m, T_rover_optical, self.config.ground, nd - 1.0
+            disp,
+            k,
+            self.camera,
+            self.height_stereo.baseline_m,
+            T_rover_optical,
+            self.config.ground,
+            nd - 1.0,
         )
         if self.config.level.from_stereo:
             n = ground_plane(hm.points_rover, hm.depth, self.config.small_rocks.ground_range_m)
-            if n is not None and np.degrees(np.arccos(np.clip(n[2], -1.0, 1.0))) > self.config.level.min_deg:
+            if (
+                n is not None
+                and np.degrees(np.arccos(np.clip(n[2], -1.0, 1.0))) > self.config.level.min_deg
+            ):
                 T_level_rover = np.eye(4)
                 T_level_rover[:3, :3] = _rotation_onto_z(n)
-                hm = ground_height_map(disp, k, self.camera, self.height_stereo.baseline_m,
-                                       T_level_rover @ T_rover_optical, self.config.ground, nd - 1.0)
+                hm = ground_height_map(
+                    disp,
+                    k,
+                    self.camera,
+                    self.height_stereo.baseline_m,
+                    T_level_rover @ T_rover_optical,
+                    self.config.ground,
+                    nd - 1.0,
+                )
                 hm.T_level_rover = T_level_rover
         hm.valid_u0 = 0 if self.config.height_stereo.full_width else nd * k
         return hm
 
-    def _fullres_points(self, L, right, m, d_lr: float, T_rover_optical: np.ndarray, min_points: int = 5,
-                        disparity_out: dict | None = None):
+    def _fullres_points(
+        self,
+        L,
+        right,
+        m,
+        d_lr: float,
+        T_rover_optical: np.ndarray,
+        min_points: int = 5,
+        disparity_out: dict | None = None,
+    ):
         """Rover-frame points of a mask from a full-resolution SGBM match in a narrow
         band around its low-resolution disparity `d_lr` (full-res pixels); the mask is
         eroded by points.erode_px first. None when too few pixels match.
@@ -338,9 +377,18 @@ class Detector:
         disparity, NaN invalid) and "mask" (the eroded crop) when the match ran."""
         cv2 = import_cv2()
         cfg = self.config
-        d = mask_disparity_fullres(L, right, m.crop, m.u0, m.v0, d_lr, cfg.points.span_px, cfg.points.block_size,
-                                   p1_per_block_px2=cfg.points.p1_per_block_px2,
-                                   p2_per_block_px2=cfg.points.p2_per_block_px2)
+        d = mask_disparity_fullres(
+            L,
+            right,
+            m.crop,
+            m.u0,
+            m.v0,
+            d_lr,
+            cfg.points.span_px,
+            cfg.points.block_size,
+            p1_per_block_px2=cfg.points.p1_per_block_px2,
+            p2_per_block_px2=cfg.points.p2_per_block_px2,
+        )
         if d is None:
             return None
         crop = np.asarray(m.crop, bool)
@@ -363,7 +411,9 @@ class Detector:
         """True when the detection's map position lies in the lander's footprint."""
         if lander_xy is None or det.p_map is None:
             return False
-        return bool(on_lander(det.p_map[None], np.eye(4), lander_xy, self.config.rules.lander_radius_m)[0])
+        return bool(
+            on_lander(det.p_map[None], np.eye(4), lander_xy, self.config.rules.lander_radius_m)[0]
+        )
 
     # ------------------------------------------------------------------ one pair
     def _lift_centroid(self, cu: float, cv: float, D: float, s: float, T_rover_optical: np.ndarray):
@@ -411,7 +461,15 @@ class Detector:
             )
         if self.uses_height and right is not None:
             return self._detect_pair_height(
-                L, right, T_rover_optical, T_map_rover, camera_name, keep_depth, tm, lander_xy, keep_tentative
+                L,
+                right,
+                T_rover_optical,
+                T_map_rover,
+                camera_name,
+                keep_depth,
+                tm,
+                lander_xy,
+                keep_tentative,
             )
         t0 = time.perf_counter()
         masks = self.segmenter.segment(L)
@@ -438,7 +496,14 @@ class Detector:
             m = masks[rec.mask_index]
             cu, cv = rec.stats.centroid_uv
             D = (
-                _mask_depth(depth, m, cu, cv, cfg.centre.depth_half_window_px, cfg.centre.depth_fallback_mask)
+                _mask_depth(
+                    depth,
+                    m,
+                    cu,
+                    cv,
+                    cfg.centre.depth_half_window_px,
+                    cfg.centre.depth_fallback_mask,
+                )
                 if depth is not None
                 else float("nan")
             )
@@ -474,31 +539,71 @@ class Detector:
         the segmenter when it uses stereo, and the centre estimate)."""
         c0 = time.process_time()
         t0 = time.perf_counter()
-        hm, T_rover_optical, T_map_rover, T_rover_level = self._levelled_height_map(L, right, T_rover_optical,
-                                                                                   T_map_rover)
+        hm, T_rover_optical, T_map_rover, T_rover_level = self._levelled_height_map(
+            L, right, T_rover_optical, T_map_rover
+        )
         t1 = time.perf_counter()
         masks, fc = self._segment_blobs(L, hm)
         t2 = time.perf_counter()
-        scene = _PairScene(self.config, L, right, hm, masks.image_shape, fc, T_rover_optical, T_map_rover, camera_name,
-                           lander_xy)
+        scene = _PairScene(
+            self.config,
+            L,
+            right,
+            hm,
+            masks.image_shape,
+            fc,
+            T_rover_optical,
+            T_map_rover,
+            camera_name,
+            lander_xy,
+        )
         records, dets, kept_recs = self._judge_masks(scene, masks)
         if self.config.small_rocks.enabled and scene.stereo_rules and np.isfinite(hm.depth).any():
             # before the duplicate test: a small-rock detection beside a larger one is dropped there
-            self._add_small_rocks(L, right, hm, masks, records, dets, kept_recs, T_rover_optical, T_map_rover,
-                                  camera_name, lander_xy)
-        _drop_kept(dets, kept_recs, _duplicates_firm_first(dets, self.config.rules.duplicate_overlap_ratio),
-                   RejectReason.DUPLICATE)
+            self._add_small_rocks(
+                L,
+                right,
+                hm,
+                masks,
+                records,
+                dets,
+                kept_recs,
+                T_rover_optical,
+                T_map_rover,
+                camera_name,
+                lander_xy,
+            )
+        _drop_kept(
+            dets,
+            kept_recs,
+            _duplicates_firm_first(dets, self.config.rules.duplicate_overlap_ratio),
+            RejectReason.DUPLICATE,
+        )
         if not keep_tentative:
-            _drop_kept(dets, kept_recs, [k for k, d in enumerate(dets) if d.tentative], RejectReason.TENTATIVE)
+            _drop_kept(
+                dets,
+                kept_recs,
+                [k for k, d in enumerate(dets) if d.tentative],
+                RejectReason.TENTATIVE,
+            )
         t3 = time.perf_counter()
         for k, v in (("segment", t2 - t1), ("filter", t3 - t2), ("stereo", t1 - t0)):
             tm[k] = tm.get(k, 0.0) + v
         # process CPU time of all three stages (all threads; less load-sensitive than wall)
         tm["cpu"] = tm.get("cpu", 0.0) + time.process_time() - c0
         if T_rover_level is not None:  # back from the levelled frame to the rover frame
-            dets[:] = [replace(d, p_rover=transform_points(T_rover_level, d.p_rover[None])[0]) for d in dets]
-        return PairResult(camera_name, masks, records, dets, _full_size_depth(hm, L.shape) if keep_depth else None,
-                          hm if keep_depth else None)
+            dets[:] = [
+                replace(d, p_rover=transform_points(T_rover_level, d.p_rover[None])[0])
+                for d in dets
+            ]
+        return PairResult(
+            camera_name,
+            masks,
+            records,
+            dets,
+            _full_size_depth(hm, L.shape) if keep_depth else None,
+            hm if keep_depth else None,
+        )
 
     def _judge_masks(self, scene: _PairScene, masks: InstanceMasks):
         """Every mask judged (:meth:`_judge_mask`): (records, detections, the record of each
@@ -514,7 +619,9 @@ class Detector:
                 kept_recs.append(rec)
         return records, dets, kept_recs
 
-    def _levelled_height_map(self, L, right, T_rover_optical: np.ndarray, T_map_rover: np.ndarray | None):
+    def _levelled_height_map(
+        self, L, right, T_rover_optical: np.ndarray, T_map_rover: np.ndarray | None
+    ):
         """The pair's height map, and the frames the pair is worked in: (height map,
         T_rover_optical, T_map_rover, T_rover_level). When the height map is levelled
         (LevelConfig), "rover" is the levelled frame and T_rover_level takes points back to the
@@ -535,11 +642,19 @@ class Detector:
         if not getattr(self.segmenter, "uses_stereo", False):
             return self.segmenter.segment(L), cfg.filters
         masks = self.segmenter.segment(L, height=hm)
-        masks = split_at_depth_steps(masks, hm, cfg.depth_split.ratio, cfg.classical.height_min_area_px,
-                                     cfg.classical.height_seed_m, cfg.depth_split.step_px)
+        masks = split_at_depth_steps(
+            masks,
+            hm,
+            cfg.depth_split.ratio,
+            cfg.classical.height_min_area_px,
+            cfg.classical.height_seed_m,
+            cfg.depth_split.step_px,
+        )
         return masks, cfg.height_filters
 
-    def _judge_mask(self, scene: _PairScene, i: int, m: InstanceMask) -> tuple[MaskRecord, Detection | None]:
+    def _judge_mask(
+        self, scene: _PairScene, i: int, m: InstanceMask
+    ) -> tuple[MaskRecord, Detection | None]:
         """One mask of a pair: its record and its detection (None when rejected). The steps:
         image filters (elongated strips may go on), depth and size, then, for STEREO_POINTS,
         the centre and the measures the rejection rules judge (perception/rules.py), and last
@@ -553,22 +668,35 @@ class Detector:
             return rec, None
         rows, cols = scene.hm.lowres_index(m)
         ok = np.isfinite(scene.hm.depth[rows, cols])
-        D, s, mid, tent = self._depth_and_size(scene, rec, st, rows, cols, ok, strip or raised or long_, long_)
+        D, s, mid, tent = self._depth_and_size(
+            scene, rec, st, rows, cols, ok, strip or raised or long_, long_
+        )
         if rec.reason is not None:
             return rec, None
         if cfg.centre.method is CentreMethod.STEREO_POINTS:
-            D, p, p_rover, blob = self._measure_blob(scene, rec, m, st, rows, cols, ok, D, strip, raised)
+            D, p, p_rover, blob = self._measure_blob(
+                scene, rec, m, st, rows, cols, ok, D, strip, raised
+            )
             hard, soft = fired_rules(blob, cfg.rules)
             if hard or (soft and not (mid and set(soft) <= TENTATIVE_RULES)):
                 rec.reason = RejectReason.NOT_A_ROCK
                 return rec, None
-            det = replace(_detection(scene.camera_name, st, D, s, blob.radius_m, p, p_rover, scene.T_map_rover),
-                          height_m=blob.top_m, height_front_m=blob.front_m, height_ring_m=blob.ring_m,
-                          height_quadric_m=blob.quadric_m, nearer_ring_fraction=blob.nearer_fraction,
-                          extension_ratio=blob.extension_ratio, disparity_roughness=blob.roughness,
-                          needs_confirmation=_needs_confirmation(blob.top_m, blob.extension_ratio, scene.hm.height,
-                                                                 rows, cols, cfg),
-                          tentative="+".join(filter(None, (tent, *soft))))
+            det = replace(
+                _detection(
+                    scene.camera_name, st, D, s, blob.radius_m, p, p_rover, scene.T_map_rover
+                ),
+                height_m=blob.top_m,
+                height_front_m=blob.front_m,
+                height_ring_m=blob.ring_m,
+                height_quadric_m=blob.quadric_m,
+                nearer_ring_fraction=blob.nearer_fraction,
+                extension_ratio=blob.extension_ratio,
+                disparity_roughness=blob.roughness,
+                needs_confirmation=_needs_confirmation(
+                    blob.top_m, blob.extension_ratio, scene.hm.height, rows, cols, cfg
+                ),
+                tentative="+".join(filter(None, (tent, *soft))),
+            )
         else:
             p, p_rover, R_est = self._lift_centroid(*st.centroid_uv, D, s, scene.T_rover_optical)
             det = _detection(scene.camera_name, st, D, s, R_est, p, p_rover, scene.T_map_rover)
@@ -578,8 +706,17 @@ class Detector:
         rec.tentative = det.tentative
         return rec, det
 
-    def _depth_and_size(self, scene: _PairScene, rec: MaskRecord, st: MaskStats, rows, cols, ok, elongated_ok: bool,
-                        long_: bool) -> tuple[float, float, bool, str]:
+    def _depth_and_size(
+        self,
+        scene: _PairScene,
+        rec: MaskRecord,
+        st: MaskStats,
+        rows,
+        cols,
+        ok,
+        elongated_ok: bool,
+        long_: bool,
+    ) -> tuple[float, float, bool, str]:
         """A blob's depth (median of its valid low-resolution depths) and size s_i, judged by
         the range and size filters (an elongated blob let through is not judged elongated
         again); sets the record's depth, size and reason. Returns (depth m, s_i m, in the
@@ -591,7 +728,9 @@ class Detector:
         fc = replace(scene.fc, tau_elong=st.eig_ratio) if elongated_ok else scene.fc
         reason, s = classify_mask(st, D, self.camera.alpha, fc)
         rec.depth_m, rec.size_m, rec.reason = D, s, reason
-        mid = bool(scene.tentative_on and cfg.tentative.min_range_m <= D <= cfg.tentative.max_range_m)
+        mid = bool(
+            scene.tentative_on and cfg.tentative.min_range_m <= D <= cfg.tentative.max_range_m
+        )
         tent = "elongated" if long_ else ""
         if reason is RejectReason.TOO_SMALL and mid and s > 0:
             tent, rec.reason = "+".join(filter(None, (tent, "too_small"))), None
@@ -599,8 +738,19 @@ class Detector:
             rec.reason = RejectReason.ELONGATED
         return D, s, mid, tent
 
-    def _measure_blob(self, scene: _PairScene, rec: MaskRecord, m: InstanceMask, st: MaskStats, rows, cols, ok,
-                      D: float, strip: bool, raised: bool):
+    def _measure_blob(
+        self,
+        scene: _PairScene,
+        rec: MaskRecord,
+        m: InstanceMask,
+        st: MaskStats,
+        rows,
+        cols,
+        ok,
+        D: float,
+        strip: bool,
+        raised: bool,
+    ):
         """STEREO_POINTS: a kept blob's stereo points (full resolution when configured), its
         centre and radius, and what the rules judge it by. Returns (depth m, possibly refined;
         p_optical; p_rover; BlobMeasures)."""
@@ -612,7 +762,14 @@ class Detector:
             # full-resolution masked template match rescales the points' depths
             d_lr = float(np.median(hm.disparity[rows[ok], cols[ok]])) * hm.scale
             d_ref = refine_disparity(
-                L, right, m.crop, m.u0, m.v0, d_lr, cfg.points.refine_disparity_px, cfg.points.refine_erode_px
+                L,
+                right,
+                m.crop,
+                m.u0,
+                m.v0,
+                d_lr,
+                cfg.points.refine_disparity_px,
+                cfg.points.refine_erode_px,
             )
             if np.isfinite(d_ref) and d_ref > 0:
                 P_opt = transform_points(scene.T_optical_rover, P_rov) * (d_lr / d_ref)
@@ -622,8 +779,14 @@ class Detector:
         h_pts = hm.height[rows[ok], cols[ok]]
         fr_disp: dict = {}
         if cfg.points.full_resolution and P_rov.shape[0] >= 3:
-            fr = self._fullres_points(L, right, m, float(np.median(hm.disparity[rows[ok], cols[ok]])) * hm.scale,
-                                      T_rover_optical, disparity_out=fr_disp)
+            fr = self._fullres_points(
+                L,
+                right,
+                m,
+                float(np.median(hm.disparity[rows[ok], cols[ok]])) * hm.scale,
+                T_rover_optical,
+                disparity_out=fr_disp,
+            )
             if fr is not None:
                 ground = float(np.median(P_rov[:, 2] - h_pts))
                 P_rov, h_pts = fr, fr[:, 2] - ground
@@ -631,31 +794,62 @@ class Detector:
         if cfg.centre.radius_from_silhouette:
             # the silhouette's lateral spread: a disc or half-disc of radius R
             # has a horizontal standard deviation of R / 2
-            R_sil = cfg.centre.radius_per_size * float(np.sqrt(st.cov[0, 0])) * D * self.camera.alpha
-        p_rover, R_est = _centre_for_mask(P_rov, h_pts, T_rover_optical[:3, 3], cfg, R_sil, hm.points_rover, rows, cols)
+            R_sil = (
+                cfg.centre.radius_per_size * float(np.sqrt(st.cov[0, 0])) * D * self.camera.alpha
+            )
+        p_rover, R_est = _centre_for_mask(
+            P_rov, h_pts, T_rover_optical[:3, 3], cfg, R_sil, hm.points_rover, rows, cols
+        )
         p = transform_points(scene.T_optical_rover, p_rover[None])[0]
         q = cfg.centre.top_quantile
         vis_h = _visible_height(P_rov[:, 2], h_pts, q)
         top = float(np.quantile(h_pts, q))
-        h_sur = _height_above_surroundings(P_rov, p_rover, R_est, scene.ground_points, T_rover_optical[:3, 3], q)
+        h_sur = _height_above_surroundings(
+            P_rov, p_rover, R_est, scene.ground_points, T_rover_optical[:3, 3], q
+        )
         if np.isfinite(h_sur):
             vis_h = max(vis_h, h_sur)
-        ext = (_lateral_extension_ratio(hm.height, rows, cols) if R_est < cfg.rules.crest_max_radius_m or strip
-               else float("nan"))
-        rough = (disparity_roughness(fr_disp["disparity"], fr_disp["mask"], cfg.rules.roughness_step_px)
-                 if fr_disp and cfg.rules.max_disparity_roughness < 1.0 else float("nan"))
+        ext = (
+            _lateral_extension_ratio(hm.height, rows, cols)
+            if R_est < cfg.rules.crest_max_radius_m or strip
+            else float("nan")
+        )
+        rough = (
+            disparity_roughness(fr_disp["disparity"], fr_disp["mask"], cfg.rules.roughness_step_px)
+            if fr_disp and cfg.rules.max_disparity_roughness < 1.0
+            else float("nan")
+        )
         blob = BlobMeasures(
-            radius_m=R_est, visible_height_m=vis_h, top_m=top, front_m=h_sur,
+            radius_m=R_est,
+            visible_height_m=vis_h,
+            top_m=top,
+            front_m=h_sur,
             ring_m=_ring_height(hm.height, rows, cols),
             quadric_m=_height_above_quadric(hm.points_rover, rows, cols, P_rov, q),
-            nearer_fraction=_nearer_ring_fraction(hm.depth, rows, cols, D, cfg.rules.nearer_depth_ratio),
-            extension_ratio=ext, roughness=rough, strip=strip, raised=raised,
+            nearer_fraction=_nearer_ring_fraction(
+                hm.depth, rows, cols, D, cfg.rules.nearer_depth_ratio
+            ),
+            extension_ratio=ext,
+            roughness=rough,
+            strip=strip,
+            raised=raised,
         )
         return D, p, p_rover, blob
 
-    def _add_small_rocks(self, L, right, hm: HeightMap, masks: InstanceMasks, records: list[MaskRecord],
-                         dets: list[Detection], kept_recs: list[MaskRecord], T_rover_optical: np.ndarray, T_map_rover: np.ndarray | None,
-                         camera_name: str, lander_xy: np.ndarray | None) -> None:
+    def _add_small_rocks(
+        self,
+        L,
+        right,
+        hm: HeightMap,
+        masks: InstanceMasks,
+        records: list[MaskRecord],
+        dets: list[Detection],
+        kept_recs: list[MaskRecord],
+        T_rover_optical: np.ndarray,
+        T_map_rover: np.ndarray | None,
+        camera_name: str,
+        lander_xy: np.ndarray | None,
+    ) -> None:
         """The small-rock stage (DetectorConfig.small_rocks): its rocks join `dets` (and their
         masks `masks`, with records); candidates it judged no rock get records with the reason
         FLAT (too low above their local ground for its noise) or NOT_A_ROCK."""
@@ -669,15 +863,27 @@ class Detector:
             if r.reason not in (RejectReason.FLAT, RejectReason.TOO_SMALL, RejectReason.TOO_FAR):
                 m = masks[r.mask_index]
                 h, w = m.crop.shape
-                exclude[m.v0:m.v0 + h, m.u0:m.u0 + w] |= m.crop
+                exclude[m.v0 : m.v0 + h, m.u0 : m.u0 + w] |= m.crop
         import cv2
 
-        exclude = cv2.dilate(exclude.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0  # and their edges
+        exclude = (
+            cv2.dilate(exclude.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
+        )  # and their edges
         n_up = ground_plane(hm.points_rover, hm.depth, sc.ground_range_m)
         up_optical = T_rover_optical[:3, :3].T @ n_up if n_up is not None else None
-        found = detect_small_rocks(L, to_gray_u8(right), hm.disparity, hm.scale, self.camera,
-                                   self.height_stereo.baseline_m, sc, up_optical, exclude, keep_rejected=True,
-                                   height_lowres=hm.height)
+        found = detect_small_rocks(
+            L,
+            to_gray_u8(right),
+            hm.disparity,
+            hm.scale,
+            self.camera,
+            self.height_stereo.baseline_m,
+            sc,
+            up_optical,
+            exclude,
+            keep_rejected=True,
+            height_lowres=hm.height,
+        )
         alpha = self.camera.alpha
         ray_to = T_rover_optical[:3, 3]
         for rock in found:
@@ -699,9 +905,12 @@ class Detector:
             ray = med - ray_to
             p_rover = med + ray / (np.linalg.norm(ray) + 1e-12) * cfg.centre.range_factor * R_est
             p = transform_points(np.linalg.inv(T_rover_optical), p_rover[None])[0]
-            det = replace(_detection(camera_name, st, D, s, R_est, p, p_rover, T_map_rover),
-                          height_m=float(rock.top_m), small_rock=True,
-                          ground_noise_m=float(rock.noise_m))
+            det = replace(
+                _detection(camera_name, st, D, s, R_est, p, p_rover, T_map_rover),
+                height_m=float(rock.top_m),
+                small_rock=True,
+                ground_noise_m=float(rock.noise_m),
+            )
             if self._on_lander(det, lander_xy):
                 rec.reason = RejectReason.ON_LANDER
                 continue
@@ -765,7 +974,10 @@ def _rotation_onto_z(n: np.ndarray) -> np.ndarray:
 
 
 def on_lander(
-    p_rover: np.ndarray, T_frame_rover: np.ndarray, lander_xy: np.ndarray | None, radius_m: float = 2.2
+    p_rover: np.ndarray,
+    T_frame_rover: np.ndarray,
+    lander_xy: np.ndarray | None,
+    radius_m: float = 2.2,
 ) -> np.ndarray:
     """(N,) True for the points `p_rover` (N, 3; rover frame) whose horizontal distance
     to the lander's centre `lander_xy` (2,) is at most `radius_m`, with the rover at
@@ -805,8 +1017,14 @@ def _detection(camera_name, stats, D, s, R_est, p, p_rover, T_map_rover) -> Dete
     )
 
 
-def split_at_depth_steps(masks: InstanceMasks, height: HeightMap, step_ratio: float, min_area_px: int,
-                         seed_m: float, step_px: int = 1) -> InstanceMasks:
+def split_at_depth_steps(
+    masks: InstanceMasks,
+    height: HeightMap,
+    step_ratio: float,
+    min_area_px: int,
+    seed_m: float,
+    step_px: int = 1,
+) -> InstanceMasks:
     """Masks cut at their depth steps (see DetectorConfig.depth_split.ratio): each mask of
     `masks` (full resolution, from the low-resolution `height` map) whose valid depths'
     5-95 % quantiles differ by more than `step_ratio` is cut where a pixel lies farther
@@ -825,7 +1043,9 @@ def split_at_depth_steps(masks: InstanceMasks, height: HeightMap, step_ratio: fl
     return out
 
 
-def _depth_parts(m, height: HeightMap, step_ratio: float, min_area_px: int, seed_m: float, step_px: int = 1):
+def _depth_parts(
+    m, height: HeightMap, step_ratio: float, min_area_px: int, seed_m: float, step_px: int = 1
+):
     """The parts of mask `m` between its depth steps (list of InstanceMask), or None when
     it has fewer than two (see split_at_depth_steps)."""
     cv2 = import_cv2()
@@ -869,7 +1089,11 @@ def _depth_parts(m, height: HeightMap, step_ratio: float, min_area_px: int, seed
 
 
 def _centre_from_points(
-    P: np.ndarray, h: np.ndarray, cam_rover: np.ndarray, cfg: DetectorConfig, radius_m: float | None = None
+    P: np.ndarray,
+    h: np.ndarray,
+    cam_rover: np.ndarray,
+    cfg: DetectorConfig,
+    radius_m: float | None = None,
 ) -> tuple[np.ndarray, float]:
     """Rock centre (rover frame) and radius from the stereo points of its mask.
 
@@ -904,8 +1128,16 @@ def _ray_frame(P: np.ndarray, cam_rover: np.ndarray):
     return fwd, perp, rel @ fwd, rel @ perp
 
 
-def _centre_for_mask(P: np.ndarray, h: np.ndarray, cam_rover: np.ndarray, cfg: DetectorConfig, radius_m: float | None,
-                     points: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, float]:
+def _centre_for_mask(
+    P: np.ndarray,
+    h: np.ndarray,
+    cam_rover: np.ndarray,
+    cfg: DetectorConfig,
+    radius_m: float | None,
+    points: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+) -> tuple[np.ndarray, float]:
     """Rock centre (rover frame) and radius of a kept mask by cfg.centre.estimator: P, h,
     cam_rover and radius_m as for _centre_from_points; `points` (H, W, 3) the height
     map's rover-frame points and (rows, cols) the blob's low-resolution pixels (BLEND
@@ -915,8 +1147,14 @@ def _centre_for_mask(P: np.ndarray, h: np.ndarray, cam_rover: np.ndarray, cfg: D
     return _centre_from_points(P, h, cam_rover, cfg, radius_m)
 
 
-def _centre_blend(P: np.ndarray, h: np.ndarray, cam_rover: np.ndarray, cfg: DetectorConfig, radius_m: float | None,
-                  plane: np.ndarray | None) -> tuple[np.ndarray, float]:
+def _centre_blend(
+    P: np.ndarray,
+    h: np.ndarray,
+    cam_rover: np.ndarray,
+    cfg: DetectorConfig,
+    radius_m: float | None,
+    plane: np.ndarray | None,
+) -> tuple[np.ndarray, float]:
     """Rock centre (rover frame) and radius, CentreEstimator.BLEND. Along the viewing
     ray, (1 - w) x (median range + centre.range_factor x R) + w x (near +
     centre.near_range_factor x R), w = centre.near_weight, near = the points' range
@@ -933,8 +1171,12 @@ def _centre_blend(P: np.ndarray, h: np.ndarray, cam_rover: np.ndarray, cfg: Dete
     R = max(2.0 * float(np.std(lat)) if radius_m is None else float(radius_m), 1e-3)
     w = cfg.centre.near_weight
     med = float(np.median(rng))
-    near = max(float(np.quantile(rng, cfg.centre.near_quantile)), med - cfg.centre.near_clamp_radii * R)
-    r_c = (1.0 - w) * (med + cfg.centre.range_factor * R) + w * (near + cfg.centre.near_range_factor * R)
+    near = max(
+        float(np.quantile(rng, cfg.centre.near_quantile)), med - cfg.centre.near_clamp_radii * R
+    )
+    r_c = (1.0 - w) * (med + cfg.centre.range_factor * R) + w * (
+        near + cfg.centre.near_range_factor * R
+    )
     xy = cam_rover[:2] + fwd * r_c + perp * float(np.mean(lat))
     top = float(np.median(P[:, 2] - h)) + float(np.quantile(h, cfg.centre.top_quantile))
     if plane is None:
@@ -945,8 +1187,15 @@ def _centre_blend(P: np.ndarray, h: np.ndarray, cam_rover: np.ndarray, cfg: Dete
     return np.array([xy[0], xy[1], z]), R
 
 
-def _ring_ground_plane(points: np.ndarray, rows: np.ndarray, cols: np.ndarray, width: int = 6, gap: int = 2,
-                       min_points: int = 15, max_points: int = 400) -> np.ndarray | None:
+def _ring_ground_plane(
+    points: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    width: int = 6,
+    gap: int = 2,
+    min_points: int = 15,
+    max_points: int = 400,
+) -> np.ndarray | None:
     """Ground plane z = c0 + c1 x + c2 y (rover frame, metres) under a blob (rows, cols)
     of the low-resolution map, fitted to the valid stereo `points` (H, W, 3) in the ring
     `width` pixels wide that starts `gap` pixels outside it, by least squares repeated
@@ -973,8 +1222,14 @@ def _ring_ground_plane(points: np.ndarray, rows: np.ndarray, cols: np.ndarray, w
     return c
 
 
-def _ring_height(height: np.ndarray, rows: np.ndarray, cols: np.ndarray, width: int = 4, gap: int = 1,
-                 q: float = 0.75) -> float:
+def _ring_height(
+    height: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    width: int = 4,
+    gap: int = 1,
+    q: float = 0.75,
+) -> float:
     """Quantile q of the heights above the local ground (low-resolution height map) in
     the ring of pixels `width` wide that starts `gap` pixels outside a blob (rows,
     cols); NaN when none is valid."""
@@ -995,12 +1250,23 @@ def _ring_mask(shape: tuple[int, int], rows: np.ndarray, cols: np.ndarray, width
     blob = np.zeros((r1 - r0, c1 - c0), np.uint8)
     blob[rows - r0, cols - c0] = 1
     outer = cv2.dilate(blob, np.ones((2 * r + 1, 2 * r + 1), np.uint8)) > 0
-    inner = cv2.dilate(blob, np.ones((2 * gap + 1, 2 * gap + 1), np.uint8)) > 0 if gap > 0 else blob > 0
+    inner = (
+        cv2.dilate(blob, np.ones((2 * gap + 1, 2 * gap + 1), np.uint8)) > 0 if gap > 0 else blob > 0
+    )
     return (r0, r1, c0, c1), outer & ~inner
 
 
-def _height_above_quadric(points: np.ndarray, rows: np.ndarray, cols: np.ndarray, P: np.ndarray, q: float,
-                          width: int = 4, gap: int = 1, min_points: int = 12, max_points: int = 400) -> float:
+def _height_above_quadric(
+    points: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    P: np.ndarray,
+    q: float,
+    width: int = 4,
+    gap: int = 1,
+    min_points: int = 12,
+    max_points: int = 400,
+) -> float:
     """Visible top (quantile q of the heights of P, the blob's rover-frame points) above
     a quadric surface z(x, y) fitted (least squares, then once more without the points
     beyond 2.5 MADs) to the low-resolution stereo `points` (h, w, 3) in the ring around
@@ -1037,8 +1303,16 @@ def _height_above_quadric(points: np.ndarray, rows: np.ndarray, cols: np.ndarray
     return float(np.quantile(P[:, 2] - design(P[:, :2]) @ c, q))
 
 
-def _nearer_ring_fraction(depth: np.ndarray, rows: np.ndarray, cols: np.ndarray, depth_m: float, ratio: float,
-                          width: int = 4, gap: int = 1, min_valid: int = 6) -> float:
+def _nearer_ring_fraction(
+    depth: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    depth_m: float,
+    ratio: float,
+    width: int = 4,
+    gap: int = 1,
+    min_valid: int = 6,
+) -> float:
     """Fraction of the valid depths (low-resolution map `depth`, optical z in metres) in
     the upper half of the ring `width` pixels wide starting `gap` pixels outside the
     blob (rows, cols), i.e. its part above the blob's mean row, that are nearer than
@@ -1059,8 +1333,14 @@ def _nearer_ring_fraction(depth: np.ndarray, rows: np.ndarray, cols: np.ndarray,
     return float(np.count_nonzero(vals < ratio * depth_m)) / vals.size
 
 
-def _lateral_extension_ratio(height: np.ndarray, rows: np.ndarray, cols: np.ndarray, q: float = 0.9,
-                             gap: int = 1, min_columns: int = 3) -> float:
+def _lateral_extension_ratio(
+    height: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    q: float = 0.9,
+    gap: int = 1,
+    min_columns: int = 3,
+) -> float:
     """How far a blob (rows, cols) of the low-resolution map `height` (metres above the
     local ground, NaN invalid) goes on beyond its left and right ends: over the columns
     from `gap` + 1 to `gap` + W beyond each end (W = its width in columns, at least 3),
@@ -1089,8 +1369,14 @@ def _lateral_extension_ratio(height: np.ndarray, rows: np.ndarray, cols: np.ndar
     return float(np.median(col_max)) / top
 
 
-def _needs_confirmation(top: float, ext: float, height: np.ndarray, rows: np.ndarray, cols: np.ndarray,
-                        cfg: DetectorConfig) -> bool:
+def _needs_confirmation(
+    top: float,
+    ext: float,
+    height: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    cfg: DetectorConfig,
+) -> bool:
     """True for a low blob on a crest (see DetectorConfig.confirm.tol_m): its visible top
     under cfg.confirm.max_top_m and its lateral extension ratio (measured here when the
     crest rule did not measure it) above cfg.confirm.min_extension_ratio."""
@@ -1101,7 +1387,9 @@ def _needs_confirmation(top: float, ext: float, height: np.ndarray, rows: np.nda
     return bool(ext > cfg.confirm.min_extension_ratio)
 
 
-def confirm_across_frames(frames: Iterable[FrameDetections], config: DetectorConfig) -> Iterator[FrameDetections]:
+def confirm_across_frames(
+    frames: Iterable[FrameDetections], config: DetectorConfig
+) -> Iterator[FrameDetections]:
     """Drop the detections marked needs_confirmation that no neighbouring frame confirms
     (see DetectorConfig.confirm.tol_m); frames are yielded in order, each once its
     later neighbour is known (at most config.confirm.max_frames frames of look-ahead).
@@ -1137,17 +1425,24 @@ def confirm_across_frames(frames: Iterable[FrameDetections], config: DetectorCon
 
     def far(a: FrameDetections, b: FrameDetections) -> bool:
         pa, pb = pos(a), pos(b)
-        return pa is not None and pb is not None and float(np.hypot(*(pa - pb))) >= cfg.confirm.min_baseline_m
+        return (
+            pa is not None
+            and pb is not None
+            and float(np.hypot(*(pa - pb))) >= cfg.confirm.min_baseline_m
+        )
 
     def near(Q: np.ndarray, p: np.ndarray, tol: float) -> bool:
         return Q.shape[0] > 0 and float(np.min(np.hypot(*(Q - p[:2]).T))) <= tol
 
     def any_xy(o: FrameDetections) -> np.ndarray:
-        return np.asarray([d.p_map[:2] for d in o.detections if d.p_map is not None], float).reshape(-1, 2)
+        return np.asarray(
+            [d.p_map[:2] for d in o.detections if d.p_map is not None], float
+        ).reshape(-1, 2)
 
     def firm_xy(o: FrameDetections) -> np.ndarray:
-        return np.asarray([d.p_map[:2] for d in o.detections if d.p_map is not None and not d.tentative],
-                          float).reshape(-1, 2)
+        return np.asarray(
+            [d.p_map[:2] for d in o.detections if d.p_map is not None and not d.tentative], float
+        ).reshape(-1, 2)
 
     def resolve(fd: FrameDetections, later: list[FrameDetections]) -> FrameDetections:
         if pos(fd) is None:
@@ -1174,8 +1469,13 @@ def confirm_across_frames(frames: Iterable[FrameDetections], config: DetectorCon
                 # seen again, tentatively or firmly, in enough of the neighbouring frames
                 again = sum(near(any_xy(o), d.p_map, tol) for o in (*befores, *afters))
                 return again >= cfg.tentative.min_repeats
-            return (not d.needs_confirmation or d.p_map is None or not views or cfg.confirm.tol_m <= 0
-                    or near(Q, d.p_map, cfg.confirm.tol_m))
+            return (
+                not d.needs_confirmation
+                or d.p_map is None
+                or not views
+                or cfg.confirm.tol_m <= 0
+                or near(Q, d.p_map, cfg.confirm.tol_m)
+            )
 
         _drop(fd, ok, None)
         return fd
@@ -1184,8 +1484,10 @@ def confirm_across_frames(frames: Iterable[FrameDetections], config: DetectorCon
     ahead = cfg.tentative.confirm_frames if cfg.tentative.max_range_m > 0 else 1
     for fd in frames:
         pending.append(fd)
-        while pending and (len(pending) > cfg.confirm.max_frames
-                           or sum(far(pending[0], o) for o in pending[1:]) >= ahead):
+        while pending and (
+            len(pending) > cfg.confirm.max_frames
+            or sum(far(pending[0], o) for o in pending[1:]) >= ahead
+        ):
             head = pending.pop(0)
             out = resolve(head, pending[: cfg.confirm.max_frames])
             past.append(head)
@@ -1206,9 +1508,15 @@ def _drop(fd: FrameDetections, keep, reason: RejectReason | None) -> None:
         if len(kept) == len(pair.detections):
             for rec, d, f in zip(kept, pair.detections, flags):
                 if not f:
-                    rec.reason = reason or (RejectReason.TENTATIVE if d.tentative else RejectReason.UNCONFIRMED)
+                    rec.reason = reason or (
+                        RejectReason.TENTATIVE if d.tentative else RejectReason.UNCONFIRMED
+                    )
         pair.detections = [d for d, f in zip(pair.detections, flags) if f]
-def fuse_track_centres(frames: Iterable[FrameDetections], config: DetectorConfig) -> Iterator[FrameDetections]:
+
+
+def fuse_track_centres(
+    frames: Iterable[FrameDetections], config: DetectorConfig
+) -> Iterator[FrameDetections]:
     """Give each detection the centre of its track: its own map-frame centre combined with
     the sightings of the same rock in neighbouring frames (DetectorConfig.fuse_*); frames
     are yielded in order, each once its track_fusion.max_frames later frames are known (at once
@@ -1228,14 +1536,18 @@ def fuse_track_centres(frames: Iterable[FrameDetections], config: DetectorConfig
         yield from frames
         return
     K, causal = cfg.track_fusion.max_frames, cfg.track_fusion.causal
-    window: list[tuple[FrameDetections, np.ndarray, np.ndarray]] = []  # (frame, centres (n, 3), weights (n,))
+    window: list[
+        tuple[FrameDetections, np.ndarray, np.ndarray]
+    ] = []  # (frame, centres (n, 3), weights (n,))
     done = 0  # frames of `window` already yielded
 
     def sightings(fd: FrameDetections):
         dets = fd.detections if fd.T_map_rover is not None else []
-        P = np.array([d.p_map if d.p_map is not None else np.full(3, np.nan) for d in dets], float).reshape(-1, 3)
+        P = np.array(
+            [d.p_map if d.p_map is not None else np.full(3, np.nan) for d in dets], float
+        ).reshape(-1, 3)
         rng = np.array([max(float(np.linalg.norm(d.p_optical)), 1e-3) for d in dets], float)
-        return fd, P, rng ** -cfg.track_fusion.range_power
+        return fd, P, rng**-cfg.track_fusion.range_power
 
     def fuse(c: int) -> FrameDetections:
         fd, P, w = window[c]
@@ -1259,10 +1571,17 @@ def fuse_track_centres(frames: Iterable[FrameDetections], config: DetectorConfig
             new = []
             for d in pair.detections:
                 if d.p_map is not None and len(pts[k]) > 1:
-                    p_map = _fused_centre(np.asarray(pts[k]), np.asarray(wts[k]), cfg.track_fusion.estimator)
+                    p_map = _fused_centre(
+                        np.asarray(pts[k]), np.asarray(wts[k]), cfg.track_fusion.estimator
+                    )
                     p_rover = transform_points(T_rover_map, p_map[None])[0]
-                    p_opt = d.p_optical if pair.T_rover_optical is None else \
-                        transform_points(invert_transform(pair.T_rover_optical), p_rover[None])[0]
+                    p_opt = (
+                        d.p_optical
+                        if pair.T_rover_optical is None
+                        else transform_points(
+                            invert_transform(pair.T_rover_optical), p_rover[None]
+                        )[0]
+                    )
                     d = replace(d, p_map=p_map, p_rover=p_rover, p_optical=p_opt)
                 new.append(d)
                 k += 1
@@ -1295,8 +1614,9 @@ def _fused_centre(P: np.ndarray, w: np.ndarray, how: CentreFusion) -> np.ndarray
     return out
 
 
-def disparity_roughness(disparity: np.ndarray, mask: np.ndarray, step_px: float = 1.0,
-                        min_triples: int = 10) -> float:
+def disparity_roughness(
+    disparity: np.ndarray, mask: np.ndarray, step_px: float = 1.0, min_triples: int = 10
+) -> float:
     """Fraction of the second differences of a full-resolution `disparity` (h, w; pixels,
     NaN invalid) over `mask` (h, w bool) whose magnitude exceeds `step_px`: for every
     three pixels in a row or a column, all in the mask and valid, |d[i-1] - 2 d[i] +
@@ -1307,13 +1627,14 @@ def disparity_roughness(disparity: np.ndarray, mask: np.ndarray, step_px: float 
     d = np.where(np.asarray(mask, bool), np.asarray(disparity, float), np.nan)
     if d.ndim != 2:
         raise InputError(f"disparity must be a 2-D array, got shape {d.shape}")
-    second = [np.abs(d[:, :-2] - 2.0 * d[:, 1:-1] + d[:, 2:]), np.abs(d[:-2, :] - 2.0 * d[1:-1, :] + d[2:, :])]
+    second = [
+        np.abs(d[:, :-2] - 2.0 * d[:, 1:-1] + d[:, 2:]),
+        np.abs(d[:-2, :] - 2.0 * d[1:-1, :] + d[2:, :]),
+    ]
     vals = np.concatenate([x[np.isfinite(x)] for x in second])
     if vals.size < min_triples:
         return float("nan")
     return float(np.count_nonzero(vals > step_px)) / vals.size
-
-
 
 
 def _duplicates_firm_first(dets: list[Detection], overlap_ratio: float) -> list[int]:
@@ -1328,8 +1649,11 @@ def _duplicates_firm_first(dets: list[Detection], overlap_ratio: float) -> list[
     kept = [i for i in firm if i not in drop]
     for i in tent:
         d = dets[i]
-        if any(float(np.linalg.norm(d.p_rover - dets[j].p_rover)) * overlap_ratio < d.radius_m + dets[j].radius_m
-               for j in kept):
+        if any(
+            float(np.linalg.norm(d.p_rover - dets[j].p_rover)) * overlap_ratio
+            < d.radius_m + dets[j].radius_m
+            for j in kept
+        ):
             drop.add(i)
         else:
             kept.append(i)
@@ -1369,8 +1693,15 @@ def _visible_height(z: np.ndarray, h: np.ndarray, q: float) -> float:
 
 
 def _height_above_surroundings(
-    P: np.ndarray, centre: np.ndarray, R: float, pts: np.ndarray, cam: np.ndarray, q: float,
-    inner_m: float = 0.3, outer_m: float = 1.5, min_points: int = 20,
+    P: np.ndarray,
+    centre: np.ndarray,
+    R: float,
+    pts: np.ndarray,
+    cam: np.ndarray,
+    q: float,
+    inner_m: float = 0.3,
+    outer_m: float = 1.5,
+    min_points: int = 20,
 ) -> float:
     """Visible top of an object (rover-frame points P, centre, radius R) above the
     ground in front of it: the lower quartile of the heights of the stereo points `pts`
@@ -1388,7 +1719,9 @@ def _height_above_surroundings(
     return float(np.quantile(P[:, 2], q) - np.quantile(pts[sel, 2], 0.25))
 
 
-def _mask_depth(depth: np.ndarray, m, cu: float, cv: float, h: int, fallback: bool, min_valid: int = 3) -> float:
+def _mask_depth(
+    depth: np.ndarray, m, cu: float, cv: float, h: int, fallback: bool, min_valid: int = 3
+) -> float:
     """Depth of a mask: median of the valid depths in the (2h+1)^2 window at the
     centroid that belong to the mask, when at least `min_valid` are valid; otherwise the
     median of the valid depths of the whole mask (`fallback`) or of the whole window
@@ -1435,18 +1768,25 @@ def detect_archive(
         rover's initial pose, composed by :meth:`LacArchive.lander_pose_map`).
     """
     det = detector or Detector(config, camera_from_archive(archive))
-    confirmed = confirm_across_frames(_detect_archive_frames(archive, det, pose, frames, keep_depth, poses, lander_xy),
-                                      det.config)
+    confirmed = confirm_across_frames(
+        _detect_archive_frames(archive, det, pose, frames, keep_depth, poses, lander_xy), det.config
+    )
     yield from fuse_track_centres(confirmed, det.config)
 
 
-def _detect_archive_frames(archive, det: Detector, pose, frames, keep_depth: bool, poses, lander_xy):
+def _detect_archive_frames(
+    archive, det: Detector, pose, frames, keep_depth: bool, poses, lander_xy
+):
     """detect_archive's frames, each detected on its own (arguments as detect_archive's)."""
     pose = PoseSource(pose)
     if pose is PoseSource.ODOMETRY and poses is None:
-        raise InputError("pose 'odometry' needs the odometry poses (poses=...; lunarloc.pipeline.runner.detect "
-                         "reads them from the archive)")
-    if lander_xy is None:  # the archive knows where the lander stands (initial.toml, rover-relative)
+        raise InputError(
+            "pose 'odometry' needs the odometry poses (poses=...; lunarloc.pipeline.runner.detect "
+            "reads them from the archive)"
+        )
+    if (
+        lander_xy is None
+    ):  # the archive knows where the lander stands (initial.toml, rover-relative)
         lander_xy = np.asarray(archive.lander_pose_map()[:2], float)
     wanted = None if frames is None else {int(f) for f in frames}
     lefts = {left for left, _ in det.config.pairs}
@@ -1463,8 +1803,15 @@ def _detect_archive_frames(archive, det: Detector, pose, frames, keep_depth: boo
             s = rec.state
             T = pose_to_matrix(s["x"], s["y"], s["z"], s["roll"], s["pitch"], s["yaw"])
         mounts = mounts_from_archive_row(rec.cameras, det.camera)
-        yield det.detect_frame(rec.grayscale, mounts, T, rec.frame, keep_depth=keep_depth, lander_xy=lander_xy,
-                               keep_tentative=True)
+        yield det.detect_frame(
+            rec.grayscale,
+            mounts,
+            T,
+            rec.frame,
+            keep_depth=keep_depth,
+            lander_xy=lander_xy,
+            keep_tentative=True,
+        )
 
 
 # ---------------------------------------------------------------------- CSV output
@@ -1489,9 +1836,13 @@ def write_traverse_csv(path: str | Path, frames: Iterable[FrameDetections]) -> i
         w.writerow(["frame", "x", "y", "z", "detections", "boulders"])
         for fd in frames:
             if fd.T_map_rover is None:
-                raise InputError(f"frame {fd.frame} has no rover pose: cannot write map-frame boulders")
+                raise InputError(
+                    f"frame {fd.frame} has no rover pose: cannot write map-frame boulders"
+                )
             if not np.all(np.isfinite(fd.T_map_rover)):
-                raise InputError(f"frame {fd.frame}: the rover pose is not finite (NaN in frames.csv or odometry)")
+                raise InputError(
+                    f"frame {fd.frame}: the rover pose is not finite (NaN in frames.csv or odometry)"
+                )
             pts = fd.positions_map()
             x, y, z = (float(v) for v in fd.T_map_rover[:3, 3])
             w.writerow([fd.frame, repr(x), repr(y), repr(z), len(pts), format_boulders(pts)])
@@ -1536,23 +1887,50 @@ def debug_overlay(image: np.ndarray, pair: PairResult, depth_max_m: float = 10.0
         painted[v0:v1, u0:u1] |= m.crop
     vis[painted] = (0.45 * vis[painted] + 0.55 * colour[painted]).astype(np.uint8)
     for d in pair.detections:
-        cv2.drawMarker(vis, (int(round(d.uv[0])), int(round(d.uv[1]))), (255, 255, 255), cv2.MARKER_CROSS, 12, 2)
+        cv2.drawMarker(
+            vis,
+            (int(round(d.uv[0])), int(round(d.uv[1]))),
+            (255, 255, 255),
+            cv2.MARKER_CROSS,
+            12,
+            2,
+        )
         cv2.putText(
-            vis, f"{d.depth_m:.1f}m r{d.radius_m:.2f}", (int(d.uv[0]) + 6, int(d.uv[1]) - 6),
-            cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA,
+            vis,
+            f"{d.depth_m:.1f}m r{d.radius_m:.2f}",
+            (int(d.uv[0]) + 6, int(d.uv[1]) - 6),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.45,
+            (255, 255, 255),
+            1,
+            cv2.LINE_AA,
         )
     y = 18
-    for name, col in [("kept", KEPT_COLOUR_BGR)] + [(r.value, c) for r, c in REASON_COLOURS_BGR.items()]:
+    for name, col in [("kept", KEPT_COLOUR_BGR)] + [
+        (r.value, c) for r, c in REASON_COLOURS_BGR.items()
+    ]:
         cv2.rectangle(vis, (8, y - 10), (20, y + 2), col, -1)
-        cv2.putText(vis, name, (26, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(
+            vis, name, (26, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA
+        )
         y += 18
     if pair.depth is None:
         return vis
     z = pair.depth
-    dz = np.where(np.isfinite(z), np.clip(255.0 * (1.0 - z / depth_max_m), 0, 255), 0).astype(np.uint8)
+    dz = np.where(np.isfinite(z), np.clip(255.0 * (1.0 - z / depth_max_m), 0, 255), 0).astype(
+        np.uint8
+    )
     dvis = cv2.applyColorMap(dz, cv2.COLORMAP_INFERNO)
     dvis[~np.isfinite(z)] = 0
-    cv2.putText(dvis, f"depth 0-{depth_max_m:g} m", (8, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1)
+    cv2.putText(
+        dvis,
+        f"depth 0-{depth_max_m:g} m",
+        (8, 18),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        0.5,
+        (255, 255, 255),
+        1,
+    )
     return np.hstack([vis, dvis])
 
 
@@ -1567,8 +1945,22 @@ def scaled_detector_config(width: int, base=None, tuned_width_px: int = 1280):
     c, fl, st = base.classical, base.filters, base.stereo
     return replace(
         base,
-        classical=replace(c, bg_median_px=max(16, int(c.bg_median_px * f)), min_area_px=max(4, int(c.min_area_px * f * f))),
-        filters=replace(fl, min_area_px=max(4, int(fl.min_area_px * f * f)), max_range_m=min(fl.max_range_m, 5.0) if f < 1 else fl.max_range_m),
-        stereo=replace(st, num_disparities=max(16, int(st.num_disparities * f) // 16 * 16), block_size=7 if f < 1 else st.block_size),
-        height_filters=replace(base.height_filters, near_sigma_px=base.height_filters.near_sigma_px * f),
-    )  # fmt: skip
+        classical=replace(
+            c,
+            bg_median_px=max(16, int(c.bg_median_px * f)),
+            min_area_px=max(4, int(c.min_area_px * f * f)),
+        ),
+        filters=replace(
+            fl,
+            min_area_px=max(4, int(fl.min_area_px * f * f)),
+            max_range_m=min(fl.max_range_m, 5.0) if f < 1 else fl.max_range_m,
+        ),
+        stereo=replace(
+            st,
+            num_disparities=max(16, int(st.num_disparities * f) // 16 * 16),
+            block_size=7 if f < 1 else st.block_size,
+        ),
+        height_filters=replace(
+            base.height_filters, near_sigma_px=base.height_filters.near_sigma_px * f
+        ),
+    )

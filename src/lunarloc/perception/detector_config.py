@@ -97,8 +97,15 @@ class CentreFusion(str, Enum):
 
 def _height_stereo_default() -> StereoConfig:
     return StereoConfig(
-        num_disparities=192, block_size=5, downscale=2, speckle_window_size=50, three_way=True, p1=8 * 25, p2=32 * 25,
-        full_width=True, normalization=ImageNormalization.LIFT,
+        num_disparities=192,
+        block_size=5,
+        downscale=2,
+        speckle_window_size=50,
+        three_way=True,
+        p1=8 * 25,
+        p2=32 * 25,
+        full_width=True,
+        normalization=ImageNormalization.LIFT,
     )
 
 
@@ -205,8 +212,10 @@ class PointsConfig:
     def __post_init__(self) -> None:
         check_settings(self)
         if not self.p1_per_block_px2 < self.p2_per_block_px2:
-            raise ConfigError(f"p1_per_block_px2={self.p1_per_block_px2}, p2_per_block_px2={self.p2_per_block_px2}: "
-                              f"need p1 < p2 (SGBM wants P2 > P1)")
+            raise ConfigError(
+                f"p1_per_block_px2={self.p1_per_block_px2}, p2_per_block_px2={self.p2_per_block_px2}: "
+                f"need p1 < p2 (SGBM wants P2 > P1)"
+            )
 
 
 @dataclass(frozen=True)
@@ -282,8 +291,10 @@ class RulesConfig:
         if unknown:
             raise ConfigError(f"off: unknown rule {unknown[0]!r} (rules: {', '.join(RULE_NAMES)})")
         if not self.crest_extension_max_ratio > self.crest_extension_ratio:
-            raise ConfigError(f"crest_extension_max_ratio={self.crest_extension_max_ratio!r} must exceed "
-                              f"crest_extension_ratio={self.crest_extension_ratio!r}")
+            raise ConfigError(
+                f"crest_extension_max_ratio={self.crest_extension_max_ratio!r} must exceed "
+                f"crest_extension_ratio={self.crest_extension_ratio!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -330,7 +341,9 @@ class TentativeConfig:
     def __post_init__(self) -> None:
         check_settings(self)
         if self.max_range_m > 0 and not self.min_range_m < self.max_range_m:
-            raise ConfigError(f"min_range_m={self.min_range_m!r} must be under max_range_m={self.max_range_m!r}")
+            raise ConfigError(
+                f"min_range_m={self.min_range_m!r} must be under max_range_m={self.max_range_m!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -383,20 +396,58 @@ MOVED_KEYS: dict[str, tuple[str, str]] = {
     "fullres_erode_px": ("points", "erode_px"),
     "refine_disparity_px": ("points", "refine_disparity_px"),
     "refine_erode_px": ("points", "refine_erode_px"),
-    **{k: ("rules", k) for k in (
-        "max_rock_height_m", "max_rock_radius_m", "height_per_radius", "height_margin_m", "top_per_radius",
-        "top_noise_m", "perched_max_radius_m", "min_contrast_m", "quadric_contrast_per_radius",
-        "quadric_contrast_max_m", "max_nearer_ring_fraction", "nearer_depth_ratio", "duplicate_overlap_ratio",
-        "crest_extension_ratio", "crest_extension_max_ratio", "crest_max_radius_m", "strip_max_eig_ratio",
-        "strip_max_extension_ratio", "raised_strip_max_eig_ratio", "raised_strip_min_area_px",
-        "raised_strip_min_quadric_m", "raised_strip_max_radius_m", "max_disparity_roughness", "roughness_step_px",
-        "lander_radius_m")},
-    **{f"confirm_{k}": ("confirm", k) for k in ("tol_m", "max_top_m", "min_extension_ratio", "min_baseline_m",
-                                                "max_frames")},
-    **{f"tentative_{k}": ("tentative", k) for k in ("max_range_m", "min_range_m", "max_eig_ratio", "tol_m",
-                                                    "tol_per_radius", "min_views", "confirm_frames", "min_repeats")},
-    **{f"fuse_{k}": ("track_fusion", k) for k in ("tol_m", "max_frames", "range_power", "causal", "estimator")},
-}  # fmt: skip
+    **{
+        k: ("rules", k)
+        for k in (
+            "max_rock_height_m",
+            "max_rock_radius_m",
+            "height_per_radius",
+            "height_margin_m",
+            "top_per_radius",
+            "top_noise_m",
+            "perched_max_radius_m",
+            "min_contrast_m",
+            "quadric_contrast_per_radius",
+            "quadric_contrast_max_m",
+            "max_nearer_ring_fraction",
+            "nearer_depth_ratio",
+            "duplicate_overlap_ratio",
+            "crest_extension_ratio",
+            "crest_extension_max_ratio",
+            "crest_max_radius_m",
+            "strip_max_eig_ratio",
+            "strip_max_extension_ratio",
+            "raised_strip_max_eig_ratio",
+            "raised_strip_min_area_px",
+            "raised_strip_min_quadric_m",
+            "raised_strip_max_radius_m",
+            "max_disparity_roughness",
+            "roughness_step_px",
+            "lander_radius_m",
+        )
+    },
+    **{
+        f"confirm_{k}": ("confirm", k)
+        for k in ("tol_m", "max_top_m", "min_extension_ratio", "min_baseline_m", "max_frames")
+    },
+    **{
+        f"tentative_{k}": ("tentative", k)
+        for k in (
+            "max_range_m",
+            "min_range_m",
+            "max_eig_ratio",
+            "tol_m",
+            "tol_per_radius",
+            "min_views",
+            "confirm_frames",
+            "min_repeats",
+        )
+    },
+    **{
+        f"fuse_{k}": ("track_fusion", k)
+        for k in ("tol_m", "max_frames", "range_power", "causal", "estimator")
+    },
+}
 
 
 @moved_keys(MOVED_KEYS)
@@ -451,11 +502,15 @@ class DetectorConfig:
         # the checks that tie two sections together
         t, c = self.tentative, self.confirm
         if t.min_repeats > 2 * c.max_frames:
-            raise ConfigError(f"tentative.min_repeats={t.min_repeats!r} must be an integer from 0 (off) to "
-                              f"2 x confirm.max_frames ({2 * c.max_frames})")
+            raise ConfigError(
+                f"tentative.min_repeats={t.min_repeats!r} must be an integer from 0 (off) to "
+                f"2 x confirm.max_frames ({2 * c.max_frames})"
+            )
         if t.confirm_frames > c.max_frames:
-            raise ConfigError(f"tentative.confirm_frames={t.confirm_frames!r} must be an integer from 1 to "
-                              f"confirm.max_frames={c.max_frames!r}")
+            raise ConfigError(
+                f"tentative.confirm_frames={t.confirm_frames!r} must be an integer from 1 to "
+                f"confirm.max_frames={c.max_frames!r}"
+            )
         if self.segmenter is SegmenterKind.FASTSAM and not self.weights:
             raise ConfigError("the fastsam segmenter needs weights (a FastSAM .pt path)")
 

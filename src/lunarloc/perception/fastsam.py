@@ -111,7 +111,9 @@ def ensure_torchvision() -> bool:
     except (ImportError, OSError, RuntimeError) as exc:
         for name in [m for m in sys.modules if m == "torchvision" or m.startswith("torchvision.")]:
             del sys.modules[name]
-        logger.info("torchvision unusable with this torch (%s); using a pure-torch NMS stand-in", exc)
+        logger.info(
+            "torchvision unusable with this torch (%s); using a pure-torch NMS stand-in", exc
+        )
     import_ultralytics()
     from importlib.metadata import PackageNotFoundError, version
 
@@ -153,7 +155,9 @@ def build_untrained_checkpoint(path: str | os.PathLike, scale: str = "s", *, see
     from ultralytics.nn.tasks import SegmentationModel, yaml_model_load
 
     torch.manual_seed(seed)
-    yolo = YOLO(f"yolov8{scale}-seg.yaml", task="segment", verbose=False)  # 80 classes; replaced below
+    yolo = YOLO(
+        f"yolov8{scale}-seg.yaml", task="segment", verbose=False
+    )  # 80 classes; replaced below
     cfg = yaml_model_load(f"yolov8{scale}-seg.yaml")
     cfg["nc"] = 1
     net = SegmentationModel(cfg, nc=1, verbose=False)
@@ -251,7 +255,9 @@ class FastSamSegmenter:
                 labels=[1] * len(pts),
             )
         except ImportError as exc:  # pragma: no cover
-            raise DependencyError(f"FastSAM inference needs a missing module: {exc} ({_HINT})") from exc
+            raise DependencyError(
+                f"FastSAM inference needs a missing module: {exc} ({_HINT})"
+            ) from exc
         return results[0] if results else None
 
     @staticmethod
@@ -267,10 +273,14 @@ class FastSamSegmenter:
         scores = boxes.conf.cpu().numpy() if boxes is not None and len(boxes) == len(data) else None
         for k, m in enumerate(data):
             if m.shape != (H, W):
-                m = cv2.resize(m.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST).astype(bool)
+                m = cv2.resize(m.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST).astype(
+                    bool
+                )
             if not m.any():
                 continue
-            out.masks.append(InstanceMask.from_full(m, float(scores[k]) if scores is not None else 1.0))
+            out.masks.append(
+                InstanceMask.from_full(m, float(scores[k]) if scores is not None else 1.0)
+            )
         return out
 
     def segment(self, image: np.ndarray) -> InstanceMasks:
@@ -298,7 +308,9 @@ def export_onnx(weights: str | os.PathLike, *, imgsz: int = 1024) -> Path:
     from ultralytics import FastSAM
 
     try:
-        out = FastSAM(str(path)).export(format="onnx", imgsz=int(imgsz), dynamic=True, simplify=True, device="cpu")
+        out = FastSAM(str(path)).export(
+            format="onnx", imgsz=int(imgsz), dynamic=True, simplify=True, device="cpu"
+        )
     except Exception as exc:  # ultralytics raises many types for a bad checkpoint
         raise InputError(f"cannot export {path} to ONNX: {exc}") from exc
     return Path(out)

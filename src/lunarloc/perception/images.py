@@ -32,7 +32,12 @@ class ImageNormalization(str, Enum):
 
 
 def normalize_image(
-    image: np.ndarray, method: ImageNormalization, sigma_px: float, gain: float, clahe=None, mean_shrink: int = 1
+    image: np.ndarray,
+    method: ImageNormalization,
+    sigma_px: float,
+    gain: float,
+    clahe=None,
+    mean_shrink: int = 1,
 ) -> np.ndarray:
     """A uint8 grayscale image after :class:`ImageNormalization` (same shape).
 
@@ -56,8 +61,11 @@ def normalize_image(
     k = max(int(mean_shrink), 1)
     if k > 1 and min(f.shape) >= 4 * k:
         small = cv2.resize(f, (f.shape[1] // k, f.shape[0] // k), interpolation=cv2.INTER_AREA)
-        mean = cv2.resize(cv2.GaussianBlur(small, (0, 0), float(sigma_px) / k), (f.shape[1], f.shape[0]),
-                          interpolation=cv2.INTER_LINEAR)  # fmt: skip
+        mean = cv2.resize(
+            cv2.GaussianBlur(small, (0, 0), float(sigma_px) / k),
+            (f.shape[1], f.shape[0]),
+            interpolation=cv2.INTER_LINEAR,
+        )
     else:
         mean = cv2.GaussianBlur(f, (0, 0), float(sigma_px))
     if method is ImageNormalization.LIFT:

@@ -298,7 +298,9 @@ def classify_mask(
         return RejectReason.TOO_FAR, s
     if depth_m < cfg.min_range_m:
         return RejectReason.TOO_NEAR, s
-    if s < cfg.s_min_m and not (cfg.near_sigma_px > 0 and stats.sigma_px >= cfg.near_sigma_px and s >= cfg.near_s_min_m):
+    if s < cfg.s_min_m and not (
+        cfg.near_sigma_px > 0 and stats.sigma_px >= cfg.near_sigma_px and s >= cfg.near_s_min_m
+    ):
         return RejectReason.TOO_SMALL, s
     if s > cfg.s_max_m:
         return RejectReason.TOO_LARGE, s

@@ -44,9 +44,15 @@ class BlobMeasures:
     top_m: float  # its visible top above the local ground
     front_m: float  # its visible top above the ground in front of it (NaN: too few points there)
     ring_m: float  # upper quartile of the heights in the ring around it (NaN: none)
-    quadric_m: float  # its visible top above a quadric ground fitted around it (NaN: too few points)
-    nearer_fraction: float  # share of the ring's upper half nearer than nearer_depth_ratio x its depth (NaN)
-    extension_ratio: float  # how far its height goes on beyond its ends, over its top (NaN: not measured)
+    quadric_m: (
+        float  # its visible top above a quadric ground fitted around it (NaN: too few points)
+    )
+    nearer_fraction: (
+        float  # share of the ring's upper half nearer than nearer_depth_ratio x its depth (NaN)
+    )
+    extension_ratio: (
+        float  # how far its height goes on beyond its ends, over its top (NaN: not measured)
+    )
     roughness: float  # share of rough second differences of its full-resolution disparity (NaN: not measured)
     strip: bool = False  # let through the image filters as a flat strip (is_flat_strip)
     raised: bool = False  # ... as a raised strip candidate (is_raised_strip)
@@ -101,8 +107,10 @@ def contrast(b: BlobMeasures, c) -> bool:
 
 def quadric(b: BlobMeasures, c) -> bool:
     """Hardly standing out of a quadric ground fitted around it (which follows a crest or rim)."""
-    return bool(math.isfinite(b.quadric_m)
-                and b.quadric_m < min(c.quadric_contrast_per_radius * b.radius_m, c.quadric_contrast_max_m))
+    return bool(
+        math.isfinite(b.quadric_m)
+        and b.quadric_m < min(c.quadric_contrast_per_radius * b.radius_m, c.quadric_contrast_max_m)
+    )
 
 
 def crest(b: BlobMeasures, c) -> bool:
@@ -149,15 +157,22 @@ def fired_rules(b: BlobMeasures, c) -> tuple[list[str], list[str]]:
 def is_flat_strip(reason: RejectReason | None, st: MaskStats, fc: MaskFilterConfig, c) -> bool:
     """True for a mask the image filters reject as elongated only, with an eigenvalue ratio
     within c.strip_max_eig_ratio (a small rock's flat top strip at mid range)."""
-    return (reason is RejectReason.ELONGATED and c.strip_max_eig_ratio > fc.tau_elong
-            and st.eig_ratio <= c.strip_max_eig_ratio)
+    return (
+        reason is RejectReason.ELONGATED
+        and c.strip_max_eig_ratio > fc.tau_elong
+        and st.eig_ratio <= c.strip_max_eig_ratio
+    )
 
 
 def is_raised_strip(reason: RejectReason | None, st: MaskStats, fc: MaskFilterConfig, c) -> bool:
     """True for a mask the image filters reject as elongated only, with an eigenvalue ratio
     within c.raised_strip_max_eig_ratio and at least c.raised_strip_min_area_px pixels."""
-    return (reason is RejectReason.ELONGATED and c.raised_strip_max_eig_ratio > fc.tau_elong
-            and st.eig_ratio <= c.raised_strip_max_eig_ratio and st.area >= c.raised_strip_min_area_px)
+    return (
+        reason is RejectReason.ELONGATED
+        and c.raised_strip_max_eig_ratio > fc.tau_elong
+        and st.eig_ratio <= c.raised_strip_max_eig_ratio
+        and st.area >= c.raised_strip_min_area_px
+    )
 
 
 def strip_rejected(strip: bool, raised: bool, ext: float, quad: float, radius_m: float, c) -> bool:
@@ -171,4 +186,6 @@ def strip_rejected(strip: bool, raised: bool, ext: float, quad: float, radius_m:
         return False
     if strip and ext <= c.strip_max_extension_ratio:
         return False
-    return not (raised and quad >= c.raised_strip_min_quadric_m and radius_m <= c.raised_strip_max_radius_m)
+    return not (
+        raised and quad >= c.raised_strip_min_quadric_m and radius_m <= c.raised_strip_max_radius_m
+    )

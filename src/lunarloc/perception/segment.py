@@ -135,11 +135,16 @@ class ClassicalConfig:
             raise ConfigError("bg_median_px must be >= 16")
         if self.grow < 0 or self.min_area_px < 1:
             raise ConfigError("grow must be >= 0 and min_area_px >= 1")
-        if not (0 <= self.height_split_step_m < 1 and self.height_split_eig_ratio >= 1
-                and 0 <= self.height_split_grow_px < 1e3):
-            raise ConfigError(f"height_split_step_m={self.height_split_step_m} must be in [0, 1), height_split_eig_ratio="
-                              f"{self.height_split_eig_ratio} >= 1 and height_split_grow_px={self.height_split_grow_px} "
-                              "in [0, 1000)")
+        if not (
+            0 <= self.height_split_step_m < 1
+            and self.height_split_eig_ratio >= 1
+            and 0 <= self.height_split_grow_px < 1e3
+        ):
+            raise ConfigError(
+                f"height_split_step_m={self.height_split_step_m} must be in [0, 1), height_split_eig_ratio="
+                f"{self.height_split_eig_ratio} >= 1 and height_split_grow_px={self.height_split_grow_px} "
+                "in [0, 1000)"
+            )
 
 
 class ClassicalSegmenter:
@@ -207,7 +212,9 @@ class ClassicalSegmenter:
         k = 8
         small = cv2.resize(I8, (max(W // k, 1), max(H // k, 1)), interpolation=cv2.INTER_AREA)
         ksize = max(3, int(round(c.bg_median_px / k)) | 1)
-        bg = cv2.resize(cv2.medianBlur(small, ksize), (W, H), interpolation=cv2.INTER_LINEAR).astype(np.float32)
+        bg = cv2.resize(
+            cv2.medianBlur(small, ksize), (W, H), interpolation=cv2.INTER_LINEAR
+        ).astype(np.float32)
         dark = (If < c.dark_ratio * bg) & ~sky
         ground = ~sky & ~dark
         resid = (If - bg)[ground][::7]
@@ -274,7 +281,6 @@ class ClassicalSegmenter:
             out.masks.append(InstanceMask(int(sl[1].start), int(sl[0].start), crop))
         return out
 
-
     def _segment_height(self, shape: tuple[int, int], height: HeightMap) -> InstanceMasks:
         cv2 = import_cv2()
         from scipy import ndimage
@@ -287,8 +293,12 @@ class ClassicalSegmenter:
                 continue
             crop = (lab[sl] == idx).astype(np.uint8)
             if k > 1:
-                crop = cv2.resize(crop, (crop.shape[1] * k, crop.shape[0] * k), interpolation=cv2.INTER_NEAREST)
-            out.masks.append(InstanceMask(int(sl[1].start) * k, int(sl[0].start) * k, crop.astype(bool)))
+                crop = cv2.resize(
+                    crop, (crop.shape[1] * k, crop.shape[0] * k), interpolation=cv2.INTER_NEAREST
+                )
+            out.masks.append(
+                InstanceMask(int(sl[1].start) * k, int(sl[0].start) * k, crop.astype(bool))
+            )
         return out
 
 
@@ -303,10 +313,14 @@ def _component_stats(lab: np.ndarray, n: int) -> np.ndarray:
         return st
     vv, uu = np.nonzero(lab)
     ll = lab[vv, uu]
-    left = np.full(n, lab.shape[1]); top = np.full(n, lab.shape[0])  # noqa: E702
-    right = np.zeros(n, np.int64); bottom = np.zeros(n, np.int64)  # noqa: E702
-    np.minimum.at(left, ll, uu); np.minimum.at(top, ll, vv)  # noqa: E702
-    np.maximum.at(right, ll, uu); np.maximum.at(bottom, ll, vv)  # noqa: E702
+    left = np.full(n, lab.shape[1])
+    top = np.full(n, lab.shape[0])  # noqa: E702
+    right = np.zeros(n, np.int64)
+    bottom = np.zeros(n, np.int64)  # noqa: E702
+    np.minimum.at(left, ll, uu)
+    np.minimum.at(top, ll, vv)  # noqa: E702
+    np.maximum.at(right, ll, uu)
+    np.maximum.at(bottom, ll, vv)  # noqa: E702
     has = st[:, cv2.CC_STAT_AREA] > 0
     st[has, cv2.CC_STAT_LEFT], st[has, cv2.CC_STAT_TOP] = left[has], top[has]
     st[has, cv2.CC_STAT_WIDTH] = right[has] - left[has] + 1
@@ -327,7 +341,9 @@ def _eig_ratio(mask: np.ndarray) -> float:
     return float(((a + d) / 2 + disc) / lo) if lo > 1e-12 else float("inf")
 
 
-def split_at_saddles(H: np.ndarray, lab: np.ndarray, st: np.ndarray, c: ClassicalConfig) -> tuple[np.ndarray, int]:
+def split_at_saddles(
+    H: np.ndarray, lab: np.ndarray, st: np.ndarray, c: ClassicalConfig
+) -> tuple[np.ndarray, int]:
     """Split the blobs of a label image that the mask filters would reject (elongated
     beyond ``c.height_split_eig_ratio``, or touching the image border) at their height
     saddles: each such blob is thresholded at ``c.height_split_step_m`` steps above
@@ -354,7 +370,9 @@ def split_at_saddles(H: np.ndarray, lab: np.ndarray, st: np.ndarray, c: Classica
         level = c.height_region_m + c.height_split_step_m
         big = np.zeros(0, int)
         while level < peak:
-            _, parts, pst, _ = cv2.connectedComponentsWithStats((Hs > level).astype(np.uint8), connectivity=8)
+            _, parts, pst, _ = cv2.connectedComponentsWithStats(
+                (Hs > level).astype(np.uint8), connectivity=8
+            )
             big = np.flatnonzero(pst[1:, cv2.CC_STAT_AREA] >= c.height_min_area_px) + 1
             if big.size >= 2:
                 break
@@ -375,8 +393,9 @@ def split_at_saddles(H: np.ndarray, lab: np.ndarray, st: np.ndarray, c: Classica
         # (Voronoi labels of the parts' pixels; the rock's flanks below the split level);
         # the rest of the blob (the streak, a saddle's middle) is dropped
         seeds = np.isin(parts, big)
-        dist, vor = cv2.distanceTransformWithLabels((~seeds).astype(np.uint8), cv2.DIST_L2, 5,
-                                                    labelType=cv2.DIST_LABEL_PIXEL)  # fmt: skip
+        dist, vor = cv2.distanceTransformWithLabels(
+            (~seeds).astype(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+        )
         vv, uu = np.nonzero(seeds)
         lut = np.zeros(int(vor.max()) + 1, np.int64)
         lut[vor[vv, uu]] = parts[vv, uu]
@@ -404,7 +423,9 @@ def make_segmenter(
     try:
         kind = SegmenterKind(kind)
     except ValueError:
-        raise ConfigError(f"unknown segmenter {kind!r}; choose one of {[k.value for k in SegmenterKind]}") from None
+        raise ConfigError(
+            f"unknown segmenter {kind!r}; choose one of {[k.value for k in SegmenterKind]}"
+        ) from None
     if kind is SegmenterKind.CLASSICAL:
         return ClassicalSegmenter(classical)
     from lunarloc.perception.fastsam import FastSamSegmenter

@@ -38,7 +38,13 @@ import numpy as np
 
 from lunarloc.core.errors import ConfigError
 
-__all__ = ["SmallRock", "SmallRockConfig", "detect_small_rocks", "ground_plane", "small_rock_candidates"]
+__all__ = [
+    "SmallRock",
+    "SmallRockConfig",
+    "detect_small_rocks",
+    "ground_plane",
+    "small_rock_candidates",
+]
 
 
 @dataclass(frozen=True)
@@ -113,23 +119,60 @@ class SmallRockConfig:
     def __post_init__(self) -> None:
         if not (self.dog_sigma_px > 0 and self.contrast_sigma_px > 0 and self.contrast_z > 0):
             raise ConfigError("dog_sigma_px, contrast_sigma_px and contrast_z must be > 0")
-        if not (0 < self.min_range_m < self.max_range_m and 0 < self.min_width_m < self.max_width_m):
-            raise ConfigError("need 0 < min_range_m < max_range_m and 0 < min_width_m < max_width_m")
-        if self.block_size < 1 or self.block_size % 2 == 0 or self.band_px < 16 or self.band_px % 16:
+        if not (
+            0 < self.min_range_m < self.max_range_m and 0 < self.min_width_m < self.max_width_m
+        ):
+            raise ConfigError(
+                "need 0 < min_range_m < max_range_m and 0 < min_width_m < max_width_m"
+            )
+        if (
+            self.block_size < 1
+            or self.block_size % 2 == 0
+            or self.band_px < 16
+            or self.band_px % 16
+        ):
             raise ConfigError("block_size must be odd, band_px a multiple of 16")
-        if not (self.min_top_m > 0 and self.min_snr >= 0 and self.max_top_per_width > 0 and 0 < self.max_tilt_deg <= 90):
-            raise ConfigError("min_top_m and max_top_per_width must be > 0, min_snr >= 0, max_tilt_deg in (0, 90]")
+        if not (
+            self.min_top_m > 0
+            and self.min_snr >= 0
+            and self.max_top_per_width > 0
+            and 0 < self.max_tilt_deg <= 90
+        ):
+            raise ConfigError(
+                "min_top_m and max_top_per_width must be > 0, min_snr >= 0, max_tilt_deg in (0, 90]"
+            )
         if self.max_candidates < 0:
             raise ConfigError("max_candidates must be >= 0")
-        positive = ("max_aspect", "window_margin", "top_margin_m", "confident_top_m", "low_top_snr", "ground_range_m")
+        positive = (
+            "max_aspect",
+            "window_margin",
+            "top_margin_m",
+            "confident_top_m",
+            "low_top_snr",
+            "ground_range_m",
+        )
         for name in positive:
             v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and np.isfinite(v) and v >= 0 and (v > 0 or name == "top_margin_m")):
+            if not (
+                isinstance(v, (int, float))
+                and np.isfinite(v)
+                and v >= 0
+                and (v > 0 or name == "top_margin_m")
+            ):
                 raise ConfigError(f"{name}={v!r} must be a finite number > 0")
         if not (np.isfinite(self.min_lowres_height_m) and self.min_lowres_height_m >= 0):
-            raise ConfigError(f"min_lowres_height_m={self.min_lowres_height_m!r} must be a finite number >= 0")
-        if self.max_band_px < self.band_px or self.max_band_px % 16 or self.min_ring_points < 6 or self.max_ring_points < 12:
-            raise ConfigError("max_band_px must be a multiple of 16 >= band_px, min_ring_points >= 6, max_ring_points >= 12")
+            raise ConfigError(
+                f"min_lowres_height_m={self.min_lowres_height_m!r} must be a finite number >= 0"
+            )
+        if (
+            self.max_band_px < self.band_px
+            or self.max_band_px % 16
+            or self.min_ring_points < 6
+            or self.max_ring_points < 12
+        ):
+            raise ConfigError(
+                "max_band_px must be a multiple of 16 >= band_px, min_ring_points >= 6, max_ring_points >= 12"
+            )
 
 
 @dataclass
@@ -150,8 +193,9 @@ class SmallRock:
     reason: str | None = None
 
 
-def ground_plane(points_rover: np.ndarray, depth: np.ndarray, max_depth_m: float = 6.0,
-                 stride: int = 4) -> np.ndarray | None:
+def ground_plane(
+    points_rover: np.ndarray, depth: np.ndarray, max_depth_m: float = 6.0, stride: int = 4
+) -> np.ndarray | None:
     """Unit normal (rover frame) of the plane fitted to the height map's points within
     `max_depth_m` (least squares, then once more within 3 MADs), pointing up (to the side of
     the rover frame's +z, i.e. the cameras' side of the ground). None when fewer than 50 points.
@@ -178,8 +222,14 @@ def ground_plane(points_rover: np.ndarray, depth: np.ndarray, max_depth_m: float
     return n if n[2] >= 0 else -n
 
 
-def small_rock_candidates(left: np.ndarray, disparity_lowres: np.ndarray, scale: int, fx: float, baseline_m: float,
-                          cfg: SmallRockConfig) -> list[tuple[int, int, np.ndarray, float]]:
+def small_rock_candidates(
+    left: np.ndarray,
+    disparity_lowres: np.ndarray,
+    scale: int,
+    fx: float,
+    baseline_m: float,
+    cfg: SmallRockConfig,
+) -> list[tuple[int, int, np.ndarray, float]]:
     """Bright blobs of the left image sized like small rocks at their range: (u0, v0, crop,
     d0) with `crop` a full-resolution boolean mask at (u0, v0) and d0 the height map's
     disparity there (full-resolution pixels); strongest first."""
@@ -191,15 +241,21 @@ def small_rock_candidates(left: np.ndarray, disparity_lowres: np.ndarray, scale:
     D = np.asarray(disparity_lowres, np.float32)
     # only the rows that hold ground within the range searched (and a margin)
     with np.errstate(invalid="ignore"):
-        near = np.isfinite(D) & (D * kd >= fx * baseline_m / cfg.max_range_m) & (D * kd <= fx * baseline_m / cfg.min_range_m)
+        near = (
+            np.isfinite(D)
+            & (D * kd >= fx * baseline_m / cfg.max_range_m)
+            & (D * kd <= fx * baseline_m / cfg.min_range_m)
+        )
     rows = np.flatnonzero(near.any(axis=1))
     if rows.size == 0:
         return []
     r0 = max(int(rows[0]) * kd - 32, 0) // k * k
     r1 = min((int(rows[-1]) + 1) * kd + 32, H)
     h, w = (r1 - r0) // k, W // k
-    roi = left[r0:r0 + h * k]
-    small = (cv2.resize(roi, (w, h), interpolation=cv2.INTER_AREA) if k > 1 else roi).astype(np.float32)
+    roi = left[r0 : r0 + h * k]
+    small = (cv2.resize(roi, (w, h), interpolation=cv2.INTER_AREA) if k > 1 else roi).astype(
+        np.float32
+    )
     dv = small - cv2.GaussianBlur(small, (0, 0), cfg.dog_sigma_px)
     e = max(int(cfg.contrast_sigma_px // 2), 1)
     var = cv2.resize(dv * dv, (max(w // e, 1), max(h // e, 1)), interpolation=cv2.INTER_AREA)
@@ -208,7 +264,11 @@ def small_rock_candidates(left: np.ndarray, disparity_lowres: np.ndarray, scale:
     # peaks of the contrast (local maxima over 5x5) above contrast_z; each peak's blob is the
     # part of the window around it brighter than half its peak contrast and connected to it
     # (a lit face touching lit regolith does not merge with it)
-    peak = (z >= cv2.dilate(z, np.ones((5, 5), np.uint8))) & (z > cfg.contrast_z) & (small > cfg.sky_level)
+    peak = (
+        (z >= cv2.dilate(z, np.ones((5, 5), np.uint8)))
+        & (z > cfg.contrast_z)
+        & (small > cfg.sky_level)
+    )
     pv, pu = np.nonzero(peak)
     if pv.size == 0:
         return []
@@ -216,7 +276,9 @@ def small_rock_candidates(left: np.ndarray, disparity_lowres: np.ndarray, scale:
     cu = np.clip((pu * k) // kd, 0, wd - 1)
     cv = np.clip((pv * k + r0) // kd, 0, hd - 1)
     pad = np.pad(D, 2, constant_values=np.nan)
-    win = np.stack([pad[cv + 2 + a, cu + 2 + b] for a in range(-2, 3) for b in range(-2, 3)], axis=1)
+    win = np.stack(
+        [pad[cv + 2 + a, cu + 2 + b] for a in range(-2, 3) for b in range(-2, 3)], axis=1
+    )
     import warnings
 
     with warnings.catch_warnings():
@@ -240,7 +302,12 @@ def small_rock_candidates(left: np.ndarray, disparity_lowres: np.ndarray, scale:
             continue
         # the window: a rock of max_width_m at this range, plus a margin
         half = int(np.clip(cfg.max_width_m * fx / Z[i] / k, 3, 40))
-        ya, yb, xa, xb = max(y - half, 0), min(y + half + 1, h), max(x - half, 0), min(x + half + 1, w)
+        ya, yb, xa, xb = (
+            max(y - half, 0),
+            min(y + half + 1, h),
+            max(x - half, 0),
+            min(x + half + 1, w),
+        )
         sub = (z[ya:yb, xa:xb] > max(0.5 * z[y, x], 0.6 * cfg.contrast_z)).astype(np.uint8)
         _, lab = cv2.connectedComponents(sub, connectivity=8)
         blob = lab == lab[y - ya, x - xa]
@@ -272,13 +339,31 @@ class _Matcher:
             import cv2
 
             bs = self.bs
-            m = cv2.StereoSGBM_create(minDisparity=0, numDisparities=nd, blockSize=bs, P1=8 * bs * bs, P2=32 * bs * bs,
-                                      disp12MaxDiff=1, uniquenessRatio=10, speckleWindowSize=0,
-                                      mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+            m = cv2.StereoSGBM_create(
+                minDisparity=0,
+                numDisparities=nd,
+                blockSize=bs,
+                P1=8 * bs * bs,
+                P2=32 * bs * bs,
+                disp12MaxDiff=1,
+                uniquenessRatio=10,
+                speckleWindowSize=0,
+                mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+            )
             self._m[nd] = m
         return m
 
-    def window(self, L: np.ndarray, R: np.ndarray, u0: int, v0: int, u1: int, v1: int, d_lo: float, d_hi: float):
+    def window(
+        self,
+        L: np.ndarray,
+        R: np.ndarray,
+        u0: int,
+        v0: int,
+        u1: int,
+        v1: int,
+        d_lo: float,
+        d_hi: float,
+    ):
         """Full-resolution disparity of L[v0:v1, u0:u1] (NaN invalid) searched over a band that
         holds [d_lo, d_hi] (the window's disparities from the height map; near the rover the
         ground's disparity changes by tens of pixels over a window) with a margin of half the
@@ -298,7 +383,12 @@ class _Matcher:
             o[:, -a:] = img[v0:v1, 0:b]
             return o
 
-        d = self._sgbm(nd).compute(cols(L, la, u1), cols(R, la - dmin, u1 - dmin)).astype(np.float32)[:, u0 - la:] / 16.0
+        d = (
+            self._sgbm(nd)
+            .compute(cols(L, la, u1), cols(R, la - dmin, u1 - dmin))
+            .astype(np.float32)[:, u0 - la :]
+            / 16.0
+        )
         d[(d <= 0) | (d >= nd - 1)] = np.nan
         return d + dmin
 
@@ -314,11 +404,21 @@ def _fit_plane(P: np.ndarray):
     return c, n
 
 
-def detect_small_rocks(left: np.ndarray, right: np.ndarray, disparity_lowres: np.ndarray, scale: int, camera,
-                       baseline_m: float, cfg: SmallRockConfig, up_optical: np.ndarray | None = None,
-                       exclude: np.ndarray | None = None, matcher: _Matcher | None = None,
-                       trace: list | None = None, keep_rejected: bool = False,
-                       height_lowres: np.ndarray | None = None) -> list[SmallRock]:
+def detect_small_rocks(
+    left: np.ndarray,
+    right: np.ndarray,
+    disparity_lowres: np.ndarray,
+    scale: int,
+    camera,
+    baseline_m: float,
+    cfg: SmallRockConfig,
+    up_optical: np.ndarray | None = None,
+    exclude: np.ndarray | None = None,
+    matcher: _Matcher | None = None,
+    trace: list | None = None,
+    keep_rejected: bool = False,
+    height_lowres: np.ndarray | None = None,
+) -> list[SmallRock]:
     """Small rocks of one rectified pair (see the module's docstring).
 
     disparity_lowres, scale : the height map's disparity (low-resolution pixels) and its scale.
@@ -349,21 +449,25 @@ def detect_small_rocks(left: np.ndarray, right: np.ndarray, disparity_lowres: np
             continue
         if height_lowres is not None:
             k = int(scale)
-            hh = height_lowres[max(v0 // k - 1, 0):(v0 + bh) // k + 2, max(u0 // k - 1, 0):(u0 + bw) // k + 2]
+            hh = height_lowres[
+                max(v0 // k - 1, 0) : (v0 + bh) // k + 2, max(u0 // k - 1, 0) : (u0 + bw) // k + 2
+            ]
             if not np.any(hh >= cfg.min_lowres_height_m):  # NaN compares False
                 continue
         M = int(max(cfg.window_min_margin_px, cfg.window_margin * max(bw, bh)))
         a0, b0 = max(u0 - M, 0), max(v0 - M, 0)
         a1, b1 = min(u0 + bw + M, W), min(v0 + bh + M, H)
         # the height map's disparities over the window (full-resolution pixels)
-        wd_ = disparity_lowres[b0 // scale:(b1 - 1) // scale + 1, a0 // scale:(a1 - 1) // scale + 1]
+        wd_ = disparity_lowres[
+            b0 // scale : (b1 - 1) // scale + 1, a0 // scale : (a1 - 1) // scale + 1
+        ]
         wd_ = wd_[np.isfinite(wd_)] * scale
-        lo, hi = (np.percentile(wd_, [5, 95]) if wd_.size >= 8 else (d0, d0))
+        lo, hi = np.percentile(wd_, [5, 95]) if wd_.size >= 8 else (d0, d0)
         d = mt.window(L, R, a0, b0, a1, b1, min(lo, d0), max(hi, d0))
         if d is None:
             continue
         blob = np.zeros(d.shape, np.uint8)
-        blob[v0 - b0:v0 - b0 + bh, u0 - a0:u0 - a0 + bw] = crop
+        blob[v0 - b0 : v0 - b0 + bh, u0 - a0 : u0 - a0 + bw] = crop
         g = max(3, int(0.5 * max(bw, bh)))
         ring = cv2.dilate(blob, np.ones((2 * g + 1, 2 * g + 1), np.uint8)) == 0
         inner = cv2.dilate(blob, np.ones((3, 3), np.uint8)) > 0
@@ -423,18 +527,33 @@ def detect_small_rocks(left: np.ndarray, right: np.ndarray, disparity_lowres: np
         width = max(bw, bh) * depth / fx
         tilt_ok = up_optical is None or abs(float(np.dot(n, up_optical))) >= cos_tilt
         if trace is not None:
-            trace.append(dict(box=(u0, v0, u0 + bw, v0 + bh), top=top, noise=float(s), width=width, depth=depth,
-                              aspect=bw / max(bh, 1), tilt_ok=tilt_ok))
+            trace.append(
+                dict(
+                    box=(u0, v0, u0 + bw, v0 + bh),
+                    top=top,
+                    noise=float(s),
+                    width=width,
+                    depth=depth,
+                    aspect=bw / max(bh, 1),
+                    tilt_ok=tilt_ok,
+                )
+            )
         reason = None
         if not tilt_ok:
             reason = "not_ground"  # the surroundings are a wall, the lander, a boulder's face
-        elif top < cfg.min_top_m or top < cfg.min_snr * s or (top < cfg.confident_top_m and top < cfg.low_top_snr * s):
+        elif (
+            top < cfg.min_top_m
+            or top < cfg.min_snr * s
+            or (top < cfg.confident_top_m and top < cfg.low_top_snr * s)
+        ):
             reason = "flat"
         elif top > cfg.max_top_per_width * width + cfg.top_margin_m:
             reason = "too_tall"
         if reason is not None:
             if keep_rejected:
-                out.append(SmallRock(u0, v0, crop.copy(), P[idx[bl]], top, float(s), width, depth, reason))
+                out.append(
+                    SmallRock(u0, v0, crop.copy(), P[idx[bl]], top, float(s), width, depth, reason)
+                )
             continue
         # the rock: the blob and the raised pixels next to it (its unlit side)
         with np.errstate(invalid="ignore"):
@@ -452,10 +571,25 @@ def detect_small_rocks(left: np.ndarray, right: np.ndarray, disparity_lowres: np
         width = (x1r - x0r) * depth / fx
         if width > cfg.max_width_m:
             if keep_rejected:
-                out.append(SmallRock(u0, v0, crop.copy(), P[idx[bl]], top, float(s), width, depth, "too_wide"))
+                out.append(
+                    SmallRock(
+                        u0, v0, crop.copy(), P[idx[bl]], top, float(s), width, depth, "too_wide"
+                    )
+                )
             continue
-        out.append(SmallRock(a0 + x0r, b0 + y0r, rock[y0r:y1r, x0r:x1r].copy(), P[sel], top, float(s), width, depth))
+        out.append(
+            SmallRock(
+                a0 + x0r,
+                b0 + y0r,
+                rock[y0r:y1r, x0r:x1r].copy(),
+                P[sel],
+                top,
+                float(s),
+                width,
+                depth,
+            )
+        )
         # the rock and one rock width around it: other bright fragments of it are not rocks again
         g2 = max(x1r - x0r, y1r - y0r)
-        taken[max(b0 + y0r - g2, 0):b0 + y1r + g2, max(a0 + x0r - g2, 0):a0 + x1r + g2] = True
+        taken[max(b0 + y0r - g2, 0) : b0 + y1r + g2, max(a0 + x0r - g2, 0) : a0 + x1r + g2] = True
     return out

@@ -94,10 +94,14 @@ class StereoConfig:
         try:
             object.__setattr__(self, "normalization", ImageNormalization(self.normalization))
         except ValueError:
-            raise ConfigError(f"normalization={self.normalization!r}: choose one of "
-                              f"{', '.join(m.value for m in ImageNormalization)}") from None
+            raise ConfigError(
+                f"normalization={self.normalization!r}: choose one of "
+                f"{', '.join(m.value for m in ImageNormalization)}"
+            ) from None
         if not 0 < self.normalization_sigma_frac < 0.5:
-            raise ConfigError(f"normalization_sigma_frac={self.normalization_sigma_frac}: must be in (0, 0.5)")
+            raise ConfigError(
+                f"normalization_sigma_frac={self.normalization_sigma_frac}: must be in (0, 0.5)"
+            )
         if not 0 < self.normalization_gain < 1e4:
             raise ConfigError(f"normalization_gain={self.normalization_gain}: must be in (0, 1e4)")
         if self.num_disparities <= 0 or self.num_disparities % 16:
@@ -107,8 +111,10 @@ class StereoConfig:
         if self.downscale < 1:
             raise ConfigError("downscale must be >= 1")
         if not 1 <= self.p1_per_block_px2 < self.p2_per_block_px2:
-            raise ConfigError(f"p1_per_block_px2={self.p1_per_block_px2}, p2_per_block_px2={self.p2_per_block_px2}: "
-                              "need 1 <= p1_per_block_px2 < p2_per_block_px2 (SGBM wants P2 > P1)")
+            raise ConfigError(
+                f"p1_per_block_px2={self.p1_per_block_px2}, p2_per_block_px2={self.p2_per_block_px2}: "
+                "need 1 <= p1_per_block_px2 < p2_per_block_px2 (SGBM wants P2 > P1)"
+            )
 
     @property
     def P1(self) -> int:
@@ -183,8 +189,12 @@ class StereoMatcher:
         if nd > nd_max:
             logger.info(
                 "SGBM numDisparities %d clamped to %d for %dx%d images (downscale %d)",
-                nd, nd_max, self.camera.width, self.camera.height, c.downscale,
-            )  # fmt: skip
+                nd,
+                nd_max,
+                self.camera.width,
+                self.camera.height,
+                c.downscale,
+            )
             nd = nd_max
         self.num_disparities_lowres = nd
         self._matchers: dict[int, object] = {}
@@ -301,7 +311,11 @@ class StereoMatcher:
         else:
             Ls, Rs = L[r0:], R[r0:]
         Lm, Rm = self._normalized(Ls, sky_level), self._normalized(Rs, sky_level)
-        d = self._compute_full_width(Lm, Rm) if self.config.full_width else self._compute(Lm, Rm).astype(np.float32) / 16.0
+        d = (
+            self._compute_full_width(Lm, Rm)
+            if self.config.full_width
+            else self._compute(Lm, Rm).astype(np.float32) / 16.0
+        )
         d[~(d >= self.config.min_valid_disparity_px / k)] = np.nan
         if sky_level is not None:
             d[Ls < sky_level] = np.nan
@@ -316,7 +330,9 @@ class StereoMatcher:
             return image
         sigma = c.normalization_sigma_frac * image.shape[1]
         # the local mean on an image reduced so that its Gaussian keeps >= 4 pixels
-        out = normalize_image(image, c.normalization, sigma, c.normalization_gain, mean_shrink=int(sigma // 4))
+        out = normalize_image(
+            image, c.normalization, sigma, c.normalization_gain, mean_shrink=int(sigma // 4)
+        )
         if sky_level is not None:
             out[image < sky_level] = 0
         return out
@@ -326,7 +342,9 @@ class StereoMatcher:
         with np.errstate(divide="ignore", invalid="ignore"):
             return (self.camera.fx * self.baseline_m / disparity).astype(np.float32)
 
-    def depth(self, left: np.ndarray, right: np.ndarray, rows: tuple[int, int] | None = None) -> np.ndarray:
+    def depth(
+        self, left: np.ndarray, right: np.ndarray, rows: tuple[int, int] | None = None
+    ) -> np.ndarray:
         """(H, W) float32 depth z of the left image's optical frame, metres; NaN = invalid.
 
         rows : optional band of needed rows, as in :meth:`disparity`.
@@ -494,7 +512,9 @@ def ground_height_map(
     depth = np.full((h, w), np.nan, np.float32)
     np.divide(np.float32(fb), D, out=depth, where=ok)
     T = np.asarray(T_rover_optical, float)
-    out = HeightMap(D, depth, np.empty((h, w, 3), np.float32), np.full((h, w), np.nan, np.float32), k, 0, T)
+    out = HeightMap(
+        D, depth, np.empty((h, w, 3), np.float32), np.full((h, w), np.nan, np.float32), k, 0, T
+    )
     if np.count_nonzero(ok) < cfg.min_points:
         out.points_rover[:] = np.nan
         return out
@@ -654,9 +674,16 @@ def mask_disparity_fullres(
     Lc = _columns(L, r0, r1, la, b)
     Rc = _columns(R, r0, r1, la - dmin, b - dmin)
     m = cv2.StereoSGBM_create(
-        minDisparity=0, numDisparities=nd, blockSize=bs, P1=p1_per_block_px2 * bs * bs, P2=p2_per_block_px2 * bs * bs,
-        disp12MaxDiff=1, uniquenessRatio=10, speckleWindowSize=0, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
-    )  # fmt: skip
+        minDisparity=0,
+        numDisparities=nd,
+        blockSize=bs,
+        P1=p1_per_block_px2 * bs * bs,
+        P2=p2_per_block_px2 * bs * bs,
+        disp12MaxDiff=1,
+        uniquenessRatio=10,
+        speckleWindowSize=0,
+        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    )
     d = m.compute(Lc, Rc).astype(np.float32)[v0 - r0 : v0 - r0 + h, u0 - la : u0 - la + w] / 16.0
     d[(d <= 0) | (d >= nd - 1)] = np.nan
     return d + dmin

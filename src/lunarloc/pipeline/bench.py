@@ -19,15 +19,28 @@ from typing import Callable, Iterable
 from lunarloc.config.run import RunConfig
 from lunarloc.core.errors import ConfigError
 
-__all__ = ["bench_loop", "pairs_to_run", "pairs_problems", "write_pairs", "MIN_PAIRS_CORRECT", "PAPER_MAX_ERR_M"]
+__all__ = [
+    "bench_loop",
+    "pairs_to_run",
+    "pairs_problems",
+    "write_pairs",
+    "MIN_PAIRS_CORRECT",
+    "PAPER_MAX_ERR_M",
+]
 
 MIN_PAIRS_CORRECT = 130  # of the 136 pairs, success claimed and correct (the CI gate)
 PAPER_MAX_ERR_M = 0.02  # each paper pair: error at the reference origin below this
 
 
-def bench_loop(data: str | Path, out: str | Path, config: RunConfig | None = None, *,
-               traverses: Iterable[int] | None = None, min_length_m: float = 5.0,
-               on_traverse: Callable[[dict], None] | None = None) -> list[dict]:  # fmt: skip
+def bench_loop(
+    data: str | Path,
+    out: str | Path,
+    config: RunConfig | None = None,
+    *,
+    traverses: Iterable[int] | None = None,
+    min_length_m: float = 5.0,
+    on_traverse: Callable[[dict], None] | None = None,
+) -> list[dict]:
     """Run the loop on each traverse of `data` (default all; shorter than `min_length_m`
     skipped) against the merged detections of all the others, write ``out/traverse_N/`` run
     folders and ``out/loop.json``; returns the summaries (``vehicle`` added), each also
@@ -49,14 +62,21 @@ def bench_loop(data: str | Path, out: str | Path, config: RunConfig | None = Non
     wanted = list(traverses) if traverses is not None else sorted(trav)
     missing = [v for v in wanted if v not in trav]
     if missing:
-        raise ConfigError(f"traverse(s) {', '.join(map(str, missing))} not in {data} (have {', '.join(map(str, trav))})")
+        raise ConfigError(
+            f"traverse(s) {', '.join(map(str, missing))} not in {data} (have {', '.join(map(str, trav))})"
+        )
     rows = []
     for v in wanted:
         if trav[v].path_length < min_length_m:
             continue
         ref = reference_from_traverses(trav, exclude=v)
-        src = TraverseCsvSource(trav[v], cfg.odometry.drift, cfg.odometry.rate_hz, cfg.loop.keyframe_every_s,
-                                cfg.loop.keyframe_max_interval_s)  # fmt: skip
+        src = TraverseCsvSource(
+            trav[v],
+            cfg.odometry.drift,
+            cfg.odometry.rate_hz,
+            cfg.loop.keyframe_every_s,
+            cfg.loop.keyframe_max_interval_s,
+        )
         s = write_run(run(src, ref, cfg), out / f"traverse_{v}")
         s["vehicle"] = v
         rows.append(s)
@@ -73,7 +93,9 @@ def pairs_to_run(traverses: Iterable[int], only_paper: bool = False) -> list[tup
 
     if only_paper:
         return list(PAPER_PAIRS)
-    return list(PAPER_PAIRS) + [p for p in itertools.combinations(sorted(traverses), 2) if p not in PAPER_PAIRS]
+    return list(PAPER_PAIRS) + [
+        p for p in itertools.combinations(sorted(traverses), 2) if p not in PAPER_PAIRS
+    ]
 
 
 def pairs_problems(summary, only_paper: bool = False) -> list[str]:
@@ -84,11 +106,17 @@ def pairs_problems(summary, only_paper: bool = False) -> list[str]:
 
     bad = []
     for r in summary.results:
-        if (r.reference, r.vehicle) in PAPER_PAIRS and not (r.success and r.err_origin_m < PAPER_MAX_ERR_M):
-            bad.append(f"paper pair {r.reference}-{r.vehicle}: success={r.success} err={r.err_origin_m * 100:.2f} cm")
+        if (r.reference, r.vehicle) in PAPER_PAIRS and not (
+            r.success and r.err_origin_m < PAPER_MAX_ERR_M
+        ):
+            bad.append(
+                f"paper pair {r.reference}-{r.vehicle}: success={r.success} err={r.err_origin_m * 100:.2f} cm"
+            )
     if not only_paper and summary.n_success_and_correct < MIN_PAIRS_CORRECT:
-        bad.append(f"only {summary.n_success_and_correct} of {summary.n_pairs} pairs localized correctly "
-                   f"(need {MIN_PAIRS_CORRECT})")  # fmt: skip
+        bad.append(
+            f"only {summary.n_success_and_correct} of {summary.n_pairs} pairs localized correctly "
+            f"(need {MIN_PAIRS_CORRECT})"
+        )
     if summary.n_confident_wrong:
         bad.append(f"{summary.n_confident_wrong} confident-wrong pairs")
     return bad

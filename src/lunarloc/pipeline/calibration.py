@@ -46,7 +46,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lunarloc.core.errors import LunarLocError
-from lunarloc.core.geometry import euler_to_rotation, invert_transform, make_transform, rotation_angle, transform_points
+from lunarloc.core.geometry import (
+    euler_to_rotation,
+    invert_transform,
+    make_transform,
+    rotation_angle,
+    transform_points,
+)
 from lunarloc.io.maps import LandmarkMap
 from lunarloc.localization.large import localize_large
 from lunarloc.localization.config import LocalizationConfig
@@ -54,9 +60,25 @@ from lunarloc.sim.fields import uniform_rock_field
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Case", "Outcome", "CONFIGS", "SEARCHES", "FAMILIES", "REAL_FAMILIES", "REAL_CONFIGS", "make_cases", "run_case",
-           "run_cases", "run_real", "summarise",
-           "nees_at", "NEES_68", "NEES_997", "RIGHT_M", "RIGHT_DEG"]
+__all__ = [
+    "Case",
+    "Outcome",
+    "CONFIGS",
+    "SEARCHES",
+    "FAMILIES",
+    "REAL_FAMILIES",
+    "REAL_CONFIGS",
+    "make_cases",
+    "run_case",
+    "run_cases",
+    "run_real",
+    "summarise",
+    "nees_at",
+    "NEES_68",
+    "NEES_997",
+    "RIGHT_M",
+    "RIGHT_DEG",
+]
 
 RIGHT_M = 0.10  # a claimed pose is right within this at the query point ...
 RIGHT_DEG = 1.0  # ... and this in rotation
@@ -67,7 +89,9 @@ NEES_997 = 14.156  # 99.73 % quantile
 #: and the maps stated rigid (as ``lunarloc bench pairs`` states them)
 CONFIGS: dict[str, Callable[[], LocalizationConfig]] = {
     "cli default": LocalizationConfig,
-    "stated rigid": lambda: LocalizationConfig(odometry_scale_error=0.0, odometry_heading_drift_deg_per_m=0.0),
+    "stated rigid": lambda: LocalizationConfig(
+        odometry_scale_error=0.0, odometry_heading_drift_deg_per_m=0.0
+    ),
 }
 SEARCHES = ("full", "indexed", "auto")
 
@@ -116,29 +140,44 @@ class Outcome:
 # --------------------------------------------------------------------------- building cases
 
 
-def _random_frame(rng: np.random.Generator, tilt_deg: float | None = None, max_tilt_deg: float = 0.5) -> np.ndarray:
+def _random_frame(
+    rng: np.random.Generator, tilt_deg: float | None = None, max_tilt_deg: float = 0.5
+) -> np.ndarray:
     """A random T_veh_ref: any yaw, a tilt (exactly `tilt_deg` when given), up to 100 m away."""
     if tilt_deg is None:
         roll, pitch = np.radians(rng.uniform(-max_tilt_deg, max_tilt_deg, 2))
     else:
         a = rng.uniform(0, 2 * math.pi)
         roll, pitch = math.radians(tilt_deg) * math.cos(a), math.radians(tilt_deg) * math.sin(a)
-    return make_transform(euler_to_rotation(roll, pitch, rng.uniform(-math.pi, math.pi)), rng.uniform(-100, 100, 3))
+    return make_transform(
+        euler_to_rotation(roll, pitch, rng.uniform(-math.pi, math.pi)), rng.uniform(-100, 100, 3)
+    )
 
 
-def _window(rng: np.random.Generator, P: np.ndarray, n_true: int, detect_prob: float = 0.85) -> np.ndarray:
+def _window(
+    rng: np.random.Generator, P: np.ndarray, n_true: int, detect_prob: float = 0.85
+) -> np.ndarray:
     """Indices of `n_true` rocks of P near a random rock, each detected with `detect_prob`."""
     centre = P[rng.integers(len(P)), :2]
     k = min(len(P), int(math.ceil(n_true / detect_prob)) + 1)
     near = np.asarray(cKDTree(P[:, :2]).query(centre, k=k)[1])
     seen = near[rng.random(len(near)) < detect_prob][:n_true]
     if len(seen) < 3:
-        seen = near[:max(3, n_true)]
+        seen = near[: max(3, n_true)]
     return seen
 
 
-def _case(family: str, seed: int, rng: np.random.Generator, reference: LandmarkMap, world_xyz: np.ndarray,
-          true: bool = True, tilt_deg: float | None = None, sigma_m: float | None = None, **params) -> Case:
+def _case(
+    family: str,
+    seed: int,
+    rng: np.random.Generator,
+    reference: LandmarkMap,
+    world_xyz: np.ndarray,
+    true: bool = True,
+    tilt_deg: float | None = None,
+    sigma_m: float | None = None,
+    **params,
+) -> Case:
     """The vehicle map of `world_xyz` (reference frame) in a random frame; its query point is
     the map's centre."""
     T_veh_ref = _random_frame(rng, tilt_deg)
@@ -185,8 +224,14 @@ def _build(family: str, seed: int) -> Case:
         ref = _field(rng)
         p = rng.uniform(0.4, 0.7)
         seen = _window(rng, ref.positions_xyz, int(rng.integers(25, 60)), detect_prob=p)
-        return _case(family, seed, rng, ref, ref.positions_xyz[seen] + rng.normal(0, noise, (len(seen), 3)),
-                     detected=round(p, 2))
+        return _case(
+            family,
+            seed,
+            rng,
+            ref,
+            ref.positions_xyz[seen] + rng.normal(0, noise, (len(seen), 3)),
+            detected=round(p, 2),
+        )
     if family == "overlap":
         full = _field(rng, 600)
         P = full.positions_xyz
@@ -197,19 +242,40 @@ def _build(family: str, seed: int) -> Case:
         u = np.array([math.cos(a), math.sin(a)])
         cut = np.quantile(P[seen, :2] @ u, 1 - share)
         ref = LandmarkMap(P[P[:, :2] @ u >= cut], frame="site")
-        return _case(family, seed, rng, ref, P[seen] + rng.normal(0, noise, (len(seen), 3)), overlap=round(share, 2))
+        return _case(
+            family,
+            seed,
+            rng,
+            ref,
+            P[seen] + rng.normal(0, noise, (len(seen), 3)),
+            overlap=round(share, 2),
+        )
     if family == "tilt":
         ref = _field(rng)
         tilt = rng.uniform(1.0, 5.0)
         seen = _window(rng, ref.positions_xyz, int(rng.integers(30, 70)))
-        return _case(family, seed, rng, ref, ref.positions_xyz[seen] + rng.normal(0, noise, (len(seen), 3)),
-                     tilt_deg=tilt, tilt=round(tilt, 2))
+        return _case(
+            family,
+            seed,
+            rng,
+            ref,
+            ref.positions_xyz[seen] + rng.normal(0, noise, (len(seen), 3)),
+            tilt_deg=tilt,
+            tilt=round(tilt, 2),
+        )
     if family in ("noise unstated", "noise stated"):
         ref = _field(rng)
         s = rng.uniform(0.03, 0.10)
         seen = _window(rng, ref.positions_xyz, int(rng.integers(40, 80)))
-        return _case(family, seed, rng, ref, ref.positions_xyz[seen] + rng.normal(0, s, (len(seen), 3)),
-                     sigma_m=s if family == "noise stated" else None, noise_m=round(s, 3))
+        return _case(
+            family,
+            seed,
+            rng,
+            ref,
+            ref.positions_xyz[seen] + rng.normal(0, s, (len(seen), 3)),
+            sigma_m=s if family == "noise stated" else None,
+            noise_m=round(s, 3),
+        )
     if family == "quantisation":
         field_ = _field(rng)
         P = field_.positions_xyz
@@ -218,13 +284,21 @@ def _build(family: str, seed: int) -> Case:
         sig = np.full(len(Q), cell / math.sqrt(12))
         ref = LandmarkMap(Q, frame="grid", sigma_xy_m=sig, sigma_z_m=np.full(len(Q), 0.02))
         seen = _window(rng, P, int(rng.integers(30, 70)))
-        return _case(family, seed, rng, ref, P[seen] + rng.normal(0, noise, (len(seen), 3)), cell_m=cell)
+        return _case(
+            family, seed, rng, ref, P[seen] + rng.normal(0, noise, (len(seen), 3)), cell_m=cell
+        )
     if family == "wrong site":
         ref = _field(rng)
         other = _field(rng)
         seen = _window(rng, other.positions_xyz, int(rng.integers(30, 80)))
-        return _case(family, seed, rng, ref, other.positions_xyz[seen] + rng.normal(0, noise, (len(seen), 3)),
-                     true=False)
+        return _case(
+            family,
+            seed,
+            rng,
+            ref,
+            other.positions_xyz[seen] + rng.normal(0, noise, (len(seen), 3)),
+            true=False,
+        )
     if family == "lattice":
         side = (26, 46)[seed % 2]
         jit = rng.uniform(0.02, 0.03)
@@ -234,30 +308,58 @@ def _build(family: str, seed: int) -> Case:
         n_out = len(seen) // 10
         lo, hi = true[:, :2].min(axis=0), true[:, :2].max(axis=0)
         out = np.c_[rng.uniform(lo, hi, (n_out, 2)), rng.normal(0, jit, n_out)]
-        return _case(family, seed, rng, ref, np.vstack([true, out]), rocks=side * side, jitter_m=round(jit, 3))
+        return _case(
+            family,
+            seed,
+            rng,
+            ref,
+            np.vstack([true, out]),
+            rocks=side * side,
+            jitter_m=round(jit, 3),
+        )
     if family == "motifs":
         motif = np.c_[rng.uniform(0, 3, (8, 2)), rng.normal(0, 0.05, 8)]
         nx = 8
         offs = np.array([(i * 5.0, j * 5.0, 0.0) for i in range(nx) for j in range(nx)])
-        P = (offs[:, None, :] + motif[None]).reshape(-1, 3) + rng.normal(0, 0.005, (len(offs) * 8, 3))
+        P = (offs[:, None, :] + motif[None]).reshape(-1, 3) + rng.normal(
+            0, 0.005, (len(offs) * 8, 3)
+        )
         ref = LandmarkMap(P, frame="motifs")
         seen = _window(rng, P, int(rng.integers(20, 40)))
-        return _case(family, seed, rng, ref, P[seen] + rng.normal(0, noise, (len(seen), 3)), rocks=len(P))
+        return _case(
+            family, seed, rng, ref, P[seen] + rng.normal(0, noise, (len(seen), 3)), rocks=len(P)
+        )
     if family == "copied map":
         patch = _field(rng, 150).positions_xyz
         w = float(np.ptp(patch[:, 0])) + 2.0
         P = np.vstack([patch + np.array([k * w, 0.0, 0.0]) for k in range(5)])
         ref = LandmarkMap(P, frame="copies")
         seen = _window(rng, P, int(rng.integers(30, 60)))
-        return _case(family, seed, rng, ref, P[seen] + rng.normal(0, noise, (len(seen), 3)), copies=5)
+        return _case(
+            family, seed, rng, ref, P[seen] + rng.normal(0, noise, (len(seen), 3)), copies=5
+        )
     raise ValueError(f"unknown family {family!r}")
 
 
-FAMILIES = ("outliers uniform", "outliers clustered", "drops", "overlap", "tilt", "noise unstated", "noise stated",
-            "quantisation", "wrong site", "lattice", "motifs", "copied map")
+FAMILIES = (
+    "outliers uniform",
+    "outliers clustered",
+    "drops",
+    "overlap",
+    "tilt",
+    "noise unstated",
+    "noise stated",
+    "quantisation",
+    "wrong site",
+    "lattice",
+    "motifs",
+    "copied map",
+)
 
 
-def make_cases(families: Iterable[str] = FAMILIES, per_family: int = 10, first_seed: int = 0) -> list[Case]:
+def make_cases(
+    families: Iterable[str] = FAMILIES, per_family: int = 10, first_seed: int = 0
+) -> list[Case]:
     """`per_family` seeded cases of each family."""
     return [_build(f, s) for f in families for s in range(first_seed, first_seed + per_family)]
 
@@ -265,7 +367,9 @@ def make_cases(families: Iterable[str] = FAMILIES, per_family: int = 10, first_s
 # --------------------------------------------------------------------------- judging
 
 
-def nees_at(T_est: np.ndarray, T_true: np.ndarray, covariance: np.ndarray, point_veh: np.ndarray) -> float:
+def nees_at(
+    T_est: np.ndarray, T_true: np.ndarray, covariance: np.ndarray, point_veh: np.ndarray
+) -> float:
     """Normalised estimation error squared of the position of a vehicle-frame point: the
     estimated position's error in the reference frame, squared Mahalanobis distance under
     the result's covariance carried to that point (``T_true = exp(xi) T_est``, the error of
@@ -286,34 +390,76 @@ def nees_at(T_est: np.ndarray, T_true: np.ndarray, covariance: np.ndarray, point
         return math.nan
 
 
-def run_case(case: Case, config: str = "cli default", search: str = "auto",
-             loc_config: LocalizationConfig | None = None) -> Outcome:
+def run_case(
+    case: Case,
+    config: str = "cli default",
+    search: str = "auto",
+    loc_config: LocalizationConfig | None = None,
+) -> Outcome:
     """Localize one case and judge it (a refusal is never wrong; an input error is a refusal)."""
     import time
 
     cfg = loc_config if loc_config is not None else CONFIGS[config]()
     t0 = time.perf_counter()
     try:
-        res = localize_large(case.reference, case.vehicle, cfg, search=search, query_xyz=case.query_xyz,
-                             path_xyz=case.path_xyz)
+        res = localize_large(
+            case.reference,
+            case.vehicle,
+            cfg,
+            search=search,
+            query_xyz=case.query_xyz,
+            path_xyz=case.path_xyz,
+        )
     except LunarLocError as exc:
-        return Outcome(case.family, case.seed, config, search, False, False, math.nan, math.nan, math.nan, math.nan,
-                       f"input refused: {exc}", time.perf_counter() - t0, case.params)
+        return Outcome(
+            case.family,
+            case.seed,
+            config,
+            search,
+            False,
+            False,
+            math.nan,
+            math.nan,
+            math.nan,
+            math.nan,
+            f"input refused: {exc}",
+            time.perf_counter() - t0,
+            case.params,
+        )
     dt = time.perf_counter() - t0
     err = rot = nees = math.nan
     known = bool(np.all(np.isfinite(case.T_ref_veh)))
     if known and np.all(np.isfinite(res.T_ref_veh)):
         q = case.query_xyz.reshape(1, 3)
-        err = float(np.linalg.norm(transform_points(res.T_ref_veh, q) - transform_points(case.T_ref_veh, q)))
+        err = float(
+            np.linalg.norm(transform_points(res.T_ref_veh, q) - transform_points(case.T_ref_veh, q))
+        )
         rot = math.degrees(rotation_angle(res.T_ref_veh[:3, :3] @ case.T_ref_veh[:3, :3].T))
         nees = nees_at(res.T_ref_veh, case.T_ref_veh, res.covariance, q[0])
     right = bool(known and err < RIGHT_M and rot < RIGHT_DEG)
-    return Outcome(case.family, case.seed, config, search, bool(res.success), right, err, rot,
-                   float(res.predicted_error_m), nees, res.reason, dt, case.params)
+    return Outcome(
+        case.family,
+        case.seed,
+        config,
+        search,
+        bool(res.success),
+        right,
+        err,
+        rot,
+        float(res.predicted_error_m),
+        nees,
+        res.reason,
+        dt,
+        case.params,
+    )
 
 
-def run_cases(cases: Iterable[Case], configs: Iterable[str] = tuple(CONFIGS), searches: Iterable[str] = SEARCHES,
-              progress: Callable[[Outcome], None] | None = None) -> list[Outcome]:
+def run_cases(
+    cases: Iterable[Case],
+    configs: Iterable[str] = tuple(CONFIGS),
+    searches: Iterable[str] = SEARCHES,
+    progress: Callable[[Outcome], None] | None = None,
+) -> list[Outcome]:
     out = []
     for case in cases:
         for c in configs:
@@ -336,27 +482,38 @@ def summarise(outcomes: Iterable[Outcome]) -> list[dict]:
     for (fam, cfg, search), g in groups.items():
         claims = [o for o in g if o.claimed]
         nees = np.array([o.nees for o in claims if math.isfinite(o.nees)])
-        rows.append({
-            "family": fam, "config": cfg, "search": search, "cases": len(g), "claimed": len(claims),
-            "right": sum(o.right for o in claims), "confident_wrong": sum(o.confident_wrong for o in g),
-            "nees_n": int(len(nees)),
-            "nees_68": float(np.mean(nees <= NEES_68)) if len(nees) else None,
-            "nees_997": float(np.mean(nees <= NEES_997)) if len(nees) else None,
-        })
+        rows.append(
+            {
+                "family": fam,
+                "config": cfg,
+                "search": search,
+                "cases": len(g),
+                "claimed": len(claims),
+                "right": sum(o.right for o in claims),
+                "confident_wrong": sum(o.confident_wrong for o in g),
+                "nees_n": int(len(nees)),
+                "nees_68": float(np.mean(nees <= NEES_68)) if len(nees) else None,
+                "nees_997": float(np.mean(nees <= NEES_997)) if len(nees) else None,
+            }
+        )
     return rows
 
 
 def format_table(rows: list[dict]) -> str:
     """Markdown table of :func:`summarise`'s rows."""
-    lines = ["| family | config | search | cases | claimed | right | confident-wrong | NEES < 3.53 | NEES < 14.16 |",
-             "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    lines = [
+        "| family | config | search | cases | claimed | right | confident-wrong | NEES < 3.53 | NEES < 14.16 |",
+        "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
 
     def pct(v):
         return "-" if v is None else f"{v:.0%}"
 
     for r in rows:
-        lines.append(f"| {r['family']} | {r['config']} | {r['search']} | {r['cases']} | {r['claimed']} | {r['right']} | "
-                     f"{r['confident_wrong']} | {pct(r['nees_68'])} | {pct(r['nees_997'])} |")
+        lines.append(
+            f"| {r['family']} | {r['config']} | {r['search']} | {r['cases']} | {r['claimed']} | {r['right']} | "
+            f"{r['confident_wrong']} | {pct(r['nees_68'])} | {pct(r['nees_997'])} |"
+        )
     return "\n".join(lines)
 
 
@@ -385,14 +542,21 @@ def _real_config(config: str, drift: float, scale_error: float, scale: float) ->
     if config == "cli default":
         return LocalizationConfig()
     if config == "stated bounds":
-        return LocalizationConfig(odometry_scale_error=max(abs(scale_error), abs(scale - 1.0)),
-                                  odometry_heading_drift_deg_per_m=abs(drift))
+        return LocalizationConfig(
+            odometry_scale_error=max(abs(scale_error), abs(scale - 1.0)),
+            odometry_heading_drift_deg_per_m=abs(drift),
+        )
     raise ValueError(f"unknown configuration {config!r} (one of {REAL_CONFIGS})")
 
 
-def run_real(data_dir, families: Iterable[str] = ("real pairs",), configs: Iterable[str] = REAL_CONFIGS,
-             pairs: Iterable[tuple[int, int]] | None = None,
-             progress: Callable[[Outcome], None] | None = None, cache: dict | None = None) -> list[Outcome]:
+def run_real(
+    data_dir,
+    families: Iterable[str] = ("real pairs",),
+    configs: Iterable[str] = REAL_CONFIGS,
+    pairs: Iterable[tuple[int, int]] | None = None,
+    progress: Callable[[Outcome], None] | None = None,
+    cache: dict | None = None,
+) -> list[Outcome]:
     """Localize every pair of every real family under every configuration and judge it at the
     rover (right: within :data:`RIGHT_M` and :data:`RIGHT_DEG`; NEES of the rover's position under
     the result's covariance carried there). ``Outcome.seed`` is ``100 * reference + vehicle``.
@@ -401,8 +565,13 @@ def run_real(data_dir, families: Iterable[str] = ("real pairs",), configs: Itera
     import time
 
     from lunarloc.localization.localize import localize
-    from lunarloc.pipeline.evaluation import DriftModel, aggregate_detections, find_traverses, load_traverse, \
-        vehicle_map
+    from lunarloc.pipeline.evaluation import (
+        DriftModel,
+        aggregate_detections,
+        find_traverses,
+        load_traverse,
+        vehicle_map,
+    )
 
     paths = find_traverses(data_dir)
     pairs = list(itertools.combinations(sorted(paths), 2)) if pairs is None else list(pairs)
@@ -418,10 +587,12 @@ def run_real(data_dir, families: Iterable[str] = ("real pairs",), configs: Itera
                 if k not in travs:
                     travs[k] = load_traverse(paths[k])
             if a not in refs:
-                refs[a] = aggregate_detections(travs[a].detections_xyz, travs[a].detection_frame, None,
-                                               frame=travs[a].name)
-            veh, T_true, last_v, path_v = vehicle_map(travs[b], np.random.default_rng([0, a, b]), None, model, window,
-                                                      scale)
+                refs[a] = aggregate_detections(
+                    travs[a].detections_xyz, travs[a].detection_frame, None, frame=travs[a].name
+                )
+            veh, T_true, last_v, path_v = vehicle_map(
+                travs[b], np.random.default_rng([0, a, b]), None, model, window, scale
+            )
             for config in configs:
                 cfg = _real_config(config, drift, scale_error, scale)
                 t0 = time.perf_counter()
@@ -429,14 +600,31 @@ def run_real(data_dir, families: Iterable[str] = ("real pairs",), configs: Itera
                 dt = time.perf_counter() - t0
                 err = rot = nees = math.nan
                 if np.all(np.isfinite(res.T_ref_veh)):
-                    err = float(np.linalg.norm(transform_points(res.T_ref_veh, last_v[None])[0]
-                                               - transform_points(T_true, last_v[None])[0]))
+                    err = float(
+                        np.linalg.norm(
+                            transform_points(res.T_ref_veh, last_v[None])[0]
+                            - transform_points(T_true, last_v[None])[0]
+                        )
+                    )
                     E = res.T_ref_veh @ invert_transform(T_true)
                     rot = math.degrees(rotation_angle(E[:3, :3]))
                     nees = nees_at(res.T_ref_veh, T_true, res.covariance, last_v)
                 right = bool(err < RIGHT_M and rot < RIGHT_DEG)
-                o = Outcome(fam, 100 * a + b, config, "full", bool(res.success), right, err, rot,
-                            float(res.predicted_error_m), nees, res.reason, dt, {"pair": f"{a}-{b}"})
+                o = Outcome(
+                    fam,
+                    100 * a + b,
+                    config,
+                    "full",
+                    bool(res.success),
+                    right,
+                    err,
+                    rot,
+                    float(res.predicted_error_m),
+                    nees,
+                    res.reason,
+                    dt,
+                    {"pair": f"{a}-{b}"},
+                )
                 out.append(o)
                 if progress:
                     progress(o)

@@ -75,10 +75,25 @@ n_rocks = [386, 800]
 """
 
 RESULT_COLUMNS = [
-    "job", "status", "check", "seed", "n_rocks", "sun_elevation_deg", "reference_landmarks", "vehicle_landmarks",
-    "attempts", "fixes", "odometry_rmse_m", "corrected_rmse_m", "final_error_odometry_m",
-    "final_error_corrected_m", "max_accepted_fix_error_m", "real_time_fraction", "wall_s", "error",
-]  # fmt: skip
+    "job",
+    "status",
+    "check",
+    "seed",
+    "n_rocks",
+    "sun_elevation_deg",
+    "reference_landmarks",
+    "vehicle_landmarks",
+    "attempts",
+    "fixes",
+    "odometry_rmse_m",
+    "corrected_rmse_m",
+    "final_error_odometry_m",
+    "final_error_corrected_m",
+    "max_accepted_fix_error_m",
+    "real_time_fraction",
+    "wall_s",
+    "error",
+]
 
 
 #: the most jobs one campaign may hold (checked from the axes' lengths, before the grid is built)
@@ -119,7 +134,9 @@ class CampaignSpec:
         for k, values in sorted(self.grid.items()):
             for i, v in enumerate(values):
                 if isinstance(v, (list, dict)):
-                    raise ConfigError(f"grid axis '{k}', value {i + 1}: {v!r} is a list or table, not a value")
+                    raise ConfigError(
+                        f"grid axis '{k}', value {i + 1}: {v!r} is a list or table, not a value"
+                    )
                 try:
                     ScenarioConfig.from_dict({**self.job, k: v})
                 except ConfigError as exc:
@@ -166,7 +183,9 @@ def load_spec(path: str | Path) -> CampaignSpec:
         raise FileFormatError(f"{path}: not a valid TOML spec: {exc}") from None
     unknown = sorted(set(doc) - {"campaign", "job", "grid"})
     if unknown:
-        raise FileFormatError(f"{path}: unknown section(s) {unknown}; expected [campaign], [job], [grid]")
+        raise FileFormatError(
+            f"{path}: unknown section(s) {unknown}; expected [campaign], [job], [grid]"
+        )
     meta, job, grid = doc.get("campaign", {}), doc.get("job", {}), doc.get("grid", {})
     if not all(isinstance(x, dict) for x in (meta, job, grid)):
         raise FileFormatError(f"{path}: [campaign], [job] and [grid] must be tables")
@@ -174,7 +193,9 @@ def load_spec(path: str | Path) -> CampaignSpec:
         if not isinstance(v, list) or not v:
             raise FileFormatError(f"{path}: grid axis '{k}' must be a non-empty list")
     if not job and not grid:
-        raise FileFormatError(f"{path}: neither [job] nor [grid]: nothing to run (see lunarloc campaign --example)")
+        raise FileFormatError(
+            f"{path}: neither [job] nor [grid]: nothing to run (see lunarloc campaign --example)"
+        )
     name = meta.get("name", path.stem)
     if not isinstance(name, str):
         raise FileFormatError(f"{path}: [campaign] name must be a string, got {name!r}")
@@ -193,19 +214,29 @@ def run_job(job: Job, jobs_dir: str) -> dict:
 
     out = Path(jobs_dir) / job.id
     t0 = time.perf_counter()
-    row: dict[str, Any] = {"job": job.id, "seed": job.scenario.seed, "n_rocks": job.scenario.n_rocks,
-                           "sun_elevation_deg": job.scenario.sun_elevation_deg}  # fmt: skip
+    row: dict[str, Any] = {
+        "job": job.id,
+        "seed": job.scenario.seed,
+        "n_rocks": job.scenario.n_rocks,
+        "sun_elevation_deg": job.scenario.sun_elevation_deg,
+    }
     try:
         s = run_scenario(job.scenario, out, figures=False)
         problems = scenario_problems(s)
         row.update(
-            status="ok", check="; ".join(problems) or "pass",
-            reference_landmarks=s["reference_landmarks"], vehicle_landmarks=s["vehicle_landmarks"],
-            attempts=s["attempts"], fixes=s["fixes"], odometry_rmse_m=s["ate_odometry"]["rmse_m"],
-            corrected_rmse_m=s["ate_corrected"]["rmse_m"], final_error_odometry_m=s["final_error_odometry_m"],
+            status="ok",
+            check="; ".join(problems) or "pass",
+            reference_landmarks=s["reference_landmarks"],
+            vehicle_landmarks=s["vehicle_landmarks"],
+            attempts=s["attempts"],
+            fixes=s["fixes"],
+            odometry_rmse_m=s["ate_odometry"]["rmse_m"],
+            corrected_rmse_m=s["ate_corrected"]["rmse_m"],
+            final_error_odometry_m=s["final_error_odometry_m"],
             final_error_corrected_m=s["final_error_corrected_m"],
-            max_accepted_fix_error_m=s["max_accepted_fix_error_m"], real_time_fraction=s["real_time_fraction"],
-        )  # fmt: skip
+            max_accepted_fix_error_m=s["max_accepted_fix_error_m"],
+            real_time_fraction=s["real_time_fraction"],
+        )
     except Exception as exc:  # a failed job is a row, not the end of the campaign
         row.update(status="failed", error=f"{type(exc).__name__}: {exc}")
         out.mkdir(parents=True, exist_ok=True)
@@ -214,7 +245,9 @@ def run_job(job: Job, jobs_dir: str) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     from lunarloc.io.outputs import write_text
 
-    write_text(out / "result.json", json.dumps(row, indent=1))  # last and atomically: its presence means finished
+    write_text(
+        out / "result.json", json.dumps(row, indent=1)
+    )  # last and atomically: its presence means finished
     return row
 
 
@@ -246,8 +279,14 @@ class CampaignResult:
         return out
 
 
-def run_campaign(spec: CampaignSpec, out: str | Path, *, scheduler: str | None = None, workers: int | None = None,
-                 progress: Callable[[dict, int, int], None] | None = None) -> CampaignResult:  # fmt: skip
+def run_campaign(
+    spec: CampaignSpec,
+    out: str | Path,
+    *,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    progress: Callable[[dict, int, int], None] | None = None,
+) -> CampaignResult:
     """Run (or resume) the campaign into ``out``; see the module docstring.
 
     scheduler : None for a local cluster, ``"sync"`` for one job after another in this
@@ -258,14 +297,19 @@ def run_campaign(spec: CampaignSpec, out: str | Path, *, scheduler: str | None =
     out = Path(out)
     jobs = spec.jobs()
     if scheduler not in (None, "sync"):
-        check_scheduler_address(scheduler)  # a bad or unreachable address is an input error, before any file
+        check_scheduler_address(
+            scheduler
+        )  # a bad or unreachable address is an input error, before any file
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out}: exists and is not a folder")
     jobs_dir = out / "jobs"
     jobs_dir.mkdir(parents=True, exist_ok=True)
     from lunarloc.io.outputs import write_text
 
-    write_text(out / "spec.json", json.dumps({"name": spec.name, "job": spec.job, "grid": spec.grid}, indent=1))
+    write_text(
+        out / "spec.json",
+        json.dumps({"name": spec.name, "job": spec.job, "grid": spec.grid}, indent=1),
+    )
     rows: dict[str, dict] = {}
     todo = []
     for j in jobs:
@@ -325,8 +369,10 @@ def remove_temporaries(jobs_dir: Path, jobs: list[Job]) -> int:
     return n
 
 
-_SCHEDULER_ADDRESS = re.compile(r"^(?:(?P<proto>[a-z][a-z0-9+.-]*)://)?(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+)"
-                                r"(?::(?P<port>[0-9]{1,5}))?/?$")  # fmt: skip
+_SCHEDULER_ADDRESS = re.compile(
+    r"^(?:(?P<proto>[a-z][a-z0-9+.-]*)://)?(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+)"
+    r"(?::(?P<port>[0-9]{1,5}))?/?$"
+)
 _SCHEDULER_PROTOCOLS = ("tcp", "tls", "ws", "wss", "ucx", "inproc")
 
 
@@ -338,10 +384,14 @@ def check_scheduler_address(address: str, timeout_s: float = 10.0) -> tuple[str,
 
     m = _SCHEDULER_ADDRESS.match(address or "")
     if not m:
-        raise ConfigError(f"--scheduler {address!r}: not a scheduler address (tcp://HOST:PORT, or 'sync')")
+        raise ConfigError(
+            f"--scheduler {address!r}: not a scheduler address (tcp://HOST:PORT, or 'sync')"
+        )
     proto = m["proto"] or "tcp"
     if proto not in _SCHEDULER_PROTOCOLS:
-        raise ConfigError(f"--scheduler {address!r}: unknown protocol {proto!r} (one of {', '.join(_SCHEDULER_PROTOCOLS)})")
+        raise ConfigError(
+            f"--scheduler {address!r}: unknown protocol {proto!r} (one of {', '.join(_SCHEDULER_PROTOCOLS)})"
+        )
     port = int(m["port"] or 8786)
     if not 1 <= port <= 65535:
         raise ConfigError(f"--scheduler {address!r}: port {port} outside 1..65535")
@@ -351,8 +401,10 @@ def check_scheduler_address(address: str, timeout_s: float = 10.0) -> tuple[str,
             with socket.create_connection((host, port), timeout=timeout_s):
                 pass
         except OSError as exc:
-            raise ConfigError(f"--scheduler {address!r}: cannot connect to {host}:{port} "
-                              f"({exc.strerror or type(exc).__name__})") from None  # fmt: skip
+            raise ConfigError(
+                f"--scheduler {address!r}: cannot connect to {host}:{port} "
+                f"({exc.strerror or type(exc).__name__})"
+            ) from None
     return proto, host, port
 
 
@@ -367,27 +419,42 @@ def _run_distributed(todo, jobs_dir, rows, total, scheduler, workers, progress) 
         try:
             client = Client(scheduler, timeout="30s")
         except (OSError, TimeoutError, ValueError) as exc:  # reachable, but not a Dask scheduler
-            raise ConfigError(f"--scheduler {scheduler!r}: no Dask scheduler there ({type(exc).__name__}: {exc})") from None
+            raise ConfigError(
+                f"--scheduler {scheduler!r}: no Dask scheduler there ({type(exc).__name__}: {exc})"
+            ) from None
         used = f"dask scheduler {scheduler}"
     else:
         import os
 
         n = workers or os.cpu_count() or 1
         # one single-threaded process per worker: the jobs are CPU-bound numpy/numba/OpenCV
-        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                               silence_logs=logging.WARNING)
+        cluster = LocalCluster(
+            n_workers=n,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,
+            silence_logs=logging.WARNING,
+        )
         client = Client(cluster)
         used = f"dask local cluster ({n} worker processes)"
     try:
-        futures = {client.submit(run_job, j, str(jobs_dir), key=f"lunarloc-job-{j.id}", pure=False): j for j in todo}
+        futures = {
+            client.submit(run_job, j, str(jobs_dir), key=f"lunarloc-job-{j.id}", pure=False): j
+            for j in todo
+        }
         for fut in as_completed(futures):
             j = futures[fut]
             try:
                 row = fut.result()
             except Exception as exc:  # the worker itself died (memory, signal)
-                row = {"job": j.id, "status": "failed", "error": f"worker: {type(exc).__name__}: {exc}",
-                       "seed": j.scenario.seed, "n_rocks": j.scenario.n_rocks,
-                       "sun_elevation_deg": j.scenario.sun_elevation_deg}  # fmt: skip
+                row = {
+                    "job": j.id,
+                    "status": "failed",
+                    "error": f"worker: {type(exc).__name__}: {exc}",
+                    "seed": j.scenario.seed,
+                    "n_rocks": j.scenario.n_rocks,
+                    "sun_elevation_deg": j.scenario.sun_elevation_deg,
+                }
             rows[j.id] = row
             if progress:
                 progress(row, len(rows), total)
@@ -438,13 +505,38 @@ def _summary_figure(rows: list[dict], path: Path, title: str) -> Path | None:
 
     fig, ax = plt.subplots(figsize=(max(6.0, 0.7 * len(rows) + 2), 4.2))
     w = 0.4
-    ax.bar([i - w / 2 for i in x], [val(r, "odometry_rmse_m") for r in rows], w, label="odometry", color="0.65")
-    ax.bar([i + w / 2 for i in x], [val(r, "corrected_rmse_m") for r in rows], w, label="corrected", color="tab:blue")
+    ax.bar(
+        [i - w / 2 for i in x],
+        [val(r, "odometry_rmse_m") for r in rows],
+        w,
+        label="odometry",
+        color="0.65",
+    )
+    ax.bar(
+        [i + w / 2 for i in x],
+        [val(r, "corrected_rmse_m") for r in rows],
+        w,
+        label="corrected",
+        color="tab:blue",
+    )
     for i, r in enumerate(rows):
-        note = r["status"] if r["status"] != "ok" else ("" if r.get("check") == "pass" else "check failed")
+        note = (
+            r["status"]
+            if r["status"] != "ok"
+            else ("" if r.get("check") == "pass" else "check failed")
+        )
         if note:
-            ax.text(i, 0.03, note, rotation=90, va="bottom", ha="center", color="tab:red", fontsize=8,
-                    transform=ax.get_xaxis_transform())  # x in data, y in axes fraction (log axis)
+            ax.text(
+                i,
+                0.03,
+                note,
+                rotation=90,
+                va="bottom",
+                ha="center",
+                color="tab:red",
+                fontsize=8,
+                transform=ax.get_xaxis_transform(),
+            )  # x in data, y in axes fraction (log axis)
     ax.set_yscale("log")
     ax.set_ylabel("trajectory RMSE (cm, log)")
     ax.set_xticks(list(x))

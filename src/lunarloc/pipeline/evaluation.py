@@ -38,7 +38,13 @@ from lunarloc.core.geometry import (
 from lunarloc.localization.config import LocalizationConfig
 from lunarloc.localization.localize import localize
 from lunarloc.odometry.drift import DriftModel, drifted_path
-from lunarloc.io.maps import AggregationConfig, Traverse, aggregate_detections, detection_arcs_m, load_traverse
+from lunarloc.io.maps import (
+    AggregationConfig,
+    Traverse,
+    aggregate_detections,
+    detection_arcs_m,
+    load_traverse,
+)
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +53,9 @@ SUCCESS_TRANSLATION_M = 0.10
 SUCCESS_ROTATION_DEG = 1.0
 
 
-def random_vehicle_transform(rng: np.random.Generator, max_tilt_deg: float = 1.0, max_translation_m: float = 100.0):
+def random_vehicle_transform(
+    rng: np.random.Generator, max_tilt_deg: float = 1.0, max_translation_m: float = 100.0
+):
     """A random T_veh_world: any yaw, roll/pitch within +-max_tilt_deg, translation in a ball."""
     roll, pitch = np.radians(rng.uniform(-max_tilt_deg, max_tilt_deg, 2))
     yaw = rng.uniform(-math.pi, math.pi)
@@ -69,7 +77,9 @@ def drifted_detections(trav: Traverse, drift: DriftModel):
     idx = np.array([frame_pos[int(f)] for f in trav.detection_frame], dtype=np.int64)
     rel = trav.detections_xyz - g[idx]
     cd, sd = np.cos(psi[idx]), np.sin(psi[idx])
-    det = o[idx] + np.stack([cd * rel[:, 0] - sd * rel[:, 1], sd * rel[:, 0] + cd * rel[:, 1], rel[:, 2]], axis=1)
+    det = o[idx] + np.stack(
+        [cd * rel[:, 0] - sd * rel[:, 1], sd * rel[:, 0] + cd * rel[:, 1], rel[:, 2]], axis=1
+    )
     T_last = make_transform(rot_z(psi[-1]), o[-1] - rot_z(psi[-1]) @ g[-1])
     return det, o, T_last
 
@@ -143,8 +153,13 @@ class BenchSummary:
         e = np.array([r.err_rover_m / max(r.predicted_error_m, 1e-9) for r in ok])
         a = np.array([r.rot_err_deg / max(r.predicted_rotation_deg, 1e-9) for r in ok])
         d2 = np.array([r.covariance_d2 for r in ok])
-        out = {"n": len(ok), "position_1sigma": float(np.mean(e <= 1)), "position_3sigma": float(np.mean(e <= 3)),
-               "rotation_1sigma": float(np.mean(a <= 1)), "rotation_3sigma": float(np.mean(a <= 3))}
+        out = {
+            "n": len(ok),
+            "position_1sigma": float(np.mean(e <= 1)),
+            "position_3sigma": float(np.mean(e <= 3)),
+            "rotation_1sigma": float(np.mean(a <= 1)),
+            "rotation_3sigma": float(np.mean(a <= 3)),
+        }
         if np.any(np.isfinite(d2)):
             out["covariance_1sigma"] = float(np.mean(d2 <= chi2.ppf(0.6827, 3)))
             out["covariance_3sigma"] = float(np.mean(d2 <= chi2.ppf(0.9973, 3)))
@@ -180,7 +195,9 @@ def find_traverses(data_dir: str | Path) -> dict[int, Path]:
         except (IndexError, ValueError):
             continue
     if not out:
-        raise InputError(f"{data_dir}: no traverse_<N>.csv files found (expected the lunarloc-data layout)")
+        raise InputError(
+            f"{data_dir}: no traverse_<N>.csv files found (expected the lunarloc-data layout)"
+        )
     return dict(sorted(out.items()))
 
 
@@ -209,7 +226,9 @@ def vehicle_map(
     T_veh_odo = random_vehicle_transform(rng)
     det_frame, frames = veh_trav.detection_frame, veh_trav.frames
     if window_m is not None:
-        travelled = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(veh_trav.rover_xyz, axis=0), axis=1))]
+        travelled = np.r_[
+            0.0, np.cumsum(np.linalg.norm(np.diff(veh_trav.rover_xyz, axis=0), axis=1))
+        ]
         first = veh_trav.frames[np.searchsorted(travelled, travelled[-1] - window_m)]
         keep = det_frame >= first
         det, det_frame = det[keep], det_frame[keep]
@@ -225,8 +244,13 @@ def vehicle_map(
     det_v = transform_points(T_veh_odo, det)
     path_v = transform_points(T_veh_odo, rover)
     # where along the returned path each landmark was seen from (the bend model places it there)
-    veh = aggregate_detections(det_v, det_frame, agg_config, frame=veh_trav.name,
-                               detection_arc_m=detection_arcs_m(path_v, frames, det_frame))
+    veh = aggregate_detections(
+        det_v,
+        det_frame,
+        agg_config,
+        frame=veh_trav.name,
+        detection_arc_m=detection_arcs_m(path_v, frames, det_frame),
+    )
     T_true = invert_transform(T_veh_odo @ T_odo_world)  # world <- vehicle, exact at the last frame
     last_v = transform_points(T_veh_odo, last[None])[0]
     return veh, T_true, last_v, path_v
@@ -246,19 +270,44 @@ def run_pair(
     """Localize one traverse pair (see module docstring). With `window_m`, the vehicle map
     holds only detections from the last `window_m` metres of the path (what an online
     rover localizes, where drift inside the window is small)."""
-    ref = ref_map if ref_map is not None else aggregate_detections(
-        ref_trav.detections_xyz, ref_trav.detection_frame, agg_config, frame=ref_trav.name
+    ref = (
+        ref_map
+        if ref_map is not None
+        else aggregate_detections(
+            ref_trav.detections_xyz, ref_trav.detection_frame, agg_config, frame=ref_trav.name
+        )
     )
-    veh, T_true, last_v, path_v = vehicle_map(veh_trav, rng, agg_config, drift, window_m, scale_about_centroid)
+    veh, T_true, last_v, path_v = vehicle_map(
+        veh_trav, rng, agg_config, drift, window_m, scale_about_centroid
+    )
     t0 = time.perf_counter()
     if len(ref) < 3 or len(veh) < 3:
-        return PairResult(0, 0, len(ref), len(veh), 0, False, False, math.nan, math.nan, math.nan, 0.0, "too few landmarks")
-    res = localize(ref, veh, loc_config, query_xyz=last_v[None], path_xyz=path_v)  # judged where the rover is
+        return PairResult(
+            0,
+            0,
+            len(ref),
+            len(veh),
+            0,
+            False,
+            False,
+            math.nan,
+            math.nan,
+            math.nan,
+            0.0,
+            "too few landmarks",
+        )
+    res = localize(
+        ref, veh, loc_config, query_xyz=last_v[None], path_xyz=path_v
+    )  # judged where the rover is
     dt = time.perf_counter() - t0
     if np.all(np.isfinite(res.T_ref_veh)):
         E = res.T_ref_veh @ invert_transform(T_true)
         err0 = float(np.linalg.norm(E[:3, 3]))
-        err_rover = float(np.linalg.norm(transform_points(res.T_ref_veh, last_v[None])[0] - veh_trav.rover_xyz[-1]))
+        err_rover = float(
+            np.linalg.norm(
+                transform_points(res.T_ref_veh, last_v[None])[0] - veh_trav.rover_xyz[-1]
+            )
+        )
         rot = math.degrees(rotation_angle(E[:3, :3]))
         d2 = covariance_d2(E, res.covariance)
     else:
@@ -268,9 +317,26 @@ def run_pair(
     if res.num_inliers:
         centre = ref.positions_xyz[res.inliers[:, 1]].mean(axis=0)
         lever = float(np.linalg.norm(veh_trav.rover_xyz[-1] - centre))
-    return PairResult(0, 0, len(ref), len(veh), res.num_inliers, bool(res.success), correct, err0, err_rover, rot,
-                      dt, res.reason, res.competitor_size, res.required_inliers, lever,
-                      res.predicted_error_m, res.predicted_rotation_deg, d2)
+    return PairResult(
+        0,
+        0,
+        len(ref),
+        len(veh),
+        res.num_inliers,
+        bool(res.success),
+        correct,
+        err0,
+        err_rover,
+        rot,
+        dt,
+        res.reason,
+        res.competitor_size,
+        res.required_inliers,
+        lever,
+        res.predicted_error_m,
+        res.predicted_rotation_deg,
+        d2,
+    )
 
 
 def covariance_d2(E: np.ndarray, covariance: np.ndarray) -> float:
@@ -319,11 +385,16 @@ def bench_pairs(
         for k in (a, b):
             if k not in paths:
                 raise InputError(f"traverse {k} not found in {data_dir}")
-    if loc_config is None:  # the maps' odometry bounds are known here: the simulated drift (0: ground-truth poses)
+    if (
+        loc_config is None
+    ):  # the maps' odometry bounds are known here: the simulated drift (0: ground-truth poses)
         d = drift or DriftModel()
-        loc_config = LocalizationConfig(odometry_scale_error=abs(d.scale_error) if scale_about_centroid == 1.0 else
-                                        max(abs(d.scale_error), abs(scale_about_centroid - 1.0)),
-                                        odometry_heading_drift_deg_per_m=abs(d.heading_drift_deg_per_m))
+        loc_config = LocalizationConfig(
+            odometry_scale_error=abs(d.scale_error)
+            if scale_about_centroid == 1.0
+            else max(abs(d.scale_error), abs(scale_about_centroid - 1.0)),
+            odometry_heading_drift_deg_per_m=abs(d.heading_drift_deg_per_m),
+        )
     travs: dict[int, Traverse] = {}
     maps = {}
     summary = BenchSummary()
@@ -333,10 +404,21 @@ def bench_pairs(
             if k not in travs:
                 travs[k] = load_traverse(paths[k])
         if a not in maps:
-            maps[a] = aggregate_detections(travs[a].detections_xyz, travs[a].detection_frame, agg_config, frame=travs[a].name)
+            maps[a] = aggregate_detections(
+                travs[a].detections_xyz, travs[a].detection_frame, agg_config, frame=travs[a].name
+            )
         rng = np.random.default_rng([seed, a, b])
-        r = run_pair(travs[a], travs[b], rng, loc_config, agg_config, drift, ref_map=maps[a], window_m=window_m,
-                     scale_about_centroid=scale_about_centroid)
+        r = run_pair(
+            travs[a],
+            travs[b],
+            rng,
+            loc_config,
+            agg_config,
+            drift,
+            ref_map=maps[a],
+            window_m=window_m,
+            scale_about_centroid=scale_about_centroid,
+        )
         r.reference, r.vehicle = a, b
         summary.results.append(r)
         if progress:

@@ -40,7 +40,9 @@ class Errors:
         for i, j, _ in m:
             e = est[i] - rocks[j, 1:4]
             target = rocks[j, 4] >= 0.1 and (near is None or bool(near[i]))
-            self.rows.append((float(np.linalg.norm(e)), float(np.linalg.norm(e[:2])), abs(float(e[2])), target))
+            self.rows.append(
+                (float(np.linalg.norm(e)), float(np.linalg.norm(e[:2])), abs(float(e[2])), target)
+            )
         return len(m)
 
     def summary(self) -> dict:
@@ -51,17 +53,30 @@ class Errors:
             out[name] = {"n": int(len(b))}
             for k, col in (("3d", 0), ("xy", 1), ("z_abs", 2)):
                 out[name][f"{k}_median_m"] = float(np.median(b[:, col])) if len(b) else float("nan")
-                out[name][f"{k}_p90_m"] = float(np.percentile(b[:, col], 90)) if len(b) else float("nan")
+                out[name][f"{k}_p90_m"] = (
+                    float(np.percentile(b[:, col], 90)) if len(b) else float("nan")
+                )
         return out
 
 
-def traverse_landmarks(frames: np.ndarray, rover_xyz: np.ndarray, dets: np.ndarray, det_frame: np.ndarray,
-               min_sightings: int) -> np.ndarray:
+def traverse_landmarks(
+    frames: np.ndarray,
+    rover_xyz: np.ndarray,
+    dets: np.ndarray,
+    det_frame: np.ndarray,
+    min_sightings: int,
+) -> np.ndarray:
     """The landmarks ``lunarloc map`` clusters from these detections (at least
     `min_sightings` sightings each), map frame (L, 3)."""
-    trav = Traverse(np.asarray(frames), np.asarray(rover_xyz, float).reshape(-1, 3), np.asarray(dets, float).reshape(-1, 3),
-                    np.asarray(det_frame))
-    return traverse_map(trav, replace(AggregationConfig(), min_sightings=min_sightings)).positions_xyz
+    trav = Traverse(
+        np.asarray(frames),
+        np.asarray(rover_xyz, float).reshape(-1, 3),
+        np.asarray(dets, float).reshape(-1, 3),
+        np.asarray(det_frame),
+    )
+    return traverse_map(
+        trav, replace(AggregationConfig(), min_sightings=min_sightings)
+    ).positions_xyz
 
 
 def archive_traverse(path: Path, base_cfg: DetectorConfig) -> tuple:
@@ -73,11 +88,17 @@ def archive_traverse(path: Path, base_cfg: DetectorConfig) -> tuple:
     with LacArchive(path) as ar:
         t = ar.custom("rocks")
         rocks = np.column_stack([t["id"], t["x"], t["y"], t["z"], t["radius"]])
-        frames = [int(f) for f in ar.frame_numbers if ar.camera_row(STEREO_PAIRS[0][0], int(f)) is not None]
+        frames = [
+            int(f)
+            for f in ar.frame_numbers
+            if ar.camera_row(STEREO_PAIRS[0][0], int(f)) is not None
+        ]
         cam = camera_from_archive(ar)
         det = Detector(scaled_detector_config(cam.width, base=base_cfg), cam)
         F, X, D, DF, R = [], [], [], [], []
-        for fd in detect_archive(ar, det.config, "ground-truth", detector=det, frames=frames, lander_xy=lander_xy(ar)):
+        for fd in detect_archive(
+            ar, det.config, "ground-truth", detector=det, frames=frames, lander_xy=lander_xy(ar)
+        ):
             F.append(fd.frame)
             X.append(np.asarray(fd.T_map_rover, float)[:3, 3])
             for pair in fd.pairs:
@@ -94,9 +115,19 @@ def csv_traverse(det_path: Path, rocks_path: Path) -> tuple:
 
     tr = load_traverse(det_path)
     pos = {int(f): p for f, p in zip(tr.frames, tr.rover_xyz)}
-    rng = [float(np.linalg.norm(p - pos[int(f)])) for p, f in zip(tr.detections_xyz, tr.detection_frame)]
-    return (tr.frames, tr.rover_xyz, tr.detections_xyz, tr.detection_frame, rng, load_rocks_csv(rocks_path),
-            str(det_path))
+    rng = [
+        float(np.linalg.norm(p - pos[int(f)]))
+        for p, f in zip(tr.detections_xyz, tr.detection_frame)
+    ]
+    return (
+        tr.frames,
+        tr.rover_xyz,
+        tr.detections_xyz,
+        tr.detection_frame,
+        rng,
+        load_rocks_csv(rocks_path),
+        str(det_path),
+    )
 
 
 def evaluate(traverses, min_sightings: list[int]) -> dict:
@@ -106,7 +137,9 @@ def evaluate(traverses, min_sightings: list[int]) -> dict:
     for F, X, D, DF, R, rocks, label in traverses:
         D, DF, R = np.asarray(D, float).reshape(-1, 3), np.asarray(DF), np.asarray(R, float)
         for g in (label, "all"):
-            acc = groups.setdefault(g, {"detections": Errors(), **{f"landmarks_ms{m}": Errors() for m in min_sightings}})
+            acc = groups.setdefault(
+                g, {"detections": Errors(), **{f"landmarks_ms{m}": Errors() for m in min_sightings}}
+            )
             for f in np.unique(DF):
                 sel = DF == f
                 acc["detections"].add(D[sel], rocks, R[sel] <= 5.0)

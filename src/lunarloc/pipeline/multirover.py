@@ -67,15 +67,27 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
-__all__ = ["MultiRoverConfig", "SharedAttempt", "RoverRun", "MultiRoverResult", "check_archives", "rover_names", "run_rovers",
-           "write_rover_outputs"]  # fmt: skip
+__all__ = [
+    "MultiRoverConfig",
+    "SharedAttempt",
+    "RoverRun",
+    "MultiRoverResult",
+    "check_archives",
+    "rover_names",
+    "run_rovers",
+    "write_rover_outputs",
+]
 
 
 SHARED_BOUNDS = ("sum", "rss", "own")
 
 
-def shared_localization(window: LocalizationConfig, owner_bounds: tuple[float, float] | None,
-                        how: str = "sum", owner_sigma: tuple[float, float] | None = None) -> LocalizationConfig:
+def shared_localization(
+    window: LocalizationConfig,
+    owner_bounds: tuple[float, float] | None,
+    how: str = "sum",
+    owner_sigma: tuple[float, float] | None = None,
+) -> LocalizationConfig:
     """The localization a rover's local window is judged with in another rover's live map.
 
     :func:`~lunarloc.localization.localize.localize` takes its reference as rigid and allows
@@ -105,8 +117,11 @@ def shared_localization(window: LocalizationConfig, owner_bounds: tuple[float, f
     reference attempt: the residual RMSE floor (``max_rmse_m``) is combined in quadrature."""
     window = replace(window, max_rmse_m=math.hypot(window.max_rmse_m, window.max_rmse_m))
     if owner_sigma is not None:
-        window = replace(window, max_predicted_error_m=max(window.max_predicted_error_m, owner_sigma[0]),
-                         max_predicted_rotation_deg=max(window.max_predicted_rotation_deg, owner_sigma[1]))
+        window = replace(
+            window,
+            max_predicted_error_m=max(window.max_predicted_error_m, owner_sigma[0]),
+            max_predicted_rotation_deg=max(window.max_predicted_rotation_deg, owner_sigma[1]),
+        )
     own = stated_window_bounds(window)
     if own is None:
         return window
@@ -116,19 +131,28 @@ def shared_localization(window: LocalizationConfig, owner_bounds: tuple[float, f
         return window
     comb = (lambda a, b: a + b) if how == "sum" else math.hypot
     # each map is levelled by its own rover's IMU, to within max_tilt_deg: the same rule
-    return replace(window, odometry_scale_error=comb(own[0], owner_bounds[0]),
-                   odometry_heading_drift_deg_per_m=comb(own[1], owner_bounds[1]),
-                   max_tilt_deg=min(comb(window.max_tilt_deg, window.max_tilt_deg), 44.0))
+    return replace(
+        window,
+        odometry_scale_error=comb(own[0], owner_bounds[0]),
+        odometry_heading_drift_deg_per_m=comb(own[1], owner_bounds[1]),
+        max_tilt_deg=min(comb(window.max_tilt_deg, window.max_tilt_deg), 44.0),
+    )
 
 
 @dataclass(frozen=True)
 class MultiRoverConfig:
     """Settings of a multi-rover playback (metres, seconds, degrees as named)."""
 
-    run: RunConfig = field(default_factory=RunConfig)  # each rover's run (as `lunarloc run`: loop, localization, ...)
+    run: RunConfig = field(
+        default_factory=RunConfig
+    )  # each rover's run (as `lunarloc run`: loop, localization, ...)
     share_maps: bool = False  # localize against the other rovers' live maps too
-    share_refresh_s: float = 5.0  # a rover's live map is rebuilt at most this often (mission time) ...
-    max_shared_sigma_ratio: float = 0.75  # a shared fix is used only if its sigma < this x the rover's own prediction
+    share_refresh_s: float = (
+        5.0  # a rover's live map is rebuilt at most this often (mission time) ...
+    )
+    max_shared_sigma_ratio: float = (
+        0.75  # a shared fix is used only if its sigma < this x the rover's own prediction
+    )
     # the odometry bounds a shared attempt states (:func:`shared_localization`): both maps are
     # bent by their rovers' odometry; "sum" adds the two rovers' bounds (worst case), "rss" adds
     # them in quadrature (independent drifts), "own" states the local window's alone
@@ -143,14 +167,25 @@ class MultiRoverConfig:
     clock_tolerance: float = 0.01  # relative difference of the archives' tick periods allowed
 
     def __post_init__(self) -> None:
-        bad = [f"{n}={getattr(self, n)}" for n in ("share_refresh_s", "max_shared_sigma_ratio", "site_tolerance_m",
-                                                   "site_tolerance_deg", "clock_tolerance") if not getattr(self, n) > 0]  # fmt: skip
+        bad = [
+            f"{n}={getattr(self, n)}"
+            for n in (
+                "share_refresh_s",
+                "max_shared_sigma_ratio",
+                "site_tolerance_m",
+                "site_tolerance_deg",
+                "clock_tolerance",
+            )
+            if not getattr(self, n) > 0
+        ]
         if bad:
             raise ConfigError(f"{', '.join(bad)}: must be > 0")
         if self.sigma_model not in ("windows", "source", "gate"):
             raise ConfigError(f"sigma_model={self.sigma_model!r}: use windows, source or gate")
         if self.shared_bounds not in SHARED_BOUNDS:
-            raise ConfigError(f"shared_bounds={self.shared_bounds!r}: use one of {', '.join(SHARED_BOUNDS)}")
+            raise ConfigError(
+                f"shared_bounds={self.shared_bounds!r}: use one of {', '.join(SHARED_BOUNDS)}"
+            )
 
     def to_dict(self) -> dict:
         return config_to_dict(self)
@@ -183,7 +218,9 @@ class SharedAttempt:
     own_sigma_m: float = float("nan")  # the rover's own predicted sigma at the keyframe
     correction_m: float = float("nan")
     gate_d2: float = float("nan")
-    fix_error_m: float = float("nan")  # |fix - ground truth| (evaluation only; for a refused registration, what it would have been)
+    fix_error_m: float = float(
+        "nan"
+    )  # |fix - ground truth| (evaluation only; for a refused registration, what it would have been)
 
 
 @dataclass
@@ -205,14 +242,22 @@ class MultiRoverResult:
         out = {"rovers": []}
         for r in self.rovers:
             s = r.result.summary()
-            row = {"name": r.name, "archive": str(r.archive), "path_length_m": s["path_length_m"],
-                   "fixes": s["fixes"], "shared_fixes": sum(a.accepted for a in r.shared),
-                   "shared_attempts": len(r.shared)}  # fmt: skip
+            row = {
+                "name": r.name,
+                "archive": str(r.archive),
+                "path_length_m": s["path_length_m"],
+                "fixes": s["fixes"],
+                "shared_fixes": sum(a.accepted for a in r.shared),
+                "shared_attempts": len(r.shared),
+            }
             acc = [a.fix_error_m for a in r.shared if a.accepted and math.isfinite(a.fix_error_m)]
             row["max_shared_fix_error_m"] = round(max(acc), 4) if acc else None
             # the worst accepted shared fix in units of the sigma it entered the pose graph with
-            rel = [a.fix_error_m / a.fix_sigma_m for a in r.shared if a.accepted and math.isfinite(a.fix_error_m)
-                   and a.fix_sigma_m > 0]  # fmt: skip
+            rel = [
+                a.fix_error_m / a.fix_sigma_m
+                for a in r.shared
+                if a.accepted and math.isfinite(a.fix_error_m) and a.fix_sigma_m > 0
+            ]
             row["max_shared_fix_error_sigmas"] = round(max(rel), 2) if rel else None
             for k in ("ate_odometry", "ate_corrected", "ate_online"):
                 if k in s:
@@ -230,7 +275,9 @@ def _site_id(description: str) -> str | None:
     return m.group(1) if m else None
 
 
-def check_archives(paths: Sequence[str | os.PathLike], config: MultiRoverConfig | None = None) -> list[Path]:
+def check_archives(
+    paths: Sequence[str | os.PathLike], config: MultiRoverConfig | None = None
+) -> list[Path]:
     """Check that `paths` are distinct readable archives of one site on one clock; returns them
     as Paths. Raises InputError (one line, naming the files) otherwise."""
     from lunarloc.io.lac.archive import LacArchive
@@ -249,26 +296,41 @@ def check_archives(paths: Sequence[str | os.PathLike], config: MultiRoverConfig 
         with LacArchive(p) as ar:
             t = np.asarray(ar.frames["mission_time"], float)
             poses = np.asarray(ar.poses(), float)
-            facts.append({"dt": float(np.median(np.diff(t))) if len(t) > 1 else float("nan"),
-                          "lander": np.asarray(ar.lander_pose_map(), float), "site": _site_id(ar.metadata.get("description", "")),
-                          "poses": poses})  # fmt: skip
+            facts.append(
+                {
+                    "dt": float(np.median(np.diff(t))) if len(t) > 1 else float("nan"),
+                    "lander": np.asarray(ar.lander_pose_map(), float),
+                    "site": _site_id(ar.metadata.get("description", "")),
+                    "poses": poses,
+                }
+            )
     a0, f0 = out[0], facts[0]
     for p, f in zip(out[1:], facts[1:]):
         if f0["poses"].shape == f["poses"].shape and np.array_equal(f0["poses"], f["poses"]):
-            raise InputError(f"{p}: the same traverse as {a0} (identical poses): one archive given twice")
+            raise InputError(
+                f"{p}: the same traverse as {a0} (identical poses): one archive given twice"
+            )
         if f0["site"] is not None and f["site"] is not None and f0["site"] != f["site"]:
-            raise InputError(f"{p}: site seed {f['site']}, but {a0} is of site seed {f0['site']}: "
-                             "rovers on one clock must share one site")  # fmt: skip
+            raise InputError(
+                f"{p}: site seed {f['site']}, but {a0} is of site seed {f0['site']}: "
+                "rovers on one clock must share one site"
+            )
         d = float(np.linalg.norm(f["lander"][:2] - f0["lander"][:2]))
         dyaw = abs(math.degrees(math.remainder(f["lander"][5] - f0["lander"][5], 2 * math.pi)))
         if d > cfg.site_tolerance_m or dyaw > cfg.site_tolerance_deg:
-            raise InputError(f"{p}: its lander is {d:.2f} m / {dyaw:.1f} deg from {a0}'s in the map frame: "
-                             "archives of different sites (or map frames) cannot share one clock")  # fmt: skip
+            raise InputError(
+                f"{p}: its lander is {d:.2f} m / {dyaw:.1f} deg from {a0}'s in the map frame: "
+                "archives of different sites (or map frames) cannot share one clock"
+            )
         if not (math.isfinite(f["dt"]) and math.isfinite(f0["dt"])):
-            raise InputError(f"{p if not math.isfinite(f['dt']) else a0}: fewer than two frames; nothing to play")
+            raise InputError(
+                f"{p if not math.isfinite(f['dt']) else a0}: fewer than two frames; nothing to play"
+            )
         if abs(f["dt"] - f0["dt"]) > cfg.clock_tolerance * f0["dt"]:
-            raise InputError(f"{p}: ticks every {f['dt']:.4f} s but {a0} every {f0['dt']:.4f} s: "
-                             "archives of different clocks")  # fmt: skip
+            raise InputError(
+                f"{p}: ticks every {f['dt']:.4f} s but {a0} every {f0['dt']:.4f} s: "
+                "archives of different clocks"
+            )
     return out
 
 
@@ -312,7 +374,9 @@ class _Rover:
         self.timings = {"odometry": 0.0, "update": 0.0, "sharing": 0.0, "io": 0.0}
         t0 = time.perf_counter()
         o = cfg.run.odometry
-        od = archive_odometry(ar, o.source or default_odometry_source(ar), imu_config=o.imu, visual_config=o.visual)
+        od = archive_odometry(
+            ar, o.source or default_odometry_source(ar), imu_config=o.imu, visual_config=o.visual
+        )
         T0 = agent.get_initial_position().matrix()
         # odometry starts at the initial pose (as the component anchors it), so the odometry
         # written to the run folder is the one the rover's corrections apply to
@@ -320,12 +384,18 @@ class _Rover:
         self.odometry = {int(f): A @ T for f, T in zip(od.frames, od.T_map_rover)}
         self.odometry_label = od.label
         self.timings["odometry"] = time.perf_counter() - t0
-        rig = CameraRig.from_sensors(agent.sensors(), {c: agent.get_camera_position(c) for c in ar.cameras})
+        rig = CameraRig.from_sensors(
+            agent.sensors(), {c: agent.get_camera_position(c) for c in ar.cameras}
+        )
         # the run folder holds the whole history, so the pose graph is never re-anchored
-        online = OnlineConfig(loop=cfg.run.loop, localization=cfg.run.localization, max_keyframes=10**9)
+        online = OnlineConfig(
+            loop=cfg.run.loop, localization=cfg.run.localization, max_keyframes=10**9
+        )
         self.has_reference = reference is not None
         detector_config = cfg.run.detector_for(rig.camera.width)
-        lander = ar.initial.get("lander")  # rover-relative at the start; detections on the lander are dropped
+        lander = ar.initial.get(
+            "lander"
+        )  # rover-relative at the start; detections on the lander are dropped
         # without a reference every attempt ends "no reference map" (recorded by the loop,
         # dropped from the outputs) and only shared fixes correct the rover
         self.loc = OnlineLocalizer(reference, T0, online, rig, detector_config, lander)
@@ -337,7 +407,11 @@ class _Rover:
         self.map_bounds = stated_window_bounds(self.loc.loop.localization)
         self.detector_config = self.loc.detector.config
         self.camera = rig.camera
-        self.rocks = ar.custom("rocks").to_array(("id", "x", "y", "z", "radius")) if "rocks" in ar.custom_records else None
+        self.rocks = (
+            ar.custom("rocks").to_array(("id", "x", "y", "z", "radius"))
+            if "rocks" in ar.custom_records
+            else None
+        )
         self.ticks: list[tuple[int, float]] = []
         # per tick, 4x4: the component's estimate, ground truth, odometry
         self.T_map_rover_online: list[np.ndarray] = []
@@ -377,9 +451,14 @@ class _Rover:
         self.T_map_rover_online.append(est.T_map_rover)
         self.T_map_rover_true.append(T_true)
         self.T_odo_rover.append(self.odometry[f])
-        self.n_image += int(any(img is not None for img in (data or {}).get("Grayscale", {}).values()))
+        self.n_image += int(
+            any(img is not None for img in (data or {}).get("Grayscale", {}).values())
+        )
         if est.attempt is not None and est.attempt.accepted:
-            self.anchor = (0.0, 0.0)  # a reference fix: the rover's error no longer inherits another's
+            self.anchor = (
+                0.0,
+                0.0,
+            )  # a reference fix: the rover's error no longer inherits another's
         return est
 
     # ------------------------------------------------------------------ live map
@@ -437,14 +516,23 @@ class _Rover:
         if len(lm):
             groups = cKDTree(P).query_ball_point(lm.positions_xyz, r=agg.radius_m)
             for i, idx in enumerate(groups):
-                kf = F[np.asarray(idx, int)] if len(idx) else F[[int(np.argmin(np.linalg.norm(P - lm.positions_xyz[i], axis=1)))]]
+                kf = (
+                    F[np.asarray(idx, int)]
+                    if len(idx)
+                    else F[[int(np.argmin(np.linalg.norm(P - lm.positions_xyz[i], axis=1)))]]
+                )
                 om[i], oy[i] = float(np.median(s_m[kf])), float(np.median(s_y[kf]))
         self.live = _LiveMap(lm, om, oy, key, t)
         return self.live
 
     # ------------------------------------------------------------------ shared attempt
-    def try_shared(self, others: Sequence[_Rover], refresh_s: float, max_ratio: float = 0.75,
-                   shared_bounds: str = "sum") -> SharedAttempt | None:
+    def try_shared(
+        self,
+        others: Sequence[_Rover],
+        refresh_s: float,
+        max_ratio: float = 0.75,
+        shared_bounds: str = "sum",
+    ) -> SharedAttempt | None:
         """Localize the newest keyframe's local map in the other rovers' live maps; the first
         accepted fix enters the pose graph. Returns the last attempt made (None: no local map)."""
         from lunarloc.localization.localize import localize
@@ -462,7 +550,9 @@ class _Rover:
             return None
         own_m, own_yaw = self.sigma(k)
         own_m, own_yaw = math.hypot(own_m, self.anchor[0]), math.hypot(own_yaw, self.anchor[1])
-        gate_yaw = math.hypot(loop.graph.predicted_sigma(k)[1], self.anchor[1])  # the pose graph's own yaw prediction
+        gate_yaw = math.hypot(
+            loop.graph.predicted_sigma(k)[1], self.anchor[1]
+        )  # the pose graph's own yaw prediction
         c = veh.positions_xyz[:, :2].mean(axis=0)
         radius = float(np.max(np.linalg.norm(veh.positions_xyz[:, :2] - c, axis=1)))
         att = None
@@ -472,29 +562,55 @@ class _Rover:
                 continue
             # the crop allows for both rovers' uncertainty, per owner landmark
             d = np.linalg.norm(live.landmarks.positions_xyz[:, :2] - c, axis=1)
-            near = np.flatnonzero(d <= radius + cfg.crop_sigmas * np.hypot(own_m, live.owner_sigma_m) + cfg.crop_margin_m)
-            att = SharedAttempt(self.name, other.name, t, f, len(veh), len(near), False, False, own_sigma_m=own_m)
+            near = np.flatnonzero(
+                d
+                <= radius
+                + cfg.crop_sigmas * np.hypot(own_m, live.owner_sigma_m)
+                + cfg.crop_margin_m
+            )
+            att = SharedAttempt(
+                self.name, other.name, t, f, len(veh), len(near), False, False, own_sigma_m=own_m
+            )
             self.shared.append(att)
             if len(near) < 3:
-                att.reason = f"{other.name}'s live map has {len(near)} landmarks near the predicted position"
+                att.reason = (
+                    f"{other.name}'s live map has {len(near)} landmarks near the predicted position"
+                )
                 continue
             ref = live.landmarks.subset(near)
             try:
                 # as the reference attempt: the pose judged at the rover now, along the window's path
                 window_cfg = loop.window_localization()
                 lcfg = shared_localization(window_cfg, other.map_bounds, shared_bounds)
-                res = localize(ref, veh, lcfg, query_xyz=poses[k : k + 1, :3], path_xyz=poses[win, :3])
+                res = localize(
+                    ref, veh, lcfg, query_xyz=poses[k : k + 1, :3], path_xyz=poses[win, :3]
+                )
                 # refused for precision alone where the owner's map is less precise than the limits:
                 # judged again with the limits at the owner's sigma over these inliers (the search is
                 # deterministic, so the same registration; every other check as before)
                 if not res.success and len(res.inliers):
-                    owner = (max(float(np.max(live.owner_sigma_m[res.inliers[:, 1]])), own_m),
-                             math.degrees(max(float(np.max(live.owner_sigma_yaw_rad[res.inliers[:, 1]])), gate_yaw)))
-                    imprecise = not (res.predicted_error_m <= lcfg.max_predicted_error_m
-                                     and res.predicted_rotation_deg <= lcfg.max_predicted_rotation_deg)
-                    if imprecise and (owner[0] > lcfg.max_predicted_error_m or owner[1] > lcfg.max_predicted_rotation_deg):
-                        lcfg = shared_localization(window_cfg, other.map_bounds, shared_bounds, owner)
-                        res = localize(ref, veh, lcfg, query_xyz=poses[k : k + 1, :3], path_xyz=poses[win, :3])
+                    owner = (
+                        max(float(np.max(live.owner_sigma_m[res.inliers[:, 1]])), own_m),
+                        math.degrees(
+                            max(
+                                float(np.max(live.owner_sigma_yaw_rad[res.inliers[:, 1]])), gate_yaw
+                            )
+                        ),
+                    )
+                    imprecise = not (
+                        res.predicted_error_m <= lcfg.max_predicted_error_m
+                        and res.predicted_rotation_deg <= lcfg.max_predicted_rotation_deg
+                    )
+                    if imprecise and (
+                        owner[0] > lcfg.max_predicted_error_m
+                        or owner[1] > lcfg.max_predicted_rotation_deg
+                    ):
+                        lcfg = shared_localization(
+                            window_cfg, other.map_bounds, shared_bounds, owner
+                        )
+                        res = localize(
+                            ref, veh, lcfg, query_xyz=poses[k : k + 1, :3], path_xyz=poses[win, :3]
+                        )
             except LunarLocError as exc:
                 att.reason = f"{type(exc).__name__}: {exc}"
                 continue
@@ -502,26 +618,42 @@ class _Rover:
             att.predicted_error_m = float(res.predicted_error_m)
             x, y, z, yaw = poses[k]
             roll, pitch = loop.keyframes[k].roll_pitch_rad
-            if np.all(np.isfinite(res.T_ref_veh)):  # what the fix would be (evaluation, refused ones too)
+            if np.all(
+                np.isfinite(res.T_ref_veh)
+            ):  # what the fix would be (evaluation, refused ones too)
                 T_fix = res.T_ref_veh @ pose_to_matrix(x, y, z, roll, pitch, yaw)
-                att.fix_error_m = float(np.linalg.norm(T_fix[:3, 3] - self.T_map_rover_true[-1][:3, 3]))
+                att.fix_error_m = float(
+                    np.linalg.norm(T_fix[:3, 3] - self.T_map_rover_true[-1][:3, 3])
+                )
             if not res.success:
                 continue
             fix4 = np.array([T_fix[0, 3], T_fix[1, 3], T_fix[2, 3], yaw_of(T_fix[:3, :3])])
             inl = res.inliers
             Vp = veh.positions_xyz[inl[:, 0]]
-            extent = max(float(np.max(np.linalg.norm(Vp[:, :2] - Vp[:, :2].mean(axis=0), axis=1))), 1.0)
-            pred = float(res.predicted_error_m) if math.isfinite(res.predicted_error_m) else cfg.fix_sigma_fallback_m
+            extent = max(
+                float(np.max(np.linalg.norm(Vp[:, :2] - Vp[:, :2].mean(axis=0), axis=1))), 1.0
+            )
+            pred = (
+                float(res.predicted_error_m)
+                if math.isfinite(res.predicted_error_m)
+                else cfg.fix_sigma_fallback_m
+            )
             om = float(np.max(live.owner_sigma_m[near[inl[:, 1]]]))
             oy = float(np.max(live.owner_sigma_yaw_rad[near[inl[:, 1]]]))
             # the registration's rotation error (its predicted one, else position over extent) and the owner's
-            rot = (math.radians(res.predicted_rotation_deg) if math.isfinite(res.predicted_rotation_deg) else pred / extent)
+            rot = (
+                math.radians(res.predicted_rotation_deg)
+                if math.isfinite(res.predicted_rotation_deg)
+                else pred / extent
+            )
             sig_m, sig_yaw = math.hypot(pred, om), math.hypot(rot, oy)
             att.owner_sigma_m, att.owner_sigma_yaw_deg = om, math.degrees(oy)
             att.fix_sigma_m, att.fix_sigma_yaw_deg = sig_m, math.degrees(sig_yaw)
             if sig_m >= max_ratio * own_m:
-                att.reason = (f"not informative: the fix ({sig_m * 100:.0f} cm, {other.name}'s estimate "
-                              f"{om * 100:.0f} cm) is not below {max_ratio:g} x the rover's own prediction ({own_m * 100:.0f} cm)")  # fmt: skip
+                att.reason = (
+                    f"not informative: the fix ({sig_m * 100:.0f} cm, {other.name}'s estimate "
+                    f"{om * 100:.0f} cm) is not below {max_ratio:g} x the rover's own prediction ({own_m * 100:.0f} cm)"
+                )
                 continue
             g = loop.graph.gate(k, fix4, sig_m, sig_yaw)
             att.gate_d2, att.correction_m = g.d2, float(np.linalg.norm(g.innovation[:3]))
@@ -542,9 +674,22 @@ class _Rover:
     def _as_attempt(s: SharedAttempt, k: int, fix4) -> Attempt:
         """A shared attempt as a row of the run's attempts (``reason`` names the owner; with
         several owners, the accepted or last one; rovers.json has them all)."""
-        a = Attempt(s.frame, s.time_s, k, s.landmarks, s.owner_landmarks, s.success, s.accepted, s.inliers,
-                    f"map of {s.owner}: {s.reason}" if s.reason else f"map of {s.owner}", s.correction_m,
-                    float("nan"), s.gate_d2, s.predicted_error_m, s.fix_error_m if s.success else float("nan"))  # fmt: skip
+        a = Attempt(
+            s.frame,
+            s.time_s,
+            k,
+            s.landmarks,
+            s.owner_landmarks,
+            s.success,
+            s.accepted,
+            s.inliers,
+            f"map of {s.owner}: {s.reason}" if s.reason else f"map of {s.owner}",
+            s.correction_m,
+            float("nan"),
+            s.gate_d2,
+            s.predicted_error_m,
+            s.fix_error_m if s.success else float("nan"),
+        )
         if fix4 is not None:
             a.fix_xyz = [float(v) for v in fix4[:3]]
         return a
@@ -553,7 +698,9 @@ class _Rover:
     def finish(self, reference: LandmarkMap | None, config: MultiRoverConfig) -> RoverRun:
         loop = self.loc.loop
         attempts = list(loop.attempts) if self.has_reference else []
-        attempts = sorted(attempts + self.shared_att, key=lambda a: (a.time_s, a.reason.startswith("map of")))
+        attempts = sorted(
+            attempts + self.shared_att, key=lambda a: (a.time_s, a.reason.startswith("map of"))
+        )
         kf = loop.finish(self.n_image)  # final solve; keyframe-rate trajectories
         T_kf = loop.graph.correction_transforms()
         frames = np.array([f for f, _ in self.ticks], int)
@@ -561,14 +708,33 @@ class _Rover:
         T_odo = np.asarray(self.T_odo_rover).reshape(-1, 4, 4)
         corrected = interpolate_corrections(T_kf, np.asarray(loop.times), times, T_odo)
         # the run's configuration as a single run writes it (read back by `lunarloc run --config`)
-        info = {"archive": str(self.path), "odometry_source": self.odometry_label, "camera": asdict(self.camera),
-                "detector_scaled": self.detector_config.to_dict(),
-                "multirover": {k: v for k, v in config.to_dict().items() if k != "run"}}  # fmt: skip
+        info = {
+            "archive": str(self.path),
+            "odometry_source": self.odometry_label,
+            "camera": asdict(self.camera),
+            "detector_scaled": self.detector_config.to_dict(),
+            "multirover": {k: v for k, v in config.to_dict().items() if k != "run"},
+        }
         ref = reference if reference is not None else LandmarkMap(np.zeros((0, 3)), frame="map")
-        res = LoopResult(frames, times, T_odo, np.asarray(self.T_map_rover_online).reshape(-1, 4, 4), corrected,
-                         np.asarray(self.T_map_rover_true).reshape(-1, 4, 4), attempts,
-                         kf.vehicle_map, kf.vehicle_map_odometry, ref, dict(self.timings), self.n_image,
-                         {**config.run.to_dict(), "info": info}, kf.scale, self.rocks, None, str(self.path))  # fmt: skip
+        res = LoopResult(
+            frames,
+            times,
+            T_odo,
+            np.asarray(self.T_map_rover_online).reshape(-1, 4, 4),
+            corrected,
+            np.asarray(self.T_map_rover_true).reshape(-1, 4, 4),
+            attempts,
+            kf.vehicle_map,
+            kf.vehicle_map_odometry,
+            ref,
+            dict(self.timings),
+            self.n_image,
+            {**config.run.to_dict(), "info": info},
+            kf.scale,
+            self.rocks,
+            None,
+            str(self.path),
+        )
         return RoverRun(self.name, self.path, res, self.shared)
 
 
@@ -594,10 +760,14 @@ def run_rovers(
     cfg = config or MultiRoverConfig()
     refs = list(reference) if isinstance(reference, (list, tuple)) else [reference] * len(archives)
     if len(refs) != len(archives):
-        raise ConfigError(f"{len(refs)} reference maps for {len(archives)} archives: give one, or one per archive")
+        raise ConfigError(
+            f"{len(refs)} reference maps for {len(archives)} archives: give one, or one per archive"
+        )
     if any(r is None for r in refs) and not cfg.share_maps:
-        raise ConfigError("a rover without a reference map needs share_maps (--share-maps): "
-                          "there is nothing else to localize against")  # fmt: skip
+        raise ConfigError(
+            "a rover without a reference map needs share_maps (--share-maps): "
+            "there is nothing else to localize against"
+        )
     paths = check_archives(archives, cfg)
     names = rover_names(paths)
     rovers: list[_Rover] = []
@@ -613,8 +783,12 @@ def run_rovers(
             r = rovers[i]
             est = r.tick()
             if cfg.share_maps and est.attempt is not None and not est.attempt.accepted:
-                r.try_shared([o for o in rovers if o is not r], cfg.share_refresh_s, cfg.max_shared_sigma_ratio,
-                             cfg.shared_bounds)
+                r.try_shared(
+                    [o for o in rovers if o is not r],
+                    cfg.share_refresh_s,
+                    cfg.max_shared_sigma_ratio,
+                    cfg.shared_bounds,
+                )
             done += 1
             if progress:
                 progress(done, total)
@@ -628,10 +802,14 @@ def run_rovers(
     finally:
         for r in rovers:
             r.close()
-    return MultiRoverResult(runs, {"archives": [str(p) for p in paths], "names": names, **cfg.to_dict()})
+    return MultiRoverResult(
+        runs, {"archives": [str(p) for p in paths], "names": names, **cfg.to_dict()}
+    )
 
 
-def write_rover_outputs(result: MultiRoverResult, outdir: str | os.PathLike, plot: bool = True) -> list[Path]:
+def write_rover_outputs(
+    result: MultiRoverResult, outdir: str | os.PathLike, plot: bool = True
+) -> list[Path]:
     """One run folder per rover (``OUT/<name>/``, the layout of ``lunarloc run``), ``rovers.json``
     (per-rover summary, every shared attempt, the config) and, with `plot`, ``map_all.png``
     (every rover: ground truth, odometry, corrected, landmarks) plus each run's figures.
@@ -644,16 +822,30 @@ def write_rover_outputs(result: MultiRoverResult, outdir: str | os.PathLike, plo
     out = make_dir(outdir)
     if plot:
         from lunarloc.viz import plot_run
-    for r in result.rovers:  # each rover's figures before its summary.json (a complete folder's mark)
-        write_run(r.result, out / r.name, before_summary=(lambda s, d=out / r.name: plot_run(d, summary=s)) if plot else None)
-    doc = {**result.summary(), "shared_attempts": {r.name: [asdict(a) for a in r.shared] for r in result.rovers},
-           "config": result.config}  # fmt: skip
+    for (
+        r
+    ) in result.rovers:  # each rover's figures before its summary.json (a complete folder's mark)
+        write_run(
+            r.result,
+            out / r.name,
+            before_summary=(lambda s, d=out / r.name: plot_run(d, summary=s)) if plot else None,
+        )
+    doc = {
+        **result.summary(),
+        "shared_attempts": {r.name: [asdict(a) for a in r.shared] for r in result.rovers},
+        "config": result.config,
+    }
     written = []
     if plot:
         from lunarloc.viz import plot_rovers
 
-        written.append(plot_rovers([out / r.name for r in result.rovers], out / "map_all.png",
-                                   [r.name for r in result.rovers]))  # fmt: skip
+        written.append(
+            plot_rovers(
+                [out / r.name for r in result.rovers],
+                out / "map_all.png",
+                [r.name for r in result.rovers],
+            )
+        )
     write_text(out / "rovers.json", json.dumps(to_json_ready(doc), indent=1, default=str))
     written.insert(0, out / "rovers.json")
     return written

@@ -27,7 +27,13 @@ import numpy as np
 from lunarloc.core.errors import InputError
 from lunarloc.core.geometry import transform_points
 from lunarloc.perception.camera import STEREO_PAIRS
-from lunarloc.perception.detector import CentreEstimator, CentreMethod, Detector, DetectorConfig, detect_archive
+from lunarloc.perception.detector import (
+    CentreEstimator,
+    CentreMethod,
+    Detector,
+    DetectorConfig,
+    detect_archive,
+)
 
 SIZE_BANDS = [(0.0, 0.1), (0.1, 0.2), (0.2, 0.4), (0.4, 10.0)]
 RANGE_BANDS = [(0.0, 2.5), (2.5, 5.0), (5.0, 8.0)]
@@ -65,10 +71,24 @@ def match(det_xyz: np.ndarray, rock_xyz: np.ndarray, rock_r: np.ndarray, min_tol
     return out
 
 
-FP_CAUSES = ("terrain", "lander", "rock-duplicate", "rock-part", "small-rock-offcentre", "rock-offcentre")
+FP_CAUSES = (
+    "terrain",
+    "lander",
+    "rock-duplicate",
+    "rock-part",
+    "small-rock-offcentre",
+    "rock-offcentre",
+)
 
 
-def fp_cause(d, semantic: np.ndarray, id_to_idx: dict, centres: np.ndarray, radii: np.ndarray, matched_rock: dict) -> str:
+def fp_cause(
+    d,
+    semantic: np.ndarray,
+    id_to_idx: dict,
+    centres: np.ndarray,
+    radii: np.ndarray,
+    matched_rock: dict,
+) -> str:
     """Why an unmatched detection is false, from the semantic label that dominates a
     7x7 window at its image centroid: terrain (no rock there: a ridge, a crater rim, a
     stereo error), lander, or a rock that is already matched by another detection
@@ -81,7 +101,9 @@ def fp_cause(d, semantic: np.ndarray, id_to_idx: dict, centres: np.ndarray, radi
     win = np.asarray(semantic)[max(v - 3, 0) : v + 4, max(u - 3, 0) : u + 4]
     rid = _rock_ids(win)
     if np.count_nonzero(rid >= 0) * 2 < rid.size:
-        return "lander" if np.count_nonzero(semantic_lander_mask(win)) * 2 >= win.size else "terrain"
+        return (
+            "lander" if np.count_nonzero(semantic_lander_mask(win)) * 2 >= win.size else "terrain"
+        )
     j = id_to_idx.get(int(np.bincount(rid[rid >= 0]).argmax()))
     if j is None:
         return "terrain"
@@ -92,8 +114,21 @@ def fp_cause(d, semantic: np.ndarray, id_to_idx: dict, centres: np.ndarray, radi
     return "small-rock-offcentre" if radii[j] < 0.1 else "rock-offcentre"
 
 
-MISS_FIELDS = ("archive", "frame", "camera", "rock_id", "radius_m", "range_m", "stage", "tentative_rules", "overlap",
-               "mask_eig_ratio", "mask_depth_m", "valid_fraction", "max_height_m")
+MISS_FIELDS = (
+    "archive",
+    "frame",
+    "camera",
+    "rock_id",
+    "radius_m",
+    "range_m",
+    "stage",
+    "tentative_rules",
+    "overlap",
+    "mask_eig_ratio",
+    "mask_depth_m",
+    "valid_fraction",
+    "max_height_m",
+)
 
 
 def miss_stage(pair, rock_px: np.ndarray) -> dict:
@@ -113,13 +148,23 @@ def miss_stage(pair, rock_px: np.ndarray) -> dict:
         if o > overlap:
             best, overlap = k, o
     n = max(int(np.count_nonzero(rock_px)), 1)
-    out = dict(stage="no-blob", tentative_rules="", overlap=overlap / n, mask_eig_ratio=float("nan"), mask_depth_m=float("nan"),
-               valid_fraction=float("nan"), max_height_m=float("nan"))
+    out = dict(
+        stage="no-blob",
+        tentative_rules="",
+        overlap=overlap / n,
+        mask_eig_ratio=float("nan"),
+        mask_depth_m=float("nan"),
+        valid_fraction=float("nan"),
+        max_height_m=float("nan"),
+    )
     if best is not None:
         rec = next((r for r in pair.records if r.mask_index == best), None)
         out["stage"] = "kept" if rec is None or rec.reason is None else rec.reason.value
         if rec is not None:
-            out["mask_eig_ratio"], out["mask_depth_m"] = float(rec.stats.eig_ratio), float(rec.depth_m)
+            out["mask_eig_ratio"], out["mask_depth_m"] = (
+                float(rec.stats.eig_ratio),
+                float(rec.depth_m),
+            )
             out["tentative_rules"] = rec.tentative  # why a dropped tentative was tentative
         return out
     hm = pair.height
@@ -165,12 +210,24 @@ class Accumulator:
     def begin_archive(self, name: str) -> None:
         """Start counting an archive; `end_archive` adds its share to its site's counts."""
         self.archive = name
-        self._mark = (self.rec.copy(), self.prec.copy(), self.small_near.copy(), len(self.err_target))
+        self._mark = (
+            self.rec.copy(),
+            self.prec.copy(),
+            self.small_near.copy(),
+            len(self.err_target),
+        )
 
     def end_archive(self) -> None:
         rec, prec, small, n_err = self._mark
-        site = self.by_site.setdefault(site_key(self.archive), {
-            "target": np.zeros(2, int), "precision": np.zeros(2, int), "small": np.zeros(2, int), "err": []})
+        site = self.by_site.setdefault(
+            site_key(self.archive),
+            {
+                "target": np.zeros(2, int),
+                "precision": np.zeros(2, int),
+                "small": np.zeros(2, int),
+                "err": [],
+            },
+        )
         site["target"] += (self.rec - rec)[1:, :2].sum(axis=(0, 1))
         site["precision"] += (self.prec - prec)[:, :2].sum(axis=(0, 1))
         site["small"] += self.small_near - small
@@ -192,8 +249,15 @@ class Accumulator:
         self.n_frames += other.n_frames
         self.n_det += other.n_det
         for key, c in other.by_site.items():
-            site = self.by_site.setdefault(key, {
-                "target": np.zeros(2, int), "precision": np.zeros(2, int), "small": np.zeros(2, int), "err": []})
+            site = self.by_site.setdefault(
+                key,
+                {
+                    "target": np.zeros(2, int),
+                    "precision": np.zeros(2, int),
+                    "small": np.zeros(2, int),
+                    "err": [],
+                },
+            )
             for k in ("target", "precision", "small"):
                 site[k] += c[k]
             site["err"].extend(c["err"])
@@ -236,9 +300,23 @@ class Accumulator:
                 self.small_near += [int(small_near and j in matched_rock), int(small_near)]
                 tiny_near = 0.025 <= radii[j] < 0.05 and rng <= 3.0
                 self.tiny_near += [int(tiny_near and j in matched_rock), int(tiny_near)]
-                if j not in matched_rock and self.misses is not None and radii[j] >= 0.1 and rng <= 5.0:
-                    self.misses.append(dict(archive=self.archive, frame=fd.frame, camera=pair.camera, rock_id=r,
-                                            radius_m=float(radii[j]), range_m=rng, **miss_stage(pair, rid == r)))
+                if (
+                    j not in matched_rock
+                    and self.misses is not None
+                    and radii[j] >= 0.1
+                    and rng <= 5.0
+                ):
+                    self.misses.append(
+                        dict(
+                            archive=self.archive,
+                            frame=fd.frame,
+                            camera=pair.camera,
+                            rock_id=r,
+                            radius_m=float(radii[j]),
+                            range_m=rng,
+                            **miss_stage(pair, rid == r),
+                        )
+                    )
                 if j in matched_rock:
                     self.rec[sb, rb, 0] += 1
                     i, dist = matched_rock[j]
@@ -247,12 +325,21 @@ class Accumulator:
                     if radii[j] >= 0.1 and rng <= 5.0:
                         self.err_target.append(dist)
                         self.target_rows.append(
-                            centre_error_parts(det_xyz[i], centres[j], radii[j], rng, cam_pos, dets[i].radius_m,
-                                               detector.config)
+                            centre_error_parts(
+                                det_xyz[i],
+                                centres[j],
+                                radii[j],
+                                rng,
+                                cam_pos,
+                                dets[i].radius_m,
+                                detector.config,
+                            )
                         )
         for i, d in enumerate(dets):
             if i not in matched_det and d.depth_m < 5.0 and semantics.get(d.camera) is not None:
-                self.fp_causes[fp_cause(d, semantics[d.camera], id_to_idx, centres, radii, matched_rock)] += 1
+                self.fp_causes[
+                    fp_cause(d, semantics[d.camera], id_to_idx, centres, radii, matched_rock)
+                ] += 1
             sb, rb = _band(d.radius_m, SIZE_BANDS), _band(d.depth_m, RANGE_BANDS)
             if sb < 0 or rb < 0:
                 continue
@@ -285,9 +372,13 @@ class Accumulator:
             "recall_0.05<=r<0.1_range<=3_counts": self.small_near.tolist(),
             "recall_0.025<=r<0.05_range<=3": float(self.tiny_near[0] / max(self.tiny_near[1], 1)),
             "recall_0.025<=r<0.05_range<=3_counts": self.tiny_near.tolist(),
-            "frames_per_s": float(1.0 / max(sum(float(np.mean(v)) for k, v in self.times.items() if k != "cpu"), 1e-9)),
+            "frames_per_s": float(
+                1.0 / max(sum(float(np.mean(v)) for k, v in self.times.items() if k != "cpu"), 1e-9)
+            ),
             # process CPU time per frame (all threads), when the detector reports it
-            "cpu_ms_per_frame": float(1000.0 * np.mean(self.times["cpu"])) if "cpu" in self.times else float("nan"),
+            "cpu_ms_per_frame": float(1000.0 * np.mean(self.times["cpu"]))
+            if "cpu" in self.times
+            else float("nan"),
             "precision_range<=5": float(prec_5[0] / max(prec_5[1], 1)),
             "precision_counts_range<=5": prec_5.tolist(),
             "centroid_err_target_median_m": pct(self.err_target, 50),
@@ -308,8 +399,10 @@ class Accumulator:
             "sites": len(self.by_site),
             "site_bootstrap_ci90": site_bootstrap(self.by_site),
             # the counts behind the targets per site, so that runs can be pooled (--pool)
-            "by_site": {k: {n: (v.tolist() if isinstance(v, np.ndarray) else list(v)) for n, v in c.items()}
-                        for k, c in self.by_site.items()},
+            "by_site": {
+                k: {n: (v.tolist() if isinstance(v, np.ndarray) else list(v)) for n, v in c.items()}
+                for k, c in self.by_site.items()
+            },
             "time_per_frame_s": {k: float(np.mean(v)) for k, v in self.times.items()},
             # left images per second through segmentation + filtering, counting the
             # low-resolution stereo height map ("stereo") that the classical segmenter
@@ -339,25 +432,41 @@ def pool_runs(paths: list[Path]) -> dict[str, dict[str, dict]]:
         except (OSError, ValueError) as e:
             raise InputError(f"cannot read {path}: {e}") from None
         groups = run.get("by_lighting") if isinstance(run, dict) else None
-        if not isinstance(groups, dict) or not groups or any(
-                not isinstance(g, dict) or not isinstance(g.get("by_site"), dict) for g in groups.values()):
-            raise InputError(f"{path} has no per-site counts (written by an older bench_perception.py?)")
+        if (
+            not isinstance(groups, dict)
+            or not groups
+            or any(
+                not isinstance(g, dict) or not isinstance(g.get("by_site"), dict)
+                for g in groups.values()
+            )
+        ):
+            raise InputError(
+                f"{path} has no per-site counts (written by an older bench_perception.py?)"
+            )
         for lighting, g in groups.items():
             sites = pooled.setdefault(lighting, {})
             for key, c in g["by_site"].items():
                 if key in sites:
-                    raise InputError(f"{key} under {lighting} is in two runs ({path} and an earlier one)")
+                    raise InputError(
+                        f"{key} under {lighting} is in two runs ({path} and an earlier one)"
+                    )
                 try:
-                    sites[key] = {n: np.asarray(c[n], int).reshape(2) for n in ("target", "precision", "small")}
+                    sites[key] = {
+                        n: np.asarray(c[n], int).reshape(2)
+                        for n in ("target", "precision", "small")
+                    }
                     sites[key]["err"] = [float(e) for e in c["err"]]
                 except (KeyError, TypeError, ValueError):
-                    raise InputError(f"{path}: the counts of {key} under {lighting} are malformed") from None
+                    raise InputError(
+                        f"{path}: the counts of {key} under {lighting} are malformed"
+                    ) from None
     return pooled
 
 
 def pooled_rows(pooled: dict[str, dict[str, dict]]) -> dict:
     """Per lighting (sorted): the pooled figures (ratio, [hits, total]) and the median centre
     error, with their 90 % site-bootstrap intervals (``ci90``)."""
+
     def ratio(sites, k):
         c = sum((s[k] for s in sites.values()), np.zeros(2, int))
         return float(c[0] / c[1]) if c[1] else float("nan"), c.tolist()
@@ -365,31 +474,50 @@ def pooled_rows(pooled: dict[str, dict[str, dict]]) -> dict:
     out = {}
     for lighting, sites in sorted(pooled.items()):
         errs = [e for s in sites.values() for e in s["err"]]
-        out[lighting] = {"sites": len(sites), "ci90": site_bootstrap(sites),
-                         "precision_range<=5": ratio(sites, "precision"),
-                         "target_recall_r>=0.1_range<=5": ratio(sites, "target"),
-                         "recall_0.05<=r<0.1_range<=3": ratio(sites, "small"),
-                         "centroid_err_target_median_m": float(np.median(errs)) if errs else float("nan")}
+        out[lighting] = {
+            "sites": len(sites),
+            "ci90": site_bootstrap(sites),
+            "precision_range<=5": ratio(sites, "precision"),
+            "target_recall_r>=0.1_range<=5": ratio(sites, "target"),
+            "recall_0.05<=r<0.1_range<=3": ratio(sites, "small"),
+            "centroid_err_target_median_m": float(np.median(errs)) if errs else float("nan"),
+        }
     return out
 
 
 def format_pooled(rows: dict) -> list[str]:
     """The table of :func:`pooled_rows`: a header, then one line per lighting."""
-    lines = ["lighting | sites | P(<=5m) [90 %] | R(r>=.1,<=5m) [90 %] | R(.05-.1,<=3m) [90 %] | err50 cm [90 %]"]
+    lines = [
+        "lighting | sites | P(<=5m) [90 %] | R(r>=.1,<=5m) [90 %] | R(.05-.1,<=3m) [90 %] | err50 cm [90 %]"
+    ]
     for lighting, row in rows.items():
         ci = row["ci90"]
 
         def cell(k, scale=1.0, fmt="{:.3f}"):
             v = row[k][0] if isinstance(row[k], tuple) else row[k]
             iv = ci.get(k)
-            return fmt.format(scale * v) + ("" if iv is None else " [" + ", ".join(fmt.format(scale * x) for x in iv) + "]")
-        lines.append(" | ".join([lighting, str(row["sites"]), cell("precision_range<=5"),
-                                 cell("target_recall_r>=0.1_range<=5"), cell("recall_0.05<=r<0.1_range<=3"),
-                                 cell("centroid_err_target_median_m", 100.0, "{:.1f}")]))
+            return fmt.format(scale * v) + (
+                "" if iv is None else " [" + ", ".join(fmt.format(scale * x) for x in iv) + "]"
+            )
+
+        lines.append(
+            " | ".join(
+                [
+                    lighting,
+                    str(row["sites"]),
+                    cell("precision_range<=5"),
+                    cell("target_recall_r>=0.1_range<=5"),
+                    cell("recall_0.05<=r<0.1_range<=3"),
+                    cell("centroid_err_target_median_m", 100.0, "{:.1f}"),
+                ]
+            )
+        )
     return lines
 
 
-def site_bootstrap(by_site: dict[str, dict], n_boot: int = 2000, level: float = 0.9, seed: int = 0) -> dict:
+def site_bootstrap(
+    by_site: dict[str, dict], n_boot: int = 2000, level: float = 0.9, seed: int = 0
+) -> dict:
     """Intervals for the targets' figures with the sites as the unit of resampling.
 
     A rock is seen in several frames and a false detection on terrain persists from
@@ -401,13 +529,18 @@ def site_bootstrap(by_site: dict[str, dict], n_boot: int = 2000, level: float = 
     if len(keys) < 2:
         return {}
     rng = np.random.default_rng(seed)
-    counts = {k: np.array([by_site[s][k] for s in keys], float) for k in ("target", "precision", "small")}
+    counts = {
+        k: np.array([by_site[s][k] for s in keys], float) for k in ("target", "precision", "small")
+    }
     errs = [np.asarray(by_site[s]["err"], float) for s in keys]
     draws = rng.integers(0, len(keys), size=(n_boot, len(keys)))
     out = {}
     q = (100 * (1 - level) / 2, 100 * (1 + level) / 2)
-    for name, k in (("precision_range<=5", "precision"), ("target_recall_r>=0.1_range<=5", "target"),
-                    ("recall_0.05<=r<0.1_range<=3", "small")):
+    for name, k in (
+        ("precision_range<=5", "precision"),
+        ("target_recall_r>=0.1_range<=5", "target"),
+        ("recall_0.05<=r<0.1_range<=3", "small"),
+    ):
         c = counts[k][draws].sum(axis=1)  # (n_boot, 2)
         ok = c[:, 1] > 0
         if ok.any():
@@ -422,8 +555,15 @@ CENTRE_SIZE_BANDS = [(0.1, 0.15), (0.15, 0.2), (0.2, 0.3), (0.3, 0.5), (0.5, 10.
 CENTRE_RANGE_BANDS = [(0.0, 2.5), (2.5, 5.0)]
 
 
-def centre_error_parts(est: np.ndarray, true: np.ndarray, r_true: float, rng: float, cam: np.ndarray, r_est: float,
-                       cfg: DetectorConfig) -> tuple:
+def centre_error_parts(
+    est: np.ndarray,
+    true: np.ndarray,
+    r_true: float,
+    rng: float,
+    cam: np.ndarray,
+    r_est: float,
+    cfg: DetectorConfig,
+) -> tuple:
     """One matched detection's centre error, split: (true radius, range, 3D error, horizontal
     error, along the horizontal viewing ray (+ = too far), across it, vertical (+ = too high),
     estimated / true radius, 3D error with the true radius). The last is an oracle for the
@@ -441,13 +581,27 @@ def centre_error_parts(est: np.ndarray, true: np.ndarray, r_true: float, rng: fl
         f = f / max(float(np.linalg.norm(f)), 1e-9)
         dR = r_true - r_est
         k_along, k_z = cfg.centre.range_factor, cfg.centre.height_factor
-        if cfg.centre.estimator is CentreEstimator.BLEND:  # its radius terms (the near anchor unclamped)
+        if (
+            cfg.centre.estimator is CentreEstimator.BLEND
+        ):  # its radius terms (the near anchor unclamped)
             w = cfg.centre.near_weight
-            k_along, k_z = (1 - w) * cfg.centre.range_factor + w * cfg.centre.near_range_factor, cfg.centre.ring_radius_factor
+            k_along, k_z = (
+                (1 - w) * cfg.centre.range_factor + w * cfg.centre.near_range_factor,
+                cfg.centre.ring_radius_factor,
+            )
         moved = est + dR * np.array([k_along * f[0], k_along * f[1], -k_z])
         oracle = float(np.linalg.norm(moved - true))
-    return (float(r_true), float(rng), float(np.linalg.norm(e)), float(np.linalg.norm(e[:2])), along, lat, float(e[2]),
-            float(r_est / r_true), oracle)
+    return (
+        float(r_true),
+        float(rng),
+        float(np.linalg.norm(e)),
+        float(np.linalg.norm(e[:2])),
+        along,
+        lat,
+        float(e[2]),
+        float(r_est / r_true),
+        oracle,
+    )
 
 
 def centre_breakdown(rows: list[tuple]) -> dict:
@@ -467,12 +621,18 @@ def centre_breakdown(rows: list[tuple]) -> dict:
         if not len(m):
             continue
         out[key] = {
-            "n": int(len(m)), "median_m": float(np.median(m[:, 2])), "p90_m": float(np.percentile(m[:, 2], 90)),
-            "xy_median_m": float(np.median(m[:, 3])), "along_median_m": float(np.median(m[:, 4])),
-            "lateral_abs_median_m": float(np.median(np.abs(m[:, 5]))), "vertical_median_m": float(np.median(m[:, 6])),
+            "n": int(len(m)),
+            "median_m": float(np.median(m[:, 2])),
+            "p90_m": float(np.percentile(m[:, 2], 90)),
+            "xy_median_m": float(np.median(m[:, 3])),
+            "along_median_m": float(np.median(m[:, 4])),
+            "lateral_abs_median_m": float(np.median(np.abs(m[:, 5]))),
+            "vertical_median_m": float(np.median(m[:, 6])),
             "radius_ratio_median": float(np.median(m[:, 7])),
-            "true_radius_oracle_median_m": float(np.median(m[:, 8])) if np.isfinite(m[:, 8]).all() else None,
-        }  # fmt: skip
+            "true_radius_oracle_median_m": float(np.median(m[:, 8]))
+            if np.isfinite(m[:, 8]).all()
+            else None,
+        }
     return out
 
 
@@ -485,8 +645,14 @@ def lander_xy(ar) -> np.ndarray:
     return np.asarray([float(v) for v in pose[:2]])
 
 
-def run_archive(path: Path, cfg: DetectorConfig, every: int, acc: Accumulator, detector: Detector | None = None,
-                progress: Callable[[str], None] | None = None) -> Detector:
+def run_archive(
+    path: Path,
+    cfg: DetectorConfig,
+    every: int,
+    acc: Accumulator,
+    detector: Detector | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> Detector:
     """Accumulate one archive's metrics. The camera (image size, field of view) is read
     from the archive and `cfg`'s pixel-sized parameters (tuned at 1280 px) are scaled
     to its width; `detector` is reused when it was built for the same camera. `progress`
@@ -499,7 +665,11 @@ def run_archive(path: Path, cfg: DetectorConfig, every: int, acc: Accumulator, d
     with LacArchive(path) as ar:
         t = ar.custom("rocks")
         rocks = np.column_stack([t["id"], t["x"], t["y"], t["z"], t["radius"]])
-        frames = [int(f) for f in ar.frame_numbers if ar.camera_row(STEREO_PAIRS[0][0], int(f)) is not None][::every]
+        frames = [
+            int(f)
+            for f in ar.frame_numbers
+            if ar.camera_row(STEREO_PAIRS[0][0], int(f)) is not None
+        ][::every]
         cam = camera_from_archive(ar)
         det = detector if detector is not None and detector.camera == cam else None
         if det is None:
@@ -508,8 +678,15 @@ def run_archive(path: Path, cfg: DetectorConfig, every: int, acc: Accumulator, d
             progress(f"{path}: {cam.width}x{cam.height} px, hfov {cam.hfov_deg:g} deg")
         lander_xy_map = lander_xy(ar)  # known to a LAC agent: detections on the lander are dropped
         acc.begin_archive(path.name)
-        for fd in detect_archive(ar, det.config, "ground-truth", detector=det, frames=frames, lander_xy=lander_xy_map,
-                                 keep_depth=acc.misses is not None):
+        for fd in detect_archive(
+            ar,
+            det.config,
+            "ground-truth",
+            detector=det,
+            frames=frames,
+            lander_xy=lander_xy_map,
+            keep_depth=acc.misses is not None,
+        ):
             sem = {left: ar.semantic(left, fd.frame) for left, _ in det.config.pairs}
             rows = {c: ar.camera_row(c, fd.frame) for c in ar.cameras}
             mounts = mounts_from_archive_row({k: v for k, v in rows.items() if v}, det.camera)
@@ -551,8 +728,12 @@ def pair_speed(path: Path, repeats: int = 5, cfg: DetectorConfig | None = None) 
         det.detect_pair(L, R, T)
     wall = (time.perf_counter() - w0) / repeats
     cpu = (time.process_time() - c0) / repeats
-    return {"pair_wall_ms": 1000 * wall, "pair_cpu_ms": 1000 * cpu, "pairs_per_s_wall": 1 / wall,
-            "pairs_per_s_cpu": 1 / cpu}  # fmt: skip
+    return {
+        "pair_wall_ms": 1000 * wall,
+        "pair_cpu_ms": 1000 * cpu,
+        "pairs_per_s_wall": 1 / wall,
+        "pairs_per_s_cpu": 1 / cpu,
+    }
 
 
 def misses_by_rock(rows: list[dict]) -> list[dict]:
@@ -566,7 +747,15 @@ def misses_by_rock(rows: list[dict]) -> list[dict]:
     out = []
     for (archive, rock_id), g in groups.items():
         rng = [float(r["range_m"]) for r in g]
-        out.append(dict(archive=archive, rock_id=rock_id, radius_m=float(g[0]["radius_m"]), missed=len(g),
-                        range_min_m=min(rng), range_max_m=max(rng),
-                        stages=Counter(r["stage"] for r in g).most_common()))
+        out.append(
+            dict(
+                archive=archive,
+                rock_id=rock_id,
+                radius_m=float(g[0]["radius_m"]),
+                missed=len(g),
+                range_min_m=min(rng),
+                range_max_m=max(rng),
+                stages=Counter(r["stage"] for r in g).most_common(),
+            )
+        )
     return sorted(out, key=lambda d: (-d["missed"], d["archive"], str(d["rock_id"])))

@@ -39,7 +39,9 @@ def load_labels(path: Path) -> dict:
 
 def _in_poly(uv, poly) -> bool:
     cv2 = import_cv2()
-    return cv2.pointPolygonTest(np.asarray(poly, np.float32), (float(uv[0]), float(uv[1])), False) >= 0
+    return (
+        cv2.pointPolygonTest(np.asarray(poly, np.float32), (float(uv[0]), float(uv[1])), False) >= 0
+    )
 
 
 def on_rock(det_uv, det_depth: float, rock: dict, grow: int = GROW_PX) -> bool:
@@ -50,7 +52,9 @@ def on_rock(det_uv, det_depth: float, rock: dict, grow: int = GROW_PX) -> bool:
     if not (x0 - grow <= u <= x1 + grow and y0 - grow <= v <= y1 + grow):
         return False
     r = rock.get("range_m")
-    return r is None or not np.isfinite(det_depth) or 1.0 / DEPTH_RATIO <= det_depth / r <= DEPTH_RATIO
+    return (
+        r is None or not np.isfinite(det_depth) or 1.0 / DEPTH_RATIO <= det_depth / r <= DEPTH_RATIO
+    )
 
 
 def score_frame(frame: dict, dets: list, recall_range_m: float) -> dict:
@@ -63,16 +67,34 @@ def score_frame(frame: dict, dets: list, recall_range_m: float) -> dict:
         kind = "rock" if any(r["certain"] for r in hit) else ("uncertain" if hit else "false")
         where = ""
         if kind == "false":
-            where = next((z["what"] for z in frame.get("no_fire", []) if _in_poly(d.uv, z["polygon"])), "")
+            where = next(
+                (z["what"] for z in frame.get("no_fire", []) if _in_poly(d.uv, z["polygon"])), ""
+            )
         for r in hit:
             found.add(r["id"])
-        det_rows.append(dict(uv=[round(float(d.uv[0]), 1), round(float(d.uv[1]), 1)], depth_m=round(float(d.depth_m), 2),
-                             radius_m=round(float(d.radius_m), 3), kind=kind, no_fire=where,
-                             rocks=[r["id"] for r in hit]))
-    target = [r for r in rocks if r["certain"] and r["range_m"] is not None and r["range_m"] <= recall_range_m]
-    return dict(frame=frame["name"], rocks=[dict(id=r["id"], width_m=r["width_m"], range_m=r["range_m"],
-                                                  found=r["id"] in found) for r in target],
-                detections=det_rows)
+        det_rows.append(
+            dict(
+                uv=[round(float(d.uv[0]), 1), round(float(d.uv[1]), 1)],
+                depth_m=round(float(d.depth_m), 2),
+                radius_m=round(float(d.radius_m), 3),
+                kind=kind,
+                no_fire=where,
+                rocks=[r["id"] for r in hit],
+            )
+        )
+    target = [
+        r
+        for r in rocks
+        if r["certain"] and r["range_m"] is not None and r["range_m"] <= recall_range_m
+    ]
+    return dict(
+        frame=frame["name"],
+        rocks=[
+            dict(id=r["id"], width_m=r["width_m"], range_m=r["range_m"], found=r["id"] in found)
+            for r in target
+        ],
+        detections=det_rows,
+    )
 
 
 def summarize(frames: list[dict]) -> dict:
@@ -90,22 +112,41 @@ def summarize(frames: list[dict]) -> dict:
     small = [r for r in rocks if r["width_m"] < 0.08]
     judged = [d for d in dets if d["kind"] != "uncertain"]
     on = sum(d["kind"] == "rock" for d in judged)
-    by_range = {f"{a}-{b} m": rec([r for r in rocks if a <= r["range_m"] < b]) for a, b in ((0, 2), (2, 4), (4, 6.01))}
-    return dict(recall_all=rec(rocks), recall_ge_8cm=rec(big), recall_lt_8cm=rec(small), recall_by_range=by_range,
-                detections=len(dets), on_rocks=on, on_uncertain=len(dets) - len(judged),
-                false=len(judged) - on, precision=round(on / len(judged), 3) if judged else None,
-                on_no_fire=sum(bool(d["no_fire"]) for d in dets))
+    by_range = {
+        f"{a}-{b} m": rec([r for r in rocks if a <= r["range_m"] < b])
+        for a, b in ((0, 2), (2, 4), (4, 6.01))
+    }
+    return dict(
+        recall_all=rec(rocks),
+        recall_ge_8cm=rec(big),
+        recall_lt_8cm=rec(small),
+        recall_by_range=by_range,
+        detections=len(dets),
+        on_rocks=on,
+        on_uncertain=len(dets) - len(judged),
+        false=len(judged) - on,
+        precision=round(on / len(judged), 3) if judged else None,
+        on_no_fire=sum(bool(d["no_fire"]) for d in dets),
+    )
 
 
-def run(data_dir: Path, labels: dict, cfg: DetectorConfig | None = None, frames_wanted=None,
-        misses: list | None = None, figure_dir: Path | None = None) -> dict:
+def run(
+    data_dir: Path,
+    labels: dict,
+    cfg: DetectorConfig | None = None,
+    frames_wanted=None,
+    misses: list | None = None,
+    figure_dir: Path | None = None,
+) -> dict:
     """The detector (`cfg`, default DetectorConfig()) on each labelled pair under `data_dir`
     (`frames_wanted`: their names, default all): {"summary": :func:`summarize`'s, "frames": each
     frame's :func:`score_frame`}. Each missed rock's stage is appended to `misses` when a list is
     given; the drawn frames (:func:`draw`) are written to `figure_dir` when given."""
     cv2 = import_cv2()
     cam = labels["camera"]
-    det = Detector(cfg or DetectorConfig(), PinholeCamera(cam["width_px"], cam["height_px"], cam["hfov_deg"]))
+    det = Detector(
+        cfg or DetectorConfig(), PinholeCamera(cam["width_px"], cam["height_px"], cam["hfov_deg"])
+    )
     T_ro = ipex_rig(det.camera)["FrontLeft"].T_rover_optical
     out = []
     wall = []
@@ -129,13 +170,25 @@ def run(data_dir: Path, labels: dict, cfg: DetectorConfig | None = None, frames_
         if misses is not None:
             found = {r["id"] for r in s["rocks"] if r["found"]}
             for r in fr["rocks"]:
-                if not r["certain"] or r["range_m"] is None or r["range_m"] > labels["recall_range_m"] or r["id"] in found:
+                if (
+                    not r["certain"]
+                    or r["range_m"] is None
+                    or r["range_m"] > labels["recall_range_m"]
+                    or r["id"] in found
+                ):
                     continue
                 px = np.zeros(L.shape, bool)
                 x0, y0, x1, y1 = r["box"]
-                px[y0:y1 + 1, x0:x1 + 1] = True
-                misses.append(dict(frame=fr["name"], rock_id=r["id"], width_m=r["width_m"], range_m=r["range_m"],
-                                   **miss_stage(pr, px)))
+                px[y0 : y1 + 1, x0 : x1 + 1] = True
+                misses.append(
+                    dict(
+                        frame=fr["name"],
+                        rock_id=r["id"],
+                        width_m=r["width_m"],
+                        range_m=r["range_m"],
+                        **miss_stage(pr, px),
+                    )
+                )
         if figure_dir is not None:
             figure_dir.mkdir(parents=True, exist_ok=True)
             cv2.imwrite(str(figure_dir / f"{fr['name']}.png"), draw(L, fr, s))

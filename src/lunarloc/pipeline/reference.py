@@ -15,17 +15,30 @@ from typing import Callable, Mapping
 import numpy as np
 
 from lunarloc.core.errors import InputError
-from lunarloc.io.maps import ROCK_COLUMNS, AggregationConfig, LandmarkMap, aggregate_detections, load_map
+from lunarloc.io.maps import (
+    ROCK_COLUMNS,
+    AggregationConfig,
+    LandmarkMap,
+    aggregate_detections,
+    load_map,
+)
 
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
-__all__ = ["ROCK_COLUMNS", "rocks_to_reference", "load_reference", "reference_summary", "build_reference_map",
-           "reference_from_traverses"]
+__all__ = [
+    "ROCK_COLUMNS",
+    "rocks_to_reference",
+    "load_reference",
+    "reference_summary",
+    "build_reference_map",
+    "reference_from_traverses",
+]
 
 
-
-def rocks_to_reference(rocks: np.ndarray, min_radius_m: float = 0.05, top_offset: float = 0.1) -> LandmarkMap:
+def rocks_to_reference(
+    rocks: np.ndarray, min_radius_m: float = 0.05, top_offset: float = 0.1
+) -> LandmarkMap:
     """Reference landmark map from a ground-truth rock list ``(N, 5) id, x, y, z, radius``.
 
     A vision detection of a rock lands on the centre of its *visible* part: horizontally
@@ -42,8 +55,13 @@ def rocks_to_reference(rocks: np.ndarray, min_radius_m: float = 0.05, top_offset
         raise InputError(f"rock list must be (N, 5) id,x,y,z,radius; got shape {r.shape}")
     keep = r[:, 4] >= min_radius_m
     if not keep.all():
-        log.info("reference: %d of %d rocks kept; %d under %g cm radius dropped (below the detector's size floor)",
-                 int(keep.sum()), len(r), int((~keep).sum()), min_radius_m * 100)  # fmt: skip
+        log.info(
+            "reference: %d of %d rocks kept; %d under %g cm radius dropped (below the detector's size floor)",
+            int(keep.sum()),
+            len(r),
+            int((~keep).sum()),
+            min_radius_m * 100,
+        )
     r = r[keep]
     pos = r[:, 1:4].copy()
     pos[:, 2] += top_offset * r[:, 4]
@@ -59,8 +77,10 @@ def reference_summary(path: str | Path, reference: LandmarkMap, min_radius_m: fl
     if path.suffix.lower() == ".csv" and _is_rock_csv(path):
         total = len(load_rock_csv(path))
         if total > n:
-            return (f"{n} landmarks ({total} rocks, {total - n} under {min_radius_m * 100:g} cm radius dropped: "
-                    f"below the detector's size floor)")  # fmt: skip
+            return (
+                f"{n} landmarks ({total} rocks, {total - n} under {min_radius_m * 100:g} cm radius dropped: "
+                f"below the detector's size floor)"
+            )
     return f"{n} landmarks"
 
 
@@ -70,8 +90,12 @@ def _is_rock_csv(path: Path) -> bool:
     return _first_line(path).split(",")[:5] == ROCK_COLUMNS
 
 
-def load_reference(path: str | Path, config: AggregationConfig | None = None, min_radius_m: float = 0.05,
-                   dem: str | Path | None = None) -> LandmarkMap:
+def load_reference(
+    path: str | Path,
+    config: AggregationConfig | None = None,
+    min_radius_m: float = 0.05,
+    dem: str | Path | None = None,
+) -> LandmarkMap:
     """A reference map from a landmark CSV/.npz, a traverse CSV, a rock list (``rocks.csv``:
     ``id,x,y,z,radius``, converted by :func:`rocks_to_reference`), a LAC geometric map
     (``.npy``, rocks grouped by :func:`lunarloc.io.overhead.grid_landmarks`) or a rock catalogue
@@ -124,7 +148,9 @@ def build_reference_map(
         pts, frames = [], []
         lefts = [l for l, _ in det.config.pairs if l in ar.cameras]
         total = len({int(f) for c in lefts for f in ar.camera_frames(c)["frame"]})
-        for n, fd in enumerate(detect_archive(ar, det.config, "ground-truth", detector=det), start=1):
+        for n, fd in enumerate(
+            detect_archive(ar, det.config, "ground-truth", detector=det), start=1
+        ):
             p = fd.positions_map()
             pts.append(p)
             frames.append(np.full(len(p), fd.frame))
@@ -138,8 +164,11 @@ def build_reference_map(
     return lm
 
 
-def reference_from_traverses(traverses: Mapping[int, object], exclude: int | None = None,
-                             config: AggregationConfig | None = None) -> LandmarkMap:  # fmt: skip
+def reference_from_traverses(
+    traverses: Mapping[int, object],
+    exclude: int | None = None,
+    config: AggregationConfig | None = None,
+) -> LandmarkMap:
     """One reference map from the world-frame detections of several traverses
     (``{number: Traverse}``), all but `exclude`: each rock seen on any of them becomes one
     landmark. Frame numbers restart on every traverse, so each traverse's frames are kept
@@ -149,7 +178,9 @@ def reference_from_traverses(traverses: Mapping[int, object], exclude: int | Non
     if not keys:
         raise InputError("no traverse left to build the reference from")
     D = np.concatenate([traverses[k].detections_xyz for k in keys])
-    offsets = np.concatenate([np.full(len(traverses[k].detection_frame), i, np.int64) for i, k in enumerate(keys)])
+    offsets = np.concatenate(
+        [np.full(len(traverses[k].detection_frame), i, np.int64) for i, k in enumerate(keys)]
+    )
     frames = np.concatenate([traverses[k].detection_frame for k in keys]).astype(np.int64)
     span = int(frames.max()) + 1 if len(frames) else 1
     return aggregate_detections(D, frames + span * offsets, config, frame="map")

@@ -36,8 +36,14 @@ from lunarloc.mapping.lac_map import LANDER_EXCLUSION_M
 __all__ = ["run", "detect", "DetectResult", "add_to_mapper", "place_mapper", "LANDER_EXCLUSION_M"]
 
 
-def run(source, reference: LandmarkMap, config: RunConfig | None = None, *,
-        progress: Callable[[int, int], None] | None = None, mapper=None) -> LoopResult:  # fmt: skip
+def run(
+    source,
+    reference: LandmarkMap,
+    config: RunConfig | None = None,
+    *,
+    progress: Callable[[int, int], None] | None = None,
+    mapper=None,
+) -> LoopResult:
     """Online localization of every frame of `source` (:class:`~lunarloc.pipeline.sources.ArchiveSource`
     or :class:`~lunarloc.pipeline.sources.TraverseCsvSource`) against `reference` (frame ``map``).
 
@@ -60,21 +66,35 @@ def run(source, reference: LandmarkMap, config: RunConfig | None = None, *,
             detections = frame.detections_rover
             if frame.images is not None:
                 t0 = time.perf_counter()
-                fd = detector.detect_frame(frame.images, frame.mounts, None, frame.frame, keep_depth=mapper is not None)
+                fd = detector.detect_frame(
+                    frame.images, frame.mounts, None, frame.frame, keep_depth=mapper is not None
+                )
                 loop.timings["detection"] += time.perf_counter() - t0
                 if mapper is not None:
                     t0 = time.perf_counter()
-                    add_to_mapper(mapper, frame.frame, frame.T_odo_rover, fd, detector, frame.images)
-                    loop.timings["lac_map"] = loop.timings.get("lac_map", 0.0) + time.perf_counter() - t0
+                    add_to_mapper(
+                        mapper, frame.frame, frame.T_odo_rover, fd, detector, frame.images
+                    )
+                    loop.timings["lac_map"] = (
+                        loop.timings.get("lac_map", 0.0) + time.perf_counter() - t0
+                    )
                 detections = np.array([d.p_rover for d in fd.detections], float).reshape(-1, 3)
                 if source.lander_xy is not None:  # the lander is no rock: drop detections on it
                     from lunarloc.perception.detector import on_lander
 
-                    detections = detections[~on_lander(detections, frame.T_odo_rover, source.lander_xy)]
+                    detections = detections[
+                        ~on_lander(detections, frame.T_odo_rover, source.lander_xy)
+                    ]
                 example.offer(fd, frame, source.camera)
             n_kf += frame.keyframe
-            loop.step(frame.frame, frame.time_s, frame.T_odo_rover, detections, frame.T_map_rover_true,
-                      keyframe=frame.keyframe)  # fmt: skip
+            loop.step(
+                frame.frame,
+                frame.time_s,
+                frame.T_odo_rover,
+                detections,
+                frame.T_map_rover_true,
+                keyframe=frame.keyframe,
+            )
             if progress:
                 progress(n, total)
     if n_kf == 0:
@@ -83,7 +103,9 @@ def run(source, reference: LandmarkMap, config: RunConfig | None = None, *,
     info = source.info()
     if detector is not None:
         info["detector_scaled"] = detector.config.to_dict()
-    result = loop.finish(n_kf, source.name, source.rocks, example.best, {**cfg.to_dict(), "info": info})
+    result = loop.finish(
+        n_kf, source.name, source.rocks, example.best, {**cfg.to_dict(), "info": info}
+    )
     if mapper is not None:
         place_mapper(mapper, result.frames, result.T_map_rover)
     return result
@@ -119,7 +141,9 @@ def odometry_of(source):
 
     drift = getattr(source, "drift", None)
     if drift is not None:
-        return OdometryBounds(abs(float(drift.scale_error)), abs(float(drift.heading_drift_deg_per_m)))
+        return OdometryBounds(
+            abs(float(drift.scale_error)), abs(float(drift.heading_drift_deg_per_m))
+        )
     return getattr(source, "odometry_label", None) or None
 
 
@@ -145,11 +169,14 @@ class _ExampleFrame:
         left = fd.pairs[0].camera if fd.pairs else next(iter(frame.images))
         on = [d for d in dets if d.camera == left]
         self.best = {
-            "n": len(dets), "frame": int(frame.frame), "camera": left, "image": frame.images[left],
+            "n": len(dets),
+            "frame": int(frame.frame),
+            "camera": left,
+            "image": frame.images[left],
             "uv": np.array([d.uv for d in on], float).reshape(-1, 2),
             "radius_px": np.array([d.radius_m / d.depth_m * camera.fx for d in on]),
             "depth_m": np.array([d.depth_m for d in on]),
-        }  # fmt: skip
+        }
 
 
 # --------------------------------------------------------------------------- detection only
@@ -174,9 +201,17 @@ class DetectResult:
         return {k: v / max(self.frames, 1) for k, v in self.stage_seconds.items()}
 
 
-def detect(archive: str | Path, output: str | Path, config: RunConfig | None = None, *, pose: str = "ground-truth",
-           every: int = 1, debug_dir: str | Path | None = None, lander_xy=None,
-           progress: Callable[[int, int, int], None] | None = None) -> DetectResult:  # fmt: skip
+def detect(
+    archive: str | Path,
+    output: str | Path,
+    config: RunConfig | None = None,
+    *,
+    pose: str = "ground-truth",
+    every: int = 1,
+    debug_dir: str | Path | None = None,
+    lander_xy=None,
+    progress: Callable[[int, int, int], None] | None = None,
+) -> DetectResult:
     """Detect rocks in every `every`-th stereo frame of `archive` and write the traverse CSV
     `output` (``frame,x,y,z,detections,boulders``) and its configuration
     (``OUTPUT.config.json``: the :class:`RunConfig` and an ``info`` section).
@@ -206,7 +241,12 @@ def detect(archive: str | Path, output: str | Path, config: RunConfig | None = N
         detector = Detector(det_cfg, camera)  # fails early (e.g. missing weights)
         lefts = [left for left, _ in det_cfg.pairs]
         frames = sorted(
-            {int(f) for f in ar.frame_numbers for c in lefts if c in ar.cameras and ar.camera_row(c, int(f))}
+            {
+                int(f)
+                for f in ar.frame_numbers
+                for c in lefts
+                if c in ar.cameras and ar.camera_row(c, int(f))
+            }
         )[::every]
         res = DetectResult(output, 0, 0, pose_src.value)
         poses = None
@@ -222,13 +262,23 @@ def detect(archive: str | Path, output: str | Path, config: RunConfig | None = N
             from lunarloc.odometry.source import archive_odometry
 
             if "odometry" not in ar.custom_records:
-                raise InputError(f"{ar.path}: no odometry record; use --pose ground-truth or --odometry SOURCE")
+                raise InputError(
+                    f"{ar.path}: no odometry record; use --pose ground-truth or --odometry SOURCE"
+                )
             traj = archive_odometry(ar, "record:odometry")
             poses = dict(zip(traj.frames.tolist(), traj.T_map_rover))
 
         def frames_iter():
-            for fd in detect_archive(ar, det_cfg, pose_src, detector=detector, frames=frames,
-                                     keep_depth=debug_dir is not None, poses=poses, lander_xy=lander_xy):  # fmt: skip
+            for fd in detect_archive(
+                ar,
+                det_cfg,
+                pose_src,
+                detector=detector,
+                frames=frames,
+                keep_depth=debug_dir is not None,
+                poses=poses,
+                lander_xy=lander_xy,
+            ):
                 res.detections += len(fd.detections)
                 for k, v in fd.timings.items():
                     res.stage_seconds[k] = res.stage_seconds.get(k, 0.0) + v
@@ -236,7 +286,10 @@ def detect(archive: str | Path, output: str | Path, config: RunConfig | None = N
                     cv2 = import_cv2()
                     for pair in fd.pairs:
                         img = ar.grayscale(pair.camera, fd.frame)
-                        cv2.imwrite(str(Path(debug_dir) / f"{pair.camera}_{fd.frame:06d}.png"), debug_overlay(img, pair))
+                        cv2.imwrite(
+                            str(Path(debug_dir) / f"{pair.camera}_{fd.frame:06d}.png"),
+                            debug_overlay(img, pair),
+                        )
                 if progress:
                     progress(res.frames + 1, len(frames), res.detections)
                 res.frames += 1

@@ -31,7 +31,13 @@ from lunarloc.core.errors import ConfigError, LunarLocError
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
 
-__all__ = ["ScenarioConfig", "ScenarioError", "demo_run_config", "run_scenario", "scenario_problems"]
+__all__ = [
+    "ScenarioConfig",
+    "ScenarioError",
+    "demo_run_config",
+    "run_scenario",
+    "scenario_problems",
+]
 
 
 class ScenarioError(LunarLocError):
@@ -65,16 +71,34 @@ class ScenarioConfig:
         # booleans are not numbers here (``seed = true`` was seed 1)
         from lunarloc.core.validate import integer, real
 
-        for name, hi in (("duration_s", MAX_DURATION_S), ("reference_duration_s", MAX_DURATION_S), ("image_rate_hz", 10.0)):
+        for name, hi in (
+            ("duration_s", MAX_DURATION_S),
+            ("reference_duration_s", MAX_DURATION_S),
+            ("image_rate_hz", 10.0),
+        ):
             real(getattr(self, name), name, 0.0, hi, lo_open=True, error=ConfigError)
         integer(self.width, "width", 32, 4096, ConfigError)
         integer(self.n_rocks, "n_rocks", 3, 100_000, ConfigError)
         integer(self.seed, "seed", 0, 2**63 - 1, ConfigError)
         integer(self.min_reference_landmarks, "min_reference_landmarks", 3, 100_000, ConfigError)
         if self.sun_elevation_deg is not None:
-            real(self.sun_elevation_deg, "sun_elevation_deg", -90.0, 90.0, unit="deg", error=ConfigError)
+            real(
+                self.sun_elevation_deg,
+                "sun_elevation_deg",
+                -90.0,
+                90.0,
+                unit="deg",
+                error=ConfigError,
+            )
         if self.sun_azimuth_deg is not None:
-            real(self.sun_azimuth_deg, "sun_azimuth_deg", -360.0, 360.0, unit="deg", error=ConfigError)
+            real(
+                self.sun_azimuth_deg,
+                "sun_azimuth_deg",
+                -360.0,
+                360.0,
+                unit="deg",
+                error=ConfigError,
+            )
         if self.plan not in ("survey", "random"):
             raise ConfigError(f"plan={self.plan!r} must be 'survey' or 'random'")
 
@@ -91,11 +115,15 @@ class ScenarioConfig:
             raise ConfigError(f"scenario settings must be a table, got {type(d).__name__}")
         known = {f.name for f in fields(cls)}
         if "odometry" in d:
-            raise ConfigError("scenario.odometry: the odometry source is set in one place, the run configuration's "
-                              f"odometry.source (move {d['odometry']!r} there)")
+            raise ConfigError(
+                "scenario.odometry: the odometry source is set in one place, the run configuration's "
+                f"odometry.source (move {d['odometry']!r} there)"
+            )
         unknown = sorted(set(d) - known)
         if unknown:
-            raise ConfigError(f"unknown scenario setting(s) {unknown}; known: {', '.join(sorted(known))}")
+            raise ConfigError(
+                f"unknown scenario setting(s) {unknown}; known: {', '.join(sorted(known))}"
+            )
         if not isinstance(d, dict):
             raise ConfigError(f"scenario settings must be a table, got {type(d).__name__}")
         try:
@@ -139,8 +167,14 @@ def demo_run_config():
     return RunConfig(odometry=OdometryConfig(source="record:odometry"))
 
 
-def run_scenario(config: ScenarioConfig, out: str | Path, *, log: Callable[[str], None] | None = None,
-                 figures: bool = True, run_config=None) -> dict:  # fmt: skip
+def run_scenario(
+    config: ScenarioConfig,
+    out: str | Path,
+    *,
+    log: Callable[[str], None] | None = None,
+    figures: bool = True,
+    run_config=None,
+) -> dict:
     """Run one scenario into the folder ``out`` (``out/data`` holds the generated site,
     archives and reference map; ``out`` the run folder of the vehicle traverse). Returns the
     run's summary with ``scenario`` (the config) and ``stage_seconds`` added.
@@ -163,27 +197,53 @@ def run_scenario(config: ScenarioConfig, out: str | Path, *, log: Callable[[str]
     data = out / "data"
     data.mkdir(parents=True, exist_ok=True)
     stage = _Stages(log)
-    base = SimulationConfig(site=SiteConfig(n_rocks=c.n_rocks), image_rate_hz=c.image_rate_hz, width=c.width,
-                            height=c.height, cameras=("FrontLeft", "FrontRight"), semantic=False)  # fmt: skip
-    sun = {k: v for k, v in (("sun_elevation_deg", c.sun_elevation_deg), ("sun_azimuth_deg", c.sun_azimuth_deg))
-           if v is not None}  # fmt: skip
+    base = SimulationConfig(
+        site=SiteConfig(n_rocks=c.n_rocks),
+        image_rate_hz=c.image_rate_hz,
+        width=c.width,
+        height=c.height,
+        cameras=("FrontLeft", "FrontRight"),
+        semantic=False,
+    )
+    sun = {
+        k: v
+        for k, v in (
+            ("sun_elevation_deg", c.sun_elevation_deg),
+            ("sun_azimuth_deg", c.sun_azimuth_deg),
+        )
+        if v is not None
+    }
     if sun:
         base = replace(base, render=replace(base.render, **sun))
     ref_rover = veh_rover = base.rover
     if c.plan == "survey":
-        ref_rover, veh_rover = replace(base.rover, plan="survey"), replace(base.rover, plan="revisit")
+        ref_rover, veh_rover = (
+            replace(base.rover, plan="survey"),
+            replace(base.rover, plan="revisit"),
+        )
     with stage(f"simulate site (seed {c.seed}, {c.n_rocks} rocks)"):
         site = simulate_site(c.seed, base.site)
         site.write_rocks_csv(data / "rocks.csv")
         renderer = SiteRenderer(site, base.render)
-    with stage(f"simulate reference traverse ({c.reference_duration_s:g} s, {c.width}x{c.height} front pair "
-               f"at {c.image_rate_hz:g} Hz)"):  # fmt: skip
-        ref_arch, _ = simulate_traverse(site, data / "reference.lac", 0,
-                                        replace(base, duration_s=c.reference_duration_s, rover=ref_rover),
-                                        renderer=renderer)  # fmt: skip
+    with stage(
+        f"simulate reference traverse ({c.reference_duration_s:g} s, {c.width}x{c.height} front pair "
+        f"at {c.image_rate_hz:g} Hz)"
+    ):
+        ref_arch, _ = simulate_traverse(
+            site,
+            data / "reference.lac",
+            0,
+            replace(base, duration_s=c.reference_duration_s, rover=ref_rover),
+            renderer=renderer,
+        )
     with stage(f"simulate vehicle traverse ({c.duration_s:g} s, drifting odometry)"):
-        veh_arch, _ = simulate_traverse(site, data / "vehicle.lac", 1,
-                                        replace(base, duration_s=c.duration_s, rover=veh_rover), renderer=renderer)  # fmt: skip
+        veh_arch, _ = simulate_traverse(
+            site,
+            data / "vehicle.lac",
+            1,
+            replace(base, duration_s=c.duration_s, rover=veh_rover),
+            renderer=renderer,
+        )
     rc = run_config or demo_run_config()
     with stage("build the reference map from the reference traverse's images"):
         ref = build_reference_map(ref_arch, rc)

@@ -42,7 +42,9 @@ class Frame:
     keyframe: bool  # detections (or images to detect in) belong to this frame
     images: Mapping[str, np.ndarray] | None = None  # {camera: grayscale image} (archive sources)
     mounts: Mapping | None = None  # {camera: CameraMount} of those images
-    detections_rover: np.ndarray | None = None  # (N, 3) rover-frame detections (sources without images)
+    detections_rover: np.ndarray | None = (
+        None  # (N, 3) rover-frame detections (sources without images)
+    )
     T_map_rover_true: np.ndarray | None = None  # ground truth (evaluation only)
 
 
@@ -57,8 +59,15 @@ class ArchiveSource:
     max_frames : stop after this many frames.
     """
 
-    def __init__(self, archive: str | Path, odometry=None, pairs=None, *,
-                 odometry_poses: np.ndarray | None = None, max_frames: int | None = None):  # fmt: skip
+    def __init__(
+        self,
+        archive: str | Path,
+        odometry=None,
+        pairs=None,
+        *,
+        odometry_poses: np.ndarray | None = None,
+        max_frames: int | None = None,
+    ):
         from lunarloc.config.run import OdometryConfig
         from lunarloc.perception.camera import STEREO_PAIRS
 
@@ -70,7 +79,9 @@ class ArchiveSource:
         self.max_frames = max_frames
         self.camera = None
         self.rocks: np.ndarray | None = None
-        self.lander_xy: np.ndarray | None = None  # the lander's centre in map (initial.toml), if recorded
+        self.lander_xy: np.ndarray | None = (
+            None  # the lander's centre in map (initial.toml), if recorded
+        )
         self.odometry_label = ""
         self.timings: dict[str, float] = {}
         self._ar = None
@@ -92,7 +103,9 @@ class ArchiveSource:
             self.camera = camera_from_archive(ar)
             self._lefts = [l for l, _ in self.pairs if l in ar.cameras]
             if not self._lefts:
-                raise FileFormatError(f"{self.path}: no left stereo camera recorded images (have: {', '.join(ar.cameras) or 'none'})")
+                raise FileFormatError(
+                    f"{self.path}: no left stereo camera recorded images (have: {', '.join(ar.cameras) or 'none'})"
+                )
             self._image_frames = {int(f) for c in self._lefts for f in ar.camera_frames(c)["frame"]}
             if ar.initial.get("lander") is not None:
                 self.lander_xy = np.asarray(ar.lander_pose_map()[:2], float)
@@ -115,13 +128,17 @@ class ArchiveSource:
     def _odometry_poses(self, ar) -> dict[int, np.ndarray]:
         if self._override is not None:
             if self._override.shape != (len(ar.frame_numbers), 4, 4):
-                raise InputError(f"odometry override must be ({len(ar.frame_numbers)}, 4, 4), got {self._override.shape}")
+                raise InputError(
+                    f"odometry override must be ({len(ar.frame_numbers)}, 4, 4), got {self._override.shape}"
+                )
             self.odometry_label = "override"
             return {int(f): r for f, r in zip(ar.frame_numbers, self._override)}
         from lunarloc.odometry.source import archive_odometry, default_odometry_source
 
         c = self.odometry_config
-        traj = archive_odometry(ar, c.source or default_odometry_source(ar), imu_config=c.imu, visual_config=c.visual)
+        traj = archive_odometry(
+            ar, c.source or default_odometry_source(ar), imu_config=c.imu, visual_config=c.visual
+        )
         self.odometry_label = traj.label
         return {int(f): T for f, T in zip(traj.frames, traj.T_map_rover)}  # odo == map at the start
 
@@ -150,16 +167,35 @@ class ArchiveSource:
                 t = agent.get_mission_time()
                 images = mounts = None
                 if frame in self._image_frames:
-                    images = {k: v for k, v in agent.input_data().get("Grayscale", {}).items() if v is not None}
-                    mounts = {name: CameraMount(name, agent.get_camera_position(name).matrix(), cam) for name in images}
+                    images = {
+                        k: v
+                        for k, v in agent.input_data().get("Grayscale", {}).items()
+                        if v is not None
+                    }
+                    mounts = {
+                        name: CameraMount(name, agent.get_camera_position(name).matrix(), cam)
+                        for name in images
+                    }
                 t_io += time.perf_counter() - t0
                 self.timings["io"] = t_io
-                yield Frame(int(frame), t, self._odometry[frame], images is not None, images, mounts, None, gt)
+                yield Frame(
+                    int(frame),
+                    t,
+                    self._odometry[frame],
+                    images is not None,
+                    images,
+                    mounts,
+                    None,
+                    gt,
+                )
 
     def info(self) -> dict:
         """What the run's configuration records about this source."""
-        return {"archive": self.name, "odometry_source": self.odometry_label,
-                "camera": None if self.camera is None else asdict(self.camera)}  # fmt: skip
+        return {
+            "archive": self.name,
+            "odometry_source": self.odometry_label,
+            "camera": None if self.camera is None else asdict(self.camera),
+        }
 
 
 class TraverseCsvSource:
@@ -173,12 +209,20 @@ class TraverseCsvSource:
     least every ``keyframe_max_interval_s``. Frame time is frame number / `rate_hz`.
     """
 
-    def __init__(self, traverse, drift=None, rate_hz: float = 20.0, keyframe_every_s: float = 0.5,
-                 keyframe_max_interval_s: float = 2.0):  # fmt: skip
+    def __init__(
+        self,
+        traverse,
+        drift=None,
+        rate_hz: float = 20.0,
+        keyframe_every_s: float = 0.5,
+        keyframe_max_interval_s: float = 2.0,
+    ):
         from lunarloc.pipeline.evaluation import DriftModel
         from lunarloc.io.maps import Traverse, load_traverse
 
-        self.traverse: Traverse = traverse if isinstance(traverse, Traverse) else load_traverse(traverse)
+        self.traverse: Traverse = (
+            traverse if isinstance(traverse, Traverse) else load_traverse(traverse)
+        )
         self.name = self.traverse.name
         self.drift = drift or DriftModel(0.05, 0.02)
         self.rate_hz = float(rate_hz)
@@ -214,12 +258,21 @@ class TraverseCsvSource:
             a, b = np.searchsorted(df, f, "left"), np.searchsorted(df, f, "right")
             t = times[i]
             dets = dx[a:b] - g[i] if b > a else None
-            is_kf = (dets is not None and t - last_kf_t >= self.keyframe_every_s) or t - last_kf_t >= self.keyframe_max_interval_s
+            is_kf = (
+                dets is not None and t - last_kf_t >= self.keyframe_every_s
+            ) or t - last_kf_t >= self.keyframe_max_interval_s
             if is_kf:
                 last_kf_t = t
-            yield Frame(int(f), t, pose_to_matrix(o[i, 0], o[i, 1], o[i, 2], 0.0, 0.0, psi[i]), bool(is_kf),
-                        detections_rover=(np.zeros((0, 3)) if dets is None else dets.copy()) if is_kf else None,
-                        T_map_rover_true=pose_to_matrix(g[i, 0], g[i, 1], g[i, 2], 0.0, 0.0, 0.0))  # fmt: skip
+            yield Frame(
+                int(f),
+                t,
+                pose_to_matrix(o[i, 0], o[i, 1], o[i, 2], 0.0, 0.0, psi[i]),
+                bool(is_kf),
+                detections_rover=(np.zeros((0, 3)) if dets is None else dets.copy())
+                if is_kf
+                else None,
+                T_map_rover_true=pose_to_matrix(g[i, 0], g[i, 1], g[i, 2], 0.0, 0.0, 0.0),
+            )
 
     def info(self) -> dict:
         return {"traverse": self.name, "drift": asdict(self.drift), "rate_hz": self.rate_hz}

@@ -17,7 +17,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lunarloc.core.errors import InputError
-from lunarloc.core.geometry import euler_to_rotation, invert_transform, make_transform, transform_points
+from lunarloc.core.geometry import (
+    euler_to_rotation,
+    invert_transform,
+    make_transform,
+    transform_points,
+)
 from lunarloc.io.maps import LandmarkMap
 
 __all__ = ["LAC_ROCK_DENSITY_PER_M2", "VehicleWindow", "uniform_rock_field", "vehicle_window"]
@@ -25,17 +30,23 @@ __all__ = ["LAC_ROCK_DENSITY_PER_M2", "VehicleWindow", "uniform_rock_field", "ve
 LAC_ROCK_DENSITY_PER_M2 = 0.55
 
 
-def uniform_rock_field(rng: np.random.Generator, n: int, density_per_m2: float = LAC_ROCK_DENSITY_PER_M2) -> LandmarkMap:
+def uniform_rock_field(
+    rng: np.random.Generator, n: int, density_per_m2: float = LAC_ROCK_DENSITY_PER_M2
+) -> LandmarkMap:
     """`n` rocks uniformly on a square whose side gives `density_per_m2` (metres)."""
     if n < 3 or not density_per_m2 > 0:
-        raise InputError(f"a rock field needs n >= 3 and a positive density, got n={n}, density={density_per_m2}")
+        raise InputError(
+            f"a rock field needs n >= 3 and a positive density, got n={n}, density={density_per_m2}"
+        )
     side = math.sqrt(n / density_per_m2)
     xy = rng.uniform(0.0, side, (n, 2))
     z = rng.normal(0.0, 0.05, n)
     for _ in range(4):  # smooth terrain: random plane waves
         k = 2 * math.pi / rng.uniform(8.0, 60.0)
         a = rng.uniform(0, 2 * math.pi)
-        z += 0.125 * np.sin(k * (xy[:, 0] * math.cos(a) + xy[:, 1] * math.sin(a)) + rng.uniform(0, 2 * math.pi))
+        z += 0.125 * np.sin(
+            k * (xy[:, 0] * math.cos(a) + xy[:, 1] * math.sin(a)) + rng.uniform(0, 2 * math.pi)
+        )
     return LandmarkMap(np.c_[xy, z], frame="site")
 
 
@@ -66,7 +77,9 @@ def vehicle_window(
     n_out = int(round(outlier_fraction * n_landmarks))
     n_true = n_landmarks - n_out
     if n_true < 3 or n_true > detect_prob * len(P):
-        raise InputError(f"a window of {n_landmarks} landmarks does not fit a {len(P)}-rock reference")
+        raise InputError(
+            f"a window of {n_landmarks} landmarks does not fit a {len(P)}-rock reference"
+        )
     centre = P[rng.integers(len(P)), :2]
     k = min(len(P), int(math.ceil(n_true / detect_prob)) + 1)
     _, near = cKDTree(P[:, :2]).query(centre, k=k)
@@ -82,7 +95,8 @@ def vehicle_window(
     idx = np.r_[seen, np.full(n_out, -1)]
     perm = rng.permutation(len(world))
     roll, pitch = np.radians(rng.uniform(-max_tilt_deg, max_tilt_deg, 2))
-    T_veh_ref = make_transform(euler_to_rotation(roll, pitch, rng.uniform(-math.pi, math.pi)),
-                               rng.uniform(-100, 100, 3))
+    T_veh_ref = make_transform(
+        euler_to_rotation(roll, pitch, rng.uniform(-math.pi, math.pi)), rng.uniform(-100, 100, 3)
+    )
     veh = LandmarkMap(transform_points(T_veh_ref, world[perm]), frame="vehicle")
     return VehicleWindow(veh, invert_transform(T_veh_ref), idx[perm].astype(np.int64))

@@ -190,12 +190,19 @@ class RenderConfig:
     texture_seed: int = 0  # seed of the albedo texture
     lighting: Lighting = Lighting.SUN_LAMPS  # sun, lamps or both (a str is parsed)
     lamp_intensity: float = 1.0  # LAC light_intensity of every lamp, 0-1 (what the archive records)
-    lamp_power: float = 1.0  # on-axis irradiance at 1 m of one lamp at intensity 1, in units of the sun's
-    lamp_cone_deg: tuple[float, float] = (20.0, 50.0)  # full power inside, none beyond (half-angles)
+    lamp_power: float = (
+        1.0  # on-axis irradiance at 1 m of one lamp at intensity 1, in units of the sun's
+    )
+    lamp_cone_deg: tuple[float, float] = (
+        20.0,
+        50.0,
+    )  # full power inside, none beyond (half-angles)
     rover_shadow: bool = True  # the rover body (ROVER_BOXES) occludes the sun in render_rover
     rock_albedo_spread: float = 0.12  # each rock's albedo within rock_albedo * (1 +- spread)
     rock_bump: float = 3.0  # scale of the rock surface roughness (normal bumps)
-    highlight_knee: float = 0.75  # radiance above this is compressed smoothly toward 1 (lamp-lit near field)
+    highlight_knee: float = (
+        0.75  # radiance above this is compressed smoothly toward 1 (lamp-lit near field)
+    )
     # shade the terrain with its upward normal also where that faces away from the camera (a
     # grazing view over a crest) instead of flipping it toward the camera, which turns such
     # pixels black: rows of dark dots along every crest of a rough terrain (the LAC-look site).
@@ -230,13 +237,22 @@ class RenderConfig:
         if not 0.0 <= self.lunar_lambert_L <= 1.0:
             raise ConfigError("lunar_lambert_L must be in [0, 1]")
         if not 0.0 <= self.lamp_intensity <= 1.0:
-            raise ConfigError(f"lamp_intensity={self.lamp_intensity} must be in [0, 1] (LAC light_intensity)")
+            raise ConfigError(
+                f"lamp_intensity={self.lamp_intensity} must be in [0, 1] (LAC light_intensity)"
+            )
         if self.lamp_power < 0:
             raise ConfigError(f"lamp_power={self.lamp_power} must be >= 0")
-        if len(self.lamp_cone_deg) != 2 or not 0.0 <= self.lamp_cone_deg[0] < self.lamp_cone_deg[1] <= 90.0:
-            raise ConfigError(f"lamp_cone_deg={self.lamp_cone_deg} must be (inner, outer) with 0 <= inner < outer <= 90")
+        if (
+            len(self.lamp_cone_deg) != 2
+            or not 0.0 <= self.lamp_cone_deg[0] < self.lamp_cone_deg[1] <= 90.0
+        ):
+            raise ConfigError(
+                f"lamp_cone_deg={self.lamp_cone_deg} must be (inner, outer) with 0 <= inner < outer <= 90"
+            )
         if not 0.0 < self.highlight_knee <= 1.0:
-            raise ConfigError(f"highlight_knee={self.highlight_knee} must be in (0, 1] (1: hard clip)")
+            raise ConfigError(
+                f"highlight_knee={self.highlight_knee} must be in (0, 1] (1: hard clip)"
+            )
         if not 0.0 <= self.rock_albedo_spread < 1.0:
             raise ConfigError(f"rock_albedo_spread={self.rock_albedo_spread} must be in [0, 1)")
 
@@ -248,7 +264,9 @@ def sun_direction(elevation_deg: float, azimuth_deg: float) -> np.ndarray:
 
 
 def rover_lamps(
-    T_world_rover: np.ndarray, light_intensity: float | dict[str, float], lamps: tuple[Lamp, ...] = LAC_LAMPS
+    T_world_rover: np.ndarray,
+    light_intensity: float | dict[str, float],
+    lamps: tuple[Lamp, ...] = LAC_LAMPS,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """World positions (L, 3), unit axes (L, 3) and intensities (L,) of the rover's lamps.
 
@@ -292,14 +310,17 @@ def semantic_to_palette(semantic: np.ndarray) -> np.ndarray:
         raise InputError(f"semantic ids must be an (H, W) integer image, got {s.dtype} {s.shape}")
     s = s.astype(np.int64)
     lut = np.array(
-        [LAC_PALETTE["sky"], LAC_PALETTE["ground"], LAC_PALETTE["lander"], LAC_PALETTE["fiducial"]], np.uint8
+        [LAC_PALETTE["sky"], LAC_PALETTE["ground"], LAC_PALETTE["lander"], LAC_PALETTE["fiducial"]],
+        np.uint8,
     )
     out = np.empty(s.shape + (3,), np.uint8)
     out[...] = LAC_PALETTE["rock"]
     small = s < SEM_ROCK_OFFSET
     known = small & (s >= 0) & (s < len(lut))
     if np.any(small & ~known):
-        raise InputError(f"semantic ids hold unknown labels {np.unique(s[small & ~known]).tolist()}")
+        raise InputError(
+            f"semantic ids hold unknown labels {np.unique(s[small & ~known]).tolist()}"
+        )
     out[known] = lut[s[known]]
     return out
 
@@ -315,7 +336,14 @@ def colorize_semantic(semantic: np.ndarray) -> np.ndarray:
     rock = s >= SEM_ROCK_OFFSET
     k = (s[rock] - SEM_ROCK_OFFSET).astype(np.uint64)
     h = (k * np.uint64(2654435761) + np.uint64(12345)) & np.uint64(0xFFFFFF)
-    rgb = np.stack([(h >> np.uint64(16)) & np.uint64(255), (h >> np.uint64(8)) & np.uint64(255), h & np.uint64(255)], 1)
+    rgb = np.stack(
+        [
+            (h >> np.uint64(16)) & np.uint64(255),
+            (h >> np.uint64(8)) & np.uint64(255),
+            h & np.uint64(255),
+        ],
+        1,
+    )
     out[rock] = (80 + (rgb.astype(np.int64) * 175) // 255).astype(np.uint8)
     return out
 
@@ -343,12 +371,55 @@ class _ValueNoise:
 
 
 def _shade_kernel_py(
-    prim, cam_idx, cam_origins, dirs, faces, verts, face_normals, face_kind, face_label, vertex_normals,
-    gx, gy, grid_x0, grid_y0, grid_inv_res, shift, sun, noise_tab, noise_inv, noise_off, noise_w, noise_bump,
-    rock_albedo, ground_albedo, lander_albedo, albedo_texture, bump_strength, L, rock_facet,
-    rock_bump, face_albedo, face_panel, panel_origin, panel_u, panel_v, panel_inv_size, panel_bits,
-    sun_on, lamp_pos, lamp_axis, lamp_power, cos_inner, cos_outer, terrain_up,
-    out_direct, out_lamp, out_albedo, out_shadow_origin, out_need_shadow,
+    prim,
+    cam_idx,
+    cam_origins,
+    dirs,
+    faces,
+    verts,
+    face_normals,
+    face_kind,
+    face_label,
+    vertex_normals,
+    gx,
+    gy,
+    grid_x0,
+    grid_y0,
+    grid_inv_res,
+    shift,
+    sun,
+    noise_tab,
+    noise_inv,
+    noise_off,
+    noise_w,
+    noise_bump,
+    rock_albedo,
+    ground_albedo,
+    lander_albedo,
+    albedo_texture,
+    bump_strength,
+    L,
+    rock_facet,
+    rock_bump,
+    face_albedo,
+    face_panel,
+    panel_origin,
+    panel_u,
+    panel_v,
+    panel_inv_size,
+    panel_bits,
+    sun_on,
+    lamp_pos,
+    lamp_axis,
+    lamp_power,
+    cos_inner,
+    cos_outer,
+    terrain_up,
+    out_direct,
+    out_lamp,
+    out_albedo,
+    out_shadow_origin,
+    out_need_shadow,
 ):  # pragma: no cover - compiled by numba
     """Per-hit shading (compiled with numba): hit point, normals, Lunar-Lambert under the sun
     and the lamps, albedo texture, fiducial patterns.
@@ -375,7 +446,9 @@ def _shade_kernel_py(
         den = dx * nfx + dy * nfy + dz * nfz
         if abs(den) < 1e-12:
             den = 1e-12
-        t = ((verts[i0, 0] - ox) * nfx + (verts[i0, 1] - oy) * nfy + (verts[i0, 2] - oz) * nfz) / den
+        t = (
+            (verts[i0, 0] - ox) * nfx + (verts[i0, 1] - oy) * nfy + (verts[i0, 2] - oz) * nfz
+        ) / den
         px = ox + dx * t
         py = oy + dy * t
         pz = oz + dz * t
@@ -469,9 +542,15 @@ def _shade_kernel_py(
             wv = (d11 * d20 - d01 * d21) / dd
             ww = (d00 * d21 - d01 * d20) / dd
             wu = 1.0 - wv - ww
-            nx_ = wu * vertex_normals[i0, 0] + wv * vertex_normals[i1, 0] + ww * vertex_normals[i2, 0]
-            ny_ = wu * vertex_normals[i0, 1] + wv * vertex_normals[i1, 1] + ww * vertex_normals[i2, 1]
-            nz_ = wu * vertex_normals[i0, 2] + wv * vertex_normals[i1, 2] + ww * vertex_normals[i2, 2]
+            nx_ = (
+                wu * vertex_normals[i0, 0] + wv * vertex_normals[i1, 0] + ww * vertex_normals[i2, 0]
+            )
+            ny_ = (
+                wu * vertex_normals[i0, 1] + wv * vertex_normals[i1, 1] + ww * vertex_normals[i2, 1]
+            )
+            nz_ = (
+                wu * vertex_normals[i0, 2] + wv * vertex_normals[i1, 2] + ww * vertex_normals[i2, 2]
+            )
             nn = np.sqrt(nx_ * nx_ + ny_ * ny_ + nz_ * nz_) + 1e-12
             s_ = 1.0 if nx_ * nfx + ny_ * nfy + nz_ * nfz >= 0 else -1.0
             nx_ = (1 - rock_facet) * s_ * nx_ / nn + rock_facet * nfx
@@ -493,10 +572,16 @@ def _shade_kernel_py(
             albedo = rock_albedo[face_label[f] - 10] * (1.0 + 0.8 * albedo_texture * tex)
         elif kind == 3:  # fiducial panel: a tag pattern on a square
             pid = face_panel[f]
-            u = ((sx - panel_origin[pid, 0]) * panel_u[pid, 0] + (sy - panel_origin[pid, 1]) * panel_u[pid, 1]
-                 + (sz - panel_origin[pid, 2]) * panel_u[pid, 2]) * panel_inv_size[pid]  # fmt: skip
-            v = ((sx - panel_origin[pid, 0]) * panel_v[pid, 0] + (sy - panel_origin[pid, 1]) * panel_v[pid, 1]
-                 + (sz - panel_origin[pid, 2]) * panel_v[pid, 2]) * panel_inv_size[pid]  # fmt: skip
+            u = (
+                (sx - panel_origin[pid, 0]) * panel_u[pid, 0]
+                + (sy - panel_origin[pid, 1]) * panel_u[pid, 1]
+                + (sz - panel_origin[pid, 2]) * panel_u[pid, 2]
+            ) * panel_inv_size[pid]
+            v = (
+                (sx - panel_origin[pid, 0]) * panel_v[pid, 0]
+                + (sy - panel_origin[pid, 1]) * panel_v[pid, 1]
+                + (sz - panel_origin[pid, 2]) * panel_v[pid, 2]
+            ) * panel_inv_size[pid]
             cu = min(max(int(u * n_bits), 0), n_bits - 1)
             cv = min(max(int(v * n_bits), 0), n_bits - 1)
             nx_ = nfx
@@ -561,7 +646,9 @@ def _shade_kernel_py(
         out_shadow_origin[k, 2] = pz + nfz * eps
 
 
-def _boxes_occlude_py(origins, offset, R, direction, reach2, box_min, box_max, out):  # pragma: no cover - numba
+def _boxes_occlude_py(
+    origins, offset, R, direction, reach2, box_min, box_max, out
+):  # pragma: no cover - numba
     """Slab test: ``out[k] |= `` the ray ``q_k + t * d`` (t > 0) hits one of the boxes, with
     ``q_k = R^T (origins[k] + offset)`` and ``d = R^T direction`` in the boxes' frame.
     Rays starting farther than ``sqrt(reach2)`` from the boxes' origin are skipped."""
@@ -577,8 +664,11 @@ def _boxes_occlude_py(origins, offset, R, direction, reach2, box_min, box_max, o
         rz = origins[k, 2] + offset[2]
         if rx * rx + ry * ry + rz * rz > reach2:
             continue
-        q = (R[0, 0] * rx + R[1, 0] * ry + R[2, 0] * rz, R[0, 1] * rx + R[1, 1] * ry + R[2, 1] * rz,
-             R[0, 2] * rx + R[1, 2] * ry + R[2, 2] * rz)  # fmt: skip
+        q = (
+            R[0, 0] * rx + R[1, 0] * ry + R[2, 0] * rz,
+            R[0, 1] * rx + R[1, 1] * ry + R[2, 1] * rz,
+            R[0, 2] * rx + R[1, 2] * ry + R[2, 2] * rz,
+        )
         for b in range(box_min.shape[0]):
             t0 = 0.0
             t1 = 1e30
@@ -666,7 +756,13 @@ class SiteRenderer:
             offset += len(v)
 
         for k, m in enumerate(rocks):
-            add(m.vertices, m.faces, SEM_ROCK_OFFSET + int(site.rocks.ids[k]), _KIND_ROCK, vn=m.vertex_normals)
+            add(
+                m.vertices,
+                m.faces,
+                SEM_ROCK_OFFSET + int(site.rocks.ids[k]),
+                _KIND_ROCK,
+                vn=m.vertex_normals,
+            )
         for part, scale in site.lander_parts():
             add(part.vertices, part.faces, SEM_LANDER, _KIND_LANDER, scale)
         panels = site.fiducial_panels()
@@ -675,7 +771,9 @@ class SiteRenderer:
             o = panels.centers[i] - 0.5 * panels.size_m[i] * (panels.u_axes[i] + panels.v_axes[i])
             u, v = panels.size_m[i] * panels.u_axes[i], panels.size_m[i] * panels.v_axes[i]
             add(np.array([o, o + u, o + u + v, o + v]), quad, SEM_FIDUCIAL, _KIND_FIDUCIAL, panel=i)
-        self._panel_origin = (panels.centers - 0.5 * panels.size_m[:, None] * (panels.u_axes + panels.v_axes))
+        self._panel_origin = panels.centers - 0.5 * panels.size_m[:, None] * (
+            panels.u_axes + panels.v_axes
+        )
         self._panels = panels
 
         self.vertices = np.concatenate(verts).astype(np.float64)
@@ -687,7 +785,9 @@ class SiteRenderer:
         self.vertex_normals = np.concatenate(rock_vn).astype(np.float32)
         tri = self.vertices[self.faces]
         n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        self.face_normals = (n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)).astype(np.float32)
+        self.face_normals = (
+            n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)
+        ).astype(np.float32)
         self.face_v0 = tri[:, 0].astype(np.float32)
         n_rocks = len(site.rocks)
         self._materials()
@@ -712,7 +812,8 @@ class SiteRenderer:
         rng = np.random.default_rng([int(site.seed), 0x40C])
         spread = self.config.rock_albedo_spread
         self.rock_albedo = (
-            self.config.rock_albedo * rng.uniform(1.0 - spread, 1.0 + spread, max(len(site.rocks), 1))
+            self.config.rock_albedo
+            * rng.uniform(1.0 - spread, 1.0 + spread, max(len(site.rocks), 1))
         ).astype(np.float32)
         self.texture = _ValueNoise(self.config.texture_seed + 1000 * int(site.seed))
 
@@ -733,7 +834,10 @@ class SiteRenderer:
 
     def _occluded(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         o = (origins - self._origin).astype(np.float32)
-        return np.asarray(self._scene.run(o, np.ascontiguousarray(dirs, np.float32), query="OCCLUDED")) == 0
+        return (
+            np.asarray(self._scene.run(o, np.ascontiguousarray(dirs, np.float32), query="OCCLUDED"))
+            == 0
+        )
 
     def cast_rays(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """First hits of rays (site frame): (distance along the unit ray or inf, semantic label)."""
@@ -745,7 +849,9 @@ class SiteRenderer:
         t = np.full(len(prim), np.inf)
         p = prim[hit]
         nf = self.face_normals[p].astype(float)
-        t[hit] = np.einsum("ij,ij->i", self.face_v0[p] - origins[hit], nf) / np.einsum("ij,ij->i", dirs[hit], nf)
+        t[hit] = np.einsum("ij,ij->i", self.face_v0[p] - origins[hit], nf) / np.einsum(
+            "ij,ij->i", dirs[hit], nf
+        )
         label = np.zeros(len(prim), np.uint16)
         label[hit] = self.face_label[p]
         return t, label
@@ -786,13 +892,17 @@ class SiteRenderer:
         for c, T in enumerate(T_world_optical):
             T = np.asarray(T, float)
             if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-                raise InputError(f"camera pose {c} must be a finite 4x4 matrix, got shape {T.shape}")
+                raise InputError(
+                    f"camera pose {c} must be a finite 4x4 matrix, got shape {T.shape}"
+                )
             dirs[c * npx : (c + 1) * npx] = rays @ T[:3, :3].T.astype(np.float32)
             origins[c * npx : (c + 1) * npx] = (T[:3, 3] - self._origin).astype(np.float32)
         if T_world_rover is not None:
             T_world_rover = np.asarray(T_world_rover, float)
             if T_world_rover.shape != (4, 4) or not np.all(np.isfinite(T_world_rover)):
-                raise InputError(f"T_world_rover must be a finite 4x4 matrix, got shape {T_world_rover.shape}")
+                raise InputError(
+                    f"T_world_rover must be a finite 4x4 matrix, got shape {T_world_rover.shape}"
+                )
         if T_world_rover is not None and cfg.lamps_on:
             lamp_pos, lamp_axis, inten = rover_lamps(
                 T_world_rover, cfg.lamp_intensity if light_intensity is None else light_intensity
@@ -808,9 +918,9 @@ class SiteRenderer:
         hit = np.flatnonzero(prim >= 0)
         p = prim[hit].astype(np.int32)
         cam_idx = (hit // npx).astype(np.int32)
-        cam_origins = np.stack([np.asarray(T, float)[:3, 3] - self._origin for T in T_world_optical]).astype(
-            np.float32
-        )
+        cam_origins = np.stack(
+            [np.asarray(T, float)[:3, 3] - self._origin for T in T_world_optical]
+        ).astype(np.float32)
         d = dirs[hit]
         m = hit.size
         direct = np.empty(m, np.float32)
@@ -823,23 +933,65 @@ class SiteRenderer:
         pn = self._panels
         cone = np.cos(np.radians(cfg.lamp_cone_deg))
         _shade_kernel()(
-            p, cam_idx, cam_origins, d, self.faces, self._verts_local, self.face_normals, self.face_kind,
-            self.face_label, self.vertex_normals, self._gx, self._gy, np.float32(self.site.grid_x[0]),
-            np.float32(self.site.grid_y[0]), np.float32(1.0 / self.site.config.resolution_m),
-            self._origin.astype(np.float32), sun, tx.tables, tx.inv_scales, tx.offsets, tx.weights, tx.bumps,
-            self.rock_albedo, np.float32(cfg.ground_albedo), np.float32(cfg.lander_albedo),
-            np.float32(cfg.albedo_texture), np.float32(cfg.bump_strength), np.float32(cfg.lunar_lambert_L),
-            np.float32(cfg.rock_facet), np.float32(cfg.rock_bump), self.face_albedo, self.face_panel,
-            self._panel_origin_f32, pn.u_axes.astype(np.float32), pn.v_axes.astype(np.float32),
-            (1.0 / np.maximum(pn.size_m, 1e-9)).astype(np.float32), pn.bits.astype(np.float32),
-            bool(cfg.sun_on), lamp_pos, lamp_axis, lamp_power, np.float32(cone[0]), np.float32(cone[1]),
-            bool(cfg.terrain_up_normal), direct, lamp, albedo, shadow_origin, need_shadow,
-        )  # fmt: skip
+            p,
+            cam_idx,
+            cam_origins,
+            d,
+            self.faces,
+            self._verts_local,
+            self.face_normals,
+            self.face_kind,
+            self.face_label,
+            self.vertex_normals,
+            self._gx,
+            self._gy,
+            np.float32(self.site.grid_x[0]),
+            np.float32(self.site.grid_y[0]),
+            np.float32(1.0 / self.site.config.resolution_m),
+            self._origin.astype(np.float32),
+            sun,
+            tx.tables,
+            tx.inv_scales,
+            tx.offsets,
+            tx.weights,
+            tx.bumps,
+            self.rock_albedo,
+            np.float32(cfg.ground_albedo),
+            np.float32(cfg.lander_albedo),
+            np.float32(cfg.albedo_texture),
+            np.float32(cfg.bump_strength),
+            np.float32(cfg.lunar_lambert_L),
+            np.float32(cfg.rock_facet),
+            np.float32(cfg.rock_bump),
+            self.face_albedo,
+            self.face_panel,
+            self._panel_origin_f32,
+            pn.u_axes.astype(np.float32),
+            pn.v_axes.astype(np.float32),
+            (1.0 / np.maximum(pn.size_m, 1e-9)).astype(np.float32),
+            pn.bits.astype(np.float32),
+            bool(cfg.sun_on),
+            lamp_pos,
+            lamp_axis,
+            lamp_power,
+            np.float32(cone[0]),
+            np.float32(cone[1]),
+            bool(cfg.terrain_up_normal),
+            direct,
+            lamp,
+            albedo,
+            shadow_origin,
+            need_shadow,
+        )
         if cfg.sun_on and cfg.shadows:
             lit = np.flatnonzero(need_shadow)
             if lit.size:
                 occ = np.asarray(
-                    self._scene.run(shadow_origin[lit], np.broadcast_to(sun, (lit.size, 3)).copy(), query="OCCLUDED")
+                    self._scene.run(
+                        shadow_origin[lit],
+                        np.broadcast_to(sun, (lit.size, 3)).copy(),
+                        query="OCCLUDED",
+                    )
                 )
                 shaded = occ == 0
                 if T_world_rover is not None and cfg.rover_shadow:
@@ -848,7 +1000,9 @@ class SiteRenderer:
         ambient = np.float32(cfg.ambient if cfg.sun_on else 0.0)
         radiance = (direct + lamp + albedo * ambient) * np.float32(cfg.exposure)
         knee = np.float32(cfg.highlight_knee)
-        if knee < 1.0:  # soft shoulder: x above the knee -> knee + (1 - knee) (1 - exp(-(x - knee) / (1 - knee)))
+        if (
+            knee < 1.0
+        ):  # soft shoulder: x above the knee -> knee + (1 - knee) (1 - exp(-(x - knee) / (1 - knee)))
             over = radiance > knee
             radiance[over] = knee + (1 - knee) * -np.expm1(-(radiance[over] - knee) / (1 - knee))
         val = np.clip(radiance, 0.0, 1.0) ** np.float32(1.0 / cfg.gamma)
@@ -858,20 +1012,30 @@ class SiteRenderer:
         sem_all[hit] = self.face_label[p]
         H, W = camera.height, camera.width
         return [
-            (gray_all[c * npx : (c + 1) * npx].reshape(H, W), sem_all[c * npx : (c + 1) * npx].reshape(H, W))
+            (
+                gray_all[c * npx : (c + 1) * npx].reshape(H, W),
+                sem_all[c * npx : (c + 1) * npx].reshape(H, W),
+            )
             for c in range(n_cam)
         ]
 
-    def _rover_occludes(self, origins_local: np.ndarray, sun: np.ndarray, T_world_rover: np.ndarray) -> np.ndarray:
+    def _rover_occludes(
+        self, origins_local: np.ndarray, sun: np.ndarray, T_world_rover: np.ndarray
+    ) -> np.ndarray:
         """Which sun shadow rays (origins in the renderer's local frame) hit the rover's boxes."""
         out = np.zeros(len(origins_local), np.bool_)
         reach = 0.5 + 0.6 / max(float(sun[2]), 0.02)  # only points this close can be in its shadow
         boxes = np.asarray(ROVER_BOXES, float)
         _box_kernel()(
-            origins_local, self._origin - T_world_rover[:3, 3], np.ascontiguousarray(T_world_rover[:3, :3]),
-            np.asarray(sun, float), reach * reach, np.ascontiguousarray(boxes[:, 0]),
-            np.ascontiguousarray(boxes[:, 1]), out,
-        )  # fmt: skip
+            origins_local,
+            self._origin - T_world_rover[:3, 3],
+            np.ascontiguousarray(T_world_rover[:3, :3]),
+            np.asarray(sun, float),
+            reach * reach,
+            np.ascontiguousarray(boxes[:, 0]),
+            np.ascontiguousarray(boxes[:, 1]),
+            out,
+        )
         return out
 
     def render_rover(
@@ -895,7 +1059,9 @@ class SiteRenderer:
             raise InputError("render_rover: all cameras must share the same intrinsics")
         T_world_rover = pose_to_matrix(*pose_xyzrpy)
         images = self.render(
-            [T_world_rover @ m.T_rover_optical for m in ms], cam, T_world_rover=T_world_rover,
+            [T_world_rover @ m.T_rover_optical for m in ms],
+            cam,
+            T_world_rover=T_world_rover,
             light_intensity=light_intensity,
-        )  # fmt: skip
+        )
         return {m.name: img for m, img in zip(ms, images)}

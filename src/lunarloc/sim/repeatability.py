@@ -29,7 +29,13 @@ from lunarloc.sim.render import semantic_to_rock_id
 
 __all__ = ["RADIUS_BANDS_M", "SightingLog", "rock_under", "summarise"]
 
-RADIUS_BANDS_M: tuple[tuple[float, float], ...] = ((0.025, 0.05), (0.05, 0.1), (0.1, 0.2), (0.2, 0.4), (0.4, 10.0))
+RADIUS_BANDS_M: tuple[tuple[float, float], ...] = (
+    (0.025, 0.05),
+    (0.05, 0.1),
+    (0.1, 0.2),
+    (0.2, 0.4),
+    (0.4, 10.0),
+)
 """True-radius bands of the summary (metres); "r>=0.1" pools the last three."""
 
 
@@ -58,7 +64,9 @@ class SightingLog:
         xy = np.asarray(xy, float).reshape(-1)[:2]
         if not np.all(np.isfinite(xy)):
             raise InputError(f"sighting of rock {rock_id} is not finite: {xy.tolist()}")
-        self.sightings.setdefault(str(session), {}).setdefault(int(rock_id), []).append((float(xy[0]), float(xy[1])))
+        self.sightings.setdefault(str(session), {}).setdefault(int(rock_id), []).append(
+            (float(xy[0]), float(xy[1]))
+        )
 
     def n_sightings(self) -> int:
         return sum(len(v) for s in self.sightings.values() for v in s.values())
@@ -71,8 +79,12 @@ def _stats(values: list[float]) -> dict:
     return {"n": int(a.size), "median_m": float(np.median(a)), "p90_m": float(np.percentile(a, 90))}
 
 
-def summarise(log: SightingLog, radii_m: dict[int, float], min_sightings: int = 3,
-              bands: tuple[tuple[float, float], ...] = RADIUS_BANDS_M) -> dict:
+def summarise(
+    log: SightingLog,
+    radii_m: dict[int, float],
+    min_sightings: int = 3,
+    bands: tuple[tuple[float, float], ...] = RADIUS_BANDS_M,
+) -> dict:
     """The repeatability figures of `log` by true-radius band (`radii_m`: rock id -> radius).
 
     Returns ``{band name: {"sighting_deviation": stats, "rock_spread": stats,
@@ -80,7 +92,9 @@ def summarise(log: SightingLog, radii_m: dict[int, float], min_sightings: int = 
     rock pairs respectively), with a pooled ``"r>=0.1"`` entry.
     """
     if min_sightings < 2:
-        raise InputError(f"min_sightings={min_sightings} must be >= 2 (a spread needs two sightings)")
+        raise InputError(
+            f"min_sightings={min_sightings} must be >= 2 (a spread needs two sightings)"
+        )
     names = [f"{lo:g}-{hi:g}" if hi < 10 else f">={lo:g}" for lo, hi in bands]
     dev: dict[str, list[float]] = {n: [] for n in names + ["r>=0.1"]}
     spread: dict[str, list[float]] = {n: [] for n in names + ["r>=0.1"]}
@@ -111,6 +125,10 @@ def summarise(log: SightingLog, radii_m: dict[int, float], min_sightings: int = 
                 for k in keys(rock):
                     offset[k].append(float(np.hypot(*(ms[i] - ms[j]))))
     return {
-        n: {"sighting_deviation": _stats(dev[n]), "rock_spread": _stats(spread[n]), "session_offset": _stats(offset[n])}
+        n: {
+            "sighting_deviation": _stats(dev[n]),
+            "rock_spread": _stats(spread[n]),
+            "session_offset": _stats(offset[n]),
+        }
         for n in names + ["r>=0.1"]
     }

@@ -80,21 +80,36 @@ class RoverConfig:
     edge_margin_m: float = 1.5  # waypoints stay this far inside the site edge
     waypoint_distance_m: tuple[float, float] = (2.0, 8.0)  # leg length range
     plan: TraversePlan = TraversePlan.RANDOM  # where the traverse drives
-    survey_radius_m: float | None = None  # survey's first-lap radius about the lander (None: the start's)
+    survey_radius_m: float | None = (
+        None  # survey's first-lap radius about the lander (None: the start's)
+    )
     survey_step_deg: float = 45.0  # angle between survey waypoints about the lander
     survey_lap_growth_m: float = 2.5  # the survey spiral's radius grows this much per lap
-    revisit_band_m: tuple[float, float] = (-1.5, 2.5)  # revisit leg ends: survey radius + this range
-    revisit_start_deg: tuple[float, float] = (90.0, 270.0)  # revisit start: angle from the survey start
+    revisit_band_m: tuple[float, float] = (
+        -1.5,
+        2.5,
+    )  # revisit leg ends: survey radius + this range
+    revisit_start_deg: tuple[float, float] = (
+        90.0,
+        270.0,
+    )  # revisit start: angle from the survey start
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "plan", TraversePlan.parse(self.plan))
 
     def validate(self) -> None:
-        if self.rate_hz <= 0 or self.speed_mps <= 0 or self.accel_mps2 <= 0 or self.yaw_rate_rad_s <= 0:
+        if (
+            self.rate_hz <= 0
+            or self.speed_mps <= 0
+            or self.accel_mps2 <= 0
+            or self.yaw_rate_rad_s <= 0
+        ):
             raise ConfigError("rate_hz, speed_mps, accel_mps2 and yaw_rate_rad_s must be > 0")
         lo, hi = self.waypoint_distance_m
         if not 0 < lo < hi:
-            raise ConfigError(f"waypoint_distance_m={self.waypoint_distance_m} must satisfy 0 < min < max")
+            raise ConfigError(
+                f"waypoint_distance_m={self.waypoint_distance_m} must satisfy 0 < min < max"
+            )
         if self.survey_radius_m is not None and not self.survey_radius_m > 0:
             raise ConfigError(f"survey_radius_m={self.survey_radius_m} must be > 0 (or None)")
         if not 0 < self.survey_step_deg <= 90:
@@ -111,11 +126,15 @@ class ImuConfig:
     gyro_noise_rad_s: float = 0.002
     accel_bias_mps2: float = 0.0
     gyro_bias_rad_s: float = 0.0
-    gyro_frame: str = "world"  # the LAC leaderboard's convention (spatial rate); "body": the body rate
+    gyro_frame: str = (
+        "world"  # the LAC leaderboard's convention (spatial rate); "body": the body rate
+    )
 
     def __post_init__(self) -> None:
         if self.gyro_frame not in ("world", "body"):
-            raise ConfigError(f"gyro_frame={self.gyro_frame!r} must be 'world' (the LAC's) or 'body'")
+            raise ConfigError(
+                f"gyro_frame={self.gyro_frame!r} must be 'world' (the LAC's) or 'body'"
+            )
 
 
 @dataclass(frozen=True)
@@ -154,7 +173,9 @@ class Trajectory:
         return float(1.0 / (self.t[1] - self.t[0])) if len(self) > 1 else 0.0
 
     def path_length(self) -> float:
-        return float(np.linalg.norm(np.diff(self.xyz, axis=0), axis=1).sum()) if len(self) > 1 else 0.0
+        return (
+            float(np.linalg.norm(np.diff(self.xyz, axis=0), axis=1).sum()) if len(self) > 1 else 0.0
+        )
 
 
 _AIM_TOL_RAD = 1e-3  # turn in place until the heading error is below this
@@ -187,7 +208,9 @@ def _segment_clear(p0, p1, centres, radii) -> bool:
     return bool(np.all(np.linalg.norm(centres - closest, axis=1) > radii))
 
 
-def _choose_waypoints(site, start_xy, rng, cfg: RoverConfig, total_m: float, region=None) -> np.ndarray:
+def _choose_waypoints(
+    site, start_xy, rng, cfg: RoverConfig, total_m: float, region=None
+) -> np.ndarray:
     """Random obstacle-free legs from `start_xy` until `total_m`; `region(p)`, when given,
     must also hold at every leg's end."""
     centres, radii = _obstacles(site, cfg)
@@ -200,8 +223,11 @@ def _choose_waypoints(site, start_xy, rng, cfg: RoverConfig, total_m: float, reg
             ang = rng.uniform(0, 2 * np.pi)
             L = rng.uniform(*cfg.waypoint_distance_m)
             p1 = p0 + L * np.array([np.cos(ang), np.sin(ang)])
-            if (np.all(np.abs(p1) <= half) and (region is None or region(p1))
-                    and _segment_clear(p0, p1, centres, radii)):  # fmt: skip
+            if (
+                np.all(np.abs(p1) <= half)
+                and (region is None or region(p1))
+                and _segment_clear(p0, p1, centres, radii)
+            ):
                 break
         else:
             raise InputError(
@@ -249,12 +275,16 @@ def _survey_waypoints(site, rng, cfg: RoverConfig, total_m: float) -> np.ndarray
             d = pts[-1] - c
             th_prev = float(np.arctan2(d[1], d[0]))
             gap = float(_wrap(th - th_prev))
-            cands = [c + rng.uniform(r - 2.0, r + 2.0) * np.array([np.cos(a), np.sin(a)])
-                     for a in th_prev + gap * rng.uniform(0.1, 0.9, 200)]  # fmt: skip
+            cands = [
+                c + rng.uniform(r - 2.0, r + 2.0) * np.array([np.cos(a), np.sin(a)])
+                for a in th_prev + gap * rng.uniform(0.1, 0.9, 200)
+            ]
             clear = [q for q in cands if ok(q)]
             detours += 1
             if detours > 12:
-                raise InputError("no obstacle-free survey waypoint found around the lander; the site is too crowded")
+                raise InputError(
+                    "no obstacle-free survey waypoint found around the lander; the site is too crowded"
+                )
             if not clear:  # aim one step further on
                 j += 1
                 continue
@@ -273,7 +303,9 @@ def _revisit_start(site, rng, cfg: RoverConfig) -> tuple[np.ndarray, object]:
     half = site.half_size - cfg.edge_margin_m
     for _ in range(500):
         th = th0 + np.radians(rng.uniform(*cfg.revisit_start_deg))
-        p = c + rng.uniform(max(lo, r0 - 0.5), min(hi, r0 + 0.5)) * np.array([np.cos(th), np.sin(th)])
+        p = c + rng.uniform(max(lo, r0 - 0.5), min(hi, r0 + 0.5)) * np.array(
+            [np.cos(th), np.sin(th)]
+        )
         if np.all(np.abs(p) <= half) and np.all(np.linalg.norm(centres - p, axis=1) > radii):
             break
     else:
@@ -325,7 +357,11 @@ def terrain_pose(site, x, y, yaw, cfg: RoverConfig) -> tuple[np.ndarray, np.ndar
 
 
 def plan_traverse(
-    site, duration_s: float, seed: int = 0, config: RoverConfig | None = None, start_yaw: float | None = None
+    site,
+    duration_s: float,
+    seed: int = 0,
+    config: RoverConfig | None = None,
+    start_yaw: float | None = None,
 ) -> Trajectory:
     """Drive between obstacle-free waypoints chosen by ``config.plan`` (:class:`TraversePlan`):
     from the site's rover start to random ones (``random``, the default), in an outward spiral
@@ -395,14 +431,18 @@ def plan_traverse(
             v = 0.0
     xyz, rpy = terrain_pose(site, xs, ys, yaws, cfg)
     logger.debug("traverse seed=%d: %d states, %d waypoints", seed, n, len(wps))
-    return Trajectory(t=np.arange(n) * dt, xyz=xyz, rpy=rpy, linear_speed=vs, angular_speed=ws, waypoints=wps)
+    return Trajectory(
+        t=np.arange(n) * dt, xyz=xyz, rpy=rpy, linear_speed=vs, angular_speed=ws, waypoints=wps
+    )
 
 
 def _rotations(rpy: np.ndarray) -> np.ndarray:
     return np.stack([euler_to_rotation(*r) for r in rpy])
 
 
-def simulate_imu(traj: Trajectory, seed: int = 0, config: ImuConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
+def simulate_imu(
+    traj: Trajectory, seed: int = 0, config: ImuConfig | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """IMU readings along a trajectory: (accel (N, 3) m/s^2, the body-frame specific force;
     gyro (N, 3) rad/s, the rate from state k to k+1: world-frame (the rotation vector of
     ``R_{k+1} R_k^T``, as the LAC leaderboard's gyro) unless ``config.gyro_frame`` is "body"
@@ -435,7 +475,9 @@ def simulate_imu(traj: Trajectory, seed: int = 0, config: ImuConfig | None = Non
     return accel, gyro
 
 
-def simulate_odometry(traj: Trajectory, seed: int = 0, config: OdometryConfig | None = None) -> np.ndarray:
+def simulate_odometry(
+    traj: Trajectory, seed: int = 0, config: OdometryConfig | None = None
+) -> np.ndarray:
     """Dead-reckoned pose estimate (N, 6) ``x, y, z, roll, pitch, yaw`` that drifts.
 
     Model: body-frame displacement scaled by ``1 + scale_error`` plus noise; heading
@@ -453,12 +495,16 @@ def simulate_odometry(traj: Trajectory, seed: int = 0, config: OdometryConfig | 
     d_world = np.diff(traj.xyz, axis=0)
     d_body = np.einsum("nji,nj->ni", R[:-1], d_world)
     step = np.linalg.norm(d_body, axis=1, keepdims=True)
-    d_meas = d_body * (1.0 + cfg.scale_error) + rng.normal(size=d_body.shape) * step * cfg.distance_noise
+    d_meas = (
+        d_body * (1.0 + cfg.scale_error) + rng.normal(size=d_body.shape) * step * cfg.distance_noise
+    )
     dyaw = _wrap(np.diff(traj.rpy[:, 2]))
     bias = rng.normal(0.0, cfg.heading_bias_rad_s) + np.cumsum(
         rng.normal(0.0, cfg.heading_bias_walk * np.sqrt(dt), size=n - 1)
     )
-    moving = (step[:, 0] > 1e-6) | (np.abs(dyaw) > 1e-6)  # a stationary rover does not integrate drift
+    moving = (step[:, 0] > 1e-6) | (
+        np.abs(dyaw) > 1e-6
+    )  # a stationary rover does not integrate drift
     dyaw_meas = dyaw + moving * (bias * dt + rng.normal(0.0, cfg.heading_noise_rad, size=n - 1))
     yaw_est = traj.rpy[0, 2] + np.concatenate([[0.0], np.cumsum(dyaw_meas)])
     roll_est = traj.rpy[:, 0] + rng.normal(0.0, cfg.tilt_noise_rad, n)

@@ -28,7 +28,13 @@ from pathlib import Path
 
 import numpy as np
 
-from lunarloc.sim.render import RenderConfig, SemanticFormat, SiteRenderer, colorize_semantic, semantic_to_palette
+from lunarloc.sim.render import (
+    RenderConfig,
+    SemanticFormat,
+    SiteRenderer,
+    colorize_semantic,
+    semantic_to_palette,
+)
 from lunarloc.sim.rover import (
     ImuConfig,
     OdometryConfig,
@@ -73,7 +79,9 @@ class SimulationConfig:
     height: int = 720
     cameras: tuple[str, ...] = ALL_CAMERAS  # cameras that record
     semantic: bool = True  # also store semantic images
-    semantic_format: SemanticFormat = SemanticFormat.IDS  # per-rock ids (uint16) or the LAC palette (RGB)
+    semantic_format: SemanticFormat = (
+        SemanticFormat.IDS
+    )  # per-rock ids (uint16) or the LAC palette (RGB)
     initial_power_wh: float = 283.0  # battery charge at the start
     power_draw_w: float = 30.0  # constant draw (power column falls linearly)
 
@@ -93,7 +101,9 @@ class SimulationConfig:
             raise ConfigError(f"image_rate_hz={self.image_rate_hz} must be in (0, 10]")
         step = self.rover.rate_hz / self.image_rate_hz
         if abs(step - round(step)) > 1e-6:
-            raise ConfigError(f"image_rate_hz={self.image_rate_hz} must divide the rover rate {self.rover.rate_hz} Hz")
+            raise ConfigError(
+                f"image_rate_hz={self.image_rate_hz} must divide the rover rate {self.rover.rate_hz} Hz"
+            )
         if self.width < 8 or self.height < 8:
             raise ConfigError(f"image size {self.width}x{self.height} is too small")
         unknown = [c for c in self.cameras if c not in ALL_CAMERAS]
@@ -163,7 +173,9 @@ def simulate_traverse(
     cam_poses = {m.name: [float(v) for v in matrix_to_pose(m.T_rover_cam)] for m in mounts}
     initial = {
         "fiducials": False,
-        "lander": lander_pose_relative(traj.poses[0], site.lander_pose),  # rover-relative, as the LAC stores it
+        "lander": lander_pose_relative(
+            traj.poses[0], site.lander_pose
+        ),  # rover-relative, as the LAC stores it
         "rover": [float(v) for v in traj.poses[0]],
         "cameras": _camera_config(cfg),
     }
@@ -180,13 +192,25 @@ def simulate_traverse(
         for k in range(len(traj)):
             x, y, z, roll, pitch, yaw = (float(v) for v in traj.poses[k])
             w.add_frame(
-                k, x=x, y=y, z=z, roll=roll, pitch=pitch, yaw=yaw,
-                accel_x=accel[k, 0], accel_y=accel[k, 1], accel_z=accel[k, 2],
-                gyro_x=gyro[k, 0], gyro_y=gyro[k, 1], gyro_z=gyro[k, 2],
-                mission_time=float(traj.t[k]), power=float(power[k]),
-                linear_speed=float(traj.linear_speed[k]), angular_speed=float(traj.angular_speed[k]),
+                k,
+                x=x,
+                y=y,
+                z=z,
+                roll=roll,
+                pitch=pitch,
+                yaw=yaw,
+                accel_x=accel[k, 0],
+                accel_y=accel[k, 1],
+                accel_z=accel[k, 2],
+                gyro_x=gyro[k, 0],
+                gyro_y=gyro[k, 1],
+                gyro_z=gyro[k, 2],
+                mission_time=float(traj.t[k]),
+                power=float(power[k]),
+                linear_speed=float(traj.linear_speed[k]),
+                angular_speed=float(traj.angular_speed[k]),
                 cover_angle=0.0,
-            )  # fmt: skip
+            )
             if k % step == 0 and mounts:
                 images = renderer.render_rover(traj.poses[k], mounts)
                 for m in mounts:
@@ -194,9 +218,13 @@ def simulate_traverse(
                     if cfg.semantic and cfg.semantic_format is SemanticFormat.PALETTE:
                         sem = semantic_to_palette(sem)
                     w.add_camera_frame(
-                        m.name, k, cam_poses[m.name], light_intensity=cfg.light_intensity, grayscale=gray,
+                        m.name,
+                        k,
+                        cam_poses[m.name],
+                        light_intensity=cfg.light_intensity,
+                        grayscale=gray,
                         semantic=sem if cfg.semantic else None,
-                    )  # fmt: skip
+                    )
                 if progress is not None:
                     progress(k + 1)
         w.add_custom("rocks", ["id", "x", "y", "z", "radius"], _rock_rows(site))
@@ -240,7 +268,9 @@ def simulate_dataset(
     renderer = SiteRenderer(site, cfg.render) if n_traverses else None
     out.mkdir(parents=True, exist_ok=True)
     site.write_rocks_csv(out / "rocks.csv")
-    from lunarloc.io.overhead import write_site_geometric_map  # the LAC ground-truth map (x, y, height, rock)
+    from lunarloc.io.overhead import (
+        write_site_geometric_map,
+    )  # the LAC ground-truth map (x, y, height, rock)
 
     write_site_geometric_map(site, out / "geometric_map.npy")
     from lunarloc.io.outputs import write_text
@@ -249,7 +279,9 @@ def simulate_dataset(
     paths = []
     for i in range(n_traverses):
         cb = (lambda n, i=i: progress(i, n)) if progress is not None else None
-        p, _ = simulate_traverse(site, out / f"traverse_{i}.lac", i, cfg, renderer=renderer, progress=cb)
+        p, _ = simulate_traverse(
+            site, out / f"traverse_{i}.lac", i, cfg, renderer=renderer, progress=cb
+        )
         paths.append(p)
     return paths
 
@@ -272,8 +304,12 @@ def write_example_images(
     cfg = config or SimulationConfig()
     cfg.validate()
     site = simulate_site(seed, cfg.site)
-    traj = plan_traverse(site, 61.0 if time_s is None else max(time_s, 1.0) + 1.0, seed=traverse_seed(seed, 0),
-                         config=cfg.rover)  # fmt: skip
+    traj = plan_traverse(
+        site,
+        61.0 if time_s is None else max(time_s, 1.0) + 1.0,
+        seed=traverse_seed(seed, 0),
+        config=cfg.rover,
+    )
     renderer = SiteRenderer(site, cfg.render)
     if time_s is None:
         preview = ipex_rig(PinholeCamera(160, 90))["FrontLeft"]

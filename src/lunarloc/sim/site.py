@@ -51,12 +51,23 @@ ROCK_CSV_COLUMNS = ("id", "x", "y", "z", "radius")
 LAC_FIDUCIALS: tuple[tuple[float, float, float, int], ...] = (
     # x, y, z (lander frame, metres) and tag id of the LAC lander's fiducials, groups A-D,
     # each a 2 x 2 block on one diagonal face (top left, top right, lower left, lower right)
-    (0.691, -1.033, 0.894, 243), (1.033, -0.691, 0.894, 71), (0.691, -1.033, 0.412, 462), (1.033, -0.691, 0.412, 37),
-    (1.033, 0.691, 0.894, 0), (0.691, 1.033, 0.894, 3), (1.033, 0.691, 0.412, 2), (0.691, 1.033, 0.412, 1),
-    (-0.691, 1.033, 0.894, 10), (-1.033, 0.691, 0.894, 11), (-0.691, 1.033, 0.412, 8), (-1.033, 0.691, 0.412, 9),
-    (-1.033, -0.691, 0.894, 464), (-0.691, -1.033, 0.894, 459), (-1.033, -0.691, 0.412, 258),
+    (0.691, -1.033, 0.894, 243),
+    (1.033, -0.691, 0.894, 71),
+    (0.691, -1.033, 0.412, 462),
+    (1.033, -0.691, 0.412, 37),
+    (1.033, 0.691, 0.894, 0),
+    (0.691, 1.033, 0.894, 3),
+    (1.033, 0.691, 0.412, 2),
+    (0.691, 1.033, 0.412, 1),
+    (-0.691, 1.033, 0.894, 10),
+    (-1.033, 0.691, 0.894, 11),
+    (-0.691, 1.033, 0.412, 8),
+    (-1.033, 0.691, 0.412, 9),
+    (-1.033, -0.691, 0.894, 464),
+    (-0.691, -1.033, 0.894, 459),
+    (-1.033, -0.691, 0.412, 258),
     (-0.691, -1.033, 0.412, 5),
-)  # fmt: skip
+)
 LAC_FIDUCIAL_SIZE_M = 0.339  # side of a fiducial panel
 _TAG_CELLS = 10  # tag pattern: white border, black border, 6 x 6 data cells
 
@@ -118,9 +129,14 @@ class SiteConfig:
     n_small_craters: int = 0  # extra small craters (fresh, steep: shadows in the mid-field)
     small_crater_radius_m: tuple[float, float] = (0.2, 1.0)  # their rim radius range
     small_crater_depth_ratio: float = 0.18  # their depth / radius
-    hummock_m: float = 0.0  # std of extra terrain relief at about 0.3 m scale (metres; casts small shadows)
+    hummock_m: float = (
+        0.0  # std of extra terrain relief at about 0.3 m scale (metres; casts small shadows)
+    )
     n_small_rocks: int = 0  # extra small rocks (the LAC's gravel), besides the n_rocks population
-    small_rock_radius_m: tuple[float, float] = (0.02, 0.05)  # their nominal radius range (power law)
+    small_rock_radius_m: tuple[float, float] = (
+        0.02,
+        0.05,
+    )  # their nominal radius range (power law)
 
     @classmethod
     def lac_style(cls, **overrides) -> SiteConfig:
@@ -129,9 +145,14 @@ class SiteConfig:
         craters and hummocks that cast shadows under a low sun, and 600 extra rocks of 2-5 cm
         radius on top of the 386 of the LAC's size range. `overrides` replace any field."""
         base = {
-            "relief_m": 1.6, "n_craters": 6, "crater_radius_m": (1.5, 5.0), "crater_depth_ratio": 0.22,
-            "n_small_craters": 800, "hummock_m": 0.04, "n_small_rocks": 600,
-        }  # fmt: skip
+            "relief_m": 1.6,
+            "n_craters": 6,
+            "crater_radius_m": (1.5, 5.0),
+            "crater_depth_ratio": 0.22,
+            "n_small_craters": 800,
+            "hummock_m": 0.04,
+            "n_small_rocks": 600,
+        }
         base.update(overrides)
         return cls(**base)
 
@@ -154,10 +175,14 @@ class SiteConfig:
             raise ConfigError("n_small_craters and n_small_rocks must be >= 0")
         lo, hi = self.small_crater_radius_m
         if not 0 < lo < hi:
-            raise ConfigError(f"small_crater_radius_m={self.small_crater_radius_m} must satisfy 0 < min < max")
+            raise ConfigError(
+                f"small_crater_radius_m={self.small_crater_radius_m} must satisfy 0 < min < max"
+            )
         lo, hi = self.small_rock_radius_m
         if not 0 < lo < hi:
-            raise ConfigError(f"small_rock_radius_m={self.small_rock_radius_m} must satisfy 0 < min < max")
+            raise ConfigError(
+                f"small_rock_radius_m={self.small_rock_radius_m} must satisfy 0 < min < max"
+            )
         if not 0.0 <= self.small_crater_depth_ratio <= 1.0 or not self.crater_depth_ratio >= 0.0:
             raise ConfigError("crater depth ratios must be >= 0 (small craters <= 1)")
         if not 0.0 <= self.hummock_m <= 0.2:
@@ -316,7 +341,9 @@ class Site:
             # knobs: higher-frequency lobes and a little vertex jitter (a rough, lumpy outline)
             dirs2 = rng.normal(size=(12, 3))
             dirs2 /= np.linalg.norm(dirs2, axis=1, keepdims=True)
-            knobs = np.cos(unit @ dirs2.T * rng.uniform(4.0, 9.0, 12) + rng.uniform(0, 2 * np.pi, 12))
+            knobs = np.cos(
+                unit @ dirs2.T * rng.uniform(4.0, 9.0, 12) + rng.uniform(0, 2 * np.pi, 12)
+            )
             bump = bump * (1.0 + knobs @ rng.uniform(0.008, 0.03, 12))
             bump = bump * (1.0 + rng.uniform(-0.025, 0.025, len(bump)) * (sub >= 2))
             # a few planar fractures: vertices beyond a random plane are pushed onto it
@@ -344,7 +371,9 @@ class Site:
         cfg = self.config
         base = np.asarray(self.lander_xyz, float)
         parts = []
-        apothem = np.hypot(0.862, 0.862)  # the diagonal faces hold the fiducial centres (LAC layout)
+        apothem = np.hypot(
+            0.862, 0.862
+        )  # the diagonal faces hold the fiducial centres (LAC layout)
         body_z = (0.1, 1.15)
         body = trimesh.creation.cylinder(
             radius=apothem / np.cos(np.pi / 8), height=body_z[1] - body_z[0], sections=8
@@ -383,7 +412,9 @@ class Site:
             radial = np.array([np.cos(ang), np.sin(ang), 0.0])
             foot = base + cfg.lander_radius_m * radial
             hip = base + 0.95 * apothem * radial + [0.0, 0.0, 0.8]
-            leg = trimesh.creation.cylinder(radius=0.05, segment=[foot + [0, 0, 0.05], hip], sections=8)
+            leg = trimesh.creation.cylinder(
+                radius=0.05, segment=[foot + [0, 0, 0.05], hip], sections=8
+            )
             parts.append((leg, 0.9))
             pad = trimesh.creation.cylinder(radius=0.2, height=0.06, sections=12)
             pad.apply_translation(foot + [0.0, 0.0, 0.02])
@@ -398,7 +429,9 @@ class Site:
     def fiducial_panels(self) -> FiducialPanels:
         """The lander's 16 fiducial panels (``LAC_FIDUCIALS``), 1 cm proud of its body."""
         rows = np.array([r[:3] for r in LAC_FIDUCIALS], float)
-        normals = np.column_stack([np.sign(rows[:, 0]), np.sign(rows[:, 1]), np.zeros(len(rows))]) / np.sqrt(2)
+        normals = np.column_stack(
+            [np.sign(rows[:, 0]), np.sign(rows[:, 1]), np.zeros(len(rows))]
+        ) / np.sqrt(2)
         centers = np.asarray(self.lander_xyz, float) + rows + 0.01 * normals
         up = np.array([0.0, 0.0, 1.0])
         u = np.cross(-normals, up)
@@ -431,7 +464,9 @@ def _crater_profile(r: np.ndarray, R: float, depth: float) -> np.ndarray:
     return np.where(r < R, inside, outside)
 
 
-def sample_power_law(rng: np.random.Generator, n: int, r_min: float, r_max: float, exponent: float) -> np.ndarray:
+def sample_power_law(
+    rng: np.random.Generator, n: int, r_min: float, r_max: float, exponent: float
+) -> np.ndarray:
     """Radii from a truncated power law with cumulative count N(>r) ~ r^-exponent (inverse CDF)."""
     u = rng.uniform(size=n)
     a = exponent
@@ -463,7 +498,10 @@ def generate_site(seed: int = 0, config: SiteConfig | None = None) -> Site:
         for _try in range(100):
             R = rng.uniform(*cfg.crater_radius_m)
             c = rng.uniform(-half + 1.0, half - 1.0, size=2)
-            if np.hypot(*c) > cfg.lander_radius_m + cfg.flatten_radius_m + R and np.hypot(*(c - start)) > R + 1.0:
+            if (
+                np.hypot(*c) > cfg.lander_radius_m + cfg.flatten_radius_m + R
+                and np.hypot(*(c - start)) > R + 1.0
+            ):
                 break
         Z = Z + _crater_profile(np.hypot(X - c[0], Y - c[1]), R, cfg.crater_depth_ratio * R)
 
@@ -494,7 +532,9 @@ def generate_site(seed: int = 0, config: SiteConfig | None = None) -> Site:
     site = Site(cfg, int(seed), grid, grid.copy(), Z, _empty_rocks(), np.zeros(3))
 
     # rocks: power-law radii, placed without overlap, outside the lander keep-out
-    radii = np.sort(sample_power_law(rng, cfg.n_rocks, *cfg.rock_radius_m, cfg.rock_size_exponent))[::-1]
+    radii = np.sort(sample_power_law(rng, cfg.n_rocks, *cfg.rock_radius_m, cfg.rock_size_exponent))[
+        ::-1
+    ]
     keep_r = cfg.lander_radius_m + cfg.lander_keepout_m
     xy = np.zeros((0, 2))
     rad = np.zeros(0)
@@ -519,7 +559,11 @@ def generate_site(seed: int = 0, config: SiteConfig | None = None) -> Site:
     xy, rad = xy[order], rad[order]
     m = len(rad)
     axes = np.column_stack(
-        [rad * rng.uniform(0.85, 1.2, m), rad * rng.uniform(0.75, 1.1, m), rad * rng.uniform(0.55, 0.85, m)]
+        [
+            rad * rng.uniform(0.85, 1.2, m),
+            rad * rng.uniform(0.75, 1.1, m),
+            rad * rng.uniform(0.55, 0.85, m),
+        ]
     )
     burial = rng.uniform(*cfg.rock_burial, size=m)
     ground = site.terrain_height(xy[:, 0], xy[:, 1]) if m else np.zeros(0)
@@ -534,17 +578,23 @@ def generate_site(seed: int = 0, config: SiteConfig | None = None) -> Site:
     )
     if cfg.n_small_rocks:
         _add_small_rocks(site, np.random.default_rng([int(seed), 0x5175]), cfg, start, keep_r)
-    logger.debug("site seed=%d: %d rocks, relief %.2f m", seed, len(site.rocks), float(np.ptp(Z[ins])))
+    logger.debug(
+        "site seed=%d: %d rocks, relief %.2f m", seed, len(site.rocks), float(np.ptp(Z[ins]))
+    )
     return site
 
 
-def _add_small_rocks(site: Site, rng: np.random.Generator, cfg: SiteConfig, start: np.ndarray, keep_r: float) -> None:
+def _add_small_rocks(
+    site: Site, rng: np.random.Generator, cfg: SiteConfig, start: np.ndarray, keep_r: float
+) -> None:
     """Append ``cfg.n_small_rocks`` small rocks (power-law radii in ``small_rock_radius_m``) to
     `site.rocks`, clear of the other rocks, the lander and the rover start; their ids follow
     the others'."""
     half = cfg.size_m / 2.0
     r0 = site.rocks
-    radii = sample_power_law(rng, cfg.n_small_rocks, *cfg.small_rock_radius_m, cfg.rock_size_exponent)
+    radii = sample_power_law(
+        rng, cfg.n_small_rocks, *cfg.small_rock_radius_m, cfg.rock_size_exponent
+    )
     cand = rng.uniform(-half + 0.1, half - 0.1, size=(4 * len(radii), 2))
     xy_all, r_all = r0.centers[:, :2].copy(), r0.radii.copy()
     xy, rad = [], []
@@ -567,7 +617,11 @@ def _add_small_rocks(site: Site, rng: np.random.Generator, cfg: SiteConfig, star
         return
     xy, rad = np.asarray(xy), np.asarray(rad)
     axes = np.column_stack(
-        [rad * rng.uniform(0.85, 1.2, m), rad * rng.uniform(0.75, 1.1, m), rad * rng.uniform(0.55, 0.85, m)]
+        [
+            rad * rng.uniform(0.85, 1.2, m),
+            rad * rng.uniform(0.75, 1.1, m),
+            rad * rng.uniform(0.55, 0.85, m),
+        ]
     )
     burial = rng.uniform(*cfg.rock_burial, size=m)
     z = site.terrain_height(xy[:, 0], xy[:, 1]) + axes[:, 2] * (1.0 - 2.0 * burial)
@@ -583,7 +637,14 @@ def _add_small_rocks(site: Site, rng: np.random.Generator, cfg: SiteConfig, star
 
 
 def _empty_rocks() -> Rocks:
-    return Rocks(np.zeros(0, int), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0, int))
+    return Rocks(
+        np.zeros(0, int),
+        np.zeros((0, 3)),
+        np.zeros(0),
+        np.zeros((0, 3)),
+        np.zeros(0),
+        np.zeros(0, int),
+    )
 
 
 def load_rocks_csv(path: str | Path) -> np.ndarray:
@@ -595,6 +656,8 @@ def load_rocks_csv(path: str | Path) -> np.ndarray:
         reader = csv.reader(fh)
         header = next(reader, None)
         if header is None or tuple(h.strip() for h in header) != ROCK_CSV_COLUMNS:
-            raise FileFormatError(f"{path}: expected header {','.join(ROCK_CSV_COLUMNS)}, got {header}")
+            raise FileFormatError(
+                f"{path}: expected header {','.join(ROCK_CSV_COLUMNS)}, got {header}"
+            )
         rows = [[float(v) for v in row] for row in reader if row]
     return np.asarray(rows, dtype=float).reshape(-1, 5)

@@ -134,7 +134,10 @@ from lunarloc.io.lac.format import (
 )
 from lunarloc.io.lac.gzindex import DEFAULT_CHECKPOINT_SPACING, _GzipIndexError, _IndexedGzipReader
 from lunarloc.io.lac.tables import Table, _parse_csv, _parse_int
-from lunarloc.io.lac.writer import LacWriter, float_text  # re-exported: one import for reading and writing
+from lunarloc.io.lac.writer import (
+    LacWriter,
+    float_text,
+)  # re-exported: one import for reading and writing
 
 try:  # Python >= 3.11
     import tomllib
@@ -168,10 +171,14 @@ _NUMPY_SCALAR_TEXT = re.compile(r"^\s*(?:np|numpy)\.(?:float|int)\d*\((.*)\)\s*$
 _CAMERA_ROOTS = ("cameras", "images")  # the recorder's layout; the first MAPLE recorder's
 
 # Limits on what an archive may make us allocate, checked before reading (docs/robustness.md).
-MAX_TABLE_BYTES = 256 * 1024**2  # one CSV member (frames.csv of a 20 Hz traverse: ~400 B/row, ~180 h)
+MAX_TABLE_BYTES = (
+    256 * 1024**2
+)  # one CSV member (frames.csv of a 20 Hz traverse: ~400 B/row, ~180 h)
 MAX_TOML_BYTES = 1024**2  # initial.toml / metadata.toml
 MAX_IMAGE_BYTES = 64 * 1024**2  # one encoded image member
-MAX_IMAGE_PIXELS = 64_000_000  # decoded image size (a 2x2 mosaic of 4K frames); PIL's bomb check is 179 M
+MAX_IMAGE_PIXELS = (
+    64_000_000  # decoded image size (a 2x2 mosaic of 4K frames); PIL's bomb check is 179 M
+)
 MAX_TAR_HEADER_BYTES = 1024**2  # a GNU long-name or pax extended header
 MAX_MEMBERS = 1_000_000  # tar members (a 1 h traverse, 8 cameras at 10 Hz with semantics: ~600 k)
 
@@ -187,15 +194,24 @@ class _BoundedTarInfo(tarfile.TarInfo):
     whole into memory) and archives with more than MAX_MEMBERS members."""
 
     def _proc_member(self, tf):
-        if self.type in (tarfile.GNUTYPE_LONGNAME, tarfile.GNUTYPE_LONGLINK, tarfile.XHDTYPE, tarfile.XGLTYPE,
-                         tarfile.SOLARIS_XHDTYPE) and self.size > MAX_TAR_HEADER_BYTES:  # fmt: skip
-            raise LimitError(f"tar header at byte {self.offset} is {self.size:,} bytes, over the "
-                             f"{MAX_TAR_HEADER_BYTES:,}-byte limit for a long-name/pax header")  # fmt: skip
+        if (
+            self.type
+            in (
+                tarfile.GNUTYPE_LONGNAME,
+                tarfile.GNUTYPE_LONGLINK,
+                tarfile.XHDTYPE,
+                tarfile.XGLTYPE,
+                tarfile.SOLARIS_XHDTYPE,
+            )
+            and self.size > MAX_TAR_HEADER_BYTES
+        ):
+            raise LimitError(
+                f"tar header at byte {self.offset} is {self.size:,} bytes, over the "
+                f"{MAX_TAR_HEADER_BYTES:,}-byte limit for a long-name/pax header"
+            )
         if len(tf.members) >= MAX_MEMBERS:
             raise LimitError(f"more than {MAX_MEMBERS:,} members")
         return super()._proc_member(tf)
-
-
 
 
 # --------------------------------------------------------------------------------------
@@ -235,7 +251,9 @@ class LacArchive:
         (memory ~40 KiB per checkpoint; random access decompresses at most this much).
     """
 
-    def __init__(self, path: str | os.PathLike, *, checkpoint_spacing: int = DEFAULT_CHECKPOINT_SPACING):
+    def __init__(
+        self, path: str | os.PathLike, *, checkpoint_spacing: int = DEFAULT_CHECKPOINT_SPACING
+    ):
         from lunarloc.core.errors import file_error
         from lunarloc.io.inputs import check_input_file
 
@@ -252,7 +270,10 @@ class LacArchive:
             raise
         logger.debug(
             "indexed %s: %d members, %d checkpoints in %.3f s",
-            self.path, len(self._members), self._stream.n_checkpoints, time.perf_counter() - t0,
+            self.path,
+            len(self._members),
+            self._stream.n_checkpoints,
+            time.perf_counter() - t0,
         )
 
     # -- opening -------------------------------------------------------------------
@@ -288,7 +309,9 @@ class LacArchive:
             if len(tops) == 1 and tops[0].count("/") == 1:
                 self._prefix = tops[0]
                 self._members = {
-                    n[len(self._prefix) :]: m for n, m in self._members.items() if n.startswith(self._prefix)
+                    n[len(self._prefix) :]: m
+                    for n, m in self._members.items()
+                    if n.startswith(self._prefix)
                 }
         self.initial_raw = self._read_toml("initial.toml", _INITIAL_KEYS)
         self.metadata = self._read_toml("metadata.toml", ())
@@ -312,7 +335,9 @@ class LacArchive:
         self._camera_root: dict[str, str] = {}
         for name in self.initial["cameras"]:
             # `cameras/` (the recorder) or `images/` (the first MAPLE recorder, the READMEs)
-            root = next((r for r in _CAMERA_ROOTS if f"{r}/{name}/{name}_frames.csv" in self._members), None)
+            root = next(
+                (r for r in _CAMERA_ROOTS if f"{r}/{name}/{name}_frames.csv" in self._members), None
+            )
             if root is None:
                 continue  # the recorder writes no table for cameras that never produced an image
             member = f"{root}/{name}/{name}_frames.csv"
@@ -354,8 +379,11 @@ class LacArchive:
         if np.any(bad):
             i, k = (int(x) for x in np.argwhere(bad)[0])
             line = int(np.flatnonzero(used)[i]) + 2
-            raise self._err(member, f"line {line}, column {cols[k]}: {a[i, k]!r} is not a camera pose on the rover "
-                            f"(finite, within +-{MAX_CAMERA_OFFSET:g})")  # fmt: skip
+            raise self._err(
+                member,
+                f"line {line}, column {cols[k]}: {a[i, k]!r} is not a camera pose on the rover "
+                f"(finite, within +-{MAX_CAMERA_OFFSET:g})",
+            )
 
     def _check_camera_configs(self) -> None:
         """Camera tables of initial.toml: width/height positive integers (numbers or numeric
@@ -371,7 +399,10 @@ class LacArchive:
                     except ValueError:
                         n = -1
                     if not 0 < n <= 100_000:
-                        raise self._err("initial.toml", f"[cameras.{name}] {key} = {str(v)[:40]!r}: expected a positive integer (pixels)")
+                        raise self._err(
+                            "initial.toml",
+                            f"[cameras.{name}] {key} = {str(v)[:40]!r}: expected a positive integer (pixels)",
+                        )
             for key in ("fov", "hfov_deg"):
                 if key in cfg:
                     v = cfg[key]
@@ -380,13 +411,18 @@ class LacArchive:
                     except (TypeError, ValueError):
                         f = float("nan")
                     if not 0.0 < f < 180.0:
-                        raise self._err("initial.toml", f"[cameras.{name}] {key} = {str(v)[:40]!r}: expected degrees in (0, 180)")
+                        raise self._err(
+                            "initial.toml",
+                            f"[cameras.{name}] {key} = {str(v)[:40]!r}: expected degrees in (0, 180)",
+                        )
 
     def _index_frames(self, frames: np.ndarray, member: str) -> dict[int, int]:
         index: dict[int, int] = {}
         for i, f in enumerate(frames.tolist()):
             if f in index:
-                raise self._err(member, f"frame {f} appears twice (lines {index[f] + 2} and {i + 2})")
+                raise self._err(
+                    member, f"frame {f} appears twice (lines {index[f] + 2} and {i + 2})"
+                )
             index[f] = i
         if len(frames) > 1 and np.any(np.diff(frames) < 0):
             raise self._err(member, "frame numbers are not in increasing order")
@@ -410,7 +446,9 @@ class LacArchive:
         root = self._camera_root.get(camera, _CAMERA_ROOTS[0])
         member = f"{root}/{camera}/{kind}/{fname}"
         if member not in self._members:  # images in the other layout than the table
-            other = next((f"{r}/{camera}/{kind}/{fname}" for r in _CAMERA_ROOTS if r != root), member)
+            other = next(
+                (f"{r}/{camera}/{kind}/{fname}" for r in _CAMERA_ROOTS if r != root), member
+            )
             if other in self._members:
                 return other
         return member
@@ -459,7 +497,9 @@ class LacArchive:
         for key in ("lander", "rover"):
             v = raw[key]
             if not isinstance(v, (list, tuple)) or len(v) != 6:
-                raise self._err("initial.toml", f"'{key}' must be [x, y, z, roll, pitch, yaw], got {v!r}")
+                raise self._err(
+                    "initial.toml", f"'{key}' must be [x, y, z, roll, pitch, yaw], got {v!r}"
+                )
             out[key] = [self._number(x, f"{key}[{i}]") for i, x in enumerate(v)]
         if "fiducials" in raw:
             out["fiducials"] = self._flag(raw["fiducials"], "fiducials")
@@ -481,7 +521,9 @@ class LacArchive:
 
             T_map_lander = pose_to_matrix(*out["lander"])
             T_map_rover = pose_to_matrix(*out["rover"])
-            out["lander"] = [float(v) for v in matrix_to_pose(invert_transform(T_map_rover) @ T_map_lander)]
+            out["lander"] = [
+                float(v) for v in matrix_to_pose(invert_transform(T_map_rover) @ T_map_lander)
+            ]
         return out
 
     @property
@@ -506,9 +548,18 @@ class LacArchive:
         info = self._members.get(name)
         if info is None:
             raise self._err(name, "member is missing")
-        limit = MAX_TOML_BYTES if name.endswith(".toml") else MAX_TABLE_BYTES if name.endswith(".csv") else MAX_IMAGE_BYTES
+        limit = (
+            MAX_TOML_BYTES
+            if name.endswith(".toml")
+            else MAX_TABLE_BYTES
+            if name.endswith(".csv")
+            else MAX_IMAGE_BYTES
+        )
         if info.size > limit:
-            raise self._err(name, f"member is {info.size:,} bytes, over the {limit:,}-byte limit for this kind of member")
+            raise self._err(
+                name,
+                f"member is {info.size:,} bytes, over the {limit:,}-byte limit for this kind of member",
+            )
         try:
             fobj = self._tar.extractfile(info)
             data = fobj.read() if fobj is not None else b""
@@ -575,7 +626,9 @@ class LacArchive:
             return self._camera_tables[camera]
         if camera in self.initial["cameras"]:
             return Table({c: np.array([]) for c in CAMERA_COLUMNS}, camera)
-        raise InputError(f"{self.path}: no camera named {camera!r} (have {', '.join(self.initial['cameras'])})")
+        raise InputError(
+            f"{self.path}: no camera named {camera!r} (have {', '.join(self.initial['cameras'])})"
+        )
 
     def camera_row(self, camera: str, frame: int) -> dict[str, Any] | None:
         """The camera-table row of `camera` at exactly `frame`, or None."""
@@ -601,7 +654,10 @@ class LacArchive:
         """The custom record `name` as a Table (numeric columns float64, others str)."""
         member = f"custom/{name}.csv"
         if member not in self._members:
-            raise self._err(member, f"no custom record {name!r} (have: {', '.join(self.custom_records) or 'none'})")
+            raise self._err(
+                member,
+                f"no custom record {name!r} (have: {', '.join(self.custom_records) or 'none'})",
+            )
         return _parse_csv(self._read_member(member), f"{self.path}: {member}")
 
     def has_member(self, name: str) -> bool:
@@ -631,7 +687,10 @@ class LacArchive:
             with Image.open(io.BytesIO(data)) as img:
                 w, h = img.size  # from the header, before decoding
                 if w * h > MAX_IMAGE_PIXELS:
-                    raise self._err(member, f"image is {w}x{h} pixels, over the {MAX_IMAGE_PIXELS:,}-pixel limit")
+                    raise self._err(
+                        member,
+                        f"image is {w}x{h} pixels, over the {MAX_IMAGE_PIXELS:,}-pixel limit",
+                    )
                 return np.array(img)
         except (UnidentifiedImageError, OSError, ValueError, Image.DecompressionBombError) as exc:
             if isinstance(exc, ArchiveError):
@@ -651,7 +710,9 @@ class LacArchive:
         """Semantic image of `camera` at `frame` ((H, W) or (H, W, 3)), or None."""
         return self.image(camera, frame, "semantic")
 
-    def read_images(self, requests: Sequence[tuple[str, int, str]]) -> dict[tuple[str, int, str], np.ndarray]:
+    def read_images(
+        self, requests: Sequence[tuple[str, int, str]]
+    ) -> dict[tuple[str, int, str], np.ndarray]:
         """Read several images in archive order (keeps decompression forward-only).
 
         `requests` holds (camera, frame, kind); absent images are left out of the result.
@@ -700,16 +761,23 @@ class LacArchive:
         """(N, 6) rover poses [x, y, z, roll, pitch, yaw] from frames.csv (finite, checked)."""
         return self.finite_columns(("x", "y", "z", "roll", "pitch", "yaw"), "ground truth")
 
-    def finite_columns(self, columns: Sequence[str], what: str, limit: float = MAX_STATE_VALUE) -> np.ndarray:
+    def finite_columns(
+        self, columns: Sequence[str], what: str, limit: float = MAX_STATE_VALUE
+    ) -> np.ndarray:
         """frames.csv's `columns` as an (N, k) array; ArchiveError naming the line and column of
         the first value that is not finite or beyond +-`limit` (a NaN in the ground truth made
         ``run`` exit 0 with ``ATE nan``)."""
         a = self.frames.to_array(tuple(columns))
-        bad = ~np.isfinite(a) | (np.abs(np.nan_to_num(a, nan=0.0, posinf=np.inf, neginf=np.inf)) > limit)
+        bad = ~np.isfinite(a) | (
+            np.abs(np.nan_to_num(a, nan=0.0, posinf=np.inf, neginf=np.inf)) > limit
+        )
         if np.any(bad):
             i, k = (int(x) for x in np.argwhere(bad)[0])
-            raise self._err("frames.csv", f"line {i + 2}, column {columns[k]}: {a[i, k]!r} is not a usable {what} "
-                            f"value (finite, within +-{limit:g}; {int(bad.sum())} such cell(s))")  # fmt: skip
+            raise self._err(
+                "frames.csv",
+                f"line {i + 2}, column {columns[k]}: {a[i, k]!r} is not a usable {what} "
+                f"value (finite, within +-{limit:g}; {int(bad.sum())} such cell(s))",
+            )
         return a
 
     def path_length(self) -> float:

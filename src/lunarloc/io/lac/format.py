@@ -5,23 +5,54 @@ from __future__ import annotations
 
 import re
 
-__all__ = ["FRAME_COLUMNS", "STATE_COLUMNS", "CAMERA_COLUMNS", "DATA_SPEC", "LEGACY_MAP_LANDER_SPECS",
-           "lander_pose_map", "lander_pose_relative"]  # fmt: skip
+__all__ = [
+    "FRAME_COLUMNS",
+    "STATE_COLUMNS",
+    "CAMERA_COLUMNS",
+    "DATA_SPEC",
+    "LEGACY_MAP_LANDER_SPECS",
+    "lander_pose_map",
+    "lander_pose_relative",
+]
 
 FRAME_COLUMNS: tuple[str, ...] = (
-    "frame", "x", "y", "z", "roll", "pitch", "yaw",
-    "accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z",
-    "mission_time", "power", "linear_speed", "angular_speed", "cover_angle",
-)  # fmt: skip
+    "frame",
+    "x",
+    "y",
+    "z",
+    "roll",
+    "pitch",
+    "yaw",
+    "accel_x",
+    "accel_y",
+    "accel_z",
+    "gyro_x",
+    "gyro_y",
+    "gyro_z",
+    "mission_time",
+    "power",
+    "linear_speed",
+    "angular_speed",
+    "cover_angle",
+)
 """Columns of ``frames.csv``, in the LAC recorder's order."""
 
 STATE_COLUMNS: tuple[str, ...] = FRAME_COLUMNS[1:]
 """Per-frame state columns (all float) accepted by :meth:`LacWriter.add_frame`."""
 
 CAMERA_COLUMNS: tuple[str, ...] = (
-    "frame", "enable", "camera_x", "camera_y", "camera_z",
-    "camera_roll", "camera_pitch", "camera_yaw", "light_intensity", "grayscale", "semantic",
-)  # fmt: skip
+    "frame",
+    "enable",
+    "camera_x",
+    "camera_y",
+    "camera_z",
+    "camera_roll",
+    "camera_pitch",
+    "camera_yaw",
+    "light_intensity",
+    "grayscale",
+    "semantic",
+)
 """Columns of ``cameras/<Name>/<Name>_frames.csv``."""
 
 _TIME_FORMAT = "%Y-%m-%d %H:%M:%S"
@@ -43,7 +74,9 @@ def lander_pose_map(initial: dict) -> list[float]:
     ``T_map_lander = T_map_rover @ T_rover_lander``."""
     from lunarloc.core.geometry import matrix_to_pose, pose_to_matrix
 
-    T = pose_to_matrix(*(float(v) for v in initial["rover"])) @ pose_to_matrix(*(float(v) for v in initial["lander"]))
+    T = pose_to_matrix(*(float(v) for v in initial["rover"])) @ pose_to_matrix(
+        *(float(v) for v in initial["lander"])
+    )
     return [float(v) for v in matrix_to_pose(T)]
 
 

@@ -9,7 +9,6 @@ from bisect import bisect_right
 from typing import Any
 
 
-
 _CHUNK = 256 * 1024  # compressed bytes read per step
 _MAX_OUT = 1024 * 1024  # cap on decompressed bytes per zlib call (bounds memory)
 DEFAULT_CHECKPOINT_SPACING = 4 * 1024 * 1024  # decompressed bytes between checkpoints

@@ -38,9 +38,23 @@ import numpy as np
 from lunarloc.core.errors import InputError
 from lunarloc.core.geometry import matrix_to_pose, pose_to_matrix
 
-__all__ = ["SensorPosition", "VehicleVelocityControl", "Location", "Rotation", "Transform", "VehicleStatus",
-           "LacAgentBase", "transform_from_matrix", "transform_to_matrix", "check_sensors", "load_agent_file",
-           "camera_name", "MAX_LINEAR_SPEED_MPS", "MAX_ANGULAR_SPEED_RAD_S", "SENSOR_ATTRIBUTES"]
+__all__ = [
+    "SensorPosition",
+    "VehicleVelocityControl",
+    "Location",
+    "Rotation",
+    "Transform",
+    "VehicleStatus",
+    "LacAgentBase",
+    "transform_from_matrix",
+    "transform_to_matrix",
+    "check_sensors",
+    "load_agent_file",
+    "camera_name",
+    "MAX_LINEAR_SPEED_MPS",
+    "MAX_ANGULAR_SPEED_RAD_S",
+    "SENSOR_ATTRIBUTES",
+]
 
 MAX_LINEAR_SPEED_MPS = 0.49
 MAX_ANGULAR_SPEED_RAD_S = 4.13
@@ -82,7 +96,9 @@ class VehicleVelocityControl:
         self.angular_target_velocity = float(angular_target_velocity)
 
     def __repr__(self) -> str:
-        return f"VehicleVelocityControl({self.linear_target_velocity}, {self.angular_target_velocity})"
+        return (
+            f"VehicleVelocityControl({self.linear_target_velocity}, {self.angular_target_velocity})"
+        )
 
 
 class Location:
@@ -140,14 +156,18 @@ def transform_to_matrix(pose, what: str = "pose") -> np.ndarray:
     ``rotation.roll/pitch/yaw`` in radians: the leaderboard's, this module's, PlaybackAgent's).
     CARLA's own left-handed ``carla.Transform`` (degrees) is refused: InputError."""
     if _is_carla_native(pose):
-        raise InputError(f"{what} is CARLA's left-handed carla.Transform (degrees); pass the leaderboard's "
-                         "right-handed Transform, as the agent getters return it")  # fmt: skip
+        raise InputError(
+            f"{what} is CARLA's left-handed carla.Transform (degrees); pass the leaderboard's "
+            "right-handed Transform, as the agent getters return it"
+        )
     try:
         loc, rot = pose.location, pose.rotation
         vals = [float(v) for v in (loc.x, loc.y, loc.z, rot.roll, rot.pitch, rot.yaw)]
     except (AttributeError, TypeError, ValueError):
-        raise InputError(f"{what} must be a Transform with location.x/y/z and rotation.roll/pitch/yaw, "
-                         f"got {type(pose).__name__}") from None  # fmt: skip
+        raise InputError(
+            f"{what} must be a Transform with location.x/y/z and rotation.roll/pitch/yaw, "
+            f"got {type(pose).__name__}"
+        ) from None
     if not all(math.isfinite(v) for v in vals):
         raise InputError(f"{what} is not finite ({vals})")
     return pose_to_matrix(*vals)
@@ -156,7 +176,14 @@ def transform_to_matrix(pose, what: str = "pose") -> np.ndarray:
 class VehicleStatus:
     """What the base class's getters read each tick (``transform`` None in evaluation)."""
 
-    def __init__(self, linear_speed=0.0, angular_speed=0.0, transform=None, sensor_state=None, current_power=None):
+    def __init__(
+        self,
+        linear_speed=0.0,
+        angular_speed=0.0,
+        transform=None,
+        sensor_state=None,
+        current_power=None,
+    ):
         self.odometry_linear_speed = linear_speed
         self.odometry_angular_speed = angular_speed
         self.front_arm_angle = self.back_arm_angle = None
@@ -186,11 +213,19 @@ class LacAgentBase:
         self._mission_time = mission_time
         self._vehicle_status = vehicle_status
         control = self.run_step(input_data)
-        if type(control).__name__ != "VehicleVelocityControl" or not hasattr(control, "linear_target_velocity"):
-            raise AssertionError(f"run_step must return a carla.VehicleVelocityControl, got {type(control).__name__}")
+        if type(control).__name__ != "VehicleVelocityControl" or not hasattr(
+            control, "linear_target_velocity"
+        ):
+            raise AssertionError(
+                f"run_step must return a carla.VehicleVelocityControl, got {type(control).__name__}"
+            )
         out = VehicleVelocityControl(
             max(min(control.linear_target_velocity, MAX_LINEAR_SPEED_MPS), -MAX_LINEAR_SPEED_MPS),
-            max(min(control.angular_target_velocity, MAX_ANGULAR_SPEED_RAD_S), -MAX_ANGULAR_SPEED_RAD_S))
+            max(
+                min(control.angular_target_velocity, MAX_ANGULAR_SPEED_RAD_S),
+                -MAX_ANGULAR_SPEED_RAD_S,
+            ),
+        )
         return out
 
     # set by the leaderboard
@@ -220,8 +255,16 @@ class LacAgentBase:
         return True
 
     def sensors(self):
-        return {p: {"camera_active": False, "light_intensity": 0, "width": "2448", "height": "2048",
-                    "use_semantic": False} for p in SensorPosition}  # fmt: skip
+        return {
+            p: {
+                "camera_active": False,
+                "light_intensity": 0,
+                "width": "2448",
+                "height": "2048",
+                "use_semantic": False,
+            }
+            for p in SensorPosition
+        }
 
     def run_step(self, input_data):
         return VehicleVelocityControl()
@@ -276,21 +319,29 @@ def check_sensors(sensors, evaluation: bool = True) -> dict:
     name) with ``camera_active``, ``light_intensity``, ``width``, ``height``; no semantic
     camera in evaluation. Returns ``{name: config}``; InputError naming what is missing."""
     if not isinstance(sensors, Mapping):
-        raise InputError(f"sensors() must return a dict keyed by SensorPosition, got {type(sensors).__name__}")
+        raise InputError(
+            f"sensors() must return a dict keyed by SensorPosition, got {type(sensors).__name__}"
+        )
     by_name = {camera_name(k): (k, v) for k, v in sensors.items()}
     out = {}
     for p in SensorPosition:
         if p.name not in by_name:
-            raise InputError(f"sensors(): no entry for SensorPosition.{p.name} (the leaderboard needs all eight: "
-                             f"{', '.join(q.name for q in SensorPosition)})")  # fmt: skip
+            raise InputError(
+                f"sensors(): no entry for SensorPosition.{p.name} (the leaderboard needs all eight: "
+                f"{', '.join(q.name for q in SensorPosition)})"
+            )
         key, cfg = by_name[p.name]
         if isinstance(key, str):
-            raise InputError(f"sensors(): key {key!r} is a string; the leaderboard's keys are carla.SensorPosition members")
+            raise InputError(
+                f"sensors(): key {key!r} is a string; the leaderboard's keys are carla.SensorPosition members"
+            )
         missing = [a for a in SENSOR_ATTRIBUTES if a not in cfg]
         if missing:
             raise InputError(f"sensors(): SensorPosition.{p.name} lacks {', '.join(missing)}")
         if evaluation and cfg.get("use_semantic", False):
-            raise InputError(f"sensors(): SensorPosition.{p.name} asks for a semantic camera, refused in evaluation")
+            raise InputError(
+                f"sensors(): SensorPosition.{p.name} asks for a semantic camera, refused in evaluation"
+            )
         out[p.name] = cfg
     return out
 
@@ -311,7 +362,9 @@ def load_agent_file(path) -> object:
         raise InputError(f"{path}: not a leaderboard agent file ({e})") from e
     cls = getattr(module, entry(), None)
     if cls is None:
-        raise InputError(f"{path}: get_entry_point() names {entry()!r}, which the module does not define")
+        raise InputError(
+            f"{path}: get_entry_point() names {entry()!r}, which the module does not define"
+        )
     try:
         return cls()
     except TypeError as e:

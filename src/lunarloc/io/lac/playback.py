@@ -64,8 +64,15 @@ from lunarloc.core.geometry import matrix_to_pose, pose_to_matrix
 logger = logging.getLogger(__name__)
 logger.addHandler(logging.NullHandler())
 
-__all__ = ["Location", "Rotation", "Transform", "PlaybackAgent", "FrameNotRecordedError", "FrameOutOfRangeError",
-           "UnknownCameraError"]
+__all__ = [
+    "Location",
+    "Rotation",
+    "Transform",
+    "PlaybackAgent",
+    "FrameNotRecordedError",
+    "FrameOutOfRangeError",
+    "UnknownCameraError",
+]
 
 
 class FrameOutOfRangeError(InputError):
@@ -81,7 +88,6 @@ class UnknownCameraError(InputError, KeyError):
 
     def __str__(self) -> str:  # KeyError would quote the message
         return str(self.args[0]) if self.args else ""
-
 
 
 @dataclass(frozen=True)
@@ -188,14 +194,20 @@ class PlaybackAgent:
         except TypeError:
             raise FrameNotRecordedError(f"frame {frame!r} is not a frame number") from None
         if past_end:
-            raise FrameOutOfRangeError(f"frame {frame} is out of range: the last frame of {self.archive.path} is {hi}")
+            raise FrameOutOfRangeError(
+                f"frame {frame} is out of range: the last frame of {self.archive.path} is {hi}"
+            )
         i = None
         if isinstance(frame, (int, np.integer)) and not isinstance(frame, bool):
             i = self._index_of.get(int(frame))
         elif isinstance(frame, (float, np.floating)) and float(frame).is_integer():
-            i = self._index_of.get(int(frame))  # pandas compares 3.0 == 3, as the published agent does
+            i = self._index_of.get(
+                int(frame)
+            )  # pandas compares 3.0 == 3, as the published agent does
         if i is None:
-            raise FrameNotRecordedError(f"frame {frame} is not in {self.archive.path} (frames {lo}..{hi})")
+            raise FrameNotRecordedError(
+                f"frame {frame} is not in {self.archive.path} (frames {lo}..{hi})"
+            )
         self._i = i
         self._row = self.archive.frame_state(i)
         return self.frame
@@ -240,7 +252,9 @@ class PlaybackAgent:
     def get_transform(self) -> Transform:
         """Ground-truth rover pose at the current frame, map frame (m, rad)."""
         r = self._row
-        return Transform(Location(r["x"], r["y"], r["z"]), Rotation(r["roll"], r["pitch"], r["yaw"]))
+        return Transform(
+            Location(r["x"], r["y"], r["z"]), Rotation(r["roll"], r["pitch"], r["yaw"])
+        )
 
     def get_transform_matrix(self) -> np.ndarray:
         """4x4 ``T_map_rover`` at the current frame."""
@@ -250,7 +264,9 @@ class PlaybackAgent:
         """(6,) float64 ndarray [accel_x, accel_y, accel_z (m/s^2), gyro_x, gyro_y, gyro_z (rad/s)],
         body frame, specific force including gravity (as the LAC returns it)."""
         r = self._row
-        return np.array([r["accel_x"], r["accel_y"], r["accel_z"], r["gyro_x"], r["gyro_y"], r["gyro_z"]], float)
+        return np.array(
+            [r["accel_x"], r["accel_y"], r["accel_z"], r["gyro_x"], r["gyro_y"], r["gyro_z"]], float
+        )
 
     def get_mission_time(self) -> float:
         """Mission time, seconds."""
@@ -327,12 +343,29 @@ class PlaybackAgent:
         if row is None:
             return Transform()
         return Transform.from_xyzrpy(
-            [row[k] for k in ("camera_x", "camera_y", "camera_z", "camera_roll", "camera_pitch", "camera_yaw")]
+            [
+                row[k]
+                for k in (
+                    "camera_x",
+                    "camera_y",
+                    "camera_z",
+                    "camera_roll",
+                    "camera_pitch",
+                    "camera_yaw",
+                )
+            ]
         )
 
     # -- driving an agent as the leaderboard does -----------------------------------------
-    def run_agent(self, agent, path_to_conf_file: str = "", *, evaluation: bool = True, max_ticks: int | None = None,
-                  geometric_map=None) -> list:  # fmt: skip
+    def run_agent(
+        self,
+        agent,
+        path_to_conf_file: str = "",
+        *,
+        evaluation: bool = True,
+        max_ticks: int | None = None,
+        geometric_map=None,
+    ) -> list:
         """Replay the recording into a leaderboard agent in the leaderboard's own way and order:
 
         1. `agent` is an agent file (built as the leaderboard builds it: ``get_entry_point()``,
@@ -355,8 +388,13 @@ class PlaybackAgent:
         The agent's commands do not move the recording. Returns the commands (clamped as the
         base class clamps them). Errors of the agent's contract are InputError naming the step.
         """
-        from lunarloc.io.lac.leaderboard import (SensorPosition, VehicleStatus, check_sensors, load_agent_file,
-                                                 transform_from_matrix)  # fmt: skip
+        from lunarloc.io.lac.leaderboard import (
+            SensorPosition,
+            VehicleStatus,
+            check_sensors,
+            load_agent_file,
+            transform_from_matrix,
+        )
 
         if isinstance(agent, (str, os.PathLike)):
             agent = load_agent_file(agent)
@@ -369,7 +407,11 @@ class PlaybackAgent:
         agent.set_initial_lander_position(transform_from_matrix(pose_to_matrix(*initial["lander"])))
         agent.setup(path_to_conf_file)
         sensors = check_sensors(agent.sensors(), evaluation)
-        active = [p for p in SensorPosition if sensors[p.name]["camera_active"] not in (False, 0, "False", "false")]
+        active = [
+            p
+            for p in SensorPosition
+            if sensors[p.name]["camera_active"] not in (False, 0, "False", "false")
+        ]
         semantic = {p for p in active if sensors[p.name].get("use_semantic", False)}
         commands = []
         while True:
@@ -377,7 +419,9 @@ class PlaybackAgent:
             recorded = self.input_data()
             for p in active:
                 img = recorded.get("Grayscale", {}).get(p.name)
-                if img is not None and img.ndim == 2:  # as the leaderboard hands it: [:, :, 0] of BGRA
+                if (
+                    img is not None and img.ndim == 2
+                ):  # as the leaderboard hands it: [:, :, 0] of BGRA
                     buf = np.empty(img.shape + (4,), np.uint8)
                     buf[:, :, 0] = img
                     img = buf[:, :, 0]
@@ -387,16 +431,33 @@ class PlaybackAgent:
             state = {}
             for p in SensorPosition:
                 known = p.name in initial["cameras"]
-                pose = transform_from_matrix(pose_to_matrix(*self.get_camera_position(p.name).as_tuple()))
-                state[p] = [self.get_camera_state(p.name) if known else False,
-                            self.get_light_state(p.name) if known else 0.0, pose, None]  # fmt: skip
+                pose = transform_from_matrix(
+                    pose_to_matrix(*self.get_camera_position(p.name).as_tuple())
+                )
+                state[p] = [
+                    self.get_camera_state(p.name) if known else False,
+                    self.get_light_state(p.name) if known else 0.0,
+                    pose,
+                    None,
+                ]
             truth = None if evaluation else transform_from_matrix(self.get_transform_matrix())
-            status = VehicleStatus(self.get_linear_speed(), self.get_angular_speed(), truth, state,
-                                   self.get_current_power())  # fmt: skip
+            status = VehicleStatus(
+                self.get_linear_speed(),
+                self.get_angular_speed(),
+                truth,
+                state,
+                self.get_current_power(),
+            )
             agent.set_imu_data(self.get_imu_data())
             out = agent(self.get_mission_time(), status, input_data)
-            commands.append(out[0] if isinstance(out, tuple) else out)  # the leaderboard's base class returns a pair
-            if self.at_end() or agent.has_finished() or (max_ticks is not None and len(commands) >= max_ticks):
+            commands.append(
+                out[0] if isinstance(out, tuple) else out
+            )  # the leaderboard's base class returns a pair
+            if (
+                self.at_end()
+                or agent.has_finished()
+                or (max_ticks is not None and len(commands) >= max_ticks)
+            ):
                 break
             self.step_frame()
         agent.finalize()

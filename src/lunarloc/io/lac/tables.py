@@ -40,7 +40,9 @@ class Table:
         try:
             return self._cols[key]
         except KeyError:
-            raise MissingColumnError(f"{self.name or 'table'}: no column {key!r} (have {', '.join(self._cols) or 'none'})") from None
+            raise MissingColumnError(
+                f"{self.name or 'table'}: no column {key!r} (have {', '.join(self._cols) or 'none'})"
+            ) from None
 
     def __iter__(self):
         return iter(self._cols)
@@ -60,7 +62,9 @@ class Table:
 
     def row(self, i: int) -> dict[str, Any]:
         """Row `i` as a dict of Python scalars."""
-        return {k: v[i].item() if isinstance(v[i], np.generic) else v[i] for k, v in self._cols.items()}
+        return {
+            k: v[i].item() if isinstance(v[i], np.generic) else v[i] for k, v in self._cols.items()
+        }
 
     def to_array(self, columns: Sequence[str]) -> np.ndarray:
         """(N, len(columns)) float64 array of the named numeric columns (ArchiveError naming
@@ -70,9 +74,15 @@ class Table:
             col = self[c]
             if col.dtype == object:
                 bad = next((i for i, v in enumerate(col) if not _is_float_text(v)), 0)
-                raise ArchiveError(f"{self.name or 'table'}: column '{c}' holds text ({str(col[bad])[:40]!r} at line {bad + 2}), expected numbers")
+                raise ArchiveError(
+                    f"{self.name or 'table'}: column '{c}' holds text ({str(col[bad])[:40]!r} at line {bad + 2}), expected numbers"
+                )
             arrays.append(np.asarray(col, dtype=float))
-        return np.stack(arrays, axis=1).reshape(self._n, len(columns)) if arrays else np.zeros((self._n, 0))
+        return (
+            np.stack(arrays, axis=1).reshape(self._n, len(columns))
+            if arrays
+            else np.zeros((self._n, 0))
+        )
 
     def int_column(self, name: str) -> np.ndarray:
         """Column `name` as int64; ArchiveError naming the table and line when a value is
@@ -85,7 +95,9 @@ class Table:
             try:
                 out[i] = _parse_int(str(v))
             except ValueError:
-                raise ArchiveError(f"{self.name or 'table'}: column '{name}' at line {i + 2}: {str(v)[:40]!r} is not an integer") from None
+                raise ArchiveError(
+                    f"{self.name or 'table'}: column '{name}' at line {i + 2}: {str(v)[:40]!r} is not an integer"
+                ) from None
         return out
 
     def __repr__(self) -> str:
@@ -132,7 +144,9 @@ def _utf8_lines(data: bytes, where: str):
         try:
             yield line.decode("utf-8")
         except UnicodeDecodeError as exc:
-            raise ArchiveError(f"{where}: line {k}: not UTF-8 text (byte 0x{line[exc.start]:02x})") from None
+            raise ArchiveError(
+                f"{where}: line {k}: not UTF-8 text (byte 0x{line[exc.start]:02x})"
+            ) from None
 
 
 def _csv_rows(data: bytes, where: str) -> list[list[str]]:
@@ -149,10 +163,16 @@ def _csv_rows(data: bytes, where: str) -> list[list[str]]:
                 continue
             cells += len(r)
             if cells > MAX_TABLE_CELLS:
-                raise LimitError(f"{where}: more than {MAX_TABLE_CELLS:,} cells (line {reader.line_num})")
+                raise LimitError(
+                    f"{where}: more than {MAX_TABLE_CELLS:,} cells (line {reader.line_num})"
+                )
             rows.append(r)
     except csv.Error as exc:
-        msg = f"a field is longer than {MAX_CSV_FIELD:,} characters" if "field limit" in str(exc) else f"malformed CSV ({exc})"
+        msg = (
+            f"a field is longer than {MAX_CSV_FIELD:,} characters"
+            if "field limit" in str(exc)
+            else f"malformed CSV ({exc})"
+        )
         raise ArchiveError(f"{where}: line {reader.line_num}: {msg}") from None
     finally:
         csv.field_size_limit(old)
@@ -203,8 +223,14 @@ def _parse_csv(
         elif name in bools:
             parser, dtype = _parse_bool, bool
         elif name not in floats:
-            if raw and all(_INT_TEXT.match(v) for v in raw) and all(len(v.strip()) < 16 for v in raw):
-                cols[name] = np.array([int(v) for v in raw], dtype=np.int64)  # inferred integer column
+            if (
+                raw
+                and all(_INT_TEXT.match(v) for v in raw)
+                and all(len(v.strip()) < 16 for v in raw)
+            ):
+                cols[name] = np.array(
+                    [int(v) for v in raw], dtype=np.int64
+                )  # inferred integer column
                 continue
             try:  # inferred column: numeric if every value parses
                 cols[name] = np.array([_parse_float(v) for v in raw], dtype=np.float64)

@@ -148,7 +148,9 @@ class LacWriter:
     ):
         self.path = Path(path)
         if str(data_spec) in LEGACY_MAP_LANDER_SPECS:
-            raise InputError(f"data_spec {data_spec!r} marks a map-frame lander; this writer stores it rover-relative")
+            raise InputError(
+                f"data_spec {data_spec!r} marks a map-frame lander; this writer stores it rover-relative"
+            )
         missing = [k for k in ("lander", "rover", "cameras") if k not in initial]
         if missing:
             raise InputError(f"initial dict lacks {', '.join(missing)}")
@@ -165,7 +167,11 @@ class LacWriter:
         for name, cfg in cams.items():
             if not _CAMERA_NAME.match(name):
                 raise InputError(f"invalid camera name {name!r}")
-            for k, default in (("camera_active", False), ("light_intensity", 0.0), ("use_semantic", False)):
+            for k, default in (
+                ("camera_active", False),
+                ("light_intensity", 0.0),
+                ("use_semantic", False),
+            ):
                 cfg.setdefault(k, default)
         self.metadata = {
             "data_spec": str(data_spec),
@@ -182,11 +188,15 @@ class LacWriter:
         self._custom: dict[str, tuple[list[str], list[list[str]]]] = {}
         self._closed = False
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent)
+        fd, tmp = tempfile.mkstemp(
+            prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent
+        )
         os.close(fd)
         self._tmp = Path(tmp)
         try:
-            self._tar = tarfile.open(self._tmp, mode="w:gz", compresslevel=int(compresslevel), format=tarfile.PAX_FORMAT)
+            self._tar = tarfile.open(
+                self._tmp, mode="w:gz", compresslevel=int(compresslevel), format=tarfile.PAX_FORMAT
+            )
             import tomli_w
 
             self._toml = tomli_w
@@ -220,7 +230,9 @@ class LacWriter:
             allowed = "(H, W) uint8/uint16 or (H, W, 3) uint8" if allow_rgb else "(H, W) uint8"
             raise InputError(f"{what} must be {allowed}, got shape {arr.shape} dtype {arr.dtype}")
         buf = io.BytesIO()
-        Image.fromarray(np.ascontiguousarray(arr)).save(buf, format="PNG", compress_level=self._png_level)
+        Image.fromarray(np.ascontiguousarray(arr)).save(
+            buf, format="PNG", compress_level=self._png_level
+        )
         return buf.getvalue()
 
     # -- public API ------------------------------------------------------------------
@@ -232,10 +244,14 @@ class LacWriter:
         self._check_open()
         unknown = sorted(set(state) - set(STATE_COLUMNS))
         if unknown:
-            raise InputError(f"unknown frame state key(s) {', '.join(unknown)}; allowed: {', '.join(STATE_COLUMNS)}")
+            raise InputError(
+                f"unknown frame state key(s) {', '.join(unknown)}; allowed: {', '.join(STATE_COLUMNS)}"
+            )
         frame = int(frame)
         if self._last_frame is not None and frame <= self._last_frame:
-            raise InputError(f"frame {frame} added after frame {self._last_frame}; frames must increase")
+            raise InputError(
+                f"frame {frame} added after frame {self._last_frame}; frames must increase"
+            )
         self._last_frame = frame
         row = [str(frame)]
         for col in STATE_COLUMNS:
@@ -269,21 +285,31 @@ class LacWriter:
         self._check_open()
         cfg = self.initial["cameras"].get(camera)
         if cfg is None:
-            raise InputError(f"camera {camera!r} is not in initial['cameras'] ({', '.join(self.initial['cameras'])})")
+            raise InputError(
+                f"camera {camera!r} is not in initial['cameras'] ({', '.join(self.initial['cameras'])})"
+            )
         frame = int(frame)
         last = self._camera_last.get(camera)
         if last is not None and frame <= last:
-            raise InputError(f"{camera}: frame {frame} added after frame {last}; frames must increase")
+            raise InputError(
+                f"{camera}: frame {frame} added after frame {last}; frames must increase"
+            )
         pose = [float(v) for v in pose_xyzrpy]
         if len(pose) != 6:
             raise InputError(f"{camera}: pose_xyzrpy must have 6 values, got {len(pose)}")
         if grayscale is None and enable:
-            raise InputError(f"{camera} frame {frame}: an enabled camera row needs a grayscale image")
+            raise InputError(
+                f"{camera} frame {frame}: an enabled camera row needs a grayscale image"
+            )
         use_sem = bool(cfg.get("use_semantic", False))
         if semantic is not None and not use_sem:
-            raise InputError(f"{camera}: semantic image given but use_semantic is false in initial['cameras']")
+            raise InputError(
+                f"{camera}: semantic image given but use_semantic is false in initial['cameras']"
+            )
         if use_sem and grayscale is not None and semantic is None:
-            raise InputError(f"{camera} frame {frame}: use_semantic is true, a semantic image is required")
+            raise InputError(
+                f"{camera} frame {frame}: use_semantic is true, a semantic image is required"
+            )
         names = {"grayscale": "", "semantic": ""}
         for kind, img in (("grayscale", grayscale), ("semantic", semantic)):
             if img is None:
@@ -296,9 +322,15 @@ class LacWriter:
             names[kind] = fname
         self._camera_last[camera] = frame
         self._camera_rows[camera].append(
-            [str(frame), _fmt(bool(enable)), *(_fmt(v) for v in pose), _fmt(float(light_intensity)),
-             names["grayscale"], names["semantic"]]
-        )  # fmt: skip
+            [
+                str(frame),
+                _fmt(bool(enable)),
+                *(_fmt(v) for v in pose),
+                _fmt(float(light_intensity)),
+                names["grayscale"],
+                names["semantic"],
+            ]
+        )
 
     @staticmethod
     def _check_size(camera: str, cfg: dict, arr: np.ndarray, kind: str) -> None:
@@ -307,9 +339,13 @@ class LacWriter:
         except (TypeError, ValueError):
             return
         if w and h and arr.shape[:2] != (h, w):
-            raise InputError(f"{camera} {kind} image is {arr.shape[1]}x{arr.shape[0]}, camera config says {w}x{h}")
+            raise InputError(
+                f"{camera} {kind} image is {arr.shape[1]}x{arr.shape[0]}, camera config says {w}x{h}"
+            )
 
-    def add_custom(self, name: str, columns: Sequence[str], rows: np.ndarray | Sequence[Sequence]) -> None:
+    def add_custom(
+        self, name: str, columns: Sequence[str], rows: np.ndarray | Sequence[Sequence]
+    ) -> None:
         """Add the custom record ``custom/<name>.csv`` (written on close).
 
         `columns` are the header; `rows` a 2-D array or a sequence of rows (numbers or text).
@@ -324,7 +360,9 @@ class LacWriter:
         for i, r in enumerate(rows):
             values = list(r.tolist() if isinstance(r, np.ndarray) else r)
             if len(values) != len(columns):
-                raise InputError(f"custom record {name!r}: row {i} has {len(values)} values for {len(columns)} columns")
+                raise InputError(
+                    f"custom record {name!r}: row {i} has {len(values)} values for {len(columns)} columns"
+                )
             out_rows.append([_fmt(v) for v in values])
         self._custom[name] = (columns, out_rows)
 
@@ -351,8 +389,16 @@ class LacWriter:
                     continue  # as the LAC recorder: no table for a camera that recorded nothing
                 orphans = [r[0] for r in rows if int(r[0]) not in known]
                 if orphans:
-                    logger.warning("%s: %d %s frames are not in frames.csv (first %s)", self.path, len(orphans), cam, orphans[0])
-                self._add_bytes(f"cameras/{cam}/{cam}_frames.csv", self._csv_bytes(CAMERA_COLUMNS, rows))
+                    logger.warning(
+                        "%s: %d %s frames are not in frames.csv (first %s)",
+                        self.path,
+                        len(orphans),
+                        cam,
+                        orphans[0],
+                    )
+                self._add_bytes(
+                    f"cameras/{cam}/{cam}_frames.csv", self._csv_bytes(CAMERA_COLUMNS, rows)
+                )
             for name, (cols, rows) in self._custom.items():
                 self._add_bytes(f"custom/{name}.csv", self._csv_bytes(cols, rows))
             self._tar.close()

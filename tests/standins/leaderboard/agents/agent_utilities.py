@@ -15,7 +15,9 @@ class AgentComponentsControl:
         self.front_drum_speed = None
         self.back_drum_speed = None
         self.radiator_cover_state = None
-        self.sensor_state = {p: [None, None] for p in carla.SensorPosition}  # [camera on/off, light intensity]
+        self.sensor_state = {
+            p: [None, None] for p in carla.SensorPosition
+        }  # [camera on/off, light intensity]
 
     def apply_control(self, vehicle) -> None:
         for p, (camera_state, light_state) in self.sensor_state.items():
@@ -55,8 +57,13 @@ class VehicleStatus:
         s.consumed_power = vehicle.get_consumed_power()
         if not evaluation:
             s.transform = toRHCStransform(vehicle.get_transform())
-        for p in carla.SensorPosition:  # [camera state, light state, camera pose, light pose] (rover frame)
-            s.sensor_state[p] = [vehicle.get_camera_state(p), vehicle.get_light_state(p),
-                                 toRHCStransform(vehicle.get_camera_relative_transform(p)),
-                                 toRHCStransform(vehicle.get_light_relative_transform(p))]  # fmt: skip
+        for p in (
+            carla.SensorPosition
+        ):  # [camera state, light state, camera pose, light pose] (rover frame)
+            s.sensor_state[p] = [
+                vehicle.get_camera_state(p),
+                vehicle.get_light_state(p),
+                toRHCStransform(vehicle.get_camera_relative_transform(p)),
+                toRHCStransform(vehicle.get_light_relative_transform(p)),
+            ]
         return s

@@ -74,7 +74,9 @@ class AgentWrapper:
         try:
             self.agent.set_geometric_map(GeometricMap(constants))
             self.agent.set_initial_position(toRHCStransform(vehicle.get_transform()))
-            self.agent.set_initial_lander_position(get_lander_transform(vehicle.get_transform(), lander.get_transform()))
+            self.agent.set_initial_lander_position(
+                get_lander_transform(vehicle.get_transform(), lander.get_transform())
+            )
             self.agent.setup(self._agent_config)
         except Exception as e:
             raise AgentSetupError(e) from e
@@ -83,10 +85,14 @@ class AgentWrapper:
     @staticmethod
     def _check_attributes(sensor_data, p) -> None:
         if p not in sensor_data:
-            raise AgentSetupError(f"Couldn't find the 'carla.SensorPosition.{p}' in the sensors configuration")
+            raise AgentSetupError(
+                f"Couldn't find the 'carla.SensorPosition.{p}' in the sensors configuration"
+            )
         for key in ("camera_active", "light_intensity", "width", "height"):
             if key not in sensor_data[p]:
-                raise AgentSetupError(f"Attribute '{key}' is missing from the sensor 'carla.SensorPosition.{p}'")
+                raise AgentSetupError(
+                    f"Attribute '{key}' is missing from the sensor 'carla.SensorPosition.{p}'"
+                )
 
     def _setup_sensors(self) -> None:
         self._imu = IMU(self._vehicle)
@@ -98,7 +104,9 @@ class AgentWrapper:
             height = min(int(str(c["height"])), MAX_CAMERA_HEIGHT)
             semantic = c.get("use_semantic", False)
             if semantic and self._evaluation:
-                raise SensorConfigurationError("Detected semantic segmentation cameras during the evaluation")
+                raise SensorConfigurationError(
+                    "Detected semantic segmentation cameras during the evaluation"
+                )
             self._cameras["Grayscale"][p] = [(width, height), False]
             if semantic:
                 self._cameras["Semantic"][p] = [(width, height), False]

@@ -67,8 +67,11 @@ def toLHCSlocation(location) -> carla.Location:
 
 
 def toLHCSrotation(rotation) -> carla.Rotation:
-    return carla.Rotation(pitch=-math.degrees(rotation.pitch), yaw=-math.degrees(rotation.yaw),
-                          roll=math.degrees(rotation.roll))  # fmt: skip
+    return carla.Rotation(
+        pitch=-math.degrees(rotation.pitch),
+        yaw=-math.degrees(rotation.yaw),
+        roll=math.degrees(rotation.roll),
+    )
 
 
 def toLHCStransform(transform) -> carla.Transform:
@@ -87,13 +90,18 @@ def toRHCStransform(transform) -> Transform:
     return Transform(transform)
 
 
-def get_lander_transform(rover_transform: carla.Transform, lander_transform: carla.Transform) -> Transform:
+def get_lander_transform(
+    rover_transform: carla.Transform, lander_transform: carla.Transform
+) -> Transform:
     """The lander's pose relative to the rover (both CARLA transforms), right-handed.
 
     The leaderboard extracts the relative angles with asin/acos and sign tests, which keeps
     pitch and roll within +-90 degrees; a lander stands upright, so plain ZYX angles agree."""
     loc = rover_transform.inverse_transform(lander_transform.location)
-    M = np.array(rover_transform.get_inverse_matrix())[:3, :3] @ np.array(lander_transform.get_matrix())[:3, :3]
+    M = (
+        np.array(rover_transform.get_inverse_matrix())[:3, :3]
+        @ np.array(lander_transform.get_matrix())[:3, :3]
+    )
     pitch = math.asin(float(np.clip(M[2, 0], -1.0, 1.0)))
     yaw = math.atan2(M[1, 0], M[0, 0])
     roll = math.atan2(-M[2, 1], M[2, 2])
@@ -104,12 +112,20 @@ def get_lander_transform(rover_transform: carla.Transform, lander_transform: car
 def rh_matrix(transform) -> np.ndarray:
     """4x4 of a right-handed Transform (a test helper, not a leaderboard function)."""
     r = transform.rotation
-    cy, sy, cp, sp, cr, sr = (math.cos(r.yaw), math.sin(r.yaw), math.cos(r.pitch), math.sin(r.pitch),
-                              math.cos(r.roll), math.sin(r.roll))  # fmt: skip
+    cy, sy, cp, sp, cr, sr = (
+        math.cos(r.yaw),
+        math.sin(r.yaw),
+        math.cos(r.pitch),
+        math.sin(r.pitch),
+        math.cos(r.roll),
+        math.sin(r.roll),
+    )
     T = np.eye(4)
-    T[:3, :3] = [[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                 [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                 [-sp, cp * sr, cp * cr]]  # fmt: skip
+    T[:3, :3] = [
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ]
     T[:3, 3] = (transform.location.x, transform.location.y, transform.location.z)
     return T
 
@@ -121,5 +137,7 @@ def carla_transform_from_rh(T: np.ndarray) -> carla.Transform:
     yaw = math.atan2(R[1, 0], R[0, 0])
     roll = math.atan2(R[2, 1], R[2, 2])
     x, y, z = (float(v) for v in np.asarray(T, float)[:3, 3])
-    return carla.Transform(carla.Location(x, -y, z),
-                           carla.Rotation(pitch=-math.degrees(pitch), yaw=-math.degrees(yaw), roll=math.degrees(roll)))  # fmt: skip
+    return carla.Transform(
+        carla.Location(x, -y, z),
+        carla.Rotation(pitch=-math.degrees(pitch), yaw=-math.degrees(yaw), roll=math.degrees(roll)),
+    )

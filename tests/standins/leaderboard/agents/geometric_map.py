@@ -17,7 +17,11 @@ MAP_UNCOMPLETED_VALUE = -np.inf
 
 
 def cell_centres(constants) -> np.ndarray:
-    return -constants.map_size / 2 + constants.cell_size / 2 + constants.cell_size * np.arange(constants.cell_number)
+    return (
+        -constants.map_size / 2
+        + constants.cell_size / 2
+        + constants.cell_size * np.arange(constants.cell_number)
+    )
 
 
 def create_base_map(constants) -> np.ndarray:

@@ -21,10 +21,21 @@ GRAVITY_MPS2 = np.array([0.0, 0.0, 1.622])
 
 
 def rotation_zyx(yaw: float, pitch: float, roll: float) -> np.ndarray:
-    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
-    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                     [-sp, cp * sr, cp * cr]])  # fmt: skip
+    cy, sy, cp, sp, cr, sr = (
+        np.cos(yaw),
+        np.sin(yaw),
+        np.cos(pitch),
+        np.sin(pitch),
+        np.cos(roll),
+        np.sin(roll),
+    )
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
 
 
 class IMU:
@@ -48,5 +59,7 @@ class IMU:
             if self._p[2] is None:
                 acc = GRAVITY_MPS2.copy()
             else:
-                acc = self._R[0].T @ ((self._p[0] - 2.0 * self._p[1] + self._p[2]) / self.dt**2 + GRAVITY_MPS2)
+                acc = self._R[0].T @ (
+                    (self._p[0] - 2.0 * self._p[1] + self._p[2]) / self.dt**2 + GRAVITY_MPS2
+                )
         return np.array([*acc, *gyro], dtype=np.float64)

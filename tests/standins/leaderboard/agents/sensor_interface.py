@@ -27,8 +27,10 @@ class SensorInterface:
             if p in cameras["Semantic"]:
                 data["Semantic"][p] = None
         if self._images_this_tick and active:
-            shots = world.capture({p: cameras["Grayscale"][p][0] for p in active},
-                                  semantic={p for p in active if p in cameras["Semantic"]})  # fmt: skip
+            shots = world.capture(
+                {p: cameras["Grayscale"][p][0] for p in active},
+                semantic={p for p in active if p in cameras["Semantic"]},
+            )
             for p, (bgra, sem_bgra) in shots.items():
                 data["Grayscale"][p] = bgra[:, :, 0]
                 if sem_bgra is not None and p in data["Semantic"]:

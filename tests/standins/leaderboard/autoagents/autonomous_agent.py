@@ -29,14 +29,20 @@ class AutonomousAgent:
     def __call__(self, mission_time, vehicle_status, input_data):
         self._mission_time = mission_time
         self._vehicle_status = vehicle_status
-        print(f"=== [Agent] -- Wallclock = {str(GameTime.get_wallclocktime())[:-3]} -- System time = "
-              f"{GameTime.get_platform_time():.3f} -- Simulation time = {GameTime.get_time():.3f}")  # as the real one does
+        print(
+            f"=== [Agent] -- Wallclock = {str(GameTime.get_wallclocktime())[:-3]} -- System time = "
+            f"{GameTime.get_platform_time():.3f} -- Simulation time = {GameTime.get_time():.3f}"
+        )  # as the real one does
         self._components_control = AgentComponentsControl()
         control = self.run_step(input_data)
         assert isinstance(control, carla.VehicleVelocityControl)
         out = carla.VehicleVelocityControl()
-        out.linear_target_velocity = max(min(control.linear_target_velocity, MAX_LINEAR_SPEED), -MAX_LINEAR_SPEED)
-        out.angular_target_velocity = max(min(control.angular_target_velocity, MAX_ANGULAR_SPEED), -MAX_ANGULAR_SPEED)
+        out.linear_target_velocity = max(
+            min(control.linear_target_velocity, MAX_LINEAR_SPEED), -MAX_LINEAR_SPEED
+        )
+        out.angular_target_velocity = max(
+            min(control.angular_target_velocity, MAX_ANGULAR_SPEED), -MAX_ANGULAR_SPEED
+        )
         out.angular_target_velocity *= -1  # into CARLA's left-handed frame
         return out, self._components_control
 
@@ -67,8 +73,16 @@ class AutonomousAgent:
         return True
 
     def sensors(self):
-        return {p: {"camera_active": False, "light_intensity": 0, "width": "2448", "height": "2048",
-                    "use_semantic": False} for p in carla.SensorPosition}  # fmt: skip
+        return {
+            p: {
+                "camera_active": False,
+                "light_intensity": 0,
+                "width": "2448",
+                "height": "2048",
+                "use_semantic": False,
+            }
+            for p in carla.SensorPosition
+        }
 
     def run_step(self, input_data):
         return carla.VehicleVelocityControl()

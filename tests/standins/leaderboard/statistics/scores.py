@@ -15,11 +15,17 @@ import numpy as np
 from leaderboard.agents.geometric_map import MAP_UNCOMPLETED_VALUE, ROCK_UNCOMPLETED_VALUE
 
 
-def mission_scores(ground_map, agent_map, mission_duration_s: float, fiducials_used: bool, constants) -> dict:
+def mission_scores(
+    ground_map, agent_map, mission_duration_s: float, fiducials_used: bool, constants
+) -> dict:
     out = {"geometric_map": 0.0, "rocks_map": 0.0, "mapping_productivity": 0.0, "localization": 0.0}
     if agent_map is not None and ground_map is not None:
-        err_ok = np.abs(ground_map[:, :, 2] - agent_map[:, :, 2]) < constants.geometric_map_threshold
-        out["geometric_map"] = constants.geometric_map_max_score * float(np.sum(err_ok)) / err_ok.size
+        err_ok = (
+            np.abs(ground_map[:, :, 2] - agent_map[:, :, 2]) < constants.geometric_map_threshold
+        )
+        out["geometric_map"] = (
+            constants.geometric_map_max_score * float(np.sum(err_ok)) / err_ok.size
+        )
         truth = ground_map[:, :, 3] == 1
         if truth.any():
             rocks = agent_map[:, :, 3].copy()
@@ -28,10 +34,13 @@ def mission_scores(ground_map, agent_map, mission_duration_s: float, fiducials_u
             tp, fp, fn = np.sum(flag & truth), np.sum(flag & ~truth), np.sum(~flag & truth)
             out["rocks_map"] = constants.rock_max_score * 2 * tp / (2 * tp + fp + fn)
     if agent_map is not None:
-        done = (agent_map[:, :, 2] != MAP_UNCOMPLETED_VALUE) & (agent_map[:, :, 3] != ROCK_UNCOMPLETED_VALUE)
+        done = (agent_map[:, :, 2] != MAP_UNCOMPLETED_VALUE) & (
+            agent_map[:, :, 3] != ROCK_UNCOMPLETED_VALUE
+        )
         rate = float(np.sum(done)) / mission_duration_s if mission_duration_s else 0.0
         out["mapping_productivity"] = constants.mapping_productivity_max_score * min(
-            rate / constants.mapping_productivity_score_rate, 1.0)
+            rate / constants.mapping_productivity_score_rate, 1.0
+        )
     out["localization"] = 0.0 if fiducials_used else constants.fiducials_max_score
     out["total"] = sum(out.values())
     return out

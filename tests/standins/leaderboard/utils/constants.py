@@ -16,6 +16,8 @@ class Constants:
         self.geometric_map_max_score = 300.0
         self.geometric_map_threshold = 0.05  # m
         self.rock_max_score = 300.0
-        self.mapping_productivity_score_rate = self.total_cells / self.max_mission_duration  # cells / s
+        self.mapping_productivity_score_rate = (
+            self.total_cells / self.max_mission_duration
+        )  # cells / s
         self.mapping_productivity_max_score = 250.0
         self.fiducials_max_score = 150.0
