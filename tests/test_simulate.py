@@ -112,3 +112,34 @@ def test_cli_simulate(tmp_path, monkeypatch):
     ):
         np.testing.assert_allclose(a0.poses()[0, :2], a1.poses()[0, :2])  # same start
         assert a0.image_count("FrontLeft") == 3 and a0.image_count("BackLeft") == 0
+
+
+def test_cli_simulate_lac_style_builds_the_lac_look_site(tmp_path, monkeypatch):
+    """--lac-style passes SiteConfig.lac_style() and RenderConfig.lac_style() to the simulation
+    (the site and renderer settings recorded in simulation.json say which was used)."""
+    pytest.importorskip("lunarloc.io.lac.archive")
+    import json
+
+    from typer.testing import CliRunner
+
+    from lunarloc.cli import commands_sim  # noqa: F401
+    from lunarloc.cli.app import app
+    from lunarloc.sim import simulate as sim
+    from lunarloc.sim.site import SiteConfig
+
+    seen = []
+
+    def fake_dataset(seed, n, out, cfg, progress=None):
+        seen.append(cfg)
+        return []
+
+    monkeypatch.setattr(sim, "simulate_dataset", fake_dataset)
+    args = ["simulate", "--out", str(tmp_path / "x"), "--duration", "1", "--traverses", "0"]
+    for extra in ([], ["--lac-style"]):
+        res = CliRunner().invoke(app, args + extra + ["--overwrite"])
+        assert res.exit_code == 0, res.output
+    plain, lac = seen
+    assert plain.site == SiteConfig() and not plain.render.terrain_up_normal
+    assert lac.site == SiteConfig.lac_style() and lac.render.terrain_up_normal
+    assert lac.site.n_small_rocks > plain.site.n_small_rocks
+    json.dumps(lac.to_dict())  # the config it records stays serialisable

@@ -55,6 +55,12 @@ def simulate(
         False, "--front-only", help="Record only the front stereo pair."
     ),
     no_semantic: bool = typer.Option(False, "--no-semantic", help="Do not store semantic images."),
+    lac_style: bool = typer.Option(
+        False,
+        "--lac-style",
+        help="A site that looks like the LAC's real frames: crater rims that tilt the rover "
+        "10-25 deg, small craters, hummocks and 600 extra rocks of 2-5 cm (docs/rendering.md).",
+    ),
     example_images: Path | None = typer.Option(
         None,
         "--example-images",
@@ -94,6 +100,7 @@ def simulate(
     )
 
     from lunarloc.sim.render import RenderConfig
+    from lunarloc.sim.site import SiteConfig
     from lunarloc.sim.simulate import (
         ALL_CAMERAS,
         SimulationConfig,
@@ -109,8 +116,9 @@ def simulate(
         cameras=("FrontLeft", "FrontRight") if front_only else ALL_CAMERAS,
         semantic=not no_semantic,
         semantic_format=semantic_format,
+        site=SiteConfig.lac_style() if lac_style else SiteConfig(),
         render=replace(
-            RenderConfig(),
+            RenderConfig.lac_style() if lac_style else RenderConfig(),
             sun_elevation_deg=sun_elevation,
             sun_azimuth_deg=sun_azimuth,
             lighting=lighting,
