@@ -232,7 +232,6 @@ class LacMapper:
         self._live_wz = np.zeros(n * n)
         self._live_votes = np.zeros(n * n, np.int32)
         self._live_dirty = np.zeros(n * n, bool)
-        self._live_rock = np.zeros(n * n, bool)  # the flag last handed out
         self._live_cursor = 0
         # the rover-frame bin lattice: keys in a (side x side) square
         self._half = int(math.ceil(cfg.max_range_m / cfg.bin_m)) + 1
@@ -306,7 +305,6 @@ class LacMapper:
             + self._live_wz.nbytes
             + self._live_votes.nbytes
             + self._live_dirty.nbytes
-            + self._live_rock.nbytes
         )
         return int(n + self._frozen_w.nbytes * 3 + self._frozen_rocks.nbytes + live)
 
@@ -358,7 +356,6 @@ class LacMapper:
         rock = self._live_votes[ready] >= min(
             self.config.rock_min_sightings, self.config.small_rock_min_sightings
         )
-        self._live_rock[ready] = rock
         return ready // n, ready % n, h, rock
 
     # ------------------------------------------------------------------ summaries
