@@ -161,9 +161,8 @@ class LunarLocAgent(AutonomousAgent):
         rig = rig or CameraRig.from_sensors(self.sensors())  # the LAC mounts at the configured size
         lac_mapper = LacMapper() if s["lac_map"] else None  # fed by the localizer at its keyframes
         detector_config = None
-        if (
-            s["lac_map"] and s["lac_map_small_rocks"]
-        ):  # the any-ray rule flags rocks under 5 cm: find them too
+        # the any-ray rule flags rocks under 5 cm: find them too
+        if s["lac_map"] and s["lac_map_small_rocks"]:
             from dataclasses import replace
 
             from lunarloc.perception.detector import DetectorConfig, scaled_detector_config
