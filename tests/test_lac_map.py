@@ -4,6 +4,7 @@ filling), the LAC's scoring rules, writing into a GeometricMap, and the CLI."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -387,6 +388,9 @@ def test_run_writes_the_lac_map_and_score_reads_it(tiny_sim, tmp_path, capsys):
     )
     assert "LAC map:" in capsys.readouterr().out
     assert lac.is_file() and (tmp_path / "lac.cells.npz").is_file()
+    # --lac-map turns the detector's small-rock stage on (the rock map needs it)
+    ran = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert ran["detector"]["small_rocks"]["enabled"] is True
     assert (
         main(["score", str(lac), str(tiny_sim / "geometric_map.npy"), "--json", "--seen-only"]) == 0
     )
@@ -412,6 +416,23 @@ def test_run_writes_the_lac_map_and_score_reads_it(tiny_sim, tmp_path, capsys):
         == 2
     )
     assert "exists" in capsys.readouterr().err
+
+
+def test_small_rock_stage_follows_lac_map_unless_told():
+    from lunarloc.cli.commands_run import with_small_rocks
+    from lunarloc.config.run import RunConfig
+
+    base = RunConfig()
+    assert not base.detector.small_rocks.enabled  # the detector's default
+    on = lambda c: c.detector.small_rocks.enabled  # noqa: E731
+    assert on(with_small_rocks(base, None, lac_map=True))
+    assert not on(with_small_rocks(base, None, lac_map=False))
+    assert not on(with_small_rocks(base, False, lac_map=True))  # --no-small-rocks wins
+    assert on(with_small_rocks(base, True, lac_map=False))
+    # the rest of the detector's small-rock settings are kept
+    assert with_small_rocks(base, None, True).detector.small_rocks == replace(
+        base.detector.small_rocks, enabled=True
+    )
 
 
 def test_online_localizer_feeds_its_mapper(tiny_sim):

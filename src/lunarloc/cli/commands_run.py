@@ -67,6 +67,21 @@ def _print_summary(s: dict, title: str) -> None:
     )
 
 
+def with_small_rocks(cfg, small_rocks: Optional[bool], lac_map: bool):
+    """`cfg` with the detector's small-rock stage as ``--small-rocks/--no-small-rocks`` says;
+    not given: on when the run writes a LAC map (its rock map needs the rocks under 5 cm the
+    any-ray rule flags; docs/lac-map.md), else as `cfg` has it."""
+    if small_rocks is None:
+        if not lac_map:
+            return cfg
+        small_rocks = True
+    from dataclasses import replace
+
+    return cfg.with_options(
+        detector__small_rocks=replace(cfg.detector.small_rocks, enabled=bool(small_rocks))
+    )
+
+
 @app.command("run")
 def run_cmd(
     archives: list[Path] = typer.Argument(
@@ -121,6 +136,12 @@ def run_cmd(
         help="Also write the LAC geometric map (.npy, 180 x 180 x 4) from the stereo points and detections, "
         "placed with the corrected poses, and its cells' side data (.cells.npz); score it with `lunarloc score`.",
     ),
+    small_rocks: Optional[bool] = typer.Option(
+        None,
+        "--small-rocks/--no-small-rocks",
+        help="The detector's small-rock stage (the rocks under 5 cm radius the LAC's any-ray rule "
+        "flags). Default: on with --lac-map, else as the configuration says (off).",
+    ),
 ) -> None:
     """Online localization over a traverse: detect, map, localize against REFERENCE, fuse.
     Several archives play on one mission clock, each rover also using the others' maps with --share-maps."""
@@ -150,6 +171,7 @@ def run_cmd(
         loop__fix_kind=fix,
         odometry__source=odometry,
     )
+    cfg = with_small_rocks(cfg, small_rocks, lac_map is not None)
     if len(archives) > 1 or share_maps:
         from lunarloc.cli.commands_multirover import run_several
 
