@@ -134,6 +134,7 @@ def score(a) -> None:
         for name, T in (("odometry", res.T_odo_rover), ("corrected", res.T_map_rover)):
             out[name] = _scores(mapper, res.frames, T, truth, seen)
         for name, (est, s_all, s_seen) in out.items():
+            tp = int(round(s_seen["rock_recall"] * s_seen["rock_cells_true"]))
             row = {
                 "seed": seed,
                 "lighting": light,
@@ -144,6 +145,10 @@ def score(a) -> None:
                 "seen_rock_precision": round(s_seen["rock_precision"], 4),
                 "seen_rock_recall": round(s_seen["rock_recall"], 4),
                 "seen_rock_f1": round(s_seen["rock_f1"], 4),
+                # counts, for the pooled figures over all sites
+                "seen_rock_tp": tp,
+                "seen_rock_fp": int(s_seen["rock_cells_produced"]) - tp,
+                "seen_rock_fn": int(s_seen["rock_cells_true"]) - tp,
                 "all_geometric": round(s_all["geometric"], 4),
                 "all_rock_precision": round(s_all["rock_precision"], 4),
                 "all_rock_recall": round(s_all["rock_recall"], 4),
@@ -205,6 +210,9 @@ def _interp_share(est, truth, within_m: float):
 
 
 def _summary(rows) -> None:
+    """Per pose source: the mean over sites, the pooled figures (all sites' seen cells as one
+    map) and, against the ground-truth poses, each site's gap in seen geo + rock points."""
+    gt_pts = {x["seed"]: x["seen_points_geo_rock"] for x in rows if x["poses"] == "gt"}
     for name in ("gt", "odometry", "corrected"):
         r = [x for x in rows if x["poses"] == name]
         if not r:
@@ -216,6 +224,17 @@ def _summary(rows) -> None:
         print(
             f"{name:9s}: seen height {g.mean():.3f} (min {g.min():.3f}), seen rock F1 {f.mean():.3f} (min {f.min():.3f}); "
             f"whole map height {ga.mean():.3f}, F1 {fa.mean():.3f} over {len(r)} sites"
+        )
+        tp, fp, fn = (sum(x[f"seen_rock_{k}"] for x in r) for k in ("tp", "fp", "fn"))
+        cells = sum(x["seen_cells"] for x in r)
+        seen_h = sum(x["seen_geometric"] * x["seen_cells"] for x in r) / max(cells, 1)
+        gaps = [round(x["seen_points_geo_rock"] - gt_pts[x["seed"]], 1) for x in r if x["seed"] in gt_pts]
+        print(
+            f"{'':9s}  pooled: seen height {seen_h:.3f}, rock P {tp / max(tp + fp, 1):.3f} "
+            f"R {tp / max(tp + fn, 1):.3f} F1 {2 * tp / max(2 * tp + fp + fn, 1):.3f} "
+            f"({tp} / {fp} / {fn} cells right / false / missed); "
+            f"LAC points (whole map) mean {np.mean([x['all_points_total'] for x in r]):.0f}; "
+            f"seen geo + rock points against ground-truth poses per site {gaps}"
         )
 
 
