@@ -134,7 +134,7 @@ def score(a) -> None:
         for name, T in (("odometry", res.T_odo_rover), ("corrected", res.T_map_rover)):
             out[name] = _scores(mapper, res.frames, T, truth, seen)
         for name, (est, s_all, s_seen) in out.items():
-            tp = int(round(s_seen["rock_recall"] * s_seen["rock_cells_true"]))
+            tp = round(s_seen["rock_recall"] * s_seen["rock_cells_true"])
             row = {
                 "seed": seed,
                 "lighting": light,
@@ -147,7 +147,7 @@ def score(a) -> None:
                 "seen_rock_f1": round(s_seen["rock_f1"], 4),
                 # counts, for the pooled figures over all sites
                 "seen_rock_tp": tp,
-                "seen_rock_fp": int(s_seen["rock_cells_produced"]) - tp,
+                "seen_rock_fp": s_seen["rock_cells_produced"] - tp,
                 "seen_rock_fn": int(s_seen["rock_cells_true"]) - tp,
                 "all_geometric": round(s_all["geometric"], 4),
                 "all_rock_precision": round(s_all["rock_precision"], 4),
@@ -228,7 +228,11 @@ def _summary(rows) -> None:
         tp, fp, fn = (sum(x[f"seen_rock_{k}"] for x in r) for k in ("tp", "fp", "fn"))
         cells = sum(x["seen_cells"] for x in r)
         seen_h = sum(x["seen_geometric"] * x["seen_cells"] for x in r) / max(cells, 1)
-        gaps = [round(x["seen_points_geo_rock"] - gt_pts[x["seed"]], 1) for x in r if x["seed"] in gt_pts]
+        gaps = [
+            round(x["seen_points_geo_rock"] - gt_pts[x["seed"]], 1)
+            for x in r
+            if x["seed"] in gt_pts
+        ]
         print(
             f"{'':9s}  pooled: seen height {seen_h:.3f}, rock P {tp / max(tp + fp, 1):.3f} "
             f"R {tp / max(tp + fn, 1):.3f} F1 {2 * tp / max(2 * tp + fp + fn, 1):.3f} "

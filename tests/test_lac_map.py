@@ -424,7 +424,10 @@ def test_small_rock_stage_follows_lac_map_unless_told():
 
     base = RunConfig()
     assert not base.detector.small_rocks.enabled  # the detector's default
-    on = lambda c: c.detector.small_rocks.enabled  # noqa: E731
+
+    def on(cfg):
+        return cfg.detector.small_rocks.enabled
+
     assert on(with_small_rocks(base, None, lac_map=True))
     assert not on(with_small_rocks(base, None, lac_map=False))
     assert not on(with_small_rocks(base, False, lac_map=True))  # --no-small-rocks wins

@@ -67,7 +67,7 @@ def _print_summary(s: dict, title: str) -> None:
     )
 
 
-def with_small_rocks(cfg, small_rocks: Optional[bool], lac_map: bool):
+def with_small_rocks(cfg, small_rocks: bool | None, lac_map: bool):
     """`cfg` with the detector's small-rock stage as ``--small-rocks/--no-small-rocks`` says;
     not given: on when the run writes a LAC map (its rock map needs the rocks under 5 cm the
     any-ray rule flags; docs/lac-map.md), else as `cfg` has it."""
