@@ -58,6 +58,7 @@ from lunarloc.localization.register import (
     _residuals,
     rmse_limit,
 )
+from lunarloc.localization.provenance import resolve_odometry_bounds
 from lunarloc.localization.result import LocalizationResult, _nan_T
 from lunarloc.localization.search import (
     _competitor_3d,
@@ -131,9 +132,11 @@ def localize(
     than 3 landmarks, coincident or collinear landmarks). A failed localization is not
     an error: it returns ``success=False`` with a reason.
     """
-    # 1. the maps and the settings for them (a map without heights: 2D + yaw)
-    reference, vehicle, cfg = _prepare(reference, vehicle, config)
+    # 1. the maps and the settings for them (a map without heights: 2D + yaw; the odometry bounds:
+    # stated, else from the vehicle map's pose provenance, else the prior)
+    reference, vehicle, cfg, bounds = _prepare(reference, vehicle, config)
     P = _Problem(reference, vehicle, cfg, timings={})
+    P.bounds = bounds
     # 2. all-to-all putative associations, and the inliers chance alone would give
     P.associate()
     if P.num_associations == 0:
@@ -172,6 +175,7 @@ def _prepare(reference, vehicle, config):
 
         instance(config, "config", LocalizationConfig, "lunarloc.LocalizationConfig")
     prepare_kernels()  # first call of a process: compile or load the kernels before any stage timer starts
+    config, bounds = resolve_odometry_bounds(config or LocalizationConfig(), vehicle)
     if (
         isinstance(reference, LandmarkMap)
         and isinstance(vehicle, LandmarkMap)
@@ -185,7 +189,7 @@ def _prepare(reference, vehicle, config):
         )
     _check_map(reference, "reference")
     _check_map(vehicle, "vehicle")
-    return reference, vehicle, (config or LocalizationConfig()).for_maps(reference, vehicle)
+    return reference, vehicle, config.for_maps(reference, vehicle), bounds
 
 
 def _screen_reason(screen, cfg, required: int) -> str:
@@ -240,6 +244,7 @@ class _Problem:
             num_associations=self.num_associations,
             num_edges=self.num_edges,
             timings=self.timings,
+            odometry_bounds=self.bounds.to_dict(),
         )
 
     def refused(self, name, value, limit, op, why, inliers=None) -> LocalizationResult:
@@ -247,7 +252,11 @@ class _Problem:
         fields = (
             self.base()
             if name != "associations"
-            else dict(required_inliers=self.required, timings=self.timings)
+            else dict(
+                required_inliers=self.required,
+                timings=self.timings,
+                odometry_bounds=self.bounds.to_dict(),
+            )
         )
         if name == "screen":
             fields.pop("num_edges")
@@ -512,6 +521,7 @@ class _Problem:
             num_associations=self.num_associations,
             competitor=int(competitor),
             distortion_fitted=b.bend is not None,
+            odometry_bounds=self.bounds.text,
         )
         out.checks = verify(ev, cfg)
         if screen is not None:  # it passed: shown first, as a check that refuses nothing further

@@ -79,6 +79,7 @@ class Evidence:
     distortion_fitted: bool = (
         False  # the distortion allowance was fitted from the maps, not from stated bounds
     )
+    odometry_bounds: str = ""  # where the bounds came from (:class:`OdometryBounds` ``text``)
 
 
 def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
@@ -162,7 +163,7 @@ def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
             "(scaled or bent by odometry drift away from the inliers)",
         )
     )
-    source = (
+    source = ev.odometry_bounds or (
         "fitted from the maps, no odometry bounds stated"
         if ev.distortion_fitted
         else "from the odometry bounds"
