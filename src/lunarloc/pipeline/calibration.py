@@ -1,7 +1,9 @@
 """Is a claimed pose right, and is its stated uncertainty honest? Families of maps the
 localizer never saw, run through the full, indexed and automatic searches, with the
 command line's default configuration (no odometry bounds stated: the bend fit with the
-odometry prior) and with the maps stated rigid.
+odometry prior for the synthetic maps, which state no pose provenance; for the real families the
+bounds the vehicle file's pose provenance gives, :data:`REAL_CONFIGS`) and with the maps stated
+rigid.
 
 Each case is a reference map, a vehicle map in a random frame (any yaw, a small tilt,
 up to 100 m away) with the true ``T_ref_veh`` (none for a wrong site), and the point
