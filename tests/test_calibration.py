@@ -173,7 +173,9 @@ def test_plain_cli_claims_the_paper_pairs_on_the_dataset_files(real_data, capsys
     from lunarloc.io.maps import load_traverse
 
     for a, b in PAPER:
-        d = _cli_json(capsys, real_data / "csv" / f"traverse_{a}.csv", real_data / "csv" / f"traverse_{b}.csv")
+        d = _cli_json(
+            capsys, real_data / "csv" / f"traverse_{a}.csv", real_data / "csv" / f"traverse_{b}.csv"
+        )
         assert d["success"], f"{a}-{b}: {d['reason']}"
         assert d["odometry_bounds"]["source"] == "pose provenance", (a, b)
         T = np.array(d["T_ref_veh"])
@@ -188,7 +190,11 @@ def _write_bent_traverse(path, trav, drift_deg_per_m, window_m, rng, provenance)
     frame, exact at the last frame; the rover's last position in the file's frame)."""
     from lunarloc.core.geometry import invert_transform, transform_points
     from lunarloc.io.maps import save_traverse
-    from lunarloc.pipeline.evaluation import DriftModel, drifted_detections, random_vehicle_transform
+    from lunarloc.pipeline.evaluation import (
+        DriftModel,
+        drifted_detections,
+        random_vehicle_transform,
+    )
 
     det, rover, T_odo_world = drifted_detections(trav, DriftModel(drift_deg_per_m, 0.0))
     travelled = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(trav.rover_xyz, axis=0), axis=1))]
@@ -204,7 +210,9 @@ def _write_bent_traverse(path, trav, drift_deg_per_m, window_m, rng, provenance)
     return invert_transform(T_veh_odo @ T_odo_world), rover_v[-1]
 
 
-def test_cli_default_judges_an_odometry_written_bent_file_with_the_prior(real_data, tmp_path, capsys):
+def test_cli_default_judges_an_odometry_written_bent_file_with_the_prior(
+    real_data, tmp_path, capsys
+):
     """A traverse bent by 0.1 deg/m of heading drift (7-15, claimed 21 cm off by a narrower
     bend), written by lunarloc from odometry poses: through the plain CLI its file's provenance
     keeps the odometry prior, and no wrong pose is claimed. The same file falsely saying ground
@@ -230,5 +238,7 @@ def test_cli_default_judges_an_odometry_written_bent_file_with_the_prior(real_da
                 assert {"scale", "near_misses"} <= set(names)
         if d["success"]:
             T = np.array(d["T_ref_veh"])
-            err = np.linalg.norm(transform_points(T, last[None]) - transform_points(T_true, last[None]))
+            err = np.linalg.norm(
+                transform_points(T, last[None]) - transform_points(T_true, last[None])
+            )
             assert poses != "odometry" or err < RIGHT_M, f"claimed {err:.3f} m off with the prior"

@@ -35,7 +35,8 @@ GT = PoseProvenance("ground-truth")
 
 def _rows(rng, n_frames=6, per_frame=4):
     return [
-        (f, rng.normal(0, 1, 3), rng.normal(0, 3, (per_frame, 3))) for f in range(0, 20 * n_frames, 20)
+        (f, rng.normal(0, 1, 3), rng.normal(0, 3, (per_frame, 3)))
+        for f in range(0, 20 * n_frames, 20)
     ]
 
 
@@ -155,24 +156,53 @@ def test_localize_result_says_where_the_bounds_came_from(rng):
     for name, prov, cfg in [
         ("provenance", GT, None),
         ("prior", ODO, None),
-        ("stated", GT, LocalizationConfig(odometry_scale_error=0.0, odometry_heading_drift_deg_per_m=0.0)),
+        (
+            "stated",
+            GT,
+            LocalizationConfig(odometry_scale_error=0.0, odometry_heading_drift_deg_per_m=0.0),
+        ),
     ]:
         veh.pose_provenance = prov
         res = localize(ref, veh, cfg)
         out[name] = res.to_dict()["odometry_bounds"]
-    assert [out[k]["source"] for k in ("provenance", "prior", "stated")] == [PROVENANCE, PRIOR, STATED]
+    assert [out[k]["source"] for k in ("provenance", "prior", "stated")] == [
+        PROVENANCE,
+        PRIOR,
+        STATED,
+    ]
     assert out["prior"]["pose_provenance"]["detail"] == "visual"
-    assert out["stated"]["pose_provenance"]["poses"] == "ground-truth"  # recorded, but the config won
+    assert (
+        out["stated"]["pose_provenance"]["poses"] == "ground-truth"
+    )  # recorded, but the config won
 
 
 def test_refusal_text_names_the_bounds_source():
     ev = Evidence(
-        inliers=20, rmse_m=0.01, rmse_limit_m=0.05, sigma_h_m=0.01, sigma_z_m=0.01, extent_m=5.0,
-        planarity=0.5, tilt_deg=0.0, handedness=1.0, scale_error=0.0, scale_se=0.001,
-        near_misses=0, near_misses_expected=1.0, near_inner_m=0.1, near_outer_m=0.3,
-        predicted_error_m=0.5, distortion_error_m=0.45, predicted_rotation_deg=0.1,
-        distortion_rotation_deg=0.05, inliers_beyond_chance=20, required_inliers=8,
-        chance_inliers=4, num_associations=1000, competitor=3, distortion_fitted=True,
+        inliers=20,
+        rmse_m=0.01,
+        rmse_limit_m=0.05,
+        sigma_h_m=0.01,
+        sigma_z_m=0.01,
+        extent_m=5.0,
+        planarity=0.5,
+        tilt_deg=0.0,
+        handedness=1.0,
+        scale_error=0.0,
+        scale_se=0.001,
+        near_misses=0,
+        near_misses_expected=1.0,
+        near_inner_m=0.1,
+        near_outer_m=0.3,
+        predicted_error_m=0.5,
+        distortion_error_m=0.45,
+        predicted_rotation_deg=0.1,
+        distortion_rotation_deg=0.05,
+        inliers_beyond_chance=20,
+        required_inliers=8,
+        chance_inliers=4,
+        num_associations=1000,
+        competitor=3,
+        distortion_fitted=True,
         odometry_bounds="no odometry bounds: fitted; the map's pose provenance is odometry visual",
     )
     (pe,) = [c for c in verify(ev, LocalizationConfig()) if c.name == "predicted_error"]
@@ -190,7 +220,9 @@ def test_cli_names_the_source_and_precedence(tmp_path, rng, capsys):
     assert main(["localize", str(ref_p), str(veh_p)]) == 0
     text = capsys.readouterr().out.replace("\n", " ")
     assert "odometry bounds: 0 (rigid), from the map's pose provenance: ground truth" in text
-    assert main(["localize", str(ref_p), str(veh_p), "--odometry-scale-error", "0.01", "--json"]) == 0
+    assert (
+        main(["localize", str(ref_p), str(veh_p), "--odometry-scale-error", "0.01", "--json"]) == 0
+    )
     d = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert d["odometry_bounds"]["source"] == "stated"
     assert d["odometry_bounds"]["scale_error"] == 0.01

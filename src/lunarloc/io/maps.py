@@ -913,7 +913,9 @@ def save_traverse(path: str | Path, rows, pose_provenance: PoseProvenance) -> in
             if not (np.all(np.isfinite(xyz)) and np.all(np.isfinite(pts))):
                 raise InputError(f"frame {frame}: the rover pose or a detection is not finite")
             x, y, z = (float(v) for v in xyz)
-            w.writerow([int(frame), repr(x), repr(y), repr(z), len(pts), _format_boulders(pts), pose])
+            w.writerow(
+                [int(frame), repr(x), repr(y), repr(z), len(pts), _format_boulders(pts), pose]
+            )
             n += 1
     return n
 

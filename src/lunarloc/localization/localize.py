@@ -58,7 +58,7 @@ from lunarloc.localization.register import (
     _residuals,
     rmse_limit,
 )
-from lunarloc.localization.provenance import resolve_odometry_bounds
+from lunarloc.localization.provenance import OdometryBoundsOrigin, resolve_odometry_bounds
 from lunarloc.localization.result import LocalizationResult, _nan_T
 from lunarloc.localization.search import (
     _competitor_3d,
@@ -135,8 +135,7 @@ def localize(
     # 1. the maps and the settings for them (a map without heights: 2D + yaw; the odometry bounds:
     # stated, else from the vehicle map's pose provenance, else the prior)
     reference, vehicle, cfg, bounds = _prepare(reference, vehicle, config)
-    P = _Problem(reference, vehicle, cfg, timings={})
-    P.bounds = bounds
+    P = _Problem(reference, vehicle, cfg, timings={}, bounds=bounds)
     # 2. all-to-all putative associations, and the inliers chance alone would give
     P.associate()
     if P.num_associations == 0:
@@ -226,9 +225,15 @@ class _Problem:
     """One localize() call's state, step by step (each step one method)."""
 
     def __init__(
-        self, reference: LandmarkMap, vehicle: LandmarkMap, cfg: LocalizationConfig, timings: dict
+        self,
+        reference: LandmarkMap,
+        vehicle: LandmarkMap,
+        cfg: LocalizationConfig,
+        timings: dict,
+        bounds: OdometryBoundsOrigin,
     ):
         self.reference, self.vehicle, self.cfg, self.timings = reference, vehicle, cfg, timings
+        self.bounds = bounds  # where the odometry bounds in cfg came from
         self.Pr, self.Pv = reference.positions_xyz, vehicle.positions_xyz
         self.sigma_h, self.sigma_z = combined_sigma(reference, vehicle, cfg)
         self.built_from_detections = sum(

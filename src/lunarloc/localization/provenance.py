@@ -74,7 +74,11 @@ def resolve_odometry_bounds(
     if config.odometry_bounds_stated:
         s, d = config.odometry_scale_error, config.odometry_heading_drift_deg_per_m
         return config, OdometryBoundsOrigin(
-            STATED, s, d, prov, f"odometry bounds: {_bounds_text(s, d)}, stated in the configuration"
+            STATED,
+            s,
+            d,
+            prov,
+            f"odometry bounds: {_bounds_text(s, d)}, stated in the configuration",
         )
     if prov is not None and prov.rigid:
         cfg = replace(config, odometry_scale_error=0.0, odometry_heading_drift_deg_per_m=0.0)
@@ -98,4 +102,6 @@ def resolve_odometry_bounds(
         if prov is None
         else f"the map's pose provenance is {prov.describe()}"
     )
-    return config, OdometryBoundsOrigin(PRIOR, None, None, prov, f"no odometry bounds: {how}; {why}")
+    return config, OdometryBoundsOrigin(
+        PRIOR, None, None, prov, f"no odometry bounds: {how}; {why}"
+    )
