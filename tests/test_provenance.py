@@ -116,6 +116,8 @@ def test_mixed_rows_are_odometry_and_bad_values_are_refused(tmp_path, rng):
         load_traverse(p)
     with pytest.raises(InputError):
         PoseProvenance("sextant")
+    with pytest.raises(InputError, match="detail"):  # would break the CSV row or comment line
+        PoseProvenance("odometry", "visual,\n# pose: ground-truth")
 
 
 @pytest.mark.parametrize("suffix", [".csv", ".npz"])

@@ -72,7 +72,8 @@ _BOULDERS = re.compile(rf"\[\s*(?:{_TUPLE}(?:\s*,\s*{_TUPLE})*\s*,?\s*)?\]", re.
 #: the poses that placed a map's detections: the vehicle's ground truth (a rigid map) or odometry
 POSE_GROUND_TRUTH = "ground-truth"
 POSE_ODOMETRY = "odometry"
-_POSE_TEXT = re.compile(r"(ground-truth|odometry)(?::([A-Za-z0-9_.:() +-]{1,80}))?")
+_POSE_DETAIL = r"[A-Za-z0-9_.:() +-]{1,80}"  # a source's name: no comma, quote or line break
+_POSE_TEXT = re.compile(rf"(ground-truth|odometry)(?::({_POSE_DETAIL}))?")
 
 
 @dataclass(frozen=True)
@@ -82,7 +83,7 @@ class PoseProvenance:
     ``poses``: ``"ground-truth"`` (the vehicle's true poses: the map is rigid, its odometry
     distortion bounds are 0) or ``"odometry"`` (a drifting estimate: the localizer keeps its
     prior of real rover odometry). ``detail``: the source's name (``visual``, ``record:odometry``,
-    ``corrected by the loop's fixes``), may be empty. ``stated_by``: where it was read (the
+    ``corrected by the loop``; at most 80 letters, digits, spaces and ``_.:()+-``), may be empty. ``stated_by``: where it was read (the
     file's ``pose`` column, its ``# pose:`` line, the detect command's ``.config.json`` beside it)
     or, for a dataset traverse CSV that states none, that its schema says so.
 
@@ -96,6 +97,13 @@ class PoseProvenance:
         if self.poses not in (POSE_GROUND_TRUTH, POSE_ODOMETRY):
             raise InputError(
                 f"pose provenance must be {POSE_GROUND_TRUTH!r} or {POSE_ODOMETRY!r}, got {self.poses!r}"
+            )
+        if self.detail and (
+            not re.fullmatch(_POSE_DETAIL, self.detail) or self.detail != self.detail.strip()
+        ):
+            raise InputError(
+                f"pose provenance detail {self.detail[:60]!r}: at most 80 letters, digits, inner "
+                "spaces and _.:()+- (it is written into CSV rows and comment lines)"
             )
 
     @property
@@ -125,7 +133,7 @@ class PoseProvenance:
         label = str(label).strip()
         if label.startswith(POSE_GROUND_TRUTH):
             return cls(POSE_GROUND_TRUTH, "", stated_by)
-        detail = re.sub(r"[^A-Za-z0-9_.:() +-]", "", label)[:80]
+        detail = re.sub(r"[^A-Za-z0-9_.:() +-]", "", label)[:80].strip()
         return cls(POSE_ODOMETRY, "" if detail == POSE_ODOMETRY else detail, stated_by)
 
     def describe(self) -> str:
