@@ -6,13 +6,17 @@ the maps stated rigid) and search (full, indexed, auto). The families and the ju
 With ``--data`` (the lunarloc-data folder) it also runs the real families
 (:data:`lunarloc.pipeline.calibration.REAL_FAMILIES`: the 136 pairs of the 17 traverses under
 random rigid motions, built from the ground-truth poses or by a distorting odometry), with the
-CLI's default configuration (what ``lunarloc localize A B`` does with two traverse CSVs) and with
-the odometry's bounds stated as they are, judged at the rover (NEES of its position, 3 dof); and the
-paper's five pairs among them.
+CLI's default configuration (what ``lunarloc localize A B`` does with the files: no bounds stated,
+the vehicle file's pose provenance: the dataset's schema for the ground-truth-posed maps, rigid;
+``odometry`` as lunarloc writes it for the distorted ones, the prior) and with the odometry's
+bounds stated as they are, judged at the rover (NEES of its position, 3 dof); and the paper's five
+pairs among them. ``--real-configs`` also takes "no provenance" (a file that says nothing: the
+prior) and "claimed rigid" (every file says ground truth, the distorted ones falsely).
 
 Usage: python benchmarks/calibration.py [--per-family 8] [--families lattice,motifs]
        [--searches full,indexed,auto] [--configs "cli default,stated rigid"]
-       [--data ../shared/data/lunarloc-data] [--real-families all] [--out calibration.json]
+       [--data ../shared/data/lunarloc-data] [--real-families all]
+       [--real-configs "cli default,stated bounds,no provenance,claimed rigid"] [--out calibration.json]
 """
 
 from __future__ import annotations
@@ -41,8 +45,9 @@ from lunarloc.pipeline.calibration import (
 
 
 def real_pairs(outcomes) -> dict:
-    """The 136 real pairs under the CLI's default (no odometry bounds; what ``lunarloc localize A B``
-    does with two traverse CSVs), and the paper's five among them, from :func:`run_real`'s outcomes."""
+    """The 136 real pairs under the CLI's default (what ``lunarloc localize A B`` does with two dataset
+    traverse CSVs: no bounds stated, the files' ground-truth pose provenance), and the paper's five
+    among them, from :func:`run_real`'s outcomes."""
     from lunarloc.pipeline.evaluation import PAPER_PAIRS
 
     rs = [o for o in outcomes if o.family == "real pairs" and o.config == "cli default"]

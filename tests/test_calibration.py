@@ -4,6 +4,7 @@ search included. The whole benchmark is benchmarks/calibration.py."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -14,6 +15,8 @@ from lunarloc.pipeline.calibration import (
     FAMILIES,
     NEES_68,
     NEES_997,
+    RIGHT_DEG,
+    RIGHT_M,
     Outcome,
     make_cases,
     nees_at,
@@ -150,3 +153,92 @@ def test_real_paper_pairs_stated_rigid_claimed_with_a_consistent_covariance(real
         if o.config == "stated bounds":
             assert o.claimed and o.right, (o.params, o.reason)
             assert math.isfinite(o.nees) and o.nees < NEES_997, (o.params, o.nees)
+
+
+# ---------------------------------------------------------------- the CLI's default path, through files
+
+
+def _cli_json(capsys, *args):
+    from lunarloc.cli import main
+
+    assert main(["localize", *map(str, args), "--json"]) == 0
+    return json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+
+
+def test_plain_cli_claims_the_paper_pairs_on_the_dataset_files(real_data, capsys):
+    """`lunarloc localize traverse_A.csv traverse_B.csv`, no options, on the dataset's own files:
+    the schema states ground-truth poses, so the maps are judged rigid, and every paper pair is
+    claimed right (both files in the world frame: the truth is the identity), the source named."""
+    from lunarloc.core.geometry import rotation_angle
+    from lunarloc.io.maps import load_traverse
+
+    for a, b in PAPER:
+        d = _cli_json(
+            capsys, real_data / "csv" / f"traverse_{a}.csv", real_data / "csv" / f"traverse_{b}.csv"
+        )
+        assert d["success"], f"{a}-{b}: {d['reason']}"
+        assert d["odometry_bounds"]["source"] == "pose provenance", (a, b)
+        T = np.array(d["T_ref_veh"])
+        last = load_traverse(real_data / "csv" / f"traverse_{b}.csv").rover_xyz[-1]
+        err = np.linalg.norm(T[:3, :3] @ last + T[:3, 3] - last)
+        assert err < RIGHT_M and math.degrees(rotation_angle(T[:3, :3])) < RIGHT_DEG, (a, b, err)
+
+
+def _write_bent_traverse(path, trav, drift_deg_per_m, window_m, rng, provenance):
+    """Traverse `trav` as drifting odometry places it (the last `window_m` metres, in a random
+    frame), written by lunarloc's traverse writer with `provenance`. Returns (T_true world <- file
+    frame, exact at the last frame; the rover's last position in the file's frame)."""
+    from lunarloc.core.geometry import invert_transform, transform_points
+    from lunarloc.io.maps import save_traverse
+    from lunarloc.pipeline.evaluation import (
+        DriftModel,
+        drifted_detections,
+        random_vehicle_transform,
+    )
+
+    det, rover, T_odo_world = drifted_detections(trav, DriftModel(drift_deg_per_m, 0.0))
+    travelled = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(trav.rover_xyz, axis=0), axis=1))]
+    first = trav.frames[np.searchsorted(travelled, travelled[-1] - window_m)]
+    T_veh_odo = random_vehicle_transform(rng)
+    det_v, rover_v = transform_points(T_veh_odo, det), transform_points(T_veh_odo, rover)
+    rows = [
+        (int(f), rover_v[k], det_v[trav.detection_frame == f])
+        for k, f in enumerate(trav.frames)
+        if f >= first
+    ]
+    save_traverse(path, rows, provenance)
+    return invert_transform(T_veh_odo @ T_odo_world), rover_v[-1]
+
+
+def test_cli_default_judges_an_odometry_written_bent_file_with_the_prior(
+    real_data, tmp_path, capsys
+):
+    """A traverse bent by 0.1 deg/m of heading drift (7-15, claimed 21 cm off by a narrower
+    bend), written by lunarloc from odometry poses: through the plain CLI its file's provenance
+    keeps the odometry prior, and no wrong pose is claimed. The same file falsely saying ground
+    truth is judged rigid: its scale and near-miss checks still run."""
+    from lunarloc.core.geometry import transform_points
+    from lunarloc.io.maps import PoseProvenance, load_traverse
+
+    trav = load_traverse(real_data / "csv" / "traverse_15.csv")
+    ref = real_data / "csv" / "traverse_7.csv"
+    for poses in ("odometry", "ground-truth"):
+        p = tmp_path / f"bent_{poses}.csv"
+        T_true, last = _write_bent_traverse(
+            p, trav, 0.1, 30.0, np.random.default_rng([0, 7, 15]), PoseProvenance(poses, "test")
+        )
+        d = _cli_json(capsys, ref, p)
+        names = [c["name"] for c in d["checks"]]
+        if poses == "odometry":
+            assert d["odometry_bounds"]["source"] == "prior"
+            assert "no odometry bounds" in d["odometry_bounds"]["text"]
+        else:
+            assert d["odometry_bounds"]["source"] == "pose provenance"
+            if "predicted_error" in names:  # it reached verification: every check ran
+                assert {"scale", "near_misses"} <= set(names)
+        if d["success"]:
+            T = np.array(d["T_ref_veh"])
+            err = np.linalg.norm(
+                transform_points(T, last[None]) - transform_points(T_true, last[None])
+            )
+            assert poses != "odometry" or err < RIGHT_M, f"claimed {err:.3f} m off with the prior"

@@ -141,7 +141,9 @@ def test_localize_imports_only_its_module(tmp_path):
 def test_localize_traverse_vehicle_uses_its_path(tmp_path, rng, capsys):
     """A traverse CSV as the vehicle: the localizer is given its path (the pose judged at the
     traverse's last position; a fitted bend places each landmark where it was seen from),
-    as the pair benchmark does; a landmark map as the vehicle gets the straight stand-in."""
+    as the pair benchmark does; a landmark map as the vehicle gets the straight stand-in. The
+    traverse says its poses were odometry (a 'pose' column, as lunarloc's writers state it), so no
+    bounds are taken from it and the bend is fitted; the map made from it keeps that provenance."""
     from lunarloc.core.geometry import make_transform, transform_points
 
     rocks = np.c_[rng.uniform(0, 20, 70), rng.uniform(-4, 4, 70), rng.uniform(-0.05, 0.05, 70)]
@@ -150,14 +152,14 @@ def test_localize_traverse_vehicle_uses_its_path(tmp_path, rng, capsys):
         np.array([[c, -s_, 0], [s_, c, 0], [0, 0, 1]]), np.array([3.0, -2.0, 0.1])
     )
     ref_p = save_map(LandmarkMap(transform_points(T_ref_veh, rocks)), tmp_path / "ref.csv")
-    lines = ["frame,x,y,z,detections,boulders"]
+    lines = ["frame,x,y,z,detections,boulders,pose"]
     for f, x in enumerate(
         np.arange(0.0, 20.01, 0.25)
     ):  # the rover drives along x, seeing rocks within 4 m
         near = rocks[np.linalg.norm(rocks[:, :2] - [x, 0.0], axis=1) < 4.0]
         det = near + rng.normal(0, 0.005, near.shape)
         b = "[" + ", ".join(f"({p:.6f}, {q:.6f}, {r:.6f})" for p, q, r in det) + "]"
-        lines.append(f'{f},{x:.3f},0,0,{len(det)},"{b}"')
+        lines.append(f'{f},{x:.3f},0,0,{len(det)},"{b}",odometry:visual')
     t_veh = tmp_path / "traverse_veh.csv"
     t_veh.write_text("\n".join(lines) + "\n")
     assert main(["localize", str(ref_p), str(t_veh), "--json"]) == 0
@@ -166,8 +168,12 @@ def test_localize_traverse_vehicle_uses_its_path(tmp_path, rng, capsys):
     assert np.allclose(np.array(d["T_ref_veh"]), T_ref_veh, atol=0.02)
     fit = d["distortion_fit"]
     assert fit["path_given"] is True and fit["placement"] == "sightings"
+    assert d["odometry_bounds"]["source"] == "prior"
+    assert d["odometry_bounds"]["pose_provenance"]["detail"] == "visual"
     assert main(["map", str(t_veh), "-o", str(tmp_path / "veh.csv")]) == 0
     capsys.readouterr()
     assert main(["localize", str(ref_p), str(tmp_path / "veh.csv"), "--json"]) == 0
-    fit = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["distortion_fit"]
+    d = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    fit = d["distortion_fit"]
     assert fit["path_given"] is False and fit["placement"] == "straight stand-in"
+    assert d["odometry_bounds"]["pose_provenance"]["poses"] == "odometry"

@@ -283,6 +283,8 @@ def test_cli_detect_lander_xy_drops_detections_on_the_lander(tmp_path):
     arch = str(tmp_path / "traverse_0.lac")
     assert main(["detect", arch, "-o", str(tmp_path / "a.csv")]) == 0
     all_xyz = load_traverse(tmp_path / "a.csv").detections_xyz
+    prov = load_traverse(tmp_path / "a.csv").pose_provenance  # --pose ground-truth, the default
+    assert prov.rigid and prov.stated_by == "the file's pose column"
     assert len(all_xyz) > 0
     xy = all_xyz[0, :2]
     assert (

@@ -404,6 +404,14 @@ def test_detect_with_odometry(bare_image_archive, tmp_path, capsys):
     csv = tmp_path / "det.csv"
     assert main(["detect", str(bare), "-o", str(csv), "--odometry", "imu"]) == 0
     assert json.loads(csv.with_suffix(".csv.config.json").read_text())["info"]["pose"] == "imu"
+    from lunarloc.io.maps import load_traverse
+
+    prov = load_traverse(csv).pose_provenance  # the file says which poses placed it
+    assert (prov.poses, prov.detail, prov.stated_by) == (
+        "odometry",
+        "imu",
+        "the file's pose column",
+    )
     assert "placed with imu poses" in capsys.readouterr().out
     assert main(["detect", str(bare), "-o", str(csv), "--odometry", "wheels"]) == 2
 

@@ -52,6 +52,10 @@ def test_outputs_are_written(loop_run, tmp_path):
         "summary.json",
     ):
         assert (tmp_path / name).is_file(), name
+    from lunarloc.io.maps import load_map
+
+    for name in ("vehicle_map.csv", "vehicle_map_odometry.csv"):  # placed by odometry: they say so
+        assert load_map(tmp_path / name).pose_provenance.poses == "odometry", name
     t, poses = read_tum(tmp_path / "trajectory.tum")
     assert len(t) == len(loop_run.frames) and poses.shape[1] == 6
     line = (tmp_path / "trajectory.tum").read_text().splitlines()[0].split()

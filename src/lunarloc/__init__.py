@@ -13,6 +13,9 @@ The one-call API (what ``lunarloc localize REFERENCE VEHICLE`` does)::
     result = localize(load_reference("traverse_3.csv"), veh.map, query_xyz=veh.query_xyz, path_xyz=veh.path_xyz)
     if result.success:
         print(result.T_ref_veh)
+
+``veh.map`` carries the file's pose provenance (a dataset traverse CSV: ground-truth poses, judged
+rigid unless odometry bounds are stated); ``result.odometry_bounds`` says where the bounds came from.
 """
 
 import logging
@@ -28,6 +31,7 @@ from lunarloc.localization.localize import localize  # noqa: E402
 from lunarloc.io.maps import (  # noqa: E402
     AggregationConfig,
     LandmarkMap,
+    PoseProvenance,
     VehicleInput,
     load_map,
     load_traverse,
@@ -40,6 +44,7 @@ __version__ = "0.1.0"
 __all__ = [
     "AggregationConfig",
     "LandmarkMap",
+    "PoseProvenance",
     "LocalizationConfig",
     "LocalizationResult",
     "LunarLocError",

@@ -151,7 +151,9 @@ def localize_cmd(
     odometry_scale_error: Optional[float] = typer.Option(
         None,
         help="Bound on the vehicle map's relative scale error (its odometry's spec, 0.03 = 3 %; 0: a rigid "
-        "map). Without either bound the distortion is fitted from the maps, under a prior of real rover odometry "
+        "map). Stated bounds win; without them a file that says its poses were the ground truth (a LunarLoc "
+        "dataset traverse CSV, or a 'pose' column / '# pose:' line saying ground-truth) is judged rigid, and "
+        "any other map's distortion is fitted from the maps, under a prior of real rover odometry "
         "(0.012 deg/m, 0.3 %; docs/verification.md) when the vehicle is a traverse CSV (its path known).",
     ),
     odometry_drift: Optional[float] = typer.Option(
@@ -246,10 +248,12 @@ def localize_cmd(
             f"predicted 1-sigma error {res.predicted_error_m * 100:.1f} cm, {res.predicted_rotation_deg:.2f} deg; "
             f"near misses {res.near_misses} (chance {res.near_misses_expected:.1f})"
         )
+    if res.odometry_bounds:
+        con.print(res.odometry_bounds["text"], markup=False)
     if res.distortion_fit:
         f = res.distortion_fit
         con.print(
-            f"no odometry bounds stated: fitted heading drift {math.degrees(f['drift_rad_per_m']):+.3f} "
+            f"fitted heading drift {math.degrees(f['drift_rad_per_m']):+.3f} "
             f"+- {math.degrees(f['drift_se']):.3f} deg/m, scale error {f['scale_error'] * 100:+.2f} "
             f"+- {f['scale_se'] * 100:.2f} % ({'along the given path' if f['path_given'] else 'path unknown: straight stand-in'}"
             + (

@@ -10,10 +10,12 @@ File formats
   comment line ``# frame: NAME`` keeps the frame name. Files without the optional columns load.
 * Binary: NumPy ``.npz`` with arrays ``positions_xyz``, optional ``sizes``,
   ``sightings``, ``sigma_xy_m``, ``sigma_z_m``, ``sighting_arc_m``, ``sighting_arc_min_m`` and
-  ``sighting_arc_max_m``, and a 0-d string ``frame``.
+  ``sighting_arc_max_m``, and 0-d strings ``frame`` and ``pose_provenance``.
 * Traverse CSV (the LunarLoc dataset, ``mit-acl/lunarloc-data``):
   ``frame,x,y,z,detections,boulders`` where ``boulders`` is a Python-literal list
-  of ``(x, y, z)`` rock centroids in the map frame.
+  of ``(x, y, z)`` rock centroids in the map frame. The dataset's files are posed by ground truth
+  (its README); lunarloc's writers (:func:`save_traverse`) add a seventh column ``pose`` (the
+  pose provenance, :class:`PoseProvenance`), which readers by column name (pandas) ignore.
 """
 
 from __future__ import annotations
@@ -48,9 +50,13 @@ __all__ = [
     "NO_HEIGHT_SIGMA_M",
     "path_arc_length_m",
     "detection_arcs_m",
+    "PoseProvenance",
+    "save_traverse",
 ]
 
 TRAVERSE_COLUMNS = ("frame", "x", "y", "z", "detections", "boulders")
+#: the optional seventh traverse column: each row's pose provenance (:class:`PoseProvenance`)
+POSE_COLUMN = "pose"
 # The boulders field: a Python-literal list of 3-tuples of plain decimal numbers, nothing else
 # (no names, calls, dicts, nesting, underscores, nan/inf). Checked as a whole by one regular
 # expression (no recursion, linear time), then the numbers are read.
@@ -59,6 +65,86 @@ _VAL = rf"(?:{_NUM}|[-+]?(?:nan|inf))"  # nan/inf are read, then refused as non-
 _NUMBER = re.compile(_VAL, re.IGNORECASE)
 _TUPLE = rf"\(\s*{_VAL}\s*,\s*{_VAL}\s*,\s*{_VAL}\s*,?\s*\)"
 _BOULDERS = re.compile(rf"\[\s*(?:{_TUPLE}(?:\s*,\s*{_TUPLE})*\s*,?\s*)?\]", re.IGNORECASE)
+
+
+# --------------------------------------------------------------------------- pose provenance
+
+#: the poses that placed a map's detections: the vehicle's ground truth (a rigid map) or odometry
+POSE_GROUND_TRUTH = "ground-truth"
+POSE_ODOMETRY = "odometry"
+_POSE_DETAIL = r"[A-Za-z0-9_.:() +-]{1,80}"  # a source's name: no comma, quote or line break
+_POSE_TEXT = re.compile(rf"(ground-truth|odometry)(?::({_POSE_DETAIL}))?")
+
+
+@dataclass(frozen=True)
+class PoseProvenance:
+    """Which poses placed a vehicle map's detections, and who says so.
+
+    ``poses``: ``"ground-truth"`` (the vehicle's true poses: the map is rigid, its odometry
+    distortion bounds are 0) or ``"odometry"`` (a drifting estimate: the localizer keeps its
+    prior of real rover odometry). ``detail``: the source's name (``visual``, ``record:odometry``,
+    ``corrected by the loop``; at most 80 letters, digits, spaces and ``_.:()+-``), may be empty. ``stated_by``: where it was read (the
+    file's ``pose`` column, its ``# pose:`` line, the detect command's ``.config.json`` beside it)
+    or, for a dataset traverse CSV that states none, that its schema says so.
+
+    In a file it is written as ``POSES`` or ``POSES:DETAIL`` (:meth:`to_text`)."""
+
+    poses: str
+    detail: str = ""
+    stated_by: str = ""
+
+    def __post_init__(self) -> None:
+        if self.poses not in (POSE_GROUND_TRUTH, POSE_ODOMETRY):
+            raise InputError(
+                f"pose provenance must be {POSE_GROUND_TRUTH!r} or {POSE_ODOMETRY!r}, got {self.poses!r}"
+            )
+        if self.detail and (
+            not re.fullmatch(_POSE_DETAIL, self.detail) or self.detail != self.detail.strip()
+        ):
+            raise InputError(
+                f"pose provenance detail {self.detail[:60]!r}: at most 80 letters, digits, inner "
+                "spaces and _.:()+- (it is written into CSV rows and comment lines)"
+            )
+
+    @property
+    def rigid(self) -> bool:
+        """Whether the poses were the ground truth (the map is rigid)."""
+        return self.poses == POSE_GROUND_TRUTH
+
+    def to_text(self) -> str:
+        """``ground-truth`` or ``odometry[:DETAIL]``: what a file holds."""
+        return self.poses + (f":{self.detail}" if self.detail else "")
+
+    @classmethod
+    def parse(cls, text: str, stated_by: str = "") -> "PoseProvenance":
+        """The provenance written as :meth:`to_text` gives it; InputError for anything else."""
+        m = _POSE_TEXT.fullmatch(text.strip())
+        if not m:
+            raise InputError(
+                f"pose provenance must be 'ground-truth' or 'odometry[:SOURCE]', got {text.strip()[:60]!r}"
+            )
+        return cls(m.group(1), m.group(2) or "", stated_by)
+
+    @classmethod
+    def from_label(cls, label: str, stated_by: str = "") -> "PoseProvenance":
+        """From the name of the poses' source as lunarloc's detect and odometry sources give it
+        (``ground-truth``, ``ground-truth (evaluation only)``, ``odometry``, ``visual``,
+        ``record:orbslam``): ground truth for ``ground-truth...``, else odometry from that source."""
+        label = str(label).strip()
+        if label.startswith(POSE_GROUND_TRUTH):
+            return cls(POSE_GROUND_TRUTH, "", stated_by)
+        detail = re.sub(r"[^A-Za-z0-9_.:() +-]", "", label)[:80].strip()
+        return cls(POSE_ODOMETRY, "" if detail == POSE_ODOMETRY else detail, stated_by)
+
+    def describe(self) -> str:
+        """One phrase: ``ground truth (the file's pose column)``."""
+        what = "ground truth" if self.rigid else "odometry"
+        if self.detail:
+            what += f" {self.detail}"
+        return what + (f" ({self.stated_by})" if self.stated_by else "")
+
+    def to_dict(self) -> dict:
+        return {"poses": self.poses, "detail": self.detail, "stated_by": self.stated_by}
 
 
 ROCK_COLUMNS = [
@@ -113,6 +199,11 @@ class LandmarkMap:
         (:func:`lunarloc.localization.bending.bending_fit`) places each landmark there along the path it is
         given (``localize(path_xyz=)``, the same path from the same first pose); a wide span
         (min to max) marks a landmark the path passed more than once.
+    pose_provenance : optional :class:`PoseProvenance`, which poses placed the landmarks (read
+        from the file by :func:`load_map` / :func:`load_vehicle`). Ground truth makes
+        :func:`lunarloc.localize` judge the map rigid where no odometry bounds are stated; None
+        (unknown) or odometry keep its prior of real rover odometry. Kept by :meth:`subset` and
+        :meth:`transformed` (a rigid motion keeps a map rigid).
     """
 
     positions_xyz: np.ndarray
@@ -124,8 +215,15 @@ class LandmarkMap:
     sighting_arc_m: np.ndarray | None = None
     sighting_arc_min_m: np.ndarray | None = None
     sighting_arc_max_m: np.ndarray | None = None
+    pose_provenance: PoseProvenance | None = None
 
     def __post_init__(self) -> None:
+        if self.pose_provenance is not None and not isinstance(
+            self.pose_provenance, PoseProvenance
+        ):
+            raise InputError(
+                f"pose_provenance must be a PoseProvenance or None, got {type(self.pose_provenance).__name__}"
+            )
         self.positions_xyz = as_points(self.positions_xyz, "landmark positions")
         _check_coordinates(self.positions_xyz, "landmark positions")
         n = len(self.positions_xyz)
@@ -186,6 +284,7 @@ class LandmarkMap:
             None if self.sigma_xy_m is None else self.sigma_xy_m[idx],
             None if self.sigma_z_m is None else self.sigma_z_m[idx],
             **self._arcs(idx),
+            pose_provenance=self.pose_provenance,
         )
 
     def transformed(self, T_new_frame: np.ndarray, frame: str | None = None) -> "LandmarkMap":
@@ -198,6 +297,7 @@ class LandmarkMap:
             self.sigma_xy_m,
             self.sigma_z_m,
             **self._arcs(),
+            pose_provenance=self.pose_provenance,
         )
 
 
@@ -221,6 +321,7 @@ class Traverse:
     detections_xyz : (D, 3) all rock detections (map frame, m).
     detection_frame : (D,) frame number of each detection.
     name : usually the file stem.
+    pose_provenance : which poses placed the detections (:class:`PoseProvenance`; None: unknown).
     """
 
     frames: np.ndarray
@@ -228,6 +329,7 @@ class Traverse:
     detections_xyz: np.ndarray
     detection_frame: np.ndarray
     name: str = "traverse"
+    pose_provenance: PoseProvenance | None = None
 
     @property
     def path_length(self) -> float:
@@ -267,11 +369,49 @@ def load_traverse(path: str | Path) -> Traverse:
             fh, strict=True
         )  # strict: a quote left open at the end of the file is an error
         try:
-            return _read_traverse_rows(path, reader)
+            trav = _read_traverse_rows(path, reader)
         except UnicodeDecodeError as exc:
             raise _inputs.decode_error(path, exc, reader.line_num + 1) from None
         except csv.Error as exc:
             raise _inputs.csv_error(path, reader.line_num, exc) from None
+    if trav.pose_provenance is None:
+        trav.pose_provenance = _sidecar_provenance(path) or DATASET_PROVENANCE
+    return trav
+
+
+#: a traverse CSV that states no provenance: the LunarLoc dataset's schema places its detections
+#: with the ground-truth pose (its README: "already in the WORLD frame (ground-truth pose applied)")
+DATASET_PROVENANCE = PoseProvenance(
+    POSE_GROUND_TRUTH,
+    "",
+    "the dataset's traverse schema; the file states none",
+)
+#: the detect command's configuration beside its traverse CSV (``OUTPUT.config.json``), whose
+#: ``info.pose`` named the poses before the ``pose`` column was written
+_SIDECAR_SUFFIX = ".config.json"
+_MAX_SIDECAR_BYTES = 16 * 1024**2
+
+
+def _sidecar_provenance(path: Path) -> PoseProvenance | None:
+    """The provenance in ``PATH.config.json`` (what ``lunarloc detect`` wrote beside a traverse CSV
+    before it wrote the ``pose`` column): ``info.pose`` ``ground-truth...`` or an odometry source's
+    name. None where there is no such file; an unreadable one, or one without ``info.pose``, says
+    odometry of an unknown source (the safe reading: the localizer keeps its prior)."""
+    import json
+
+    side = path.with_name(path.name + _SIDECAR_SUFFIX)
+    if not side.is_file():
+        return None
+    stated_by = f"{side.name} beside the file"
+    try:
+        _inputs.check_input_file(side, _MAX_SIDECAR_BYTES, "configuration JSON")
+        label = json.loads(side.read_text(encoding="utf-8"))["info"]["pose"]
+        if not isinstance(label, str):
+            raise TypeError("info.pose is not a string")
+    except (OSError, ValueError, KeyError, TypeError, LimitError, FileFormatError) as exc:
+        log.warning("%s: no pose provenance read (%s); taken as odometry", side, exc)
+        return PoseProvenance(POSE_ODOMETRY, "unknown", stated_by + ", unreadable")
+    return PoseProvenance.from_label(label, stated_by)
 
 
 def _read_traverse_rows(path: Path, reader) -> Traverse:
@@ -293,12 +433,24 @@ def _read_traverse_rows(path: Path, reader) -> Traverse:
         raise FileFormatError(
             f"{path}:1: expected traverse columns {','.join(TRAVERSE_COLUMNS)}, got {','.join(header)}"
         )
+    if header[6:] not in ([], [POSE_COLUMN]):
+        raise FileFormatError(
+            f"{path}:1: unexpected column(s) after boulders: {','.join(header[6:])} "
+            f"(a traverse CSV may add '{POSE_COLUMN}' only)"
+        )
+    width = len(header)
+    poses: dict[str, PoseProvenance] = {}  # each distinct pose text, parsed once
     for row in reader:
         line = reader.line_num
         if not row or (len(row) == 1 and not row[0].strip()):
             continue
-        if len(row) != 6:
-            raise FileFormatError(f"{path}:{line}: expected 6 fields, got {len(row)}")
+        if len(row) != width:
+            raise FileFormatError(f"{path}:{line}: expected {width} fields, got {len(row)}")
+        if width == 7 and row[6] not in poses:
+            try:
+                poses[row[6]] = PoseProvenance.parse(row[6], f"the file's {POSE_COLUMN} column")
+            except InputError as exc:
+                raise FileFormatError(f"{path}:{line}: {exc}") from None
         if len(frames) >= _inputs.MAX_CSV_ROWS:
             raise LimitError(f"{path}:{line}: more than {_inputs.MAX_CSV_ROWS:,} data rows")
         try:
@@ -341,7 +493,18 @@ def _read_traverse_rows(path: Path, reader) -> Traverse:
         detections_xyz=np.frombuffer(dets, dtype=np.float64).reshape(-1, 3),
         detection_frame=np.frombuffer(det_frame, dtype=np.int64),
         name=path.stem,
+        pose_provenance=_rows_provenance(poses.values()),
     )
+
+
+def _rows_provenance(found) -> PoseProvenance | None:
+    """The provenance of a traverse from its rows': ground truth only if every row says so
+    (any odometry row: odometry, the first such); None when the file has no pose column."""
+    found = list(found)
+    if not found:
+        return None
+    odo = [p for p in found if not p.rigid]
+    return odo[0] if odo else found[0]
 
 
 _PLAIN_FLOAT = re.compile(rf"\s*(?:{_NUM}|[-+]?(?:nan|inf|infinity))\s*", re.IGNORECASE)
@@ -500,13 +663,15 @@ def traverse_map(traverse: Traverse, config: AggregationConfig | None = None) ->
     """Landmark map of a traverse's detections (frame name = traverse name), with where along
     the traverse's path each landmark was seen from (arc length from its first frame)."""
     arcs = detection_arcs_m(traverse.rover_xyz, traverse.frames, traverse.detection_frame)
-    return aggregate_detections(
+    lm = aggregate_detections(
         traverse.detections_xyz,
         traverse.detection_frame,
         config,
         frame=traverse.name,
         detection_arc_m=arcs,
     )
+    lm.pose_provenance = traverse.pose_provenance
+    return lm
 
 
 __all__.append("traverse_map")
@@ -528,6 +693,8 @@ def save_map(landmarks: LandmarkMap, path: str | Path) -> Path:
         for name in (*_SIGMA_COLUMNS.values(), *_ARC_COLUMNS.values()):
             if getattr(landmarks, name) is not None:
                 extra[name] = getattr(landmarks, name)
+        if landmarks.pose_provenance is not None:
+            extra["pose_provenance"] = np.array(landmarks.pose_provenance.to_text())
         from lunarloc.io.outputs import atomic_path
 
         with atomic_path(path) as tmp:
@@ -554,6 +721,8 @@ def save_map(landmarks: LandmarkMap, path: str | Path) -> Path:
 
     with atomic_open(path, "w", newline="") as fh:
         fh.write(f"# frame: {landmarks.frame}\n")
+        if landmarks.pose_provenance is not None:
+            fh.write(f"# pose: {landmarks.pose_provenance.to_text()}\n")
         fh.write(",".join(cols) + "\n")
         for row in table:
             fh.write(",".join(f"{v:.6f}" for v in row) + "\n")
@@ -624,9 +793,25 @@ def read_numeric_csv(
     return frame, header, np.frombuffer(values, dtype=np.float64).reshape(-1, len(header)).copy()
 
 
+def _map_csv_provenance(path: Path) -> PoseProvenance | None:
+    """The ``# pose: PROVENANCE`` line among a map CSV's leading comment lines (None: none)."""
+    with _inputs.open_text(path, what="landmark map CSV") as fh:
+        for k, line in enumerate(fh, start=1):
+            if not line.startswith("#") or k > 64:
+                return None
+            m = re.match(r"#\s*pose:\s*(.*)", line[:200])
+            if m:
+                try:
+                    return PoseProvenance.parse(m.group(1), "the file's pose line")
+                except InputError as exc:
+                    raise FileFormatError(f"{path}:{k}: {exc}") from None
+    return None
+
+
 def _load_map_csv(path: Path) -> LandmarkMap:
     frame, header, table = read_numeric_csv(path, ("x", "y", "z"), "landmark map CSV")
     idx = {name: header.index(name) for name in header}
+    provenance = _map_csv_provenance(path)
     try:
         return LandmarkMap(
             table[:, [idx["x"], idx["y"], idx["z"]]],
@@ -638,6 +823,7 @@ def _load_map_csv(path: Path) -> LandmarkMap:
                 for col, name in (*_SIGMA_COLUMNS.items(), *_ARC_COLUMNS.items())
                 if col in idx
             },
+            pose_provenance=provenance,
         )
     except InputError as exc:
         raise FileFormatError(f"{path}: {exc}") from None
@@ -666,12 +852,19 @@ class VehicleInput:
     ``query_xyz`` (1, 3), the rover's last position (where the pose will be used, so where
     its error is judged). Both None for a landmark map, whose path is not known.
     Pass them on: ``localize(ref, v.map, query_xyz=v.query_xyz, path_xyz=v.path_xyz)``.
+    The map carries the file's pose provenance (:attr:`pose_provenance`): a dataset traverse
+    CSV is posed by ground truth, so localize judges it rigid unless bounds are stated.
     """
 
     map: LandmarkMap
     path_xyz: np.ndarray | None = None
     query_xyz: np.ndarray | None = None
     source: str = "map"
+
+    @property
+    def pose_provenance(self) -> PoseProvenance | None:
+        """Which poses placed the map's detections, as the file says (None: it does not)."""
+        return self.map.pose_provenance
 
     def localize_kwargs(self) -> dict:
         """``{"query_xyz": ..., "path_xyz": ...}`` for :func:`lunarloc.localize`."""
@@ -701,6 +894,40 @@ def load_vehicle(path: str | Path, config: AggregationConfig | None = None) -> V
 __all__ += ["VehicleInput", "load_vehicle"]
 
 
+def _format_boulders(points: np.ndarray) -> str:
+    pts = np.asarray(points, dtype=float).reshape(-1, 3)
+    return "[" + ", ".join(f"({x!r}, {y!r}, {z!r})" for x, y, z in pts.tolist()) + "]"
+
+
+def save_traverse(path: str | Path, rows, pose_provenance: PoseProvenance) -> int:
+    """Write a traverse CSV in the LunarLoc dataset's schema plus the ``pose`` column: rows of
+    ``(frame, rover_xyz (3,), detections_xyz (N, 3))``, map frame, m. Every row states
+    `pose_provenance` (so a copy of any part of the file still says which poses placed it);
+    readers by column name (pandas, :func:`load_traverse`) read the six dataset columns as
+    before. Returns the number of rows; InputError for a non-finite pose (nothing is left
+    behind: the file is written atomically)."""
+    from lunarloc.io.outputs import atomic_open
+
+    if not isinstance(pose_provenance, PoseProvenance):
+        raise InputError("save_traverse needs the pose provenance (a PoseProvenance)")
+    pose = pose_provenance.to_text()
+    n = 0
+    with atomic_open(Path(path), "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow([*TRAVERSE_COLUMNS, POSE_COLUMN])
+        for frame, rover_xyz, det_xyz in rows:
+            xyz = np.asarray(rover_xyz, dtype=float).reshape(3)
+            pts = np.asarray(det_xyz, dtype=float).reshape(-1, 3)
+            if not (np.all(np.isfinite(xyz)) and np.all(np.isfinite(pts))):
+                raise InputError(f"frame {frame}: the rover pose or a detection is not finite")
+            x, y, z = (float(v) for v in xyz)
+            w.writerow(
+                [int(frame), repr(x), repr(y), repr(z), len(pts), _format_boulders(pts), pose]
+            )
+            n += 1
+    return n
+
+
 def _load_map_npz(path: Path) -> LandmarkMap:
     """A `.npz` landmark map, every array checked before it is allocated
     (:func:`lunarloc.io.inputs.load_npz_arrays`)."""
@@ -710,7 +937,7 @@ def _load_map_npz(path: Path) -> LandmarkMap:
             f"{path}: not a lunarloc .npz map (no 'positions_xyz' array; has {', '.join(z) or 'none'})"
         )
     for name, arr in z.items():
-        if name != "frame" and arr.dtype.kind not in "fiub":
+        if name not in ("frame", "pose_provenance") and arr.dtype.kind not in "fiub":
             raise FileFormatError(
                 f"{path}: array '{name}' holds {arr.dtype} values, expected numbers"
             )
@@ -719,6 +946,15 @@ def _load_map_npz(path: Path) -> LandmarkMap:
         raise FileFormatError(
             f"{path}: 'frame' must be a single string, got {frame.dtype} of shape {frame.shape}"
         )
+    pose = z.get("pose_provenance")
+    provenance = None
+    if pose is not None:
+        if pose.ndim != 0 or pose.dtype.kind != "U":
+            raise FileFormatError(f"{path}: 'pose_provenance' must be a single string")
+        try:
+            provenance = PoseProvenance.parse(str(pose), "the file's pose_provenance array")
+        except InputError as exc:
+            raise FileFormatError(f"{path}: {exc}") from None
     try:
         return LandmarkMap(
             z["positions_xyz"],
@@ -730,6 +966,7 @@ def _load_map_npz(path: Path) -> LandmarkMap:
                 for name in (*_SIGMA_COLUMNS.values(), *_ARC_COLUMNS.values())
                 if name in z
             },
+            pose_provenance=provenance,
         )
     except InputError as exc:
         raise FileFormatError(f"{path}: {exc}") from None

@@ -7,8 +7,9 @@ leaves no truncated file; ``summary.json``, written last, marks a complete run):
   (causal: what the rover knew at each frame), ``trajectory_odometry.tum``,
   ``trajectory_groundtruth.tum`` (when known); TUM lines ``t x y z qx qy qz qw``, frame ``map``;
 - ``attempts.csv`` and ``attempts.json`` (every localization attempt);
-- ``vehicle_map.csv`` (detections placed with the corrected poses), ``vehicle_map_odometry.csv``,
-  ``reference_map.csv``, ``rocks.csv`` (when known);
+- ``vehicle_map.csv`` (detections placed with the corrected poses), ``vehicle_map_odometry.csv``
+  (both with a ``# pose: odometry:...`` line, their pose provenance), ``reference_map.csv``,
+  ``rocks.csv`` (when known);
 - ``example_frame.npz`` (one camera frame with its detections, when images were used);
 - ``config.json`` (the run's :class:`~lunarloc.config.run.RunConfig`, read back by ``--config``,
   plus an ``info`` section: the source, camera and odometry actually used);
@@ -22,7 +23,7 @@ from __future__ import annotations
 import csv
 import json
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -58,7 +59,7 @@ def write_run(result, outdir: str | Path, before_summary=None) -> dict:
     folder: `before_summary(summary)`, when given, runs just before it (the figures,
     :func:`lunarloc.viz.plot_run` with ``summary=``), so a run interrupted while plotting
     never looks complete."""
-    from lunarloc.io.maps import save_map
+    from lunarloc.io.maps import POSE_ODOMETRY, PoseProvenance, save_map
     from lunarloc.io.outputs import atomic_open, atomic_path, make_dir, write_text
     from lunarloc.io.maps import ROCK_COLUMNS
 
@@ -78,8 +79,13 @@ def write_run(result, outdir: str | Path, before_summary=None) -> dict:
         out / "attempts.json",
         json.dumps([to_json_ready(asdict(a)) for a in result.attempts], indent=1),
     )
-    save_map(result.vehicle_map, out / "vehicle_map.csv")
-    save_map(result.vehicle_map_odometry, out / "vehicle_map_odometry.csv")
+    # both vehicle maps were placed by odometry (corrected by the loop's fixes, or raw): their files
+    # say so, and lunarloc localize judges them with its odometry prior, not as rigid maps
+    for lm, name, detail in (
+        (result.vehicle_map, "vehicle_map.csv", "corrected by the loop"),
+        (result.vehicle_map_odometry, "vehicle_map_odometry.csv", "raw"),
+    ):
+        save_map(replace(lm, pose_provenance=PoseProvenance(POSE_ODOMETRY, detail)), out / name)
     save_map(result.reference, out / "reference_map.csv")
     if result.rocks is not None:
         with atomic_path(out / "rocks.csv") as tmp:

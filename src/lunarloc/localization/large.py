@@ -41,6 +41,7 @@ from lunarloc.io.maps import LandmarkMap
 from lunarloc.localization.chance import chance_clique_size
 from lunarloc.localization.config import LocalizationConfig, Mode
 from lunarloc.localization.localize import _check_map, localize
+from lunarloc.localization.provenance import resolve_odometry_bounds
 from lunarloc.localization.result import LocalizationResult
 from lunarloc.localization.verify import Check
 
@@ -164,7 +165,9 @@ def localize_large(
     crops = _search_crops(reference, vehicle, cfg, icfg, index, votes, Pv, query_xyz, path_xyz)
     timings["exact"] = time.perf_counter() - t0
     if not crops.checked():
-        return _no_region(votes, icfg, crops, required, m_full, timings)
+        out = _no_region(votes, icfg, crops, required, m_full, timings)
+        out.odometry_bounds = resolve_odometry_bounds(cfg, vehicle)[1].to_dict()
+        return out
     # 6. the winner, checked against chance in the whole reference and every competing hypothesis
     return _judge(crops, cfg, required, m_full, timings)
 

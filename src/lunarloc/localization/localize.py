@@ -58,6 +58,7 @@ from lunarloc.localization.register import (
     _residuals,
     rmse_limit,
 )
+from lunarloc.localization.provenance import OdometryBoundsOrigin, resolve_odometry_bounds
 from lunarloc.localization.result import LocalizationResult, _nan_T
 from lunarloc.localization.search import (
     _competitor_3d,
@@ -131,9 +132,10 @@ def localize(
     than 3 landmarks, coincident or collinear landmarks). A failed localization is not
     an error: it returns ``success=False`` with a reason.
     """
-    # 1. the maps and the settings for them (a map without heights: 2D + yaw)
-    reference, vehicle, cfg = _prepare(reference, vehicle, config)
-    P = _Problem(reference, vehicle, cfg, timings={})
+    # 1. the maps and the settings for them (a map without heights: 2D + yaw; the odometry bounds:
+    # stated, else from the vehicle map's pose provenance, else the prior)
+    reference, vehicle, cfg, bounds = _prepare(reference, vehicle, config)
+    P = _Problem(reference, vehicle, cfg, timings={}, bounds=bounds)
     # 2. all-to-all putative associations, and the inliers chance alone would give
     P.associate()
     if P.num_associations == 0:
@@ -172,6 +174,7 @@ def _prepare(reference, vehicle, config):
 
         instance(config, "config", LocalizationConfig, "lunarloc.LocalizationConfig")
     prepare_kernels()  # first call of a process: compile or load the kernels before any stage timer starts
+    config, bounds = resolve_odometry_bounds(config or LocalizationConfig(), vehicle)
     if (
         isinstance(reference, LandmarkMap)
         and isinstance(vehicle, LandmarkMap)
@@ -185,7 +188,7 @@ def _prepare(reference, vehicle, config):
         )
     _check_map(reference, "reference")
     _check_map(vehicle, "vehicle")
-    return reference, vehicle, (config or LocalizationConfig()).for_maps(reference, vehicle)
+    return reference, vehicle, config.for_maps(reference, vehicle), bounds
 
 
 def _screen_reason(screen, cfg, required: int) -> str:
@@ -222,9 +225,15 @@ class _Problem:
     """One localize() call's state, step by step (each step one method)."""
 
     def __init__(
-        self, reference: LandmarkMap, vehicle: LandmarkMap, cfg: LocalizationConfig, timings: dict
+        self,
+        reference: LandmarkMap,
+        vehicle: LandmarkMap,
+        cfg: LocalizationConfig,
+        timings: dict,
+        bounds: OdometryBoundsOrigin,
     ):
         self.reference, self.vehicle, self.cfg, self.timings = reference, vehicle, cfg, timings
+        self.bounds = bounds  # where the odometry bounds in cfg came from
         self.Pr, self.Pv = reference.positions_xyz, vehicle.positions_xyz
         self.sigma_h, self.sigma_z = combined_sigma(reference, vehicle, cfg)
         self.built_from_detections = sum(
@@ -240,6 +249,7 @@ class _Problem:
             num_associations=self.num_associations,
             num_edges=self.num_edges,
             timings=self.timings,
+            odometry_bounds=self.bounds.to_dict(),
         )
 
     def refused(self, name, value, limit, op, why, inliers=None) -> LocalizationResult:
@@ -247,7 +257,11 @@ class _Problem:
         fields = (
             self.base()
             if name != "associations"
-            else dict(required_inliers=self.required, timings=self.timings)
+            else dict(
+                required_inliers=self.required,
+                timings=self.timings,
+                odometry_bounds=self.bounds.to_dict(),
+            )
         )
         if name == "screen":
             fields.pop("num_edges")
@@ -512,6 +526,7 @@ class _Problem:
             num_associations=self.num_associations,
             competitor=int(competitor),
             distortion_fitted=b.bend is not None,
+            odometry_bounds=self.bounds.text,
         )
         out.checks = verify(ev, cfg)
         if screen is not None:  # it passed: shown first, as a check that refuses nothing further

@@ -55,6 +55,9 @@ class LocalizationResult:
     distortion_fit: dict = field(
         default_factory=dict
     )  # :class:`BendFit` when no odometry bounds were stated
+    odometry_bounds: dict = field(
+        default_factory=dict
+    )  # where the odometry bounds came from (:class:`lunarloc.localization.provenance.OdometryBounds`)
 
     @property
     def num_inliers(self) -> int:
@@ -96,6 +99,7 @@ class LocalizationResult:
             "timings_s": {k: round(v, 6) for k, v in self.timings.items()},
             "checks": [c.to_dict() for c in self.checks],
             "distortion_fit": {k: clean(v) for k, v in self.distortion_fit.items()},
+            "odometry_bounds": self.odometry_bounds,
         }
 
 

@@ -79,6 +79,7 @@ class Evidence:
     distortion_fitted: bool = (
         False  # the distortion allowance was fitted from the maps, not from stated bounds
     )
+    odometry_bounds: str = ""  # where the bounds came from (:class:`OdometryBounds` ``text``)
 
 
 def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
@@ -162,7 +163,7 @@ def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
             "(scaled or bent by odometry drift away from the inliers)",
         )
     )
-    source = (
+    source = ev.odometry_bounds or (
         "fitted from the maps, no odometry bounds stated"
         if ev.distortion_fitted
         else "from the odometry bounds"
@@ -174,10 +175,17 @@ def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
             cfg.max_predicted_error_m,
             f"pose too uncertain where it is used: predicted error up to {cfg.predicted_error_sigmas:g} x "
             f"{ev.predicted_error_m * 100:.1f} cm (allowed {cfg.max_predicted_error_m * 100:.0f} cm"
-            f"{'' if ev.distortion_error_m == 0 else f'; odometry distortion up to {ev.distortion_error_m * 100:.1f} cm, {source}'})"
+            + (
+                f"; {ev.odometry_bounds}"  # zero distortion: say where the bounds came from all the same
+                if ev.distortion_error_m == 0 and ev.odometry_bounds
+                else ""
+                if ev.distortion_error_m == 0
+                else f"; odometry distortion up to {ev.distortion_error_m * 100:.1f} cm, {source}"
+            )
+            + ")"
             + (
                 ": the maps cannot show the odometry beyond the rocks they share; state its bounds (0 for a map built "
-                "from ground-truth poses) to judge with them"
+                "from ground-truth poses, or a file whose pose provenance says ground-truth) to judge with them"
                 if ev.distortion_fitted and ev.distortion_error_m > 0
                 else ""
             ),

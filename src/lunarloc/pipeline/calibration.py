@@ -1,7 +1,9 @@
 """Is a claimed pose right, and is its stated uncertainty honest? Families of maps the
 localizer never saw, run through the full, indexed and automatic searches, with the
 command line's default configuration (no odometry bounds stated: the bend fit with the
-odometry prior) and with the maps stated rigid.
+odometry prior for the synthetic maps, which state no pose provenance; for the real families the
+bounds the vehicle file's pose provenance gives, :data:`REAL_CONFIGS`) and with the maps stated
+rigid.
 
 Each case is a reference map, a vehicle map in a random frame (any yaw, a small tilt,
 up to 100 m away) with the true ``T_ref_veh`` (none for a wrong site), and the point
@@ -53,7 +55,7 @@ from lunarloc.core.geometry import (
     rotation_angle,
     transform_points,
 )
-from lunarloc.io.maps import LandmarkMap
+from lunarloc.io.maps import POSE_COLUMN, LandmarkMap, PoseProvenance
 from lunarloc.localization.large import localize_large
 from lunarloc.localization.config import LocalizationConfig
 from lunarloc.sim.fields import uniform_rock_field
@@ -68,6 +70,7 @@ __all__ = [
     "FAMILIES",
     "REAL_FAMILIES",
     "REAL_CONFIGS",
+    "REAL_EXTRA_CONFIGS",
     "make_cases",
     "run_case",
     "run_cases",
@@ -534,19 +537,45 @@ REAL_FAMILIES: dict[str, tuple[float, float, float | None, float]] = {
 }
 
 #: configurations of the real families: the CLI's default, and the odometry's bounds stated as
-#: they are (0 for the ground-truth-posed maps: what ``lunarloc bench pairs`` states)
+#: they are (0 for the ground-truth-posed maps: what ``lunarloc bench pairs`` states).
+#: "cli default" is what ``lunarloc localize REF VEH`` does with the file that holds the vehicle
+#: map: no bounds stated, the map's pose provenance as :func:`lunarloc.io.maps.load_vehicle` reads
+#: it from that file (tests/test_provenance.py): for the ground-truth-posed maps a traverse CSV in
+#: the dataset's schema (rigid), for the distorted ones a traverse CSV that lunarloc wrote from
+#: odometry poses (``pose`` column ``odometry``: the prior). Two more can be asked for by name:
+#: "no provenance" (a map whose file says nothing, e.g. another tool's landmark CSV: the prior) and
+#: "claimed rigid" (every map's file says ground truth, the distorted ones falsely).
 REAL_CONFIGS = ("cli default", "stated bounds")
+REAL_EXTRA_CONFIGS = ("no provenance", "claimed rigid")
 
 
-def _real_config(config: str, drift: float, scale_error: float, scale: float) -> LocalizationConfig:
+def _real_config(
+    config: str, drift: float, scale_error: float, scale: float
+) -> tuple[LocalizationConfig, PoseProvenance | None]:
+    """The configuration and the vehicle map's pose provenance of one real-family run."""
+    from lunarloc.io.maps import DATASET_PROVENANCE, POSE_GROUND_TRUTH, POSE_ODOMETRY
+
+    ground_truth = drift == 0 and scale_error == 0 and scale == 1.0
     if config == "cli default":
-        return LocalizationConfig()
+        return LocalizationConfig(), (
+            DATASET_PROVENANCE
+            if ground_truth
+            else PoseProvenance(POSE_ODOMETRY, "", f"the file's {POSE_COLUMN} column")
+        )
     if config == "stated bounds":
         return LocalizationConfig(
             odometry_scale_error=max(abs(scale_error), abs(scale - 1.0)),
             odometry_heading_drift_deg_per_m=abs(drift),
+        ), None
+    if config == "no provenance":
+        return LocalizationConfig(), None
+    if config == "claimed rigid":
+        return LocalizationConfig(), PoseProvenance(
+            POSE_GROUND_TRUTH, "", f"the file's {POSE_COLUMN} column"
         )
-    raise ValueError(f"unknown configuration {config!r} (one of {REAL_CONFIGS})")
+    raise ValueError(
+        f"unknown configuration {config!r} (one of {REAL_CONFIGS + REAL_EXTRA_CONFIGS})"
+    )
 
 
 def run_real(
@@ -594,7 +623,8 @@ def run_real(
                 travs[b], np.random.default_rng([0, a, b]), None, model, window, scale
             )
             for config in configs:
-                cfg = _real_config(config, drift, scale_error, scale)
+                cfg, provenance = _real_config(config, drift, scale_error, scale)
+                veh.pose_provenance = provenance
                 t0 = time.perf_counter()
                 res = localize(refs[a], veh, cfg, query_xyz=last_v[None], path_xyz=path_v)
                 dt = time.perf_counter() - t0

@@ -201,6 +201,17 @@ class DetectResult:
         return {k: v / max(self.frames, 1) for k, v in self.stage_seconds.items()}
 
 
+def _rover_xyz(fd) -> np.ndarray:
+    """The rover position of a frame's pose; InputError where the frame has none."""
+    if fd.T_map_rover is None:
+        raise InputError(f"frame {fd.frame} has no rover pose: cannot write map-frame boulders")
+    if not np.all(np.isfinite(fd.T_map_rover)):
+        raise InputError(
+            f"frame {fd.frame}: the rover pose is not finite (NaN in frames.csv or odometry)"
+        )
+    return fd.T_map_rover[:3, 3]
+
+
 def detect(
     archive: str | Path,
     output: str | Path,
@@ -221,12 +232,12 @@ def detect(
         source instead. `progress(done, total, detections)` per frame."""
     from lunarloc.io.lac.archive import LacArchive
     from lunarloc.io.outputs import atomic_open
+    from lunarloc.io.maps import PoseProvenance, save_traverse
     from lunarloc.perception.detector import (
         Detector,
         PoseSource,
         debug_overlay,
         detect_archive,
-        write_traverse_csv,
     )
     from lunarloc.io.runs import to_json_ready
     from lunarloc.perception.camera import camera_from_archive
@@ -295,7 +306,16 @@ def detect(
                 res.frames += 1
                 yield fd
 
-        n = write_traverse_csv(output, frames_iter())
+        # the pose provenance in every row (the dataset's schema plus a 'pose' column): a file
+        # placed by odometry is judged with the odometry prior, one placed by ground truth rigid
+        provenance = PoseProvenance.from_label(
+            "record:odometry" if res.pose_label == PoseSource.ODOMETRY.value else res.pose_label
+        )
+        n = save_traverse(
+            output,
+            ((fd.frame, _rover_xyz(fd), fd.positions_map()) for fd in frames_iter()),
+            provenance,
+        )
     res.frames = n
     res.wall_s = time.perf_counter() - t_start
     info = {"archive": str(archive), "pose": res.pose_label, "detector_scaled": det_cfg.to_dict()}
