@@ -59,6 +59,12 @@ def main() -> None:
         choices=["windows", "source", "gate"],
         help="MultiRoverConfig.sigma_model",
     )
+    ap.add_argument(
+        "--shared-fusion",
+        default=None,
+        choices=["split", "one-way"],
+        help="MultiRoverConfig.shared_fusion",
+    )
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args()
 
@@ -81,6 +87,8 @@ def main() -> None:
             cfg = replace(cfg, max_shared_sigma_ratio=a.max_shared_sigma_ratio)
         if a.sigma_model is not None:
             cfg = replace(cfg, sigma_model=a.sigma_model)
+        if a.shared_fusion is not None:
+            cfg = replace(cfg, shared_fusion=a.shared_fusion)
         if a.shared_bounds is not None:
             cfg = replace(cfg, shared_bounds=a.shared_bounds)
         res = run_rovers(archives, ref, cfg)
@@ -91,12 +99,17 @@ def main() -> None:
         for r in s["rovers"]:
             row = rows.setdefault(
                 r["name"],
-                {"path_m": r["path_length_m"], "odometry_rmse_m": r["ate_odometry"]["rmse_m"]},
+                {
+                    "path_m": r["path_length_m"],
+                    "odometry_rmse_m": r["ate_odometry"]["rmse_m"],
+                    "odometry_final_m": r["final_error_odometry_m"],
+                },
             )
             row[mode] = {
                 "rmse_m": r["ate_corrected"]["rmse_m"],
                 "online_rmse_m": r["ate_online"]["rmse_m"],
                 "max_m": r["ate_corrected"]["max_m"],
+                "final_m": r["final_error_corrected_m"],
                 "fixes": r["fixes"],
                 "shared_fixes": r["shared_fixes"],
                 "worst_shared_fix_m": r["max_shared_fix_error_m"],
@@ -105,9 +118,9 @@ def main() -> None:
         rows.setdefault("_time", {})[mode] = {"wall_s": round(wall, 1), "cpu_s": round(cpu, 1)}
         print(f"{mode}: {wall:.0f} s wall, {cpu:.0f} s CPU", flush=True)
     head = (
-        "| rover | path m | odometry RMSE cm | "
+        "| rover | path m | odometry RMSE / final cm | "
         + " | ".join(
-            f"{m}: corrected (online) RMSE cm, fixes (shared), worst shared fix cm (in its sigmas)"
+            f"{m}: corrected (online) RMSE / final cm, fixes (shared), worst shared fix cm (in its sigmas)"
             for m in a.modes
         )
         + " |"
@@ -126,12 +139,12 @@ def main() -> None:
                 else f"{100 * c['worst_shared_fix_m']:.1f} ({c['worst_shared_fix_sigmas']:.2f} sigma)"
             )
             cells.append(
-                f"{100 * c['rmse_m']:.1f} ({100 * c['online_rmse_m']:.1f}), {c['fixes']} ({c['shared_fixes']}), {w}"
+                f"{100 * c['rmse_m']:.1f} ({100 * c['online_rmse_m']:.1f}) / {100 * c['final_m']:.1f}, "
+                f"{c['fixes']} ({c['shared_fixes']}), {w}"
             )
         print(
-            f"| {name} | {row['path_m']:.1f} | {100 * row['odometry_rmse_m']:.1f} | "
-            + " | ".join(cells)
-            + " |"
+            f"| {name} | {row['path_m']:.1f} | {100 * row['odometry_rmse_m']:.1f} / "
+            f"{100 * row['odometry_final_m']:.1f} | " + " | ".join(cells) + " |"
         )
     if a.out is not None:
         a.out.mkdir(parents=True, exist_ok=True)

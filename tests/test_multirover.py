@@ -225,7 +225,13 @@ def test_config_is_checked_and_serialised():
         MultiRoverConfig.from_dict({**d, "run": {**d["run"], "loop": {"window_m": "x"}}})
     with pytest.raises(ConfigError):
         replace(c, share_refresh_s=0.0)
-    for bad in ({"shared_bounds": "max"}, {"sigma_model": "x"}):
+    for bad in (
+        {"shared_bounds": "max"},
+        {"sigma_model": "x"},
+        {"shared_fusion": "both"},
+        {"min_shared_weight": 1.5},
+        {"max_exchange_overlap": -0.1},
+    ):
         with pytest.raises(ConfigError, match=next(iter(bad))):
             replace(c, **bad)
 
@@ -363,9 +369,15 @@ def _run(paths, rocks_csv, reference=None, shift_owner_m=None):
         return mr.run_rovers(paths, reference, _cfg(share_maps=True))
 
 
-def test_shared_maps_align_rovers_without_a_reference(pair):
+@pytest.fixture(scope="module")
+def pair_shared(pair):
+    """The pair with shared maps, no reference, the default configuration."""
     out, paths = pair
-    res = _run(paths, out / "rocks.csv")
+    return _run(paths, out / "rocks.csv")
+
+
+def test_shared_maps_align_rovers_without_a_reference(pair_shared):
+    res = pair_shared
     shared = [a for r in res.rovers for a in r.shared if a.accepted]
     assert len(shared) >= 2  # the rovers did align to each other
     for a in shared:
@@ -384,8 +396,76 @@ def test_a_wrong_live_map_does_not_pull_a_rover(pair):
     out, paths = pair
     res = _run(paths, out / "rocks.csv", shift_owner_m=4.0)
     r1 = next(r for r in res.rovers if r.name == "traverse_1")
-    tried = [a for a in r1.shared if a.success]
+    # its own registrations in traverse_0's (shifted) map; rows of traverse_0's registrations in
+    # traverse_1's own map (mirror) are the other side of an exchange, not a pull by the shift
+    tried = [a for a in r1.shared if a.success and not a.mirror]
     assert tried, "the shifted map was never matched: the test would prove nothing"
     assert not any(a.accepted for a in tried), [(a.fix_error_m, a.gate_d2) for a in tried]
     s = r1.result.summary()
     assert s["ate_corrected"]["max_m"] <= s["ate_odometry"]["max_m"] + 0.02, s
+
+
+# --------------------------------------------------------------------------- fusing two rovers
+
+
+def test_equal_sigmas_move_both_rovers_about_halfway():
+    """A registration between two rovers is a relative constraint: equal sigmas move each
+    halfway (less the registration's own share) and leave each with about sigma / sqrt(2); a
+    rover far more certain than the other hardly moves while the other takes nearly all."""
+    from lunarloc.pipeline.multirover import split_shared_fix
+
+    s = split_shared_fix((0.2, 0.02), (0.2, 0.02), (0.0, 0.0))
+    assert (s.rover_weight_m, s.owner_weight_m) == pytest.approx((0.5, 0.5))
+    assert (s.rover_weight_yaw, s.owner_weight_yaw) == pytest.approx((0.5, 0.5))
+    assert s.rover_sigma_m == pytest.approx(0.2 / 2**0.5)
+    assert s.owner_sigma_yaw_rad == pytest.approx(0.02 / 2**0.5)
+    n = split_shared_fix((0.2, 0.02), (0.2, 0.02), (0.05, 0.005))  # a noisy registration
+    assert n.rover_weight_m == pytest.approx(n.owner_weight_m)
+    assert 0.4 < n.rover_weight_m < 0.5 and n.rover_sigma_m > s.rover_sigma_m
+    r = split_shared_fix((0.30, 0.03), (0.03, 0.003), (0.02, 0.002))  # owner with a reference
+    assert r.rover_weight_m > 0.9 and r.owner_weight_m < 0.01
+    assert r.rover_sigma_m < 0.04  # the rover is then about as good as the owner
+    flipped = split_shared_fix((0.03, 0.003), (0.30, 0.03), (0.02, 0.002))
+    assert flipped.owner_weight_m == pytest.approx(r.rover_weight_m)
+    with pytest.raises(ConfigError):
+        split_shared_fix((float("nan"), 0.0), (0.1, 0.0), (0.0, 0.0))
+
+
+def test_the_exchange_guard_refuses_the_same_registration_and_its_mirror():
+    """Once two rovers are tied at a place (window keyframes of one, inlier keyframes of the
+    other), the same tie again, or its mirror (the other rover's window in the first one's
+    map), would count the same information twice: refused; new keyframes on one side, or
+    another pair of rovers, are not."""
+    from lunarloc.pipeline.multirover import Exchange, repeated_exchange
+
+    ledger = [Exchange(0, 10.0, {"a": (10, 30), "b": (40, 55)}, ("a", "b"))]
+    assert repeated_exchange(ledger, "a", (12, 32), "b", (42, 56), 0.5) is ledger[0]  # again
+    assert repeated_exchange(ledger, "b", (40, 58), "a", (14, 30), 0.5) is ledger[0]  # mirror
+    assert repeated_exchange(ledger, "a", (28, 48), "b", (42, 56), 0.5) is None  # new window
+    assert repeated_exchange(ledger, "a", (12, 32), "b", (70, 90), 0.5) is None  # new place of b
+    assert repeated_exchange(ledger, "a", (12, 32), "c", (40, 55), 0.5) is None  # another rover
+    assert repeated_exchange(ledger, "a", (12, 32), "b", (42, 56), 1.0) is None  # guard off
+
+
+def test_split_fusion_moves_both_rovers_once_per_place(pair_shared):
+    """With the default "split", an accepted registration moves the rover and, the other way,
+    the owner (a mirror row in the owner's attempts, the same exchange id); the mirror of an
+    exchange and the same registration again are refused as already exchanged; neither rover
+    ends worse than its odometry by more than the test bound."""
+    res = pair_shared
+    rows = [a for r in res.rovers for a in r.shared]
+    acc = [a for a in rows if a.accepted]
+    mirrors = [a for a in acc if a.mirror]
+    assert mirrors, "no exchange moved the owner: the test would prove nothing"
+    for m in mirrors:
+        own = [a for a in acc if a.exchange == m.exchange and not a.mirror]
+        assert len(own) <= 1 and all(a.rover == m.owner and a.owner == m.rover for a in own)
+        assert 0 < m.weight < 1 and m.applied_sigma_m < m.own_sigma_m
+    for r in res.rovers:
+        ids = [a.exchange for a in r.shared if a.accepted]
+        assert len(ids) == len(set(ids)), ids  # one exchange moves a rover once
+    assert any(a.reason.startswith("already exchanged") for a in rows if a.success)
+    for r in res.rovers:
+        s = r.result.summary()
+        assert s["ate_corrected"]["rmse_m"] <= s["ate_odometry"]["rmse_m"] + 0.02, (r.name, s)
+        assert s["final_error_corrected_m"] <= s["final_error_odometry_m"] + 0.03, (r.name, s)

@@ -70,6 +70,10 @@ log.addHandler(logging.NullHandler())
 __all__ = [
     "MultiRoverConfig",
     "SharedAttempt",
+    "SharedSplit",
+    "split_shared_fix",
+    "Exchange",
+    "repeated_exchange",
     "RoverRun",
     "MultiRoverResult",
     "check_archives",
@@ -140,6 +144,99 @@ def shared_localization(
 
 
 @dataclass(frozen=True)
+class SharedSplit:
+    """How one registration between two rovers moves each of them (:func:`split_shared_fix`).
+
+    weights: the share of the innovation (the registration's fix minus the rover's estimate)
+    each moves by, position and yaw; the rover towards the fix, the owner the other way.
+    sigmas: each one's sigma after the move (m, rad)."""
+
+    rover_weight_m: float
+    rover_weight_yaw: float
+    owner_weight_m: float
+    owner_weight_yaw: float
+    rover_sigma_m: float
+    rover_sigma_yaw_rad: float
+    owner_sigma_m: float
+    owner_sigma_yaw_rad: float
+
+
+def split_shared_fix(
+    rover_sigma: tuple[float, float],
+    owner_sigma: tuple[float, float],
+    registration_sigma: tuple[float, float],
+) -> SharedSplit:
+    """Fuse two rovers' estimates of one place through a registration of one's local map in
+    the other's live map: a relative constraint between the two, not one taken as truth.
+
+    Each sigma is (position m, yaw rad): the rover's own estimate at the keyframe, the owner's
+    over the registration's inliers, the registration's own predicted error. The registration
+    measures the difference of the two rovers' errors there (plus its own); with variances
+    ``V_r``, ``V_o``, ``V_reg`` and ``S`` their sum, the least-squares estimate moves the rover
+    by ``V_r / S`` of the innovation towards the fix and the owner by ``V_o / S`` the other
+    way, and leaves them with sigmas ``sqrt(V_r (V_o + V_reg) / S)`` and ``sqrt(V_o (V_r +
+    V_reg) / S)``. Equal sigmas: both move halfway (less the registration's share). A rover
+    far more certain than the other hardly moves; the other then takes nearly the whole fix,
+    as a fix from a reference."""
+    vals = [float(v) for v in (*rover_sigma, *owner_sigma, *registration_sigma)]
+    if not all(math.isfinite(v) and v >= 0 for v in vals):
+        raise ConfigError(f"sigmas {vals}: must be finite and >= 0")
+    out = []
+    for vr, vo, vg in ((vals[0], vals[2], vals[4]), (vals[1], vals[3], vals[5])):
+        vr, vo, vg = vr * vr, vo * vo, vg * vg
+        S = vr + vo + vg
+        if S <= 0:
+            out.append((0.0, 0.0, 0.0, 0.0))
+            continue
+        out.append((vr / S, vo / S, math.sqrt(vr * (vo + vg) / S), math.sqrt(vo * (vr + vg) / S)))
+    (wr, wo, sr, so), (wry, woy, sry, soy) = out
+    return SharedSplit(wr, wry, wo, woy, sr, sry, so, soy)
+
+
+@dataclass(frozen=True)
+class Exchange:
+    """One accepted shared registration: which keyframes of each rover it used (first, last).
+    ``moved``: the rovers it moved."""
+
+    id: int
+    time_s: float
+    keyframes: dict  # rover name -> (first, last) keyframe index
+    moved: tuple
+
+
+def _overlap(cur: tuple[int, int], prev: tuple[int, int]) -> float:
+    """Share of the keyframe range `cur` (inclusive) that lies in `prev`."""
+    lo, hi = max(cur[0], prev[0]), min(cur[1], prev[1])
+    return max(hi - lo + 1, 0) / max(cur[1] - cur[0] + 1, 1)
+
+
+def repeated_exchange(
+    ledger: Sequence[Exchange],
+    rover: str,
+    rover_keyframes: tuple[int, int],
+    owner: str,
+    owner_keyframes: tuple[int, int],
+    max_overlap: float,
+) -> Exchange | None:
+    """The earlier exchange between `rover` and `owner` (either way round: the same
+    registration, or its mirror) whose keyframes overlap this one's by more than `max_overlap`
+    on *both* sides, or None. Such a registration would count the same information twice: the
+    two places were already tied together, and the first tie moved both estimates."""
+    for e in ledger:
+        if rover not in e.keyframes or owner not in e.keyframes:
+            continue
+        if (
+            _overlap(rover_keyframes, e.keyframes[rover]) > max_overlap
+            and _overlap(owner_keyframes, e.keyframes[owner]) > max_overlap
+        ):
+            return e
+    return None
+
+
+SHARED_FUSION = ("split", "one-way")
+
+
+@dataclass(frozen=True)
 class MultiRoverConfig:
     """Settings of a multi-rover playback (metres, seconds, degrees as named)."""
 
@@ -162,6 +259,16 @@ class MultiRoverConfig:
     # since its last fix (at most the gate's model); "windows", the same per loop window, windows
     # independent (sqrt growth); "gate", the pose graph's gate drift model
     sigma_model: str = "windows"
+    # how an accepted shared registration is used: "split", a relative constraint between the two
+    # rovers (each moves by its share of the innovation, :func:`split_shared_fix`; the owner gets a
+    # fix at the keyframes that saw the inliers); "one-way", the rover takes the registration as a
+    # fix with the owner's sigma added, only when that is below max_shared_sigma_ratio x its own
+    shared_fusion: str = "split"
+    # "split": a rover (either side) is moved only when its weight is at least this much
+    min_shared_weight: float = 0.2
+    # "split": a registration whose keyframes overlap an earlier exchange's between the same two
+    # rovers (either way round) by more than this on both sides is refused (:func:`repeated_exchange`)
+    max_exchange_overlap: float = 0.5
     site_tolerance_m: float = 0.5  # the archives' landers must agree this well in the map frame
     site_tolerance_deg: float = 5.0  # ... and in heading
     clock_tolerance: float = 0.01  # relative difference of the archives' tick periods allowed
@@ -180,6 +287,13 @@ class MultiRoverConfig:
         ]
         if bad:
             raise ConfigError(f"{', '.join(bad)}: must be > 0")
+        if self.shared_fusion not in SHARED_FUSION:
+            raise ConfigError(
+                f"shared_fusion={self.shared_fusion!r}: use one of {', '.join(SHARED_FUSION)}"
+            )
+        for n in ("min_shared_weight", "max_exchange_overlap"):
+            if not 0 <= getattr(self, n) <= 1:
+                raise ConfigError(f"{n}={getattr(self, n)}: must be in [0, 1]")
         if self.sigma_model not in ("windows", "source", "gate"):
             raise ConfigError(f"sigma_model={self.sigma_model!r}: use windows, source or gate")
         if self.shared_bounds not in SHARED_BOUNDS:
@@ -221,6 +335,16 @@ class SharedAttempt:
     fix_error_m: float = float(
         "nan"
     )  # |fix - ground truth| (evaluation only; for a refused registration, what it would have been)
+    # shared_fusion "split": the share of the innovation this rover moved by, the owner's, the sigma
+    # the rover's move entered its pose graph with and that position's |error| (evaluation only)
+    weight: float = float("nan")
+    owner_weight: float = float("nan")
+    applied_sigma_m: float = float("nan")
+    applied_error_m: float = float("nan")
+    # this row is the owner's side of another rover's registration (`owner` made it in this
+    # rover's live map); its fix is this rover's position moved the other way
+    mirror: bool = False
+    exchange: int = -1  # the exchange id (both sides' rows share it); -1: none
 
 
 @dataclass
@@ -259,7 +383,13 @@ class MultiRoverResult:
                 if a.accepted and math.isfinite(a.fix_error_m) and a.fix_sigma_m > 0
             ]
             row["max_shared_fix_error_sigmas"] = round(max(rel), 2) if rel else None
-            for k in ("ate_odometry", "ate_corrected", "ate_online"):
+            for k in (
+                "ate_odometry",
+                "ate_corrected",
+                "ate_online",
+                "final_error_odometry_m",
+                "final_error_corrected_m",
+            ):
                 if k in s:
                     row[k] = s[k]
             out["rovers"].append(row)
@@ -358,6 +488,11 @@ class _LiveMap:
     owner_sigma_yaw_rad: np.ndarray
     key: tuple
     built_t: float
+    # per landmark: the first and last of the owner's keyframes that saw it (the exchange guard)
+    keyframes: np.ndarray | None = None
+    # per landmark: the owner's sigma without the inherited part of its last (shared) fix
+    drift_sigma_m: np.ndarray | None = None
+    drift_sigma_yaw_rad: np.ndarray | None = None
 
 
 class _Rover:
@@ -421,6 +556,8 @@ class _Rover:
         self.shared: list[SharedAttempt] = []
         self.shared_att: list[Attempt] = []
         self.anchor = (0.0, 0.0)  # (m, rad) sigma of the rover's last fix when it was a shared one
+        self.last_exchange: int | None = None  # the exchange that gave that fix ("split")
+        self._applied = None  # the pose this rover was last moved to by an exchange
         self.sigma_model = cfg.sigma_model
         self.live: _LiveMap | None = None
 
@@ -455,10 +592,8 @@ class _Rover:
             any(img is not None for img in (data or {}).get("Grayscale", {}).values())
         )
         if est.attempt is not None and est.attempt.accepted:
-            self.anchor = (
-                0.0,
-                0.0,
-            )  # a reference fix: the rover's error no longer inherits another's
+            # a reference fix: the rover's error no longer inherits another's
+            self.anchor, self.last_exchange = (0.0, 0.0), None
         return est
 
     # ------------------------------------------------------------------ live map
@@ -488,12 +623,13 @@ class _Rover:
         pos = math.sqrt(g.base_sigma_m**2 + (b[0] * de) ** 2 + (0.5 * yaw * dd) ** 2)
         return min(pos, gate_m), min(yaw, gate_yaw)
 
-    def owner_sigmas(self) -> tuple[np.ndarray, np.ndarray]:
+    def owner_sigmas(self, inherited: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """(position m, yaw rad) sigma of every keyframe's estimate in ``map`` (:meth:`sigma`),
-        with the inherited sigma of its last fix when that was a shared one."""
+        with (`inherited`) the inherited sigma of its last fix when that was a shared one."""
         n = len(self.loc.loop.keyframes)
         s = np.array([self.sigma(k) for k in range(n)], float).reshape(-1, 2)
-        return np.hypot(s[:, 0], self.anchor[0]), np.hypot(s[:, 1], self.anchor[1])
+        a = self.anchor if inherited else (0.0, 0.0)
+        return np.hypot(s[:, 0], a[0]), np.hypot(s[:, 1], a[1])
 
     def live_map(self, t: float, refresh_s: float) -> _LiveMap | None:
         """This rover's landmarks so far, placed with its current estimates (cached)."""
@@ -512,7 +648,10 @@ class _Rover:
         agg = loop.config.aggregation
         lm = aggregate_detections(P, F, agg, frame="map")
         s_m, s_y = self.owner_sigmas()
+        d_m, d_y = self.owner_sigmas(inherited=False)
         om, oy = np.zeros(len(lm)), np.zeros(len(lm))
+        dm, dy = np.zeros(len(lm)), np.zeros(len(lm))
+        kfr = np.zeros((len(lm), 2), int)
         if len(lm):
             groups = cKDTree(P).query_ball_point(lm.positions_xyz, r=agg.radius_m)
             for i, idx in enumerate(groups):
@@ -522,7 +661,9 @@ class _Rover:
                     else F[[int(np.argmin(np.linalg.norm(P - lm.positions_xyz[i], axis=1)))]]
                 )
                 om[i], oy[i] = float(np.median(s_m[kf])), float(np.median(s_y[kf]))
-        self.live = _LiveMap(lm, om, oy, key, t)
+                dm[i], dy[i] = float(np.median(d_m[kf])), float(np.median(d_y[kf]))
+                kfr[i] = int(np.min(kf)), int(np.max(kf))
+        self.live = _LiveMap(lm, om, oy, key, t, kfr, dm, dy)
         return self.live
 
     # ------------------------------------------------------------------ shared attempt
@@ -532,10 +673,22 @@ class _Rover:
         refresh_s: float,
         max_ratio: float = 0.75,
         shared_bounds: str = "sum",
+        config: MultiRoverConfig | None = None,
+        ledger: list[Exchange] | None = None,
     ) -> SharedAttempt | None:
         """Localize the newest keyframe's local map in the other rovers' live maps; the first
-        accepted fix enters the pose graph. Returns the last attempt made (None: no local map)."""
+        accepted registration enters the pose graphs (``config.shared_fusion``: "split", both
+        rovers' by their shares, :meth:`_exchange`; "one-way", this rover's as a fix). `ledger`:
+        the exchanges so far, shared by all rovers (appended to). Returns the last attempt made
+        (None: no local map)."""
         from lunarloc.localization.localize import localize
+
+        mr_cfg = config or replace(
+            MultiRoverConfig(), max_shared_sigma_ratio=max_ratio, shared_bounds=shared_bounds
+        )
+        mode = mr_cfg.shared_fusion
+        ledger = [] if ledger is None else ledger
+        fix4 = None
 
         t_start = time.perf_counter()
         loop = self.loc.loop
@@ -649,6 +802,45 @@ class _Rover:
             sig_m, sig_yaw = math.hypot(pred, om), math.hypot(rot, oy)
             att.owner_sigma_m, att.owner_sigma_yaw_deg = om, math.degrees(oy)
             att.fix_sigma_m, att.fix_sigma_yaw_deg = sig_m, math.degrees(sig_yaw)
+            if mode == "split":
+                kf_rover = (int(win.min()), int(win.max()))
+                kr = live.keyframes[near[inl[:, 1]]] if live.keyframes is not None else None
+                kf_owner = (
+                    (int(kr[:, 0].min()), int(kr[:, 1].max())) if kr is not None else (-1, -1)
+                )
+                prev = repeated_exchange(
+                    ledger, self.name, kf_rover, other.name, kf_owner, mr_cfg.max_exchange_overlap
+                )
+                if prev is not None:
+                    att.reason = (
+                        f"already exchanged: {other.name}'s landmarks and this window were tied "
+                        f"at {prev.time_s:.1f} s (exchange {prev.id})"
+                    )
+                    continue
+                g = loop.graph.gate(k, fix4, sig_m, sig_yaw)
+                att.gate_d2, att.correction_m = g.d2, float(np.linalg.norm(g.innovation[:3]))
+                if not g.accepted:
+                    att.reason = f"fix rejected by the gate (d2 {g.d2:.1f} > {g.threshold:.1f}; correction {att.correction_m:.2f} m)"
+                    continue
+                if self._exchange(
+                    att,
+                    other,
+                    k,
+                    poses[k],
+                    fix4,
+                    res.T_ref_veh,
+                    (pred, rot),
+                    (own_m, own_yaw),
+                    (om, oy),
+                    live,
+                    near[inl[:, 1]],
+                    kf_rover,
+                    kf_owner,
+                    ledger,
+                    mr_cfg,
+                ):
+                    break
+                continue
             if sig_m >= max_ratio * own_m:
                 att.reason = (
                     f"not informative: the fix ({sig_m * 100:.0f} cm, {other.name}'s estimate "
@@ -664,11 +856,167 @@ class _Rover:
             loop.graph.solve(cfg.active_window_m)
             att.accepted = True
             self.anchor = (sig_m, sig_yaw)
+            self.last_exchange = None
             break
         if att is not None:
-            self.shared_att.append(self._as_attempt(att, k, fix4 if att.accepted else None))
+            applied = self._applied if att.accepted and mode == "split" else fix4
+            self.shared_att.append(self._as_attempt(att, k, applied if att.accepted else None))
         self.timings["sharing"] += time.perf_counter() - t_start
         return att
+
+    def _exchange(
+        self,
+        att: SharedAttempt,
+        other: _Rover,
+        k: int,
+        pose_k: np.ndarray,
+        fix4: np.ndarray,
+        T_ref_veh: np.ndarray,
+        reg_sigma: tuple[float, float],
+        own: tuple[float, float],
+        owner: tuple[float, float],
+        live: _LiveMap,
+        inliers: np.ndarray,
+        kf_rover: tuple[int, int],
+        kf_owner: tuple[int, int],
+        ledger: list[Exchange],
+        mr_cfg: MultiRoverConfig,
+    ) -> bool:
+        """Use a trusted registration of keyframe k's window in `other`'s live map as a relative
+        constraint between the two rovers (:func:`split_shared_fix`): this rover moves its share
+        of the innovation towards the fix, `other` its share the other way at the keyframe that
+        saw most of the inliers. When both rovers' last fixes were one exchange between them,
+        the error that exchange left is common to both and cancels in the registration: the
+        split uses the sigmas since then, and each keeps that common part. A side whose weight
+        is below ``min_shared_weight`` (or whose keyframe is outside its pose graph's active
+        window, or whose gate refuses its move) is not moved. Returns whether any side moved."""
+        loop, oloop = self.loc.loop, other.loc.loop
+        common = (
+            self.last_exchange is not None
+            and self.last_exchange == other.last_exchange
+            and live.drift_sigma_m is not None
+        )
+        own_c, own_common = own, (0.0, 0.0)
+        owner_c = owner
+        if common:
+            own_c = self.sigma(k)
+            owner_c = (
+                float(np.max(live.drift_sigma_m[inliers])),
+                float(np.max(live.drift_sigma_yaw_rad[inliers])),
+            )
+            own_common = self.anchor
+        sp = split_shared_fix(own_c, owner_c, reg_sigma)
+        att.weight, att.owner_weight = sp.rover_weight_m, sp.owner_weight_m
+        innov = np.asarray(fix4, float) - np.asarray(pose_k, float)
+        innov[3] = math.remainder(innov[3], 2 * math.pi)
+        w_min = mr_cfg.min_shared_weight
+        moved = []
+        # this rover: towards the fix
+        if sp.rover_weight_m >= w_min:
+            tgt = np.asarray(pose_k, float) + innov * np.array(
+                [sp.rover_weight_m] * 3 + [sp.rover_weight_yaw]
+            )
+            s_m = math.hypot(sp.rover_sigma_m, own_common[0])
+            s_y = math.hypot(sp.rover_sigma_yaw_rad, own_common[1])
+            loop.graph.add_fix(k, tgt, s_m, s_y)
+            loop.graph.solve(loop.config.active_window_m)
+            att.applied_sigma_m = s_m
+            att.applied_error_m = float(np.linalg.norm(tgt[:3] - self.T_map_rover_true[-1][:3, 3]))
+            self._applied = tgt
+            moved.append(self.name)
+        # the owner: the other way, at its keyframe that saw most of the inliers
+        orow = None
+        if sp.owner_weight_m >= w_min and live.keyframes is not None:
+            kr = live.keyframes[inliers]
+            kb = round(float(np.median(kr.mean(axis=1))))
+            first = oloop.graph.first_active(oloop.config.active_window_m)
+            ob = other.sigma(kb)
+            orow = SharedAttempt(
+                other.name,
+                self.name,
+                att.time_s,
+                att.frame,
+                att.owner_landmarks,
+                att.landmarks,
+                True,
+                False,
+                att.inliers,
+                "",
+                att.predicted_error_m,
+                own[0],
+                math.degrees(own[1]),
+                math.hypot(reg_sigma[0], own[0]),
+                math.degrees(math.hypot(reg_sigma[1], own[1])),
+                ob[0],
+                mirror=True,
+                weight=sp.owner_weight_m,
+                owner_weight=sp.rover_weight_m,
+            )
+            other.shared.append(orow)
+            xb = oloop.graph.pose(kb)
+            R, t = T_ref_veh[:3, :3], T_ref_veh[:3, 3]
+            d_b = (R - np.eye(3)) @ xb[:3] + t  # the registration's move at the owner's keyframe
+            full = np.concatenate([xb[:3] - d_b, [xb[3] - innov[3]]])
+            tgt = xb + np.concatenate([-d_b * sp.owner_weight_m, [-innov[3] * sp.owner_weight_yaw]])
+            T_true = other.true_pose_at(kb)
+            if T_true is not None:
+                orow.fix_error_m = float(np.linalg.norm(full[:3] - T_true[:3, 3]))
+            if kb < first:
+                orow.reason = f"the owner's keyframe {kb} is outside its pose graph's active window"
+            else:
+                oc = other.anchor if common else (0.0, 0.0)
+                s_m = math.hypot(sp.owner_sigma_m, oc[0])
+                s_y = math.hypot(sp.owner_sigma_yaw_rad, oc[1])
+                g = oloop.graph.gate(kb, tgt, s_m, s_y)
+                orow.gate_d2, orow.correction_m = g.d2, float(np.linalg.norm(g.innovation[:3]))
+                if not g.accepted:
+                    orow.reason = f"fix rejected by the gate (d2 {g.d2:.1f} > {g.threshold:.1f})"
+                else:
+                    oloop.graph.add_fix(kb, tgt, s_m, s_y)
+                    oloop.graph.solve(oloop.config.active_window_m)
+                    orow.accepted = True
+                    orow.applied_sigma_m = s_m
+                    if T_true is not None:
+                        orow.applied_error_m = float(np.linalg.norm(tgt[:3] - T_true[:3, 3]))
+                    moved.append(other.name)
+        if not moved:
+            att.reason = (
+                f"not informative: weights {sp.rover_weight_m:.2f} (this rover) and "
+                f"{sp.owner_weight_m:.2f} ({other.name}) both below {w_min:g}"
+            )
+            if orow is not None and not orow.reason:
+                orow.reason = att.reason
+            return False
+        ex = Exchange(
+            len(ledger), att.time_s, {self.name: kf_rover, other.name: kf_owner}, tuple(moved)
+        )
+        ledger.append(ex)
+        att.exchange = ex.id
+        att.accepted = self.name in moved
+        if not att.accepted:
+            att.reason = f"{other.name} moved (weight {sp.owner_weight_m:.2f}); this rover not (weight {sp.rover_weight_m:.2f})"
+        if orow is not None:
+            orow.exchange = ex.id
+            if orow.accepted:
+                other.shared_att.append(other._as_attempt(orow, kb, tgt))
+        if self.name in moved:
+            self.anchor = (att.applied_sigma_m, math.hypot(sp.rover_sigma_yaw_rad, own_common[1]))
+            self.last_exchange = ex.id
+        if orow is not None and orow.accepted:
+            other.anchor = (
+                orow.applied_sigma_m,
+                math.hypot(sp.owner_sigma_yaw_rad, (other.anchor if common else (0.0, 0.0))[1]),
+            )
+            other.last_exchange = ex.id
+        return att.accepted or (orow is not None and orow.accepted)
+
+    def true_pose_at(self, k: int) -> np.ndarray | None:
+        """Ground truth (evaluation only) at keyframe k's tick, or None."""
+        f = self.loc.loop.keyframes[k].frame
+        for i in range(len(self.ticks) - 1, -1, -1):
+            if self.ticks[i][0] == f:
+                return self.T_map_rover_true[i]
+        return None
 
     @staticmethod
     def _as_attempt(s: SharedAttempt, k: int, fix4) -> Attempt:
@@ -777,6 +1125,7 @@ def run_rovers(
         total = sum(len(r.archive.frame_numbers) for r in rovers)
         heap = [(r.mission_time, i) for i, r in enumerate(rovers)]
         heapq.heapify(heap)
+        ledger: list[Exchange] = []  # the accepted shared registrations (the exchange guard)
         done = 0
         while heap:
             _, i = heapq.heappop(heap)
@@ -788,6 +1137,8 @@ def run_rovers(
                     cfg.share_refresh_s,
                     cfg.max_shared_sigma_ratio,
                     cfg.shared_bounds,
+                    config=cfg,
+                    ledger=ledger,
                 )
             done += 1
             if progress:
