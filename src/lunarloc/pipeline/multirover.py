@@ -205,9 +205,11 @@ class Exchange:
 
 
 def _overlap(cur: tuple[int, int], prev: tuple[int, int]) -> float:
-    """Share of the keyframe range `cur` (inclusive) that lies in `prev`."""
+    """The common part of two keyframe ranges (inclusive) as a share of the shorter: 1 when one
+    holds the other (an owner's inliers seen over a long stretch still overlap a window)."""
     lo, hi = max(cur[0], prev[0]), min(cur[1], prev[1])
-    return max(hi - lo + 1, 0) / max(cur[1] - cur[0] + 1, 1)
+    n = min(cur[1] - cur[0] + 1, prev[1] - prev[0] + 1)
+    return max(hi - lo + 1, 0) / max(n, 1)
 
 
 def repeated_exchange(
@@ -638,7 +640,11 @@ class _Rover:
         loop = self.loc.loop
         n = len(loop.keyframes)
         key = (n, len(loop.graph.fixes), self.anchor)
-        if self.live is not None and (self.live.key == key or t - self.live.built_t < refresh_s):
+        # new keyframes: rebuilt at most every refresh_s; a new fix (it moved the landmarks) at once
+        if self.live is not None and (
+            self.live.key == key
+            or (self.live.key[1:] == key[1:] and t - self.live.built_t < refresh_s)
+        ):
             return self.live
         if n == 0:
             return None
@@ -930,7 +936,6 @@ class _Rover:
             kr = live.keyframes[inliers]
             kb = round(float(np.median(kr.mean(axis=1))))
             first = oloop.graph.first_active(oloop.config.active_window_m)
-            ob = other.sigma(kb)
             orow = SharedAttempt(
                 other.name,
                 self.name,
@@ -947,7 +952,7 @@ class _Rover:
                 math.degrees(own[1]),
                 math.hypot(reg_sigma[0], own[0]),
                 math.degrees(math.hypot(reg_sigma[1], own[1])),
-                ob[0],
+                owner[0],
                 mirror=True,
                 weight=sp.owner_weight_m,
                 owner_weight=sp.rover_weight_m,
