@@ -36,8 +36,14 @@ whose sigmas are the registration's own combined in quadrature with the largest 
 among its inliers. The owner's sigma is its odometry's stated bounds since its last fix, per
 window (:meth:`_Rover.sigma`; at most the gate's drift model,
 :meth:`lunarloc.fusion.posegraph.PoseGraph.predicted_sigma`), combined with the sigma of that fix
-when it was itself a shared fix (a rover aligned to another inherits that rover's error). A
-shared fix is used only when it is clearly more certain than the rover's own prediction.
+when it was itself a shared fix (a rover aligned to another inherits that rover's error).
+
+Two rovers fuse (``shared_fusion="split"``): an accepted registration measures the difference
+of the two rovers' errors at that place, so each moves by its share of the innovation
+(:func:`split_shared_fix`), the owner at its keyframe that saw most of the inliers; a later
+registration between the same two rovers over the same keyframes, either way round, is refused
+(:func:`repeated_exchange`), so one tie is not counted twice. ``"one-way"``: the rover takes
+the registration as a fix, only when it is clearly more certain than its own prediction.
 """
 
 from __future__ import annotations
