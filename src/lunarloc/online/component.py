@@ -460,6 +460,7 @@ class OnlineLocalizer:
         # accepted fix: its position covariance and yaw variance) by the odometry's drift over the
         # path travelled since (_path_m: odometry path length, m)
         self._path_m = 0.0
+        self._sigmas = (cfg.initial_sigma_m, math.radians(cfg.initial_sigma_yaw_deg))
         self._anchor = CovarianceAnchor(
             np.eye(3) * cfg.initial_sigma_m**2,
             math.radians(cfg.initial_sigma_yaw_deg) ** 2,
@@ -645,6 +646,7 @@ class OnlineLocalizer:
                 self._tick, t, self._T_loop_odo @ T_odo, det, None, keyframe=True
             )
             self._last_kf = (t, T_odo)
+            self._sigmas = self.loop.graph.predicted_sigma(len(self.loop.keyframes) - 1)
             if attempt is not None:
                 self.recent_attempts.append(attempt)
                 self._fixes += int(attempt.accepted)
@@ -829,19 +831,27 @@ class OnlineLocalizer:
         return None
 
     def _covariance(self, T_map_rover: np.ndarray) -> np.ndarray:
-        """6x6 over (x, y, z, roll, pitch, yaw), propagated from the anchor (the start, or
-        the last accepted fix with the covariance localize() stated for it at the rover) by
-        :func:`propagate_covariance` over the odometry path since; roll and pitch
+        """6x6 over (x, y, z, roll, pitch, yaw). Once localized: propagated from the last
+        accepted fix (the covariance the loop states for it at the rover) by
+        :func:`propagate_covariance` over the odometry path since, with the odometry source's
+        drift bounds. Before the first fix: the pose graph's gate model at the newest keyframe
+        (the odometry is not calibrated yet, and its first metres can jump beyond its bounds:
+        docs/calibration.md, "The online loop's uncertainty"). Roll and pitch:
         ``tilt_sigma_deg``."""
         st = math.radians(self.config.tilt_sigma_deg)
+        C = np.zeros((6, 6))
+        C[3, 3] = C[4, 4] = st**2
+        if not self.localized:
+            sm, sy = self._sigmas
+            C[0, 0] = C[1, 1] = C[2, 2] = sm**2
+            C[5, 5] = sy**2
+            return C
         b = self._drift_bounds()
-        if b is None:  # no drift known: the gate's model (rates for an odometry of unknown grade)
+        if b is None:  # no drift known: the gate's rates (an odometry of unknown grade)
             g = self._loop_config.fusion.gate
             b = OdometryBounds(g.rate_m_per_m, g.yaw_rate_deg_per_m)
         P, yaw_var = propagate_covariance(self._anchor, self._path_m, b, T_map_rover[:3, 3])
-        C = np.zeros((6, 6))
         C[:3, :3] = P
-        C[3, 3] = C[4, 4] = st**2
         C[5, 5] = yaw_var
         return C
 

@@ -372,6 +372,7 @@ class Attempt:
     fix_covariance_xyz: list | None = None
     fix_sigma_yaw_rad: float = float("nan")  # the yaw sigma localize() states for the fix
     fix_distortion_m: float = float("nan")  # localize()'s distortion allowance at the rover (m)
+    fix_maps_from_detections: int = 0  # of the two maps, those built from detections (sightings)
     time_mapping_s: float = 0.0
     time_association_s: float = 0.0
     window_m: float = float(
@@ -804,8 +805,9 @@ class LoopState:
         att.inlier_vehicle_xyz = Vp.round(4).tolist()
         att.inlier_reference_xyz = ref.positions_xyz[inl[:, 1]].round(4).tolist()
         att.fix_distortion_m = float(res.distortion_error_m)
+        att.fix_maps_from_detections = sum(m.sightings is not None for m in (ref, veh))
         att.fix_covariance_xyz = fix_stated_covariance(
-            res, fix4[:3], sum(m.sightings is not None for m in (ref, veh)), cfg
+            res, fix4[:3], att.fix_maps_from_detections, cfg
         ).tolist()
         att.fix_sigma_yaw_rad = math.sqrt(max(float(res.covariance[5, 5]), 0.0))
         T_true = self.T_map_rover_true[-1]
@@ -954,6 +956,20 @@ def fix_position_covariance(covariance: np.ndarray, point_xyz) -> np.ndarray:
     return A @ np.asarray(covariance, float) @ A.T
 
 
+def fix_model_terms(
+    distortion_m: float, maps_from_detections: int, config: LoopConfig
+) -> np.ndarray:
+    """What :func:`fix_stated_covariance` adds to localize()'s covariance at the rover (3x3,
+    m^2): the distortion allowance re-counted in ``fix_distortion_sigmas`` sigmas and the
+    window's centre bias."""
+    d = float(distortion_m)
+    k = 1.0 / config.fix_distortion_sigmas**2 - 1.0
+    dd = k * d * d / 2 if math.isfinite(d) and d > 0 else 0.0
+    f = maps_from_detections / 2
+    b, bz = config.fix_centre_bias_m, config.fix_centre_bias_z_m
+    return np.diag([dd + f * b * b, dd + f * b * b, f * bz * bz])
+
+
 def fix_stated_covariance(
     res, point_xyz, maps_from_detections: int, config: LoopConfig
 ) -> np.ndarray:
@@ -964,13 +980,7 @@ def fix_stated_covariance(
     bias (``fix_centre_bias_m`` per horizontal axis, ``fix_centre_bias_z_m`` vertical) times
     half the number of the two maps built from detections."""
     C = fix_position_covariance(res.covariance, point_xyz)
-    d = float(res.distortion_error_m)
-    if math.isfinite(d) and d > 0:
-        k = 1.0 / config.fix_distortion_sigmas**2 - 1.0
-        C = C + np.diag([k * d * d / 2, k * d * d / 2, 0.0])
-    f = maps_from_detections / 2
-    b, bz = config.fix_centre_bias_m, config.fix_centre_bias_z_m
-    return C + f * np.diag([b * b, b * b, bz * bz])
+    return C + fix_model_terms(res.distortion_error_m, maps_from_detections, config)
 
 
 def stated_sigmas(m: LandmarkMap) -> tuple[np.ndarray, np.ndarray]:

@@ -65,9 +65,12 @@ def loop_fix_records(
     """Run the loop on each traverse of `data` (default all) against the others, as ``lunarloc
     bench loop`` does (``config`` default :meth:`RunConfig.for_detections`: simulated drift
     0.05 deg/m and 2 % scale), and return one record per successful localization: vehicle,
-    keyframe, accepted by the gate, inliers, predicted error (m), the fix's error (3,) and
-    stated position covariance (3, 3) at the rover, its NEES."""
+    keyframe, accepted by the gate, inliers, predicted error (m), distortion allowance (m), the
+    fix's error (3,) and stated position covariance (3, 3) at the rover and its NEES, and
+    localize()'s own covariance there and its NEES (before the loop's model,
+    :func:`lunarloc.online.loop.fix_model_terms`)."""
     from lunarloc.io.maps import load_traverse
+    from lunarloc.online.loop import fix_model_terms
     from lunarloc.pipeline.evaluation import find_traverses
     from lunarloc.pipeline.reference import reference_from_traverses
     from lunarloc.pipeline.runner import run
@@ -91,6 +94,7 @@ def loop_fix_records(
             if not a.success or a.fix_error_xyz is None or a.fix_covariance_xyz is None:
                 continue
             e, C = np.array(a.fix_error_xyz), np.array(a.fix_covariance_xyz)
+            C0 = C - fix_model_terms(a.fix_distortion_m, a.fix_maps_from_detections, cfg.loop)
             out.append(
                 {
                     "vehicle": v,
@@ -102,6 +106,9 @@ def loop_fix_records(
                     "error_xyz": e.tolist(),
                     "covariance_xyz": C.tolist(),
                     "nees": float(nees(e, C)[0]),
+                    # localize()'s own covariance at the rover, before the loop's model
+                    "covariance_localize_xyz": C0.tolist(),
+                    "nees_localize": float(nees(e, C0)[0]),
                 }
             )
     return out
