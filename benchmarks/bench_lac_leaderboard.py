@@ -60,7 +60,16 @@ def run_one(
     conf.write_text(
         f'reference = "rocks.csv"\nwidth = {width}\nheight = {height}\noutput = "agent-output"\n'
     )
-    est = []
+    est, gate = [], []
+
+    def observe(agent) -> None:
+        e = agent.estimate
+        est.append((e.T_map_rover[:3, 3].copy(), e.localized, e.covariance[:3, :3].copy()))
+        # the pose graph's gate model at the newest keyframe: what the covariance was before it
+        # was propagated from the last fix (docs/calibration.md, "The online loop's uncertainty")
+        g = agent.localizer.loop.graph
+        gate.append(g.predicted_sigma(len(g) - 1)[0] if len(g) else np.nan)
+
     t0 = time.perf_counter()
     run = lunarsim.run_agent(
         AGENT_FILE,
@@ -68,13 +77,7 @@ def run_one(
         world,
         duration_s,
         evaluation=evaluation,
-        observe=lambda agent: est.append(
-            (
-                agent.estimate.T_map_rover[:3, 3].copy(),
-                agent.estimate.localized,
-                agent.estimate.covariance[:3, :3].copy(),
-            )
-        ),
+        observe=observe,
     )
     wall = time.perf_counter() - t0
     truth = np.array([T[:3, 3] for T in run.truth])
@@ -83,7 +86,7 @@ def run_one(
     cov = np.array([c for _, _, c in est])
     err = np.linalg.norm(pos[:, :2] - truth[:, :2], axis=1)
     # the per-tick trace, to look at where the error grows: true and estimated positions (m),
-    # localized, the estimate's 3x3 position covariance (m^2)
+    # localized, the estimate's 3x3 position covariance (m^2), the gate model's sigma (m, per axis)
     np.savez_compressed(
         d / "trace.npz",
         t_s=np.arange(len(est)) * 0.05,
@@ -91,8 +94,29 @@ def run_one(
         est_xyz=pos,
         localized=loc,
         covariance_xyz=cov,
+        gate_sigma_m=np.array(gate),
+    )
+    # the localizations the component kept (recent_attempts): the fixes and the covariance each
+    # was stated with (frame: the tick, 1-based), to judge them against the trace's truth
+    keep = ("frame", "accepted", "inliers", "predicted_error_m", "fix_xyz", "fix_covariance_xyz")
+    keep += ("fix_sigma_yaw_rad", "fix_distortion_m")
+    (d / "attempts.json").write_text(
+        json.dumps(
+            [
+                {k: getattr(a, k) for k in keep}
+                for a in run.agent.localizer.recent_attempts
+                if a.success
+            ]
+        )
     )
     first_fix = int(np.argmax(loc)) if loc.any() else None
+    # NEES of the localized ticks: the stated covariance, and the gate model's sigma per axis
+    from lunarloc.pipeline.nees_online import nees, nees_shares
+
+    e3 = pos - truth
+    _, n68, n997 = nees_shares(nees(e3[loc], cov[loc]))
+    g = np.array(gate)[loc]
+    _, g68, g997 = nees_shares(np.sum(e3[loc] ** 2, axis=1) / g**2)
     steps = np.array(run.run_step_s) * 1e3
     cpu = np.array(run.run_step_cpu_s) * 1e3
     r = np.linalg.norm(truth[:, :2] - world.site.lander_xyz[:2], axis=1)
@@ -116,6 +140,10 @@ def run_one(
         "max_error_after_fix_m": None
         if first_fix is None
         else round(float(err[first_fix:].max()), 4),
+        "nees_under_3.53": None if not loc.any() else round(n68, 3),
+        "nees_under_14.16": None if not loc.any() else round(n997, 3),
+        "gate_nees_under_3.53": None if not loc.any() else round(g68, 3),
+        "gate_nees_under_14.16": None if not loc.any() else round(g997, 3),
         "get_transform_calls": run.get_transform_calls,
         "run_step_median_ms": round(float(np.median(steps)), 1),
         "run_step_p95_ms": round(float(np.percentile(steps, 95)), 1),
@@ -162,6 +190,10 @@ def main(argv=None) -> int:
         "run_step_cpu_p95_ms",
         "setup_s",
         "driven_m",
+        "nees_under_3.53",
+        "nees_under_14.16",
+        "gate_nees_under_3.53",
+        "gate_nees_under_14.16",
     )
     print(" ".join(cols), flush=True)
     for size in a.sizes:

@@ -86,6 +86,50 @@ __all__ = [
 ]
 
 
+# --------------------------------------------------------------------------- covariance
+
+
+@dataclass(frozen=True)
+class CovarianceAnchor:
+    """Where the stated covariance was last known: its 3x3 position covariance (m^2, map
+    frame), yaw variance (rad^2), the odometry path length there (m) and the position (map
+    frame, m)."""
+
+    position_covariance: np.ndarray
+    yaw_variance: float
+    path_m: float
+    xyz: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+
+def propagate_covariance(
+    anchor: CovarianceAnchor, path_m: float, bounds: OdometryBounds, xyz=None
+) -> tuple[np.ndarray, float]:
+    """(3x3 position covariance m^2, yaw variance rad^2) at map-frame position `xyz` after
+    ``D = path_m - anchor.path_m`` metres of odometry from the anchor, the odometry's drift
+    bounds taken as one sigma (scale error s, heading drift d per metre): along the chord from
+    the anchor to `xyz`, ``(s D)^2``; across it, ``sigma_yaw^2 D^2`` (the anchor's heading error
+    swinging the path) ``+ (d D^2 / 2)^2`` (the drift, integrated); vertical ``(s D)^2``; yaw
+    ``+ (d D)^2``. Without `xyz` (or a chord under 1 cm) the horizontal terms are split evenly
+    over x and y."""
+    D = max(float(path_m) - anchor.path_m, 0.0)
+    s = float(bounds.scale_error)
+    d = math.radians(float(bounds.heading_drift_deg_per_m))
+    yaw_var = anchor.yaw_variance + (d * D) ** 2
+    along = (s * D) ** 2
+    across = anchor.yaw_variance * D**2 + (0.5 * d * D**2) ** 2
+    P = np.array(anchor.position_covariance, float)
+    c = None if xyz is None else (np.asarray(xyz, float).reshape(3) - anchor.xyz)[:2]
+    if c is None or float(np.hypot(*c)) < 0.01:
+        H = np.eye(2) * 0.5 * (along + across)
+    else:
+        u = c / float(np.hypot(*c))
+        v = np.array([-u[1], u[0]])
+        H = along * np.outer(u, u) + across * np.outer(v, v)
+    P[:2, :2] += H
+    P[2, 2] += (s * D) ** 2
+    return P, float(yaw_var)
+
+
 # --------------------------------------------------------------------------- inputs
 
 
@@ -412,7 +456,17 @@ class OnlineLocalizer:
         self._T_loop_odo = np.eye(4)  # the loop's odometry frame <- odo (changes at re-anchors)
         self._last_kf = None  # (t, T_odo_rover) of the last keyframe
         self._fixes = 0
+        # the stated covariance (_covariance): propagated from an anchor (the start, then the last
+        # accepted fix: its position covariance and yaw variance) by the odometry's drift over the
+        # path travelled since (_path_m: odometry path length, m)
+        self._path_m = 0.0
         self._sigmas = (cfg.initial_sigma_m, math.radians(cfg.initial_sigma_yaw_deg))
+        self._anchor = CovarianceAnchor(
+            np.eye(3) * cfg.initial_sigma_m**2,
+            math.radians(cfg.initial_sigma_yaw_deg) ** 2,
+            0.0,
+            self.T_map_rover0[:3, 3].copy(),
+        )
         self.reanchors = 0
         self.recent_attempts: collections.deque[Attempt] = collections.deque(
             maxlen=cfg.max_recent_attempts
@@ -574,6 +628,7 @@ class OnlineLocalizer:
         else:
             T_odo = T_imu
         self._t_prev, self._imu_prev, self._speed_prev = t, a, float(linear_speed)
+        self._path_m += float(np.linalg.norm(T_odo[:3, 3] - self._T_map_odo[:3, 3]))
         self._T_map_imu, self._T_map_odo = T_imu, T_odo
         self._tick += 1
         # ---- keyframe: detection, localization, fusion
@@ -591,17 +646,23 @@ class OnlineLocalizer:
                 self._tick, t, self._T_loop_odo @ T_odo, det, None, keyframe=True
             )
             self._last_kf = (t, T_odo)
-            k = len(self.loop.keyframes) - 1
-            self._sigmas = self.loop.graph.predicted_sigma(k)
+            self._sigmas = self.loop.graph.predicted_sigma(len(self.loop.keyframes) - 1)
             if attempt is not None:
                 self.recent_attempts.append(attempt)
                 self._fixes += int(attempt.accepted)
         T = self.loop.T_map_odo @ self._T_loop_odo @ T_odo
+        if attempt is not None and attempt.accepted and attempt.fix_covariance_xyz is not None:
+            self._anchor = CovarianceAnchor(
+                np.asarray(attempt.fix_covariance_xyz, float),
+                attempt.fix_sigma_yaw_rad**2,
+                self._path_m,
+                T[:3, 3].copy(),
+            )
         if is_kf and self.mapper is not None:
             self._feed_mapper(images, T, attempt)
         self._history.append(t)
         self._history.extend(T[:3, :].reshape(-1))
-        return Estimate(t, T, self._covariance(), self.localized, self._fixes, is_kf, attempt)
+        return Estimate(t, T, self._covariance(T), self.localized, self._fixes, is_kf, attempt)
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """Every pose :meth:`update` returned so far: (times (F,) s, T_map_rover (F, 4, 4)).
@@ -758,10 +819,41 @@ class OnlineLocalizer:
         self._fd = fd if self.mapper is not None else None
         return np.array([d.p_rover for d in fd.detections], float).reshape(-1, 3)
 
-    def _covariance(self) -> np.ndarray:
-        sm, sy = self._sigmas
+    def _drift_bounds(self) -> OdometryBounds | None:
+        """The odometry's drift per metre (scale error, heading drift) the covariance grows
+        with: the bounds of the source that feeds the loop (:attr:`LoopConfig.odometry_bounds`);
+        None where none are known (IMU only, a caller's own odometry)."""
+        src = self.loop.odometry
+        if isinstance(src, OdometryBounds):
+            return src
+        if isinstance(src, str):
+            return self._loop_config.odometry_bounds.for_source(src)
+        return None
+
+    def _covariance(self, T_map_rover: np.ndarray) -> np.ndarray:
+        """6x6 over (x, y, z, roll, pitch, yaw). Once localized: propagated from the last
+        accepted fix (the covariance the loop states for it at the rover) by
+        :func:`propagate_covariance` over the odometry path since, with the odometry source's
+        drift bounds. Before the first fix: the pose graph's gate model at the newest keyframe
+        (the odometry is not calibrated yet, and its first metres can jump beyond its bounds:
+        docs/calibration.md, "The online loop's uncertainty"). Roll and pitch:
+        ``tilt_sigma_deg``."""
         st = math.radians(self.config.tilt_sigma_deg)
-        return np.diag([sm**2, sm**2, sm**2, st**2, st**2, sy**2])
+        C = np.zeros((6, 6))
+        C[3, 3] = C[4, 4] = st**2
+        if not self.localized:
+            sm, sy = self._sigmas
+            C[0, 0] = C[1, 1] = C[2, 2] = sm**2
+            C[5, 5] = sy**2
+            return C
+        b = self._drift_bounds()
+        if b is None:  # no drift known: the gate's rates (an odometry of unknown grade)
+            g = self._loop_config.fusion.gate
+            b = OdometryBounds(g.rate_m_per_m, g.yaw_rate_deg_per_m)
+        P, yaw_var = propagate_covariance(self._anchor, self._path_m, b, T_map_rover[:3, 3])
+        C[:3, :3] = P
+        C[5, 5] = yaw_var
+        return C
 
     def _reanchor(self) -> None:
         """Start a new loop state from the keyframes of the last window (bounded history)."""

@@ -183,6 +183,15 @@ class LoopConfig:
         0  # > 0: after this many fixes the source's bounds give way to a fitted bend
     )
     odometry_bounds: SourceBounds = field(default_factory=SourceBounds)
+    # the covariance a fix is stated with (Attempt.fix_covariance_xyz, where OnlineLocalizer's
+    # covariance restarts; not what localize() decides with, the gate or the pose graph):
+    # localize()'s registration covariance at the rover, its window distortion allowance (a
+    # bound) counted as fix_distortion_sigmas sigmas, and the centre bias a window's few
+    # neighbouring rocks share (per axis: horizontal, vertical; for two maps built from
+    # detections, half the variance for one): docs/calibration.md, "The online loop's uncertainty"
+    fix_distortion_sigmas: float = 1.0
+    fix_centre_bias_m: float = 0.0
+    fix_centre_bias_z_m: float = 0.0
 
     def __post_init__(self) -> None:
         for name in (
@@ -193,14 +202,15 @@ class LoopConfig:
             "fix_sigma_fallback_m",
             "keyframe_every_s",
             "keyframe_max_interval_s",
+            "fix_distortion_sigmas",
         ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and 0 < v < math.inf):
                 raise ConfigError(f"{name}={v!r} must be positive and finite")
-        if not (
-            isinstance(self.crop_margin_m, (int, float)) and 0 <= self.crop_margin_m < math.inf
-        ):
-            raise ConfigError(f"crop_margin_m={self.crop_margin_m!r} must be >= 0 and finite")
+        for name in ("crop_margin_m", "fix_centre_bias_m", "fix_centre_bias_z_m"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v < math.inf):
+                raise ConfigError(f"{name}={v!r} must be >= 0 and finite")
         try:
             object.__setattr__(self, "fix_kind", FixKind(self.fix_kind))
         except ValueError:
@@ -356,6 +366,13 @@ class Attempt:
     fix_xyz: list | None = None
     inlier_vehicle_xyz: list | None = None  # inlier landmarks in the estimate frame, before the fix
     inlier_reference_xyz: list | None = None
+    # the fix's position error (fix - truth, map frame, m; evaluation only) and the 3x3 position
+    # covariance localize() states for it at the rover (m^2): what a NEES of the fixes needs
+    fix_error_xyz: list | None = None
+    fix_covariance_xyz: list | None = None
+    fix_sigma_yaw_rad: float = float("nan")  # the yaw sigma localize() states for the fix
+    fix_distortion_m: float = float("nan")  # localize()'s distortion allowance at the rover (m)
+    fix_maps_from_detections: int = 0  # of the two maps, those built from detections (sightings)
     time_mapping_s: float = 0.0
     time_association_s: float = 0.0
     window_m: float = float(
@@ -364,7 +381,13 @@ class Attempt:
 
     def row(self) -> dict:
         d = asdict(self)
-        for k in ("inlier_vehicle_xyz", "inlier_reference_xyz", "fix_xyz"):
+        for k in (
+            "inlier_vehicle_xyz",
+            "inlier_reference_xyz",
+            "fix_xyz",
+            "fix_error_xyz",
+            "fix_covariance_xyz",
+        ):
             d.pop(k)
         return d
 
@@ -781,9 +804,16 @@ class LoopState:
         att.fix_xyz = fix4[:3].tolist()
         att.inlier_vehicle_xyz = Vp.round(4).tolist()
         att.inlier_reference_xyz = ref.positions_xyz[inl[:, 1]].round(4).tolist()
+        att.fix_distortion_m = float(res.distortion_error_m)
+        att.fix_maps_from_detections = sum(m.sightings is not None for m in (ref, veh))
+        att.fix_covariance_xyz = fix_stated_covariance(
+            res, fix4[:3], att.fix_maps_from_detections, cfg
+        ).tolist()
+        att.fix_sigma_yaw_rad = math.sqrt(max(float(res.covariance[5, 5]), 0.0))
         T_true = self.T_map_rover_true[-1]
         if T_true is not None:
             att.fix_error_m = float(np.linalg.norm(fix4[:3] - T_true[:3, 3]))
+            att.fix_error_xyz = (fix4[:3] - T_true[:3, 3]).tolist()
         if g.accepted:
             if cfg.fix_kind is FixKind.POSE:
                 self.graph.add_fix(k, fix4, sig_m, sig_m / extent)
@@ -915,6 +945,42 @@ def interpolate_corrections(
         )
         out[n] = T @ T_odo_rover[n]
     return out
+
+
+def fix_position_covariance(covariance: np.ndarray, point_xyz) -> np.ndarray:
+    """3x3 position covariance (m^2) at map-frame point `point_xyz` of a localization's 6x6
+    pose-error covariance about the map origin (``T_true = exp(xi) T``, ``xi = (rho, phi)``: a
+    point p is off by ``rho + phi x p``, so ``A C A^T`` with ``A = [I, -[p]x]``)."""
+    x, y, z = np.asarray(point_xyz, float).reshape(3)
+    A = np.hstack([np.eye(3), np.array([[0.0, z, -y], [-z, 0.0, x], [y, -x, 0.0]])])
+    return A @ np.asarray(covariance, float) @ A.T
+
+
+def fix_model_terms(
+    distortion_m: float, maps_from_detections: int, config: LoopConfig
+) -> np.ndarray:
+    """What :func:`fix_stated_covariance` adds to localize()'s covariance at the rover (3x3,
+    m^2): the distortion allowance re-counted in ``fix_distortion_sigmas`` sigmas and the
+    window's centre bias."""
+    d = float(distortion_m)
+    k = 1.0 / config.fix_distortion_sigmas**2 - 1.0
+    dd = k * d * d / 2 if math.isfinite(d) and d > 0 else 0.0
+    f = maps_from_detections / 2
+    b, bz = config.fix_centre_bias_m, config.fix_centre_bias_z_m
+    return np.diag([dd + f * b * b, dd + f * b * b, f * bz * bz])
+
+
+def fix_stated_covariance(
+    res, point_xyz, maps_from_detections: int, config: LoopConfig
+) -> np.ndarray:
+    """The 3x3 position covariance (m^2) a loop fix is stated with at the rover (map-frame
+    `point_xyz`): localize()'s covariance there (:func:`fix_position_covariance`) with its
+    distortion allowance (``res.distortion_error_m``, split over x and y at the rover) counted
+    as ``config.fix_distortion_sigmas`` sigmas instead of one, plus the window's shared centre
+    bias (``fix_centre_bias_m`` per horizontal axis, ``fix_centre_bias_z_m`` vertical) times
+    half the number of the two maps built from detections."""
+    C = fix_position_covariance(res.covariance, point_xyz)
+    return C + fix_model_terms(res.distortion_error_m, maps_from_detections, config)
 
 
 def stated_sigmas(m: LandmarkMap) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,123 @@
+"""Is the online loop's stated uncertainty honest? The normalised estimation error squared (NEES)
+of (a) the loop's fixes, before the pose graph's floors, and (b) the online estimate's
+``covariance`` along a run.
+
+NEES: the position error's squared Mahalanobis distance under the stated 3x3 position
+covariance, 3 degrees of freedom. A calibrated covariance puts 60-80 % of the cases under 3.53
+(the 68.3 % quantile of chi-square(3)) and at least 99 % under 14.16 (99.73 %).
+
+- :func:`loop_fix_records`: the loop (:func:`lunarloc.pipeline.runner.run`, as ``lunarloc bench
+  loop`` runs it) on real traverses, each against a map of all the others; one record per
+  successful localization: its error against the truth and the covariance ``localize()`` states
+  for it at the rover (:attr:`lunarloc.online.loop.Attempt.fix_covariance_xyz`).
+- :func:`trace_nees`: the NEES of every localized tick of a per-tick trace (true and estimated
+  positions, covariance), such as ``benchmarks/bench_lac_leaderboard.py`` writes.
+- :func:`nees_shares`: the two shares.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from collections.abc import Iterable
+
+import numpy as np
+
+from lunarloc.config.run import RunConfig
+
+__all__ = ["NEES_68", "NEES_997", "nees", "nees_shares", "loop_fix_records", "trace_nees"]
+
+NEES_68 = 3.5267  # chi-square, 3 dof: 68.27 % quantile
+NEES_997 = 14.156  # 99.73 % quantile
+
+
+def nees(error_xyz, covariance_xyz) -> np.ndarray:
+    """NEES of each error (n, 3) under its 3x3 covariance (n, 3, 3); NaN where the covariance
+    is not finite or singular."""
+    E = np.asarray(error_xyz, float).reshape(-1, 3)
+    C = np.asarray(covariance_xyz, float).reshape(-1, 3, 3)
+    out = np.full(len(E), math.nan)
+    for i, (e, c) in enumerate(zip(E, C)):
+        if np.all(np.isfinite(c)) and np.all(np.isfinite(e)):
+            try:
+                out[i] = float(e @ np.linalg.solve(c, e))
+            except np.linalg.LinAlgError:
+                pass
+    return out
+
+
+def nees_shares(values: Iterable[float]) -> tuple[int, float, float]:
+    """(cases, share under 3.53, share under 14.16) of the finite NEES values (NaN shares for
+    none)."""
+    v = np.asarray(list(values), float)
+    v = v[np.isfinite(v)]
+    if not len(v):
+        return 0, math.nan, math.nan
+    return len(v), float(np.mean(v < NEES_68)), float(np.mean(v < NEES_997))
+
+
+def loop_fix_records(
+    data: str | Path,
+    traverses: Iterable[int] | None = None,
+    config: RunConfig | None = None,
+    min_length_m: float = 5.0,
+) -> list[dict]:
+    """Run the loop on each traverse of `data` (default all) against the others, as ``lunarloc
+    bench loop`` does (``config`` default :meth:`RunConfig.for_detections`: simulated drift
+    0.05 deg/m and 2 % scale), and return one record per successful localization: vehicle,
+    keyframe, accepted by the gate, inliers, predicted error (m), distortion allowance (m), the
+    fix's error (3,) and stated position covariance (3, 3) at the rover and its NEES, and
+    localize()'s own covariance there and its NEES (before the loop's model,
+    :func:`lunarloc.online.loop.fix_model_terms`)."""
+    from lunarloc.io.maps import load_traverse
+    from lunarloc.online.loop import fix_model_terms
+    from lunarloc.pipeline.evaluation import find_traverses
+    from lunarloc.pipeline.reference import reference_from_traverses
+    from lunarloc.pipeline.runner import run
+    from lunarloc.pipeline.sources import TraverseCsvSource
+
+    cfg = config or RunConfig.for_detections()
+    trav = {k: load_traverse(p) for k, p in find_traverses(data).items()}
+    out = []
+    for v in sorted(trav) if traverses is None else list(traverses):
+        if trav[v].path_length < min_length_m:
+            continue
+        src = TraverseCsvSource(
+            trav[v],
+            cfg.odometry.drift,
+            cfg.odometry.rate_hz,
+            cfg.loop.keyframe_every_s,
+            cfg.loop.keyframe_max_interval_s,
+        )
+        res = run(src, reference_from_traverses(trav, exclude=v), cfg)
+        for a in res.attempts:
+            if not a.success or a.fix_error_xyz is None or a.fix_covariance_xyz is None:
+                continue
+            e, C = np.array(a.fix_error_xyz), np.array(a.fix_covariance_xyz)
+            C0 = C - fix_model_terms(a.fix_distortion_m, a.fix_maps_from_detections, cfg.loop)
+            out.append(
+                {
+                    "vehicle": v,
+                    "keyframe": a.keyframe,
+                    "accepted": a.accepted,
+                    "inliers": a.inliers,
+                    "predicted_error_m": a.predicted_error_m,
+                    "distortion_m": a.fix_distortion_m,
+                    "error_xyz": e.tolist(),
+                    "covariance_xyz": C.tolist(),
+                    "nees": float(nees(e, C)[0]),
+                    # localize()'s own covariance at the rover, before the loop's model
+                    "covariance_localize_xyz": C0.tolist(),
+                    "nees_localize": float(nees(e, C0)[0]),
+                }
+            )
+    return out
+
+
+def trace_nees(trace, localized_only: bool = True) -> np.ndarray:
+    """NEES of every tick of a trace (a mapping with ``truth_xyz``, ``est_xyz`` (n, 3),
+    ``covariance_xyz`` (n, 3, 3) and ``localized`` (n,)), of the localized ticks only unless
+    `localized_only` is False."""
+    e = np.asarray(trace["est_xyz"], float) - np.asarray(trace["truth_xyz"], float)
+    v = nees(e, trace["covariance_xyz"])
+    return v[np.asarray(trace["localized"], bool)] if localized_only else v

@@ -1,0 +1,98 @@
+"""The online loop's stated uncertainty: the covariance OnlineLocalizer propagates from its last
+fix, and the covariance a loop fix is stated with, judged by the NEES (docs/calibration.md,
+"The online loop's uncertainty")."""
+
+import math
+
+import numpy as np
+import pytest
+
+from lunarloc.core.errors import ConfigError
+from lunarloc.online.component import CovarianceAnchor, propagate_covariance
+from lunarloc.online.loop import LoopConfig, OdometryBounds, fix_stated_covariance
+from lunarloc.pipeline.nees_online import NEES_68, NEES_997, nees, nees_shares
+
+
+def _drifted_runs(n: int, bounds: OdometryBounds, P0: np.ndarray, yaw_var: float, seed: int = 0):
+    """`n` generated odometry runs of 1-10 m on curved paths, each with a scale error and a
+    heading drift drawn from `bounds` (as one sigma), an anchor error drawn from `P0` and
+    `yaw_var`: (errors (n, 3), stated covariances (n, 3, 3))."""
+    rng = np.random.default_rng(seed)
+    E, C = [], []
+    for _ in range(n):
+        length, steps = rng.uniform(1.0, 10.0), 100
+        ds = length / steps
+        heading = rng.uniform(0, 2 * math.pi) + rng.uniform(-0.3, 0.3) * ds * np.arange(steps)
+        s = rng.normal(0, bounds.scale_error)
+        d = rng.normal(0, math.radians(bounds.heading_drift_deg_per_m))
+        herr = rng.normal(0, math.sqrt(yaw_var)) + d * ds * np.arange(steps)
+        true = np.sum(np.column_stack([np.cos(heading), np.sin(heading)]) * ds, axis=0)
+        est = np.sum(
+            np.column_stack([np.cos(heading + herr), np.sin(heading + herr)]) * ds * (1 + s), axis=0
+        )
+        e0 = rng.multivariate_normal(np.zeros(3), P0)
+        z = rng.normal(0, bounds.scale_error) * length
+        E.append(np.r_[est - true + e0[:2], e0[2] + z])
+        anchor = CovarianceAnchor(P0, yaw_var, 0.0, np.zeros(3))
+        C.append(propagate_covariance(anchor, length, bounds, np.r_[true, 0.0])[0])
+    return np.array(E), np.array(C)
+
+
+def test_the_propagated_covariance_is_calibrated_on_generated_drift():
+    """Odometry drifting as its bounds say (one sigma) from an anchor known as stated: the
+    propagated covariance's NEES stays in the calibrated band."""
+    P0 = np.diag([0.01**2, 0.01**2, 0.005**2])
+    E, C = _drifted_runs(300, OdometryBounds(0.01, 0.06), P0, math.radians(0.3) ** 2)
+    n, under68, under997 = nees_shares(nees(E, C))
+    assert n == 300
+    assert 0.60 <= under68 <= 0.80, under68
+    assert under997 >= 0.99, under997
+
+
+def test_the_band_catches_a_covariance_that_ignores_the_drift():
+    """The same runs judged against the anchor's covariance alone (no growth) leave the band:
+    the check can fail."""
+    P0 = np.diag([0.01**2, 0.01**2, 0.005**2])
+    E, _ = _drifted_runs(300, OdometryBounds(0.01, 0.06), P0, math.radians(0.3) ** 2)
+    _, under68, under997 = nees_shares(nees(E, np.repeat(P0[None], len(E), axis=0)))
+    assert under68 < 0.60 and under997 < 0.99
+
+
+def test_propagation_grows_along_and_across_the_chord():
+    anchor = CovarianceAnchor(np.eye(3) * 1e-4, 0.0, 2.0, np.zeros(3))
+    P, yaw_var = propagate_covariance(anchor, 7.0, OdometryBounds(0.01, 0.0), [5.0, 0.0, 0.0])
+    assert P[0, 0] == pytest.approx(1e-4 + (0.01 * 5.0) ** 2)  # along x: the scale error over 5 m
+    assert P[1, 1] == pytest.approx(1e-4)  # across: no heading error, no drift
+    assert P[2, 2] == pytest.approx(1e-4 + (0.01 * 5.0) ** 2)
+    assert yaw_var == 0.0
+    # before the anchor's path length nothing grows
+    P, _ = propagate_covariance(anchor, 1.0, OdometryBounds(0.01, 0.06), [5.0, 0.0, 0.0])
+    assert np.allclose(P, np.eye(3) * 1e-4)
+
+
+class _Res:
+    def __init__(self, C, d):
+        self.covariance, self.distortion_error_m = C, d
+
+
+def test_a_fix_states_its_distortion_in_sigmas_and_the_window_centre_bias():
+    C = np.diag([1e-6, 1e-6, 1e-6, 0.0, 0.0, 0.0])
+    C[0, 0] += 0.02**2 / 2  # the distortion allowance (2 cm) localize() splits over x and y
+    C[1, 1] += 0.02**2 / 2
+    cfg = LoopConfig(fix_distortion_sigmas=2.0, fix_centre_bias_m=0.003, fix_centre_bias_z_m=0.001)
+    S = fix_stated_covariance(_Res(C, 0.02), [0.0, 0.0, 0.0], 2, cfg)
+    assert S[0, 0] == pytest.approx(1e-6 + 0.01**2 / 2 + 0.003**2)
+    assert S[2, 2] == pytest.approx(1e-6 + 0.001**2)
+    # one map built from detections: half the bias variance; none: none
+    S1 = fix_stated_covariance(_Res(C, 0.02), [0.0, 0.0, 0.0], 1, cfg)
+    assert S1[0, 0] == pytest.approx(1e-6 + 0.01**2 / 2 + 0.003**2 / 2)
+    with pytest.raises(ConfigError):
+        LoopConfig(fix_distortion_sigmas=0.0)
+    with pytest.raises(ConfigError):
+        LoopConfig(fix_centre_bias_m=-1.0)
+
+
+def test_nees_shares_count_the_finite_cases():
+    assert nees_shares([1.0, NEES_68 + 1, NEES_997 + 1, math.nan]) == (3, 1 / 3, 2 / 3)
+    assert math.isnan(nees(np.ones((1, 3)), np.zeros((1, 3, 3)))[0])  # singular: not judged
+    assert nees(np.ones((1, 3)), 4 * np.eye(3)[None])[0] == pytest.approx(0.75)
