@@ -111,6 +111,8 @@ class SmallRockConfig:
     # ... and, lower than confident_top_m (m), low_top_snr times it
     confident_top_m: float = setting(0.018, gt=0.0)
     low_top_snr: float = setting(4.0, gt=0.0)
+    # the blob's median height stands this many times the ring noise / sqrt(blob pixels / block_size^2)
+    min_median_snr: float = setting(3.0, ge=0.0)
     # a rock stands at most max_top_per_width x its width + top_margin_m (m)
     max_top_per_width: float = setting(1.5, gt=0.0)
     top_margin_m: float = setting(0.02, ge=0.0)
@@ -118,6 +120,9 @@ class SmallRockConfig:
     max_tilt_deg: float = setting(35.0, gt=0.0, le=90.0)
     # fit a quadric (in the plane's coordinates) rather than a plane to the ring
     quadric: bool = setting(True)
+    # judge a candidate on the ground fitted to the ring points within this many rock sizes of the
+    # rock (its blob and the raised pixels next to it; 0 = the whole window's ring)
+    refine_margin: float = setting(0.0, ge=0.0)
     # the fewest valid ring points, and the most used by the fit
     min_ring_points: int = setting(30, ge=6)
     max_ring_points: int = setting(400, ge=12)
@@ -127,6 +132,10 @@ class SmallRockConfig:
     min_blob_points: int = setting(3, ge=1)
     # at most this many dark candidates per image (after the bright ones)
     max_dark_candidates: int = setting(30, ge=0)
+    # the raised part beside a dark candidate stands this many ring noises ...
+    dark_min_snr: float = setting(5.0, ge=0.0)
+    # ... over at least this many valid pixels
+    dark_min_points: int = setting(30, ge=1)
     # the view's ground plane: the height map's points within this optical depth (m)
     ground_range_m: float = setting(6.0, gt=0.0)
 
@@ -300,18 +309,16 @@ def _blobs(z, sky, grid: _Grid, cfg, z_min: float, n_max: int, dark: bool) -> li
         half = int(np.clip(cfg.max_width_m * grid.fx / Z[i] / k, 3, 40))
         ya, yb, xa, xb = max(y - half, 0), min(y + half + 1, h), max(x - half, 0), min(x + half + 1, w)
         sub = (z[ya:yb, xa:xb] > max(0.5 * z[y, x], 0.6 * z_min)).astype(np.uint8)
-        _, lab = cv2.connectedComponents(sub, connectivity=8)
-        blob = lab == lab[y - ya, x - xa]
-        ys, xs = np.nonzero(blob)
-        by0, by1, bx0, bx1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
-        bw, bh = bx1 - bx0, by1 - by0
-        claimed[ya:yb, xa:xb] |= blob
-        if ys.size < 2 or bw > cfg.max_aspect * bh:
+        _, lab, stats, _ = cv2.connectedComponentsWithStats(sub, connectivity=8)
+        lb = lab[y - ya, x - xa]
+        bx0, by0, bw, bh, area = (int(v) for v in stats[lb])
+        c = lab[by0 : by0 + bh, bx0 : bx0 + bw] == lb
+        claimed[ya + by0 : ya + by0 + bh, xa + bx0 : xa + bx0 + bw] |= c
+        if area < 2 or bw > cfg.max_aspect * bh:
             continue
         width = max(bw, bh) * k * Z[i] / grid.fx
         if not cfg.min_width_m <= width <= cfg.max_width_m:
             continue
-        c = blob[by0:by1, bx0:bx1]
         full = np.repeat(np.repeat(c, k, axis=0), k, axis=1) if k > 1 else c
         out.append(((xa + bx0) * k, (ya + by0) * k + grid.r0, full, float(d0[i]), dark))
     return out
@@ -429,11 +436,18 @@ class _Window:
     hall: np.ndarray
     noise: float
     n: np.ndarray
+    # the ring's subsampled points and their window pixels (rows, columns)
+    ring_P: np.ndarray
+    ring_v: np.ndarray
+    ring_u: np.ndarray
 
 
-def _local_heights(L, R, disparity_lowres, scale, camera, fb, cfg, mt, u0, v0, crop, d0):
+def _local_heights(L, R, disparity_lowres, scale, camera, fb, cfg, mt, u0, v0, crop, d0, dark=False):
     """A :class:`_Window` around the candidate blob `crop` at (u0, v0), or None when the window
-    cannot be matched or holds too few valid ring or blob points."""
+    cannot be matched or holds too few valid ring or blob points. Heights and points are
+    computed for the ring's (subsampled) pixels and the core inside it (the blob and its
+    surroundings up to the ring; for a dark blob, up to two blob sizes around it, where the
+    rock that cast it stands) only."""
     import cv2
 
     H, W = L.shape
@@ -452,35 +466,77 @@ def _local_heights(L, R, disparity_lowres, scale, camera, fb, cfg, mt, u0, v0, c
     blob = np.zeros(d.shape, np.uint8)
     blob[v0 - b0 : v0 - b0 + bh, u0 - a0 : u0 - a0 + bw] = crop
     g = max(3, int(0.5 * max(bw, bh)))
-    ring = cv2.dilate(blob, np.ones((2 * g + 1, 2 * g + 1), np.uint8)) == 0
+    core = cv2.dilate(blob, np.ones((2 * g + 1, 2 * g + 1), np.uint8)) > 0
     inner = cv2.dilate(blob, np.ones((3, 3), np.uint8)) > 0
     ok = np.isfinite(d)
-    gr = ring & ok
+    gr = ~core & ok
     if np.count_nonzero(gr) < cfg.min_ring_points or np.count_nonzero(inner & ok) < cfg.min_blob_points:
         return None
-    # points (left optical frame) of the window's valid pixels
-    vv, uu = np.nonzero(ok)
+    if dark:
+        gd = 2 * (max(3, max(bw, bh)) + 3) + 1
+        core = cv2.dilate(blob, np.ones((gd, gd), np.uint8)) > 0
+    rv, ru = np.nonzero(gr)
+    if rv.size > cfg.max_ring_points:  # an even subsample: the fit needs no more
+        step = int(np.ceil(rv.size / cfg.max_ring_points))
+        rv, ru = rv[::step], ru[::step]
+    cv_, cu_ = np.nonzero(core & ok)
+    n_ring = rv.size
+    vv, uu = np.concatenate([rv, cv_]), np.concatenate([ru, cu_])
+    # points (left optical frame): the ring's, then the core's
     Z = fb / d[vv, uu]
-    P = np.stack([(uu + a0 - cx) * Z / fx, (vv + b0 - cy) * Z / fx, Z], axis=1)
+    P = Pr = np.stack([(uu + a0 - cx) * Z / fx, (vv + b0 - cy) * Z / fx, Z], axis=1)
+    hP, s, n = _ground_heights(P[:n_ring], P[n_ring:], cfg)
+    P = P[n_ring:]
     idx = np.full(d.shape, -1, np.int64)
-    idx[vv, uu] = np.arange(vv.size)
-    ring_idx = idx[gr]
-    if ring_idx.size > cfg.max_ring_points:  # an even subsample: the fit needs no more
-        ring_idx = ring_idx[:: int(np.ceil(ring_idx.size / cfg.max_ring_points))]
-    Q = P[ring_idx]
+    idx[cv_, cu_] = np.arange(cv_.size)
+    hall = np.full(d.shape, np.nan, np.float32)
+    hall[cv_, cu_] = hP
+    return _Window(a0, b0, blob, ok & core, P, idx, hall, float(s), n, Pr[:n_ring], rv, ru)
+
+
+def _ground_heights(Q: np.ndarray, P: np.ndarray, cfg):
+    """Heights of the points `P` above the local ground fitted to the ring points `Q` (a plane,
+    once more without the points beyond 3 MADs, then, with cfg.quadric, a quadric in the
+    plane's coordinates), the fit's residual spread and the plane's normal."""
     c, n = _fit_plane(Q)
-    med, s = _robust_spread((Q - c) @ n)
-    keep = np.abs((Q - c) @ n - med) < 3 * s
+    r = (Q - c) @ n
+    med, s = _robust_spread(r)
+    keep = np.abs(r - med) < 3 * s
     n_keep = int(np.count_nonzero(keep))
     if n_keep >= cfg.min_ring_points // 2:
         c, n = _fit_plane(Q[keep])
         _, s = _robust_spread((Q[keep] - c) @ n)
-    hP = (P - c) @ n
-    if cfg.quadric and n_keep >= 12:
-        hP, s = _quadric_heights(P, c, n, hP, ring_idx, s)
-    hall = np.full(d.shape, np.nan, np.float32)
+    if not (cfg.quadric and n_keep >= 12):
+        return (P - c) @ n, s, n
+    X = np.concatenate([Q, P])
+    h, s = _quadric_heights(X, c, n, (X - c) @ n, np.arange(len(Q)), s)
+    return h[len(Q) :], s, n
+
+
+def _refit(w: _Window, region: np.ndarray, cfg) -> _Window | None:
+    """`w` with its heights refitted to the ring points within cfg.refine_margin region sizes
+    of `region` (uint8, window-sized) and outside it (dilated by half its size): a ring close
+    to the rock holds less of the terrain's relief. None when too few ring points remain."""
+    import cv2
+
+    ys, xs = np.nonzero(region)
+    y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    size = max(y1 - y0, x1 - x0)
+    m = max(cfg.refine_margin * size, 4)
+    g = max(3, size // 2)
+    out = cv2.dilate(region, np.ones((2 * g + 1, 2 * g + 1), np.uint8)) > 0
+    sel = (
+        (w.ring_u >= x0 - m) & (w.ring_u < x1 + m) & (w.ring_v >= y0 - m) & (w.ring_v < y1 + m)
+    ) & ~out[w.ring_v, w.ring_u]
+    if np.count_nonzero(sel) < cfg.min_ring_points:
+        return None
+    # heights where the verdict and the rock's outline look: the region and 3 pixels around it
+    near = (cv2.dilate(region, np.ones((7, 7), np.uint8)) > 0) & (w.idx >= 0)
+    vv, uu = np.nonzero(near)
+    hP, s, n = _ground_heights(w.ring_P[sel], w.P[w.idx[vv, uu]], cfg)
+    hall = np.full(w.hall.shape, np.nan, np.float32)
     hall[vv, uu] = hP
-    return _Window(a0, b0, blob, ok, P, idx, hall, float(s), n)
+    return replace(w, blob=region, hall=hall, noise=float(s), n=n, ok=w.ok & near)
 
 
 def _quadric_heights(P, c, n, hP, ring_idx, s):
@@ -595,7 +651,7 @@ def detect_small_rocks(
             if not np.any(hh >= cfg.min_lowres_height_m):  # NaN compares False
                 continue
         w = _local_heights(
-            left, right, disparity_lowres, scale, camera, fb, cfg, mt, u0, v0, crop, d0
+            left, right, disparity_lowres, scale, camera, fb, cfg, mt, u0, v0, crop, d0, dark
         )
         if w is None:
             continue
@@ -628,6 +684,12 @@ def _judge(w: _Window, cfg, fx: float, dark: bool, tilt_ok: bool, trace) -> Smal
         blob = _shadowed_blob(w, cfg, *_box_size(w.blob))
         if blob is None:
             return SmallRock(w.a0, w.b0, w.blob > 0, np.zeros((0, 3)), 0.0, w.noise, 0.0, 0.0, "flat")
+    if cfg.refine_margin > 0:
+        # the rock as the blob and the raised pixels next to it, its ground from a closer ring
+        region = blob if dark else _grown(w, blob, max(cfg.min_snr * w.noise, 0.5 * cfg.min_top_m))
+        w2 = _refit(w, region, cfg)
+        if w2 is not None:
+            w, blob = w2, region
     bw, bh = _box_size(blob)
     bl = (cv2.dilate(blob, np.ones((3, 3), np.uint8)) > 0) & w.ok
     if np.count_nonzero(bl) < cfg.min_blob_points:
@@ -650,6 +712,15 @@ def _judge(w: _Window, cfg, fx: float, dark: bool, tilt_ok: bool, trace) -> Smal
             )
         )
     reason = _verdict(cfg, top, w.noise, width, tilt_ok)
+    # the blob's median height against the noise of a mean over its independent pixels (one per
+    # SGBM block): a lit patch of flat regolith has a noisy top but no raised middle
+    n_ind = max(np.count_nonzero(bl) / cfg.block_size**2, 1.0)
+    if reason is None and _quantile(w.hall[bl], 0.5) * np.sqrt(n_ind) < cfg.min_median_snr * w.noise:
+        reason = "flat"
+    if dark and reason is None and (
+        top < cfg.dark_min_snr * w.noise or np.count_nonzero(bl) < cfg.dark_min_points
+    ):
+        reason = "flat"  # a raised patch beside a shadow needs more evidence than a lit face
     if reason is not None:
         return SmallRock(w.a0, w.b0, blob > 0, w.P[w.idx[bl]], top, w.noise, width, depth, reason)
     # the rock: the blob and the raised pixels next to it (its unlit side)
@@ -675,6 +746,20 @@ def _judge(w: _Window, cfg, fx: float, dark: bool, tilt_ok: bool, trace) -> Smal
         (x1 - x0) * depth / fx,
         depth,
     )
+
+
+def _grown(w: _Window, blob: np.ndarray, level_m: float) -> np.ndarray:
+    """`blob` (uint8) and the pixels higher than `level_m` within two pixels of it and connected
+    to it (a lit face and the rest of its rock)."""
+    import cv2
+
+    with np.errstate(invalid="ignore"):
+        raised = w.hall > level_m
+    grown = cv2.dilate(blob, np.ones((5, 5), np.uint8)) > 0
+    rock = ((raised & grown) | (blob > 0)).astype(np.uint8)
+    _, lab = cv2.connectedComponents(rock, connectivity=8)
+    ids = np.unique(lab[blob > 0])
+    return np.isin(lab, ids[ids > 0]).astype(np.uint8)
 
 
 def _box_size(blob: np.ndarray) -> tuple[int, int]:
