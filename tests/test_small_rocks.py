@@ -185,7 +185,7 @@ def test_a_dark_small_rock_is_found_by_the_dark_candidates_only():
             if abs(r.u0 + r.crop.shape[1] / 2 - u) < 25 and abs(r.v0 + r.crop.shape[0] / 2 - v) < 25
         ]
 
-    assert near(_small_rocks(L, R)[0]) == []
+    assert near(_small_rocks(L, R, SmallRockConfig(dark_contrast_z=0.0))[0]) == []
     dark_cfg = SmallRockConfig(dark_contrast_z=2.0)
     rocks, _, _ = _small_rocks(L, R, dark_cfg)
     assert len(near(rocks)) == 1 and len(rocks) == 1, [(r.u0, r.v0, r.top_m) for r in rocks]

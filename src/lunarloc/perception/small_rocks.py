@@ -77,7 +77,7 @@ class SmallRockConfig:
     contrast_z: float = setting(2.0, gt=0.0)
     # a dark candidate (a shadow or a rock's unlit side) lies this many local contrasts below
     # its background (0 = bright candidates only)
-    dark_contrast_z: float = setting(0.0, ge=0.0)
+    dark_contrast_z: float = setting(2.0, ge=0.0)
     # pixels darker than this are sky (0-255)
     sky_level: int = setting(8, ge=0, le=255)
     # at most this many candidates per image (the strongest blobs)
@@ -112,7 +112,7 @@ class SmallRockConfig:
     confident_top_m: float = setting(0.018, gt=0.0)
     low_top_snr: float = setting(4.0, gt=0.0)
     # the blob's median height stands this many times the ring noise / sqrt(blob pixels / block_size^2)
-    min_median_snr: float = setting(3.0, ge=0.0)
+    min_median_snr: float = setting(0.0, ge=0.0)
     # a rock stands at most max_top_per_width x its width + top_margin_m (m)
     max_top_per_width: float = setting(1.5, gt=0.0)
     top_margin_m: float = setting(0.02, ge=0.0)
@@ -135,7 +135,7 @@ class SmallRockConfig:
     # the raised part beside a dark candidate stands this many ring noises ...
     dark_min_snr: float = setting(5.0, ge=0.0)
     # ... over at least this many valid pixels
-    dark_min_points: int = setting(30, ge=1)
+    dark_min_points: int = setting(60, ge=1)
     # the view's ground plane: the height map's points within this optical depth (m)
     ground_range_m: float = setting(6.0, gt=0.0)
 
