@@ -309,10 +309,9 @@ def _blobs(z, sky, grid: _Grid, cfg, z_min: float, n_max: int, dark: bool) -> li
         half = int(np.clip(cfg.max_width_m * grid.fx / Z[i] / k, 3, 40))
         ya, yb, xa, xb = max(y - half, 0), min(y + half + 1, h), max(x - half, 0), min(x + half + 1, w)
         sub = (z[ya:yb, xa:xb] > max(0.5 * z[y, x], 0.6 * z_min)).astype(np.uint8)
-        _, lab, stats, _ = cv2.connectedComponentsWithStats(sub, connectivity=8)
-        lb = lab[y - ya, x - xa]
-        bx0, by0, bw, bh, area = (int(v) for v in stats[lb])
-        c = lab[by0 : by0 + bh, bx0 : bx0 + bw] == lb
+        # the peak's 8-connected blob (a flood fill costs what the blob costs, not the window)
+        area, _, _, (bx0, by0, bw, bh) = cv2.floodFill(sub, None, (x - xa, y - ya), 2, flags=8)
+        c = sub[by0 : by0 + bh, bx0 : bx0 + bw] == 2
         claimed[ya + by0 : ya + by0 + bh, xa + bx0 : xa + bx0 + bw] |= c
         if area < 2 or bw > cfg.max_aspect * bh:
             continue
