@@ -7,11 +7,12 @@ into the ground, and the real LAC terrain has undulations of that height, so the
 cannot come down. This stage finds such rocks in two steps:
 
 1. **Candidates from appearance.** A small rock's lit face is brighter than the regolith
-   around it (the LAC's rocks are lit by the sun or the rover's lamps; their unlit side and
-   cast shadow lie beside it). Bright blobs of a difference of Gaussians on the half-
-   resolution left image, scaled by the local contrast of the image (textured and flat
-   regolith alike), whose size at the range the height map gives lies in
-   [min_width_m, max_width_m], are candidates; the strongest ``max_candidates`` are kept.
+   around it; seen against the sun, its unlit side and the shadow it casts are darker.
+   Blobs of a difference of Gaussians on the half-resolution left image, scaled by the local
+   contrast of the image (textured and flat regolith alike), whose size at the range the
+   height map gives lies in [min_width_m, max_width_m], are candidates: the strongest
+   ``max_candidates`` bright ones, then (``dark_contrast_z`` > 0) the strongest
+   ``max_dark_candidates`` dark ones.
 2. **Height from full-resolution stereo, against a local plane.** SGBM at full resolution
    runs on a window around each candidate (a 32-disparity band around the height map's
    disparity). A plane is fitted (least squares, once more without outliers beyond 3 MADs)
@@ -23,7 +24,10 @@ cannot come down. This stage finds such rocks in two steps:
    mismatched surroundings raise it), at most ``max_top_per_width`` times its width plus
    ``top_margin_m`` (a taller thin blob is an edge, a post or a mismatch), and the local plane
    is within ``max_tilt_deg`` of the ground plane fitted to all near stereo points (the
-   lander's panels and a boulder's face are not ground).
+   lander's panels and a boulder's face are not ground). A dark blob is mostly a shadow, flat
+   ground beside the rock that cast it: it is judged by the raised part of its window next to
+   it (the largest connected patch standing ``min_snr`` noises high within one blob size),
+   which must stand ``dark_min_snr`` noises high over ``dark_min_points`` pixels.
 
 The ground plane of the whole view (:func:`ground_plane`) is also what replaces the level-rover
 assumption where one is needed: fitted to the height map's points within ``ground_range_m``,
@@ -111,7 +115,8 @@ class SmallRockConfig:
     # ... and, lower than confident_top_m (m), low_top_snr times it
     confident_top_m: float = setting(0.018, gt=0.0)
     low_top_snr: float = setting(4.0, gt=0.0)
-    # the blob's median height stands this many times the ring noise / sqrt(blob pixels / block_size^2)
+    # the blob's median height stands this many times the ring noise over sqrt(its pixels /
+    # block_size^2), the noise of a mean over its independent pixels (0 = off)
     min_median_snr: float = setting(0.0, ge=0.0)
     # a rock stands at most max_top_per_width x its width + top_margin_m (m)
     max_top_per_width: float = setting(1.5, gt=0.0)
@@ -307,7 +312,12 @@ def _blobs(z, sky, grid: _Grid, cfg, z_min: float, n_max: int, dark: bool) -> li
             continue
         # the window: a rock of max_width_m at this range, plus a margin
         half = int(np.clip(cfg.max_width_m * grid.fx / Z[i] / k, 3, 40))
-        ya, yb, xa, xb = max(y - half, 0), min(y + half + 1, h), max(x - half, 0), min(x + half + 1, w)
+        ya, yb, xa, xb = (
+            max(y - half, 0),
+            min(y + half + 1, h),
+            max(x - half, 0),
+            min(x + half + 1, w),
+        )
         sub = (z[ya:yb, xa:xb] > max(0.5 * z[y, x], 0.6 * z_min)).astype(np.uint8)
         # the peak's 8-connected blob (a flood fill costs what the blob costs, not the window)
         area, _, _, (bx0, by0, bw, bh) = cv2.floodFill(sub, None, (x - xa, y - ya), 2, flags=8)
@@ -441,7 +451,9 @@ class _Window:
     ring_u: np.ndarray
 
 
-def _local_heights(L, R, disparity_lowres, scale, camera, fb, cfg, mt, u0, v0, crop, d0, dark=False):
+def _local_heights(
+    L, R, disparity_lowres, scale, camera, fb, cfg, mt, u0, v0, crop, d0, dark=False
+):
     """A :class:`_Window` around the candidate blob `crop` at (u0, v0), or None when the window
     cannot be matched or holds too few valid ring or blob points. Heights and points are
     computed for the ring's (subsampled) pixels and the core inside it (the blob and its
@@ -469,7 +481,10 @@ def _local_heights(L, R, disparity_lowres, scale, camera, fb, cfg, mt, u0, v0, c
     inner = cv2.dilate(blob, np.ones((3, 3), np.uint8)) > 0
     ok = np.isfinite(d)
     gr = ~core & ok
-    if np.count_nonzero(gr) < cfg.min_ring_points or np.count_nonzero(inner & ok) < cfg.min_blob_points:
+    if (
+        np.count_nonzero(gr) < cfg.min_ring_points
+        or np.count_nonzero(inner & ok) < cfg.min_blob_points
+    ):
         return None
     if dark:
         gd = 2 * (max(3, max(bw, bh)) + 3) + 1
@@ -657,7 +672,9 @@ def detect_small_rocks(
         tilt_ok = up_optical is None or abs(float(w.n @ up_optical)) >= cos_tilt
         rock = _judge(w, cfg, camera.fx, dark, tilt_ok, trace)
         if rock.reason is not None:
-            if keep_rejected and rock.depth_m > 0:  # a dark blob with nothing raised beside it: none
+            if (
+                keep_rejected and rock.depth_m > 0
+            ):  # a dark blob with nothing raised beside it: none
                 out.append(replace(rock, u0=u0, v0=v0, crop=crop.copy()))
             continue
         if rock.width_m > cfg.max_width_m:
@@ -668,7 +685,10 @@ def detect_small_rocks(
         # the rock and one rock width around it: other fragments of it are not rocks again
         g2 = max(rock.crop.shape)
         y0, x0 = rock.v0, rock.u0
-        taken[max(y0 - g2, 0) : y0 + rock.crop.shape[0] + g2, max(x0 - g2, 0) : x0 + rock.crop.shape[1] + g2] = True
+        taken[
+            max(y0 - g2, 0) : y0 + rock.crop.shape[0] + g2,
+            max(x0 - g2, 0) : x0 + rock.crop.shape[1] + g2,
+        ] = True
     return out
 
 
@@ -682,7 +702,9 @@ def _judge(w: _Window, cfg, fx: float, dark: bool, tilt_ok: bool, trace) -> Smal
     if dark:
         blob = _shadowed_blob(w, cfg, *_box_size(w.blob))
         if blob is None:
-            return SmallRock(w.a0, w.b0, w.blob > 0, np.zeros((0, 3)), 0.0, w.noise, 0.0, 0.0, "flat")
+            return SmallRock(
+                w.a0, w.b0, w.blob > 0, np.zeros((0, 3)), 0.0, w.noise, 0.0, 0.0, "flat"
+            )
     if cfg.refine_margin > 0:
         # the rock as the blob and the raised pixels next to it, its ground from a closer ring
         region = blob if dark else _grown(w, blob, max(cfg.min_snr * w.noise, 0.5 * cfg.min_top_m))
@@ -700,7 +722,12 @@ def _judge(w: _Window, cfg, fx: float, dark: bool, tilt_ok: bool, trace) -> Smal
         ys, xs = np.nonzero(blob)
         trace.append(
             dict(
-                box=(w.a0 + int(xs.min()), w.b0 + int(ys.min()), w.a0 + int(xs.max()) + 1, w.b0 + int(ys.max()) + 1),
+                box=(
+                    w.a0 + int(xs.min()),
+                    w.b0 + int(ys.min()),
+                    w.a0 + int(xs.max()) + 1,
+                    w.b0 + int(ys.max()) + 1,
+                ),
                 top=top,
                 noise=w.noise,
                 width=width,
@@ -714,10 +741,15 @@ def _judge(w: _Window, cfg, fx: float, dark: bool, tilt_ok: bool, trace) -> Smal
     # the blob's median height against the noise of a mean over its independent pixels (one per
     # SGBM block): a lit patch of flat regolith has a noisy top but no raised middle
     n_ind = max(np.count_nonzero(bl) / cfg.block_size**2, 1.0)
-    if reason is None and _quantile(w.hall[bl], 0.5) * np.sqrt(n_ind) < cfg.min_median_snr * w.noise:
+    if (
+        reason is None
+        and _quantile(w.hall[bl], 0.5) * np.sqrt(n_ind) < cfg.min_median_snr * w.noise
+    ):
         reason = "flat"
-    if dark and reason is None and (
-        top < cfg.dark_min_snr * w.noise or np.count_nonzero(bl) < cfg.dark_min_points
+    if (
+        dark
+        and reason is None
+        and (top < cfg.dark_min_snr * w.noise or np.count_nonzero(bl) < cfg.dark_min_points)
     ):
         reason = "flat"  # a raised patch beside a shadow needs more evidence than a lit face
     if reason is not None:
