@@ -141,7 +141,9 @@ def main(argv=None) -> int:
     for name, s in groups.items():
         print(
             f"{name}: R(.025-.05,<=3m) 90 % interval {s['site_bootstrap_ci90']['recall_0.025<=r<0.05_range<=3']}; "
-            f"detection {s['detect_cpu_s']:.0f} s CPU over {s['frames']} frames"
+            f"detection {s['detect_cpu_s']:.0f} s CPU over {s['frames']} frames; the small-rock "
+            f"stage's own detections within 5 m: {s['small_rock_stage_precision_counts_range<=5'][0]} "
+            f"of {s['small_rock_stage_precision_counts_range<=5'][1]} on a rock"
         )
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)

@@ -3,8 +3,10 @@ the sectioned DetectorConfig: declarative ranges, round trips, and the flat keys
 
 from __future__ import annotations
 
+import functools
 import json
 import math
+import operator
 from dataclasses import fields, replace
 from pathlib import Path
 
@@ -21,8 +23,7 @@ from lunarloc.perception.rules import (
     BlobMeasures,
     fired_rules,
 )
-import functools
-import operator
+from lunarloc.perception.small_rocks import SmallRockConfig
 
 NAN = float("nan")
 C = RulesConfig()
@@ -205,6 +206,8 @@ def test_old_flat_keys_load_and_read_as_before():
     for k, v in old.items():
         if k in MOVED_KEYS:
             assert config_to_dict(getattr(cfg, k)) == v, k
+    # the small-rock section as the file saved it (its defaults have moved since)
+    small = config_from_dict(SmallRockConfig, old["small_rocks"])
     assert cfg == DetectorConfig(
         fuse_tol_m=0.2,
         centre_estimator="blend",
@@ -212,6 +215,7 @@ def test_old_flat_keys_load_and_read_as_before():
         level_min_deg=5.0,
         crest_extension_ratio=0.5,
         fullres_span_px=32,
+        small_rocks=small,
     )
 
 

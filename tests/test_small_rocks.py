@@ -22,17 +22,25 @@ BASELINE_M = 0.162
 CAM_HEIGHT_M = 0.45
 
 
-def _render(roll_deg: float, rock: tuple[float, float, float, float] | None, seed: int = 0):
+def _render(
+    roll_deg: float,
+    rock: tuple[float, float, float, float] | None,
+    seed: int = 0,
+    dark: bool = False,
+    texture_std: float = 35.0,
+):
     """Left and right images (uint8) of a plane CAM_HEIGHT_M below the cameras, rolled by
     roll_deg about the optical axis, with an optional rock: a sphere (x_m, z_m, radius_m,
     top_m) standing top_m above the plane at lateral x_m and depth z_m (before the roll).
-    The regolith is a smooth random texture fixed to the plane; the rock is brighter (lit)."""
+    The regolith is a smooth random texture fixed to the plane; the rock is brighter (lit), or,
+    with `dark`, lit from behind by a low sun ahead of the cameras: its visible side unlit and its
+    shadow cast towards the cameras, both darker than the regolith."""
     import cv2
 
     rng = np.random.default_rng(seed)
     res_m = 0.004  # texture pixels on the plane
     tex = cv2.GaussianBlur(rng.normal(0, 1, (2600, 1600)).astype(np.float32), (0, 0), 1.2)
-    tex = 100 + 35 * tex / tex.std()
+    tex = 100 + texture_std * tex / tex.std()
     c, s = np.cos(np.radians(roll_deg)), np.sin(np.radians(roll_deg))
     Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     n = Rz @ np.array([0.0, 1.0, 0.0])  # plane normal, pointing away from the cameras (y down)
@@ -71,6 +79,8 @@ def _render(roll_deg: float, rock: tuple[float, float, float, float] | None, see
             nrm = (Xs - C) / rad
             light = -n * 0.7 + e_lat * 0.7
             shade = 150 + 90 * np.clip(nrm @ (light / np.linalg.norm(light)), 0, 1)
+            if dark:
+                shade = np.full_like(shade, 30.0)
             # its texture fixed to its surface (the same in both views)
             ta = cv2.remap(
                 tex,
@@ -79,6 +89,12 @@ def _render(roll_deg: float, rock: tuple[float, float, float, float] | None, see
                 cv2.INTER_LINEAR,
             )
             img[hit] = shade[hit] + 0.3 * (ta[hit] - 100)
+            if dark:  # the ground in the rock's shadow (the sun 15 degrees up, ahead)
+                to_sun = -n * np.sin(np.radians(15.0)) + e_fwd * np.cos(np.radians(15.0))
+                rel = X - C
+                along = rel @ to_sun
+                miss = np.linalg.norm(rel - along[..., None] * to_sun, axis=-1)
+                img[(miss < rad) & (along < 0) & ~hit & np.isfinite(t)] *= 0.3
         out.append(np.clip(img, 0, 255).astype(np.uint8))
     return out
 
@@ -154,10 +170,42 @@ def test_the_detector_reports_the_small_rock_when_the_stage_is_on_and_not_by_def
     assert not [d for d in off.detections if abs(d.uv[0] - u) < 25 and abs(d.uv[1] - v) < 25]
 
 
+def test_a_dark_small_rock_is_found_by_the_dark_candidates_only():
+    """A rock darker than the regolith (its unlit side) gives no bright candidate; a dark
+    candidate's window is judged by its raised part (the rock), so with dark_contrast_z it is
+    found, at its range, and bare ground still gives nothing."""
+    x, z, rad, top = 0.3, 2.0, 0.015, 0.02
+    L, R = _render(0.0, (x, z, rad, top), seed=4, dark=True, texture_std=15.0)
+    u, v = _uv(x, z, 0.0)
+
+    def near(rocks):
+        return [
+            r
+            for r in rocks
+            if abs(r.u0 + r.crop.shape[1] / 2 - u) < 25 and abs(r.v0 + r.crop.shape[0] / 2 - v) < 25
+        ]
+
+    assert near(_small_rocks(L, R, SmallRockConfig(dark_contrast_z=0.0))[0]) == []
+    dark_cfg = SmallRockConfig(dark_contrast_z=2.0)
+    rocks, _, _ = _small_rocks(L, R, dark_cfg)
+    assert len(near(rocks)) == 1 and len(rocks) == 1, [(r.u0, r.v0, r.top_m) for r in rocks]
+    assert abs(rocks[0].depth_m - z) < 0.25 and 0.4 * top < rocks[0].top_m < 1.6 * top
+    bare_L, bare_R = _render(0.0, None, seed=5, texture_std=15.0)
+    assert _small_rocks(bare_L, bare_R, dark_cfg)[0] == []
+
+
 @pytest.mark.parametrize(
     "bad",
     [
         dict(min_range_m=7.0),
+        dict(min_width_m=0.2),
+        dict(candidate_scale=3),
+        dict(block_size=15.5),
+        dict(dark_contrast_z=-1.0),
+        dict(refine_margin=float("nan")),
+        dict(min_median_snr=-0.5),
+        dict(max_dark_candidates=-2),
+        dict(enabled=1),
         dict(block_size=4),
         dict(band_px=20),
         dict(max_tilt_deg=0.0),

@@ -7,11 +7,12 @@ into the ground, and the real LAC terrain has undulations of that height, so the
 cannot come down. This stage finds such rocks in two steps:
 
 1. **Candidates from appearance.** A small rock's lit face is brighter than the regolith
-   around it (the LAC's rocks are lit by the sun or the rover's lamps; their unlit side and
-   cast shadow lie beside it). Bright blobs of a difference of Gaussians on the half-
-   resolution left image, scaled by the local contrast of the image (textured and flat
-   regolith alike), whose size at the range the height map gives lies in
-   [min_width_m, max_width_m], are candidates; the strongest ``max_candidates`` are kept.
+   around it; seen against the sun, its unlit side and the shadow it casts are darker.
+   Blobs of a difference of Gaussians on the half-resolution left image, scaled by the local
+   contrast of the image (textured and flat regolith alike), whose size at the range the
+   height map gives lies in [min_width_m, max_width_m], are candidates: the strongest
+   ``max_candidates`` bright ones, then (``dark_contrast_z`` > 0) the strongest
+   ``max_dark_candidates`` dark ones.
 2. **Height from full-resolution stereo, against a local plane.** SGBM at full resolution
    runs on a window around each candidate (a 32-disparity band around the height map's
    disparity). A plane is fitted (least squares, once more without outliers beyond 3 MADs)
@@ -23,7 +24,10 @@ cannot come down. This stage finds such rocks in two steps:
    mismatched surroundings raise it), at most ``max_top_per_width`` times its width plus
    ``top_margin_m`` (a taller thin blob is an edge, a post or a mismatch), and the local plane
    is within ``max_tilt_deg`` of the ground plane fitted to all near stereo points (the
-   lander's panels and a boulder's face are not ground).
+   lander's panels and a boulder's face are not ground). A dark blob is mostly a shadow, flat
+   ground beside the rock that cast it: it is judged by the raised part of its window next to
+   it (the largest connected patch standing ``min_snr`` noises high within one blob size),
+   which must stand ``dark_min_snr`` noises high over ``dark_min_points`` pixels.
 
 The ground plane of the whole view (:func:`ground_plane`) is also what replaces the level-rover
 assumption where one is needed: fitted to the height map's points within ``ground_range_m``,
@@ -32,10 +36,11 @@ it gives the "up" direction from stereo alone.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from lunarloc.core.configs import check_settings, setting
 from lunarloc.core.errors import ConfigError
 
 __all__ = [
@@ -47,132 +52,106 @@ __all__ = [
 ]
 
 
+# settings that must come in order: (lower, upper, strictly)
+_ORDERED = (
+    ("min_range_m", "max_range_m", True),
+    ("min_width_m", "max_width_m", True),
+    ("band_px", "max_band_px", False),
+)
+
+
 @dataclass(frozen=True)
 class SmallRockConfig:
     """Settings of the small-rock stage (see the module's docstring). Pixel sizes are at
-    1280x720 (the LAC's cameras); widths and heights in metres."""
+    1280x720 (the LAC's cameras); widths and heights in metres. Each setting's range is declared
+    beside it and checked once, when the config is built or loaded; why the defaults have their
+    values is in docs/perception-status.md ("Small rocks")."""
 
-    # Run the stage (Detector: after the height-map detections, classical segmenter only). Off
-    # by default: on the real LAC frames it takes recall of the labelled rocks from 0.23 to 0.55
-    # at 26 of 27 detections on rocks, but on the simulated sites it costs precision within 5 m
-    # (0.98-0.99 -> 0.91-0.95 at sun 5-25 and sun+lamps; lamps 0.98 kept) and 45-60 ms CPU per
-    # pair (docs/perception.md, "Thirteenth pass"). Turn it on for LAC imagery.
-    enabled: bool = False
+    # run the stage (after the height-map detections; classical segmenter only)
+    enabled: bool = setting(False)
 
-    # DoG on the half-resolution left image: Gaussian of this standard deviation
-    # (half-resolution pixels) is the local background; the local contrast is the RMS
-    # of the difference over a window contrast_sigma_px wide (at 1/8 resolution).
-    dog_sigma_px: float = 2.0
-    # Resolution of the candidate search (1 = full, 2 = half; sigmas are in its pixels).
-    candidate_scale: int = 2
-    contrast_sigma_px: float = 8.0
-    # A candidate's pixels are brighter than the background by this many local
-    # contrasts (the real frames' regolith: 1 % of the pixels exceed 2).
-    contrast_z: float = 2.0
-    # Pixels darker than this are sky (0-255).
-    sky_level: int = 8
-    # At most this many candidates per image (the strongest blobs).
-    max_candidates: int = 60
-    # A candidate's box is at most this many times wider than tall: the regolith's lit
-    # ridges and streaks under a low sun run along the rows; a small rock's lit face is
-    # compact (a crescent is taller than wide).
-    max_aspect: float = 2.0
-    # Candidates' range (metres, from the height map) and width (metres).
-    min_range_m: float = 0.8
-    max_range_m: float = 6.0
-    min_width_m: float = 0.012
-    max_width_m: float = 0.15
-    # Full-resolution window: the blob's box plus this many box sizes each side (at
-    # least window_min_margin_px pixels).
-    window_margin: float = 1.5
-    window_min_margin_px: int = 8
-    # SGBM block (odd) and band width (multiple of 16) of the window's match.
-    block_size: int = 5
-    band_px: int = 16
-    # ... widened to hold the height map's disparities over the window, up to max_band_px.
-    max_band_px: int = 64
-    # The verdict (see the module's docstring).
-    min_top_m: float = 0.01
-    min_snr: float = 3.0
-    # ... and a candidate lower than confident_top_m must stand low_top_snr times the noise:
-    # the simulated sites' terrain bumps that passed min_snr stood 1.1-2.0 cm at 3.3-3.6
-    # noises (sites 291, 292 at sun 12: 21 false detections within 5 m with 3.0, 9 with 4.0
-    # everywhere; the real frames' rocks of 1.8 cm and more passed at 3.0-3.9).
-    confident_top_m: float = 0.018
-    low_top_snr: float = 4.0
-    max_top_per_width: float = 1.5
-    top_margin_m: float = 0.02
-    max_tilt_deg: float = 35.0
-    # Fit a quadric (in the plane's coordinates) rather than a plane to the ring: follows a
-    # rim or a swell the window spans.
-    quadric: bool = True
-    min_ring_points: int = 30
-    max_ring_points: int = 400
-    # The cheap test first: the half-resolution height map must stand this high somewhere
-    # around the candidate (real frames: every candidate on a labelled rock but one of 44 did;
-    # 30 % of the others did not), else no full-resolution match is run.
-    min_lowres_height_m: float = 0.005
-    min_blob_points: int = 3
-    # The ground plane of the view: height-map points within this optical depth.
-    ground_range_m: float = 6.0
+    # -- candidates from appearance (on the left image at 1/candidate_scale resolution)
+    # resolution of the candidate search (1 = full, 2 = half); the sigmas are in its pixels
+    candidate_scale: int = setting(2, choices=(1, 2, 4))
+    # the local background: a Gaussian of this standard deviation (pixels)
+    dog_sigma_px: float = setting(2.0, gt=0.0)
+    # the local contrast: RMS of the difference of Gaussians over a window this wide (pixels)
+    contrast_sigma_px: float = setting(8.0, gt=0.0)
+    # a bright candidate stands this many local contrasts above its background
+    contrast_z: float = setting(2.0, gt=0.0)
+    # a dark candidate (a shadow or a rock's unlit side) lies this many local contrasts below
+    # its background (0 = bright candidates only)
+    dark_contrast_z: float = setting(2.0, ge=0.0)
+    # pixels darker than this are sky (0-255)
+    sky_level: int = setting(8, ge=0, le=255)
+    # at most this many bright candidates per image (the strongest blobs)
+    max_candidates: int = setting(40, ge=0)
+    # a candidate's box is at most this many times wider than tall
+    max_aspect: float = setting(2.0, gt=0.0)
+    # candidates' range (optical depth from the height map, m)
+    min_range_m: float = setting(0.8, gt=0.0)
+    max_range_m: float = setting(6.0, gt=0.0)
+    # candidates' width (m)
+    min_width_m: float = setting(0.012, gt=0.0)
+    max_width_m: float = setting(0.15, gt=0.0)
+
+    # -- the full-resolution window
+    # the blob's box plus this many box sizes each side ...
+    window_margin: float = setting(1.5, gt=0.0)
+    # ... and at least this many pixels
+    window_min_margin_px: int = setting(8, ge=0)
+    # SGBM block (pixels, odd)
+    block_size: int = setting(5, ge=1, le=15)
+    # disparity band searched around the height map's disparities (pixels) ...
+    band_px: int = setting(16, ge=16, multiple_of=16)
+    # ... widened to hold the window's disparities, up to this
+    max_band_px: int = setting(64, ge=16, multiple_of=16)
+
+    # -- the verdict (height above the local ground fitted to the window's ring)
+    # a rock stands at least this high (m) ...
+    min_top_m: float = setting(0.01, gt=0.0)
+    # ... and this many times the ring's residual spread
+    min_snr: float = setting(3.0, ge=0.0)
+    # ... and, lower than confident_top_m (m), low_top_snr times it
+    confident_top_m: float = setting(0.018, gt=0.0)
+    low_top_snr: float = setting(4.0, gt=0.0)
+    # the blob's median height stands this many times the ring noise over sqrt(its pixels /
+    # block_size^2), the noise of a mean over its independent pixels (0 = off)
+    min_median_snr: float = setting(0.0, ge=0.0)
+    # a rock stands at most max_top_per_width x its width + top_margin_m (m)
+    max_top_per_width: float = setting(1.5, gt=0.0)
+    top_margin_m: float = setting(0.02, ge=0.0)
+    # the ring's plane lies within this angle of the view's ground plane (degrees)
+    max_tilt_deg: float = setting(35.0, gt=0.0, le=90.0)
+    # fit a quadric (in the plane's coordinates) rather than a plane to the ring
+    quadric: bool = setting(True)
+    # judge a candidate on the ground fitted to the ring points within this many rock sizes of the
+    # rock (its blob and the raised pixels next to it; 0 = the whole window's ring)
+    refine_margin: float = setting(0.0, ge=0.0)
+    # the fewest valid ring points, and the most used by the fit
+    min_ring_points: int = setting(30, ge=6)
+    max_ring_points: int = setting(400, ge=12)
+    # the height map must stand this high (m) somewhere around a candidate, else no window match
+    min_lowres_height_m: float = setting(0.005, ge=0.0)
+    # the fewest valid points on the blob
+    min_blob_points: int = setting(3, ge=1)
+    # at most this many dark candidates per image (after the bright ones)
+    max_dark_candidates: int = setting(20, ge=0)
+    # the raised part beside a dark candidate stands this many ring noises ...
+    dark_min_snr: float = setting(5.0, ge=0.0)
+    # ... over at least this many valid pixels
+    dark_min_points: int = setting(60, ge=1)
+    # the view's ground plane: the height map's points within this optical depth (m)
+    ground_range_m: float = setting(6.0, gt=0.0)
 
     def __post_init__(self) -> None:
-        if not (self.dog_sigma_px > 0 and self.contrast_sigma_px > 0 and self.contrast_z > 0):
-            raise ConfigError("dog_sigma_px, contrast_sigma_px and contrast_z must be > 0")
-        if not (
-            0 < self.min_range_m < self.max_range_m and 0 < self.min_width_m < self.max_width_m
-        ):
-            raise ConfigError(
-                "need 0 < min_range_m < max_range_m and 0 < min_width_m < max_width_m"
-            )
-        if (
-            self.block_size < 1
-            or self.block_size % 2 == 0
-            or self.band_px < 16
-            or self.band_px % 16
-        ):
-            raise ConfigError("block_size must be odd, band_px a multiple of 16")
-        if not (
-            self.min_top_m > 0
-            and self.min_snr >= 0
-            and self.max_top_per_width > 0
-            and 0 < self.max_tilt_deg <= 90
-        ):
-            raise ConfigError(
-                "min_top_m and max_top_per_width must be > 0, min_snr >= 0, max_tilt_deg in (0, 90]"
-            )
-        if self.max_candidates < 0:
-            raise ConfigError("max_candidates must be >= 0")
-        positive = (
-            "max_aspect",
-            "window_margin",
-            "top_margin_m",
-            "confident_top_m",
-            "low_top_snr",
-            "ground_range_m",
-        )
-        for name in positive:
-            v = getattr(self, name)
-            if not (
-                isinstance(v, (int, float))
-                and np.isfinite(v)
-                and v >= 0
-                and (v > 0 or name == "top_margin_m")
-            ):
-                raise ConfigError(f"{name}={v!r} must be a finite number > 0")
-        if not (np.isfinite(self.min_lowres_height_m) and self.min_lowres_height_m >= 0):
-            raise ConfigError(
-                f"min_lowres_height_m={self.min_lowres_height_m!r} must be a finite number >= 0"
-            )
-        if (
-            self.max_band_px < self.band_px
-            or self.max_band_px % 16
-            or self.min_ring_points < 6
-            or self.max_ring_points < 12
-        ):
-            raise ConfigError(
-                "max_band_px must be a multiple of 16 >= band_px, min_ring_points >= 6, max_ring_points >= 12"
-            )
+        check_settings(self)
+        for lo, hi, strict in _ORDERED:
+            a, b = getattr(self, lo), getattr(self, hi)
+            if a > b or (strict and a == b):
+                raise ConfigError(f"need {lo} {'<' if strict else '<='} {hi} (got {a!r}, {b!r})")
+        if self.block_size % 2 == 0:
+            raise ConfigError(f"block_size={self.block_size!r} must be odd")
 
 
 @dataclass
@@ -229,10 +208,12 @@ def small_rock_candidates(
     fx: float,
     baseline_m: float,
     cfg: SmallRockConfig,
-) -> list[tuple[int, int, np.ndarray, float]]:
-    """Bright blobs of the left image sized like small rocks at their range: (u0, v0, crop,
-    d0) with `crop` a full-resolution boolean mask at (u0, v0) and d0 the height map's
-    disparity there (full-resolution pixels); strongest first."""
+) -> list[tuple[int, int, np.ndarray, float, bool]]:
+    """Blobs of the left image sized like small rocks at their range: (u0, v0, crop, d0,
+    dark) with `crop` a full-resolution boolean mask at (u0, v0), d0 the height map's
+    disparity there (full-resolution pixels) and `dark` whether the blob is darker than its
+    surroundings (a shadow or an unlit side; only with dark_contrast_z > 0); the bright blobs
+    first, each kind strongest first."""
     import cv2
 
     H, W = left.shape
@@ -261,68 +242,94 @@ def small_rock_candidates(
     var = cv2.resize(dv * dv, (max(w // e, 1), max(h // e, 1)), interpolation=cv2.INTER_AREA)
     var = cv2.resize(cv2.GaussianBlur(var, (0, 0), 2.0), (w, h), interpolation=cv2.INTER_LINEAR)
     z = dv / (np.sqrt(var) + 2.0)
-    # peaks of the contrast (local maxima over 5x5) above contrast_z; each peak's blob is the
-    # part of the window around it brighter than half its peak contrast and connected to it
-    # (a lit face touching lit regolith does not merge with it)
-    peak = (
-        (z >= cv2.dilate(z, np.ones((5, 5), np.uint8)))
-        & (z > cfg.contrast_z)
-        & (small > cfg.sky_level)
-    )
-    pv, pu = np.nonzero(peak)
-    if pv.size == 0:
-        return []
-    hd, wd = D.shape
-    cu = np.clip((pu * k) // kd, 0, wd - 1)
-    cv = np.clip((pv * k + r0) // kd, 0, hd - 1)
-    pad = np.pad(D, 2, constant_values=np.nan)
-    win = np.stack(
-        [pad[cv + 2 + a, cu + 2 + b] for a in range(-2, 3) for b in range(-2, 3)], axis=1
-    )
-    import warnings
+    sky = small <= cfg.sky_level
+    grid = _Grid(D, kd, k, r0, fx, fx * baseline_m)
+    out = _blobs(z, sky, grid, cfg, cfg.contrast_z, cfg.max_candidates, False)
+    if cfg.dark_contrast_z > 0:
+        out += _blobs(-z, sky, grid, cfg, cfg.dark_contrast_z, cfg.max_dark_candidates, True)
+    return out
 
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        d0 = np.nanmedian(win, axis=1) * kd
-    with np.errstate(divide="ignore", invalid="ignore"):
-        Z = fx * baseline_m / d0
-    ok = np.isfinite(Z) & (Z >= cfg.min_range_m) & (Z <= cfg.max_range_m)
-    order = np.flatnonzero(ok)
+
+@dataclass
+class _Grid:
+    """The candidate search's image (1/k of full resolution, rows from r0) against the
+    height map's disparity D (1/kd of full resolution); fx (pixels), fb = fx x baseline."""
+
+    D: np.ndarray
+    kd: int
+    k: int
+    r0: int
+    fx: float
+    fb: float
+
+    def depth(self, pv: np.ndarray, pu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The height map's disparity (full-resolution pixels; median over 5x5 low-resolution
+        pixels) and depth (m) at the search image's pixels (pv, pu)."""
+        import warnings
+
+        hd, wd = self.D.shape
+        cu = np.clip((pu * self.k) // self.kd, 0, wd - 1)
+        cv = np.clip((pv * self.k + self.r0) // self.kd, 0, hd - 1)
+        pad = np.pad(self.D, 2, constant_values=np.nan)
+        win = np.stack(
+            [pad[cv + 2 + a, cu + 2 + b] for a in range(-2, 3) for b in range(-2, 3)], axis=1
+        )
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            d0 = np.nanmedian(win, axis=1) * self.kd
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return d0, self.fb / d0
+
+
+def _blobs(z, sky, grid: _Grid, cfg, z_min: float, n_max: int, dark: bool) -> list:
+    """The strongest n_max blobs of the contrast image `z` (see small_rock_candidates)."""
+    import cv2
+
+    h, w = z.shape
+    k = grid.k
+    # peaks of the contrast (local maxima over 5x5) above z_min; each peak's blob is the part of
+    # the window around it above half its peak contrast and connected to it (a lit face
+    # touching lit regolith does not merge with it)
+    peak = (z >= cv2.dilate(z, np.ones((5, 5), np.uint8))) & (z > z_min) & ~sky
+    pv, pu = np.nonzero(peak)
+    if pv.size == 0 or n_max == 0:
+        return []
     # strongest first by the contrast summed around the peak (a rock's lit face, a few pixels
-    # across, before the single bright speckles of the regolith's texture)
+    # across, before the single bright speckles of the regolith's texture); the height map's
+    # range only for the strongest (a median per peak)
     zs = cv2.GaussianBlur(np.maximum(z, 0), (0, 0), 1.5)
-    order = order[np.argsort(-zs[pv[order], pu[order]], kind="stable")]
+    order = np.argsort(-zs[pv, pu], kind="stable")[: 8 * n_max]
+    pv, pu = pv[order], pu[order]
+    d0, Z = grid.depth(pv, pu)
+    inr = np.flatnonzero(np.isfinite(Z) & (Z >= cfg.min_range_m) & (Z <= cfg.max_range_m))
     out = []
     claimed = np.zeros(z.shape, bool)
-    for i in order[: 3 * cfg.max_candidates]:  # the strongest peaks only
-        if len(out) >= cfg.max_candidates:
+    for i in inr[: 3 * n_max]:  # the strongest peaks only
+        if len(out) >= n_max:
             break
         y, x = int(pv[i]), int(pu[i])
         if claimed[y, x]:
             continue
         # the window: a rock of max_width_m at this range, plus a margin
-        half = int(np.clip(cfg.max_width_m * fx / Z[i] / k, 3, 40))
+        half = int(np.clip(cfg.max_width_m * grid.fx / Z[i] / k, 3, 40))
         ya, yb, xa, xb = (
             max(y - half, 0),
             min(y + half + 1, h),
             max(x - half, 0),
             min(x + half + 1, w),
         )
-        sub = (z[ya:yb, xa:xb] > max(0.5 * z[y, x], 0.6 * cfg.contrast_z)).astype(np.uint8)
-        _, lab = cv2.connectedComponents(sub, connectivity=8)
-        blob = lab == lab[y - ya, x - xa]
-        ys, xs = np.nonzero(blob)
-        by0, by1, bx0, bx1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
-        bw, bh = bx1 - bx0, by1 - by0
-        claimed[ya:yb, xa:xb] |= blob
-        if ys.size < 2 or bw > cfg.max_aspect * bh:
+        sub = (z[ya:yb, xa:xb] > max(0.5 * z[y, x], 0.6 * z_min)).astype(np.uint8)
+        # the peak's 8-connected blob (a flood fill costs what the blob costs, not the window)
+        area, _, _, (bx0, by0, bw, bh) = cv2.floodFill(sub, None, (x - xa, y - ya), 2, flags=8)
+        c = sub[by0 : by0 + bh, bx0 : bx0 + bw] == 2
+        claimed[ya + by0 : ya + by0 + bh, xa + bx0 : xa + bx0 + bw] |= c
+        if area < 2 or bw > cfg.max_aspect * bh:
             continue
-        width = max(bw, bh) * k * Z[i] / fx
+        width = max(bw, bh) * k * Z[i] / grid.fx
         if not cfg.min_width_m <= width <= cfg.max_width_m:
             continue
-        c = blob[by0:by1, bx0:bx1]
         full = np.repeat(np.repeat(c, k, axis=0), k, axis=1) if k > 1 else c
-        out.append(((xa + bx0) * k, (ya + by0) * k + r0, full, float(d0[i])))
+        out.append(((xa + bx0) * k, (ya + by0) * k + grid.r0, full, float(d0[i]), dark))
     return out
 
 
@@ -393,15 +400,221 @@ class _Matcher:
         return d + dmin
 
 
+def _quantile(x: np.ndarray, q: float) -> float:
+    """np.quantile(x, q) (linear interpolation) of a non-empty 1-D array, by one partition
+    (np.quantile's and np.median's own overheads were most of this stage's time)."""
+    n = x.size
+    f = q * (n - 1)
+    lo = int(f)
+    hi = min(lo + 1, n - 1)
+    p = np.partition(x, (lo, hi)) if hi != lo else np.partition(x, lo)
+    return float(p[lo] + (f - lo) * (p[hi] - p[lo]))
+
+
+def _robust_spread(r: np.ndarray) -> tuple[float, float]:
+    """Median of `r` and 1.4826 x its median absolute deviation (plus 0.1 mm)."""
+    m = _quantile(r, 0.5)
+    return m, 1.4826 * _quantile(np.abs(r - m), 0.5) + 1e-4
+
+
 def _fit_plane(P: np.ndarray):
     """Least-squares plane of (N, 3) points: centroid and unit normal towards the optical origin."""
     c = P.mean(axis=0)
     Q = P - c
     _, v = np.linalg.eigh(Q.T @ Q)
     n = v[:, 0]
-    if np.dot(n, c) > 0:  # the camera (origin) lies on the normal's side
+    if n @ c > 0:  # the camera (origin) lies on the normal's side
         n = -n
     return c, n
+
+
+@dataclass
+class _Window:
+    """The full-resolution match around one candidate: the window's corner (a0, b0), the
+    blob (uint8, window-sized), valid pixels `ok`, their points `P` (left optical frame, in
+    the order of `vv, uu`), `idx` (window pixel -> row of P, -1 invalid) and the heights
+    `hall` (m, NaN invalid) above the local ground fitted to the ring around the blob, with
+    that fit's residual spread `noise` and plane normal `n`."""
+
+    a0: int
+    b0: int
+    blob: np.ndarray
+    ok: np.ndarray
+    P: np.ndarray
+    idx: np.ndarray
+    hall: np.ndarray
+    noise: float
+    n: np.ndarray
+    # the ring's subsampled points and their window pixels (rows, columns)
+    ring_P: np.ndarray
+    ring_v: np.ndarray
+    ring_u: np.ndarray
+
+
+def _local_heights(
+    L, R, disparity_lowres, scale, camera, fb, cfg, mt, u0, v0, crop, d0, dark=False
+):
+    """A :class:`_Window` around the candidate blob `crop` at (u0, v0), or None when the window
+    cannot be matched or holds too few valid ring or blob points. Heights and points are
+    computed for the ring's (subsampled) pixels and the core inside it (the blob and its
+    surroundings up to the ring; for a dark blob, up to two blob sizes around it, where the
+    rock that cast it stands) only."""
+    import cv2
+
+    H, W = L.shape
+    fx, cx, cy = camera.fx, camera.cx, camera.cy
+    bh, bw = crop.shape
+    M = int(max(cfg.window_min_margin_px, cfg.window_margin * max(bw, bh)))
+    a0, b0 = max(u0 - M, 0), max(v0 - M, 0)
+    a1, b1 = min(u0 + bw + M, W), min(v0 + bh + M, H)
+    # the height map's disparities over the window (full-resolution pixels)
+    wd = disparity_lowres[b0 // scale : (b1 - 1) // scale + 1, a0 // scale : (a1 - 1) // scale + 1]
+    wd = wd[np.isfinite(wd)] * scale
+    lo, hi = (_quantile(wd, 0.05), _quantile(wd, 0.95)) if wd.size >= 8 else (d0, d0)
+    d = mt.window(L, R, a0, b0, a1, b1, min(lo, d0), max(hi, d0))
+    if d is None:
+        return None
+    blob = np.zeros(d.shape, np.uint8)
+    blob[v0 - b0 : v0 - b0 + bh, u0 - a0 : u0 - a0 + bw] = crop
+    g = max(3, int(0.5 * max(bw, bh)))
+    core = cv2.dilate(blob, np.ones((2 * g + 1, 2 * g + 1), np.uint8)) > 0
+    inner = cv2.dilate(blob, np.ones((3, 3), np.uint8)) > 0
+    ok = np.isfinite(d)
+    gr = ~core & ok
+    if (
+        np.count_nonzero(gr) < cfg.min_ring_points
+        or np.count_nonzero(inner & ok) < cfg.min_blob_points
+    ):
+        return None
+    if dark:
+        gd = 2 * (max(3, max(bw, bh)) + 3) + 1
+        core = cv2.dilate(blob, np.ones((gd, gd), np.uint8)) > 0
+    rv, ru = np.nonzero(gr)
+    if rv.size > cfg.max_ring_points:  # an even subsample: the fit needs no more
+        step = int(np.ceil(rv.size / cfg.max_ring_points))
+        rv, ru = rv[::step], ru[::step]
+    cv_, cu_ = np.nonzero(core & ok)
+    n_ring = rv.size
+    vv, uu = np.concatenate([rv, cv_]), np.concatenate([ru, cu_])
+    # points (left optical frame): the ring's, then the core's
+    Z = fb / d[vv, uu]
+    P = Pr = np.stack([(uu + a0 - cx) * Z / fx, (vv + b0 - cy) * Z / fx, Z], axis=1)
+    hP, s, n = _ground_heights(P[:n_ring], P[n_ring:], cfg)
+    P = P[n_ring:]
+    idx = np.full(d.shape, -1, np.int64)
+    idx[cv_, cu_] = np.arange(cv_.size)
+    hall = np.full(d.shape, np.nan, np.float32)
+    hall[cv_, cu_] = hP
+    return _Window(a0, b0, blob, ok & core, P, idx, hall, float(s), n, Pr[:n_ring], rv, ru)
+
+
+def _ground_heights(Q: np.ndarray, P: np.ndarray, cfg):
+    """Heights of the points `P` above the local ground fitted to the ring points `Q` (a plane,
+    once more without the points beyond 3 MADs, then, with cfg.quadric, a quadric in the
+    plane's coordinates), the fit's residual spread and the plane's normal."""
+    c, n = _fit_plane(Q)
+    r = (Q - c) @ n
+    med, s = _robust_spread(r)
+    keep = np.abs(r - med) < 3 * s
+    n_keep = int(np.count_nonzero(keep))
+    if n_keep >= cfg.min_ring_points // 2:
+        c, n = _fit_plane(Q[keep])
+        _, s = _robust_spread((Q[keep] - c) @ n)
+    if not (cfg.quadric and n_keep >= 12):
+        return (P - c) @ n, s, n
+    X = np.concatenate([Q, P])
+    h, s = _quadric_heights(X, c, n, (X - c) @ n, np.arange(len(Q)), s)
+    return h[len(Q) :], s, n
+
+
+def _refit(w: _Window, region: np.ndarray, cfg) -> _Window | None:
+    """`w` with its heights refitted to the ring points within cfg.refine_margin region sizes
+    of `region` (uint8, window-sized) and outside it (dilated by half its size): a ring close
+    to the rock holds less of the terrain's relief. None when too few ring points remain."""
+    import cv2
+
+    ys, xs = np.nonzero(region)
+    y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    size = max(y1 - y0, x1 - x0)
+    m = max(cfg.refine_margin * size, 4)
+    g = max(3, size // 2)
+    out = cv2.dilate(region, np.ones((2 * g + 1, 2 * g + 1), np.uint8)) > 0
+    sel = (
+        (w.ring_u >= x0 - m) & (w.ring_u < x1 + m) & (w.ring_v >= y0 - m) & (w.ring_v < y1 + m)
+    ) & ~out[w.ring_v, w.ring_u]
+    if np.count_nonzero(sel) < cfg.min_ring_points:
+        return None
+    # heights where the verdict and the rock's outline look: the region and 3 pixels around it
+    near = (cv2.dilate(region, np.ones((7, 7), np.uint8)) > 0) & (w.idx >= 0)
+    vv, uu = np.nonzero(near)
+    hP, s, n = _ground_heights(w.ring_P[sel], w.P[w.idx[vv, uu]], cfg)
+    hall = np.full(w.hall.shape, np.nan, np.float32)
+    hall[vv, uu] = hP
+    return replace(w, blob=region, hall=hall, noise=float(s), n=n, ok=w.ok & near)
+
+
+def _quadric_heights(P, c, n, hP, ring_idx, s):
+    """Heights `hP` above a quadric (in the plane's coordinates) fitted to the ring's points
+    (twice, the second time without those beyond 3 MADs) and the fit's residual spread."""
+    e1 = np.array([n[1], -n[0], 0.0])  # n x (0, 0, 1)
+    e1 /= np.sqrt(e1 @ e1) + 1e-12
+    e2 = np.array(
+        [n[1] * e1[2] - n[2] * e1[1], n[2] * e1[0] - n[0] * e1[2], n[0] * e1[1] - n[1] * e1[0]]
+    )
+    X = P - c
+    a1, a2 = X @ e1, X @ e2
+    A = np.stack([np.ones_like(a1), a1, a2, a1 * a1, a1 * a2, a2 * a2], axis=1)
+    sel = ring_idx
+    coef = np.zeros(6)
+    for _ in range(2):
+        As = A[sel]
+        try:  # normal equations: a 6x6 solve (lstsq's SVD costs far more here)
+            coef = np.linalg.solve(As.T @ As + 1e-9 * np.eye(6), As.T @ hP[sel])
+        except np.linalg.LinAlgError:
+            break
+        res = hP[ring_idx] - A[ring_idx] @ coef
+        mr, s = _robust_spread(res)
+        sel = ring_idx[np.abs(res - mr) < 3 * s]
+        if sel.size < 12:
+            break
+    return hP - A @ coef, s
+
+
+def _verdict(cfg, top: float, noise: float, width: float, tilt_ok: bool) -> str | None:
+    """None for a rock, else why not (see SmallRock)."""
+    if not tilt_ok:
+        return "not_ground"  # the surroundings are a wall, the lander, a boulder's face
+    if (
+        top < cfg.min_top_m
+        or top < cfg.min_snr * noise
+        or (top < cfg.confident_top_m and top < cfg.low_top_snr * noise)
+    ):
+        return "flat"
+    if top > cfg.max_top_per_width * width + cfg.top_margin_m:
+        return "too_tall"
+    return None
+
+
+def _shadowed_blob(w: _Window, cfg, bw: int, bh: int) -> np.ndarray | None:
+    """For a dark candidate (a shadow, or a rock's unlit side): the raised part of its window
+    next to it (the rock that cast the shadow), as a uint8 window-sized blob, or None. Raised:
+    higher than min_snr noises and half of min_top_m above the local ground, within one
+    blob size of the dark blob; the component touching the dark blob with the most raised
+    pixels."""
+    import cv2
+
+    with np.errstate(invalid="ignore"):
+        raised = w.hall > max(cfg.min_snr * w.noise, 0.5 * cfg.min_top_m)
+    g = max(3, int(max(bw, bh)))
+    near = cv2.dilate(w.blob, np.ones((2 * g + 1, 2 * g + 1), np.uint8)) > 0
+    cand = (raised & near).astype(np.uint8)
+    n_lab, lab, stats, _ = cv2.connectedComponentsWithStats(cand, connectivity=8)
+    if n_lab <= 1:
+        return None
+    best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    if stats[best, cv2.CC_STAT_AREA] < cfg.min_blob_points:
+        return None
+    return (lab == best).astype(np.uint8)
 
 
 def detect_small_rocks(
@@ -432,20 +645,17 @@ def detect_small_rocks(
     min_lowres_height_m high is dropped before its full-resolution match (the half-resolution
     heights smooth a small rock, but not to nothing).
     """
-    import cv2
-
-    L, R = left, right
-    H, W = L.shape
-    fx, cx, cy = camera.fx, camera.cx, camera.cy
-    fb = fx * baseline_m
+    H, W = left.shape
+    fb = camera.fx * baseline_m
     mt = matcher or _Matcher(cfg.block_size, cfg.band_px, cfg.max_band_px)
     cos_tilt = np.cos(np.radians(cfg.max_tilt_deg))
     out: list[SmallRock] = []
     taken = np.zeros((H, W), bool) if exclude is None else exclude.copy()
-    for u0, v0, crop, d0 in small_rock_candidates(L, disparity_lowres, scale, fx, baseline_m, cfg):
+    for u0, v0, crop, d0, dark in small_rock_candidates(
+        left, disparity_lowres, scale, camera.fx, baseline_m, cfg
+    ):
         bh, bw = crop.shape
-        cu, cv = u0 + bw // 2, v0 + bh // 2
-        if taken[min(cv, H - 1), min(cu, W - 1)]:
+        if taken[min(v0 + bh // 2, H - 1), min(u0 + bw // 2, W - 1)]:
             continue
         if height_lowres is not None:
             k = int(scale)
@@ -454,142 +664,136 @@ def detect_small_rocks(
             ]
             if not np.any(hh >= cfg.min_lowres_height_m):  # NaN compares False
                 continue
-        M = int(max(cfg.window_min_margin_px, cfg.window_margin * max(bw, bh)))
-        a0, b0 = max(u0 - M, 0), max(v0 - M, 0)
-        a1, b1 = min(u0 + bw + M, W), min(v0 + bh + M, H)
-        # the height map's disparities over the window (full-resolution pixels)
-        wd_ = disparity_lowres[
-            b0 // scale : (b1 - 1) // scale + 1, a0 // scale : (a1 - 1) // scale + 1
-        ]
-        wd_ = wd_[np.isfinite(wd_)] * scale
-        lo, hi = np.percentile(wd_, [5, 95]) if wd_.size >= 8 else (d0, d0)
-        d = mt.window(L, R, a0, b0, a1, b1, min(lo, d0), max(hi, d0))
-        if d is None:
+        w = _local_heights(
+            left, right, disparity_lowres, scale, camera, fb, cfg, mt, u0, v0, crop, d0, dark
+        )
+        if w is None:
             continue
-        blob = np.zeros(d.shape, np.uint8)
-        blob[v0 - b0 : v0 - b0 + bh, u0 - a0 : u0 - a0 + bw] = crop
-        g = max(3, int(0.5 * max(bw, bh)))
-        ring = cv2.dilate(blob, np.ones((2 * g + 1, 2 * g + 1), np.uint8)) == 0
-        inner = cv2.dilate(blob, np.ones((3, 3), np.uint8)) > 0
-        ok = np.isfinite(d)
-        gr, bl = ring & ok, inner & ok
-        n_ring, n_blob = int(np.count_nonzero(gr)), int(np.count_nonzero(bl))
-        if n_ring < cfg.min_ring_points or n_blob < cfg.min_blob_points:
+        tilt_ok = up_optical is None or abs(float(w.n @ up_optical)) >= cos_tilt
+        rock = _judge(w, cfg, camera.fx, dark, tilt_ok, trace)
+        if rock.reason is not None:
+            if (
+                keep_rejected and rock.depth_m > 0
+            ):  # a dark blob with nothing raised beside it: none
+                out.append(replace(rock, u0=u0, v0=v0, crop=crop.copy()))
             continue
-        # points (left optical frame) of the window's valid pixels
-        vv, uu = np.nonzero(ok)
-        Z = fb / d[vv, uu]
-        P = np.stack([(uu + a0 - cx) * Z / fx, (vv + b0 - cy) * Z / fx, Z], axis=1)
-        idx = np.full(d.shape, -1, np.int64)
-        idx[vv, uu] = np.arange(vv.size)
-        ring_idx = idx[gr]
-        if ring_idx.size > cfg.max_ring_points:  # an even subsample: the fit needs no more
-            ring_idx = ring_idx[:: int(np.ceil(ring_idx.size / cfg.max_ring_points))]
-        Q = P[ring_idx]
-        c, n = _fit_plane(Q)
-        r = (Q - c) @ n
-        med = np.median(r)
-        s = 1.4826 * np.median(np.abs(r - med)) + 1e-4
-        keep = np.abs(r - med) < 3 * s
-        if np.count_nonzero(keep) >= cfg.min_ring_points // 2:
-            c, n = _fit_plane(Q[keep])
-            r = (Q[keep] - c) @ n
-            s = 1.4826 * np.median(np.abs(r - np.median(r))) + 1e-4
-        hP = (P - c) @ n
-        if cfg.quadric and np.count_nonzero(keep) >= 12:
-            e1 = np.cross(n, [0.0, 0.0, 1.0])
-            e1 /= np.linalg.norm(e1) + 1e-12
-            e2 = np.cross(n, e1)
-            X = P - c
-            a1, a2 = X @ e1, X @ e2
-            A = np.stack([np.ones_like(a1), a1, a2, a1 * a1, a1 * a2, a2 * a2], axis=1)
-            ri = ring_idx
-            sel = ri
-            coef = np.zeros(6)
-            for _ in range(2):
-                As = A[sel]
-                try:  # normal equations: a 6x6 solve (lstsq's SVD costs far more here)
-                    coef = np.linalg.solve(As.T @ As + 1e-9 * np.eye(6), As.T @ hP[sel])
-                except np.linalg.LinAlgError:
-                    break
-                res = hP[ri] - A[ri] @ coef
-                mr = np.median(res)
-                s = 1.4826 * np.median(np.abs(res - mr)) + 1e-4
-                sel = ri[np.abs(res - mr) < 3 * s]
-                if sel.size < 12:
-                    break
-            hP = hP - A @ coef
-        hall = np.full(d.shape, np.nan, np.float32)
-        hall[vv, uu] = hP
-        hb = hall[bl]
-        top = float(np.quantile(hb, 0.9))
-        depth = float(np.median(P[idx[bl], 2]))
-        width = max(bw, bh) * depth / fx
-        tilt_ok = up_optical is None or abs(float(np.dot(n, up_optical))) >= cos_tilt
-        if trace is not None:
-            trace.append(
-                dict(
-                    box=(u0, v0, u0 + bw, v0 + bh),
-                    top=top,
-                    noise=float(s),
-                    width=width,
-                    depth=depth,
-                    aspect=bw / max(bh, 1),
-                    tilt_ok=tilt_ok,
-                )
+        if rock.width_m > cfg.max_width_m:
+            if keep_rejected:
+                out.append(replace(rock, u0=u0, v0=v0, crop=crop.copy(), reason="too_wide"))
+            continue
+        out.append(rock)
+        # the rock and one rock width around it: other fragments of it are not rocks again
+        g2 = max(rock.crop.shape)
+        y0, x0 = rock.v0, rock.u0
+        taken[
+            max(y0 - g2, 0) : y0 + rock.crop.shape[0] + g2,
+            max(x0 - g2, 0) : x0 + rock.crop.shape[1] + g2,
+        ] = True
+    return out
+
+
+def _judge(w: _Window, cfg, fx: float, dark: bool, tilt_ok: bool, trace) -> SmallRock:
+    """The verdict on one window's candidate (a SmallRock in window-independent, full-image
+    pixels; ``reason`` None for a rock). A bright blob is judged as it is; a dark one by the
+    raised part of its window beside it (:func:`_shadowed_blob`)."""
+    import cv2
+
+    blob = w.blob
+    if dark:
+        blob = _shadowed_blob(w, cfg, *_box_size(w.blob))
+        if blob is None:
+            return SmallRock(
+                w.a0, w.b0, w.blob > 0, np.zeros((0, 3)), 0.0, w.noise, 0.0, 0.0, "flat"
             )
-        reason = None
-        if not tilt_ok:
-            reason = "not_ground"  # the surroundings are a wall, the lander, a boulder's face
-        elif (
-            top < cfg.min_top_m
-            or top < cfg.min_snr * s
-            or (top < cfg.confident_top_m and top < cfg.low_top_snr * s)
-        ):
-            reason = "flat"
-        elif top > cfg.max_top_per_width * width + cfg.top_margin_m:
-            reason = "too_tall"
-        if reason is not None:
-            if keep_rejected:
-                out.append(
-                    SmallRock(u0, v0, crop.copy(), P[idx[bl]], top, float(s), width, depth, reason)
-                )
-            continue
-        # the rock: the blob and the raised pixels next to it (its unlit side)
-        with np.errstate(invalid="ignore"):
-            raised = hall > max(0.5 * top, 0.5 * cfg.min_top_m)
-        grown = cv2.dilate(blob, np.ones((5, 5), np.uint8)) > 0
-        rock = ((raised & grown) | (blob > 0)).astype(np.uint8)
-        _, lab = cv2.connectedComponents(rock, connectivity=8)
-        ids = np.unique(lab[blob > 0])
-        rock = np.isin(lab, ids[ids > 0])
-        sel = idx[rock & ok]
-        if sel.size < cfg.min_blob_points:
-            continue
-        ys, xs = np.nonzero(rock)
-        y0r, y1r, x0r, x1r = int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1
-        width = (x1r - x0r) * depth / fx
-        if width > cfg.max_width_m:
-            if keep_rejected:
-                out.append(
-                    SmallRock(
-                        u0, v0, crop.copy(), P[idx[bl]], top, float(s), width, depth, "too_wide"
-                    )
-                )
-            continue
-        out.append(
-            SmallRock(
-                a0 + x0r,
-                b0 + y0r,
-                rock[y0r:y1r, x0r:x1r].copy(),
-                P[sel],
-                top,
-                float(s),
-                width,
-                depth,
+    if cfg.refine_margin > 0:
+        # the rock as the blob and the raised pixels next to it, its ground from a closer ring
+        region = blob if dark else _grown(w, blob, max(cfg.min_snr * w.noise, 0.5 * cfg.min_top_m))
+        w2 = _refit(w, region, cfg)
+        if w2 is not None:
+            w, blob = w2, region
+    bw, bh = _box_size(blob)
+    bl = (cv2.dilate(blob, np.ones((3, 3), np.uint8)) > 0) & w.ok
+    if np.count_nonzero(bl) < cfg.min_blob_points:
+        return SmallRock(w.a0, w.b0, blob > 0, np.zeros((0, 3)), 0.0, w.noise, 0.0, 0.0, "flat")
+    top = _quantile(w.hall[bl], 0.9)
+    depth = _quantile(w.P[w.idx[bl], 2], 0.5)
+    width = max(bw, bh) * depth / fx
+    if trace is not None:
+        ys, xs = np.nonzero(blob)
+        trace.append(
+            dict(
+                box=(
+                    w.a0 + int(xs.min()),
+                    w.b0 + int(ys.min()),
+                    w.a0 + int(xs.max()) + 1,
+                    w.b0 + int(ys.max()) + 1,
+                ),
+                top=top,
+                noise=w.noise,
+                width=width,
+                depth=depth,
+                aspect=bw / max(bh, 1),
+                tilt_ok=tilt_ok,
+                dark=dark,
             )
         )
-        # the rock and one rock width around it: other bright fragments of it are not rocks again
-        g2 = max(x1r - x0r, y1r - y0r)
-        taken[max(b0 + y0r - g2, 0) : b0 + y1r + g2, max(a0 + x0r - g2, 0) : a0 + x1r + g2] = True
-    return out
+    reason = _verdict(cfg, top, w.noise, width, tilt_ok)
+    # the blob's median height against the noise of a mean over its independent pixels (one per
+    # SGBM block): a lit patch of flat regolith has a noisy top but no raised middle
+    n_ind = max(np.count_nonzero(bl) / cfg.block_size**2, 1.0)
+    if (
+        reason is None
+        and _quantile(w.hall[bl], 0.5) * np.sqrt(n_ind) < cfg.min_median_snr * w.noise
+    ):
+        reason = "flat"
+    if (
+        dark
+        and reason is None
+        and (top < cfg.dark_min_snr * w.noise or np.count_nonzero(bl) < cfg.dark_min_points)
+    ):
+        reason = "flat"  # a raised patch beside a shadow needs more evidence than a lit face
+    if reason is not None:
+        return SmallRock(w.a0, w.b0, blob > 0, w.P[w.idx[bl]], top, w.noise, width, depth, reason)
+    # the rock: the blob and the raised pixels next to it (its unlit side)
+    with np.errstate(invalid="ignore"):
+        raised = w.hall > max(0.5 * top, 0.5 * cfg.min_top_m)
+    grown = cv2.dilate(blob, np.ones((5, 5), np.uint8)) > 0
+    rock = ((raised & grown) | (blob > 0)).astype(np.uint8)
+    _, lab = cv2.connectedComponents(rock, connectivity=8)
+    ids = np.unique(lab[blob > 0])
+    rock = np.isin(lab, ids[ids > 0])
+    sel = w.idx[rock & w.ok]
+    if sel.size < cfg.min_blob_points:
+        return SmallRock(w.a0, w.b0, blob > 0, w.P[w.idx[bl]], top, w.noise, width, depth, "flat")
+    ys, xs = np.nonzero(rock)
+    y0, y1, x0, x1 = int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1
+    return SmallRock(
+        w.a0 + x0,
+        w.b0 + y0,
+        rock[y0:y1, x0:x1].copy(),
+        w.P[sel],
+        top,
+        w.noise,
+        (x1 - x0) * depth / fx,
+        depth,
+    )
+
+
+def _grown(w: _Window, blob: np.ndarray, level_m: float) -> np.ndarray:
+    """`blob` (uint8) and the pixels higher than `level_m` within two pixels of it and connected
+    to it (a lit face and the rest of its rock)."""
+    import cv2
+
+    with np.errstate(invalid="ignore"):
+        raised = w.hall > level_m
+    grown = cv2.dilate(blob, np.ones((5, 5), np.uint8)) > 0
+    rock = ((raised & grown) | (blob > 0)).astype(np.uint8)
+    _, lab = cv2.connectedComponents(rock, connectivity=8)
+    ids = np.unique(lab[blob > 0])
+    return np.isin(lab, ids[ids > 0]).astype(np.uint8)
+
+
+def _box_size(blob: np.ndarray) -> tuple[int, int]:
+    """Width and height (pixels) of the bounding box of a blob's nonzero pixels."""
+    ys, xs = np.nonzero(blob)
+    return int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1)

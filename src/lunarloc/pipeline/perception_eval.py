@@ -194,6 +194,8 @@ class Accumulator:
         self.target_rows: list[tuple] = []
         self.small_near = np.zeros(2, int)  # [hit, visible]: 0.05 <= r < 0.1 within 3 m
         self.tiny_near = np.zeros(2, int)  # [hit, visible]: 0.025 <= r < 0.05 within 3 m
+        # [on a rock, all]: the small-rock stage's own detections within 5 m (in the precision's bands)
+        self.stage_prec = np.zeros(2, int)
         self.times: dict[str, list[float]] = {}
         # false positives within 5 m by what lies under the detection's image centroid
         self.fp_causes: dict[str, int] = {k: 0 for k in FP_CAUSES}
@@ -240,6 +242,7 @@ class Accumulator:
         self.prec += other.prec
         self.small_near += other.small_near
         self.tiny_near += other.tiny_near
+        self.stage_prec += other.stage_prec
         for k, v in other.fp_causes.items():
             self.fp_causes[k] += v
         for k in ("err3d", "err_xy", "err3d_surface", "err_target", "target_rows"):
@@ -346,6 +349,8 @@ class Accumulator:
             self.prec[sb, rb, 1] += 1
             if i in matched_det:
                 self.prec[sb, rb, 0] += 1
+            if d.small_rock and rb < 2:
+                self.stage_prec += [int(i in matched_det), 1]
             # surface (uncorrected) centroid error, for comparison
             if i in matched_det and detector.config.centre.correction:
                 p = d.p_optical - d.p_optical / np.linalg.norm(d.p_optical) * d.radius_m
@@ -381,6 +386,10 @@ class Accumulator:
             else float("nan"),
             "precision_range<=5": float(prec_5[0] / max(prec_5[1], 1)),
             "precision_counts_range<=5": prec_5.tolist(),
+            "small_rock_stage_precision_range<=5": float(
+                self.stage_prec[0] / max(self.stage_prec[1], 1)
+            ),
+            "small_rock_stage_precision_counts_range<=5": self.stage_prec.tolist(),
             "centroid_err_target_median_m": pct(self.err_target, 50),
             "centroid_err_target_p90_m": pct(self.err_target, 90),
             "centroid_err3d_median_m": pct(self.err3d, 50),
