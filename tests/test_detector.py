@@ -1012,3 +1012,27 @@ def test_every_reject_reason_has_an_overlay_colour():
     from lunarloc.perception.detector import REASON_COLOURS_BGR
 
     assert set(REASON_COLOURS_BGR) == set(RejectReason)
+
+
+def test_image_gradient_sees_a_rock_outline_and_not_smooth_shading():
+    from lunarloc.perception.detector import image_gradient
+    from lunarloc.perception.masks import InstanceMask
+
+    v, u = np.mgrid[0:120, 0:160]
+    crop = (v[40:80, 60:100] - 60) ** 2 + (u[40:80, 60:100] - 80) ** 2 <= 15**2
+    mask = InstanceMask(60, 40, crop)
+    # smooth shading across a hummock: 0.3 grey levels per pixel
+    shading = (100 + 0.3 * u).astype(np.uint8)
+    g_smooth = image_gradient(shading, mask, 3, 0.95)
+    # a lit disc (the rock) on that ground: its outline is an edge of 60 grey levels
+    rock = shading.copy()
+    rock[40:80, 60:100][crop] = 180
+    g_rock = image_gradient(rock, mask, 3, 0.95)
+    cfg = DetectorConfig()
+    assert g_smooth < cfg.rules.min_image_gradient < g_rock
+    # the rim matters: without it the mask's inside shows only the flat disc
+    assert image_gradient(rock, mask, 0, 0.5) < g_rock
+    # a mask at the image's corner is read within the image
+    corner = InstanceMask(0, 0, np.ones((10, 10), bool))
+    assert np.isfinite(image_gradient(rock, corner, 3, 0.95))
+    assert np.isnan(image_gradient(rock, InstanceMask(0, 0, np.zeros((5, 5), bool)), 3, 0.95))

@@ -162,6 +162,10 @@ class Detection:
     # local ground's residual spread (metres; NaN for the height map's detections)
     small_rock: bool = False
     ground_noise_m: float = float("nan")
+    # upper (DetectorConfig.rules.gradient_quantile) quantile of the image's gradient magnitude
+    # over the mask and a rim around it (grey levels per pixel; see image_gradient); NaN when
+    # not measured
+    image_gradient: float = float("nan")
 
 
 @dataclass
@@ -692,6 +696,7 @@ class Detector:
                 nearer_ring_fraction=blob.nearer_fraction,
                 extension_ratio=blob.extension_ratio,
                 disparity_roughness=blob.roughness,
+                image_gradient=blob.image_gradient,
                 needs_confirmation=_needs_confirmation(
                     blob.top_m, blob.extension_ratio, scene.hm.height, rows, cols, cfg
                 ),
@@ -819,6 +824,11 @@ class Detector:
             if fr_disp and cfg.rules.max_disparity_roughness < 1.0
             else float("nan")
         )
+        grad = (
+            image_gradient(L, m, cfg.rules.gradient_rim_px, cfg.rules.gradient_quantile)
+            if cfg.rules.min_image_gradient > 0
+            else float("nan")
+        )
         blob = BlobMeasures(
             radius_m=R_est,
             visible_height_m=vis_h,
@@ -833,6 +843,7 @@ class Detector:
             roughness=rough,
             strip=strip,
             raised=raised,
+            image_gradient=grad,
         )
         return D, p, p_rover, blob
 
@@ -1612,6 +1623,34 @@ def _fused_centre(P: np.ndarray, w: np.ndarray, how: CentreFusion) -> np.ndarray
         cw = np.cumsum(w[o])
         out[i] = P[o[int(np.searchsorted(cw, 0.5))], i]
     return out
+
+
+def image_gradient(image: np.ndarray, mask: InstanceMask, rim_px: int, q: float) -> float:
+    """How much a blob shows in the image: quantile `q` of the gradient magnitude (grey levels
+    per pixel; Sobel of the image smoothed with a Gaussian of sigma 1 px) over the mask grown by
+    `rim_px` pixels, so that its silhouette's edge is included. A rock shows a lit face, a
+    shaded side, its outline against the ground or its shadow; a bump of smooth regolith that
+    stereo lifts out of the ground (a hummock, a gentle rim) shows only soft shading. NaN for
+    an empty mask."""
+    cv2 = import_cv2()
+    crop = np.asarray(mask.crop, np.uint8)
+    if not crop.any():
+        return float("nan")
+    H, W = image.shape[:2]
+    pad = int(rim_px) + 4  # the rim, and the smoothing and Sobel supports beyond it
+    h, w = crop.shape
+    v0, v1 = max(mask.v0 - pad, 0), min(mask.v0 + h + pad, H)
+    u0, u1 = max(mask.u0 - pad, 0), min(mask.u0 + w + pad, W)
+    win = cv2.GaussianBlur(np.asarray(image[v0:v1, u0:u1], np.float32), (0, 0), 1.0)
+    gx = cv2.Sobel(win, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(win, cv2.CV_32F, 0, 1, ksize=3)
+    mag = cv2.magnitude(gx, gy) * np.float32(0.125)  # the 3x3 Sobel's gain is 8
+    sel = np.zeros(win.shape, np.uint8)
+    sel[mask.v0 - v0 : mask.v0 - v0 + h, mask.u0 - u0 : mask.u0 - u0 + w] = crop
+    if rim_px > 0:
+        k = 2 * int(rim_px) + 1
+        sel = cv2.dilate(sel, np.ones((k, k), np.uint8))
+    return float(np.quantile(mag[sel > 0], q))
 
 
 def disparity_roughness(
