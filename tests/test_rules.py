@@ -38,6 +38,7 @@ ROCK = BlobMeasures(
     extension_ratio=0.1,
     roughness=0.02,
     image_gradient=20.0,
+    depth_m=3.0,
 )
 # per rule: measures that make it fire (and only it, on the plain rock)
 FIRING = {
@@ -118,6 +119,10 @@ def test_featureless_spares_a_rock_on_level_ground_and_a_tall_plain_face():
     # a smooth bump on rising ground that shows a little more edge than the threshold is kept
     edged = replace(dark, ring_m=C.featureless_min_ring_m, image_gradient=C.min_image_gradient)
     assert fired_rules(edged, C) == ([], [])
+    # near blobs are not judged (a near rock's outline is a small part of its large mask)
+    near = replace(dark, ring_m=C.featureless_min_ring_m, depth_m=C.featureless_min_depth_m / 2)
+    assert fired_rules(near, C) == ([], [])
+    assert fired_rules(replace(near, depth_m=C.featureless_min_depth_m), C) == (["featureless"], [])
 
 
 def test_the_thresholds_off_values_switch_their_rules_off():

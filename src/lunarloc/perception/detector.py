@@ -881,6 +881,7 @@ class Detector:
             strip=strip,
             raised=raised,
             image_gradient=grad,
+            depth_m=D,
         )
         return D, p, p_rover, blob
 

@@ -284,12 +284,14 @@ class RulesConfig:
     # featureless: a blob whose image gradient (image_gradient: its upper quantile over the mask
     # and its rim) is under this shows no rock in the image (grey levels per pixel, at 1280 px
     # wide; 0 = off)
-    min_image_gradient: float = setting(6.0, ge=0.0)
+    min_image_gradient: float = setting(5.0, ge=0.0)
     # featureless: ... when the upper quartile of the heights in the ring around it is at least
     # this (the ground rises with it; m) ...
     featureless_min_ring_m: float = setting(0.01)
-    # featureless: ... and it stands less than this above the quadric ground around it (m)
+    # featureless: ... and it stands less than this above the quadric ground around it (m) ...
     featureless_max_quadric_m: float = setting(0.1, ge=0.0)
+    # featureless: ... at a depth of at least this (m)
+    featureless_min_depth_m: float = setting(2.0, ge=0.0)
     # featureless: the quantile of the gradient magnitude (over the mask and its rim)
     gradient_quantile: float = setting(0.95, gt=0.0, le=1.0)
     # featureless: the rim around the mask where the gradient is read too (full-resolution px)

@@ -58,6 +58,7 @@ class BlobMeasures:
     raised: bool = False  # ... as a raised strip candidate (is_raised_strip)
     # upper quantile of the image gradient over it and its rim (grey levels per pixel; NaN: not measured)
     image_gradient: float = float("nan")
+    depth_m: float = float("nan")  # its median depth (optical z; NaN: not known)
 
 
 @dataclass(frozen=True)
@@ -127,9 +128,12 @@ def featureless(b: BlobMeasures, c) -> bool:
     with the ground around it rising with it: a bump of smooth regolith that stereo lifts out
     of the ground (a hummock, a gentle rim). A blob standing featureless_max_quadric_m or more
     above the quadric ground is not judged (the plain face of a large rock), nor one whose
-    ring of ground stays low (a rock in shadow on level ground)."""
+    ring of ground stays low (a rock in shadow on level ground), nor one nearer than
+    featureless_min_depth_m (a near rock's mask is large and its outline a small part of it)."""
     return bool(
         math.isfinite(b.image_gradient)
+        and math.isfinite(b.depth_m)
+        and b.depth_m >= c.featureless_min_depth_m
         and b.image_gradient < c.min_image_gradient
         and math.isfinite(b.ring_m)
         and b.ring_m >= c.featureless_min_ring_m
