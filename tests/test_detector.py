@@ -1012,3 +1012,54 @@ def test_every_reject_reason_has_an_overlay_colour():
     from lunarloc.perception.detector import REASON_COLOURS_BGR
 
     assert set(REASON_COLOURS_BGR) == set(RejectReason)
+
+
+def test_image_gradient_sees_a_rock_outline_and_not_smooth_shading():
+    from lunarloc.perception.detector import image_gradient
+    from lunarloc.perception.masks import InstanceMask
+
+    v, u = np.mgrid[0:120, 0:160]
+    crop = (v[40:80, 60:100] - 60) ** 2 + (u[40:80, 60:100] - 80) ** 2 <= 15**2
+    mask = InstanceMask(60, 40, crop)
+    # smooth shading across a hummock: 0.3 grey levels per pixel
+    shading = (100 + 0.3 * u).astype(np.uint8)
+    g_smooth = image_gradient(shading, mask, 3, 0.95)
+    # a lit disc (the rock) on that ground: its outline is an edge of 60 grey levels
+    rock = shading.copy()
+    rock[40:80, 60:100][crop] = 180
+    g_rock = image_gradient(rock, mask, 3, 0.95)
+    cfg = DetectorConfig()
+    assert g_smooth < cfg.rules.min_image_gradient < g_rock
+    # the rim matters: without it the mask's inside shows only the flat disc
+    assert image_gradient(rock, mask, 0, 0.5) < g_rock
+    # a mask at the image's corner is read within the image
+    corner = InstanceMask(0, 0, np.ones((10, 10), bool))
+    assert np.isfinite(image_gradient(rock, corner, 3, 0.95))
+    assert np.isnan(image_gradient(rock, InstanceMask(0, 0, np.zeros((5, 5), bool)), 3, 0.95))
+
+
+def test_fast_quantile_and_median_equal_numpys_bit_for_bit():
+    from lunarloc.perception.detector import _median, _quantile
+
+    rng = np.random.default_rng(7)
+    for it in range(600):
+        n = int(rng.integers(1, 40)) if it % 3 else int(rng.integers(40, 2000))
+        a = (rng.normal(size=n) * 10 ** rng.uniform(-3, 2)).astype(
+            np.float32 if it % 2 else np.float64
+        )
+        if it % 5 == 0:
+            a = np.round(a, 2)  # ties
+        if it % 29 == 0:
+            a[rng.integers(0, n)] = np.nan
+        for q in (0.0, 0.05, 0.25, 0.5, 0.75, 0.9, 0.95, 1.0, 0.3):
+            ref, got = np.quantile(a, q), _quantile(a, q)
+            assert np.asarray(got).dtype == np.asarray(ref).dtype
+            assert np.array_equal(np.asarray(got), np.asarray(ref), equal_nan=True), (n, q)
+        ref, got = np.median(a), _median(a)
+        assert np.asarray(got).dtype == np.asarray(ref).dtype
+        assert np.array_equal(np.asarray(got), np.asarray(ref), equal_nan=True), n
+    # anything else is numpy's own: arrays of q, integer arrays, 2-D arrays
+    a = np.arange(10.0)
+    assert np.array_equal(_quantile(a, [0.1, 0.9]), np.quantile(a, [0.1, 0.9]))
+    assert _median(np.arange(7)) == np.median(np.arange(7))
+    assert _quantile(np.ones((3, 3)), 0.5) == 1.0

@@ -38,6 +38,8 @@ ROCK = BlobMeasures(
     nearer_fraction=0.0,
     extension_ratio=0.1,
     roughness=0.02,
+    image_gradient=20.0,
+    depth_m=3.0,
 )
 # per rule: measures that make it fire (and only it, on the plain rock)
 FIRING = {
@@ -52,6 +54,7 @@ FIRING = {
     "perched": {"front_m": C.height_per_radius * 0.1 + C.height_margin_m + 0.05},
     "framed": {"nearer_fraction": C.max_nearer_ring_fraction + 0.1},
     "rough": {"roughness": C.max_disparity_roughness + 0.1},
+    "featureless": {"image_gradient": C.min_image_gradient / 2, "ring_m": C.featureless_min_ring_m},
     "contrast": {"ring_m": 0.08 - C.min_contrast_m / 2},
     "quadric": {
         "quadric_m": 0.5 * min(C.quadric_contrast_per_radius * 0.1, C.quadric_contrast_max_m)
@@ -107,12 +110,29 @@ def test_perched_spares_a_boulder_and_judges_every_blob_at_zero():
     assert "perched" in fired_rules(boulder, replace(C, perched_max_radius_m=0.0))[0]
 
 
+def test_featureless_spares_a_rock_on_level_ground_and_a_tall_plain_face():
+    # no edge in the image, but the ground around it stays low: a rock in shadow on level ground
+    dark = replace(ROCK, image_gradient=C.min_image_gradient / 2)
+    assert fired_rules(replace(dark, ring_m=C.featureless_min_ring_m / 2), C) == ([], [])
+    # ... or standing high above the quadric ground: the plain face of a large rock
+    raised = replace(dark, ring_m=C.featureless_min_ring_m, quadric_m=C.featureless_max_quadric_m)
+    assert fired_rules(raised, C) == ([], [])
+    # a smooth bump on rising ground that shows a little more edge than the threshold is kept
+    edged = replace(dark, ring_m=C.featureless_min_ring_m, image_gradient=C.min_image_gradient)
+    assert fired_rules(edged, C) == ([], [])
+    # near blobs are not judged (a near rock's outline is a small part of its large mask)
+    near = replace(dark, ring_m=C.featureless_min_ring_m, depth_m=C.featureless_min_depth_m / 2)
+    assert fired_rules(near, C) == ([], [])
+    assert fired_rules(replace(near, depth_m=C.featureless_min_depth_m), C) == (["featureless"], [])
+
+
 def test_the_thresholds_off_values_switch_their_rules_off():
     for name, off in (
         ("crest", {"crest_extension_ratio": 0.0}),
         ("quadric", {"quadric_contrast_per_radius": 0.0}),
         ("framed", {"max_nearer_ring_fraction": 1.0}),
         ("rough", {"max_disparity_roughness": 1.0}),
+        ("featureless", {"min_image_gradient": 0.0}),
     ):
         b = replace(ROCK, **FIRING[name])
         if name == "rough":

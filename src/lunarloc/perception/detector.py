@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import csv
 import logging
+import math
 import time
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field, replace
@@ -162,6 +163,10 @@ class Detection:
     # local ground's residual spread (metres; NaN for the height map's detections)
     small_rock: bool = False
     ground_noise_m: float = float("nan")
+    # upper (DetectorConfig.rules.gradient_quantile) quantile of the image's gradient magnitude
+    # over the mask and a rim around it (grey levels per pixel; see image_gradient); NaN when
+    # not measured
+    image_gradient: float = float("nan")
 
 
 @dataclass
@@ -250,7 +255,9 @@ class _PairScene:
         """Every 8th valid stereo point of the height map (rover frame): the ground in front
         of a blob is read from these (computed on first use)."""
         if self._ground_points is None:
-            self._ground_points = self.hm.points_rover[np.isfinite(self.hm.depth)][::8]
+            # the same points as points_rover[isfinite(depth)][::8], gathering only those kept
+            idx = np.flatnonzero(np.isfinite(self.hm.depth).ravel())[::8]
+            self._ground_points = self.hm.points_rover.reshape(-1, 3)[idx]
         return self._ground_points
 
     def admitted_elongated(
@@ -275,6 +282,40 @@ def _full_size_depth(hm: HeightMap, shape: tuple[int, int]) -> np.ndarray:
     """The height map's depth (optical z, metres) resized to the image (nearest neighbour)."""
     cv2 = import_cv2()
     return cv2.resize(hm.depth, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST)
+
+
+def _quantile(a: np.ndarray, q) -> np.floating:
+    """``np.quantile(a, q)`` bit for bit (method linear), faster for a 1-D float array and a
+    Python float `q` (one partition, no array machinery: the detector takes some 80 quantiles
+    of small arrays per pair); anything else goes to np.quantile."""
+    if type(q) is not float or a.ndim != 1 or a.dtype.kind != "f" or a.size == 0:
+        return np.quantile(a, q)
+    n = a.size
+    v = (n - 1) * q
+    lo = max(min(math.floor(v), n - 1), 0)
+    hi = min(lo + 1, n - 1)
+    p = np.partition(a, (lo, hi) if hi == n - 1 else (lo, hi, n - 1))
+    if np.isnan(p[-1]):  # NaN sorts last; np.quantile returns NaN then
+        return p.dtype.type(np.nan)
+    x, y = p[lo], p[hi]
+    g = v - math.floor(v)
+    d = y - x
+    # numpy's _lerp: from the nearer end
+    return y - d * (1 - g) if g >= 0.5 else x + d * g
+
+
+def _median(a: np.ndarray) -> np.floating:
+    """``np.median(a)`` bit for bit, faster for a 1-D float array; anything else goes to
+    np.median."""
+    if a.ndim != 1 or a.dtype.kind != "f" or a.size == 0:
+        return np.median(a)
+    n = a.size
+    k = n // 2
+    if n % 2:
+        p = np.partition(a, k if k == n - 1 else (k, n - 1))
+        return p.dtype.type(np.nan) if np.isnan(p[-1]) else p[k]
+    p = np.partition(a, (k - 1, k) if k == n - 1 else (k - 1, k, n - 1))
+    return p.dtype.type(np.nan) if np.isnan(p[-1]) else np.mean(p[k - 1 : k + 1])
 
 
 def _drop_kept(
@@ -692,6 +733,7 @@ class Detector:
                 nearer_ring_fraction=blob.nearer_fraction,
                 extension_ratio=blob.extension_ratio,
                 disparity_roughness=blob.roughness,
+                image_gradient=blob.image_gradient,
                 needs_confirmation=_needs_confirmation(
                     blob.top_m, blob.extension_ratio, scene.hm.height, rows, cols, cfg
                 ),
@@ -724,7 +766,7 @@ class Detector:
         tentative, an elongated tentative candidate outside the band is rejected."""
         cfg = self.config
         z = scene.hm.depth[rows, cols]
-        D = float(np.median(z[ok])) if np.count_nonzero(ok) >= 3 else float("nan")
+        D = float(_median(z[ok])) if np.count_nonzero(ok) >= 3 else float("nan")
         fc = replace(scene.fc, tau_elong=st.eig_ratio) if elongated_ok else scene.fc
         reason, s = classify_mask(st, D, self.camera.alpha, fc)
         rec.depth_m, rec.size_m, rec.reason = D, s, reason
@@ -760,7 +802,7 @@ class Detector:
         P_rov = hm.points_rover[rows[ok], cols[ok]].astype(float)
         if cfg.points.refine_disparity_px > 0:
             # full-resolution masked template match rescales the points' depths
-            d_lr = float(np.median(hm.disparity[rows[ok], cols[ok]])) * hm.scale
+            d_lr = float(_median(hm.disparity[rows[ok], cols[ok]])) * hm.scale
             d_ref = refine_disparity(
                 L,
                 right,
@@ -783,12 +825,12 @@ class Detector:
                 L,
                 right,
                 m,
-                float(np.median(hm.disparity[rows[ok], cols[ok]])) * hm.scale,
+                float(_median(hm.disparity[rows[ok], cols[ok]])) * hm.scale,
                 T_rover_optical,
                 disparity_out=fr_disp,
             )
             if fr is not None:
-                ground = float(np.median(P_rov[:, 2] - h_pts))
+                ground = float(_median(P_rov[:, 2] - h_pts))
                 P_rov, h_pts = fr, fr[:, 2] - ground
         R_sil = None
         if cfg.centre.radius_from_silhouette:
@@ -803,7 +845,7 @@ class Detector:
         p = transform_points(scene.T_optical_rover, p_rover[None])[0]
         q = cfg.centre.top_quantile
         vis_h = _visible_height(P_rov[:, 2], h_pts, q)
-        top = float(np.quantile(h_pts, q))
+        top = float(_quantile(h_pts, q))
         h_sur = _height_above_surroundings(
             P_rov, p_rover, R_est, scene.ground_points, T_rover_optical[:3, 3], q
         )
@@ -817,6 +859,11 @@ class Detector:
         rough = (
             disparity_roughness(fr_disp["disparity"], fr_disp["mask"], cfg.rules.roughness_step_px)
             if fr_disp and cfg.rules.max_disparity_roughness < 1.0
+            else float("nan")
+        )
+        grad = (
+            image_gradient(L, m, cfg.rules.gradient_rim_px, cfg.rules.gradient_quantile)
+            if cfg.rules.min_image_gradient > 0
             else float("nan")
         )
         blob = BlobMeasures(
@@ -833,6 +880,8 @@ class Detector:
             roughness=rough,
             strip=strip,
             raised=raised,
+            image_gradient=grad,
+            depth_m=D,
         )
         return D, p, p_rover, blob
 
@@ -1107,9 +1156,9 @@ def _centre_from_points(
     P = np.asarray(P, float)
     fwd, perp, rng, lat = _ray_frame(P, cam_rover)
     R = max(2.0 * float(np.std(lat)) if radius_m is None else float(radius_m), 1e-3)
-    ground = float(np.median(P[:, 2] - h))
-    top = float(np.quantile(h, cfg.centre.top_quantile))
-    r_c = float(np.median(rng)) + cfg.centre.range_factor * R
+    ground = float(_median(P[:, 2] - h))
+    top = float(_quantile(h, cfg.centre.top_quantile))
+    r_c = float(_median(rng)) + cfg.centre.range_factor * R
     l_c = float(np.mean(lat))
     xy = cam_rover[:2] + fwd * r_c + perp * l_c
     z = ground + top - cfg.centre.height_factor * R
@@ -1170,15 +1219,15 @@ def _centre_blend(
     fwd, perp, rng, lat = _ray_frame(P, cam_rover)
     R = max(2.0 * float(np.std(lat)) if radius_m is None else float(radius_m), 1e-3)
     w = cfg.centre.near_weight
-    med = float(np.median(rng))
+    med = float(_median(rng))
     near = max(
-        float(np.quantile(rng, cfg.centre.near_quantile)), med - cfg.centre.near_clamp_radii * R
+        float(_quantile(rng, cfg.centre.near_quantile)), med - cfg.centre.near_clamp_radii * R
     )
     r_c = (1.0 - w) * (med + cfg.centre.range_factor * R) + w * (
         near + cfg.centre.near_range_factor * R
     )
     xy = cam_rover[:2] + fwd * r_c + perp * float(np.mean(lat))
-    top = float(np.median(P[:, 2] - h)) + float(np.quantile(h, cfg.centre.top_quantile))
+    top = float(_median(P[:, 2] - h)) + float(_quantile(h, cfg.centre.top_quantile))
     if plane is None:
         z = top - cfg.centre.height_factor * R
     else:
@@ -1215,7 +1264,7 @@ def _ring_ground_plane(
     for _ in range(3):
         c = np.linalg.lstsq(A[keep], Q[keep, 2], rcond=None)[0]
         res = Q[:, 2] - A @ c
-        mad = 1.4826 * float(np.median(np.abs(res[keep]))) + 2e-3
+        mad = 1.4826 * float(_median(np.abs(res[keep]))) + 2e-3
         keep = (res < 2.0 * mad) & (res > -4.0 * mad)
         if np.count_nonzero(keep) < min_points:
             return None
@@ -1236,7 +1285,7 @@ def _ring_height(
     (r0, r1, c0, c1), ring = _ring_mask(height.shape, rows, cols, width, gap)
     vals = height[r0:r1, c0:c1][ring]
     vals = vals[np.isfinite(vals)]
-    return float(np.quantile(vals, q)) if vals.size else float("nan")
+    return float(_quantile(vals, q)) if vals.size else float("nan")
 
 
 def _ring_mask(shape: tuple[int, int], rows: np.ndarray, cols: np.ndarray, width: int, gap: int):
@@ -1296,11 +1345,11 @@ def _height_above_quadric(
         except np.linalg.LinAlgError:
             return float("nan")
         res = z - A @ c
-        mad = 1.4826 * float(np.median(np.abs(res[keep] - np.median(res[keep])))) + 1e-3
+        mad = 1.4826 * float(_median(np.abs(res[keep] - _median(res[keep])))) + 1e-3
         keep = np.abs(res) <= 2.5 * mad
         if np.count_nonzero(keep) < min_points:
             return float("nan")
-    return float(np.quantile(P[:, 2] - design(P[:, :2]) @ c, q))
+    return float(_quantile(P[:, 2] - design(P[:, :2]) @ c, q))
 
 
 def _nearer_ring_fraction(
@@ -1354,7 +1403,7 @@ def _lateral_extension_ratio(
     vals = vals[np.isfinite(vals)]
     if vals.size == 0:
         return float("nan")
-    top = float(np.quantile(vals, q))
+    top = float(_quantile(vals, q))
     if top <= 0:
         return float("nan")
     c0, c1 = int(cols.min()), int(cols.max())
@@ -1366,7 +1415,7 @@ def _lateral_extension_ratio(
     if np.count_nonzero(ok) < min_columns:
         return float("nan")
     col_max = np.max(np.where(np.isfinite(win[:, ok]), win[:, ok], -np.inf), axis=0)
-    return float(np.median(col_max)) / top
+    return float(_median(col_max)) / top
 
 
 def _needs_confirmation(
@@ -1614,6 +1663,34 @@ def _fused_centre(P: np.ndarray, w: np.ndarray, how: CentreFusion) -> np.ndarray
     return out
 
 
+def image_gradient(image: np.ndarray, mask: InstanceMask, rim_px: int, q: float) -> float:
+    """How much a blob shows in the image: quantile `q` of the gradient magnitude (grey levels
+    per pixel; Sobel of the image smoothed with a Gaussian of sigma 1 px) over the mask grown by
+    `rim_px` pixels, so that its silhouette's edge is included. A rock shows a lit face, a
+    shaded side, its outline against the ground or its shadow; a bump of smooth regolith that
+    stereo lifts out of the ground (a hummock, a gentle rim) shows only soft shading. NaN for
+    an empty mask."""
+    cv2 = import_cv2()
+    crop = np.asarray(mask.crop, np.uint8)
+    if not crop.any():
+        return float("nan")
+    H, W = image.shape[:2]
+    pad = int(rim_px) + 4  # the rim, and the smoothing and Sobel supports beyond it
+    h, w = crop.shape
+    v0, v1 = max(mask.v0 - pad, 0), min(mask.v0 + h + pad, H)
+    u0, u1 = max(mask.u0 - pad, 0), min(mask.u0 + w + pad, W)
+    win = cv2.GaussianBlur(np.asarray(image[v0:v1, u0:u1], np.float32), (0, 0), 1.0)
+    gx = cv2.Sobel(win, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(win, cv2.CV_32F, 0, 1, ksize=3)
+    mag = cv2.magnitude(gx, gy) * np.float32(0.125)  # the 3x3 Sobel's gain is 8
+    sel = np.zeros(win.shape, np.uint8)
+    sel[mask.v0 - v0 : mask.v0 - v0 + h, mask.u0 - u0 : mask.u0 - u0 + w] = crop
+    if rim_px > 0:
+        k = 2 * int(rim_px) + 1
+        sel = cv2.dilate(sel, np.ones((k, k), np.uint8))
+    return float(_quantile(mag[sel > 0], q))
+
+
 def disparity_roughness(
     disparity: np.ndarray, mask: np.ndarray, step_px: float = 1.0, min_triples: int = 10
 ) -> float:
@@ -1687,8 +1764,8 @@ def _visible_height(z: np.ndarray, h: np.ndarray, q: float) -> float:
     the vertical extent of its visible surface when larger (a large object fills the
     ground cells it stands on, so the ground fit rises under it). Quantiles q and 1-q
     keep stray silhouette pixels out."""
-    top = float(np.quantile(h, q))
-    extent = float(np.quantile(z, q) - np.quantile(z, 1.0 - q))
+    top = float(_quantile(h, q))
+    extent = float(_quantile(z, q) - _quantile(z, 1.0 - q))
     return max(top, extent)
 
 
@@ -1716,7 +1793,7 @@ def _height_above_surroundings(
     sel = (d2 > (R + inner_m) ** 2) & (d2 < (R + outer_m) ** 2) & near
     if np.count_nonzero(sel) < min_points:
         return float("nan")
-    return float(np.quantile(P[:, 2], q) - np.quantile(pts[sel, 2], 0.25))
+    return float(_quantile(P[:, 2], q) - _quantile(pts[sel, 2], 0.25))
 
 
 def _mask_depth(
@@ -1734,12 +1811,12 @@ def _mask_depth(
         win = depth[b0:b1, a0:a1]
         inside = np.isfinite(win) & m.crop[b0 - v0 : b1 - v0, a0 - u0 : a1 - u0]
         if np.count_nonzero(inside) >= min_valid:
-            return float(np.median(win[inside]))
+            return float(_median(win[inside]))
     if not fallback:
         return depth_at(depth, cu, cv, h, min_valid=min_valid)
     vals = depth[v0:v1, u0:u1][m.crop]
     vals = vals[np.isfinite(vals)]
-    return float(np.median(vals)) if vals.size >= max(min_valid, 5) else float("nan")
+    return float(_median(vals)) if vals.size >= max(min_valid, 5) else float("nan")
 
 
 # ---------------------------------------------------------------------- archives

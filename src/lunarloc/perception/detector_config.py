@@ -223,7 +223,7 @@ class RulesConfig:
     """What is not a rock: the thresholds of the rejection rules (perception/rules.py), each
     rule also switchable off by name (``off``). STEREO_POINTS only."""
 
-    # names of rules switched off (RULE_NAMES: too_tall, too_wide, perched, framed, rough,
+    # names of rules switched off (RULE_NAMES: too_tall, too_wide, perched, framed, rough, featureless,
     # contrast, quadric, crest, strip)
     off: tuple[str, ...] = ()
     # too_tall: nothing whose visible top stands higher above the local ground is a rock (m)
@@ -281,6 +281,21 @@ class RulesConfig:
     max_disparity_roughness: float = setting(0.15, gt=0.0, le=1.0)
     # rough: the step of that test (full-resolution pixels)
     roughness_step_px: float = setting(1.0, gt=0.0)
+    # featureless: a blob whose image gradient (image_gradient: its upper quantile over the mask
+    # and its rim) is under this shows no rock in the image (grey levels per pixel, at 1280 px
+    # wide; 0 = off)
+    min_image_gradient: float = setting(5.0, ge=0.0)
+    # featureless: ... when the upper quartile of the heights in the ring around it is at least
+    # this (the ground rises with it; m) ...
+    featureless_min_ring_m: float = setting(0.01)
+    # featureless: ... and it stands less than this above the quadric ground around it (m) ...
+    featureless_max_quadric_m: float = setting(0.1, ge=0.0)
+    # featureless: ... at a depth of at least this (m)
+    featureless_min_depth_m: float = setting(2.0, ge=0.0)
+    # featureless: the quantile of the gradient magnitude (over the mask and its rim)
+    gradient_quantile: float = setting(0.95, gt=0.0, le=1.0)
+    # featureless: the rim around the mask where the gradient is read too (full-resolution px)
+    gradient_rim_px: int = setting(3, ge=0, le=32)
     # on the lander: detections within this horizontal distance of its centre are dropped (m)
     lander_radius_m: float = setting(2.2, ge=0.0)
 

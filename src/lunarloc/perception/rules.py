@@ -56,6 +56,9 @@ class BlobMeasures:
     roughness: float  # share of rough second differences of its full-resolution disparity (NaN: not measured)
     strip: bool = False  # let through the image filters as a flat strip (is_flat_strip)
     raised: bool = False  # ... as a raised strip candidate (is_raised_strip)
+    # upper quantile of the image gradient over it and its rim (grey levels per pixel; NaN: not measured)
+    image_gradient: float = float("nan")
+    depth_m: float = float("nan")  # its median depth (optical z; NaN: not known)
 
 
 @dataclass(frozen=True)
@@ -120,6 +123,24 @@ def crest(b: BlobMeasures, c) -> bool:
     return bool(r > 0 and r < b.extension_ratio <= c.crest_extension_max_ratio)
 
 
+def featureless(b: BlobMeasures, c) -> bool:
+    """Hardly showing in the image (no edge of a lit face, shaded side, outline or shadow) and
+    with the ground around it rising with it: a bump of smooth regolith that stereo lifts out
+    of the ground (a hummock, a gentle rim). A blob standing featureless_max_quadric_m or more
+    above the quadric ground is not judged (the plain face of a large rock), nor one whose
+    ring of ground stays low (a rock in shadow on level ground), nor one nearer than
+    featureless_min_depth_m (a near rock's mask is large and its outline a small part of it)."""
+    return bool(
+        math.isfinite(b.image_gradient)
+        and math.isfinite(b.depth_m)
+        and b.depth_m >= c.featureless_min_depth_m
+        and b.image_gradient < c.min_image_gradient
+        and math.isfinite(b.ring_m)
+        and b.ring_m >= c.featureless_min_ring_m
+        and not (math.isfinite(b.quadric_m) and b.quadric_m >= c.featureless_max_quadric_m)
+    )
+
+
 def strip(b: BlobMeasures, c) -> bool:
     """An elongated blob let through as a strip that fails its strip test (strip_rejected)."""
     return strip_rejected(b.strip, b.raised, b.extension_ratio, b.quadric_m, b.radius_m, c)
@@ -132,6 +153,7 @@ RULES: tuple[Rule, ...] = (
     Rule("perched", False, perched),
     Rule("framed", False, framed),
     Rule("rough", False, rough),
+    Rule("featureless", False, featureless),
     Rule("contrast", True, contrast),
     Rule("quadric", True, quadric),
     Rule("crest", True, crest),
