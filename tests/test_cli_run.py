@@ -116,7 +116,7 @@ def test_run_errors(tiny_archive, tmp_path, capsys):
 
 
 def test_bench_loop(tmp_path, capsys):
-    from lunarloc.perception.detector import format_boulders
+    from lunarloc.io.maps import format_boulders
 
     data = tmp_path / "data" / "csv"
     data.mkdir(parents=True)

@@ -3,21 +3,19 @@
 from __future__ import annotations
 
 import ast
-import csv
 
 import numpy as np
 import pytest
 
 from lunarloc.core.errors import ConfigError, InputError
 from lunarloc.core.geometry import pose_to_matrix, transform_points
+from lunarloc.io.maps import format_boulders
 from lunarloc.perception.camera import PinholeCamera, ipex_rig
 from lunarloc.perception.detector import (
     Detector,
     DetectorConfig,
     FrameDetections,
     debug_overlay,
-    format_boulders,
-    write_traverse_csv,
 )
 from lunarloc.perception.masks import MaskFilterConfig, RejectReason
 from lunarloc.perception.segment import ClassicalConfig
@@ -204,27 +202,10 @@ def test_bad_inputs_and_config():
         DetectorConfig(segmenter="nope")
 
 
-def test_traverse_csv_format(tmp_path):
+def test_boulders_column_is_a_python_literal():
     pts = np.array([[1.5, -2.25, 0.125], [3.0, 4.0, -0.5]])
     assert ast.literal_eval(format_boulders(pts)) == [tuple(p) for p in pts.tolist()]
     assert format_boulders(np.zeros((0, 3))) == "[]"
-
-    class FakeDet:
-        def __init__(self, p):
-            self.p_map = p
-
-    fd = FrameDetections(3, pose_to_matrix(1.0, 2.0, 3.0, 0, 0, 0))
-    fd.positions_map = lambda: pts  # type: ignore[method-assign]
-    empty = FrameDetections(4, pose_to_matrix(1.0, 2.5, 3.0, 0, 0, 0))
-    out = tmp_path / "d.csv"
-    assert write_traverse_csv(out, [fd, empty]) == 2
-    rows = list(csv.reader(out.open()))
-    assert rows[0] == ["frame", "x", "y", "z", "detections", "boulders"]
-    assert rows[1][:5] == ["3", "1.0", "2.0", "3.0", "2"]
-    assert ast.literal_eval(rows[1][5]) == [tuple(p) for p in pts.tolist()]
-    assert rows[2][4:] == ["0", "[]"]
-    with pytest.raises(InputError):
-        write_traverse_csv(tmp_path / "x.csv", [FrameDetections(1, None)])
 
 
 def test_rock_at_the_left_edge_is_found_with_full_width_stereo():

@@ -97,7 +97,7 @@ def test_scaling_base_is_a_setting():
 
 
 def _write_traverse_csv(path, trav):
-    from lunarloc.perception.detector import format_boulders
+    from lunarloc.io.maps import format_boulders
 
     with open(path, "w") as fh:
         fh.write("frame,x,y,z,detections,boulders\n")

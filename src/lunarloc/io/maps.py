@@ -52,6 +52,7 @@ __all__ = [
     "detection_arcs_m",
     "PoseProvenance",
     "save_traverse",
+    "format_boulders",
 ]
 
 TRAVERSE_COLUMNS = ("frame", "x", "y", "z", "detections", "boulders")
@@ -894,7 +895,8 @@ def load_vehicle(path: str | Path, config: AggregationConfig | None = None) -> V
 __all__ += ["VehicleInput", "load_vehicle"]
 
 
-def _format_boulders(points: np.ndarray) -> str:
+def format_boulders(points: np.ndarray) -> str:
+    """Python-literal list of (x, y, z) tuples, as in the LunarLoc dataset CSVs."""
     pts = np.asarray(points, dtype=float).reshape(-1, 3)
     return "[" + ", ".join(f"({x!r}, {y!r}, {z!r})" for x, y, z in pts.tolist()) + "]"
 
@@ -922,7 +924,7 @@ def save_traverse(path: str | Path, rows, pose_provenance: PoseProvenance) -> in
                 raise InputError(f"frame {frame}: the rover pose or a detection is not finite")
             x, y, z = (float(v) for v in xyz)
             w.writerow(
-                [int(frame), repr(x), repr(y), repr(z), len(pts), _format_boulders(pts), pose]
+                [int(frame), repr(x), repr(y), repr(z), len(pts), format_boulders(pts), pose]
             )
             n += 1
     return n

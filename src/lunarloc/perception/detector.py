@@ -24,13 +24,11 @@ body: x forward, y left, z up), ``p_map`` (site / world frame). Metres throughou
 
 from __future__ import annotations
 
-import csv
 import logging
 import math
 import time
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 
 import numpy as np
 
@@ -104,8 +102,6 @@ __all__ = [
     "split_at_depth_steps",
     "detect_archive",
     "fuse_track_centres",
-    "write_traverse_csv",
-    "format_boulders",
     "debug_overlay",
 ]
 
@@ -1889,42 +1885,6 @@ def _detect_archive_frames(
             lander_xy=lander_xy,
             keep_tentative=True,
         )
-
-
-# ---------------------------------------------------------------------- CSV output
-def format_boulders(points: np.ndarray) -> str:
-    """Python-literal list of (x, y, z) tuples, as in the LunarLoc dataset CSVs."""
-    pts = np.asarray(points, dtype=float).reshape(-1, 3)
-    return "[" + ", ".join(f"({x!r}, {y!r}, {z!r})" for x, y, z in pts.tolist()) + "]"
-
-
-def write_traverse_csv(path: str | Path, frames: Iterable[FrameDetections]) -> int:
-    """Write ``frame,x,y,z,detections,boulders`` (the LunarLoc dataset format).
-
-    x, y, z is the rover position of the pose used; boulders are map-frame centroids.
-    Returns the number of rows written. Frames without a pose raise InputError.
-    """
-    from lunarloc.io.outputs import atomic_open
-
-    path = Path(path)
-    n = 0
-    with atomic_open(path, "w", newline="") as fh:  # no truncated CSV after an interruption
-        w = csv.writer(fh)
-        w.writerow(["frame", "x", "y", "z", "detections", "boulders"])
-        for fd in frames:
-            if fd.T_map_rover is None:
-                raise InputError(
-                    f"frame {fd.frame} has no rover pose: cannot write map-frame boulders"
-                )
-            if not np.all(np.isfinite(fd.T_map_rover)):
-                raise InputError(
-                    f"frame {fd.frame}: the rover pose is not finite (NaN in frames.csv or odometry)"
-                )
-            pts = fd.positions_map()
-            x, y, z = (float(v) for v in fd.T_map_rover[:3, 3])
-            w.writerow([fd.frame, repr(x), repr(y), repr(z), len(pts), format_boulders(pts)])
-            n += 1
-    return n
 
 
 # ---------------------------------------------------------------------- debug output
