@@ -26,7 +26,7 @@ from lunarloc.perception.rules import (
 from lunarloc.perception.small_rocks import SmallRockConfig
 
 NAN = float("nan")
-C = RulesConfig()
+C = RulesConfig(min_image_gradient=5.0)  # the featureless rule on (off by default)
 # a plain rock: 0.1 m radius, 0.08 m high, standing out of everything around it
 ROCK = BlobMeasures(
     radius_m=0.1,

@@ -283,8 +283,8 @@ class RulesConfig:
     roughness_step_px: float = setting(1.0, gt=0.0)
     # featureless: a blob whose image gradient (image_gradient: its upper quantile over the mask
     # and its rim) is under this shows no rock in the image (grey levels per pixel, at 1280 px
-    # wide; 0 = off)
-    min_image_gradient: float = setting(5.0, ge=0.0)
+    # wide; 0 = off, the default; 5 turns it on: docs/perception-status.md gives what it costs)
+    min_image_gradient: float = setting(0.0, ge=0.0)
     # featureless: ... when the upper quartile of the heights in the ring around it is at least
     # this (the ground rises with it; m) ...
     featureless_min_ring_m: float = setting(0.01)
