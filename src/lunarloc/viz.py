@@ -374,7 +374,7 @@ def plot_lac_maps(
     tp, fp, fn = int((code == 1).sum()), int((code == 2).sum()), int((code == 3).sum())
     f1 = 2 * tp / (2 * tp + fp + fn) if tp else 0.0
     axes[3].set_title(
-        f"rock cells: {tp} right (green), {fp} false (red), {fn} missed (blue); F1 {f1:.2f}"
+        f"rock cells: F1 {f1:.2f}\n{tp} right (green), {fp} false (red), {fn} missed (blue)"
     )
     for ax in axes:
         ax.set_xlabel("x (m)")
