@@ -146,7 +146,7 @@ def test_the_epsilon_cap_is_the_same_from_an_option_and_from_a_config_file(tmp_p
     from lunarloc.cli.commands_core import MAX_EPSILON_M
     from lunarloc.config.run import SETTING_LIMITS
 
-    assert SETTING_LIMITS["localization.epsilon_m"][1] == MAX_EPSILON_M
+    assert SETTING_LIMITS["localization.search.epsilon_m"][1] == MAX_EPSILON_M
     a = H.write(tmp_path, "a.csv", H.map_text())
     c = H.write(tmp_path, "c.json", json.dumps({"localization": {"epsilon_m": 0.31}}))
     assert main(["localize", str(a), str(a), "--epsilon", "0.31"]) == 2
@@ -154,7 +154,7 @@ def test_the_epsilon_cap_is_the_same_from_an_option_and_from_a_config_file(tmp_p
     err = capsys.readouterr().err
     assert (
         "--epsilon must be <= 0.3 m" in err
-        and "localization.epsilon_m: 0.31 outside (0, 0.3] m" in err
+        and "localization.search.epsilon_m: 0.31 outside (0, 0.3] m" in err
     )
 
 

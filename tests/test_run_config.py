@@ -39,7 +39,11 @@ def test_round_trip_through_json(cfg):
         ({"loop": {"window": 8}}, "loop.window"),
         ({"loop": {"aggregation": {"radius_m": "x"}}}, "loop.aggregation.radius_m"),
         ({"localization": {"mode": "3d"}}, "localization.mode"),
-        ({"localization": {"epsilon_m": float("nan")}}, "localization.epsilon_m"),
+        (
+            {"localization": {"search": {"epsilon_m": float("nan")}}},
+            "localization.search.epsilon_m",
+        ),
+        ({"localization": {"epsilon_m": float("nan")}}, "localization.search.epsilon_m"),
         ({"detector": {"stereo": {"num_disparities": 1.5}}}, "detector.stereo.num_disparities"),
         ({"detector": {"pairs": [["FrontLeft"]]}}, "detector.pairs[0]"),
         ({"odometry": {"source": "wheels"}}, "wheels"),
@@ -246,8 +250,12 @@ def test_localize_takes_and_reports_its_config(tmp_path, capsys):
         == 0
     )
     out = json.loads(capsys.readouterr().out)
-    assert out["success"] and out["config"]["localization"]["epsilon_m"] == 0.06  # the option wins
-    assert out["config"]["localization"]["min_inliers"] == 7  # the file's setting is kept
+    assert (
+        out["success"] and out["config"]["localization"]["search"]["epsilon_m"] == 0.06
+    )  # the option wins
+    assert (
+        out["config"]["localization"]["acceptance"]["min_inliers"] == 7
+    )  # the file's setting is kept
     cfg.write_text(json.dumps({"localization": {"epsilon": 0.04}}))
     assert (
         main(
@@ -270,10 +278,10 @@ def test_demo_config_errors_before_any_work(tmp_path, capsys):
 # --------------------------------------------------------------------------- tuning constants (item 4)
 
 TUNING = {  # section path -> today's value (the constant the code held before it became a setting)
-    ("localization", "irls_rounds"): 5,
-    ("localization", "refine_rounds"): 3,
-    ("localization", "distortion_fit_rounds"): 3,
-    ("localization", "registration_sigma_floor_m"): 0.005,
+    ("localization", "refinement", "irls_rounds"): 5,
+    ("localization", "refinement", "rounds"): 3,
+    ("localization", "distortion", "fit_rounds"): 3,
+    ("localization", "uncertainty", "sigma_floor_m"): 0.005,
     ("index", "neighbours"): 12,
     ("index", "min_side_ratio"): 0.2,
     ("detector", "stereo", "p1_per_block_px2"): 24,
@@ -319,7 +327,7 @@ def test_tuning_constants_are_read_back(path, tmp_path):
     "data, key",
     [
         ({"localization": {"irls_rounds": 0}}, "irls_rounds"),
-        ({"localization": {"refine_rounds": 1.5}}, "localization.refine_rounds"),
+        ({"localization": {"refine_rounds": 1.5}}, "localization.refinement.rounds"),
         ({"localization": {"distortion_fit_rounds": -1}}, "distortion_fit_rounds"),
         ({"localization": {"registration_sigma_floor_m": 0}}, "registration_sigma_floor_m"),
         ({"index": {"neighbours": 2}}, "neighbours"),

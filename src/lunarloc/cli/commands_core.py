@@ -194,11 +194,11 @@ def localize_cmd(
     run_cfg = run_cfg.with_options(
         localization__mode=mode,
         localization__solver=solver,
-        localization__epsilon_m=epsilon,
+        localization__search__epsilon_m=epsilon,
         localization__registration=registration,
-        localization__max_size_ratio=max_size_ratio,
-        localization__odometry_scale_error=odometry_scale_error,
-        localization__odometry_heading_drift_deg_per_m=odometry_drift,
+        localization__search__max_size_ratio=max_size_ratio,
+        localization__distortion__scale_error=odometry_scale_error,
+        localization__distortion__heading_drift_deg_per_m=odometry_drift,
     )
     cfg: LocalizationConfig = run_cfg.localization
     agg = _agg(radius, min_sightings)
@@ -259,8 +259,8 @@ def localize_cmd(
             + (
                 ""
                 if f.get("prior", "none") == "none"
-                else f"; odometry prior {cfg.odometry_prior_drift_deg_per_m:g} deg/m, "
-                f"{(cfg.odometry_prior_scale_error or 0) * 100:g} %: {f['prior']}"
+                else f"; odometry prior {cfg.distortion.prior_drift_deg_per_m:g} deg/m, "
+                f"{(cfg.distortion.prior_scale_error or 0) * 100:g} %: {f['prior']}"
             )
             + ")"
         )
@@ -323,7 +323,7 @@ def bench_pairs_cmd(
 
     from lunarloc.pipeline.bench import pairs_problems, pairs_to_run, write_pairs
     from lunarloc.pipeline.evaluation import PAPER_PAIRS, DriftModel, bench_pairs, find_traverses
-    from lunarloc.localization.config import LocalizationConfig
+    from lunarloc.localization.config import DistortionConfig, LocalizationConfig
     from lunarloc.io.outputs import check_output_dir
 
     mode, solver = enum_value(mode), enum_value(solver)
@@ -339,8 +339,10 @@ def bench_pairs_cmd(
     cfg = LocalizationConfig(
         mode=mode,
         solver=solver,
-        odometry_scale_error=abs(scale_error) if odometry_bounds else None,
-        odometry_heading_drift_deg_per_m=abs(drift) if odometry_bounds else None,
+        distortion=DistortionConfig(
+            scale_error=abs(scale_error) if odometry_bounds else None,
+            heading_drift_deg_per_m=abs(drift) if odometry_bounds else None,
+        ),
     )
     con = console()
     with Progress(console=con, transient=True) as prog:

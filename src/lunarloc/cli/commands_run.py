@@ -385,8 +385,8 @@ def bench_loop_cmd(
     odometry_bounds: bool = typer.Option(
         False,
         "--odometry-bounds/--no-odometry-bounds",
-        help="Tell the localizer the simulated drift as its odometry's bounds (localization.odometry_scale_error, "
-        "odometry_heading_drift_deg_per_m), as bench pairs does.",
+        help="Tell the localizer the simulated drift as its odometry's bounds (localization.distortion.scale_error, "
+        "heading_drift_deg_per_m), as bench pairs does.",
     ),
     overwrite: bool = OVERWRITE_OPT,
 ) -> None:
@@ -418,8 +418,8 @@ def bench_loop_cmd(
     )
     if odometry_bounds:
         cfg = cfg.with_options(
-            localization__odometry_scale_error=abs(cfg.odometry.scale_error),
-            localization__odometry_heading_drift_deg_per_m=cfg.odometry.heading_drift_deg_per_m,
+            localization__distortion__scale_error=abs(cfg.odometry.scale_error),
+            localization__distortion__heading_drift_deg_per_m=cfg.odometry.heading_drift_deg_per_m,
         )
     check_output_dir(out, overwrite, ("loop.json",), marker=None)
     for k in wanted or find_traverses(data):

@@ -195,45 +195,60 @@ class RunConfig:
         )
 
     def with_options(self, **settings) -> RunConfig:
-        """A copy with settings given as ``section__name=value`` (None: keep), e.g.
-        ``loop__window_m=8.0``: how command-line options override a config file. The
-        settings of one section are applied together (checked once)."""
+        """A copy with settings given as ``section__name=value`` or
+        ``section__subsection__name=value`` (None: keep), e.g. ``loop__window_m=8.0``,
+        ``localization__search__epsilon_m=0.08``: how command-line options override a config
+        file. The settings of one section are applied together (checked once)."""
         by_section: dict[str, dict] = {}
         for key, value in settings.items():
             if value is not None:
-                section, name = key.split("__")
-                by_section.setdefault(section, {})[name] = value
+                section, *path = key.split("__")
+                values = by_section.setdefault(section, {})
+                for sub in path[:-1]:
+                    values = values.setdefault(sub, {})
+                values[path[-1]] = value
         out = self
         for section, values in by_section.items():
             try:
-                out = replace(out, **{section: replace(getattr(out, section), **values)})
+                out = replace(out, **{section: _replaced(getattr(out, section), values)})
             except ConfigError as exc:
                 raise ConfigError(f"{section}: {exc}") from None
         return check_limits(out) if by_section else out
 
 
+def _replaced(cfg, values: Mapping):
+    """`cfg` with `values` set, a nested table replacing settings of that subsection."""
+    return replace(
+        cfg,
+        **{
+            k: _replaced(getattr(cfg, k), v) if isinstance(v, Mapping) else v
+            for k, v in values.items()
+        },
+    )
+
+
 #: Caps on settings, the same whether a value comes from a command-line option or from a
-#: ``--config`` file (``localization.epsilon_m = 10`` in a file bypassed the CLI's
+#: ``--config`` file (``localization.search.epsilon_m = 10`` in a file bypassed the CLI's
 #: 0.3 m cap and ran for minutes): (low, high, unit); a low end of 0.0 is exclusive (a length,
 #: a rate), any other low end inclusive. Beyond these, every number in a configuration must
 #: lie within +-MAX_SETTING_MAGNITUDE.
 SETTING_LIMITS: dict[str, tuple[float, float, str]] = {
-    "localization.epsilon_m": (
+    "localization.search.epsilon_m": (
         0.0,
         0.3,
         "m",
     ),  # the consistency graph grows with it (docs/robustness.md)
-    "localization.epsilon_z_m": (0.0, 0.3, "m"),
-    "localization.sigma_m": (0.0, 0.3, "m"),
-    "localization.refine_radius_m": (0.0, 10.0, "m"),
-    "localization.near_miss_outer_m": (0.0, 10.0, "m"),
-    "localization.yaw_step_deg": (0.1, 45.0, "deg"),
-    "localization.max_predicted_error_m": (0.0, 100.0, "m"),
-    "localization.max_rmse_m": (0.0, 10.0, "m"),
-    "localization.threads": (1, 256, ""),
-    "localization.max_edges": (1, 1_000_000_000, ""),
-    "localization.min_inliers": (3, 1_000_000, ""),
-    "localization.screen_candidates": (1, 10_000, ""),
+    "localization.search.epsilon_z_m": (0.0, 0.3, "m"),
+    "localization.search.sigma_m": (0.0, 0.3, "m"),
+    "localization.refinement.radius_m": (0.0, 10.0, "m"),
+    "localization.acceptance.near_miss_outer_m": (0.0, 10.0, "m"),
+    "localization.search.yaw_step_deg": (0.1, 45.0, "deg"),
+    "localization.acceptance.max_predicted_error_m": (0.0, 100.0, "m"),
+    "localization.acceptance.max_rmse_m": (0.0, 10.0, "m"),
+    "localization.search.threads": (1, 256, ""),
+    "localization.search.max_edges": (1, 1_000_000_000, ""),
+    "localization.acceptance.min_inliers": (3, 1_000_000, ""),
+    "localization.screen.candidates": (1, 10_000, ""),
     "loop.localize_every_m": (0.0, 1e6, "m"),
     "loop.localize_every_s": (0.0, 1e7, "s"),
     "loop.window_m": (0.0, 1e6, "m"),

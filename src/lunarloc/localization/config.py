@@ -1,25 +1,69 @@
-"""Localization settings: the search modes, solvers and registration, and their config."""
+"""Localization settings: the search modes, solvers and registration, and
+:class:`LocalizationConfig` in sections.
+
+Each setting's range is declared beside it (:func:`lunarloc.core.configs.setting`) and checked
+once, when the config is built or loaded; a setting's line says what it means and its unit.
+Why each default has its value: docs/verification.md and docs/calibration.md; the reference
+table is docs/run-configuration.md.
+
+Sections (``LocalizationConfig.<section>``), in the order :func:`localize` uses them:
+
+* ``search``: the consistency graph and its densest consistent set (tolerances, yaw bins,
+  memory bound, threads);
+* ``screen``: the quick screen run before an exhaustive search that would be large;
+* ``refinement``: the registration's nearest-neighbour re-fits and robust re-weighting;
+* ``uncertainty``: the maps' landmark sigmas, the residual floor and the landmark-centre bias
+  behind the covariance and the predicted error;
+* ``distortion``: the vehicle map's odometry distortion, stated as bounds or fitted as a bend;
+* ``acceptance``: the checks a fix must pass (inliers beyond chance, residuals, spread,
+  predicted error, scale, near misses, competing hypotheses).
+
+Code and files from before the sections use flat keys (``epsilon_m``, ``screen_candidates``);
+they still load and read: :data:`MOVED_KEYS` maps each to its section.
+"""
 
 from __future__ import annotations
 
 import enum
 import math
 import os
-from dataclasses import asdict, dataclass, field, replace
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from lunarloc.core.configs import check_settings, setting
+from lunarloc.core.configs import (
+    check_settings,
+    config_from_dict,
+    config_to_dict,
+    moved_keys,
+    setting,
+)
 from lunarloc.core.errors import ConfigError
 from lunarloc.io.maps import LandmarkMap
+
+__all__ = [
+    "Mode",
+    "Registration",
+    "Solver",
+    "SearchConfig",
+    "ScreenConfig",
+    "RefinementConfig",
+    "UncertaintyConfig",
+    "DistortionConfig",
+    "AcceptanceConfig",
+    "LocalizationConfig",
+    "MOVED_KEYS",
+    "landmark_sigmas",
+    "combined_sigma",
+]
 
 
 class Mode(str, enum.Enum):
     """Which invariants the consistency graph uses."""
 
-    GRAVITY = (
-        "gravity"  # horizontal distance + height difference + common yaw (rover maps, IMU-levelled)
-    )
+    # horizontal distance + height difference + common yaw (rover maps, IMU-levelled)
+    GRAVITY = "gravity"
     SIX_DOF = "6dof"  # 3D distance only: any relative rotation
 
 
@@ -37,175 +81,315 @@ class Solver(str, enum.Enum):
     CLIPPER = "clipper"  # CLIPPER relaxation + rounding (the paper's solver)
 
 
-#: The prior on the vehicle map's odometry distortion when no bounds are stated: 1-sigma heading
-#: drift per metre travelled and relative scale error of real rover odometry. Source: lunarloc's
-#: own stereo VO with the IMU prior (the dispatcher's ``visual`` source) on nine simulated
-#: traverses of 30-102 m (docs/odometry-visual.md, both tables): final heading error per metre
-#: 0.0006-0.025 deg/m, RMS 0.012; final position error 0.12-0.56 % of the path, RMS 0.31 % (an
-#: upper bound on the scale error: it holds the heading drift's lever too). The bend fit is
-#: regularised by it: two maps that do not fix the bend (few inliers, far from the query) fall
-#: back on what real odometry does, not on an unconstrained fit (metres).
+#: 1-sigma prior on the vehicle map's odometry heading drift (deg/m) and relative scale error
+#: when no bounds are stated: what lunarloc's own stereo VO shows on nine simulated traverses
+#: (docs/verification.md, "The prior"; docs/odometry-visual.md).
 PRIOR_DRIFT_DEG_PER_M = 0.012
 PRIOR_SCALE_ERROR = 0.003
 
-#: The registration error that the inliers share and their residuals cannot show: each map's rock
-#: centres carry a bias of the viewing geometry that built it (the visible side of a rock, the
-#: detections' ranges), alike for neighbouring rocks, so part of it is common to the whole inlier set
-#: (a translation and a turn the rigid fit absorbs) and does not shrink with their number. 1 sigma,
-#: horizontal translation per axis and yaw about the inliers' centroid, for two maps built from
-#: detections (``LandmarkMap.sightings`` given; half the variance for one, none for maps of true or
-#: surveyed positions, whose errors are independent). Measured on the 131 real
-#: pairs claimed with the maps stated rigid (random rigid motions, seed 0): with the residual-based
-#: covariance alone the normalised position error at the rover (NEES, 3 dof) was under 3.53 for 40 %
-#: and under 14.16 for 80 % (over-confident: the 8-9 cm errors of pairs 1-15, 2-15, 3-15, 5-15 had
-#: 4-5 cm predicted); with these 64 % / 96 %. Checked on other inlier sets, the last 30 m and 60 m
-#: of each vehicle traverse (57 and 105 claims): 60 / 96 % and 67 / 99 % (42 / 89 %, 45 / 87 % before).
-#: docs/calibration.md.
+#: 1-sigma landmark-centre bias the inliers share (horizontal m per axis, yaw deg about their
+#: centroid) for two maps built from detections; measured: docs/calibration.md.
 CENTRE_BIAS_M = 0.002
 CENTRE_BIAS_YAW_DEG = 0.03
 
 
-@dataclass
-class LocalizationConfig:
-    """Parameters of :func:`localize`. Distances in metres, angles in degrees."""
+def _default_threads() -> int:
+    return min(4, os.cpu_count() or 1)
 
-    mode: Mode = Mode.GRAVITY
-    solver: Solver = Solver.EXACT
-    registration: Registration = Registration.SE3
-    epsilon_m: float = setting(
-        0.05, gt=0.0
-    )  # max disagreement of a pairwise (horizontal) distance for consistency
-    sigma_m: float | None = setting(
-        None, gt=0.0
-    )  # CLIPPER weight scale exp(-c^2/2sigma^2); None -> epsilon/2
-    epsilon_z_m: float = setting(
-        0.05, gt=0.0
-    )  # gravity: max disagreement of a height difference (plus tilt allowance)
-    max_tilt_deg: float = setting(
-        1.5, ge=0.0, lt=45.0
-    )  # gravity: residual tilt of the vehicle map after IMU levelling
-    yaw_step_deg: float = setting(2.0, gt=0.0)  # gravity: spacing of the relative-yaw bins
-    yaw_noise_factor: float = 1.5  # gravity: yaw tolerance of a pair at distance d is asin(k*eps/d)
-    max_size_ratio: float | None = setting(
-        None, ge=1.0
-    )  # prune associations whose size ratio exceeds this (needs sizes)
-    max_edges: int = 30_000_000  # 6-DoF memory bound on the consistency graph
-    refine: bool = True  # re-fit with mutual nearest neighbours under the estimate
-    refine_radius_m: float = setting(
-        0.10, gt=0.0
-    )  # max residual of a nearest-neighbour pair kept by refinement
-    robust_scale_m: float = 0.02  # Cauchy scale of the robust (IRLS) re-weighting in refinement
-    irls_rounds: int = setting(5, ge=1, le=100)  # re-weighting rounds of the robust registration
-    refine_rounds: int = setting(
-        3, ge=1, le=100
-    )  # mutual-nearest-neighbour re-fits of refinement (fewer when the inliers settle)
-    registration_sigma_floor_m: float = setting(
-        0.005, gt=0.0
-    )  # floor on the residual noise scale in the covariance, predicted error and scale check
-    # --- acceptance (verification) ---
-    min_inliers: int = setting(6, ge=3)  # absolute floor on the inlier count
-    chance_margin: float = (
-        2.5  # inliers must exceed the chance envelope at this map size by this many
-    )
-    max_rmse_m: float = setting(0.05, gt=0.0)  # residual RMSE of the inliers after registration
-    min_extent_m: float = 1.0  # inliers must spread at least this far (largest principal std x 2)
-    min_planarity: float = 0.05  # second/first principal std of the inliers (0 = collinear)
-    min_handedness: float = 0.9  # gravity: share of inlier triangles with matching orientation
-    max_predicted_error_m: float = (
-        0.10  # predicted 1-sigma error (x predicted_error_sigmas) at the query points
-    )
-    predicted_error_sigmas: float = 1.0
-    max_predicted_rotation_deg: float = (
-        1.0  # predicted 1-sigma rotation error (x predicted_error_sigmas)
-    )
-    max_scale_error: float = (
-        0.005  # a rigid map's inliers match the reference's scale within 0.5 % ...
-    )
-    scale_sigmas: float = 3.0  # ... or within this many standard errors of the fitted scale
-    # --- uncertainty of the maps (tolerances above are floors; the maps' own sigma raises them) ---
-    landmark_sigma_m: float = setting(
-        0.0083, gt=0.0
-    )  # horizontal 1-sigma per axis of a landmark whose map states none; added in quadrature to stated ones
-    landmark_sigma_z_m: float = setting(0.0083, gt=0.0)  # vertical, likewise
-    rmse_confidence: float = (
-        0.999  # chi-square acceptance of the inlier residuals at this confidence
-    )
-    search_sigmas: float = setting(
-        2.0, ge=0.0
-    )  # search tolerances >= this many sigma of a pairwise difference (sqrt(2) x combined sigma)
-    # --- screen before an exhaustive search that would be large (:func:`_screen`) ---
-    screen_min_incidences: float = setting(
-        3e7, ge=0.0
-    )  # predicted yaw-bin graph size from which the screen runs first (0: never)
-    screen_fraction: float = setting(
-        0.5, gt=0.0, le=1.0
-    )  # a candidate pose passes with this share of the required inliers beyond chance
-    screen_candidates: int = setting(
-        8, ge=1
-    )  # candidate poses of the triangle vote refined by the screen
-    # --- distortion (non-rigid vehicle maps: odometry scale error, heading drift) ---
-    near_miss_outer_m: float = setting(
-        0.30, gt=0.0
-    )  # vehicle landmarks landing refine_radius_m..this far from a reference rock are "near misses"
-    max_near_miss_z: float = (
-        3.0  # refuse when near misses exceed chance by this many standard deviations ...
-    )
-    min_near_misses: int = 5  # ... and there are at least this many of them
-    # Bounds on the distortion of the odometry that built the vehicle map (its specification):
-    # relative scale error and heading drift. None (both): not stated, the distortion is fitted
-    # from the maps (:func:`bending_fit`) and its effect where the pose is used is added to the
-    # predicted error. 0 states a rigid map (e.g. built from ground-truth poses).
-    odometry_scale_error: float | None = setting(None, ge=0.0)
-    odometry_heading_drift_deg_per_m: float | None = setting(None, ge=0.0)
-    distortion_fit_sigmas: float = (
-        2.0  # no bounds stated: allowance = fitted bend's shift + this many sigmas
-    )
-    # no bounds stated: 1-sigma prior on the odometry's heading drift (deg/m) and scale error that
-    # regularises the bend fit (None: unconstrained, the fit from the maps alone). Defaults: what
-    # real rover odometry shows (PRIOR_DRIFT_DEG_PER_M, PRIOR_SCALE_ERROR; docs/verification.md)
-    odometry_prior_drift_deg_per_m: float | None = setting(PRIOR_DRIFT_DEG_PER_M, gt=0.0)
-    odometry_prior_scale_error: float | None = setting(PRIOR_SCALE_ERROR, gt=0.0)
-    distortion_fit_rounds: int = setting(
-        3, ge=1, le=100
-    )  # bent-model fits, inliers gathered again under the model between them
-    min_inliers_distortion_fit: int = (
-        6  # fewer inliers cannot fix the 8 parameters of the bent model: no allowance, refused
-    )
-    max_sighting_span_m: float = setting(
-        10.0, gt=0.0
-    )  # a landmark seen over more path than this (passed twice) is left out of the bent-model fit
-    competitor_ratio: float = 1.5  # best must be this many times the best competing hypothesis
-    competitor_yaw_sep_deg: float = 10.0  # hypotheses whose yaws differ more than this compete
-    seed: int = 0  # CLIPPER initialisation
-    threads: int = field(
-        default_factory=lambda: min(4, os.cpu_count() or 1)
-    )  # graph-building threads
-    # landmark-centre bias shared by the inliers (1 sigma; added to the registration's covariance about
-    # their centroid, not averaged down by their number; CENTRE_BIAS_M, docs/calibration.md):
-    centre_bias_m: float = setting(CENTRE_BIAS_M, ge=0.0)  # horizontal translation, m per axis
-    centre_bias_yaw_deg: float = setting(
-        CENTRE_BIAS_YAW_DEG, ge=0.0
-    )  # yaw about the inliers' centroid, deg
+
+@dataclass(frozen=True)
+class SearchConfig:
+    """The consistency graph and the search for its densest consistent set."""
+
+    # max disagreement of a pairwise (horizontal) distance for consistency (m)
+    epsilon_m: float = setting(0.05, gt=0.0)
+    # gravity: max disagreement of a height difference, plus the tilt allowance (m)
+    epsilon_z_m: float = setting(0.05, gt=0.0)
+    # CLIPPER weight scale exp(-c^2 / 2 sigma^2) (m; None: epsilon_m / 2)
+    sigma_m: float | None = setting(None, gt=0.0)
+    # tolerances are at least this many sigma of a pairwise difference (the maps' own sigma)
+    sigmas: float = setting(2.0, ge=0.0)
+    # gravity: residual tilt of the vehicle map after IMU levelling (deg)
+    max_tilt_deg: float = setting(1.5, ge=0.0, lt=45.0)
+    # gravity: spacing of the relative-yaw bins (deg)
+    yaw_step_deg: float = setting(2.0, gt=0.0)
+    # gravity: a pair at distance d tolerates a yaw of asin(k x epsilon / d) (k)
+    yaw_noise_factor: float = 1.5
+    # drop associations whose landmark sizes differ by more than this ratio (needs sizes)
+    max_size_ratio: float | None = setting(None, ge=1.0)
+    # 6-DoF: memory bound on the consistency graph (edges)
+    max_edges: int = 30_000_000
+    # CLIPPER's initialisation seed
+    seed: int = 0
+    # graph-building threads
+    threads: int = field(default_factory=_default_threads)
 
     def __post_init__(self) -> None:
-        self.mode = Mode(self.mode)
-        self.solver = Solver(self.solver)
-        self.registration = Registration(self.registration)
+        check_settings(self)
+
+
+@dataclass(frozen=True)
+class ScreenConfig:
+    """A quick screen (triangle vote, candidate poses refined) before an exhaustive search
+    that would be large (:func:`lunarloc.localization.search.screen`)."""
+
+    # predicted yaw-bin graph size from which the screen runs first (incidences; 0: never)
+    min_incidences: float = setting(3e7, ge=0.0)
+    # a candidate pose passes with this share of the required inliers beyond chance
+    fraction: float = setting(0.5, gt=0.0, le=1.0)
+    # candidate poses of the triangle vote refined by the screen
+    candidates: int = setting(8, ge=1)
+
+    def __post_init__(self) -> None:
+        check_settings(self)
+
+
+@dataclass(frozen=True)
+class RefinementConfig:
+    """The registration's refinement: mutual-nearest-neighbour re-fits under the estimate,
+    robustly (Cauchy IRLS) re-weighted."""
+
+    # re-fit with mutual nearest neighbours under the estimate (false: the clique's fit alone)
+    enabled: bool = True
+    # max residual of a nearest-neighbour pair kept by refinement (m)
+    radius_m: float = setting(0.10, gt=0.0)
+    # mutual-nearest-neighbour re-fits (fewer when the inliers settle)
+    rounds: int = setting(3, ge=1, le=100)
+    # Cauchy scale of the robust re-weighting (m)
+    robust_scale_m: float = 0.02
+    # re-weighting rounds of the robust registration
+    irls_rounds: int = setting(5, ge=1, le=100)
+
+    def __post_init__(self) -> None:
+        check_settings(self)
+
+
+@dataclass(frozen=True)
+class UncertaintyConfig:
+    """The maps' uncertainty behind the tolerances, the covariance and the predicted error
+    (the fixed tolerances are floors; the maps' own sigma raises them, :meth:`for_maps`)."""
+
+    # horizontal 1-sigma per axis of a landmark whose map states none; added in quadrature to stated ones (m)
+    landmark_sigma_m: float = setting(0.0083, gt=0.0)
+    # vertical 1-sigma of such a landmark (m)
+    landmark_sigma_z_m: float = setting(0.0083, gt=0.0)
+    # floor on the residual noise scale in the covariance, predicted error and scale check (m)
+    sigma_floor_m: float = setting(0.005, gt=0.0)
+    # landmark-centre bias the inliers share, horizontal translation (1 sigma, m per axis)
+    centre_bias_m: float = setting(CENTRE_BIAS_M, ge=0.0)
+    # ... and yaw about the inliers' centroid (1 sigma, deg)
+    centre_bias_yaw_deg: float = setting(CENTRE_BIAS_YAW_DEG, ge=0.0)
+
+    def __post_init__(self) -> None:
+        check_settings(self)
+
+
+@dataclass(frozen=True)
+class DistortionConfig:
+    """The vehicle map's odometry distortion (scale error, heading drift): bounds stated for
+    the odometry that built it, or, with none stated, a bend fitted from the maps
+    (:func:`lunarloc.localization.bending.bending_fit`) whose effect is added to the
+    predicted error."""
+
+    # bound on the odometry's relative scale error (fraction; None: not stated, fitted; 0: rigid)
+    scale_error: float | None = setting(None, ge=0.0)
+    # bound on its heading drift (deg/m; None: not stated, fitted; 0: rigid)
+    heading_drift_deg_per_m: float | None = setting(None, ge=0.0)
+    # fitted: 1-sigma prior on the heading drift that regularises the bend fit (deg/m; None: none)
+    prior_drift_deg_per_m: float | None = setting(PRIOR_DRIFT_DEG_PER_M, gt=0.0)
+    # fitted: 1-sigma prior on the scale error (fraction; None: none)
+    prior_scale_error: float | None = setting(PRIOR_SCALE_ERROR, gt=0.0)
+    # fitted: allowance = the fitted bend's shift + this many sigma
+    fit_sigmas: float = 2.0
+    # fitted: bent-model fits, inliers gathered again under the model between them
+    fit_rounds: int = setting(3, ge=1, le=100)
+    # fitted: fewer inliers cannot fix the bent model's 8 parameters: refused
+    fit_min_inliers: int = 6
+    # a landmark seen over more path than this (passed twice) is left out of the bend fit (m)
+    max_sighting_span_m: float = setting(10.0, gt=0.0)
+
+    def __post_init__(self) -> None:
+        check_settings(self)
+
+    @property
+    def bounds_stated(self) -> bool:
+        """Whether bounds are given (else the bend is fitted from the maps)."""
+        return self.scale_error is not None or self.heading_drift_deg_per_m is not None
+
+
+@dataclass(frozen=True)
+class AcceptanceConfig:
+    """The checks a localization must pass to be claimed (:mod:`lunarloc.localization.verify`)."""
+
+    # absolute floor on the inlier count
+    min_inliers: int = setting(6, ge=3)
+    # inliers must exceed the chance envelope at this map size by this many
+    chance_margin: float = 2.5
+    # inliers' residual RMSE after registration (m; a floor under the chi-square limit)
+    max_rmse_m: float = setting(0.05, gt=0.0)
+    # chi-square acceptance of the inlier residuals at this confidence
+    rmse_confidence: float = 0.999
+    # inliers spread at least this far (largest principal std x 2, m)
+    min_extent_m: float = 1.0
+    # second / first principal std of the inliers (0: collinear)
+    min_planarity: float = 0.05
+    # gravity: share of inlier triangles with matching orientation
+    min_handedness: float = 0.9
+    # predicted error at the query points, times predicted_error_sigmas, at most this (m)
+    max_predicted_error_m: float = 0.10
+    # predicted rotation error, times predicted_error_sigmas, at most this (deg)
+    max_predicted_rotation_deg: float = 1.0
+    # the predicted-error limits apply to this many sigma
+    predicted_error_sigmas: float = 1.0
+    # a rigid map's inliers match the reference's scale within this fraction ...
+    max_scale_error: float = 0.005
+    # ... or within this many standard errors of the fitted scale
+    scale_sigmas: float = 3.0
+    # vehicle landmarks landing refinement.radius_m..this far from a reference rock are near misses (m)
+    near_miss_outer_m: float = setting(0.30, gt=0.0)
+    # refuse when near misses exceed chance by this many standard deviations ...
+    max_near_miss_z: float = 3.0
+    # ... and number at least this many
+    min_near_misses: int = 5
+    # the best hypothesis must be this many times the best competing one
+    competitor_ratio: float = 1.5
+    # hypotheses whose yaws differ more than this compete (deg)
+    competitor_yaw_sep_deg: float = 10.0
+
+    def __post_init__(self) -> None:
+        check_settings(self)
+
+
+_SECTION_KEYS = {
+    "search": {
+        "epsilon_m": "epsilon_m",
+        "epsilon_z_m": "epsilon_z_m",
+        "sigma_m": "sigma_m",
+        "search_sigmas": "sigmas",
+        "max_tilt_deg": "max_tilt_deg",
+        "yaw_step_deg": "yaw_step_deg",
+        "yaw_noise_factor": "yaw_noise_factor",
+        "max_size_ratio": "max_size_ratio",
+        "max_edges": "max_edges",
+        "seed": "seed",
+        "threads": "threads",
+    },
+    "screen": {
+        "screen_min_incidences": "min_incidences",
+        "screen_fraction": "fraction",
+        "screen_candidates": "candidates",
+    },
+    "refinement": {
+        "refine": "enabled",
+        "refine_radius_m": "radius_m",
+        "refine_rounds": "rounds",
+        "robust_scale_m": "robust_scale_m",
+        "irls_rounds": "irls_rounds",
+    },
+    "uncertainty": {
+        "landmark_sigma_m": "landmark_sigma_m",
+        "landmark_sigma_z_m": "landmark_sigma_z_m",
+        "registration_sigma_floor_m": "sigma_floor_m",
+        "centre_bias_m": "centre_bias_m",
+        "centre_bias_yaw_deg": "centre_bias_yaw_deg",
+    },
+    "distortion": {
+        "odometry_scale_error": "scale_error",
+        "odometry_heading_drift_deg_per_m": "heading_drift_deg_per_m",
+        "odometry_prior_drift_deg_per_m": "prior_drift_deg_per_m",
+        "odometry_prior_scale_error": "prior_scale_error",
+        "distortion_fit_sigmas": "fit_sigmas",
+        "distortion_fit_rounds": "fit_rounds",
+        "min_inliers_distortion_fit": "fit_min_inliers",
+        "max_sighting_span_m": "max_sighting_span_m",
+    },
+    "acceptance": {
+        k: k
+        for k in (
+            "min_inliers",
+            "chance_margin",
+            "max_rmse_m",
+            "rmse_confidence",
+            "min_extent_m",
+            "min_planarity",
+            "min_handedness",
+            "max_predicted_error_m",
+            "max_predicted_rotation_deg",
+            "predicted_error_sigmas",
+            "max_scale_error",
+            "scale_sigmas",
+            "near_miss_outer_m",
+            "max_near_miss_z",
+            "min_near_misses",
+            "competitor_ratio",
+            "competitor_yaw_sep_deg",
+        )
+    },
+}
+
+#: The flat keys of configs saved (and code written) before the sections:
+#: {old key: (section, new key)}.
+MOVED_KEYS: dict[str, tuple[str, str]] = {
+    old: (section, new) for section, keys in _SECTION_KEYS.items() for old, new in keys.items()
+}
+
+
+@moved_keys(MOVED_KEYS)
+@dataclass(frozen=True)
+class LocalizationConfig:
+    """Parameters of :func:`~lunarloc.localization.localize.localize`, in sections (module
+    docstring). Distances in metres, angles in degrees."""
+
+    # which invariants the consistency graph uses: gravity (IMU-levelled maps) or 6dof
+    mode: Mode = Mode.GRAVITY
+    # how the densest consistent set is found: exact maximum clique or clipper
+    solver: Solver = Solver.EXACT
+    # the rigid transform fitted to the inliers: se3 or yaw (needs gravity)
+    registration: Registration = Registration.SE3
+    # the consistency graph and its search
+    search: SearchConfig = field(default_factory=SearchConfig)
+    # the quick screen before a large exhaustive search
+    screen: ScreenConfig = field(default_factory=ScreenConfig)
+    # nearest-neighbour re-fits and robust re-weighting
+    refinement: RefinementConfig = field(default_factory=RefinementConfig)
+    # landmark sigmas, residual floor, shared centre bias
+    uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
+    # the vehicle map's odometry distortion: stated bounds or a fitted bend
+    distortion: DistortionConfig = field(default_factory=DistortionConfig)
+    # the checks a fix must pass
+    acceptance: AcceptanceConfig = field(default_factory=AcceptanceConfig)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "mode", Mode(self.mode))
+        object.__setattr__(self, "solver", Solver(self.solver))
+        object.__setattr__(self, "registration", Registration(self.registration))
         if self.registration is Registration.YAW and self.mode is not Mode.GRAVITY:
             raise ConfigError("yaw-only registration needs the gravity-aware mode")
-        check_settings(self)  # every range declared beside its field
+        for name, cls in _SECTIONS.items():
+            if isinstance(getattr(self, name), Mapping):  # a section as plain values
+                object.__setattr__(self, name, config_from_dict(cls, getattr(self, name), name))
+            if not isinstance(getattr(self, name), cls):
+                raise ConfigError(
+                    f"{name}: expected {cls.__name__}, got {type(getattr(self, name)).__name__}"
+                )
 
     @property
     def odometry_bounds_stated(self) -> bool:
         """Whether the odometry's distortion bounds are given (else they are fitted from the maps)."""
-        return (
-            self.odometry_scale_error is not None
-            or self.odometry_heading_drift_deg_per_m is not None
-        )
+        return self.distortion.bounds_stated
 
     @property
     def sigma(self) -> float:
-        return self.sigma_m if self.sigma_m is not None else self.epsilon_m / 2.0
+        """CLIPPER's weight scale (m): ``search.sigma_m``, or half of ``search.epsilon_m``."""
+        s = self.search
+        return s.sigma_m if s.sigma_m is not None else s.epsilon_m / 2.0
+
+    def with_settings(self, **sections) -> "LocalizationConfig":
+        """A copy with settings of sections changed: ``with_settings(search={"epsilon_m":
+        0.08})`` (each section's other settings kept)."""
+        return replace(
+            self, **{name: replace(getattr(self, name), **kv) for name, kv in sections.items()}
+        )
 
     def for_maps(self, reference: LandmarkMap, vehicle: LandmarkMap) -> "LocalizationConfig":
         """This config with its refinement and acceptance tolerances raised to what the
@@ -213,7 +397,7 @@ class LocalizationConfig:
         ``3 sigma_r`` and robust scale ``sigma_r``, sigma_r = sqrt(2 sigma_h^2 + sigma_z^2)
         the 3D offset of a landmark from its partner; the residual RMSE limit follows from
         a chi-square test (:func:`rmse_limit`). The consistency search tolerances become
-        ``search_sigmas`` standard deviations of the difference between a vehicle pair's
+        ``search.sigmas`` standard deviations of the difference between a vehicle pair's
         distance and its reference pair's (four landmarks: sqrt(2) sigma_h horizontally,
         sqrt(2) sigma_z vertically; one degree of freedom each): 2 sigma keeps a true pair
         consistent with 95 % probability. Wider tolerances also make chance sets larger (the
@@ -225,22 +409,30 @@ class LocalizationConfig:
         about 12 cm horizontally."""
         sh, sz = combined_sigma(reference, vehicle, self)
         sr = math.sqrt(2 * sh**2 + sz**2)
-        refine = max(self.refine_radius_m, 3 * sr)
-        return replace(
-            self,
-            refine_radius_m=refine,
-            robust_scale_m=max(self.robust_scale_m, sr),
-            near_miss_outer_m=max(self.near_miss_outer_m, 3 * refine),
-            epsilon_m=max(self.epsilon_m, self.search_sigmas * math.sqrt(2) * sh),
-            epsilon_z_m=max(self.epsilon_z_m, self.search_sigmas * math.sqrt(2) * sz),
+        s, r = self.search, self.refinement
+        radius_m = max(r.radius_m, 3 * sr)
+        return self.with_settings(
+            refinement={"radius_m": radius_m, "robust_scale_m": max(r.robust_scale_m, sr)},
+            acceptance={"near_miss_outer_m": max(self.acceptance.near_miss_outer_m, 3 * radius_m)},
+            search={
+                "epsilon_m": max(s.epsilon_m, s.sigmas * math.sqrt(2) * sh),
+                "epsilon_z_m": max(s.epsilon_z_m, s.sigmas * math.sqrt(2) * sz),
+            },
         )
 
     def to_dict(self) -> dict:
-        d = asdict(self)
-        d["mode"] = self.mode.value
-        d["solver"] = self.solver.value
-        d["registration"] = self.registration.value
-        return d
+        """Plain dict (sections as dicts, Enums as values) to write next to results."""
+        return config_to_dict(self)
+
+
+_SECTIONS = {
+    "search": SearchConfig,
+    "screen": ScreenConfig,
+    "refinement": RefinementConfig,
+    "uncertainty": UncertaintyConfig,
+    "distortion": DistortionConfig,
+    "acceptance": AcceptanceConfig,
+}
 
 
 def landmark_sigmas(m: LandmarkMap, cfg: "LocalizationConfig") -> tuple[np.ndarray, np.ndarray]:
@@ -250,7 +442,8 @@ def landmark_sigmas(m: LandmarkMap, cfg: "LocalizationConfig") -> tuple[np.ndarr
     n = len(m)
     h = np.zeros(n) if m.sigma_xy_m is None else m.sigma_xy_m
     z = np.zeros(n) if m.sigma_z_m is None else m.sigma_z_m
-    return np.hypot(h, cfg.landmark_sigma_m), np.hypot(z, cfg.landmark_sigma_z_m)
+    u = cfg.uncertainty
+    return np.hypot(h, u.landmark_sigma_m), np.hypot(z, u.landmark_sigma_z_m)
 
 
 def combined_sigma(

@@ -111,7 +111,7 @@ def _index_epsilon(
         vehicle = LandmarkMap(
             reference.positions_xyz[:1]
         )  # no stated sigma: the config's landmark sigma
-    return cfg.for_maps(reference, vehicle).epsilon_m
+    return cfg.for_maps(reference, vehicle).search.epsilon_m
 
 
 def _from(res: LocalizationResult, **extra) -> LargeResult:
@@ -151,11 +151,11 @@ def localize_large(
     fm = cfg.for_maps(
         reference, vehicle
     )  # the crops are searched at the maps' tolerances: so are index and chance
-    index = _index_at(index, Pr, fm.epsilon_m, icfg)
+    index = _index_at(index, Pr, fm.search.epsilon_m, icfg)
     timings["index"] = time.perf_counter() - t0
     # 3. the vehicle's triangles vote for poses: the candidate regions
     t0 = time.perf_counter()
-    votes = index.vote(Pv, fm.epsilon_z_m, math.tan(math.radians(cfg.max_tilt_deg)))
+    votes = index.vote(Pv, fm.search.epsilon_z_m, math.tan(math.radians(cfg.search.max_tilt_deg)))
     timings["vote"] = time.perf_counter() - t0
     # 4. the acceptance the whole reference needs: chance at n_veh x n_ref associations
     m_full = len(Pr) * len(Pv)
@@ -217,11 +217,11 @@ def _index_at(
 def _required_whole_reference(m_full: int, cfg: LocalizationConfig, fm: LocalizationConfig) -> int:
     """The inliers an answer needs to beat chance against the whole reference."""
     return max(
-        cfg.min_inliers,
+        cfg.acceptance.min_inliers,
         int(
             math.ceil(
-                chance_clique_size(m_full, cfg.mode, fm.epsilon_m, fm.epsilon_z_m)
-                + cfg.chance_margin
+                chance_clique_size(m_full, cfg.mode, fm.search.epsilon_m, fm.search.epsilon_z_m)
+                + cfg.acceptance.chance_margin
             )
         ),
     )
@@ -364,7 +364,7 @@ def _whole_reference_checks(
 ) -> list[Check]:
     """The chance check against the whole reference and the two winner-margin checks."""
     k = out.num_inliers
-    ratio = cfg.competitor_ratio
+    ratio = cfg.acceptance.competitor_ratio
     ok_chance = k >= out.required_inliers
     ok_refined = k >= ratio * comp_refined
     ok_clique = clique >= ratio * comp_clique
@@ -414,5 +414,5 @@ def _same_pose(a: LocalizationResult, b: LocalizationResult, cfg: LocalizationCo
     )
     return bool(
         np.linalg.norm(a.T_ref_veh[:2, 3] - b.T_ref_veh[:2, 3]) < 1.0
-        and dyaw < math.radians(cfg.competitor_yaw_sep_deg)
+        and dyaw < math.radians(cfg.acceptance.competitor_yaw_sep_deg)
     )

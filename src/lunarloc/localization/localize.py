@@ -195,7 +195,7 @@ def _screen_reason(screen, cfg, required: int) -> str:
     return (
         f"no consistent set large enough: the best of {screen.candidates} candidate poses voted by the "
         f"reference's rock triangles has {screen.score:.1f} inliers beyond chance ({screen.inliers} in all), "
-        f"under {cfg.screen_fraction:g} x the {required} acceptance needs; the exhaustive search "
+        f"under {cfg.screen.fraction:g} x the {required} acceptance needs; the exhaustive search "
         f"(~{screen.incidences:.2g} graph edges) was not run"
     )
 
@@ -280,12 +280,18 @@ class _Problem:
     def associate(self) -> None:
         cfg, t0 = self.cfg, time.perf_counter()
         self.assoc, self.node_of = putative_associations(
-            len(self.Pv), len(self.Pr), self.vehicle.sizes, self.reference.sizes, cfg.max_size_ratio
+            len(self.Pv),
+            len(self.Pr),
+            self.vehicle.sizes,
+            self.reference.sizes,
+            cfg.search.max_size_ratio,
         )
         self.num_associations = m = len(self.assoc)
         self.timings["associations"] = time.perf_counter() - t0
-        self.chance = chance_clique_size(m, cfg.mode, cfg.epsilon_m, cfg.epsilon_z_m)
-        self.required = max(cfg.min_inliers, int(math.ceil(self.chance + cfg.chance_margin)))
+        self.chance = chance_clique_size(m, cfg.mode, cfg.search.epsilon_m, cfg.search.epsilon_z_m)
+        self.required = max(
+            cfg.acceptance.min_inliers, int(math.ceil(self.chance + cfg.acceptance.chance_margin))
+        )
 
     def search(self):
         """The densest consistent set and its competitor; the screen's verdict (None: not run)."""
@@ -318,12 +324,12 @@ class _Problem:
         except DegenerateGeometryError as exc:
             self.timings["registration"] = time.perf_counter() - self.t_register
             return f"inliers are degenerate: {exc}"
-        if cfg.refine:
+        if cfg.refinement.enabled:
             T, inl = _refine(T, Pv, Pr, inl, cfg)
         try:
             T_w, w = (
                 _register_robust(Pv[inl[:, 0]], Pr[inl[:, 1]], cfg, T)
-                if cfg.refine
+                if cfg.refinement.enabled
                 else (T, np.ones(len(inl)))
             )
             T = T_w
@@ -338,12 +344,12 @@ class _Problem:
         cfg, T, Pv, Pr, inl, w = self.cfg, self.T, self.Pv, self.Pr, self.inl, self.w
         query = Pv if query_xyz is None else as_points(query_xyz, "query points")
         C_c, centre_ref = pose_covariance(
-            T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, cfg.registration_sigma_floor_m
+            T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, cfg.uncertainty.sigma_floor_m
         )
         # plus the error the inliers share and their residuals cannot show (CENTRE_BIAS_M): each map
         # built from detections (sightings given) brings its own centre bias, measured for two
         C_c = C_c + self.built_from_detections / 2 * shared_bias_covariance(
-            cfg.centre_bias_m, cfg.centre_bias_yaw_deg
+            cfg.uncertainty.centre_bias_m, cfg.uncertainty.centre_bias_yaw_deg
         )
         pred_fit = error_at(C_c, centre_ref, T, query)
         path = None if path_xyz is None else as_points(path_xyz, "vehicle path")
@@ -353,13 +359,13 @@ class _Problem:
                 query,
                 Pv[inl[:, 0]],
                 w,
-                cfg.odometry_scale_error or 0.0,
-                math.radians(cfg.odometry_heading_drift_deg_per_m or 0.0),
+                cfg.distortion.scale_error or 0.0,
+                math.radians(cfg.distortion.heading_drift_deg_per_m or 0.0),
                 path,
             )
         else:  # no bounds stated: what the maps show of a bend or scale error, and how unsure that is
             distortion, distortion_rot = np.array([math.inf]), np.array([math.inf])
-            if len(inl) >= cfg.min_inliers_distortion_fit:
+            if len(inl) >= cfg.distortion.fit_min_inliers:
                 bend = self._fitted_bend(query, path)
         pred = (
             pred_fit + distortion
@@ -382,15 +388,15 @@ class _Problem:
         # (more of them with a wider refinement radius) do not count towards beating it
         core = len(self.best)
         chance_gain = (
-            chance_refined(T, Pv, Pr, self.assoc[self.best][:, 0], cfg.refine_radius_m)
-            if cfg.refine
+            chance_refined(T, Pv, Pr, self.assoc[self.best][:, 0], cfg.refinement.radius_m)
+            if cfg.refinement.enabled
             else 0.0
         )
         k_chance = min(len(inl), core + max(0.0, len(inl) - core - chance_gain))
-        near_outer = max(cfg.near_miss_outer_m, 3 * cfg.refine_radius_m)
-        near, near_exp = near_miss_excess(T, Pv, Pr, inl[:, 0], cfg.refine_radius_m, near_outer)
+        near_outer = max(cfg.acceptance.near_miss_outer_m, 3 * cfg.refinement.radius_m)
+        near, near_exp = near_miss_excess(T, Pv, Pr, inl[:, 0], cfg.refinement.radius_m, near_outer)
         dscale, scale_se = scale_check(
-            T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, cfg.registration_sigma_floor_m
+            T, Pv[inl[:, 0]], Pr[inl[:, 1]], w, cfg.uncertainty.sigma_floor_m
         )
         self.timings["registration"] = time.perf_counter() - self.t_register
         return _Budget(
@@ -427,18 +433,18 @@ class _Problem:
             query,
             path,
             math.sqrt((2 * self.sigma_h**2 + self.sigma_z**2) / 3),
-            cfg.refine_radius_m,
-            cfg.distortion_fit_rounds,
+            cfg.refinement.radius_m,
+            cfg.distortion.fit_rounds,
             arcs,
-            cfg.max_sighting_span_m,
-            cfg.min_inliers_distortion_fit,
+            cfg.distortion.max_sighting_span_m,
+            cfg.distortion.fit_min_inliers,
         )
         bend = bending_fit(*fit_args)  # from the maps alone
         prior = (
             None
-            if cfg.odometry_prior_drift_deg_per_m is None
-            else math.radians(cfg.odometry_prior_drift_deg_per_m),
-            cfg.odometry_prior_scale_error,
+            if cfg.distortion.prior_drift_deg_per_m is None
+            else math.radians(cfg.distortion.prior_drift_deg_per_m),
+            cfg.distortion.prior_scale_error,
         )
         # the prior is per metre of the odometry's path: without the path (a straight stand-in)
         # there is no distance travelled for it to describe. It also narrowed a 6 m map against
@@ -514,7 +520,7 @@ class _Problem:
             scale_se=b.scale_se,
             near_misses=b.near,
             near_misses_expected=b.near_exp,
-            near_inner_m=cfg.refine_radius_m,
+            near_inner_m=cfg.refinement.radius_m,
             near_outer_m=b.near_outer,
             predicted_error_m=float(b.pred.max()),
             distortion_error_m=float(b.distortion.max()),

@@ -21,11 +21,12 @@ def rmse_limit(cfg: "LocalizationConfig", sigma_h: float, sigma_z: float, k: int
     """Largest residual RMSE of k inliers the chi-square test accepts: the sum of squared
     3D residuals over the per-axis variance (sigma_r^2 / 3, sigma_r^2 = 2 sigma_h^2 +
     sigma_z^2) stays below its `rmse_confidence` quantile with 3k - 6 degrees of freedom,
-    i.e. RMSE <= sigma_r sqrt(q / 3k). Never below cfg.max_rmse_m (the floor)."""
+    i.e. RMSE <= sigma_r sqrt(q / 3k). Never below cfg.acceptance.max_rmse_m (the floor)."""
     dof = max(3 * k - 6, 1)
     sr = math.sqrt(2 * sigma_h**2 + sigma_z**2)
     return max(
-        cfg.max_rmse_m, sr * math.sqrt(_chi2_ppf(cfg.rmse_confidence, dof) / (3 * max(k, 1)))
+        cfg.acceptance.max_rmse_m,
+        sr * math.sqrt(_chi2_ppf(cfg.acceptance.rmse_confidence, dof) / (3 * max(k, 1))),
     )
 
 
@@ -74,9 +75,9 @@ def _register_robust(P, Q, cfg, T=None):
     if T is None:
         T = _register(P, Q, cfg)
     w = np.ones(len(P))
-    for _ in range(cfg.irls_rounds):
+    for _ in range(cfg.refinement.irls_rounds):
         r = _residuals(T, P, Q)
-        w = 1.0 / (1.0 + (r / cfg.robust_scale_m) ** 2)
+        w = 1.0 / (1.0 + (r / cfg.refinement.robust_scale_m) ** 2)
         try:
             T = _register(P, Q, cfg, w)
         except DegenerateGeometryError:
@@ -88,9 +89,9 @@ def _refine(T, Pv, Pr, inl, cfg):
     """Mutual nearest neighbours within refine_radius under T, re-fitted (`refine_rounds` rounds)."""
     tree = cKDTree(Pr)
     best_T, best_inl = T, inl
-    for _ in range(cfg.refine_rounds):
+    for _ in range(cfg.refinement.rounds):
         Pt = transform_points(best_T, Pv)
-        d, j = tree.query(Pt, distance_upper_bound=cfg.refine_radius_m)
+        d, j = tree.query(Pt, distance_upper_bound=cfg.refinement.radius_m)
         ok = np.isfinite(d)
         vi = np.flatnonzero(ok)
         ri = j[ok]

@@ -25,7 +25,7 @@ class LocalizationResult:
         and yaw at the query point where the predicted error is largest
         (:func:`distortion_covariance`).
     near_misses : vehicle landmarks that land just outside the inlier radius of a reference
-        rock (``refine_radius_m`` .. ``near_miss_outer_m``), against ``near_misses_expected``
+        rock (``refinement.radius_m`` .. ``acceptance.near_miss_outer_m``), against ``near_misses_expected``
         by chance (local reference density): an excess means the map is not rigid.
     """
 

@@ -44,14 +44,14 @@ def _solve(
 
 
 def _search_3d(Pv, Pr, node_of, assoc, cfg):
-    g = graph_3d(Pv, Pr, node_of, cfg.epsilon_m, cfg.sigma, cfg.max_edges)
+    g = graph_3d(Pv, Pr, node_of, cfg.search.epsilon_m, cfg.sigma, cfg.search.max_edges)
     if g is None:
         raise InputError(
-            f"the 6-DoF consistency graph of {len(assoc)} associations exceeds {cfg.max_edges} edges; "
+            f"the 6-DoF consistency graph of {len(assoc)} associations exceeds {cfg.search.max_edges} edges; "
             "use the gravity-aware mode, a smaller epsilon, size pruning, or raise max_edges"
         )
     eu, ev, ew = g
-    best = _solve(cfg.solver, len(assoc), eu, ev, ew, 0, cfg.seed)
+    best = _solve(cfg.solver, len(assoc), eu, ev, ew, 0, cfg.search.seed)
     return best, 0, len(eu)
 
 
@@ -64,19 +64,19 @@ def _explained(T, Pv, Pr, assoc, radius):
 
 
 def _competitor_3d(T, Pv, Pr, node_of, assoc, cfg):
-    explained = _explained(T, Pv, Pr, assoc, 3 * cfg.epsilon_m)
+    explained = _explained(T, Pv, Pr, assoc, 3 * cfg.search.epsilon_m)
     node2 = node_of.copy()
     node2[assoc[explained, 0], assoc[explained, 1]] = -1
     keep = node2[assoc[:, 0], assoc[:, 1]] >= 0
-    g = graph_3d(Pv, Pr, node2, cfg.epsilon_m, cfg.sigma, cfg.max_edges)
+    g = graph_3d(Pv, Pr, node2, cfg.search.epsilon_m, cfg.sigma, cfg.search.max_edges)
     if g is None or not np.any(keep):
         return 0
     eu, ev, ew = g
-    return len(_solve(cfg.solver, len(assoc), eu, ev, ew, 0, cfg.seed))
+    return len(_solve(cfg.solver, len(assoc), eu, ev, ew, 0, cfg.search.seed))
 
 
 def _n_bins(cfg) -> int:
-    return max(1, int(round(360.0 / cfg.yaw_step_deg)))
+    return max(1, int(round(360.0 / cfg.search.yaw_step_deg)))
 
 
 def _sweep(Pv, Pr, node_of, cfg, visit, bin_start: int = 0, bin_count: int | None = None) -> int:
@@ -93,7 +93,7 @@ def _sweep(Pv, Pr, node_of, cfg, visit, bin_start: int = 0, bin_count: int | Non
         weights=cfg.solver is Solver.CLIPPER,
         bin_start=bin_start,
         bin_count=bin_count,
-        workers=cfg.threads,
+        workers=cfg.search.threads,
     )
 
 
@@ -104,10 +104,10 @@ def _chunk_bins(cfg) -> int:
 def _graph_args(cfg) -> tuple:
     """(eps_h, eps_z, tan_tilt, k_yaw, sigma) of the yaw-bin consistency graphs."""
     return (
-        cfg.epsilon_m,
-        cfg.epsilon_z_m,
-        math.tan(math.radians(cfg.max_tilt_deg)),
-        cfg.yaw_noise_factor,
+        cfg.search.epsilon_m,
+        cfg.search.epsilon_z_m,
+        math.tan(math.radians(cfg.search.max_tilt_deg)),
+        cfg.search.yaw_noise_factor,
         cfg.sigma,
     )
 
@@ -120,12 +120,12 @@ _PARALLEL_MIN_WORK = (
 def _workers(cfg, vp, index: RefPairIndex, share: float = 1.0) -> int:
     """Threads for a sweep over `share` of the yaw circle: one when the work is small
     (handing chunks to other threads then costs more than it saves)."""
-    return cfg.threads if len(vp[0]) * len(index.a) * share >= _PARALLEL_MIN_WORK else 1
+    return cfg.search.threads if len(vp[0]) * len(index.a) * share >= _PARALLEL_MIN_WORK else 1
 
 
 def _ref_index(Pr, cfg) -> RefPairIndex:
     return RefPairIndex(
-        Pr, dist_cell_m=max(cfg.epsilon_m / 2, 0.01), angle_cell_rad=math.radians(1.0)
+        Pr, dist_cell_m=max(cfg.search.epsilon_m / 2, 0.01), angle_cell_rad=math.radians(1.0)
     )
 
 
@@ -252,7 +252,7 @@ def _search_yaw_bins(Pv, Pr, node_of, cfg, required: int | None = None, report: 
     n_assoc = int(node_of.size)
     n_bins = _n_bins(cfg)
     step = 2 * math.pi / n_bins
-    sep_bins = math.radians(cfg.competitor_yaw_sep_deg) / step
+    sep_bins = math.radians(cfg.acceptance.competitor_yaw_sep_deg) / step
     index = _ref_index(Pr, cfg)
     vp = vehicle_pairs(Pv)
     if required is not None:
@@ -269,7 +269,7 @@ def _search_yaw_bins(Pv, Pr, node_of, cfg, required: int | None = None, report: 
     scratch = _Scratch(n_assoc)
 
     def lb_now() -> int:
-        return max(int(state["best"] // cfg.competitor_ratio), state["floor"])
+        return max(int(state["best"] // cfg.acceptance.competitor_ratio), state["floor"])
 
     edges = {} if cfg.solver is Solver.EXACT else None  # clique sizes do not depend on edge order
     kept = [0]
@@ -288,7 +288,9 @@ def _search_yaw_bins(Pv, Pr, node_of, cfg, required: int | None = None, report: 
             if upper[b] <= lb or ptr[t + 1] - ptr[t] < lb * (lb + 1) // 2:
                 continue
             sl = slice(ptr[t], ptr[t + 1])
-            c = _solve(cfg.solver, n_assoc, su[sl], sv[sl], sw[sl], lb, cfg.seed, scratch.arr)
+            c = _solve(
+                cfg.solver, n_assoc, su[sl], sv[sl], sw[sl], lb, cfg.search.seed, scratch.arr
+            )
             if len(c) == 0:
                 continue
             with lock:
@@ -345,19 +347,19 @@ def _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw, floor: int = 
     it exceeds best / competitor_ratio (or `floor`), otherwise `floor` is returned."""
     if best_yaw is None:
         return 0
-    explained = _explained(T, Pv, Pr, assoc, 3 * cfg.epsilon_m)
+    explained = _explained(T, Pv, Pr, assoc, 3 * cfg.search.epsilon_m)
     node2 = node_of.copy()
     node2[assoc[explained, 0], assoc[explained, 1]] = -1
     n_bins = _n_bins(cfg)
     step = 2 * math.pi / n_bins
     centre = int(math.floor((best_yaw + math.pi) / step))
-    reach = int(math.ceil(math.radians(cfg.competitor_yaw_sep_deg) / step))
+    reach = int(math.ceil(math.radians(cfg.acceptance.competitor_yaw_sep_deg) / step))
     bins = [(centre + t) % n_bins for t in range(-reach, reach + 1)]
     lb0 = floor
     index = None
     if isinstance(best_yaw, _BestYaw):  # reuse the main search's index and bounds
         index = best_yaw.index
-        lb0 = max(floor, int(best_yaw.best_size // cfg.competitor_ratio))
+        lb0 = max(floor, int(best_yaw.best_size // cfg.acceptance.competitor_ratio))
         bins = [
             b for b in bins if best_yaw.upper[b] > lb0
         ]  # removing associations only lowers the bound
@@ -379,7 +381,7 @@ def _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw, floor: int = 
                     sv[sl],
                     sw[sl],
                     state["best"],
-                    cfg.seed,
+                    cfg.search.seed,
                     scratch.arr,
                 )
                 with lock:
@@ -397,7 +399,9 @@ def _competitor_same_yaw(T, Pv, Pr, node_of, assoc, cfg, best_yaw, floor: int = 
             keep = ~(removed[eu] | removed[ev])
             if keep.any():
                 eu, ev = eu[keep], ev[keep]
-                c = _solve(cfg.solver, n_assoc, eu, ev, eu, state["best"], cfg.seed, scratch.arr)
+                c = _solve(
+                    cfg.solver, n_assoc, eu, ev, eu, state["best"], cfg.search.seed, scratch.arr
+                )
                 state["best"] = max(state["best"], len(c))
         bins = [b for b in bins if b not in cached]
         if not bins:
@@ -434,7 +438,7 @@ def predicted_incidences(
     its yaw (tol: the generator's yaw tolerance). O(vehicle pairs) given the search's own
     `vp` and `index`. Measured on the 600-rock overhead benchmark at 15 cm: about 1.5x the
     real incidences (``tests/test_screen.py`` checks it stays within 3x)."""
-    eps = cfg.epsilon_m
+    eps = cfg.search.epsilon_m
     vp = vehicle_pairs(Pv) if vp is None else vp
     index = _ref_index(Pr, cfg) if index is None else index
     dh, dz = vp[2], vp[4]
@@ -445,8 +449,8 @@ def predicted_incidences(
     within = np.interp(dh + eps, cells, cum) - np.interp(np.maximum(dh - eps, 0.0), cells, cum)
     step = 2 * math.pi / _n_bins(cfg)
     dmin = dh - eps
-    k_eps = cfg.yaw_noise_factor * eps
-    tan_tilt = math.tan(math.radians(cfg.max_tilt_deg))
+    k_eps = cfg.search.yaw_noise_factor * eps
+    tan_tilt = math.tan(math.radians(cfg.search.max_tilt_deg))
     with np.errstate(divide="ignore", invalid="ignore"):
         tol = np.where(
             dmin > k_eps,
@@ -488,27 +492,30 @@ def _screen(
     edge incidences (:func:`predicted_incidences`; a 600-rock overhead map at 15 cm holds
     about 70 million, 5-10 s of CPU), else returns None. The reference's rock triangles
     (:class:`~lunarloc.association.index.ReferenceIndex`, at the search's own tolerance)
-    vote for poses; each of the ``screen_candidates`` best-voted poses is refined as the
+    vote for poses; each of the ``screen.candidates`` best-voted poses is refined as the
     final hypothesis is (:func:`_refine`, mutual nearest neighbours within the refinement
     radius), and scored by its inliers less the matches chance gives at that pose
-    (:func:`chance_refined`). The screen passes when a score reaches ``screen_fraction``
+    (:func:`chance_refined`). The screen passes when a score reaches ``screen.fraction``
     of the inliers acceptance requires; then the exhaustive search runs as without the
     screen, so the screen can only refuse, never accept, and whatever is accepted is what
     the exact search and verification accept. A vehicle map without a matching triangle
     gives no candidate: the screen passes (it cannot judge) and the exact search decides."""
-    if not cfg.screen_min_incidences > 0:
+    if not cfg.screen.min_incidences > 0:
         return None
     incidences = predicted_incidences(Pv, Pr, cfg, vp, index)
-    if incidences < cfg.screen_min_incidences:
+    if incidences < cfg.screen.min_incidences:
         return None
     from lunarloc.association.index import IndexConfig, ReferenceIndex
 
-    needed = cfg.screen_fraction * required
+    needed = cfg.screen.fraction * required
     tri = ReferenceIndex(
-        Pr, cfg.epsilon_m, IndexConfig(max_candidates=cfg.screen_candidates)
+        Pr, cfg.search.epsilon_m, IndexConfig(max_candidates=cfg.screen.candidates)
     )  # rock triangles
     votes = tri.vote(
-        Pv, cfg.epsilon_z_m, math.tan(math.radians(cfg.max_tilt_deg)), _SCREEN_TRIANGLES
+        Pv,
+        cfg.search.epsilon_z_m,
+        math.tan(math.radians(cfg.search.max_tilt_deg)),
+        _SCREEN_TRIANGLES,
     )
     if not votes.candidates:
         return Screen(True, float("nan"), needed, 0, incidences)
@@ -523,7 +530,7 @@ def _screen(
         d, j = tri.tree_xy.query(
             Pt[:, :2]
         )  # the vote fixes x, y and yaw; the height from the nearest rocks
-        near = d < cfg.refine_radius_m
+        near = d < cfg.refinement.radius_m
         if near.sum() < 3:  # nothing to refine from: no more than chance here
             continue
         T[2, 3] = float(np.median((Pr[j, 2] - Pt[:, 2])[near]))
@@ -534,7 +541,7 @@ def _screen(
             InputError,
         ):  # fewer than 3 (or collinear) mutual neighbours in 3D
             continue
-        score = len(inl) - chance_refined(T, Pv, Pr, np.zeros(0, np.int64), cfg.refine_radius_m)
+        score = len(inl) - chance_refined(T, Pv, Pr, np.zeros(0, np.int64), cfg.refinement.radius_m)
         if score > best:
             best, best_inliers = score, len(inl)
         if best >= needed:

@@ -57,7 +57,7 @@ from lunarloc.core.geometry import (
 )
 from lunarloc.io.maps import POSE_COLUMN, LandmarkMap, PoseProvenance
 from lunarloc.localization.large import localize_large
-from lunarloc.localization.config import LocalizationConfig
+from lunarloc.localization.config import DistortionConfig, LocalizationConfig
 from lunarloc.sim.fields import uniform_rock_field
 
 log = logging.getLogger(__name__)
@@ -93,7 +93,7 @@ NEES_997 = 14.156  # 99.73 % quantile
 CONFIGS: dict[str, Callable[[], LocalizationConfig]] = {
     "cli default": LocalizationConfig,
     "stated rigid": lambda: LocalizationConfig(
-        odometry_scale_error=0.0, odometry_heading_drift_deg_per_m=0.0
+        distortion=DistortionConfig(scale_error=0.0, heading_drift_deg_per_m=0.0)
     ),
 }
 SEARCHES = ("full", "indexed", "auto")
@@ -564,8 +564,10 @@ def _real_config(
         )
     if config == "stated bounds":
         return LocalizationConfig(
-            odometry_scale_error=max(abs(scale_error), abs(scale - 1.0)),
-            odometry_heading_drift_deg_per_m=abs(drift),
+            distortion=DistortionConfig(
+                scale_error=max(abs(scale_error), abs(scale - 1.0)),
+                heading_drift_deg_per_m=abs(drift),
+            )
         ), None
     if config == "no provenance":
         return LocalizationConfig(), None

@@ -35,7 +35,7 @@ from lunarloc.core.geometry import (
     rotation_angle,
     transform_points,
 )
-from lunarloc.localization.config import LocalizationConfig
+from lunarloc.localization.config import DistortionConfig, LocalizationConfig
 from lunarloc.localization.localize import localize
 from lunarloc.odometry.drift import DriftModel, drifted_path
 from lunarloc.io.maps import (
@@ -389,11 +389,15 @@ def bench_pairs(
         loc_config is None
     ):  # the maps' odometry bounds are known here: the simulated drift (0: ground-truth poses)
         d = drift or DriftModel()
-        loc_config = LocalizationConfig(
-            odometry_scale_error=abs(d.scale_error)
+        scale_error = (
+            abs(d.scale_error)
             if scale_about_centroid == 1.0
-            else max(abs(d.scale_error), abs(scale_about_centroid - 1.0)),
-            odometry_heading_drift_deg_per_m=abs(d.heading_drift_deg_per_m),
+            else max(abs(d.scale_error), abs(scale_about_centroid - 1.0))
+        )
+        loc_config = LocalizationConfig(
+            distortion=DistortionConfig(
+                scale_error=scale_error, heading_drift_deg_per_m=abs(d.heading_drift_deg_per_m)
+            )
         )
     travs: dict[int, Traverse] = {}
     maps = {}
