@@ -38,6 +38,7 @@ from lunarloc.core.geometry import matrix_to_pose, pose_to_matrix, transform_poi
 from lunarloc.localization.config import LocalizationConfig
 from lunarloc.localization.localize import localize
 from lunarloc.io.maps import AggregationConfig, LandmarkMap, aggregate_detections, detection_arcs_m
+from lunarloc.online.presets import load_preset
 
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
@@ -256,60 +257,39 @@ class LoopConfig:
         return config_to_dict(self)
 
 
-IMAGE_WINDOW_M = 8.0
-"""Local-map window for detections from simulated stereo images: less odometry distortion
-inside it before the first fix than the real dataset's 12 m."""
-
-
 RIGID_WINDOW = {"odometry_scale_error": 0.0, "odometry_heading_drift_deg_per_m": 0.0}
 """Odometry bounds 0: a window stated rigid (``window_bounds = "rigid"``)."""
 
 
-#: The loop's windows keep the bend fit they were measured with (docs/online-component.md):
-#: unconstrained by the one-shot's odometry prior, its sigma counted twice, the measured floor on
-#: top (the config's defaults without the prior). A calibrated window's drift is what the pose graph left, not raw odometry's, so the
-#: one-shot prior does not describe it; re-measuring the loop with it is open.
-LOOP_BEND_FIT = {"odometry_prior_drift_deg_per_m": None, "odometry_prior_scale_error": None}
-
-
 def loop_localization_config(**overrides) -> LocalizationConfig:
-    """The default localization for the loop's windows (real-dataset detections). It states
-    no odometry bounds: each window's are the loop's to state (``LoopConfig.window_bounds``)."""
-    return LocalizationConfig(**{**LOOP_BEND_FIT, **overrides})
+    """The default localization for the loop's windows (real-dataset detections), the preset
+    ``loop_localization`` (:mod:`lunarloc.online.presets`): the bend fit the windows were
+    measured with, without the one-shot's odometry prior (a calibrated window's drift is what
+    the pose graph left, not raw odometry's; docs/online-component.md). It states no odometry
+    bounds: each window's are the loop's to state (``LoopConfig.window_bounds``)."""
+    return load_preset(LocalizationConfig, "loop_localization", **overrides)
 
 
 def image_localization_config(**overrides) -> LocalizationConfig:
     """Localization settings for detections from simulated stereo images (noisier than the
-    real dataset's): 8 cm consistency tolerance and residual RMSE, refinement radius 16 cm,
-    predicted error up to 15 cm. No odometry bounds: the loop states each window's."""
-    return LocalizationConfig(
-        **{
-            "epsilon_m": 0.08,
-            "epsilon_z_m": 0.08,
-            "max_rmse_m": 0.08,
-            "refine_radius_m": 0.16,
-            "max_predicted_error_m": 0.15,
-            **LOOP_BEND_FIT,
-            **overrides,
-        }
-    )
+    real dataset's), the preset ``image_localization``: 8 cm consistency tolerance and residual
+    RMSE, refinement radius 16 cm, predicted error up to 15 cm, the loop's bend fit. No
+    odometry bounds: the loop states each window's."""
+    return load_preset(LocalizationConfig, "image_localization", **overrides)
 
 
 def image_loop_config(**overrides) -> LoopConfig:
-    """The loop for detections from stereo images (``RunConfig()``, ``OnlineConfig()``): an 8 m
-    window (:data:`IMAGE_WINDOW_M`) that grows to 12 m while it holds fewer than 20 landmarks
-    (not when stated rigid, :meth:`LoopState.local_map`), and a reference crop sized by the
-    window's odometry bounds (``crop_sigma = "source"``). Measured on the multi-session sites:
-    docs/online-component.md (multi-session runs without a fix)."""
-    return LoopConfig(
-        **{
-            "window_m": IMAGE_WINDOW_M,
-            "window_target_landmarks": 20,
-            "window_max_m": 12.0,
-            "crop_sigma": CropSigma.SOURCE,
-            **overrides,
-        }
-    )
+    """The loop for detections from stereo images (``RunConfig()``, ``OnlineConfig()``), the
+    preset ``image_loop``: an 8 m window (:data:`IMAGE_WINDOW_M`) that grows to 12 m while it
+    holds fewer than 20 landmarks (not when stated rigid, :meth:`LoopState.local_map`), and a
+    reference crop sized by the window's odometry bounds (``crop_sigma = "source"``). Measured
+    on the multi-session sites: docs/online-component.md (multi-session runs without a fix)."""
+    return load_preset(LoopConfig, "image_loop", **overrides)
+
+
+IMAGE_WINDOW_M: float = image_loop_config().window_m
+"""Local-map window for detections from simulated stereo images: less odometry distortion
+inside it before the first fix than the real dataset's 12 m (the ``image_loop`` preset's)."""
 
 
 def stated_window_bounds(localization: LocalizationConfig) -> tuple[float, float] | None:
