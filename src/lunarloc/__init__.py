@@ -10,7 +10,8 @@ The one-call API (what ``lunarloc localize REFERENCE VEHICLE`` does)::
 
     from lunarloc import load_reference, load_vehicle, localize
     veh = load_vehicle("traverse_5.csv")      # a traverse CSV: its map, path and last position
-    result = localize(load_reference("traverse_3.csv"), veh.map, query_xyz=veh.query_xyz, path_xyz=veh.path_xyz)
+    result = localize(load_reference("traverse_3.csv"), veh.map, query_xyz=veh.query_xyz,
+    path_xyz=veh.path_xyz)
     if result.success:
         print(result.T_ref_veh)
 

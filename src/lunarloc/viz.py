@@ -215,7 +215,8 @@ def plot_run(
 
     run = read_run(outdir, summary)
     s = run.summary
-    title = f"{Path(str(s.get('source', ''))).name}: {s.get('fixes', 0)} fixes over {s.get('path_length_m', 0):.0f} m"
+    source = Path(str(s.get("source", ""))).name
+    title = f"{source}: {s.get('fixes', 0)} fixes over {s.get('path_length_m', 0):.0f} m"
     out = [plot_map(run, figdir / "map.png", title)]
     if run.ground_truth is not None:
         out.append(plot_error(run, figdir / "error.png"))
@@ -263,7 +264,9 @@ def plot_rovers(
         s = run.summary
         lab = name
         if "ate_corrected" in s:
-            lab += f" (RMSE odometry {s['ate_odometry']['rmse_m'] * 100:.1f} cm, corrected {s['ate_corrected']['rmse_m'] * 100:.1f} cm)"
+            odo_cm = s["ate_odometry"]["rmse_m"] * 100
+            corrected_cm = s["ate_corrected"]["rmse_m"] * 100
+            lab += f" (RMSE odometry {odo_cm:.1f} cm, corrected {corrected_cm:.1f} cm)"
         if run.ground_truth is not None:
             ax.plot(run.ground_truth[:, 0], run.ground_truth[:, 1], c="k", lw=2.6, alpha=0.35)
             pts.append(run.ground_truth[:, :2])

@@ -21,7 +21,8 @@ that, when called from Python:
    calling kernels compile as before). A missing, stale or unloadable build, an argument
    type it was not built for, or ``LUNARLOC_AOT=0`` all take this path.
 
-The build harvests the signatures to compile from the warm-up it is given (:func:`lunarloc.localization.warmup.warm_up`: every
+The build harvests the signatures to compile from the warm-up it is given
+(:func:`lunarloc.localization.warmup.warm_up`: every
 mode and solver), run on the JIT path in the building process, and compiles each with the
 GIL released (as ``nogil=True`` kernels do under the JIT), for the host CPU.
 """
@@ -361,8 +362,9 @@ def prepare_kernels(exercise) -> KernelPreparation:
             ANNOUNCE_AFTER_S,
             logger.warning,
             args=(
-                "preparing the association kernels: numba compiles them on the first use after install (up to a "
-                "minute, once; cached for later runs; `lunarloc warm-up` does it ahead of time) ...",
+                "preparing the association kernels: numba compiles them on the first use after "
+                "install (up to a minute, once; cached for later runs; `lunarloc warm-up` does it "
+                "ahead of time) ...",
             ),
         )
         announce.daemon = True
@@ -514,7 +516,8 @@ def build_aot(exercise, folder: Path | None = None, *, verbose: bool = False) ->
         ]
         if len(built) != 1:
             raise RuntimeError(
-                f"numba.pycc wrote {[p.name for p in Path(tmp).iterdir()]}, expected one {AOT_MODULE} module"
+                f"numba.pycc wrote {[p.name for p in Path(tmp).iterdir()]}, expected one "
+                f"{AOT_MODULE} module"
             )
         import numba
 

@@ -153,9 +153,8 @@ class RefPairIndex:
     def __init__(self, ref_xyz: np.ndarray, dist_cell_m: float, angle_cell_rad: float):
         q = np.ascontiguousarray(ref_xyz, dtype=np.float64)
         n = len(q)
-        d = (q[None, :, :] - q[:, None, :]).reshape(
-            -1, 3
-        )  # row a * n + b: q[b] - q[a] (diagonal dropped below)
+        # row a * n + b: q[b] - q[a] (diagonal dropped below)
+        d = (q[None, :, :] - q[:, None, :]).reshape(-1, 3)
         dh = np.hypot(d[:, 0], d[:, 1])
         phi = np.arctan2(d[:, 1], d[:, 0])
         self.dist_cell = float(dist_cell_m)
@@ -440,7 +439,8 @@ def sweep_bin_chunks(
 ) -> int:
     """Build the consistency graphs of the yaw bins of `chunks` ((bin0, k_first, k_last)
     from :func:`yaw_bin_chunks`, run in the given order) and hand each chunk to
-    ``visit_chunk(bins, ptr, eu, ev, ew)``: bin ``bins[t]``'s edges are ``eu/ev/ew[ptr[t]:ptr[t + 1]]``.
+    ``visit_chunk(bins, ptr, eu, ev, ew)``: bin ``bins[t]``'s edges are ``eu/ev/ew[ptr[t]:ptr[t +
+    1]]``.
 
     Chunks run on `workers` threads (the compiled generator releases the GIL), so memory
     is bounded by `workers` chunks; `visit_chunk` runs on the worker threads and must be

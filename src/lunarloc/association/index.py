@@ -51,7 +51,8 @@ class IndexConfig:
     yaw_cell_deg: float = 10.0  # vote cell for the yaw
     # candidate regions checked by the exact search at most: enough that a repeated world (a
     # lattice, a copied map) shows its repeats among them, so the answer is judged against them
-    # (with 3, 2 m jittered lattices were claimed at the wrong copy in 15 of 40 runs, docs/verification.md)
+    # (with 3, 2 m jittered lattices were claimed at the wrong copy in 15 of 40 runs,
+    # docs/verification.md)
     max_candidates: int = 8
     competitor_vote_ratio: float = (
         0.1  # the runner-up region is checked exactly from this share of the winner's votes
@@ -202,7 +203,8 @@ class ReferenceIndex:
         P = np.ascontiguousarray(ref_xyz, dtype=np.float64)
         if P.ndim != 2 or P.shape[1] != 3 or len(P) < 3:
             raise InputError(
-                f"the reference index needs an (N >= 3, 3) array of rock positions, got shape {P.shape}"
+                "the reference index needs an (N >= 3, 3) array of rock positions, got shape "
+                f"{P.shape}"
             )
         if not np.all(np.isfinite(P)):
             raise InputError("reference positions must be finite")

@@ -173,9 +173,8 @@ def main(argv: list[str] | None = None) -> int:
     numba kernel to return. Outputs are written atomically, so a killed run leaves at most
     a hidden ``.NAME.tmp-*`` file, never a truncated output under its real name."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    logging.getLogger().setLevel(
-        logging.WARNING
-    )  # the default of every call (-v/-q/--log-level change it)
+    # the default of every call (-v/-q/--log-level change it)
+    logging.getLogger().setLevel(logging.WARNING)
     _STATE["debug"] = False
     args = sys.argv[1:] if argv is None else list(argv)
     _register_commands(args)
@@ -211,8 +210,9 @@ def _run(argv: list[str] | None) -> int:
         if exc.errno is None:
             return _internal(exc)
         write = exc.errno in (errno.ENOSPC, errno.EROFS, errno.EDQUOT)
+        what = file_error(exc.filename or "(unnamed file)", exc, "write" if write else "read")
         return _fail(
-            f"error: {file_error(exc.filename or '(unnamed file)', exc, 'write' if write else 'read')}",
+            f"error: {what}",
             EXIT_USAGE,
             exc,
         )

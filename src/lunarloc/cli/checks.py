@@ -31,7 +31,8 @@ def enum_value(value):
 
 
 def check_json_out(path, overwrite: bool) -> None:
-    """Before any work: a ``--json-out`` file may be written (refused if it exists, unless --overwrite)."""
+    """Before any work: a ``--json-out`` file may be written (refused if it exists, unless
+    --overwrite)."""
     if path is not None:
         from lunarloc.io.outputs import check_output_file
 
@@ -39,7 +40,8 @@ def check_json_out(path, overwrite: bool) -> None:
 
 
 def write_json_out(doc: dict, path, to_stdout: bool) -> None:
-    """`doc` as one JSON line on stdout (``--json``) and/or into `path` (``--json-out``, atomically)."""
+    """`doc` as one JSON line on stdout (``--json``) and/or into `path` (``--json-out``,
+    atomically)."""
     import json
 
     text = json.dumps(doc)
@@ -53,7 +55,8 @@ def write_json_out(doc: dict, path, to_stdout: bool) -> None:
 
 
 def choice(value: str, valid: type[enum.Enum] | Iterable[str], option: str) -> str:
-    """`value` if it is one of `valid` (an Enum's values or strings), else ConfigError listing them."""
+    """`value` if it is one of `valid` (an Enum's values or strings), else ConfigError listing
+    them."""
     values = (
         [m.value for m in valid]
         if isinstance(valid, type) and issubclass(valid, enum.Enum)

@@ -19,8 +19,8 @@ def campaign_cmd(
     scheduler: Optional[str] = typer.Option(
         None,
         "--scheduler",
-        help="Dask scheduler address (tcp://host:8786); 'sync' runs the jobs one after another here; "
-        "default: a local cluster.",
+        help="Dask scheduler address (tcp://host:8786); 'sync' runs the jobs one after another "
+        "here; default: a local cluster.",
     ),
     workers: Optional[int] = typer.Option(
         None, "--workers", min=1, max=256, help="Local cluster workers (default: cores)."
@@ -100,7 +100,8 @@ def campaign_cmd(
     counts = ", ".join(f"{v} {k}" for k, v in sorted(res.counts.items()))
     counts += f", {sum(r.get('check') == 'pass' for r in res.rows)} passed the check"
     con.print(
-        f"{len(res.rows)} jobs ({counts}; {res.skipped} finished earlier, skipped) in {res.wall_s:.0f} s wall"
+        f"{len(res.rows)} jobs ({counts}; {res.skipped} finished earlier, skipped) in "
+        f"{res.wall_s:.0f} s wall"
     )
     con.print(f"wrote {res.table_csv}" + (f" and {res.figure}" if res.figure else ""))
     if any(r["status"] != "ok" or r.get("check") != "pass" for r in res.rows):

@@ -115,12 +115,14 @@ def map_cmd(
 def localize_cmd(
     reference: Path = typer.Argument(
         ...,
-        help="Reference map: landmark CSV/.npz, traverse CSV, rocks.csv, LAC geometric map (.npy) or rock catalogue CSV.",
+        help="Reference map: landmark CSV/.npz, traverse CSV, rocks.csv, LAC geometric map (.npy) "
+        "or rock catalogue CSV.",
     ),
     vehicle: Path = typer.Argument(
         ...,
-        help="Vehicle map: landmark CSV/.npz or traverse CSV (then its path is used: the pose is judged at the "
-        "traverse's last position, and a fitted distortion places each landmark where it was seen from).",
+        help="Vehicle map: landmark CSV/.npz or traverse CSV (then its path is used: the pose is "
+        "judged at the traverse's last position, and a fitted distortion places each landmark "
+        "where it was seen from).",
     ),
     as_json: bool = JSON_STDOUT_OPT,
     json_out: Optional[Path] = JSON_OUT_OPT,
@@ -150,11 +152,12 @@ def localize_cmd(
     ),
     odometry_scale_error: Optional[float] = typer.Option(
         None,
-        help="Bound on the vehicle map's relative scale error (its odometry's spec, 0.03 = 3 %; 0: a rigid "
-        "map). Stated bounds win; without them a file that says its poses were the ground truth (a LunarLoc "
-        "dataset traverse CSV, or a 'pose' column / '# pose:' line saying ground-truth) is judged rigid, and "
-        "any other map's distortion is fitted from the maps, under a prior of real rover odometry "
-        "(0.012 deg/m, 0.3 %; docs/verification.md) when the vehicle is a traverse CSV (its path known).",
+        help="Bound on the vehicle map's relative scale error (its odometry's spec, 0.03 = 3 %; 0: "
+        "a rigid map). Stated bounds win; without them a file that says its poses were the ground "
+        "truth (a LunarLoc dataset traverse CSV, or a 'pose' column / '# pose:' line saying "
+        "ground-truth) is judged rigid, and any other map's distortion is fitted from the maps, "
+        "under a prior of real rover odometry (0.012 deg/m, 0.3 %; docs/verification.md) when the "
+        "vehicle is a traverse CSV (its path known).",
     ),
     odometry_drift: Optional[float] = typer.Option(
         None, help="Bound on the odometry's heading drift, degrees per metre (0: a rigid map)."
@@ -203,13 +206,11 @@ def localize_cmd(
     cfg: LocalizationConfig = run_cfg.localization
     agg = _agg(radius, min_sightings)
     ref = load_reference(reference, agg, dem=dem)
-    v = load_vehicle(
-        vehicle, agg
-    )  # a traverse CSV: its map, the path that built it and the rover's last position
+    # a traverse CSV: its map, the path that built it and the rover's last position
+    v = load_vehicle(vehicle, agg)
     veh = v.map
-    kernels = (
-        prepare_kernels()
-    )  # compiled or loaded here, announced, and never counted in the result's time
+    # compiled or loaded here, announced, and never counted in the result's time
+    kernels = prepare_kernels()
     res = localize_large(
         ref, veh, cfg, run_cfg.index, search=search, query_xyz=v.query_xyz, path_xyz=v.path_xyz
     )
@@ -232,30 +233,34 @@ def localize_cmd(
     from lunarloc.pipeline.reference import reference_summary
 
     con.print(
-        f"{vehicle.name} ({len(veh)} landmarks) in {reference.name} ({reference_summary(reference, ref)}): {status}"
+        f"{vehicle.name} ({len(veh)} landmarks) in {reference.name} "
+        f"({reference_summary(reference, ref)}): {status}"
     )
     con.print(
-        f"inliers {res.num_inliers} (needed {res.required_inliers}, competitor {res.competitor_size}), "
-        f"RMSE {res.residual_rmse_m * 100:.2f} cm, yaw {res.yaw_deg:.2f} deg, tilt {res.tilt_deg:.2f} deg, "
-        f"{res.time_s * 1000:.0f} ms"
+        f"inliers {res.num_inliers} (needed {res.required_inliers}, competitor "
+        f"{res.competitor_size}), RMSE {res.residual_rmse_m * 100:.2f} cm, yaw {res.yaw_deg:.2f} "
+        f"deg, tilt {res.tilt_deg:.2f} deg, {res.time_s * 1000:.0f} ms"
     )
     if res.search == "indexed":
         con.print(
-            f"indexed search: {len(res.candidates)} candidate region(s), answer from candidate {res.winner + 1}"
+            f"indexed search: {len(res.candidates)} candidate region(s), answer from candidate "
+            f"{res.winner + 1}"
         )
     if math.isfinite(res.predicted_error_m):
         con.print(
-            f"predicted 1-sigma error {res.predicted_error_m * 100:.1f} cm, {res.predicted_rotation_deg:.2f} deg; "
-            f"near misses {res.near_misses} (chance {res.near_misses_expected:.1f})"
+            f"predicted 1-sigma error {res.predicted_error_m * 100:.1f} cm, "
+            f"{res.predicted_rotation_deg:.2f} deg; near misses {res.near_misses} (chance "
+            f"{res.near_misses_expected:.1f})"
         )
     if res.odometry_bounds:
         con.print(res.odometry_bounds["text"], markup=False)
     if res.distortion_fit:
         f = res.distortion_fit
         con.print(
-            f"fitted heading drift {math.degrees(f['drift_rad_per_m']):+.3f} "
-            f"+- {math.degrees(f['drift_se']):.3f} deg/m, scale error {f['scale_error'] * 100:+.2f} "
-            f"+- {f['scale_se'] * 100:.2f} % ({'along the given path' if f['path_given'] else 'path unknown: straight stand-in'}"
+            f"fitted heading drift {math.degrees(f['drift_rad_per_m']):+.3f} +- "
+            f"{math.degrees(f['drift_se']):.3f} deg/m, scale error {f['scale_error'] * 100:+.2f} "
+            f"+- {f['scale_se'] * 100:.2f} % "
+            f"({'along the given path' if f['path_given'] else 'path unknown: straight stand-in'}"
             + (
                 ""
                 if f.get("prior", "none") == "none"
@@ -310,7 +315,8 @@ def bench_pairs_cmd(
     odometry_bounds: bool = typer.Option(
         True,
         "--odometry-bounds/--no-odometry-bounds",
-        help="Tell the localizer the simulated drift as its odometry's bounds (scale, heading drift).",
+        help="Tell the localizer the simulated drift as its odometry's bounds (scale, heading "
+        "drift).",
     ),
     check: bool = typer.Option(
         False, "--check", help="Exit 1 unless the acceptance targets are met."
@@ -327,9 +333,8 @@ def bench_pairs_cmd(
     from lunarloc.io.outputs import check_output_dir
 
     mode, solver = enum_value(mode), enum_value(solver)
-    drift = (
-        heading_drift if drift is None else drift
-    )  # --drift: the old name, kept as a hidden alias
+    # --drift: the old name, kept as a hidden alias
+    drift = heading_drift if drift is None else drift
     number(drift, "--heading-drift", 0.0, 10.0, unit="deg/m")
     number(scale_error, "--scale-error", -0.5, 0.5)
     positive(window, "--window", 1e6, "m")
@@ -406,7 +411,8 @@ def bench_pairs_cmd(
     )
     big = max(res, key=lambda r: r.segs_ref * r.segs_veh)
     con.print(
-        f"largest pair {big.reference}-{big.vehicle} ({big.segs_ref}x{big.segs_veh} landmarks): {big.time_s:.3f} s"
+        f"largest pair {big.reference}-{big.vehicle} ({big.segs_ref}x{big.segs_veh} landmarks): "
+        f"{big.time_s:.3f} s"
     )
     csv_path, json_path = write_pairs(summary, out)
     con.print(f"wrote {csv_path} and {json_path}")

@@ -104,7 +104,8 @@ def info(
     ),
     overwrite: bool = OVERWRITE_OPT,
 ) -> None:
-    """Summarise a .lac archive: frames, duration, cameras, image counts, path length, custom records."""
+    """Summarise a .lac archive: frames, duration, cameras, image counts, path length, custom
+    records."""
     from rich.table import Table as RichTable
 
     from lunarloc.io.lac.archive import LacArchive
@@ -114,7 +115,8 @@ def info(
     if plot is not None:
         if plot.suffix.lower() not in PLOT_SUFFIXES:
             raise ConfigError(
-                f"--plot {plot}: unknown image format {plot.suffix!r} (use {', '.join(PLOT_SUFFIXES)})"
+                f"--plot {plot}: unknown image format {plot.suffix!r} (use "
+                f"{', '.join(PLOT_SUFFIXES)})"
             )
         check_output_file(plot, overwrite, "plot")
 
@@ -126,7 +128,8 @@ def info(
         if md.get("description"):
             con.print(f"  description : {md['description']}")
         con.print(
-            f"  data_spec   : {md.get('data_spec', '?')}   recorded {md.get('start_time', '?')} .. {md.get('end_time', '?')}"
+            f"  data_spec   : {md.get('data_spec', '?')}   recorded {md.get('start_time', '?')} .. "
+            f"{md.get('end_time', '?')}"
         )
         frames = s["frames"]
         span = f" ({s['first_frame']}..{s['last_frame']})" if frames else ""

@@ -1,5 +1,6 @@
 """`lunarloc run A.lac B.lac [--reference MAP] [--share-maps] -o OUT`: several rovers on one
-clock (the driver is :mod:`lunarloc.pipeline.multirover`; this module checks arguments and prints)."""
+clock (the driver is :mod:`lunarloc.pipeline.multirover`; this module checks arguments and
+prints)."""
 
 from __future__ import annotations
 
@@ -92,6 +93,6 @@ def run_several(
     for p in written:
         typer.echo(f"wrote {p}")
     typer.echo(
-        f"wrote {out}/<rover>/ for {', '.join(r.name for r in res.rovers)} (the layout of one `lunarloc run`; "
-        "its config.json repeats it with --config)"
+        f"wrote {out}/<rover>/ for {', '.join(r.name for r in res.rovers)} (the layout of one "
+        "`lunarloc run`; its config.json repeats it with --config)"
     )

@@ -66,9 +66,8 @@ def odometry_cmd(
     con = console(stderr=to_stdout)  # with --json, stdout holds the JSON object alone
     with LacArchive(archive) as ar:
         source = source or default_odometry_source(ar)
-        bar = tqdm(
-            unit="pair", desc=f"odometry {source}", dynamic_ncols=True, disable=None
-        )  # on stderr
+        # on stderr
+        bar = tqdm(unit="pair", desc=f"odometry {source}", dynamic_ncols=True, disable=None)
 
         def prog(n, total):
             bar.total = total
@@ -89,7 +88,8 @@ def odometry_cmd(
     }
     if not np.all(np.isfinite(traj.T_map_rover)):  # never written as a result
         raise InputError(
-            f"{archive}: the {traj.label} odometry is not finite (a non-finite value in the archive?)"
+            f"{archive}: the {traj.label} odometry is not finite (a non-finite value in the "
+            "archive?)"
         )
     bad = [k for k, v in drift.items() if isinstance(v, float) and not math.isfinite(v)]
     if bad:
@@ -110,7 +110,8 @@ def odometry_cmd(
     )
     con.print(f"  final error   : {drift['final_error_m']:.3f} m ({pct} of the path)")
     con.print(
-        f"  heading error : {drift['heading_error_deg']:.3f} deg at the end (max {drift['max_heading_error_deg']:.3f} deg)"
+        f"  heading error : {drift['heading_error_deg']:.3f} deg at the end (max "
+        f"{drift['max_heading_error_deg']:.3f} deg)"
     )
     con.print(f"  RMSE          : {drift['rmse_m']:.3f} m (max {drift['max_error_m']:.3f} m)")
     if traj.failures:

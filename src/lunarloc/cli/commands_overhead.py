@@ -56,9 +56,8 @@ def score_cmd(
     per-cell rock flags (rock map), mapping productivity, and the LAC's points."""
     from lunarloc.io.overhead import MAX_HEIGHT_TOLERANCE_M, load_lac_grid, score_geometric_map
 
-    positive(
-        height_tolerance, "--height-tolerance", MAX_HEIGHT_TOLERANCE_M, "m"
-    )  # before reading the maps
+    # before reading the maps
+    positive(height_tolerance, "--height-tolerance", MAX_HEIGHT_TOLERANCE_M, "m")
     positive(mission_time, "--mission-time", 1e7, "s")
     check_json_out(json_out, overwrite)
     p = load_lac_grid(produced, allow_unfilled=True)
@@ -89,21 +88,24 @@ def score_cmd(
     where = f"{s['cells']} cells the cameras saw" if seen_only else f"all {s['cells']} cells"
     con.print(f"{produced.name} vs {truth.name} ({where})")
     con.print(
-        f"geometric map: {s['geometric']:.1%} of cells within {height_tolerance * 100:g} cm in height"
+        f"geometric map: {s['geometric']:.1%} of cells within {height_tolerance * 100:g} cm in "
+        "height"
     )
     con.print(
-        f"rock map: precision {s['rock_precision']:.3f}, recall {s['rock_recall']:.3f}, F1 {s['rock_f1']:.3f} "
-        f"({s['rock_cells_produced']} rock cells produced, {s['rock_cells_true']} true)"
+        f"rock map: precision {s['rock_precision']:.3f}, recall {s['rock_recall']:.3f}, F1 "
+        f"{s['rock_f1']:.3f} ({s['rock_cells_produced']} rock cells produced, "
+        f"{s['rock_cells_true']} true)"
     )
     con.print(
-        f"productivity: {s['productivity']:.3f} ({s['cells_filled']} cells filled in {s['mission_time_s']:g} s)"
+        f"productivity: {s['productivity']:.3f} ({s['cells_filled']} cells filled in "
+        f"{s['mission_time_s']:g} s)"
     )
     pts = s["points"]
     label = "LAC points (as if the whole map were the cells seen)" if seen_only else "LAC points"
     con.print(
         f"{label}: geometric {pts['geometric_map']:.1f}/300, rocks {pts['rocks_map']:.1f}/300, "
-        f"productivity {pts['mapping_productivity']:.1f}/250, localization {pts['localization']:.0f}/150, "
-        f"total {pts['total']:.1f}/1000"
+        f"productivity {pts['mapping_productivity']:.1f}/250, localization "
+        f"{pts['localization']:.0f}/150, total {pts['total']:.1f}/1000"
     )
     if figure is not None:
         con.print(f"wrote {figure}")

@@ -22,7 +22,8 @@ def detect(
     config: Optional[Path] = typer.Option(
         None,
         "--config",
-        help="run configuration (a config.json written by detect or run); options given override it",
+        help="run configuration (a config.json written by detect or run); options given override "
+        "it",
     ),
     segmenter: Optional[SegmenterKind] = typer.Option(
         None, "--segmenter", help="default from the config: classical"
@@ -119,8 +120,8 @@ def detect(
             progress=prog,
         )
     typer.echo(
-        f"{res.frames} frames, {res.detections} detections placed with {res.pose_label} poses -> {output} "
-        f"({res.frames_per_s:.2f} frames/s; per frame: "
+        f"{res.frames} frames, {res.detections} detections placed with {res.pose_label} poses -> "
+        f"{output} ({res.frames_per_s:.2f} frames/s; per frame: "
         + ", ".join(f"{k} {1000 * v:.0f} ms" for k, v in res.per_frame_s().items())
         + f"; {len(STEREO_PAIRS)} pairs max)"
     )

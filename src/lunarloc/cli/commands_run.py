@@ -54,14 +54,15 @@ def _print_summary(s: dict, title: str) -> None:
     con.print(t)
     mx = s.get("max_accepted_fix_error_m")
     con.print(
-        f"path {s['path_length_m']:.1f} m in {s['duration_s']:.0f} s; attempts {s['attempts']}, localized "
-        f"{s['localized']}, fixes {s['fixes']} (gate rejected {s['rejected_by_gate']})"
+        f"path {s['path_length_m']:.1f} m in {s['duration_s']:.0f} s; attempts {s['attempts']}, "
+        f"localized {s['localized']}, fixes {s['fixes']} (gate rejected {s['rejected_by_gate']})"
         + (f", worst accepted fix {mx * 100:.1f} cm" if mx is not None else "")
     )
     per = ", ".join(f"{k} {v:.1f} ms" for k, v in s["time_per_image_frame_ms"].items())
     rt = s.get("real_time_fraction")
     con.print(
-        f"time per image frame: {per}; real-time fraction {rt:.3f} ({1 / rt:.1f}x faster than real time)"
+        f"time per image frame: {per}; real-time fraction {rt:.3f} ({1 / rt:.1f}x faster than real "
+        "time)"
         if rt
         else per
     )
@@ -133,8 +134,9 @@ def run_cmd(
     lac_map: Optional[Path] = typer.Option(
         None,
         "--lac-map",
-        help="Also write the LAC geometric map (.npy, 180 x 180 x 4) from the stereo points and detections, "
-        "placed with the corrected poses, and its cells' side data (.cells.npz); score it with `lunarloc score`.",
+        help="Also write the LAC geometric map (.npy, 180 x 180 x 4) from the stereo points and "
+        "detections, placed with the corrected poses, and its cells' side data (.cells.npz); score "
+        "it with `lunarloc score`.",
     ),
     small_rocks: Optional[bool] = typer.Option(
         None,
@@ -144,7 +146,8 @@ def run_cmd(
     ),
 ) -> None:
     """Online localization over a traverse: detect, map, localize against REFERENCE, fuse.
-    Several archives play on one mission clock, each rover also using the others' maps with --share-maps."""
+    Several archives play on one mission clock, each rover also using the others' maps with
+    --share-maps."""
     from tqdm import tqdm
 
     from lunarloc.config.run import RunConfig
@@ -188,7 +191,8 @@ def run_cmd(
         from lunarloc.core.errors import ConfigError
 
         raise ConfigError(
-            "--reference MAP is required with one archive (several archives can use --share-maps instead)"
+            "--reference MAP is required with one archive (several archives can use --share-maps "
+            "instead)"
         )
     check_input_file(archive, None, ".lac archive")
     check_output_dir(out, overwrite)  # a previous run is refused, or cleared with --overwrite
@@ -227,9 +231,8 @@ def run_cmd(
     except BaseException:
         from lunarloc.io.outputs import remove_partial_outputs
 
-        remove_partial_outputs(
-            out
-        )  # what this run wrote (the folder held no run: checked above), temporaries too
+        # what this run wrote (the folder held no run: checked above), temporaries too
+        remove_partial_outputs(out)
         raise
     if mapper is not None:
         import numpy as np
@@ -240,8 +243,9 @@ def run_cmd(
         for p in save_lac_map(est, lac_map):
             typer.echo(f"wrote {p}")
         typer.echo(
-            f"LAC map: {int(est.observed.sum())} cells seen, {int(est.interpolated.sum())} interpolated, "
-            f"{int(np.sum(est.array[:, :, 3] >= 0.5))} rock cells ({len(est.rocks)} rocks)"
+            f"LAC map: {int(est.observed.sum())} cells seen, {int(est.interpolated.sum())} "
+            f"interpolated, {int(np.sum(est.array[:, :, 3] >= 0.5))} rock cells ({len(est.rocks)} "
+            "rocks)"
         )
     from lunarloc.pipeline.reference import reference_summary
 
@@ -336,12 +340,12 @@ def demo_cmd(
     t0 = time.perf_counter()
     try:
         s = run_scenario(scen, out, log=lambda msg: typer.echo(f"[demo] {msg}"), run_config=run_cfg)
-    except (
-        KeyboardInterrupt
-    ):  # a failed stage keeps its data for a look (no summary.json: not complete)
+    # a failed stage keeps its data for a look (no summary.json: not complete)
+    except KeyboardInterrupt:
         from lunarloc.io.outputs import remove_partial_outputs
 
-        # both folders held none of these names (checked above): what this demo wrote, and temporaries
+        # both folders held none of these names (checked above): what this demo wrote, and
+        # temporaries
         remove_partial_outputs(out)
         remove_partial_outputs(Path(out) / "data", DEMO_DATA_FILES)
         raise
@@ -385,8 +389,8 @@ def bench_loop_cmd(
     odometry_bounds: bool = typer.Option(
         False,
         "--odometry-bounds/--no-odometry-bounds",
-        help="Tell the localizer the simulated drift as its odometry's bounds (localization.distortion.scale_error, "
-        "heading_drift_deg_per_m), as bench pairs does.",
+        help="Tell the localizer the simulated drift as its odometry's bounds "
+        "(localization.distortion.scale_error, heading_drift_deg_per_m), as bench pairs does.",
     ),
     overwrite: bool = OVERWRITE_OPT,
 ) -> None:
@@ -400,9 +404,8 @@ def bench_loop_cmd(
     from lunarloc.pipeline.evaluation import find_traverses
     from lunarloc.io.outputs import check_output_dir
 
-    heading_drift = (
-        heading_drift if drift is None else drift
-    )  # one name across bench commands; --drift an alias
+    # one name across bench commands; --drift an alias
+    heading_drift = heading_drift if drift is None else drift
     number(heading_drift, "--heading-drift", 0.0, 10.0, unit="deg/m")
     number(scale_error, "--scale-error", -0.5, 0.5)
     number(min_length, "--min-length", 0.0, 1e6, unit="m")
@@ -427,7 +430,8 @@ def bench_loop_cmd(
     con = console()
     o = cfg.odometry
     table = Table(
-        title=f"online loop on real traverses (drift {o.heading_drift_deg_per_m} deg/m, scale {o.scale_error:+.1%})"
+        title=f"online loop on real traverses (drift {o.heading_drift_deg_per_m} deg/m, scale "
+        f"{o.scale_error:+.1%})"
     )
     for col in (
         "vehicle",

@@ -13,8 +13,8 @@ def warm_up_cmd(
     aot: bool = typer.Option(
         True,
         "--aot/--no-aot",
-        help="Also compile the kernels ahead of time (needs a C compiler; a process "
-        "that finds them neither imports numba nor waits for it). Without them numba's cache is used.",
+        help="Also compile the kernels ahead of time (needs a C compiler; a process that finds "
+        "them neither imports numba nor waits for it). Without them numba's cache is used.",
     ),
 ) -> None:
     """Compile (or load from numba's cache) every association kernel, then compile them ahead
@@ -45,5 +45,6 @@ def warm_up_cmd(
         )
         return
     typer.echo(
-        f"ahead-of-time kernels: {r.signatures} signatures compiled in {r.seconds:.1f} s -> {r.path.name}"
+        f"ahead-of-time kernels: {r.signatures} signatures compiled in {r.seconds:.1f} s -> "
+        f"{r.path.name}"
     )

@@ -109,7 +109,8 @@ class OdometryConfig:
 
     @property
     def drift(self):
-        """The simulated drift of traverse-CSV runs (:class:`lunarloc.odometry.drift.DriftModel`)."""
+        """The simulated drift of traverse-CSV runs
+        (:class:`lunarloc.odometry.drift.DriftModel`)."""
         from lunarloc.odometry.drift import DriftModel
 
         return DriftModel(self.heading_drift_deg_per_m, self.scale_error)
@@ -127,9 +128,8 @@ class RunConfig:
     runs on images (``lunarloc run``, ``demo``); :meth:`for_detections` gives those of runs on
     the real dataset's detections (``bench loop``)."""
 
-    detector: Any = field(
-        default_factory=_detector_default
-    )  # DetectorConfig, at detector_tuned_width_px
+    # DetectorConfig, at detector_tuned_width_px
+    detector: Any = field(default_factory=_detector_default)
     detector_tuned_width_px: int = 1280  # the detector's pixel sizes are tuned at this image width
     localization: LocalizationConfig = field(default_factory=image_localization_config)
     index: IndexConfig = field(default_factory=IndexConfig)
@@ -152,7 +152,8 @@ class RunConfig:
             or not 64 <= self.detector_tuned_width_px <= 8192
         ):
             raise ConfigError(
-                f"detector_tuned_width_px={self.detector_tuned_width_px!r} must be an integer in [64, 8192]"
+                f"detector_tuned_width_px={self.detector_tuned_width_px!r} must be an integer in "
+                "[64, 8192]"
             )
 
     @classmethod
@@ -233,11 +234,8 @@ def _replaced(cfg, values: Mapping):
 #: a rate), any other low end inclusive. Beyond these, every number in a configuration must
 #: lie within +-MAX_SETTING_MAGNITUDE.
 SETTING_LIMITS: dict[str, tuple[float, float, str]] = {
-    "localization.search.epsilon_m": (
-        0.0,
-        0.3,
-        "m",
-    ),  # the consistency graph grows with it (docs/robustness.md)
+    # the consistency graph grows with it (docs/robustness.md)
+    "localization.search.epsilon_m": (0.0, 0.3, "m"),
     "localization.search.epsilon_z_m": (0.0, 0.3, "m"),
     "localization.search.sigma_m": (0.0, 0.3, "m"),
     "localization.refinement.radius_m": (0.0, 10.0, "m"),
@@ -256,11 +254,8 @@ SETTING_LIMITS: dict[str, tuple[float, float, str]] = {
     "loop.keyframe_every_s": (1e-3, 1e7, "s"),
     "loop.keyframe_max_interval_s": (1e-3, 1e7, "s"),
     "loop.min_window_landmarks": (3, 1_000_000, ""),
-    "odometry.heading_drift_deg_per_m": (
-        -1.0,
-        10.0,
-        "deg/m",
-    ),  # the low end: OdometryConfig's (>= 0)
+    # the low end: OdometryConfig's (>= 0)
+    "odometry.heading_drift_deg_per_m": (-1.0, 10.0, "deg/m"),
     "odometry.scale_error": (-0.5, 0.5, ""),
     "odometry.rate_hz": (0.0, 1000.0, "Hz"),
 }

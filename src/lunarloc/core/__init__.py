@@ -1,1 +1,2 @@
-"""Foundation: errors, SE(3) geometry and Arun's method, trajectory metrics, config serialisation, process set-up. numpy only."""
+"""Foundation: errors, SE(3) geometry and Arun's method, trajectory metrics, config serialisation,
+process set-up. numpy only."""

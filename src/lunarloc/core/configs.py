@@ -211,7 +211,9 @@ class Range:
         hi = self.le if self.le is not None else self.lt
         mult = f", a multiple of {self.multiple_of}" if self.multiple_of else ""
         if lo is not None and hi is not None:
-            return f"{'[' if self.ge is not None else '('}{lo:g}, {hi:g}{']' if self.le is not None else ')'}{mult}"
+            left = "[" if self.ge is not None else "("
+            right = "]" if self.le is not None else ")"
+            return f"{left}{lo:g}, {hi:g}{right}{mult}"
         if lo is not None:
             return f"{'>=' if self.ge is not None else '>'} {lo:g}{mult}"
         if hi is not None:
@@ -267,10 +269,8 @@ def check_settings(obj) -> None:
         if rng is None:
             continue
         v, tp = getattr(obj, f.name), hints[f.name]
-        if typing.get_origin(tp) in (
-            typing.Union,
-            types.UnionType,
-        ):  # an optional setting: None passes
+        # an optional setting: None passes
+        if typing.get_origin(tp) in (typing.Union, types.UnionType):
             if v is None and type(None) in typing.get_args(tp):
                 continue
             tp = next((a for a in typing.get_args(tp) if a is not type(None)), tp)

@@ -126,7 +126,8 @@ def integer(
     v = int(value)
     if (lo is not None and v < lo) or (hi is not None and v > hi):
         raise error(
-            f"{name} must be an integer in [{lo if lo is not None else '-inf'}, {hi if hi is not None else 'inf'}], got {v}"
+            f"{name} must be an integer in [{lo if lo is not None else '-inf'}, "
+            f"{hi if hi is not None else 'inf'}], got {v}"
         )
     return v
 
@@ -152,8 +153,8 @@ def rigid_transform(
     if ortho > tol or abs(det - 1.0) > tol:
         what = "a reflection" if det < 0 else ("singular" if abs(det) < tol else "not a rotation")
         raise InputError(
-            f"{name}: the rotation block is {what} (max |R^T R - I| = {ortho:.3g}, det = {det:.6g}; "
-            f"a rigid transform needs both within {tol:g} of a rotation)"
+            f"{name}: the rotation block is {what} (max |R^T R - I| = {ortho:.3g}, det = "
+            f"{det:.6g}; a rigid transform needs both within {tol:g} of a rotation)"
         )
     if float(np.max(np.abs(a[:3, 3]))) > max_abs_m:
         raise InputError(f"{name}: translation {_fmt(a[:3, 3])} m beyond +-{max_abs_m:g} m")
@@ -161,10 +162,12 @@ def rigid_transform(
 
 
 def imu_sample(imu, name: str = "imu") -> np.ndarray:
-    """`imu` as a float64 (6,) ``[ax, ay, az, wx, wy, wz]`` within MAX_ACCEL_MPS2 / MAX_GYRO_RADPS."""
+    """`imu` as a float64 (6,) ``[ax, ay, az, wx, wy, wz]`` within MAX_ACCEL_MPS2 /
+    MAX_GYRO_RADPS."""
     if imu is None or isinstance(imu, (str, bytes, dict)):
         raise InputError(
-            f"{name} must be 6 numbers [ax, ay, az, wx, wy, wz] (m/s^2, rad/s), got {type(imu).__name__}"
+            f"{name} must be 6 numbers [ax, ay, az, wx, wy, wz] (m/s^2, rad/s), got "
+            f"{type(imu).__name__}"
         )
     try:
         raw = np.asarray(imu)
@@ -195,8 +198,8 @@ def instance(value, name: str, cls: type, hint: str = ""):
     """`value` if an instance of `cls`, else ConfigError naming the argument and the type."""
     if not isinstance(value, cls):
         raise ConfigError(
-            f"{name} must be a {cls.__name__}{f' ({hint})' if hint else ''}, got {type(value).__name__} "
-            f"{_short(value)}"
+            f"{name} must be a {cls.__name__}{f' ({hint})' if hint else ''}, got "
+            f"{type(value).__name__} {_short(value)}"
         )
     return value
 

@@ -1,1 +1,2 @@
-"""Files: safe reading and atomic writing, landmark-map formats, maps from above, run folders, LAC archives."""
+"""Files: safe reading and atomic writing, landmark-map formats, maps from above, run folders, LAC
+archives."""

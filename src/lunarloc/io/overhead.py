@@ -118,7 +118,8 @@ def validate_lac_grid(
         raise InputError(f"{name}: expected a numeric array, got dtype {arr.dtype}")
     if arr.ndim != 3 or arr.shape[2] != 4 or arr.shape[0] < 2 or arr.shape[1] < 2:
         raise InputError(
-            f"{name}: expected shape (N, N, 4) with cells x, y, height, rock flag (LAC: (180, 180, 4)); got {arr.shape}"
+            f"{name}: expected shape (N, N, 4) with cells x, y, height, rock flag (LAC: (180, 180, "
+            f"4)); got {arr.shape}"
         )
     arr = arr.astype(np.float64)
     for k, what in ((0, "x"), (1, "y"), (2, "height"), (3, "rock flag")):
@@ -128,7 +129,8 @@ def validate_lac_grid(
         if np.any(bad):
             i, j = np.argwhere(bad)[0]
             raise InputError(
-                f"{name}: {int(bad.sum())} cell(s) with a non-finite {what} (first: cell [{i}, {j}])"
+                f"{name}: {int(bad.sum())} cell(s) with a non-finite {what} (first: cell [{i}, "
+                f"{j}])"
             )
     flag = arr[:, :, 3]
     flag = flag[flag != UNFILLED] if allow_unfilled else flag
@@ -298,12 +300,14 @@ def load_rock_catalogue(
         missing = [c for c in ("x", "y", "radius") if c not in header]
         if missing:
             raise FileFormatError(
-                f"{path}:1: missing column(s) {', '.join(missing)} (catalogue: x, y[, z], radius[, sigma_m])"
+                f"{path}:1: missing column(s) {', '.join(missing)} (catalogue: x, y[, z], radius[, "
+                "sigma_m])"
             )
         unknown = [c for c in header if c not in _CATALOGUE_COLUMNS]
         if unknown:
             raise FileFormatError(
-                f"{path}:1: unknown column(s) {', '.join(unknown)} (catalogue: x, y[, z], radius[, sigma_m])"
+                f"{path}:1: unknown column(s) {', '.join(unknown)} (catalogue: x, y[, z], radius[, "
+                "sigma_m])"
             )
         col = {c: header.index(c) for c in header}
         lines, rows = [], []

@@ -30,10 +30,8 @@ import numpy as np
 
 from lunarloc.core.errors import FileFormatError
 
-from lunarloc.io.trajectory import (
-    read_tum,
-    write_tum,
-)  # their home is io.trajectory; kept importable here
+# their home is io.trajectory; kept importable here
+from lunarloc.io.trajectory import read_tum, write_tum
 
 __all__ = ["write_tum", "read_tum", "write_run", "read_run", "RunFolder", "to_json_ready"]
 

@@ -38,16 +38,18 @@ def write_tum(path: str | Path, times_s, T_map_rover) -> Path:
     times = np.asarray(times_s, dtype=float).reshape(-1)
     T = _poses(T_map_rover, len(times))
     poses = np.array([matrix_to_pose(t) for t in T], float).reshape(-1, 6)
+    # x, y, z, w
     q = (
         Rotation.from_euler("ZYX", poses[:, [5, 4, 3]]).as_quat()
         if len(poses)
         else np.zeros((0, 4))
-    )  # x, y, z, w
+    )
     path = Path(path)
     with atomic_open(path, "w") as fh:
         for t, p, qq in zip(times, poses, q):
             fh.write(
-                f"{t:.6f} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} {qq[0]:.8f} {qq[1]:.8f} {qq[2]:.8f} {qq[3]:.8f}\n"
+                f"{t:.6f} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} {qq[0]:.8f} {qq[1]:.8f} {qq[2]:.8f} "
+                f"{qq[3]:.8f}\n"
             )
     return path
 

@@ -1,1 +1,2 @@
-"""One-shot global localization: search, screen, register, uncertainty, large maps, kernel warm-up."""
+"""One-shot global localization: search, screen, register, uncertainty, large maps, kernel
+warm-up."""

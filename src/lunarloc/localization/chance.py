@@ -50,7 +50,8 @@ _CHANCE_MODEL = {Mode.GRAVITY: (-0.30, 1.83), Mode.SIX_DOF: (-3.69, 2.35)}
 _CHANCE_EPSILON_M = (
     0.05  # the search tolerance (horizontal and vertical) the envelope was measured at
 )
-_TOLERANCE_EXPONENT = 0.65  # measured: largest ratio of chance sets 2.0 at 3x the tolerance, 1.33 at 1.6x (gamma 0.63, 0.61)
+# measured: largest ratio of chance sets 2.0 at 3x the tolerance, 1.33 at 1.6x (gamma 0.63, 0.61)
+_TOLERANCE_EXPONENT = 0.65
 
 
 def near_miss_excess(

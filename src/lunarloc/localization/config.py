@@ -169,7 +169,8 @@ class UncertaintyConfig:
     """The maps' uncertainty behind the tolerances, the covariance and the predicted error
     (the fixed tolerances are floors; the maps' own sigma raises them, :meth:`for_maps`)."""
 
-    # horizontal 1-sigma per axis of a landmark whose map states none; added in quadrature to stated ones (m)
+    # horizontal 1-sigma per axis of a landmark whose map states none; added in quadrature to stated
+    # ones (m)
     landmark_sigma_m: float = setting(0.0083, gt=0.0)
     # vertical 1-sigma of such a landmark (m)
     landmark_sigma_z_m: float = setting(0.0083, gt=0.0)
@@ -245,7 +246,8 @@ class AcceptanceConfig:
     max_scale_error: float = 0.005
     # ... or within this many standard errors of the fitted scale
     scale_sigmas: float = 3.0
-    # vehicle landmarks landing refinement.radius_m..this far from a reference rock are near misses (m)
+    # vehicle landmarks landing refinement.radius_m..this far from a reference rock are near misses
+    # (m)
     near_miss_outer_m: float = setting(0.30, gt=0.0)
     # refuse when near misses exceed chance by this many standard deviations ...
     max_near_miss_z: float = 3.0
@@ -375,7 +377,8 @@ class LocalizationConfig:
 
     @property
     def odometry_bounds_stated(self) -> bool:
-        """Whether the odometry's distortion bounds are given (else they are fitted from the maps)."""
+        """Whether the odometry's distortion bounds are given (else they are fitted from the
+        maps)."""
         return self.distortion.bounds_stated
 
     @property

@@ -108,9 +108,8 @@ def _index_epsilon(
     """The horizontal search tolerance of this pair of maps (the vehicle map stating no
     sigma when it is not given): what the triangle sides are compared at."""
     if vehicle is None:
-        vehicle = LandmarkMap(
-            reference.positions_xyz[:1]
-        )  # no stated sigma: the config's landmark sigma
+        # no stated sigma: the config's landmark sigma
+        vehicle = LandmarkMap(reference.positions_xyz[:1])
     return cfg.for_maps(reference, vehicle).search.epsilon_m
 
 
@@ -148,9 +147,8 @@ def localize_large(
     # 2. the index of the reference's rock triangles, at the tolerance the crops are searched at
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    fm = cfg.for_maps(
-        reference, vehicle
-    )  # the crops are searched at the maps' tolerances: so are index and chance
+    # the crops are searched at the maps' tolerances: so are index and chance
+    fm = cfg.for_maps(reference, vehicle)
     index = _index_at(index, Pr, fm.search.epsilon_m, icfg)
     timings["index"] = time.perf_counter() - t0
     # 3. the vehicle's triangles vote for poses: the candidate regions
@@ -290,7 +288,8 @@ def _no_region(
     why = (
         "no candidate region: no vehicle triangle matched the reference index"
         if not votes.matches
-        else f"no candidate region with {icfg.min_votes} or more votes ({votes.matches} triangle matches)"
+        else f"no candidate region with {icfg.min_votes} or more votes ({votes.matches} triangle "
+        "matches)"
     )
     return LargeResult(
         False,
@@ -377,8 +376,8 @@ def _whole_reference_checks(
             ">=",
             "inliers against the chance envelope of the whole reference"
             if ok_chance
-            else f"{k} inliers is too few to beat chance in the whole reference ({m_full} associations; "
-            f"need {out.required_inliers})",
+            else f"{k} inliers is too few to beat chance in the whole reference ({m_full} "
+            f"associations; need {out.required_inliers})",
         ),
         Check(
             "winner_margin_regions",
@@ -397,7 +396,8 @@ def _whole_reference_checks(
             ratio * comp_clique,
             ok_clique,
             ">=",
-            f"consistent set against {ratio:g} x the best competing one (inside the crop and in other regions)"
+            f"consistent set against {ratio:g} x the best competing one (inside the crop and in "
+            "other regions)"
             if ok_clique
             else f"ambiguous: a consistent set of {clique} vs a competing one of {comp_clique}",
         ),

@@ -173,7 +173,8 @@ def _prepare(reference, vehicle, config):
         from lunarloc.core.validate import instance
 
         instance(config, "config", LocalizationConfig, "lunarloc.LocalizationConfig")
-    prepare_kernels()  # first call of a process: compile or load the kernels before any stage timer starts
+    # first call of a process: compile or load the kernels before any stage timer starts
+    prepare_kernels()
     config, bounds = resolve_odometry_bounds(config or LocalizationConfig(), vehicle)
     if (
         isinstance(reference, LandmarkMap)
@@ -193,10 +194,10 @@ def _prepare(reference, vehicle, config):
 
 def _screen_reason(screen, cfg, required: int) -> str:
     return (
-        f"no consistent set large enough: the best of {screen.candidates} candidate poses voted by the "
-        f"reference's rock triangles has {screen.score:.1f} inliers beyond chance ({screen.inliers} in all), "
-        f"under {cfg.screen.fraction:g} x the {required} acceptance needs; the exhaustive search "
-        f"(~{screen.incidences:.2g} graph edges) was not run"
+        f"no consistent set large enough: the best of {screen.candidates} candidate poses voted by "
+        f"the reference's rock triangles has {screen.score:.1f} inliers beyond chance "
+        f"({screen.inliers} in all), under {cfg.screen.fraction:g} x the {required} acceptance "
+        f"needs; the exhaustive search (~{screen.incidences:.2g} graph edges) was not run"
     )
 
 
@@ -236,9 +237,8 @@ class _Problem:
         self.bounds = bounds  # where the odometry bounds in cfg came from
         self.Pr, self.Pv = reference.positions_xyz, vehicle.positions_xyz
         self.sigma_h, self.sigma_z = combined_sigma(reference, vehicle, cfg)
-        self.built_from_detections = sum(
-            m.sightings is not None for m in (reference, vehicle)
-        )  # 0, 1 or 2 maps
+        # 0, 1 or 2 maps
+        self.built_from_detections = sum(m.sightings is not None for m in (reference, vehicle))
         self.required, self.num_associations, self.num_edges = 0, 0, 0
         self.best, self.inl = [], np.zeros((0, 2), int)
 
@@ -363,13 +363,13 @@ class _Problem:
                 math.radians(cfg.distortion.heading_drift_deg_per_m or 0.0),
                 path,
             )
-        else:  # no bounds stated: what the maps show of a bend or scale error, and how unsure that is
+        # no bounds stated: what the maps show of a bend or scale error, and how unsure that is
+        else:
             distortion, distortion_rot = np.array([math.inf]), np.array([math.inf])
             if len(inl) >= cfg.distortion.fit_min_inliers:
                 bend = self._fitted_bend(query, path)
-        pred = (
-            pred_fit + distortion
-        )  # the distortion is a bound (a bias), not a random error: added, not in quadrature
+        # the distortion is a bound (a bias), not a random error: added, not in quadrature
+        pred = pred_fit + distortion
         rot_sigma = (
             math.sqrt(max(float(np.max(np.linalg.eigvalsh(C_c[3:, 3:]))), 0.0))
             if np.all(np.isfinite(C_c))
@@ -418,7 +418,8 @@ class _Problem:
         )
 
     def _fitted_bend(self, query, path):
-        """The bend fitted from the maps alone, then with the odometry prior where the maps agree."""
+        """The bend fitted from the maps alone, then with the odometry prior where the maps
+        agree."""
         cfg, vehicle = self.cfg, self.vehicle
         arcs = (
             (vehicle.sighting_arc_m, vehicle.sighting_arc_min_m, vehicle.sighting_arc_max_m)
@@ -454,7 +455,8 @@ class _Problem:
             if conflict <= PRIOR_CONFLICT_SIGMAS:
                 bend = bending_fit(*fit_args, *prior)
                 bend.prior = "applied"
-            else:  # the maps show a bend real odometry does not make: the prior does not describe them
+            # the maps show a bend real odometry does not make: the prior does not describe them
+            else:
                 bend.prior = f"rejected: the maps' bend is {conflict:.1f} sigma from the prior"
         return bend
 
@@ -544,7 +546,8 @@ class _Problem:
                     screen.needed,
                     True,
                     ">=",
-                    "inliers beyond chance at the best pose voted by the reference's rock triangles",
+                    "inliers beyond chance at the best pose voted by the reference's rock "
+                    "triangles",
                 ),
             )
         failed = [c for c in out.checks if not c.passed]

@@ -86,7 +86,8 @@ def _register_robust(P, Q, cfg, T=None):
 
 
 def _refine(T, Pv, Pr, inl, cfg):
-    """Mutual nearest neighbours within refine_radius under T, re-fitted (`refine_rounds` rounds)."""
+    """Mutual nearest neighbours within refine_radius under T, re-fitted (`refine_rounds`
+    rounds)."""
     tree = cKDTree(Pr)
     best_T, best_inl = T, inl
     for _ in range(cfg.refinement.rounds):

@@ -25,7 +25,8 @@ class LocalizationResult:
         and yaw at the query point where the predicted error is largest
         (:func:`distortion_covariance`).
     near_misses : vehicle landmarks that land just outside the inlier radius of a reference
-        rock (``refinement.radius_m`` .. ``acceptance.near_miss_outer_m``), against ``near_misses_expected``
+        rock (``refinement.radius_m`` .. ``acceptance.near_miss_outer_m``), against
+        ``near_misses_expected``
         by chance (local reference density): an excess means the map is not rigid.
     """
 
@@ -49,15 +50,12 @@ class LocalizationResult:
     near_misses_expected: float = float("nan")
     covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
     timings: dict = field(default_factory=dict)
-    checks: list = field(
-        default_factory=list
-    )  # the acceptance tests (:class:`Check`) of :func:`verify`
-    distortion_fit: dict = field(
-        default_factory=dict
-    )  # :class:`BendFit` when no odometry bounds were stated
-    odometry_bounds: dict = field(
-        default_factory=dict
-    )  # where the odometry bounds came from (:class:`lunarloc.localization.provenance.OdometryBounds`)
+    # the acceptance tests (:class:`Check`) of :func:`verify`
+    checks: list = field(default_factory=list)
+    # :class:`BendFit` when no odometry bounds were stated
+    distortion_fit: dict = field(default_factory=dict)
+    # where the odometry bounds came from (:class:`lunarloc.localization.provenance.OdometryBounds`)
+    odometry_bounds: dict = field(default_factory=dict)
 
     @property
     def num_inliers(self) -> int:

@@ -1,4 +1,5 @@
-"""The search for the densest consistent association set: the screen (is a fix possible at all), 3D and gravity-aware yaw-bin sweeps, competitors."""
+"""The search for the densest consistent association set: the screen (is a fix possible at all), 3D
+and gravity-aware yaw-bin sweeps, competitors."""
 
 from __future__ import annotations
 
@@ -47,8 +48,9 @@ def _search_3d(Pv, Pr, node_of, assoc, cfg):
     g = graph_3d(Pv, Pr, node_of, cfg.search.epsilon_m, cfg.sigma, cfg.search.max_edges)
     if g is None:
         raise InputError(
-            f"the 6-DoF consistency graph of {len(assoc)} associations exceeds {cfg.search.max_edges} edges; "
-            "use the gravity-aware mode, a smaller epsilon, size pruning, or raise max_edges"
+            f"the 6-DoF consistency graph of {len(assoc)} associations exceeds "
+            f"{cfg.search.max_edges} edges; use the gravity-aware mode, a smaller epsilon, size "
+            "pruning, or raise max_edges"
         )
     eu, ev, ew = g
     best = _solve(cfg.solver, len(assoc), eu, ev, ew, 0, cfg.search.seed)
@@ -57,9 +59,8 @@ def _search_3d(Pv, Pr, node_of, assoc, cfg):
 
 def _explained(T, Pv, Pr, assoc, radius):
     """Associations consistent with T (their landmarks land within `radius`)."""
-    d = np.linalg.norm(
-        transform_points(T, Pv)[assoc[:, 0]] - Pr[assoc[:, 1]], axis=1
-    )  # each landmark moved once
+    # each landmark moved once
+    d = np.linalg.norm(transform_points(T, Pv)[assoc[:, 0]] - Pr[assoc[:, 1]], axis=1)
     return d < radius
 
 
@@ -182,9 +183,8 @@ def _bin_bounds(Pv, vp, index, node_of, cfg) -> tuple[np.ndarray, np.ndarray, in
         def visit_chunk(bins, ptr, su, sv, _sw):
             ub, lb = bin_clique_bounds(ptr, su, sv, scratch.arr)
             with lock:
-                upper[bins] += np.maximum(
-                    ub, 1
-                )  # a group with no edge in a bin still holds one member
+                # a group with no edge in a bin still holds one member
+                upper[bins] += np.maximum(ub, 1)
                 np.maximum.at(lower, bins, lb)
 
         edges += sweep_bin_chunks(
@@ -208,9 +208,8 @@ class _BestYaw(float):
     index: RefPairIndex
     upper: np.ndarray
     best_size: int
-    edges: (
-        dict | None
-    )  # bin -> (eu, ev) of the bins the search built (exact solver, up to _EDGE_CACHE_MAX)
+    # bin -> (eu, ev) of the bins the search built (exact solver, up to _EDGE_CACHE_MAX)
+    edges: dict | None
 
 
 _EDGE_CACHE_MAX = 8_000_000
@@ -319,9 +318,8 @@ def _search_yaw_bins(Pv, Pr, node_of, cfg, required: int | None = None, report: 
 
     top = int(np.argmax(upper))
     if upper[top] < np.iinfo(np.int64).max:
-        total_edges += sweep(
-            [top]
-        )  # the most promising bin first: its clique raises lb for the rest
+        # the most promising bin first: its clique raises lb for the rest
+        total_edges += sweep([top])
     lb = lb_now()
     rest = [b for b in np.flatnonzero(upper > lb).tolist() if b not in found]
     total_edges += sweep(rest)
@@ -508,9 +506,10 @@ def _screen(
     from lunarloc.association.index import IndexConfig, ReferenceIndex
 
     needed = cfg.screen.fraction * required
+    # rock triangles
     tri = ReferenceIndex(
         Pr, cfg.search.epsilon_m, IndexConfig(max_candidates=cfg.screen.candidates)
-    )  # rock triangles
+    )
     votes = tri.vote(
         Pv,
         cfg.search.epsilon_z_m,
@@ -527,19 +526,16 @@ def _screen(
         T[:2, :2] = [[c, -s], [s, c]]
         T[:2, 3] = np.array([x, y]) - T[:2, :2] @ votes.centre_xy
         Pt = transform_points(T, Pv)
-        d, j = tri.tree_xy.query(
-            Pt[:, :2]
-        )  # the vote fixes x, y and yaw; the height from the nearest rocks
+        # the vote fixes x, y and yaw; the height from the nearest rocks
+        d, j = tri.tree_xy.query(Pt[:, :2])
         near = d < cfg.refinement.radius_m
         if near.sum() < 3:  # nothing to refine from: no more than chance here
             continue
         T[2, 3] = float(np.median((Pr[j, 2] - Pt[:, 2])[near]))
         try:
             T, inl = _refine(T, Pv, Pr, np.zeros((0, 2), np.int64), cfg)
-        except (
-            DegenerateGeometryError,
-            InputError,
-        ):  # fewer than 3 (or collinear) mutual neighbours in 3D
+        # fewer than 3 (or collinear) mutual neighbours in 3D
+        except (DegenerateGeometryError, InputError):
             continue
         score = len(inl) - chance_refined(T, Pv, Pr, np.zeros(0, np.int64), cfg.refinement.radius_m)
         if score > best:

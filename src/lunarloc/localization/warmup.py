@@ -3,7 +3,8 @@
 The association kernels are compiled with ``cache=True``: the first process that runs them
 compiles (seconds) and writes numba's cache; later processes load it (milliseconds).
 ``warm_up()`` runs them on a tiny synthetic pair so that this happens at a chosen moment:
-``make`` calls ``lunarloc warm-up`` after installing, and :class:`lunarloc.online.loop.LoopState` calls
+``make`` calls ``lunarloc warm-up`` after installing, and :class:`lunarloc.online.loop.LoopState`
+calls
 it before its stage timers start, so compile time is never counted as run time.
 
 A user who installed the wheel and never ran ``lunarloc warm-up`` is not left waiting in

@@ -1,4 +1,5 @@
-"""IMU dead reckoning: attitude from the gyro, roll and pitch held by gravity, distance from wheel speed.
+"""IMU dead reckoning: attitude from the gyro, roll and pitch held by gravity, distance from wheel
+speed.
 
 What a LAC agent senses each 20 Hz tick (``get_imu_data()``, ``get_linear_speed()``):
 the body-frame specific force ``f = R^T (a + g)`` (m/s^2; a rover at rest reads about
@@ -86,7 +87,8 @@ class ImuOdometryConfig:
 
 @dataclass(frozen=True)
 class ImuSamples:
-    """Per-tick proprioception: times (F,) s, accel (F, 3) m/s^2, gyro (F, 3) rad/s, speed (F,) m/s."""
+    """Per-tick proprioception: times (F,) s, accel (F, 3) m/s^2, gyro (F, 3) rad/s, speed (F,)
+    m/s."""
 
     frames: np.ndarray
     times_s: np.ndarray
@@ -134,8 +136,8 @@ def imu_samples_from_archive(archive) -> ImuSamples:
         if len(bad):
             i = int(bad[0])
             raise InputError(
-                f"{where}: '{c}' = {cols[c][i]:.4g} at frame {int(frames[i])} (line {i + 2}) is beyond "
-                f"physical bounds (+-{lim:g}; {len(bad)} such row(s))"
+                f"{where}: '{c}' = {cols[c][i]:.4g} at frame {int(frames[i])} (line {i + 2}) is "
+                f"beyond physical bounds (+-{lim:g}; {len(bad)} such row(s))"
             )
     t = cols["mission_time"]
     if len(t) > 1:
@@ -177,7 +179,8 @@ def integrate_imu(
     if len(dt_all) and float(dt_all.max()) > cfg.max_dt_s:
         i = int(np.argmax(dt_all)) + 1
         raise InputError(
-            f"{dt_all.max():.3f} s between ticks at frame {int(samples.frames[i])} (max {cfg.max_dt_s} s)"
+            f"{dt_all.max():.3f} s between ticks at frame {int(samples.frames[i])} (max "
+            f"{cfg.max_dt_s} s)"
         )
     R = _orthonormalize(T0[:3, :3])
     p = T0[:3, 3].copy()

@@ -54,7 +54,8 @@ def read_record_poses(archive, name: str) -> tuple[np.ndarray, np.ndarray]:
         layout = tuple(c for c in MATRIX_COLUMNS if c in cols)
     else:
         raise ArchiveError(
-            f"{member}: needs columns x,y,z,roll,pitch,yaw or m00..m33 (row-major 4x4); has {', '.join(table.columns)}"
+            f"{member}: needs columns x,y,z,roll,pitch,yaw or m00..m33 (row-major 4x4); has "
+            f"{', '.join(table.columns)}"
         )
     if "frame" in cols:
         frames = _numbers(table, "frame", member)
@@ -69,7 +70,8 @@ def read_record_poses(archive, name: str) -> tuple[np.ndarray, np.ndarray]:
         frames = np.asarray(archive.frame_numbers, np.int64)
     else:
         raise ArchiveError(
-            f"{member}: no 'frame' column and {table.n_rows} rows for {archive.n_frames} frames: cannot align the poses"
+            f"{member}: no 'frame' column and {table.n_rows} rows for {archive.n_frames} frames: "
+            "cannot align the poses"
         )
     values = np.column_stack([_numbers(table, c, member) for c in layout])
     if layout == POSE_COLUMNS:

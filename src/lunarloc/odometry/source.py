@@ -67,7 +67,8 @@ class OdometrySource(str, Enum):
 
 @dataclass
 class OdometryTrajectory:
-    """A pose for every archive frame: ``T_map_rover`` (F, 4, 4) at ``frames`` (F,), ``times_s`` (F,).
+    """A pose for every archive frame: ``T_map_rover`` (F, 4, 4) at ``frames`` (F,), ``times_s``
+    (F,).
 
     ``source`` names it (``imu``, ``visual``, ``record:orbslam``, ``ground-truth``);
     ``evaluation_only`` is true for ground truth, which a rover does not have.
@@ -142,7 +143,8 @@ def _front_pair_frames(archive) -> list[int]:
 
 
 def default_odometry_source(archive) -> str:
-    """``visual`` when the archive has front stereo pairs, else ``imu`` (what a LAC rover senses)."""
+    """``visual`` when the archive has front stereo pairs, else ``imu`` (what a LAC rover
+    senses)."""
     return OdometrySource.VISUAL.value if _front_pair_frames(archive) else OdometrySource.IMU.value
 
 
@@ -163,7 +165,8 @@ def archive_odometry(
     imu_config: ImuOdometryConfig | None = None,
     visual_config=None,
 ) -> OdometryTrajectory:
-    """Odometry of every frame of an open :class:`~lunarloc.io.lac.archive.LacArchive` from `source`.
+    """Odometry of every frame of an open :class:`~lunarloc.io.lac.archive.LacArchive` from
+    `source`.
 
     `progress(done, total)` is called as image pairs are processed (``visual``).
     Raises InputError / ArchiveError for data the source cannot use (NaN IMU, a missing or
@@ -220,9 +223,8 @@ def archive_odometry(
         mask = np.zeros(len(frames), bool)
         mask[list(measured)] = True
         return OdometryTrajectory(frames, times, T, f"record:{name}", False, mask)
-    return _visual(
-        archive, frames, times, T0, imu_poses, progress, visual_config
-    )  # IMU once the pairs are known
+    # IMU once the pairs are known
+    return _visual(archive, frames, times, T0, imu_poses, progress, visual_config)
 
 
 def _bridge(
@@ -287,7 +289,8 @@ def _visual(archive, frames, times, T0, imu_poses, progress, visual_config) -> O
             left, right = (imgs[(c, f, "grayscale")] for c in FRONT_PAIR)
             prior = None if last is None else invert_transform(out[last]) @ out[i]
             T_odo_rover = vo.update(left, right, prior)
-            # visual motion chained from the first pair's IMU-propagated pose, roll and pitch from gravity
+            # visual motion chained from the first pair's IMU-propagated pose, roll and pitch from
+            # gravity
             out[i] = chain.add(T_odo_rover, T_imu[i], out[i])
             measured[i] = True
             failures += 0 if getattr(vo, "last_ok", True) else 1

@@ -1,4 +1,5 @@
-"""Gravity-aided chaining of visual odometry: heading and distance from vision, roll and pitch from gravity.
+"""Gravity-aided chaining of visual odometry: heading and distance from vision, roll and pitch from
+gravity.
 
 Stereo visual odometry estimates all six degrees of freedom, and its roll and pitch
 drift like its heading does (under the rover's lamps, by about 2 degrees over 75 m

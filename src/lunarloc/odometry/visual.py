@@ -65,9 +65,8 @@ class VisualOdometryConfig:
         0.012  # min distance between corners, fraction of the image width
     )
     border_px: int = 8  # corners closer than this to the image border are not used
-    normalization: ImageNormalization = (
-        ImageNormalization.LOCAL_CONTRAST
-    )  # applied before detection, stereo and tracking
+    # applied before detection, stereo and tracking
+    normalization: ImageNormalization = ImageNormalization.LOCAL_CONTRAST
     normalization_sigma_frac: float = (
         0.01  # local-contrast: Gaussian sigma, fraction of the image width ...
     )
@@ -171,7 +170,8 @@ class VisualOdometryConfig:
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
             raise ConfigError(
-                f"VisualOdometryConfig: invalid {', '.join(f'{k}={getattr(self, k)!r}' for k in bad)}"
+                "VisualOdometryConfig: invalid "
+                f"{', '.join(f'{k}={getattr(self, k)!r}' for k in bad)}"
             )
 
     def to_dict(self) -> dict:
@@ -257,8 +257,9 @@ class StereoVisualOdometry:
             or np.hypot(T_left_right[1, 3], T_left_right[2, 3]) > 1e-3 * max(self.baseline_m, 1e-9)
         ):
             raise InputError(
-                "the stereo pair is not rectified: the right camera must be parallel to the left one and "
-                f"offset along its +x axis (got offset {np.round(T_left_right[:3, 3], 4).tolist()} m)"
+                "the stereo pair is not rectified: the right camera must be parallel to the left "
+                "one and offset along its +x axis (got offset "
+                f"{np.round(T_left_right[:3, 3], 4).tolist()} m)"
             )
         self.T_left_rover = invert_transform(self.T_rover_left)
         self.K = camera.K
@@ -447,9 +448,8 @@ class StereoVisualOdometry:
             & (np.linalg.norm(back - uv_l, axis=1) <= c.stereo_check_px)
             & (disp >= c.min_disparity_px)
         )
-        depth = np.where(
-            ok, fx * b / np.maximum(disp.astype(np.float64), 1e-6), np.inf
-        )  # float64 on numpy 1 too
+        # float64 on numpy 1 too
+        depth = np.where(ok, fx * b / np.maximum(disp.astype(np.float64), 1e-6), np.inf)
         ok &= (depth >= c.min_depth_m) & (depth <= c.max_depth_m)
         if ok.sum() < c.min_inliers:
             return False
@@ -668,7 +668,8 @@ def visual_odometry_frames(
             right = images.get((right_name, int(f), "grayscale"))
             if left is None or right is None:
                 raise InputError(
-                    f"{archive.path}: frame {int(f)} lists a {left_name}/{right_name} image that is missing"
+                    f"{archive.path}: frame {int(f)} lists a {left_name}/{right_name} image that "
+                    "is missing"
                 )
             out[start + i] = vo.update(left, right)
             if progress is not None:

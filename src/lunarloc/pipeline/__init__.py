@@ -1,1 +1,2 @@
-"""Applications: whole-traverse runs, detection, sources, references, scenarios, campaigns, benchmarks."""
+"""Applications: whole-traverse runs, detection, sources, references, scenarios, campaigns,
+benchmarks."""

@@ -63,7 +63,8 @@ def bench_loop(
     missing = [v for v in wanted if v not in trav]
     if missing:
         raise ConfigError(
-            f"traverse(s) {', '.join(map(str, missing))} not in {data} (have {', '.join(map(str, trav))})"
+            f"traverse(s) {', '.join(map(str, missing))} not in {data} (have "
+            f"{', '.join(map(str, trav))})"
         )
     rows = []
     for v in wanted:
@@ -110,7 +111,8 @@ def pairs_problems(summary, only_paper: bool = False) -> list[str]:
             r.success and r.err_origin_m < PAPER_MAX_ERR_M
         ):
             bad.append(
-                f"paper pair {r.reference}-{r.vehicle}: success={r.success} err={r.err_origin_m * 100:.2f} cm"
+                f"paper pair {r.reference}-{r.vehicle}: success={r.success} "
+                f"err={r.err_origin_m * 100:.2f} cm"
             )
     if not only_paper and summary.n_success_and_correct < MIN_PAIRS_CORRECT:
         bad.append(

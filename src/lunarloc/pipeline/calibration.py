@@ -505,7 +505,8 @@ def summarise(outcomes: Iterable[Outcome]) -> list[dict]:
 def format_table(rows: list[dict]) -> str:
     """Markdown table of :func:`summarise`'s rows."""
     lines = [
-        "| family | config | search | cases | claimed | right | confident-wrong | NEES < 3.53 | NEES < 14.16 |",
+        "| family | config | search | cases | claimed | right | confident-wrong | NEES < 3.53 | "
+        "NEES < 14.16 |",
         "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
 
@@ -514,8 +515,8 @@ def format_table(rows: list[dict]) -> str:
 
     for r in rows:
         lines.append(
-            f"| {r['family']} | {r['config']} | {r['search']} | {r['cases']} | {r['claimed']} | {r['right']} | "
-            f"{r['confident_wrong']} | {pct(r['nees_68'])} | {pct(r['nees_997'])} |"
+            f"| {r['family']} | {r['config']} | {r['search']} | {r['cases']} | {r['claimed']} | "
+            f"{r['right']} | {r['confident_wrong']} | {pct(r['nees_68'])} | {pct(r['nees_997'])} |"
         )
     return "\n".join(lines)
 

@@ -201,7 +201,8 @@ def load_spec(path: str | Path) -> CampaignSpec:
         raise FileFormatError(f"{path}: [campaign] name must be a string, got {name!r}")
     spec = CampaignSpec(name=name, job=dict(job), grid=dict(grid))
     try:
-        spec.jobs()  # the size and every value checked first (CampaignSpec.check), then the grid built
+        # the size and every value checked first (CampaignSpec.check), then the grid built
+        spec.jobs()
     except ConfigError as exc:
         raise FileFormatError(f"{path}: {exc}") from None
     return spec
@@ -245,9 +246,8 @@ def run_job(job: Job, jobs_dir: str) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     from lunarloc.io.outputs import write_text
 
-    write_text(
-        out / "result.json", json.dumps(row, indent=1)
-    )  # last and atomically: its presence means finished
+    # last and atomically: its presence means finished
+    write_text(out / "result.json", json.dumps(row, indent=1))
     return row
 
 
@@ -297,9 +297,8 @@ def run_campaign(
     out = Path(out)
     jobs = spec.jobs()
     if scheduler not in (None, "sync"):
-        check_scheduler_address(
-            scheduler
-        )  # a bad or unreachable address is an input error, before any file
+        # a bad or unreachable address is an input error, before any file
+        check_scheduler_address(scheduler)
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out}: exists and is not a folder")
     jobs_dir = out / "jobs"
@@ -390,7 +389,8 @@ def check_scheduler_address(address: str, timeout_s: float = 10.0) -> tuple[str,
     proto = m["proto"] or "tcp"
     if proto not in _SCHEDULER_PROTOCOLS:
         raise ConfigError(
-            f"--scheduler {address!r}: unknown protocol {proto!r} (one of {', '.join(_SCHEDULER_PROTOCOLS)})"
+            f"--scheduler {address!r}: unknown protocol {proto!r} (one of "
+            f"{', '.join(_SCHEDULER_PROTOCOLS)})"
         )
     port = int(m["port"] or 8786)
     if not 1 <= port <= 65535:
@@ -526,6 +526,7 @@ def _summary_figure(rows: list[dict], path: Path, title: str) -> Path | None:
             else ("" if r.get("check") == "pass" else "check failed")
         )
         if note:
+            # x in data, y in axes fraction (log axis)
             ax.text(
                 i,
                 0.03,
@@ -536,7 +537,7 @@ def _summary_figure(rows: list[dict], path: Path, title: str) -> Path | None:
                 color="tab:red",
                 fontsize=8,
                 transform=ax.get_xaxis_transform(),
-            )  # x in data, y in axes fraction (log axis)
+            )
     ax.set_yscale("log")
     ax.set_ylabel("trajectory RMSE (cm, log)")
     ax.set_xticks(list(x))

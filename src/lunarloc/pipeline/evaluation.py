@@ -103,7 +103,9 @@ class PairResult:
     lever_m: float = math.nan  # distance from the rover's last position to the inliers' centroid
     predicted_error_m: float = math.nan  # the localizer's 1-sigma position error at the rover
     predicted_rotation_deg: float = math.nan  # ... and rotation error
-    covariance_d2: float = math.nan  # squared Mahalanobis distance of the translation error (reference origin) under the 6x6 covariance
+    # squared Mahalanobis distance of the translation error (reference origin) under the 6x6
+    # covariance
+    covariance_d2: float = math.nan
 
     @property
     def rotation_part_m(self) -> float:
@@ -296,9 +298,8 @@ def run_pair(
             0.0,
             "too few landmarks",
         )
-    res = localize(
-        ref, veh, loc_config, query_xyz=last_v[None], path_xyz=path_v
-    )  # judged where the rover is
+    # judged where the rover is
+    res = localize(ref, veh, loc_config, query_xyz=last_v[None], path_xyz=path_v)
     dt = time.perf_counter() - t0
     if np.all(np.isfinite(res.T_ref_veh)):
         E = res.T_ref_veh @ invert_transform(T_true)
@@ -385,9 +386,8 @@ def bench_pairs(
         for k in (a, b):
             if k not in paths:
                 raise InputError(f"traverse {k} not found in {data_dir}")
-    if (
-        loc_config is None
-    ):  # the maps' odometry bounds are known here: the simulated drift (0: ground-truth poses)
+    # the maps' odometry bounds are known here: the simulated drift (0: ground-truth poses)
+    if loc_config is None:
         d = drift or DriftModel()
         scale_error = (
             abs(d.scale_error)

@@ -497,7 +497,8 @@ def pooled_rows(pooled: dict[str, dict[str, dict]]) -> dict:
 def format_pooled(rows: dict) -> list[str]:
     """The table of :func:`pooled_rows`: a header, then one line per lighting."""
     lines = [
-        "lighting | sites | P(<=5m) [90 %] | R(r>=.1,<=5m) [90 %] | R(.05-.1,<=3m) [90 %] | err50 cm [90 %]"
+        "lighting | sites | P(<=5m) [90 %] | R(r>=.1,<=5m) [90 %] | R(.05-.1,<=3m) [90 %] | err50 "
+        "cm [90 %]"
     ]
     for lighting, row in rows.items():
         ci = row["ci90"]
@@ -590,9 +591,8 @@ def centre_error_parts(
         f = f / max(float(np.linalg.norm(f)), 1e-9)
         dR = r_true - r_est
         k_along, k_z = cfg.centre.range_factor, cfg.centre.height_factor
-        if (
-            cfg.centre.estimator is CentreEstimator.BLEND
-        ):  # its radius terms (the near anchor unclamped)
+        # BLEND: its radius terms (the near anchor unclamped)
+        if cfg.centre.estimator is CentreEstimator.BLEND:
             w = cfg.centre.near_weight
             k_along, k_z = (
                 (1 - w) * cfg.centre.range_factor + w * cfg.centre.near_range_factor,

@@ -30,7 +30,8 @@ DEPTH_RATIO = 1.6
 
 
 def load_labels(path: Path) -> dict:
-    """The labels file (tests/data/lac_real_labels.json's layout: camera, recall_range_m, frames)."""
+    """The labels file (tests/data/lac_real_labels.json's layout: camera, recall_range_m,
+    frames)."""
     try:
         return json.loads(Path(path).read_text())
     except (OSError, ValueError) as e:
@@ -46,7 +47,8 @@ def _in_poly(uv, poly) -> bool:
 
 def on_rock(det_uv, det_depth: float, rock: dict, grow: int = GROW_PX) -> bool:
     """A detection at image point `det_uv` and depth `det_depth` (m) is on `rock`: inside its box
-    grown by `grow` px, at a depth within a factor DEPTH_RATIO of its range (when both are known)."""
+    grown by `grow` px, at a depth within a factor DEPTH_RATIO of its range (when both are
+    known)."""
     x0, y0, x1, y1 = rock["box"]
     u, v = det_uv
     if not (x0 - grow <= u <= x1 + grow and y0 - grow <= v <= y1 + grow):

@@ -56,7 +56,8 @@ def rocks_to_reference(
     keep = r[:, 4] >= min_radius_m
     if not keep.all():
         log.info(
-            "reference: %d of %d rocks kept; %d under %g cm radius dropped (below the detector's size floor)",
+            "reference: %d of %d rocks kept; %d under %g cm radius dropped (below the detector's "
+            "size floor)",
             int(keep.sum()),
             len(r),
             int((~keep).sum()),
@@ -78,8 +79,8 @@ def reference_summary(path: str | Path, reference: LandmarkMap, min_radius_m: fl
         total = len(load_rock_csv(path))
         if total > n:
             return (
-                f"{n} landmarks ({total} rocks, {total - n} under {min_radius_m * 100:g} cm radius dropped: "
-                f"below the detector's size floor)"
+                f"{n} landmarks ({total} rocks, {total - n} under {min_radius_m * 100:g} cm radius "
+                "dropped: below the detector's size floor)"
             )
     return f"{n} landmarks"
 

@@ -44,7 +44,8 @@ def run(
     progress: Callable[[int, int], None] | None = None,
     mapper=None,
 ) -> LoopResult:
-    """Online localization of every frame of `source` (:class:`~lunarloc.pipeline.sources.ArchiveSource`
+    """Online localization of every frame of `source`
+    (:class:`~lunarloc.pipeline.sources.ArchiveSource`
     or :class:`~lunarloc.pipeline.sources.TraverseCsvSource`) against `reference` (frame ``map``).
 
     config : :class:`RunConfig` (default: ``RunConfig()``, the settings for images); the
@@ -135,7 +136,8 @@ def place_mapper(mapper, frames, T_map_rover) -> int:
 
 def odometry_of(source):
     """What the loop needs to know of `source`'s odometry to state its windows' distortion
-    (:meth:`lunarloc.online.loop.LoopState.set_odometry`): a traverse CSV's simulated drift, exactly,
+    (:meth:`lunarloc.online.loop.LoopState.set_odometry`): a traverse CSV's simulated drift,
+    exactly,
     as bounds; an archive's odometry source label (``visual``, ``record:NAME``, ...)."""
     from lunarloc.online.loop import OdometryBounds
 

@@ -44,7 +44,8 @@ class ScenarioError(LunarLocError):
     """A stage of a scenario failed; the message names the stage."""
 
 
-#: the longest traverse a scenario simulates (s): `demo --duration`'s cap, the same for campaigns and --config
+# : the longest traverse a scenario simulates (s): `demo --duration`'s cap, the same for campaigns
+# and --config
 MAX_DURATION_S = 3600.0
 
 
@@ -56,7 +57,8 @@ class ScenarioConfig:
     n_rocks: int = 386  # rocks on the 27 m x 27 m site (the LAC's density)
     duration_s: float = 90.0  # vehicle traverse
     reference_duration_s: float = 120.0  # reference traverse
-    plan: str = "survey"  # survey: the reference surveys, the vehicle revisits; random: both drive at random
+    # survey: the reference surveys, the vehicle revisits; random: both drive at random
+    plan: str = "survey"
     width: int = 640  # image width; height = 9/16 of it
     image_rate_hz: float = 2.0  # camera rate of both traverses
     sun_elevation_deg: float | None = None  # None: the renderer's default
@@ -116,8 +118,8 @@ class ScenarioConfig:
         known = {f.name for f in fields(cls)}
         if "odometry" in d:
             raise ConfigError(
-                "scenario.odometry: the odometry source is set in one place, the run configuration's "
-                f"odometry.source (move {d['odometry']!r} there)"
+                "scenario.odometry: the odometry source is set in one place, the run "
+                f"configuration's odometry.source (move {d['odometry']!r} there)"
             )
         unknown = sorted(set(d) - known)
         if unknown:
@@ -226,8 +228,8 @@ def run_scenario(
         site.write_rocks_csv(data / "rocks.csv")
         renderer = SiteRenderer(site, base.render)
     with stage(
-        f"simulate reference traverse ({c.reference_duration_s:g} s, {c.width}x{c.height} front pair "
-        f"at {c.image_rate_hz:g} Hz)"
+        f"simulate reference traverse ({c.reference_duration_s:g} s, {c.width}x{c.height} front "
+        f"pair at {c.image_rate_hz:g} Hz)"
     ):
         ref_arch, _ = simulate_traverse(
             site,

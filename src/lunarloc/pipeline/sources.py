@@ -54,7 +54,8 @@ class ArchiveSource:
     odometry : :class:`lunarloc.config.run.OdometryConfig` (source, IMU and VO settings); its
         ``source`` None means ``visual`` when the archive has front stereo pairs, else ``imu``.
     pairs : stereo pairs whose left camera marks an image frame (the detector's pairs).
-    odometry_poses : optional (F, 4, 4) odometry poses ``T_odo_rover``, one per archive frame in order,
+    odometry_poses : optional (F, 4, 4) odometry poses ``T_odo_rover``, one per archive frame in
+    order,
         replacing the odometry source (to replay the images with another drift).
     max_frames : stop after this many frames.
     """
@@ -95,7 +96,8 @@ class ArchiveSource:
         t0 = time.perf_counter()
         self._ar = ar = LacArchive(self.path)
         try:
-            ar.poses()  # the ground truth (evaluation only) finite, or an ArchiveError naming the cell
+            # the ground truth (evaluation only) finite, or an ArchiveError naming the cell
+            ar.poses()
             ar.finite_columns(("mission_time",), "mission time")
             t_odo = time.perf_counter()
             self._odometry = self._odometry_poses(ar)
@@ -104,7 +106,8 @@ class ArchiveSource:
             self._lefts = [l for l, _ in self.pairs if l in ar.cameras]
             if not self._lefts:
                 raise FileFormatError(
-                    f"{self.path}: no left stereo camera recorded images (have: {', '.join(ar.cameras) or 'none'})"
+                    f"{self.path}: no left stereo camera recorded images (have: "
+                    f"{', '.join(ar.cameras) or 'none'})"
                 )
             self._image_frames = {int(f) for c in self._lefts for f in ar.camera_frames(c)["frame"]}
             if ar.initial.get("lander") is not None:
@@ -129,7 +132,8 @@ class ArchiveSource:
         if self._override is not None:
             if self._override.shape != (len(ar.frame_numbers), 4, 4):
                 raise InputError(
-                    f"odometry override must be ({len(ar.frame_numbers)}, 4, 4), got {self._override.shape}"
+                    f"odometry override must be ({len(ar.frame_numbers)}, 4, 4), got "
+                    f"{self._override.shape}"
                 )
             self.odometry_label = "override"
             return {int(f): r for f, r in zip(ar.frame_numbers, self._override)}
@@ -201,7 +205,8 @@ class ArchiveSource:
 class TraverseCsvSource:
     """Frames of a traverse CSV (world-frame detections, no images) with simulated drift.
 
-    Odometry follows :func:`lunarloc.pipeline.evaluation.drifted_path` (scale error and a heading error
+    Odometry follows :func:`lunarloc.pipeline.evaluation.drifted_path` (scale error and a heading
+    error
     growing with distance). The CSV has no rover heading, so the "rover" frame here is
     world-aligned at the rover's position: its true yaw is 0, its odometry yaw is the
     accumulated heading error, and a detection's rover-frame offset is ``det - rover``.

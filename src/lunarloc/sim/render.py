@@ -193,10 +193,8 @@ class RenderConfig:
     lamp_power: float = (
         1.0  # on-axis irradiance at 1 m of one lamp at intensity 1, in units of the sun's
     )
-    lamp_cone_deg: tuple[float, float] = (
-        20.0,
-        50.0,
-    )  # full power inside, none beyond (half-angles)
+    # full power inside, none beyond (half-angles)
+    lamp_cone_deg: tuple[float, float] = (20.0, 50.0)
     rover_shadow: bool = True  # the rover body (ROVER_BOXES) occludes the sun in render_rover
     rock_albedo_spread: float = 0.12  # each rock's albedo within rock_albedo * (1 +- spread)
     rock_bump: float = 3.0  # scale of the rock surface roughness (normal bumps)
@@ -247,7 +245,8 @@ class RenderConfig:
             or not 0.0 <= self.lamp_cone_deg[0] < self.lamp_cone_deg[1] <= 90.0
         ):
             raise ConfigError(
-                f"lamp_cone_deg={self.lamp_cone_deg} must be (inner, outer) with 0 <= inner < outer <= 90"
+                f"lamp_cone_deg={self.lamp_cone_deg} must be (inner, outer) with 0 <= inner < "
+                "outer <= 90"
             )
         if not 0.0 < self.highlight_knee <= 1.0:
             raise ConfigError(
@@ -818,7 +817,8 @@ class SiteRenderer:
         self.texture = _ValueNoise(self.config.texture_seed + 1000 * int(site.seed))
 
     def with_config(self, config: RenderConfig) -> SiteRenderer:
-        """A renderer of the same site with another config, sharing this one's scene (no BVH rebuild)."""
+        """A renderer of the same site with another config, sharing this one's scene (no BVH
+        rebuild)."""
         config.validate()
         other = SiteRenderer.__new__(SiteRenderer)
         other.__dict__.update(self.__dict__)
@@ -1000,9 +1000,8 @@ class SiteRenderer:
         ambient = np.float32(cfg.ambient if cfg.sun_on else 0.0)
         radiance = (direct + lamp + albedo * ambient) * np.float32(cfg.exposure)
         knee = np.float32(cfg.highlight_knee)
-        if (
-            knee < 1.0
-        ):  # soft shoulder: x above the knee -> knee + (1 - knee) (1 - exp(-(x - knee) / (1 - knee)))
+        # soft shoulder: x above the knee -> knee + (1 - knee) (1 - exp(-(x - knee) / (1 - knee)))
+        if knee < 1.0:
             over = radiance > knee
             radiance[over] = knee + (1 - knee) * -np.expm1(-(radiance[over] - knee) / (1 - knee))
         val = np.clip(radiance, 0.0, 1.0) ** np.float32(1.0 / cfg.gamma)

@@ -53,7 +53,8 @@ class TraversePlan(_ParsedEnum):
 
     * ``random``: random obstacle-free legs from the site's rover start, anywhere on the site.
     * ``survey``: a mapping pass, an outward spiral around the lander from the rover start
-      (a first lap of about 33 m, which takes about 2.5 minutes at 0.3 m/s with its stops), as a reference traverse.
+      (a first lap of about 33 m, which takes about 2.5 minutes at 0.3 m/s with its stops), as a
+      reference traverse.
     * ``revisit``: a later traverse of the surveyed ground: it starts elsewhere on the survey's
       first lap (a seed-chosen angle around the lander) and drives random obstacle-free legs
       whose ends stay within ``revisit_band_m`` of that lap's radius.
@@ -85,14 +86,10 @@ class RoverConfig:
     )
     survey_step_deg: float = 45.0  # angle between survey waypoints about the lander
     survey_lap_growth_m: float = 2.5  # the survey spiral's radius grows this much per lap
-    revisit_band_m: tuple[float, float] = (
-        -1.5,
-        2.5,
-    )  # revisit leg ends: survey radius + this range
-    revisit_start_deg: tuple[float, float] = (
-        90.0,
-        270.0,
-    )  # revisit start: angle from the survey start
+    # revisit leg ends: survey radius + this range
+    revisit_band_m: tuple[float, float] = (-1.5, 2.5)
+    # revisit start: angle from the survey start
+    revisit_start_deg: tuple[float, float] = (90.0, 270.0)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "plan", TraversePlan.parse(self.plan))
@@ -231,7 +228,8 @@ def _choose_waypoints(
                 break
         else:
             raise InputError(
-                f"no obstacle-free waypoint found from ({p0[0]:.2f}, {p0[1]:.2f}); the site is too crowded"
+                f"no obstacle-free waypoint found from ({p0[0]:.2f}, {p0[1]:.2f}); the site is too "
+                "crowded"
             )
         pts.append(p1)
         dist += float(np.linalg.norm(p1 - p0))
@@ -283,7 +281,8 @@ def _survey_waypoints(site, rng, cfg: RoverConfig, total_m: float) -> np.ndarray
             detours += 1
             if detours > 12:
                 raise InputError(
-                    "no obstacle-free survey waypoint found around the lander; the site is too crowded"
+                    "no obstacle-free survey waypoint found around the lander; the site is too "
+                    "crowded"
                 )
             if not clear:  # aim one step further on
                 j += 1
@@ -502,9 +501,8 @@ def simulate_odometry(
     bias = rng.normal(0.0, cfg.heading_bias_rad_s) + np.cumsum(
         rng.normal(0.0, cfg.heading_bias_walk * np.sqrt(dt), size=n - 1)
     )
-    moving = (step[:, 0] > 1e-6) | (
-        np.abs(dyaw) > 1e-6
-    )  # a stationary rover does not integrate drift
+    # a stationary rover does not integrate drift
+    moving = (step[:, 0] > 1e-6) | (np.abs(dyaw) > 1e-6)
     dyaw_meas = dyaw + moving * (bias * dt + rng.normal(0.0, cfg.heading_noise_rad, size=n - 1))
     yaw_est = traj.rpy[0, 2] + np.concatenate([[0.0], np.cumsum(dyaw_meas)])
     roll_est = traj.rpy[:, 0] + rng.normal(0.0, cfg.tilt_noise_rad, n)

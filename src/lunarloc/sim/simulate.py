@@ -79,9 +79,8 @@ class SimulationConfig:
     height: int = 720
     cameras: tuple[str, ...] = ALL_CAMERAS  # cameras that record
     semantic: bool = True  # also store semantic images
-    semantic_format: SemanticFormat = (
-        SemanticFormat.IDS
-    )  # per-rock ids (uint16) or the LAC palette (RGB)
+    # per-rock ids (uint16) or the LAC palette (RGB)
+    semantic_format: SemanticFormat = SemanticFormat.IDS
     initial_power_wh: float = 283.0  # battery charge at the start
     power_draw_w: float = 30.0  # constant draw (power column falls linearly)
 
@@ -102,7 +101,8 @@ class SimulationConfig:
         step = self.rover.rate_hz / self.image_rate_hz
         if abs(step - round(step)) > 1e-6:
             raise ConfigError(
-                f"image_rate_hz={self.image_rate_hz} must divide the rover rate {self.rover.rate_hz} Hz"
+                f"image_rate_hz={self.image_rate_hz} must divide the rover rate "
+                f"{self.rover.rate_hz} Hz"
             )
         if self.width < 8 or self.height < 8:
             raise ConfigError(f"image size {self.width}x{self.height} is too small")
@@ -173,9 +173,8 @@ def simulate_traverse(
     cam_poses = {m.name: [float(v) for v in matrix_to_pose(m.T_rover_cam)] for m in mounts}
     initial = {
         "fiducials": False,
-        "lander": lander_pose_relative(
-            traj.poses[0], site.lander_pose
-        ),  # rover-relative, as the LAC stores it
+        # rover-relative, as the LAC stores it
+        "lander": lander_pose_relative(traj.poses[0], site.lander_pose),
         "rover": [float(v) for v in traj.poses[0]],
         "cameras": _camera_config(cfg),
     }
@@ -268,9 +267,10 @@ def simulate_dataset(
     renderer = SiteRenderer(site, cfg.render) if n_traverses else None
     out.mkdir(parents=True, exist_ok=True)
     site.write_rocks_csv(out / "rocks.csv")
+    # the LAC ground-truth map (x, y, height, rock)
     from lunarloc.io.overhead import (
         write_site_geometric_map,
-    )  # the LAC ground-truth map (x, y, height, rock)
+    )
 
     write_site_geometric_map(site, out / "geometric_map.npy")
     from lunarloc.io.outputs import write_text

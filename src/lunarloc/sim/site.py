@@ -6,7 +6,8 @@ Frames and units
   the origin; the site spans ``[-size_m/2, size_m/2]`` in x and y. The terrain
   extends ``terrain_margin_m`` beyond the site (without rocks) so cameras near
   the edge still see ground, not the void.
-* Rocks are irregular ellipsoids (low-order lobes, knobs, planar fractures). The ground-truth record of a rock is
+* Rocks are irregular ellipsoids (low-order lobes, knobs, planar fractures). The ground-truth record
+of a rock is
   ``id, x, y, z, radius``: (x, y, z) is the centre of the ellipsoid (it can lie
   below the ground for deeply buried rocks) and ``radius`` the nominal radius in
   metres (the horizontal semi-axes are within about 0.75-1.2 x radius, the
@@ -95,7 +96,8 @@ class FiducialPanels:
 
 
 def _tag_bits(tag_id: int) -> np.ndarray:
-    """An AprilTag-like pattern (not a decodable AprilTag): white ring, black ring, seeded data cells."""
+    """An AprilTag-like pattern (not a decodable AprilTag): white ring, black ring, seeded data
+    cells."""
     n = _TAG_CELLS
     rng = np.random.default_rng([int(tag_id), 0x7A6])
     bits = np.ones((n, n))
@@ -133,10 +135,8 @@ class SiteConfig:
         0.0  # std of extra terrain relief at about 0.3 m scale (metres; casts small shadows)
     )
     n_small_rocks: int = 0  # extra small rocks (the LAC's gravel), besides the n_rocks population
-    small_rock_radius_m: tuple[float, float] = (
-        0.02,
-        0.05,
-    )  # their nominal radius range (power law)
+    # their nominal radius range (power law)
+    small_rock_radius_m: tuple[float, float] = (0.02, 0.05)
 
     @classmethod
     def lac_style(cls, **overrides) -> SiteConfig:
@@ -371,9 +371,8 @@ class Site:
         cfg = self.config
         base = np.asarray(self.lander_xyz, float)
         parts = []
-        apothem = np.hypot(
-            0.862, 0.862
-        )  # the diagonal faces hold the fiducial centres (LAC layout)
+        # the diagonal faces hold the fiducial centres (LAC layout)
+        apothem = np.hypot(0.862, 0.862)
         body_z = (0.1, 1.15)
         body = trimesh.creation.cylinder(
             radius=apothem / np.cos(np.pi / 8), height=body_z[1] - body_z[0], sections=8

@@ -51,7 +51,8 @@ reader of ``Robaire/lac-data`` and its copy in ``mit-acl/lunarloc-data``)
   images, and the first of them put tables and images under ``images/<Name>/``,
   stored the member path (``images/<Name>/grayscale/...png``) in the
   ``grayscale`` column, wrote a row for every frame (empty file name when no
-  image) and extra ``light_*`` columns: all read here (empty table = no images). The published reader's ``input_data`` therefore fails
+  image) and extra ``light_*`` columns: all read here (empty table = no images). The published
+  reader's ``input_data`` therefore fails
   on a row without a grayscale file name (or, for a ``use_semantic`` camera,
   without a semantic one); :class:`LacWriter` refuses to write such rows for
   an enabled camera (it accepts image-less rows only with ``enable=False``,
@@ -134,10 +135,9 @@ from lunarloc.io.lac.format import (
 )
 from lunarloc.io.lac.gzindex import DEFAULT_CHECKPOINT_SPACING, _GzipIndexError, _IndexedGzipReader
 from lunarloc.io.lac.tables import Table, _parse_csv, _parse_int
-from lunarloc.io.lac.writer import (
-    LacWriter,
-    float_text,
-)  # re-exported: one import for reading and writing
+
+# re-exported: one import for reading and writing
+from lunarloc.io.lac.writer import LacWriter, float_text
 
 try:  # Python >= 3.11
     import tomllib
@@ -171,9 +171,8 @@ _NUMPY_SCALAR_TEXT = re.compile(r"^\s*(?:np|numpy)\.(?:float|int)\d*\((.*)\)\s*$
 _CAMERA_ROOTS = ("cameras", "images")  # the recorder's layout; the first MAPLE recorder's
 
 # Limits on what an archive may make us allocate, checked before reading (docs/robustness.md).
-MAX_TABLE_BYTES = (
-    256 * 1024**2
-)  # one CSV member (frames.csv of a 20 Hz traverse: ~400 B/row, ~180 h)
+# one CSV member (frames.csv of a 20 Hz traverse: ~400 B/row, ~180 h)
+MAX_TABLE_BYTES = 256 * 1024**2
 MAX_TOML_BYTES = 1024**2  # initial.toml / metadata.toml
 MAX_IMAGE_BYTES = 64 * 1024**2  # one encoded image member
 MAX_IMAGE_PIXELS = (
@@ -401,7 +400,8 @@ class LacArchive:
                     if not 0 < n <= 100_000:
                         raise self._err(
                             "initial.toml",
-                            f"[cameras.{name}] {key} = {str(v)[:40]!r}: expected a positive integer (pixels)",
+                            f"[cameras.{name}] {key} = {str(v)[:40]!r}: expected a positive "
+                            "integer (pixels)",
                         )
             for key in ("fov", "hfov_deg"):
                 if key in cfg:
@@ -413,7 +413,8 @@ class LacArchive:
                     if not 0.0 < f < 180.0:
                         raise self._err(
                             "initial.toml",
-                            f"[cameras.{name}] {key} = {str(v)[:40]!r}: expected degrees in (0, 180)",
+                            f"[cameras.{name}] {key} = {str(v)[:40]!r}: expected degrees in (0, "
+                            "180)",
                         )
 
     def _index_frames(self, frames: np.ndarray, member: str) -> dict[int, int]:
@@ -456,7 +457,8 @@ class LacArchive:
     # -- initial.toml ----------------------------------------------------------------
     def _number(self, value: Any, key: str, kind: type = float) -> Any:
         """A TOML number, or a number stored as a string (older recorder generations: the
-        ``toml`` package writes numpy scalars as strings, e.g. ``"1.5"`` or ``"np.float64(1.5)"``)."""
+        ``toml`` package writes numpy scalars as strings, e.g. ``"1.5"`` or
+        ``"np.float64(1.5)"``)."""
         if isinstance(value, bool):
             raise self._err("initial.toml", f"'{key}' must be a number, got {value!r}")
         if isinstance(value, (int, float)):
@@ -534,7 +536,8 @@ class LacArchive:
         return str(self.metadata.get("data_spec", "")) in LEGACY_MAP_LANDER_SPECS
 
     def initial_rover_pose(self) -> np.ndarray:
-        """``T_map_rover`` (4x4) at the start: initial.toml ``rover`` (LAC ``get_initial_position``)."""
+        """``T_map_rover`` (4x4) at the start: initial.toml ``rover`` (LAC
+        ``get_initial_position``)."""
         from lunarloc.core.geometry import pose_to_matrix
 
         return pose_to_matrix(*self.initial["rover"])
@@ -558,7 +561,8 @@ class LacArchive:
         if info.size > limit:
             raise self._err(
                 name,
-                f"member is {info.size:,} bytes, over the {limit:,}-byte limit for this kind of member",
+                f"member is {info.size:,} bytes, over the {limit:,}-byte limit for this kind of "
+                "member",
             )
         try:
             fobj = self._tar.extractfile(info)
@@ -669,7 +673,8 @@ class LacArchive:
 
     # -- images ----------------------------------------------------------------------
     def image_member(self, camera: str, frame: int, kind: str = "grayscale") -> str | None:
-        """Archive member path of an image, or None when that camera has no such image at `frame`."""
+        """Archive member path of an image, or None when that camera has no such image at
+        `frame`."""
         if kind not in _IMAGE_KINDS:
             raise InputError(f"image kind must be 'grayscale' or 'semantic', got {kind!r}")
         idx = self._camera_index.get(camera, {}).get(int(frame))
@@ -698,7 +703,8 @@ class LacArchive:
             raise self._err(member, f"cannot decode image ({exc})") from None
 
     def image(self, camera: str, frame: int, kind: str = "grayscale") -> np.ndarray | None:
-        """Image of `camera` at `frame`: grayscale (H, W) uint8, semantic (H, W[, 3]); None if absent."""
+        """Image of `camera` at `frame`: grayscale (H, W) uint8, semantic (H, W[, 3]); None if
+        absent."""
         member = self.image_member(camera, frame, kind)
         return None if member is None else self.read_image(member)
 

@@ -87,7 +87,8 @@ def camera_name(key) -> str:
 
 
 class VehicleVelocityControl:
-    """``carla.VehicleVelocityControl``: target linear (m/s) and angular (rad/s, left positive) velocity."""
+    """``carla.VehicleVelocityControl``: target linear (m/s) and angular (rad/s, left positive)
+    velocity."""
 
     __slots__ = ("linear_target_velocity", "angular_target_velocity")
 
@@ -120,7 +121,8 @@ class Rotation:
         self.roll, self.pitch, self.yaw = float(roll), float(pitch), float(yaw)
 
     def __str__(self) -> str:
-        return f"Rotation(roll={round(self.roll, 6)}, pitch={round(self.pitch, 6)}, yaw={round(self.yaw, 6)})"
+        roll, pitch, yaw = (round(a, 6) for a in (self.roll, self.pitch, self.yaw))
+        return f"Rotation(roll={roll}, pitch={pitch}, yaw={yaw})"
 
 
 class Transform:
@@ -327,20 +329,22 @@ def check_sensors(sensors, evaluation: bool = True) -> dict:
     for p in SensorPosition:
         if p.name not in by_name:
             raise InputError(
-                f"sensors(): no entry for SensorPosition.{p.name} (the leaderboard needs all eight: "
-                f"{', '.join(q.name for q in SensorPosition)})"
+                f"sensors(): no entry for SensorPosition.{p.name} (the leaderboard needs all "
+                f"eight: {', '.join(q.name for q in SensorPosition)})"
             )
         key, cfg = by_name[p.name]
         if isinstance(key, str):
             raise InputError(
-                f"sensors(): key {key!r} is a string; the leaderboard's keys are carla.SensorPosition members"
+                f"sensors(): key {key!r} is a string; the leaderboard's keys are "
+                "carla.SensorPosition members"
             )
         missing = [a for a in SENSOR_ATTRIBUTES if a not in cfg]
         if missing:
             raise InputError(f"sensors(): SensorPosition.{p.name} lacks {', '.join(missing)}")
         if evaluation and cfg.get("use_semantic", False):
             raise InputError(
-                f"sensors(): SensorPosition.{p.name} asks for a semantic camera, refused in evaluation"
+                f"sensors(): SensorPosition.{p.name} asks for a semantic camera, refused in "
+                "evaluation"
             )
         out[p.name] = cfg
     return out

@@ -80,7 +80,8 @@ class FrameOutOfRangeError(InputError):
 
 
 class FrameNotRecordedError(InputError, IndexError):
-    """``set_frame`` to a frame number that is not recorded (an IndexError, as in the published agent)."""
+    """``set_frame`` to a frame number that is not recorded (an IndexError, as in the published
+    agent)."""
 
 
 class UnknownCameraError(InputError, KeyError):
@@ -101,7 +102,8 @@ class Location:
 
 @dataclass(frozen=True)
 class Rotation:
-    """Euler angles in radians, R = Rz(yaw) Ry(pitch) Rx(roll) (carla.Rotation-like, but radians as in the LAC)."""
+    """Euler angles in radians, R = Rz(yaw) Ry(pitch) Rx(roll) (carla.Rotation-like, but radians as
+    in the LAC)."""
 
     roll: float = 0.0
     pitch: float = 0.0
@@ -201,9 +203,8 @@ class PlaybackAgent:
         if isinstance(frame, (int, np.integer)) and not isinstance(frame, bool):
             i = self._index_of.get(int(frame))
         elif isinstance(frame, (float, np.floating)) and float(frame).is_integer():
-            i = self._index_of.get(
-                int(frame)
-            )  # pandas compares 3.0 == 3, as the published agent does
+            # pandas compares 3.0 == 3, as the published agent does
+            i = self._index_of.get(int(frame))
         if i is None:
             raise FrameNotRecordedError(
                 f"frame {frame} is not in {self.archive.path} (frames {lo}..{hi})"
@@ -236,7 +237,8 @@ class PlaybackAgent:
         return bool(self.archive.initial.get("fiducials", False))
 
     def sensors(self) -> dict[str, dict]:
-        """Camera configuration {name: {camera_active, light_intensity, width, height, use_semantic}}
+        """Camera configuration {name: {camera_active, light_intensity, width, height,
+        use_semantic}}
         (numbers stored as strings by older recorders are numbers here)."""
         return self.archive.initial["cameras"]
 
@@ -338,7 +340,8 @@ class PlaybackAgent:
         return float(row["light_intensity"])
 
     def get_camera_position(self, name: str) -> Transform:
-        """Pose of camera `name` relative to the rover (m, rad); a zero pose before its first row."""
+        """Pose of camera `name` relative to the rover (m, rad); a zero pose before its first
+        row."""
         row = self._camera_row(name)
         if row is None:
             return Transform()
@@ -419,9 +422,8 @@ class PlaybackAgent:
             recorded = self.input_data()
             for p in active:
                 img = recorded.get("Grayscale", {}).get(p.name)
-                if (
-                    img is not None and img.ndim == 2
-                ):  # as the leaderboard hands it: [:, :, 0] of BGRA
+                # as the leaderboard hands it: [:, :, 0] of BGRA
+                if img is not None and img.ndim == 2:
                     buf = np.empty(img.shape + (4,), np.uint8)
                     buf[:, :, 0] = img
                     img = buf[:, :, 0]
@@ -450,9 +452,8 @@ class PlaybackAgent:
             )
             agent.set_imu_data(self.get_imu_data())
             out = agent(self.get_mission_time(), status, input_data)
-            commands.append(
-                out[0] if isinstance(out, tuple) else out
-            )  # the leaderboard's base class returns a pair
+            # the leaderboard's base class returns a pair
+            commands.append(out[0] if isinstance(out, tuple) else out)
             if (
                 self.at_end()
                 or agent.has_finished()

@@ -14,7 +14,8 @@ import numpy as np
 from lunarloc.core.errors import ArchiveError, LimitError, MissingColumnError
 
 MAX_CSV_FIELD = 1024**2  # characters in one CSV field of an archive table
-MAX_TABLE_CELLS = 5_000_000  # rows x columns of one CSV member (frames.csv: 18 columns, 277 k rows = 3.9 h at 20 Hz)
+# rows x columns of one CSV member (frames.csv: 18 columns, 277 k rows = 3.9 h at 20 Hz)
+MAX_TABLE_CELLS = 5_000_000
 _INT_TEXT = re.compile(r"^\s*[-+]?\d+\s*$")
 
 
@@ -41,7 +42,8 @@ class Table:
             return self._cols[key]
         except KeyError:
             raise MissingColumnError(
-                f"{self.name or 'table'}: no column {key!r} (have {', '.join(self._cols) or 'none'})"
+                f"{self.name or 'table'}: no column {key!r} (have "
+                f"{', '.join(self._cols) or 'none'})"
             ) from None
 
     def __iter__(self):
@@ -75,7 +77,8 @@ class Table:
             if col.dtype == object:
                 bad = next((i for i, v in enumerate(col) if not _is_float_text(v)), 0)
                 raise ArchiveError(
-                    f"{self.name or 'table'}: column '{c}' holds text ({str(col[bad])[:40]!r} at line {bad + 2}), expected numbers"
+                    f"{self.name or 'table'}: column '{c}' holds text ({str(col[bad])[:40]!r} at "
+                    f"line {bad + 2}), expected numbers"
                 )
             arrays.append(np.asarray(col, dtype=float))
         return (
@@ -96,7 +99,8 @@ class Table:
                 out[i] = _parse_int(str(v))
             except ValueError:
                 raise ArchiveError(
-                    f"{self.name or 'table'}: column '{name}' at line {i + 2}: {str(v)[:40]!r} is not an integer"
+                    f"{self.name or 'table'}: column '{name}' at line {i + 2}: {str(v)[:40]!r} is "
+                    "not an integer"
                 ) from None
         return out
 
@@ -228,9 +232,8 @@ def _parse_csv(
                 and all(_INT_TEXT.match(v) for v in raw)
                 and all(len(v.strip()) < 16 for v in raw)
             ):
-                cols[name] = np.array(
-                    [int(v) for v in raw], dtype=np.int64
-                )  # inferred integer column
+                # inferred integer column
+                cols[name] = np.array([int(v) for v in raw], dtype=np.int64)
                 continue
             try:  # inferred column: numeric if every value parses
                 cols[name] = np.array([_parse_float(v) for v in raw], dtype=np.float64)

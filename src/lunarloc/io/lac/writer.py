@@ -149,7 +149,8 @@ class LacWriter:
         self.path = Path(path)
         if str(data_spec) in LEGACY_MAP_LANDER_SPECS:
             raise InputError(
-                f"data_spec {data_spec!r} marks a map-frame lander; this writer stores it rover-relative"
+                f"data_spec {data_spec!r} marks a map-frame lander; this writer stores it "
+                "rover-relative"
             )
         missing = [k for k in ("lander", "rover", "cameras") if k not in initial]
         if missing:
@@ -245,7 +246,8 @@ class LacWriter:
         unknown = sorted(set(state) - set(STATE_COLUMNS))
         if unknown:
             raise InputError(
-                f"unknown frame state key(s) {', '.join(unknown)}; allowed: {', '.join(STATE_COLUMNS)}"
+                f"unknown frame state key(s) {', '.join(unknown)}; allowed: "
+                f"{', '.join(STATE_COLUMNS)}"
             )
         frame = int(frame)
         if self._last_frame is not None and frame <= self._last_frame:
@@ -286,7 +288,8 @@ class LacWriter:
         cfg = self.initial["cameras"].get(camera)
         if cfg is None:
             raise InputError(
-                f"camera {camera!r} is not in initial['cameras'] ({', '.join(self.initial['cameras'])})"
+                f"camera {camera!r} is not in initial['cameras'] "
+                f"({', '.join(self.initial['cameras'])})"
             )
         frame = int(frame)
         last = self._camera_last.get(camera)
@@ -340,7 +343,8 @@ class LacWriter:
             return
         if w and h and arr.shape[:2] != (h, w):
             raise InputError(
-                f"{camera} {kind} image is {arr.shape[1]}x{arr.shape[0]}, camera config says {w}x{h}"
+                f"{camera} {kind} image is {arr.shape[1]}x{arr.shape[0]}, camera config says "
+                f"{w}x{h}"
             )
 
     def add_custom(
@@ -361,7 +365,8 @@ class LacWriter:
             values = list(r.tolist() if isinstance(r, np.ndarray) else r)
             if len(values) != len(columns):
                 raise InputError(
-                    f"custom record {name!r}: row {i} has {len(values)} values for {len(columns)} columns"
+                    f"custom record {name!r}: row {i} has {len(values)} values for {len(columns)} "
+                    "columns"
                 )
             out_rows.append([_fmt(v) for v in values])
         self._custom[name] = (columns, out_rows)
