@@ -53,12 +53,8 @@ def run_one(
     evaluation: bool,
 ) -> dict:
     d = out / f"site{seed}_{width}x{height}"
-    d.mkdir(parents=True, exist_ok=True)
-    world = lunarsim.SimWorld(seed, n_rocks=rocks, lighting=lighting)
-    world.write_reference(d / "rocks.csv")
-    conf = d / "lunarloc.toml"
-    conf.write_text(
-        f'reference = "rocks.csv"\nwidth = {width}\nheight = {height}\noutput = "agent-output"\n'
+    world, conf = lunarsim.prepare_site(
+        d, seed, width=width, height=height, rocks=rocks, lighting=lighting
     )
     est, gate = [], []
 

@@ -362,14 +362,15 @@ def agent(a) -> None:
 
     agent_file = root / "examples" / "lac_agent.py"
     for lac_map in (False, True):
-        world = lunarsim.SimWorld(a.seed, n_rocks=a.rocks)
-        d = a.out / f"agent_{a.seed}_{'map' if lac_map else 'nomap'}"
-        d.mkdir(parents=True, exist_ok=True)
-        world.write_reference(d / "rocks.csv")
-        conf = d / "lunarloc.toml"
-        conf.write_text(
-            f'reference = "rocks.csv"\nwidth = {a.width}\nheight = {a.width * 9 // 16}\noutput = ""\n'
-            f"lac_map = {str(lac_map).lower()}\nlac_map_cells_per_tick = {a.cells_per_tick}\n"
+        world, conf = lunarsim.prepare_site(
+            a.out / f"agent_{a.seed}_{'map' if lac_map else 'nomap'}",
+            a.seed,
+            width=a.width,
+            height=a.width * 9 // 16,
+            rocks=a.rocks,
+            output="",
+            lac_map=lac_map,
+            lac_map_cells_per_tick=a.cells_per_tick,
         )
         filled = []
 

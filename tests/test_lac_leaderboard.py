@@ -55,18 +55,7 @@ def small_world():
 
 
 def _conf(tmp_path, world, **extra) -> Path:
-    ref = world.write_reference(tmp_path / "rocks.csv")
-    lines = [f'reference = "{ref.name}"', f"width = {W}", f"height = {H}", 'output = "out"']
-
-    def value(v):
-        return (
-            f'"{v}"' if isinstance(v, str) else str(v).lower() if isinstance(v, bool) else repr(v)
-        )
-
-    lines += [f"{k} = {value(v)}" for k, v in extra.items()]
-    p = tmp_path / "lunarloc.toml"
-    p.write_text("\n".join(lines) + "\n")
-    return p
+    return lunarsim.write_agent_config(tmp_path, world, width=W, height=H, output="out", **extra)
 
 
 # ----------------------------------------------------------------------------- the stand-in itself

@@ -78,3 +78,6 @@ def test_cli_style_options_reach_the_sections():
     )
     with pytest.raises(ConfigError, match="localization.search.epsilon_m"):
         RunConfig().with_options(localization__search__epsilon_m=5.0)  # over the run config's cap
+    # the older flat names of a caller's options still reach their settings
+    old = RunConfig().with_options(localization__epsilon_m=0.07, localization__screen_candidates=4)
+    assert old.localization.search.epsilon_m == 0.07 and old.localization.screen.candidates == 4

@@ -253,6 +253,40 @@ class SimWorld:
         return m
 
 
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return str(v).lower()
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    return repr(v)
+
+
+def write_agent_config(
+    folder, world: SimWorld, *, width: int, height: int, output: str = "agent-output", **settings
+) -> Path:
+    """An agent's configuration for `world` in `folder` (created): the site's true rocks
+    written as the reference map (``rocks.csv``) and ``lunarloc.toml`` naming it, with the
+    image size, the agent's output folder (relative to `folder`; "" for none) and any further
+    ``settings`` of the agent's config (``lac_map=True``, ...). Returns the config's path."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    world.write_reference(folder / "rocks.csv")
+    conf = folder / "lunarloc.toml"
+    items = {"reference": "rocks.csv", "width": width, "height": height, "output": output}
+    conf.write_text("".join(f"{k} = {_toml_value(v)}\n" for k, v in {**items, **settings}.items()))
+    return conf
+
+
+def prepare_site(
+    folder, seed: int, *, rocks: int = 386, lighting: str = "sun+lamps", **config
+) -> tuple[SimWorld, Path]:
+    """The world of site `seed` (`rocks` rocks, `lighting`) and an agent's configuration for it
+    in `folder` (:func:`write_agent_config`, which takes `config`): what a closed-loop
+    benchmark sets up per site. Returns the world and the config's path."""
+    world = SimWorld(seed, n_rocks=rocks, lighting=lighting)
+    return world, write_agent_config(folder, world, **config)
+
+
 @dataclass
 class Run:
     """What a closed-loop run produced (times in seconds)."""
