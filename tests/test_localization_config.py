@@ -12,7 +12,12 @@ import pytest
 from lunarloc.config.run import RunConfig, load_config_file
 from lunarloc.core.configs import config_from_dict, config_to_dict
 from lunarloc.core.errors import ConfigError
-from lunarloc.localization.config import MOVED_KEYS, DistortionConfig, LocalizationConfig
+from lunarloc.localization.config import (
+    MOVED_KEYS,
+    DistortionConfig,
+    LocalizationConfig,
+    SearchConfig,
+)
 
 OLD = Path(__file__).parent / "data" / "run_config_flat_localization.json"
 
@@ -56,6 +61,10 @@ def test_ranges_are_checked_once_when_built_or_loaded():
         LocalizationConfig(refine_radius_m=0.0)
     with pytest.raises(ConfigError, match="candidates"):
         replace(LocalizationConfig().screen, candidates=0)
+    with pytest.raises(ConfigError, match="competitor_ratio=0.5 must be >= 1"):
+        LocalizationConfig(competitor_ratio=0.5)
+    with pytest.raises(ConfigError, match="threads=1.5 must be an integer"):
+        SearchConfig(threads=1.5)
     with pytest.raises(ConfigError, match="localization.search: epsilon_m=-1.0 must be > 0"):
         RunConfig.from_dict({"localization": {"search": {"epsilon_m": -1.0}}})
     with pytest.raises(ConfigError, match="given twice"):

@@ -114,15 +114,15 @@ class SearchConfig:
     # gravity: spacing of the relative-yaw bins (deg)
     yaw_step_deg: float = setting(2.0, gt=0.0)
     # gravity: a pair at distance d tolerates a yaw of asin(k x epsilon / d) (k)
-    yaw_noise_factor: float = 1.5
+    yaw_noise_factor: float = setting(1.5, ge=0.0)
     # drop associations whose landmark sizes differ by more than this ratio (needs sizes)
     max_size_ratio: float | None = setting(None, ge=1.0)
     # 6-DoF: memory bound on the consistency graph (edges)
-    max_edges: int = 30_000_000
+    max_edges: int = setting(30_000_000, ge=1)
     # CLIPPER's initialisation seed
-    seed: int = 0
+    seed: int = setting(0)
     # graph-building threads
-    threads: int = field(default_factory=_default_threads)
+    threads: int = setting(default_factory=_default_threads, ge=1)
 
     def __post_init__(self) -> None:
         check_settings(self)
@@ -150,13 +150,13 @@ class RefinementConfig:
     robustly (Cauchy IRLS) re-weighted."""
 
     # re-fit with mutual nearest neighbours under the estimate (false: the clique's fit alone)
-    enabled: bool = True
+    enabled: bool = setting(True)
     # max residual of a nearest-neighbour pair kept by refinement (m)
     radius_m: float = setting(0.10, gt=0.0)
     # mutual-nearest-neighbour re-fits (fewer when the inliers settle)
     rounds: int = setting(3, ge=1, le=100)
     # Cauchy scale of the robust re-weighting (m)
-    robust_scale_m: float = 0.02
+    robust_scale_m: float = setting(0.02, gt=0.0)
     # re-weighting rounds of the robust registration
     irls_rounds: int = setting(5, ge=1, le=100)
 
@@ -201,11 +201,11 @@ class DistortionConfig:
     # fitted: 1-sigma prior on the scale error (fraction; None: none)
     prior_scale_error: float | None = setting(PRIOR_SCALE_ERROR, gt=0.0)
     # fitted: allowance = the fitted bend's shift + this many sigma
-    fit_sigmas: float = 2.0
+    fit_sigmas: float = setting(2.0, ge=0.0)
     # fitted: bent-model fits, inliers gathered again under the model between them
     fit_rounds: int = setting(3, ge=1, le=100)
     # fitted: fewer inliers cannot fix the bent model's 8 parameters: refused
-    fit_min_inliers: int = 6
+    fit_min_inliers: int = setting(6, ge=0)
     # a landmark seen over more path than this (passed twice) is left out of the bend fit (m)
     max_sighting_span_m: float = setting(10.0, gt=0.0)
 
@@ -225,38 +225,38 @@ class AcceptanceConfig:
     # absolute floor on the inlier count
     min_inliers: int = setting(6, ge=3)
     # inliers must exceed the chance envelope at this map size by this many
-    chance_margin: float = 2.5
+    chance_margin: float = setting(2.5)
     # inliers' residual RMSE after registration (m; a floor under the chi-square limit)
     max_rmse_m: float = setting(0.05, gt=0.0)
     # chi-square acceptance of the inlier residuals at this confidence
-    rmse_confidence: float = 0.999
+    rmse_confidence: float = setting(0.999, gt=0.0, lt=1.0)
     # inliers spread at least this far (largest principal std x 2, m)
-    min_extent_m: float = 1.0
+    min_extent_m: float = setting(1.0, ge=0.0)
     # second / first principal std of the inliers (0: collinear)
-    min_planarity: float = 0.05
+    min_planarity: float = setting(0.05, ge=0.0, le=1.0)
     # gravity: share of inlier triangles with matching orientation
-    min_handedness: float = 0.9
+    min_handedness: float = setting(0.9, ge=0.0, le=1.0)
     # predicted error at the query points, times predicted_error_sigmas, at most this (m)
-    max_predicted_error_m: float = 0.10
+    max_predicted_error_m: float = setting(0.10, gt=0.0)
     # predicted rotation error, times predicted_error_sigmas, at most this (deg)
-    max_predicted_rotation_deg: float = 1.0
+    max_predicted_rotation_deg: float = setting(1.0, gt=0.0)
     # the predicted-error limits apply to this many sigma
-    predicted_error_sigmas: float = 1.0
+    predicted_error_sigmas: float = setting(1.0, gt=0.0)
     # a rigid map's inliers match the reference's scale within this fraction ...
-    max_scale_error: float = 0.005
+    max_scale_error: float = setting(0.005, ge=0.0)
     # ... or within this many standard errors of the fitted scale
-    scale_sigmas: float = 3.0
+    scale_sigmas: float = setting(3.0, ge=0.0)
     # vehicle landmarks landing refinement.radius_m..this far from a reference rock are near misses
     # (m)
     near_miss_outer_m: float = setting(0.30, gt=0.0)
     # refuse when near misses exceed chance by this many standard deviations ...
-    max_near_miss_z: float = 3.0
+    max_near_miss_z: float = setting(3.0)
     # ... and number at least this many
-    min_near_misses: int = 5
+    min_near_misses: int = setting(5, ge=0)
     # the best hypothesis must be this many times the best competing one
-    competitor_ratio: float = 1.5
+    competitor_ratio: float = setting(1.5, ge=1.0)
     # hypotheses whose yaws differ more than this compete (deg)
-    competitor_yaw_sep_deg: float = 10.0
+    competitor_yaw_sep_deg: float = setting(10.0, ge=0.0, le=180.0)
 
     def __post_init__(self) -> None:
         check_settings(self)
