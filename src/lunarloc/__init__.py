@@ -16,7 +16,8 @@ The one-call API (what ``lunarloc localize REFERENCE VEHICLE`` does)::
         print(result.T_ref_veh)
 
 ``veh.map`` carries the file's pose provenance (a dataset traverse CSV: ground-truth poses, judged
-rigid unless odometry bounds are stated); ``result.odometry_bounds`` says where the bounds came from.
+rigid unless odometry bounds are stated); ``result.odometry_bounds`` says where the bounds came
+from.
 """
 
 import logging

@@ -1,7 +1,7 @@
 """Where the vehicle map's odometry distortion bounds come from, in one order of precedence:
 
-1. **stated**: the configuration (``LocalizationConfig.odometry_scale_error`` /
-   ``odometry_heading_drift_deg_per_m``; the CLI's ``--odometry-scale-error`` /
+1. **stated**: the configuration (``LocalizationConfig.distortion.scale_error`` /
+   ``heading_drift_deg_per_m``; the CLI's ``--odometry-scale-error`` /
    ``--odometry-drift`` or a ``--config`` file) says them;
 2. **the map's pose provenance** (:class:`lunarloc.io.maps.PoseProvenance`, read from its file): a
    map placed by ground-truth poses is rigid, bounds 0 (a LunarLoc dataset traverse CSV, whose
@@ -19,7 +19,7 @@ that map judged rigid: the scale and near-miss checks still run on it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 from lunarloc.io.maps import LandmarkMap, PoseProvenance
 from lunarloc.localization.config import LocalizationConfig
@@ -72,7 +72,7 @@ def resolve_odometry_bounds(
     > the prior; module docstring), and the record of where they came from."""
     prov = getattr(vehicle, "pose_provenance", None)
     if config.odometry_bounds_stated:
-        s, d = config.odometry_scale_error, config.odometry_heading_drift_deg_per_m
+        s, d = config.distortion.scale_error, config.distortion.heading_drift_deg_per_m
         return config, OdometryBoundsOrigin(
             STATED,
             s,
@@ -81,7 +81,7 @@ def resolve_odometry_bounds(
             f"odometry bounds: {_bounds_text(s, d)}, stated in the configuration",
         )
     if prov is not None and prov.rigid:
-        cfg = replace(config, odometry_scale_error=0.0, odometry_heading_drift_deg_per_m=0.0)
+        cfg = config.with_settings(distortion={"scale_error": 0.0, "heading_drift_deg_per_m": 0.0})
         return cfg, OdometryBoundsOrigin(
             PROVENANCE,
             0.0,
@@ -89,13 +89,16 @@ def resolve_odometry_bounds(
             prov,
             f"odometry bounds: 0 (rigid), from the map's pose provenance: {prov.describe()}",
         )
-    if config.odometry_prior_drift_deg_per_m is None and config.odometry_prior_scale_error is None:
+    if (
+        config.distortion.prior_drift_deg_per_m is None
+        and config.distortion.prior_scale_error is None
+    ):
         how = "fitted from the maps alone (no prior configured)"
     else:
         how = (
             "fitted from the maps, under the prior of real rover odometry ("
-            f"{config.odometry_prior_drift_deg_per_m or 0:g} deg/m, "
-            f"{(config.odometry_prior_scale_error or 0) * 100:g} %) where its path is given"
+            f"{config.distortion.prior_drift_deg_per_m or 0:g} deg/m, "
+            f"{(config.distortion.prior_scale_error or 0) * 100:g} %) where its path is given"
         )
     why = (
         "the map states no pose provenance"
