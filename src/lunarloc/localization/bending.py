@@ -454,7 +454,7 @@ def fitted_predicted_error(
     # small on real maps (DRIFT_FLOOR_DEG_PER_M), and at 1 sigma under the prior, with no floor,
     # bent maps the inliers could not see (0.05-0.1 deg/m, 11 inliers, 30 m windows: pairs 4-14,
     # 7-15) were claimed 21-24 cm off with 6.5-8.4 cm predicted
-    k = cfg.distortion_fit_sigmas
+    k = cfg.distortion.fit_sigmas
     reg = np.asarray(registration_m, float)
     if not all(
         map(

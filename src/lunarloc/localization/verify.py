@@ -94,31 +94,31 @@ def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
             ev.rmse_limit_m,
             f"residual RMSE {ev.rmse_m * 100:.1f} cm exceeds {ev.rmse_limit_m * 100:.1f} cm (what landmarks of "
             f"{ev.sigma_h_m * 100:.1f} cm horizontal / {ev.sigma_z_m * 100:.1f} cm vertical uncertainty allow)",
-            f"chi-square test of the inlier residuals at {cfg.rmse_confidence:g} confidence",
+            f"chi-square test of the inlier residuals at {cfg.acceptance.rmse_confidence:g} confidence",
         ),
         _at_least(
             "extent",
             ev.extent_m,
-            cfg.min_extent_m,
-            f"inliers are clustered (extent {ev.extent_m:.2f} m < {cfg.min_extent_m} m)",
+            cfg.acceptance.min_extent_m,
+            f"inliers are clustered (extent {ev.extent_m:.2f} m < {cfg.acceptance.min_extent_m} m)",
             "inliers spread (2 x largest principal std, m)",
         ),
         _at_least(
             "planarity",
             ev.planarity,
-            cfg.min_planarity,
+            cfg.acceptance.min_planarity,
             "inliers are nearly collinear: rotation about their line is poorly fixed",
             "inliers not collinear (second / first principal std)",
         ),
     ]
     if ev.tilt_deg is not None:
-        lim = cfg.max_tilt_deg + 0.5
+        lim = cfg.search.max_tilt_deg + 0.5
         out.append(
             _at_most(
                 "tilt",
                 ev.tilt_deg,
                 lim,
-                f"fitted tilt {ev.tilt_deg:.2f} deg exceeds the allowed {cfg.max_tilt_deg} deg "
+                f"fitted tilt {ev.tilt_deg:.2f} deg exceeds the allowed {cfg.search.max_tilt_deg} deg "
                 "(mirror or wrong match)",
                 "fitted tilt of the levelled map (deg)",
             )
@@ -128,12 +128,12 @@ def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
             _at_least(
                 "handedness",
                 ev.handedness,
-                cfg.min_handedness,
+                cfg.acceptance.min_handedness,
                 "inliers are a mirror image of the reference (triangle orientations disagree)",
                 "share of inlier triangles with the reference's orientation",
             )
         )
-    scale_lim = max(cfg.max_scale_error, cfg.scale_sigmas * ev.scale_se)
+    scale_lim = max(cfg.acceptance.max_scale_error, cfg.acceptance.scale_sigmas * ev.scale_se)
     out.append(
         _at_most(
             "scale",
@@ -147,12 +147,14 @@ def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
     near_z = (ev.near_misses - ev.near_misses_expected) / math.sqrt(
         max(ev.near_misses_expected, 1.0)
     )
-    near_ok = not (ev.near_misses >= cfg.min_near_misses and near_z > cfg.max_near_miss_z)
+    near_ok = not (
+        ev.near_misses >= cfg.acceptance.min_near_misses and near_z > cfg.acceptance.max_near_miss_z
+    )
     out.append(
         Check(
             "near_misses",
             near_z,
-            cfg.max_near_miss_z,
+            cfg.acceptance.max_near_miss_z,
             near_ok,
             "<=",
             "excess of landmarks just outside the inlier radius over chance (standard deviations; "
@@ -171,10 +173,10 @@ def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
     out.append(
         _at_most(
             "predicted_error",
-            cfg.predicted_error_sigmas * ev.predicted_error_m,
-            cfg.max_predicted_error_m,
-            f"pose too uncertain where it is used: predicted error up to {cfg.predicted_error_sigmas:g} x "
-            f"{ev.predicted_error_m * 100:.1f} cm (allowed {cfg.max_predicted_error_m * 100:.0f} cm"
+            cfg.acceptance.predicted_error_sigmas * ev.predicted_error_m,
+            cfg.acceptance.max_predicted_error_m,
+            f"pose too uncertain where it is used: predicted error up to {cfg.acceptance.predicted_error_sigmas:g} x "
+            f"{ev.predicted_error_m * 100:.1f} cm (allowed {cfg.acceptance.max_predicted_error_m * 100:.0f} cm"
             + (
                 f"; {ev.odometry_bounds}"  # zero distortion: say where the bounds came from all the same
                 if ev.distortion_error_m == 0 and ev.odometry_bounds
@@ -195,10 +197,10 @@ def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
     out.append(
         _at_most(
             "predicted_rotation",
-            cfg.predicted_error_sigmas * ev.predicted_rotation_deg,
-            cfg.max_predicted_rotation_deg,
-            f"heading too uncertain: predicted rotation error {cfg.predicted_error_sigmas:g} x "
-            f"{ev.predicted_rotation_deg:.2f} deg (allowed {cfg.max_predicted_rotation_deg:g} deg; odometry heading "
+            cfg.acceptance.predicted_error_sigmas * ev.predicted_rotation_deg,
+            cfg.acceptance.max_predicted_rotation_deg,
+            f"heading too uncertain: predicted rotation error {cfg.acceptance.predicted_error_sigmas:g} x "
+            f"{ev.predicted_rotation_deg:.2f} deg (allowed {cfg.acceptance.max_predicted_rotation_deg:g} deg; odometry heading "
             f"drift up to {ev.distortion_rotation_deg:.2f} deg, {source})",
             "predicted rotation error (deg)",
         )
@@ -218,9 +220,9 @@ def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
         _at_least(
             "winner_margin",
             ev.inliers,
-            cfg.competitor_ratio * ev.competitor,
+            cfg.acceptance.competitor_ratio * ev.competitor,
             f"ambiguous: {ev.inliers} inliers vs a competing hypothesis with {ev.competitor}",
-            f"inliers against {cfg.competitor_ratio:g} x the best competing hypothesis",
+            f"inliers against {cfg.acceptance.competitor_ratio:g} x the best competing hypothesis",
         )
     )
     return out

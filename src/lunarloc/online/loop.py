@@ -298,8 +298,8 @@ def stated_window_bounds(localization: LocalizationConfig) -> tuple[float, float
     if not localization.odometry_bounds_stated:
         return None
     return (
-        float(localization.odometry_scale_error or 0.0),
-        float(localization.odometry_heading_drift_deg_per_m or 0.0),
+        float(localization.distortion.scale_error or 0.0),
+        float(localization.distortion.heading_drift_deg_per_m or 0.0),
     )
 
 

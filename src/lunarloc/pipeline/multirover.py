@@ -125,12 +125,16 @@ def shared_localization(
 
     Both maps hold landmarks from stereo detections, each as noisy as the one map of a
     reference attempt: the residual RMSE floor (``max_rmse_m``) is combined in quadrature."""
-    window = replace(window, max_rmse_m=math.hypot(window.max_rmse_m, window.max_rmse_m))
+    window = replace(
+        window, max_rmse_m=math.hypot(window.acceptance.max_rmse_m, window.acceptance.max_rmse_m)
+    )
     if owner_sigma is not None:
         window = replace(
             window,
-            max_predicted_error_m=max(window.max_predicted_error_m, owner_sigma[0]),
-            max_predicted_rotation_deg=max(window.max_predicted_rotation_deg, owner_sigma[1]),
+            max_predicted_error_m=max(window.acceptance.max_predicted_error_m, owner_sigma[0]),
+            max_predicted_rotation_deg=max(
+                window.acceptance.max_predicted_rotation_deg, owner_sigma[1]
+            ),
         )
     own = stated_window_bounds(window)
     if own is None:
@@ -145,7 +149,7 @@ def shared_localization(
         window,
         odometry_scale_error=comb(own[0], owner_bounds[0]),
         odometry_heading_drift_deg_per_m=comb(own[1], owner_bounds[1]),
-        max_tilt_deg=min(comb(window.max_tilt_deg, window.max_tilt_deg), 44.0),
+        max_tilt_deg=min(comb(window.search.max_tilt_deg, window.search.max_tilt_deg), 44.0),
     )
 
 
@@ -763,12 +767,12 @@ class _Rover:
                         ),
                     )
                     imprecise = not (
-                        res.predicted_error_m <= lcfg.max_predicted_error_m
-                        and res.predicted_rotation_deg <= lcfg.max_predicted_rotation_deg
+                        res.predicted_error_m <= lcfg.acceptance.max_predicted_error_m
+                        and res.predicted_rotation_deg <= lcfg.acceptance.max_predicted_rotation_deg
                     )
                     if imprecise and (
-                        owner[0] > lcfg.max_predicted_error_m
-                        or owner[1] > lcfg.max_predicted_rotation_deg
+                        owner[0] > lcfg.acceptance.max_predicted_error_m
+                        or owner[1] > lcfg.acceptance.max_predicted_rotation_deg
                     ):
                         lcfg = shared_localization(
                             window_cfg, other.map_bounds, shared_bounds, owner
