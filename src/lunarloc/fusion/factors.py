@@ -100,6 +100,7 @@ class OdometryFactor(Factor):
 
     dim = 4
     #                  x_i y_i z_i psi_i x_j y_j z_j psi_j b_i k
+    # yaw
     reads = np.array(
         [
             [1, 1, 0, 1, 1, 1, 0, 0, 0, 1],  # along-track (heading frame of i)
@@ -108,7 +109,7 @@ class OdometryFactor(Factor):
             [0, 0, 0, 1, 0, 0, 0, 1, 1, 0],
         ],
         bool,
-    )  # yaw
+    )
 
     def __init__(self, layout: StateLayout, i, odo_pose4: np.ndarray, moving_time_s, noise):
         i = np.asarray(i, int).reshape(-1)
@@ -132,7 +133,9 @@ class OdometryFactor(Factor):
 
 
 class BiasWalkFactor(Factor):
-    """Heading-bias random walk ``b_{i+1} - b_i ~ N(0, walk^2 tau)``. Columns: ``b_i``, ``b_{i+1}``."""
+    """Heading-bias random walk ``b_{i+1} - b_i ~ N(0, walk^2 tau)``.
+
+    Columns: ``b_i``, ``b_{i+1}``."""
 
     dim = 1
 
@@ -192,9 +195,8 @@ class LandmarkFactor(Factor):
     applied once here). Columns: the keyframe's pose (4)."""
 
     dim = 3
-    reads = np.array(
-        [[1, 0, 0, 1], [0, 1, 0, 1], [0, 0, 1, 0]], bool
-    )  # x and y turn with yaw; z does not
+    # x and y turn with yaw; z does not
+    reads = np.array([[1, 0, 0, 1], [0, 1, 0, 1], [0, 0, 1, 0]], bool)
 
     def __init__(self, layout: StateLayout, keyframes, p_rover, roll_pitch_rad, targets, sigma_m):
         kf = np.asarray(keyframes, int).reshape(-1)
@@ -259,7 +261,8 @@ def jacobian_sparsity(factors: list[Factor], active: np.ndarray, state_size: int
 
 
 def _loss_rho(name: str, z: np.ndarray) -> np.ndarray:
-    """(3, n) rho(z), rho'(z), rho''(z) of scipy's named robust losses (z = squared scaled residual)."""
+    """(3, n) rho(z), rho'(z), rho''(z) of scipy's named robust losses (z = squared scaled
+    residual)."""
     if name == "linear":
         return np.stack([z, np.ones_like(z), np.zeros_like(z)])
     if name == "soft_l1":

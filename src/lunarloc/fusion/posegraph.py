@@ -132,7 +132,8 @@ are not: keeps its prior finite."""
 class ReferenceErrorModel(str, enum.Enum):
     """How the reference landmarks' own position error enters the landmark ties."""
 
-    SHARED = "shared"  # one error 3-vector per reference landmark, shared by its ties, prior its stated sigma
+    # one error 3-vector per reference landmark, shared by its ties, prior its stated sigma
+    SHARED = "shared"
     INDEPENDENT = (
         "independent"  # each tie alone with observation_sigma_m; the reference's sigma is ignored
     )
@@ -153,9 +154,8 @@ class FusionConfig:
     observation_sigma_m: float = (
         0.05  # landmark tie: the detection's own error (m; INDEPENDENT: and the reference's)
     )
-    reference_error: ReferenceErrorModel = (
-        ReferenceErrorModel.SHARED
-    )  # how a reference landmark's own error enters its ties
+    # how a reference landmark's own error enters its ties
+    reference_error: ReferenceErrorModel = ReferenceErrorModel.SHARED
 
     def __post_init__(self) -> None:
         if not 0 < self.gate.probability < 1:
@@ -336,9 +336,8 @@ class PoseGraph:
             tau = float(t - prev.t_s if moving_time_s is None else moving_time_s)
             c, s = math.cos(prev.odo_pose4[3]), math.sin(prev.odo_pose4[3])
             dx, dy, dz = q[:3] - prev.odo_pose4[:3]
-            d = np.array(
-                [c * dx + s * dy, -s * dx + c * dy, dz]
-            )  # odometry step in the heading frame
+            # odometry step in the heading frame
+            d = np.array([c * dx + s * dy, -s * dx + c * dy, dz])
             dpsi = float(wrap_angle(q[3] - prev.odo_pose4[3]))
             e, b = prev.estimate_pose4, prev.bias_rad_s
             c, s = math.cos(e[3]), math.sin(e[3])

@@ -75,7 +75,8 @@ def check_input_file(
         raise UnreadableFileError(f"{p}: permission denied (read)")
     if max_bytes is not None and st.st_size > max_bytes:
         raise LimitError(
-            f"{p}: {st.st_size / 1024**2:.0f} MiB is over the {max_bytes / 1024**2:.0f} MiB limit for a {what} file"
+            f"{p}: {st.st_size / 1024**2:.0f} MiB is over the {max_bytes / 1024**2:.0f} MiB limit "
+            f"for a {what} file"
         )
     return p
 
@@ -175,8 +176,8 @@ def load_npz_arrays(
                     raise FileFormatError(f"{p}: member {name!r} is not a .npy array")
                 if info.file_size > max_member_bytes:
                     raise LimitError(
-                        f"{p}: member {name} is {info.file_size / 1024**2:.0f} MiB uncompressed, over the "
-                        f"{max_member_bytes / 1024**2:.0f} MiB limit"
+                        f"{p}: member {name} is {info.file_size / 1024**2:.0f} MiB uncompressed, "
+                        f"over the {max_member_bytes / 1024**2:.0f} MiB limit"
                     )
                 out[name[:-4]] = _read_npy_member(p, zf, info, max_member_bytes)
         return out
@@ -222,7 +223,8 @@ def _read_npy_member(
         header_len = fh.tell()
         if nbytes > max_bytes:
             raise LimitError(
-                f"{p}: member {name} declares shape {shape} ({nbytes / 1024**3:.1f} GiB), over the limit"
+                f"{p}: member {name} declares shape {shape} ({nbytes / 1024**3:.1f} GiB), over the "
+                "limit"
             )
         if nbytes + header_len != info.file_size:
             raise FileFormatError(

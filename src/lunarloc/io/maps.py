@@ -84,7 +84,8 @@ class PoseProvenance:
     ``poses``: ``"ground-truth"`` (the vehicle's true poses: the map is rigid, its odometry
     distortion bounds are 0) or ``"odometry"`` (a drifting estimate: the localizer keeps its
     prior of real rover odometry). ``detail``: the source's name (``visual``, ``record:odometry``,
-    ``corrected by the loop``; at most 80 letters, digits, spaces and ``_.:()+-``), may be empty. ``stated_by``: where it was read (the
+    ``corrected by the loop``; at most 80 letters, digits, spaces and ``_.:()+-``), may be empty.
+    ``stated_by``: where it was read (the
     file's ``pose`` column, its ``# pose:`` line, the detect command's ``.config.json`` beside it)
     or, for a dataset traverse CSV that states none, that its schema says so.
 
@@ -97,7 +98,8 @@ class PoseProvenance:
     def __post_init__(self) -> None:
         if self.poses not in (POSE_GROUND_TRUTH, POSE_ODOMETRY):
             raise InputError(
-                f"pose provenance must be {POSE_GROUND_TRUTH!r} or {POSE_ODOMETRY!r}, got {self.poses!r}"
+                f"pose provenance must be {POSE_GROUND_TRUTH!r} or {POSE_ODOMETRY!r}, got "
+                f"{self.poses!r}"
             )
         if self.detail and (
             not re.fullmatch(_POSE_DETAIL, self.detail) or self.detail != self.detail.strip()
@@ -122,7 +124,8 @@ class PoseProvenance:
         m = _POSE_TEXT.fullmatch(text.strip())
         if not m:
             raise InputError(
-                f"pose provenance must be 'ground-truth' or 'odometry[:SOURCE]', got {text.strip()[:60]!r}"
+                "pose provenance must be 'ground-truth' or 'odometry[:SOURCE]', got "
+                f"{text.strip()[:60]!r}"
             )
         return cls(m.group(1), m.group(2) or "", stated_by)
 
@@ -130,7 +133,8 @@ class PoseProvenance:
     def from_label(cls, label: str, stated_by: str = "") -> "PoseProvenance":
         """From the name of the poses' source as lunarloc's detect and odometry sources give it
         (``ground-truth``, ``ground-truth (evaluation only)``, ``odometry``, ``visual``,
-        ``record:orbslam``): ground truth for ``ground-truth...``, else odometry from that source."""
+        ``record:orbslam``): ground truth for ``ground-truth...``, else odometry from that
+        source."""
         label = str(label).strip()
         if label.startswith(POSE_GROUND_TRUTH):
             return cls(POSE_GROUND_TRUTH, "", stated_by)
@@ -197,7 +201,8 @@ class LandmarkMap:
         from that path's first pose (:func:`path_arc_length_m`): the mean over the landmark's
         detections, and their least and greatest. All three or none; None for maps not built
         by a vehicle (overhead grids, catalogues). The localizer's bend model
-        (:func:`lunarloc.localization.bending.bending_fit`) places each landmark there along the path it is
+        (:func:`lunarloc.localization.bending.bending_fit`) places each landmark there along the
+        path it is
         given (``localize(path_xyz=)``, the same path from the same first pose); a wide span
         (min to max) marks a landmark the path passed more than once.
     pose_provenance : optional :class:`PoseProvenance`, which poses placed the landmarks (read
@@ -223,7 +228,8 @@ class LandmarkMap:
             self.pose_provenance, PoseProvenance
         ):
             raise InputError(
-                f"pose_provenance must be a PoseProvenance or None, got {type(self.pose_provenance).__name__}"
+                "pose_provenance must be a PoseProvenance or None, got "
+                f"{type(self.pose_provenance).__name__}"
             )
         self.positions_xyz = as_points(self.positions_xyz, "landmark positions")
         _check_coordinates(self.positions_xyz, "landmark positions")
@@ -307,7 +313,8 @@ def _check_coordinates(xyz: np.ndarray, name: str) -> None:
     if xyz.size and float(np.max(np.abs(xyz))) > _inputs.MAX_ABS_COORD_M:
         bad = int(np.flatnonzero(np.any(np.abs(xyz) > _inputs.MAX_ABS_COORD_M, axis=1))[0])
         raise InputError(
-            f"{name}: coordinate beyond +-{_inputs.MAX_ABS_COORD_M:g} m (row {bad}); not a map in metres"
+            f"{name}: coordinate beyond +-{_inputs.MAX_ABS_COORD_M:g} m (row {bad}); not a map in "
+            "metres"
         )
 
 
@@ -349,7 +356,8 @@ def is_traverse_csv(path: str | Path) -> bool:
 
 
 def _first_line(path: str | Path) -> str:
-    """The first line of a text file, lower case without spaces (checked: exists, is a file, UTF-8)."""
+    """The first line of a text file, lower case without spaces (checked: exists, is a file,
+    UTF-8)."""
     with _inputs.open_text(path) as fh:
         try:
             line = fh.readline(_inputs.MAX_CSV_FIELD_CHARS)
@@ -366,9 +374,8 @@ def load_traverse(path: str | Path) -> Traverse:
     """
     path = Path(path)
     with _inputs.open_text(path, what="traverse CSV") as fh, _inputs.csv_field_limit():
-        reader = csv.reader(
-            fh, strict=True
-        )  # strict: a quote left open at the end of the file is an error
+        # strict: a quote left open at the end of the file is an error
+        reader = csv.reader(fh, strict=True)
         try:
             trav = _read_traverse_rows(path, reader)
         except UnicodeDecodeError as exc:
@@ -432,7 +439,8 @@ def _read_traverse_rows(path: Path, reader) -> Traverse:
     header = [h.strip().lower() for h in header]
     if header[:6] != list(TRAVERSE_COLUMNS):
         raise FileFormatError(
-            f"{path}:1: expected traverse columns {','.join(TRAVERSE_COLUMNS)}, got {','.join(header)}"
+            f"{path}:1: expected traverse columns {','.join(TRAVERSE_COLUMNS)}, got "
+            f"{','.join(header)}"
         )
     if header[6:] not in ([], [POSE_COLUMN]):
         raise FileFormatError(
@@ -469,7 +477,8 @@ def _read_traverse_rows(path: Path, reader) -> Traverse:
             raise FileFormatError(f"{path}:{line}: {exc}") from None
         if len(values) != count:
             raise FileFormatError(
-                f"{path}:{line}: detections says {count} but the boulder list has {len(values)} points"
+                f"{path}:{line}: detections says {count} but the boulder list has {len(values)} "
+                "points"
             )
         if not np.all(np.isfinite(xyz)) or not np.all(np.isfinite(values)):
             raise FileFormatError(f"{path}:{line}: non-finite value")
@@ -487,9 +496,8 @@ def _read_traverse_rows(path: Path, reader) -> Traverse:
     if not frames:
         raise FileFormatError(f"{path}: no data rows")
     return Traverse(
-        frames=np.frombuffer(
-            frames, dtype=np.int64
-        ),  # views of the typed arrays (writable, no copy)
+        # views of the typed arrays (writable, no copy)
+        frames=np.frombuffer(frames, dtype=np.int64),
         rover_xyz=np.frombuffer(rover, dtype=np.float64).reshape(-1, 3),
         detections_xyz=np.frombuffer(dets, dtype=np.float64).reshape(-1, 3),
         detection_frame=np.frombuffer(det_frame, dtype=np.int64),
@@ -577,7 +585,8 @@ def aggregate_detections(
         arc = np.asarray(detection_arc_m, dtype=float).reshape(-1)
         if arc.shape[0] != len(pts) or not np.all(np.isfinite(arc)) or np.any(arc < 0):
             raise InputError(
-                f"detection_arc_m must hold {len(pts)} finite non-negative values, got {arc.shape[0]}"
+                f"detection_arc_m must hold {len(pts)} finite non-negative values, got "
+                f"{arc.shape[0]}"
             )
     no_arcs = {} if arc is None else {name: np.zeros(0) for name in _ARC_FIELDS}
     if len(pts) == 0:
@@ -769,7 +778,8 @@ def read_numeric_csv(
                     for col in required:
                         if col not in header:
                             raise FileFormatError(
-                                f"{path}:{k}: missing column '{col}' (need {','.join(required)}; got {','.join(header)})"
+                                f"{path}:{k}: missing column '{col}' (need {','.join(required)}; "
+                                f"got {','.join(header)})"
                             )
                     continue
                 if len(parts) != len(header):
@@ -936,7 +946,8 @@ def _load_map_npz(path: Path) -> LandmarkMap:
     z = _inputs.load_npz_arrays(path)
     if "positions_xyz" not in z:
         raise FileFormatError(
-            f"{path}: not a lunarloc .npz map (no 'positions_xyz' array; has {', '.join(z) or 'none'})"
+            f"{path}: not a lunarloc .npz map (no 'positions_xyz' array; has "
+            f"{', '.join(z) or 'none'})"
         )
     for name, arr in z.items():
         if name not in ("frame", "pose_provenance") and arr.dtype.kind not in "fiub":

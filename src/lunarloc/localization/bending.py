@@ -1,4 +1,5 @@
-"""The vehicle map's odometry bend: fitted from the two maps, regularised by a prior of real odometry."""
+"""The vehicle map's odometry bend: fitted from the two maps, regularised by a prior of real
+odometry."""
 
 from __future__ import annotations
 
@@ -103,7 +104,8 @@ class _Unbender:
         self._last = None
 
     def index(self, points_xyz: np.ndarray) -> np.ndarray:
-        """Each point's nearest (horizontally) path point: the stand-in for where it was seen from."""
+        """Each point's nearest (horizontally) path point: the stand-in for where it was seen
+        from."""
         return self.tree.query(np.asarray(points_xyz, float)[:, :2])[1]
 
     def index_at_arc(self, arc_m: np.ndarray) -> np.ndarray:
@@ -193,8 +195,8 @@ def _sighting_placement(
         if len(mean) == len(Pv) and (not len(hi) or float(hi.max()) <= unb.arc[-1] * 1.01 + 0.5):
             return unb.index_at_arc(mean), (hi - lo) <= max_span_m, "sightings"
         log.warning(
-            "bend fit: the vehicle map's sighting arcs (up to %.1f m) do not fit the given path (%.1f m);"
-            " using each landmark's nearest path point",
+            "bend fit: the vehicle map's sighting arcs (up to %.1f m) do not fit the given path "
+            "(%.1f m); using each landmark's nearest path point",
             float(hi.max()) if len(hi) else 0.0,
             unb.arc[-1],
         )
@@ -227,7 +229,8 @@ def bending_fit(
     its inliers, starting from the rigid fit T: parameters rotation vector, translation, drift
     per metre and scale error, by least squares on the 3D residuals over `sigma_axis_m` (the
     landmarks' per-axis noise; the residuals' own scale when larger). Inliers are gathered
-    again under the model (mutual nearest neighbours within `radius_m`; at most `rounds` fits), so the
+    again under the model (mutual nearest neighbours within `radius_m`; at most `rounds` fits), so
+    the
     part of a bent map the rigid fit left out can show its bend. Covariance from the Jacobian;
     the query points' positions and headings under the model, with their uncertainty beyond
     the rigid model's, are compared with the rigid fit's. Without `path_xyz` a straight path
@@ -238,7 +241,8 @@ def bending_fit(
     mean sighting arc; one seen over more than `max_sighting_span_m` of arc (the path passed it
     twice: its aggregate mixes passes the model cannot tell apart) is left out of the fit.
     Without them, its nearest path point stands in, and a landmark that more than one pass of
-    the path comes within sight of (:meth:`_Unbender.passes`) is left out. With fewer than `min_inliers` inliers
+    the path comes within sight of (:meth:`_Unbender.passes`) is left out. With fewer than
+    `min_inliers` inliers
     left the bend is not determined: infinite sigma (refused).
 
     `prior_drift_rad_per_m` / `prior_scale_error`: a zero-mean Gaussian prior (1 sigma) on the drift
@@ -328,12 +332,12 @@ def bending_fit(
     n_prior = 0 if prior_sd is None else 2
     geo = slice(0, J.shape[0] - n_prior)
     dof = max(J.shape[0] - n_prior - 8, 1)
-    # residuals noisier than the stated sigma widen the data's part of the covariance (not the prior's)
+    # residuals noisier than the stated sigma widen the data's part of the covariance (not the
+    # prior's)
     s2 = max(1.0, float(np.sum(sol.fun[geo] ** 2)) / dof)
     J = J.copy()
-    J[geo] /= math.sqrt(
-        s2
-    )  # the geometric rows at the noise they show; from here on C = (J^T J)^-1
+    # the geometric rows at the noise they show; from here on C = (J^T J)^-1
+    J[geo] /= math.sqrt(s2)
     try:
         C = np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:

@@ -14,7 +14,8 @@ from lunarloc.core.geometry import (
 
 def scale_check(T, P, Q, weights, sigma_floor: float = 0.005) -> tuple[float, float]:
     """Relative size of the vehicle map's inliers against their reference landmarks, and
-    its standard error: ``(1/s - 1, se)`` with s the scale taking vehicle to reference. A rigid map gives s = 1 within noise; odometry
+    its standard error: ``(1/s - 1, se)`` with s the scale taking vehicle to reference. A rigid map
+    gives s = 1 within noise; odometry
     scale drift inside the vehicle map shows up as s != 1 (the weighted least-squares
     scale of Umeyama 1991, eq. 42, about the weighted centroids)."""
     w = np.asarray(weights, float)
@@ -125,9 +126,8 @@ def _arc_length_at(path_xyz: np.ndarray, *points_xyz: np.ndarray) -> list[np.nda
     path for all the sets (a path at the frame rate holds thousands of poses)."""
     path = np.asarray(path_xyz, float)
     s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))]
-    tree = cKDTree(
-        path[:, :2], balanced_tree=False, compact_nodes=False
-    )  # built for a few queries: the quick build
+    # built for a few queries: the quick build
+    tree = cKDTree(path[:, :2], balanced_tree=False, compact_nodes=False)
     return [s[tree.query(np.asarray(p, float)[:, :2])[1]] for p in points_xyz]
 
 

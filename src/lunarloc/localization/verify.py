@@ -36,9 +36,8 @@ class Check:
 
 
 def _at_most(name: str, value: float, limit: float, fail: str, ok: str) -> Check:
-    passed = not (
-        value > limit
-    )  # NaN passes: a quantity that could not be measured refuses nothing here
+    # NaN passes: a quantity that could not be measured refuses nothing here
+    passed = not (value > limit)
     return Check(name, float(value), float(limit), passed, "<=", ok if passed else fail)
 
 
@@ -92,9 +91,11 @@ def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
             "residual_rmse",
             ev.rmse_m,
             ev.rmse_limit_m,
-            f"residual RMSE {ev.rmse_m * 100:.1f} cm exceeds {ev.rmse_limit_m * 100:.1f} cm (what landmarks of "
-            f"{ev.sigma_h_m * 100:.1f} cm horizontal / {ev.sigma_z_m * 100:.1f} cm vertical uncertainty allow)",
-            f"chi-square test of the inlier residuals at {cfg.acceptance.rmse_confidence:g} confidence",
+            f"residual RMSE {ev.rmse_m * 100:.1f} cm exceeds {ev.rmse_limit_m * 100:.1f} cm (what "
+            f"landmarks of {ev.sigma_h_m * 100:.1f} cm horizontal / {ev.sigma_z_m * 100:.1f} cm "
+            "vertical uncertainty allow)",
+            f"chi-square test of the inlier residuals at {cfg.acceptance.rmse_confidence:g} "
+            "confidence",
         ),
         _at_least(
             "extent",
@@ -118,8 +119,8 @@ def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
                 "tilt",
                 ev.tilt_deg,
                 lim,
-                f"fitted tilt {ev.tilt_deg:.2f} deg exceeds the allowed {cfg.search.max_tilt_deg} deg "
-                "(mirror or wrong match)",
+                f"fitted tilt {ev.tilt_deg:.2f} deg exceeds the allowed {cfg.search.max_tilt_deg} "
+                "deg (mirror or wrong match)",
                 "fitted tilt of the levelled map (deg)",
             )
         )
@@ -139,8 +140,8 @@ def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
             "scale",
             abs(ev.scale_error),
             scale_lim,
-            f"vehicle map is not rigid: its inliers are {ev.scale_error * 100:+.1f} % larger than the "
-            f"reference (+-{ev.scale_se * 100:.1f} %), as odometry scale drift makes them",
+            f"vehicle map is not rigid: its inliers are {ev.scale_error * 100:+.1f} % larger than "
+            f"the reference (+-{ev.scale_se * 100:.1f} %), as odometry scale drift makes them",
             "relative scale of the inliers against the reference",
         )
     )
@@ -160,9 +161,10 @@ def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
             "excess of landmarks just outside the inlier radius over chance (standard deviations; "
             f"{ev.near_misses} seen, {ev.near_misses_expected:.1f} expected)"
             if near_ok
-            else f"vehicle map is not rigid: {ev.near_misses} of its landmarks land {ev.near_inner_m * 100:.0f}-"
-            f"{ev.near_outer_m * 100:.0f} cm from a reference rock where chance gives {ev.near_misses_expected:.1f} "
-            "(scaled or bent by odometry drift away from the inliers)",
+            else f"vehicle map is not rigid: {ev.near_misses} of its landmarks land "
+            f"{ev.near_inner_m * 100:.0f}-{ev.near_outer_m * 100:.0f} cm from a reference rock "
+            f"where chance gives {ev.near_misses_expected:.1f} (scaled or bent by odometry drift "
+            "away from the inliers)",
         )
     )
     source = ev.odometry_bounds or (
@@ -175,10 +177,12 @@ def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
             "predicted_error",
             cfg.acceptance.predicted_error_sigmas * ev.predicted_error_m,
             cfg.acceptance.max_predicted_error_m,
-            f"pose too uncertain where it is used: predicted error up to {cfg.acceptance.predicted_error_sigmas:g} x "
-            f"{ev.predicted_error_m * 100:.1f} cm (allowed {cfg.acceptance.max_predicted_error_m * 100:.0f} cm"
+            "pose too uncertain where it is used: predicted error up to "
+            f"{cfg.acceptance.predicted_error_sigmas:g} x {ev.predicted_error_m * 100:.1f} cm "
+            f"(allowed {cfg.acceptance.max_predicted_error_m * 100:.0f} cm"
             + (
-                f"; {ev.odometry_bounds}"  # zero distortion: say where the bounds came from all the same
+                # zero distortion: say where the bounds came from all the same
+                f"; {ev.odometry_bounds}"
                 if ev.distortion_error_m == 0 and ev.odometry_bounds
                 else ""
                 if ev.distortion_error_m == 0
@@ -186,8 +190,9 @@ def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
             )
             + ")"
             + (
-                ": the maps cannot show the odometry beyond the rocks they share; state its bounds (0 for a map built "
-                "from ground-truth poses, or a file whose pose provenance says ground-truth) to judge with them"
+                ": the maps cannot show the odometry beyond the rocks they share; state its bounds "
+                "(0 for a map built from ground-truth poses, or a file whose pose provenance says "
+                "ground-truth) to judge with them"
                 if ev.distortion_fitted and ev.distortion_error_m > 0
                 else ""
             ),
@@ -199,9 +204,10 @@ def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
             "predicted_rotation",
             cfg.acceptance.predicted_error_sigmas * ev.predicted_rotation_deg,
             cfg.acceptance.max_predicted_rotation_deg,
-            f"heading too uncertain: predicted rotation error {cfg.acceptance.predicted_error_sigmas:g} x "
-            f"{ev.predicted_rotation_deg:.2f} deg (allowed {cfg.acceptance.max_predicted_rotation_deg:g} deg; odometry heading "
-            f"drift up to {ev.distortion_rotation_deg:.2f} deg, {source})",
+            "heading too uncertain: predicted rotation error "
+            f"{cfg.acceptance.predicted_error_sigmas:g} x {ev.predicted_rotation_deg:.2f} deg "
+            f"(allowed {cfg.acceptance.max_predicted_rotation_deg:g} deg; odometry heading drift "
+            f"up to {ev.distortion_rotation_deg:.2f} deg, {source})",
             "predicted rotation error (deg)",
         )
     )
@@ -210,10 +216,12 @@ def verify(ev: Evidence, cfg: LocalizationConfig) -> list[Check]:
             "inliers_vs_chance",
             ev.inliers_beyond_chance,
             ev.required_inliers,
-            f"{ev.inliers} inliers ({ev.inliers_beyond_chance:.1f} when refinement's chance matches are discounted) is "
-            f"too few to beat chance at {ev.num_associations} associations (need {ev.required_inliers}; "
-            f"unrelated maps of this size give up to ~{ev.chance_inliers:.0f})",
-            "inliers (refinement's chance matches discounted) against the chance envelope plus margin",
+            f"{ev.inliers} inliers ({ev.inliers_beyond_chance:.1f} when refinement's chance "
+            f"matches are discounted) is too few to beat chance at {ev.num_associations} "
+            f"associations (need {ev.required_inliers}; unrelated maps of this size give up to "
+            f"~{ev.chance_inliers:.0f})",
+            "inliers (refinement's chance matches discounted) against the chance envelope plus "
+            "margin",
         )
     )
     out.append(

@@ -35,7 +35,8 @@ the rays hits a rock. The mapper estimates both:
   7 cm, so it stays off (docs/lac-map.md).
 * **Cells never seen** (``fill``): ``all`` (default) fills every unseen cell with the
   Gaussian-weighted mean of the seen heights at the smallest scale (1, 2, 4, ... cells) that
-  reaches one (normalised convolution), with no rock; ``near`` only those within ``fill_max_m`` of a seen cell; ``none`` leaves
+  reaches one (normalised convolution), with no rock; ``near`` only those within ``fill_max_m`` of a
+  seen cell; ``none`` leaves
   them unfilled (the LAC's -inf). An unfilled cell always fails the LAC's geometric score and
   counts nothing for productivity, so ``all`` can only gain points; the estimate says which
   cells were interpolated and how far from a seen cell (``fill_distance_m``).
@@ -131,7 +132,8 @@ class LacMapperConfig:
         n = self.size_m / self.cell_m
         if not (self.cell_m > 0 and n >= 2 and abs(n - round(n)) < 1e-6):
             raise ConfigError(
-                f"size_m={self.size_m} must be a whole number (>= 2) of cells of cell_m={self.cell_m}"
+                f"size_m={self.size_m} must be a whole number (>= 2) of cells of "
+                f"cell_m={self.cell_m}"
             )
         if not 0 < self.bin_m <= self.cell_m:
             raise ConfigError(f"bin_m={self.bin_m} must be in (0, cell_m]")
@@ -175,9 +177,11 @@ class LacMapEstimate:
     array : the LAC map (N, N, 4): x, y, height (m), rock flag (0/1); -inf where unfilled.
     observed : cells that hold points of at least one frame.
     interpolated : cells filled without being observed.
-    height_sigma_m : weighted spread of the observed heights about the cell's height (NaN unobserved).
+    height_sigma_m : weighted spread of the observed heights about the cell's height (NaN
+    unobserved).
     weight : sum of the bin weights in the cell (0 unobserved).
-    fill_distance_m : distance from the cell centre to the nearest observed cell centre (0 observed).
+    fill_distance_m : distance from the cell centre to the nearest observed cell centre (0
+    observed).
     rocks : (K, 3) the mapped rocks: x, y (map frame), footprint radius (m).
     """
 
@@ -248,7 +252,8 @@ class LacMapper:
             or not (math.isfinite(radius_m) and radius_m > 0)
         ):
             raise InputError(
-                f"exclude_disc: need a finite centre (x, y) and radius > 0, got {centre_xy}, {radius_m}"
+                f"exclude_disc: need a finite centre (x, y) and radius > 0, got {centre_xy}, "
+                f"{radius_m}"
             )
         self._discs.append((float(c[0]), float(c[1]), float(radius_m)))
 
@@ -825,7 +830,8 @@ def load_observed_cells(path, shape: tuple[int, int]) -> np.ndarray:
         raise FileFormatError(f"{side}: not a map's cell file ({exc})") from None
     if obs.shape != tuple(shape) or obs.dtype != bool:
         raise FileFormatError(
-            f"{side}: observed mask of shape {obs.shape} and dtype {obs.dtype}, expected bool {tuple(shape)}"
+            f"{side}: observed mask of shape {obs.shape} and dtype {obs.dtype}, expected bool "
+            f"{tuple(shape)}"
         )
     return obs
 

@@ -139,9 +139,8 @@ def as_transform_matrix(pose, what: str = "pose") -> np.ndarray:
     in radians, as the agent getters return it) or an object with ``matrix()`` /
     ``get_matrix()``. CARLA's own left-handed ``carla.Transform`` is refused (InputError)."""
     if hasattr(pose, "location") and hasattr(pose, "rotation"):
-        return validate.rigid_transform(
-            transform_to_matrix(pose, what), what
-        )  # the same bounds as a matrix
+        # the same bounds as a matrix
+        return validate.rigid_transform(transform_to_matrix(pose, what), what)
     for attr in ("matrix", "get_matrix"):
         f = getattr(pose, attr, None)
         if callable(f):
@@ -162,7 +161,8 @@ def as_transform_matrix(pose, what: str = "pose") -> np.ndarray:
         a = pose_to_matrix(*a)
     if a.shape != (4, 4):
         raise InputError(
-            f"{what} must be a finite 4x4 transform or (x, y, z, roll, pitch, yaw); got shape {a.shape}"
+            f"{what} must be a finite 4x4 transform or (x, y, z, roll, pitch, yaw); got shape "
+            f"{a.shape}"
         )
     return validate.rigid_transform(a, what)  # orthonormal, det +1, last row 0 0 0 1
 
@@ -205,12 +205,14 @@ class CameraRig:
         stereo = {n: s for n, s in sizes.items() if any(n in p for p in STEREO_PAIRS)}
         if not stereo:
             raise InputError(
-                f"sensors(): no active stereo camera ({', '.join(n for p in STEREO_PAIRS for n in p)}); "
-                f"active: {', '.join(sizes) or 'none'}"
+                "sensors(): no active stereo camera "
+                f"({', '.join(n for p in STEREO_PAIRS for n in p)}); active: "
+                f"{', '.join(sizes) or 'none'}"
             )
         if len(set(stereo.values())) > 1:
             raise InputError(
-                f"sensors(): stereo cameras differ in size {stereo}; one intrinsic model is supported"
+                f"sensors(): stereo cameras differ in size {stereo}; one intrinsic model is "
+                "supported"
             )
         w, h = next(iter(stereo.values()))
         cam = PinholeCamera(w, h, hfov_deg)
@@ -218,7 +220,8 @@ class CameraRig:
         for key, p in dict(camera_poses or {}).items():
             T = as_transform_matrix(p, f"pose of camera {camera_name(key)}")
             if np.allclose(T, np.eye(4)):
-                continue  # a zero pose (PlaybackAgent before the camera's first row): keep the rig's
+                # a zero pose (PlaybackAgent before the camera's first row): keep the rig's
+                continue
             poses[camera_name(key)] = T
         return cls(cam, poses)
 
@@ -252,8 +255,9 @@ class CameraRig:
             or abs(cy - (height - 1) / 2) > 1.0
         ):
             raise InputError(
-                f"calibration: fx={fx}, fy={fy}, cx={cx}, cy={cy}: the camera model needs fy == fx and "
-                f"the principal point at the image centre ({(width - 1) / 2}, {(height - 1) / 2}); rectify first"
+                f"calibration: fx={fx}, fy={fy}, cx={cx}, cy={cy}: the camera model needs fy == fx "
+                f"and the principal point at the image centre ({(width - 1) / 2}, "
+                f"{(height - 1) / 2}); rectify first"
             )
         cam = PinholeCamera(int(width), int(height), math.degrees(2 * math.atan(width / 2 / fx)))
         if T_rover_cam is None:
@@ -313,9 +317,8 @@ class OnlineConfig:
     max_recent_attempts: int = 100  # localization attempts kept in `recent_attempts`
 
     def __post_init__(self) -> None:
-        validate.integer(
-            self.max_keyframes, "max_keyframes", 50, 10**9, ConfigError
-        )  # 10**9: never re-anchor
+        # 10**9: never re-anchor
+        validate.integer(self.max_keyframes, "max_keyframes", 50, 10**9, ConfigError)
         validate.integer(self.max_recent_attempts, "max_recent_attempts", 0, 10**6, ConfigError)
         for name in (
             "keyframe_min_travel_m",
@@ -425,8 +428,9 @@ class OnlineLocalizer:
             d = np.linalg.norm(reference.positions_xyz[:, :2] - self.T_map_rover0[:2, 3], axis=1)
             if float(d.min()) > cfg.reference_max_distance_m:
                 raise InputError(
-                    f"the reference map has no landmark within {cfg.reference_max_distance_m:g} m of the initial pose "
-                    f"({float(d.min()):.1f} m to the nearest): is it in another frame than the initial pose?"
+                    f"the reference map has no landmark within {cfg.reference_max_distance_m:g} m "
+                    f"of the initial pose ({float(d.min()):.1f} m to the nearest): is it in "
+                    "another frame than the initial pose?"
                 )
         noise = replace(
             cfg.loop.fusion.noise,
@@ -436,9 +440,10 @@ class OnlineLocalizer:
         self._loop_config = replace(cfg.loop, fusion=replace(cfg.loop.fusion, noise=noise))
         # its windows state the bounds of the odometry that places them (LoopConfig.window_bounds)
         self._odometry_source = "visual" if cfg.visual_odometry else "imu"
+        # checks the reference (>= 3 landmarks)
         self.loop = LoopState(
             reference, self._loop_config, cfg.localization, odometry=self._odometry_source
-        )  # checks the reference (>= 3 landmarks)
+        )
         self._rig_given = rig is not None  # else the LAC rig, sized to the first images delivered
         self._detector_config = detector_config
         self._use_rig(self.rig)
@@ -448,9 +453,8 @@ class OnlineLocalizer:
         self._imu_prev: np.ndarray | None = None
         self._speed_prev = 0.0
         self._T_map_imu = self.T_map_rover0.copy()  # IMU dead reckoning
-        self._T_map_odo = (
-            self.T_map_rover0.copy()
-        )  # odometry (visual / IMU / caller), odo == map at start
+        # odometry (visual / IMU / caller), odo == map at start
+        self._T_map_odo = self.T_map_rover0.copy()
         self._vo_anchor = None  # (T_map_odo at the last VO pair, T_map_imu there)
         self._T_odo_caller = None  # T_odo_caller: the caller's odometry frame in ours
         self._T_loop_odo = np.eye(4)  # the loop's odometry frame <- odo (changes at re-anchors)
@@ -505,9 +509,8 @@ class OnlineLocalizer:
                     self._mounts[left].T_rover_optical,
                     self._mounts[right].T_rover_optical,
                 )
-                self._vo_chain = GravityAlignedChain(
-                    self._vo.config.gravity_tilt_gain
-                )  # roll/pitch from gravity
+                # roll/pitch from gravity
+                self._vo_chain = GravityAlignedChain(self._vo.config.gravity_tilt_gain)
 
     # -------------------------------------------------------------- public
     def warm_up(self) -> float:
@@ -571,7 +574,8 @@ class OnlineLocalizer:
         :meth:`update`; None goes back to unknown."""
         if source is not None and not isinstance(source, (str, OdometryBounds)):
             raise InputError(
-                f"source must be an odometry source label or OdometryBounds, got {type(source).__name__}"
+                "source must be an odometry source label or OdometryBounds, got "
+                f"{type(source).__name__}"
             )
         self._odometry_source = None  # update() keeps what the caller stated
         self.loop.set_odometry(source)
@@ -693,12 +697,13 @@ class OnlineLocalizer:
         if self._t_prev is not None:
             if t <= self._t_prev:
                 raise InputError(
-                    f"mission_time_s went backwards or stood still: {t:.3f} s after {self._t_prev:.3f} s"
+                    f"mission_time_s went backwards or stood still: {t:.3f} s after "
+                    f"{self._t_prev:.3f} s"
                 )
             if t - self._t_prev > self.config.imu.max_dt_s:
                 raise InputError(
-                    f"{t - self._t_prev:.3f} s since the previous tick (max {self.config.imu.max_dt_s:g} s): "
-                    "call update() every tick"
+                    f"{t - self._t_prev:.3f} s since the previous tick (max "
+                    f"{self.config.imu.max_dt_s:g} s): call update() every tick"
                 )
         return t
 
@@ -718,23 +723,25 @@ class OnlineLocalizer:
             return {}
         if not isinstance(input_data, Mapping):
             raise InputError(
-                f"input_data must be a dict like {{'Grayscale': {{camera: image}}}}, got {type(input_data).__name__}"
+                f"input_data must be a dict like {{'Grayscale': {{camera: image}}}}, got "
+                f"{type(input_data).__name__}"
             )
         group = input_data.get("Grayscale")
         group = {} if group is None else group
         if not isinstance(group, Mapping):
             raise InputError(
-                f"input_data['Grayscale'] must be a dict {{camera: image or None}}, got {type(group).__name__}"
+                f"input_data['Grayscale'] must be a dict {{camera: image or None}}, got "
+                f"{type(group).__name__}"
             )
         names = {camera_name(k) for k in group}
         if names and not any(n in names for p in self._pairs for n in p):
             raise InputError(
-                f"input_data['Grayscale'] has no stereo camera (has {', '.join(sorted(names))}); the component "
-                f"needs one of the pairs {', '.join('/'.join(p) for p in self._pairs)} active"
+                f"input_data['Grayscale'] has no stereo camera (has {', '.join(sorted(names))}); "
+                "the component needs one of the pairs "
+                f"{', '.join('/'.join(p) for p in self._pairs)} active"
             )
-        first = next(
-            (getattr(im, "shape", None) for im in group.values() if im is not None), None
-        )  # arrays only
+        # arrays only
+        first = next((getattr(im, "shape", None) for im in group.values() if im is not None), None)
         if (
             isinstance(first, tuple)
             and len(first) == 2
@@ -745,9 +752,8 @@ class OnlineLocalizer:
             and self._vo_anchor is None
             and first != (self.rig.camera.height, self.rig.camera.width)
         ):
-            h, w = (
-                int(v) for v in first
-            )  # the LAC's cameras are fixed pinholes: the intrinsics follow from the size
+            # the LAC's cameras are fixed pinholes: the intrinsics follow from the size
+            h, w = (int(v) for v in first)
             log.info("no rig given: the LAC rig at the delivered %dx%d", w, h)
             self._use_rig(CameraRig.lac(w, h))
         c = self.rig.camera
@@ -758,9 +764,8 @@ class OnlineLocalizer:
                 img = validate.gray_image(
                     img, f"input_data['Grayscale'][{name}]", (c.height, c.width)
                 )
-                img = np.ascontiguousarray(
-                    img
-                )  # the leaderboard hands a view ([:, :, 0] of a BGRA buffer)
+                # the leaderboard hands a view ([:, :, 0] of a BGRA buffer)
+                img = np.ascontiguousarray(img)
             out[name] = img
         return out
 
@@ -774,7 +779,8 @@ class OnlineLocalizer:
                 missing = right if has_l else left
                 raise InputError(
                     f"input_data: {left if has_l else right} has an image but {missing} "
-                    f"{'is missing' if missing not in images else 'is None'}: a stereo pair is captured together"
+                    f"{'is missing' if missing not in images else 'is None'}: a stereo pair is "
+                    "captured together"
                 )
             if has_l and found is None:
                 found = (left, right)
@@ -787,7 +793,8 @@ class OnlineLocalizer:
         if self._vo_anchor is not None:
             prior = invert_transform(self._vo_anchor[1]) @ T_imu
         T_vo_rover = self._vo.update(images[left], images[right], prior)
-        # visual motion chained from the first pair's predicted pose, roll and pitch from the IMU's gravity
+        # visual motion chained from the first pair's predicted pose, roll and pitch from the IMU's
+        # gravity
         T_odo = self._vo_chain.add(T_vo_rover, T_imu, self._T_map_odo_prediction(T_imu))
         self._vo_anchor = (T_odo, T_imu)
         return T_odo
@@ -874,9 +881,8 @@ class OnlineLocalizer:
             self.config.localization,
             odometry=old.odometry,
         )
-        new._last_attempt_dist = new._last_attempt_t = (
-            math.inf
-        )  # no attempts while the window is re-fed
+        # no attempts while the window is re-fed
+        new._last_attempt_dist = new._last_attempt_t = math.inf
         for k in keep:
             kf = old.keyframes[k]
             x, y, z, yaw = poses[k]

@@ -75,8 +75,11 @@ class WindowBounds(str, enum.Enum):
     :class:`~lunarloc.localization.config.LocalizationConfig` each attempt runs with), when the
     localization settings state none themselves."""
 
-    SOURCE = "source"  # the bounds of the odometry source in use (LoopConfig.odometry_bounds), added to the predicted error
-    FITTED = "fitted"  # none stated: localize() fits each window's bend (and the measured floor) from its inliers
+    # the bounds of the odometry source in use (LoopConfig.odometry_bounds), added to the predicted
+    # error
+    SOURCE = "source"
+    # none stated: localize() fits each window's bend (and the measured floor) from its inliers
+    FITTED = "fitted"
     RIGID = "rigid"  # bounds 0: no distortion term (over-confident under drifting odometry)
 
 
@@ -85,7 +88,9 @@ class CropSigma(str, enum.Enum):
     The crop is chosen from the prediction alone, never from the data, so the chance test at the
     crop's association count stays valid whatever its size; a crop too small only loses fixes."""
 
-    GATE = "gate"  # the pose graph's gate drift model (5 % of the distance since the last fix and a heading random walk)
+    # the pose graph's gate drift model (5 % of the distance since the last fix and a heading random
+    # walk)
+    GATE = "gate"
     # the odometry bounds the window states (scale error and heading drift per metre, grown over the
     # distance since the last fix, from the gate's base sigmas); the gate's model where the window
     # states none or states them 0 (fitted, rigid)
@@ -95,7 +100,8 @@ class CropSigma(str, enum.Enum):
 @dataclass(frozen=True)
 class OdometryBounds:
     """Bounds on an odometry's distortion over a window: relative scale error and heading
-    drift per metre of path (what :func:`lunarloc.localization.uncertainty.distortion_allowance` takes)."""
+    drift per metre of path (what :func:`lunarloc.localization.uncertainty.distortion_allowance`
+    takes)."""
 
     scale_error: float = 0.0
     heading_drift_deg_per_m: float = 0.0
@@ -124,7 +130,8 @@ class SourceBounds:
 
     # stereo VO at 640x360-1280x720: 8 m windows distort by 0.2-0.9 % and up to 0.06-0.08 deg/m
     visual: OdometryBounds | None = field(default_factory=lambda: OdometryBounds(0.01, 0.06))
-    # the simulator's drifting record (3 % scale, gyro bias ~0.1 deg/m) stated honestly refuses every
+    # the simulator's drifting record (3 % scale, gyro bias ~0.1 deg/m) stated honestly refuses
+    # every
     # fix before the pose graph has calibrated it, so none ever comes: stated rigid by default
     record: OdometryBounds | None = field(default_factory=OdometryBounds)
     imu: OdometryBounds | None = None  # not measured per window: fitted
@@ -146,14 +153,17 @@ class SourceBounds:
 @dataclass(frozen=True)
 class LoopConfig:
     """Parameters of the online loop (distances in metres, times in seconds). The
-    localization it runs is configured apart (:class:`~lunarloc.localization.config.LocalizationConfig`,
+    localization it runs is configured apart
+    (:class:`~lunarloc.localization.config.LocalizationConfig`,
     the ``localization`` section of a :class:`~lunarloc.config.run.RunConfig`)."""
 
     localize_every_m: float = 1.5  # attempt a localization after this much odometry travel ...
     localize_every_s: float = 20.0  # ... or this much time, whichever comes first
     window_m: float = 12.0  # the local map holds detections of the last window_m metres of travel
-    # adaptive window (:meth:`LoopState.local_map`): a local map of fewer than window_target_landmarks
-    # landmarks grows back along the path in steps of window_m / 2, up to window_max_m (<= window_m or
+    # adaptive window (:meth:`LoopState.local_map`): a local map of fewer than
+    # window_target_landmarks
+    # landmarks grows back along the path in steps of window_m / 2, up to window_max_m (<= window_m
+    # or
     # a target of 0: fixed window)
     window_target_landmarks: int = 0
     window_max_m: float = 0.0
@@ -161,9 +171,8 @@ class LoopConfig:
     crop_reference: bool = True  # localize against the reference near the predicted window only
     crop_sigmas: float = 3.0  # crop radius = window radius + crop_sigmas x predicted sigma ...
     crop_margin_m: float = 2.0  # ... + this margin
-    crop_sigma: CropSigma = (
-        CropSigma.GATE
-    )  # the predicted sigma the crop is sized by: the gate's model or the window's odometry bounds
+    # the predicted sigma the crop is sized by: the gate's model or the window's odometry bounds
+    crop_sigma: CropSigma = CropSigma.GATE
     fix_sigma_fallback_m: float = 0.05  # a fix's sigma when the localizer predicts none
     fix_kind: FixKind = FixKind.LANDMARKS  # how fixes enter the pose graph
     active_window_m: float = (
@@ -222,7 +231,8 @@ class LoopConfig:
             object.__setattr__(self, "crop_sigma", CropSigma(self.crop_sigma))
         except ValueError:
             raise ConfigError(
-                f"crop_sigma={self.crop_sigma!r}: use one of {', '.join(k.value for k in CropSigma)}"
+                f"crop_sigma={self.crop_sigma!r}: use one of "
+                f"{', '.join(k.value for k in CropSigma)}"
             ) from None
         try:
             object.__setattr__(self, "window_bounds", WindowBounds(self.window_bounds))
@@ -238,7 +248,8 @@ class LoopConfig:
         c = self.calibrated_after_fixes
         if not isinstance(c, int) or isinstance(c, bool) or c < 0:
             raise ConfigError(
-                f"calibrated_after_fixes={c!r} must be an integer >= 0 (0: the source's bounds throughout)"
+                f"calibrated_after_fixes={c!r} must be an integer >= 0 (0: the source's bounds "
+                "throughout)"
             )
         t = self.window_target_landmarks
         if not isinstance(t, int) or isinstance(t, bool) or t < 0:
@@ -355,9 +366,8 @@ class Attempt:
     fix_maps_from_detections: int = 0  # of the two maps, those built from detections (sightings)
     time_mapping_s: float = 0.0
     time_association_s: float = 0.0
-    window_m: float = float(
-        "nan"
-    )  # window length used: window_m, or longer where the adaptive window grew
+    # window length used: window_m, or longer where the adaptive window grew
+    window_m: float = float("nan")
 
     def row(self) -> dict:
         d = asdict(self)
@@ -375,7 +385,8 @@ class Attempt:
 @dataclass
 class LoopResult:
     """Everything a run produced. Trajectories are (F, 4, 4) transforms, one per frame; the
-    run folder's TUM files hold them as positions and quaternions (:func:`lunarloc.io.runs.write_run`)."""
+    run folder's TUM files hold them as positions and quaternions
+    (:func:`lunarloc.io.runs.write_run`)."""
 
     frames: np.ndarray
     times: np.ndarray
@@ -469,7 +480,8 @@ class LoopState:
     frame, (N, 3). Ground truth, when given, is only used to score fixes.
 
     ``reference=None``: no reference map (a rover that only localizes in other rovers' maps,
-    :mod:`lunarloc.pipeline.multirover`). Attempts are still made on schedule (their local map is what
+    :mod:`lunarloc.pipeline.multirover`). Attempts are still made on schedule (their local map is
+    what
     a caller can localize elsewhere) and end with the reason "no reference map".
     """
 
@@ -558,7 +570,8 @@ class LoopState:
 
     @property
     def keyframes(self) -> list[Keyframe]:
-        """The keyframes (:class:`lunarloc.fusion.posegraph.Keyframe`: the one record the loop and the
+        """The keyframes (:class:`lunarloc.fusion.posegraph.Keyframe`: the one record the loop and
+        the
         pose graph share: frame, time, odometry pose, roll/pitch, detections, path length,
         current estimate)."""
         return self.graph.keyframes
@@ -574,7 +587,8 @@ class LoopState:
         keyframe: bool | None = None,
     ) -> Attempt | None:
         """Feed one frame (its odometry pose, 4x4); returns the localization attempt made at it,
-        if any. The frame's odometry, online estimate and ground truth are kept as 4x4 transforms."""
+        if any. The frame's odometry, online estimate and ground truth are kept as 4x4
+        transforms."""
         T_odo_rover = np.array(T_odo_rover, float)
         q = np.asarray(matrix_to_pose(T_odo_rover), float)
         if self._q_prev is not None:
@@ -630,7 +644,8 @@ class LoopState:
 
     def window(self, k: int, length_m: float | None = None) -> np.ndarray:
         """Indices of the keyframes whose detections form keyframe k's local map: those of the
-        last `length_m` (default ``window_m``) metres of odometry path up to it (and any after it)."""
+        last `length_m` (default ``window_m``) metres of odometry path up to it (and any after
+        it)."""
         path = np.array([kf.path_m for kf in self.graph.keyframes])
         return np.flatnonzero(
             path >= path[k] - (self.config.window_m if length_m is None else length_m)
@@ -647,12 +662,14 @@ class LoopState:
         cfg = self.config
         length = cfg.window_m
         # a window stated rigid (bounds 0) does not grow: its odometry's bend, larger over a longer
-        # path, would be kept out of the predicted error (a 12 m window of the drifting record gave a
+        # path, would be kept out of the predicted error (a 12 m window of the drifting record gave
+        # a
         # fix 11.0 cm off at 2.7 cm predicted, docs/multi-session-images.md)
         grows = stated_window_bounds(self.window_localization()) != (0.0, 0.0)
         while True:
             win = self.window(k, length)
             P, F, I = self.window_points(win, poses4, with_index=True)
+            # arcs along the window's path
             veh = (
                 aggregate_detections(
                     P,
@@ -663,7 +680,7 @@ class LoopState:
                 )
                 if len(P)
                 else LandmarkMap(np.zeros((0, 3)))
-            )  # arcs along the window's path
+            )
             if (
                 len(veh) >= cfg.window_target_landmarks
                 or length >= cfg.window_max_m
@@ -802,7 +819,10 @@ class LoopState:
             self.graph.solve(cfg.active_window_m)
             att.accepted = True
         else:
-            att.reason = f"fix rejected by the gate (d2 {g.d2:.1f} > {g.threshold:.1f}; correction {att.correction_m:.2f} m)"
+            att.reason = (
+                f"fix rejected by the gate (d2 {g.d2:.1f} > {g.threshold:.1f}; "
+                f"correction {att.correction_m:.2f} m)"
+            )
         self.timings["fusion"] += time.perf_counter() - t0
         return att
 

@@ -94,7 +94,8 @@ class PinholeCamera:
         return np.stack([u, v], axis=1), z
 
     def backproject(self, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
-        """Lift pixels with depth (z along the optical axis, metres) to (N, 3) optical-frame points."""
+        """Lift pixels with depth (z along the optical axis, metres) to (N, 3) optical-frame
+        points."""
         uv = np.asarray(uv, dtype=float).reshape(-1, 2)
         z = np.asarray(depth, dtype=float).reshape(-1)
         x = (uv[:, 0] - self.cx) / self.fx * z

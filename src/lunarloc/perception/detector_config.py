@@ -168,7 +168,8 @@ class CentreConfig:
     near_quantile: float = setting(0.05, gt=0.0, le=0.5)
     # BLEND: the near anchor's radius factor (radii beyond that quantile)
     near_range_factor: float = setting(0.81, ge=0.0)
-    # BLEND: height = top - ring_radius_factor x R - ring_exposed_factor x (top - ring ground) (radii)
+    # BLEND: height = top - ring_radius_factor x R - ring_exposed_factor x (top - ring ground)
+    # (radii)
     ring_radius_factor: float = setting(0.3, ge=0.0)
     # BLEND: see ring_radius_factor (a fraction of the exposed height)
     ring_exposed_factor: float = setting(0.4, ge=0.0)
@@ -213,8 +214,8 @@ class PointsConfig:
         check_settings(self)
         if not self.p1_per_block_px2 < self.p2_per_block_px2:
             raise ConfigError(
-                f"p1_per_block_px2={self.p1_per_block_px2}, p2_per_block_px2={self.p2_per_block_px2}: "
-                f"need p1 < p2 (SGBM wants P2 > P1)"
+                f"p1_per_block_px2={self.p1_per_block_px2}, "
+                f"p2_per_block_px2={self.p2_per_block_px2}: need p1 < p2 (SGBM wants P2 > P1)"
             )
 
 
@@ -223,7 +224,8 @@ class RulesConfig:
     """What is not a rock: the thresholds of the rejection rules (perception/rules.py), each
     rule also switchable off by name (``off``). STEREO_POINTS only."""
 
-    # names of rules switched off (RULE_NAMES: too_tall, too_wide, perched, framed, rough, featureless,
+    # names of rules switched off (RULE_NAMES: too_tall, too_wide, perched, framed, rough,
+    # featureless,
     # contrast, quadric, crest, strip)
     off: tuple[str, ...] = ()
     # too_tall: nothing whose visible top stands higher above the local ground is a rock (m)
@@ -243,7 +245,8 @@ class RulesConfig:
     perched_max_radius_m: float = setting(0.2, ge=0.0)
     # contrast: a top less than this above the upper quartile of the ring around it is a crest (m)
     min_contrast_m: float = setting(0.015)
-    # quadric: a top less than this x R above a quadric ground fitted around it is a crest (radii; 0 = off)
+    # quadric: a top less than this x R above a quadric ground fitted around it is a crest (radii; 0
+    # = off)
     quadric_contrast_per_radius: float = setting(0.3, ge=0.0)
     # quadric: ... nor this much (m; blobs standing higher are not judged)
     quadric_contrast_max_m: float = setting(0.05, ge=0.0)
@@ -316,7 +319,8 @@ class RulesConfig:
 class ConfirmConfig:
     """Low crest blobs confirmed by a second view (detect_archive / confirm_across_frames)."""
 
-    # a marked blob is kept when a neighbouring frame's detection lies within this, horizontally (m; 0 = off)
+    # a marked blob is kept when a neighbouring frame's detection lies within this, horizontally (m;
+    # 0 = off)
     tol_m: float = setting(0.2, ge=0.0)
     # marked: a visible top under this above the local ground (m) ...
     max_top_m: float = setting(0.06, ge=0.0)
@@ -365,7 +369,8 @@ class TentativeConfig:
 class TrackFusionConfig:
     """A detection's centre from several views (detect_archive, fuse_track_centres)."""
 
-    # a sighting of the same rock in a neighbouring frame lies within this, horizontally (m; 0 = off)
+    # a sighting of the same rock in a neighbouring frame lies within this, horizontally (m; 0 =
+    # off)
     tol_m: float = setting(0.0, ge=0.0)
     # frames searched on each side
     max_frames: int = setting(10, ge=1)

@@ -40,7 +40,8 @@ class BlobMeasures:
     """What the rules judge a candidate blob by (rover frame, metres)."""
 
     radius_m: float  # estimated radius R
-    visible_height_m: float  # how high it stands: its visible top or extent, or its height above the ground in front
+    # how high it stands: its visible top or extent, or its height above the ground in front
+    visible_height_m: float
     top_m: float  # its visible top above the local ground
     front_m: float  # its visible top above the ground in front of it (NaN: too few points there)
     ring_m: float  # upper quartile of the heights in the ring around it (NaN: none)
@@ -53,10 +54,12 @@ class BlobMeasures:
     extension_ratio: (
         float  # how far its height goes on beyond its ends, over its top (NaN: not measured)
     )
-    roughness: float  # share of rough second differences of its full-resolution disparity (NaN: not measured)
+    # share of rough second differences of its full-resolution disparity (NaN: not measured)
+    roughness: float
     strip: bool = False  # let through the image filters as a flat strip (is_flat_strip)
     raised: bool = False  # ... as a raised strip candidate (is_raised_strip)
-    # upper quantile of the image gradient over it and its rim (grey levels per pixel; NaN: not measured)
+    # upper quantile of the image gradient over it and its rim (grey levels per pixel; NaN: not
+    # measured)
     image_gradient: float = float("nan")
     depth_m: float = float("nan")  # its median depth (optical z; NaN: not known)
 

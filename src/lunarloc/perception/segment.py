@@ -141,9 +141,9 @@ class ClassicalConfig:
             and 0 <= self.height_split_grow_px < 1e3
         ):
             raise ConfigError(
-                f"height_split_step_m={self.height_split_step_m} must be in [0, 1), height_split_eig_ratio="
-                f"{self.height_split_eig_ratio} >= 1 and height_split_grow_px={self.height_split_grow_px} "
-                "in [0, 1000)"
+                f"height_split_step_m={self.height_split_step_m} must be in [0, 1), "
+                f"height_split_eig_ratio={self.height_split_eig_ratio} >= 1 and "
+                f"height_split_grow_px={self.height_split_grow_px} in [0, 1000)"
             )
 
 

@@ -112,8 +112,9 @@ class StereoConfig:
             raise ConfigError("downscale must be >= 1")
         if not 1 <= self.p1_per_block_px2 < self.p2_per_block_px2:
             raise ConfigError(
-                f"p1_per_block_px2={self.p1_per_block_px2}, p2_per_block_px2={self.p2_per_block_px2}: "
-                "need 1 <= p1_per_block_px2 < p2_per_block_px2 (SGBM wants P2 > P1)"
+                f"p1_per_block_px2={self.p1_per_block_px2}, "
+                f"p2_per_block_px2={self.p2_per_block_px2}: need 1 <= p1_per_block_px2 < "
+                "p2_per_block_px2 (SGBM wants P2 > P1)"
             )
 
     @property
@@ -182,9 +183,9 @@ class StereoMatcher:
         nd_max = max_num_disparities(w, c.block_size)
         if nd_max < 16:
             raise InputError(
-                f"images of {self.camera.width}x{self.camera.height} px are too small for stereo matching: "
-                f"SGBM needs a matched width of at least {16 + c.block_size} px (block {c.block_size}, "
-                f"downscale {c.downscale}), got {w} px"
+                f"images of {self.camera.width}x{self.camera.height} px are too small for stereo "
+                f"matching: SGBM needs a matched width of at least {16 + c.block_size} px (block "
+                f"{c.block_size}, downscale {c.downscale}), got {w} px"
             )
         if nd > nd_max:
             logger.info(
@@ -230,8 +231,9 @@ class StereoMatcher:
         if nd > nd_max:
             if nd_max < 16:
                 raise InputError(
-                    f"a {w}x{h} px image (at matching resolution) is too small for stereo matching: "
-                    f"SGBM needs a width of at least {16 + self.config.block_size} px (block {self.config.block_size})"
+                    f"a {w}x{h} px image (at matching resolution) is too small for stereo "
+                    f"matching: SGBM needs a width of at least {16 + self.config.block_size} px "
+                    f"(block {self.config.block_size})"
                 )
             nd = nd_max
         return self._matcher(nd).compute(left, right)
@@ -242,7 +244,10 @@ class StereoMatcher:
         larger than u (the match would lie in the padding) is invalid."""
         cv2 = import_cv2()
         nd = self.num_disparities_lowres
-        pad = lambda im: cv2.copyMakeBorder(im, 0, 0, nd, 0, cv2.BORDER_CONSTANT, value=0)  # noqa: E731
+
+        def pad(im):
+            return cv2.copyMakeBorder(im, 0, 0, nd, 0, cv2.BORDER_CONSTANT, value=0)
+
         d = self._compute(pad(left), pad(right))[:, nd:].astype(np.float32) / 16.0
         u = np.arange(d.shape[1], dtype=np.float32)[None, :]
         d[(d <= 0) | (d > u - self.config.block_size // 2)] = np.nan

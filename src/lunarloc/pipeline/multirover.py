@@ -2,11 +2,13 @@
 against a reference map and/or the other rovers' live maps (LunarLoc's multi-agent playback).
 
 ``run_rovers([a.lac, b.lac], reference=None, config=MultiRoverConfig(share_maps=True))``
-(every rover runs with ``config.run``, the :class:`~lunarloc.config.run.RunConfig` of ``lunarloc run``):
+(every rover runs with ``config.run``, the :class:`~lunarloc.config.run.RunConfig` of ``lunarloc
+run``):
 
 1. **one clock**: every archive is a :class:`~lunarloc.io.lac.playback.PlaybackAgent`; at each
    step the rover whose next tick is earliest in mission time is played (ties: argument order);
-2. **per rover**: one :class:`~lunarloc.online.component.OnlineLocalizer` per rover, fed tick by tick
+2. **per rover**: one :class:`~lunarloc.online.component.OnlineLocalizer` per rover, fed tick by
+tick
    with its odometry (:func:`lunarloc.odometry.source.archive_odometry`, the source ``lunarloc run``
    uses) and its images; its reference attempts, gate and fixes are the single-rover ones;
 3. **shared maps** (``share_maps``): when a rover's localization attempt at a keyframe did
@@ -252,9 +254,8 @@ SHARED_FUSION = ("split", "one-way")
 class MultiRoverConfig:
     """Settings of a multi-rover playback (metres, seconds, degrees as named)."""
 
-    run: RunConfig = field(
-        default_factory=RunConfig
-    )  # each rover's run (as `lunarloc run`: loop, localization, ...)
+    # each rover's run (as `lunarloc run`: loop, localization, ...)
+    run: RunConfig = field(default_factory=RunConfig)
     share_maps: bool = False  # localize against the other rovers' live maps too
     share_refresh_s: float = (
         5.0  # a rover's live map is rebuilt at most this often (mission time) ...
@@ -279,7 +280,8 @@ class MultiRoverConfig:
     # "split": a rover (either side) is moved only when its weight is at least this much
     min_shared_weight: float = 0.2
     # "split": a registration whose keyframes overlap an earlier exchange's between the same two
-    # rovers (either way round) by more than this on both sides is refused (:func:`repeated_exchange`)
+    # rovers (either way round) by more than this on both sides is refused
+    # (:func:`repeated_exchange`)
     max_exchange_overlap: float = 0.5
     site_tolerance_m: float = 0.5  # the archives' landers must agree this well in the map frame
     site_tolerance_deg: float = 5.0  # ... and in heading
@@ -344,9 +346,8 @@ class SharedAttempt:
     own_sigma_m: float = float("nan")  # the rover's own predicted sigma at the keyframe
     correction_m: float = float("nan")
     gate_d2: float = float("nan")
-    fix_error_m: float = float(
-        "nan"
-    )  # |fix - ground truth| (evaluation only; for a refused registration, what it would have been)
+    # |fix - ground truth| (evaluation only; for a refused registration, what it would have been)
+    fix_error_m: float = float("nan")
     # shared_fusion "split": the share of the innovation this rover moved by, the owner's, the sigma
     # the rover's move entered its pose graph with and that position's |error| (evaluation only)
     weight: float = float("nan")
@@ -540,9 +541,8 @@ class _Rover:
         )
         self.has_reference = reference is not None
         detector_config = cfg.run.detector_for(rig.camera.width)
-        lander = ar.initial.get(
-            "lander"
-        )  # rover-relative at the start; detections on the lander are dropped
+        # rover-relative at the start; detections on the lander are dropped
+        lander = ar.initial.get("lander")
         # without a reference every attempt ends "no reference map" (recorded by the loop,
         # dropped from the outputs) and only shared fixes correct the rover
         self.loc = OnlineLocalizer(reference, T0, online, rig, detector_config, lander)
@@ -719,9 +719,8 @@ class _Rover:
             return None
         own_m, own_yaw = self.sigma(k)
         own_m, own_yaw = math.hypot(own_m, self.anchor[0]), math.hypot(own_yaw, self.anchor[1])
-        gate_yaw = math.hypot(
-            loop.graph.predicted_sigma(k)[1], self.anchor[1]
-        )  # the pose graph's own yaw prediction
+        # the pose graph's own yaw prediction
+        gate_yaw = math.hypot(loop.graph.predicted_sigma(k)[1], self.anchor[1])
         c = veh.positions_xyz[:, :2].mean(axis=0)
         radius = float(np.max(np.linalg.norm(veh.positions_xyz[:, :2] - c, axis=1)))
         att = None
@@ -748,14 +747,16 @@ class _Rover:
                 continue
             ref = live.landmarks.subset(near)
             try:
-                # as the reference attempt: the pose judged at the rover now, along the window's path
+                # as the reference attempt: the pose judged at the rover now, along the window's
+                # path
                 window_cfg = loop.window_localization()
                 lcfg = shared_localization(window_cfg, other.map_bounds, shared_bounds)
                 res = localize(
                     ref, veh, lcfg, query_xyz=poses[k : k + 1, :3], path_xyz=poses[win, :3]
                 )
                 # refused for precision alone where the owner's map is less precise than the limits:
-                # judged again with the limits at the owner's sigma over these inliers (the search is
+                # judged again with the limits at the owner's sigma over these inliers (the search
+                # is
                 # deterministic, so the same registration; every other check as before)
                 if not res.success and len(res.inliers):
                     owner = (
@@ -809,7 +810,8 @@ class _Rover:
             )
             om = float(np.max(live.owner_sigma_m[near[inl[:, 1]]]))
             oy = float(np.max(live.owner_sigma_yaw_rad[near[inl[:, 1]]]))
-            # the registration's rotation error (its predicted one, else position over extent) and the owner's
+            # the registration's rotation error (its predicted one, else position over extent) and
+            # the owner's
             rot = (
                 math.radians(res.predicted_rotation_deg)
                 if math.isfinite(res.predicted_rotation_deg)
@@ -836,7 +838,10 @@ class _Rover:
                 g = loop.graph.gate(k, fix4, sig_m, sig_yaw)
                 att.gate_d2, att.correction_m = g.d2, float(np.linalg.norm(g.innovation[:3]))
                 if not g.accepted:
-                    att.reason = f"fix rejected by the gate (d2 {g.d2:.1f} > {g.threshold:.1f}; correction {att.correction_m:.2f} m)"
+                    att.reason = (
+                        f"fix rejected by the gate (d2 {g.d2:.1f} > {g.threshold:.1f}; "
+                        f"correction {att.correction_m:.2f} m)"
+                    )
                     continue
                 if self._exchange(
                     att,
@@ -860,13 +865,17 @@ class _Rover:
             if sig_m >= max_ratio * own_m:
                 att.reason = (
                     f"not informative: the fix ({sig_m * 100:.0f} cm, {other.name}'s estimate "
-                    f"{om * 100:.0f} cm) is not below {max_ratio:g} x the rover's own prediction ({own_m * 100:.0f} cm)"
+                    f"{om * 100:.0f} cm) is not below {max_ratio:g} x the rover's own prediction "
+                    f"({own_m * 100:.0f} cm)"
                 )
                 continue
             g = loop.graph.gate(k, fix4, sig_m, sig_yaw)
             att.gate_d2, att.correction_m = g.d2, float(np.linalg.norm(g.innovation[:3]))
             if not g.accepted:
-                att.reason = f"fix rejected by the gate (d2 {g.d2:.1f} > {g.threshold:.1f}; correction {att.correction_m:.2f} m)"
+                att.reason = (
+                    f"fix rejected by the gate (d2 {g.d2:.1f} > {g.threshold:.1f}; "
+                    f"correction {att.correction_m:.2f} m)"
+                )
                 continue
             loop.graph.add_fix(k, fix4, sig_m, sig_yaw)
             loop.graph.solve(cfg.active_window_m)
@@ -1009,7 +1018,10 @@ class _Rover:
         att.exchange = ex.id
         att.accepted = self.name in moved
         if not att.accepted:
-            att.reason = f"{other.name} moved (weight {sp.owner_weight_m:.2f}); this rover not (weight {sp.rover_weight_m:.2f})"
+            att.reason = (
+                f"{other.name} moved (weight {sp.owner_weight_m:.2f}); "
+                f"this rover not (weight {sp.rover_weight_m:.2f})"
+            )
         if orow is not None:
             orow.exchange = ex.id
             if orow.accepted:

@@ -194,7 +194,8 @@ class Accumulator:
         self.target_rows: list[tuple] = []
         self.small_near = np.zeros(2, int)  # [hit, visible]: 0.05 <= r < 0.1 within 3 m
         self.tiny_near = np.zeros(2, int)  # [hit, visible]: 0.025 <= r < 0.05 within 3 m
-        # [on a rock, all]: the small-rock stage's own detections within 5 m (in the precision's bands)
+        # [on a rock, all]: the small-rock stage's own detections within 5 m (in the precision's
+        # bands)
         self.stage_prec = np.zeros(2, int)
         self.times: dict[str, list[float]] = {}
         # false positives within 5 m by what lies under the detection's image centroid
