@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import math
 import subprocess
 import sys
 from pathlib import Path
@@ -146,7 +145,7 @@ def main(argv=None) -> int:
     name = f"envelope_{a.width}_{a.rovers}r.json"
     (a.out / name).write_text(json.dumps(results, indent=1))
     print(
-        f"| site | px | rovers | path m | first fix after m | local / ref-in-window landmarks then | inliers | fixes | per 100 m | worst fix cm |"
+        "| site | px | rovers | path m | first fix after m | local / ref-in-window landmarks then | inliers | fixes | per 100 m | worst fix cm |"
     )
     for r in results:
         ff = "none" if r["first_fix_m"] is None else f"{r['first_fix_m']:.1f}"

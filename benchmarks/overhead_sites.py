@@ -22,7 +22,7 @@ import numpy as np
 
 from lunarloc.sim.simulate import simulate_site
 from lunarloc.pipeline.evaluation import random_vehicle_transform
-from lunarloc.core.geometry import invert_transform, transform_points
+from lunarloc.core.geometry import transform_points
 from lunarloc.localization.config import LocalizationConfig
 from lunarloc.localization.localize import localize
 from lunarloc.io.maps import LandmarkMap

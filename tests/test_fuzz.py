@@ -14,7 +14,6 @@ import os
 import tracemalloc
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 import _hostile as H

@@ -11,7 +11,6 @@ import pytest
 from lunarloc.config.run import RunConfig
 from lunarloc.core.errors import ConfigError, InputError
 from lunarloc.pipeline.evaluation import DriftModel
-from lunarloc.localization.config import LocalizationConfig
 from lunarloc.online.loop import (
     LoopConfig,
     LoopState,

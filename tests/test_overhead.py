@@ -2,7 +2,6 @@
 and scored, and their bad inputs."""
 
 import json
-import math
 
 import numpy as np
 import pytest

@@ -39,7 +39,7 @@ def test_loop_reduces_drift(loop_run):
 
 
 def test_outputs_are_written(loop_run, tmp_path):
-    s = write_run(loop_run, tmp_path)
+    write_run(loop_run, tmp_path)
     for name in (
         "trajectory.tum",
         "trajectory_online.tum",

@@ -1,7 +1,6 @@
 """Checks on the paper's real traverses; skipped when ../shared/data/lunarloc-data is absent."""
 
 import numpy as np
-import pytest
 
 from lunarloc.pipeline.evaluation import PAPER_PAIRS, bench_pairs, drifted_detections, DriftModel
 from lunarloc.io.maps import load_traverse

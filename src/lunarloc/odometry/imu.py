@@ -31,7 +31,6 @@ this source is for heading and for bridging short gaps between image frames.
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
