@@ -54,6 +54,7 @@ __all__ = [
     "LoopResult",
     "LoopState",
     "interpolate_corrections",
+    "gate_fix",
 ]
 
 
@@ -794,9 +795,7 @@ class LoopState:
             if math.isfinite(res.predicted_error_m)
             else cfg.fix_sigma_fallback_m
         )
-        g = self.graph.gate(k, fix4, sig_m, sig_m / extent)
-        att.gate_d2 = g.d2
-        att.correction_m = float(np.linalg.norm(g.innovation[:3]))
+        g = gate_fix(self.graph, att, k, fix4, sig_m, sig_m / extent)
         att.correction_yaw_deg = math.degrees(float(g.innovation[3]))
         att.fix_xyz = fix4[:3].tolist()
         att.inlier_vehicle_xyz = Vp.round(4).tolist()
@@ -818,11 +817,6 @@ class LoopState:
                 self._add_observations(veh, inl, ref, P, F, I, ref_index)
             self.graph.solve(cfg.active_window_m)
             att.accepted = True
-        else:
-            att.reason = (
-                f"fix rejected by the gate (d2 {g.d2:.1f} > {g.threshold:.1f}; "
-                f"correction {att.correction_m:.2f} m)"
-            )
         self.timings["fusion"] += time.perf_counter() - t0
         return att
 
@@ -926,6 +920,19 @@ class LoopState:
             example,
             source,
         )
+
+
+def gate_fix(graph, att: Attempt, k: int, fix4, sigma_m: float, sigma_yaw_rad: float):
+    """The pose graph's gate on a fix at keyframe `k`, recorded on `att`: its Mahalanobis d2, the
+    correction it would make (m) and, when it fails, the refusal reason. Returns the gate."""
+    g = graph.gate(k, fix4, sigma_m, sigma_yaw_rad)
+    att.gate_d2, att.correction_m = g.d2, float(np.linalg.norm(g.innovation[:3]))
+    if not g.accepted:
+        att.reason = (
+            f"fix rejected by the gate (d2 {g.d2:.1f} > {g.threshold:.1f}; "
+            f"correction {att.correction_m:.2f} m)"
+        )
+    return g
 
 
 def interpolate_corrections(

@@ -66,7 +66,13 @@ import numpy as np
 from lunarloc.config.run import RunConfig, config_from_dict, config_to_dict
 from lunarloc.core.errors import ConfigError, InputError, LunarLocError
 from lunarloc.core.geometry import invert_transform, pose_to_matrix, yaw_of
-from lunarloc.online.loop import Attempt, LoopResult, interpolate_corrections, stated_window_bounds
+from lunarloc.online.loop import (
+    Attempt,
+    LoopResult,
+    gate_fix,
+    interpolate_corrections,
+    stated_window_bounds,
+)
 from lunarloc.io.maps import LandmarkMap, aggregate_detections
 
 if TYPE_CHECKING:
@@ -835,13 +841,7 @@ class _Rover:
                         f"at {prev.time_s:.1f} s (exchange {prev.id})"
                     )
                     continue
-                g = loop.graph.gate(k, fix4, sig_m, sig_yaw)
-                att.gate_d2, att.correction_m = g.d2, float(np.linalg.norm(g.innovation[:3]))
-                if not g.accepted:
-                    att.reason = (
-                        f"fix rejected by the gate (d2 {g.d2:.1f} > {g.threshold:.1f}; "
-                        f"correction {att.correction_m:.2f} m)"
-                    )
+                if not gate_fix(loop.graph, att, k, fix4, sig_m, sig_yaw).accepted:
                     continue
                 if self._exchange(
                     att,
@@ -869,13 +869,7 @@ class _Rover:
                     f"({own_m * 100:.0f} cm)"
                 )
                 continue
-            g = loop.graph.gate(k, fix4, sig_m, sig_yaw)
-            att.gate_d2, att.correction_m = g.d2, float(np.linalg.norm(g.innovation[:3]))
-            if not g.accepted:
-                att.reason = (
-                    f"fix rejected by the gate (d2 {g.d2:.1f} > {g.threshold:.1f}; "
-                    f"correction {att.correction_m:.2f} m)"
-                )
+            if not gate_fix(loop.graph, att, k, fix4, sig_m, sig_yaw).accepted:
                 continue
             loop.graph.add_fix(k, fix4, sig_m, sig_yaw)
             loop.graph.solve(cfg.active_window_m)
