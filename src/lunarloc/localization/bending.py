@@ -230,8 +230,7 @@ def bending_fit(
     per metre and scale error, by least squares on the 3D residuals over `sigma_axis_m` (the
     landmarks' per-axis noise; the residuals' own scale when larger). Inliers are gathered
     again under the model (mutual nearest neighbours within `radius_m`; at most `rounds` fits), so
-    the
-    part of a bent map the rigid fit left out can show its bend. Covariance from the Jacobian;
+    the part of a bent map the rigid fit left out can show its bend. Covariance from the Jacobian;
     the query points' positions and headings under the model, with their uncertainty beyond
     the rigid model's, are compared with the rigid fit's. Without `path_xyz` a straight path
     along the map's principal axis stands in (a rough proxy for a winding traverse).

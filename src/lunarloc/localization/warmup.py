@@ -4,8 +4,7 @@ The association kernels are compiled with ``cache=True``: the first process that
 compiles (seconds) and writes numba's cache; later processes load it (milliseconds).
 ``warm_up()`` runs them on a tiny synthetic pair so that this happens at a chosen moment:
 ``make`` calls ``lunarloc warm-up`` after installing, and :class:`lunarloc.online.loop.LoopState`
-calls
-it before its stage timers start, so compile time is never counted as run time.
+calls it before its stage timers start, so compile time is never counted as run time.
 
 A user who installed the wheel and never ran ``lunarloc warm-up`` is not left waiting in
 silence either: the first :func:`~lunarloc.localization.localize.localize` of a process

@@ -178,10 +178,10 @@ class LacMapEstimate:
     observed : cells that hold points of at least one frame.
     interpolated : cells filled without being observed.
     height_sigma_m : weighted spread of the observed heights about the cell's height (NaN
-    unobserved).
+        unobserved).
     weight : sum of the bin weights in the cell (0 unobserved).
     fill_distance_m : distance from the cell centre to the nearest observed cell centre (0
-    observed).
+        observed).
     rocks : (K, 3) the mapped rocks: x, y (map frame), footprint radius (m).
     """
 

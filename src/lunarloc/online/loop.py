@@ -482,8 +482,7 @@ class LoopState:
 
     ``reference=None``: no reference map (a rover that only localizes in other rovers' maps,
     :mod:`lunarloc.pipeline.multirover`). Attempts are still made on schedule (their local map is
-    what
-    a caller can localize elsewhere) and end with the reason "no reference map".
+    what a caller can localize elsewhere) and end with the reason "no reference map".
     """
 
     def __init__(

@@ -206,8 +206,7 @@ class TraverseCsvSource:
     """Frames of a traverse CSV (world-frame detections, no images) with simulated drift.
 
     Odometry follows :func:`lunarloc.pipeline.evaluation.drifted_path` (scale error and a heading
-    error
-    growing with distance). The CSV has no rover heading, so the "rover" frame here is
+    error growing with distance). The CSV has no rover heading, so the "rover" frame here is
     world-aligned at the rover's position: its true yaw is 0, its odometry yaw is the
     accumulated heading error, and a detection's rover-frame offset is ``det - rover``.
     Keyframes are frames with detections, at least ``keyframe_every_s`` apart, plus one at
