@@ -71,13 +71,7 @@ def bench_loop(
         if trav[v].path_length < min_length_m:
             continue
         ref = reference_from_traverses(trav, exclude=v)
-        src = TraverseCsvSource(
-            trav[v],
-            cfg.odometry.drift,
-            cfg.odometry.rate_hz,
-            cfg.loop.keyframe_every_s,
-            cfg.loop.keyframe_max_interval_s,
-        )
+        src = TraverseCsvSource.for_run(trav[v], cfg)
         s = write_run(run(src, ref, cfg), out / f"traverse_{v}")
         s["vehicle"] = v
         rows.append(s)

@@ -82,13 +82,7 @@ def loop_fix_records(
     for v in sorted(trav) if traverses is None else list(traverses):
         if trav[v].path_length < min_length_m:
             continue
-        src = TraverseCsvSource(
-            trav[v],
-            cfg.odometry.drift,
-            cfg.odometry.rate_hz,
-            cfg.loop.keyframe_every_s,
-            cfg.loop.keyframe_max_interval_s,
-        )
+        src = TraverseCsvSource.for_run(trav[v], cfg)
         res = run(src, reference_from_traverses(trav, exclude=v), cfg)
         for a in res.attempts:
             if not a.success or a.fix_error_xyz is None or a.fix_covariance_xyz is None:

@@ -237,6 +237,18 @@ class TraverseCsvSource:
         self.lander_xy = None  # detections of the dataset are already rocks
         self.timings: dict[str, float] = {}
 
+    @classmethod
+    def for_run(cls, traverse, config) -> TraverseCsvSource:
+        """The source a run configuration describes: its odometry drift and rate, and its loop's
+        keyframe spacing (``bench loop`` and the loop's NEES benchmark)."""
+        return cls(
+            traverse,
+            config.odometry.drift,
+            config.odometry.rate_hz,
+            config.loop.keyframe_every_s,
+            config.loop.keyframe_max_interval_s,
+        )
+
     def __enter__(self) -> TraverseCsvSource:
         return self
 
