@@ -117,6 +117,28 @@ def test_shared_centre_bias_does_not_average_down():
     )
 
 
+def test_a_compact_inlier_set_holds_its_yaw_less_against_the_centre_bias():
+    """The centre bias's difference across the inliers (CENTRE_BIAS_SPREAD_M) turns the fit by
+    that over their rms horizontal radius: the same rocks at half the spread get twice the yaw
+    sigma, and it does not shrink with their number."""
+    from lunarloc.localization.uncertainty import shared_bias_covariance
+
+    rng = np.random.default_rng(3)
+    P = np.c_[rng.normal(0, 4.0, (40, 2)), rng.normal(0, 0.1, 40)]
+    wide = shared_bias_covariance(0.002, 0.0, 0.0025, P)
+    compact = shared_bias_covariance(0.002, 0.0, 0.0025, P * 0.5)
+    more = shared_bias_covariance(0.002, 0.0, 0.0025, np.vstack([P, P]))
+    r = math.sqrt(np.mean(np.sum((P[:, :2] - P[:, :2].mean(axis=0)) ** 2, axis=1)))
+    assert math.sqrt(wide[5, 5]) == pytest.approx(0.0025 / r)
+    assert compact[5, 5] == pytest.approx(4 * wide[5, 5])
+    assert more[5, 5] == pytest.approx(wide[5, 5])
+    assert wide[0, 0] == pytest.approx(0.002**2) and wide[2, 2] == 0.0
+    # a constant yaw adds in variance; no spread term without the inliers
+    both = shared_bias_covariance(0.002, 0.03, 0.0025, P)
+    assert both[5, 5] == pytest.approx(wide[5, 5] + math.radians(0.03) ** 2)
+    assert shared_bias_covariance(0.002, 0.03)[5, 5] == pytest.approx(math.radians(0.03) ** 2)
+
+
 # (family, reference, vehicle): the real pairs bent beyond the odometry prior that a narrower
 # bend claimed wrong (docs/verification.md: 7-15 21 cm off at 0.1 deg/m, 4-14 24 cm off and 10-14
 # 10.9 cm off at 0.05 deg/m, 30 m windows), and the paper's five pairs
@@ -242,3 +264,24 @@ def test_cli_default_judges_an_odometry_written_bent_file_with_the_prior(
                 transform_points(T, last[None]) - transform_points(T_true, last[None])
             )
             assert poses != "odometry" or err < RIGHT_M, f"claimed {err:.3f} m off with the prior"
+
+
+def test_real_pairs_stated_rigid_nees_in_the_calibrated_band(real_data):
+    """The 136 real pairs with the maps stated rigid (what the CLI default does with the dataset's
+    files): the same 131 claims, all right, and the NEES of the rover's position under the
+    result's covariance in the calibrated band (60-80 % under the 68 % quantile, at least 99 %
+    under the 99.7 % one); vehicle map 15's four compact inlier sets (1-15, 2-15, 3-15, 5-15,
+    8-9 cm off at a 25 m lever) inside the 99.7 % ellipsoid. docs/calibration.md."""
+    from lunarloc.pipeline.calibration import run_real
+
+    outs = run_real(real_data, ["real pairs"], ["stated bounds"], cache=_LOADED)
+    claims = [o for o in outs if o.claimed]
+    assert len(outs) == 136 and len(claims) == 131
+    assert all(o.right for o in claims)
+    nees = np.array([o.nees for o in claims])
+    assert np.all(np.isfinite(nees))
+    below_68, below_997 = float(np.mean(nees <= NEES_68)), float(np.mean(nees <= NEES_997))
+    assert 0.60 <= below_68 <= 0.80 and below_997 >= 0.99, (below_68, below_997)
+    tail = {o.params["pair"]: o.nees for o in claims if o.params["pair"].endswith("-15")}
+    for pair in ("1-15", "2-15", "3-15", "5-15"):
+        assert tail[pair] < NEES_997, (pair, tail[pair])

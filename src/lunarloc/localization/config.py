@@ -87,10 +87,14 @@ class Solver(str, enum.Enum):
 PRIOR_DRIFT_DEG_PER_M = 0.012
 PRIOR_SCALE_ERROR = 0.003
 
-#: 1-sigma landmark-centre bias the inliers share (horizontal m per axis, yaw deg about their
-#: centroid) for two maps built from detections; measured: docs/calibration.md.
+#: 1-sigma landmark-centre bias the inliers share for two maps built from detections: a translation
+#: (m per horizontal axis), and the bias's difference across the inliers (m), which turns the fit
+#: about their centroid by CENTRE_BIAS_SPREAD_M / (the inliers' rms horizontal radius) rad: a
+#: compact inlier set cannot hold its yaw against it (measured: docs/calibration.md). A constant
+#: yaw (deg) can be added; 0 by default.
 CENTRE_BIAS_M = 0.002
-CENTRE_BIAS_YAW_DEG = 0.03
+CENTRE_BIAS_SPREAD_M = 0.0025
+CENTRE_BIAS_YAW_DEG = 0.0
 
 
 def _default_threads() -> int:
@@ -178,8 +182,10 @@ class UncertaintyConfig:
     sigma_floor_m: float = setting(0.005, gt=0.0)
     # landmark-centre bias the inliers share, horizontal translation (1 sigma, m per axis)
     centre_bias_m: float = setting(CENTRE_BIAS_M, ge=0.0)
-    # ... and yaw about the inliers' centroid (1 sigma, deg)
+    # ... and a constant yaw about the inliers' centroid (1 sigma, deg)
     centre_bias_yaw_deg: float = setting(CENTRE_BIAS_YAW_DEG, ge=0.0)
+    # ... and its difference across the inliers: a yaw of this over their rms radius (1 sigma, m)
+    centre_bias_spread_m: float = setting(CENTRE_BIAS_SPREAD_M, ge=0.0)
 
     def __post_init__(self) -> None:
         check_settings(self)
@@ -294,6 +300,7 @@ _SECTION_KEYS = {
         "registration_sigma_floor_m": "sigma_floor_m",
         "centre_bias_m": "centre_bias_m",
         "centre_bias_yaw_deg": "centre_bias_yaw_deg",
+        "centre_bias_spread_m": "centre_bias_spread_m",
     },
     "distortion": {
         "odometry_scale_error": "scale_error",

@@ -349,7 +349,11 @@ class _Problem:
         # plus the error the inliers share and their residuals cannot show (CENTRE_BIAS_M): each map
         # built from detections (sightings given) brings its own centre bias, measured for two
         C_c = C_c + self.built_from_detections / 2 * shared_bias_covariance(
-            cfg.uncertainty.centre_bias_m, cfg.uncertainty.centre_bias_yaw_deg
+            cfg.uncertainty.centre_bias_m,
+            cfg.uncertainty.centre_bias_yaw_deg,
+            cfg.uncertainty.centre_bias_spread_m,
+            transform_points(T, Pv[inl[:, 0]]),
+            w,
         )
         pred_fit = error_at(C_c, centre_ref, T, query)
         path = None if path_xyz is None else as_points(path_xyz, "vehicle path")

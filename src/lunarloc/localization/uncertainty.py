@@ -88,10 +88,27 @@ def distortion_covariance(
     return covariance_at_origin(C, np.asarray(point_ref, float))
 
 
-def shared_bias_covariance(bias_m: float, bias_yaw_deg: float) -> np.ndarray:
+def shared_bias_covariance(
+    bias_m: float,
+    bias_yaw_deg: float,
+    spread_m: float = 0.0,
+    inliers_xyz: np.ndarray | None = None,
+    weights=None,
+) -> np.ndarray:
     """6x6 covariance, about the inliers' centroid, of the registration error their residuals
-    cannot show (:data:`CENTRE_BIAS_M`): `bias_m` per horizontal axis, `bias_yaw_deg` in yaw."""
-    return np.diag([bias_m**2, bias_m**2, 0.0, 0.0, 0.0, math.radians(bias_yaw_deg) ** 2])
+    cannot show (:data:`~lunarloc.localization.config.CENTRE_BIAS_M`): `bias_m` per horizontal
+    axis; in yaw, `bias_yaw_deg` and `spread_m` over the inliers' weighted rms horizontal radius
+    about their centroid (a bias that differs by `spread_m` across the set turns the fit by about
+    that over its radius; it does not average down with their number). Infinite yaw when the
+    inliers coincide horizontally."""
+    yaw_var = math.radians(bias_yaw_deg) ** 2
+    if spread_m > 0 and inliers_xyz is not None:
+        P = np.asarray(inliers_xyz, float)[:, :2]
+        w = np.ones(len(P)) if weights is None else np.asarray(weights, float)
+        X = P - (w @ P) / w.sum()
+        r2 = float(w @ np.sum(X * X, axis=1)) / w.sum()
+        yaw_var += spread_m**2 / r2 if r2 > 0 else math.inf
+    return np.diag([bias_m**2, bias_m**2, 0.0, 0.0, 0.0, yaw_var])
 
 
 def predicted_error(
