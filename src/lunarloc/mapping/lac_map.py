@@ -118,19 +118,6 @@ class LacMapperConfig:
     small_rock_m: float = 0.05
     small_rock_min_sightings: int = 2
     small_rock_margin_m: float = 0.01
-    # rock outlines: a mapped rock's footprint is an ellipse fitted to its sightings' widths
-    # across their viewing rays (a sighting's radius is its silhouette's half-width across the
-    # ray, so sightings from different directions measure different widths of an elongated
-    # rock): width^2 = p + q cos(2 az) + s sin(2 az) by least squares with a ridge
-    # `rock_shape_ridge` x sightings on (q, s) (few or similar directions: a disc); the
-    # ellipse keeps the disc's footprint radius as its geometric mean radius, its elongation
-    # sqrt(q^2 + s^2) / p capped at `rock_shape_max_elongation` (0: discs)
-    rock_shape_ridge: float = 0.5
-    rock_shape_max_elongation: float = 0.6
-    rock_shape_min_sightings: int = 3
-    # a mapped rock (radius from small_rock_m) must be detected in at least this share of the
-    # re-placeable frames whose stereo covered its centre cell (0: off)
-    rock_min_detect_ratio: float = 0.0
     rock_bump_m: float | None = (
         None  # observed cells this high over their local ground are rock cells (None: off)
     )
@@ -215,9 +202,7 @@ class LacMapEstimate:
 class _Frame:
     T_map_rover: np.ndarray  # (4, 4)
     bins: np.ndarray  # (K, 4) float32: rover-frame x, y, z, weight
-    # (M, 5) float32: rover-frame x, y, z, radius (the half-width across the viewing ray) and
-    # the viewing ray's azimuth (rover frame, radians)
-    rocks: np.ndarray
+    rocks: np.ndarray  # (M, 4) float32: rover-frame x, y, z, radius
     seq: int = 0  # order of arrival (a rock's sightings count distinct frames)
 
 
@@ -242,7 +227,7 @@ class LacMapper:
         self._frozen_w = np.zeros((n, n))
         self._frozen_wz = np.zeros((n, n))
         self._frozen_wz2 = np.zeros((n, n))
-        self._frozen_rocks = np.zeros((0, 5))  # map-frame x, y, radius, seq, ray azimuth
+        self._frozen_rocks = np.zeros((0, 4))  # map-frame x, y, radius, seq
         self._discs: list[tuple[float, float, float]] = []
         self.frozen_frames = 0
         # the live layer (live_cells): per-cell running sums at the poses frames were added
@@ -279,10 +264,7 @@ class LacMapper:
             skipped), e.g. a stereo HeightMap's ``points_rover``; several pairs of one frame may
             be added under the same `frame_id` (they are merged; the pose is the last given).
         rocks_rover : (M, 4) rover-frame rock centres and radii (m), or (M, 3) centres
-            (radius 0: the cell holding the centre), or (M, 5) with the azimuth (rover frame,
-            radians) of the ray the rock was seen along (:func:`frame_inputs`; without it, the
-            direction from the rover's origin): a radius is the rock's half-width across that
-            ray, and sightings from different directions give the rock's outline.
+            (radius 0: the cell holding the centre).
         Returns the number of bins the frame's summary holds. Raises InputError on a bad pose
         or array shape."""
         T = _check_T(T_map_rover, f"frame {frame_id}: T_map_rover")
@@ -419,15 +401,12 @@ class LacMapper:
         R = np.asarray(rocks, dtype=float)
         if R.size == 0:
             return np.zeros((0, 4), np.float32)
-        if R.ndim != 2 or R.shape[1] not in (3, 4, 5):
+        if R.ndim != 2 or R.shape[1] not in (3, 4):
             raise InputError(
-                f"frame {frame_id}: rocks_rover must be (M, 3), (M, 4) or (M, 5), got shape "
-                f"{R.shape}"
+                f"frame {frame_id}: rocks_rover must be (M, 3) or (M, 4), got shape {R.shape}"
             )
         if R.shape[1] == 3:
             R = np.column_stack([R, np.zeros(len(R))])
-        if R.shape[1] == 4:  # the ray from the rover's origin
-            R = np.column_stack([R, np.arctan2(R[:, 1], R[:, 0])])
         ok = (
             np.all(np.isfinite(R), axis=1)
             & (R[:, 3] >= 0)
@@ -442,10 +421,10 @@ class LacMapper:
         self._frozen_w += np.bincount(c, w, minlength=n * n).reshape(n, n)
         self._frozen_wz += np.bincount(c, w * z, minlength=n * n).reshape(n, n)
         self._frozen_wz2 += np.bincount(c, w * z * z, minlength=n * n).reshape(n, n)
-        xy, r, az = self._place_rocks(fr, azimuth=True)
+        xy, r = self._place_rocks(fr)
         if len(xy):
             self._frozen_rocks = np.concatenate(
-                [self._frozen_rocks, np.column_stack([xy, r, np.full(len(r), fr.seq), az])]
+                [self._frozen_rocks, np.column_stack([xy, r, np.full(len(r), fr.seq)])]
             )
         self.frozen_frames += 1
         log.debug("mapper: froze frame %s (%d bins)", frame_id, len(fr.bins))
@@ -472,33 +451,25 @@ class LacMapper:
             ok &= self._keep_outside_discs(P[:, :2])
         return (i * n + j)[ok], P[ok, 2], fr.bins[ok, 3].astype(np.float64)
 
-    def _place_rocks(self, fr: _Frame, azimuth: bool = False):
-        """Map-frame centres (K, 2) and radii (K,) of a frame's detections at its pose (outside
-        the excluded discs); with `azimuth`, also their viewing rays' map-frame azimuths."""
+    def _place_rocks(self, fr: _Frame):
         if len(fr.rocks) == 0:
-            return (np.zeros((0, 2)), np.zeros(0)) + ((np.zeros(0),) if azimuth else ())
+            return np.zeros((0, 2)), np.zeros(0)
         T = fr.T_map_rover
         P = fr.rocks[:, :3].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
         keep = self._keep_outside_discs(P[:, :2]) if self._discs else np.ones(len(P), bool)
-        out = (P[keep, :2], fr.rocks[keep, 3].astype(np.float64))
-        if not azimuth:
-            return out
-        az = fr.rocks[keep, 4].astype(np.float64) + math.atan2(T[1, 0], T[0, 0])
-        return out + (az,)
+        return P[keep, :2], fr.rocks[keep, 3].astype(np.float64)
 
     # ------------------------------------------------------------------ the map
     def grid(self) -> LacMapEstimate:
         """The LAC map of everything added so far, every frame at its current pose."""
         cfg = self.config
         n = cfg.cells
-        cs, zs, ws, views = [], [], [], []
+        cs, zs, ws = [], [], []
         for fr in self._frames.values():
             c, z, w = self._place_bins(fr)
             cs.append(c)
             zs.append(z)
             ws.append(w)
-            if cfg.rock_min_detect_ratio > 0:
-                views.append((fr.seq, np.unique(c)))
         fz = np.flatnonzero(self._frozen_w.reshape(-1) > 0)
         if len(fz):  # frozen frames: one weighted mean per cell
             fw = self._frozen_w.reshape(-1)[fz]
@@ -533,7 +504,7 @@ class LacMapper:
         interpolated = np.isfinite(filled_h) & ~observed
         out[:, :, 2] = filled_h
         out[:, :, 3] = np.where(np.isfinite(filled_h), 0.0, UNFILLED)
-        rocks = self._fused_rocks(views)
+        rocks = self._fused_rocks()
         flags = _rock_cells(rocks, self._grid0, cfg.cell_m)
         if cfg.rock_bump_m is not None and observed.any():
             flags |= self._bumps(filled_h, observed)
@@ -558,19 +529,17 @@ class LacMapper:
         ground = ndimage.percentile_filter(hh, cfg.rock_ground_quantile, size=k, mode="nearest")
         return observed & (hh - ground >= cfg.rock_bump_m)
 
-    def _fused_rocks(self, views=()) -> np.ndarray:
-        """Detections of all frames merged into rocks: (K, 5) x, y, footprint semi-axes a, b
-        and the a axis's yaw (map frame; a disc has a = b). `views`: (seq, cell ids) of the
-        re-placeable frames, for ``rock_min_detect_ratio``."""
+    def _fused_rocks(self) -> np.ndarray:
+        """Detections of all frames merged into rocks: (K, 3) x, y, footprint radius."""
         cfg = self.config
         parts = [self._frozen_rocks]
         for fr in self._frames.values():
-            xy, r, az = self._place_rocks(fr, azimuth=True)
+            xy, r = self._place_rocks(fr)
             if len(r):
-                parts.append(np.column_stack([xy, r, np.full(len(r), fr.seq), az]))
+                parts.append(np.column_stack([xy, r, np.full(len(r), fr.seq)]))
         D = np.concatenate(parts)
         if len(D) == 0:
-            return np.zeros((0, 5))
+            return np.zeros((0, 3))
         from scipy.sparse import coo_matrix
         from scipy.sparse.csgraph import connected_components
         from scipy.spatial import cKDTree
@@ -608,70 +577,8 @@ class LacMapper:
                 if sightings[q] < cfg.rock_min_sightings:
                     continue
                 r_fp = cfg.rock_radius_scale * r + cfg.rock_radius_margin_m
-            x, y = float(np.median(g[:, 0])), float(np.median(g[:, 1]))
-            out.append((x, y, *self._outline(g, max(r_fp, 0.0), sightings[q]), r))
-        R = np.array(out, float).reshape(-1, 6)
-        if cfg.rock_min_detect_ratio > 0 and len(R) and len(views):
-            R = R[self._detected_often_enough(R, D, labels, sightings, views)]
-        return R[:, :5]
-
-    def _outline(self, g: np.ndarray, r_fp: float, n_sightings: int) -> tuple:
-        """A mapped rock's footprint (a, b, yaw) from its sightings `g` (rows x, y, radius,
-        seq, ray azimuth): each sighting's radius is the half-width across its ray, so
-        width^2 = p + q cos(2 az) + s sin(2 az) of an ellipse seen from azimuth az (ridge
-        regression, config ``rock_shape_*``); a disc of `r_fp` when too few sightings."""
-        cfg = self.config
-        if (
-            cfg.rock_shape_max_elongation <= 0
-            or n_sightings < cfg.rock_shape_min_sightings
-            or len(g) < 3
-            or r_fp <= 0
-        ):
-            return r_fp, r_fp, 0.0
-        w2 = (g[:, 2] / max(float(np.median(g[:, 2])), 1e-6)) ** 2
-        c2, s2 = np.cos(2 * g[:, 4]), np.sin(2 * g[:, 4])
-        A = np.column_stack([np.ones(len(g)), c2, s2])
-        lam = cfg.rock_shape_ridge * len(g)
-        M = A.T @ A + np.diag([0.0, lam, lam])
-        try:
-            p, q, s = np.linalg.solve(M, A.T @ w2)
-        except np.linalg.LinAlgError:
-            return r_fp, r_fp, 0.0
-        if not p > 0:
-            return r_fp, r_fp, 0.0
-        e = min(math.hypot(q, s) / p, cfg.rock_shape_max_elongation)
-        # the width is largest seen across the major axis: seen along azimuth az, the
-        # half-width is measured along az + 90 deg, largest when that is the major axis
-        yaw = 0.5 * math.atan2(s, q) + 0.5 * math.pi
-        return r_fp * math.sqrt(1.0 + e), r_fp * math.sqrt(1.0 - e), yaw
-
-    def _detected_often_enough(self, R, D, labels, sightings, views) -> np.ndarray:
-        """Which mapped rocks (rows of `R`: x, y, a, b, yaw, radius) were detected in at least
-        ``rock_min_detect_ratio`` of the re-placeable frames whose stereo covered their
-        centre cell (small rocks and rocks no such frame saw are kept)."""
-        cfg = self.config
-        n = cfg.cells
-        i = np.floor((R[:, 0] - self._lo[0]) / cfg.cell_m).astype(np.int64)
-        j = np.floor((R[:, 1] - self._lo[1]) / cfg.cell_m).astype(np.int64)
-        cell = np.clip(i, 0, n - 1) * n + np.clip(j, 0, n - 1)
-        # which frames detected each mapped rock: its detections' seqs
-        tree_idx = {}
-        from scipy.spatial import cKDTree
-
-        tree = cKDTree(D[:, :2])
-        for k, (x, y) in enumerate(R[:, :2]):
-            near = tree.query_ball_point((x, y), max(cfg.rock_merge_m, 1e-6) * 2)
-            tree_idx[k] = set(D[near, 3].astype(np.int64).tolist())
-        n_view = np.zeros(len(R))
-        n_hit = np.zeros(len(R))
-        for seq, cells in views:
-            inview = np.isin(cell, cells, assume_unique=False)
-            for k in np.flatnonzero(inview):
-                n_view[k] += 1
-                n_hit[k] += seq in tree_idx[k]
-        ratio = np.where(n_view > 0, n_hit / np.maximum(n_view, 1), 1.0)
-        self._last_detect_ratio = np.column_stack([R[:, 5], ratio, n_view, n_hit])
-        return (R[:, 5] < cfg.small_rock_m) | (ratio >= cfg.rock_min_detect_ratio)
+            out.append((np.median(g[:, 0]), np.median(g[:, 1]), max(r_fp, 0.0)))
+        return np.array(out, float).reshape(-1, 3)
 
 
 def _weighted_median(c: np.ndarray, z: np.ndarray, w: np.ndarray, size: int) -> np.ndarray:
@@ -736,38 +643,26 @@ def _fill(xyh: np.ndarray, observed: np.ndarray, cfg: LacMapperConfig):
 
 
 def _rock_cells(rocks: np.ndarray, grid: np.ndarray, cell_m: float) -> np.ndarray:
-    """(N, N) bool: cells with any of their 16 LAC ray points within a rock's footprint.
-    `rocks`: (K, 3) discs x, y, radius, or (K, 5) ellipses x, y, semi-axes a, b, yaw of a."""
+    """(N, N) bool: cells with any of their 16 LAC ray points within a rock's footprint."""
     n = grid.shape[0]
     flags = np.zeros((n, n), dtype=bool)
-    rocks = np.asarray(rocks, float)
     if len(rocks) == 0:
         return flags
-    if rocks.shape[1] == 3:
-        rocks = np.column_stack([rocks, rocks[:, 2], np.zeros(len(rocks))])
     xs, ys = grid[:, 0, 0], grid[0, :, 1]
     off = LAC_RAY_OFFSETS * cell_m
     lo_x, lo_y = xs[0] - cell_m / 2, ys[0] - cell_m / 2
-    for x, y, a, b, yaw in rocks:
-        a, b = max(float(a), 0.0), max(float(b), 0.0)
-        r = max(a, b)
+    for x, y, r in rocks:
+        r = max(float(r), 0.0)
         i0 = max(int(math.floor((x - r - lo_x) / cell_m)), 0)
         i1 = min(int(math.floor((x + r - lo_x) / cell_m)) + 1, n)
         j0 = max(int(math.floor((y - r - lo_y) / cell_m)), 0)
         j1 = min(int(math.floor((y + r - lo_y) / cell_m)) + 1, n)
         if i1 <= i0 or j1 <= j0:
             continue
-        if a == b:
-            # a disc: the nearest ray point of each cell to the centre, per axis (separable)
-            dx = np.min(np.abs(xs[i0:i1, None] + off[None, :] - x), axis=1)
-            dy = np.min(np.abs(ys[j0:j1, None] + off[None, :] - y), axis=1)
-            hit = dx[:, None] ** 2 + dy[None, :] ** 2 <= r * r
-        else:  # an ellipse: every ray point of the cells in its box
-            px = (xs[i0:i1, None] + off[None, :] - x)[:, None, :, None]  # (I, 1, 4, 1)
-            py = (ys[j0:j1, None] + off[None, :] - y)[None, :, None, :]  # (1, J, 1, 4)
-            c, s = math.cos(yaw), math.sin(yaw)
-            u, v = c * px + s * py, -s * px + c * py
-            hit = ((u / max(a, 1e-9)) ** 2 + (v / max(b, 1e-9)) ** 2 <= 1.0).any(axis=(2, 3))
+        # nearest ray point of each cell to the centre, per axis (the lattice is separable)
+        dx = np.min(np.abs(xs[i0:i1, None] + off[None, :] - x), axis=1)
+        dy = np.min(np.abs(ys[j0:j1, None] + off[None, :] - y), axis=1)
+        hit = dx[:, None] ** 2 + dy[None, :] ** 2 <= r * r
         if (
             r == 0 or not hit.any()
         ):  # a point rock or one between the rays: the cell holding its centre
