@@ -108,7 +108,7 @@ def test_rocks_reference(tmp_path):
     )
     ref = rocks_to_reference(rows)
     assert len(ref) == 3  # the 2 cm rock is too small to be detected
-    assert ref.positions_xyz[0, 2] == pytest.approx(-0.1 + 0.1 * 0.3)
+    assert ref.positions_xyz[0, 2] == pytest.approx(-0.1 + 0.025 * 0.3)  # top_offset
     p = tmp_path / "rocks.csv"
     np.savetxt(p, rows, delimiter=",", header="id,x,y,z,radius", comments="")
     assert len(load_reference(p)) == 3
