@@ -133,7 +133,14 @@ def score(a) -> None:
         out = {"gt": (est_gt, all_gt, seen_gt)}
         for name, T in (("odometry", res.T_odo_rover), ("corrected", res.T_map_rover)):
             out[name] = _scores(mapper, res.frames, T, truth, seen)
+        T_true = np.asarray(res.T_map_rover_true)
         for name, (est, s_all, s_seen) in out.items():
+            T_src = {
+                "gt": T_true,
+                "odometry": np.asarray(res.T_odo_rover),
+                "corrected": np.asarray(res.T_map_rover),
+            }[name]
+            dz = T_src[:, 2, 3] - T_true[:, 2, 3]  # the frames' height error (m)
             tp = round(s_seen["rock_recall"] * s_seen["rock_cells_true"])
             row = {
                 "seed": seed,
@@ -167,6 +174,9 @@ def score(a) -> None:
                     "odometry": summ["ate_odometry"]["rmse_m"],
                     "corrected": summ["ate_corrected"]["rmse_m"],
                 }[name],
+                # the poses' height above the truth over the frames (median, p90 of |dz|)
+                "dz_median_m": round(float(np.median(dz)), 4),
+                "dz_abs_p90_m": round(float(np.percentile(np.abs(dz), 90)), 4),
                 "path_m": summ["path_length_m"],
                 "image_frames": res.num_image_frames,
                 "detection_ms_per_frame": round(
@@ -181,7 +191,8 @@ def score(a) -> None:
                 f"seed {seed} {light:9s} {name:9s}: seen {row['seen_cells']} cells: height {row['seen_geometric']:.3f}, "
                 f"rock P {row['seen_rock_precision']:.2f} R {row['seen_rock_recall']:.2f} F1 {row['seen_rock_f1']:.3f} "
                 f"({row['seen_points_geo_rock']:.0f} pts) | whole map: height {row['all_geometric']:.3f}, "
-                f"F1 {row['all_rock_f1']:.3f} ({row['all_points_geo_rock']:.0f} pts) | ATE {row['ate_rmse_m']:.3f} m",
+                f"F1 {row['all_rock_f1']:.3f} ({row['all_points_geo_rock']:.0f} pts) | ATE {row['ate_rmse_m']:.3f} m, "
+                f"height {100 * row['dz_median_m']:+.2f} cm (median; |dz| p90 {100 * row['dz_abs_p90_m']:.1f} cm)",
                 flush=True,
             )
         if a.figure_seed == seed:
