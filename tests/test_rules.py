@@ -23,7 +23,6 @@ from lunarloc.perception.rules import (
     BlobMeasures,
     fired_rules,
 )
-from lunarloc.perception.segment import ClassicalConfig
 from lunarloc.perception.small_rocks import SmallRockConfig
 
 NAN = float("nan")
@@ -229,7 +228,6 @@ def test_old_flat_keys_load_and_read_as_before():
             assert config_to_dict(getattr(cfg, k)) == v, k
     # the small-rock section as the file saved it (its defaults have moved since)
     small = config_from_dict(SmallRockConfig, old["small_rocks"])
-    classical = config_from_dict(ClassicalConfig, old["classical"])
     assert cfg == DetectorConfig(
         fuse_tol_m=0.2,
         centre_estimator="blend",
@@ -238,7 +236,6 @@ def test_old_flat_keys_load_and_read_as_before():
         crest_extension_ratio=0.5,
         fullres_span_px=32,
         small_rocks=small,
-        classical=classical,
     )
 
 

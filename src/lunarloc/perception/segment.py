@@ -97,13 +97,8 @@ class ClassicalConfig:
     # Seed threshold, metres above the local ground: the visible top of a rock of
     # radius >= 0.1 m stands >= ~5 cm above the ground (burial <= 55 % of its
     # height, vertical semi-axis >= 0.55 R); ground height noise is ~1 cm to 5 m.
-    # 0.0325: on the LAC-look development sites 300-304 most rocks of r >= 0.1 m within 5 m
-    # that no blob covered stood 2.5-3.5 cm in the height map (a rock filling much of a
-    # ground cell lifts the cell's median under it; deeply buried rocks and rocks behind
-    # rims show a low top); 0.0325 found 2 more of their sightings for 1 more terrain
-    # detection (docs/perception-status.md, "Where it fails"). Lower seeds or region
-    # thresholds, a lower ground quantile or a ground refit found 1-5 more for 5-32 more.
-    height_seed_m: float = 0.0325
+    # 0.035 (was 0.04): small rocks near the rover (tuned on simulated site seed 0).
+    height_seed_m: float = 0.035
     # Region threshold (hysteresis), metres: the blob grows over connected pixels
     # higher than this (rock flanks down to near the ground line). 0.025 (was 0.015):
     # real LAC terrain has 2-3 cm undulations finer than the ground cells, which a
