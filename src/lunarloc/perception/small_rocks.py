@@ -405,14 +405,12 @@ class _Matcher:
             o[:, -a:] = img[v0:v1, 0:b]
             return o
 
-        d = (
-            self._sgbm(nd)
-            .compute(cols(L, la, u1), cols(R, la - dmin, u1 - dmin))
-            .astype(np.float32)[:, u0 - la :]
-            / 16.0
-        )
+        d = self._sgbm(nd).compute(cols(L, la, u1), cols(R, la - dmin, u1 - dmin))[:, u0 - la :]
+        d = d.astype(np.float32)
+        d *= np.float32(1 / 16)  # fixed point (4 fractional bits): exact
         d[(d <= 0) | (d >= nd - 1)] = np.nan
-        return d + dmin
+        d += np.float32(dmin)
+        return d
 
 
 def _quantile(x: np.ndarray, q: float) -> float:
@@ -424,6 +422,19 @@ def _quantile(x: np.ndarray, q: float) -> float:
     hi = min(lo + 1, n - 1)
     p = np.partition(x, (lo, hi)) if hi != lo else np.partition(x, lo)
     return float(p[lo] + (f - lo) * (p[hi] - p[lo]))
+
+
+def _quantiles(x: np.ndarray, q0: float, q1: float) -> tuple[float, float]:
+    """(_quantile(x, q0), _quantile(x, q1)) by one partition."""
+    n = x.size
+    f0, f1 = q0 * (n - 1), q1 * (n - 1)
+    i0, i1 = int(f0), int(f1)
+    j0, j1 = min(i0 + 1, n - 1), min(i1 + 1, n - 1)
+    p = np.partition(x, sorted({i0, j0, i1, j1}))
+    return (
+        float(p[i0] + (f0 - i0) * (p[j0] - p[i0])),
+        float(p[i1] + (f1 - i1) * (p[j1] - p[i1])),
+    )
 
 
 def _median(x: np.ndarray) -> float:
@@ -497,7 +508,7 @@ def _local_heights(
     # the height map's disparities over the window (full-resolution pixels)
     wd = disparity_lowres[b0 // scale : (b1 - 1) // scale + 1, a0 // scale : (a1 - 1) // scale + 1]
     wd = wd[np.isfinite(wd)] * scale
-    lo, hi = (_quantile(wd, 0.05), _quantile(wd, 0.95)) if wd.size >= 8 else (d0, d0)
+    lo, hi = _quantiles(wd, 0.05, 0.95) if wd.size >= 8 else (d0, d0)
     d = mt.window(L, R, a0, b0, a1, b1, min(lo, d0), max(hi, d0))
     if d is None:
         return None
@@ -549,9 +560,7 @@ def _ground_heights(Q: np.ndarray, P: np.ndarray, cfg):
         _, s = _robust_spread((Q[keep] - c) @ n)
     if not (cfg.quadric and n_keep >= 12):
         return (P - c) @ n, s, n
-    X = np.concatenate([Q, P])
-    h, s = _quadric_heights(X, c, n, (X - c) @ n, np.arange(len(Q)), s)
-    return h[len(Q) :], s, n
+    return _quadric_heights(Q, P, c, n, s) + (n,)
 
 
 def _refit(w: _Window, region: np.ndarray, cfg) -> _Window | None:
@@ -580,31 +589,37 @@ def _refit(w: _Window, region: np.ndarray, cfg) -> _Window | None:
     return replace(w, blob=region, hall=hall, noise=float(s), n=n, ok=w.ok & near)
 
 
-def _quadric_heights(P, c, n, hP, ring_idx, s):
-    """Heights `hP` above a quadric (in the plane's coordinates) fitted to the ring's points
-    (twice, the second time without those beyond 3 MADs) and the fit's residual spread."""
+def _quadric_heights(Q, P, c, n, s):
+    """Heights of the points `P` above a quadric (in the plane (c, n)'s coordinates) fitted to
+    the ring's points `Q` (twice, the second time without those beyond 3 MADs) and the fit's
+    residual spread (`s` when the fit fails)."""
     e1 = np.array([n[1], -n[0], 0.0])  # n x (0, 0, 1)
     e1 /= np.sqrt(e1 @ e1) + 1e-12
     e2 = np.array(
         [n[1] * e1[2] - n[2] * e1[1], n[2] * e1[0] - n[0] * e1[2], n[0] * e1[1] - n[1] * e1[0]]
     )
-    X = P - c
-    a1, a2 = X @ e1, X @ e2
-    A = np.stack([np.ones_like(a1), a1, a2, a1 * a1, a1 * a2, a2 * a2], axis=1)
-    sel = ring_idx
+
+    def design(X):
+        X = X - c
+        a1, a2 = X @ e1, X @ e2
+        return X @ n, np.stack([np.ones_like(a1), a1, a2, a1 * a1, a1 * a2, a2 * a2], axis=1)
+
+    hQ, A = design(Q)
+    sel = np.arange(len(Q))
     coef = np.zeros(6)
     for _ in range(2):
         As = A[sel]
         try:  # normal equations: a 6x6 solve (lstsq's SVD costs far more here)
-            coef = np.linalg.solve(As.T @ As + 1e-9 * np.eye(6), As.T @ hP[sel])
+            coef = np.linalg.solve(As.T @ As + 1e-9 * np.eye(6), As.T @ hQ[sel])
         except np.linalg.LinAlgError:
             break
-        res = hP[ring_idx] - A[ring_idx] @ coef
+        res = hQ - A @ coef
         mr, s = _robust_spread(res)
-        sel = ring_idx[np.abs(res - mr) < 3 * s]
+        sel = np.flatnonzero(np.abs(res - mr) < 3 * s)
         if sel.size < 12:
             break
-    return hP - A @ coef, s
+    hP, AP = design(P)
+    return hP - AP @ coef, s
 
 
 def _verdict(cfg, top: float, noise: float, width: float, tilt_ok: bool) -> str | None:
