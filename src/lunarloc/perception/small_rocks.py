@@ -132,7 +132,7 @@ class SmallRockConfig:
     min_ring_points: int = setting(30, ge=6)
     max_ring_points: int = setting(400, ge=12)
     # the height map must stand this high (m) somewhere around a candidate, else no window match
-    min_lowres_height_m: float = setting(0.005, ge=0.0)
+    min_lowres_height_m: float = setting(0.01, ge=0.0)
     # the fewest valid points on the blob
     min_blob_points: int = setting(3, ge=1)
     # at most this many dark candidates per image (after the bright ones)
