@@ -68,7 +68,7 @@ class SmallRockConfig:
     values is in docs/perception-status.md ("Small rocks")."""
 
     # run the stage (after the height-map detections; classical segmenter only)
-    enabled: bool = setting(False)
+    enabled: bool = setting(True)
 
     # -- candidates from appearance (on the left image at 1/candidate_scale resolution)
     # resolution of the candidate search (1 = full, 2 = half); the sigmas are in its pixels
