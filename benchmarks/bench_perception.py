@@ -320,14 +320,15 @@ def main(argv=None) -> int:
     )
     ap.add_argument(
         "--small-rocks",
-        action="store_true",
-        help="turn the small-rock stage on (DetectorConfig.small_rocks.enabled; off by default)",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the small-rock stage on or off (DetectorConfig.small_rocks.enabled; on by default)",
     )
     a = ap.parse_args(argv)
-    if a.small_rocks and a.real_labels is None:
+    if a.small_rocks is not None and a.real_labels is None:
         ap.error(
-            "--small-rocks goes with --real-labels; for archives give --config with "
-            '{"detector": {"small_rocks": {"enabled": true}}}'
+            "--[no-]small-rocks goes with --real-labels; for archives give --config with "
+            '{"detector": {"small_rocks": {"enabled": false}}}'
         )
     if a.real_labels is not None:
         import real_labels
@@ -335,7 +336,8 @@ def main(argv=None) -> int:
         args = ["--data", str(a.real_labels)] if str(a.real_labels) not in ("", ".") else []
         for flag, v in (("--config", a.config), ("--misses", a.misses), ("--json", a.json)):
             args += [flag, str(v)] if v is not None else []
-        args += ["--small-rocks"] if a.small_rocks else []
+        if a.small_rocks is not None:
+            args += ["--small-rocks" if a.small_rocks else "--no-small-rocks"]
         return real_labels.main(args)
     base = DetectorConfig()
     if a.config is not None:

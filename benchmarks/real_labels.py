@@ -1,6 +1,6 @@
 """Score the rock detector on the hand-labelled real LAC pairs (tests/data/lac_real_labels.json).
 
-    python benchmarks/real_labels.py [--data DIR] [--labels JSON] [--config RUN_CONFIG.json] [--small-rocks]
+    python benchmarks/real_labels.py [--data DIR] [--labels JSON] [--config RUN_CONFIG.json] [--[no-]small-rocks]
         [--frames lac99 ipex179 ...] [--misses OUT.csv] [--figure-dir DIR] [--json OUT.json]
 
 DIR defaults to $LUNARLOC_LAC_REAL or ../shared/data/lac-real. Each pair runs once through
@@ -54,8 +54,9 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", nargs="*", default=None)
     ap.add_argument(
         "--small-rocks",
-        action="store_true",
-        help="turn the small-rock stage on (DetectorConfig.small_rocks.enabled; off by default)",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the small-rock stage on or off (DetectorConfig.small_rocks.enabled; on by default)",
     )
     ap.add_argument(
         "--misses", type=Path, default=None, help="write each missed rock and its stage to this CSV"
@@ -69,13 +70,13 @@ def main(argv=None) -> int:
         from lunarloc.config.run import load_config_file
 
         cfg = load_config_file(a.config)[0].detector
-    if a.small_rocks:
+    if a.small_rocks is not None:
         from dataclasses import replace
 
         from lunarloc.perception.detector import DetectorConfig
 
         base = cfg or DetectorConfig()
-        cfg = replace(base, small_rocks=replace(base.small_rocks, enabled=True))
+        cfg = replace(base, small_rocks=replace(base.small_rocks, enabled=a.small_rocks))
     misses: list | None = [] if a.misses is not None else None
     try:
         res = run(data, load_labels(a.labels), cfg, a.frames, misses, a.figure_dir)

@@ -3,7 +3,7 @@
 Usage
 -----
     python benchmarks/repeatability.py --seeds 300 301 [--style lac|default] [--duration 90]
-        [--image-rate 0.5] [--max-range 5] [--min-sightings 3] [--small-rocks] [--config RUN.json]
+        [--image-rate 0.5] [--max-range 5] [--min-sightings 3] [--[no-]small-rocks] [--config RUN.json]
         [--out-dir bench-output/repeatability] [--json OUT.json]
     python benchmarks/repeatability.py --sessions A.lac B.lac [...]   # archives of one site
 
@@ -139,7 +139,12 @@ def main(argv=None) -> int:
         "--max-range", type=float, default=5.0, help="leave out detections deeper than this, m"
     )
     ap.add_argument("--min-sightings", type=int, default=3)
-    ap.add_argument("--small-rocks", action="store_true", help="turn the small-rock stage on")
+    ap.add_argument(
+        "--small-rocks",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the small-rock stage on or off (on by default)",
+    )
     ap.add_argument(
         "--config", type=Path, default=None, help="a run configuration: its detector section"
     )
@@ -151,8 +156,8 @@ def main(argv=None) -> int:
         from lunarloc.config.run import load_config_file
 
         cfg = load_config_file(a.config)[0].detector
-    if a.small_rocks:
-        cfg = replace(cfg, small_rocks=replace(cfg.small_rocks, enabled=True))
+    if a.small_rocks is not None:
+        cfg = replace(cfg, small_rocks=replace(cfg.small_rocks, enabled=a.small_rocks))
     groups = [
         (f"site{s}", render_sessions(s, a.style, a.duration, a.image_rate, a.out_dir))
         for s in a.seeds

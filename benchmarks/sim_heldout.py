@@ -14,8 +14,8 @@ degrees. Archives are rendered once into ``--out-dir`` and reused.
 
 The detector runs as ``bench_perception.py`` runs it (ground-truth rover poses, the lander
 dropped, the detector scaled to the archive's width): once with the configuration as
-given (small-rock stage off by default: "off") and once with
-``small_rocks.enabled = true`` ("on"). Printed per configuration: the figures of
+given but ``small_rocks.enabled = false`` ("off") and once with
+``small_rocks.enabled = true`` ("on", the default). Printed per configuration: the figures of
 ``bench_perception.py`` (precision within 5 m, recall r >= 0.1 m within 5 m, recall of
 0.05-0.1 m and of 0.025-0.05 m within 3 m), and 90 % intervals with the sites resampled
 (``bench_perception.site_bootstrap``; the 0.025-0.05 m band bootstrapped the same way).

@@ -1,7 +1,7 @@
 """Figure: real LAC frames beside LAC-look simulated frames (``SiteConfig.lac_style()``), all
 with the detector's detections drawn.
 
-    python benchmarks/sim_look.py [--real ../shared/data/lac-real] [--seed 300] [--small-rocks]
+    python benchmarks/sim_look.py [--real ../shared/data/lac-real] [--seed 300] [--[no-]small-rocks]
         [--out docs/images/lac_vs_sim_style.png]
 
 Panels: top, the real frames FrontLeft 99 (lit, the lander, the rover's shadow; its
@@ -10,7 +10,7 @@ frame is the detector's only frame); bottom, two frames of a LAC-look site (seed
 traverse 0): the frame of the traverse whose rover tilt is largest and the frame whose
 tilt is the median, sun ``sun_of(seed)`` of ``sim_heldout.py``. Detections: the detector's
 overlay (kept masks green with a cross, rejected masks coloured by filter), default
-settings or ``--small-rocks``. In the simulated panels the true rocks within 6 m are
+settings or ``--[no-]small-rocks``. In the simulated panels the true rocks within 6 m are
 outlined: yellow r >= 0.1 m, cyan 0.025-0.1 m; a miss is an outline without a cross.
 """
 
@@ -61,7 +61,7 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--real", type=Path, default=Path("../shared/data/lac-real"))
     ap.add_argument("--seed", type=int, default=300)
-    ap.add_argument("--small-rocks", action="store_true")
+    ap.add_argument("--small-rocks", action=argparse.BooleanOptionalAction, default=None)
     ap.add_argument("--out", type=Path, default=Path("docs/images/lac_vs_sim_style.png"))
     a = ap.parse_args(argv)
     import json
@@ -87,8 +87,8 @@ def main(argv=None) -> int:
     rig = ipex_rig(camera)
     T_ro = rig["FrontLeft"].T_rover_optical
     cfg = DetectorConfig()
-    if a.small_rocks:
-        cfg = replace(cfg, small_rocks=replace(cfg.small_rocks, enabled=True))
+    if a.small_rocks is not None:
+        cfg = replace(cfg, small_rocks=replace(cfg.small_rocks, enabled=a.small_rocks))
     det = Detector(cfg, camera)
     panels = []
     pose = json.loads((a.real / "pose_99.json").read_text())
@@ -152,7 +152,7 @@ def main(argv=None) -> int:
         ax.axis("off")
     fig.suptitle(
         "Real LAC frames (top) and lunarloc's LAC-look site (bottom), detections drawn (small-rock stage "
-        f"{'on' if a.small_rocks else 'off'}: green +)\nsimulated: true rocks within 6 m outlined, yellow "
+        f"{'on' if cfg.small_rocks.enabled else 'off'}: green +)\nsimulated: true rocks within 6 m outlined, yellow "
         "r >= 0.1 m, cyan 0.025-0.1 m",
         fontsize=11,
     )

@@ -23,7 +23,8 @@ Settings (``lunarloc.toml``; every key optional, relative paths from the TOML's 
     lac_map = false           # fill the leaderboard's geometric map (lunarloc.LacMapper): cells as they
                               # become confident during the run, the whole map in finalize()
     lac_map_cells_per_tick = 400  # at most this many cells written a tick (bounds the tick's cost)
-    lac_map_small_rocks = true    # with lac_map: run the detector's small-rock stage (rocks under 5 cm)
+    lac_map_small_rocks = true    # with lac_map: the detector's small-rock stage (rocks under 5 cm;
+                                  # on by default in the detector: false turns it off)
 
 Without the leaderboard installed the class derives from lunarloc's mirror of its base
 class (:class:`lunarloc.LacAgentBase`), so :class:`lunarloc.PlaybackAgent` can replay a
@@ -161,14 +162,15 @@ class LunarLocAgent(AutonomousAgent):
         rig = rig or CameraRig.from_sensors(self.sensors())  # the LAC mounts at the configured size
         lac_mapper = LacMapper() if s["lac_map"] else None  # fed by the localizer at its keyframes
         detector_config = None
-        # the any-ray rule flags rocks under 5 cm: find them too
-        if s["lac_map"] and s["lac_map_small_rocks"]:
+        # the any-ray rule flags rocks under 5 cm: the small-rock stage (on by default) finds them;
+        # with lac_map, lac_map_small_rocks = false turns it off
+        if s["lac_map"] and not s["lac_map_small_rocks"]:
             from dataclasses import replace
 
             from lunarloc.perception.detector import DetectorConfig, scaled_detector_config
 
             base = DetectorConfig()
-            base = replace(base, small_rocks=replace(base.small_rocks, enabled=True))
+            base = replace(base, small_rocks=replace(base.small_rocks, enabled=False))
             detector_config = scaled_detector_config(rig.camera.width, base)
         self.map_writer = None  # a new mapper: a new writer at the next tick
         return OnlineLocalizer(

@@ -423,18 +423,20 @@ def test_small_rock_stage_follows_lac_map_unless_told():
     from lunarloc.config.run import RunConfig
 
     base = RunConfig()
-    assert not base.detector.small_rocks.enabled  # the detector's default
+    assert base.detector.small_rocks.enabled  # the detector's default
+    off = base.with_options(detector__small_rocks=replace(base.detector.small_rocks, enabled=False))
 
     def on(cfg):
         return cfg.detector.small_rocks.enabled
 
-    assert on(with_small_rocks(base, None, lac_map=True))
-    assert not on(with_small_rocks(base, None, lac_map=False))
+    assert on(with_small_rocks(off, None, lac_map=True))  # a configuration's off: --lac-map wins
+    assert not on(with_small_rocks(off, None, lac_map=False))
+    assert on(with_small_rocks(base, None, lac_map=False))
     assert not on(with_small_rocks(base, False, lac_map=True))  # --no-small-rocks wins
-    assert on(with_small_rocks(base, True, lac_map=False))
+    assert on(with_small_rocks(off, True, lac_map=False))
     # the rest of the detector's small-rock settings are kept
-    assert with_small_rocks(base, None, True).detector.small_rocks == replace(
-        base.detector.small_rocks, enabled=True
+    assert with_small_rocks(off, None, True).detector.small_rocks == replace(
+        off.detector.small_rocks, enabled=True
     )
 
 

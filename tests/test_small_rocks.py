@@ -155,18 +155,18 @@ def test_bare_ground_gives_no_small_rock_and_its_tilt_is_measured(roll_deg):
     assert np.degrees(np.arccos(np.clip(n_up @ up_rover, -1, 1))) < 2.0
 
 
-def test_the_detector_reports_the_small_rock_when_the_stage_is_on_and_not_by_default():
+def test_the_detector_reports_the_small_rock_by_default_and_not_with_the_stage_off():
     from dataclasses import replace
 
     L, R = _render(10.0, (-0.2, 2.0, 0.02, 0.02), seed=2)
     T_ro = ipex_rig(CAM)["FrontLeft"].T_rover_optical
-    on_cfg = replace(DetectorConfig(), small_rocks=SmallRockConfig(enabled=True))
-    on = Detector(on_cfg, CAM).detect_pair(L, R, T_ro)
-    off = Detector(DetectorConfig(), CAM).detect_pair(L, R, T_ro)
+    off_cfg = replace(DetectorConfig(), small_rocks=SmallRockConfig(enabled=False))
+    on = Detector(DetectorConfig(), CAM).detect_pair(L, R, T_ro)
+    off = Detector(off_cfg, CAM).detect_pair(L, R, T_ro)
     u, v = _uv(-0.2, 2.0, 10.0)
     hits = [d for d in on.detections if abs(d.uv[0] - u) < 25 and abs(d.uv[1] - v) < 25]
     assert len(hits) == 1 and abs(hits[0].depth_m - 2.0) < 0.25 and 0.01 < hits[0].radius_m < 0.05
-    assert hits[0].small_rock and not DetectorConfig().small_rocks.enabled
+    assert hits[0].small_rock and DetectorConfig().small_rocks.enabled
     assert not [d for d in off.detections if abs(d.uv[0] - u) < 25 and abs(d.uv[1] - v) < 25]
 
 
@@ -254,3 +254,40 @@ def test_the_detector_sees_the_same_rock_on_level_ground_and_rolled_20_degrees()
     # p_rover stays in the rover frame: the rock's distance from the camera is the same
     cam = T_ro[:3, 3]
     assert abs(np.linalg.norm(a.p_rover - cam) - np.linalg.norm(b.p_rover - cam)) < 0.1
+
+
+def test_the_stages_order_statistics_are_numpys_value_for_value():
+    """The stage's partition-based statistics (its speed) give numpy's values bit for bit:
+    NaN medians of rows (NaN for an all-NaN row), medians and paired quantiles."""
+    import warnings
+
+    from lunarloc.perception.small_rocks import _median, _nanmedian_rows, _quantile, _quantiles
+
+    rng = np.random.default_rng(5)
+    for dtype in (np.float32, np.float64):
+        a = (rng.random((200, 25)) * 60).astype(dtype)
+        a[rng.random(a.shape) < 0.5] = np.nan
+        a[0] = np.nan
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            ref = np.nanmedian(a, axis=1)
+        got = _nanmedian_rows(a)
+        assert got.dtype == ref.dtype and np.array_equal(got, ref, equal_nan=True)
+    for n in (1, 2, 7, 50, 51):
+        x = rng.normal(size=n)
+        assert _median(x.copy()) == np.median(x)
+        assert _quantiles(x, 0.05, 0.95) == (_quantile(x, 0.05), _quantile(x, 0.95))
+        assert _quantile(x, 0.95) == pytest.approx(np.quantile(x, 0.95), abs=1e-12)
+
+
+def test_the_view_s_ground_normal_is_fitted_once_and_kept_on_the_height_map():
+    """The detector's levelling fit of the view's ground is kept on the height map (the stage's
+    tilt test reuses it instead of fitting the same points again); it points up and, levelled,
+    along the levelled frame's z."""
+    L, R = _render(20.0, None, seed=4)
+    T_ro = ipex_rig(CAM)["FrontLeft"].T_rover_optical
+    hm = Detector(DetectorConfig(), CAM).height_map(L, R, T_ro)
+    assert hm.up_rover is not None and hm.T_level_rover is not None
+    assert abs(np.linalg.norm(hm.up_rover) - 1.0) < 1e-9 and hm.up_rover[2] > 0.999
+    n = ground_plane(hm.points_rover, hm.depth)
+    assert np.degrees(np.arccos(np.clip(n @ hm.up_rover, -1, 1))) < 1.0

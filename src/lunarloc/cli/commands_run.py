@@ -142,7 +142,7 @@ def run_cmd(
         None,
         "--small-rocks/--no-small-rocks",
         help="The detector's small-rock stage (the rocks under 5 cm radius the LAC's any-ray rule "
-        "flags). Default: on with --lac-map, else as the configuration says (off).",
+        "flags). Default: on with --lac-map, else as the configuration says (on).",
     ),
 ) -> None:
     """Online localization over a traverse: detect, map, localize against REFERENCE, fuse.

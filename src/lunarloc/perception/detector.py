@@ -394,6 +394,8 @@ class Detector:
                     nd - 1.0,
                 )
                 hm.T_level_rover = T_level_rover
+                n = T_level_rover[:3, :3] @ n
+            hm.up_rover = n
         hm.valid_u0 = 0 if self.config.height_stereo.full_width else nd * k
         return hm
 
@@ -914,7 +916,9 @@ class Detector:
         exclude = (
             cv2.dilate(exclude.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
         )  # and their edges
-        n_up = ground_plane(hm.points_rover, hm.depth, sc.ground_range_m)
+        n_up = hm.up_rover  # fitted by height_map (the same fit), else fitted here
+        if n_up is None:
+            n_up = ground_plane(hm.points_rover, hm.depth, sc.ground_range_m)
         up_optical = T_rover_optical[:3, :3].T @ n_up if n_up is not None else None
         found = detect_small_rocks(
             L,

@@ -497,7 +497,7 @@ class DetectorConfig:
     height_filters: MaskFilterConfig = field(default_factory=_height_filters_default)
     # the local ground under the height map
     ground: GroundConfig = field(default_factory=GroundConfig)
-    # the small-rock stage (perception/small_rocks.py; off by default)
+    # the small-rock stage (perception/small_rocks.py; on by default)
     small_rocks: SmallRockConfig = field(default_factory=SmallRockConfig)
     # levelling the height map
     level: LevelConfig = field(default_factory=LevelConfig)

@@ -455,6 +455,9 @@ class HeightMap:
     # plane fitted to the stereo points (DetectorConfig.level_from_stereo): points_rover and
     # T_rover_optical are then in that frame; None = the rover frame itself
     T_level_rover: np.ndarray | None = None
+    # the view's ground normal (unit, pointing up) in the map's frame, when the detector fitted
+    # one (small_rocks.ground_plane); None = not fitted
+    up_rover: np.ndarray | None = None
 
     def lowres_index(self, mask) -> tuple[np.ndarray, np.ndarray]:
         """Unique low-resolution (rows, cols) covered by a full-resolution InstanceMask."""
