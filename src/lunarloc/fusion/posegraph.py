@@ -306,6 +306,9 @@ class PoseGraph:
         self._last_fix_dist = 0.0
         self._last_fix_time = 0.0
         self.num_solves = 0
+        # after a solve: the newest keyframe's (x, y, z, yaw) marginal covariance (4, 4; m^2,
+        # rad^2) under the graph's noise model (None before any, or where singular)
+        self.newest_covariance: np.ndarray | None = None
 
     # ------------------------------------------------------------------ building
     def __len__(self) -> int:
