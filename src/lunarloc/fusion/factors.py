@@ -148,7 +148,10 @@ class BiasWalkFactor(Factor):
         i = np.asarray(i, int).reshape(-1)
         tau = np.maximum(np.asarray(moving_time_s, float).reshape(-1), 1e-3)
         self.phi, var = bias_transition(tau, noise)
-        self.sigma = np.sqrt(var)
+        T = noise.bias_time_constant_s
+        # the random walk's sigma as it always was computed (its solves unchanged to the bit)
+        rw = T is None or not np.isfinite(T)
+        self.sigma = noise.bias_walk_rad_s_sqrt_s * np.sqrt(tau) if rw else np.sqrt(var)
         self.columns = np.column_stack([layout.bias(i), layout.bias(i + 1)])
 
     def residual(self, v):
