@@ -14,6 +14,7 @@ __all__ = [
     "Factor",
     "OdometryFactor",
     "BiasWalkFactor",
+    "bias_transition",
     "PriorFactor",
     "PoseFixFactor",
     "LandmarkFactor",
@@ -133,21 +134,40 @@ class OdometryFactor(Factor):
 
 
 class BiasWalkFactor(Factor):
-    """Heading-bias random walk ``b_{i+1} - b_i ~ N(0, walk^2 tau)``.
-
-    Columns: ``b_i``, ``b_{i+1}``."""
+    """Heading-bias process over an edge of ``tau`` seconds of motion: a random walk
+    ``b_{i+1} - b_i ~ N(0, q^2 tau)`` (``q`` = ``bias_walk_rad_s_sqrt_s``), or, with a finite
+    correlation time ``T`` (``bias_time_constant_s``), the first-order Gauss-Markov process with
+    the same driving noise: ``b_{i+1} - phi b_i ~ N(0, q^2 T / 2 (1 - phi^2))``, ``phi =
+    exp(-tau / T)``: a bias the odometry shows for a while, whose estimate decays back to 0
+    beyond the fixes that measured it instead of being extrapolated for ever (the random walk is
+    its limit ``T -> inf``). Columns: ``b_i``, ``b_{i+1}``."""
 
     dim = 1
 
     def __init__(self, layout: StateLayout, i, moving_time_s, noise):
         i = np.asarray(i, int).reshape(-1)
-        self.sigma = noise.bias_walk_rad_s_sqrt_s * np.sqrt(
-            np.maximum(np.asarray(moving_time_s, float), 1e-3)
-        )
+        tau = np.maximum(np.asarray(moving_time_s, float).reshape(-1), 1e-3)
+        self.phi, var = bias_transition(tau, noise)
+        T = noise.bias_time_constant_s
+        # the random walk's sigma as it always was computed (its solves unchanged to the bit)
+        rw = T is None or not np.isfinite(T)
+        self.sigma = noise.bias_walk_rad_s_sqrt_s * np.sqrt(tau) if rw else np.sqrt(var)
         self.columns = np.column_stack([layout.bias(i), layout.bias(i + 1)])
 
     def residual(self, v):
-        return ((v[:, 1] - v[:, 0]) / self.sigma)[:, None]
+        return ((v[:, 1] - self.phi * v[:, 0]) / self.sigma)[:, None]
+
+
+def bias_transition(tau_s, noise) -> tuple[np.ndarray, np.ndarray]:
+    """(phi, variance) of the heading bias over ``tau_s`` seconds of motion: ``b' = phi b + w``,
+    ``w ~ N(0, variance)`` (see :class:`BiasWalkFactor`)."""
+    tau = np.asarray(tau_s, float)
+    q2 = float(noise.bias_walk_rad_s_sqrt_s) ** 2
+    T = noise.bias_time_constant_s
+    if T is None or not np.isfinite(T):
+        return np.ones_like(tau), q2 * tau
+    phi = np.exp(-tau / float(T))
+    return phi, q2 * float(T) / 2 * (1 - phi**2)
 
 
 class PriorFactor(Factor):

@@ -70,7 +70,7 @@ import numpy as np
 
 from lunarloc.core.errors import ConfigError, InputError
 from lunarloc.fusion import problem
-from lunarloc.fusion.factors import Factor, wrap_angle
+from lunarloc.fusion.factors import Factor, bias_transition, wrap_angle
 
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())
@@ -100,6 +100,9 @@ class OdometryNoise:
     scale_sigma: float = 0.05  # prior sigma of the odometry scale factor k around 1
     bias_sigma_rad_s: float = 2e-3  # prior sigma of the initial heading bias (rad/s)
     bias_walk_rad_s_sqrt_s: float = 1e-4  # heading bias random walk (rad/s per sqrt(s))
+    # the bias's correlation time (s of motion): None, a random walk (kept for ever beyond the
+    # last fix); finite, a Gauss-Markov bias that decays back to 0 (fusion.factors.BiasWalkFactor)
+    bias_time_constant_s: float | None = None
     start_sigma_m: float = 0.01  # the first keyframe's position is known this well (m)
     start_sigma_yaw_rad: float = 0.002  # ... and its yaw (rad)
 
@@ -156,6 +159,11 @@ class FusionConfig:
     )
     # how a reference landmark's own error enters its ties
     reference_error: ReferenceErrorModel = ReferenceErrorModel.SHARED
+    # the detected centre's own bias, shared by every detection of one rock (1-sigma per axis,
+    # horizontal and vertical, m): added in quadrature to the reference's stated sigma of the
+    # landmark the detections are tied to (SHARED ties; 0: the detections are independent)
+    detection_bias_sigma_m: float = 0.0
+    detection_bias_sigma_z_m: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0 < self.gate.probability < 1:
@@ -165,6 +173,10 @@ class FusionConfig:
         o = self.observation_sigma_m
         if isinstance(o, bool) or not isinstance(o, (int, float)) or not 0 < o < math.inf:
             raise ConfigError(f"observation_sigma_m={o!r} must be positive and finite")
+        for name in ("detection_bias_sigma_m", "detection_bias_sigma_z_m"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < math.inf:
+                raise ConfigError(f"{name}={v!r} must be >= 0 and finite")
         try:
             object.__setattr__(self, "reference_error", ReferenceErrorModel(self.reference_error))
         except ValueError:
@@ -294,6 +306,9 @@ class PoseGraph:
         self._last_fix_dist = 0.0
         self._last_fix_time = 0.0
         self.num_solves = 0
+        # after a solve: the newest keyframe's (x, y, z, yaw) marginal covariance (4, 4; m^2,
+        # rad^2) under the graph's noise model (None before any, or where singular)
+        self.newest_covariance: np.ndarray | None = None
 
     # ------------------------------------------------------------------ building
     def __len__(self) -> int:
@@ -340,13 +355,14 @@ class PoseGraph:
             d = np.array([c * dx + s * dy, -s * dx + c * dy, dz])
             dpsi = float(wrap_angle(q[3] - prev.odo_pose4[3]))
             e, b = prev.estimate_pose4, prev.bias_rad_s
+            phi = float(bias_transition(tau, self.config.noise)[0])
             c, s = math.cos(e[3]), math.sin(e[3])
             kd = self.scale * d
             new = np.empty(4)
             new[:3] = e[:3] + np.array([c * kd[0] - s * kd[1], s * kd[0] + c * kd[1], kd[2]])
             new[3] = float(wrap_angle(e[3] + dpsi - b * tau))
             dist = prev.distance_m + float(np.linalg.norm(d))
-            kf = Keyframe(n, float(t), q, new, tau, dist, b, frame, rp, det, path_m)
+            kf = Keyframe(n, float(t), q, new, tau, dist, phi * b, frame, rp, det, path_m)
         self.keyframes.append(kf)
         return n
 
@@ -461,6 +477,9 @@ class PoseGraph:
                 raise InputError("landmark observations: arrays of different lengths")
             if not np.all(np.isfinite(S) & (S >= 0)):
                 raise InputError("landmark observations: reference sigmas must be finite and >= 0")
+            c = self.config
+            bias = np.array([c.detection_bias_sigma_m] * 2 + [c.detection_bias_sigma_z_m])
+            S = np.sqrt(S**2 + bias**2)
         for n, (key, k, p, rp, q) in enumerate(zip(keys, kf, P, RP, Q)):
             lm = None
             if shared and np.any(S[n] > 0):  # a landmark stated exact (sigma 0) is tied alone

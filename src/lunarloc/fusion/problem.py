@@ -169,6 +169,7 @@ def solve(graph, active_window_m: float | None = None) -> float:
     )
     z[active] = res.x
     _write_back(graph, z, layout)
+    graph.newest_covariance = newest_marginal(res.jac, active, layout)
     graph.num_solves += 1
     log.debug(
         "pose graph: %d keyframes (%d active), %d factors (%s), cost %.3g, scale %.4f",
@@ -180,6 +181,32 @@ def solve(graph, active_window_m: float | None = None) -> float:
         graph.scale,
     )
     return float(res.cost)
+
+
+def newest_marginal(jac, active: np.ndarray, layout: StateLayout) -> np.ndarray | None:
+    """(4, 4) marginal covariance of the newest keyframe's (x, y, z, yaw) (m^2, rad^2) at a
+    solution: the newest keyframe's block of ``(J^T J)^-1``, ``J`` the Jacobian of the residuals
+    in sigmas (as ``least_squares`` returns it, scaled by the robust loss at the solution) over
+    the free state; the keyframes held fixed count as known. None where it is singular."""
+    from scipy.sparse import csc_matrix, identity
+    from scipy.sparse.linalg import splu
+
+    cols = layout.pose([layout.K - 1])[0]
+    idx = np.flatnonzero(np.isin(active, cols))
+    if len(idx) != 4:
+        return None
+    J = csc_matrix(jac)
+    H = (J.T @ J).tocsc()
+    H = H + identity(H.shape[0], format="csc") * 1e-12 * max(float(H.diagonal().max()), 1.0)
+    try:
+        lu = splu(H)
+    except RuntimeError:  # singular
+        return None
+    E = np.zeros((H.shape[0], 4))
+    E[idx, np.arange(4)] = 1.0
+    C = lu.solve(E)[idx]
+    C = 0.5 * (C + C.T)
+    return C if np.all(np.isfinite(C)) and np.all(np.diag(C) > 0) else None
 
 
 def _write_back(graph, z: np.ndarray, layout: StateLayout) -> None:

@@ -315,8 +315,15 @@ class OnlineConfig:
     initial_sigma_yaw_deg: float = 0.5  # ... and heading
     tilt_sigma_deg: float = 0.5  # roll / pitch sigma reported in the covariance (gravity-levelled)
     max_recent_attempts: int = 100  # localization attempts kept in `recent_attempts`
+    # where the stated covariance restarts at an accepted fix: "graph", the pose graph's marginal
+    # covariance of the estimate it reports; "fix", the covariance stated for the fix itself
+    covariance_source: str = "graph"
 
     def __post_init__(self) -> None:
+        if self.covariance_source not in ("graph", "fix"):
+            raise ConfigError(
+                f"covariance_source={self.covariance_source!r}: use one of graph, fix"
+            )
         # 10**9: never re-anchor
         validate.integer(self.max_keyframes, "max_keyframes", 50, 10**9, ConfigError)
         validate.integer(self.max_recent_attempts, "max_recent_attempts", 0, 10**6, ConfigError)
@@ -347,8 +354,9 @@ class OnlineConfig:
 @dataclass(frozen=True)
 class Estimate:
     """The rover pose at one tick. ``covariance`` is 6x6 over (x, y, z, roll, pitch, yaw) in
-    m^2 / rad^2: the loop's drift model since the last fix (diagonal), not a marginal of the
-    pose graph. ``localized``: a fix from the reference map has been accepted at some tick."""
+    m^2 / rad^2: the pose graph's marginal covariance of its estimate at the last accepted fix
+    (``OnlineConfig.covariance_source``), grown by the odometry's drift bounds over the path
+    since. ``localized``: a fix from the reference map has been accepted at some tick."""
 
     mission_time_s: float
     T_map_rover: np.ndarray
@@ -656,12 +664,7 @@ class OnlineLocalizer:
                 self._fixes += int(attempt.accepted)
         T = self.loop.T_map_odo @ self._T_loop_odo @ T_odo
         if attempt is not None and attempt.accepted and attempt.fix_covariance_xyz is not None:
-            self._anchor = CovarianceAnchor(
-                np.asarray(attempt.fix_covariance_xyz, float),
-                attempt.fix_sigma_yaw_rad**2,
-                self._path_m,
-                T[:3, 3].copy(),
-            )
+            self._anchor = self._fix_anchor(attempt, T)
         if is_kf and self.mapper is not None:
             self._feed_mapper(images, T, attempt)
         self._history.append(t)
@@ -839,7 +842,8 @@ class OnlineLocalizer:
 
     def _covariance(self, T_map_rover: np.ndarray) -> np.ndarray:
         """6x6 over (x, y, z, roll, pitch, yaw). Once localized: propagated from the last
-        accepted fix (the covariance the loop states for it at the rover) by
+        accepted fix (the pose graph's marginal covariance of its estimate there,
+        :meth:`_fix_anchor`) by
         :func:`propagate_covariance` over the odometry path since, with the odometry source's
         drift bounds. Before the first fix: the pose graph's gate model at the newest keyframe
         (the odometry is not calibrated yet, and its first metres can jump beyond its bounds:
@@ -861,6 +865,24 @@ class OnlineLocalizer:
         C[:3, :3] = P
         C[5, 5] = yaw_var
         return C
+
+    def _fix_anchor(self, attempt, T_map_rover: np.ndarray) -> CovarianceAnchor:
+        """Where the stated covariance restarts after an accepted fix: the pose graph's marginal
+        covariance of its newest keyframe (this tick's, whose estimate is ``T_map_rover``) under
+        its noise model, when the fix's solve gave one (``covariance_source = "graph"``); else
+        the covariance the loop states for the fix at the rover. The graph's estimate is not the
+        fix (docs/calibration.md, "(b) OnlineLocalizer along image-built runs")."""
+        C = self.loop.graph.newest_covariance
+        if self.config.covariance_source == "graph" and C is not None:
+            return CovarianceAnchor(
+                np.array(C[:3, :3]), float(C[3, 3]), self._path_m, T_map_rover[:3, 3].copy()
+            )
+        return CovarianceAnchor(
+            np.asarray(attempt.fix_covariance_xyz, float),
+            attempt.fix_sigma_yaw_rad**2,
+            self._path_m,
+            T_map_rover[:3, 3].copy(),
+        )
 
     def _reanchor(self) -> None:
         """Start a new loop state from the keyframes of the last window (bounded history)."""
