@@ -129,13 +129,19 @@ def test_config_field_range_and_json():
     for bad in (-0.1, 1.0, float("nan")):
         with pytest.raises(ConfigError, match="verifier_min_score"):
             replace(DetectorConfig().rules, verifier_min_score=bad)
-    c = config_from_dict(DetectorConfig, {"rules": {"verifier_min_score": 0.4}})
-    assert c.rules.verifier_min_score == 0.4
+    for bad in (0.0, -1.0):
+        with pytest.raises(ConfigError, match="verifier_max_radius_m"):
+            replace(DetectorConfig().rules, verifier_max_radius_m=bad)
+    c = config_from_dict(
+        DetectorConfig, {"rules": {"verifier_min_score": 0.4, "verifier_max_radius_m": 0.5}}
+    )
+    assert c.rules.verifier_min_score == 0.4 and c.rules.verifier_max_radius_m == 0.5
 
 
-def _scene_detector(score: float):
+def _scene_detector(score: float, max_radius_m: float = 0.3):
     cfg = DetectorConfig(small_rocks=SmallRockConfig(enabled=False))
-    return Detector(replace(cfg, rules=replace(cfg.rules, verifier_min_score=score)), CAM)
+    rules = replace(cfg.rules, verifier_min_score=score, verifier_max_radius_m=max_radius_m)
+    return Detector(replace(cfg, rules=rules), CAM)
 
 
 def test_the_verifier_judges_a_rendered_blob(monkeypatch):
@@ -153,6 +159,9 @@ def test_the_verifier_judges_a_rendered_blob(monkeypatch):
     gone = _scene_detector(0.5).detect_pair(left, right, T)
     assert gone.detections == []
     assert RejectReason.NOT_A_ROCK in [r.reason for r in gone.records]
+    # a blob as large as verifier_max_radius_m is not judged
+    big = _scene_detector(0.5, max_radius_m=0.05).detect_pair(left, right, T)
+    assert len(big.detections) == 1 and math.isnan(big.detections[0].verifier_score)
 
 
 def test_the_packaged_model_loads_is_small_and_keeps_a_plain_rock():
