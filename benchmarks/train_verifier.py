@@ -31,9 +31,7 @@ max(0.15 m, rock radius) of a rock's centre): a matched detection is a rock (1);
 unmatched one farther than that tolerance + 0.1 m from every rock is terrain (0); the rest
 (parts of rocks, duplicates beside one) are left out of training.
 
-Model: features standardised, scikit-learn's MLPClassifier (one hidden layer of 16 ReLU units,
-L2 alpha 1e-2, adam, early stopping), rocks of radius >= 0.1 m weighted 2 (the recall the
-targets name). Written as plain arrays (BlobVerifier.save).
+MODEL
 """
 
 from __future__ import annotations
@@ -45,7 +43,13 @@ from pathlib import Path
 
 import numpy as np
 
-from lunarloc.perception.verifier import FEATURE_NAMES, MODEL_PATH, BlobVerifier, blob_features
+from lunarloc.perception.verifier import (
+    FEATURE_NAMES,
+    MODEL_PATH,
+    Z_CLIP,
+    BlobVerifier,
+    blob_features,
+)
 
 
 def extract(path: Path, cache: Path) -> Path:
@@ -114,7 +118,6 @@ def extract(path: Path, cache: Path) -> Path:
     return out
 
 
-
 def fd_left(ar, camera: str, frame: int) -> np.ndarray:
     from lunarloc.perception.stereo import to_gray_u8
 
@@ -131,18 +134,27 @@ def load(paths: list[Path]) -> dict[str, np.ndarray]:
     return out
 
 
-def fit(paths: list[Path], out: Path, hidden: int = 16, alpha: float = 1e-2, seed: int = 0):
+def fit(
+    paths: list[Path],
+    out: Path,
+    hidden: int = 0,
+    alpha: float = 0.3,
+    firm_only: bool = False,
+    seed: int = 0,
+):
     from sklearn.linear_model import LogisticRegression
     from sklearn.neural_network import MLPClassifier
 
     d = load(paths)
     keep = d["y"] >= 0
+    if firm_only:
+        keep &= ~d["tentative"]
     X, y = d["X"][keep], d["y"][keep]
     w = np.where((y == 1) & (d["rock_radius_m"][keep] >= 0.1), 2.0, 1.0)
     mean = X.mean(axis=0)
     scale = X.std(axis=0)
     scale = np.where(scale > 1e-9, scale, 1.0)
-    Z = (X - mean) / scale
+    Z = np.clip((X - mean) / scale, -Z_CLIP, Z_CLIP)
     if hidden > 0:
         clf = MLPClassifier(
             hidden_layer_sizes=(hidden,),
@@ -162,7 +174,7 @@ def fit(paths: list[Path], out: Path, hidden: int = 16, alpha: float = 1e-2, see
         Ws, bs = (np.asarray(clf.coef_, float).T,), (np.asarray(clf.intercept_, float),)
     model = BlobVerifier(FEATURE_NAMES, mean, scale, Ws, bs)
     model.save(out)
-    p_sk = clf.predict_proba((X - mean) / scale)[:, 1]
+    p_sk = clf.predict_proba(Z)[:, 1]
     assert np.allclose(p_sk, model.score(X), atol=1e-4), "numpy inference differs from sklearn"
     print(
         f"fitted on {len(y)} blobs of {len(paths)} sites ({int(y.sum())} rocks); "
@@ -199,14 +211,15 @@ def main(argv=None) -> int:
     ap.add_argument("--cache", type=Path, default=Path("bench-output/verifier-cache"))
     ap.add_argument("--out", type=Path, default=MODEL_PATH)
     ap.add_argument("--model", type=Path, default=MODEL_PATH)
-    ap.add_argument("--hidden", type=int, default=16)
-    ap.add_argument("--alpha", type=float, default=1e-2)
+    ap.add_argument("--hidden", type=int, default=0, help="hidden units (0: logistic regression)")
+    ap.add_argument("--alpha", type=float, default=0.3, help="L2 penalty (1 / C for logistic)")
+    ap.add_argument("--firm-only", action="store_true", help="fit on firm blobs only")
     a = ap.parse_args(argv)
     if a.mode == "extract":
         for p in a.paths:
             extract(p, a.cache)
     elif a.mode == "fit":
-        fit(a.paths, a.out, a.hidden, a.alpha)
+        fit(a.paths, a.out, a.hidden, a.alpha, a.firm_only)
     else:
         check(a.paths, BlobVerifier.load(a.model))
     return 0

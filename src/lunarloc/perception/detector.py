@@ -741,7 +741,12 @@ class Detector:
                 ),
                 tentative="+".join(filter(None, (tent, *soft))),
             )
-            if cfg.rules.verifier_min_score > 0 and blob.radius_m < cfg.rules.verifier_max_radius_m:
+            # firm blobs only: a tentative one is judged by a neighbouring frame's firm one
+            if (
+                cfg.rules.verifier_min_score > 0
+                and not det.tentative
+                and blob.radius_m < cfg.rules.verifier_max_radius_m
+            ):
                 score = float(default_verifier().score(blob_features(det, scene.L, m)))
                 if score < cfg.rules.verifier_min_score:
                     rec.reason = RejectReason.NOT_A_ROCK

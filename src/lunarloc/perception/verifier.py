@@ -37,6 +37,7 @@ __all__ = [
     "FEATURE_NAMES",
     "GEOMETRIC_FIELDS",
     "MODEL_PATH",
+    "Z_CLIP",
     "BlobVerifier",
     "blob_features",
     "default_verifier",
@@ -68,6 +69,9 @@ _NAN_FLAGGED = (
     "extension_ratio",
     "disparity_roughness",
 )
+#: Standardised features are clipped to +-Z_CLIP before the model sees them (in training too):
+#: a measure far outside the training sites' range (a real frame's) cannot swing the score.
+Z_CLIP = 4.0
 _PATCH = 4  # the grey patch's side (cells)
 _N_ORIENT = 8  # gradient orientation bins
 
@@ -193,8 +197,8 @@ def blob_features(det, image: np.ndarray, mask: InstanceMask) -> np.ndarray:
 
 @dataclass(frozen=True)
 class BlobVerifier:
-    """A multilayer perceptron over standardised features: hidden layers with ReLU, one
-    logistic output. ``weights[k]`` is (n_in, n_out) and ``biases[k]`` (n_out,)."""
+    """A multilayer perceptron over standardised features (clipped to +-Z_CLIP): hidden layers
+    with ReLU, one logistic output (no hidden layer: logistic regression). ``weights[k]`` is (n_in, n_out) and ``biases[k]`` (n_out,)."""
 
     feature_names: tuple[str, ...]
     mean: np.ndarray
@@ -228,7 +232,7 @@ class BlobVerifier:
                 f"verifier: features of shape {X.shape} given, the model takes "
                 f"{len(self.feature_names)} per row"
             )
-        a = (X - self.mean) / self.scale
+        a = np.clip((X - self.mean) / self.scale, -Z_CLIP, Z_CLIP)
         for k, (Wk, bk) in enumerate(zip(self.weights, self.biases)):
             a = a @ Wk + bk
             if k < len(self.weights) - 1:
