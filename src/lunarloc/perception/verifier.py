@@ -13,12 +13,14 @@ verifier scores each blob that the rules keep from a feature vector (:func:`blob
   spread), the image gradient over the mask, its outline and the ring, the spread of the
   gradient's orientations, and a small normalised grey patch around it (4 x 4).
 
-A small multilayer perceptron (trained with scikit-learn by ``benchmarks/train_verifier.py``
-on blobs of rendered LAC-look sites labelled by the simulator's semantic truth) maps the
-features to P(rock). The model ships as plain arrays (``verifier_model.npz`` beside this
-module: feature means and scales, the layers' weights; no pickle) and runs with numpy
-(:class:`BlobVerifier`). The detector rejects a blob scoring under
-``DetectorConfig.rules.verifier_min_score`` (0 = off; rule ``verifier``).
+A small model (logistic regression; the format admits ReLU hidden layers), trained with
+scikit-learn by ``benchmarks/train_verifier.py`` on blobs of rendered LAC-look sites labelled
+by the simulator's truth, maps the standardised features to P(rock). The model ships as plain
+arrays (``verifier_model.npz`` beside this module: feature means and scales, the layers'
+weights; no pickle) and runs with numpy (:class:`BlobVerifier`). The detector rejects a blob
+scoring under ``DetectorConfig.rules.verifier_min_score`` (0 = off). It judges firm blobs
+only (a tentative one is judged by a neighbouring frame's firm detection) of estimated radius
+under ``rules.verifier_max_radius_m``.
 """
 
 from __future__ import annotations
@@ -198,7 +200,8 @@ def blob_features(det, image: np.ndarray, mask: InstanceMask) -> np.ndarray:
 @dataclass(frozen=True)
 class BlobVerifier:
     """A multilayer perceptron over standardised features (clipped to +-Z_CLIP): hidden layers
-    with ReLU, one logistic output (no hidden layer: logistic regression). ``weights[k]`` is (n_in, n_out) and ``biases[k]`` (n_out,)."""
+    with ReLU, one logistic output (no hidden layer: logistic regression). ``weights[k]`` is
+    (n_in, n_out) and ``biases[k]`` (n_out,)."""
 
     feature_names: tuple[str, ...]
     mean: np.ndarray
