@@ -172,3 +172,17 @@ def test_the_packaged_model_loads_is_small_and_keeps_a_plain_rock():
     T = rig["FrontLeft"].T_rover_optical
     pr = _scene_detector(0.01).detect_pair(left, right, T)
     assert len(pr.detections) == 1 and 0.01 <= pr.detections[0].verifier_score <= 1.0
+
+
+def test_a_tentative_blob_is_left_to_cross_frame_confirmation(monkeypatch):
+    # test_tentative's mid-range strip (kept as a tentative detection): a model that says
+    # "terrain" does not judge it; confirmation by a neighbouring frame does
+    from test_tentative import TENTATIVE
+
+    left, right, rig = ground_scene((4.0, 0.0, -0.29), 0.16)
+    T = rig["FrontLeft"].T_rover_optical
+    monkeypatch.setattr(detector_mod, "default_verifier", lambda: tiny_model(0.0, -5.0))
+    cfg = replace(TENTATIVE, rules=replace(TENTATIVE.rules, verifier_min_score=0.5))
+    pr = Detector(cfg, CAM).detect_pair(left, right, T, keep_tentative=True)
+    assert len(pr.detections) == 1 and pr.detections[0].tentative
+    assert math.isnan(pr.detections[0].verifier_score)
