@@ -20,9 +20,9 @@ sun elevation ``(6, 12, 20)[seed % 3]`` degrees and azimuth ``(97 * seed) % 360`
 ``render``). None of them is a development (300-304) or scoring site (400-403, 410-413,
 420-423, 460-463).
 
-Blobs: the default detector (small-rock stage off, verifier off) on every frame with the
-ground-truth rover pose and the lander dropped, tentative detections kept (the verifier
-judges blobs before cross-frame confirmation), as ``detect_archive`` runs it. Each kept
+Blobs: the default detector with the small-rock stage and the verifier off, on every frame
+with the ground-truth rover pose and the lander dropped, tentative detections kept (the
+verifier judges blobs before cross-frame confirmation), as ``detect_archive`` runs it. Each kept
 height-map blob gives one row: :func:`~lunarloc.perception.verifier.blob_features` of
 the detection, its mask and the left image.
 
@@ -45,6 +45,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -76,9 +77,13 @@ def extract(path: Path, cache: Path) -> Path:
         centres = np.column_stack([t["x"], t["y"], t["z"]])
         radii = np.asarray(t["radius"], float)
         cam = camera_from_archive(ar)
-        base = DetectorConfig()
+        base = DetectorConfig()  # the height map's blobs: the small-rock stage and verifier off
+        base = replace(
+            base,
+            small_rocks=replace(base.small_rocks, enabled=False),
+            rules=replace(base.rules, verifier_min_score=0.0),
+        )
         det = Detector(scaled_detector_config(cam.width, base=base), cam)
-        assert det.config.rules.verifier_min_score == 0 and not det.config.small_rocks.enabled
         for fd in _detect_archive_frames(ar, det, "ground-truth", None, False, None, lander_xy(ar)):
             rows = []
             for pair in fd.pairs:
