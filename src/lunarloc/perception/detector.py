@@ -84,6 +84,7 @@ from lunarloc.perception.stereo import (
     refine_disparity,
     to_gray_u8,
 )
+from lunarloc.perception.verifier import blob_features, default_verifier
 
 __all__ = [
     "PoseSource",
@@ -163,6 +164,9 @@ class Detection:
     # over the mask and a rim around it (grey levels per pixel; see image_gradient); NaN when
     # not measured
     image_gradient: float = float("nan")
+    # the learned verifier's P(rock) (perception/verifier.py; DetectorConfig.rules.
+    # verifier_min_score); NaN when not scored
+    verifier_score: float = float("nan")
 
 
 @dataclass
@@ -737,6 +741,17 @@ class Detector:
                 ),
                 tentative="+".join(filter(None, (tent, *soft))),
             )
+            # firm blobs only: a tentative one is judged by a neighbouring frame's firm one
+            if (
+                cfg.rules.verifier_min_score > 0
+                and not det.tentative
+                and blob.radius_m < cfg.rules.verifier_max_radius_m
+            ):
+                score = float(default_verifier().score(blob_features(det, scene.L, m)))
+                if score < cfg.rules.verifier_min_score:
+                    rec.reason = RejectReason.NOT_A_ROCK
+                    return rec, None
+                det = replace(det, verifier_score=score)
         else:
             p, p_rover, R_est = self._lift_centroid(*st.centroid_uv, D, s, scene.T_rover_optical)
             det = _detection(scene.camera_name, st, D, s, R_est, p, p_rover, scene.T_map_rover)

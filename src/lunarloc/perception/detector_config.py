@@ -301,6 +301,12 @@ class RulesConfig:
     gradient_rim_px: int = setting(3, ge=0, le=32)
     # on the lander: detections within this horizontal distance of its centre are dropped (m)
     lander_radius_m: float = setting(2.2, ge=0.0)
+    # the learned blob verifier (perception/verifier.py): a blob the rules keep is rejected when
+    # its score P(rock) is under this (0 = off; docs/perception-status.md gives what it costs)
+    verifier_min_score: float = setting(0.0, ge=0.0, lt=1.0)
+    # verifier: ... a blob of estimated radius at least this is not judged (a large rock's plain
+    # face; the training sites hold few; m)
+    verifier_max_radius_m: float = setting(0.3, gt=0.0)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "off", tuple(self.off))

@@ -1,0 +1,282 @@
+"""A learned check of the height-map detector's blobs: is this candidate a rock?
+
+The height-map detector's false positives on LAC-look terrain are crests and hummocks at
+2.5-5 m that pass every hand-made rule (docs/perception-status.md, "Where it fails"). The
+verifier scores each blob that the rules keep from a feature vector (:func:`blob_features`):
+
+* the geometric measures the rules already computed (its depth, radius, heights above the
+  local ground, the ring, the quadric ground and the ground in front, the share of nearer
+  surface around it, its lateral extension, its disparity roughness, its size and
+  elongation), each NaN as 0 with a flag;
+* the appearance of the left image around it: grey-level statistics of the mask and of the
+  ring of ground around it (lit face, shaded side, shadow: contrast against the ring's
+  spread), the image gradient over the mask, its outline and the ring, the spread of the
+  gradient's orientations, and a small normalised grey patch around it (4 x 4).
+
+A small model (logistic regression; the format admits ReLU hidden layers), trained with
+scikit-learn by ``benchmarks/train_verifier.py`` on blobs of rendered LAC-look sites labelled
+by the simulator's truth, maps the standardised features to P(rock). The model ships as plain
+arrays (``verifier_model.npz`` beside this module: feature means and scales, the layers'
+weights; no pickle) and runs with numpy (:class:`BlobVerifier`). The detector rejects a blob
+scoring under ``DetectorConfig.rules.verifier_min_score`` (0 = off). It judges firm blobs
+only (a tentative one is judged by a neighbouring frame's firm detection) of estimated radius
+under ``rules.verifier_max_radius_m``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from lunarloc.core.errors import InputError
+from lunarloc.perception.masks import InstanceMask
+
+__all__ = [
+    "FEATURE_NAMES",
+    "GEOMETRIC_FIELDS",
+    "MODEL_PATH",
+    "Z_CLIP",
+    "BlobVerifier",
+    "blob_features",
+    "default_verifier",
+]
+
+#: The packaged model.
+MODEL_PATH = Path(__file__).with_name("verifier_model.npz")
+
+#: Detection attributes read as geometric features (NaN -> 0 with a flag for those that may
+#: be NaN).
+GEOMETRIC_FIELDS: tuple[str, ...] = (
+    "depth_m",
+    "radius_m",
+    "size_m",
+    "eig_ratio",
+    "height_m",
+    "height_front_m",
+    "height_ring_m",
+    "height_quadric_m",
+    "nearer_ring_fraction",
+    "extension_ratio",
+    "disparity_roughness",
+)
+_NAN_FLAGGED = (
+    "height_front_m",
+    "height_ring_m",
+    "height_quadric_m",
+    "nearer_ring_fraction",
+    "extension_ratio",
+    "disparity_roughness",
+)
+#: Standardised features are clipped to +-Z_CLIP before the model sees them (in training too):
+#: a measure far outside the training sites' range (a real frame's) cannot swing the score.
+Z_CLIP = 4.0
+_PATCH = 4  # the grey patch's side (cells)
+_N_ORIENT = 8  # gradient orientation bins
+
+_APPEARANCE = (
+    "tentative",
+    "top_per_radius",
+    "quadric_per_radius",
+    "top_above_ring_m",
+    "mask_contrast",  # (mask mean - ring mean) / ring spread
+    "mask_spread",  # mask's p95 - p5 over the ring's spread
+    "mask_bright",  # mask's p95 - ring's p50, over the ring's spread
+    "mask_dark",  # ring's p50 - mask's p5, over the ring's spread
+    "ring_dark_fraction",  # share of the ring darker than its median by 3 spreads (a shadow)
+    "ring_spread_grey",  # the ring's spread (grey levels)
+    "mask_grad_p50",
+    "mask_grad_p95",
+    "outline_grad",  # mean gradient along the mask's outline
+    "ring_grad_p50",
+    "outline_over_ring_grad",
+    "orient_peak",  # the strongest orientation bin's share of the gradient
+    "orient_entropy",  # entropy of the orientation histogram (nats)
+)
+#: The feature vector's names, in order.
+FEATURE_NAMES: tuple[str, ...] = (
+    GEOMETRIC_FIELDS
+    + tuple(f"{f}_nan" for f in _NAN_FLAGGED)
+    + _APPEARANCE
+    + tuple(f"patch_{i}" for i in range(_PATCH * _PATCH))
+)
+
+
+def _q(a: np.ndarray, q: float) -> float:
+    """Quantile `q` of the sorted 1-D array `a` (linear between ranks, as np.quantile)."""
+    v = (a.size - 1) * q
+    lo = int(v)
+    hi = min(lo + 1, a.size - 1)
+    return float(a[lo] + (a[hi] - a[lo]) * (v - lo))
+
+
+def _finite(x: float) -> float:
+    return float(x) if math.isfinite(x) else 0.0
+
+
+def blob_features(det, image: np.ndarray, mask: InstanceMask) -> np.ndarray:
+    """The feature vector (float64, len(FEATURE_NAMES)) of one blob: `det` carries the
+    geometric measures (any object with the attributes GEOMETRIC_FIELDS and ``tentative``,
+    e.g. a Detection), `image` is the left grey image (H, W; uint8) and `mask` the blob's
+    mask in it."""
+    import cv2
+
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise InputError(f"blob_features: expected a grey image (H, W), got {img.shape}")
+    crop = np.asarray(mask.crop, bool)
+    if not crop.any():
+        raise InputError("blob_features: empty mask")
+    g = [float(getattr(det, f)) for f in GEOMETRIC_FIELDS]
+    geo = dict(zip(GEOMETRIC_FIELDS, g))
+    out = [_finite(v) for v in g]
+    out += [0.0 if math.isfinite(geo[f]) else 1.0 for f in _NAN_FLAGGED]
+    R = max(_finite(geo["radius_m"]), 1e-3)
+    top = _finite(geo["height_m"])
+    out += [
+        1.0 if getattr(det, "tentative", "") else 0.0,
+        top / R,
+        _finite(geo["height_quadric_m"]) / R,
+        top - _finite(geo["height_ring_m"]),
+    ]
+    # a window around the mask: the mask, a ring of ground about half its size wide
+    H, W = img.shape
+    h, w = crop.shape
+    rim = max(3, round(0.5 * math.sqrt(crop.sum())))
+    pad = rim + 2
+    v0, v1 = max(mask.v0 - pad, 0), min(mask.v0 + h + pad, H)
+    u0, u1 = max(mask.u0 - pad, 0), min(mask.u0 + w + pad, W)
+    win = np.asarray(img[v0:v1, u0:u1], np.float32)
+    sel = np.zeros(win.shape, np.uint8)
+    sel[mask.v0 - v0 : mask.v0 - v0 + h, mask.u0 - u0 : mask.u0 - u0 + w] = crop
+    grown = cv2.dilate(sel, np.ones((2 * rim + 1, 2 * rim + 1), np.uint8)) > 0
+    inner = sel > 0
+    ring = grown & ~inner
+    outline = inner & ~(cv2.erode(sel, np.ones((3, 3), np.uint8)) > 0)
+    m_px = np.sort(win[inner])
+    r_px = np.sort(win[ring]) if ring.any() else m_px
+    r50 = _q(r_px, 0.5)
+    r_sp = (_q(r_px, 0.84) - _q(r_px, 0.16)) / 2 + 1.0
+    m5, m95 = _q(m_px, 0.05), _q(m_px, 0.95)
+    sm = cv2.GaussianBlur(win, (0, 0), 1.0)
+    gx = cv2.Sobel(sm, cv2.CV_32F, 1, 0, ksize=3) * np.float32(0.125)
+    gy = cv2.Sobel(sm, cv2.CV_32F, 0, 1, ksize=3) * np.float32(0.125)
+    mag = cv2.magnitude(gx, gy)
+    mg = np.sort(mag[inner])
+    rg50 = _q(np.sort(mag[ring]), 0.5) if ring.any() else _q(mg, 0.5)
+    og = float(mag[outline].mean()) if outline.any() else float(mg.mean())
+    # orientation spread over mask and ring (modulo 180 degrees: a shading edge either way)
+    ang = (np.arctan2(gy[grown], gx[grown]) % np.pi) / np.pi * _N_ORIENT
+    hist = np.bincount(
+        np.minimum(ang.astype(int), _N_ORIENT - 1), weights=mag[grown], minlength=_N_ORIENT
+    )
+    hist = hist / (hist.sum() + 1e-9)
+    nz = hist[hist > 0]
+    out += [
+        (float(m_px.mean()) - float(r_px.mean())) / r_sp,
+        (m95 - m5) / r_sp,
+        (m95 - r50) / r_sp,
+        (r50 - m5) / r_sp,
+        float(np.searchsorted(r_px, r50 - 3 * r_sp)) / r_px.size,
+        r_sp,
+        _q(mg, 0.5),
+        _q(mg, 0.95),
+        og,
+        rg50,
+        og / (rg50 + 1.0),
+        float(hist.max()),
+        float(-(nz * np.log(nz)).sum()),
+    ]
+    # the grey patch: the window resampled, normalised by the ring's median and spread
+    patch = cv2.resize(win, (_PATCH, _PATCH), interpolation=cv2.INTER_AREA)
+    out += list(((patch - r50) / r_sp).ravel().astype(float))
+    x = np.asarray(out, float)
+    return np.where(np.isfinite(x), x, 0.0)
+
+
+@dataclass(frozen=True)
+class BlobVerifier:
+    """A multilayer perceptron over standardised features (clipped to +-Z_CLIP): hidden layers
+    with ReLU, one logistic output (no hidden layer: logistic regression). ``weights[k]`` is
+    (n_in, n_out) and ``biases[k]`` (n_out,)."""
+
+    feature_names: tuple[str, ...]
+    mean: np.ndarray
+    scale: np.ndarray
+    weights: tuple[np.ndarray, ...]
+    biases: tuple[np.ndarray, ...]
+
+    def __post_init__(self) -> None:
+        n = len(self.feature_names)
+        if self.mean.shape != (n,) or self.scale.shape != (n,):
+            raise InputError("verifier model: mean/scale do not match its feature names")
+        if not self.weights or len(self.weights) != len(self.biases):
+            raise InputError("verifier model: needs as many bias vectors as weight matrices")
+        k = n
+        for Wk, bk in zip(self.weights, self.biases):
+            if Wk.ndim != 2 or Wk.shape[0] != k or bk.shape != (Wk.shape[1],):
+                raise InputError("verifier model: layer shapes do not chain")
+            k = Wk.shape[1]
+        if k != 1:
+            raise InputError("verifier model: the last layer must have one output")
+        if not (np.all(np.isfinite(self.scale)) and np.all(self.scale > 0)):
+            raise InputError("verifier model: feature scales must be finite and positive")
+
+    def score(self, X: np.ndarray) -> np.ndarray:
+        """P(rock) of each row of X (N, n_features), or of one vector (n_features,)."""
+        X = np.asarray(X, float)
+        one = X.ndim == 1
+        X = np.atleast_2d(X)
+        if X.ndim != 2 or X.shape[1] != len(self.feature_names):
+            raise InputError(
+                f"verifier: features of shape {X.shape} given, the model takes "
+                f"{len(self.feature_names)} per row"
+            )
+        a = np.clip((X - self.mean) / self.scale, -Z_CLIP, Z_CLIP)
+        for k, (Wk, bk) in enumerate(zip(self.weights, self.biases)):
+            a = a @ Wk + bk
+            if k < len(self.weights) - 1:
+                a = np.maximum(a, 0.0)
+        p = 1.0 / (1.0 + np.exp(-np.clip(a[:, 0], -50, 50)))
+        return p[0] if one else p
+
+    def save(self, path: Path) -> None:
+        """Write the model as plain arrays (.npz, no pickle)."""
+        arrays = {
+            "feature_names": np.array(self.feature_names, dtype=str),
+            "mean": self.mean,
+            "scale": self.scale,
+        }
+        for k, (Wk, bk) in enumerate(zip(self.weights, self.biases)):
+            arrays[f"W{k}"] = np.asarray(Wk, np.float32)
+            arrays[f"b{k}"] = np.asarray(bk, np.float32)
+        np.savez_compressed(path, **arrays)
+
+    @classmethod
+    def load(cls, path: Path) -> BlobVerifier:
+        """Read a model written by :meth:`save` (checks its features are this module's)."""
+        try:
+            with np.load(Path(path), allow_pickle=False) as z:
+                names = tuple(str(s) for s in z["feature_names"])
+                n_layers = sum(1 for k in z.files if k.startswith("W"))
+                Ws = tuple(np.asarray(z[f"W{k}"], float) for k in range(n_layers))
+                bs = tuple(np.asarray(z[f"b{k}"], float) for k in range(n_layers))
+                mean, scale = np.asarray(z["mean"], float), np.asarray(z["scale"], float)
+        except (OSError, KeyError, ValueError) as e:
+            raise InputError(f"verifier model {path}: {e}") from e
+        if names != FEATURE_NAMES:
+            raise InputError(
+                f"verifier model {path}: its features are not this version's "
+                f"({len(names)} against {len(FEATURE_NAMES)}); retrain it "
+                "(benchmarks/train_verifier.py)"
+            )
+        return cls(names, mean, scale, Ws, bs)
+
+
+@lru_cache(maxsize=1)
+def default_verifier() -> BlobVerifier:
+    """The packaged model (read once)."""
+    return BlobVerifier.load(MODEL_PATH)
