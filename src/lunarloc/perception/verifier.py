@@ -48,21 +48,7 @@ __all__ = [
 #: The packaged model.
 MODEL_PATH = Path(__file__).with_name("verifier_model.npz")
 
-#: Detection attributes read as geometric features (NaN -> 0 with a flag for those that may
-#: be NaN).
-GEOMETRIC_FIELDS: tuple[str, ...] = (
-    "depth_m",
-    "radius_m",
-    "size_m",
-    "eig_ratio",
-    "height_m",
-    "height_front_m",
-    "height_ring_m",
-    "height_quadric_m",
-    "nearer_ring_fraction",
-    "extension_ratio",
-    "disparity_roughness",
-)
+#: Detection attributes that may be NaN (read as 0, with a flag feature each).
 _NAN_FLAGGED = (
     "height_front_m",
     "height_ring_m",
@@ -71,6 +57,14 @@ _NAN_FLAGGED = (
     "extension_ratio",
     "disparity_roughness",
 )
+#: Detection attributes read as geometric features, in the model's order.
+GEOMETRIC_FIELDS: tuple[str, ...] = (
+    "depth_m",
+    "radius_m",
+    "size_m",
+    "eig_ratio",
+    "height_m",
+) + _NAN_FLAGGED
 #: Standardised features are clipped to +-Z_CLIP before the model sees them (in training too):
 #: a measure far outside the training sites' range (a real frame's) cannot swing the score.
 Z_CLIP = 4.0
