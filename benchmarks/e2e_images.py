@@ -8,7 +8,7 @@ Usage
         [--width 1280 --height 720] [--rocks N] [--all-cameras]
         [--min-sightings 5 2] [--epsilon 0.05 0.08] [--poses gt/gt ...] [--online] [--json OUT.json]
         [--plan random|survey] [--reference-duration D] [--odometry SOURCE] [--run-config C.json --run-tag T]
-        [--detect-config C.json]
+        [--detect-config C.json] [--config C.json]
 
 Steps (each runs the project's own command line; outputs already in DIR are reused):
 
@@ -70,7 +70,7 @@ def _run(cmd: list[str], log: list[str]) -> str:
     print(f"$ {shown}", file=sys.stderr, flush=True)
     log.append(shown)
     t0 = time.perf_counter()
-    r = subprocess.run(cmd, capture_output=True, text=True)
+    r = subprocess.run(cmd, check=False, capture_output=True, text=True)
     if r.returncode != 0:
         sys.stderr.write(r.stdout + r.stderr)
         raise SystemExit(f"command failed ({r.returncode}): {shown}")
@@ -246,7 +246,7 @@ def _landmark_rocks(
 def _map_quality(ids: np.ndarray, dist: np.ndarray) -> dict:
     ok = ids >= 0
     return {
-        "landmarks": int(len(ids)),
+        "landmarks": len(ids),
         "on_rock": int(ok.sum()),
         "median_err_m": float(np.median(dist[ok])) if ok.any() else float("nan"),
     }
@@ -366,8 +366,19 @@ def main(argv=None) -> int:
         help="run config for `lunarloc detect` (e.g. a detector setting's before/after; use a fresh --out"
         " holding links to the archives, as detections and maps already there are reused)",
     )
+    ap.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        help="one run configuration for both `lunarloc detect` and the --online `lunarloc run` (so"
+        ' reference and vehicle see the same detector, e.g. \'{"detector": {"small_rocks":'
+        ' {"enabled": true}}}\'); --detect-config / --run-config override it',
+    )
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
+    if a.config is not None:
+        a.detect_config = a.detect_config or a.config
+        a.run_config = a.run_config or a.config
     a.out.mkdir(parents=True, exist_ok=True)
     pairs = [tuple(p.split("/")) for p in a.poses]
     log: list[str] = []
@@ -569,7 +580,7 @@ def print_table(s: dict) -> None:
     print(LEGEND)
     print(" ".join(f"{h:>{w}}" for h, w, _ in cols) + "  reason")
     for r in s["results"]:
-        print(" ".join(f"{str(f(r)):>{w}}" for _, w, f in cols) + f"  {r['reason']}")
+        print(" ".join(f"{f(r)!s:>{w}}" for _, w, f in cols) + f"  {r['reason']}")
     if s.get("online"):
         print(
             "online (`lunarloc run` of the vehicle traverse against the ground-truth-pose reference map): "

@@ -20,7 +20,10 @@ a rock counts against its spread); detections farther than ``--max-range`` metre
 are left out. Reported per true-radius band (``lunarloc.sim.repeatability.summarise``):
 the sighting deviation (each sighting's horizontal distance from its rock's session mean),
 the rock spread (its RMS per rock and session) and the session offset (the distance
-between a rock's two session means), each as count, median and p90. Target (issue 29):
+between a rock's two session means), each as count, median and p90. Across the two sessions
+of a site (``two_session_spread``): for each rock seen ``--min-sightings`` times in both,
+every sighting's horizontal distance from the mean of all its sightings in both sessions
+(sightings: n, median, p90) and its RMS per rock (rocks: n, median, p90). Target (issue 29):
 median <= 2 cm horizontal for r >= 0.1 m.
 """
 
@@ -33,8 +36,10 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from lunarloc.perception.detector import DetectorConfig, detect_archive
-from lunarloc.sim.repeatability import SightingLog, rock_under, summarise
+from lunarloc.sim.repeatability import RADIUS_BANDS_M, SightingLog, rock_under, summarise
 
 
 def site_config(style: str):
@@ -109,7 +114,44 @@ def log_session(
     return {"radii": radii, **counts}
 
 
-def print_table(s: dict) -> None:
+def _stats(values: list[float]) -> dict:
+    a = np.asarray(values, float)
+    if a.size == 0:
+        return {"n": 0, "median_m": float("nan"), "p90_m": float("nan")}
+    return {"n": int(a.size), "median_m": float(np.median(a)), "p90_m": float(np.percentile(a, 90))}
+
+
+def two_session_spread(log: SightingLog, radii_m: dict[int, float], min_sightings: int) -> dict:
+    """Spread of each rock's sightings across the sessions of its site, by true-radius band.
+
+    Rock ids are per site (the caller keys them so), so only a rock's own site's sessions
+    pool. A rock counts when at least two sessions saw it `min_sightings` times or
+    more; its sightings in those sessions are pooled, and each one's horizontal distance
+    from the pooled mean is a deviation. Returns ``{band: {"sightings": stats, "rock_rms":
+    stats}}`` (stats: n, median_m, p90_m), with a pooled ``"r>=0.1"`` entry.
+    """
+    names = [f"{lo:g}-{hi:g}" if hi < 10 else f">={lo:g}" for lo, hi in RADIUS_BANDS_M]
+    dev: dict[str, list[float]] = {n: [] for n in names + ["r>=0.1"]}
+    rms: dict[str, list[float]] = {n: [] for n in names + ["r>=0.1"]}
+    pooled: dict[int, list[list[tuple[float, float]]]] = {}
+    for rocks in log.sightings.values():
+        for rock, pts in rocks.items():
+            if len(pts) >= min_sightings:
+                pooled.setdefault(rock, []).append(pts)
+    for rock, groups in pooled.items():
+        if len(groups) < 2 or rock not in radii_m:
+            continue
+        p = np.asarray([xy for g in groups for xy in g], float)
+        d = np.hypot(*(p - p.mean(axis=0)).T)
+        r = radii_m[rock]
+        keys = [n for n, (lo, hi) in zip(names, RADIUS_BANDS_M) if lo <= r < hi]
+        for k in keys + (["r>=0.1"] if r >= 0.1 else []):
+            dev[k].extend(d.tolist())
+            rms[k].append(float(np.sqrt(np.mean(d * d))))
+    return {n: {"sightings": _stats(dev[n]), "rock_rms": _stats(rms[n])} for n in dev}
+
+
+def print_table(s: dict, two: dict | None = None) -> None:
     print(
         "band (true r, m) | sightings: n, median, p90 cm | rock spread: rocks, median, p90 cm | "
         "session offset: rocks, median, p90 cm"
@@ -117,6 +159,18 @@ def print_table(s: dict) -> None:
     for band, v in s.items():
         row = [band]
         for k in ("sighting_deviation", "rock_spread", "session_offset"):
+            st = v[k]
+            row.append(f"{st['n']}, {100 * st['median_m']:.1f}, {100 * st['p90_m']:.1f}")
+        print(" | ".join(row))
+    if two is None:
+        return
+    print(
+        "across both sessions (rocks seen in both): band | sightings from the two-session mean: "
+        "n, median, p90 cm | per-rock RMS: rocks, median, p90 cm"
+    )
+    for band, v in two.items():
+        row = [band]
+        for k in ("sightings", "rock_rms"):
             st = v[k]
             row.append(f"{st['n']}, {100 * st['median_m']:.1f}, {100 * st['p90_m']:.1f}")
         print(" | ".join(row))
@@ -189,18 +243,20 @@ def main(argv=None) -> int:
             for xy in pts:
                 keyed.add(session.split("/")[1], k, xy)
     s = summarise(keyed, keyed_radii, a.min_sightings)
+    two = two_session_spread(keyed, keyed_radii, a.min_sightings)
     print(
         f"sites: {[g[0] for g in groups]}; detections within {a.max_range:g} m: {counts['on_rock']} on a rock, "
         f"{counts['off_rock']} on no rock; {counts['beyond_range']} beyond; small rocks "
         f"{'on' if cfg.small_rocks.enabled else 'off'}; ground-truth poses; {time.process_time() - c0:.0f} s CPU"
     )
-    print_table(s)
+    print_table(s, two)
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)
         a.json.write_text(
             json.dumps(
                 {
                     "summary": s,
+                    "two_session_spread": two,
                     "counts": counts,
                     "archives": [str(p) for _, ps in groups for p in ps],
                     "small_rocks": cfg.small_rocks.enabled,
