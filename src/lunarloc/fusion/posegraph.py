@@ -306,9 +306,21 @@ class PoseGraph:
         self._last_fix_dist = 0.0
         self._last_fix_time = 0.0
         self.num_solves = 0
-        # after a solve: the newest keyframe's (x, y, z, yaw) marginal covariance (4, 4; m^2,
-        # rad^2) under the graph's noise model (None before any, or where singular)
-        self.newest_covariance: np.ndarray | None = None
+        # the last solve's Jacobian, free columns and layout (problem.solve), read by
+        # newest_covariance when asked, and the covariance once computed from them
+        self._solution: tuple | None = None
+        self._newest_covariance: np.ndarray | None = None
+
+    @property
+    def newest_covariance(self) -> np.ndarray | None:
+        """After a solve: the newest keyframe's (x, y, z, yaw) marginal covariance (4, 4; m^2,
+        rad^2) under the graph's noise model (None before any solve, or where singular).
+        Computed from the last solve's Jacobian on first use after it, so that loops which
+        never read it do not pay for it."""
+        if self._solution is not None:
+            self._newest_covariance = problem.newest_marginal(*self._solution)
+            self._solution = None
+        return self._newest_covariance
 
     # ------------------------------------------------------------------ building
     def __len__(self) -> int:

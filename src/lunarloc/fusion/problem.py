@@ -169,7 +169,7 @@ def solve(graph, active_window_m: float | None = None) -> float:
     )
     z[active] = res.x
     _write_back(graph, z, layout)
-    graph.newest_covariance = newest_marginal(res.jac, active, layout)
+    graph._solution = (res.jac, active, layout)  # PoseGraph.newest_covariance, when read
     graph.num_solves += 1
     log.debug(
         "pose graph: %d keyframes (%d active), %d factors (%s), cost %.3g, scale %.4f",

@@ -874,14 +874,11 @@ class OnlineLocalizer:
         fix (docs/calibration.md, "(b) OnlineLocalizer along image-built runs")."""
         C = self.loop.graph.newest_covariance
         if self.config.covariance_source == "graph" and C is not None:
-            return CovarianceAnchor(
-                np.array(C[:3, :3]), float(C[3, 3]), self._path_m, T_map_rover[:3, 3].copy()
-            )
+            xyz, yaw_var = C[:3, :3], C[3, 3]
+        else:
+            xyz, yaw_var = attempt.fix_covariance_xyz, attempt.fix_sigma_yaw_rad**2
         return CovarianceAnchor(
-            np.asarray(attempt.fix_covariance_xyz, float),
-            attempt.fix_sigma_yaw_rad**2,
-            self._path_m,
-            T_map_rover[:3, 3].copy(),
+            np.array(xyz, float), float(yaw_var), self._path_m, T_map_rover[:3, 3].copy()
         )
 
     def _reanchor(self) -> None:
