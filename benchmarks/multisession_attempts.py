@@ -5,7 +5,7 @@ Usage
 -----
     python benchmarks/multisession_attempts.py SITE_DIR [SITE_DIR ...] [--min-sightings 5]
         [--odometry visual|record:odometry] [--loop '{"window_target_landmarks": 0}']
-        [--attempts] [--json OUT.json]
+        [--attempts] [--json OUT.json] [--config RUN.json]
 
 SITE_DIR is a folder `benchmarks/e2e_images.py --plan survey --online` wrote: the vehicle
 archive `traverse_1.lac`, the site's `rocks.csv`, the reference detections `det_0_gt.csv` and
@@ -13,7 +13,10 @@ the reference map `map_0_gt_ms<M>.csv`. The vehicle's per-frame rock detections 
 and its odometry (visual, and the archive's `odometry` record) are computed once and cached in
 `SITE_DIR/vehicle_frames.npz`; each run then replays them through
 :class:`lunarloc.online.loop.LoopState` with the run configuration's image defaults (`RunConfig()`)
-and `--loop` overrides - the same loop `lunarloc run` drives, in a few seconds.
+and `--loop` overrides - the same loop `lunarloc run` drives, in a few seconds. `--config`
+starts from a run configuration file instead of `RunConfig()`: its detector detects (cached
+apart, in `vehicle_frames_<digest>.npz`, when its detector section is not the default's), its
+loop and localization sections replay.
 
 Per attempt (`--attempts`): the window's path length and landmarks, how many of them lie on a
 true rock (a landmark's detections placed with ground-truth poses, within max(0.15 m, r) of a
@@ -38,17 +41,34 @@ import numpy as np
 CACHE = "vehicle_frames.npz"
 
 
-def cache_vehicle(site: Path) -> Path:
+def _cache_path(site: Path, cfg) -> Path:
+    """The detections' cache of `cfg`'s detector and odometry: `CACHE` for the defaults'."""
+    import hashlib
+
+    from lunarloc.config.run import RunConfig
+    from lunarloc.core.configs import config_to_dict
+
+    def sections(c):
+        return {"detector": config_to_dict(c.detector), "odometry": config_to_dict(c.odometry)}
+
+    mine = sections(cfg)
+    if mine == sections(RunConfig()):
+        return site / CACHE
+    digest = hashlib.sha256(json.dumps(mine, sort_keys=True).encode()).hexdigest()[:8]
+    return site / f"vehicle_frames_{digest}.npz"
+
+
+def cache_vehicle(site: Path, cfg=None) -> Path:
     """Detect rocks in every image frame of SITE/traverse_1.lac once (rover frame, before the
     lander exclusion, which depends on the odometry) and keep both odometries."""
     from lunarloc.config.run import OdometryConfig, RunConfig
     from lunarloc.perception.detector import Detector
     from lunarloc.pipeline.sources import ArchiveSource
 
-    out = site / CACHE
+    cfg = cfg or RunConfig()
+    out = _cache_path(site, cfg)
     if out.exists():
         return out
-    cfg = RunConfig()
     arch = site / "traverse_1.lac"
     rows: dict[str, list] = {
         k: [] for k in ("frames", "times", "T_visual", "T_true", "keyframe", "ndet")
@@ -115,15 +135,15 @@ def _diagnosing_loop(truth: dict):
     """A LoopState that records, per attempt, what the window held against the truth."""
     from scipy.spatial import cKDTree
 
-    from lunarloc.online import loop as loop_module
     from lunarloc.core.geometry import pose_to_matrix
+    from lunarloc.online import loop as loop_module
 
     class DiagnosingLoop(loop_module.LoopState):
         rows: list
 
         def _attempt(self, k, frame, t):
             poses = self.graph.poses()
-            win, P, F, _I, _veh, length = self.local_map(k, poses)
+            win, P, _F, _I, _veh, _length = self.local_map(k, poses)
             seen: dict = {}
             localize = loop_module.localize
 
@@ -271,14 +291,15 @@ def replay(
     loop_overrides: dict,
     diagnose: bool,
     localization_overrides: dict | None = None,
+    cfg=None,
 ):
     from lunarloc.config.run import RunConfig, config_from_dict
     from lunarloc.online.loop import LoopState
     from lunarloc.perception.detector import on_lander
     from lunarloc.pipeline.reference import load_reference
 
-    z = np.load(cache_vehicle(site))
-    cfg = RunConfig()
+    cfg = cfg or RunConfig()
+    z = np.load(cache_vehicle(site, cfg))
     loop_cfg = config_from_dict(type(cfg.loop), {**cfg.loop.to_dict(), **loop_overrides}, "loop")
     ref = load_reference(site / f"map_0_gt_ms{min_sightings}.csv")
     if diagnose:
@@ -360,7 +381,13 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--loop",
         default="{}",
-        help="LoopConfig overrides as JSON (on RunConfig()'s image defaults)",
+        help="LoopConfig overrides as JSON (on the configuration's loop section)",
+    )
+    ap.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        help="a run configuration file (default: RunConfig(), the image defaults)",
     )
     ap.add_argument(
         "--attempts", action="store_true", help="print and keep the per-attempt diagnosis"
@@ -368,11 +395,16 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
     overrides = json.loads(a.loop)
+    cfg = None
+    if a.config is not None:
+        from lunarloc.config.run import load_config_file
+
+        cfg = load_config_file(a.config)[0]
     out = []
     for site in a.sites:
         for ms in a.min_sightings:
             for odo in a.odometry:
-                r = replay(site, ms, odo, overrides, a.attempts)
+                r = replay(site, ms, odo, overrides, a.attempts, cfg=cfg)
                 out.append(r)
                 worst = max(r["accepted_fixes"], default=None)
                 print(
