@@ -191,13 +191,17 @@ class ClassicalSegmenter:
         u_min = height.valid_u0 // height.scale + 1
         keep &= st[:, cv2.CC_STAT_LEFT] > u_min
         if c.height_max_range_m > 0:
-            z = height.depth
-            zz = np.where(np.isfinite(z), z, 0.0)
-            cnt = np.bincount(lab.ravel(), np.isfinite(z).ravel(), minlength=n)
-            mean_z = np.bincount(lab.ravel(), zz.ravel(), minlength=n) / np.maximum(cnt, 1)
+            # the blobs' pixels only (the background's mean is not used): the same sums, in the
+            # same order, as over the whole image
+            inb = np.flatnonzero(lab)
+            z = height.depth.ravel()[inb]
+            fin = np.isfinite(z)
+            lb = lab.ravel()[inb][fin]
+            cnt = np.bincount(lb, minlength=n)
+            mean_z = np.bincount(lb, z[fin].astype(float), minlength=n) / np.maximum(cnt, 1)
             keep &= mean_z <= c.height_max_range_m
         keep[0] = False
-        return np.where(keep[lab], lab, 0).astype(np.int32)
+        return np.where(keep, np.arange(n), 0).astype(np.int32)[lab]
 
     def labels(self, image: np.ndarray) -> np.ndarray:
         """(H, W) int32 label image: 0 background, 1..N regions."""
