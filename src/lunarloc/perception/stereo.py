@@ -461,14 +461,27 @@ class HeightMap:
 
     def lowres_index(self, mask) -> tuple[np.ndarray, np.ndarray]:
         """Unique low-resolution (rows, cols) covered by a full-resolution InstanceMask."""
-        vv, uu = np.nonzero(mask.crop)
+        crop = np.asarray(mask.crop, bool)
         k = self.scale
-        lv = (vv + mask.v0) // k
-        lu = (uu + mask.u0) // k
         h, w = self.height.shape
+        if k > 1:
+            # the crop pooled onto the low-resolution grid (any pixel of a k x k cell): the
+            # cells in row-major order, as the sorted unique cell keys of its pixels
+            a, b = mask.v0 % k, mask.u0 % k
+            ch, cw = crop.shape
+            hh, ww = -(-(a + ch) // k), -(-(b + cw) // k)
+            grid = np.zeros((hh * k, ww * k), bool)
+            grid[a : a + ch, b : b + cw] = crop
+            crop = grid.reshape(hh, k, ww, k).any(axis=(1, 3))
+        lv, lu = np.nonzero(crop)
+        lv += mask.v0 // k
+        lu += mask.u0 // k
         ok = (lv < h) & (lu < w)
-        key = np.unique(lv[ok].astype(np.int64) * w + lu[ok])
-        return key // w, key % w
+        return lv[ok].astype(np.int64), lu[ok].astype(np.int64)
+
+
+_BLOCK = 16384
+"""Points per block in ground_height_map's per-point arithmetic."""
 
 
 def _bilinear(grid: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
@@ -532,21 +545,29 @@ def ground_height_map(
         T,
     )
     flat = np.flatnonzero(ok)
-    if flat.size < cfg.min_points:
+    n = flat.size
+    if n < cfg.min_points:
         return out
-    rows, cols_ok = np.divmod(flat, w)
-    z_ok = np.float32(fb) / D.ravel()[flat]
-    depth.ravel()[flat] = z_ok
-    ru = ((np.arange(w) - cx) / fx).astype(np.float32)[cols_ok]
-    rv = ((np.arange(h) - cy) / fx).astype(np.float32)[rows]
-    xyz = []
-    pts_flat = out.points_rover.reshape(-1, 3)
-    for i in range(3):  # rover = R @ (ru z, rv z, z) + t, one coordinate at a time
-        ray = np.float32(T[i, 0]) * ru + np.float32(T[i, 1]) * rv + np.float32(T[i, 2])
-        p = z_ok * ray
-        p += np.float32(T[i, 3])
-        pts_flat[flat, i] = p
-        xyz.append(p)
+    # in blocks of _BLOCK points: the temporaries stay small (cache-resident, and reused by
+    # the allocator instead of fresh pages, which cost about as much as the arithmetic)
+    blocks = [slice(i, min(i + _BLOCK, n)) for i in range(0, n, _BLOCK)]
+    ru_all = ((np.arange(w) - cx) / fx).astype(np.float32)
+    rv_all = ((np.arange(h) - cy) / fx).astype(np.float32)
+    xyz = np.empty((3, n), np.float32)
+    cols_ok = np.empty(n, np.int64)
+    depth_flat, pts_flat = depth.ravel(), out.points_rover.reshape(-1, 3)
+    for b in blocks:
+        f = flat[b]
+        rows, cols_ok[b] = np.divmod(f, w)
+        z_ok = np.float32(fb) / D.ravel()[f]
+        depth_flat[f] = z_ok
+        ru, rv = ru_all[cols_ok[b]], rv_all[rows]
+        for i in range(3):  # rover = R @ (ru z, rv z, z) + t, one coordinate at a time
+            ray = np.float32(T[i, 0]) * ru + np.float32(T[i, 1]) * rv + np.float32(T[i, 2])
+            p = xyz[i, b]
+            np.multiply(z_ok, ray, out=p)
+            p += np.float32(T[i, 3])
+        pts_flat[f] = xyz[:, b].T
     Xv, Yv, Zv = xyz
     st = max(int(cfg.fit_stride), 1)
     fit = cols_ok % st == 0 if st > 1 else slice(None)
@@ -588,11 +609,17 @@ def ground_height_map(
         Gp[1:-1, 0], Gp[1:-1, -1] = 2 * G[:, 0] - G[:, 1], 2 * G[:, -1] - G[:, -2]
         Gp[0, :], Gp[-1, :] = 2 * Gp[1, :] - Gp[2, :], 2 * Gp[-2, :] - Gp[-3, :]
     # bilinear interpolation of the padded grid at every pixel's cell coordinates
-    gx = np.clip((Xv - np.float32(x_lo)) * np.float32(1.0 / c) + np.float32(0.5), 0.0, nx + 0.999)
-    gy = np.clip((Yv - np.float32(y_lo)) * np.float32(1.0 / c) + np.float32(0.5), 0.0, ny + 0.999)
-    out.height.ravel()[flat] = Zv - _bilinear(Gp.astype(np.float32), gx, gy)
-    cols = np.flatnonzero(np.bincount(cols_ok, minlength=w))
-    out.valid_u0 = int(cols[0]) * k if cols.size else camera.width
+    Gp = Gp.astype(np.float32)
+    height_flat = out.height.ravel()
+    for b in blocks:
+        gx = np.clip(
+            (Xv[b] - np.float32(x_lo)) * np.float32(1.0 / c) + np.float32(0.5), 0.0, nx + 0.999
+        )
+        gy = np.clip(
+            (Yv[b] - np.float32(y_lo)) * np.float32(1.0 / c) + np.float32(0.5), 0.0, ny + 0.999
+        )
+        height_flat[flat[b]] = Zv[b] - _bilinear(Gp, gx, gy)
+    out.valid_u0 = int(cols_ok.min()) * k
     return out
 
 
