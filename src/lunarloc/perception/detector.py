@@ -879,15 +879,16 @@ class Detector:
             if cfg.rules.min_image_gradient > 0
             else float("nan")
         )
+        ring = _ring_mask(hm.height.shape, rows, cols, 4, 1)  # the three ring measures' ring
         blob = BlobMeasures(
             radius_m=R_est,
             visible_height_m=vis_h,
             top_m=top,
             front_m=h_sur,
-            ring_m=_ring_height(hm.height, rows, cols),
-            quadric_m=_height_above_quadric(hm.points_rover, rows, cols, P_rov, q),
+            ring_m=_ring_height(hm.height, rows, cols, ring=ring),
+            quadric_m=_height_above_quadric(hm.points_rover, rows, cols, P_rov, q, ring=ring),
             nearer_fraction=_nearer_ring_fraction(
-                hm.depth, rows, cols, D, cfg.rules.nearer_depth_ratio
+                hm.depth, rows, cols, D, cfg.rules.nearer_depth_ratio, ring=ring
             ),
             extension_ratio=ext,
             roughness=rough,
@@ -1293,11 +1294,12 @@ def _ring_height(
     width: int = 4,
     gap: int = 1,
     q: float = 0.75,
+    ring=None,
 ) -> float:
     """Quantile q of the heights above the local ground (low-resolution height map) in
     the ring of pixels `width` wide that starts `gap` pixels outside a blob (rows,
-    cols); NaN when none is valid."""
-    (r0, r1, c0, c1), ring = _ring_mask(height.shape, rows, cols, width, gap)
+    cols); NaN when none is valid. ring: _ring_mask's result for these (computed when None)."""
+    (r0, r1, c0, c1), ring = ring or _ring_mask(height.shape, rows, cols, width, gap)
     vals = height[r0:r1, c0:c1][ring]
     vals = vals[np.isfinite(vals)]
     return float(_quantile(vals, q)) if vals.size else float("nan")
@@ -1330,6 +1332,7 @@ def _height_above_quadric(
     gap: int = 1,
     min_points: int = 12,
     max_points: int = 400,
+    ring=None,
 ) -> float:
     """Visible top (quantile q of the heights of P, the blob's rover-frame points) above
     a quadric surface z(x, y) fitted (least squares, then once more without the points
@@ -1337,8 +1340,8 @@ def _height_above_quadric(
     the blob (rows, cols); at most max_points of each are used. A quadric follows a
     crest or a crater rim through the blob, so a stretch of crest stands out of it by
     little; a rock stands out by its height. NaN when fewer than min_points ring points
-    are valid."""
-    (r0, r1, c0, c1), ring = _ring_mask(points.shape[:2], rows, cols, width, gap)
+    are valid. ring: _ring_mask's result for these (computed when None)."""
+    (r0, r1, c0, c1), ring = ring or _ring_mask(points.shape[:2], rows, cols, width, gap)
     R = points[r0:r1, c0:c1][ring]
     R = R[np.isfinite(R[:, 2])]
     if R.shape[0] < min_points or P.shape[0] == 0:
@@ -1376,6 +1379,7 @@ def _nearer_ring_fraction(
     width: int = 4,
     gap: int = 1,
     min_valid: int = 6,
+    ring=None,
 ) -> float:
     """Fraction of the valid depths (low-resolution map `depth`, optical z in metres) in
     the upper half of the ring `width` pixels wide starting `gap` pixels outside the
@@ -1385,11 +1389,12 @@ def _nearer_ring_fraction(
     steeply so at grazing angles or when the rover rolls, so that half is not used); a
     blob framed from above by a nearer surface is a stereo mismatch on that surface (a
     boulder's face beside the rover) or a knob seen on it. NaN when fewer than
-    `min_valid` of those ring depths are valid."""
+    `min_valid` of those ring depths are valid. ring: _ring_mask's result for these
+    (computed when None; not modified)."""
     if not np.isfinite(depth_m):
         return float("nan")
-    (r0, r1, c0, c1), ring = _ring_mask(depth.shape, rows, cols, width, gap)
-    ring &= (np.arange(r0, r1) < float(np.mean(rows)))[:, None]
+    (r0, r1, c0, c1), ring = ring or _ring_mask(depth.shape, rows, cols, width, gap)
+    ring = ring & (np.arange(r0, r1) < float(np.mean(rows)))[:, None]
     vals = depth[r0:r1, c0:c1][ring]
     vals = vals[np.isfinite(vals)]
     if vals.size < min_valid:

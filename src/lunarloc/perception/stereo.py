@@ -584,11 +584,14 @@ def ground_height_map(
     # one sort of (cell, height in mm) keys gives every cell's sorted heights
     z_lo = float(Z.min())
     zq = np.minimum(np.rint((Z - z_lo) * 1000.0).astype(np.int64), (1 << 24) - 1)
-    keys = np.sort((idx_f << 24) | zq)
+    # keys cell * zs + height, ordered as (cell, height); 32-bit when they fit (a faster sort)
+    zs = int(zq.max()) + 1
+    keys = idx_f * zs + zq
+    keys = np.sort(keys.astype(np.int32) if nx * ny * zs < 1 << 31 else keys)
     good = cnt >= cfg.min_points
     g = np.zeros(nx * ny, np.float32)
     sel = keys[start[good] + (cnt[good] * cfg.quantile).astype(np.int64)]
-    g[good] = (sel & ((1 << 24) - 1)).astype(np.float32) / 1000.0 + z_lo
+    g[good] = (sel % zs).astype(np.float32) / 1000.0 + z_lo
     G = g.reshape(ny, nx)
     W = good.reshape(ny, nx).astype(np.float32)
     if not good.all():
