@@ -233,6 +233,7 @@ class _PairScene:
     camera_name: str
     lander_xy: np.ndarray | None
     _ground_points: np.ndarray | None = None
+    _ground_cam_d2: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.T_optical_rover = np.linalg.inv(self.T_rover_optical)
@@ -257,8 +258,18 @@ class _PairScene:
         if self._ground_points is None:
             # the same points as points_rover[isfinite(depth)][::8], gathering only those kept
             idx = np.flatnonzero(np.isfinite(self.hm.depth).ravel())[::8]
-            self._ground_points = self.hm.points_rover.reshape(-1, 3)[idx]
+            # column-major: _height_above_surroundings reads them by coordinate
+            self._ground_points = np.asfortranarray(self.hm.points_rover.reshape(-1, 3)[idx])
         return self._ground_points
+
+    @property
+    def ground_cam_d2(self) -> np.ndarray:
+        """Squared horizontal distance (m^2) of each of ground_points from the camera."""
+        if self._ground_cam_d2 is None:
+            pts, cam = self.ground_points, self.T_rover_optical[:3, 3]
+            cx, cy = pts[:, 0] - cam[0], pts[:, 1] - cam[1]
+            self._ground_cam_d2 = cx * cx + cy * cy
+        return self._ground_cam_d2
 
     def admitted_elongated(
         self, reason: RejectReason | None, st: MaskStats
@@ -860,7 +871,13 @@ class Detector:
         vis_h = _visible_height(P_rov[:, 2], h_pts, q)
         top = float(_quantile(h_pts, q))
         h_sur = _height_above_surroundings(
-            P_rov, p_rover, R_est, scene.ground_points, T_rover_optical[:3, 3], q
+            P_rov,
+            p_rover,
+            R_est,
+            scene.ground_points,
+            T_rover_optical[:3, 3],
+            q,
+            cam_d2=scene.ground_cam_d2,
         )
         if np.isfinite(h_sur):
             vis_h = max(vis_h, h_sur)
@@ -1799,17 +1816,21 @@ def _height_above_surroundings(
     inner_m: float = 0.3,
     outer_m: float = 1.5,
     min_points: int = 20,
+    cam_d2: np.ndarray | None = None,
 ) -> float:
     """Visible top of an object (rover-frame points P, centre, radius R) above the
     ground in front of it: the lower quartile of the heights of the stereo points `pts`
     in an annulus R + inner_m .. R + outer_m around its centre that are nearer to the
     camera `cam` than it (behind it the ground is hidden). Unlike the local ground fit,
     this does not rise under an object larger than a ground cell (the lander). NaN
-    when too few points surround it."""
+    when too few points surround it. cam_d2: the points' squared horizontal distances from
+    the camera (computed when None)."""
     dx, dy = pts[:, 0] - centre[0], pts[:, 1] - centre[1]
     d2 = dx * dx + dy * dy
-    cx, cy = pts[:, 0] - cam[0], pts[:, 1] - cam[1]
-    near = cx * cx + cy * cy < (centre[0] - cam[0]) ** 2 + (centre[1] - cam[1]) ** 2
+    if cam_d2 is None:
+        cx, cy = pts[:, 0] - cam[0], pts[:, 1] - cam[1]
+        cam_d2 = cx * cx + cy * cy
+    near = cam_d2 < (centre[0] - cam[0]) ** 2 + (centre[1] - cam[1]) ** 2
     sel = (d2 > (R + inner_m) ** 2) & (d2 < (R + outer_m) ** 2) & near
     if np.count_nonzero(sel) < min_points:
         return float("nan")

@@ -179,7 +179,7 @@ class ClassicalSegmenter:
         # erosion and the dilation use opposite anchors so the blob does not shift.
         k2 = np.ones((2, 2), np.uint8)
         region = cv2.dilate(cv2.erode(region, k2, anchor=(0, 0)), k2, anchor=(1, 1))
-        n, lab, st, _ = cv2.connectedComponentsWithStats(region, connectivity=8)
+        n, lab, st = _components(region)
         if n <= 1:
             return np.zeros(H.shape, np.int32)
         if c.height_split_step_m > 0:
@@ -304,6 +304,34 @@ class ClassicalSegmenter:
                 InstanceMask(int(sl[1].start) * k, int(sl[0].start) * k, crop.astype(bool))
             )
         return out
+
+
+def _components(region: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
+    """cv2.connectedComponentsWithStats(region, connectivity=8)'s (count, labels, stats) of a
+    uint8 image, matched over the band of rows that holds its nonzero pixels only (a height
+    map's sky and far rows hold none), the band starting on an even row: OpenCV's 8-connected
+    labelling scans blocks of two rows and numbers the components in that scan's order, so
+    the labels and the stats are the whole image's."""
+    cv2 = import_cv2()
+    rows = np.flatnonzero(region.any(axis=1))
+    h, w = region.shape
+    a = int(rows[0]) // 2 * 2 if rows.size else 0
+    b = int(rows[-1]) + 1 if rows.size else h
+    if a == 0 and b == h:
+        n, lab, st, _ = cv2.connectedComponentsWithStats(region, connectivity=8)
+        return n, lab, st
+    n, band, st, _ = cv2.connectedComponentsWithStats(region[a:b], connectivity=8)
+    lab = np.zeros((h, w), band.dtype)
+    lab[a:b] = band
+    st[1:, cv2.CC_STAT_TOP] += a
+    # the background: every column (a row outside the band is all background), the rows
+    # from the first to the last that hold a background pixel
+    bg = np.flatnonzero((band == 0).any(axis=1)) + a
+    top = 0 if a > 0 else int(bg[0]) if bg.size else b
+    bottom = h - 1 if b < h else int(bg[-1]) if bg.size else a - 1
+    st[0, :4] = (0, top, w, bottom - top + 1)
+    st[0, cv2.CC_STAT_AREA] = h * w - int(st[1:, cv2.CC_STAT_AREA].sum())
+    return n, lab, st
 
 
 def _component_stats(lab: np.ndarray, n: int) -> np.ndarray:

@@ -1,0 +1,53 @@
+"""The detector's faster internals give exactly what the plain forms they replace give."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+cv2 = pytest.importorskip("cv2")
+
+
+def test_components_in_a_row_band_equal_opencv_on_the_whole_image():
+    from lunarloc.perception.segment import _components
+
+    rng = np.random.default_rng(0)
+    for t in range(400):
+        h, w = int(rng.integers(2, 90)), int(rng.integers(2, 90))
+        if t % 3:
+            img = (rng.random((h, w)) < rng.random() * 0.7).astype(np.uint8)
+        else:
+            blur = cv2.GaussianBlur(rng.random((h, w)).astype(np.float32), (0, 0), 1.5)
+            img = (blur > 0.5).astype(np.uint8)
+        a = int(rng.integers(0, h))
+        b = int(rng.integers(a, h + 1))
+        img[:a] = 0
+        img[b:] = 0
+        if t % 7 == 0:
+            img[a:b] = 1  # full rows of foreground
+        n, lab, st, _ = cv2.connectedComponentsWithStats(img, connectivity=8)
+        n2, lab2, st2 = _components(img)
+        assert n2 == n
+        assert lab2.dtype == lab.dtype and np.array_equal(lab2, lab)
+        assert np.array_equal(st2, st)
+
+
+def test_lowres_index_is_the_sorted_unique_cells_of_the_mask_pixels():
+    from lunarloc.perception.masks import InstanceMask
+    from lunarloc.perception.stereo import HeightMap
+
+    rng = np.random.default_rng(1)
+    for k in (1, 2, 3):
+        h, w = 40, 60
+        hm = HeightMap(*(np.zeros((h, w), np.float32),) * 2, None, np.zeros((h, w)), k, 0, None)
+        for _ in range(50):
+            ch, cw = int(rng.integers(1, 30)), int(rng.integers(1, 30))
+            crop = rng.random((ch, cw)) < 0.4
+            u0, v0 = int(rng.integers(0, w * k - 5)), int(rng.integers(0, h * k - 5))
+            rows, cols = hm.lowres_index(InstanceMask(u0, v0, crop))
+            vv, uu = np.nonzero(crop)
+            lv, lu = (vv + v0) // k, (uu + u0) // k
+            ok = (lv < h) & (lu < w)
+            key = np.unique(lv[ok].astype(np.int64) * w + lu[ok])
+            assert rows.dtype == np.int64 and cols.dtype == np.int64
+            assert np.array_equal(rows, key // w) and np.array_equal(cols, key % w)
