@@ -51,3 +51,20 @@ def test_lowres_index_is_the_sorted_unique_cells_of_the_mask_pixels():
             key = np.unique(lv[ok].astype(np.int64) * w + lu[ok])
             assert rows.dtype == np.int64 and cols.dtype == np.int64
             assert np.array_equal(rows, key // w) and np.array_equal(cols, key % w)
+
+
+def test_quantiles64_is_numpy_quantile_of_a_list_bit_for_bit():
+    from lunarloc.perception.detector import _quantiles64
+
+    rng = np.random.default_rng(2)
+    for t in range(3000):
+        n = int(rng.integers(1, 300)) if t % 2 else int(rng.integers(1, 6))
+        z = (rng.random(n) * rng.choice([1, 5, 30]) + rng.random() * 3).astype(np.float32)
+        if t % 3 == 0:
+            z = np.round(z, 1).astype(np.float32)  # ties
+        if t % 5 == 0:
+            z = z.astype(np.float64)
+        qs = (0.05, 0.95) if t % 4 else (float(rng.random()), float(rng.random()))
+        want = np.quantile(z, list(qs))
+        got = _quantiles64(z.copy(), qs)
+        assert [np.float64(v).tobytes() for v in got] == [v.tobytes() for v in want]

@@ -315,6 +315,28 @@ def _quantile(a: np.ndarray, q) -> np.floating:
     return y - d * (1 - g) if g >= 0.5 else x + d * g
 
 
+def _quantiles64(a: np.ndarray, qs: tuple[float, ...]) -> list[float]:
+    """``np.quantile(a, list(qs))`` bit for bit (method linear; a float64 result as numpy gives
+    for a float32 `a` and a list of quantiles), for a 1-D float array without NaN: one
+    partition and the lerp as numpy's ``_lerp`` computes it (the difference in a's dtype, the
+    weights in float64)."""
+    n = a.size
+    idx = []
+    for q in qs:
+        v = (n - 1) * q
+        i = -1 if v >= n - 1 else math.floor(v)
+        idx += [i, i + 1 if i >= 0 else -1]
+    p = np.partition(a, sorted({i % n for i in idx} | {0, n - 1}))
+    out = []
+    for k, q in enumerate(qs):
+        i, j = idx[2 * k], idx[2 * k + 1]
+        x, y = p[i], p[j]
+        g = (n - 1) * q - (i if i >= 0 else -1)
+        d = y - x
+        out.append(float(y) - float(d) * (1 - g) if g >= 0.5 else float(x) + float(d) * g)
+    return out
+
+
 def _median(a: np.ndarray) -> np.floating:
     """``np.median(a)`` bit for bit, faster for a 1-D float array; anything else goes to
     np.median."""
@@ -1136,7 +1158,7 @@ def _depth_parts(
     ok = np.isfinite(z)
     if np.count_nonzero(ok) < 2 * max(min_area_px, 1):
         return None
-    lo, hi = np.quantile(z[ok], [0.05, 0.95])
+    lo, hi = _quantiles64(z[ok], (0.05, 0.95))  # np.quantile(z[ok], [0.05, 0.95])
     f = 1.0 + step_ratio
     if not hi > f * lo:
         return None
