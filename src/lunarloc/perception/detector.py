@@ -1005,7 +1005,7 @@ class Detector:
             P_rov = transform_points(T_rover_optical, rock.points_optical)
             # the centre: the visible surface's median, centre.range_factor x R farther along
             # the viewing ray (as STEREO_POINTS' MEDIAN estimator)
-            med = np.median(P_rov, axis=0)
+            med = np.array([_median(P_rov[:, j].copy()) for j in range(3)])  # np.median(axis=0)
             ray = med - ray_to
             p_rover = med + ray / (np.linalg.norm(ray) + 1e-12) * cfg.centre.range_factor * R_est
             p = transform_points(np.linalg.inv(T_rover_optical), p_rover[None])[0]
@@ -1224,7 +1224,7 @@ def _ray_frame(P: np.ndarray, cam_rover: np.ndarray):
     """The horizontal viewing ray from the camera `cam_rover` to the median of the
     points P (n, 3; rover frame): (fwd, perp) unit vectors along and across it, and each
     point's horizontal range along it and lateral offset across it."""
-    d = np.median(P[:, :2], axis=0) - cam_rover[:2]
+    d = np.array([_median(P[:, 0].copy()), _median(P[:, 1].copy())]) - cam_rover[:2]
     n = float(np.hypot(d[0], d[1]))
     fwd = d / n if n > 1e-9 else np.array([1.0, 0.0])
     perp = np.array([-fwd[1], fwd[0]])
