@@ -3,10 +3,17 @@ small-rock stage off and on.
 
     python benchmarks/real_pair_speed.py [--data DIR] [--repeat 3]
 
+    python benchmarks/real_pair_speed.py --stages [--repeat 4]
+
 DIR defaults to $LUNARLOC_LAC_REAL or ../shared/data/lac-real. Each pair runs once to warm
 up (OpenCV allocations), then `--repeat` times through ``Detector.detect_pair`` (no rover
 pose; levelling from stereo as by default); reported: process CPU time per pair (all
 threads, so it does not depend much on the machine's load) and wall time per pair.
+
+``--stages``: the small-rock stage on only, with the detector's stages timed (process CPU
+per pair, including the timing wrappers' own small cost; nested stages are indented and
+count in their parent too) and the page faults (fresh memory pages the kernel had to map,
+a cost that shows as system time) per pair.
 """
 
 from __future__ import annotations
@@ -36,6 +43,7 @@ def main(argv=None) -> int:
         ),
     )
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--stages", action="store_true", help="time the detector's stages")
     a = ap.parse_args(argv)
     import cv2
 
@@ -54,6 +62,8 @@ def main(argv=None) -> int:
         return 2
     cam = PinholeCamera(1280, 720)
     T = ipex_rig(cam)["FrontLeft"].T_rover_optical
+    if a.stages:
+        return _stages(pairs, cam, T, a.repeat)
     for on in (False, True):
         cfg = DetectorConfig()
         det = Detector(replace(cfg, small_rocks=replace(cfg.small_rocks, enabled=on)), cam)
@@ -68,6 +78,68 @@ def main(argv=None) -> int:
         print(
             f"small rocks {'on ' if on else 'off'}: {1000 * cpu:.0f} ms CPU per pair ({1 / cpu:.1f} pairs/s CPU), "
             f"{1000 * wall:.0f} ms wall; load average {os.getloadavg()[0]:.1f}"
+        )
+    return 0
+
+
+# (label, module, attribute path): what --stages times, in the order of a pair's work
+_STAGES = [
+    ("height map", "lunarloc.perception.detector", "Detector.height_map"),
+    ("  disparity (SGBM, 1/2 res)", "lunarloc.perception.stereo", "StereoMatcher.disparity_lowres"),
+    ("  ground heights", "lunarloc.perception.detector", "ground_height_map"),
+    ("  view's ground plane", "lunarloc.perception.detector", "ground_plane"),
+    ("height blobs", "lunarloc.perception.detector", "Detector._segment_blobs"),
+    ("  split at depth steps", "lunarloc.perception.detector", "split_at_depth_steps"),
+    ("judge the blobs", "lunarloc.perception.detector", "Detector._judge_masks"),
+    ("  measure kept blobs", "lunarloc.perception.detector", "Detector._measure_blob"),
+    ("small-rock stage", "lunarloc.perception.detector", "Detector._add_small_rocks"),
+    ("whole pair", "lunarloc.perception.detector", "Detector.detect_pair"),
+]
+
+
+def _stages(pairs, cam, T, repeat: int) -> int:
+    import functools
+    import importlib
+    import resource
+
+    from lunarloc.perception.detector import Detector, DetectorConfig
+
+    acc: dict[str, list[float]] = {}
+
+    def wrap(label, fn):
+        @functools.wraps(fn)
+        def timed(*args, **kw):
+            r0, c0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt, time.process_time()
+            try:
+                return fn(*args, **kw)
+            finally:
+                s = acc.setdefault(label, [0.0, 0.0, 0])
+                s[0] += time.process_time() - c0
+                s[1] += resource.getrusage(resource.RUSAGE_SELF).ru_minflt - r0
+                s[2] += 1
+
+        return timed
+
+    for label, module, path in _STAGES:
+        owner = importlib.import_module(module)
+        *parents, name = path.split(".")
+        for p in parents:
+            owner = getattr(owner, p)
+        setattr(owner, name, wrap(label, getattr(owner, name)))
+    det = Detector(DetectorConfig(), cam)
+    for left, right in pairs:
+        det.detect_pair(left, right, T)
+    acc.clear()
+    for _ in range(repeat):
+        for left, right in pairs:
+            det.detect_pair(left, right, T)
+    n = repeat * len(pairs)
+    print(f"small rocks on, {n} pairs, load average {os.getloadavg()[0]:.1f}")
+    for label, _, _ in _STAGES:
+        cpu, faults, calls = acc.get(label, (0.0, 0.0, 0))
+        print(
+            f"{label:30s} {1000 * cpu / n:6.1f} ms CPU per pair, {faults / n:6.0f} page faults, "
+            f"{calls / n:4.1f} calls per pair"
         )
     return 0
 
