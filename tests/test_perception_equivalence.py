@@ -68,3 +68,25 @@ def test_quantiles64_is_numpy_quantile_of_a_list_bit_for_bit():
         want = np.quantile(z, list(qs))
         got = _quantiles64(z.copy(), qs)
         assert [np.float64(v).tobytes() for v in got] == [v.tobytes() for v in want]
+
+
+def test_heights_filled_later_equal_heights_computed_at_once():
+    from lunarloc.perception.camera import PinholeCamera, ipex_rig
+    from lunarloc.perception.stereo import GroundConfig, fill_ground_heights, ground_height_map
+
+    cam = PinholeCamera()
+    T = ipex_rig(cam)["FrontLeft"].T_rover_optical
+    rng = np.random.default_rng(3)
+    h, w = cam.height // 2, cam.width // 2
+    disp = (rng.random((h, w)) * 60 + 1).astype(np.float32)
+    disp[: h // 3] = np.nan  # sky
+    disp[rng.random((h, w)) < 0.3] = np.nan
+    full = ground_height_map(disp, 2, cam, 0.162, T, GroundConfig(), 95.0)
+    lazy = ground_height_map(disp, 2, cam, 0.162, T, GroundConfig(), 95.0, heights=False)
+    assert np.isnan(lazy.height).all()
+    assert lazy.depth.tobytes() == full.depth.tobytes()
+    assert lazy.points_rover.tobytes() == full.points_rover.tobytes()
+    assert fill_ground_heights(lazy) is lazy
+    assert lazy.height.tobytes() == full.height.tobytes()
+    assert lazy.valid_u0 == full.valid_u0
+    assert fill_ground_heights(lazy).height.tobytes() == full.height.tobytes()  # once only

@@ -78,6 +78,7 @@ from lunarloc.perception.stereo import (
     HeightMap,
     StereoMatcher,
     depth_at,
+    fill_ground_heights,
     first_ground_row,
     ground_height_map,
     mask_disparity_fullres,
@@ -404,6 +405,8 @@ class Detector:
         disp = self.height_stereo.disparity_lowres(left, right, v_start=v0, sky_level=sky)
         k = self.config.height_stereo.downscale
         nd = self.height_stereo.num_disparities_lowres
+        # levelling fits the ground plane to the points first and may rebuild the map in the
+        # levelled frame: the heights of this one are computed only when it is kept
         hm = ground_height_map(
             disp,
             k,
@@ -412,6 +415,7 @@ class Detector:
             T_rover_optical,
             self.config.ground,
             nd - 1.0,
+            heights=not self.config.level.from_stereo,
         )
         if self.config.level.from_stereo:
             n = ground_plane(hm.points_rover, hm.depth, self.config.small_rocks.ground_range_m)
@@ -432,6 +436,8 @@ class Detector:
                 )
                 hm.T_level_rover = T_level_rover
                 n = T_level_rover[:3, :3] @ n
+            else:
+                fill_ground_heights(hm)
             hm.up_rover = n
         hm.valid_u0 = 0 if self.config.height_stereo.full_width else nd * k
         return hm

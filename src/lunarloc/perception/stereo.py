@@ -12,7 +12,7 @@ the reference view; depth is z in the left camera's optical frame, metres:
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -29,6 +29,7 @@ __all__ = [
     "GroundConfig",
     "HeightMap",
     "ground_height_map",
+    "fill_ground_heights",
     "first_ground_row",
     "refine_disparity",
     "mask_disparity_fullres",
@@ -458,6 +459,8 @@ class HeightMap:
     # the view's ground normal (unit, pointing up) in the map's frame, when the detector fitted
     # one (small_rocks.ground_plane); None = not fitted
     up_rover: np.ndarray | None = None
+    # ground_height_map(heights=False)'s valid pixels and points, for fill_ground_heights
+    _lifted: tuple | None = field(default=None, repr=False, compare=False)
 
     def lowres_index(self, mask) -> tuple[np.ndarray, np.ndarray]:
         """Unique low-resolution (rows, cols) covered by a full-resolution InstanceMask."""
@@ -507,6 +510,8 @@ def ground_height_map(
     T_rover_optical: np.ndarray,
     config: GroundConfig | None = None,
     max_disparity: float | None = None,
+    *,
+    heights: bool = True,
 ) -> HeightMap:
     """Heights above the local ground of every stereo point of a low-resolution disparity.
 
@@ -514,8 +519,10 @@ def ground_height_map(
     of z over a horizontal grid, holes filled from neighbours, interpolated
     bilinearly between cell centres; height = z - ground(x, y).
     max_disparity : disparities at or above it (saturated near the search limit) are dropped.
+    heights : False = the depths and points only (height all NaN, valid_u0 0) until
+    :func:`fill_ground_heights` computes them (a map that may be rebuilt in another frame
+    first, as the detector's levelling does, skips the ground grid).
     """
-    cv2 = import_cv2()
     cfg = config or GroundConfig()
     D = np.asarray(disparity, np.float32)
     h, w = D.shape
@@ -568,6 +575,23 @@ def ground_height_map(
             np.multiply(z_ok, ray, out=p)
             p += np.float32(T[i, 3])
         pts_flat[f] = xyz[:, b].T
+    out._lifted = (flat, xyz, cols_ok, cfg)
+    if heights:
+        fill_ground_heights(out)
+    return out
+
+
+def fill_ground_heights(hm: HeightMap) -> HeightMap:
+    """The heights (and valid_u0) of a map that :func:`ground_height_map` built with
+    heights=False, in place (the same values as heights=True gives); `hm` itself. A map whose
+    heights are already computed is returned as it is."""
+    if hm._lifted is None:
+        return hm
+    flat, xyz, cols_ok, cfg = hm._lifted
+    hm._lifted = None
+    cv2 = import_cv2()
+    out, k, n = hm, hm.scale, flat.size
+    blocks = [slice(i, min(i + _BLOCK, n)) for i in range(0, n, _BLOCK)]
     Xv, Yv, Zv = xyz
     st = max(int(cfg.fit_stride), 1)
     fit = cols_ok % st == 0 if st > 1 else slice(None)
