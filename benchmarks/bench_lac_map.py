@@ -9,7 +9,10 @@ Usage
     # 2. scores: run the online loop with a mapper, then place the same frames with the
     #    ground-truth, odometry and corrected poses and score each against the 16-ray truth
     python benchmarks/bench_lac_map.py score --out DIR --seeds 281 282 283 284 285 [--json OUT.json]
-        [--figure-seed 281]
+        [--figure-seed 281] [--dump] [--config RUN.json] [--mapper-config JSON]
+    # 2b. re-score recorded runs (score --dump) with other mapper settings, nothing re-run:
+    python benchmarks/bench_lac_map.py rescore --out DIR --seeds 281 282 \
+        --mapper-config '{"rock_recentre_min_m": null}' '{}' [--json OUT.json]
     # 3. cost: detection vs mapping per stereo pair, CPU time (an archive at each resolution)
     python benchmarks/bench_lac_map.py cost --archive A.lac [--frames 40] [--small-rocks]
     # 4. memory: the mapper fed for a long replay (the archive's frames cycled with their
@@ -94,6 +97,10 @@ def score(a) -> None:
         light = (d / "lighting.txt").read_text().strip() if (d / "lighting.txt").is_file() else "?"
         truth = site_geometric_map(simulate_site(seed))
         cfg = RunConfig()
+        if a.config:  # a run configuration (e.g. the detector's verifier on)
+            from lunarloc.config.run import load_config_file
+
+            cfg = load_config_file(a.config)[0]
         if (
             a.small_rocks
         ):  # the detector's small-rock stage: the rocks under 5 cm the any-ray rule flags
@@ -474,6 +481,9 @@ def main() -> None:
     s.add_argument("--json", default=None)
     s.add_argument("--figure-seed", type=int, default=None)
     s.add_argument("--mapper-config", default=None, help="JSON of LacMapperConfig fields")
+    s.add_argument(
+        "--config", default=None, help="a run configuration file (JSON; RunConfig sections)"
+    )
     s.add_argument(
         "--dump", action="store_true", help="pickle the mapper and poses into each site's folder"
     )
