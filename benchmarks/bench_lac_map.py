@@ -9,7 +9,10 @@ Usage
     # 2. scores: run the online loop with a mapper, then place the same frames with the
     #    ground-truth, odometry and corrected poses and score each against the 16-ray truth
     python benchmarks/bench_lac_map.py score --out DIR --seeds 281 282 283 284 285 [--json OUT.json]
-        [--figure-seed 281]
+        [--figure-seed 281] [--dump] [--config RUN.json] [--mapper-config JSON]
+    # 2b. re-score recorded runs (score --dump) with other mapper settings, nothing re-run:
+    python benchmarks/bench_lac_map.py rescore --out DIR --seeds 281 282 \
+        --mapper-config '{"rock_recentre_min_m": null}' '{}' [--json OUT.json]
     # 3. cost: detection vs mapping per stereo pair, CPU time (an archive at each resolution)
     python benchmarks/bench_lac_map.py cost --archive A.lac [--frames 40] [--small-rocks]
     # 4. memory: the mapper fed for a long replay (the archive's frames cycled with their
@@ -94,6 +97,10 @@ def score(a) -> None:
         light = (d / "lighting.txt").read_text().strip() if (d / "lighting.txt").is_file() else "?"
         truth = site_geometric_map(simulate_site(seed))
         cfg = RunConfig()
+        if a.config:  # a run configuration (e.g. the detector's verifier on)
+            from lunarloc.config.run import load_config_file
+
+            cfg = load_config_file(a.config)[0]
         if (
             a.small_rocks
         ):  # the detector's small-rock stage: the rocks under 5 cm the any-ray rule flags
@@ -128,73 +135,21 @@ def score(a) -> None:
                 )
         summ = res.summary()
         n_img = max(res.num_image_frames, 1)
-        est_gt, all_gt, seen_gt = _scores(mapper, res.frames, res.T_map_rover_true, truth, None)
-        seen = est_gt.observed
-        out = {"gt": (est_gt, all_gt, seen_gt)}
-        for name, T in (("odometry", res.T_odo_rover), ("corrected", res.T_map_rover)):
-            out[name] = _scores(mapper, res.frames, T, truth, seen)
-        T_true = np.asarray(res.T_map_rover_true)
-        for name, (est, s_all, s_seen) in out.items():
-            T_src = {
-                "gt": T_true,
-                "odometry": np.asarray(res.T_odo_rover),
-                "corrected": np.asarray(res.T_map_rover),
-            }[name]
-            dz = T_src[:, 2, 3] - T_true[:, 2, 3]  # the frames' height error (m)
-            tp = round(s_seen["rock_recall"] * s_seen["rock_cells_true"])
-            row = {
-                "seed": seed,
-                "lighting": light,
-                "poses": name,
-                "seen_cells": int(seen.sum()),
-                "rock_cells_true_seen": s_seen["rock_cells_true"],
-                "seen_geometric": round(s_seen["geometric"], 4),
-                "seen_rock_precision": round(s_seen["rock_precision"], 4),
-                "seen_rock_recall": round(s_seen["rock_recall"], 4),
-                "seen_rock_f1": round(s_seen["rock_f1"], 4),
-                # counts, for the pooled figures over all sites
-                "seen_rock_tp": tp,
-                "seen_rock_fp": s_seen["rock_cells_produced"] - tp,
-                "seen_rock_fn": int(s_seen["rock_cells_true"]) - tp,
-                "all_geometric": round(s_all["geometric"], 4),
-                "all_rock_precision": round(s_all["rock_precision"], 4),
-                "all_rock_recall": round(s_all["rock_recall"], 4),
-                "all_rock_f1": round(s_all["rock_f1"], 4),
-                "all_points_total": round(s_all["points"]["total"], 1),
-                "seen_points_geo_rock": round(
-                    s_seen["points"]["geometric_map"] + s_seen["points"]["rocks_map"], 1
-                ),
-                "all_points_geo_rock": round(
-                    s_all["points"]["geometric_map"] + s_all["points"]["rocks_map"], 1
-                ),
-                "interp_within_1m_geometric": _interp_share(est, truth, 1.0),
-                "rocks_mapped": int(len(est.rocks)),
-                "ate_rmse_m": {
-                    "gt": 0.0,
-                    "odometry": summ["ate_odometry"]["rmse_m"],
-                    "corrected": summ["ate_corrected"]["rmse_m"],
-                }[name],
-                # the poses' height above the truth over the frames (median, p90 of |dz|)
-                "dz_median_m": round(float(np.median(dz)), 4),
-                "dz_abs_p90_m": round(float(np.percentile(np.abs(dz), 90)), 4),
-                "path_m": summ["path_length_m"],
-                "image_frames": res.num_image_frames,
-                "detection_ms_per_frame": round(
-                    1000 * res.timings_s.get("detection", 0) / n_img, 1
-                ),
-                "lac_map_ms_per_frame": round(1000 * res.timings_s.get("lac_map", 0) / n_img, 2),
-                "loop_wall_s": round(wall, 1),
-                "mapper_mb": round(mapper.memory_bytes() / 1e6, 2),
-            }
-            rows.append(row)
-            print(
-                f"seed {seed} {light:9s} {name:9s}: seen {row['seen_cells']} cells: height {row['seen_geometric']:.3f}, "
-                f"rock P {row['seen_rock_precision']:.2f} R {row['seen_rock_recall']:.2f} F1 {row['seen_rock_f1']:.3f} "
-                f"({row['seen_points_geo_rock']:.0f} pts) | whole map: height {row['all_geometric']:.3f}, "
-                f"F1 {row['all_rock_f1']:.3f} ({row['all_points_geo_rock']:.0f} pts) | ATE {row['ate_rmse_m']:.3f} m, "
-                f"height {100 * row['dz_median_m']:+.2f} cm (median; |dz| p90 {100 * row['dz_abs_p90_m']:.1f} cm)",
-                flush=True,
-            )
+        extra = {
+            "path_m": summ["path_length_m"],
+            "image_frames": res.num_image_frames,
+            "detection_ms_per_frame": round(1000 * res.timings_s.get("detection", 0) / n_img, 1),
+            "lac_map_ms_per_frame": round(1000 * res.timings_s.get("lac_map", 0) / n_img, 2),
+            "loop_wall_s": round(wall, 1),
+            "mapper_mb": round(mapper.memory_bytes() / 1e6, 2),
+        }
+        poses = {
+            "gt": res.T_map_rover_true,
+            "odometry": res.T_odo_rover,
+            "corrected": res.T_map_rover,
+        }
+        site_rows, out, seen = _site_rows(seed, light, mapper, res.frames, poses, truth, extra)
+        rows += site_rows
         if a.figure_seed == seed:
             from lunarloc.viz import plot_lac_maps
 
@@ -211,6 +166,106 @@ def score(a) -> None:
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=1))
     _summary(rows)
+
+
+def _site_rows(seed, light, mapper, frames, poses, truth, extra=None):
+    """Place `mapper`'s frames with each pose set of `poses` ({"gt", "odometry", "corrected"}:
+    (F, 4, 4) per entry of `frames`) and score each against `truth`, over the whole map and
+    over the cells the ground-truth-placed frames saw. Prints a line per pose set; returns the
+    rows, {name: (estimate, whole-map score, seen score)} and the seen cells."""
+    from lunarloc.core.metrics import ate
+
+    est_gt, all_gt, seen_gt = _scores(mapper, frames, poses["gt"], truth, None)
+    seen = est_gt.observed
+    out = {"gt": (est_gt, all_gt, seen_gt)}
+    for name in ("odometry", "corrected"):
+        out[name] = _scores(mapper, frames, poses[name], truth, seen)
+    T_true = np.asarray(poses["gt"])
+    rows = []
+    for name, (est, s_all, s_seen) in out.items():
+        T_src = np.asarray(poses[name])
+        dz = T_src[:, 2, 3] - T_true[:, 2, 3]  # the frames' height error (m)
+        tp = round(s_seen["rock_recall"] * s_seen["rock_cells_true"])
+        row = {
+            "seed": seed,
+            "lighting": light,
+            "poses": name,
+            "seen_cells": int(seen.sum()),
+            "rock_cells_true_seen": s_seen["rock_cells_true"],
+            "seen_geometric": round(s_seen["geometric"], 4),
+            "seen_rock_precision": round(s_seen["rock_precision"], 4),
+            "seen_rock_recall": round(s_seen["rock_recall"], 4),
+            "seen_rock_f1": round(s_seen["rock_f1"], 4),
+            # counts, for the pooled figures over all sites
+            "seen_rock_tp": tp,
+            "seen_rock_fp": s_seen["rock_cells_produced"] - tp,
+            "seen_rock_fn": int(s_seen["rock_cells_true"]) - tp,
+            "all_geometric": round(s_all["geometric"], 4),
+            "all_rock_precision": round(s_all["rock_precision"], 4),
+            "all_rock_recall": round(s_all["rock_recall"], 4),
+            "all_rock_f1": round(s_all["rock_f1"], 4),
+            "all_points_total": round(s_all["points"]["total"], 1),
+            "seen_points_geo_rock": round(
+                s_seen["points"]["geometric_map"] + s_seen["points"]["rocks_map"], 1
+            ),
+            "all_points_geo_rock": round(
+                s_all["points"]["geometric_map"] + s_all["points"]["rocks_map"], 1
+            ),
+            "interp_within_1m_geometric": _interp_share(est, truth, 1.0),
+            "rocks_mapped": int(len(est.rocks)),
+            "ate_rmse_m": 0.0 if name == "gt" else ate(T_src[:, :3, 3], T_true[:, :3, 3])["rmse_m"],
+            # the poses' height above the truth over the frames (median, p90 of |dz|)
+            "dz_median_m": round(float(np.median(dz)), 4),
+            "dz_abs_p90_m": round(float(np.percentile(np.abs(dz), 90)), 4),
+            **(extra or {}),
+        }
+        rows.append(row)
+        print(
+            f"seed {seed} {light:9s} {name:9s}: seen {row['seen_cells']} cells: height {row['seen_geometric']:.3f}, "
+            f"rock P {row['seen_rock_precision']:.2f} R {row['seen_rock_recall']:.2f} F1 {row['seen_rock_f1']:.3f} "
+            f"({row['seen_points_geo_rock']:.0f} pts) | whole map: height {row['all_geometric']:.3f}, "
+            f"F1 {row['all_rock_f1']:.3f} ({row['all_points_geo_rock']:.0f} pts) | ATE {row['ate_rmse_m']:.3f} m, "
+            f"height {100 * row['dz_median_m']:+.2f} cm (median; |dz| p90 {100 * row['dz_abs_p90_m']:.1f} cm)",
+            flush=True,
+        )
+    return rows, out, seen
+
+
+def rescore(a) -> None:
+    """Re-score recorded runs (``score --dump``'s ``mapper_dump.pkl`` per site) with mapper
+    settings: the same frames, detections and three pose sets, placed again and scored; no
+    detection or loop is re-run. Each ``--mapper-config`` (JSON of LacMapperConfig fields,
+    ``{}`` the defaults) gives its own rows and summary."""
+    import pickle
+
+    from lunarloc.io.overhead import site_geometric_map
+    from lunarloc.mapping.lac_map import LacMapperConfig
+    from lunarloc.sim.simulate import simulate_site
+
+    configs = a.mapper_config or ["{}"]
+    rows = {c: [] for c in configs}
+    for seed in a.seeds:
+        d = a.out / f"seed_{seed}"
+        light = (d / "lighting.txt").read_text().strip() if (d / "lighting.txt").is_file() else "?"
+        with open(d / "mapper_dump.pkl", "rb") as fh:
+            dump = pickle.load(fh)  # our own benchmark's file (score --dump)
+        mapper = dump["mapper"]
+        if mapper._frozen_rocks.shape[1] == 4:  # a dump from before the viewing directions
+            fz = mapper._frozen_rocks
+            mapper._frozen_rocks = np.column_stack([fz, np.zeros((len(fz), 2))])
+        truth = site_geometric_map(simulate_site(seed))
+        poses = {k: np.asarray(dump[k]) for k in ("gt", "odometry", "corrected")}
+        for c in configs:
+            mapper.config = LacMapperConfig(**json.loads(c))
+            print(f"mapper config {c}")
+            rows[c] += _site_rows(seed, light, mapper, dump["frames"], poses, truth)[0]
+    for c in configs:
+        print(f"== mapper config {c}")
+        _summary(rows[c])
+    if a.json:
+        Path(a.json).write_text(
+            json.dumps(rows if len(configs) > 1 else rows[configs[0]], indent=1)
+        )
 
 
 def _interp_share(est, truth, within_m: float):
@@ -427,6 +482,9 @@ def main() -> None:
     s.add_argument("--figure-seed", type=int, default=None)
     s.add_argument("--mapper-config", default=None, help="JSON of LacMapperConfig fields")
     s.add_argument(
+        "--config", default=None, help="a run configuration file (JSON; RunConfig sections)"
+    )
+    s.add_argument(
         "--dump", action="store_true", help="pickle the mapper and poses into each site's folder"
     )
     s.add_argument(
@@ -434,6 +492,16 @@ def main() -> None:
         dest="small_rocks",
         action="store_false",
         help="run the detector without its small-rock stage (on by default here: the map's rocks under 5 cm)",
+    )
+    s = sub.add_parser("rescore")
+    s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--seeds", type=int, nargs="+", required=True)
+    s.add_argument("--json", default=None)
+    s.add_argument(
+        "--mapper-config",
+        nargs="*",
+        default=None,
+        help="JSON of LacMapperConfig fields, one set per argument ({} the defaults)",
     )
     s = sub.add_parser("cost")
     s.add_argument("--archive", type=Path, required=True)
@@ -457,7 +525,14 @@ def main() -> None:
     s.add_argument("--width", type=int, default=640)
     s.add_argument("--cells-per-tick", type=int, default=400)
     a = ap.parse_args()
-    {"simulate": simulate, "score": score, "cost": cost, "memory": memory, "agent": agent}[a.cmd](a)
+    {
+        "simulate": simulate,
+        "score": score,
+        "rescore": rescore,
+        "cost": cost,
+        "memory": memory,
+        "agent": agent,
+    }[a.cmd](a)
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@ filling), the LAC's scoring rules, writing into a GeometricMap, and the CLI."""
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import replace
 from types import SimpleNamespace
 
@@ -187,8 +188,8 @@ def test_bounded_memory_freezes_the_oldest_frames(rng):
 
 def test_rocks_need_two_sightings_and_mark_the_cells_any_ray_reaches(rng):
     m = LacMapper(
-        LacMapperConfig(size_m=9.0, fill="none", rock_min_sightings=2)
-    )  # the default is 3
+        LacMapperConfig(size_m=9.0, fill="none", rock_min_sightings=2, rock_recentre_min_m=None)
+    )  # the default is 3; the 0.2 m rock stays where it was seen (see the recentring test)
     T0 = pose_to_matrix(-2.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     T1 = pose_to_matrix(-1.5, 0.5, 0.0, 0.0, 0.0, 0.0)
     rock_map = np.array([1.0, 0.2, 0.05])
@@ -508,7 +509,8 @@ def test_small_rocks_have_their_own_sightings_floor_and_footprint_margin():
     big = [1.5, -0.6, 0.1, 0.2]
 
     def mapper(**kw):
-        m = LacMapper(LacMapperConfig(size_m=9.0, fill="none", **kw))
+        # the 0.2 m rock not recentred: this is about floors and footprints
+        m = LacMapper(LacMapperConfig(size_m=9.0, fill="none", rock_recentre_min_m=None, **kw))
         for k in range(2):
             m.add_frame(k, T, None, np.array([rock, big]))
         return m.grid()
@@ -608,3 +610,30 @@ def test_map_writer_writes_bounded_steps_then_the_whole_map(rng):
         LacMapWriter(m, FakeGeometricMap(60))
     with pytest.raises(InputError):
         LacMapWriter("not a mapper", gm)
+
+
+def test_large_rocks_move_away_from_where_they_were_seen():
+    """A large rock's median centre moves rock_recentre_scale x radius along its sightings'
+    mean viewing direction (rover -> rock); seen from opposite sides it stays; small ones stay."""
+    big, small = [2.0, 0.0, 0.1, 0.4], [1.0, 1.0, 0.02, 0.1]
+
+    def grid(poses, **kw):
+        m = LacMapper(LacMapperConfig(size_m=9.0, fill="none", rock_min_sightings=2, **kw))
+        for k, T in enumerate(poses):
+            Ti = invert_transform(T)
+            dets = [[*(Ti @ np.r_[p[:3], 1.0])[:3], p[3]] for p in (big, small)]
+            m.add_frame(k, T, None, np.array(dets))
+        return {round(r, 2): (x, y) for x, y, r in m.grid().rocks}
+
+    # two views from the west, the rover turned differently: the rock moves 0.1 x 0.4 m east
+    west = [pose_to_matrix(0.0, 0.0, 0.0, 0.0, 0.0, 0.0), pose_to_matrix(0.0, 0.0, 0.0, 0, 0, 0.3)]
+    est = grid(west, rock_recentre_min_m=0.2, rock_recentre_scale=0.1)
+    assert est[0.42] == pytest.approx((2.04, 0.0), abs=1e-6)  # footprint 1.05 x 0.4
+    assert est[0.11] == pytest.approx((1.0, 1.0), abs=1e-6)  # under rock_recentre_min_m
+    assert grid(west, rock_recentre_min_m=None)[0.42] == pytest.approx((2.0, 0.0), abs=1e-6)
+    # one view from the west, one from the east: the viewing directions cancel
+    east = pose_to_matrix(4.0, 0.0, 0.0, 0.0, 0.0, math.pi)
+    both = grid([west[0], east], rock_recentre_min_m=0.2, rock_recentre_scale=0.1)
+    assert both[0.42] == pytest.approx((2.0, 0.0), abs=1e-6)
+    with pytest.raises(ConfigError):
+        LacMapperConfig(rock_recentre_min_m=-0.1)

@@ -27,7 +27,9 @@ the rays hits a rock. The mapper estimates both:
   those; the any-ray rule flags them). Every cell with **any** of its 16 ray points within
   the footprint of the centre is flagged (the LAC's any-ray rule); the footprint radius is
   ``rock_radius_scale x radius + rock_radius_margin_m``, for a small rock
-  ``radius + small_rock_margin_m``.
+  ``radius + small_rock_margin_m``. A large rock (``rock_recentre_min_m``) is moved
+  ``rock_recentre_scale x radius`` away from the rover along its sightings' mean viewing
+  direction: its detections sit on the side the cameras see.
 * **Rock bumps** (off by default). With ``rock_bump_m`` set, observed cells standing that much
   or more above their local ground (the ``rock_ground_quantile`` percentile of the heights in
   a ``rock_ground_window_m`` square) are flagged too. On the tuning site it added more false
@@ -118,6 +120,11 @@ class LacMapperConfig:
     small_rock_m: float = 0.05
     small_rock_min_sightings: int = 2
     small_rock_margin_m: float = 0.01
+    # large rocks (median radius rock_recentre_min_m or more; None: off) are moved
+    # rock_recentre_scale x radius x the mean of their sightings' unit viewing directions (rover
+    # -> rock): a large rock's detections sit on the side the cameras see (docs/lac-map.md)
+    rock_recentre_min_m: float | None = 0.2
+    rock_recentre_scale: float = 0.1
     rock_bump_m: float | None = (
         None  # observed cells this high over their local ground are rock cells (None: off)
     )
@@ -155,6 +162,12 @@ class LacMapperConfig:
             raise ConfigError(f"fill={self.fill!r}: one of {', '.join(FILL_MODES)}")
         if self.fill_max_m < 0:
             raise ConfigError("fill_max_m must be >= 0")
+        if self.rock_recentre_min_m is not None and not (
+            self.rock_recentre_min_m >= 0 and math.isfinite(self.rock_recentre_scale)
+        ):
+            raise ConfigError(
+                "rock_recentre_min_m must be >= 0 (or None), rock_recentre_scale finite"
+            )
         if self.rock_bump_m is not None and not self.rock_bump_m > 0:
             raise ConfigError("rock_bump_m must be > 0 (or None)")
         if self.rock_ground_window_m < 2 * self.cell_m or not 0 <= self.rock_ground_quantile <= 100:
@@ -227,7 +240,8 @@ class LacMapper:
         self._frozen_w = np.zeros((n, n))
         self._frozen_wz = np.zeros((n, n))
         self._frozen_wz2 = np.zeros((n, n))
-        self._frozen_rocks = np.zeros((0, 4))  # map-frame x, y, radius, seq
+        # map-frame x, y, radius, seq, viewing direction (unit x, y: rover -> rock)
+        self._frozen_rocks = np.zeros((0, 6))
         self._discs: list[tuple[float, float, float]] = []
         self.frozen_frames = 0
         # the live layer (live_cells): per-cell running sums at the poses frames were added
@@ -322,7 +336,7 @@ class LacMapper:
             np.add.at(self._live_w, c, w)
             np.add.at(self._live_wz, c, w * z)
             self._live_dirty[c] = True
-        xy, r = self._place_rocks(fr)
+        xy, r, _ = self._place_rocks(fr)
         if len(r):
             cfg = self.config
             r_fp = np.where(
@@ -421,10 +435,10 @@ class LacMapper:
         self._frozen_w += np.bincount(c, w, minlength=n * n).reshape(n, n)
         self._frozen_wz += np.bincount(c, w * z, minlength=n * n).reshape(n, n)
         self._frozen_wz2 += np.bincount(c, w * z * z, minlength=n * n).reshape(n, n)
-        xy, r = self._place_rocks(fr)
+        xy, r, view = self._place_rocks(fr)
         if len(xy):
             self._frozen_rocks = np.concatenate(
-                [self._frozen_rocks, np.column_stack([xy, r, np.full(len(r), fr.seq)])]
+                [self._frozen_rocks, np.column_stack([xy, r, np.full(len(r), fr.seq), view])]
             )
         self.frozen_frames += 1
         log.debug("mapper: froze frame %s (%d bins)", frame_id, len(fr.bins))
@@ -452,12 +466,17 @@ class LacMapper:
         return (i * n + j)[ok], P[ok, 2], fr.bins[ok, 3].astype(np.float64)
 
     def _place_rocks(self, fr: _Frame):
+        """Map-frame centres (x, y), radii and viewing directions (unit x, y, from the rover
+        towards the rock) of a frame's detections at its pose (outside the excluded discs)."""
         if len(fr.rocks) == 0:
-            return np.zeros((0, 2)), np.zeros(0)
+            return np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2))
         T = fr.T_map_rover
-        P = fr.rocks[:, :3].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+        p = fr.rocks[:, :3].astype(np.float64)
+        P = p @ T[:3, :3].T + T[:3, 3]
         keep = self._keep_outside_discs(P[:, :2]) if self._discs else np.ones(len(P), bool)
-        return P[keep, :2], fr.rocks[keep, 3].astype(np.float64)
+        d = np.column_stack([p[:, :2], np.zeros(len(p))]) @ T[:3, :3].T
+        d = d[:, :2] / np.maximum(np.linalg.norm(d[:, :2], axis=1, keepdims=True), 1e-9)
+        return P[keep, :2], fr.rocks[keep, 3].astype(np.float64), d[keep]
 
     # ------------------------------------------------------------------ the map
     def grid(self) -> LacMapEstimate:
@@ -534,9 +553,9 @@ class LacMapper:
         cfg = self.config
         parts = [self._frozen_rocks]
         for fr in self._frames.values():
-            xy, r = self._place_rocks(fr)
+            xy, r, view = self._place_rocks(fr)
             if len(r):
-                parts.append(np.column_stack([xy, r, np.full(len(r), fr.seq)]))
+                parts.append(np.column_stack([xy, r, np.full(len(r), fr.seq), view]))
         D = np.concatenate(parts)
         if len(D) == 0:
             return np.zeros((0, 3))
@@ -569,6 +588,13 @@ class LacMapper:
         ):
             g = D[order[starts[q] : ends[q]]]
             r = float(np.median(g[:, 2]))
+            x, y = float(np.median(g[:, 0])), float(np.median(g[:, 1]))
+            if cfg.rock_recentre_min_m is not None and r >= cfg.rock_recentre_min_m:
+                # away from the rover along the mean of the sightings' unit viewing directions
+                # (its length < 1 where they differ: seen from all sides, the median is centred)
+                v = g[:, 4:6].mean(axis=0)
+                x += cfg.rock_recentre_scale * r * float(v[0])
+                y += cfg.rock_recentre_scale * r * float(v[1])
             if r < cfg.small_rock_m:
                 if sightings[q] < cfg.small_rock_min_sightings:
                     continue
@@ -577,7 +603,7 @@ class LacMapper:
                 if sightings[q] < cfg.rock_min_sightings:
                     continue
                 r_fp = cfg.rock_radius_scale * r + cfg.rock_radius_margin_m
-            out.append((np.median(g[:, 0]), np.median(g[:, 1]), max(r_fp, 0.0)))
+            out.append((x, y, max(r_fp, 0.0)))
         return np.array(out, float).reshape(-1, 3)
 
 
