@@ -14,7 +14,7 @@ Usage
     python benchmarks/bench_lac_map.py rescore --out DIR --seeds 281 282 \
         --mapper-config '{"rock_recentre_min_m": null}' '{}' [--json OUT.json]
     # 3. cost: detection vs mapping per stereo pair, CPU time (an archive at each resolution)
-    python benchmarks/bench_lac_map.py cost --archive A.lac [--frames 40] [--small-rocks]
+    python benchmarks/bench_lac_map.py cost --archive A.lac [--frames 40] [--small-rocks|--no-small-rocks]
     # 4. memory: the mapper fed for a long replay (the archive's frames cycled with their
     #    ground-truth poses, shifted around the site; the detector is not re-run)
     python benchmarks/bench_lac_map.py memory --archive A.lac --hours 2 --rate-hz 2
@@ -38,6 +38,14 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+
+
+def _small_rocks(cfg, enabled: bool | None):
+    """`cfg` with the detector's small-rock stage on or off (None: as `cfg` has it)."""
+    if enabled is None:
+        return cfg
+    stage = replace(cfg.detector.small_rocks, enabled=enabled)
+    return replace(cfg, detector=replace(cfg.detector, small_rocks=stage))
 
 
 def simulate(a) -> None:
@@ -101,15 +109,7 @@ def score(a) -> None:
             from lunarloc.config.run import load_config_file
 
             cfg = load_config_file(a.config)[0]
-        if (
-            a.small_rocks
-        ):  # the detector's small-rock stage: the rocks under 5 cm the any-ray rule flags
-            cfg = replace(
-                cfg,
-                detector=replace(
-                    cfg.detector, small_rocks=replace(cfg.detector.small_rocks, enabled=True)
-                ),
-            )
+        cfg = _small_rocks(cfg, a.small_rocks)
         mapper = LacMapper(mcfg)
         t0 = time.perf_counter()
         res = run(
@@ -317,14 +317,7 @@ def cost(a) -> None:
     from lunarloc.perception.detector import Detector
     from lunarloc.pipeline.runner import add_to_mapper
 
-    cfg = RunConfig()
-    if a.small_rocks:  # the detector as the map's runs use it
-        cfg = replace(
-            cfg,
-            detector=replace(
-                cfg.detector, small_rocks=replace(cfg.detector.small_rocks, enabled=True)
-            ),
-        )
+    cfg = _small_rocks(RunConfig(), a.small_rocks)
     with LacArchive(a.archive) as ar:
         cam = camera_from_archive(ar)
         det = Detector(cfg.detector_for(cam.width), cam)
@@ -356,7 +349,7 @@ def cost(a) -> None:
     t_grid = clock() - t0
     med = lambda v: 1000 * float(np.median(v))  # noqa: E731
     print(
-        f"{a.archive} {cam.width}x{cam.height}, {len(t_map)} pairs, small-rock stage {'on' if a.small_rocks else 'off'}, "
+        f"{a.archive} {cam.width}x{cam.height}, {len(t_map)} pairs, small-rock stage {'on' if cfg.detector.small_rocks.enabled else 'off'}, "
         f"CPU time (median): detection {med(t_det0):.1f} ms "
         f"(with the height map kept {med(t_det):.1f} ms), mapper add_frame {med(t_map):.2f} ms "
         f"({100 * med(t_map) / med(t_det0):.1f} % of detection); grid() of {len(m)} frames {1000 * t_grid:.0f} ms"
@@ -488,10 +481,11 @@ def main() -> None:
         "--dump", action="store_true", help="pickle the mapper and poses into each site's folder"
     )
     s.add_argument(
-        "--no-small-rocks",
-        dest="small_rocks",
-        action="store_false",
-        help="run the detector without its small-rock stage (on by default here: the map's rocks under 5 cm)",
+        "--small-rocks",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the detector's small-rock stage on / off (unset: the configuration's value, on by "
+        "default: the map's rocks under 5 cm)",
     )
     s = sub.add_parser("rescore")
     s.add_argument("--out", type=Path, required=True)
@@ -508,8 +502,9 @@ def main() -> None:
     s.add_argument("--frames", type=int, default=30)
     s.add_argument(
         "--small-rocks",
-        action="store_true",
-        help="the detector with its small-rock stage (as score runs it)",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the detector's small-rock stage on / off (unset: the default configuration's, on)",
     )
     s = sub.add_parser("memory")
     s.add_argument("--archive", type=Path, required=True)
