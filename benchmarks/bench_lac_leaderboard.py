@@ -56,11 +56,14 @@ def run_one(
     world, conf = lunarsim.prepare_site(
         d, seed, width=width, height=height, rocks=rocks, lighting=lighting
     )
-    est, gate = [], []
+    from lunarloc.core.geometry import yaw_of
+
+    est, gate, yaw = [], [], []
 
     def observe(agent) -> None:
         e = agent.estimate
         est.append((e.T_map_rover[:3, 3].copy(), e.localized, e.covariance[:3, :3].copy()))
+        yaw.append((yaw_of(e.T_map_rover[:3, :3]), e.covariance[5, 5]))
         # the pose graph's gate model at the newest keyframe: what the covariance was before it
         # was propagated from the last fix (docs/calibration.md, "The online loop's uncertainty")
         g = agent.localizer.loop.graph
@@ -91,11 +94,15 @@ def run_one(
         localized=loc,
         covariance_xyz=cov,
         gate_sigma_m=np.array(gate),
+        # the heading: true and estimated yaw (rad), the stated yaw variance (rad^2)
+        truth_yaw_rad=np.array([yaw_of(T[:3, :3]) for T in run.truth]),
+        est_yaw_rad=np.array([y for y, _ in yaw]),
+        yaw_variance_rad2=np.array([v for _, v in yaw]),
     )
     # the localizations the component kept (recent_attempts): the fixes and the covariance each
     # was stated with (frame: the tick, 1-based), to judge them against the trace's truth
     keep = ("frame", "accepted", "inliers", "predicted_error_m", "fix_xyz", "fix_covariance_xyz")
-    keep += ("fix_sigma_yaw_rad", "fix_distortion_m")
+    keep += ("fix_yaw_rad", "fix_sigma_yaw_rad", "fix_distortion_m")
     (d / "attempts.json").write_text(
         json.dumps(
             [

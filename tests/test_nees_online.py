@@ -9,8 +9,22 @@ import pytest
 
 from lunarloc.core.errors import ConfigError
 from lunarloc.online.component import CovarianceAnchor, propagate_covariance
-from lunarloc.online.loop import LoopConfig, OdometryBounds, fix_stated_covariance
-from lunarloc.pipeline.nees_online import NEES_68, NEES_997, nees, nees_shares
+from lunarloc.online.loop import (
+    LoopConfig,
+    OdometryBounds,
+    fix_model_terms,
+    fix_stated_covariance,
+    window_centre_bias_covariance,
+)
+from lunarloc.pipeline.nees_online import (
+    NEES1_68,
+    NEES1_997,
+    NEES_68,
+    NEES_997,
+    nees,
+    nees_shares,
+    yaw_nees_shares,
+)
 
 
 def _drifted_runs(n: int, bounds: OdometryBounds, P0: np.ndarray, yaw_var: float, seed: int = 0):
@@ -96,3 +110,40 @@ def test_nees_shares_count_the_finite_cases():
     assert nees_shares([1.0, NEES_68 + 1, NEES_997 + 1, math.nan]) == (3, 1 / 3, 2 / 3)
     assert math.isnan(nees(np.ones((1, 3)), np.zeros((1, 3, 3)))[0])  # singular: not judged
     assert nees(np.ones((1, 3)), 4 * np.eye(3)[None])[0] == pytest.approx(0.75)
+
+
+def test_the_window_centre_bias_is_what_a_fix_and_the_anchor_add():
+    cfg = LoopConfig(fix_centre_bias_m=0.03, fix_centre_bias_z_m=0.01)
+    assert np.allclose(window_centre_bias_covariance(1, cfg), np.diag([0.03**2, 0.03**2, 1e-4]) / 2)
+    assert np.allclose(window_centre_bias_covariance(0, cfg), 0.0)
+    # with the distortion counted as one sigma the model adds the bias alone
+    assert np.allclose(fix_model_terms(0.05, 2, cfg), window_centre_bias_covariance(2, cfg))
+
+
+def test_yaw_nees_shares_use_the_one_dof_quantiles():
+    assert NEES1_68 == 1.0 and NEES1_997 == 9.0
+    assert yaw_nees_shares([0.5, 2.0, 10.0, math.nan]) == (3, 1 / 3, 2 / 3)
+    assert yaw_nees_shares([])[0] == 0
+
+
+def test_the_anchor_is_the_graphs_marginal_plus_the_windows_vertical_bias():
+    """OnlineLocalizer restarts its covariance at an accepted fix from the pose graph's marginal
+    plus the vertical part of the window centre bias (horizontal: the graph's own)."""
+    from types import SimpleNamespace
+
+    from lunarloc.online.component import OnlineConfig, OnlineLocalizer
+
+    loc = OnlineLocalizer.__new__(OnlineLocalizer)  # the anchor needs no detector or reference
+    C = np.diag([1e-4, 2e-4, 3e-4, 1e-6])
+    loc.loop = SimpleNamespace(graph=SimpleNamespace(newest_covariance=C))
+    loc.config = OnlineConfig()
+    loc._loop_config = LoopConfig(fix_centre_bias_m=0.02, fix_centre_bias_z_m=0.02)
+    loc._path_m = 3.0
+    fix = SimpleNamespace(
+        fix_maps_from_detections=1, fix_covariance_xyz=np.eye(3).tolist(), fix_sigma_yaw_rad=1.0
+    )
+    a = loc._fix_anchor(fix, np.eye(4))
+    assert np.allclose(a.position_covariance, np.diag([1e-4, 2e-4, 3e-4 + 0.02**2 / 2]))
+    assert a.yaw_variance == pytest.approx(1e-6) and a.path_m == 3.0
+    loc.config = OnlineConfig(covariance_source="fix")
+    assert np.allclose(loc._fix_anchor(fix, np.eye(4)).position_covariance, np.eye(3))

@@ -71,6 +71,7 @@ from lunarloc.online.loop import (
     OdometryBounds,
     image_localization_config,
     image_loop_config,
+    window_centre_bias_covariance,
 )
 
 log = logging.getLogger(__name__)
@@ -869,12 +870,17 @@ class OnlineLocalizer:
     def _fix_anchor(self, attempt, T_map_rover: np.ndarray) -> CovarianceAnchor:
         """Where the stated covariance restarts after an accepted fix: the pose graph's marginal
         covariance of its newest keyframe (this tick's, whose estimate is ``T_map_rover``) under
-        its noise model, when the fix's solve gave one (``covariance_source = "graph"``); else
-        the covariance the loop states for the fix at the rover. The graph's estimate is not the
-        fix (docs/calibration.md, "(b) OnlineLocalizer along image-built runs")."""
+        its noise model plus the vertical part of the centre bias the fix's window of rocks
+        shares (:func:`window_centre_bias_covariance`: detected centres sit on the rocks' tops
+        from every side, so the graph's per-rock bias averages it away where the horizontal part,
+        seen from the many headings of its active window, does average), when the fix's solve
+        gave one (``covariance_source = "graph"``); else the covariance the loop states for the
+        fix at the rover. The graph's estimate is not the fix (docs/calibration.md, "(b)
+        OnlineLocalizer along image-built runs")."""
         C = self.loop.graph.newest_covariance
         if self.config.covariance_source == "graph" and C is not None:
-            xyz, yaw_var = C[:3, :3], C[3, 3]
+            B = window_centre_bias_covariance(attempt.fix_maps_from_detections, self._loop_config)
+            xyz, yaw_var = C[:3, :3] + np.diag([0.0, 0.0, B[2, 2]]), C[3, 3]
         else:
             xyz, yaw_var = attempt.fix_covariance_xyz, attempt.fix_sigma_yaw_rad**2
         return CovarianceAnchor(

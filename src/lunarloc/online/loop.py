@@ -356,6 +356,7 @@ class Attempt:
     predicted_error_m: float = float("nan")
     fix_error_m: float = float("nan")  # |fix - ground truth| at the keyframe (evaluation only)
     fix_xyz: list | None = None
+    fix_yaw_rad: float = float("nan")  # the fix's heading (map frame, rad)
     inlier_vehicle_xyz: list | None = None  # inlier landmarks in the estimate frame, before the fix
     inlier_reference_xyz: list | None = None
     # the fix's position error (fix - truth, map frame, m; evaluation only) and the 3x3 position
@@ -363,6 +364,7 @@ class Attempt:
     fix_error_xyz: list | None = None
     fix_covariance_xyz: list | None = None
     fix_sigma_yaw_rad: float = float("nan")  # the yaw sigma localize() states for the fix
+    fix_error_yaw_rad: float = float("nan")  # fix - ground truth yaw (evaluation only)
     fix_distortion_m: float = float("nan")  # localize()'s distortion allowance at the rover (m)
     fix_maps_from_detections: int = 0  # of the two maps, those built from detections (sightings)
     time_mapping_s: float = 0.0
@@ -797,6 +799,7 @@ class LoopState:
         g = gate_fix(self.graph, att, k, fix4, sig_m, sig_m / extent)
         att.correction_yaw_deg = math.degrees(float(g.innovation[3]))
         att.fix_xyz = fix4[:3].tolist()
+        att.fix_yaw_rad = float(fix4[3])
         att.inlier_vehicle_xyz = Vp.round(4).tolist()
         att.inlier_reference_xyz = ref.positions_xyz[inl[:, 1]].round(4).tolist()
         att.fix_distortion_m = float(res.distortion_error_m)
@@ -809,6 +812,7 @@ class LoopState:
         if T_true is not None:
             att.fix_error_m = float(np.linalg.norm(fix4[:3] - T_true[:3, 3]))
             att.fix_error_xyz = (fix4[:3] - T_true[:3, 3]).tolist()
+            att.fix_error_yaw_rad = float(wrap_angle(fix4[3] - yaw_of(T_true[:3, :3])))
         if g.accepted:
             if cfg.fix_kind is FixKind.POSE:
                 self.graph.add_fix(k, fix4, sig_m, sig_m / extent)
@@ -962,18 +966,26 @@ def fix_position_covariance(covariance: np.ndarray, point_xyz) -> np.ndarray:
     return A @ np.asarray(covariance, float) @ A.T
 
 
+def window_centre_bias_covariance(maps_from_detections: int, config: LoopConfig) -> np.ndarray:
+    """The centre bias a window's few neighbouring rocks share (3x3, m^2): ``fix_centre_bias_m``
+    per horizontal axis and ``fix_centre_bias_z_m`` vertical for each map built from
+    detections (half the variance where one of the two maps is). No number of inliers averages
+    it, so neither localize()'s residuals nor the pose graph's per-rock bias show it."""
+    f = maps_from_detections / 2
+    b, bz = config.fix_centre_bias_m, config.fix_centre_bias_z_m
+    return np.diag([f * b * b, f * b * b, f * bz * bz])
+
+
 def fix_model_terms(
     distortion_m: float, maps_from_detections: int, config: LoopConfig
 ) -> np.ndarray:
     """What :func:`fix_stated_covariance` adds to localize()'s covariance at the rover (3x3,
     m^2): the distortion allowance re-counted in ``fix_distortion_sigmas`` sigmas and the
-    window's centre bias."""
+    window's centre bias (:func:`window_centre_bias_covariance`)."""
     d = float(distortion_m)
     k = 1.0 / config.fix_distortion_sigmas**2 - 1.0
     dd = k * d * d / 2 if math.isfinite(d) and d > 0 else 0.0
-    f = maps_from_detections / 2
-    b, bz = config.fix_centre_bias_m, config.fix_centre_bias_z_m
-    return np.diag([dd + f * b * b, dd + f * b * b, f * bz * bz])
+    return np.diag([dd, dd, 0.0]) + window_centre_bias_covariance(maps_from_detections, config)
 
 
 def fix_stated_covariance(

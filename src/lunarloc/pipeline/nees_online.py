@@ -10,25 +10,42 @@ covariance, 3 degrees of freedom. A calibrated covariance puts 60-80 % of the ca
   loop`` runs it) on real traverses, each against a map of all the others; one record per
   successful localization: its error against the truth and the covariance ``localize()`` states
   for it at the rover (:attr:`lunarloc.online.loop.Attempt.fix_covariance_xyz`).
+- :func:`site_fix_records`: the same records for the image loop (``RunConfig()``: detections
+  from simulated stereo images) on recorded LAC-look sites (``benchmarks/bench_lac_map.py
+  simulate``: a ``traverse.lac`` archive and the site's ``rocks.csv`` as the reference).
 - :func:`trace_nees`: the NEES of every localized tick of a per-tick trace (true and estimated
   positions, covariance), such as ``benchmarks/bench_lac_leaderboard.py`` writes.
-- :func:`nees_shares`: the two shares.
+- :func:`nees_shares`: the two shares; :func:`yaw_nees_shares`: the heading's (1 dof: 68.3 %
+  under 1.0, 99.73 % under 9.0).
 """
 
 from __future__ import annotations
 
 import math
-from pathlib import Path
 from collections.abc import Iterable
+from pathlib import Path
 
 import numpy as np
 
 from lunarloc.config.run import RunConfig
 
-__all__ = ["NEES_68", "NEES_997", "nees", "nees_shares", "loop_fix_records", "trace_nees"]
+__all__ = [
+    "NEES1_68",
+    "NEES1_997",
+    "NEES_68",
+    "NEES_997",
+    "loop_fix_records",
+    "nees",
+    "nees_shares",
+    "site_fix_records",
+    "trace_nees",
+    "yaw_nees_shares",
+]
 
 NEES_68 = 3.5267  # chi-square, 3 dof: 68.27 % quantile
 NEES_997 = 14.156  # 99.73 % quantile
+NEES1_68 = 1.0  # chi-square, 1 dof (a heading): 68.27 % quantile
+NEES1_997 = 9.0  # 99.73 % quantile
 
 
 def nees(error_xyz, covariance_xyz) -> np.ndarray:
@@ -56,6 +73,44 @@ def nees_shares(values: Iterable[float]) -> tuple[int, float, float]:
     return len(v), float(np.mean(v < NEES_68)), float(np.mean(v < NEES_997))
 
 
+def yaw_nees_shares(values: Iterable[float]) -> tuple[int, float, float]:
+    """(cases, share under 1.0, share under 9.0) of the finite 1-dof NEES values (a heading's:
+    ``(error / sigma)^2``; NaN shares for none)."""
+    v = np.asarray(list(values), float)
+    v = v[np.isfinite(v)]
+    if not len(v):
+        return 0, math.nan, math.nan
+    return len(v), float(np.mean(v < NEES1_68)), float(np.mean(v < NEES1_997))
+
+
+def _fix_record(a, loop_config, **extra) -> dict:
+    """One successful localization's record (:func:`loop_fix_records`)."""
+    from lunarloc.online.loop import fix_model_terms
+
+    e, C = np.array(a.fix_error_xyz), np.array(a.fix_covariance_xyz)
+    C0 = C - fix_model_terms(a.fix_distortion_m, a.fix_maps_from_detections, loop_config)
+    ey, sy = float(a.fix_error_yaw_rad), float(a.fix_sigma_yaw_rad)
+    return {
+        **extra,
+        "keyframe": a.keyframe,
+        "accepted": a.accepted,
+        "inliers": a.inliers,
+        "predicted_error_m": a.predicted_error_m,
+        "distortion_m": a.fix_distortion_m,
+        "window_m": a.window_m,
+        "error_xyz": e.tolist(),
+        "covariance_xyz": C.tolist(),
+        "nees": float(nees(e, C)[0]),
+        # localize()'s own covariance at the rover, before the loop's model
+        "covariance_localize_xyz": C0.tolist(),
+        "nees_localize": float(nees(e, C0)[0]),
+        # the heading: error (rad) and the sigma stated for it; 1-dof NEES
+        "error_yaw_rad": ey,
+        "sigma_yaw_rad": sy,
+        "nees_yaw": (ey / sy) ** 2 if sy > 0 else math.nan,
+    }
+
+
 def loop_fix_records(
     data: str | Path,
     traverses: Iterable[int] | None = None,
@@ -66,11 +121,11 @@ def loop_fix_records(
     bench loop`` does (``config`` default :meth:`RunConfig.for_detections`: simulated drift
     0.05 deg/m and 2 % scale), and return one record per successful localization: vehicle,
     keyframe, accepted by the gate, inliers, predicted error (m), distortion allowance (m), the
-    fix's error (3,) and stated position covariance (3, 3) at the rover and its NEES, and
+    fix's error (3,) and stated position covariance (3, 3) at the rover and its NEES,
     localize()'s own covariance there and its NEES (before the loop's model,
-    :func:`lunarloc.online.loop.fix_model_terms`)."""
+    :func:`lunarloc.online.loop.fix_model_terms`), and the heading's error, stated sigma and
+    1-dof NEES."""
     from lunarloc.io.maps import load_traverse
-    from lunarloc.online.loop import fix_model_terms
     from lunarloc.pipeline.evaluation import find_traverses
     from lunarloc.pipeline.reference import reference_from_traverses
     from lunarloc.pipeline.runner import run
@@ -85,26 +140,32 @@ def loop_fix_records(
         src = TraverseCsvSource.for_run(trav[v], cfg)
         res = run(src, reference_from_traverses(trav, exclude=v), cfg)
         for a in res.attempts:
-            if not a.success or a.fix_error_xyz is None or a.fix_covariance_xyz is None:
-                continue
-            e, C = np.array(a.fix_error_xyz), np.array(a.fix_covariance_xyz)
-            C0 = C - fix_model_terms(a.fix_distortion_m, a.fix_maps_from_detections, cfg.loop)
-            out.append(
-                {
-                    "vehicle": v,
-                    "keyframe": a.keyframe,
-                    "accepted": a.accepted,
-                    "inliers": a.inliers,
-                    "predicted_error_m": a.predicted_error_m,
-                    "distortion_m": a.fix_distortion_m,
-                    "error_xyz": e.tolist(),
-                    "covariance_xyz": C.tolist(),
-                    "nees": float(nees(e, C)[0]),
-                    # localize()'s own covariance at the rover, before the loop's model
-                    "covariance_localize_xyz": C0.tolist(),
-                    "nees_localize": float(nees(e, C0)[0]),
-                }
-            )
+            if a.success and a.fix_error_xyz is not None and a.fix_covariance_xyz is not None:
+                out.append(_fix_record(a, cfg.loop, vehicle=v))
+    return out
+
+
+def site_fix_records(sites: Iterable[str | Path], config: RunConfig | None = None) -> list[dict]:
+    """Run the image loop (``config`` default ``RunConfig()``: the detector on the archive's
+    stereo pairs, the visual odometry, the ``image_loop`` preset) on each recorded site folder
+    (``traverse.lac`` and the reference ``rocks.csv``, as ``benchmarks/bench_lac_map.py
+    simulate`` writes them) and return one record per successful localization, as
+    :func:`loop_fix_records` (``site``: the folder's name)."""
+    from lunarloc.core.errors import InputError
+    from lunarloc.pipeline.reference import load_reference
+    from lunarloc.pipeline.runner import run
+    from lunarloc.pipeline.sources import ArchiveSource
+
+    cfg = config or RunConfig()
+    out = []
+    for d in map(Path, sites):
+        if not (d / "traverse.lac").is_file() or not (d / "rocks.csv").is_file():
+            raise InputError(f"{d}: a site folder holds traverse.lac and rocks.csv")
+        src = ArchiveSource(d / "traverse.lac", cfg.odometry, cfg.detector.pairs)
+        res = run(src, load_reference(d / "rocks.csv"), cfg)
+        for a in res.attempts:
+            if a.success and a.fix_error_xyz is not None and a.fix_covariance_xyz is not None:
+                out.append(_fix_record(a, cfg.loop, site=d.name))
     return out
 
 
