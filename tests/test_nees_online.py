@@ -147,3 +147,20 @@ def test_the_anchor_is_the_graphs_marginal_plus_the_windows_vertical_bias():
     assert a.yaw_variance == pytest.approx(1e-6) and a.path_m == 3.0
     loc.config = OnlineConfig(covariance_source="fix")
     assert np.allclose(loc._fix_anchor(fix, np.eye(4)).position_covariance, np.eye(3))
+
+
+def test_a_fix_record_judges_the_heading_against_its_stated_sigma():
+    from lunarloc.online.loop import Attempt
+    from lunarloc.pipeline.nees_online import _fix_record
+
+    cfg = LoopConfig(fix_centre_bias_m=0.02, fix_centre_bias_z_m=0.02)
+    a = Attempt(3, 1.0, 7, 20, 12, True, True)
+    a.fix_error_xyz, a.fix_covariance_xyz = [0.01, 0.0, 0.0], (np.eye(3) * 1e-3).tolist()
+    a.fix_distortion_m, a.fix_maps_from_detections = 0.0, 1
+    a.fix_error_yaw_rad, a.fix_sigma_yaw_rad = 0.004, 0.002
+    r = _fix_record(a, cfg, site="seed_1")
+    assert r["nees_yaw"] == pytest.approx(4.0) and r["site"] == "seed_1"
+    assert r["nees"] == pytest.approx(0.1)
+    # localize()'s own covariance: the stated one less the window centre bias
+    assert np.allclose(r["covariance_localize_xyz"], np.eye(3) * (1e-3 - 0.02**2 / 2))
+    assert r["nees_localize"] == pytest.approx(1e-4 / 8e-4)
