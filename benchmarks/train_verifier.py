@@ -59,8 +59,10 @@ from lunarloc.perception.verifier import (
 )
 
 
-def extract(path: Path, cache: Path) -> Path:
-    """Features and labels of every kept height-map blob of one archive -> cache/<stem>.npz."""
+def extract(path: Path, cache: Path, base=None) -> Path:
+    """Features and labels of every kept height-map blob of one archive -> cache/<stem>.npz.
+    `base`: the DetectorConfig to run (default: DetectorConfig()); the small-rock stage and
+    the verifier are turned off in it."""
     from lunarloc.config.run import scaled_detector_config
     from lunarloc.io.lac.archive import LacArchive
     from lunarloc.perception.camera import camera_from_archive
@@ -77,7 +79,7 @@ def extract(path: Path, cache: Path) -> Path:
         centres = np.column_stack([t["x"], t["y"], t["z"]])
         radii = np.asarray(t["radius"], float)
         cam = camera_from_archive(ar)
-        base = DetectorConfig()  # the height map's blobs: the small-rock stage and verifier off
+        base = base or DetectorConfig()  # the height map's blobs: small-rock stage, verifier off
         base = replace(
             base,
             small_rocks=replace(base.small_rocks, enabled=False),
@@ -225,10 +227,16 @@ def main(argv=None) -> int:
     ap.add_argument("--hidden", type=int, default=0, help="hidden units (0: logistic regression)")
     ap.add_argument("--alpha", type=float, default=0.3, help="L2 penalty (1 / C for logistic)")
     ap.add_argument("--firm-only", action="store_true", help="fit on firm blobs only")
+    ap.add_argument("--config", type=Path, default=None, help="extract: a run config's detector")
     a = ap.parse_args(argv)
     if a.mode == "extract":
+        base = None
+        if a.config is not None:
+            from lunarloc.config.run import load_config_file
+
+            base = load_config_file(a.config)[0].detector
         for p in a.paths:
-            extract(p, a.cache)
+            extract(p, a.cache, base)
     elif a.mode == "fit":
         fit(a.paths, a.out, a.hidden, a.alpha, a.firm_only)
     else:

@@ -307,6 +307,13 @@ class RulesConfig:
     # verifier: ... a blob of estimated radius at least this is not judged (a large rock's plain
     # face; the training sites hold few; m)
     verifier_max_radius_m: float = setting(0.3, gt=0.0)
+    # verifier: a tentative blob (mid-range, awaiting confirmation by a neighbouring frame) is
+    # rejected when its score is under this (0 = tentatives not judged; only while
+    # verifier_min_score > 0)
+    verifier_tentative_min_score: float = setting(0.0, ge=0.0, lt=1.0)
+    # verifier: a blob of estimated radius verifier_max_radius_m or more is rejected when its
+    # score is under this (0 = not judged; only while verifier_min_score > 0)
+    verifier_large_min_score: float = setting(0.0, ge=0.0, lt=1.0)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "off", tuple(self.off))
