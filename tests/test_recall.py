@@ -143,7 +143,7 @@ def test_an_elongated_blob_is_split_at_its_saddle_into_rocks():
     H = np.zeros(shape)
     H[28:33, 20:101] = 0.035  # a raised streak 3.5 cm high joins two rock tops 8 cm high
     H = np.maximum(H, np.maximum(_dome(shape, 30, 30, 0.08, 6), _dome(shape, 85, 30, 0.08, 6)))
-    assert len(_blobs(_labels(H))) == 1  # off by default: one streak
+    assert len(_blobs(_labels(H, height_split_step_m=0.0))) == 1  # split off: one streak
     boxes = _blobs(_labels(H, height_split_step_m=0.01))
     assert len(boxes) == 2
     (a0, _, a1, _), (b0, _, b1, _) = boxes
@@ -186,7 +186,7 @@ def test_a_rock_merged_with_a_streak_cut_by_the_border_becomes_a_mask_of_its_own
 
 def test_split_settings_round_trip_and_bad_values_name_the_key():
     d = json.loads(json.dumps(RunConfig().to_dict()))
-    assert d["detector"]["classical"]["height_split_step_m"] == 0.0
+    assert d["detector"]["classical"]["height_split_step_m"] == 0.01
     d["detector"]["classical"]["height_split_step_m"] = 0.02
     assert RunConfig.from_dict(d).detector.classical.height_split_step_m == pytest.approx(0.02)
     for key, value in (

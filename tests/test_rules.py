@@ -23,6 +23,7 @@ from lunarloc.perception.rules import (
     BlobMeasures,
     fired_rules,
 )
+from lunarloc.perception.segment import ClassicalConfig
 from lunarloc.perception.small_rocks import SmallRockConfig
 
 NAN = float("nan")
@@ -226,8 +227,10 @@ def test_old_flat_keys_load_and_read_as_before():
     for k, v in old.items():
         if k in MOVED_KEYS:
             assert config_to_dict(getattr(cfg, k)) == v, k
-    # the small-rock section as the file saved it (its defaults have moved since)
+    # the small-rock and segmenter sections as the file saved them (their defaults have moved
+    # since: the small-rock stage, the height-saddle split)
     small = config_from_dict(SmallRockConfig, old["small_rocks"])
+    classical = config_from_dict(ClassicalConfig, old["classical"])
     assert cfg == DetectorConfig(
         fuse_tol_m=0.2,
         centre_estimator="blend",
@@ -236,6 +239,7 @@ def test_old_flat_keys_load_and_read_as_before():
         crest_extension_ratio=0.5,
         fullres_span_px=32,
         small_rocks=small,
+        classical=classical,
     )
 
 

@@ -23,6 +23,7 @@ from lunarloc.perception.verifier import (
     BlobVerifier,
     blob_features,
     default_verifier,
+    verifier_threshold,
 )
 
 N = len(FEATURE_NAMES)
@@ -138,9 +139,14 @@ def test_config_field_range_and_json():
     assert c.rules.verifier_min_score == 0.4 and c.rules.verifier_max_radius_m == 0.5
 
 
-def _scene_detector(score: float, max_radius_m: float = 0.3):
+def _scene_detector(score: float, max_radius_m: float = 0.3, large: float = 0.0):
     cfg = DetectorConfig(small_rocks=SmallRockConfig(enabled=False))
-    rules = replace(cfg.rules, verifier_min_score=score, verifier_max_radius_m=max_radius_m)
+    rules = replace(
+        cfg.rules,
+        verifier_min_score=score,
+        verifier_max_radius_m=max_radius_m,
+        verifier_large_min_score=large,
+    )
     return Detector(replace(cfg, rules=rules), CAM)
 
 
@@ -159,9 +165,13 @@ def test_the_verifier_judges_a_rendered_blob(monkeypatch):
     gone = _scene_detector(0.5).detect_pair(left, right, T)
     assert gone.detections == []
     assert RejectReason.NOT_A_ROCK in [r.reason for r in gone.records]
-    # a blob as large as verifier_max_radius_m is not judged
-    big = _scene_detector(0.5, max_radius_m=0.05).detect_pair(left, right, T)
+    # a blob as large as verifier_max_radius_m is not judged unless verifier_large_min_score
+    big = _scene_detector(0.5, max_radius_m=0.05, large=0.0).detect_pair(left, right, T)
     assert len(big.detections) == 1 and math.isnan(big.detections[0].verifier_score)
+    assert (
+        _scene_detector(0.5, max_radius_m=0.05, large=0.5).detect_pair(left, right, T).detections
+        == []
+    )
 
 
 def test_the_packaged_model_loads_is_small_and_keeps_a_plain_rock():
@@ -182,7 +192,43 @@ def test_a_tentative_blob_is_left_to_cross_frame_confirmation(monkeypatch):
     left, right, rig = ground_scene((4.0, 0.0, -0.29), 0.16)
     T = rig["FrontLeft"].T_rover_optical
     monkeypatch.setattr(detector_mod, "default_verifier", lambda: tiny_model(0.0, -5.0))
-    cfg = replace(TENTATIVE, rules=replace(TENTATIVE.rules, verifier_min_score=0.5))
-    pr = Detector(cfg, CAM).detect_pair(left, right, T, keep_tentative=True)
+    rules = replace(TENTATIVE.rules, verifier_min_score=0.5, verifier_tentative_min_score=0.0)
+    pr = Detector(replace(TENTATIVE, rules=rules), CAM).detect_pair(
+        left, right, T, keep_tentative=True
+    )
     assert len(pr.detections) == 1 and pr.detections[0].tentative
     assert math.isnan(pr.detections[0].verifier_score)
+    # with verifier_tentative_min_score set, the same model rejects it before confirmation
+    rules = replace(rules, verifier_tentative_min_score=0.5)
+    gone = Detector(replace(TENTATIVE, rules=rules), CAM).detect_pair(
+        left, right, T, keep_tentative=True
+    )
+    assert gone.detections == []
+    assert RejectReason.NOT_A_ROCK in [r.reason for r in gone.records]
+    # a model that says "rock" keeps it, tentative, with its score
+    monkeypatch.setattr(detector_mod, "default_verifier", lambda: tiny_model(5.0, 5.0))
+    kept = Detector(replace(TENTATIVE, rules=rules), CAM).detect_pair(
+        left, right, T, keep_tentative=True
+    )
+    assert len(kept.detections) == 1 and kept.detections[0].tentative
+    assert kept.detections[0].verifier_score > 0.5
+
+
+def test_verifier_threshold_by_blob_kind():
+    r = replace(
+        DetectorConfig().rules,
+        verifier_min_score=0.7,
+        verifier_tentative_min_score=0.4,
+        verifier_large_min_score=0.5,
+        verifier_max_radius_m=0.3,
+    )
+    assert verifier_threshold(r, False, 0.1) == 0.7
+    assert verifier_threshold(r, True, 0.1) == 0.4
+    assert verifier_threshold(r, False, 0.3) == 0.5
+    assert verifier_threshold(r, False, float("nan")) == 0.5  # an unknown radius: judged as large
+    # verifier_min_score 0 turns every kind off
+    assert verifier_threshold(replace(r, verifier_min_score=0.0), True, 0.1) == 0.0
+    for f in ("verifier_tentative_min_score", "verifier_large_min_score"):
+        for bad in (-0.1, 1.0):
+            with pytest.raises(ConfigError, match=f):
+                replace(r, **{f: bad})

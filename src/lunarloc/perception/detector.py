@@ -85,7 +85,7 @@ from lunarloc.perception.stereo import (
     refine_disparity,
     to_gray_u8,
 )
-from lunarloc.perception.verifier import blob_features, default_verifier
+from lunarloc.perception.verifier import blob_features, default_verifier, verifier_threshold
 
 __all__ = [
     "PoseSource",
@@ -780,14 +780,10 @@ class Detector:
                 ),
                 tentative="+".join(filter(None, (tent, *soft))),
             )
-            # firm blobs only: a tentative one is judged by a neighbouring frame's firm one
-            if (
-                cfg.rules.verifier_min_score > 0
-                and not det.tentative
-                and blob.radius_m < cfg.rules.verifier_max_radius_m
-            ):
+            min_score = verifier_threshold(cfg.rules, bool(det.tentative), blob.radius_m)
+            if min_score > 0:
                 score = float(default_verifier().score(blob_features(det, scene.L, m)))
-                if score < cfg.rules.verifier_min_score:
+                if score < min_score:
                     rec.reason = RejectReason.NOT_A_ROCK
                     return rec, None
                 det = replace(det, verifier_score=score)

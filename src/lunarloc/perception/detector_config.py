@@ -301,12 +301,20 @@ class RulesConfig:
     gradient_rim_px: int = setting(3, ge=0, le=32)
     # on the lander: detections within this horizontal distance of its centre are dropped (m)
     lander_radius_m: float = setting(2.2, ge=0.0)
-    # the learned blob verifier (perception/verifier.py): a blob the rules keep is rejected when
-    # its score P(rock) is under this (0 = off; docs/perception-status.md gives what it costs)
-    verifier_min_score: float = setting(0.0, ge=0.0, lt=1.0)
+    # the learned blob verifier (perception/verifier.py): a firm blob the rules keep is rejected
+    # when its score P(rock) is under this (0 = the verifier off; docs/perception-status.md,
+    # "The learned blob verifier", gives what it gains and costs; chosen on sites 300-304)
+    verifier_min_score: float = setting(0.7, ge=0.0, lt=1.0)
     # verifier: ... a blob of estimated radius at least this is not judged (a large rock's plain
     # face; the training sites hold few; m)
     verifier_max_radius_m: float = setting(0.3, gt=0.0)
+    # verifier: a tentative blob (mid-range, awaiting confirmation by a neighbouring frame) is
+    # rejected when its score is under this (0 = tentatives not judged; only while
+    # verifier_min_score > 0)
+    verifier_tentative_min_score: float = setting(0.5, ge=0.0, lt=1.0)
+    # verifier: a blob of estimated radius verifier_max_radius_m or more is rejected when its
+    # score is under this (0 = not judged; only while verifier_min_score > 0)
+    verifier_large_min_score: float = setting(0.5, ge=0.0, lt=1.0)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "off", tuple(self.off))

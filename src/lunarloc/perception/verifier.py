@@ -43,6 +43,7 @@ __all__ = [
     "BlobVerifier",
     "blob_features",
     "default_verifier",
+    "verifier_threshold",
 ]
 
 #: The packaged model.
@@ -274,3 +275,18 @@ class BlobVerifier:
 def default_verifier() -> BlobVerifier:
     """The packaged model (read once)."""
     return BlobVerifier.load(MODEL_PATH)
+
+
+def verifier_threshold(rules, tentative: bool, radius_m: float) -> float:
+    """The score under which the detector rejects a blob (0: not judged), from a RuleConfig's
+    verifier fields: ``verifier_min_score`` for a firm blob of estimated radius under
+    ``verifier_max_radius_m`` (0 turns the verifier off altogether),
+    ``verifier_tentative_min_score`` for a tentative one and ``verifier_large_min_score`` for
+    one of that radius or more."""
+    if rules.verifier_min_score <= 0:
+        return 0.0
+    if tentative:
+        return float(rules.verifier_tentative_min_score)
+    if not radius_m < rules.verifier_max_radius_m:
+        return float(rules.verifier_large_min_score)
+    return float(rules.verifier_min_score)
