@@ -57,12 +57,12 @@ from lunarloc.perception.verifier import Z_CLIP, BlobVerifier
 #: The stage's settings while extracting (floors and limits under the deployed ones).
 EXTRACT = dict(  # noqa: C408
     judge_min_score=0.5,
-    judge_min_top_m=0.004,
-    judge_min_snr=1.0,
-    judge_dark_min_points=15,
-    max_candidates=80,
-    max_dark_candidates=40,
-    min_lowres_height_m=0.003,
+    judge_min_top_m=0.005,
+    judge_min_snr=1.5,
+    judge_dark_min_points=20,
+    max_candidates=60,
+    max_dark_candidates=30,
+    min_lowres_height_m=0.005,
 )
 ROCK_SHARE = 0.3
 TERRAIN_SHARE = 0.05

@@ -127,7 +127,7 @@ class SmallRockConfig:
     # pixels darker than this are sky (0-255)
     sky_level: int = setting(8, ge=0, le=255)
     # at most this many bright candidates per image (the strongest blobs)
-    max_candidates: int = setting(40, ge=0)
+    max_candidates: int = setting(60, ge=0)
     # a candidate's box is at most this many times wider than tall
     max_aspect: float = setting(2.0, gt=0.0)
     # candidates' range (optical depth from the height map, m)
@@ -178,7 +178,7 @@ class SmallRockConfig:
     # the fewest valid points on the blob
     min_blob_points: int = setting(3, ge=1)
     # at most this many dark candidates per image (after the bright ones)
-    max_dark_candidates: int = setting(20, ge=0)
+    max_dark_candidates: int = setting(30, ge=0)
     # the raised part beside a dark candidate stands this many ring noises ...
     dark_min_snr: float = setting(5.0, ge=0.0)
     # ... over at least this many valid pixels
@@ -189,11 +189,11 @@ class SmallRockConfig:
     # -- the learned judge (small_rock_judge.npz beside this module; see the module's docstring)
     # a candidate that passes the judge's floors below is a rock when the judge scores it at
     # least this (0 = off: the hand verdict above decides)
-    judge_min_score: float = setting(0.0, ge=0.0, le=1.0)
+    judge_min_score: float = setting(0.92, ge=0.0, le=1.0)
     # with the judge on, these floors replace min_top_m, min_snr (and low_top_snr, dark_min_snr)
     # and dark_min_points (min_median_snr is not applied): what reaches the judge
-    judge_min_top_m: float = setting(0.006, gt=0.0)
-    judge_min_snr: float = setting(2.0, ge=0.0)
+    judge_min_top_m: float = setting(0.005, gt=0.0)
+    judge_min_snr: float = setting(1.5, ge=0.0)
     judge_dark_min_points: int = setting(20, ge=1)
 
     def __post_init__(self) -> None:
