@@ -28,6 +28,15 @@ cannot come down. This stage finds such rocks in two steps:
    ground beside the rock that cast it: it is judged by the raised part of its window next to
    it (the largest connected patch standing ``min_snr`` noises high within one blob size),
    which must stand ``dark_min_snr`` noises high over ``dark_min_points`` pixels.
+3. **A learned judge** (``judge_min_score`` > 0, the default). The hand thresholds of step 2
+   cannot separate a 1-4 cm rock top from ring noise of 0.5-3.5 cm; with the judge on, step 2
+   keeps only floors (``judge_min_top_m``, ``judge_min_snr``, ``judge_dark_min_points``) and a
+   small network (``small_rock_judge.npz`` beside this module: the height-map verifier's
+   :class:`~lunarloc.perception.verifier.BlobVerifier` format, plain arrays, numpy inference)
+   scores each candidate above them from :func:`judge_features`: what the stage measured and
+   the appearance of the left image around the blob (the verifier's ``blob_features``). A
+   candidate scoring under ``judge_min_score`` is no rock (``reason`` ``"judged"``).
+   ``benchmarks/train_small_rocks.py`` trains it on rendered sites labelled by the simulator.
 
 The ground plane of the whole view (:func:`ground_plane`) is also what replaces the level-rover
 assumption where one is needed: fitted to the height map's points within ``ground_range_m``,
