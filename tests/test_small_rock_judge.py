@@ -130,3 +130,19 @@ def test_the_judge_decides_the_candidates_that_pass_its_floors():
     # the judge is not consulted when off: the hand verdict decides (features not measured)
     off = _stage(L, R, replace(on, judge_min_score=0.0), _constant_judge(-20.0))
     assert len(at_rock(off)) == 1 and at_rock(off)[0].features is None
+
+
+def test_the_default_stage_asks_the_packaged_judge():
+    cfg = SmallRockConfig()
+    assert cfg.judge_min_score > 0
+    x, z, rad, top = -0.2, 2.0, 0.02, 0.02
+    L, R = _render(10.0, (x, z, rad, top), seed=2)
+    u, v = _uv(x, z, 10.0)
+    rocks = _stage(L, R, cfg)
+    hit = [
+        r
+        for r in rocks
+        if abs(r.u0 + r.crop.shape[1] / 2 - u) < 25 and abs(r.v0 + r.crop.shape[0] / 2 - v) < 25
+    ]
+    assert len(hit) == 1 and hit[0].score >= cfg.judge_min_score
+    assert hit[0].score == pytest.approx(float(default_judge().score(hit[0].features)))
