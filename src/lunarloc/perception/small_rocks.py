@@ -136,7 +136,7 @@ class SmallRockConfig:
     # pixels darker than this are sky (0-255)
     sky_level: int = setting(8, ge=0, le=255)
     # at most this many bright candidates per image (the strongest blobs)
-    max_candidates: int = setting(60, ge=0)
+    max_candidates: int = setting(40, ge=0)
     # a candidate's box is at most this many times wider than tall
     max_aspect: float = setting(2.0, gt=0.0)
     # candidates' range (optical depth from the height map, m)
@@ -187,7 +187,7 @@ class SmallRockConfig:
     # the fewest valid points on the blob
     min_blob_points: int = setting(3, ge=1)
     # at most this many dark candidates per image (after the bright ones)
-    max_dark_candidates: int = setting(30, ge=0)
+    max_dark_candidates: int = setting(20, ge=0)
     # the raised part beside a dark candidate stands this many ring noises ...
     dark_min_snr: float = setting(5.0, ge=0.0)
     # ... over at least this many valid pixels
