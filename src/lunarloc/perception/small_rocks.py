@@ -863,21 +863,21 @@ def _judge(w: _Window, cfg, fx: float, dark: bool, tilt_ok: bool, trace) -> Smal
     if trace is not None:
         ys, xs = np.nonzero(blob)
         trace.append(
-            dict(
-                box=(
+            {
+                "box": (
                     w.a0 + int(xs.min()),
                     w.b0 + int(ys.min()),
                     w.a0 + int(xs.max()) + 1,
                     w.b0 + int(ys.max()) + 1,
                 ),
-                top=top,
-                noise=w.noise,
-                width=width,
-                depth=depth,
-                aspect=bw / max(bh, 1),
-                tilt_ok=tilt_ok,
-                dark=dark,
-            )
+                "top": top,
+                "noise": w.noise,
+                "width": width,
+                "depth": depth,
+                "aspect": bw / max(bh, 1),
+                "tilt_ok": tilt_ok,
+                "dark": dark,
+            }
         )
     reason = _verdict(cfg, top, w.noise, width, tilt_ok)
     # the blob's median height against the noise of a mean over its independent pixels (one per
