@@ -28,6 +28,15 @@ cannot come down. This stage finds such rocks in two steps:
    ground beside the rock that cast it: it is judged by the raised part of its window next to
    it (the largest connected patch standing ``min_snr`` noises high within one blob size),
    which must stand ``dark_min_snr`` noises high over ``dark_min_points`` pixels.
+3. **A learned judge** (``judge_min_score`` > 0, the default). The hand thresholds of step 2
+   cannot separate a 1-4 cm rock top from ring noise of 0.5-3.5 cm; with the judge on, step 2
+   keeps only floors (``judge_min_top_m``, ``judge_min_snr``, ``judge_dark_min_points``) and a
+   small network (``small_rock_judge.npz`` beside this module: the height-map verifier's
+   :class:`~lunarloc.perception.verifier.BlobVerifier` format, plain arrays, numpy inference)
+   scores each candidate above them from :func:`judge_features`: what the stage measured and
+   the appearance of the left image around the blob (the verifier's ``blob_features``). A
+   candidate scoring under ``judge_min_score`` is no rock (``reason`` ``"judged"``).
+   ``benchmarks/train_small_rocks.py`` trains it on rendered sites labelled by the simulator.
 
 The ground plane of the whole view (:func:`ground_plane`) is also what replaces the level-rover
 assumption where one is needed: fitted to the height map's points within ``ground_range_m``,
@@ -37,19 +46,61 @@ it gives the "up" direction from stereo alone.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import lru_cache
+from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
 from lunarloc.core.configs import check_settings, setting
-from lunarloc.core.errors import ConfigError
+from lunarloc.core.errors import ConfigError, InputError
+from lunarloc.perception.masks import InstanceMask
+from lunarloc.perception.verifier import FEATURE_NAMES as _VERIFIER_FEATURES
+from lunarloc.perception.verifier import BlobVerifier, blob_features
 
 __all__ = [
+    "JUDGE_FEATURES",
+    "JUDGE_PATH",
     "SmallRock",
     "SmallRockConfig",
+    "default_judge",
     "detect_small_rocks",
     "ground_plane",
+    "judge_features",
+    "load_judge",
     "small_rock_candidates",
 ]
+
+#: The packaged learned judge (benchmarks/train_small_rocks.py writes it).
+JUDGE_PATH = Path(__file__).with_name("small_rock_judge.npz")
+#: The stage's own measures of a candidate that reaches the judge, in the model's order.
+_STAGE_FEATURES = (
+    "top_m",  # the judged blob's top above the local ground (90th percentile)
+    "noise_m",  # the ring's residual spread
+    "top_snr",  # top_m / noise_m
+    "median_snr",  # the blob's median height / noise_m
+    "width_m",
+    "depth_m",
+    "top_per_width",
+    "blob_points",  # valid pixels of the judged blob
+    "rock_points",  # valid pixels of the rock (the blob and its raised neighbours)
+    "box_w_px",  # the candidate's box (full-resolution pixels)
+    "box_h_px",
+    "aspect",
+    "candidate_px",
+    "contrast_z",  # the candidate's peak contrast (local contrasts)
+    "dark",
+    "pair_dist",  # to the nearest candidate of the other polarity, in box sizes (<= 10)
+    "row",  # the box's centre row / image height
+    "lowres_height_m",  # the height map's highest point around the candidate
+    "tilt_cos",  # |cos| of the ring plane's angle to the view's ground plane
+)
+_APPEARANCE_FROM = _VERIFIER_FEATURES.index("mask_contrast")
+#: The judge's feature vector: the stage's measures, then the appearance of the left image
+#: around the candidate's blob as the height-map verifier measures it (grey statistics of
+#: blob and ring, gradients, orientation spread, a 4 x 4 normalised grey patch).
+JUDGE_FEATURES: tuple[str, ...] = _STAGE_FEATURES + _VERIFIER_FEATURES[_APPEARANCE_FROM:]
+_PAIR_CAP = 10.0
 
 
 # settings that must come in order: (lower, upper, strictly)
@@ -144,6 +195,16 @@ class SmallRockConfig:
     # the view's ground plane: the height map's points within this optical depth (m)
     ground_range_m: float = setting(6.0, gt=0.0)
 
+    # -- the learned judge (small_rock_judge.npz beside this module; see the module's docstring)
+    # a candidate that passes the judge's floors below is a rock when the judge scores it at
+    # least this (0 = off: the hand verdict above decides)
+    judge_min_score: float = setting(0.92, ge=0.0, le=1.0)
+    # with the judge on, these floors replace min_top_m, min_snr (and low_top_snr, dark_min_snr)
+    # and dark_min_points (min_median_snr is not applied): what reaches the judge
+    judge_min_top_m: float = setting(0.005, gt=0.0)
+    judge_min_snr: float = setting(1.5, ge=0.0)
+    judge_dark_min_points: int = setting(20, ge=1)
+
     def __post_init__(self) -> None:
         check_settings(self)
         for lo, hi, strict in _ORDERED:
@@ -159,7 +220,8 @@ class SmallRock:
     """One verified candidate: its pixels (a boolean crop at (u0, v0)), points (optical
     frame), height above the local ground (m), the ring's residual spread (m), width (m),
     depth (m) and the verdict: ``reason`` None for a rock, else ``"flat"`` (too low for its
-    noise), ``"not_ground"`` (the surroundings are no ground), ``"too_tall"`` or ``"too_wide"``."""
+    noise), ``"not_ground"`` (the surroundings are no ground), ``"too_tall"``, ``"too_wide"`` or
+    ``"judged"`` (the learned judge scored it under ``judge_min_score``)."""
 
     u0: int
     v0: int
@@ -170,6 +232,14 @@ class SmallRock:
     width_m: float
     depth_m: float
     reason: str | None = None
+    # the judged blob's median height (m) and valid pixels
+    median_m: float = float("nan")
+    blob_points: int = 0
+    # with the learned judge on: its features (JUDGE_FEATURES) and score, and the candidate's
+    # rank among those of its polarity (0 = the strongest)
+    features: np.ndarray | None = None
+    score: float = float("nan")
+    rank: int = -1
 
 
 def ground_plane(
@@ -216,6 +286,11 @@ def small_rock_candidates(
     disparity there (full-resolution pixels) and `dark` whether the blob is darker than its
     surroundings (a shadow or an unlit side; only with dark_contrast_z > 0); the bright blobs
     first, each kind strongest first."""
+    return [c[:5] for c in _candidates(left, disparity_lowres, scale, fx, baseline_m, cfg)]
+
+
+def _candidates(left, disparity_lowres, scale, fx, baseline_m, cfg) -> list:
+    """small_rock_candidates' blobs, each with its peak contrast (local contrasts) last."""
     import cv2
 
     H, W = left.shape
@@ -344,7 +419,9 @@ def _blobs(z, sky, grid: _Grid, cfg, z_min: float, n_max: int, dark: bool) -> li
         if not cfg.min_width_m <= width <= cfg.max_width_m:
             continue
         full = np.repeat(np.repeat(c, k, axis=0), k, axis=1) if k > 1 else c
-        out.append(((xa + bx0) * k, (ya + by0) * k + grid.r0, full, float(d0[i]), dark))
+        out.append(
+            ((xa + bx0) * k, (ya + by0) * k + grid.r0, full, float(d0[i]), dark, float(z[y, x]))
+        )
     return out
 
 
@@ -673,6 +750,7 @@ def detect_small_rocks(
     trace: list | None = None,
     keep_rejected: bool = False,
     height_lowres: np.ndarray | None = None,
+    judge=None,
 ) -> list[SmallRock]:
     """Small rocks of one rectified pair (see the module's docstring).
 
@@ -686,6 +764,8 @@ def detect_small_rocks(
     disparity_lowres); when given, a candidate whose neighbourhood there stands nowhere
     min_lowres_height_m high is dropped before its full-resolution match (the half-resolution
     heights smooth a small rock, but not to nothing).
+    judge : the learned judge (a BlobVerifier over JUDGE_FEATURES); None: the packaged one
+    (:func:`default_judge`), used only when cfg.judge_min_score > 0.
     """
     H, W = left.shape
     fb = camera.fx * baseline_m
@@ -693,12 +773,19 @@ def detect_small_rocks(
     cos_tilt = np.cos(np.radians(cfg.max_tilt_deg))
     out: list[SmallRock] = []
     taken = np.zeros((H, W), bool) if exclude is None else exclude.copy()
-    for u0, v0, crop, d0, dark in small_rock_candidates(
-        left, disparity_lowres, scale, camera.fx, baseline_m, cfg
-    ):
+    cands = _candidates(left, disparity_lowres, scale, camera.fx, baseline_m, cfg)
+    use_judge = cfg.judge_min_score > 0
+    floors = cfg
+    if use_judge:
+        judge = judge if judge is not None else default_judge()
+        floors = _judge_floors(cfg)
+        pair = _pair_distances(cands)
+        rank = _ranks(cands)
+    for i, (u0, v0, crop, d0, dark, zpk) in enumerate(cands):
         bh, bw = crop.shape
         if taken[min(v0 + bh // 2, H - 1), min(u0 + bw // 2, W - 1)]:
             continue
+        low_m = 0.0
         if height_lowres is not None:
             k = int(scale)
             hh = height_lowres[
@@ -706,13 +793,16 @@ def detect_small_rocks(
             ]
             if not np.any(hh >= cfg.min_lowres_height_m):  # NaN compares False
                 continue
+            if use_judge:
+                low_m = float(np.nanmax(hh))
         w = _local_heights(
             left, right, disparity_lowres, scale, camera, fb, cfg, mt, u0, v0, crop, d0, dark
         )
         if w is None:
             continue
-        tilt_ok = up_optical is None or abs(float(w.n @ up_optical)) >= cos_tilt
-        rock = _judge(w, cfg, camera.fx, dark, tilt_ok, trace)
+        cos_n = 1.0 if up_optical is None else abs(float(w.n @ up_optical))
+        tilt_ok = cos_n >= cos_tilt
+        rock = _judge(w, floors, camera.fx, dark, tilt_ok, trace)
         if rock.reason is not None:
             if (
                 keep_rejected and rock.depth_m > 0
@@ -723,6 +813,16 @@ def detect_small_rocks(
             if keep_rejected:
                 out.append(replace(rock, u0=u0, v0=v0, crop=crop.copy(), reason="too_wide"))
             continue
+        if use_judge:
+            x = judge_features(
+                rock, left, u0, v0, crop, dark, zpk, pair[i], low_m, cos_n, float(rock.noise_m)
+            )
+            p = float(judge.score(x))
+            rock = replace(rock, features=x, score=p, rank=int(rank[i]))
+            if p < cfg.judge_min_score:
+                if keep_rejected:
+                    out.append(replace(rock, reason="judged"))
+                continue
         out.append(rock)
         # the rock and one rock width around it: other fragments of it are not rocks again
         g2 = max(rock.crop.shape)
@@ -763,21 +863,21 @@ def _judge(w: _Window, cfg, fx: float, dark: bool, tilt_ok: bool, trace) -> Smal
     if trace is not None:
         ys, xs = np.nonzero(blob)
         trace.append(
-            dict(
-                box=(
+            {
+                "box": (
                     w.a0 + int(xs.min()),
                     w.b0 + int(ys.min()),
                     w.a0 + int(xs.max()) + 1,
                     w.b0 + int(ys.max()) + 1,
                 ),
-                top=top,
-                noise=w.noise,
-                width=width,
-                depth=depth,
-                aspect=bw / max(bh, 1),
-                tilt_ok=tilt_ok,
-                dark=dark,
-            )
+                "top": top,
+                "noise": w.noise,
+                "width": width,
+                "depth": depth,
+                "aspect": bw / max(bh, 1),
+                "tilt_ok": tilt_ok,
+                "dark": dark,
+            }
         )
     reason = _verdict(cfg, top, w.noise, width, tilt_ok)
     # the blob's median height against the noise of a mean over its independent pixels (one per
@@ -818,7 +918,137 @@ def _judge(w: _Window, cfg, fx: float, dark: bool, tilt_ok: bool, trace) -> Smal
         w.noise,
         (x1 - x0) * depth / fx,
         depth,
+        median_m=_quantile(w.hall[bl], 0.5),
+        blob_points=int(np.count_nonzero(bl)),
     )
+
+
+def _judge_floors(cfg: SmallRockConfig) -> SmallRockConfig:
+    """The hand verdict's settings with the judge's floors (what reaches the judge)."""
+    return replace(
+        cfg,
+        min_top_m=cfg.judge_min_top_m,
+        min_snr=cfg.judge_min_snr,
+        low_top_snr=max(cfg.judge_min_snr, 1e-6),
+        confident_top_m=cfg.judge_min_top_m,
+        min_median_snr=0.0,
+        dark_min_snr=cfg.judge_min_snr,
+        dark_min_points=cfg.judge_dark_min_points,
+    )
+
+
+def _pair_distances(cands: list) -> np.ndarray:
+    """Per candidate: the distance from its box's centre to the nearest centre of a candidate
+    of the other polarity, in its box sizes (a lit face with its shadow), at most _PAIR_CAP."""
+    n = len(cands)
+    out = np.full(n, _PAIR_CAP)
+    if n == 0:
+        return out
+    c = np.array([(u + cr.shape[1] / 2, v + cr.shape[0] / 2) for u, v, cr, *_ in cands], float)
+    size = np.array([max(cr.shape) for _, _, cr, *_ in cands], float)
+    dark = np.array([bool(x[4]) for x in cands])
+    if dark.all() or not dark.any():
+        return out
+    d = np.linalg.norm(c[:, None] - c[None], axis=2)
+    d[dark[:, None] == dark[None]] = np.inf
+    return np.minimum(d.min(axis=1) / np.maximum(size, 1.0), _PAIR_CAP)
+
+
+def _ranks(cands: list) -> np.ndarray:
+    """Each candidate's rank among those of its polarity (the lists come strongest first)."""
+    dark = np.array([bool(x[4]) for x in cands], bool)
+    r = np.zeros(len(cands), int)
+    for pol in (False, True):
+        i = np.flatnonzero(dark == pol)
+        r[i] = np.arange(i.size)
+    return r
+
+
+def judge_features(
+    rock: SmallRock,
+    left: np.ndarray,
+    u0: int,
+    v0: int,
+    crop: np.ndarray,
+    dark: bool,
+    contrast_z: float,
+    pair_dist: float,
+    lowres_height_m: float,
+    tilt_cos: float,
+    noise_m: float,
+) -> np.ndarray:
+    """The judge's feature vector (JUDGE_FEATURES, float64) of one candidate that passed the
+    floors: `rock` is the stage's verdict on it, (u0, v0, crop) the candidate's appearance
+    blob in the left image `left` (H, W; uint8)."""
+    bh, bw = crop.shape
+    top, med = float(rock.top_m), float(rock.median_m)
+    n = max(noise_m, 1e-4)
+    width = max(float(rock.width_m), 1e-3)
+    stage = [
+        top,
+        noise_m,
+        top / n,
+        (med if np.isfinite(med) else 0.0) / n,
+        width,
+        float(rock.depth_m),
+        top / width,
+        float(rock.blob_points),
+        float(len(rock.points_optical)),
+        float(bw),
+        float(bh),
+        bw / max(bh, 1),
+        float(np.count_nonzero(crop)),
+        float(contrast_z),
+        1.0 if dark else 0.0,
+        float(pair_dist),
+        (v0 + bh / 2) / left.shape[0],
+        lowres_height_m if np.isfinite(lowres_height_m) else 0.0,
+        tilt_cos,
+    ]
+    # the appearance features of the height-map verifier (its geometric ones are not used)
+    geo = SimpleNamespace(
+        depth_m=rock.depth_m,
+        radius_m=0.5 * width,
+        size_m=width,
+        eig_ratio=1.0,
+        height_m=top,
+        height_front_m=np.nan,
+        height_ring_m=np.nan,
+        height_quadric_m=np.nan,
+        nearer_ring_fraction=np.nan,
+        extension_ratio=np.nan,
+        disparity_roughness=np.nan,
+        tentative=False,
+    )
+    app = blob_features(geo, left, InstanceMask(int(u0), int(v0), np.asarray(crop, bool)))
+    x = np.concatenate([np.asarray(stage, float), app[_APPEARANCE_FROM:]])
+    return np.where(np.isfinite(x), x, 0.0)
+
+
+def load_judge(path: Path) -> BlobVerifier:
+    """Read a judge written by ``BlobVerifier.save`` (plain arrays, no pickle) over
+    JUDGE_FEATURES."""
+    try:
+        with np.load(Path(path), allow_pickle=False) as z:
+            names = tuple(str(s) for s in z["feature_names"])
+            n_layers = sum(1 for k in z.files if k.startswith("W"))
+            Ws = tuple(np.asarray(z[f"W{k}"], float) for k in range(n_layers))
+            bs = tuple(np.asarray(z[f"b{k}"], float) for k in range(n_layers))
+            mean, scale = np.asarray(z["mean"], float), np.asarray(z["scale"], float)
+    except (OSError, KeyError, ValueError) as e:
+        raise InputError(f"small-rock judge {path}: {e}") from e
+    if names != JUDGE_FEATURES:
+        raise InputError(
+            f"small-rock judge {path}: its features are not this version's ({len(names)} "
+            f"against {len(JUDGE_FEATURES)}); retrain it (benchmarks/train_small_rocks.py)"
+        )
+    return BlobVerifier(names, mean, scale, Ws, bs)
+
+
+@lru_cache(maxsize=1)
+def default_judge() -> BlobVerifier:
+    """The packaged judge (read once)."""
+    return load_judge(JUDGE_PATH)
 
 
 def _grown(w: _Window, blob: np.ndarray, level_m: float) -> np.ndarray:
