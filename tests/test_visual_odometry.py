@@ -244,6 +244,8 @@ def test_config_round_trip_and_validation():
         VisualOdometryConfig(min_inliers=2)
     with pytest.raises(ConfigError, match="max_depth_m"):
         VisualOdometryConfig(max_depth_m=0.1, min_depth_m=0.3)
+    with pytest.raises(ConfigError, match="step_sigma_floor_px"):
+        VisualOdometryConfig(step_sigma_floor_px=0)
 
 
 def test_archive_without_front_images_is_refused(tmp_path):
@@ -323,3 +325,29 @@ def test_normalization_is_a_checked_enum_that_round_trips():
     assert (
         out.dtype == np.uint8 and out.shape == img.shape and np.all(out == 128)
     )  # flat: no contrast
+
+
+def test_step_covariance_is_given_for_visual_steps_and_covers_the_errors(traverse):
+    """`last_step_covariance` (6x6, previous rover frame) exists exactly for visual steps and
+    its translation sigma is of the order of the step's actual error."""
+    left, right, truth = traverse["left"], traverse["right"], traverse["truth"]
+    vo = StereoVisualOdometry(CAMERA, T_LEFT, T_RIGHT)
+    vo.update(left[0], right[0])
+    assert vo.last_step_covariance is None  # the first pair has no step
+    ratios = []
+    T_prev = np.eye(4)
+    for k in range(1, len(left)):
+        T = vo.update(left[k], right[k])
+        assert vo.last_ok
+        C = vo.last_step_covariance
+        assert C.shape == (6, 6) and np.allclose(C, C.T)
+        assert np.all(np.linalg.eigvalsh(C) > 0)
+        true_step = invert_transform(truth[k - 1]) @ truth[k]
+        err = (invert_transform(T_prev) @ T)[:3, 3] - true_step[:3, 3]
+        ratios.append(float(np.sqrt(err @ np.linalg.solve(C[:3, :3], err))))
+        T_prev = T
+    # Mahalanobis distance of the translation error: neither far too small nor far too large
+    assert 0.1 < np.median(ratios) < 10.0
+    black = np.zeros((H, W), np.uint8)
+    vo.update(black, black)
+    assert not vo.last_ok and vo.last_step_covariance is None

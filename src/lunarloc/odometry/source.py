@@ -83,6 +83,10 @@ class OdometryTrajectory:
     evaluation_only: bool = False
     measured: np.ndarray | None = None
     failures: int = 0  # visual: image pairs where the odometry fell back to the prior
+    # visual: per frame, the 1-sigma (m, largest axis) of the visual step ending there, from
+    # the step's PnP inliers (StereoVisualOdometry.last_step_covariance); NaN where the frame
+    # is not a visual step (IMU-bridged frames, failed pairs, the first pair)
+    step_sigma_m: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(len(self.frames))
@@ -277,6 +281,7 @@ def _visual(archive, frames, times, T0, imu_poses, progress, visual_config) -> O
     n = len(frames)
     out = np.empty((n, 4, 4))
     measured = np.zeros(n, bool)
+    step_sigma_m = np.full(n, np.nan)
     last = None
     failures = 0
     k_next = 0
@@ -294,11 +299,14 @@ def _visual(archive, frames, times, T0, imu_poses, progress, visual_config) -> O
             out[i] = chain.add(T_odo_rover, T_imu[i], out[i])
             measured[i] = True
             failures += 0 if getattr(vo, "last_ok", True) else 1
+            C = getattr(vo, "last_step_covariance", None)
+            if C is not None:
+                step_sigma_m[i] = float(np.sqrt(max(np.linalg.eigvalsh(C[:3, :3])[-1], 0.0)))
             last = i
             if progress is not None:
                 progress(k_next, len(pair_idx))
     return OdometryTrajectory(
-        frames, times, out, OdometrySource.VISUAL.value, False, measured, failures
+        frames, times, out, OdometrySource.VISUAL.value, False, measured, failures, step_sigma_m
     )
 
 

@@ -60,7 +60,7 @@ class VisualOdometryConfig:
 
     # -- features (keyframes)
     max_features: int = 600  # corners detected per keyframe
-    feature_quality: float = 0.005  # goodFeaturesToTrack qualityLevel (fraction of the best corner)
+    feature_quality: float = 0.001  # goodFeaturesToTrack qualityLevel (fraction of the best corner)
     min_feature_distance_frac: float = (
         0.012  # min distance between corners, fraction of the image width
     )
@@ -112,6 +112,10 @@ class VisualOdometryConfig:
     max_prior_rotation_gap_deg: float = (
         5.0  # visual vs prior rotation disagreement that rejects the visual step
     )
+    # the step's covariance (last_step_covariance): track noise floor and stereo disparity noise
+    step_sigma_floor_px: float = 0.3
+    stereo_disparity_sigma_px: float = 0.2
+    step_sigma_scale: float = 2.0  # x the modelled sigma (errors the model leaves out, measured)
     # -- keyframes
     keyframe_min_tracked: int = 120  # re-detect when fewer keyframe points remain inliers
     keyframe_min_fraction: float = 0.5  # ... or fewer than this fraction of the keyframe's points
@@ -162,6 +166,9 @@ class VisualOdometryConfig:
             "max_translation_per_frame_m": self.max_translation_per_frame_m > 0,
             "max_rotation_per_frame_deg": 0 < self.max_rotation_per_frame_deg <= 180,
             "max_prior_rotation_gap_deg": self.max_prior_rotation_gap_deg > 0,
+            "step_sigma_floor_px": self.step_sigma_floor_px > 0,
+            "stereo_disparity_sigma_px": self.stereo_disparity_sigma_px >= 0,
+            "step_sigma_scale": self.step_sigma_scale > 0,
             "keyframe_min_tracked": self.keyframe_min_tracked >= self.min_inliers,
             "keyframe_min_fraction": 0 <= self.keyframe_min_fraction <= 1,
             "keyframe_max_translation_m": self.keyframe_max_translation_m > 0,
@@ -290,6 +297,8 @@ class StereoVisualOdometry:
         self._prev_left = None
         self._last_motion = np.eye(4)  # rover motion of the last frame (constant-velocity model)
         self.last_inliers = 0
+        # 6x6 covariance of the last pair's visual step (None: not a visual step)
+        self.last_step_covariance: np.ndarray | None = None
 
     def update(
         self, left: np.ndarray, right: np.ndarray, prior_T_prev_curr: np.ndarray | None = None
@@ -320,6 +329,7 @@ class StereoVisualOdometry:
             if prior is not None
             else (self._last_motion if self.config.constant_velocity else np.eye(4))
         )
+        self.last_step_covariance = None
         T_new = self._track(left, T_prev @ predicted, prior)
         if T_new is None:
             T_new = T_prev @ (prior if prior is not None else np.eye(4))
@@ -593,7 +603,55 @@ class StereoVisualOdometry:
         kf.points_kf = kf.points_kf[keep]
         kf.uv = uv[keep].astype(np.float32)
         self.last_inliers = len(inl)
+        self.last_step_covariance = self._step_covariance(
+            obj[inl], img[inl], rvec, tvec, kf.T_odo_rover
+        )
         return T_odo_new
+
+    def _step_covariance(self, obj, img, rvec, tvec, T_odo_kf) -> np.ndarray | None:
+        """6x6 covariance of this pair's rover motion since the previous pair (translation x,
+        y, z in m, then rotation vector in rad, both in the previous rover frame), from the
+        PnP inliers: each track's pixel noise (their residuals' spread, at least
+        `step_sigma_floor_px`) plus its keyframe depth's error along the ray (disparity
+        error `stereo_disparity_sigma_px`: far points weigh little), through the pose's
+        Jacobian. The keyframe's pose is taken as exact, so a step from a keyframe older than
+        the previous pair carries the whole keyframe-to-pair uncertainty."""
+        cv2, c = self._cv2, self.config
+        proj, J = cv2.projectPoints(obj, rvec, tvec, self.K, None)
+        J = J[:, :6].reshape(-1, 2, 6)  # per point: d(u, v) / d(rvec, tvec)
+        r = proj.reshape(-1, 2) - img
+        dof = max(2 * len(obj) - 6, 1)
+        s2 = max(float(np.sum(r**2)) / dof, c.step_sigma_floor_px**2)
+        R, _ = cv2.Rodrigues(rvec)
+        P = obj @ R.T + np.ravel(tvec)  # points in the current left camera, m
+        z = np.maximum(P[:, 2], 1e-6)
+        fx, fy = self.camera.fx, self.camera.fy
+        Jp = np.zeros((len(P), 2, 3))  # d(u, v) / d(point)
+        Jp[:, 0, 0], Jp[:, 0, 2] = fx / z, -fx * P[:, 0] / z**2
+        Jp[:, 1, 1], Jp[:, 1, 2] = fy / z, -fy * P[:, 1] / z**2
+        z_kf = np.maximum(obj[:, 2], 1e-6)
+        g = np.einsum("nij,nj->ni", Jp, (obj / z_kf[:, None]) @ R.T)  # pixels per metre of depth
+        sz = z_kf**2 / (fx * self.baseline_m) * c.stereo_disparity_sigma_px
+        C = s2 * np.eye(2) + (sz**2)[:, None, None] * np.einsum("ni,nj->nij", g, g)
+        info = np.einsum("nki,nkl,nlj->ij", J, np.linalg.inv(C), J)
+        try:
+            cov_pose = np.linalg.inv(info)
+        except np.linalg.LinAlgError:
+            return None
+        T_rover_prev = invert_transform(self.T_odo_rover)
+
+        def step(x):
+            R, _ = cv2.Rodrigues(x[:3].reshape(3, 1))
+            T = T_odo_kf @ self.T_rover_left @ invert_transform(make_transform(R, x[3:]))
+            S = T_rover_prev @ T @ self.T_left_rover
+            w, _ = cv2.Rodrigues(np.ascontiguousarray(S[:3, :3]))
+            return np.r_[S[:3, 3], w.ravel()]
+
+        x0 = np.r_[np.ravel(rvec), np.ravel(tvec)].astype(float)
+        f0, eps = step(x0), 1e-6
+        Js = np.column_stack([(step(x0 + eps * e) - f0) / eps for e in np.eye(6)])
+        cov = c.step_sigma_scale**2 * (Js @ cov_pose @ Js.T)
+        return 0.5 * (cov + cov.T) if np.all(np.isfinite(cov)) else None
 
 
 def front_pair_setup(archive) -> tuple[PinholeCamera, np.ndarray, np.ndarray, str, str]:
