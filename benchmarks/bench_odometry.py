@@ -5,6 +5,7 @@ Usage
     python benchmarks/bench_odometry.py --out bench-output/odometry [--source imu record:odometry visual]
         [--seeds 13 15 16] [--duration 470] [--width 1280] [--image-rate 2]
         [--gyro-bias 0.0] [--keep-archives] [--distance 100] [--archives A.lac ...]
+        [--visual-config '{"feature_quality": 0.005}']
 
 For each seed: simulate one traverse of the seed's site (``lunarloc simulate``'s
 simulator; seeds 13, 15, 16 at 470 s give traverses of about 100 m that stay on the
@@ -26,7 +27,9 @@ With ``--keep-archives`` the site's rock list is kept too (``rocks_SEED.csv``), 
 uses ``visual`` by default whatever custom records the archive has).
 ``--distance M`` picks, per seed, the shortest duration (multiple of 10 s) whose path is
 at least M metres (instead of ``--duration``). ``--archives`` scores existing archives
-(e.g. kept with ``--keep-archives``) instead of simulating.
+(e.g. kept with ``--keep-archives``) instead of simulating. The visual rows add each image
+pair's step against the true step (:func:`lunarloc.odometry.source.step_errors`: cm and
+degrees, p50 / p95 / max); ``--visual-config`` runs them with other settings.
 
 What the simulated IMU is, and is not: white gyro and accelerometer noise (and an
 optional constant gyro bias, ``--gyro-bias`` rad/s); ``linear_speed`` is the true
@@ -54,6 +57,7 @@ from lunarloc.odometry.source import (
     ground_truth_poses,
     odometry_drift,
     parse_odometry_source,
+    step_errors,
 )
 
 NOPRIOR = "visual-noprior"
@@ -71,7 +75,7 @@ def duration_for(site, distance_m: float, cfg: SimulationConfig) -> float:
     return duration
 
 
-def visual_noprior(archive, T_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
+def visual_noprior(archive, T_gt: np.ndarray, config=None) -> tuple[np.ndarray, np.ndarray, dict]:
     """Images-only visual odometry over the front pairs: (frame indices, T_map_rover, stats).
 
     The odometry frame is anchored at the true pose of the first pair (as every source
@@ -84,7 +88,7 @@ def visual_noprior(archive, T_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray, d
         archive.camera_frames(left)["frame"], archive.camera_frames(right)["frame"]
     ).astype(int)
     index = {int(f): i for i, f in enumerate(archive.frame_numbers)}
-    vo = StereoVisualOdometry(camera, T_l, T_r)
+    vo = StereoVisualOdometry(camera, T_l, T_r, config)
     T = np.empty((len(frames), 4, 4))
     busy, cpu, fails = 0.0, 0.0, 0
     for k in range(0, len(frames), 16):  # read in archive order, 16 pairs at a time
@@ -133,7 +137,15 @@ def main() -> None:
     ap.add_argument(
         "--archives", type=Path, nargs="+", help="score these archives instead of simulating"
     )
+    ap.add_argument(
+        "--visual-config", default=None, help="JSON of VisualOdometryConfig fields (visual only)"
+    )
     args = ap.parse_args()
+    visual_config = None
+    if args.visual_config:
+        from lunarloc.odometry.visual import VisualOdometryConfig
+
+        visual_config = VisualOdometryConfig.from_dict(json.loads(args.visual_config))
     sources = [s for s in args.sources if s == NOPRIOR or parse_odometry_source(s)]
     needs_images = any(
         s == NOPRIOR or parse_odometry_source(s)[0].value == "visual" for s in sources
@@ -152,7 +164,7 @@ def main() -> None:
     rows = []
     print(
         f"{'seed':>4} {'source':>16} {'path m':>7} {'final %':>8} {'deg/m':>8} {'RMSE m':>7} {'time s':>7} {'pairs/s':>8} "
-        f"{'CPU ms/pair':>11}"
+        f"{'CPU ms/pair':>11} {'step cm p50/p95/max':>20} {'yaw deg p95/max':>15}"
     )
     # an archive is named by its stem, or by its folder and stem where stems repeat (.../s13/bare.lac)
     stems = [p.stem for p in args.archives or []]
@@ -187,12 +199,16 @@ def main() -> None:
             for src in sources:
                 t0, c0 = time.perf_counter(), time.process_time()
                 if src == NOPRIOR:
-                    idx, T, extra = visual_noprior(ar, gt)
+                    idx, T, extra = visual_noprior(ar, gt, visual_config)
                     d, label = odometry_drift(T, gt[idx]), NOPRIOR
+                    d = {**d, **step_errors(T, gt[idx])}
                 else:
-                    traj = archive_odometry(ar, src)
+                    traj = archive_odometry(ar, src, visual_config=visual_config)
                     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
                     d, label = odometry_drift(traj.T_map_rover, gt), traj.label
+                    if traj.measured is not None and traj.measured.sum() >= 2 and src == "visual":
+                        m = traj.measured  # each visual step (pair to pair) against the truth's
+                        d = {**d, **step_errors(traj.T_map_rover[m], gt[m])}
                     pairs = (
                         int(traj.measured.sum())
                         if src == "visual" and traj.measured is not None
@@ -217,9 +233,20 @@ def main() -> None:
                 rows.append(row)
                 pps = "-" if row["pairs_per_s"] is None else f"{row['pairs_per_s']:.1f}"
                 cms = "-" if row.get("cpu_ms_per_pair") is None else f"{row['cpu_ms_per_pair']:.1f}"
+                steps = (
+                    f"{d['step_cm_p50']:.2f}/{d['step_cm_p95']:.2f}/{d['step_cm_max']:.2f}"
+                    if "step_cm_p50" in d
+                    else "-"
+                )
+                yaws = (
+                    f"{d['step_yaw_deg_p95']:.3f}/{d['step_yaw_deg_max']:.3f}"
+                    if "step_yaw_deg_p95" in d
+                    else "-"
+                )
                 print(
                     f"{name!s:>4} {label:>16} {d['path_length_m']:>7.1f} {d['final_error_pct']:>8.3f} "
-                    f"{d['heading_deg_per_m']:>8.5f} {d['rmse_m']:>7.3f} {row['time_s']:>7.2f} {pps:>8} {cms:>11}",
+                    f"{d['heading_deg_per_m']:>8.5f} {d['rmse_m']:>7.3f} {row['time_s']:>7.2f} {pps:>8} {cms:>11} "
+                    f"{steps:>20} {yaws:>15}",
                     flush=True,
                 )
         if seed is not None and not args.keep_archives:

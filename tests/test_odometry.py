@@ -437,3 +437,27 @@ def test_a_record_with_every_frame_needs_no_imu(arc, tmp_path):
         )
         with pytest.raises(InputError, match="'gyro_x' is not a finite number at frame 2"):
             archive_odometry(a, "record:orbslam")  # every 10th frame: the IMU bridges the others
+
+
+def test_step_errors_score_each_step_against_the_true_one():
+    from lunarloc.odometry.source import step_errors
+
+    _pose = pose_to_matrix
+
+    # a true path of 0.15 m steps turning 2 degrees a step; the estimate repeats it except one
+    # step 3 cm too long and turned 0.5 degrees more (later poses follow it: steps stay exact)
+    G = [np.eye(4)]
+    for _ in range(20):
+        G.append(G[-1] @ _pose(0.15, 0, 0, 0, 0, np.radians(2.0)))
+    E = [np.eye(4)]
+    for k in range(20):
+        extra = _pose(0.03, 0, 0, 0, 0, np.radians(0.5)) if k == 7 else np.eye(4)
+        E.append(E[-1] @ _pose(0.15, 0, 0, 0, 0, np.radians(2.0)) @ extra)
+    out = step_errors(np.stack(E), np.stack(G))
+    assert out["steps"] == 20 and out["steps_over_2cm"] == 1
+    assert out["step_cm_max"] == pytest.approx(3.0, abs=1e-6)
+    assert out["step_horizontal_cm_max"] == pytest.approx(3.0, abs=1e-6)
+    assert out["step_yaw_deg_max"] == pytest.approx(0.5, abs=1e-6)
+    assert out["step_cm_p50"] == pytest.approx(0.0, abs=1e-9)
+    with pytest.raises(InputError, match="equal length"):
+        step_errors(np.stack(E)[:3], np.stack(G)[:4])

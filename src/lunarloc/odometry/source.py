@@ -46,6 +46,7 @@ __all__ = [
     "archive_odometry",
     "ground_truth_poses",
     "odometry_drift",
+    "step_errors",
     "FRONT_PAIR",
 ]
 
@@ -339,3 +340,29 @@ def odometry_drift(T_est: np.ndarray, T_gt: np.ndarray) -> dict:
         "heading_deg_per_m": round(float(dyaw[-1]) / path, 5) if path > 0 else None,
         "max_heading_error_deg": round(float(dyaw.max()), 4),
     }
+
+
+def step_errors(T_est: np.ndarray, T_gt: np.ndarray) -> dict:
+    """Errors of the motion between consecutive poses (both (F, 4, 4), same frames; pass the
+    measured frames only to score each visual step): the step's translation against the true
+    step's (3D and horizontal, each in its own previous rover frame, cm) and its yaw change
+    against the true one (degrees), as p50 / p95 / max, and the number of steps over 2 cm."""
+    E, G = np.asarray(T_est, float), np.asarray(T_gt, float)
+    if E.shape != G.shape or E.ndim != 3 or len(E) < 2:
+        raise InputError(
+            f"trajectories must be (F, 4, 4) of equal length F >= 2, got {E.shape} and {G.shape}"
+        )
+    SE = np.einsum("nji,njk->nik", E[:-1, :3, :3], E[1:, :3, 3:] - E[:-1, :3, 3:])[..., 0]
+    SG = np.einsum("nji,njk->nik", G[:-1, :3, :3], G[1:, :3, 3:] - G[:-1, :3, 3:])[..., 0]
+    d = 100.0 * (SE - SG)
+    e3, eh = np.linalg.norm(d, axis=1), np.linalg.norm(d[:, :2], axis=1)
+
+    def dyaw(T):
+        return np.diff(np.unwrap([yaw_of(R) for R in T[:, :3, :3]]))
+
+    ey = np.degrees(np.abs(dyaw(E) - dyaw(G)))
+    out = {"steps": int(len(d)), "steps_over_2cm": int(np.sum(e3 > 2.0))}
+    for name, x in (("step_cm", e3), ("step_horizontal_cm", eh), ("step_yaw_deg", ey)):
+        for q, v in zip(("p50", "p95", "max"), np.percentile(x, [50, 95, 100])):
+            out[f"{name}_{q}"] = round(float(v), 3)
+    return out
