@@ -23,6 +23,9 @@ Method (keyframe-to-frame, OpenCV)
    estimate; the pose then advances by the prior (or holds without one),
    ``last_ok`` is False and a new keyframe is started. A new keyframe is also
    started when the tracked inliers thin out.
+5. **Step covariance**: each visual step's 6x6 covariance from its PnP inliers (track noise
+   and keyframe depth error through the pose Jacobian), ``last_step_covariance``, for a
+   pose graph to weigh the step by.
 
 Frames: the camera optical frame is OpenCV's (z forward, x right, y down); the
 rover frame is the LAC's (x forward, y left, z up). ``T_rover_left`` maps
