@@ -54,7 +54,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from lunarloc.core.configs import check_settings, setting
-from lunarloc.core.errors import ConfigError, InputError
+from lunarloc.core.errors import ConfigError
 from lunarloc.perception.masks import InstanceMask
 from lunarloc.perception.verifier import FEATURE_NAMES as _VERIFIER_FEATURES
 from lunarloc.perception.verifier import BlobVerifier, blob_features
@@ -1029,21 +1029,9 @@ def judge_features(
 def load_judge(path: Path) -> BlobVerifier:
     """Read a judge written by ``BlobVerifier.save`` (plain arrays, no pickle) over
     JUDGE_FEATURES."""
-    try:
-        with np.load(Path(path), allow_pickle=False) as z:
-            names = tuple(str(s) for s in z["feature_names"])
-            n_layers = sum(1 for k in z.files if k.startswith("W"))
-            Ws = tuple(np.asarray(z[f"W{k}"], float) for k in range(n_layers))
-            bs = tuple(np.asarray(z[f"b{k}"], float) for k in range(n_layers))
-            mean, scale = np.asarray(z["mean"], float), np.asarray(z["scale"], float)
-    except (OSError, KeyError, ValueError) as e:
-        raise InputError(f"small-rock judge {path}: {e}") from e
-    if names != JUDGE_FEATURES:
-        raise InputError(
-            f"small-rock judge {path}: its features are not this version's ({len(names)} "
-            f"against {len(JUDGE_FEATURES)}); retrain it (benchmarks/train_small_rocks.py)"
-        )
-    return BlobVerifier(names, mean, scale, Ws, bs)
+    return BlobVerifier.load(
+        path, JUDGE_FEATURES, "small-rock judge", "benchmarks/train_small_rocks.py"
+    )
 
 
 @lru_cache(maxsize=1)

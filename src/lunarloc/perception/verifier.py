@@ -251,8 +251,15 @@ class BlobVerifier:
         np.savez_compressed(path, **arrays)
 
     @classmethod
-    def load(cls, path: Path) -> BlobVerifier:
-        """Read a model written by :meth:`save` (checks its features are this module's)."""
+    def load(
+        cls,
+        path: Path,
+        feature_names: tuple[str, ...] = FEATURE_NAMES,
+        what: str = "verifier model",
+        trainer: str = "benchmarks/train_verifier.py",
+    ) -> BlobVerifier:
+        """Read a model written by :meth:`save` (checks its features are `feature_names`, this
+        module's by default; `what` and `trainer` name the model and its script in errors)."""
         try:
             with np.load(Path(path), allow_pickle=False) as z:
                 names = tuple(str(s) for s in z["feature_names"])
@@ -261,12 +268,11 @@ class BlobVerifier:
                 bs = tuple(np.asarray(z[f"b{k}"], float) for k in range(n_layers))
                 mean, scale = np.asarray(z["mean"], float), np.asarray(z["scale"], float)
         except (OSError, KeyError, ValueError) as e:
-            raise InputError(f"verifier model {path}: {e}") from e
-        if names != FEATURE_NAMES:
+            raise InputError(f"{what} {path}: {e}") from e
+        if names != tuple(feature_names):
             raise InputError(
-                f"verifier model {path}: its features are not this version's "
-                f"({len(names)} against {len(FEATURE_NAMES)}); retrain it "
-                "(benchmarks/train_verifier.py)"
+                f"{what} {path}: its features are not this version's "
+                f"({len(names)} against {len(feature_names)}); retrain it ({trainer})"
             )
         return cls(names, mean, scale, Ws, bs)
 
