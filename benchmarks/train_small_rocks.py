@@ -56,7 +56,10 @@ from pathlib import Path
 import numpy as np
 
 from lunarloc.perception.small_rocks import JUDGE_FEATURES, JUDGE_PATH, load_judge
-from lunarloc.perception.verifier import Z_CLIP, BlobVerifier
+from lunarloc.perception.verifier import BlobVerifier
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from train_verifier import fit_model
 
 #: The stage's settings while extracting (floors and limits under the deployed ones).
 EXTRACT = dict(  # noqa: C408
@@ -180,35 +183,11 @@ def load(paths: list[Path]) -> dict[str, np.ndarray]:
 
 
 def fit(paths: list[Path], out: Path, hidden: int = 16, alpha: float = 1e-3, seed: int = 0):
-    from sklearn.linear_model import LogisticRegression
-    from sklearn.neural_network import MLPClassifier
-
     d = load(paths)
     keep = d["y"] >= 0
     X, y = d["X"][keep], d["y"][keep]
-    mean = X.mean(axis=0)
-    scale = X.std(axis=0)
-    scale = np.where(scale > 1e-9, scale, 1.0)
-    Z = np.clip((X - mean) / scale, -Z_CLIP, Z_CLIP)
-    if hidden > 0:
-        clf = MLPClassifier(
-            hidden_layer_sizes=(hidden,),
-            alpha=alpha,
-            max_iter=1000,
-            early_stopping=True,
-            random_state=seed,
-        )
-        clf.fit(Z, y)
-        Ws = tuple(np.asarray(c, float) for c in clf.coefs_)
-        bs = tuple(np.asarray(b, float) for b in clf.intercepts_)
-    else:
-        clf = LogisticRegression(C=1.0 / alpha, max_iter=5000)
-        clf.fit(Z, y)
-        Ws, bs = (np.asarray(clf.coef_, float).T,), (np.asarray(clf.intercept_, float),)
-    model = BlobVerifier(JUDGE_FEATURES, mean, scale, Ws, bs)
+    model = fit_model(X, y, JUDGE_FEATURES, hidden, alpha, seed, max_iter=1000)
     model.save(out)
-    p_sk = clf.predict_proba(Z)[:, 1]
-    assert np.allclose(p_sk, model.score(X), atol=1e-4), "numpy inference differs from sklearn"
     print(
         f"fitted on {len(y)} candidates of {len(paths)} sites ({int(y.sum())} rocks); "
         f"wrote {out} ({out.stat().st_size} bytes)"

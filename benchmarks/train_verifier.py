@@ -155,23 +155,24 @@ def load(paths: list[Path]) -> dict[str, np.ndarray]:
     return out
 
 
-def fit(
-    paths: list[Path],
-    out: Path,
-    hidden: int = 0,
-    alpha: float = 0.3,
-    firm_only: bool = False,
-    seed: int = 0,
-):
+def fit_model(
+    X: np.ndarray,
+    y: np.ndarray,
+    feature_names: tuple[str, ...],
+    hidden: int,
+    alpha: float,
+    seed: int,
+    max_iter: int,
+    weight: np.ndarray | None = None,
+) -> BlobVerifier:
+    """A BlobVerifier fitted to rows `X` and labels `y`: features standardised and clipped to
+    +-Z_CLIP, then scikit-learn's MLPClassifier with one hidden layer of `hidden` units (L2
+    `alpha`) or, with `hidden` 0, its LogisticRegression (C = 1 / alpha); `weight` (integer
+    row weights; the MLP takes none, so its rows are repeated). Checked against
+    scikit-learn's own probabilities."""
     from sklearn.linear_model import LogisticRegression
     from sklearn.neural_network import MLPClassifier
 
-    d = load(paths)
-    keep = d["y"] >= 0
-    if firm_only:
-        keep &= ~d["tentative"]
-    X, y = d["X"][keep], d["y"][keep]
-    w = np.where((y == 1) & (d["rock_radius_m"][keep] >= 0.1), 2.0, 1.0)
     mean = X.mean(axis=0)
     scale = X.std(axis=0)
     scale = np.where(scale > 1e-9, scale, 1.0)
@@ -180,23 +181,43 @@ def fit(
         clf = MLPClassifier(
             hidden_layer_sizes=(hidden,),
             alpha=alpha,
-            max_iter=500,
+            max_iter=max_iter,
             early_stopping=True,
             random_state=seed,
         )
-        # MLPClassifier takes no sample weights: the weighted rows are repeated
-        rep = np.repeat(np.arange(len(y)), w.astype(int))
-        clf.fit(Z[rep], y[rep])
+        if weight is None:
+            clf.fit(Z, y)
+        else:
+            rep = np.repeat(np.arange(len(y)), weight.astype(int))
+            clf.fit(Z[rep], y[rep])
         Ws = tuple(np.asarray(c, float) for c in clf.coefs_)
         bs = tuple(np.asarray(b, float) for b in clf.intercepts_)
     else:  # logistic regression (C = 1 / alpha): one layer, no hidden units
         clf = LogisticRegression(C=1.0 / alpha, max_iter=5000)
-        clf.fit(Z, y, sample_weight=w)
+        clf.fit(Z, y, sample_weight=weight)
         Ws, bs = (np.asarray(clf.coef_, float).T,), (np.asarray(clf.intercept_, float),)
-    model = BlobVerifier(FEATURE_NAMES, mean, scale, Ws, bs)
-    model.save(out)
+    model = BlobVerifier(tuple(feature_names), mean, scale, Ws, bs)
     p_sk = clf.predict_proba(Z)[:, 1]
     assert np.allclose(p_sk, model.score(X), atol=1e-4), "numpy inference differs from sklearn"
+    return model
+
+
+def fit(
+    paths: list[Path],
+    out: Path,
+    hidden: int = 0,
+    alpha: float = 0.3,
+    firm_only: bool = False,
+    seed: int = 0,
+):
+    d = load(paths)
+    keep = d["y"] >= 0
+    if firm_only:
+        keep &= ~d["tentative"]
+    X, y = d["X"][keep], d["y"][keep]
+    w = np.where((y == 1) & (d["rock_radius_m"][keep] >= 0.1), 2.0, 1.0)
+    model = fit_model(X, y, FEATURE_NAMES, hidden, alpha, seed, max_iter=500, weight=w)
+    model.save(out)
     print(
         f"fitted on {len(y)} blobs of {len(paths)} sites ({int(y.sum())} rocks); "
         f"wrote {out} ({out.stat().st_size} bytes)"
