@@ -34,6 +34,7 @@ import numpy as np
 
 from lunarloc.core.errors import InputError, import_cv2
 from lunarloc.core.geometry import invert_transform, pose_to_matrix, transform_points
+from lunarloc.core.stats import median as _median
 from lunarloc.perception.camera import (
     CameraMount,
     PinholeCamera,
@@ -336,20 +337,6 @@ def _quantiles64(a: np.ndarray, qs: tuple[float, ...]) -> list[float]:
         d = y - x
         out.append(float(y) - float(d) * (1 - g) if g >= 0.5 else float(x) + float(d) * g)
     return out
-
-
-def _median(a: np.ndarray) -> np.floating:
-    """``np.median(a)`` bit for bit, faster for a 1-D float array; anything else goes to
-    np.median."""
-    if a.ndim != 1 or a.dtype.kind != "f" or a.size == 0:
-        return np.median(a)
-    n = a.size
-    k = n // 2
-    if n % 2:
-        p = np.partition(a, k if k == n - 1 else (k, n - 1))
-        return p.dtype.type(np.nan) if np.isnan(p[-1]) else p[k]
-    p = np.partition(a, (k - 1, k) if k == n - 1 else (k - 1, k, n - 1))
-    return p.dtype.type(np.nan) if np.isnan(p[-1]) else np.mean(p[k - 1 : k + 1])
 
 
 def _drop_kept(
@@ -1007,7 +994,7 @@ class Detector:
             P_rov = transform_points(T_rover_optical, rock.points_optical)
             # the centre: the visible surface's median, centre.range_factor x R farther along
             # the viewing ray (as STEREO_POINTS' MEDIAN estimator)
-            med = np.array([_median(P_rov[:, j].copy()) for j in range(3)])  # np.median(axis=0)
+            med = np.array([_median(P_rov[:, j]) for j in range(3)])  # np.median(axis=0)
             ray = med - ray_to
             p_rover = med + ray / (np.linalg.norm(ray) + 1e-12) * cfg.centre.range_factor * R_est
             p = transform_points(np.linalg.inv(T_rover_optical), p_rover[None])[0]
@@ -1226,7 +1213,7 @@ def _ray_frame(P: np.ndarray, cam_rover: np.ndarray):
     """The horizontal viewing ray from the camera `cam_rover` to the median of the
     points P (n, 3; rover frame): (fwd, perp) unit vectors along and across it, and each
     point's horizontal range along it and lateral offset across it."""
-    d = np.array([_median(P[:, 0].copy()), _median(P[:, 1].copy())]) - cam_rover[:2]
+    d = np.array([_median(P[:, 0]), _median(P[:, 1])]) - cam_rover[:2]
     n = float(np.hypot(d[0], d[1]))
     fwd = d / n if n > 1e-9 else np.array([1.0, 0.0])
     perp = np.array([-fwd[1], fwd[0]])

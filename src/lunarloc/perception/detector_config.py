@@ -307,8 +307,8 @@ class RulesConfig:
     # with classical.height_split_step_m 0.01, turns it on; docs/perception-status.md, "The
     # learned blob verifier", gives what it gains and costs)
     verifier_min_score: float = setting(0.0, ge=0.0, lt=1.0)
-    # verifier: ... a blob of estimated radius at least this is not judged (a large rock's plain
-    # face; the training sites hold few; m)
+    # verifier: ... a blob of estimated radius at least this is judged with
+    # verifier_large_min_score instead (a large rock's plain face; the training sites hold few; m)
     verifier_max_radius_m: float = setting(0.3, gt=0.0)
     # verifier: a tentative blob (mid-range, awaiting confirmation by a neighbouring frame) is
     # rejected when its score is under this (0 = tentatives not judged; only while

@@ -29,13 +29,13 @@ cannot come down. This stage finds such rocks in two steps:
    it (the largest connected patch standing ``min_snr`` noises high within one blob size),
    which must stand ``dark_min_snr`` noises high over ``dark_min_points`` pixels.
 3. **A learned judge** (``judge_min_score`` > 0; off by default: trained on sunlit sites, it
-   drops true rocks in scenes lit by the lamps alone; 0.92 is its trained threshold). The hand thresholds of step 2
-   cannot separate a 1-4 cm rock top from ring noise of 0.5-3.5 cm; with the judge on, step 2
-   keeps only floors (``judge_min_top_m``, ``judge_min_snr``, ``judge_dark_min_points``) and a
-   small network (``small_rock_judge.npz`` beside this module: the height-map verifier's
+   drops true rocks in scenes lit by the lamps alone; 0.92 is its trained threshold). The hand
+   thresholds of step 2 cannot separate a 1-4 cm rock top from ring noise of 0.5-3.5 cm; with
+   the judge on, step 2 keeps only floors (``judge_min_top_m``, ``judge_min_snr``,
+   ``judge_dark_min_points``) and a small network (``small_rock_judge.npz`` beside this module: the height-map verifier's
    :class:`~lunarloc.perception.verifier.BlobVerifier` format, plain arrays, numpy inference)
    scores each candidate above them from :func:`judge_features`: what the stage measured and
-   the appearance of the left image around the blob (the verifier's ``blob_features``). A
+   the appearance of the left image around the blob (the verifier's ``appearance_features``). A
    candidate scoring under ``judge_min_score`` is no rock (``reason`` ``"judged"``).
    ``benchmarks/train_small_rocks.py`` trains it on rendered sites labelled by the simulator.
 
@@ -49,15 +49,18 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 
 from lunarloc.core.configs import check_settings, setting
 from lunarloc.core.errors import ConfigError
+from lunarloc.core.stats import median as _median
 from lunarloc.perception.masks import InstanceMask
-from lunarloc.perception.verifier import FEATURE_NAMES as _VERIFIER_FEATURES
-from lunarloc.perception.verifier import BlobVerifier, blob_features
+from lunarloc.perception.verifier import (
+    APPEARANCE_FEATURES,
+    BlobVerifier,
+    appearance_features,
+)
 
 __all__ = [
     "JUDGE_FEATURES",
@@ -96,11 +99,10 @@ _STAGE_FEATURES = (
     "lowres_height_m",  # the height map's highest point around the candidate
     "tilt_cos",  # |cos| of the ring plane's angle to the view's ground plane
 )
-_APPEARANCE_FROM = _VERIFIER_FEATURES.index("mask_contrast")
 #: The judge's feature vector: the stage's measures, then the appearance of the left image
 #: around the candidate's blob as the height-map verifier measures it (grey statistics of
 #: blob and ring, gradients, orientation spread, a 4 x 4 normalised grey patch).
-JUDGE_FEATURES: tuple[str, ...] = _STAGE_FEATURES + _VERIFIER_FEATURES[_APPEARANCE_FROM:]
+JUDGE_FEATURES: tuple[str, ...] = _STAGE_FEATURES + APPEARANCE_FEATURES
 _PAIR_CAP = 10.0
 
 
@@ -261,7 +263,7 @@ def ground_plane(
     if len(P) < 50:
         return None
     for _ in range(2):
-        c = np.array([_median(P[:, j].copy()) for j in range(3)])  # np.median(P, axis=0)
+        c = np.array([_median(P[:, j]) for j in range(3)])  # np.median(P, axis=0)
         Q = P - c
         # the plane's normal: the scatter matrix's least eigenvector (as the SVD's last right
         # singular vector, without the (N, 3) left factor)
@@ -513,18 +515,6 @@ def _quantiles(x: np.ndarray, q0: float, q1: float) -> tuple[float, float]:
         float(p[i0] + (f0 - i0) * (p[j0] - p[i0])),
         float(p[i1] + (f1 - i1) * (p[j1] - p[i1])),
     )
-
-
-def _median(x: np.ndarray) -> float:
-    """np.median(x) of a 1-D float array without NaN, value for value, by one partition (in
-    place: `x` is reordered)."""
-    n = x.size
-    k = n // 2
-    if n % 2:
-        x.partition(k)
-        return float(x[k])
-    x.partition((k - 1, k))
-    return float((x[k - 1] + x[k]) / 2)
 
 
 def _robust_spread(r: np.ndarray) -> tuple[float, float]:
@@ -1006,23 +996,9 @@ def judge_features(
         lowres_height_m if np.isfinite(lowres_height_m) else 0.0,
         tilt_cos,
     ]
-    # the appearance features of the height-map verifier (its geometric ones are not used)
-    geo = SimpleNamespace(
-        depth_m=rock.depth_m,
-        radius_m=0.5 * width,
-        size_m=width,
-        eig_ratio=1.0,
-        height_m=top,
-        height_front_m=np.nan,
-        height_ring_m=np.nan,
-        height_quadric_m=np.nan,
-        nearer_ring_fraction=np.nan,
-        extension_ratio=np.nan,
-        disparity_roughness=np.nan,
-        tentative=False,
-    )
-    app = blob_features(geo, left, InstanceMask(int(u0), int(v0), np.asarray(crop, bool)))
-    x = np.concatenate([np.asarray(stage, float), app[_APPEARANCE_FROM:]])
+    # the appearance features of the height-map verifier
+    app = appearance_features(left, InstanceMask(int(u0), int(v0), np.asarray(crop, bool)))
+    x = np.concatenate([np.asarray(stage, float), app])
     return np.where(np.isfinite(x), x, 0.0)
 
 

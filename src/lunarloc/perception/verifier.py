@@ -18,9 +18,11 @@ scikit-learn by ``benchmarks/train_verifier.py`` on blobs of rendered LAC-look s
 by the simulator's truth, maps the standardised features to P(rock). The model ships as plain
 arrays (``verifier_model.npz`` beside this module: feature means and scales, the layers'
 weights; no pickle) and runs with numpy (:class:`BlobVerifier`). The detector rejects a blob
-scoring under ``DetectorConfig.rules.verifier_min_score`` (0 = off). It judges firm blobs
-only (a tentative one is judged by a neighbouring frame's firm detection) of estimated radius
-under ``rules.verifier_max_radius_m``.
+scoring under a threshold that depends on the blob (:func:`verifier_threshold`:
+``DetectorConfig.rules.verifier_min_score`` for a firm blob of estimated radius under
+``rules.verifier_max_radius_m``, ``verifier_tentative_min_score`` for a tentative one,
+``verifier_large_min_score`` for a larger one; ``verifier_min_score`` 0, the default, turns
+the verifier off).
 """
 
 from __future__ import annotations
@@ -32,15 +34,17 @@ from pathlib import Path
 
 import numpy as np
 
-from lunarloc.core.errors import InputError
+from lunarloc.core.errors import InputError, import_cv2
 from lunarloc.perception.masks import InstanceMask
 
 __all__ = [
+    "APPEARANCE_FEATURES",
     "FEATURE_NAMES",
     "GEOMETRIC_FIELDS",
     "MODEL_PATH",
     "Z_CLIP",
     "BlobVerifier",
+    "appearance_features",
     "blob_features",
     "default_verifier",
     "verifier_threshold",
@@ -98,6 +102,8 @@ FEATURE_NAMES: tuple[str, ...] = (
     + _APPEARANCE
     + tuple(f"patch_{i}" for i in range(_PATCH * _PATCH))
 )
+#: The names of :func:`appearance_features`, the image-only tail of FEATURE_NAMES.
+APPEARANCE_FEATURES: tuple[str, ...] = FEATURE_NAMES[FEATURE_NAMES.index("mask_contrast") :]
 
 
 def _q(a: np.ndarray, q: float) -> float:
@@ -117,14 +123,7 @@ def blob_features(det, image: np.ndarray, mask: InstanceMask) -> np.ndarray:
     geometric measures (any object with the attributes GEOMETRIC_FIELDS and ``tentative``,
     e.g. a Detection), `image` is the left grey image (H, W; uint8) and `mask` the blob's
     mask in it."""
-    import cv2
-
-    img = np.asarray(image)
-    if img.ndim != 2:
-        raise InputError(f"blob_features: expected a grey image (H, W), got {img.shape}")
-    crop = np.asarray(mask.crop, bool)
-    if not crop.any():
-        raise InputError("blob_features: empty mask")
+    img, crop = _checked(image, mask)
     g = [float(getattr(det, f)) for f in GEOMETRIC_FIELDS]
     geo = dict(zip(GEOMETRIC_FIELDS, g))
     out = [_finite(v) for v in g]
@@ -137,6 +136,34 @@ def blob_features(det, image: np.ndarray, mask: InstanceMask) -> np.ndarray:
         _finite(geo["height_quadric_m"]) / R,
         top - _finite(geo["height_ring_m"]),
     ]
+    x = np.asarray(out + _appearance(img, crop, mask), float)
+    return np.where(np.isfinite(x), x, 0.0)
+
+
+def appearance_features(image: np.ndarray, mask: InstanceMask) -> np.ndarray:
+    """The image-only part of :func:`blob_features` (APPEARANCE_FEATURES: grey statistics of
+    the mask and its ring, gradients, orientation spread, the grey patch) of the left grey
+    image (H, W; uint8) around `mask`."""
+    img, crop = _checked(image, mask)
+    x = np.asarray(_appearance(img, crop, mask), float)
+    return np.where(np.isfinite(x), x, 0.0)
+
+
+def _checked(image: np.ndarray, mask: InstanceMask) -> tuple[np.ndarray, np.ndarray]:
+    """The grey image and the mask's boolean crop, or InputError."""
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise InputError(f"blob_features: expected a grey image (H, W), got {img.shape}")
+    crop = np.asarray(mask.crop, bool)
+    if not crop.any():
+        raise InputError("blob_features: empty mask")
+    return img, crop
+
+
+def _appearance(img: np.ndarray, crop: np.ndarray, mask: InstanceMask) -> list[float]:
+    """The appearance features (APPEARANCE_FEATURES) of the mask `crop` at (mask.u0, mask.v0)
+    in the grey image `img`."""
+    cv2 = import_cv2()
     # a window around the mask: the mask, a ring of ground about half its size wide
     H, W = img.shape
     h, w = crop.shape
@@ -170,7 +197,7 @@ def blob_features(det, image: np.ndarray, mask: InstanceMask) -> np.ndarray:
     )
     hist = hist / (hist.sum() + 1e-9)
     nz = hist[hist > 0]
-    out += [
+    out = [
         (float(m_px.mean()) - float(r_px.mean())) / r_sp,
         (m95 - m5) / r_sp,
         (m95 - r50) / r_sp,
@@ -187,9 +214,7 @@ def blob_features(det, image: np.ndarray, mask: InstanceMask) -> np.ndarray:
     ]
     # the grey patch: the window resampled, normalised by the ring's median and spread
     patch = cv2.resize(win, (_PATCH, _PATCH), interpolation=cv2.INTER_AREA)
-    out += list(((patch - r50) / r_sp).ravel().astype(float))
-    x = np.asarray(out, float)
-    return np.where(np.isfinite(x), x, 0.0)
+    return out + list(((patch - r50) / r_sp).ravel().astype(float))
 
 
 @dataclass(frozen=True)
