@@ -872,13 +872,14 @@ class OnlineLocalizer:
         covariance of its newest keyframe (this tick's, whose estimate is ``T_map_rover``) under
         its noise model plus the vertical part of the centre bias the fix's window of rocks
         shares (:func:`window_centre_bias_covariance`: detected centres sit on the rocks' tops
-        from every side, so the graph's per-rock bias averages it away where the horizontal part,
-        seen from the many headings of its active window, does average), when the fix's solve
-        gave one (``covariance_source = "graph"``); else the covariance the loop states for the
-        fix at the rover. The graph's estimate is not the fix (docs/calibration.md, "(b)
+        from every side, so the vertical bias does not average out over the many headings of
+        the graph's active window as the horizontal one does), when the fix's solve gave one
+        (``covariance_source = "graph"``); else the covariance the loop states for the fix at
+        the rover. The graph's estimate is not the fix (docs/calibration.md, "(b)
         OnlineLocalizer along image-built runs")."""
-        C = self.loop.graph.newest_covariance
-        if self.config.covariance_source == "graph" and C is not None:
+        graph = self.config.covariance_source == "graph"
+        C = self.loop.graph.newest_covariance if graph else None  # a sparse solve: only if used
+        if C is not None:
             B = window_centre_bias_covariance(attempt.fix_maps_from_detections, self._loop_config)
             xyz, yaw_var = C[:3, :3] + np.diag([0.0, 0.0, B[2, 2]]), C[3, 3]
         else:
