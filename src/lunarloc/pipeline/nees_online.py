@@ -63,24 +63,23 @@ def nees(error_xyz, covariance_xyz) -> np.ndarray:
     return out
 
 
-def nees_shares(values: Iterable[float]) -> tuple[int, float, float]:
+def nees_shares(
+    values: Iterable[float], quantiles: tuple[float, float] = (NEES_68, NEES_997)
+) -> tuple[int, float, float]:
     """(cases, share under 3.53, share under 14.16) of the finite NEES values (NaN shares for
-    none)."""
+    none); `quantiles` for another number of degrees of freedom."""
     v = np.asarray(list(values), float)
     v = v[np.isfinite(v)]
     if not len(v):
         return 0, math.nan, math.nan
-    return len(v), float(np.mean(v < NEES_68)), float(np.mean(v < NEES_997))
+    lo, hi = quantiles
+    return len(v), float(np.mean(v < lo)), float(np.mean(v < hi))
 
 
 def yaw_nees_shares(values: Iterable[float]) -> tuple[int, float, float]:
     """(cases, share under 1.0, share under 9.0) of the finite 1-dof NEES values (a heading's:
     ``(error / sigma)^2``; NaN shares for none)."""
-    v = np.asarray(list(values), float)
-    v = v[np.isfinite(v)]
-    if not len(v):
-        return 0, math.nan, math.nan
-    return len(v), float(np.mean(v < NEES1_68)), float(np.mean(v < NEES1_997))
+    return nees_shares(values, (NEES1_68, NEES1_997))
 
 
 def _fix_record(a, loop_config, **extra) -> dict:
