@@ -300,8 +300,19 @@ class StereoVisualOdometry:
         self._prev_left = None
         self._last_motion = np.eye(4)  # rover motion of the last frame (constant-velocity model)
         self.last_inliers = 0
-        # 6x6 covariance of the last pair's visual step (None: not a visual step)
-        self.last_step_covariance: np.ndarray | None = None
+        # the last visual step's covariance inputs, and the covariance once computed from them
+        # (last_step_covariance: computed when read, so trackers that never read it skip it)
+        self._step_inputs: tuple | None = None
+        self._step_cov: np.ndarray | None = None
+
+    @property
+    def last_step_covariance(self) -> np.ndarray | None:
+        """6x6 covariance of the last pair's visual step (:meth:`_step_covariance`; None: not a
+        visual step)."""
+        if self._step_inputs is not None:
+            self._step_cov = self._step_covariance(*self._step_inputs)
+            self._step_inputs = None
+        return self._step_cov
 
     def update(
         self, left: np.ndarray, right: np.ndarray, prior_T_prev_curr: np.ndarray | None = None
@@ -332,7 +343,7 @@ class StereoVisualOdometry:
             if prior is not None
             else (self._last_motion if self.config.constant_velocity else np.eye(4))
         )
-        self.last_step_covariance = None
+        self._step_inputs = self._step_cov = None
         T_new = self._track(left, T_prev @ predicted, prior)
         if T_new is None:
             T_new = T_prev @ (prior if prior is not None else np.eye(4))
@@ -606,19 +617,25 @@ class StereoVisualOdometry:
         kf.points_kf = kf.points_kf[keep]
         kf.uv = uv[keep].astype(np.float32)
         self.last_inliers = len(inl)
-        self.last_step_covariance = self._step_covariance(
-            obj[inl], img[inl], rvec, tvec, kf.T_odo_rover
+        self._step_inputs = (
+            obj[inl],
+            img[inl],
+            rvec,
+            tvec,
+            kf.T_odo_rover.copy(),
+            invert_transform(self.T_odo_rover),
         )
         return T_odo_new
 
-    def _step_covariance(self, obj, img, rvec, tvec, T_odo_kf) -> np.ndarray | None:
+    def _step_covariance(self, obj, img, rvec, tvec, T_odo_kf, T_rover_prev) -> np.ndarray | None:
         """6x6 covariance of this pair's rover motion since the previous pair (translation x,
         y, z in m, then rotation vector in rad, both in the previous rover frame), from the
         PnP inliers: each track's pixel noise (their residuals' spread, at least
         `step_sigma_floor_px`) plus its keyframe depth's error along the ray (disparity
         error `stereo_disparity_sigma_px`: far points weigh little), through the pose's
         Jacobian. The keyframe's pose is taken as exact, so a step from a keyframe older than
-        the previous pair carries the whole keyframe-to-pair uncertainty."""
+        the previous pair carries the whole keyframe-to-pair uncertainty. `T_rover_prev`: the
+        previous pair's pose, inverted."""
         cv2, c = self._cv2, self.config
         proj, J = cv2.projectPoints(obj, rvec, tvec, self.K, None)
         J = J[:, :6].reshape(-1, 2, 6)  # per point: d(u, v) / d(rvec, tvec)
@@ -641,7 +658,6 @@ class StereoVisualOdometry:
             cov_pose = np.linalg.inv(info)
         except np.linalg.LinAlgError:
             return None
-        T_rover_prev = invert_transform(self.T_odo_rover)
 
         def step(x):
             R, _ = cv2.Rodrigues(x[:3].reshape(3, 1))
