@@ -61,13 +61,14 @@ def _fmt_yaw(v) -> str:
 
 def _table(recs, key: str) -> None:
     own = "localize()'s own covariance"
-    print(f"{key:>8}  {'stated covariance':<42}  {own:<42}  yaw (1 dof)")
+    print(f"{key:>8}  {'stated covariance':<42}  {own:<42}  yaw stated (1 dof)    yaw own")
     groups = [(g, [r for r in recs if r[key] == g]) for g in sorted({r[key] for r in recs})]
     groups += [("all", recs), ("accepted", [r for r in recs if r["accepted"]])]
     for g, rs in groups:
         print(
             f"{g:>8}  {_fmt([r['nees'] for r in rs]):<42}  "
             f"{_fmt([r['nees_localize'] for r in rs]):<42}  {_fmt_yaw([r['nees_yaw'] for r in rs])}"
+            f"  {_fmt_yaw([r.get('nees_yaw_localize', np.nan) for r in rs])}"
         )
 
 

@@ -497,6 +497,7 @@ class _Problem:
             tilt_deg=math.degrees(tilt_angle(R)),
             distortion_error_m=float(b.distortion.max()),
             predicted_rotation_deg=b.pred_rot_deg,
+            distortion_rotation_deg=math.degrees(float(b.distortion_rot.max())),
             near_misses=b.near,
             near_misses_expected=b.near_exp,
             covariance=covariance_at_origin(b.C_c, b.centre_ref)

@@ -24,6 +24,10 @@ class LocalizationResult:
         distortion allowance (when there is one) taken as one sigma of horizontal position
         and yaw at the query point where the predicted error is largest
         (:func:`distortion_covariance`).
+    distortion_rotation_deg : the rotation part of that allowance (1 sigma of yaw, degrees; the
+        heading drift of the odometry bounds over the path between the inliers and the query,
+        or the fitted bend's): ``covariance[5, 5]`` holds its square on top of the
+        registration's yaw variance (none when the allowance is not finite).
     near_misses : vehicle landmarks that land just outside the inlier radius of a reference
         rock (``refinement.radius_m`` .. ``acceptance.near_miss_outer_m``), against
         ``near_misses_expected``
@@ -46,6 +50,7 @@ class LocalizationResult:
     tilt_deg: float = float("nan")
     distortion_error_m: float = float("nan")
     predicted_rotation_deg: float = float("nan")
+    distortion_rotation_deg: float = float("nan")
     near_misses: int = 0
     near_misses_expected: float = float("nan")
     covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
@@ -91,6 +96,7 @@ class LocalizationResult:
             "tilt_deg": clean(float(self.tilt_deg)),
             "distortion_error_m": clean(float(self.distortion_error_m)),
             "predicted_rotation_deg": clean(float(self.predicted_rotation_deg)),
+            "distortion_rotation_deg": clean(float(self.distortion_rotation_deg)),
             "near_misses": int(self.near_misses),
             "near_misses_expected": clean(float(self.near_misses_expected)),
             "covariance": [[clean(float(v)) for v in row] for row in self.covariance],

@@ -199,10 +199,14 @@ class LoopConfig:
     # localize()'s registration covariance at the rover, its window distortion allowance (a
     # bound) counted as fix_distortion_sigmas sigmas, and the centre bias a window's few
     # neighbouring rocks share (per axis: horizontal, vertical; for two maps built from
-    # detections, half the variance for one): docs/calibration.md, "The online loop's uncertainty"
+    # detections, half the variance for one): docs/calibration.md, "The online loop's uncertainty".
+    # The heading likewise (Attempt.fix_sigma_yaw_rad): the window's heading-drift allowance
+    # re-counted in fix_distortion_sigmas sigmas, and the turn of a centre bias that differs by
+    # fix_centre_bias_spread_m across the window's inliers (over their rms radius)
     fix_distortion_sigmas: float = 1.0
     fix_centre_bias_m: float = 0.0
     fix_centre_bias_z_m: float = 0.0
+    fix_centre_bias_spread_m: float = 0.0
 
     def __post_init__(self) -> None:
         for name in (
@@ -218,7 +222,12 @@ class LoopConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and 0 < v < math.inf):
                 raise ConfigError(f"{name}={v!r} must be positive and finite")
-        for name in ("crop_margin_m", "fix_centre_bias_m", "fix_centre_bias_z_m"):
+        for name in (
+            "crop_margin_m",
+            "fix_centre_bias_m",
+            "fix_centre_bias_z_m",
+            "fix_centre_bias_spread_m",
+        ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v < math.inf):
                 raise ConfigError(f"{name}={v!r} must be >= 0 and finite")
@@ -363,9 +372,11 @@ class Attempt:
     # covariance localize() states for it at the rover (m^2): what a NEES of the fixes needs
     fix_error_xyz: list | None = None
     fix_covariance_xyz: list | None = None
-    fix_sigma_yaw_rad: float = float("nan")  # the yaw sigma localize() states for the fix
+    # the yaw sigma stated for the fix: localize()'s with the loop's model (fix_stated_yaw_variance)
+    fix_sigma_yaw_rad: float = float("nan")
     fix_error_yaw_rad: float = float("nan")  # fix - ground truth yaw (evaluation only)
     fix_distortion_m: float = float("nan")  # localize()'s distortion allowance at the rover (m)
+    fix_distortion_yaw_rad: float = float("nan")  # ... and its rotation part (rad, one sigma)
     fix_maps_from_detections: int = 0  # of the two maps, those built from detections (sightings)
     time_mapping_s: float = 0.0
     time_association_s: float = 0.0
@@ -807,7 +818,10 @@ class LoopState:
         att.fix_covariance_xyz = fix_stated_covariance(
             res, fix4[:3], att.fix_maps_from_detections, cfg
         ).tolist()
-        att.fix_sigma_yaw_rad = math.sqrt(max(float(res.covariance[5, 5]), 0.0))
+        att.fix_distortion_yaw_rad = math.radians(float(res.distortion_rotation_deg))
+        att.fix_sigma_yaw_rad = math.sqrt(
+            fix_stated_yaw_variance(res, Vp, att.fix_maps_from_detections, cfg)
+        )
         T_true = self.T_map_rover_true[-1]
         if T_true is not None:
             att.fix_error_m = float(np.linalg.norm(fix4[:3] - T_true[:3, 3]))
@@ -999,6 +1013,51 @@ def fix_stated_covariance(
     half the number of the two maps built from detections."""
     C = fix_position_covariance(res.covariance, point_xyz)
     return C + fix_model_terms(res.distortion_error_m, maps_from_detections, config)
+
+
+def window_yaw_bias_variance(
+    inliers_xyz, maps_from_detections: int, config: LoopConfig
+) -> float:
+    """The turn of a window's shared centre bias (rad^2): a bias that differs by
+    ``fix_centre_bias_spread_m`` from one side of the inliers to the other turns the fit by
+    about that over their rms horizontal radius about their centroid (a compact window turns
+    most), for each map built from detections (half the variance where one is). Infinite when
+    the inliers coincide horizontally; 0 without a spread."""
+    b = config.fix_centre_bias_spread_m
+    if not b > 0 or not maps_from_detections:
+        return 0.0
+    P = np.asarray(inliers_xyz, float).reshape(-1, 3)[:, :2]
+    r2 = float(np.mean(np.sum((P - P.mean(axis=0)) ** 2, axis=1))) if len(P) else 0.0
+    return maps_from_detections / 2 * b * b / r2 if r2 > 0 else math.inf
+
+
+def fix_model_yaw_variance(
+    distortion_yaw_rad: float, inliers_xyz, maps_from_detections: int, config: LoopConfig
+) -> float:
+    """What :func:`fix_stated_yaw_variance` adds to localize()'s yaw variance (rad^2, may be
+    negative): the window's heading-drift allowance re-counted in ``fix_distortion_sigmas``
+    sigmas and the turn of the window's centre bias (:func:`window_yaw_bias_variance`)."""
+    d = float(distortion_yaw_rad)
+    k = 1.0 / config.fix_distortion_sigmas**2 - 1.0
+    dd = k * d * d if math.isfinite(d) and d > 0 else 0.0
+    return dd + window_yaw_bias_variance(inliers_xyz, maps_from_detections, config)
+
+
+def fix_stated_yaw_variance(
+    res, inliers_xyz, maps_from_detections: int, config: LoopConfig
+) -> float:
+    """The yaw variance (rad^2) a loop fix is stated with: localize()'s (``covariance[5, 5]``:
+    the registration's, the whole maps' shared bias and the window's heading-drift allowance
+    ``res.distortion_rotation_deg`` as one sigma) with that allowance counted as
+    ``config.fix_distortion_sigmas`` sigmas, as the position's is, plus the turn of the
+    window's shared centre bias over its inliers `inliers_xyz` (n, 3)."""
+    v = float(res.covariance[5, 5])
+    d = math.radians(float(res.distortion_rotation_deg))
+    # localize() adds no allowance where it is not finite (distortion_covariance)
+    if not (math.isfinite(d) and math.isfinite(float(res.distortion_error_m))):
+        d = 0.0
+    v += fix_model_yaw_variance(d, inliers_xyz, maps_from_detections, config)
+    return max(v, 0.0)
 
 
 def stated_sigmas(m: LandmarkMap) -> tuple[np.ndarray, np.ndarray]:

@@ -84,11 +84,18 @@ def yaw_nees_shares(values: Iterable[float]) -> tuple[int, float, float]:
 
 def _fix_record(a, loop_config, **extra) -> dict:
     """One successful localization's record (:func:`loop_fix_records`)."""
-    from lunarloc.online.loop import fix_model_terms
+    from lunarloc.online.loop import fix_model_terms, fix_model_yaw_variance
 
     e, C = np.array(a.fix_error_xyz), np.array(a.fix_covariance_xyz)
     C0 = C - fix_model_terms(a.fix_distortion_m, a.fix_maps_from_detections, loop_config)
     ey, sy = float(a.fix_error_yaw_rad), float(a.fix_sigma_yaw_rad)
+    inl = np.asarray(a.inlier_vehicle_xyz or np.zeros((0, 3)), float).reshape(-1, 3)
+    model_yaw = fix_model_yaw_variance(
+        a.fix_distortion_yaw_rad, inl, a.fix_maps_from_detections, loop_config
+    )
+    sy0 = math.sqrt(max(sy * sy - model_yaw, 0.0))
+    X = inl[:, :2] - inl[:, :2].mean(axis=0) if len(inl) else np.full((1, 2), math.nan)
+    r = float(np.sqrt(np.mean(np.sum(X**2, axis=1))))
     return {
         **extra,
         "keyframe": a.keyframe,
@@ -103,10 +110,18 @@ def _fix_record(a, loop_config, **extra) -> dict:
         # localize()'s own covariance at the rover, before the loop's model
         "covariance_localize_xyz": C0.tolist(),
         "nees_localize": float(nees(e, C0)[0]),
+        "maps_from_detections": a.fix_maps_from_detections,
         # the heading: error (rad) and the sigma stated for it; 1-dof NEES
         "error_yaw_rad": ey,
         "sigma_yaw_rad": sy,
         "nees_yaw": (ey / sy) ** 2 if sy > 0 else math.nan,
+        # localize()'s own yaw sigma (before the loop's model, fix_model_yaw_variance), its
+        # heading-drift allowance and the inliers' rms horizontal radius (m)
+        "sigma_yaw_localize_rad": sy0,
+        "nees_yaw_localize": (ey / sy0) ** 2 if sy0 > 0 else math.nan,
+        "distortion_yaw_rad": a.fix_distortion_yaw_rad,
+        "inlier_radius_m": r,
+        "heading_yaw_rad": a.fix_yaw_rad,
     }
 
 
