@@ -13,8 +13,11 @@ from lunarloc.online.loop import (
     LoopConfig,
     OdometryBounds,
     fix_model_terms,
+    fix_model_yaw_variance,
     fix_stated_covariance,
+    fix_stated_yaw_variance,
     window_centre_bias_covariance,
+    window_yaw_bias_variance,
 )
 from lunarloc.pipeline.nees_online import (
     NEES1_68,
@@ -85,8 +88,9 @@ def test_propagation_grows_along_and_across_the_chord():
 
 
 class _Res:
-    def __init__(self, C, d):
+    def __init__(self, C, d, rot_deg=0.0):
         self.covariance, self.distortion_error_m = C, d
+        self.distortion_rotation_deg = rot_deg
 
 
 def test_a_fix_states_its_distortion_in_sigmas_and_the_window_centre_bias():
@@ -104,6 +108,33 @@ def test_a_fix_states_its_distortion_in_sigmas_and_the_window_centre_bias():
         LoopConfig(fix_distortion_sigmas=0.0)
     with pytest.raises(ConfigError):
         LoopConfig(fix_centre_bias_m=-1.0)
+
+
+def test_a_fix_states_its_heading_drift_in_sigmas_and_the_windows_turn():
+    # localize()'s yaw variance: the registration's (1e-6) and a 0.2 degree allowance
+    rot = math.radians(0.2)
+    C = np.zeros((6, 6))
+    C[5, 5] = 1e-6 + rot**2
+    square = np.array([[-2.0, -2.0, 0.0], [2.0, -2.0, 0.0], [2.0, 2.0, 0.0], [-2.0, 2.0, 0.0]])
+    cfg = LoopConfig(fix_distortion_sigmas=2.0, fix_centre_bias_spread_m=0.01)
+    # rms radius of the square's corners about their centroid: sqrt(8) m
+    assert window_yaw_bias_variance(square, 2, cfg) == pytest.approx(0.01**2 / 8)
+    assert window_yaw_bias_variance(square, 1, cfg) == pytest.approx(0.01**2 / 16)
+    assert window_yaw_bias_variance(square, 0, cfg) == 0.0
+    assert window_yaw_bias_variance(square[:1], 2, cfg) == math.inf  # one point: no turn known
+    v = fix_stated_yaw_variance(_Res(C, 0.05, 0.2), square, 2, cfg)
+    assert v == pytest.approx(1e-6 + (rot / 2) ** 2 + 0.01**2 / 8)
+    # a wider window turns less; what the model adds is the stated less localize()'s
+    assert fix_stated_yaw_variance(_Res(C, 0.05, 0.2), 2 * square, 2, cfg) < v
+    assert v - C[5, 5] == pytest.approx(fix_model_yaw_variance(rot, square, 2, cfg))
+    # no allowance where localize() added none (not finite): the registration's alone
+    C[5, 5] = 1e-6
+    inf = fix_stated_yaw_variance(_Res(C, math.inf, math.inf), square, 0, cfg)
+    assert inf == pytest.approx(1e-6)
+    # the defaults (one sigma, no spread) state localize()'s own
+    assert fix_stated_yaw_variance(_Res(C, 0.05, 0.0), square, 2, LoopConfig()) == 1e-6
+    with pytest.raises(ConfigError):
+        LoopConfig(fix_centre_bias_spread_m=-0.01)
 
 
 def test_nees_shares_count_the_finite_cases():
@@ -160,6 +191,16 @@ def test_a_fix_record_judges_the_heading_against_its_stated_sigma():
     a.fix_error_yaw_rad, a.fix_sigma_yaw_rad = 0.004, 0.002
     r = _fix_record(a, cfg, site="seed_1")
     assert r["nees_yaw"] == pytest.approx(4.0) and r["site"] == "seed_1"
+    # no heading model in cfg: localize()'s own yaw sigma is the stated one
+    assert r["nees_yaw_localize"] == pytest.approx(4.0)
+    # a window's turn: localize()'s own is the stated less it, over the inliers' radius
+    a.inlier_vehicle_xyz = [[-3.0, 0.0, 0.0], [3.0, 0.0, 0.0]]
+    a.fix_distortion_yaw_rad = 0.0
+    cfg_yaw = LoopConfig(fix_centre_bias_spread_m=0.006)
+    r2 = _fix_record(a, cfg_yaw, site="seed_1")
+    assert r2["inlier_radius_m"] == pytest.approx(3.0)
+    own = math.sqrt(0.002**2 - 0.006**2 / 9 / 2)
+    assert r2["sigma_yaw_localize_rad"] == pytest.approx(own)
     assert r["nees"] == pytest.approx(0.1)
     # localize()'s own covariance: the stated one less the window centre bias
     assert np.allclose(r["covariance_localize_xyz"], np.eye(3) * (1e-3 - 0.02**2 / 2))

@@ -1015,9 +1015,7 @@ def fix_stated_covariance(
     return C + fix_model_terms(res.distortion_error_m, maps_from_detections, config)
 
 
-def window_yaw_bias_variance(
-    inliers_xyz, maps_from_detections: int, config: LoopConfig
-) -> float:
+def window_yaw_bias_variance(inliers_xyz, maps_from_detections: int, config: LoopConfig) -> float:
     """The turn of a window's shared centre bias (rad^2): a bias that differs by
     ``fix_centre_bias_spread_m`` from one side of the inliers to the other turns the fit by
     about that over their rms horizontal radius about their centroid (a compact window turns
