@@ -116,7 +116,7 @@ def test_a_fix_states_its_heading_drift_in_sigmas_and_the_windows_turn():
     C = np.zeros((6, 6))
     C[5, 5] = 1e-6 + rot**2
     square = np.array([[-2.0, -2.0, 0.0], [2.0, -2.0, 0.0], [2.0, 2.0, 0.0], [-2.0, 2.0, 0.0]])
-    cfg = LoopConfig(fix_distortion_sigmas=2.0, fix_centre_bias_spread_m=0.01)
+    cfg = LoopConfig(fix_heading_drift_sigmas=2.0, fix_centre_bias_spread_m=0.01)
     # rms radius of the square's corners about their centroid: sqrt(8) m
     assert window_yaw_bias_variance(square, 2, cfg) == pytest.approx(0.01**2 / 8)
     assert window_yaw_bias_variance(square, 1, cfg) == pytest.approx(0.01**2 / 16)
@@ -135,6 +135,8 @@ def test_a_fix_states_its_heading_drift_in_sigmas_and_the_windows_turn():
     assert fix_stated_yaw_variance(_Res(C, 0.05, 0.0), square, 2, LoopConfig()) == 1e-6
     with pytest.raises(ConfigError):
         LoopConfig(fix_centre_bias_spread_m=-0.01)
+    with pytest.raises(ConfigError):
+        LoopConfig(fix_heading_drift_sigmas=0.0)
 
 
 def test_nees_shares_count_the_finite_cases():

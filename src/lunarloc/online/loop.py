@@ -201,11 +201,12 @@ class LoopConfig:
     # neighbouring rocks share (per axis: horizontal, vertical; for two maps built from
     # detections, half the variance for one): docs/calibration.md, "The online loop's uncertainty".
     # The heading likewise (Attempt.fix_sigma_yaw_rad): the window's heading-drift allowance
-    # re-counted in fix_distortion_sigmas sigmas, and the turn of a centre bias that differs by
+    # counted as fix_heading_drift_sigmas sigmas, and the turn of a centre bias that differs by
     # fix_centre_bias_spread_m across the window's inliers (over their rms radius)
     fix_distortion_sigmas: float = 1.0
     fix_centre_bias_m: float = 0.0
     fix_centre_bias_z_m: float = 0.0
+    fix_heading_drift_sigmas: float = 1.0
     fix_centre_bias_spread_m: float = 0.0
 
     def __post_init__(self) -> None:
@@ -218,6 +219,7 @@ class LoopConfig:
             "keyframe_every_s",
             "keyframe_max_interval_s",
             "fix_distortion_sigmas",
+            "fix_heading_drift_sigmas",
         ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and 0 < v < math.inf):
@@ -1033,10 +1035,10 @@ def fix_model_yaw_variance(
     distortion_yaw_rad: float, inliers_xyz, maps_from_detections: int, config: LoopConfig
 ) -> float:
     """What :func:`fix_stated_yaw_variance` adds to localize()'s yaw variance (rad^2, may be
-    negative): the window's heading-drift allowance re-counted in ``fix_distortion_sigmas``
+    negative): the window's heading-drift allowance re-counted in ``fix_heading_drift_sigmas``
     sigmas and the turn of the window's centre bias (:func:`window_yaw_bias_variance`)."""
     d = float(distortion_yaw_rad)
-    k = 1.0 / config.fix_distortion_sigmas**2 - 1.0
+    k = 1.0 / config.fix_heading_drift_sigmas**2 - 1.0
     dd = k * d * d if math.isfinite(d) and d > 0 else 0.0
     return dd + window_yaw_bias_variance(inliers_xyz, maps_from_detections, config)
 
@@ -1047,8 +1049,8 @@ def fix_stated_yaw_variance(
     """The yaw variance (rad^2) a loop fix is stated with: localize()'s (``covariance[5, 5]``:
     the registration's, the whole maps' shared bias and the window's heading-drift allowance
     ``res.distortion_rotation_deg`` as one sigma) with that allowance counted as
-    ``config.fix_distortion_sigmas`` sigmas, as the position's is, plus the turn of the
-    window's shared centre bias over its inliers `inliers_xyz` (n, 3)."""
+    ``config.fix_heading_drift_sigmas`` sigmas, plus the turn of the window's shared centre
+    bias over its inliers `inliers_xyz` (n, 3)."""
     v = float(res.covariance[5, 5])
     d = math.radians(float(res.distortion_rotation_deg))
     # localize() adds no allowance where it is not finite (distortion_covariance)
