@@ -5,12 +5,16 @@ Usage
 -----
     python benchmarks/sim_heldout.py --seeds 400 401 402 403 404 405 [--style lac|default]
         [--duration 60] [--image-rate 0.5] [--out-dir bench-output/heldout] [--json OUT.json]
-        [--only off|on] [--config RUN.json]
+        [--only off|on] [--config RUN.json] [--lighting sun+lamps|lamps|sun]
 
 Each seed is one site and one traverse (index 0, the random plan, front stereo pair at
-1280x720, ``sun+lamps``). The sun changes with the seed so that the sites span the LAC's
-low sun: elevation ``(6, 12, 20)[seed % 3]`` degrees, azimuth ``(97 * seed) % 360``
-degrees. Archives are rendered once into ``--out-dir`` and reused.
+1280x720) under ``--lighting`` (the renderer's ``RenderConfig.lighting``; default
+``sun+lamps``; ``lamps``: the rover's lamps alone, a night site). The sun changes with the seed
+so that the sites span the LAC's low sun: elevation ``(6, 12, 20)[seed % 3]`` degrees,
+azimuth ``(97 * seed) % 360`` degrees; with ``lamps`` the renderer ignores the sun (no sun
+light, no sun ambient) and the name keeps the same recipe. Archives are rendered once into
+``--out-dir`` and reused; their names carry the lighting when it is not ``sun+lamps``
+(``site540_lac_lamps_el6_az100_60s.lac``), so the earlier ``sun+lamps`` archives keep theirs.
 
 The detector runs as ``bench_perception.py`` runs it (ground-truth rover poses, the lander
 dropped, the detector scaled to the archive's width): once with the configuration as
@@ -44,28 +48,45 @@ from lunarloc.perception.detector import DetectorConfig
 from lunarloc.pipeline.perception_eval import Accumulator, run_archive
 
 SUN_ELEVATIONS_DEG = (6.0, 12.0, 20.0)
+LIGHTINGS = ("sun+lamps", "lamps", "sun")
 
 
 def sun_of(seed: int) -> tuple[float, float]:
     return SUN_ELEVATIONS_DEG[seed % 3], float((97 * seed) % 360)
 
 
-def render(seed: int, style: str, duration: float, rate: float, out_dir: Path) -> Path:
+def archive_name(seed: int, style: str, duration: float, lighting: str = "sun+lamps") -> str:
+    """The archive's file name: the lighting appears when it is not ``sun+lamps``."""
+    el, az = sun_of(seed)
+    light = "" if lighting == "sun+lamps" else "_" + lighting.replace("+", "")
+    return f"site{seed}_{style}{light}_el{el:g}_az{az:g}_{duration:g}s.lac"
+
+
+def render(
+    seed: int,
+    style: str,
+    duration: float,
+    rate: float,
+    out_dir: Path,
+    lighting: str = "sun+lamps",
+) -> Path:
     from lunarloc.sim.render import RenderConfig
     from lunarloc.sim.simulate import SimulationConfig, simulate_site, simulate_traverse
     from lunarloc.sim.site import SiteConfig
 
     el, az = sun_of(seed)
-    p = out_dir / f"site{seed}_{style}_el{el:g}_az{az:g}_{duration:g}s.lac"
+    p = out_dir / archive_name(seed, style, duration, lighting)
     if not p.exists():
         sc = SimulationConfig(
             site=SiteConfig.lac_style() if style == "lac" else SiteConfig(),
             duration_s=duration,
             image_rate_hz=rate,
             cameras=("FrontLeft", "FrontRight"),
-            render=RenderConfig.lac_style(sun_elevation_deg=el, sun_azimuth_deg=az)
+            render=RenderConfig.lac_style(
+                sun_elevation_deg=el, sun_azimuth_deg=az, lighting=lighting
+            )
             if style == "lac"
-            else RenderConfig(sun_elevation_deg=el, sun_azimuth_deg=az),
+            else RenderConfig(sun_elevation_deg=el, sun_azimuth_deg=az, lighting=lighting),
         )
         out_dir.mkdir(parents=True, exist_ok=True)
         t0 = time.process_time()
@@ -100,10 +121,18 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--config", type=Path, default=None, help="a run configuration: its detector section"
     )
+    ap.add_argument(
+        "--lighting",
+        choices=LIGHTINGS,
+        default="sun+lamps",
+        help="the renderer's lighting (RenderConfig.lighting); lamps: the rover's lamps alone",
+    )
     ap.add_argument("--render-only", action="store_true", help="render the archives and stop")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
-    archives = [render(s, a.style, a.duration, a.image_rate, a.out_dir) for s in a.seeds]
+    archives = [
+        render(s, a.style, a.duration, a.image_rate, a.out_dir, a.lighting) for s in a.seeds
+    ]
     if a.render_only:
         return 0
     base = DetectorConfig()
@@ -134,7 +163,7 @@ def main(argv=None) -> int:
         groups[f"small rocks {name}"] = s
         out[name] = s
     print(
-        f"seeds {a.seeds} ({a.style} style); sun per seed: "
+        f"seeds {a.seeds} ({a.style} style, {a.lighting}); sun per seed: "
         + ", ".join(f"{s}: {sun_of(s)}" for s in a.seeds)
     )
     print_groups(groups)
@@ -152,6 +181,7 @@ def main(argv=None) -> int:
                 {
                     "seeds": a.seeds,
                     "style": a.style,
+                    "lighting": a.lighting,
                     "archives": [str(p) for p in archives],
                     "results": out,
                 },
