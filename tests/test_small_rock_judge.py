@@ -133,7 +133,7 @@ def test_the_judge_decides_the_candidates_that_pass_its_floors():
 
 
 def test_the_judge_is_off_by_default_and_on_asks_the_packaged_judge():
-    # off by default: trained on sunlit sites, it dropped true rocks under the lamps alone
+    # off by default (opt-in with the height-map verifier; docs/perception-status.md)
     assert SmallRockConfig().judge_min_score == 0.0
     cfg = SmallRockConfig(judge_min_score=0.92)
     x, z, rad, top = -0.2, 2.0, 0.02, 0.02
