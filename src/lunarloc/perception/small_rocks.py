@@ -142,6 +142,18 @@ class SmallRockConfig:
     max_candidates: int = setting(40, ge=0)
     # a candidate's box is at most this many times wider than tall
     max_aspect: float = setting(2.0, gt=0.0)
+    # look for candidates inside the height map's rejected blobs too (elongated, too large,
+    # duplicate, tentative, ...: a small rock on a hummock or beside a larger blob); its kept
+    # detections and the blobs judged no rock or on the lander stay excluded
+    inside_rejected: bool = setting(False)
+    # ... and inside its detections still to be confirmed across frames (tentative ones, and
+    # those on a crest): a small-rock detection there is firm and displaces them
+    inside_tentative: bool = setting(False)
+    # at most this many candidates per image from the height map itself (after those from
+    # appearance): its local peaks standing height_candidate_m above its local mean (a rock
+    # the image's contrast does not show; 0 = none)
+    height_candidates: int = setting(0, ge=0)
+    height_candidate_m: float = setting(0.01, gt=0.0)
     # candidates' range (optical depth from the height map, m)
     min_range_m: float = setting(0.8, gt=0.0)
     max_range_m: float = setting(6.0, gt=0.0)
@@ -425,6 +437,60 @@ def _blobs(z, sky, grid: _Grid, cfg, z_min: float, n_max: int, dark: bool) -> li
         out.append(
             ((xa + bx0) * k, (ya + by0) * k + grid.r0, full, float(d0[i]), dark, float(z[y, x]))
         )
+    return out
+
+
+def _height_candidates(height, D, kd, fx, fb, cfg, exclude, cands) -> list:
+    """Candidates (as _candidates') from the height map's heights `height` (its grid, 1/kd of
+    full resolution): its local peaks (5 x 5) standing cfg.height_candidate_m above the map's
+    local mean (a Gaussian of 3 cells, over its valid cells), within the candidates' range,
+    centred on no `exclude` pixel nor in another candidate's box, most prominent first; each
+    one's blob the cells around it above half its prominence and connected to it, sized as a
+    small rock at its range."""
+    import cv2
+
+    H, W = exclude.shape
+    h = np.asarray(height, np.float32)
+    ok = np.isfinite(h)
+    h0 = np.where(ok, h, 0).astype(np.float32)
+    wsum = cv2.GaussianBlur(ok.astype(np.float32), (0, 0), 3.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        prom = np.where(ok, h0 - cv2.GaussianBlur(h0, (0, 0), 3.0) / wsum, -1.0)
+    prom = prom.astype(np.float32)
+    peak = (prom >= cv2.dilate(prom, np.ones((5, 5), np.uint8))) & (prom >= cfg.height_candidate_m)
+    pv, pu = np.nonzero(peak)
+    if pv.size == 0:
+        return []
+    order = np.argsort(-prom[pv, pu], kind="stable")
+    boxes = [(u, v, u + c.shape[1], v + c.shape[0]) for u, v, c, *_ in cands]
+    out = []
+    for i in order[: 8 * cfg.height_candidates]:
+        if len(out) >= cfg.height_candidates:
+            break
+        y, x = int(pv[i]), int(pu[i])
+        d = float(D[y, x]) * kd
+        if not np.isfinite(d) or d <= 0:
+            continue
+        Z = fb / d
+        if not cfg.min_range_m <= Z <= cfg.max_range_m:
+            continue
+        cy_, cx_ = min(y * kd + kd // 2, H - 1), min(x * kd + kd // 2, W - 1)
+        if exclude[cy_, cx_] or any(a <= cx_ < c and b <= cy_ < e for a, b, c, e in boxes):
+            continue
+        half = int(np.clip(cfg.max_width_m * fx / Z / kd, 2, 20))
+        ya, yb = max(y - half, 0), min(y + half + 1, h.shape[0])
+        xa, xb = max(x - half, 0), min(x + half + 1, h.shape[1])
+        sub = (prom[ya:yb, xa:xb] > 0.5 * prom[y, x]).astype(np.uint8)
+        _, _, _, (bx0, by0, bw, bh) = cv2.floodFill(sub, None, (x - xa, y - ya), 2, flags=8)
+        c = sub[by0 : by0 + bh, bx0 : bx0 + bw] == 2
+        width = max(bw, bh) * kd * Z / fx
+        if not cfg.min_width_m <= width <= cfg.max_width_m:
+            continue
+        full = np.repeat(np.repeat(c, kd, axis=0), kd, axis=1)
+        u0, v0 = (xa + bx0) * kd, (ya + by0) * kd
+        full = full[: H - v0, : W - u0]
+        out.append((u0, v0, full, d, False, 0.0))
+        boxes.append((u0, v0, u0 + full.shape[1], v0 + full.shape[0]))
     return out
 
 
@@ -765,6 +831,10 @@ def detect_small_rocks(
     out: list[SmallRock] = []
     taken = np.zeros((H, W), bool) if exclude is None else exclude.copy()
     cands = _candidates(left, disparity_lowres, scale, camera.fx, baseline_m, cfg)
+    if cfg.height_candidates > 0 and height_lowres is not None:
+        cands += _height_candidates(
+            height_lowres, disparity_lowres, int(scale), camera.fx, fb, cfg, taken, cands
+        )
     use_judge = cfg.judge_min_score > 0
     floors = cfg
     if use_judge:
