@@ -325,3 +325,31 @@ def test_a_rock_the_image_does_not_show_is_found_by_the_height_candidates(seed):
     assert 0.5 * top < r.top_m < 1.5 * top and abs(r.depth_m - z) < 0.25
     bare_L, bare_R = _render(0.0, None, seed=seed)
     assert _small_rocks(bare_L, bare_R, cfg, True)[0] == []
+
+
+def test_the_candidate_limits_count_only_candidates_that_get_a_window():
+    """With count_checked (the default) a candidate centred on an excluded pixel (a height-map
+    blob) or failing the height map's pre-check takes no place within max_candidates: the
+    strongest blob excluded, the only place goes to the next one; without it the excluded blob
+    takes the place and the stage would match nothing."""
+    from dataclasses import replace
+
+    from lunarloc.perception.small_rocks import small_rock_candidates
+
+    L, R = _render(0.0, (0.3, 2.0, 0.025, 0.025), seed=8)
+    T_ro = ipex_rig(CAM)["FrontLeft"].T_rover_optical
+    hm = Detector(DetectorConfig(), CAM).height_map(L, R, T_ro)
+    one = SmallRockConfig(max_candidates=1, dark_contrast_z=0.0, min_lowres_height_m=0.0)
+
+    def centres(cfg, exclude=None):
+        cands = small_rock_candidates(
+            L, hm.disparity, hm.scale, CAM.fx, BASELINE_M, cfg, exclude, hm.height
+        )
+        return [(u0 + c.shape[1] // 2, v0 + c.shape[0] // 2) for u0, v0, c, *_ in cands]
+
+    ((u, v),) = centres(one)  # the strongest blob
+    exclude = np.zeros(L.shape, bool)
+    exclude[v - 20 : v + 20, u - 20 : u + 20] = True
+    assert centres(replace(one, count_checked=False), exclude) == [(u, v)]
+    ((u2, v2),) = centres(one, exclude)
+    assert not exclude[v2, u2]
