@@ -135,7 +135,7 @@ class SmallRockConfig:
     contrast_z: float = setting(1.5, gt=0.0)
     # a dark candidate (a shadow or a rock's unlit side) lies this many local contrasts below
     # its background (0 = bright candidates only)
-    dark_contrast_z: float = setting(1.5, ge=0.0)
+    dark_contrast_z: float = setting(2.0, ge=0.0)
     # pixels darker than this are sky (0-255)
     sky_level: int = setting(8, ge=0, le=255)
     # at most this many bright candidates per image (the strongest blobs)
