@@ -328,7 +328,7 @@ def test_a_rock_the_image_does_not_show_is_found_by_the_height_candidates(seed):
 
 
 def test_the_candidate_limits_count_only_candidates_that_get_a_window():
-    """With count_checked (the default) a candidate centred on an excluded pixel (a height-map
+    """With count_checked a candidate centred on an excluded pixel (a height-map
     blob) or failing the height map's pre-check takes no place within max_candidates: the
     strongest blob excluded, the only place goes to the next one; without it the excluded blob
     takes the place and the stage would match nothing."""
@@ -339,7 +339,9 @@ def test_the_candidate_limits_count_only_candidates_that_get_a_window():
     L, R = _render(0.0, (0.3, 2.0, 0.025, 0.025), seed=8)
     T_ro = ipex_rig(CAM)["FrontLeft"].T_rover_optical
     hm = Detector(DetectorConfig(), CAM).height_map(L, R, T_ro)
-    one = SmallRockConfig(max_candidates=1, dark_contrast_z=0.0, min_lowres_height_m=0.0)
+    one = SmallRockConfig(
+        max_candidates=1, dark_contrast_z=0.0, min_lowres_height_m=0.0, count_checked=True
+    )
 
     def centres(cfg, exclude=None):
         cands = small_rock_candidates(

@@ -132,7 +132,7 @@ class SmallRockConfig:
     # the local contrast: RMS of the difference of Gaussians over a window this wide (pixels)
     contrast_sigma_px: float = setting(8.0, gt=0.0)
     # a bright candidate stands this many local contrasts above its background
-    contrast_z: float = setting(1.5, gt=0.0)
+    contrast_z: float = setting(2.0, gt=0.0)
     # a dark candidate (a shadow or a rock's unlit side) lies this many local contrasts below
     # its background (0 = bright candidates only)
     dark_contrast_z: float = setting(2.0, ge=0.0)
@@ -145,14 +145,14 @@ class SmallRockConfig:
     # look for candidates inside the height map's rejected blobs too (elongated, too large,
     # duplicate, tentative, ...: a small rock on a hummock or beside a larger blob); its kept
     # detections and the blobs judged no rock or on the lander stay excluded
-    inside_rejected: bool = setting(True)
+    inside_rejected: bool = setting(False)
     # ... and inside its detections still to be confirmed across frames (tentative ones, and
     # those on a crest): a small-rock detection there is firm and displaces them
-    inside_tentative: bool = setting(True)
+    inside_tentative: bool = setting(False)
     # max_candidates and max_dark_candidates count only the candidates that get a window: centred
     # outside the height map's blobs (the exclusion) and passing the pre-check
     # (min_lowres_height_m); the others are passed over before they take a place
-    count_checked: bool = setting(True)
+    count_checked: bool = setting(False)
     # at most this many candidates per image from the height map itself (after those from
     # appearance): its local peaks standing height_candidate_m above its local mean (a rock
     # the image's contrast does not show; 0 = none)
