@@ -28,13 +28,15 @@ def _render(
     seed: int = 0,
     dark: bool = False,
     texture_std: float = 35.0,
+    plain: bool = False,
 ):
     """Left and right images (uint8) of a plane CAM_HEIGHT_M below the cameras, rolled by
     roll_deg about the optical axis, with an optional rock: a sphere (x_m, z_m, radius_m,
     top_m) standing top_m above the plane at lateral x_m and depth z_m (before the roll).
     The regolith is a smooth random texture fixed to the plane; the rock is brighter (lit), or,
     with `dark`, lit from behind by a low sun ahead of the cameras: its visible side unlit and its
-    shadow cast towards the cameras, both darker than the regolith."""
+    shadow cast towards the cameras, both darker than the regolith. With `plain` the rock is
+    neither: its surface carries the regolith's texture and brightness (no shading)."""
     import cv2
 
     rng = np.random.default_rng(seed)
@@ -88,7 +90,7 @@ def _render(
                 ((Xs @ e_fwd + Xs @ n) / res_m * 2).astype(np.float32),
                 cv2.INTER_LINEAR,
             )
-            img[hit] = shade[hit] + 0.3 * (ta[hit] - 100)
+            img[hit] = ta[hit] if plain else shade[hit] + 0.3 * (ta[hit] - 100)
             if dark:  # the ground in the rock's shadow (the sun 15 degrees up, ahead)
                 to_sun = -n * np.sin(np.radians(15.0)) + e_fwd * np.cos(np.radians(15.0))
                 rel = X - C
@@ -99,14 +101,24 @@ def _render(
     return out
 
 
-def _small_rocks(L, R, cfg=None):
+def _small_rocks(L, R, cfg=None, with_heights=False):
+    """The stage's rocks (with_heights: given the height map's heights, as the detector gives
+    them: its pre-check and its height candidates), the view's ground normal and the mount."""
     det = Detector(DetectorConfig(), CAM)
     T_ro = ipex_rig(CAM)["FrontLeft"].T_rover_optical
     hm = det.height_map(L, R, T_ro)  # levelled on the stereo ground plane when tilted
     n_up = ground_plane(hm.points_rover, hm.depth)
     up = hm.T_rover_optical[:3, :3].T @ n_up if n_up is not None else None
     rocks = detect_small_rocks(
-        L, R, hm.disparity, hm.scale, CAM, BASELINE_M, cfg or SmallRockConfig(), up
+        L,
+        R,
+        hm.disparity,
+        hm.scale,
+        CAM,
+        BASELINE_M,
+        cfg or SmallRockConfig(),
+        up,
+        height_lowres=hm.height if with_heights else None,
     )
     if n_up is not None and hm.T_level_rover is not None:
         n_up = hm.T_level_rover[:3, :3].T @ n_up  # back in the rover frame
@@ -217,6 +229,8 @@ def test_a_dark_small_rock_is_found_by_the_dark_candidates_only():
         dict(max_band_px=40),
         dict(min_lowres_height_m=float("inf")),
         dict(low_top_snr=-1.0),
+        dict(height_candidates=-1),
+        dict(height_candidate_m=0.0),
     ],
 )
 def test_bad_settings_are_refused(bad):
@@ -291,3 +305,53 @@ def test_the_view_s_ground_normal_is_fitted_once_and_kept_on_the_height_map():
     assert abs(np.linalg.norm(hm.up_rover) - 1.0) < 1e-9 and hm.up_rover[2] > 0.999
     n = ground_plane(hm.points_rover, hm.depth)
     assert np.degrees(np.arccos(np.clip(n @ hm.up_rover, -1, 1))) < 1.0
+
+
+@pytest.mark.parametrize("seed", [6, 7])
+def test_a_rock_the_image_does_not_show_is_found_by_the_height_candidates(seed):
+    """A rock with the regolith's own texture and brightness (no lit face, no shadow) gives no
+    appearance candidate; the height map's local peak over it does (height_candidates), its
+    full-resolution height is measured as any candidate's, and bare ground still gives
+    nothing."""
+    x, z, rad, top = 0.3, 2.0, 0.025, 0.03
+    L, R = _render(0.0, (x, z, rad, top), seed=seed, plain=True)
+    u, v = _uv(x, z, 0.0)
+    assert _small_rocks(L, R, SmallRockConfig(height_candidates=0), True)[0] == []
+    cfg = SmallRockConfig(height_candidates=20)
+    rocks, _, _ = _small_rocks(L, R, cfg, True)
+    assert len(rocks) == 1, [(r.u0, r.v0, r.top_m) for r in rocks]
+    r = rocks[0]
+    assert abs(r.u0 + r.crop.shape[1] / 2 - u) < 15 and abs(r.v0 + r.crop.shape[0] / 2 - v) < 15
+    assert 0.5 * top < r.top_m < 1.5 * top and abs(r.depth_m - z) < 0.25
+    bare_L, bare_R = _render(0.0, None, seed=seed)
+    assert _small_rocks(bare_L, bare_R, cfg, True)[0] == []
+
+
+def test_the_candidate_limits_count_only_candidates_that_get_a_window():
+    """With count_checked a candidate centred on an excluded pixel (a height-map
+    blob) or failing the height map's pre-check takes no place within max_candidates: the
+    strongest blob excluded, the only place goes to the next one; without it the excluded blob
+    takes the place and the stage would match nothing."""
+    from dataclasses import replace
+
+    from lunarloc.perception.small_rocks import small_rock_candidates
+
+    L, R = _render(0.0, (0.3, 2.0, 0.025, 0.025), seed=8)
+    T_ro = ipex_rig(CAM)["FrontLeft"].T_rover_optical
+    hm = Detector(DetectorConfig(), CAM).height_map(L, R, T_ro)
+    one = SmallRockConfig(
+        max_candidates=1, dark_contrast_z=0.0, min_lowres_height_m=0.0, count_checked=True
+    )
+
+    def centres(cfg, exclude=None):
+        cands = small_rock_candidates(
+            L, hm.disparity, hm.scale, CAM.fx, BASELINE_M, cfg, exclude, hm.height
+        )
+        return [(u0 + c.shape[1] // 2, v0 + c.shape[0] // 2) for u0, v0, c, *_ in cands]
+
+    ((u, v),) = centres(one)  # the strongest blob
+    exclude = np.zeros(L.shape, bool)
+    exclude[v - 20 : v + 20, u - 20 : u + 20] = True
+    assert centres(replace(one, count_checked=False), exclude) == [(u, v)]
+    ((u2, v2),) = centres(one, exclude)
+    assert not exclude[v2, u2]

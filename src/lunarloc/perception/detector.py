@@ -949,9 +949,18 @@ class Detector:
         H, W = L.shape
         exclude = np.zeros((H, W), bool)
         # pixels the height map already judged: its blobs, kept or rejected, but those too small
-        # or too far for it (a small or far rock's top is what it saw of one)
+        # or too far for it (a small or far rock's top is what it saw of one); with
+        # inside_rejected only its kept blobs and those it judged no rock or on the lander
+        skip = {RejectReason.FLAT, RejectReason.TOO_SMALL, RejectReason.TOO_FAR}
+        if sc.inside_rejected:
+            skip = set(RejectReason) - {RejectReason.NOT_A_ROCK, RejectReason.ON_LANDER}
+        unsure = set()
+        if sc.inside_tentative:
+            unsure = {
+                r.mask_index for r, d in zip(kept_recs, dets) if d.tentative or d.needs_confirmation
+            }
         for r in records:
-            if r.reason not in (RejectReason.FLAT, RejectReason.TOO_SMALL, RejectReason.TOO_FAR):
+            if r.reason not in skip and r.mask_index not in unsure:
                 m = masks[r.mask_index]
                 h, w = m.crop.shape
                 exclude[m.v0 : m.v0 + h, m.u0 : m.u0 + w] |= m.crop

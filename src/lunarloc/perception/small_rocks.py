@@ -143,6 +143,26 @@ class SmallRockConfig:
     max_candidates: int = setting(40, ge=0)
     # a candidate's box is at most this many times wider than tall
     max_aspect: float = setting(2.0, gt=0.0)
+    # look for candidates inside the height map's rejected blobs too (elongated, too large,
+    # duplicate, tentative, ...: a small rock on a hummock or beside a larger blob); its kept
+    # detections and the blobs judged no rock or on the lander stay excluded
+    inside_rejected: bool = setting(False)
+    # ... and inside its detections still to be confirmed across frames (tentative ones, and
+    # those on a crest): a small-rock detection there is firm and displaces them
+    inside_tentative: bool = setting(False)
+    # max_candidates and max_dark_candidates count only the candidates that get a window: centred
+    # outside the height map's blobs (the exclusion) and passing the pre-check
+    # (min_lowres_height_m); the others are passed over before they take a place
+    count_checked: bool = setting(False)
+    # at most this many candidates per image from the height map itself (after those from
+    # appearance): its local peaks standing height_candidate_m above its local mean (a rock
+    # the image's contrast does not show; 0 = none)
+    height_candidates: int = setting(0, ge=0)
+    height_candidate_m: float = setting(0.01, gt=0.0)
+    # a height candidate (no contrast vouches for it) stands at least this high (m) and this
+    # many ring noises (the hand verdict; with the judge on, the judge decides)
+    height_min_top_m: float = setting(0.018, gt=0.0)
+    height_min_snr: float = setting(4.0, ge=0.0)
     # candidates' range (optical depth from the height map, m)
     min_range_m: float = setting(0.8, gt=0.0)
     max_range_m: float = setting(6.0, gt=0.0)
@@ -285,16 +305,27 @@ def small_rock_candidates(
     fx: float,
     baseline_m: float,
     cfg: SmallRockConfig,
+    exclude: np.ndarray | None = None,
+    height_lowres: np.ndarray | None = None,
 ) -> list[tuple[int, int, np.ndarray, float, bool]]:
     """Blobs of the left image sized like small rocks at their range: (u0, v0, crop, d0,
     dark) with `crop` a full-resolution boolean mask at (u0, v0), d0 the height map's
     disparity there (full-resolution pixels) and `dark` whether the blob is darker than its
     surroundings (a shadow or an unlit side; only with dark_contrast_z > 0); the bright blobs
-    first, each kind strongest first."""
-    return [c[:5] for c in _candidates(left, disparity_lowres, scale, fx, baseline_m, cfg)]
+    first, each kind strongest first. With cfg.count_checked, `exclude` ((H, W) bool) and
+    `height_lowres` (the height map's heights, its grid) pass over the candidates the stage
+    would not match (see SmallRockConfig.count_checked)."""
+    return [
+        c[:5]
+        for c in _candidates(
+            left, disparity_lowres, scale, fx, baseline_m, cfg, exclude, height_lowres
+        )
+    ]
 
 
-def _candidates(left, disparity_lowres, scale, fx, baseline_m, cfg) -> list:
+def _candidates(
+    left, disparity_lowres, scale, fx, baseline_m, cfg, exclude=None, height_lowres=None
+) -> list:
     """small_rock_candidates' blobs, each with its peak contrast (local contrasts) last."""
     import cv2
 
@@ -326,6 +357,8 @@ def _candidates(left, disparity_lowres, scale, fx, baseline_m, cfg) -> list:
     z = dv / (np.sqrt(var) + 2.0)
     sky = small <= cfg.sky_level
     grid = _Grid(D, kd, k, r0, fx, fx * baseline_m)
+    if cfg.count_checked:
+        grid.exclude, grid.height = exclude, height_lowres
     out = _blobs(z, sky, grid, cfg, cfg.contrast_z, cfg.max_candidates, False)
     if cfg.dark_contrast_z > 0:
         out += _blobs(-z, sky, grid, cfg, cfg.dark_contrast_z, cfg.max_dark_candidates, True)
@@ -344,6 +377,26 @@ class _Grid:
     fx: float
     fb: float
     pad: np.ndarray | None = None  # D padded by 2 NaN pixels each side (made on first use)
+    # with count_checked: the excluded pixels (full resolution) and the height map's heights
+    exclude: np.ndarray | None = None
+    height: np.ndarray | None = None
+
+    def checked(self, u0: int, v0: int, bh: int, bw: int, min_height_m: float) -> bool:
+        """Whether a candidate box (full resolution) would get a window: its centre not
+        excluded, the height map min_height_m high somewhere around it (as
+        detect_small_rocks tests)."""
+        if self.exclude is not None:
+            H, W = self.exclude.shape
+            if self.exclude[min(v0 + bh // 2, H - 1), min(u0 + bw // 2, W - 1)]:
+                return False
+        if self.height is not None:
+            kd = self.kd
+            hh = self.height[
+                max(v0 // kd - 1, 0) : (v0 + bh) // kd + 2,
+                max(u0 // kd - 1, 0) : (u0 + bw) // kd + 2,
+            ]
+            return bool(np.any(hh >= min_height_m))  # NaN compares False
+        return True
 
     def depth(self, pv: np.ndarray, pu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The height map's disparity (full-resolution pixels; median over 5x5 low-resolution
@@ -399,14 +452,15 @@ def _blobs(z, sky, grid: _Grid, cfg, z_min: float, n_max: int, dark: bool) -> li
     inr = np.flatnonzero(np.isfinite(Z) & (Z >= cfg.min_range_m) & (Z <= cfg.max_range_m))
     out = []
     claimed = np.zeros(z.shape, bool)
-    for i in inr[: 3 * n_max]:  # the strongest peaks only
+    checked = grid.exclude is not None or grid.height is not None
+    for i in inr if checked else inr[: 3 * n_max]:  # the strongest peaks only
         if len(out) >= n_max:
             break
         y, x = int(pv[i]), int(pu[i])
         if claimed[y, x]:
             continue
         # the window: a rock of max_width_m at this range, plus a margin
-        half = int(np.clip(cfg.max_width_m * grid.fx / Z[i] / k, 3, 40))
+        half = int(min(max(cfg.max_width_m * grid.fx / Z[i] / k, 3.0), 40.0))  # np.clip, cheaper
         ya, yb, xa, xb = (
             max(y - half, 0),
             min(y + half + 1, h),
@@ -424,9 +478,67 @@ def _blobs(z, sky, grid: _Grid, cfg, z_min: float, n_max: int, dark: bool) -> li
         if not cfg.min_width_m <= width <= cfg.max_width_m:
             continue
         full = np.repeat(np.repeat(c, k, axis=0), k, axis=1) if k > 1 else c
+        if checked and not grid.checked(
+            (xa + bx0) * k, (ya + by0) * k + grid.r0, *full.shape, cfg.min_lowres_height_m
+        ):
+            continue
         out.append(
             ((xa + bx0) * k, (ya + by0) * k + grid.r0, full, float(d0[i]), dark, float(z[y, x]))
         )
+    return out
+
+
+def _height_candidates(height, D, kd, fx, fb, cfg, exclude, cands) -> list:
+    """Candidates (as _candidates') from the height map's heights `height` (its grid, 1/kd of
+    full resolution): its local peaks (5 x 5) standing cfg.height_candidate_m above the map's
+    local mean (a Gaussian of 3 cells, over its valid cells), within the candidates' range,
+    centred on no `exclude` pixel nor in another candidate's box, most prominent first; each
+    one's blob the cells around it above half its prominence and connected to it, sized as a
+    small rock at its range."""
+    import cv2
+
+    H, W = exclude.shape
+    h = np.asarray(height, np.float32)
+    ok = np.isfinite(h)
+    h0 = np.where(ok, h, 0).astype(np.float32)
+    wsum = cv2.GaussianBlur(ok.astype(np.float32), (0, 0), 3.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        prom = np.where(ok, h0 - cv2.GaussianBlur(h0, (0, 0), 3.0) / wsum, -1.0)
+    prom = prom.astype(np.float32)
+    peak = (prom >= cv2.dilate(prom, np.ones((5, 5), np.uint8))) & (prom >= cfg.height_candidate_m)
+    pv, pu = np.nonzero(peak)
+    if pv.size == 0:
+        return []
+    order = np.argsort(-prom[pv, pu], kind="stable")
+    boxes = [(u, v, u + c.shape[1], v + c.shape[0]) for u, v, c, *_ in cands]
+    out = []
+    for i in order[: 8 * cfg.height_candidates]:
+        if len(out) >= cfg.height_candidates:
+            break
+        y, x = int(pv[i]), int(pu[i])
+        d = float(D[y, x]) * kd
+        if not np.isfinite(d) or d <= 0:
+            continue
+        Z = fb / d
+        if not cfg.min_range_m <= Z <= cfg.max_range_m:
+            continue
+        cy_, cx_ = min(y * kd + kd // 2, H - 1), min(x * kd + kd // 2, W - 1)
+        if exclude[cy_, cx_] or any(a <= cx_ < c and b <= cy_ < e for a, b, c, e in boxes):
+            continue
+        half = int(np.clip(cfg.max_width_m * fx / Z / kd, 2, 20))
+        ya, yb = max(y - half, 0), min(y + half + 1, h.shape[0])
+        xa, xb = max(x - half, 0), min(x + half + 1, h.shape[1])
+        sub = (prom[ya:yb, xa:xb] > 0.5 * prom[y, x]).astype(np.uint8)
+        _, _, _, (bx0, by0, bw, bh) = cv2.floodFill(sub, None, (x - xa, y - ya), 2, flags=8)
+        c = sub[by0 : by0 + bh, bx0 : bx0 + bw] == 2
+        width = max(bw, bh) * kd * Z / fx
+        if not cfg.min_width_m <= width <= cfg.max_width_m:
+            continue
+        full = np.repeat(np.repeat(c, kd, axis=0), kd, axis=1)
+        u0, v0 = (xa + bx0) * kd, (ya + by0) * kd
+        full = full[: H - v0, : W - u0]
+        out.append((u0, v0, full, d, False, 0.0))
+        boxes.append((u0, v0, u0 + full.shape[1], v0 + full.shape[0]))
     return out
 
 
@@ -766,9 +878,21 @@ def detect_small_rocks(
     cos_tilt = np.cos(np.radians(cfg.max_tilt_deg))
     out: list[SmallRock] = []
     taken = np.zeros((H, W), bool) if exclude is None else exclude.copy()
-    cands = _candidates(left, disparity_lowres, scale, camera.fx, baseline_m, cfg)
+    cands = _candidates(
+        left, disparity_lowres, scale, camera.fx, baseline_m, cfg, taken, height_lowres
+    )
+    n_appearance = len(cands)
+    if cfg.height_candidates > 0 and height_lowres is not None:
+        cands += _height_candidates(
+            height_lowres, disparity_lowres, int(scale), camera.fx, fb, cfg, taken, cands
+        )
     use_judge = cfg.judge_min_score > 0
     floors = cfg
+    height_floors = replace(
+        cfg,
+        min_top_m=max(cfg.min_top_m, cfg.height_min_top_m),
+        min_snr=max(cfg.min_snr, cfg.height_min_snr),
+    )
     if use_judge:
         judge = judge if judge is not None else default_judge()
         floors = _judge_floors(cfg)
@@ -795,7 +919,8 @@ def detect_small_rocks(
             continue
         cos_n = 1.0 if up_optical is None else abs(float(w.n @ up_optical))
         tilt_ok = cos_n >= cos_tilt
-        rock = _judge(w, floors, camera.fx, dark, tilt_ok, trace)
+        hand = height_floors if i >= n_appearance and not use_judge else floors
+        rock = _judge(w, hand, camera.fx, dark, tilt_ok, trace)
         if rock.reason is not None:
             if (
                 keep_rejected and rock.depth_m > 0
