@@ -216,3 +216,66 @@ def test_scaled_config_scales_the_near_rock_pixel_size():
     half = scaled_detector_config(640)
     assert half.height_filters.near_sigma_px == pytest.approx(base.height_filters.near_sigma_px / 2)
     assert scaled_detector_config(1280) == base
+
+
+def _ray_cast_disparity(cam, T, k, box):
+    """Low-resolution disparity of level ground 0.331 m under the camera with an upright box
+    (x0, x1, y0, y1, top_m above the ground, rover frame) on it: the nearest hit per pixel."""
+    h, w = cam.height // k, cam.width // k
+    fx = cam.fx / k
+    cx, cy = (cam.cx - (k - 1) / 2.0) / k, (cam.cy - (k - 1) / 2.0) / k
+    uu, vv = np.meshgrid(np.arange(w), np.arange(h))
+    rays_o = np.stack([(uu - cx) / fx, (vv - cy) / fx, np.ones((h, w))], -1)  # optical, z = 1
+    R, c = np.asarray(T)[:3, :3], np.asarray(T)[:3, 3]
+    d = rays_o @ R.T  # rover-frame direction per unit optical depth
+    zg = c[2] - 0.331
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(d[..., 2] < 0, (zg - c[2]) / d[..., 2], np.inf)
+        x0, x1, y0, y1, top = box
+        for tt in ((x0 - c[0]) / d[..., 0], (zg + top - c[2]) / d[..., 2]):  # front face, top
+            p = c + tt[..., None] * d
+            on = (
+                (tt > 0)
+                & (p[..., 0] >= x0 - 1e-9)
+                & (p[..., 0] <= x1)
+                & (p[..., 1] >= y0)
+                & (p[..., 1] <= y1)
+                & (p[..., 2] <= zg + top + 1e-9)
+            )
+            t = np.where(on & (tt < t), tt, t)
+    disp = (fx * 0.162 / t).astype(np.float32)
+    disp[~np.isfinite(t) | (t > 12)] = np.nan
+    return disp
+
+
+def test_ground_footprint_weights_keep_a_far_rock_off_the_ground():
+    """A 12 cm high, 0.25 m deep rock at 4.3 m fills many pixels of its 0.35 m ground cells
+    (its face is seen square-on, the ground around it at a grazing angle, and it hides the
+    ground behind it): one vote per pixel lifts the cells' median towards the rock and its top
+    stands 9 cm above that ground; weighted by the ground each point covers, it stands at its
+    12 cm and the open ground stays at zero."""
+    from lunarloc.perception.camera import ipex_rig
+    from lunarloc.perception.stereo import GroundConfig, ground_height_map
+
+    cam = PinholeCamera()
+    T = ipex_rig(cam)["FrontLeft"].T_rover_optical
+    box = (4.3, 4.55, -0.2, 0.2, 0.12)
+    disp = _ray_cast_disparity(cam, T, 2, box)
+    hm_w = ground_height_map(disp, 2, cam, 0.162, T, GroundConfig())
+    hm_1 = ground_height_map(disp, 2, cam, 0.162, T, GroundConfig(footprint_weights=False))
+    P = hm_w.points_rover
+    zg = T[2, 3] - 0.331
+    on_box = (
+        (P[..., 0] > box[0] - 0.01)
+        & (P[..., 0] < box[1] + 0.01)
+        & (np.abs(P[..., 1]) < 0.19)
+        & (P[..., 2] > zg + 0.001)
+    )
+    assert on_box.sum() > 100
+    top_w, top_1 = np.nanmax(hm_w.height[on_box]), np.nanmax(hm_1.height[on_box])
+    assert top_w == pytest.approx(0.12, abs=0.01)
+    assert top_1 < top_w - 0.02  # the unweighted ground sits partly on the rock
+    ground = np.isfinite(hm_w.height) & ~on_box & (np.hypot(P[..., 0], P[..., 1]) < 4.0)
+    assert np.nanmedian(np.abs(hm_w.height[ground])) < 0.005
+    with pytest.raises(ConfigError):
+        GroundConfig(footprint_span_px=0)
