@@ -630,11 +630,17 @@ def fill_ground_heights(hm: HeightMap) -> HeightMap:
     good = cnt >= cfg.min_points
     g = np.zeros(nx * ny, np.float32)
     if cfg.footprint_weights:
-        wts = _range_footprints(hm, flat, xyz, cfg, rad_per_px)[fit]
-        order = np.argsort(keys, kind="stable")
-        keys = keys[order]
-        cw = np.cumsum(wts[order], dtype=np.float64)
-        total = np.bincount(idx_f, wts.astype(np.float64), minlength=nx * ny)
+        wts = _range_footprints(hm, flat[fit], X, Y, Z, cfg, rad_per_px).astype(np.float64)
+        # the keys sorted with each point's index packed below them (one sort, no argsort)
+        bits = max(int(keys.size).bit_length(), 1)
+        if int(keys.max(initial=0)) < 1 << (62 - bits):
+            packed = np.sort((keys.astype(np.int64) << bits) | np.arange(keys.size))
+            order, keys = packed & ((1 << bits) - 1), packed >> bits
+        else:
+            order = np.argsort(keys, kind="stable")
+            keys = keys[order]
+        cw = np.cumsum(wts[order])
+        total = np.bincount(idx_f, wts, minlength=nx * ny)
         before = np.where(start > 0, cw[np.maximum(start - 1, 0)], 0.0)
         # first point of the cell whose cumulative weight reaches the quantile's share; a cell
         # without weight (a face seen square-on, no ground) takes the unweighted quantile
@@ -681,34 +687,32 @@ def fill_ground_heights(hm: HeightMap) -> HeightMap:
 
 
 def _range_footprints(
-    hm: HeightMap, flat: np.ndarray, xyz: np.ndarray, cfg: GroundConfig, rad_per_px: float
+    hm: HeightMap, pix: np.ndarray, X: np.ndarray, Y: np.ndarray, Z: np.ndarray, cfg, rad_per_px
 ) -> np.ndarray:
-    """(n,) ground length along the view that each lifted point covers (GroundConfig
-    footprint_weights): how far the horizontal range moves per row towards the point
-    cfg.footprint_span_px rows above and towards the one as many rows below, the smaller of
-    the two (the one there is where the other has no stereo, 0 where neither has), clipped to [0, cfg.footprint_cap] x that of
+    """Ground length along the view that each point covers (GroundConfig.footprint_weights;
+    `pix`: the points' flat indices in the map, X, Y, Z their coordinates): how far the
+    horizontal range moves per row towards the point cfg.footprint_span_px rows above and
+    towards the one as many rows below, the smaller of the two (the one there is where the
+    other has no stereo, 0 where neither has), clipped to [0, cfg.footprint_cap] x that of
     level ground at the point's range and height under the camera."""
     h, w = hm.height.shape
     cam = np.asarray(hm.T_rover_optical, float)[:3, 3]
-    X, Y, Z = xyz
-    rho_pts = np.hypot(X - np.float32(cam[0]), Y - np.float32(cam[1]))
-    rho = np.full(h * w, np.nan, np.float32)
-    rho[flat] = rho_pts
-    rho = rho.reshape(h, w)
+    cx, cy = np.float32(cam[0]), np.float32(cam[1])
+    rho = np.hypot(X - cx, Y - cy)
     s = int(cfg.footprint_span_px)
-    up = np.full((h, w), np.nan, np.float32)  # range s rows above (farther on the ground)
-    dn = np.full((h, w), np.nan, np.float32)
-    up[s:] = rho[:-s]
-    dn[:-s] = rho[s:]
+    # the points' ranges on the map's grid, padded by s rows above and below (NaN: no point;
+    # the fit's columns are every fit_stride-th, so a point's neighbours in its column are in)
+    pad = s * w
+    grid = np.full(h * w + 2 * pad, np.nan, np.float32)
+    grid[pix + pad] = rho
     # the smaller of the two one-sided drops: at an occluding edge (a rock's top against the
     # ground far behind it) one side jumps by metres, the other is the surface's own
-    a, b = (up - rho) / np.float32(s), (rho - dn) / np.float32(s)
+    a = (grid.take(pix) - rho) / np.float32(s)
+    b = (rho - grid.take(pix + 2 * pad)) / np.float32(s)
     d = np.where(np.isfinite(a) & np.isfinite(b), np.minimum(a, b), np.where(np.isfinite(a), a, b))
-    d = d.ravel()[flat]
     drop = np.maximum(np.float32(cam[2]) - Z, np.float32(0.05))
-    level = rho_pts * rho_pts * np.float32(rad_per_px) / drop
-    d = np.clip(np.nan_to_num(d, nan=0.0), 0.0, np.float32(cfg.footprint_cap) * level)
-    return d.astype(np.float32)
+    level = rho * rho * np.float32(rad_per_px) / drop
+    return np.clip(np.nan_to_num(d, nan=0.0), 0.0, np.float32(cfg.footprint_cap) * level)
 
 
 def refine_disparity(
