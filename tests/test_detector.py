@@ -320,13 +320,8 @@ def test_a_boulder_taller_than_wide_is_a_rock_not_a_knob(axes, centre):
     assert len(on_it) == 1 and len(found) <= 2
     d = on_it[0]
     assert np.linalg.norm(d.p_rover[:2] - np.asarray(centre[:2])) < 0.15 and d.radius_m >= 0.2
-    # every blob tested, as before, on the ground fitted one point one vote (as when the rule
-    # was written): rejected as not a rock. (On the default ground, weighted by the ground each
-    # point covers, the boulder at 3.5 m is kept even when every blob is tested.)
-    from lunarloc.perception.stereo import GroundConfig
-
-    old = DetectorConfig(perched_max_radius_m=0.0, ground=GroundConfig(footprint_weights=False))
-    before = Detector(old, CAM).detect_pair(left, right, T)
+    # every blob tested, as before: rejected as not a rock
+    before = Detector(DetectorConfig(perched_max_radius_m=0.0), CAM).detect_pair(left, right, T)
     assert on_boulder(before.detections) == [] and RejectReason.NOT_A_ROCK in [
         r.reason for r in before.records
     ]
@@ -570,22 +565,19 @@ def test_default_rules_keep_a_lone_small_rock_on_flat_ground():
     )  # measured (R < 0.12 m), and low
 
 
-def _elongated_rock_kept_by_default(c, radius, off_cfg, ground=None):
+def _elongated_rock_kept_by_default(c, radius, off_cfg):
     """The rendered ground scene with one sphere (centre c, radius): the detector with
-    `off_cfg` rejects its one mask as elongated, the default one keeps it (both with `ground`,
-    a GroundConfig, when given). Returns (left, right, T_rover_optical, the detection)."""
+    `off_cfg` rejects its one mask as elongated, the default one keeps it. Returns
+    (left, right, T_rover_optical, the detection)."""
     left, right, rig = ground_scene(tuple(c), radius)
     T = rig["FrontLeft"].T_rover_optical
     from dataclasses import replace
 
     # else a tentative (tests/test_tentative.py) or a small rock (tests/test_small_rocks.py)
     off_cfg = replace(off_cfg, tentative_max_range_m=0.0, small_rocks=NO_SMALL)
-    default = DetectorConfig()
-    if ground is not None:
-        off_cfg, default = replace(off_cfg, ground=ground), replace(default, ground=ground)
     off = Detector(off_cfg, CAM).detect_pair(left, right, T)
     assert off.detections == [] and [r.reason for r in off.records] == [RejectReason.ELONGATED]
-    pr = Detector(default, CAM).detect_pair(left, right, T)
+    pr = Detector(DetectorConfig(), CAM).detect_pair(left, right, T)
     assert len(pr.detections) == 1
     return left, right, T, pr.detections[0]
 
@@ -638,20 +630,11 @@ def test_a_large_rock_seen_as_a_raised_strip_is_kept():
     # a 0.5 m boulder buried to 10 cm above the ground 4 m ahead: what stands above the
     # region threshold is a strip (eigenvalue ratio ~30, beyond the flat-strip limit,
     # and it does not end at its sides); it stands well above the quadric ground around
-    # it, so the raised-strip rule keeps it. That is on the ground fitted one point one vote;
-    # on the default ground (weighted by the ground each point covers) it is kept without the
-    # rule.
-    from lunarloc.perception.stereo import GroundConfig
-
+    # it, so the raised-strip rule keeps it
     c = np.array([4.0, 0.0, -0.2 - 0.5 + 0.1])
-    ground = GroundConfig(footprint_weights=False)
     left, right, T, d = _elongated_rock_kept_by_default(
-        c, 0.5, DetectorConfig(raised_strip_max_eig_ratio=0.0), ground
+        c, 0.5, DetectorConfig(raised_strip_max_eig_ratio=0.0)
     )
-    no_rule = DetectorConfig(
-        raised_strip_max_eig_ratio=0.0, tentative_max_range_m=0.0, small_rocks=NO_SMALL
-    )
-    assert len(Detector(no_rule, CAM).detect_pair(left, right, T).detections) == 1
     cfg = DetectorConfig()
     assert cfg.height_filters.tau_elong < d.eig_ratio <= cfg.raised_strip_max_eig_ratio
     assert (
@@ -665,13 +648,11 @@ def test_a_large_rock_seen_as_a_raised_strip_is_kept():
             raised_strip_min_quadric_m=d.height_quadric_m + 0.01,
             tentative_max_range_m=0.0,
             small_rocks=NO_SMALL,
-            ground=ground,
         ),
         DetectorConfig(
             raised_strip_max_radius_m=0.5 * d.radius_m,
             tentative_max_range_m=0.0,
             small_rocks=NO_SMALL,
-            ground=ground,
         ),
     ):
         pr = Detector(strict, CAM).detect_pair(left, right, T)
@@ -679,10 +660,7 @@ def test_a_large_rock_seen_as_a_raised_strip_is_kept():
     # too few pixels to be a candidate: rejected as elongated, as before
     pr = Detector(
         DetectorConfig(
-            raised_strip_min_area_px=d.area_px + 1,
-            tentative_max_range_m=0.0,
-            small_rocks=NO_SMALL,
-            ground=ground,
+            raised_strip_min_area_px=d.area_px + 1, tentative_max_range_m=0.0, small_rocks=NO_SMALL
         ),
         CAM,
     ).detect_pair(left, right, T)

@@ -241,12 +241,9 @@ def test_bad_settings_are_refused(bad):
 def test_the_detector_sees_the_same_rock_on_level_ground_and_rolled_20_degrees():
     """No level-rover assumption: the roll is unknown to the detector (the rover frame is all it
     has); it levels its height map on the plane fitted to the pair's own stereo points. Rolled
-    20 degrees, a 0.1 m rock at 4 m is found as on level ground; in the rover frame unlevelled,
-    on the ground fitted one point one vote, it was lost (the ground cells then hold a 20-degree
-    slope; weighted by the ground each point covers, the default, the cells' ground holds)."""
+    20 degrees, a 0.1 m rock at 4 m is found as on level ground; in the rover frame unlevelled it
+    was lost (the ground cells then hold a 20-degree slope)."""
     from dataclasses import replace
-
-    from lunarloc.perception.stereo import GroundConfig
 
     T_ro = ipex_rig(CAM)["FrontLeft"].T_rover_optical
     x, z, rad, top = -0.5, 4.0, 0.1, 0.09
@@ -259,9 +256,8 @@ def test_the_detector_sees_the_same_rock_on_level_ground_and_rolled_20_degrees()
         assert len(hits) == 1, (roll, [d.uv for d in pr.detections])
         found[roll] = hits[0]
         if roll:
-            unweighted = GroundConfig(footprint_weights=False)
             unlevelled = Detector(
-                replace(DetectorConfig(), level_from_stereo=False, ground=unweighted), CAM
+                replace(DetectorConfig(), level_from_stereo=False), CAM
             ).detect_pair(L, R, T_ro)
             assert not [
                 d for d in unlevelled.detections if abs(d.uv[0] - u) < 30 and abs(d.uv[1] - v) < 30

@@ -261,8 +261,9 @@ def test_ground_footprint_weights_keep_a_far_rock_off_the_ground():
     T = ipex_rig(cam)["FrontLeft"].T_rover_optical
     box = (4.3, 4.55, -0.2, 0.2, 0.12)
     disp = _ray_cast_disparity(cam, T, 2, box)
-    hm_w = ground_height_map(disp, 2, cam, 0.162, T, GroundConfig())
-    hm_1 = ground_height_map(disp, 2, cam, 0.162, T, GroundConfig(footprint_weights=False))
+    hm_w = ground_height_map(disp, 2, cam, 0.162, T, GroundConfig(footprint_weights=True))
+    hm_1 = ground_height_map(disp, 2, cam, 0.162, T, GroundConfig())
+    assert not GroundConfig().footprint_weights  # opt-in
     P = hm_w.points_rover
     zg = T[2, 3] - 0.331
     on_box = (

@@ -425,13 +425,16 @@ class GroundConfig:
     # Extrapolate the ground linearly beyond the outer cell centres (False: constant).
     extrapolate_edges: bool = True
     # Weight each point of a cell's quantile by the ground length it covers along the view
-    # (how far its horizontal range moves from the row below to the row above,
-    # footprint_span_px low-resolution rows away; clipped to [0, footprint_cap] x that of level
-    # ground at its depth): a rock's face, seen square-on, covers many pixels and little ground,
-    # while the ground beyond 3 m, seen at a grazing angle, covers few pixels; one point per
-    # pixel lets a rock of r >= 0.1 m at 4-5 m fill a 0.35 m cell's median and lift the ground
-    # under itself by 4-16 cm. False: one point, one vote.
-    footprint_weights: bool = True
+    # (how far its horizontal range moves per row towards the points footprint_span_px
+    # low-resolution rows above and below, the smaller of the two; clipped to
+    # [0, footprint_cap] x that of level ground at its depth): a rock's face, seen square-on,
+    # covers many pixels and little ground, while the ground beyond 3 m, seen at a grazing
+    # angle, covers few pixels; one point per pixel (False, the default) lets a rock of
+    # r >= 0.1 m at 4-5 m fill a 0.35 m cell's median and lift the ground under itself by
+    # 4-16 cm. Off by default: it raises recall and precision on LAC-look sites but moves the
+    # blobs of rocks that were found already (repeatability of r >= 0.1 m on sites 300-301:
+    # median 2.0 -> 2.4 cm); docs/perception-status.md, "Recall of r >= 0.1 m".
+    footprint_weights: bool = False
     footprint_span_px: int = 2
     footprint_cap: float = 2.0
 
