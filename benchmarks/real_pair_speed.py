@@ -5,6 +5,8 @@ small-rock stage off and on.
 
     python benchmarks/real_pair_speed.py --stages [--repeat 4]
 
+    python benchmarks/real_pair_speed.py [--stages] --config RUN.json   # a run configuration's detector
+
 DIR defaults to $LUNARLOC_LAC_REAL or ../shared/data/lac-real. Each pair runs once to warm
 up (OpenCV allocations), then `--repeat` times through ``Detector.detect_pair`` (no rover
 pose; levelling from stereo as by default); reported: process CPU time per pair (all
@@ -44,6 +46,9 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--stages", action="store_true", help="time the detector's stages")
+    ap.add_argument(
+        "--config", type=Path, default=None, help="a run configuration (JSON): its detector section"
+    )
     a = ap.parse_args(argv)
     import cv2
 
@@ -62,10 +67,14 @@ def main(argv=None) -> int:
         return 2
     cam = PinholeCamera(1280, 720)
     T = ipex_rig(cam)["FrontLeft"].T_rover_optical
+    cfg = DetectorConfig()
+    if a.config is not None:
+        from lunarloc.config.run import load_config_file
+
+        cfg = load_config_file(a.config)[0].detector
     if a.stages:
-        return _stages(pairs, cam, T, a.repeat)
+        return _stages(pairs, cam, T, a.repeat, cfg)
     for on in (False, True):
-        cfg = DetectorConfig()
         det = Detector(replace(cfg, small_rocks=replace(cfg.small_rocks, enabled=on)), cam)
         for left, right in pairs:
             det.detect_pair(left, right, T)
@@ -97,12 +106,12 @@ _STAGES = [
 ]
 
 
-def _stages(pairs, cam, T, repeat: int) -> int:
+def _stages(pairs, cam, T, repeat: int, cfg) -> int:
     import functools
     import importlib
     import resource
 
-    from lunarloc.perception.detector import Detector, DetectorConfig
+    from lunarloc.perception.detector import Detector
 
     acc: dict[str, list[float]] = {}
 
@@ -126,7 +135,7 @@ def _stages(pairs, cam, T, repeat: int) -> int:
         for p in parents:
             owner = getattr(owner, p)
         setattr(owner, name, wrap(label, getattr(owner, name)))
-    det = Detector(DetectorConfig(), cam)
+    det = Detector(cfg, cam)
     for left, right in pairs:
         det.detect_pair(left, right, T)
     acc.clear()
@@ -134,7 +143,9 @@ def _stages(pairs, cam, T, repeat: int) -> int:
         for left, right in pairs:
             det.detect_pair(left, right, T)
     n = repeat * len(pairs)
-    print(f"small rocks on, {n} pairs, load average {os.getloadavg()[0]:.1f}")
+    print(
+        f"small rocks {'on' if cfg.small_rocks.enabled else 'off'}, {n} pairs, load average {os.getloadavg()[0]:.1f}"
+    )
     for label, _, _ in _STAGES:
         cpu, faults, calls = acc.get(label, (0.0, 0.0, 0))
         print(
