@@ -97,7 +97,9 @@ def _rotate_z(psi: np.ndarray, xyz: np.ndarray) -> np.ndarray:
 
 class OdometryFactor(Factor):
     """Edge ``i -> j``: ``Rz(-psi_i)(p_j - p_i) = k d`` and ``psi_j - psi_i = dpsi - b_i tau``.
-    Columns: pose i (4), pose j (4), ``b_i``, ``k``."""
+    Columns: pose i (4), pose j (4), ``b_i``, ``k``. The translation sigma per axis is the
+    distance model (``trans_floor_m``, ``trans_rel``) or, with ``measured_step_scale`` set, the
+    odometry's own sigma of the edge (`step_sigma_m`, (n,), NaN where it states none)."""
 
     dim = 4
     #                  x_i y_i z_i psi_i x_j y_j z_j psi_j b_i k
@@ -112,15 +114,23 @@ class OdometryFactor(Factor):
         bool,
     )
 
-    def __init__(self, layout: StateLayout, i, odo_pose4: np.ndarray, moving_time_s, noise):
+    def __init__(
+        self, layout: StateLayout, i, odo_pose4: np.ndarray, moving_time_s, noise, step_sigma_m=None
+    ):
         i = np.asarray(i, int).reshape(-1)
         a, b = odo_pose4[i], odo_pose4[i + 1]
         self.d = _rotate_z(-a[:, 3], b[:, :3] - a[:, :3])  # odometry step in the heading frame of i
         self.dpsi = wrap_angle(b[:, 3] - a[:, 3])
         self.tau = np.asarray(moving_time_s, float).reshape(-1)
-        self.sigma_m = np.sqrt(
+        sigma = np.sqrt(
             noise.trans_floor_m**2 + (noise.trans_rel * np.linalg.norm(self.d, axis=1)) ** 2
-        )[:, None]
+        )
+        if step_sigma_m is not None and noise.measured_step_scale is not None:
+            # the odometry's own sigma of the step (NaN: none stated, the distance model)
+            m = np.asarray(step_sigma_m, float).reshape(-1)
+            own = np.sqrt(noise.trans_floor_m**2 + (noise.measured_step_scale * m) ** 2)
+            sigma = np.where(np.isfinite(m), own, sigma)
+        self.sigma_m = sigma[:, None]
         self.sigma_yaw = np.sqrt(noise.yaw_floor_rad**2 + noise.yaw_noise_rad_sqrt_s**2 * self.tau)
         self.columns = np.column_stack(
             [layout.pose(i), layout.pose(i + 1), layout.bias(i), np.full(len(i), layout.scale)]

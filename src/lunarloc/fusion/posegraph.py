@@ -105,6 +105,18 @@ class OdometryNoise:
     bias_time_constant_s: float | None = None
     start_sigma_m: float = 0.01  # the first keyframe's position is known this well (m)
     start_sigma_yaw_rad: float = 0.002  # ... and its yaw (rad)
+    # an edge whose odometry states its own translation sigma (Keyframe.step_sigma_m, the
+    # visual odometry's per-step covariance from its PnP inliers): None ignores it (the model
+    # above for every edge); a number s: that edge's translation sigma per axis is
+    # sqrt(trans_floor_m^2 + (s x step_sigma_m)^2) instead of the distance model
+    measured_step_scale: float | None = None
+
+    def __post_init__(self) -> None:
+        s = self.measured_step_scale
+        if s is not None and (
+            isinstance(s, bool) or not isinstance(s, (int, float)) or not 0 < s < math.inf
+        ):
+            raise ConfigError(f"measured_step_scale={s!r} must be None or positive and finite")
 
 
 @dataclass(frozen=True)
@@ -221,7 +233,10 @@ class Keyframe:
     Carried for the loop, unused by the graph: ``frame`` (its frame number),
     ``roll_pitch_rad`` (odometry roll and pitch; gravity-fixed), ``detections_rover``
     ((N, 3) rock centres in the rover frame) and ``path_m`` (the loop's odometry path
-    length, summed frame to frame, which differs from ``distance_m``).
+    length, summed frame to frame, which differs from ``distance_m``). ``step_sigma_m``: the
+    1-sigma (m, per axis) the odometry itself states for its step from the previous keyframe
+    (the visual odometry's, from its PnP inliers), None where it states none; the odometry
+    edge uses it when ``OdometryNoise.measured_step_scale`` is set.
     """
 
     index: int
@@ -235,6 +250,7 @@ class Keyframe:
     roll_pitch_rad: tuple[float, float] = (0.0, 0.0)
     detections_rover: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     path_m: float | None = None
+    step_sigma_m: float | None = None  # the odometry's own sigma of the step ending here (m)
 
     @property
     def T_odo_rover(self) -> np.ndarray:
@@ -336,13 +352,15 @@ class PoseGraph:
         roll_pitch_rad=(0.0, 0.0),
         detections_rover=None,
         path_m: float | None = None,
+        step_sigma_m: float | None = None,
     ) -> int:
         """Add a keyframe at time `t` (s) with odometry pose (x, y, z, yaw); returns its index.
 
         The new keyframe's estimate is the last estimate propagated by the calibrated
         odometry increment. `moving_time_s` is the time spent moving since the previous
         keyframe (default: the elapsed time). `frame`, `roll_pitch_rad`, `detections_rover`
-        and `path_m` are carried in the :class:`Keyframe` record for the loop.
+        and `path_m` are carried in the :class:`Keyframe` record for the loop. `step_sigma_m`:
+        the odometry's own 1-sigma (m) of the step from the previous keyframe, or None.
         """
         q = np.array(odo_pose4, float).reshape(4)
         if not np.all(np.isfinite(q)):
@@ -357,6 +375,10 @@ class PoseGraph:
             else np.asarray(detections_rover, float).reshape(-1, 3)
         )
         rp = (float(roll_pitch_rad[0]), float(roll_pitch_rad[1]))
+        if step_sigma_m is not None:
+            step_sigma_m = float(step_sigma_m)
+            if not (math.isfinite(step_sigma_m) and step_sigma_m >= 0):
+                raise InputError(f"step_sigma_m={step_sigma_m!r} must be finite and >= 0")
         if prev is None:
             kf = Keyframe(0, float(t), q, q.copy(), 0.0, 0.0, 0.0, frame, rp, det, path_m)
         else:
@@ -375,6 +397,7 @@ class PoseGraph:
             new[3] = float(wrap_angle(e[3] + dpsi - b * tau))
             dist = prev.distance_m + float(np.linalg.norm(d))
             kf = Keyframe(n, float(t), q, new, tau, dist, phi * b, frame, rp, det, path_m)
+            kf.step_sigma_m = step_sigma_m
         self.keyframes.append(kf)
         return n
 

@@ -45,7 +45,10 @@ def build_factors(graph, first: int = 0) -> list[Factor]:
     e = np.arange(max(first - 1, 0), K - 1)  # odometry edges e -> e+1 touching a free keyframe
     odo = np.array([kf.odo_pose4 for kf in kfs])
     tau = np.array([kfs[i + 1].moving_time_s for i in e])
-    out: list[Factor] = [OdometryFactor(L, e, odo, tau, nz)]
+    step = None
+    if nz.measured_step_scale is not None:  # the odometry's own sigmas, NaN where it has none
+        step = np.array([np.nan if (s := kfs[i + 1].step_sigma_m) is None else s for i in e])
+    out: list[Factor] = [OdometryFactor(L, e, odo, tau, nz, step)]
     if first == 0:
         out.append(PoseFixFactor(L, [0], odo[0], nz.start_sigma_m, nz.start_sigma_yaw_rad))
     fixes = [f for f in graph.fixes if f.keyframe >= first]

@@ -540,6 +540,7 @@ class LoopState:
         self.timings = {"detection": 0.0, "mapping": 0.0, "association": 0.0, "fusion": 0.0}
         self._dist = 0.0
         self._moving_since_kf = 0.0
+        self._step_var = 0.0  # the odometry's stated step variances since the last keyframe (m^2)
         self._last_attempt_dist = 0.0
         self._last_attempt_t = None
         self.T_map_odo = np.eye(4)  # the latest keyframe's correction
@@ -600,11 +601,22 @@ class LoopState:
         detections_rover: np.ndarray | None = None,
         T_map_rover_true: np.ndarray | None = None,
         keyframe: bool | None = None,
+        odometry_step_sigma_m: float | None = None,
     ) -> Attempt | None:
         """Feed one frame (its odometry pose, 4x4); returns the localization attempt made at it,
         if any. The frame's odometry, online estimate and ground truth are kept as 4x4
-        transforms."""
+        transforms. `odometry_step_sigma_m`: the odometry's own 1-sigma (m) of its step ending
+        at this frame (the visual odometry's, ``OdometryTrajectory.step_sigma_m``), None or NaN
+        where it states none. A keyframe's odometry edge gets the root sum of squares of those
+        stated since the previous keyframe when the keyframe's own frame states one
+        (:attr:`lunarloc.fusion.posegraph.Keyframe.step_sigma_m`), else none."""
         T_odo_rover = np.array(T_odo_rover, float)
+        s = odometry_step_sigma_m
+        own = s is not None and math.isfinite(float(s))
+        if own:
+            if float(s) < 0:
+                raise InputError(f"odometry_step_sigma_m={s!r} must be >= 0")
+            self._step_var += float(s) ** 2
         q = np.asarray(matrix_to_pose(T_odo_rover), float)
         if self._q_prev is not None:
             step = float(np.linalg.norm(q[:3] - self._q_prev[:3]))
@@ -622,12 +634,17 @@ class LoopState:
         attempt = None
         if is_kf or not self.graph.keyframes:
             attempt = self._keyframe(
-                frame, t, q, np.zeros((0, 3)) if detections_rover is None else detections_rover
+                frame,
+                t,
+                q,
+                np.zeros((0, 3)) if detections_rover is None else detections_rover,
+                math.sqrt(self._step_var) if own else None,
             )
+            self._step_var = 0.0
         self.T_map_rover_online.append(self.T_map_odo @ T_odo_rover)
         return attempt
 
-    def _keyframe(self, frame, t, q, det) -> Attempt | None:
+    def _keyframe(self, frame, t, q, det, step_sigma_m=None) -> Attempt | None:
         t0 = time.perf_counter()
         k = self.graph.add_keyframe(
             t,
@@ -637,6 +654,7 @@ class LoopState:
             roll_pitch_rad=(float(q[3]), float(q[4])),
             detections_rover=det,
             path_m=self._dist,
+            step_sigma_m=step_sigma_m,
         )
         self._moving_since_kf = 0.0
         self.timings["fusion"] += time.perf_counter() - t0

@@ -62,6 +62,7 @@ def run(
         if mapper is not None and source.lander_xy is not None:
             mapper.exclude_disc(source.lander_xy, LANDER_EXCLUSION_M)
         example = _ExampleFrame()
+        step_sigma = getattr(source, "step_sigma_m", None) or {}  # the odometry's own, per frame
         total, n_kf = source.n_frames, 0
         for n, frame in enumerate(source, start=1):
             detections = frame.detections_rover
@@ -95,6 +96,7 @@ def run(
                 detections,
                 frame.T_map_rover_true,
                 keyframe=frame.keyframe,
+                odometry_step_sigma_m=step_sigma.get(frame.frame),
             )
             if progress:
                 progress(n, total)

@@ -84,6 +84,7 @@ class ArchiveSource:
             None  # the lander's centre in map (initial.toml), if recorded
         )
         self.odometry_label = ""
+        self.step_sigma_m: dict[int, float] = {}  # per frame, the odometry's own step sigma (m)
         self.timings: dict[str, float] = {}
         self._ar = None
 
@@ -144,6 +145,8 @@ class ArchiveSource:
             ar, c.source or default_odometry_source(ar), imu_config=c.imu, visual_config=c.visual
         )
         self.odometry_label = traj.label
+        if traj.step_sigma_m is not None:  # the visual odometry's own step sigmas (m, NaN: none)
+            self.step_sigma_m = {int(f): float(v) for f, v in zip(traj.frames, traj.step_sigma_m)}
         return {int(f): T for f, T in zip(traj.frames, traj.T_map_rover)}  # odo == map at the start
 
     # -------------------------------------------------------------- frames
