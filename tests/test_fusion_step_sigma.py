@@ -12,6 +12,7 @@ from lunarloc.core.geometry import pose_to_matrix
 from lunarloc.fusion.factors import OdometryFactor, StateLayout
 from lunarloc.fusion.posegraph import FusionConfig, OdometryNoise, PoseGraph
 from lunarloc.io.maps import LandmarkMap
+from lunarloc.online.component import OnlineLocalizer
 from lunarloc.online.loop import LoopConfig, LoopState
 
 
@@ -88,3 +89,64 @@ def test_loop_hands_the_keyframe_the_root_sum_of_its_steps():
     assert got[3] == pytest.approx(math.hypot(0.002, 0.005))
     with pytest.raises(InputError, match="odometry_step_sigma_m"):
         loop.step(9, 5.0, T[7], np.zeros((0, 3)), keyframe=True, odometry_step_sigma_m=-1.0)
+
+
+class _FakeVO:
+    """Stands in for StereoVisualOdometry: 5 cm forward a pair, every step stated 3 mm (but the
+    fourth, which states none, as a failed pair); counts the pairs and the covariance reads."""
+
+    def __init__(self):
+        self.pairs = 0
+        self.reads = 0
+        self.config = type("C", (), {"gravity_tilt_gain": 1.0})()
+
+    def update(self, left, right, prior=None):
+        self.pairs += 1
+        return pose_to_matrix(0.05 * self.pairs, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+    @property
+    def last_step_covariance(self):
+        self.reads += 1
+        return None if self.pairs in (1, 4) else np.eye(6) * 0.003**2
+
+
+@pytest.mark.parametrize("scale", [None, 1.0])
+def test_online_localizer_hands_its_visual_steps_sigma_to_the_graph(monkeypatch, scale):
+    """OnlineLocalizer's visual odometry: with measured_step_scale set, a keyframe gets the root
+    sum of squares of the steps' stated sigmas since the previous keyframe (none where one of
+    them states none); without it the covariance is never read (it costs a solve a step)."""
+    from lunarloc.online.component import OnlineConfig
+    from lunarloc import CameraRig
+
+    rig = CameraRig.from_calibration(160, 90, fx=114.25)
+    cfg = OnlineConfig()
+    noise = replace(cfg.loop.fusion.noise, measured_step_scale=scale)
+    cfg = replace(cfg, loop=replace(cfg.loop, fusion=replace(cfg.loop.fusion, noise=noise)))
+    ref = LandmarkMap(np.array([[5.0, 0, 0], [6.0, 1, 0], [7.0, -1, 0]]), frame="map")
+    loc = OnlineLocalizer(ref, np.zeros(6), cfg, rig=rig)
+    vo = _FakeVO()
+    loc._vo = vo
+    monkeypatch.setattr(loc, "_detect", lambda images: np.zeros((0, 3)))
+    pairs_at_kf = []
+    step = loc.loop.step
+    monkeypatch.setattr(
+        loc.loop, "step", lambda *a, **k: (pairs_at_kf.append(vo.pairs), step(*a, **k))[1]
+    )
+    img = np.zeros((90, 160), np.uint8)
+    imu = np.array([0.0, 0.0, 1.622, 0.0, 0.0, 0.0])
+    for i in range(40):
+        im = img if i % 2 == 0 else None
+        loc.update(0.05 * i, {"Grayscale": {"FrontLeft": im, "FrontRight": im}}, imu, 0.5, 0.0)
+    got = [kf.step_sigma_m for kf in loc.loop.keyframes]
+    assert len(got) >= 5 and vo.pairs == 20
+    if scale is None:
+        assert vo.reads == 0 and all(s is None for s in got)
+        return
+    assert vo.reads == vo.pairs
+    assert None in got[1:] and any(s is not None for s in got[1:])
+    for k in range(1, len(got)):
+        a, b = pairs_at_kf[k - 1], pairs_at_kf[k]  # the pairs a+1..b are this keyframe's steps
+        if 4 in range(a + 1, b + 1):
+            assert got[k] is None
+        else:
+            assert got[k] == pytest.approx(0.003 * math.sqrt(b - a))

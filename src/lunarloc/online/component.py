@@ -465,6 +465,9 @@ class OnlineLocalizer:
         # odometry (visual / IMU / caller), odo == map at start
         self._T_map_odo = self.T_map_rover0.copy()
         self._vo_anchor = None  # (T_map_odo at the last VO pair, T_map_imu there)
+        # the visual steps' stated variance since the last keyframe (m^2; None: a step without
+        # one), read only where the pose graph uses it (OdometryNoise.measured_step_scale)
+        self._step_var: float | None = 0.0
         self._T_odo_caller = None  # T_odo_caller: the caller's odometry frame in ours
         self._T_loop_odo = np.eye(4)  # the loop's odometry frame <- odo (changes at re-anchors)
         self._last_kf = None  # (t, T_odo_rover) of the last keyframe
@@ -629,11 +632,17 @@ class OnlineLocalizer:
                 np.array([self._speed_prev, float(linear_speed)]),
             )
             T_imu = integrate_imu(s, self._T_map_imu, self.config.imu)[1]
+        visual = (  # this tick is a visual odometry step
+            T_caller is None
+            and self._vo is not None
+            and pair is not None
+            and pair[0] == STEREO_PAIRS[0][0]
+        )
         if T_caller is not None:
             if self._T_odo_caller is None:
                 self._T_odo_caller = self._T_map_odo @ invert_transform(T_caller)
             T_odo = self._T_odo_caller @ T_caller
-        elif self._vo is not None and pair is not None and pair[0] == STEREO_PAIRS[0][0]:
+        elif visual:
             T_odo = self._visual(images, T_imu)
         elif self._vo_anchor is not None:  # bridge with the IMU since the last VO pair
             T_odo_vo, T_imu_vo = self._vo_anchor
@@ -655,9 +664,21 @@ class OnlineLocalizer:
                 det = det[~on_lander(det, T_odo, self._lander_xy)]
             if len(self.loop.keyframes) >= self.config.max_keyframes:
                 self._reanchor()
-            attempt = self.loop.step(
-                self._tick, t, self._T_loop_odo @ T_odo, det, None, keyframe=True
+            stated = (  # the visual steps' own sigma, where the pose graph uses it
+                visual
+                and self._step_var is not None
+                and self.loop.config.fusion.noise.measured_step_scale is not None
             )
+            attempt = self.loop.step(
+                self._tick,
+                t,
+                self._T_loop_odo @ T_odo,
+                det,
+                None,
+                keyframe=True,
+                odometry_step_sigma_m=math.sqrt(self._step_var) if stated else None,
+            )
+            self._step_var = 0.0
             self._last_kf = (t, T_odo)
             self._sigmas = self.loop.graph.predicted_sigma(len(self.loop.keyframes) - 1)
             if attempt is not None:
@@ -797,6 +818,12 @@ class OnlineLocalizer:
         if self._vo_anchor is not None:
             prior = invert_transform(self._vo_anchor[1]) @ T_imu
         T_vo_rover = self._vo.update(images[left], images[right], prior)
+        if self.loop.config.fusion.noise.measured_step_scale is not None:
+            C = self._vo.last_step_covariance  # computed when read: only where it is used
+            if C is None or self._step_var is None:  # a step the odometry states no sigma for
+                self._step_var = None
+            else:
+                self._step_var += max(float(np.linalg.eigvalsh(C[:3, :3])[-1]), 0.0)
         # visual motion chained from the first pair's predicted pose, roll and pitch from the IMU's
         # gravity
         T_odo = self._vo_chain.add(T_vo_rover, T_imu, self._T_map_odo_prediction(T_imu))
@@ -920,6 +947,7 @@ class OnlineLocalizer:
                 kf.detections_rover,
                 None,
                 keyframe=True,
+                odometry_step_sigma_m=kf.step_sigma_m,
             )
         g_old, g_new = old.graph, new.graph
         # the gate's drift model continues from the last fix (distance and time since it)
