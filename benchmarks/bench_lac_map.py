@@ -13,6 +13,9 @@ Usage
     # 2b. re-score recorded runs (score --dump) with other mapper settings, nothing re-run:
     python benchmarks/bench_lac_map.py rescore --out DIR --seeds 281 282 \
         --mapper-config '{"rock_recentre_min_m": null}' '{}' [--json OUT.json]
+    # 2c. where the corrected poses lose points against ground truth (recorded runs, score --dump):
+    #     one pose component at a time taken from the corrected poses
+    python benchmarks/bench_lac_map.py decompose --out DIR --seeds 292 294
     # 3. cost: detection vs mapping per stereo pair, CPU time (an archive at each resolution)
     python benchmarks/bench_lac_map.py cost --archive A.lac [--frames 40] [--small-rocks|--no-small-rocks]
     # 4. memory: the mapper fed for a long replay (the archive's frames cycled with their
@@ -268,6 +271,93 @@ def rescore(a) -> None:
         )
 
 
+def decompose(a) -> None:
+    """Where the corrected poses lose (or gain) map points against the ground truth, from
+    recorded runs (``score --dump``): the seen geo + rock points with the ground-truth poses
+    taking one component of the corrected poses at a time (x and y, z, roll and pitch, yaw;
+    then all), and the corrected poses' mean error in the rover frame (along / across track,
+    moving frames) with their xy error's median and p90."""
+    import pickle
+
+    from lunarloc.core.geometry import matrix_to_pose, pose_to_matrix
+    from lunarloc.io.overhead import score_geometric_map, site_geometric_map
+    from lunarloc.pipeline.runner import place_mapper
+    from lunarloc.sim.simulate import simulate_site
+
+    parts = (("xy", [0, 1]), ("z", [2]), ("roll+pitch", [3, 4]), ("yaw", [5]), ("all", range(6)))
+    for seed in a.seeds:
+        with open(a.out / f"seed_{seed}" / "mapper_dump.pkl", "rb") as fh:
+            dump = pickle.load(fh)  # our own benchmark's file (score --dump)
+        m, frames = dump["mapper"], np.asarray(dump["frames"])
+        G, C = np.asarray(dump["gt"]), np.asarray(dump["corrected"])
+        truth = site_geometric_map(simulate_site(seed))
+        place_mapper(m, frames, G)
+        seen = m.grid().observed
+
+        def points(T):
+            place_mapper(m, frames, T)
+            sc = score_geometric_map(m.grid().array, truth, cells=seen)
+            return sc["points"]["geometric_map"] + sc["points"]["rocks_map"], sc
+
+        p_gt = points(G)[0]
+        qg = np.array([matrix_to_pose(T) for T in G])
+        qc = np.array([matrix_to_pose(T) for T in C])
+        out = []
+        for name, cols in parts:
+            q = qg.copy()
+            q[:, list(cols)] = qc[:, list(cols)]
+            p, sc = points(np.array([pose_to_matrix(*x) for x in q]))
+            out.append(
+                f"{name} {p - p_gt:+.1f} (height {sc['geometric']:.4f}, F1 {sc['rock_f1']:.3f})"
+            )
+        index = {int(f): k for k, f in enumerate(frames.tolist())}
+        k = np.array([index[int(f)] for f in m.frame_ids if int(f) in index])
+        e = np.einsum("nji,nj->ni", G[k, :3, :3], C[k, :3, 3] - G[k, :3, 3])  # rover frame
+        moving = np.r_[False, np.linalg.norm(np.diff(G[k, :2, 3], axis=0), axis=1) > 0.02]
+        exy = np.linalg.norm(C[k, :2, 3] - G[k, :2, 3], axis=1)
+        print(
+            f"seed {seed}: ground-truth poses {p_gt:.1f} seen geo + rock points; with the "
+            f"corrected poses' {'; '.join(out)} | corrected error (rover frame, mean over "
+            f"moving frames): along {100 * e[moving, 0].mean():+.2f} cm, across "
+            f"{100 * e[moving, 1].mean():+.2f} cm; xy median {100 * np.median(exy):.1f} cm, "
+            f"p90 {100 * np.percentile(exy, 90):.1f} cm",
+            flush=True,
+        )
+        # the detections of rocks under 10 cm radius placed with each pose set, matched to the
+        # nearest true rock (within max(10 cm, half its radius)): the median error along the
+        # viewing ray (rover to rock), by range from the rover
+        from scipy.spatial import cKDTree
+
+        R = simulate_site(seed).rocks.table()[:, 1:]
+        tree = cKDTree(R[:, :2])
+        for name, T in (("ground-truth", G), ("corrected", C)):
+            radial, rng = [], []
+            for fid, fr in m._frames.items():
+                if len(fr.rocks) == 0 or int(fid) not in index:
+                    continue
+                Tk = T[index[int(fid)]]
+                p = fr.rocks[:, :3].astype(np.float64)
+                P = p @ Tk[:3, :3].T + Tk[:3, 3]
+                d, j = tree.query(P[:, :2])
+                ok = (d < np.maximum(0.1, 0.5 * R[j, 3])) & (R[j, 3] < 0.1)
+                u = (P[ok, :2] - Tk[:2, 3]) / np.linalg.norm(P[ok, :2] - Tk[:2, 3], axis=1)[:, None]
+                radial.append(np.sum((P[ok, :2] - R[j[ok], :2]) * u, axis=1))
+                rng.append(np.linalg.norm(p[ok, :2], axis=1))
+            radial, rng = np.concatenate(radial), np.concatenate(rng)
+            bands = ((0, 2), (2, 3), (3, 9))
+            txt = ", ".join(
+                f"{a}-{b} m {100 * np.median(radial[(rng >= a) & (rng < b)]):+.2f} cm"
+                for a, b in bands
+                if np.any((rng >= a) & (rng < b))
+            )
+            print(
+                f"seed {seed}: rocks under 10 cm placed with the {name} poses, {len(radial)} "
+                f"detections: error along the viewing ray (median) {100 * np.median(radial):+.2f} "
+                f"cm; by range {txt}",
+                flush=True,
+            )
+
+
 def _interp_share(est, truth, within_m: float):
     sel = est.interpolated & (est.fill_distance_m <= within_m)
     if not sel.any():
@@ -497,6 +587,9 @@ def main() -> None:
         default=None,
         help="JSON of LacMapperConfig fields, one set per argument ({} the defaults)",
     )
+    s = sub.add_parser("decompose")
+    s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--seeds", type=int, nargs="+", required=True)
     s = sub.add_parser("cost")
     s.add_argument("--archive", type=Path, required=True)
     s.add_argument("--frames", type=int, default=30)
@@ -524,6 +617,7 @@ def main() -> None:
         "simulate": simulate,
         "score": score,
         "rescore": rescore,
+        "decompose": decompose,
         "cost": cost,
         "memory": memory,
         "agent": agent,
