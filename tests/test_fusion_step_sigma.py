@@ -87,8 +87,10 @@ def test_loop_hands_the_keyframe_the_root_sum_of_its_steps():
     assert got[0] is None and got[2] is None
     assert got[1] == pytest.approx(0.005)  # hypot(0.003, 0.004)
     assert got[3] == pytest.approx(math.hypot(0.002, 0.005))
-    with pytest.raises(InputError, match="odometry_step_sigma_m"):
-        loop.step(9, 5.0, T[7], np.zeros((0, 3)), keyframe=True, odometry_step_sigma_m=-1.0)
+    for bad in (-1.0, "x"):
+        with pytest.raises(InputError, match="odometry_step_sigma_m"):
+            loop.step(9, 5.0, T[7], np.zeros((0, 3)), keyframe=True, odometry_step_sigma_m=bad)
+    assert len(loop.keyframes) == 4  # refused before anything changed
 
 
 class _FakeVO:

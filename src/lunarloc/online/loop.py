@@ -612,12 +612,16 @@ class LoopState:
         (:attr:`lunarloc.fusion.posegraph.Keyframe.step_sigma_m`), else none."""
         T_odo_rover = np.array(T_odo_rover, float)
         s = odometry_step_sigma_m
-        own = s is not None and math.isfinite(float(s))
-        if own:
-            if float(s) < 0:
-                raise InputError(f"odometry_step_sigma_m={s!r} must be >= 0")
-            self._step_var += float(s) ** 2
+        try:
+            s = math.nan if s is None else float(s)
+        except (TypeError, ValueError):
+            raise InputError(f"odometry_step_sigma_m={s!r} must be a number or None") from None
+        own = math.isfinite(s)
+        if own and s < 0:
+            raise InputError(f"odometry_step_sigma_m={s!r} must be >= 0")
         q = np.asarray(matrix_to_pose(T_odo_rover), float)
+        if own:
+            self._step_var += s * s
         if self._q_prev is not None:
             step = float(np.linalg.norm(q[:3] - self._q_prev[:3]))
             if step > 1e-6 or abs(float(wrap_angle(q[5] - self._q_prev[5]))) > 1e-6:
