@@ -186,7 +186,9 @@ def test_a_rock_merged_with_a_streak_cut_by_the_border_becomes_a_mask_of_its_own
 
 def test_split_settings_round_trip_and_bad_values_name_the_key():
     d = json.loads(json.dumps(RunConfig().to_dict()))
-    assert d["detector"]["classical"]["height_split_step_m"] == 0.0  # off unless the verifier
+    # on by default, with the learned verifier that removes the terrain parts it makes
+    assert d["detector"]["classical"]["height_split_step_m"] == 0.01
+    assert d["detector"]["rules"]["verifier_min_score"] > 0
     d["detector"]["classical"]["height_split_step_m"] = 0.02
     assert RunConfig.from_dict(d).detector.classical.height_split_step_m == pytest.approx(0.02)
     for key, value in (

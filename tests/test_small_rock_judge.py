@@ -132,10 +132,10 @@ def test_the_judge_decides_the_candidates_that_pass_its_floors():
     assert len(at_rock(off)) == 1 and at_rock(off)[0].features is None
 
 
-def test_the_judge_is_off_by_default_and_on_asks_the_packaged_judge():
-    # off by default (opt-in with the height-map verifier; docs/perception-status.md)
-    assert SmallRockConfig().judge_min_score == 0.0
-    cfg = SmallRockConfig(judge_min_score=0.92)
+def test_the_judge_is_on_by_default_and_asks_the_packaged_judge():
+    # on by default at 0.92, with the height-map verifier (docs/perception-status.md)
+    assert SmallRockConfig().judge_min_score == 0.92
+    cfg = SmallRockConfig()
     x, z, rad, top = -0.2, 2.0, 0.02, 0.02
     L, R = _render(10.0, (x, z, rad, top), seed=2)
     u, v = _uv(x, z, 10.0)

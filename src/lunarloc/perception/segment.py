@@ -116,11 +116,10 @@ class ClassicalConfig:
     # two or more parts of at least height_min_area_px, and every pixel goes to the part
     # it is nearest to. Parts that stand apart become masks of their own (a rock merged
     # with a raised streak running to the border, two rocks touching along a crest);
-    # a blob without a saddle is left whole. 0 = off (the default). 0.01 goes with the learned
-    # verifier (rules.verifier_min_score): it removes most of the terrain parts the split
-    # makes; on LAC-look sites 300-304 recall r >= 0.1 m, 5 m 0.70 -> 0.75 with the verifier;
-    # docs/perception-status.md, "The learned blob verifier".
-    height_split_step_m: float = 0.0
+    # a blob without a saddle is left whole. 0 = off. 0.01, the default, goes with the learned
+    # verifier (rules.verifier_min_score, on by default): it removes most of the terrain parts
+    # the split makes; docs/perception-status.md, "The learned blob verifier".
+    height_split_step_m: float = 0.01
     height_split_eig_ratio: float = 20.0
     # Split parts take back the blob's pixels within this many (height-map) pixels of
     # them, the rock's flanks below the split level; the blob's other pixels are dropped.

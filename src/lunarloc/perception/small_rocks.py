@@ -28,9 +28,8 @@ cannot come down. This stage finds such rocks in two steps:
    ground beside the rock that cast it: it is judged by the raised part of its window next to
    it (the largest connected patch standing ``min_snr`` noises high within one blob size),
    which must stand ``dark_min_snr`` noises high over ``dark_min_points`` pixels.
-3. **A learned judge** (``judge_min_score`` > 0; off by default: trained on sunlit and
-   lamp-lit sites, it goes with the height-map verifier, whose held-out precision in sunlight
-   is under the bar for a default; 0.92 is its threshold). The hand
+3. **A learned judge** (``judge_min_score`` > 0; on by default at 0.92: trained on sunlit and
+   lamp-lit sites; 0 turns it off and the hand verdict of step 2 decides). The hand
    thresholds of step 2 cannot separate a 1-4 cm rock top from ring noise of 0.5-3.5 cm; with
    the judge on, step 2 keeps only floors (``judge_min_top_m``, ``judge_min_snr``,
    ``judge_dark_min_points``) and a small network (``small_rock_judge.npz`` beside this module: the height-map verifier's
@@ -221,9 +220,9 @@ class SmallRockConfig:
 
     # -- the learned judge (small_rock_judge.npz beside this module; see the module's docstring)
     # a candidate that passes the judge's floors below is a rock when the judge scores it at
-    # least this (0 = off, the default: the hand verdict above decides; 0.92 turns it on;
-    # docs/perception-status.md, "Why they stay off by default")
-    judge_min_score: float = setting(0.0, ge=0.0, le=1.0)
+    # least this (0.92, the default; 0 = off: the hand verdict above decides;
+    # docs/perception-status.md, "Small rocks")
+    judge_min_score: float = setting(0.92, ge=0.0, le=1.0)
     # with the judge on, these floors replace min_top_m, min_snr (and low_top_snr, dark_min_snr)
     # and dark_min_points (min_median_snr is not applied): what reaches the judge
     judge_min_top_m: float = setting(0.005, gt=0.0)

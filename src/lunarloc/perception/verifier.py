@@ -21,7 +21,7 @@ weights; no pickle) and runs with numpy (:class:`BlobVerifier`). The detector re
 scoring under a threshold that depends on the blob (:func:`verifier_threshold`:
 ``DetectorConfig.rules.verifier_min_score`` for a firm blob of estimated radius under
 ``rules.verifier_max_radius_m``, ``verifier_tentative_min_score`` for a tentative one,
-``verifier_large_min_score`` for a larger one; ``verifier_min_score`` 0, the default, turns
+``verifier_large_min_score`` for a larger one; ``verifier_min_score`` 0.7 by default, 0 turns
 the verifier off).
 """
 
