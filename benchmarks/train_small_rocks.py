@@ -19,14 +19,9 @@ Usage
 
 Data recipe
 -----------
-Training sites: seeds 430-443 (``sun+lamps``) and 530-539 (``--lighting lamps``: the rover's
-lamps alone, a night site), ``SiteConfig.lac_style()`` and ``RenderConfig.lac_style()``,
-sun elevation ``(6, 12, 20)[seed % 3]`` degrees and azimuth ``(97 * seed) % 360`` degrees
-(ignored by the renderer at night), 60 s of the random plan at 0.5 Hz, front stereo pair at
-1280x720 (``sim_heldout.py``'s ``render``). None of them is a development (300-304) or
-scoring site (400-403, 410-413, 420-423, 460-463, 468-471, 480-487, 540-547).
+Training sites: those of ``train_verifier.py``'s data recipe (430-443 and lamp-lit 530-539).
 
-Candidates: the default detector with the judge's floors and candidate limits of
+Candidates: the detector with its learned models off (``train_verifier.models_off``), the judge's floors and candidate limits of
 :data:`EXTRACT` (lower than any deployed setting, so that a deployed configuration's
 candidates are a subset), on every frame with the ground-truth rover pose and the lander
 dropped (as ``sim_heldout.py`` runs it), the judge replaced by one that passes everything
@@ -70,7 +65,7 @@ from lunarloc.perception.small_rocks import JUDGE_FEATURES, JUDGE_PATH, load_jud
 from lunarloc.perception.verifier import BlobVerifier
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from train_verifier import fit_model
+from train_verifier import fit_model, models_off
 
 #: The stage's settings while extracting (floors and limits under the deployed ones).
 EXTRACT = dict(  # noqa: C408
@@ -99,7 +94,7 @@ def extract(path: Path, cache: Path) -> Path:
     from lunarloc.config.run import scaled_detector_config
     from lunarloc.io.lac.archive import LacArchive
     from lunarloc.perception.camera import STEREO_PAIRS, camera_from_archive
-    from lunarloc.perception.detector import Detector, DetectorConfig, _detect_archive_frames
+    from lunarloc.perception.detector import Detector, _detect_archive_frames
     from lunarloc.perception.small_rocks import detect_small_rocks
     from lunarloc.pipeline.perception_eval import lander_xy
     from lunarloc.sim.render import semantic_to_rock_id
@@ -129,7 +124,7 @@ def extract(path: Path, cache: Path) -> Path:
             centres = np.column_stack([t["x"], t["y"], t["z"]])
             radii = np.asarray(t["radius"], float)
             cam = camera_from_archive(ar)
-            base = DetectorConfig()
+            base = models_off()  # the candidates of the detector the judge was trained on
             base = replace(base, small_rocks=replace(base.small_rocks, **EXTRACT))
             det = Detector(scaled_detector_config(cam.width, base=base), cam)
             left = STEREO_PAIRS[0][0]

@@ -53,8 +53,8 @@ same models kept 116-144 terrain blobs of 700 against 94 (rocks 573-583 of 651 a
 one logistic model for both lightings is less strict in sunlight; an 8- or 16-unit hidden
 layer did not separate the two better.
 
-The blobs were extracted with the detector's defaults (the height-saddle split off, as it is
-by default). More data did not make a better model: 23 sites (430-452), extracted with the
+The blobs were extracted with the detector's models off (:func:`models_off`: the height-saddle
+split off too). More data did not make a better model: 23 sites (430-452), extracted with the
 split on (``extract --config`` with ``{"detector": {"classical": {"height_split_step_m":
 0.01}}}``; 6069 blobs, 2094 firm), fitted firm-only or on firm and tentative blobs, logistic
 or a 8-/16-unit MLP, was no better on development sites 300-304 at the detector's
@@ -82,14 +82,29 @@ from lunarloc.perception.verifier import (
 )
 
 
+def models_off(base=None):
+    """`base` (default: DetectorConfig()) with the learned models off: the blob verifier, its
+    height-saddle split and the small-rock judge, the detector whose blobs and candidates the
+    packaged models were trained on (their defaults are on)."""
+    from lunarloc.perception.detector import DetectorConfig
+
+    base = base or DetectorConfig()
+    return replace(
+        base,
+        classical=replace(base.classical, height_split_step_m=0.0),
+        rules=replace(base.rules, verifier_min_score=0.0),
+        small_rocks=replace(base.small_rocks, judge_min_score=0.0),
+    )
+
+
 def extract(path: Path, cache: Path, base=None) -> Path:
     """Features and labels of every kept height-map blob of one archive -> cache/<stem>.npz.
-    `base`: the DetectorConfig to run (default: DetectorConfig()); the small-rock stage and
-    the verifier are turned off in it."""
+    `base`: the DetectorConfig to run (default: :func:`models_off` of the defaults, the split
+    off); the small-rock stage and the verifier are turned off in it."""
     from lunarloc.config.run import scaled_detector_config
     from lunarloc.io.lac.archive import LacArchive
     from lunarloc.perception.camera import camera_from_archive
-    from lunarloc.perception.detector import Detector, DetectorConfig, _detect_archive_frames
+    from lunarloc.perception.detector import Detector, _detect_archive_frames
     from lunarloc.pipeline.perception_eval import lander_xy, match
 
     out = cache / f"{path.stem}.npz"
@@ -102,7 +117,7 @@ def extract(path: Path, cache: Path, base=None) -> Path:
         centres = np.column_stack([t["x"], t["y"], t["z"]])
         radii = np.asarray(t["radius"], float)
         cam = camera_from_archive(ar)
-        base = base or DetectorConfig()  # the height map's blobs: small-rock stage, verifier off
+        base = base or models_off()  # the height map's blobs: small-rock stage, verifier off
         base = replace(
             base,
             small_rocks=replace(base.small_rocks, enabled=False),
