@@ -382,18 +382,12 @@ class _Grid:
 
     def checked(self, u0: int, v0: int, bh: int, bw: int, min_height_m: float) -> bool:
         """Whether a candidate box (full resolution) would get a window: its centre not
-        excluded, the height map min_height_m high somewhere around it (as
-        detect_small_rocks tests)."""
-        if self.exclude is not None:
-            H, W = self.exclude.shape
-            if self.exclude[min(v0 + bh // 2, H - 1), min(u0 + bw // 2, W - 1)]:
-                return False
+        excluded, the height map min_height_m high somewhere around it (the tests of
+        detect_small_rocks)."""
+        if self.exclude is not None and _centre_in(self.exclude, u0, v0, bh, bw):
+            return False
         if self.height is not None:
-            kd = self.kd
-            hh = self.height[
-                max(v0 // kd - 1, 0) : (v0 + bh) // kd + 2,
-                max(u0 // kd - 1, 0) : (u0 + bw) // kd + 2,
-            ]
+            hh = _heights_around(self.height, self.kd, u0, v0, bh, bw)
             return bool(np.any(hh >= min_height_m))  # NaN compares False
         return True
 
@@ -485,6 +479,21 @@ def _blobs(z, sky, grid: _Grid, cfg, z_min: float, n_max: int, dark: bool) -> li
             ((xa + bx0) * k, (ya + by0) * k + grid.r0, full, float(d0[i]), dark, float(z[y, x]))
         )
     return out
+
+
+def _centre_in(mask: np.ndarray, u0: int, v0: int, bh: int, bw: int) -> bool:
+    """Whether the centre of a candidate box (full resolution, at (u0, v0), bh x bw) lies on
+    `mask` ((H, W) bool)."""
+    H, W = mask.shape
+    return bool(mask[min(v0 + bh // 2, H - 1), min(u0 + bw // 2, W - 1)])
+
+
+def _heights_around(height: np.ndarray, kd: int, u0: int, v0: int, bh: int, bw: int):
+    """The height map's heights (its grid, 1/kd of full resolution) under a candidate box and
+    one cell around it."""
+    return height[
+        max(v0 // kd - 1, 0) : (v0 + bh) // kd + 2, max(u0 // kd - 1, 0) : (u0 + bw) // kd + 2
+    ]
 
 
 def _height_candidates(height, D, kd, fx, fb, cfg, exclude, cands) -> list:
@@ -887,11 +896,13 @@ def detect_small_rocks(
         )
     use_judge = cfg.judge_min_score > 0
     floors = cfg
-    height_floors = replace(
-        cfg,
-        min_top_m=max(cfg.min_top_m, cfg.height_min_top_m),
-        min_snr=max(cfg.min_snr, cfg.height_min_snr),
-    )
+    height_floors = floors
+    if n_appearance < len(cands):  # a height candidate's hand verdict (no contrast vouches)
+        height_floors = replace(
+            cfg,
+            min_top_m=max(cfg.min_top_m, cfg.height_min_top_m),
+            min_snr=max(cfg.min_snr, cfg.height_min_snr),
+        )
     if use_judge:
         judge = judge if judge is not None else default_judge()
         floors = _judge_floors(cfg)
@@ -899,14 +910,11 @@ def detect_small_rocks(
         rank = _ranks(cands)
     for i, (u0, v0, crop, d0, dark, zpk) in enumerate(cands):
         bh, bw = crop.shape
-        if taken[min(v0 + bh // 2, H - 1), min(u0 + bw // 2, W - 1)]:
+        if _centre_in(taken, u0, v0, bh, bw):
             continue
         low_m = 0.0
         if height_lowres is not None:
-            k = int(scale)
-            hh = height_lowres[
-                max(v0 // k - 1, 0) : (v0 + bh) // k + 2, max(u0 // k - 1, 0) : (u0 + bw) // k + 2
-            ]
+            hh = _heights_around(height_lowres, int(scale), u0, v0, bh, bw)
             if not np.any(hh >= cfg.min_lowres_height_m):  # NaN compares False
                 continue
             if use_judge:
