@@ -1048,9 +1048,16 @@ def window_yaw_bias_variance(inliers_xyz, maps_from_detections: int, config: Loo
     b = config.fix_centre_bias_spread_m
     if not b > 0 or not maps_from_detections:
         return 0.0
+    r = inlier_radius_m(inliers_xyz)
+    return maps_from_detections / 2 * b * b / (r * r) if r > 0 else math.inf
+
+
+def inlier_radius_m(inliers_xyz) -> float:
+    """The rms horizontal distance (m) of points (n, 3) from their centroid; NaN for none."""
     P = np.asarray(inliers_xyz, float).reshape(-1, 3)[:, :2]
-    r2 = float(np.mean(np.sum((P - P.mean(axis=0)) ** 2, axis=1))) if len(P) else 0.0
-    return maps_from_detections / 2 * b * b / r2 if r2 > 0 else math.inf
+    if not len(P):
+        return math.nan
+    return math.sqrt(float(np.mean(np.sum((P - P.mean(axis=0)) ** 2, axis=1))))
 
 
 def fix_model_yaw_variance(

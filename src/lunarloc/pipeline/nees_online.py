@@ -84,7 +84,7 @@ def yaw_nees_shares(values: Iterable[float]) -> tuple[int, float, float]:
 
 def _fix_record(a, loop_config, **extra) -> dict:
     """One successful localization's record (:func:`loop_fix_records`)."""
-    from lunarloc.online.loop import fix_model_terms, fix_model_yaw_variance
+    from lunarloc.online.loop import fix_model_terms, fix_model_yaw_variance, inlier_radius_m
 
     e, C = np.array(a.fix_error_xyz), np.array(a.fix_covariance_xyz)
     C0 = C - fix_model_terms(a.fix_distortion_m, a.fix_maps_from_detections, loop_config)
@@ -94,8 +94,6 @@ def _fix_record(a, loop_config, **extra) -> dict:
         a.fix_distortion_yaw_rad, inl, a.fix_maps_from_detections, loop_config
     )
     sy0 = math.sqrt(max(sy * sy - model_yaw, 0.0))
-    X = inl[:, :2] - inl[:, :2].mean(axis=0) if len(inl) else np.full((1, 2), math.nan)
-    r = float(np.sqrt(np.mean(np.sum(X**2, axis=1))))
     return {
         **extra,
         "keyframe": a.keyframe,
@@ -120,7 +118,7 @@ def _fix_record(a, loop_config, **extra) -> dict:
         "sigma_yaw_localize_rad": sy0,
         "nees_yaw_localize": (ey / sy0) ** 2 if sy0 > 0 else math.nan,
         "distortion_yaw_rad": a.fix_distortion_yaw_rad,
-        "inlier_radius_m": r,
+        "inlier_radius_m": inlier_radius_m(inl),
         "heading_yaw_rad": a.fix_yaw_rad,
     }
 
