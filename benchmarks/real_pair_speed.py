@@ -102,6 +102,12 @@ _STAGES = [
     ("judge the blobs", "lunarloc.perception.detector", "Detector._judge_masks"),
     ("  measure kept blobs", "lunarloc.perception.detector", "Detector._measure_blob"),
     ("small-rock stage", "lunarloc.perception.detector", "Detector._add_small_rocks"),
+    ("  candidates (DoG blobs)", "lunarloc.perception.small_rocks", "_candidates"),
+    ("  windows (full-res match)", "lunarloc.perception.small_rocks", "_local_heights"),
+    ("    SGBM of the windows", "lunarloc.perception.small_rocks", "_Matcher.window"),
+    ("    local ground fit", "lunarloc.perception.small_rocks", "_ground_heights"),
+    ("  verdicts", "lunarloc.perception.small_rocks", "_judge"),
+    ("  judge's features", "lunarloc.perception.small_rocks", "judge_features"),
     ("whole pair", "lunarloc.perception.detector", "Detector.detect_pair"),
 ]
 

@@ -397,12 +397,13 @@ class _Grid:
         hd, wd = self.D.shape
         cu = np.clip((pu * self.k) // self.kd, 0, wd - 1)
         cv = np.clip((pv * self.k + self.r0) // self.kd, 0, hd - 1)
-        if self.pad is None:  # padded once per image, for both polarities
-            self.pad = np.pad(self.D, 2, constant_values=np.nan)
-        pad = self.pad
-        win = np.stack(
-            [pad[cv + 2 + a, cu + 2 + b] for a in range(-2, 3) for b in range(-2, 3)], axis=1
-        )
+        if self.pad is None:  # padded once per image, for both polarities (np.pad costs more)
+            self.pad = np.full((hd + 4, wd + 4), np.nan, self.D.dtype)
+            self.pad[2:-2, 2:-2] = self.D
+        # the 5 x 5 pixels around each (row by row) by one take of the padded map
+        wp = wd + 4
+        off = (np.arange(5)[:, None] * wp + np.arange(5)[None, :]).ravel()
+        win = self.pad.ravel().take((cv * wp + cu)[:, None] + off[None, :])
         d0 = _nanmedian_rows(win) * self.kd
         with np.errstate(divide="ignore", invalid="ignore"):
             return d0, self.fb / d0
@@ -640,20 +641,34 @@ def _quantiles(x: np.ndarray, q0: float, q1: float) -> tuple[float, float]:
 
 
 def _robust_spread(r: np.ndarray) -> tuple[float, float]:
-    """Median of `r` and 1.4826 x its median absolute deviation (plus 0.1 mm)."""
-    m = _quantile(r, 0.5)
-    return m, 1.4826 * _quantile(np.abs(r - m), 0.5) + 1e-4
+    """Median of `r` and 1.4826 x its median absolute deviation (plus 0.1 mm); `r` is a 1-D
+    float64 array (not modified)."""
+    m = _median64(r.copy())
+    return m, 1.4826 * _median64(np.abs(r - m)) + 1e-4
+
+
+def _median64(x: np.ndarray) -> float:
+    """_quantile(x, 0.5) of a non-empty 1-D float64 array that may be reordered (partitioned in
+    place, no copy; the interpolation in Python floats, which for float64 is numpy's)."""
+    n = x.size
+    lo = (n - 1) // 2
+    if n % 2:
+        x.partition(lo)
+        return float(x[lo])
+    x.partition((lo, lo + 1))
+    a = float(x[lo])
+    return a + 0.5 * (float(x[lo + 1]) - a)
 
 
 def _fit_plane(P: np.ndarray):
-    """Least-squares plane of (N, 3) points: centroid and unit normal towards the optical origin."""
-    c = P.mean(axis=0)
+    """Least-squares plane of (N, 3) points: centroid, unit normal towards the optical origin
+    and the points less the centroid."""
+    c = np.add.reduce(P, axis=0) / len(P)  # P.mean(axis=0), without its wrapper
     Q = P - c
-    _, v = np.linalg.eigh(Q.T @ Q)
-    n = v[:, 0]
+    n = np.linalg.eigh(Q.T @ Q)[1][:, 0]
     if n @ c > 0:  # the camera (origin) lies on the normal's side
         n = -n
-    return c, n
+    return c, n, Q
 
 
 @dataclass
@@ -705,52 +720,68 @@ def _local_heights(
     blob = np.zeros(d.shape, np.uint8)
     blob[v0 - b0 : v0 - b0 + bh, u0 - a0 : u0 - a0 + bw] = crop
     g = max(3, int(0.5 * max(bw, bh)))
-    core = cv2.dilate(blob, np.ones((2 * g + 1, 2 * g + 1), np.uint8)) > 0
-    inner = cv2.dilate(blob, np.ones((3, 3), np.uint8)) > 0
-    ok = np.isfinite(d)
-    gr = ~core & ok
+    core = cv2.dilate(blob, _ones(2 * g + 1)) > 0
+    ok = d == d  # not NaN (d holds no infinity)
+    gr = ok > core  # ok and not core
     if (
         np.count_nonzero(gr) < cfg.min_ring_points
-        or np.count_nonzero(inner & ok) < cfg.min_blob_points
+        or np.count_nonzero((cv2.dilate(blob, _ones(3)) > 0) & ok) < cfg.min_blob_points
     ):
         return None
     if dark:
         gd = 2 * (max(3, max(bw, bh)) + 3) + 1
-        core = cv2.dilate(blob, np.ones((gd, gd), np.uint8)) > 0
+        core = cv2.dilate(blob, _ones(gd)) > 0
     rv, ru = np.nonzero(gr)
     if rv.size > cfg.max_ring_points:  # an even subsample: the fit needs no more
-        step = int(np.ceil(rv.size / cfg.max_ring_points))
+        step = -(-rv.size // cfg.max_ring_points)
         rv, ru = rv[::step], ru[::step]
-    cv_, cu_ = np.nonzero(core & ok)
+    core &= ok
+    cv_, cu_ = np.nonzero(core)
     n_ring = rv.size
     vv, uu = np.concatenate([rv, cv_]), np.concatenate([ru, cu_])
     # points (left optical frame): the ring's, then the core's
     Z = fb / d[vv, uu]
-    P = Pr = np.stack([(uu + a0 - cx) * Z / fx, (vv + b0 - cy) * Z / fx, Z], axis=1)
+    P = Pr = np.empty((vv.size, 3))
+    np.divide((uu + a0 - cx) * Z, fx, out=P[:, 0])
+    np.divide((vv + b0 - cy) * Z, fx, out=P[:, 1])
+    P[:, 2] = Z
     hP, s, n = _ground_heights(P[:n_ring], P[n_ring:], cfg)
     P = P[n_ring:]
     idx = np.full(d.shape, -1, np.int64)
     idx[cv_, cu_] = np.arange(cv_.size)
     hall = np.full(d.shape, np.nan, np.float32)
     hall[cv_, cu_] = hP
-    return _Window(a0, b0, blob, ok & core, P, idx, hall, float(s), n, Pr[:n_ring], rv, ru)
+    return _Window(a0, b0, blob, core, P, idx, hall, float(s), n, Pr[:n_ring], rv, ru)
+
+
+@lru_cache(maxsize=64)
+def _ones(size: int) -> np.ndarray:
+    """A square structuring element of ones (uint8), size x size (made once)."""
+    return np.ones((size, size), np.uint8)
 
 
 def _ground_heights(Q: np.ndarray, P: np.ndarray, cfg):
     """Heights of the points `P` above the local ground fitted to the ring points `Q` (a plane,
     once more without the points beyond 3 MADs, then, with cfg.quadric, a quadric in the
     plane's coordinates), the fit's residual spread and the plane's normal."""
-    c, n = _fit_plane(Q)
-    r = (Q - c) @ n
+    c, n, Qc = _fit_plane(Q)
+    r = Qc @ n
     med, s = _robust_spread(r)
     keep = np.abs(r - med) < 3 * s
     n_keep = int(np.count_nonzero(keep))
     if n_keep >= cfg.min_ring_points // 2:
-        c, n = _fit_plane(Q[keep])
-        _, s = _robust_spread((Q[keep] - c) @ n)
+        c, n, Qc = _fit_plane(Q[keep])
+        s = 1.4826 * _mad64(Qc @ n) + 1e-4
     if not (cfg.quadric and n_keep >= 12):
         return (P - c) @ n, s, n
     return _quadric_heights(Q, P, c, n, s) + (n,)
+
+
+def _mad64(r: np.ndarray) -> float:
+    """The median absolute deviation of a 1-D float64 array that may be reordered (as
+    _robust_spread's)."""
+    m = _median64(r)
+    return _median64(np.abs(r - m))
 
 
 def _refit(w: _Window, region: np.ndarray, cfg) -> _Window | None:
@@ -792,24 +823,36 @@ def _quadric_heights(Q, P, c, n, s):
     def design(X):
         X = X - c
         a1, a2 = X @ e1, X @ e2
-        return X @ n, np.stack([np.ones_like(a1), a1, a2, a1 * a1, a1 * a2, a2 * a2], axis=1)
+        A = np.empty((len(X), 6))  # the columns 1, a1, a2, a1^2, a1 a2, a2^2
+        A[:, 0] = 1.0
+        A[:, 1] = a1
+        A[:, 2] = a2
+        np.multiply(a1, a1, out=A[:, 3])
+        np.multiply(a1, a2, out=A[:, 4])
+        np.multiply(a2, a2, out=A[:, 5])
+        return X @ n, A
 
     hQ, A = design(Q)
-    sel = np.arange(len(Q))
+    As, hs = A, hQ  # all the ring's points first, then those within 3 MADs
     coef = np.zeros(6)
-    for _ in range(2):
-        As = A[sel]
+    for it in range(2):
         try:  # normal equations: a 6x6 solve (lstsq's SVD costs far more here)
-            coef = np.linalg.solve(As.T @ As + 1e-9 * np.eye(6), As.T @ hQ[sel])
+            coef = np.linalg.solve(As.T @ As + _EYE6_1E9, As.T @ hs)
         except np.linalg.LinAlgError:
             break
         res = hQ - A @ coef
         mr, s = _robust_spread(res)
+        if it == 1:
+            break
         sel = np.flatnonzero(np.abs(res - mr) < 3 * s)
         if sel.size < 12:
             break
+        As, hs = A[sel], hQ[sel]
     hP, AP = design(P)
     return hP - AP @ coef, s
+
+
+_EYE6_1E9 = 1e-9 * np.eye(6)
 
 
 def _verdict(cfg, top: float, noise: float, width: float, tilt_ok: bool) -> str | None:
@@ -1026,9 +1069,7 @@ def _judge(w: _Window, cfg, fx: float, dark: bool, tilt_ok: bool, trace) -> Smal
         raised = w.hall > max(0.5 * top, 0.5 * cfg.min_top_m)
     grown = cv2.dilate(blob, np.ones((5, 5), np.uint8)) > 0
     rock = ((raised & grown) | (blob > 0)).astype(np.uint8)
-    _, lab = cv2.connectedComponents(rock, connectivity=8)
-    ids = np.unique(lab[blob > 0])
-    rock = np.isin(lab, ids[ids > 0])
+    rock = _touching(rock, blob)
     sel = w.idx[rock & w.ok]
     if sel.size < cfg.min_blob_points:
         return SmallRock(w.a0, w.b0, blob > 0, w.P[w.idx[bl]], top, w.noise, width, depth, "flat")
@@ -1159,9 +1200,18 @@ def _grown(w: _Window, blob: np.ndarray, level_m: float) -> np.ndarray:
         raised = w.hall > level_m
     grown = cv2.dilate(blob, np.ones((5, 5), np.uint8)) > 0
     rock = ((raised & grown) | (blob > 0)).astype(np.uint8)
-    _, lab = cv2.connectedComponents(rock, connectivity=8)
-    ids = np.unique(lab[blob > 0])
-    return np.isin(lab, ids[ids > 0]).astype(np.uint8)
+    return _touching(rock, blob).view(np.uint8)
+
+
+def _touching(region: np.ndarray, blob: np.ndarray) -> np.ndarray:
+    """The 8-connected components of `region` (uint8) that hold a pixel of `blob` (bool)."""
+    import cv2
+
+    n_lab, lab = cv2.connectedComponents(region, connectivity=8)
+    keep = np.zeros(n_lab, bool)
+    keep[lab[blob > 0]] = True
+    keep[0] = False
+    return keep[lab]
 
 
 def _box_size(blob: np.ndarray) -> tuple[int, int]:
