@@ -444,41 +444,50 @@ def _blobs(z, sky, grid: _Grid, cfg, z_min: float, n_max: int, dark: bool) -> li
     pv, pu = pv[order], pu[order]
     d0, Z = grid.depth(pv, pu)
     inr = np.flatnonzero(np.isfinite(Z) & (Z >= cfg.min_range_m) & (Z <= cfg.max_range_m))
+    checked = grid.exclude is not None or grid.height is not None
+    if not checked:
+        inr = inr[: 3 * n_max]  # the strongest peaks only
+    # per peak, in float32 as the image: the window's half size (a rock of max_width_m at its
+    # range, plus a margin; 3-40 pixels) and the blob's level (half the peak's contrast, at
+    # least 0.6 z_min)
+    Zi = Z[inr]
+    halves = np.minimum(np.maximum(cfg.max_width_m * grid.fx / Zi / k, 3.0), 40.0)
+    zpk = z[pv[inr], pu[inr]]
+    levels = np.maximum(0.5 * zpk, 0.6 * z_min)
     out = []
     claimed = np.zeros(z.shape, bool)
-    checked = grid.exclude is not None or grid.height is not None
-    for i in inr if checked else inr[: 3 * n_max]:  # the strongest peaks only
+    for y, x, half, level, j in zip(
+        pv[inr].tolist(),
+        pu[inr].tolist(),
+        halves.astype(int).tolist(),
+        levels.tolist(),
+        range(inr.size),
+    ):
         if len(out) >= n_max:
             break
-        y, x = int(pv[i]), int(pu[i])
         if claimed[y, x]:
             continue
-        # the window: a rock of max_width_m at this range, plus a margin
-        half = int(min(max(cfg.max_width_m * grid.fx / Z[i] / k, 3.0), 40.0))  # np.clip, cheaper
         ya, yb, xa, xb = (
             max(y - half, 0),
             min(y + half + 1, h),
             max(x - half, 0),
             min(x + half + 1, w),
         )
-        sub = (z[ya:yb, xa:xb] > max(0.5 * z[y, x], 0.6 * z_min)).astype(np.uint8)
+        sub = np.greater(z[ya:yb, xa:xb], level).view(np.uint8)
         # the peak's 8-connected blob (a flood fill costs what the blob costs, not the window)
         area, _, _, (bx0, by0, bw, bh) = cv2.floodFill(sub, None, (x - xa, y - ya), 2, flags=8)
         c = sub[by0 : by0 + bh, bx0 : bx0 + bw] == 2
         claimed[ya + by0 : ya + by0 + bh, xa + bx0 : xa + bx0 + bw] |= c
         if area < 2 or bw > cfg.max_aspect * bh:
             continue
-        width = max(bw, bh) * k * Z[i] / grid.fx
+        width = max(bw, bh) * k * Zi[j] / grid.fx
         if not cfg.min_width_m <= width <= cfg.max_width_m:
             continue
-        full = np.repeat(np.repeat(c, k, axis=0), k, axis=1) if k > 1 else c
-        if checked and not grid.checked(
-            (xa + bx0) * k, (ya + by0) * k + grid.r0, *full.shape, cfg.min_lowres_height_m
-        ):
+        full = c.repeat(k, axis=0).repeat(k, axis=1) if k > 1 else c
+        u0, v0 = (xa + bx0) * k, (ya + by0) * k + grid.r0
+        if checked and not grid.checked(u0, v0, *full.shape, cfg.min_lowres_height_m):
             continue
-        out.append(
-            ((xa + bx0) * k, (ya + by0) * k + grid.r0, full, float(d0[i]), dark, float(z[y, x]))
-        )
+        out.append((u0, v0, full, float(d0[inr[j]]), dark, float(zpk[j])))
     return out
 
 
@@ -881,7 +890,7 @@ def _shadowed_blob(w: _Window, cfg, bw: int, bh: int) -> np.ndarray | None:
     with np.errstate(invalid="ignore"):
         raised = w.hall > max(cfg.min_snr * w.noise, 0.5 * cfg.min_top_m)
     g = max(3, int(max(bw, bh)))
-    near = cv2.dilate(w.blob, np.ones((2 * g + 1, 2 * g + 1), np.uint8)) > 0
+    near = cv2.dilate(w.blob, _ones(2 * g + 1)) > 0
     cand = (raised & near).astype(np.uint8)
     n_lab, lab, stats, _ = cv2.connectedComponentsWithStats(cand, connectivity=8)
     if n_lab <= 1:
@@ -1022,10 +1031,12 @@ def _judge(w: _Window, cfg, fx: float, dark: bool, tilt_ok: bool, trace) -> Smal
         if w2 is not None:
             w, blob = w2, region
     bw, bh = _box_size(blob)
-    bl = (cv2.dilate(blob, np.ones((3, 3), np.uint8)) > 0) & w.ok
-    if np.count_nonzero(bl) < cfg.min_blob_points:
+    bl = (cv2.dilate(blob, _ones(3)) > 0) & w.ok
+    n_bl = int(np.count_nonzero(bl))
+    if n_bl < cfg.min_blob_points:
         return SmallRock(w.a0, w.b0, blob > 0, np.zeros((0, 3)), 0.0, w.noise, 0.0, 0.0, "flat")
-    top = _quantile(w.hall[bl], 0.9)
+    h_bl = w.hall[bl]
+    top = _quantile(h_bl, 0.9)
     depth = _quantile(w.P[w.idx[bl], 2], 0.5)
     width = max(bw, bh) * depth / fx
     if trace is not None:
@@ -1050,31 +1061,25 @@ def _judge(w: _Window, cfg, fx: float, dark: bool, tilt_ok: bool, trace) -> Smal
     reason = _verdict(cfg, top, w.noise, width, tilt_ok)
     # the blob's median height against the noise of a mean over its independent pixels (one per
     # SGBM block): a lit patch of flat regolith has a noisy top but no raised middle
-    n_ind = max(np.count_nonzero(bl) / cfg.block_size**2, 1.0)
-    if (
-        reason is None
-        and _quantile(w.hall[bl], 0.5) * np.sqrt(n_ind) < cfg.min_median_snr * w.noise
-    ):
+    n_ind = max(n_bl / cfg.block_size**2, 1.0)
+    med = _quantile(h_bl, 0.5) if reason is None else float("nan")
+    if reason is None and med * np.sqrt(n_ind) < cfg.min_median_snr * w.noise:
         reason = "flat"
-    if (
-        dark
-        and reason is None
-        and (top < cfg.dark_min_snr * w.noise or np.count_nonzero(bl) < cfg.dark_min_points)
-    ):
+    if dark and reason is None and (top < cfg.dark_min_snr * w.noise or n_bl < cfg.dark_min_points):
         reason = "flat"  # a raised patch beside a shadow needs more evidence than a lit face
     if reason is not None:
         return SmallRock(w.a0, w.b0, blob > 0, w.P[w.idx[bl]], top, w.noise, width, depth, reason)
     # the rock: the blob and the raised pixels next to it (its unlit side)
     with np.errstate(invalid="ignore"):
         raised = w.hall > max(0.5 * top, 0.5 * cfg.min_top_m)
-    grown = cv2.dilate(blob, np.ones((5, 5), np.uint8)) > 0
+    grown = cv2.dilate(blob, _ones(5)) > 0
     rock = ((raised & grown) | (blob > 0)).astype(np.uint8)
     rock = _touching(rock, blob)
     sel = w.idx[rock & w.ok]
     if sel.size < cfg.min_blob_points:
         return SmallRock(w.a0, w.b0, blob > 0, w.P[w.idx[bl]], top, w.noise, width, depth, "flat")
-    ys, xs = np.nonzero(rock)
-    y0, y1, x0, x1 = int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1
+    x0, y0, x1, y1 = cv2.boundingRect(rock.view(np.uint8))
+    x1, y1 = x0 + x1, y0 + y1
     return SmallRock(
         w.a0 + x0,
         w.b0 + y0,
@@ -1084,8 +1089,8 @@ def _judge(w: _Window, cfg, fx: float, dark: bool, tilt_ok: bool, trace) -> Smal
         w.noise,
         (x1 - x0) * depth / fx,
         depth,
-        median_m=_quantile(w.hall[bl], 0.5),
-        blob_points=int(np.count_nonzero(bl)),
+        median_m=med,
+        blob_points=n_bl,
     )
 
 
@@ -1215,6 +1220,9 @@ def _touching(region: np.ndarray, blob: np.ndarray) -> np.ndarray:
 
 
 def _box_size(blob: np.ndarray) -> tuple[int, int]:
-    """Width and height (pixels) of the bounding box of a blob's nonzero pixels."""
-    ys, xs = np.nonzero(blob)
-    return int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1)
+    """Width and height (pixels) of the bounding box of a blob's nonzero pixels (uint8, not
+    empty)."""
+    import cv2
+
+    _, _, bw, bh = cv2.boundingRect(blob)
+    return int(bw), int(bh)
