@@ -49,6 +49,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -239,6 +240,14 @@ class SmallRockConfig:
             raise ConfigError(f"block_size={self.block_size!r} must be odd")
 
 
+class _Intrinsics(NamedTuple):
+    """A pinhole camera's focal length and principal point (pixels)."""
+
+    fx: float
+    cx: float
+    cy: float
+
+
 @dataclass
 class SmallRock:
     """One verified candidate: its pixels (a boolean crop at (u0, v0)), points (optical
@@ -278,20 +287,20 @@ def ground_plane(
     D = depth[::k, ::k]
     ok = np.isfinite(D) & (D < max_depth_m)
     P = points_rover[::k, ::k][ok].astype(float)
-    fin = np.isfinite(P[:, 0]) & np.isfinite(P[:, 1]) & np.isfinite(P[:, 2])
-    if not fin.all():
-        P = P[fin]
+    if not np.isfinite(P).all():
+        P = P[np.isfinite(P).all(axis=1)]
     if len(P) < 50:
         return None
-    for _ in range(2):
+    for it in range(2):
         c = np.array([_median(P[:, j]) for j in range(3)])  # np.median(P, axis=0)
         Q = P - c
         # the plane's normal: the scatter matrix's least eigenvector (as the SVD's last right
         # singular vector, without the (N, 3) left factor)
         n = np.linalg.eigh(Q.T @ Q)[1][:, 0]
-        r = Q @ n
-        s = 1.4826 * _median(np.abs(r)) + 1e-6
-        P = P[np.abs(r) < 3 * s]
+        a = np.abs(Q @ n)
+        if it == 1:
+            break  # (the last pass's inliers are not used)
+        P = P[a < 3 * (1.4826 * _median(a) + 1e-6)]
         if len(P) < 50:
             break
     return n if n[2] >= 0 else -n
@@ -730,7 +739,7 @@ def _local_heights(
     blob[v0 - b0 : v0 - b0 + bh, u0 - a0 : u0 - a0 + bw] = crop
     g = max(3, int(0.5 * max(bw, bh)))
     core = cv2.dilate(blob, _ones(2 * g + 1)) > 0
-    ok = d == d  # not NaN (d holds no infinity)
+    ok = np.isfinite(d)
     gr = ok > core  # ok and not core
     if (
         np.count_nonzero(gr) < cfg.min_ring_points
@@ -933,7 +942,9 @@ def detect_small_rocks(
     (:func:`default_judge`), used only when cfg.judge_min_score > 0.
     """
     H, W = left.shape
-    fb = camera.fx * baseline_m
+    fx = camera.fx
+    intr = _Intrinsics(fx, camera.cx, camera.cy)  # the camera's properties, computed once
+    fb = fx * baseline_m
     mt = matcher or _Matcher(cfg.block_size, cfg.band_px, cfg.max_band_px)
     cos_tilt = np.cos(np.radians(cfg.max_tilt_deg))
     out: list[SmallRock] = []
@@ -970,35 +981,39 @@ def detect_small_rocks(
             if not np.any(hh >= cfg.min_lowres_height_m):  # NaN compares False
                 continue
             if use_judge:
-                low_m = float(np.nanmax(hh))
+                low_m = float(np.fmax.reduce(hh, axis=None))  # np.nanmax (hh has a number)
         w = _local_heights(
-            left, right, disparity_lowres, scale, camera, fb, cfg, mt, u0, v0, crop, d0, dark
+            left, right, disparity_lowres, scale, intr, fb, cfg, mt, u0, v0, crop, d0, dark
         )
         if w is None:
             continue
         cos_n = 1.0 if up_optical is None else abs(float(w.n @ up_optical))
         tilt_ok = cos_n >= cos_tilt
         hand = height_floors if i >= n_appearance and not use_judge else floors
-        rock = _judge(w, hand, camera.fx, dark, tilt_ok, trace)
+        rock = _judge(w, hand, fx, dark, tilt_ok, trace)
+        # (rock is _judge's own new SmallRock: it is completed in place)
         if rock.reason is not None:
             if (
                 keep_rejected and rock.depth_m > 0
             ):  # a dark blob with nothing raised beside it: none
-                out.append(replace(rock, u0=u0, v0=v0, crop=crop.copy()))
+                rock.u0, rock.v0, rock.crop = u0, v0, crop.copy()
+                out.append(rock)
             continue
         if rock.width_m > cfg.max_width_m:
             if keep_rejected:
-                out.append(replace(rock, u0=u0, v0=v0, crop=crop.copy(), reason="too_wide"))
+                rock.u0, rock.v0, rock.crop, rock.reason = u0, v0, crop.copy(), "too_wide"
+                out.append(rock)
             continue
         if use_judge:
             x = judge_features(
                 rock, left, u0, v0, crop, dark, zpk, pair[i], low_m, cos_n, float(rock.noise_m)
             )
             p = float(judge.score(x))
-            rock = replace(rock, features=x, score=p, rank=int(rank[i]))
+            rock.features, rock.score, rock.rank = x, p, int(rank[i])
             if p < cfg.judge_min_score:
                 if keep_rejected:
-                    out.append(replace(rock, reason="judged"))
+                    rock.reason = "judged"
+                    out.append(rock)
                 continue
         out.append(rock)
         # the rock and one rock width around it: other fragments of it are not rocks again
