@@ -343,12 +343,9 @@ def _candidates(
     D = np.asarray(disparity_lowres, np.float32)
     # only the rows that hold ground within the range searched (and a margin)
     with np.errstate(invalid="ignore"):
-        near = (
-            np.isfinite(D)
-            & (D * kd >= fx * baseline_m / cfg.max_range_m)
-            & (D * kd <= fx * baseline_m / cfg.min_range_m)
-        )
-    rows = np.flatnonzero(near.any(axis=1))
+        Dk = D * kd
+        near = (Dk >= fx * baseline_m / cfg.max_range_m) & (Dk <= fx * baseline_m / cfg.min_range_m)
+    rows = np.flatnonzero(near.any(axis=1))  # (NaN compares False)
     if rows.size == 0:
         return []
     r0 = max(int(rows[0]) * kd - 32, 0) // k * k
