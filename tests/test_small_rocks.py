@@ -294,6 +294,57 @@ def test_the_stages_order_statistics_are_numpys_value_for_value():
         assert _quantile(x, 0.95) == pytest.approx(np.quantile(x, 0.95), abs=1e-12)
 
 
+def test_the_stages_fast_helpers_give_the_plain_forms_values():
+    """The stage's speed helpers against the plain numpy forms they replace, value for value:
+    the in-place median and MAD of float64 arrays, the candidates' 5 x 5 disparity medians from
+    the padded map, the components touching a blob (unique + isin), and the blob's box size."""
+    import cv2
+
+    from lunarloc.perception.small_rocks import (
+        _box_size,
+        _Grid,
+        _mad64,
+        _median64,
+        _nanmedian_rows,
+        _quantile,
+        _robust_spread,
+        _touching,
+    )
+
+    rng = np.random.default_rng(11)
+    for n in (1, 2, 3, 8, 51, 400):
+        x = rng.normal(size=n)
+        m = _quantile(x, 0.5)
+        assert _median64(x.copy()) == m
+        assert _mad64(x.copy()) == _quantile(np.abs(x - m), 0.5)
+        y = x.copy()
+        assert _robust_spread(y) == (m, 1.4826 * _quantile(np.abs(x - m), 0.5) + 1e-4)
+        assert np.array_equal(y, x)  # not reordered
+    D = (rng.random((40, 60)) * 30).astype(np.float32)
+    D[rng.random(D.shape) < 0.3] = np.nan
+    grid = _Grid(D, 2, 2, 6, 900.0, 900.0 * 0.162)
+    pv, pu = rng.integers(0, 37, 300), rng.integers(0, 60, 300)
+    d0, Z = grid.depth(pv, pu)
+    pad = np.pad(D, 2, constant_values=np.nan)
+    cu = np.clip(pu * 2 // 2, 0, 59)
+    cv = np.clip((pv * 2 + 6) // 2, 0, 39)
+    win = np.stack([pad[cv + 2 + a, cu + 2 + b] for a in range(-2, 3) for b in range(-2, 3)], 1)
+    ref = _nanmedian_rows(win) * 2
+    assert np.array_equal(d0, ref, equal_nan=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        assert np.array_equal(Z, grid.fb / ref, equal_nan=True)
+    for _ in range(20):
+        region = (rng.random((30, 40)) < 0.3).astype(np.uint8)
+        blob = np.zeros((30, 40), bool)
+        blob[rng.integers(0, 30, 3), rng.integers(0, 40, 3)] = True
+        region |= blob.astype(np.uint8)
+        _, lab = cv2.connectedComponents(region, connectivity=8)
+        ids = np.unique(lab[blob])
+        assert np.array_equal(_touching(region, blob), np.isin(lab, ids[ids > 0]))
+        ys, xs = np.nonzero(region)
+        assert _box_size(region) == (xs.max() - xs.min() + 1, ys.max() - ys.min() + 1)
+
+
 def test_the_view_s_ground_normal_is_fitted_once_and_kept_on_the_height_map():
     """The detector's levelling fit of the view's ground is kept on the height map (the stage's
     tilt test reuses it instead of fitting the same points again); it points up and, levelled,
