@@ -345,6 +345,7 @@ def _candidates(
     with np.errstate(invalid="ignore"):
         Dk = D * kd
         near = (Dk >= fx * baseline_m / cfg.max_range_m) & (Dk <= fx * baseline_m / cfg.min_range_m)
+        del Dk  # (freed at once, as the two temporaries it replaces were)
     rows = np.flatnonzero(near.any(axis=1))  # (NaN compares False)
     if rows.size == 0:
         return []
