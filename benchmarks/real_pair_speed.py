@@ -15,7 +15,10 @@ threads, so it does not depend much on the machine's load) and wall time per pai
 ``--stages``: the small-rock stage on only, with the detector's stages timed (process CPU
 per pair, including the timing wrappers' own small cost; nested stages are indented and
 count in their parent too) and the page faults (fresh memory pages the kernel had to map,
-a cost that shows as system time) per pair.
+a cost that shows as system time) per pair. The small-rock stage is split into its
+candidates (difference-of-Gaussians blobs and, with count_checked, their pre-checks), its
+full-resolution windows (their SGBM match and their local ground fit), the verdicts and the
+learned judge's features.
 """
 
 from __future__ import annotations
