@@ -454,10 +454,10 @@ def _blobs(z, sky, grid: _Grid, cfg, z_min: float, n_max: int, dark: bool) -> li
     checked = grid.exclude is not None or grid.height is not None
     if not checked:
         inr = inr[: 3 * n_max]  # the strongest peaks only
-    # per peak, in float32 as the image: the window's half size (a rock of max_width_m at its
-    # range, plus a margin; 3-40 pixels) and the blob's level (half the peak's contrast, at
-    # least 0.6 z_min)
-    Zi = Z[inr]
+    # per peak: the window's half size (a rock of max_width_m at its range, plus a margin; 3-40
+    # pixels; float64) and the blob's level (half the peak's contrast, at least 0.6 z_min;
+    # float32, as the image it is compared with)
+    Zi = np.asarray(Z[inr], np.float64)  # float64 as the scalars were with any numpy
     halves = np.minimum(np.maximum(cfg.max_width_m * grid.fx / Zi / k, 3.0), 40.0)
     zpk = z[pv[inr], pu[inr]]
     levels = np.maximum(0.5 * zpk, 0.6 * z_min)
