@@ -448,6 +448,12 @@ def write_misses(path: Path, rows: list[dict]) -> None:
             "tentatives never confirmed, by the rules that made them tentative: "
             + ", ".join(f"{k} {v}" for k, v in rules.most_common())
         )
+    judged = Counter(r.get("rejected_by") or "?" for r in rows if r["stage"] == "not_a_rock")
+    if judged:
+        print(
+            "judged no rock, by the rules that fired or the verifier: "
+            + ", ".join(f"{k} {v}" for k, v in judged.most_common())
+        )
     groups = misses_by_rock(rows)
     if groups:
         print("rocks missed most (archive, rock id, radius, range, sightings missed, stages):")

@@ -23,7 +23,8 @@ the rock spread (its RMS per rock and session) and the session offset (the dista
 between a rock's two session means), each as count, median and p90. Across the two sessions
 of a site (``two_session_spread``): for each rock seen ``--min-sightings`` times in both,
 every sighting's horizontal distance from the mean of all its sightings in both sessions
-(sightings: n, median, p90) and its RMS per rock (rocks: n, median, p90). Target (issue 29):
+(sightings: n, median, p90) and its RMS per rock (rocks: n, median, p90); and the r >= 0.1 m sighting deviations by the
+detection's depth (0-3, 3-4, >= 4 m: near or far sightings). Target (issue 29):
 median <= 2 cm horizontal for r >= 0.1 m.
 """
 
@@ -79,10 +80,16 @@ def render_sessions(
 
 
 def log_session(
-    path: Path, session: str, cfg: DetectorConfig, log: SightingLog, max_range: float
+    path: Path,
+    session: str,
+    cfg: DetectorConfig,
+    log: SightingLog,
+    max_range: float,
+    depths: dict | None = None,
 ) -> dict:
-    """Detect over one archive (ground-truth poses) and log each detection's rock. Returns
-    the counts of detections: on a rock, on no rock, beyond range."""
+    """Detect over one archive (ground-truth poses) and log each detection's rock (and, with
+    `depths`, its depth in metres under (session, rock), in the log's order). Returns the
+    counts of detections: on a rock, on no rock, beyond range."""
     from lunarloc.config.run import scaled_detector_config
     from lunarloc.io.lac.archive import LacArchive
     from lunarloc.perception.camera import camera_from_archive
@@ -111,6 +118,8 @@ def log_session(
                     continue
                 counts["on_rock"] += 1
                 log.add(session, rock, d.p_map[:2])
+                if depths is not None:
+                    depths.setdefault((session, rock), []).append(float(d.depth_m))
     return {"radii": radii, **counts}
 
 
@@ -149,6 +158,34 @@ def two_session_spread(log: SightingLog, radii_m: dict[int, float], min_sighting
             dev[k].extend(d.tolist())
             rms[k].append(float(np.sqrt(np.mean(d * d))))
     return {n: {"sightings": _stats(dev[n]), "rock_rms": _stats(rms[n])} for n in dev}
+
+
+DEPTH_BANDS_M = ((0.0, 3.0), (3.0, 4.0), (4.0, 1e9))
+"""Detection-depth bands of the by-depth breakdown (metres)."""
+
+
+def deviation_by_depth(
+    log: SightingLog, depths: dict, radii_m: dict, min_sightings: int, min_radius_m: float = 0.1
+) -> dict:
+    """Sighting deviations (each sighting from its rock's session mean, as ``summarise``) of
+    the rocks of true radius >= `min_radius_m`, by the sighting's detection depth band
+    (DEPTH_BANDS_M): which sightings, near or far, carry the spread. `log` and `depths` keyed
+    by (session, rock) as ``log_session`` fills them, `radii_m` by (session, rock)."""
+    out: dict[str, list[float]] = {
+        f"{lo:g}-{hi:g}" if hi < 1e8 else f">={lo:g}": [] for lo, hi in DEPTH_BANDS_M
+    }
+    names = list(out)
+    for session, rocks in log.sightings.items():
+        for rock, pts in rocks.items():
+            if len(pts) < min_sightings or radii_m.get((session, rock), 0.0) < min_radius_m:
+                continue
+            p = np.asarray(pts, float)
+            dev = np.hypot(*(p - p.mean(axis=0)).T)
+            for d, z in zip(dev, depths[(session, rock)]):
+                for n, (lo, hi) in zip(names, DEPTH_BANDS_M):
+                    if lo <= z < hi:
+                        out[n].append(float(d))
+    return {n: _stats(v) for n, v in out.items()}
 
 
 def print_table(s: dict, two: dict | None = None) -> None:
@@ -221,12 +258,15 @@ def main(argv=None) -> int:
     if not groups:
         ap.error("give --seeds or --sessions")
     log = SightingLog()
+    depths: dict = {}
+    session_radii: dict = {}
     radii: dict[int, float] = {}
     counts = {"on_rock": 0, "off_rock": 0, "beyond_range": 0}
     c0 = time.process_time()
     for name, paths in groups:
         for p in paths:
-            out = log_session(p, f"{name}/{p.stem}", cfg, log, a.max_range)
+            out = log_session(p, f"{name}/{p.stem}", cfg, log, a.max_range, depths)
+            session_radii.update({(f"{name}/{p.stem}", r): v for r, v in out["radii"].items()})
             # rock ids are per site: key them by site so two sites' rocks stay apart
             for k in counts:
                 counts[k] += out[k]
@@ -250,6 +290,13 @@ def main(argv=None) -> int:
         f"{'on' if cfg.small_rocks.enabled else 'off'}; ground-truth poses; {time.process_time() - c0:.0f} s CPU"
     )
     print_table(s, two)
+    by_depth = deviation_by_depth(log, depths, session_radii, a.min_sightings)
+    print(
+        "r>=0.1 sightings by detection depth (m): band | n, median, p90 cm of the deviation "
+        "from the rock's session mean"
+    )
+    for band, st in by_depth.items():
+        print(f"{band} | {st['n']}, {100 * st['median_m']:.1f}, {100 * st['p90_m']:.1f}")
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)
         a.json.write_text(
@@ -257,6 +304,7 @@ def main(argv=None) -> int:
                 {
                     "summary": s,
                     "two_session_spread": two,
+                    "r>=0.1_by_depth": by_depth,
                     "counts": counts,
                     "archives": [str(p) for _, ps in groups for p in ps],
                     "small_rocks": cfg.small_rocks.enabled,

@@ -35,6 +35,12 @@ def test_a_miss_is_put_at_the_mask_overlapping_it_most_or_at_the_height_map():
     pair.records[0].tentative = "contrast+quadric"
     got = bench.miss_stage(pair, rock)
     assert (got["stage"], got["tentative_rules"]) == ("tentative", "contrast+quadric")
+    assert got["rejected_by"] == ""
+    # a blob judged no rock says what judged it: the rules that fired, or the verifier
+    pair = _pair([RejectReason.NOT_A_ROCK, None])
+    pair.records[0].rejected_by = "verifier"
+    got = bench.miss_stage(pair, rock)
+    assert (got["stage"], got["rejected_by"]) == ("not_a_rock", "verifier")
     # kept, but not matched: the detection's centre lies too far from the rock's
     assert bench.miss_stage(_pair([None, None]), rock)["stage"] == "kept"
     # no mask over it: the height map says why no blob formed (half its pixels without

@@ -280,3 +280,37 @@ def test_ground_footprint_weights_keep_a_far_rock_off_the_ground():
     assert np.nanmedian(np.abs(hm_w.height[ground])) < 0.005
     with pytest.raises(ConfigError):
         GroundConfig(footprint_span_px=0)
+
+
+def test_ground_footprint_min_drop_keeps_the_plain_ground_off_the_rock():
+    """footprint_min_drop_m: the weighted level replaces the plain one only in cells where it
+    lies that much lower (the far rock's cells); on noisy open ground, where the two differ by
+    millimetres, the heights are the plain ground's, bit for bit, while the rock's top stands
+    higher above its ground than over the plain one."""
+    from lunarloc.perception.camera import ipex_rig
+    from lunarloc.perception.stereo import GroundConfig, ground_height_map
+
+    cam = PinholeCamera()
+    T = ipex_rig(cam)["FrontLeft"].T_rover_optical
+    box = (4.3, 4.55, -0.2, 0.2, 0.12)
+    disp = _ray_cast_disparity(cam, T, 2, box)
+    disp = disp + np.random.default_rng(3).normal(0, 0.02, disp.shape).astype(np.float32)
+    plain = ground_height_map(disp, 2, cam, 0.162, T, GroundConfig())
+    fw = ground_height_map(disp, 2, cam, 0.162, T, GroundConfig(footprint_weights=True))
+    cfg = GroundConfig(footprint_weights=True, footprint_min_drop_m=0.02)
+    hyb = ground_height_map(disp, 2, cam, 0.162, T, cfg)
+    P = plain.points_rover
+    on_box = (
+        (P[..., 0] > box[0] - 0.01)
+        & (P[..., 0] < box[1] + 0.01)
+        & (np.abs(P[..., 1]) < 0.19)
+        & (P[..., 2] > T[2, 3] - 0.331 + 0.001)
+    )
+    assert np.nanmax(hyb.height[on_box]) > np.nanmax(plain.height[on_box]) + 0.01
+    # open ground well clear of the rock's cells (bilinear interpolation reaches one cell)
+    far_off = np.isfinite(plain.height) & (np.hypot(P[..., 0] - 4.4, P[..., 1]) > 1.2)
+    assert far_off.sum() > 1000
+    assert np.any(fw.height[far_off] != plain.height[far_off])  # the weights move it
+    np.testing.assert_array_equal(hyb.height[far_off], plain.height[far_off])
+    with pytest.raises(ConfigError):
+        GroundConfig(footprint_min_drop_m=-0.01)

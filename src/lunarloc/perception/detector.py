@@ -183,6 +183,9 @@ class MaskRecord:
     # the marginal rules that made its detection tentative (Detection.tentative; "" = firm
     # or never a detection), kept when the detection is later dropped
     tentative: str = ""
+    # what judged a NOT_A_ROCK blob no rock: the rules that fired, joined by "+", or
+    # "verifier" (the learned blob verifier's score under its threshold); "" otherwise
+    rejected_by: str = ""
 
 
 @dataclass
@@ -749,6 +752,7 @@ class Detector:
             hard, soft = fired_rules(blob, cfg.rules)
             if hard or (soft and not (mid and set(soft) <= TENTATIVE_RULES)):
                 rec.reason = RejectReason.NOT_A_ROCK
+                rec.rejected_by = "+".join((*hard, *soft))
                 return rec, None
             det = replace(
                 _detection(
@@ -772,6 +776,7 @@ class Detector:
                 score = float(default_verifier().score(blob_features(det, scene.L, m)))
                 if score < min_score:
                     rec.reason = RejectReason.NOT_A_ROCK
+                    rec.rejected_by = "verifier"
                     return rec, None
                 det = replace(det, verifier_score=score)
         else:
@@ -998,6 +1003,7 @@ class Detector:
             records.append(rec)
             if rock.reason is not None:
                 rec.reason = RejectReason.FLAT if rock.reason == "flat" else RejectReason.NOT_A_ROCK
+                rec.rejected_by = "" if rock.reason == "flat" else f"small-rock {rock.reason}"
                 continue
             R_est = 0.5 * float(rock.width_m)
             P_rov = transform_points(T_rover_optical, rock.points_optical)

@@ -123,6 +123,7 @@ MISS_FIELDS = (
     "range_m",
     "stage",
     "tentative_rules",
+    "rejected_by",
     "overlap",
     "mask_eig_ratio",
     "mask_depth_m",
@@ -135,7 +136,8 @@ def miss_stage(pair, rock_px: np.ndarray) -> dict:
     """Where a missed rock was lost in one pair (`rock_px`: its pixels in the left image).
     The mask overlapping most of the rock is followed through the filters: its reject
     reason (``elongated``, ``tentative`` with the rules that made it one in
-    ``tentative_rules``, ``unconfirmed``, ``not_a_rock``, ...) or ``kept``
+    ``tentative_rules``, ``unconfirmed``, ``not_a_rock`` with the rules that fired or
+    ``verifier`` in ``rejected_by``, ...) or ``kept``
     (kept, but its centre lies beyond the match tolerance: it joined another body or saw
     only part of the rock). With no overlapping mask the stage is ``no-blob``, with the
     share of the rock's low-resolution pixels that have a height and the highest of those
@@ -151,6 +153,7 @@ def miss_stage(pair, rock_px: np.ndarray) -> dict:
     out = dict(
         stage="no-blob",
         tentative_rules="",
+        rejected_by="",
         overlap=overlap / n,
         mask_eig_ratio=float("nan"),
         mask_depth_m=float("nan"),
@@ -166,6 +169,7 @@ def miss_stage(pair, rock_px: np.ndarray) -> dict:
                 float(rec.depth_m),
             )
             out["tentative_rules"] = rec.tentative  # why a dropped tentative was tentative
+            out["rejected_by"] = rec.rejected_by  # the rules or the verifier (not_a_rock)
         return out
     hm = pair.height
     if hm is not None:
