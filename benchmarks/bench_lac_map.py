@@ -16,6 +16,10 @@ Usage
     # 2c. where the corrected poses lose points against ground truth (recorded runs, score --dump):
     #     one pose component at a time taken from the corrected poses
     python benchmarks/bench_lac_map.py decompose --out DIR --seeds 292 294
+    # 2d. the detections' error along the viewing ray against the true rock centres, by stage,
+    #     radius band, range and lighting (the detector with ground-truth poses; any archives
+    #     rendered with custom/rocks.csv: these sites' traverse.lac, sim_heldout's)
+    python benchmarks/bench_lac_map.py range-bias --archives DIR/seed_286/traverse.lac ... [--every 8]
     # 3. cost: detection vs mapping per stereo pair, CPU time (an archive at each resolution)
     python benchmarks/bench_lac_map.py cost --archive A.lac [--frames 40] [--small-rocks|--no-small-rocks]
     # 4. memory: the mapper fed for a long replay (the archive's frames cycled with their
@@ -358,6 +362,84 @@ def decompose(a) -> None:
             )
 
 
+def range_bias(a) -> None:
+    """The detections' error along the viewing ray against the true rock centres: the detector
+    (the run configuration's, scaled to each archive's width) on every `--every`-th frame of each
+    archive with its ground-truth rover pose; each detection matched to the nearest true rock
+    (horizontally, within max(10 cm, its radius)); its error is the horizontal offset of its
+    centre from the rock's along the camera-to-rock direction (positive: too far) and across it.
+    Medians by stage (the small-rock stage or the height-map path), true radius band, range
+    from the camera and lighting (the archive's lighting.txt, or "lamps" in its name)."""
+    from lunarloc.config.run import RunConfig, load_config_file, scaled_detector_config
+    from lunarloc.core.geometry import pose_to_matrix
+    from lunarloc.io.lac.archive import LacArchive
+    from lunarloc.perception.camera import camera_from_archive
+    from lunarloc.perception.detector import Detector, mounts_from_archive_row
+    from lunarloc.pipeline.perception_eval import lander_xy
+
+    cfg = load_config_file(a.config)[0] if a.config else RunConfig()
+    rows = []
+    for path in a.archives:
+        lt = path.parent / "lighting.txt"
+        light = (
+            lt.read_text().strip()
+            if lt.is_file()
+            else ("lamps" if "lamps" in path.name else "sun+lamps")
+        )
+        with LacArchive(path) as ar:
+            t = ar.custom("rocks")
+            rocks = np.column_stack([t["x"], t["y"], t["z"], t["radius"]])
+            cam = camera_from_archive(ar)
+            det = Detector(scaled_detector_config(cam.width, base=cfg.detector), cam)
+            lxy = lander_xy(ar)
+            k = 0
+            for rec in ar.iter_frames(semantic=False):
+                if not any(c in rec.grayscale for c, _ in det.config.pairs):
+                    continue
+                k += 1
+                if (k - 1) % a.every:
+                    continue
+                s = rec.state
+                T = pose_to_matrix(s["x"], s["y"], s["z"], s["roll"], s["pitch"], s["yaw"])
+                mounts = mounts_from_archive_row(rec.cameras, cam)
+                fd = det.detect_frame(rec.grayscale, mounts, T, rec.frame, lander_xy=lxy)
+                for pair in fd.pairs:
+                    cam_xy = (T @ pair.T_rover_optical)[:2, 3]
+                    for d in pair.detections:
+                        dxy = np.linalg.norm(rocks[:, :2] - d.p_map[:2], axis=1)
+                        j = int(np.argmin(dxy))
+                        if dxy[j] > max(0.1, rocks[j, 3]):
+                            continue
+                        u = rocks[j, :2] - cam_xy
+                        rng = float(np.linalg.norm(u))
+                        u /= rng
+                        e = d.p_map[:2] - rocks[j, :2]
+                        rows.append(
+                            (int(d.small_rock), rocks[j, 3], rng, float(e @ u),
+                             float(e @ np.array([-u[1], u[0]])), light)
+                        )  # fmt: skip
+        print(f"{path}: {k} frames, {len(rows)} matched detections so far", flush=True)
+    small = np.array([r[0] for r in rows], bool)
+    rad, rng, along, across = (np.array([r[i] for r in rows], float) for i in (1, 2, 3, 4))
+    light = np.array([r[5] for r in rows])
+
+    def line(name, m):
+        if np.count_nonzero(m) >= 5:
+            q = 100 * np.percentile(along[m], [25, 50, 75])
+            print(
+                f"{name}: n {np.count_nonzero(m)}, along the ray median {q[1]:+.2f} cm "
+                f"(quartiles {q[0]:+.2f} / {q[2]:+.2f}), across {100 * np.median(across[m]):+.2f} cm"
+            )
+
+    for stage, sm in (("small-rock stage", small), ("height-map path", ~small)):
+        for lo, hi in ((0.0, 0.05), (0.05, 0.1), (0.1, 0.2), (0.2, 9.0), (0.0, 0.1)):
+            for r0, r1 in ((0, 2), (2, 3), (3, 4), (4, 9), (0, 9)):
+                m = sm & (rad >= lo) & (rad < hi) & (rng >= r0) & (rng < r1)
+                line(f"{stage}, r {lo:g}-{hi:g} m, range {r0}-{r1} m", m)
+        for lt in np.unique(light):
+            line(f"{stage}, r < 0.1 m, {lt}", sm & (rad < 0.1) & (light == lt))
+
+
 def _interp_share(est, truth, within_m: float):
     sel = est.interpolated & (est.fill_distance_m <= within_m)
     if not sel.any():
@@ -590,6 +672,12 @@ def main() -> None:
     s = sub.add_parser("decompose")
     s.add_argument("--out", type=Path, required=True)
     s.add_argument("--seeds", type=int, nargs="+", required=True)
+    s = sub.add_parser("range-bias")
+    s.add_argument("--archives", type=Path, nargs="+", required=True)
+    s.add_argument("--every", type=int, default=1, help="every n-th frame with images")
+    s.add_argument(
+        "--config", default=None, help="a run configuration file (JSON; RunConfig sections)"
+    )
     s = sub.add_parser("cost")
     s.add_argument("--archive", type=Path, required=True)
     s.add_argument("--frames", type=int, default=30)
@@ -618,6 +706,7 @@ def main() -> None:
         "score": score,
         "rescore": rescore,
         "decompose": decompose,
+        "range-bias": range_bias,
         "cost": cost,
         "memory": memory,
         "agent": agent,
