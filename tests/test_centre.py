@@ -170,3 +170,31 @@ def test_blend_detector_places_a_rock_on_the_ground():
     d = pr.detections[0]
     assert np.linalg.norm(d.p_rover[:2] - c[:2]) < 0.06
     assert abs(d.p_rover[2] - c[2]) < 0.08
+
+
+def test_the_ground_behind_a_rock_in_its_mask_does_not_push_its_centre_away():
+    # a 6 cm rock 3 m ahead; its half-resolution mask also holds ground behind it (a third of
+    # its points, 4-15 cm beyond the rock's far side): the median range over all the points
+    # would move 1.5 cm or more away; the points beyond a diameter of the nearest are left out
+    R, g = 0.06, -0.2
+    centre = np.array([3.0, 0.2, g + 0.02])
+    P = _visible_cap(centre, R, n=3000)
+    P = P[P[:, 2] > g]
+    h = P[:, 2] - g
+    rng = np.random.default_rng(1)
+    n = len(P) // 2
+    behind = np.column_stack(
+        [rng.uniform(3.1, 3.21, n), rng.uniform(0.15, 0.25, n), np.full(n, g + 0.005)]
+    )
+    cfg = DetectorConfig()
+    p, _ = _centre_from_points(P, h, CAM_ROVER, cfg, R)
+    Pm = np.vstack([P, behind])
+    p_mixed, _ = _centre_from_points(Pm, Pm[:, 2] - g, CAM_ROVER, cfg, R)
+    plain_shift = np.median(Pm[:, 0] - CAM_ROVER[0]) - np.median(P[:, 0] - CAM_ROVER[0])
+    assert plain_shift > 0.015
+    assert abs(p_mixed[0] - p[0]) < 0.3 * plain_shift
+    # the BLEND estimator's median term leaves them out too
+    bl = DetectorConfig(centre_estimator=CentreEstimator.BLEND)
+    q, _ = _centre_blend(P, h, CAM_ROVER, bl, R, None)
+    q_mixed, _ = _centre_blend(Pm, Pm[:, 2] - g, CAM_ROVER, bl, R, None)
+    assert abs(q_mixed[0] - q[0]) < 0.3 * plain_shift
