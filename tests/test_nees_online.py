@@ -153,6 +153,23 @@ def test_the_window_centre_bias_is_what_a_fix_and_the_anchor_add():
     assert np.allclose(fix_model_terms(0.05, 2, cfg), window_centre_bias_covariance(2, cfg))
 
 
+def test_the_window_bias_along_the_heading_widens_that_axis_only():
+    cfg = LoopConfig(fix_centre_bias_along_m=0.02, fix_centre_bias_z_m=0.01)
+    # heading 90 degrees: along is the map's y axis; one map built from detections: half
+    B = window_centre_bias_covariance(1, cfg, math.pi / 2)
+    assert np.allclose(B, np.diag([0.0, 0.02**2, 0.01**2]) / 2)
+    # at 45 degrees the along variance is shared by x and y, and correlates them
+    B45 = window_centre_bias_covariance(2, cfg, math.pi / 4)
+    assert np.allclose(B45[:2, :2], 0.02**2 / 2 * np.ones((2, 2)))
+    # no heading known: the along part is left out (the anchor's vertical part is unchanged)
+    assert np.allclose(window_centre_bias_covariance(2, cfg), np.diag([0.0, 0.0, 0.01**2]))
+    C = np.diag([1e-6, 1e-6, 1e-6, 0.0, 0.0, 0.0])
+    S = fix_stated_covariance(_Res(C, 0.0), [0.0, 0.0, 0.0], 2, cfg, 0.0)
+    assert S[0, 0] == pytest.approx(1e-6 + 0.02**2) and S[1, 1] == pytest.approx(1e-6)
+    with pytest.raises(ConfigError):
+        LoopConfig(fix_centre_bias_along_m=-0.01)
+
+
 def test_yaw_nees_shares_use_the_one_dof_quantiles():
     assert NEES1_68 == 1.0 and NEES1_997 == 9.0
     assert yaw_nees_shares([0.5, 2.0, 10.0, math.nan]) == (3, 1 / 3, 2 / 3)

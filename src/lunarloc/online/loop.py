@@ -202,9 +202,12 @@ class LoopConfig:
     # detections, half the variance for one): docs/calibration.md, "The online loop's uncertainty".
     # The heading likewise (Attempt.fix_sigma_yaw_rad): the window's heading-drift allowance
     # counted as fix_heading_drift_sigmas sigmas, and the turn of a centre bias that differs by
-    # fix_centre_bias_spread_m across the window's inliers (over their rms radius)
+    # fix_centre_bias_spread_m across the window's inliers (over their rms radius).
+    # fix_centre_bias_along_m: a horizontal part along the fix's heading only (image detections
+    # sit on the rocks' faces turned to the camera, nearer than their centres)
     fix_distortion_sigmas: float = 1.0
     fix_centre_bias_m: float = 0.0
+    fix_centre_bias_along_m: float = 0.0
     fix_centre_bias_z_m: float = 0.0
     fix_heading_drift_sigmas: float = 1.0
     fix_centre_bias_spread_m: float = 0.0
@@ -227,6 +230,7 @@ class LoopConfig:
         for name in (
             "crop_margin_m",
             "fix_centre_bias_m",
+            "fix_centre_bias_along_m",
             "fix_centre_bias_z_m",
             "fix_centre_bias_spread_m",
         ):
@@ -840,7 +844,7 @@ class LoopState:
         att.fix_distortion_m = float(res.distortion_error_m)
         att.fix_maps_from_detections = sum(m.sightings is not None for m in (ref, veh))
         att.fix_covariance_xyz = fix_stated_covariance(
-            res, fix4[:3], att.fix_maps_from_detections, cfg
+            res, fix4[:3], att.fix_maps_from_detections, cfg, fix4[3]
         ).tolist()
         att.fix_distortion_yaw_rad = math.radians(float(res.distortion_rotation_deg))
         att.fix_sigma_yaw_rad = math.sqrt(
@@ -1004,39 +1008,57 @@ def fix_position_covariance(covariance: np.ndarray, point_xyz) -> np.ndarray:
     return A @ np.asarray(covariance, float) @ A.T
 
 
-def window_centre_bias_covariance(maps_from_detections: int, config: LoopConfig) -> np.ndarray:
+def window_centre_bias_covariance(
+    maps_from_detections: int, config: LoopConfig, heading_yaw_rad: float = math.nan
+) -> np.ndarray:
     """The centre bias a window's few neighbouring rocks share (3x3, m^2): ``fix_centre_bias_m``
-    per horizontal axis and ``fix_centre_bias_z_m`` vertical for each map built from
-    detections (half the variance where one of the two maps is). No number of inliers averages
-    it, so neither localize()'s residuals nor the pose graph's per-rock bias show it."""
+    per horizontal axis, ``fix_centre_bias_along_m`` along the heading `heading_yaw_rad` (map
+    frame, rad; that part is left out where it is not finite) and ``fix_centre_bias_z_m``
+    vertical, for each map built from detections (half the variance where one of the two maps
+    is). No number of inliers averages it, so neither localize()'s residuals nor the pose
+    graph's per-rock bias show it."""
     f = maps_from_detections / 2
     b, bz = config.fix_centre_bias_m, config.fix_centre_bias_z_m
-    return np.diag([f * b * b, f * b * b, f * bz * bz])
+    B = np.diag([f * b * b, f * b * b, f * bz * bz])
+    ba = config.fix_centre_bias_along_m
+    h = float(heading_yaw_rad)
+    if ba > 0 and math.isfinite(h):
+        u = np.array([math.cos(h), math.sin(h), 0.0])
+        B = B + f * ba * ba * np.outer(u, u)
+    return B
 
 
 def fix_model_terms(
-    distortion_m: float, maps_from_detections: int, config: LoopConfig
+    distortion_m: float,
+    maps_from_detections: int,
+    config: LoopConfig,
+    heading_yaw_rad: float = math.nan,
 ) -> np.ndarray:
     """What :func:`fix_stated_covariance` adds to localize()'s covariance at the rover (3x3,
     m^2): the distortion allowance re-counted in ``fix_distortion_sigmas`` sigmas and the
-    window's centre bias (:func:`window_centre_bias_covariance`)."""
+    window's centre bias (:func:`window_centre_bias_covariance`, along `heading_yaw_rad`)."""
     d = float(distortion_m)
     k = 1.0 / config.fix_distortion_sigmas**2 - 1.0
     dd = k * d * d / 2 if math.isfinite(d) and d > 0 else 0.0
-    return np.diag([dd, dd, 0.0]) + window_centre_bias_covariance(maps_from_detections, config)
+    return np.diag([dd, dd, 0.0]) + window_centre_bias_covariance(
+        maps_from_detections, config, heading_yaw_rad
+    )
 
 
 def fix_stated_covariance(
-    res, point_xyz, maps_from_detections: int, config: LoopConfig
+    res, point_xyz, maps_from_detections: int, config: LoopConfig, heading_yaw_rad=math.nan
 ) -> np.ndarray:
     """The 3x3 position covariance (m^2) a loop fix is stated with at the rover (map-frame
-    `point_xyz`): localize()'s covariance there (:func:`fix_position_covariance`) with its
-    distortion allowance (``res.distortion_error_m``, split over x and y at the rover) counted
-    as ``config.fix_distortion_sigmas`` sigmas instead of one, plus the window's shared centre
-    bias (``fix_centre_bias_m`` per horizontal axis, ``fix_centre_bias_z_m`` vertical) times
-    half the number of the two maps built from detections."""
+    `point_xyz`, heading `heading_yaw_rad`): localize()'s covariance there
+    (:func:`fix_position_covariance`) with its distortion allowance (``res.distortion_error_m``,
+    split over x and y at the rover) counted as ``config.fix_distortion_sigmas`` sigmas instead
+    of one, plus the window's shared centre bias (``fix_centre_bias_m`` per horizontal axis,
+    ``fix_centre_bias_along_m`` along the heading, ``fix_centre_bias_z_m`` vertical) times half
+    the number of the two maps built from detections."""
     C = fix_position_covariance(res.covariance, point_xyz)
-    return C + fix_model_terms(res.distortion_error_m, maps_from_detections, config)
+    return C + fix_model_terms(
+        res.distortion_error_m, maps_from_detections, config, heading_yaw_rad
+    )
 
 
 def window_yaw_bias_variance(inliers_xyz, maps_from_detections: int, config: LoopConfig) -> float:

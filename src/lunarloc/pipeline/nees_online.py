@@ -87,7 +87,9 @@ def _fix_record(a, loop_config, **extra) -> dict:
     from lunarloc.online.loop import fix_model_terms, fix_model_yaw_variance, inlier_radius_m
 
     e, C = np.array(a.fix_error_xyz), np.array(a.fix_covariance_xyz)
-    C0 = C - fix_model_terms(a.fix_distortion_m, a.fix_maps_from_detections, loop_config)
+    C0 = C - fix_model_terms(
+        a.fix_distortion_m, a.fix_maps_from_detections, loop_config, a.fix_yaw_rad
+    )
     ey, sy = float(a.fix_error_yaw_rad), float(a.fix_sigma_yaw_rad)
     inl = np.asarray(a.inlier_vehicle_xyz or np.zeros((0, 3)), float).reshape(-1, 3)
     model_yaw = fix_model_yaw_variance(
