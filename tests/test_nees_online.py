@@ -139,6 +139,21 @@ def test_a_fix_states_its_heading_drift_in_sigmas_and_the_windows_turn():
         LoopConfig(fix_heading_drift_sigmas=0.0)
 
 
+def test_a_fix_states_the_heading_error_the_graph_grew_since_its_last_fix():
+    C = np.zeros((6, 6))
+    C[5, 5] = 1e-6
+    square = np.array([[-2.0, -2.0, 0.0], [2.0, -2.0, 0.0], [2.0, 2.0, 0.0], [-2.0, 2.0, 0.0]])
+    cfg = LoopConfig(fix_heading_rate_sigma_rad_s=2e-4)
+    v = fix_stated_yaw_variance(_Res(C, 0.05, 0.0), square, 2, cfg, 20.0)
+    assert v == pytest.approx(1e-6 + (2e-4 * 20.0) ** 2)
+    # longer since the last fix: wider; no fix yet (NaN): the window is the odometry's, none
+    assert fix_stated_yaw_variance(_Res(C, 0.05, 0.0), square, 2, cfg, 40.0) > v
+    assert fix_stated_yaw_variance(_Res(C, 0.05, 0.0), square, 2, cfg) == pytest.approx(1e-6)
+    assert fix_model_yaw_variance(0.0, square, 2, cfg, 20.0) == pytest.approx((2e-4 * 20) ** 2)
+    with pytest.raises(ConfigError):
+        LoopConfig(fix_heading_rate_sigma_rad_s=-1e-4)
+
+
 def test_nees_shares_count_the_finite_cases():
     assert nees_shares([1.0, NEES_68 + 1, NEES_997 + 1, math.nan]) == (3, 1 / 3, 2 / 3)
     assert math.isnan(nees(np.ones((1, 3)), np.zeros((1, 3, 3)))[0])  # singular: not judged

@@ -211,6 +211,10 @@ class LoopConfig:
     fix_centre_bias_z_m: float = 0.0
     fix_heading_drift_sigmas: float = 1.0
     fix_centre_bias_spread_m: float = 0.0
+    # the heading rate error (rad/s) the pose graph carries past its last accepted fix: the
+    # window is placed with the graph's poses and its registration aligns their average, so a
+    # fix keeps the heading error the graph's prediction grew at the keyframe since that fix
+    fix_heading_rate_sigma_rad_s: float = 0.0
 
     def __post_init__(self) -> None:
         for name in (
@@ -233,6 +237,7 @@ class LoopConfig:
             "fix_centre_bias_along_m",
             "fix_centre_bias_z_m",
             "fix_centre_bias_spread_m",
+            "fix_heading_rate_sigma_rad_s",
         ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v < math.inf):
@@ -384,6 +389,7 @@ class Attempt:
     fix_distortion_m: float = float("nan")  # localize()'s distortion allowance at the rover (m)
     fix_distortion_yaw_rad: float = float("nan")  # ... and its rotation part (rad, one sigma)
     fix_maps_from_detections: int = 0  # of the two maps, those built from detections (sightings)
+    fix_since_fix_s: float = float("nan")  # time since the last accepted fix (s; NaN before one)
     time_mapping_s: float = 0.0
     time_association_s: float = 0.0
     # window length used: window_m, or longer where the adaptive window grew
@@ -847,8 +853,10 @@ class LoopState:
             res, fix4[:3], att.fix_maps_from_detections, cfg, fix4[3]
         ).tolist()
         att.fix_distortion_yaw_rad = math.radians(float(res.distortion_rotation_deg))
+        last = next((a for a in reversed(self.attempts) if a.accepted), None)
+        att.fix_since_fix_s = t - last.time_s if last is not None else math.nan
         att.fix_sigma_yaw_rad = math.sqrt(
-            fix_stated_yaw_variance(res, Vp, att.fix_maps_from_detections, cfg)
+            fix_stated_yaw_variance(res, Vp, att.fix_maps_from_detections, cfg, att.fix_since_fix_s)
         )
         T_true = self.T_map_rover_true[-1]
         if T_true is not None:
@@ -1083,31 +1091,41 @@ def inlier_radius_m(inliers_xyz) -> float:
 
 
 def fix_model_yaw_variance(
-    distortion_yaw_rad: float, inliers_xyz, maps_from_detections: int, config: LoopConfig
+    distortion_yaw_rad: float,
+    inliers_xyz,
+    maps_from_detections: int,
+    config: LoopConfig,
+    since_fix_s: float = math.nan,
 ) -> float:
     """What :func:`fix_stated_yaw_variance` adds to localize()'s yaw variance (rad^2, may be
     negative): the window's heading-drift allowance re-counted in ``fix_heading_drift_sigmas``
-    sigmas and the turn of the window's centre bias (:func:`window_yaw_bias_variance`)."""
+    sigmas, the turn of the window's centre bias (:func:`window_yaw_bias_variance`) and the
+    heading error the pose graph's prediction grew since its last accepted fix,
+    ``fix_heading_rate_sigma_rad_s`` times `since_fix_s` (none where that is not finite: no
+    fix yet, the window placed with the odometry)."""
     d = float(distortion_yaw_rad)
     k = 1.0 / config.fix_heading_drift_sigmas**2 - 1.0
     dd = k * d * d if math.isfinite(d) and d > 0 else 0.0
-    return dd + window_yaw_bias_variance(inliers_xyz, maps_from_detections, config)
+    dt = float(since_fix_s)
+    grown = (config.fix_heading_rate_sigma_rad_s * dt) ** 2 if math.isfinite(dt) else 0.0
+    return dd + grown + window_yaw_bias_variance(inliers_xyz, maps_from_detections, config)
 
 
 def fix_stated_yaw_variance(
-    res, inliers_xyz, maps_from_detections: int, config: LoopConfig
+    res, inliers_xyz, maps_from_detections: int, config: LoopConfig, since_fix_s=math.nan
 ) -> float:
     """The yaw variance (rad^2) a loop fix is stated with: localize()'s (``covariance[5, 5]``:
     the registration's, the whole maps' shared bias and the window's heading-drift allowance
     ``res.distortion_rotation_deg`` as one sigma) with that allowance counted as
     ``config.fix_heading_drift_sigmas`` sigmas, plus the turn of the window's shared centre
-    bias over its inliers `inliers_xyz` (n, 3)."""
+    bias over its inliers `inliers_xyz` (n, 3) and the pose graph's heading error grown over
+    `since_fix_s` seconds since its last accepted fix (:func:`fix_model_yaw_variance`)."""
     v = float(res.covariance[5, 5])
     d = math.radians(float(res.distortion_rotation_deg))
     # localize() adds no allowance where it is not finite (distortion_covariance)
     if not (math.isfinite(d) and math.isfinite(float(res.distortion_error_m))):
         d = 0.0
-    v += fix_model_yaw_variance(d, inliers_xyz, maps_from_detections, config)
+    v += fix_model_yaw_variance(d, inliers_xyz, maps_from_detections, config, since_fix_s)
     return max(v, 0.0)
 
 

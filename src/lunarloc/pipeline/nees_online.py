@@ -93,12 +93,13 @@ def _fix_record(a, loop_config, **extra) -> dict:
     ey, sy = float(a.fix_error_yaw_rad), float(a.fix_sigma_yaw_rad)
     inl = np.asarray(a.inlier_vehicle_xyz or np.zeros((0, 3)), float).reshape(-1, 3)
     model_yaw = fix_model_yaw_variance(
-        a.fix_distortion_yaw_rad, inl, a.fix_maps_from_detections, loop_config
+        a.fix_distortion_yaw_rad, inl, a.fix_maps_from_detections, loop_config, a.fix_since_fix_s
     )
     sy0 = math.sqrt(max(sy * sy - model_yaw, 0.0))
     return {
         **extra,
         "keyframe": a.keyframe,
+        "time_s": a.time_s,
         "accepted": a.accepted,
         "inliers": a.inliers,
         "predicted_error_m": a.predicted_error_m,
@@ -122,6 +123,7 @@ def _fix_record(a, loop_config, **extra) -> dict:
         "distortion_yaw_rad": a.fix_distortion_yaw_rad,
         "inlier_radius_m": inlier_radius_m(inl),
         "heading_yaw_rad": a.fix_yaw_rad,
+        "since_fix_s": a.fix_since_fix_s,
     }
 
 
