@@ -232,3 +232,24 @@ def test_verifier_threshold_by_blob_kind():
         for bad in (-0.1, 1.0):
             with pytest.raises(ConfigError, match=f):
                 replace(r, **{f: bad})
+
+
+def test_appearance_features_are_the_same_bits_wherever_the_heap_puts_the_arrays():
+    """The gradient magnitude behind the orientation and gradient features comes out bit-identical
+    whatever the memory alignment of the arrays involved (OpenCV's IPP path rounds the first
+    pixels differently into an output that is not 32-byte aligned; before, the orientation
+    features' last digits, and so verifier_score's, moved from run to run)."""
+    from lunarloc.perception.verifier import appearance_features
+
+    rng = np.random.default_rng(7)
+    img = np.clip(rng.normal(120, 40, (90, 120)), 0, 255).astype(np.uint8)
+    # a blob at the image's corner: the window's first pixels (where the two roundings differ)
+    # are on the mask
+    mask = InstanceMask(0, 0, np.ones((30, 36), bool))
+    seen = set()
+    keep = []
+    for k in range(40):
+        # move the heap: arrays of the windows' size, and 16 bytes apart, kept between calls
+        keep.append(np.empty(4000 + 16 * k + 8 * (k % 3), np.uint8))
+        seen.add(appearance_features(img, mask).tobytes())
+    assert len(seen) == 1
