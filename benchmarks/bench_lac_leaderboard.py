@@ -42,6 +42,29 @@ import lunarsim  # noqa: E402
 AGENT_FILE = ROOT / "examples" / "lac_agent.py"
 
 
+#: The fields of each localization the component kept (``recent_attempts``) that attempts.json
+#: carries: the fixes and the covariance each was stated with (frame: the tick, 1-based), to
+#: judge them against the trace's truth (benchmarks/nees_online.py --runs); the distortion
+#: allowances (m, and the rotation part in rad) are the loop's model terms of that covariance.
+ATTEMPT_FIELDS = (
+    "frame",
+    "accepted",
+    "inliers",
+    "predicted_error_m",
+    "fix_xyz",
+    "fix_covariance_xyz",
+    "fix_yaw_rad",
+    "fix_sigma_yaw_rad",
+    "fix_distortion_m",
+    "fix_distortion_yaw_rad",
+)
+
+
+def attempt_records(attempts) -> list[dict]:
+    """attempts.json's rows: ATTEMPT_FIELDS of each successful attempt."""
+    return [{k: getattr(a, k) for k in ATTEMPT_FIELDS} for a in attempts if a.success]
+
+
 def run_one(
     seed: int,
     width: int,
@@ -99,18 +122,8 @@ def run_one(
         est_yaw_rad=np.array([y for y, _ in yaw]),
         yaw_variance_rad2=np.array([v for _, v in yaw]),
     )
-    # the localizations the component kept (recent_attempts): the fixes and the covariance each
-    # was stated with (frame: the tick, 1-based), to judge them against the trace's truth
-    keep = ("frame", "accepted", "inliers", "predicted_error_m", "fix_xyz", "fix_covariance_xyz")
-    keep += ("fix_yaw_rad", "fix_sigma_yaw_rad", "fix_distortion_m")
     (d / "attempts.json").write_text(
-        json.dumps(
-            [
-                {k: getattr(a, k) for k in keep}
-                for a in run.agent.localizer.recent_attempts
-                if a.success
-            ]
-        )
+        json.dumps(attempt_records(run.agent.localizer.recent_attempts))
     )
     first_fix = int(np.argmax(loc)) if loc.any() else None
     # NEES of the localized ticks: the stated covariance, and the gate model's sigma per axis
