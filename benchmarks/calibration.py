@@ -1,7 +1,8 @@
 """Calibration of the localizer's claims: claimed, right, confident-wrong and the
 NEES shares per family of maps, configuration (the CLI's default: no odometry bounds stated;
 the maps stated rigid) and search (full, indexed, auto). The families and the judging are in
-:mod:`lunarloc.pipeline.calibration`; this prints the table and writes every outcome as JSON.
+:mod:`lunarloc.pipeline.calibration`; this prints the table, and with ``--json PATH`` (or
+``--out PATH``) writes every outcome as JSON there (no file by default).
 
 With ``--data`` (the lunarloc-data folder) it also runs the real families
 (:data:`lunarloc.pipeline.calibration.REAL_FAMILIES`: the 136 pairs of the 17 traverses under
@@ -16,7 +17,7 @@ prior) and "claimed rigid" (every file says ground truth, the distorted ones fal
 Usage: python benchmarks/calibration.py [--per-family 8] [--families lattice,motifs]
        [--searches full,indexed,auto] [--configs "cli default,stated rigid"]
        [--data ../shared/data/lunarloc-data] [--real-families all]
-       [--real-configs "cli default,stated bounds,no provenance,claimed rigid"] [--out calibration.json]
+       [--real-configs "cli default,stated bounds,no provenance,claimed rigid"] [--json OUT.json]
 """
 
 from __future__ import annotations
@@ -67,7 +68,7 @@ def real_pairs(outcomes) -> dict:
     }
 
 
-def main() -> None:
+def main(argv=None) -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -85,8 +86,15 @@ def main() -> None:
         help=f"with --data: comma-separated, 'all' for every one of {', '.join(REAL_FAMILIES)}",
     )
     ap.add_argument("--real-configs", default=",".join(REAL_CONFIGS))
-    ap.add_argument("--out", default="calibration.json")
-    args = ap.parse_args()
+    ap.add_argument(
+        "--json",
+        "--out",
+        dest="out",
+        default=None,
+        metavar="PATH",
+        help="write the rows and every outcome as JSON here (default: no file)",
+    )
+    args = ap.parse_args(argv)
     t0 = time.perf_counter()
     cases = make_cases(args.families.split(","), args.per_family, args.first_seed)
     outs = run_cases(
@@ -122,8 +130,9 @@ def main() -> None:
             f"136 real pairs, CLI default: claimed {rp['claimed']}, right {rp['right']}, confident-wrong "
             f"{rp['confident_wrong']}; paper pairs claimed {rp['paper_claimed']} of 5"
         )
-    with open(args.out, "w") as f:
-        json.dump(result, f, indent=1, default=float)
+    if args.out is not None:
+        with open(args.out, "w") as f:
+            json.dump(result, f, indent=1, default=float)
 
 
 if __name__ == "__main__":
