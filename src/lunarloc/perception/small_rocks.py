@@ -32,8 +32,9 @@ cannot come down. This stage finds such rocks in two steps:
    lamp-lit sites; 0 turns it off and the hand verdict of step 2 decides). The hand
    thresholds of step 2 cannot separate a 1-4 cm rock top from ring noise of 0.5-3.5 cm; with
    the judge on, step 2 keeps only floors (``judge_min_top_m``, ``judge_min_snr``,
-   ``judge_dark_min_points``) and a small network (``small_rock_judge.npz`` beside this module: the height-map verifier's
-   :class:`~lunarloc.perception.verifier.BlobVerifier` format, plain arrays, numpy inference)
+   ``judge_dark_min_points``) and a small network (``small_rock_judge.npz`` beside this
+   module: the height-map verifier's :class:`~lunarloc.perception.verifier.BlobVerifier`
+   format, plain arrays, numpy inference)
    scores each candidate above them from :func:`judge_features`: what the stage measured and
    the appearance of the left image around the blob (the verifier's ``appearance_features``). A
    candidate scoring under ``judge_min_score`` is no rock (``reason`` ``"judged"``).
