@@ -49,6 +49,7 @@ from lunarloc.perception.detector_config import (
     DetectorConfig,
     PoseSource,
 )
+from lunarloc.perception.images import gradient_magnitude
 from lunarloc.perception.masks import (
     InstanceMask,
     InstanceMasks,
@@ -1760,7 +1761,7 @@ def image_gradient(image: np.ndarray, mask: InstanceMask, rim_px: int, q: float)
     win = cv2.GaussianBlur(np.asarray(image[v0:v1, u0:u1], np.float32), (0, 0), 1.0)
     gx = cv2.Sobel(win, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(win, cv2.CV_32F, 0, 1, ksize=3)
-    mag = cv2.magnitude(gx, gy) * np.float32(0.125)  # the 3x3 Sobel's gain is 8
+    mag = gradient_magnitude(cv2, gx, gy) * np.float32(0.125)  # the 3x3 Sobel's gain is 8
     sel = np.zeros(win.shape, np.uint8)
     sel[mask.v0 - v0 : mask.v0 - v0 + h, mask.u0 - u0 : mask.u0 - u0 + w] = crop
     if rim_px > 0:

@@ -73,3 +73,22 @@ def normalize_image(
     else:
         out = (f - mean) / (mean + 4.0) * float(gain) + 128.0
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+
+
+def _aligned(a: np.ndarray, align: int = 64) -> np.ndarray:
+    """A C-contiguous copy of the float32 array `a` whose data start on an `align`-byte boundary."""
+    n = a.size * 4
+    buf = np.empty(n + align, np.uint8)
+    k = -buf.ctypes.data % align
+    out = buf[k : k + n].view(np.float32).reshape(a.shape)
+    out[...] = a
+    return out
+
+
+def gradient_magnitude(cv2, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+    """cv2.magnitude of the float32 gradients, the same bits in every run. OpenCV's IPP path
+    rounds the pixels before the output's first 32-byte boundary otherwise than the rest, and a
+    fresh numpy array is 16-byte aligned (32 or not, by chance of the heap): the orientation
+    features' last digits moved from run to run. Inputs and output here start on 64-byte
+    boundaries, so every pixel takes the same path in every run."""
+    return cv2.magnitude(_aligned(gx), _aligned(gy), _aligned(np.zeros_like(gx)))

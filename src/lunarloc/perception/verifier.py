@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from lunarloc.core.errors import InputError, import_cv2
+from lunarloc.perception.images import gradient_magnitude
 from lunarloc.perception.masks import InstanceMask
 
 __all__ = [
@@ -160,25 +161,6 @@ def _checked(image: np.ndarray, mask: InstanceMask) -> tuple[np.ndarray, np.ndar
     return img, crop
 
 
-def _aligned(a: np.ndarray, align: int = 64) -> np.ndarray:
-    """A C-contiguous copy of the float32 array `a` whose data start on an `align`-byte boundary."""
-    n = a.size * 4
-    buf = np.empty(n + align, np.uint8)
-    k = -buf.ctypes.data % align
-    out = buf[k : k + n].view(np.float32).reshape(a.shape)
-    out[...] = a
-    return out
-
-
-def _magnitude(cv2, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
-    """cv2.magnitude of the float32 gradients, the same bits in every run. OpenCV's IPP path
-    rounds the pixels before the output's first 32-byte boundary otherwise than the rest, and a
-    fresh numpy array is 16-byte aligned (32 or not, by chance of the heap): the orientation
-    features' last digits moved from run to run. Inputs and output here start on 64-byte
-    boundaries, so every pixel takes the same path in every run."""
-    return cv2.magnitude(_aligned(gx), _aligned(gy), _aligned(np.zeros_like(gx)))
-
-
 def _appearance(img: np.ndarray, crop: np.ndarray, mask: InstanceMask) -> list[float]:
     """The appearance features (APPEARANCE_FEATURES) of the mask `crop` at (mask.u0, mask.v0)
     in the grey image `img`."""
@@ -205,7 +187,7 @@ def _appearance(img: np.ndarray, crop: np.ndarray, mask: InstanceMask) -> list[f
     sm = cv2.GaussianBlur(win, (0, 0), 1.0)
     gx = cv2.Sobel(sm, cv2.CV_32F, 1, 0, ksize=3) * np.float32(0.125)
     gy = cv2.Sobel(sm, cv2.CV_32F, 0, 1, ksize=3) * np.float32(0.125)
-    mag = _magnitude(cv2, gx, gy)
+    mag = gradient_magnitude(cv2, gx, gy)
     mg = np.sort(mag[inner])
     rg50 = _q(np.sort(mag[ring]), 0.5) if ring.any() else _q(mg, 0.5)
     og = float(mag[outline].mean()) if outline.any() else float(mg.mean())
