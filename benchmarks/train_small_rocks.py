@@ -67,8 +67,14 @@ from lunarloc.perception.verifier import BlobVerifier
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from train_verifier import fit_model, models_off
 
-#: The stage's settings while extracting (floors and limits under the deployed ones).
+#: The stage's settings while extracting (floors and limits under the deployed ones; the
+#: candidates of the opt-in settings too: peaks down to contrast 1.5, inside the height map's
+#: rejected and tentative blobs, the limits counting only the checked candidates).
 EXTRACT = dict(  # noqa: C408
+    contrast_z=1.5,
+    inside_rejected=True,
+    inside_tentative=True,
+    count_checked=True,
     judge_min_score=0.5,
     judge_min_top_m=0.005,
     judge_min_snr=1.5,
@@ -238,7 +244,7 @@ def check(paths: list[Path], model: BlobVerifier) -> None:
 
     print("keep | tiny rocks (<=3 m) | rocks | terrain | edge | rocks/(rocks+terrain)")
     row("hand verdict", hand_verdict(d))
-    for th in (0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9):
+    for th in (0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.92, 0.95):
         row(f"score >= {th:.2f}", s >= th)
 
 

@@ -147,3 +147,31 @@ def test_the_judge_is_on_by_default_and_asks_the_packaged_judge():
     ]
     assert len(hit) == 1 and hit[0].score >= cfg.judge_min_score
     assert hit[0].score == pytest.approx(float(default_judge().score(hit[0].features)))
+
+
+def test_judge_path_points_the_stage_at_another_judge(tmp_path):
+    # a judge file other than the packaged one (SmallRockConfig.judge_path), e.g. a refit
+    x, z, rad, top = 0.3, 2.5, 0.025, 0.025
+    L, R = _render(0.0, (x, z, rad, top))
+    u, v = _uv(x, z, 0.0)
+    _constant_judge(20.0).save(tmp_path / "yes.npz")
+    _constant_judge(-20.0).save(tmp_path / "no.npz")
+    on = replace(SmallRockConfig(), judge_min_score=0.5)
+    yes = _stage(L, R, replace(on, judge_path=str(tmp_path / "yes.npz")))
+    hit = [
+        r
+        for r in yes
+        if abs(r.u0 + r.crop.shape[1] / 2 - u) < 25 and abs(r.v0 + r.crop.shape[0] / 2 - v) < 25
+    ]
+    assert len(hit) == 1 and hit[0].score > 0.99
+    assert _stage(L, R, replace(on, judge_path=str(tmp_path / "no.npz"))) == []
+    # a judge passed in still wins over the file; a missing file is a clear error
+    assert _stage(L, R, replace(on, judge_path=str(tmp_path / "no.npz")), _constant_judge(20.0))
+    with pytest.raises(InputError):
+        _stage(L, R, replace(on, judge_path=str(tmp_path / "missing.npz")))
+    # the key reads from a run configuration's detector section
+    from lunarloc.core.configs import config_from_dict
+
+    cfg = config_from_dict(DetectorConfig, {"small_rocks": {"judge_path": "j.npz"}})
+    assert cfg.small_rocks.judge_path == "j.npz"
+    assert DetectorConfig().small_rocks.judge_path is None

@@ -230,6 +230,9 @@ class SmallRockConfig:
     judge_min_top_m: float = setting(0.005, gt=0.0)
     judge_min_snr: float = setting(1.5, ge=0.0)
     judge_dark_min_points: int = setting(20, ge=1)
+    # the judge's model file (None: the packaged small_rock_judge.npz; else one written by
+    # benchmarks/train_small_rocks.py, e.g. a refit compared before it is packaged)
+    judge_path: str | None = None
 
     def __post_init__(self) -> None:
         check_settings(self)
@@ -938,7 +941,7 @@ def detect_small_rocks(
     min_lowres_height_m high is dropped before its full-resolution match (the half-resolution
     heights smooth a small rock, but not to nothing).
     judge : the learned judge (a BlobVerifier over JUDGE_FEATURES); None: the packaged one
-    (:func:`default_judge`), used only when cfg.judge_min_score > 0.
+    (:func:`default_judge`, or the one at cfg.judge_path), used only when cfg.judge_min_score > 0.
     """
     H, W = left.shape
     fx = camera.fx
@@ -966,7 +969,8 @@ def detect_small_rocks(
             min_snr=max(cfg.min_snr, cfg.height_min_snr),
         )
     if use_judge:
-        judge = judge if judge is not None else default_judge()
+        if judge is None:
+            judge = default_judge() if cfg.judge_path is None else _judge_at(cfg.judge_path)
         floors = _judge_floors(cfg)
         pair = _pair_distances(cands)
         rank = _ranks(cands)
@@ -1208,6 +1212,12 @@ def load_judge(path: Path) -> BlobVerifier:
 def default_judge() -> BlobVerifier:
     """The packaged judge (read once)."""
     return load_judge(JUDGE_PATH)
+
+
+@lru_cache(maxsize=4)
+def _judge_at(path: str) -> BlobVerifier:
+    """The judge at SmallRockConfig.judge_path (read once)."""
+    return load_judge(Path(path))
 
 
 def _grown(w: _Window, blob: np.ndarray, level_m: float) -> np.ndarray:
