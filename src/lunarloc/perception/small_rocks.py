@@ -791,17 +791,10 @@ def _ground_heights(Q: np.ndarray, P: np.ndarray, cfg):
     n_keep = int(np.count_nonzero(keep))
     if n_keep >= cfg.min_ring_points // 2:
         c, n, Qc = _fit_plane(Q[keep])
-        s = 1.4826 * _mad64(Qc @ n) + 1e-4
+        _, s = _robust_spread(Qc @ n)
     if not (cfg.quadric and n_keep >= 12):
         return (P - c) @ n, s, n
     return _quadric_heights(Q, P, c, n, s) + (n,)
-
-
-def _mad64(r: np.ndarray) -> float:
-    """The median absolute deviation of a 1-D float64 array that may be reordered (as
-    _robust_spread's)."""
-    m = _median64(r)
-    return _median64(np.abs(r - m))
 
 
 def _refit(w: _Window, region: np.ndarray, cfg) -> _Window | None:
@@ -1088,11 +1081,7 @@ def _judge(w: _Window, cfg, fx: float, dark: bool, tilt_ok: bool, trace) -> Smal
     if reason is not None:
         return SmallRock(w.a0, w.b0, blob > 0, w.P[w.idx[bl]], top, w.noise, width, depth, reason)
     # the rock: the blob and the raised pixels next to it (its unlit side)
-    with np.errstate(invalid="ignore"):
-        raised = w.hall > max(0.5 * top, 0.5 * cfg.min_top_m)
-    grown = cv2.dilate(blob, _ones(5)) > 0
-    rock = ((raised & grown) | (blob > 0)).astype(np.uint8)
-    rock = _touching(rock, blob)
+    rock = _grown(w, blob, max(0.5 * top, 0.5 * cfg.min_top_m)).view(bool)
     sel = w.idx[rock & w.ok]
     if sel.size < cfg.min_blob_points:
         return SmallRock(w.a0, w.b0, blob > 0, w.P[w.idx[bl]], top, w.noise, width, depth, "flat")
@@ -1227,7 +1216,7 @@ def _grown(w: _Window, blob: np.ndarray, level_m: float) -> np.ndarray:
 
     with np.errstate(invalid="ignore"):
         raised = w.hall > level_m
-    grown = cv2.dilate(blob, np.ones((5, 5), np.uint8)) > 0
+    grown = cv2.dilate(blob, _ones(5)) > 0
     rock = ((raised & grown) | (blob > 0)).astype(np.uint8)
     return _touching(rock, blob).view(np.uint8)
 
