@@ -294,7 +294,8 @@ def decompose(a) -> None:
             dump = pickle.load(fh)  # our own benchmark's file (score --dump)
         m, frames = dump["mapper"], np.asarray(dump["frames"])
         G, C = np.asarray(dump["gt"]), np.asarray(dump["corrected"])
-        truth = site_geometric_map(simulate_site(seed))
+        site = simulate_site(seed)
+        truth = site_geometric_map(site)
         place_mapper(m, frames, G)
         seen = m.grid().observed
 
@@ -332,7 +333,7 @@ def decompose(a) -> None:
         # viewing ray (rover to rock), by range from the rover
         from scipy.spatial import cKDTree
 
-        R = simulate_site(seed).rocks.table()[:, 1:]
+        R = site.rocks.table()[:, 1:]
         tree = cKDTree(R[:, :2])
         for name, T in (("ground-truth", G), ("corrected", C)):
             radial, rng = [], []
