@@ -62,7 +62,7 @@ def run(
         if mapper is not None and source.lander_xy is not None:
             mapper.exclude_disc(source.lander_xy, LANDER_EXCLUSION_M)
         example = _ExampleFrame()
-        step_sigma = getattr(source, "step_sigma_m", None) or {}  # the odometry's own, per frame
+        step_sigma = source.step_sigma_m  # the odometry's own, per frame (empty: none)
         total, n_kf = source.n_frames, 0
         for n, frame in enumerate(source, start=1):
             detections = frame.detections_rover

@@ -10,8 +10,9 @@
 A source is a context manager (``with source:`` opens it and computes what it needs before
 the first frame, e.g. the archive's odometry) and an iterable of frames. It names itself
 (``name``), reports its camera (``camera``, None without images), the site's rocks when it
-knows them (``rocks``), the time it spent (``timings``: ``io``, ``odometry``) and a
-description for the run's configuration (``info()``).
+knows them (``rocks``), the odometry's own per-frame step sigma where it states one
+(``step_sigma_m``, {frame: m}, empty when none), the time it spent (``timings``: ``io``,
+``odometry``) and a description for the run's configuration (``info()``).
 
 Frames: ``map`` (the reference map's frame, where ground truth lives), ``odo`` (odometry,
 equal to ``map`` at the start), ``rover``. Metres, radians, seconds.
@@ -238,6 +239,7 @@ class TraverseCsvSource:
         self.camera = None
         self.rocks = None
         self.lander_xy = None  # detections of the dataset are already rocks
+        self.step_sigma_m: dict[int, float] = {}  # the simulated drift states no per-step sigma
         self.timings: dict[str, float] = {}
 
     @classmethod
