@@ -20,8 +20,9 @@ Settings (``lunarloc.toml``; every key optional, relative paths from the TOML's 
     loop_radius_m = 0.0       # radius of the loop driven about the lander; 0: the start's distance
     speed_mps = 0.3           # driving speed (the leaderboard clamps to 0.49)
     warm_up = true            # compile and warm caches in setup(), before the mission clock runs
-    lac_map = false           # fill the leaderboard's geometric map (lunarloc.LacMapper): cells as they
-                              # become confident during the run, the whole map in finalize()
+    lac_map = true            # fill the leaderboard's geometric map (lunarloc.LacMapper): cells as they
+                              # become confident during the run, the whole map in finalize(); false:
+                              # a team's own mapper fills it (MAPPER HOOK)
     lac_map_cells_per_tick = 400  # at most this many cells written a tick (bounds the tick's cost)
     lac_map_small_rocks = true    # with lac_map: the detector's small-rock stage (rocks under 5 cm;
                                   # on by default in the detector: false turns it off)
@@ -32,10 +33,10 @@ recording through it in the leaderboard's call order (``tests/test_online_compon
 
 Driving is not lunarloc's job: ``run_step`` steers a loop about the lander from the
 estimated pose so that the rover moves and sees rocks; a team plans here instead. The
-geometric map the LAC scores: ``lac_map = true`` has lunarloc's mapper fill it, during the run
+geometric map the LAC scores: lunarloc's mapper fills it (``lac_map``, on), during the run
 (``lunarloc.mapping.lac_map.LacMapWriter.step`` every tick: the cells that became confident,
-at most ``lac_map_cells_per_tick`` a tick) and whole in ``finalize()``; a team's own mapper
-goes into the ``MAPPER HOOK``.
+at most ``lac_map_cells_per_tick`` a tick) and whole in ``finalize()``; with ``lac_map = false``
+a team's own mapper goes into the ``MAPPER HOOK``.
 """
 
 from __future__ import annotations
@@ -87,7 +88,7 @@ DEFAULTS = {
     "loop_radius_m": 0.0,
     "speed_mps": 0.3,
     "warm_up": True,
-    "lac_map": False,
+    "lac_map": True,
     "lac_map_cells_per_tick": 400,
     "lac_map_small_rocks": True,
 }

@@ -213,6 +213,10 @@ def test_finalize_writes_the_run(closed_loop):
 
     summary = json.loads((out / "summary.json").read_text())
     assert summary["ticks"] == 600 and summary["localized"] is True
+    # the example's default fills the map the LAC scores (lac_map on): every cell by finalize()
+    assert summary["settings"]["lac_map"] is True
+    final = run.agent.get_geometric_map().get_map_array()
+    assert np.isfinite(final[:, :, 2]).all() and np.isfinite(final[:, :, 3]).all()
 
 
 # ----------------------------------------------------------------------------- the LAC map
