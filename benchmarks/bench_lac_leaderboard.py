@@ -18,7 +18,9 @@ leaderboard's (finite differences, world-frame gyro).
 Reported per run (JSON lines in ``OUT/results.jsonl``, a table on stdout): localized at the
 end, time of the first fix, final horizontal error and RMSE (all ticks; after the first fix)
 against the true pose, ``get_transform()`` calls, ``run_step`` median / p95 / max, the first
-tick's ``run_step``, ``setup`` time (warm-up included), distance driven. Timings are
+tick's ``run_step``, ``setup`` time (warm-up included), distance driven, and the LAC's points
+for the geometric map the agent filled (``lac_map``, on in the example by default; scored as
+the leaderboard scores it against the site's 16-ray truth). Timings are
 wall-clock on whatever machine runs this (rendering is outside ``run_step``); say whether it
 was under load. ``run_step`` is also timed in process CPU time (``*_cpu_*``), which other
 load on the machine inflates far less.
@@ -100,6 +102,7 @@ def run_one(
         duration_s,
         evaluation=evaluation,
         observe=observe,
+        score=True,
     )
     wall = time.perf_counter() - t0
     truth = np.array([T[:3, 3] for T in run.truth])
@@ -172,6 +175,8 @@ def run_one(
         "driven_m": round(float(np.linalg.norm(np.diff(truth[:, :2], axis=0), axis=1).sum()), 2),
         "lander_distance_m": [round(float(r.min()), 2), round(float(r.max()), 2)],
         "wall_s": round(wall, 1),
+        # the LAC's points for the map the agent filled (the stand-in's scoring, 16-ray truth)
+        "lac_points": {k: round(float(v), 1) for k, v in (run.scores or {}).items()},
     }
 
 
@@ -211,14 +216,15 @@ def main(argv=None) -> int:
         "gate_nees_under_3.53",
         "gate_nees_under_14.16",
     )
-    print(" ".join(cols), flush=True)
+    print(" ".join(cols) + " lac_points", flush=True)
     for size in a.sizes:
         w, h = (int(v) for v in size.lower().split("x"))
         for seed in a.seeds:
             row = run_one(seed, w, h, a.duration, a.rocks, a.lighting, a.out, not a.training)
             with results.open("a") as fh:
                 fh.write(json.dumps(row) + "\n")
-            print(" ".join(str(row[c]) for c in cols), flush=True)
+            pts = row["lac_points"]
+            print(" ".join(str(row[c]) for c in cols), pts.get("total"), pts, flush=True)
     return 0
 
 
