@@ -242,6 +242,52 @@ def test_a_tentative_seen_again_in_enough_neighbouring_frames_is_kept():
     assert DetectorConfig().tentative_min_repeats == 3
 
 
+def test_a_tentative_the_verifier_is_sure_of_needs_one_repeat():
+    # a rock partly hidden at mid-range is tentative frame after frame, never firm beside it,
+    # and often seen in fewer than tentative_min_repeats (3) neighbouring frames: with
+    # rules.verifier_confirm_score set, a tentative the blob verifier scored at least that is
+    # kept when seen again (as any detection) in one neighbouring frame; one scored under it,
+    # or not scored (NaN), still needs three; a single sighting is dropped whatever its score
+    base = replace(
+        DetectorConfig(),
+        tentative_max_range_m=6.0,
+        tentative_confirm_frames=3,
+        tentative_min_repeats=3,
+    )
+    base = replace(base, rules=replace(base.rules, verifier_min_score=0.7))
+    cfg = replace(base, rules=replace(base.rules, verifier_confirm_score=0.95))
+    off = replace(base, rules=replace(base.rules, verifier_confirm_score=0.0))
+
+    def frames(score, n=2, pose=True, step_m=0.0):
+        return [
+            _frame(
+                k,
+                0.5 * k,
+                [replace(_det(np.add(ROCK, [step_m * k, 0, 0]), "crest"), verifier_score=score)],
+                pose,
+            )
+            for k in range(n)
+        ]
+
+    assert [len(f.detections) for f in _run(cfg, frames(0.97))] == [1, 1]
+    assert [d.tentative for d in _run(cfg, frames(0.95))[0].detections] == ["crest"]
+    for c, s in ((cfg, 0.9), (cfg, float("nan")), (off, 0.99)):
+        assert all(f.detections == [] for f in _run(c, frames(s)))
+    assert _run(cfg, frames(0.99, n=1))[0].detections == []
+    # the repeat must lie within the tentative tolerance
+    tol = cfg.tentative_tol_m
+    assert all(f.detections == [] for f in _run(cfg, frames(0.99, step_m=1.5 * tol)))
+    # the verifier off (verifier_min_score 0): the setting does nothing
+    no_verifier = replace(cfg, rules=replace(cfg.rules, verifier_min_score=0.0))
+    assert all(f.detections == [] for f in _run(no_verifier, frames(0.99)))
+    # with no map pose every tentative is dropped, as before
+    assert all(f.detections == [] for f in _run(cfg, frames(0.99, pose=False)))
+    # its range is checked
+    for bad in (-0.1, 1.1):
+        with pytest.raises(ConfigError, match="verifier_confirm_score"):
+            replace(cfg.rules, verifier_confirm_score=bad)
+
+
 def test_confirmation_off_passes_everything_through():
     off = replace(DetectorConfig(), confirm_tol_m=0.0, tentative_max_range_m=0.0)
     fr = [

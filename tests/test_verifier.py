@@ -228,7 +228,15 @@ def test_verifier_threshold_by_blob_kind():
     assert verifier_threshold(r, False, float("nan")) == 0.5  # an unknown radius: judged as large
     # verifier_min_score 0 turns every kind off
     assert verifier_threshold(replace(r, verifier_min_score=0.0), True, 0.1) == 0.0
-    for f in ("verifier_tentative_min_score", "verifier_large_min_score"):
+    # a firm small blob at verifier_far_m or deeper: verifier_far_min_score (0 m: off)
+    far = replace(r, verifier_far_m=3.5, verifier_far_min_score=0.6)
+    assert verifier_threshold(far, False, 0.1, 3.5) == 0.6
+    assert verifier_threshold(far, False, 0.1, 3.4) == 0.7
+    assert verifier_threshold(far, False, 0.1) == 0.7  # depth unknown (NaN)
+    assert verifier_threshold(far, True, 0.1, 4.0) == 0.4  # tentatives and large blobs as before
+    assert verifier_threshold(far, False, 0.3, 4.0) == 0.5
+    assert verifier_threshold(replace(far, verifier_far_m=0.0), False, 0.1, 4.0) == 0.7
+    for f in ("verifier_tentative_min_score", "verifier_large_min_score", "verifier_far_min_score"):
         for bad in (-0.1, 1.0):
             with pytest.raises(ConfigError, match=f):
                 replace(r, **{f: bad})

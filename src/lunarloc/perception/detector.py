@@ -772,7 +772,9 @@ class Detector:
                 ),
                 tentative="+".join(filter(None, (tent, *soft))),
             )
-            min_score = verifier_threshold(cfg.rules, bool(det.tentative), blob.radius_m)
+            min_score = verifier_threshold(
+                cfg.rules, bool(det.tentative), blob.radius_m, det.depth_m
+            )
             if min_score > 0:
                 score = float(default_verifier().score(blob_features(det, scene.L, m)))
                 if score < min_score:
@@ -1515,6 +1517,14 @@ def _needs_confirmation(
     return bool(ext > cfg.confirm.min_extension_ratio)
 
 
+def _verifier_confirms(d: Detection, config: DetectorConfig) -> bool:
+    """Whether the blob verifier is sure enough of tentative detection `d` that one repeat in a
+    neighbouring frame confirms it (rules.verifier_confirm_score; a blob it did not score
+    never is)."""
+    r = config.rules
+    return 0 < r.verifier_min_score and 0 < r.verifier_confirm_score <= d.verifier_score
+
+
 def confirm_across_frames(
     frames: Iterable[FrameDetections], config: DetectorConfig
 ) -> Iterator[FrameDetections]:
@@ -1537,7 +1547,8 @@ def confirm_across_frames(
     either), a side being its first config.tentative.confirm_frames frames that way at
     least confirm.min_baseline_m away. Failing that, it is kept when any detection (a
     tentative too) lies within the same tolerance in at least
-    config.tentative.min_repeats of those frames (0: never). Otherwise, or with no map
+    config.tentative.min_repeats of those frames (0: never; one is enough for a tentative the
+    blob verifier scored at least rules.verifier_confirm_score). Otherwise, or with no map
     pose, it is removed (reason TENTATIVE). They are judged even when confirm.tol_m is 0."""
     from collections import deque
 
@@ -1592,11 +1603,13 @@ def confirm_across_frames(
                 seen = sum(d.p_map is not None and near(F, d.p_map, tol) for F in sides)
                 if seen >= cfg.tentative.min_views:
                     return True
-                if cfg.tentative.min_repeats <= 0 or d.p_map is None:
+                # one the blob verifier is sure of needs to be seen again only once
+                repeats = 1 if _verifier_confirms(d, cfg) else cfg.tentative.min_repeats
+                if repeats <= 0 or d.p_map is None:
                     return False
                 # seen again, tentatively or firmly, in enough of the neighbouring frames
                 again = sum(near(any_xy(o), d.p_map, tol) for o in (*befores, *afters))
-                return again >= cfg.tentative.min_repeats
+                return again >= repeats
             return (
                 not d.needs_confirmation
                 or d.p_map is None

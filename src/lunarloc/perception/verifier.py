@@ -309,16 +309,21 @@ def default_verifier() -> BlobVerifier:
     return BlobVerifier.load(MODEL_PATH)
 
 
-def verifier_threshold(rules, tentative: bool, radius_m: float) -> float:
+def verifier_threshold(
+    rules, tentative: bool, radius_m: float, depth_m: float = float("nan")
+) -> float:
     """The score under which the detector rejects a blob (0: not judged), from a RuleConfig's
     verifier fields: ``verifier_min_score`` for a firm blob of estimated radius under
-    ``verifier_max_radius_m`` (0 turns the verifier off altogether),
-    ``verifier_tentative_min_score`` for a tentative one and ``verifier_large_min_score`` for
-    one of that radius or more."""
+    ``verifier_max_radius_m`` (0 turns the verifier off altogether), or
+    ``verifier_far_min_score`` for such a blob at a depth of ``verifier_far_m`` or more
+    (0: off), ``verifier_tentative_min_score`` for a tentative one and
+    ``verifier_large_min_score`` for one of that radius or more."""
     if rules.verifier_min_score <= 0:
         return 0.0
     if tentative:
         return float(rules.verifier_tentative_min_score)
     if not radius_m < rules.verifier_max_radius_m:
         return float(rules.verifier_large_min_score)
+    if 0 < rules.verifier_far_m <= depth_m:
+        return float(rules.verifier_far_min_score)
     return float(rules.verifier_min_score)
