@@ -318,15 +318,16 @@ class RulesConfig:
     # score is under this (0 = not judged; only while verifier_min_score > 0)
     verifier_large_min_score: float = setting(0.5, ge=0.0, lt=1.0)
     # verifier: a firm blob (radius under verifier_max_radius_m) at a depth of at least this is
-    # judged with verifier_far_min_score instead (m; 0 = off)
-    verifier_far_m: float = setting(0.0, ge=0.0)
+    # judged with verifier_far_min_score instead (m; 0 = off; 3.5 with 0.65, the default, chosen
+    # on development sites with verifier_confirm_score 0.95, docs/perception-status.md)
+    verifier_far_m: float = setting(3.5, ge=0.0)
     # verifier: see verifier_far_m
-    verifier_far_min_score: float = setting(0.6, ge=0.0, lt=1.0)
+    verifier_far_min_score: float = setting(0.65, ge=0.0, lt=1.0)
     # verifier: a tentative blob scoring at least this is confirmed when seen again (as any
     # detection) in one neighbouring frame instead of tentative.min_repeats (a rock partly
     # hidden at 2-5 m is often tentative frame after frame, never firm beside it; 0 = off;
     # only while verifier_min_score > 0)
-    verifier_confirm_score: float = setting(0.0, ge=0.0, le=1.0)
+    verifier_confirm_score: float = setting(0.95, ge=0.0, le=1.0)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "off", tuple(self.off))
