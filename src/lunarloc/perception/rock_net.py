@@ -1,0 +1,179 @@
+"""A tiny fully-convolutional rock segmenter for the small-rock stage (issue 29).
+
+The network maps the left image at half resolution to a per-pixel rock probability. It was
+trained here on the simulator's labelled (semantic) images by ``benchmarks/train_rock_net.py``
+(the data recipe is in its docstring; docs/perception-status.md, "The rock network") and is
+shipped as plain arrays (``rock_net.npz`` beside this module; no pickle, never downloaded).
+Inference is numpy and OpenCV only: each 3x3 convolution is one matrix product over the
+image's 3x3 neighbourhoods.
+
+Input channels (:func:`net_inputs`, the same function the trainer uses): the image's local
+contrast (difference of Gaussians over its local RMS, as the small-rock stage's candidate
+search measures it) and its brightness relative to a wider local mean (a lit face, a shadow).
+
+Architecture (read from the file, so a retrained model may change widths): a list of layers,
+each a 3x3 (or 1x1) convolution with ReLU except the last; a layer may be preceded by a 2x2
+max-pool (``pool``) and may be dilated (``dilation``). The output (logits at the last layer's
+resolution) is resized bilinearly to the input's size and passed through a sigmoid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from lunarloc.core.errors import InputError
+
+NET_PATH = Path(__file__).with_name("rock_net.npz")
+#: Preprocessing (fixed; the model was trained with these)
+DOG_SIGMA_PX = 2.0
+CONTRAST_SIGMA_PX = 8.0
+WIDE_SIGMA_PX = 12.0
+N_INPUTS = 2
+_FORMAT = 1
+
+
+def net_inputs(small: np.ndarray) -> np.ndarray:
+    """(N_INPUTS, h, w) float32 input channels of a half-resolution grey image `small` ((h, w),
+    any real dtype, 0-255): the local contrast z (clipped to +-8) and the brightness relative
+    to a wide local mean (clipped to +-4)."""
+    import cv2
+
+    s = np.asarray(small, np.float32)
+    if s.ndim != 2 or s.shape[0] < 4 or s.shape[1] < 4:
+        raise InputError(f"rock net input must be an (h, w) image of at least 4x4, got {s.shape}")
+    h, w = s.shape
+    dv = s - cv2.GaussianBlur(s, (0, 0), DOG_SIGMA_PX)
+    e = max(int(CONTRAST_SIGMA_PX // 2), 1)
+    var = cv2.resize(dv * dv, (max(w // e, 1), max(h // e, 1)), interpolation=cv2.INTER_AREA)
+    var = cv2.resize(cv2.GaussianBlur(var, (0, 0), 2.0), (w, h), interpolation=cv2.INTER_LINEAR)
+    z = np.clip(dv / (np.sqrt(var) + 2.0), -8.0, 8.0)
+    m = cv2.GaussianBlur(s, (0, 0), WIDE_SIGMA_PX)
+    rel = np.clip((s - m) / (m + 8.0) * 4.0, -4.0, 4.0)
+    return np.stack([z, rel]).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class _Layer:
+    W: np.ndarray  # (out, in, k, k) float32
+    b: np.ndarray  # (out,) float32
+    dilation: int
+    pool: bool  # a 2x2 max-pool before the convolution
+
+
+def _conv(x: np.ndarray, layer: _Layer) -> np.ndarray:
+    """One 'same' convolution of x ((in, h, w) float32) with zero padding."""
+    cout, cin, k, _ = layer.W.shape
+    _, h, w = x.shape
+    if k == 1:
+        y = layer.W.reshape(cout, cin) @ x.reshape(cin, h * w)
+    else:
+        d = layer.dilation
+        p = d * (k // 2)
+        xp = np.zeros((cin, h + 2 * p, w + 2 * p), np.float32)
+        xp[:, p : p + h, p : p + w] = x
+        cols = np.empty((cin, k, k, h, w), np.float32)
+        for i in range(k):
+            for j in range(k):
+                cols[:, i, j] = xp[:, i * d : i * d + h, j * d : j * d + w]
+        y = layer.W.reshape(cout, cin * k * k) @ cols.reshape(cin * k * k, h * w)
+    y += layer.b[:, None]
+    return y.reshape(cout, h, w)
+
+
+def _pool(x: np.ndarray) -> np.ndarray:
+    c, h, w = x.shape
+    h2, w2 = h // 2, w // 2
+    x = x[:, : 2 * h2, : 2 * w2].reshape(c, h2, 2, w2, 2)
+    return x.max(axis=(2, 4))
+
+
+class RockNet:
+    """The network's layers (see the module's docstring); :meth:`probability` runs it."""
+
+    def __init__(self, layers: list[_Layer]) -> None:
+        if not layers:
+            raise InputError("rock net: no layers")
+        cin = N_INPUTS
+        for i, L in enumerate(layers):
+            if L.W.ndim != 4 or L.W.shape[1] != cin or L.W.shape[2] != L.W.shape[3]:
+                raise InputError(f"rock net layer {i}: weights {L.W.shape} do not take {cin} inputs")
+            if L.W.shape[2] % 2 == 0 or L.b.shape != (L.W.shape[0],) or L.dilation < 1:
+                raise InputError(f"rock net layer {i}: bad kernel, bias or dilation")
+            if not (np.isfinite(L.W).all() and np.isfinite(L.b).all()):
+                raise InputError(f"rock net layer {i}: non-finite weights")
+            cin = L.W.shape[0]
+        if cin != 1:
+            raise InputError(f"rock net: the last layer has {cin} outputs, need 1")
+        self.layers = layers
+
+    @property
+    def n_params(self) -> int:
+        return int(sum(L.W.size + L.b.size for L in self.layers))
+
+    def logits(self, x: np.ndarray) -> np.ndarray:
+        """The last layer's output ((h', w') float32) for input channels x ((N_INPUTS, h, w))."""
+        x = np.asarray(x, np.float32)
+        n = len(self.layers)
+        for i, L in enumerate(self.layers):
+            if L.pool:
+                x = _pool(x)
+            x = _conv(x, L)
+            if i < n - 1:
+                np.maximum(x, 0.0, out=x)
+        return x[0]
+
+    def probability(self, small: np.ndarray) -> np.ndarray:
+        """Rock probability ((h, w) float32, 0-1) of each pixel of a half-resolution grey image."""
+        import cv2
+
+        h, w = np.asarray(small).shape[:2]
+        z = self.logits(net_inputs(small))
+        if z.shape != (h, w):
+            z = cv2.resize(z, (w, h), interpolation=cv2.INTER_LINEAR)
+        return (1.0 / (1.0 + np.exp(-np.clip(z, -30.0, 30.0)))).astype(np.float32)
+
+    def save(self, path: Path) -> None:
+        """Write the layers as plain arrays (read back by :func:`load_rock_net`)."""
+        arr: dict[str, np.ndarray] = {"format": np.array(_FORMAT), "n_layers": np.array(len(self.layers))}
+        for i, L in enumerate(self.layers):
+            arr[f"W{i}"] = L.W.astype(np.float32)
+            arr[f"b{i}"] = L.b.astype(np.float32)
+            arr[f"dilation{i}"] = np.array(int(L.dilation))
+            arr[f"pool{i}"] = np.array(bool(L.pool))
+        np.savez_compressed(Path(path), **arr)
+
+
+def make_layer(W, b, dilation: int = 1, pool: bool = False) -> _Layer:
+    """A layer from arrays (float32 copies)."""
+    return _Layer(
+        np.array(W, np.float32), np.array(b, np.float32).reshape(-1), int(dilation), bool(pool)
+    )
+
+
+def load_rock_net(path: Path) -> RockNet:
+    """Read a network written by :meth:`RockNet.save` (``benchmarks/train_rock_net.py fit``);
+    a missing, unreadable or malformed file raises InputError."""
+    try:
+        with np.load(Path(path), allow_pickle=False) as z:
+            if int(z["format"]) != _FORMAT:
+                raise ValueError(f"format {int(z['format'])}, this version reads {_FORMAT}")
+            n = int(z["n_layers"])
+            layers = [
+                make_layer(z[f"W{i}"], z[f"b{i}"], int(z[f"dilation{i}"]), bool(z[f"pool{i}"]))
+                for i in range(n)
+            ]
+    except (OSError, KeyError, ValueError, TypeError) as e:
+        raise InputError(
+            f"rock net {path}: {e} (write one with benchmarks/train_rock_net.py fit)"
+        ) from e
+    return RockNet(layers)
+
+
+@lru_cache(maxsize=4)
+def rock_net_at(path: str | None) -> RockNet:
+    """The network at `path` (None: the packaged rock_net.npz), read once."""
+    return load_rock_net(NET_PATH if path is None else Path(path))
