@@ -34,6 +34,9 @@ CONTRAST_SIGMA_PX = 8.0
 WIDE_SIGMA_PX = 12.0
 N_INPUTS = 2
 _FORMAT = 1
+#: products of at most this many multiply-adds stay on one BLAS thread (OpenBLAS's threshold is
+#: 65536 x 4)
+_BLAS_ONE_THREAD = 200_000
 
 
 def net_inputs(small: np.ndarray) -> np.ndarray:
@@ -65,30 +68,46 @@ class _Layer:
 
 
 def _conv(x: np.ndarray, layer: _Layer) -> np.ndarray:
-    """One 'same' convolution of x ((in, h, w) float32) with zero padding."""
+    """One 'same' convolution of x ((h, w, in) float32, channels last) with zero padding: per
+    kernel tap one matrix product over the zero-padded image flattened row by row, where a
+    tap's shift is a contiguous run of rows of the flattened image (no copy per tap); the
+    outputs on the padded columns are dropped. Returns (h, w, out)."""
     cout, cin, k, _ = layer.W.shape
-    _, h, w = x.shape
+    h, w, _ = x.shape
     if k == 1:
-        y = layer.W.reshape(cout, cin) @ x.reshape(cin, h * w)
-    else:
-        d = layer.dilation
-        p = d * (k // 2)
-        xp = np.zeros((cin, h + 2 * p, w + 2 * p), np.float32)
-        xp[:, p : p + h, p : p + w] = x
-        cols = np.empty((cin, k, k, h, w), np.float32)
+        y = x.reshape(h * w, cin) @ layer.W.reshape(cout, cin).T
+        y += layer.b
+        return y.reshape(h, w, cout)
+    d = layer.dilation
+    p = d * (k // 2)
+    wp = w + 2 * p
+    # padding above and below, plus one more row below so that every tap's run fits
+    xp = np.zeros((h + 2 * p + 1, wp, cin), np.float32)
+    xp[p : p + h, p : p + w] = x
+    flat = xp.reshape(-1, cin)
+    n = h * wp  # outputs on the padded width; the columns >= w are dropped
+    taps = np.ascontiguousarray(layer.W.transpose(2, 3, 1, 0))  # (k, k, in, out)
+    y = np.empty((n, cout), np.float32)
+    y[:] = layer.b
+    # in runs of rows small enough that the BLAS keeps to one thread (a tall, thin product
+    # split over threads costs several times its single-thread CPU on a loaded machine)
+    step = max(_BLAS_ONE_THREAD // (cin * cout), 256)
+    for a in range(0, n, step):
+        b = min(a + step, n)
+        ya = y[a:b]
         for i in range(k):
             for j in range(k):
-                cols[:, i, j] = xp[:, i * d : i * d + h, j * d : j * d + w]
-        y = layer.W.reshape(cout, cin * k * k) @ cols.reshape(cin * k * k, h * w)
-    y += layer.b[:, None]
-    return y.reshape(cout, h, w)
+                off = i * d * wp + j * d
+                ya += flat[off + a : off + b] @ taps[i, j]
+    return y.reshape(h, wp, cout)[:, :w]
 
 
 def _pool(x: np.ndarray) -> np.ndarray:
-    c, h, w = x.shape
-    h2, w2 = h // 2, w // 2
-    x = x[:, : 2 * h2, : 2 * w2].reshape(c, h2, 2, w2, 2)
-    return x.max(axis=(2, 4))
+    """2x2 max-pool of an (h, w, c) array (an odd last row or column dropped)."""
+    h2, w2 = x.shape[0] // 2, x.shape[1] // 2
+    a = np.maximum(x[0 : 2 * h2 : 2, 0 : 2 * w2 : 2], x[1 : 2 * h2 : 2, 0 : 2 * w2 : 2])
+    b = np.maximum(x[0 : 2 * h2 : 2, 1 : 2 * w2 : 2], x[1 : 2 * h2 : 2, 1 : 2 * w2 : 2])
+    return np.maximum(a, b)
 
 
 class RockNet:
@@ -116,15 +135,15 @@ class RockNet:
 
     def logits(self, x: np.ndarray) -> np.ndarray:
         """The last layer's output ((h', w') float32) for input channels x ((N_INPUTS, h, w))."""
-        x = np.asarray(x, np.float32)
+        x = np.ascontiguousarray(np.asarray(x, np.float32).transpose(1, 2, 0))
         n = len(self.layers)
         for i, L in enumerate(self.layers):
             if L.pool:
                 x = _pool(x)
             x = _conv(x, L)
             if i < n - 1:
-                np.maximum(x, 0.0, out=x)
-        return x[0]
+                x = np.maximum(x, 0.0)
+        return np.ascontiguousarray(x[:, :, 0])
 
     def probability(self, small: np.ndarray) -> np.ndarray:
         """Rock probability ((h, w) float32, 0-1) of each pixel of a half-resolution grey image."""

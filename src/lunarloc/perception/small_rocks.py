@@ -234,6 +234,18 @@ class SmallRockConfig:
     # benchmarks/train_small_rocks.py, e.g. a refit compared before it is packaged)
     judge_path: str | None = None
 
+    # -- candidates from the rock network (perception/rock_net.py; opt-in)
+    # at most this many candidates per image from the network's rock probability (after the
+    # appearance candidates; 0 = off): its peaks of at least net_min_score, each blob the
+    # pixels above half its peak; judged as bright candidates are
+    net_candidates: int = setting(0, ge=0)
+    net_min_score: float = setting(0.5, gt=0.0, lt=1.0)
+    # the network runs on the rows whose ground lies within this optical depth (m)
+    net_max_range_m: float = setting(4.0, gt=0.0)
+    # the network's file (None: the packaged rock_net.npz; else one written by
+    # benchmarks/train_rock_net.py)
+    net_path: str | None = None
+
     def __post_init__(self) -> None:
         check_settings(self)
         for lo, hi, strict in _ORDERED:
@@ -372,6 +384,49 @@ def _candidates(
     out = _blobs(z, sky, grid, cfg, cfg.contrast_z, cfg.max_candidates, False)
     if cfg.dark_contrast_z > 0:
         out += _blobs(-z, sky, grid, cfg, cfg.dark_contrast_z, cfg.max_dark_candidates, True)
+    if cfg.net_candidates > 0:
+        out += _net_candidates(roi, small, z, sky, grid, cfg, D * kd, out)
+    return out
+
+
+def _net_candidates(roi, small, z, sky, grid: _Grid, cfg, Dfull, cands) -> list:
+    """Candidates from the rock network's probability on the search image's rows whose
+    ground lies within net_max_range_m (see SmallRockConfig.net_candidates): bright
+    candidates whose peak contrast is the contrast image's highest value on the blob; those
+    centred in an earlier candidate's box are dropped (that rock is measured already)."""
+    import cv2
+
+    from lunarloc.perception.rock_net import rock_net_at
+
+    k = grid.k
+    with np.errstate(invalid="ignore"):
+        rows = np.flatnonzero((Dfull >= grid.fb / cfg.net_max_range_m).any(axis=1))
+    if rows.size == 0:
+        return []
+    h, w = z.shape
+    a = min(max(int(rows[0]) * grid.kd - grid.r0, 0) // k, h)
+    if h - a < 8:
+        return []
+    if k == 2:
+        half = small[a:]
+    else:
+        sub = roi[a * k :]
+        half = cv2.resize(sub, (sub.shape[1] // 2, sub.shape[0] // 2), interpolation=cv2.INTER_AREA)
+    p = rock_net_at(cfg.net_path).probability(half)
+    prob = np.zeros_like(z)
+    prob[a:] = p if p.shape == (h - a, w) else cv2.resize(p, (w, h - a))
+    boxes = [(u, v, u + c.shape[1], v + c.shape[0]) for u, v, c, *_ in cands]
+    out = []
+    for u0, v0, crop, d0, _, _ in _blobs(
+        prob, sky, grid, cfg, cfg.net_min_score, cfg.net_candidates, False
+    ):
+        cu, cv_ = u0 + crop.shape[1] // 2, v0 + crop.shape[0] // 2
+        if any(x0 <= cu < x1 and y0 <= cv_ < y1 for x0, y0, x1, y1 in boxes):
+            continue
+        ys, xs = (v0 - grid.r0) // k, u0 // k
+        cz = crop[::k, ::k]
+        zz = z[ys : ys + cz.shape[0], xs : xs + cz.shape[1]][cz[: h - ys, : w - xs]]
+        out.append((u0, v0, crop, d0, False, float(zz.max()) if zz.size else 0.0))
     return out
 
 

@@ -1,0 +1,145 @@
+"""The rock network's numpy inference, its file format and the small-rock stage's hook."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from lunarloc.core.errors import InputError
+from lunarloc.perception.rock_net import (
+    N_INPUTS,
+    NET_PATH,
+    RockNet,
+    load_rock_net,
+    make_layer,
+    net_inputs,
+    rock_net_at,
+)
+from lunarloc.perception.small_rocks import SmallRockConfig
+
+
+def _ref_conv(x, W, b, d):
+    """A direct 'same' convolution (cross-correlation, as torch's Conv2d), zero padded."""
+    cout, cin, k, _ = W.shape
+    _, h, w = x.shape
+    p = d * (k // 2)
+    xp = np.pad(x, ((0, 0), (p, p), (p, p)))
+    y = np.zeros((cout, h, w))
+    for o in range(cout):
+        for c in range(cin):
+            for i in range(k):
+                for j in range(k):
+                    y[o] += W[o, c, i, j] * xp[c, i * d : i * d + h, j * d : j * d + w]
+        y[o] += b[o]
+    return y
+
+
+def _tiny(rng) -> RockNet:
+    return RockNet(
+        [
+            make_layer(rng.normal(size=(3, N_INPUTS, 3, 3)), rng.normal(size=3)),
+            make_layer(rng.normal(size=(4, 3, 3, 3)), rng.normal(size=4), pool=True),
+            make_layer(rng.normal(size=(4, 4, 3, 3)), rng.normal(size=4), dilation=2),
+            make_layer(rng.normal(size=(1, 4, 1, 1)), rng.normal(size=1)),
+        ]
+    )
+
+
+def test_inference_matches_a_reference_convolution():
+    rng = np.random.default_rng(0)
+    net = _tiny(rng)
+    x = rng.normal(size=(N_INPUTS, 13, 18)).astype(np.float32)
+    ref = x.astype(float)
+    for i, L in enumerate(net.layers):
+        if L.pool:
+            c, h, w = ref.shape
+            ref = ref[:, : h // 2 * 2, : w // 2 * 2].reshape(c, h // 2, 2, w // 2, 2).max(axis=(2, 4))
+        ref = _ref_conv(ref, L.W.astype(float), L.b.astype(float), L.dilation)
+        if i < len(net.layers) - 1:
+            ref = np.maximum(ref, 0)
+    got = net.logits(x)
+    assert got.shape == (6, 9)
+    np.testing.assert_allclose(got, ref[0], rtol=1e-4, atol=1e-4)
+
+
+def test_probability_has_the_image_size_and_round_trips_through_a_file(tmp_path):
+    rng = np.random.default_rng(1)
+    net = _tiny(rng)
+    img = rng.integers(0, 255, size=(40, 64)).astype(np.uint8)
+    p = net.probability(img)
+    assert p.shape == img.shape and p.dtype == np.float32
+    assert np.all((p >= 0) & (p <= 1))
+    net.save(tmp_path / "n.npz")
+    again = load_rock_net(tmp_path / "n.npz")
+    np.testing.assert_array_equal(again.probability(img), p)
+    assert net_inputs(img).shape == (N_INPUTS, 40, 64)
+
+
+def test_the_packaged_network_loads_and_runs():
+    net = rock_net_at(None)
+    assert NET_PATH.stat().st_size < 200_000
+    img = np.full((60, 80), 90, np.uint8)
+    img[28:33, 38:44] = 200  # a lit patch
+    p = net.probability(img)
+    assert p.shape == img.shape and np.isfinite(p).all()
+
+
+def test_bad_model_files_give_a_clear_error(tmp_path):
+    with pytest.raises(InputError, match="rock net"):
+        load_rock_net(tmp_path / "missing.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(InputError, match="rock net"):
+        load_rock_net(tmp_path / "junk.npz")
+    np.savez(tmp_path / "nolayers.npz", format=np.array(1))
+    with pytest.raises(InputError, match="rock net"):
+        load_rock_net(tmp_path / "nolayers.npz")
+    rng = np.random.default_rng(2)
+    np.savez(  # a first layer that takes 3 inputs
+        tmp_path / "shape.npz",
+        format=np.array(1),
+        n_layers=np.array(1),
+        W0=rng.normal(size=(1, 3, 3, 3)),
+        b0=np.zeros(1),
+        dilation0=np.array(1),
+        pool0=np.array(False),
+    )
+    with pytest.raises(InputError, match="take 2 inputs"):
+        load_rock_net(tmp_path / "shape.npz")
+    with pytest.raises(InputError, match="at least 4x4"):
+        net_inputs(np.zeros((2, 50)))
+
+
+def test_the_config_round_trips_and_checks_its_range(tmp_path):
+    from lunarloc.config.run import RunConfig, load_config_file
+
+    p = tmp_path / "c.json"
+    p.write_text(
+        json.dumps(
+            {
+                "detector": {
+                    "small_rocks": {
+                        "net_candidates": 12,
+                        "net_min_score": 0.7,
+                        "net_max_range_m": 3.5,
+                        "net_path": "x.npz",
+                    }
+                }
+            }
+        )
+    )
+    cfg = load_config_file(p)[0]
+    sr = cfg.detector.small_rocks
+    assert RunConfig.from_dict(cfg.to_dict()).detector.small_rocks == sr
+    assert (sr.net_candidates, sr.net_min_score, sr.net_max_range_m, sr.net_path) == (
+        12,
+        0.7,
+        3.5,
+        "x.npz",
+    )
+    assert SmallRockConfig().net_candidates == 0  # off by default
+    from lunarloc.core.errors import ConfigError
+
+    with pytest.raises(ConfigError):
+        SmallRockConfig(net_min_score=1.0)
