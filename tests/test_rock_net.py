@@ -55,7 +55,9 @@ def test_inference_matches_a_reference_convolution():
     for i, L in enumerate(net.layers):
         if L.pool:
             c, h, w = ref.shape
-            ref = ref[:, : h // 2 * 2, : w // 2 * 2].reshape(c, h // 2, 2, w // 2, 2).max(axis=(2, 4))
+            ref = (
+                ref[:, : h // 2 * 2, : w // 2 * 2].reshape(c, h // 2, 2, w // 2, 2).max(axis=(2, 4))
+            )
         ref = _ref_conv(ref, L.W.astype(float), L.b.astype(float), L.dilation)
         if i < len(net.layers) - 1:
             ref = np.maximum(ref, 0)

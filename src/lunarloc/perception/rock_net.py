@@ -14,7 +14,7 @@ search measures it) and its brightness relative to a wider local mean (a lit fac
 Architecture (read from the file, so a retrained model may change widths): a list of layers,
 each a 3x3 (or 1x1) convolution with ReLU except the last; a layer may be preceded by a 2x2
 max-pool (``pool``) and may be dilated (``dilation``). The output (logits at the last layer's
-resolution) is resized bilinearly to the input's size and passed through a sigmoid.
+resolution) pass through a sigmoid and the probability is resized bilinearly to the input's size.
 """
 
 from __future__ import annotations
@@ -37,26 +37,47 @@ _FORMAT = 1
 #: products of at most this many multiply-adds stay on one BLAS thread (OpenBLAS's threshold is
 #: 65536 x 4)
 _BLAS_ONE_THREAD = 200_000
+#: layers of at most this many input x output channels run as OpenCV correlations
+_FILTER2D_MAX_PAIRS = 16
 
 
-def net_inputs(small: np.ndarray) -> np.ndarray:
+def local_contrast(small: np.ndarray) -> np.ndarray:
+    """The local contrast of a half-resolution grey image ((h, w) float32): its difference of
+    Gaussians over the local RMS of that difference, as the small-rock stage's candidate search
+    measures it with its default sigmas (2 and 8 pixels)."""
+    import cv2
+
+    s = np.asarray(small, np.float32)
+    h, w = s.shape
+    dv = s - cv2.GaussianBlur(s, (0, 0), DOG_SIGMA_PX)
+    e = max(int(CONTRAST_SIGMA_PX // 2), 1)
+    var = cv2.resize(dv * dv, (max(w // e, 1), max(h // e, 1)), interpolation=cv2.INTER_AREA)
+    var = cv2.resize(cv2.GaussianBlur(var, (0, 0), 2.0), (w, h), interpolation=cv2.INTER_LINEAR)
+    return dv / (np.sqrt(var) + 2.0)
+
+
+def net_inputs(small: np.ndarray, contrast: np.ndarray | None = None) -> np.ndarray:
     """(N_INPUTS, h, w) float32 input channels of a half-resolution grey image `small` ((h, w),
-    any real dtype, 0-255): the local contrast z (clipped to +-8) and the brightness relative
-    to a wide local mean (clipped to +-4)."""
+    any real dtype, 0-255): the local contrast (:func:`local_contrast`, or `contrast` when the
+    caller has it) clipped to +-8, and the brightness relative to a wide local mean (a Gaussian
+    of WIDE_SIGMA_PX taken at a quarter of the image's resolution) clipped to +-4."""
     import cv2
 
     s = np.asarray(small, np.float32)
     if s.ndim != 2 or s.shape[0] < 4 or s.shape[1] < 4:
         raise InputError(f"rock net input must be an (h, w) image of at least 4x4, got {s.shape}")
     h, w = s.shape
-    dv = s - cv2.GaussianBlur(s, (0, 0), DOG_SIGMA_PX)
-    e = max(int(CONTRAST_SIGMA_PX // 2), 1)
-    var = cv2.resize(dv * dv, (max(w // e, 1), max(h // e, 1)), interpolation=cv2.INTER_AREA)
-    var = cv2.resize(cv2.GaussianBlur(var, (0, 0), 2.0), (w, h), interpolation=cv2.INTER_LINEAR)
-    z = np.clip(dv / (np.sqrt(var) + 2.0), -8.0, 8.0)
-    m = cv2.GaussianBlur(s, (0, 0), WIDE_SIGMA_PX)
-    rel = np.clip((s - m) / (m + 8.0) * 4.0, -4.0, 4.0)
-    return np.stack([z, rel]).astype(np.float32)
+    z = local_contrast(s) if contrast is None else np.asarray(contrast, np.float32)
+    if z.shape != s.shape:
+        raise InputError(f"rock net: contrast {z.shape} is not the image's {s.shape}")
+    q = cv2.resize(s, (max(w // 4, 1), max(h // 4, 1)), interpolation=cv2.INTER_AREA)
+    m = cv2.resize(
+        cv2.GaussianBlur(q, (0, 0), WIDE_SIGMA_PX / 4), (w, h), interpolation=cv2.INTER_LINEAR
+    )
+    out = np.empty((N_INPUTS, h, w), np.float32)
+    np.clip(z, -8.0, 8.0, out=out[0])
+    np.clip((s - m) / (m + 8.0) * 4.0, -4.0, 4.0, out=out[1])
+    return out
 
 
 @dataclass(frozen=True)
@@ -79,6 +100,8 @@ def _conv(x: np.ndarray, layer: _Layer) -> np.ndarray:
         y += layer.b
         return y.reshape(h, w, cout)
     d = layer.dilation
+    if d == 1 and cin * cout <= _FILTER2D_MAX_PAIRS:
+        return _conv_filter2d(x, layer)
     p = d * (k // 2)
     wp = w + 2 * p
     # padding above and below, plus one more row below so that every tap's run fits
@@ -102,6 +125,23 @@ def _conv(x: np.ndarray, layer: _Layer) -> np.ndarray:
     return y.reshape(h, wp, cout)[:, :w]
 
 
+def _conv_filter2d(x: np.ndarray, layer: _Layer) -> np.ndarray:
+    """_conv by one OpenCV correlation per input and output channel (cheaper for a layer of
+    few channels, the first one: its inputs are wide images of 2 channels)."""
+    import cv2
+
+    cout, cin = layer.W.shape[:2]
+    h, w, _ = x.shape
+    y = np.empty((h, w, cout), np.float32)
+    planes = [np.ascontiguousarray(x[:, :, c]) for c in range(cin)]
+    for o in range(cout):
+        acc = np.full((h, w), layer.b[o], np.float32)
+        for c in range(cin):
+            acc += cv2.filter2D(planes[c], -1, layer.W[o, c], borderType=cv2.BORDER_CONSTANT)
+        y[:, :, o] = acc
+    return y
+
+
 def _pool(x: np.ndarray) -> np.ndarray:
     """2x2 max-pool of an (h, w, c) array (an odd last row or column dropped)."""
     h2, w2 = x.shape[0] // 2, x.shape[1] // 2
@@ -119,7 +159,9 @@ class RockNet:
         cin = N_INPUTS
         for i, L in enumerate(layers):
             if L.W.ndim != 4 or L.W.shape[1] != cin or L.W.shape[2] != L.W.shape[3]:
-                raise InputError(f"rock net layer {i}: weights {L.W.shape} do not take {cin} inputs")
+                raise InputError(
+                    f"rock net layer {i}: weights {L.W.shape} do not take {cin} inputs"
+                )
             if L.W.shape[2] % 2 == 0 or L.b.shape != (L.W.shape[0],) or L.dilation < 1:
                 raise InputError(f"rock net layer {i}: bad kernel, bias or dilation")
             if not (np.isfinite(L.W).all() and np.isfinite(L.b).all()):
@@ -145,19 +187,24 @@ class RockNet:
                 x = np.maximum(x, 0.0)
         return np.ascontiguousarray(x[:, :, 0])
 
-    def probability(self, small: np.ndarray) -> np.ndarray:
-        """Rock probability ((h, w) float32, 0-1) of each pixel of a half-resolution grey image."""
+    def probability(self, small: np.ndarray, contrast: np.ndarray | None = None) -> np.ndarray:
+        """Rock probability ((h, w) float32, 0-1) of each pixel of a half-resolution grey image
+        (`contrast`: its :func:`local_contrast` if the caller has it)."""
         import cv2
 
         h, w = np.asarray(small).shape[:2]
-        z = self.logits(net_inputs(small))
-        if z.shape != (h, w):
-            z = cv2.resize(z, (w, h), interpolation=cv2.INTER_LINEAR)
-        return (1.0 / (1.0 + np.exp(-np.clip(z, -30.0, 30.0)))).astype(np.float32)
+        z = np.clip(self.logits(net_inputs(small, contrast)), -30.0, 30.0)
+        p = 1.0 / (1.0 + np.exp(-z))  # at the last layer's resolution, then resized
+        if p.shape != (h, w):
+            p = cv2.resize(p, (w, h), interpolation=cv2.INTER_LINEAR)
+        return p.astype(np.float32, copy=False)
 
     def save(self, path: Path) -> None:
         """Write the layers as plain arrays (read back by :func:`load_rock_net`)."""
-        arr: dict[str, np.ndarray] = {"format": np.array(_FORMAT), "n_layers": np.array(len(self.layers))}
+        arr: dict[str, np.ndarray] = {
+            "format": np.array(_FORMAT),
+            "n_layers": np.array(len(self.layers)),
+        }
         for i, L in enumerate(self.layers):
             arr[f"W{i}"] = L.W.astype(np.float32)
             arr[f"b{i}"] = L.b.astype(np.float32)

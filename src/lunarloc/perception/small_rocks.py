@@ -242,6 +242,9 @@ class SmallRockConfig:
     net_min_score: float = setting(0.5, gt=0.0, lt=1.0)
     # the network runs on the rows whose ground lies within this optical depth (m)
     net_max_range_m: float = setting(4.0, gt=0.0)
+    # a network candidate's blob (its pixels of at least net_min_score, and of half its peak,
+    # connected to the peak) is at most this wide (m)
+    net_max_width_m: float = setting(0.1, gt=0.0)
     # the network's file (None: the packaged rock_net.npz; else one written by
     # benchmarks/train_rock_net.py)
     net_path: str | None = None
@@ -396,7 +399,7 @@ def _net_candidates(roi, small, z, sky, grid: _Grid, cfg, Dfull, cands) -> list:
     centred in an earlier candidate's box are dropped (that rock is measured already)."""
     import cv2
 
-    from lunarloc.perception.rock_net import rock_net_at
+    from lunarloc.perception.rock_net import CONTRAST_SIGMA_PX, DOG_SIGMA_PX, rock_net_at
 
     k = grid.k
     with np.errstate(invalid="ignore"):
@@ -407,18 +410,28 @@ def _net_candidates(roi, small, z, sky, grid: _Grid, cfg, Dfull, cands) -> list:
     a = min(max(int(rows[0]) * grid.kd - grid.r0, 0) // k, h)
     if h - a < 8:
         return []
-    if k == 2:
-        half = small[a:]
+    net = rock_net_at(cfg.net_path)
+    if k == 2:  # the search image is the network's; its contrast too with the default sigmas
+        same = cfg.dog_sigma_px == DOG_SIGMA_PX and cfg.contrast_sigma_px == CONTRAST_SIGMA_PX
+        p = net.probability(small[a:], z[a:] if same else None)
     else:
         sub = roi[a * k :]
         half = cv2.resize(sub, (sub.shape[1] // 2, sub.shape[0] // 2), interpolation=cv2.INTER_AREA)
-    p = rock_net_at(cfg.net_path).probability(half)
+        p = net.probability(half)
     prob = np.zeros_like(z)
     prob[a:] = p if p.shape == (h - a, w) else cv2.resize(p, (w, h - a))
     boxes = [(u, v, u + c.shape[1], v + c.shape[0]) for u, v, c, *_ in cands]
     out = []
     for u0, v0, crop, d0, _, _ in _blobs(
-        prob, sky, grid, cfg, cfg.net_min_score, cfg.net_candidates, False
+        prob,
+        sky,
+        grid,
+        cfg,
+        cfg.net_min_score,
+        cfg.net_candidates,
+        False,
+        floor=1.0,
+        max_width_m=min(cfg.net_max_width_m, cfg.max_width_m),
     ):
         cu, cv_ = u0 + crop.shape[1] // 2, v0 + crop.shape[0] // 2
         if any(x0 <= cu < x1 and y0 <= cv_ < y1 for x0, y0, x1, y1 in boxes):
@@ -489,8 +502,20 @@ def _nanmedian_rows(a: np.ndarray) -> np.ndarray:
     return np.where(n == 0, a.dtype.type(np.nan), out).astype(a.dtype, copy=False)
 
 
-def _blobs(z, sky, grid: _Grid, cfg, z_min: float, n_max: int, dark: bool) -> list:
-    """The strongest n_max blobs of the contrast image `z` (see small_rock_candidates)."""
+def _blobs(
+    z,
+    sky,
+    grid: _Grid,
+    cfg,
+    z_min: float,
+    n_max: int,
+    dark: bool,
+    floor: float = 0.6,
+    max_width_m: float | None = None,
+) -> list:
+    """The strongest n_max blobs of the contrast image `z` (see small_rock_candidates); a
+    blob's level is at least `floor` x z_min, its width at most max_width_m (None:
+    cfg.max_width_m)."""
     import cv2
 
     h, w = z.shape
@@ -519,7 +544,8 @@ def _blobs(z, sky, grid: _Grid, cfg, z_min: float, n_max: int, dark: bool) -> li
     Zi = np.asarray(Z[inr], np.float64)  # float64 as the scalars were with any numpy
     halves = np.minimum(np.maximum(cfg.max_width_m * grid.fx / Zi / k, 3.0), 40.0)
     zpk = z[pv[inr], pu[inr]]
-    levels = np.maximum(0.5 * zpk, 0.6 * z_min)
+    levels = np.maximum(0.5 * zpk, floor * z_min)
+    wmax = cfg.max_width_m if max_width_m is None else max_width_m
     out = []
     claimed = np.zeros(z.shape, bool)
     for y, x, half, level, j in zip(
@@ -547,7 +573,7 @@ def _blobs(z, sky, grid: _Grid, cfg, z_min: float, n_max: int, dark: bool) -> li
         if area < 2 or bw > cfg.max_aspect * bh:
             continue
         width = max(bw, bh) * k * Zi[j] / grid.fx
-        if not cfg.min_width_m <= width <= cfg.max_width_m:
+        if not cfg.min_width_m <= width <= wmax:
             continue
         full = c.repeat(k, axis=0).repeat(k, axis=1) if k > 1 else c
         u0, v0 = (xa + bx0) * k, (ya + by0) * k + grid.r0
