@@ -145,13 +145,15 @@ def fit(paths: list[Path], out: Path, widths: tuple[int, ...], steps: int, seed:
     )
     pools = (False, True, False, False)
 
-    def forward(x):
+    def forward(x, up=True):
         for i, c in enumerate(convs):
             if pools[i]:
                 x = torch.nn.functional.max_pool2d(x, 2)
             x = c(x)
             if i < len(convs) - 1:
                 x = torch.relu(x)
+        if not up:
+            return x
         return torch.nn.functional.interpolate(
             x, scale_factor=2, mode="bilinear", align_corners=False
         )
@@ -200,11 +202,12 @@ def fit(paths: list[Path], out: Path, widths: tuple[int, ...], steps: int, seed:
             )
         )
     net = RockNet(layers)
-    # the numpy inference against torch's on one frame (the exported file is what the package runs)
+    # the numpy inference against torch's on one frame (the exported file is what the package
+    # runs): the last layer's logits
     with torch.no_grad():
-        ref = torch.sigmoid(forward(torch.from_numpy(inputs[:1])))[0, 0].numpy()
-    got = net.probability(imgs[0])
-    print(f"numpy vs torch: max |dp| {np.abs(ref - got).max():.2e}; params {net.n_params}")
+        ref = forward(torch.from_numpy(inputs[:1]), up=False)[0, 0].numpy()
+    got = net.logits(inputs[0])
+    print(f"numpy vs torch: max |d logit| {np.abs(ref - got).max():.2e}; params {net.n_params}")
     net.save(out)
     print(f"wrote {out} ({out.stat().st_size} bytes)")
 

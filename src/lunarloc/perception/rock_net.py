@@ -14,7 +14,7 @@ search measures it) and its brightness relative to a wider local mean (a lit fac
 Architecture (read from the file, so a retrained model may change widths): a list of layers,
 each a 3x3 (or 1x1) convolution with ReLU except the last; a layer may be preceded by a 2x2
 max-pool (``pool``) and may be dilated (``dilation``). The output (logits at the last layer's
-resolution) pass through a sigmoid and the probability is resized bilinearly to the input's size.
+resolution) are resized bilinearly to the input's size and passed through a sigmoid.
 """
 
 from __future__ import annotations
@@ -193,11 +193,11 @@ class RockNet:
         import cv2
 
         h, w = np.asarray(small).shape[:2]
-        z = np.clip(self.logits(net_inputs(small, contrast)), -30.0, 30.0)
-        p = 1.0 / (1.0 + np.exp(-z))  # at the last layer's resolution, then resized
-        if p.shape != (h, w):
-            p = cv2.resize(p, (w, h), interpolation=cv2.INTER_LINEAR)
-        return p.astype(np.float32, copy=False)
+        z = self.logits(net_inputs(small, contrast))
+        if z.shape != (h, w):  # the logits resized, as in training
+            z = cv2.resize(z, (w, h), interpolation=cv2.INTER_LINEAR)
+        np.clip(z, -30.0, 30.0, out=z)
+        return 1.0 / (1.0 + np.exp(-z))
 
     def save(self, path: Path) -> None:
         """Write the layers as plain arrays (read back by :func:`load_rock_net`)."""

@@ -394,7 +394,7 @@ def _candidates(
 
 def _net_candidates(roi, small, z, sky, grid: _Grid, cfg, Dfull, cands) -> list:
     """Candidates from the rock network's probability on the search image's rows whose
-    ground lies within net_max_range_m (see SmallRockConfig.net_candidates): bright
+    ground lies within net_max_range_m (a fifth of the row's height-map pixels) (see SmallRockConfig.net_candidates): bright
     candidates whose peak contrast is the contrast image's highest value on the blob; those
     centred in an earlier candidate's box are dropped (that rock is measured already)."""
     import cv2
@@ -402,8 +402,9 @@ def _net_candidates(roi, small, z, sky, grid: _Grid, cfg, Dfull, cands) -> list:
     from lunarloc.perception.rock_net import CONTRAST_SIGMA_PX, DOG_SIGMA_PX, rock_net_at
 
     k = grid.k
-    with np.errstate(invalid="ignore"):
-        rows = np.flatnonzero((Dfull >= grid.fb / cfg.net_max_range_m).any(axis=1))
+    with np.errstate(invalid="ignore"):  # rows a fifth of which lies within the range
+        near = np.count_nonzero(Dfull >= grid.fb / cfg.net_max_range_m, axis=1)
+    rows = np.flatnonzero(near >= 0.2 * Dfull.shape[1])
     if rows.size == 0:
         return []
     h, w = z.shape
