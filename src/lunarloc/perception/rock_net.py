@@ -95,13 +95,11 @@ def _conv(x: np.ndarray, layer: _Layer) -> np.ndarray:
     outputs on the padded columns are dropped. Returns (h, w, out)."""
     cout, cin, k, _ = layer.W.shape
     h, w, _ = x.shape
-    if k == 1:
-        y = x.reshape(h * w, cin) @ layer.W.reshape(cout, cin).T
+    if k == 1:  # one product per image row (x may be a view with padded rows)
+        y = x @ np.ascontiguousarray(layer.W.reshape(cout, cin).T)
         y += layer.b
-        return y.reshape(h, w, cout)
+        return y
     d = layer.dilation
-    if d == 1 and cin * cout <= _FILTER2D_MAX_PAIRS:
-        return _conv_filter2d(x, layer)
     p = d * (k // 2)
     wp = w + 2 * p
     # padding above and below, plus one more row below so that every tap's run fits
@@ -125,29 +123,35 @@ def _conv(x: np.ndarray, layer: _Layer) -> np.ndarray:
     return y.reshape(h, wp, cout)[:, :w]
 
 
-def _conv_filter2d(x: np.ndarray, layer: _Layer) -> np.ndarray:
-    """_conv by one OpenCV correlation per input and output channel (cheaper for a layer of
-    few channels, the first one: its inputs are wide images of 2 channels)."""
+def _conv_planes(x: np.ndarray, layer: _Layer) -> np.ndarray:
+    """_conv of x in planes ((in, h, w), channels first) by one OpenCV correlation per input
+    and output channel (cheaper for a layer of few channels, the first one: its inputs are
+    wide images of 2 channels); returns (out, h, w)."""
     import cv2
 
     cout, cin = layer.W.shape[:2]
-    h, w, _ = x.shape
-    y = np.empty((h, w, cout), np.float32)
-    planes = [np.ascontiguousarray(x[:, :, c]) for c in range(cin)]
+    _, h, w = x.shape
+    y = np.empty((cout, h, w), np.float32)
     for o in range(cout):
-        acc = np.full((h, w), layer.b[o], np.float32)
+        y[o] = layer.b[o]
         for c in range(cin):
-            acc += cv2.filter2D(planes[c], -1, layer.W[o, c], borderType=cv2.BORDER_CONSTANT)
-        y[:, :, o] = acc
+            y[o] += cv2.filter2D(x[c], -1, layer.W[o, c], borderType=cv2.BORDER_CONSTANT)
     return y
 
 
-def _pool(x: np.ndarray) -> np.ndarray:
-    """2x2 max-pool of an (h, w, c) array (an odd last row or column dropped)."""
+def _pool(x: np.ndarray, planes: bool) -> np.ndarray:
+    """2x2 max-pool of an (h, w, c) array, or of (c, h, w) planes (an odd last row or column
+    dropped)."""
+    if planes:
+        h2, w2 = x.shape[1] // 2, x.shape[2] // 2
+        r = (slice(None), slice(0, 2 * h2, 2), slice(1, 2 * h2, 2))
+        a = np.maximum(x[:, r[1], 0 : 2 * w2 : 2], x[:, r[2], 0 : 2 * w2 : 2])
+        b = np.maximum(x[:, r[1], 1 : 2 * w2 : 2], x[:, r[2], 1 : 2 * w2 : 2])
+        return np.maximum(a, b, out=a)
     h2, w2 = x.shape[0] // 2, x.shape[1] // 2
     a = np.maximum(x[0 : 2 * h2 : 2, 0 : 2 * w2 : 2], x[1 : 2 * h2 : 2, 0 : 2 * w2 : 2])
     b = np.maximum(x[0 : 2 * h2 : 2, 1 : 2 * w2 : 2], x[1 : 2 * h2 : 2, 1 : 2 * w2 : 2])
-    return np.maximum(a, b)
+    return np.maximum(a, b, out=a)
 
 
 class RockNet:
@@ -177,15 +181,27 @@ class RockNet:
 
     def logits(self, x: np.ndarray) -> np.ndarray:
         """The last layer's output ((h', w') float32) for input channels x ((N_INPUTS, h, w))."""
-        x = np.ascontiguousarray(np.asarray(x, np.float32).transpose(1, 2, 0))
+        x = np.asarray(x, np.float32)
+        planes = True  # (c, h, w) while the layers run as OpenCV correlations, then (h, w, c)
         n = len(self.layers)
         for i, L in enumerate(self.layers):
             if L.pool:
-                x = _pool(x)
-            x = _conv(x, L)
+                x = _pool(x, planes)
+            cout, cin = L.W.shape[:2]
+            if (
+                planes
+                and L.dilation == 1
+                and L.W.shape[2] > 1
+                and cin * cout <= _FILTER2D_MAX_PAIRS
+            ):
+                x = _conv_planes(np.ascontiguousarray(x), L)
+            else:
+                if planes:
+                    x, planes = np.ascontiguousarray(x.transpose(1, 2, 0)), False
+                x = _conv(x, L)
             if i < n - 1:
-                x = np.maximum(x, 0.0)
-        return np.ascontiguousarray(x[:, :, 0])
+                np.maximum(x, 0.0, out=x)
+        return np.ascontiguousarray(x[0] if planes else x[:, :, 0])
 
     def probability(self, small: np.ndarray, contrast: np.ndarray | None = None) -> np.ndarray:
         """Rock probability ((h, w) float32, 0-1) of each pixel of a half-resolution grey image
