@@ -31,7 +31,14 @@ Fit: random crops (CROP x CROP half-resolution pixels, half of them centred on a
 pixel), the network of ``--widths`` (rock_net's layers: 3x3 conv, ReLU; a 2x2 max-pool before
 the second layer; the third dilated by 2; a 1x1 output), binary cross-entropy of rock (labels 1
 and 2) against ground, the small rocks' pixels weighted SMALL_WEIGHT, Adam; torch's CPU build,
-one thread, seeded (``--seed``).
+one thread, seeded (``--seed``). The exported file's logits are checked against torch's on one
+frame (the numpy inference is what the package runs).
+
+The packaged ``perception/rock_net.npz``: ``fit CACHE/site4*.npz CACHE/site5*.npz --steps 6000``
+with the defaults (widths 8 12 12, 2349 parameters, seed 0; torch 2.13.0 CPU build, about 200 s
+CPU): 1023 frames of 33 sites (430-452, 530-539), the bottom 264 rows of each (the fewest any
+site keeps). Offline (``check``) and in the detector: docs/perception-status.md, "The rock
+network".
 """
 
 from __future__ import annotations
