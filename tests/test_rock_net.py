@@ -145,3 +145,35 @@ def test_the_config_round_trips_and_checks_its_range(tmp_path):
 
     with pytest.raises(ConfigError):
         SmallRockConfig(net_min_score=1.0)
+
+
+def test_the_stage_takes_candidates_from_the_network_only_when_asked(tmp_path):
+    """A lit 5 cm rock 2 m ahead on a textured plane: with the appearance candidates off, the
+    packaged network's candidates hold one on the rock, and none come without net_candidates;
+    a network that sees no rock anywhere (its output bias -30) gives none either."""
+    from dataclasses import replace
+
+    from test_small_rocks import BASELINE_M, CAM, _render, _uv
+
+    from lunarloc.perception.camera import ipex_rig
+    from lunarloc.perception.detector import Detector, DetectorConfig
+    from lunarloc.perception.small_rocks import small_rock_candidates
+
+    x, z = 0.3, 2.0
+    L, R = _render(0.0, (x, z, 0.025, 0.025), seed=3)
+    T_ro = ipex_rig(CAM)["FrontLeft"].T_rover_optical
+    hm = Detector(DetectorConfig(), CAM).height_map(L, R, T_ro)
+    u, v = _uv(x, z, 0.0)
+    cfg = SmallRockConfig(max_candidates=0, dark_contrast_z=0.0, net_candidates=5)
+
+    def centres(c):
+        cands = small_rock_candidates(L, hm.disparity, hm.scale, CAM.fx, BASELINE_M, c)
+        return [(u0 + m.shape[1] / 2, v0 + m.shape[0] / 2) for u0, v0, m, *_ in cands]
+
+    got = centres(cfg)
+    assert any(abs(cu - u) < 15 and abs(cv - v) < 15 for cu, cv in got), (got, (u, v))
+    assert centres(replace(cfg, net_candidates=0)) == []
+    net = rock_net_at(None)
+    blind = RockNet(net.layers[:-1] + [make_layer(net.layers[-1].W, [-30.0])])
+    blind.save(tmp_path / "blind.npz")
+    assert centres(replace(cfg, net_path=str(tmp_path / "blind.npz"))) == []
