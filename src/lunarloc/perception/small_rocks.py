@@ -393,10 +393,10 @@ def _candidates(
 
 
 def _net_candidates(roi, small, z, sky, grid: _Grid, cfg, Dfull, cands) -> list:
-    """Candidates from the rock network's probability on the search image's rows whose
-    ground lies within net_max_range_m (a fifth of the row's height-map pixels) (see SmallRockConfig.net_candidates): bright
-    candidates whose peak contrast is the contrast image's highest value on the blob; those
-    centred in an earlier candidate's box are dropped (that rock is measured already)."""
+    """Candidates from the rock network's probability (see SmallRockConfig.net_candidates) on
+    the search image's rows a fifth of whose height-map pixels lie within net_max_range_m:
+    bright candidates whose peak contrast is the contrast image's highest value on the blob;
+    those centred in an earlier candidate's box are dropped (that rock is measured already)."""
     import cv2
 
     from lunarloc.perception.rock_net import CONTRAST_SIGMA_PX, DOG_SIGMA_PX, rock_net_at
