@@ -12,7 +12,9 @@ cannot come down. This stage finds such rocks in two steps:
    contrast of the image (textured and flat regolith alike), whose size at the range the
    height map gives lies in [min_width_m, max_width_m], are candidates: the strongest
    ``max_candidates`` bright ones, then (``dark_contrast_z`` > 0) the strongest
-   ``max_dark_candidates`` dark ones.
+   ``max_dark_candidates`` dark ones. Opt-in (``net_candidates`` > 0): the peaks of a tiny
+   rock-segmentation network's probability (``rock_net.py``, trained on the simulator's
+   labelled images) are candidates too, measured and judged as the bright ones.
 2. **Height from full-resolution stereo, against a local plane.** SGBM at full resolution
    runs on a window around each candidate (a 32-disparity band around the height map's
    disparity). A plane is fitted (least squares, once more without outliers beyond 3 MADs)
