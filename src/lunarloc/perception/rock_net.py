@@ -33,6 +33,9 @@ DOG_SIGMA_PX = 2.0
 CONTRAST_SIGMA_PX = 8.0
 WIDE_SIGMA_PX = 12.0
 N_INPUTS = 2
+#: the width of the images the network was trained on (the LAC's 1280-pixel images at half
+#: resolution); the stage brings other images to it
+NET_WIDTH_PX = 640
 _FORMAT = 1
 #: products of at most this many multiply-adds stay on one BLAS thread (OpenBLAS's threshold is
 #: 65536 x 4)

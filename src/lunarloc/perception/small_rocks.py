@@ -401,7 +401,12 @@ def _net_candidates(roi, small, z, sky, grid: _Grid, cfg, Dfull, cands) -> list:
     those centred in an earlier candidate's box are dropped (that rock is measured already)."""
     import cv2
 
-    from lunarloc.perception.rock_net import CONTRAST_SIGMA_PX, DOG_SIGMA_PX, rock_net_at
+    from lunarloc.perception.rock_net import (
+        CONTRAST_SIGMA_PX,
+        DOG_SIGMA_PX,
+        NET_WIDTH_PX,
+        rock_net_at,
+    )
 
     k = grid.k
     with np.errstate(invalid="ignore"):  # rows a fifth of which lies within the range
@@ -414,13 +419,15 @@ def _net_candidates(roi, small, z, sky, grid: _Grid, cfg, Dfull, cands) -> list:
     if h - a < 8:
         return []
     net = rock_net_at(cfg.net_path)
-    if k == 2:  # the search image is the network's; its contrast too with the default sigmas
+    if w == NET_WIDTH_PX:  # the search image is the network's (1280 wide at half resolution);
+        # its contrast too with the default sigmas
         same = cfg.dog_sigma_px == DOG_SIGMA_PX and cfg.contrast_sigma_px == CONTRAST_SIGMA_PX
         p = net.probability(small[a:], z[a:] if same else None)
-    else:
+    else:  # the image at the network's scale (a 640-wide image as it is)
         sub = roi[a * k :]
-        half = cv2.resize(sub, (sub.shape[1] // 2, sub.shape[0] // 2), interpolation=cv2.INTER_AREA)
-        p = net.probability(half)
+        f = NET_WIDTH_PX / sub.shape[1]
+        size = (NET_WIDTH_PX, max(round(sub.shape[0] * f), 4))
+        p = net.probability(sub if f == 1 else cv2.resize(sub, size, interpolation=cv2.INTER_AREA))
     prob = np.zeros_like(z)
     prob[a:] = p if p.shape == (h - a, w) else cv2.resize(p, (w, h - a))
     boxes = [(u, v, u + c.shape[1], v + c.shape[0]) for u, v, c, *_ in cands]
