@@ -193,6 +193,54 @@ def test_mask_disparity_fullres_recovers_shift_in_narrow_band():
     assert mask_disparity_fullres(left, right, crop, 5, 80, d0=22.6) is None
 
 
+def _slanted_pair(slope_px_per_row: float, d_mid: float = 20.0, h: int = 200, w: int = 400):
+    """A textured pair whose disparity grows down the image by `slope_px_per_row` (as level
+    ground's does), d_mid at row h // 2; returns (left, right, true disparity per row)."""
+    import cv2
+
+    rng = np.random.default_rng(5)
+    base = cv2.GaussianBlur((rng.random((h, 2 * w)) * 255).astype(np.float32), (3, 3), 0)
+    d_true = d_mid + slope_px_per_row * (np.arange(h) - h // 2)
+    xs = np.repeat(np.arange(w, dtype=np.float32)[None, :] + 100, h, 0)
+    ys = np.repeat(np.arange(h, dtype=np.float32)[:, None], w, 1)
+    left = cv2.remap(base, xs, ys, cv2.INTER_CUBIC)
+    # right(u) = left(u + d): a point at column u of the left image lies at u - d in the right
+    right = cv2.remap(base, xs + d_true[:, None].astype(np.float32), ys, cv2.INTER_CUBIC)
+    as_u8 = [np.clip(im, 0, 255).astype(np.uint8) for im in (left, right)]
+    return as_u8[0], as_u8[1], d_true
+
+
+def test_mask_disparity_fullres_hh4_follows_a_disparity_growing_down_the_image():
+    from lunarloc.perception.stereo import mask_disparity_fullres
+
+    left, right, d_true = _slanted_pair(0.25)
+    crop = np.ones((60, 80), bool)
+    err = {}
+    for mode in ("3way", "hh4"):
+        d = mask_disparity_fullres(left, right, crop, 200, 70, d0=20.0, mode=mode)
+        assert d is not None and np.isfinite(d).mean() > 0.8
+        err[mode] = float(np.nanmedian(d - d_true[70:130, None]))
+    # the default (hh4) aggregates both ways along the columns: no lag; 3way's top-down-only
+    # pass lags behind the growing disparity (the surface put too far)
+    assert abs(err["hh4"]) < 0.03
+    assert err["3way"] < -0.03
+
+
+def test_sgbm_modes_by_name():
+    import cv2
+
+    from lunarloc.perception.detector_config import PointsConfig
+    from lunarloc.perception.stereo import SGBM_MODES, sgbm_mode_flag
+
+    assert sgbm_mode_flag("hh4") == cv2.STEREO_SGBM_MODE_HH4
+    assert len({sgbm_mode_flag(m) for m in SGBM_MODES}) == len(SGBM_MODES)
+    with pytest.raises(ConfigError, match="hh4"):
+        sgbm_mode_flag("fast")
+    assert PointsConfig().sgbm_mode == "hh4"
+    with pytest.raises(ConfigError):
+        PointsConfig(sgbm_mode="fast")
+
+
 def test_full_width_matches_the_left_band_where_the_match_exists():
     cam = PinholeCamera(width=480, height=240)
     left, right = _textured_pair(20)

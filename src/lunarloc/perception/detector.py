@@ -461,6 +461,7 @@ class Detector:
             cfg.points.block_size,
             p1_per_block_px2=cfg.points.p1_per_block_px2,
             p2_per_block_px2=cfg.points.p2_per_block_px2,
+            mode=cfg.points.sgbm_mode,
         )
         if d is None:
             return None

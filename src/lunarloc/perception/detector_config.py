@@ -203,6 +203,9 @@ class PointsConfig:
     p1_per_block_px2: int = setting(8, ge=1)
     # its P2 per pixel of the block (must exceed p1_per_block_px2)
     p2_per_block_px2: int = setting(32, ge=1)
+    # its OpenCV SGBM mode (stereo.SGBM_MODES): hh4 aggregates both ways along rows and columns;
+    # 3way's top-down-only pass put the rocks' points too far (docs/lac-map.md)
+    sgbm_mode: str = setting("hh4", choices=("3way", "sgbm", "hh4", "hh"))
     # pixels eroded from the mask before its points are taken (silhouette pixels mix disparities)
     erode_px: int = setting(2, ge=0)
     # refine the disparity by masked template matching within this many pixels (0 = off)
