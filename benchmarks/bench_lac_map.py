@@ -20,6 +20,9 @@ Usage
     #     radius band, range and lighting (the detector with ground-truth poses; any archives
     #     rendered with custom/rocks.csv: these sites' traverse.lac, sim_heldout's)
     python benchmarks/bench_lac_map.py range-bias --archives DIR/seed_286/traverse.lac ... [--every 8]
+    # 2e. SGBM's disparity error against the ray-cast truth per OpenCV mode (the height map's
+    #     half-resolution match and the crop match's full-resolution parameters)
+    python benchmarks/bench_lac_map.py disparity-bias --out DIR --seeds 286 288 [--frames 3]
     # 3. cost: detection vs mapping per stereo pair, CPU time (an archive at each resolution)
     python benchmarks/bench_lac_map.py cost --archive A.lac [--frames 40] [--small-rocks|--no-small-rocks]
     # 4. memory: the mapper fed for a long replay (the archive's frames cycled with their
@@ -441,6 +444,117 @@ def range_bias(a) -> None:
             line(f"{stage}, r < 0.1 m, {lt}", sm & (rad < 0.1) & (light == lt))
 
 
+def disparity_bias(a) -> None:
+    """SGBM's disparity error against the ray-cast truth, per OpenCV mode (stereo.SGBM_MODES),
+    on `--frames` evenly spaced frames of each site's archive (DIR/seed_N/traverse.lac): the
+    height map's half-resolution match (the detector's height_stereo, every setting but the
+    mode as configured) and a full-resolution match with the parameters of the crop match
+    (stereo.mask_disparity_fullres: block 5, P1 8 x 25, P2 32 x 25, no speckle filter) over
+    the whole frame. Pixels are classed by the ray cast: ground, rock (the rock's mask eroded
+    by 2 pixels at full resolution; wholly rock at half resolution); errors in full-resolution
+    pixels (positive: too near), medians by the true depth; CPU time of the half-resolution
+    match per frame."""
+    import cv2
+
+    from lunarloc.config.run import RunConfig, scaled_detector_config
+    from lunarloc.core.geometry import pose_to_matrix
+    from lunarloc.io.lac.archive import LacArchive
+    from lunarloc.perception.camera import camera_from_archive
+    from lunarloc.perception.detector import Detector, mounts_from_archive_row
+    from lunarloc.perception.stereo import first_ground_row, sgbm_mode_flag, to_gray_u8
+    from lunarloc.sim.render import SEM_ROCK_OFFSET, SiteRenderer
+    from lunarloc.sim.simulate import simulate_site
+
+    bands = ((0, 2), (2, 3), (3, 4), (4, 6))
+    acc: dict = {}
+    cpu = dict.fromkeys(a.modes, 0.0)
+    n_frames = 0
+    for seed in a.seeds:
+        rend = SiteRenderer(simulate_site(seed))
+        with LacArchive(a.out / f"seed_{seed}" / "traverse.lac") as ar:
+            cam = camera_from_archive(ar)
+            det = Detector(scaled_detector_config(cam.width, base=RunConfig().detector), cam)
+            hs = det.height_stereo
+            k = hs.config.downscale
+            fb = cam.fx * hs.baseline_m
+            rays = cam.rays_optical().reshape(-1, 3)
+            frs = [
+                int(f) for f in ar.frame_numbers if ar.camera_row("FrontLeft", int(f)) is not None
+            ]
+            step = max(len(frs) // (a.frames + 1), 1)
+            pick = set(frs[step::step][: a.frames])
+            for rec in ar.iter_frames(semantic=False):
+                if rec.frame not in pick:
+                    continue
+                n_frames += 1
+                s = rec.state
+                T = pose_to_matrix(s["x"], s["y"], s["z"], s["roll"], s["pitch"], s["yaw"])
+                mounts = mounts_from_archive_row(rec.cameras, cam)
+                T_left = T @ mounts["FrontLeft"].T_rover_optical
+                t, lab = rend.cast_rays(
+                    np.repeat(T_left[:3, 3][None], len(rays), 0), rays @ T_left[:3, :3].T
+                )
+                Z = (t * rays[:, 2]).reshape(cam.height, cam.width)
+                lab = lab.reshape(cam.height, cam.width)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    d_true = fb / Z
+                rock = lab >= SEM_ROCK_OFFSET
+                rock_in = cv2.erode(rock.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+                L, R = (
+                    to_gray_u8(rec.grayscale["FrontLeft"]),
+                    to_gray_u8(rec.grayscale["FrontRight"]),
+                )
+                v0 = first_ground_row(L)
+                hh, ww = cam.height // k, cam.width // k
+                d_true_lr = d_true[: hh * k, : ww * k].reshape(hh, k, ww, k).mean(axis=(1, 3))
+                lab_lr = lab[: hh * k, : ww * k].reshape(hh, k, ww, k)
+                Z_lr = Z[: hh * k, : ww * k].reshape(hh, k, ww, k).mean(axis=(1, 3))
+                for mode in a.modes:
+                    flag = sgbm_mode_flag(mode)
+                    create = cv2.StereoSGBM_create
+                    hs._matchers.clear()
+                    cv2.StereoSGBM_create = lambda *p, _f=flag, _c=create, **kw: _c(
+                        *p, **{**kw, "mode": _f}
+                    )
+                    try:
+                        t0 = time.process_time()
+                        d_lr = hs.disparity_lowres(L, R, v_start=v0, sky_level=6) * k
+                        cpu[mode] += time.process_time() - t0
+                    finally:
+                        cv2.StereoSGBM_create = create
+                    hs._matchers.clear()
+                    sg = cv2.StereoSGBM_create(
+                        minDisparity=0, numDisparities=128 if cam.width > 1000 else 64, blockSize=5,
+                        P1=8 * 25, P2=32 * 25, disp12MaxDiff=1, uniquenessRatio=10,
+                        speckleWindowSize=0, mode=flag,
+                    )  # fmt: skip
+                    d_full = sg.compute(L, R).astype(np.float32) / 16.0
+                    d_full[d_full <= 0] = np.nan
+                    for res, err, depth, classes in (
+                        ("full", d_full - d_true, Z, (("ground", lab == 1), ("rock", rock_in))),
+                        ("half", d_lr - d_true_lr, Z_lr, (
+                            ("ground", (lab_lr == 1).all(axis=(1, 3))),
+                            ("rock", (lab_lr >= SEM_ROCK_OFFSET).all(axis=(1, 3))),
+                        )),
+                    ):  # fmt: skip
+                        for cls, m in classes:
+                            for b0, b1 in bands:
+                                sel = m & np.isfinite(err) & (depth >= b0) & (depth < b1)
+                                acc.setdefault((res, cls, b0, b1, mode), []).append(err[sel])
+        print(f"seed {seed}: {len(pick)} frames", flush=True)
+    for (res, cls, b0, b1, mode), v in sorted(acc.items()):
+        v = np.concatenate(v)
+        if v.size >= 20:
+            print(
+                f"{res} resolution, {cls}, depth {b0}-{b1} m, {mode}: n {v.size}, disparity error "
+                f"median {np.median(v):+.3f} px, |error| > 1 px {np.mean(np.abs(v) > 1):.3f}"
+            )
+    for mode in a.modes:
+        print(
+            f"{mode}: half-resolution match {1000 * cpu[mode] / max(n_frames, 1):.1f} ms CPU a frame"
+        )
+
+
 def _interp_share(est, truth, within_m: float):
     sel = est.interpolated & (est.fill_distance_m <= within_m)
     if not sel.any():
@@ -679,6 +793,11 @@ def main() -> None:
     s.add_argument(
         "--config", default=None, help="a run configuration file (JSON; RunConfig sections)"
     )
+    s = sub.add_parser("disparity-bias")
+    s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--seeds", type=int, nargs="+", required=True)
+    s.add_argument("--frames", type=int, default=3, help="frames per site")
+    s.add_argument("--modes", nargs="+", default=["3way", "hh4", "hh", "sgbm"])
     s = sub.add_parser("cost")
     s.add_argument("--archive", type=Path, required=True)
     s.add_argument("--frames", type=int, default=30)
@@ -708,6 +827,7 @@ def main() -> None:
         "rescore": rescore,
         "decompose": decompose,
         "range-bias": range_bias,
+        "disparity-bias": disparity_bias,
         "cost": cost,
         "memory": memory,
         "agent": agent,

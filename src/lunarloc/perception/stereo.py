@@ -834,9 +834,10 @@ def mask_disparity_fullres(
     in full-resolution pixels (NaN invalid or at the band's edges), or None when the
     band leaves the image. SGBM's smoothness penalties are ``p1_per_block_px2`` and
     ``p2_per_block_px2`` times the block's area (one grayscale channel). `mode`: the SGBM
-    mode (:data:`SGBM_MODES`); ``hh4`` aggregates both ways along rows and columns: ``3way``'s
-    top-down-only pass put rocks' disparities 0.06-0.12 px low at 2-6 m on simulated LAC-look
-    frames (too far by 0.3-0.5 % of their range), ``hh4``'s within 0.04 px.
+    mode (:data:`SGBM_MODES`); ``hh4`` aggregates both ways along rows and columns, where
+    ``3way``'s top-down-only pass lags behind a disparity that grows down the image and put
+    rocks' points too far (measured against ray-cast truth: docs/lac-map.md, "The detections'
+    range").
     """
     cv2 = import_cv2()
     L, R = to_gray_u8(left), to_gray_u8(right)
