@@ -90,3 +90,35 @@ def test_image_loop_marginal_is_calibrated_where_the_former_model_was_not():
     former = replace(fusion, detection_bias_sigma_m=0.0, detection_bias_sigma_z_m=0.0)
     core0, _ = _shares(former)
     assert core0 < 0.5, core0
+
+
+def test_predicted_heading_variance_propagates_the_bias_marginal():
+    """After a solve, the heading the graph predicts for later keyframes grows by the bias's
+    marginal variance times the time carried squared (random walk: the sum of the edges' moving
+    times), plus the odometry's heading noise and the bias walk over those edges; NaN before
+    any solve and for a keyframe before the solved one."""
+    noise = OdometryNoise(
+        yaw_noise_rad_sqrt_s=1e-3, yaw_floor_rad=1e-4, bias_walk_rad_s_sqrt_s=1e-4
+    )
+    g = PoseGraph(FusionConfig(noise=noise, calibrate=True, loss="linear"))
+    for k in range(6):
+        g.add_keyframe(2.0 * k, [0.3 * k, 0.0, 0.0, 0.0])
+    assert all(math.isnan(v) for v in g.predicted_heading_variance(5))
+    for k in (2, 5):
+        g.add_fix(k, [0.3 * k, 0.0, 0.0, 0.0], 0.02, math.radians(0.2))
+    g.solve()
+    taus = [1.5, 2.5, 4.0]
+    t = 10.0
+    for i, tau in enumerate(taus):
+        t += tau
+        g.add_keyframe(t, [1.5 + 0.3 * (i + 1), 0.0, 0.0, 0.0], tau)
+    C5 = g._marginal()
+    assert C5.shape == (5, 5) and C5[4, 4] > 0
+    assert np.allclose(g.newest_covariance, C5[:4, :4])
+    bias, process = g.predicted_heading_variance(len(g) - 1)
+    assert math.isclose(bias, sum(taus) ** 2 * C5[4, 4], rel_tol=1e-9)
+    yaw = sum(1e-4**2 + 1e-6 * tau for tau in taus)
+    # a walk step w_l (variance q^2 tau_l) enters through the edges after it
+    walk = sum(1e-8 * taus[m] * sum(taus[m + 1 :]) ** 2 for m in range(len(taus)))
+    assert math.isclose(process, yaw + walk, rel_tol=1e-9)
+    assert all(math.isnan(v) for v in g.predicted_heading_variance(3))

@@ -325,7 +325,14 @@ class PoseGraph:
         # the last solve's Jacobian, free columns and layout (problem.solve), read by
         # newest_covariance when asked, and the covariance once computed from them
         self._solution: tuple | None = None
-        self._newest_covariance: np.ndarray | None = None
+        self._newest_marginal: np.ndarray | None = None  # (5, 5): x, y, z, yaw, heading bias
+        self._solved_newest: int | None = None  # the newest keyframe at the last solve
+
+    def _marginal(self) -> np.ndarray | None:
+        if self._solution is not None:
+            self._newest_marginal = problem.newest_marginal(*self._solution, with_bias=True)
+            self._solution = None
+        return self._newest_marginal
 
     @property
     def newest_covariance(self) -> np.ndarray | None:
@@ -333,10 +340,35 @@ class PoseGraph:
         rad^2) under the graph's noise model (None before any solve, or where singular).
         Computed from the last solve's Jacobian on first use after it, so that loops which
         never read it do not pay for it."""
-        if self._solution is not None:
-            self._newest_covariance = problem.newest_marginal(*self._solution)
-            self._solution = None
-        return self._newest_covariance
+        C = self._marginal()
+        return None if C is None else C[:4, :4].copy()
+
+    def predicted_heading_variance(self, i: int) -> tuple[float, float]:
+        """The heading error (rad^2) the graph's prediction of keyframe `i` grew since its last
+        solve, relative to the keyframe that was newest then (j): ``(from the bias, from the
+        process)``. The prediction carries the heading bias b_j the solve estimated over the
+        edges j..i (``psi' = psi + dpsi - b tau``, ``b' = phi b + w``; :class:`OdometryFactor`,
+        :class:`BiasWalkFactor`), so the bias's marginal variance at j (the last solve's) turns
+        into ``(sum of tau phi..)^2 var(b_j)``: the first part. The second: the odometry's heading
+        noise and the bias's driving noise over the same edges, as the graph models them. NaN
+        for both before any solve, without calibration (no bias state), or where `i` precedes
+        j."""
+        C = self._marginal()
+        j = self._solved_newest
+        if C is None or j is None or not 0 <= j <= i < len(self) or not np.isfinite(C[4, 4]):
+            return math.nan, math.nan
+        nz = self.config.noise
+        a, P = 0.0, np.zeros((2, 2))  # growth's coefficient on b_j; the process's (g, b) covariance
+        phi_cum = 1.0
+        for m in range(j + 1, i + 1):
+            tau = float(self.keyframes[m].moving_time_s)
+            phi, var_w = (float(v) for v in bias_transition(tau, nz))
+            a += tau * phi_cum
+            phi_cum *= phi
+            F = np.array([[1.0, -tau], [0.0, phi]])
+            Q = np.diag([nz.yaw_floor_rad**2 + nz.yaw_noise_rad_sqrt_s**2 * tau, var_w])
+            P = F @ P @ F.T + Q
+        return a * a * float(C[4, 4]), float(P[0, 0])
 
     # ------------------------------------------------------------------ building
     def __len__(self) -> int:

@@ -173,6 +173,7 @@ def solve(graph, active_window_m: float | None = None) -> float:
     z[active] = res.x
     _write_back(graph, z, layout)
     graph._solution = (res.jac, active, layout)  # PoseGraph.newest_covariance, when read
+    graph._solved_newest = len(graph) - 1  # ... the keyframe it is of
     graph.num_solves += 1
     log.debug(
         "pose graph: %d keyframes (%d active), %d factors (%s), cost %.3g, scale %.4f",
@@ -186,18 +187,24 @@ def solve(graph, active_window_m: float | None = None) -> float:
     return float(res.cost)
 
 
-def newest_marginal(jac, active: np.ndarray, layout: StateLayout) -> np.ndarray | None:
+def newest_marginal(
+    jac, active: np.ndarray, layout: StateLayout, with_bias: bool = False
+) -> np.ndarray | None:
     """(4, 4) marginal covariance of the newest keyframe's (x, y, z, yaw) (m^2, rad^2) at a
     solution: the newest keyframe's block of ``(J^T J)^-1``, ``J`` the Jacobian of the residuals
     in sigmas (as ``least_squares`` returns it, scaled by the robust loss at the solution) over
-    the free state; the keyframes held fixed count as known. None where it is singular."""
+    the free state; the keyframes held fixed count as known. None where it is singular.
+    `with_bias`: (5, 5), its heading bias (rad/s) last, that row and column NaN where the bias
+    is not free (no calibration)."""
     from scipy.sparse import csc_matrix, identity
     from scipy.sparse.linalg import splu
 
-    cols = layout.pose([layout.K - 1])[0]
-    idx = np.flatnonzero(np.isin(active, cols))
+    pose_cols = layout.pose([layout.K - 1])[0]
+    idx = np.flatnonzero(np.isin(active, pose_cols))
     if len(idx) != 4:
         return None
+    bias = np.flatnonzero(active == layout.bias([layout.K - 1])[0]) if with_bias else []
+    idx = np.r_[idx, bias].astype(int)
     J = csc_matrix(jac)
     H = (J.T @ J).tocsc()
     H = H + identity(H.shape[0], format="csc") * 1e-12 * max(float(H.diagonal().max()), 1.0)
@@ -205,11 +212,17 @@ def newest_marginal(jac, active: np.ndarray, layout: StateLayout) -> np.ndarray 
         lu = splu(H)
     except RuntimeError:  # singular
         return None
-    E = np.zeros((H.shape[0], 4))
-    E[idx, np.arange(4)] = 1.0
+    E = np.zeros((H.shape[0], len(idx)))
+    E[idx, np.arange(len(idx))] = 1.0
     C = lu.solve(E)[idx]
     C = 0.5 * (C + C.T)
-    return C if np.all(np.isfinite(C)) and np.all(np.diag(C) > 0) else None
+    if not (np.all(np.isfinite(C)) and np.all(np.diag(C) > 0)):
+        return None
+    if not with_bias:
+        return C
+    out = np.full((5, 5), np.nan)
+    out[: len(idx), : len(idx)] = C
+    return out
 
 
 def _write_back(graph, z: np.ndarray, layout: StateLayout) -> None:

@@ -390,6 +390,15 @@ class Attempt:
     fix_distortion_yaw_rad: float = float("nan")  # ... and its rotation part (rad, one sigma)
     fix_maps_from_detections: int = 0  # of the two maps, those built from detections (sightings)
     fix_since_fix_s: float = float("nan")  # time since the last accepted fix (s; NaN before one)
+    # the heading error (rad^2) the pose graph's prediction grew since its last solve, from its
+    # heading bias's marginal and from its process noise (PoseGraph.predicted_heading_variance)
+    fix_graph_yaw_var_bias_rad2: float = float("nan")
+    fix_graph_yaw_var_process_rad2: float = float("nan")
+    # the inliers' viewing geometry: the mean over inlier rocks of the mean horizontal ray
+    # (map frame, m) from the keyframes that detected them to the detections, and the mean
+    # horizontal range (m) of those detections (window_ray_geometry)
+    fix_ray_xy_m: list | None = None
+    fix_range_m: float = float("nan")
     time_mapping_s: float = 0.0
     time_association_s: float = 0.0
     # window length used: window_m, or longer where the adaptive window grew
@@ -403,6 +412,7 @@ class Attempt:
             "fix_xyz",
             "fix_error_xyz",
             "fix_covariance_xyz",
+            "fix_ray_xy_m",
         ):
             d.pop(k)
         return d
@@ -855,6 +865,13 @@ class LoopState:
         att.fix_distortion_yaw_rad = math.radians(float(res.distortion_rotation_deg))
         last = next((a for a in reversed(self.attempts) if a.accepted), None)
         att.fix_since_fix_s = t - last.time_s if last is not None else math.nan
+        if last is not None:
+            gb, gp = self.graph.predicted_heading_variance(k)
+            att.fix_graph_yaw_var_bias_rad2, att.fix_graph_yaw_var_process_rad2 = gb, gp
+        ray, rng = window_ray_geometry(
+            veh.positions_xyz[inl[:, 0]], P, poses[F, :3], self.config.aggregation.radius_m
+        )
+        att.fix_ray_xy_m, att.fix_range_m = ray.tolist(), rng
         att.fix_sigma_yaw_rad = math.sqrt(
             fix_stated_yaw_variance(res, Vp, att.fix_maps_from_detections, cfg, att.fix_since_fix_s)
         )
@@ -1080,6 +1097,32 @@ def window_yaw_bias_variance(inliers_xyz, maps_from_detections: int, config: Loo
         return 0.0
     r = inlier_radius_m(inliers_xyz)
     return maps_from_detections / 2 * b * b / (r * r) if r > 0 else math.inf
+
+
+def window_ray_geometry(
+    inliers_xyz, points_xyz, viewpoints_xyz, radius_m: float
+) -> tuple[np.ndarray, float]:
+    """How a window's inlier rocks (n, 3) were seen: each window detection (`points_xyz` (N,
+    3), taken from `viewpoints_xyz` (N, 3), the rover at its keyframe) within `radius_m` of an
+    inlier belongs to it; per rock the mean horizontal ray (viewpoint to detection) and the
+    mean horizontal range; returned: the mean ray over the rocks (2,) (m, map frame) and the
+    mean range (m). NaN where no detection belongs to an inlier."""
+    from scipy.spatial import cKDTree
+
+    V = np.asarray(inliers_xyz, float).reshape(-1, 3)
+    P = np.asarray(points_xyz, float).reshape(-1, 3)
+    if not len(V) or not len(P):
+        return np.full(2, np.nan), math.nan
+    d, j = cKDTree(V).query(P, distance_upper_bound=radius_m)
+    ok = np.isfinite(d)
+    if not np.any(ok):
+        return np.full(2, np.nan), math.nan
+    ray = P[ok, :2] - np.asarray(viewpoints_xyz, float).reshape(-1, 3)[ok, :2]
+    rocks = np.unique(j[ok])
+    per_ray = np.array([ray[j[ok] == r].mean(axis=0) for r in rocks])
+    rng = np.linalg.norm(ray, axis=1)
+    per_rng = np.array([rng[j[ok] == r].mean() for r in rocks])
+    return per_ray.mean(axis=0), float(per_rng.mean())
 
 
 def inlier_radius_m(inliers_xyz) -> float:

@@ -124,6 +124,12 @@ def _fix_record(a, loop_config, **extra) -> dict:
         "inlier_radius_m": inlier_radius_m(inl),
         "heading_yaw_rad": a.fix_yaw_rad,
         "since_fix_s": a.fix_since_fix_s,
+        # the graph's predicted heading growth since its last solve (rad^2): from its bias's
+        # marginal, from its process noise; the inliers' mean ray (m, map frame) and range (m)
+        "graph_yaw_var_bias_rad2": a.fix_graph_yaw_var_bias_rad2,
+        "graph_yaw_var_process_rad2": a.fix_graph_yaw_var_process_rad2,
+        "ray_xy_m": a.fix_ray_xy_m,
+        "range_m": a.fix_range_m,
     }
 
 
