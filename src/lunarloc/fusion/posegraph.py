@@ -343,6 +343,16 @@ class PoseGraph:
         C = self._marginal()
         return None if C is None else C[:4, :4].copy()
 
+    def bias_turn_since_solve(self, i: int) -> float:
+        """The heading (rad) the graph's estimated heading bias turned its prediction of keyframe
+        `i` by since its last solve (``sum of b tau`` over the edges from the keyframe that was
+        newest then); NaN before any solve or where `i` precedes it."""
+        j = self._solved_newest
+        if j is None or not 0 <= j <= i < len(self):
+            return math.nan
+        kfs = self.keyframes
+        return float(sum(kfs[m - 1].bias_rad_s * kfs[m].moving_time_s for m in range(j + 1, i + 1)))
+
     def predicted_heading_variance(self, i: int) -> tuple[float, float]:
         """The heading error (rad^2) the graph's prediction of keyframe `i` grew since its last
         solve, relative to the keyframe that was newest then (j): ``(from the bias, from the

@@ -215,6 +215,11 @@ class LoopConfig:
     # window is placed with the graph's poses and its registration aligns their average, so a
     # fix keeps the heading error the graph's prediction grew at the keyframe since that fix
     fix_heading_rate_sigma_rad_s: float = 0.0
+    # the heading the graph's estimated bias turned its prediction by since its last solve
+    # (PoseGraph.bias_turn_since_solve) counted as an error of fix_heading_turn_factor times it:
+    # a bias per second of motion carried through a slow stretch turns the prediction where the
+    # odometry's drift (per metre) did not
+    fix_heading_turn_factor: float = 0.0
 
     def __post_init__(self) -> None:
         for name in (
@@ -238,6 +243,7 @@ class LoopConfig:
             "fix_centre_bias_z_m",
             "fix_centre_bias_spread_m",
             "fix_heading_rate_sigma_rad_s",
+            "fix_heading_turn_factor",
         ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v < math.inf):
@@ -394,6 +400,10 @@ class Attempt:
     # heading bias's marginal and from its process noise (PoseGraph.predicted_heading_variance)
     fix_graph_yaw_var_bias_rad2: float = float("nan")
     fix_graph_yaw_var_process_rad2: float = float("nan")
+    # the heading the graph's bias estimate turned its prediction by since that solve (rad), and
+    # the odometry path since the last accepted fix (m)
+    fix_graph_bias_turn_rad: float = float("nan")
+    fix_since_fix_m: float = float("nan")
     # the inliers' viewing geometry: the mean over inlier rocks of the mean horizontal ray
     # (map frame, m) from the keyframes that detected them to the detections, and the mean
     # horizontal range (m) of those detections (window_ray_geometry)
@@ -868,12 +878,22 @@ class LoopState:
         if last is not None:
             gb, gp = self.graph.predicted_heading_variance(k)
             att.fix_graph_yaw_var_bias_rad2, att.fix_graph_yaw_var_process_rad2 = gb, gp
+            att.fix_graph_bias_turn_rad = self.graph.bias_turn_since_solve(k)
+            kfs = self.graph.keyframes
+            att.fix_since_fix_m = float(kfs[k].path_m - kfs[last.keyframe].path_m)
         ray, rng = window_ray_geometry(
             veh.positions_xyz[inl[:, 0]], P, poses[F, :3], self.config.aggregation.radius_m
         )
         att.fix_ray_xy_m, att.fix_range_m = ray.tolist(), rng
         att.fix_sigma_yaw_rad = math.sqrt(
-            fix_stated_yaw_variance(res, Vp, att.fix_maps_from_detections, cfg, att.fix_since_fix_s)
+            fix_stated_yaw_variance(
+                res,
+                Vp,
+                att.fix_maps_from_detections,
+                cfg,
+                att.fix_since_fix_s,
+                att.fix_graph_bias_turn_rad,
+            )
         )
         T_true = self.T_map_rover_true[-1]
         if T_true is not None:
@@ -1139,23 +1159,34 @@ def fix_model_yaw_variance(
     maps_from_detections: int,
     config: LoopConfig,
     since_fix_s: float = math.nan,
+    bias_turn_rad: float = math.nan,
 ) -> float:
     """What :func:`fix_stated_yaw_variance` adds to localize()'s yaw variance (rad^2, may be
     negative): the window's heading-drift allowance re-counted in ``fix_heading_drift_sigmas``
     sigmas, the turn of the window's centre bias (:func:`window_yaw_bias_variance`) and the
     heading error the pose graph's prediction grew since its last accepted fix,
     ``fix_heading_rate_sigma_rad_s`` times `since_fix_s` (none where that is not finite: no
-    fix yet, the window placed with the odometry)."""
+    fix yet, the window placed with the odometry) and ``fix_heading_turn_factor`` times the turn
+    its heading bias carried into the prediction since its last solve, `bias_turn_rad` (none
+    where not finite)."""
     d = float(distortion_yaw_rad)
     k = 1.0 / config.fix_heading_drift_sigmas**2 - 1.0
     dd = k * d * d if math.isfinite(d) and d > 0 else 0.0
     dt = float(since_fix_s)
     grown = (config.fix_heading_rate_sigma_rad_s * dt) ** 2 if math.isfinite(dt) else 0.0
+    turn = float(bias_turn_rad)
+    if math.isfinite(turn):
+        grown += (config.fix_heading_turn_factor * turn) ** 2
     return dd + grown + window_yaw_bias_variance(inliers_xyz, maps_from_detections, config)
 
 
 def fix_stated_yaw_variance(
-    res, inliers_xyz, maps_from_detections: int, config: LoopConfig, since_fix_s=math.nan
+    res,
+    inliers_xyz,
+    maps_from_detections: int,
+    config: LoopConfig,
+    since_fix_s=math.nan,
+    bias_turn_rad=math.nan,
 ) -> float:
     """The yaw variance (rad^2) a loop fix is stated with: localize()'s (``covariance[5, 5]``:
     the registration's, the whole maps' shared bias and the window's heading-drift allowance
@@ -1168,7 +1199,9 @@ def fix_stated_yaw_variance(
     # localize() adds no allowance where it is not finite (distortion_covariance)
     if not (math.isfinite(d) and math.isfinite(float(res.distortion_error_m))):
         d = 0.0
-    v += fix_model_yaw_variance(d, inliers_xyz, maps_from_detections, config, since_fix_s)
+    v += fix_model_yaw_variance(
+        d, inliers_xyz, maps_from_detections, config, since_fix_s, bias_turn_rad
+    )
     return max(v, 0.0)
 
 

@@ -93,7 +93,12 @@ def _fix_record(a, loop_config, **extra) -> dict:
     ey, sy = float(a.fix_error_yaw_rad), float(a.fix_sigma_yaw_rad)
     inl = np.asarray(a.inlier_vehicle_xyz or np.zeros((0, 3)), float).reshape(-1, 3)
     model_yaw = fix_model_yaw_variance(
-        a.fix_distortion_yaw_rad, inl, a.fix_maps_from_detections, loop_config, a.fix_since_fix_s
+        a.fix_distortion_yaw_rad,
+        inl,
+        a.fix_maps_from_detections,
+        loop_config,
+        a.fix_since_fix_s,
+        a.fix_graph_bias_turn_rad,
     )
     sy0 = math.sqrt(max(sy * sy - model_yaw, 0.0))
     return {
@@ -128,6 +133,8 @@ def _fix_record(a, loop_config, **extra) -> dict:
         # marginal, from its process noise; the inliers' mean ray (m, map frame) and range (m)
         "graph_yaw_var_bias_rad2": a.fix_graph_yaw_var_bias_rad2,
         "graph_yaw_var_process_rad2": a.fix_graph_yaw_var_process_rad2,
+        "graph_bias_turn_rad": a.fix_graph_bias_turn_rad,
+        "since_fix_m": a.fix_since_fix_m,
         "ray_xy_m": a.fix_ray_xy_m,
         "range_m": a.fix_range_m,
     }
