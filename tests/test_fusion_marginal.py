@@ -7,6 +7,7 @@ import math
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from lunarloc.fusion.posegraph import FusionConfig, OdometryNoise, PoseGraph
 from lunarloc.online.loop import image_loop_config
@@ -105,7 +106,7 @@ def test_predicted_heading_variance_propagates_the_bias_marginal():
         g.add_keyframe(2.0 * k, [0.3 * k, 0.0, 0.0, 0.0])
     assert all(math.isnan(v) for v in g.predicted_heading_variance(5))
     for k in (2, 5):
-        g.add_fix(k, [0.3 * k, 0.0, 0.0, 0.0], 0.02, math.radians(0.2))
+        g.add_fix(k, [0.3 * k, 0.0, 0.0, -0.002 * k], 0.02, math.radians(0.2))
     g.solve()
     taus = [1.5, 2.5, 4.0]
     t = 10.0
@@ -122,3 +123,8 @@ def test_predicted_heading_variance_propagates_the_bias_marginal():
     walk = sum(1e-8 * taus[m] * sum(taus[m + 1 :]) ** 2 for m in range(len(taus)))
     assert math.isclose(process, yaw + walk, rel_tol=1e-9)
     assert all(math.isnan(v) for v in g.predicted_heading_variance(3))
+    # the turn its bias carried into the prediction since the solve: sum of b tau over the edges
+    kfs = g.keyframes
+    turn = sum(kfs[m - 1].bias_rad_s * kfs[m].moving_time_s for m in range(len(g) - 3, len(g)))
+    assert g.bias_turn_since_solve(len(g) - 1) == pytest.approx(turn) and turn != 0.0
+    assert math.isnan(g.bias_turn_since_solve(3))

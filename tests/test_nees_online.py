@@ -17,6 +17,7 @@ from lunarloc.online.loop import (
     fix_stated_covariance,
     fix_stated_yaw_variance,
     window_centre_bias_covariance,
+    window_ray_geometry,
     window_yaw_bias_variance,
 )
 from lunarloc.pipeline.nees_online import (
@@ -239,3 +240,35 @@ def test_a_fix_record_judges_the_heading_against_its_stated_sigma():
     # localize()'s own covariance: the stated one less the window centre bias
     assert np.allclose(r["covariance_localize_xyz"], np.eye(3) * (1e-3 - 0.02**2 / 2))
     assert r["nees_localize"] == pytest.approx(1e-4 / 8e-4)
+
+
+def test_the_heading_turn_the_graph_carried_is_stated_as_an_error():
+    """fix_heading_turn_factor: the turn the graph's bias carried into the prediction since its
+    last solve, times the factor, added in quadrature to the heading; none where not finite."""
+    square = np.array([[-2.0, -2.0, 0.0], [2.0, -2.0, 0.0], [2.0, 2.0, 0.0], [-2.0, 2.0, 0.0]])
+    cfg = LoopConfig(fix_heading_turn_factor=2.0)
+    turn = math.radians(0.1)
+    assert fix_model_yaw_variance(0.0, square, 2, cfg, 20.0, turn) == pytest.approx((2 * turn) ** 2)
+    assert fix_model_yaw_variance(0.0, square, 2, cfg, 20.0, -turn) == pytest.approx(
+        (2 * turn) ** 2
+    )
+    assert fix_model_yaw_variance(0.0, square, 2, cfg, 20.0, math.nan) == 0.0
+    assert fix_model_yaw_variance(0.0, square, 2, LoopConfig(), 20.0, turn) == 0.0
+    with pytest.raises(ConfigError):
+        LoopConfig(fix_heading_turn_factor=-1.0)
+
+
+def test_the_inliers_viewing_rays_and_range():
+    """Two rocks, each detected from two viewpoints: the mean ray over the rocks of each rock's
+    mean ray (viewpoint to detection), and the mean range; a detection of no inlier is left out."""
+    rocks = np.array([[3.0, 0.0, 0.0], [0.0, 4.0, 0.0]])
+    pts = np.array([[3.0, 0.0, 0.0], [3.01, 0.0, 0.0], [0.0, 4.0, 0.0], [0.0, 4.0, 0.0], [9, 9, 0]])
+    views = np.array(
+        [[0.0, 0.0, 0.0], [1.01, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0, 0, 0]]
+    )
+    ray, rng = window_ray_geometry(rocks, pts, views, 0.2)
+    # rock 1: rays (3, 0), (2, 0) -> (2.5, 0); rock 2: (0, 4), (0, 2) -> (0, 3)
+    assert np.allclose(ray, [1.25, 1.5])
+    assert rng == pytest.approx((2.5 + 3.0) / 2)
+    ray0, rng0 = window_ray_geometry(rocks, pts[4:], views[4:], 0.2)
+    assert np.all(np.isnan(ray0)) and math.isnan(rng0)
