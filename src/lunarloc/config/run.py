@@ -163,8 +163,8 @@ class RunConfig:
         calibrated it (2 fixes), then their bend is fitted (docs/online-component.md). Its
         fixes are stated with the window distortion counted as a 3-sigma bound and a 6 mm
         (0.5 mm vertical) centre bias the window's rocks share, their headings with the
-        heading error the pose graph's prediction grows past its last fix (0.11 mrad/s times
-        the time since it; docs/calibration.md, "The online loop's uncertainty")."""
+        turn the pose graph's heading bias carried into its prediction since its last solve as
+        one sigma (docs/calibration.md, "The online loop's uncertainty")."""
         return cls(
             **{
                 "localization": loop_localization_config(),
@@ -173,7 +173,7 @@ class RunConfig:
                     fix_distortion_sigmas=3.0,
                     fix_centre_bias_m=0.006,
                     fix_centre_bias_z_m=0.0005,
-                    fix_heading_rate_sigma_rad_s=1.1e-4,
+                    fix_heading_turn_factor=1.0,
                 ),
                 **overrides,
             }
