@@ -32,6 +32,10 @@ STRIPS_OFF = DetectorConfig(
     small_rocks=SmallRockConfig(enabled=False),
 )
 TENTATIVE = replace(STRIPS_OFF, tentative_max_range_m=6.0, tentative_min_range_m=2.0)
+# tentatives confirmed by their own repeats: 3 in the 3 neighbouring frames each way
+REPEATS = replace(
+    DetectorConfig(), tentative_max_range_m=6.0, tentative_confirm_frames=3, tentative_min_repeats=3
+)
 
 
 def _pair(cfg, c, keep_tentative):
@@ -219,12 +223,7 @@ def test_a_tentative_seen_again_in_enough_neighbouring_frames_is_kept():
     # a rock seen only tentatively, never firmly, in four frames 0.5 m apart: each frame sees
     # it again in three of its neighbouring frames (three each way at most), so with
     # tentative_min_repeats 3 all four are kept; with 0 (off) or 4, none
-    cfg = replace(
-        DetectorConfig(),
-        tentative_max_range_m=6.0,
-        tentative_confirm_frames=3,
-        tentative_min_repeats=3,
-    )
+    cfg = REPEATS
 
     def frames(n, step_m=0.0):
         return [
@@ -248,12 +247,7 @@ def test_a_tentative_the_verifier_is_sure_of_needs_one_repeat():
     # rules.verifier_confirm_score set, a tentative the blob verifier scored at least that is
     # kept when seen again (as any detection) in one neighbouring frame; one scored under it,
     # or not scored (NaN), still needs three; a single sighting is dropped whatever its score
-    base = replace(
-        DetectorConfig(),
-        tentative_max_range_m=6.0,
-        tentative_confirm_frames=3,
-        tentative_min_repeats=3,
-    )
+    base = REPEATS
     base = replace(base, rules=replace(base.rules, verifier_min_score=0.7))
     cfg = replace(base, rules=replace(base.rules, verifier_confirm_score=0.95))
     off = replace(base, rules=replace(base.rules, verifier_confirm_score=0.0))
