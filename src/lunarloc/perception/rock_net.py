@@ -44,16 +44,21 @@ _BLAS_ONE_THREAD = 200_000
 _FILTER2D_MAX_PAIRS = 16
 
 
-def local_contrast(small: np.ndarray) -> np.ndarray:
+def local_contrast(
+    small: np.ndarray,
+    dog_sigma_px: float = DOG_SIGMA_PX,
+    contrast_sigma_px: float = CONTRAST_SIGMA_PX,
+) -> np.ndarray:
     """The local contrast of a half-resolution grey image ((h, w) float32): its difference of
-    Gaussians over the local RMS of that difference, as the small-rock stage's candidate search
-    measures it with its default sigmas (2 and 8 pixels)."""
+    Gaussians (`dog_sigma_px`) over the local RMS of that difference (`contrast_sigma_px`), what
+    the small-rock stage's candidate search measures (the network was trained with the default
+    sigmas, 2 and 8 pixels)."""
     import cv2
 
     s = np.asarray(small, np.float32)
     h, w = s.shape
-    dv = s - cv2.GaussianBlur(s, (0, 0), DOG_SIGMA_PX)
-    e = max(int(CONTRAST_SIGMA_PX // 2), 1)
+    dv = s - cv2.GaussianBlur(s, (0, 0), dog_sigma_px)
+    e = max(int(contrast_sigma_px // 2), 1)
     var = cv2.resize(dv * dv, (max(w // e, 1), max(h // e, 1)), interpolation=cv2.INTER_AREA)
     var = cv2.resize(cv2.GaussianBlur(var, (0, 0), 2.0), (w, h), interpolation=cv2.INTER_LINEAR)
     return dv / (np.sqrt(var) + 2.0)

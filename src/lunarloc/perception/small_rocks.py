@@ -60,6 +60,7 @@ from lunarloc.core.configs import check_settings, setting
 from lunarloc.core.errors import ConfigError
 from lunarloc.core.stats import median as _median
 from lunarloc.perception.masks import InstanceMask
+from lunarloc.perception.rock_net import local_contrast
 from lunarloc.perception.verifier import (
     APPEARANCE_FEATURES,
     BlobVerifier,
@@ -377,11 +378,7 @@ def _candidates(
     small = (cv2.resize(roi, (w, h), interpolation=cv2.INTER_AREA) if k > 1 else roi).astype(
         np.float32
     )
-    dv = small - cv2.GaussianBlur(small, (0, 0), cfg.dog_sigma_px)
-    e = max(int(cfg.contrast_sigma_px // 2), 1)
-    var = cv2.resize(dv * dv, (max(w // e, 1), max(h // e, 1)), interpolation=cv2.INTER_AREA)
-    var = cv2.resize(cv2.GaussianBlur(var, (0, 0), 2.0), (w, h), interpolation=cv2.INTER_LINEAR)
-    z = dv / (np.sqrt(var) + 2.0)
+    z = local_contrast(small, cfg.dog_sigma_px, cfg.contrast_sigma_px)
     sky = small <= cfg.sky_level
     grid = _Grid(D, kd, k, r0, fx, fx * baseline_m)
     if cfg.count_checked:
