@@ -60,7 +60,13 @@ from lunarloc.core.configs import check_settings, setting
 from lunarloc.core.errors import ConfigError
 from lunarloc.core.stats import median as _median
 from lunarloc.perception.masks import InstanceMask
-from lunarloc.perception.rock_net import local_contrast
+from lunarloc.perception.rock_net import (
+    CONTRAST_SIGMA_PX,
+    DOG_SIGMA_PX,
+    NET_WIDTH_PX,
+    local_contrast,
+    rock_net_at,
+)
 from lunarloc.perception.verifier import (
     APPEARANCE_FEATURES,
     BlobVerifier,
@@ -397,13 +403,6 @@ def _net_candidates(roi, small, z, sky, grid: _Grid, cfg, Dfull, cands) -> list:
     bright candidates whose peak contrast is the contrast image's highest value on the blob;
     those centred in an earlier candidate's box are dropped (that rock is measured already)."""
     import cv2
-
-    from lunarloc.perception.rock_net import (
-        CONTRAST_SIGMA_PX,
-        DOG_SIGMA_PX,
-        NET_WIDTH_PX,
-        rock_net_at,
-    )
 
     k = grid.k
     with np.errstate(invalid="ignore"):  # rows a fifth of which lies within the range
