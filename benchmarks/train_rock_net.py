@@ -110,14 +110,21 @@ def extract(path: Path, cache: Path) -> Path:
     return out
 
 
-def _load(paths: list[Path]):
-    X, Y = [], []
+def _load(paths: list[Path], with_lamps: bool = False):
+    X, Y, lamps = [], [], []
     for p in paths:
         with np.load(p) as z:
             X.append(z["image"])
             Y.append(z["label"])
+        lamps.append(np.full(len(X[-1]), "_lamps_" in p.name))
     h = min(x.shape[1] for x in X)
-    return np.concatenate([x[:, -h:] for x in X]), np.concatenate([y[:, -h:] for y in Y])
+    out = np.concatenate([x[:, -h:] for x in X]), np.concatenate([y[:, -h:] for y in Y])
+    return out + (np.concatenate(lamps),) if with_lamps else out
+
+
+def _draw(cdf: np.ndarray, rng) -> int:
+    """An index drawn from a cumulative distribution."""
+    return min(int(np.searchsorted(cdf, rng.random() * cdf[-1], side="right")), len(cdf) - 1)
 
 
 def _torch():
@@ -131,26 +138,36 @@ def _torch():
     return torch
 
 
-def fit(paths: list[Path], out: Path, widths: tuple[int, ...], steps: int, seed: int) -> None:
+def fit(
+    paths: list[Path],
+    out: Path,
+    widths: tuple[int, ...],
+    steps: int,
+    seed: int,
+    stride_first: bool = False,
+    lamp_share: float | None = None,
+) -> None:
     torch = _torch()
     nn = torch.nn
     torch.set_num_threads(1)
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
-    imgs, labs = _load(paths)
+    imgs, labs, lamps = _load(paths, with_lamps=True)
     t0 = time.process_time()
     inputs = np.stack([net_inputs(im) for im in imgs])  # (N, C, h, w)
     print(f"{len(imgs)} frames {imgs.shape[1:]}, inputs {time.process_time() - t0:.0f} s CPU")
     w1, w2, w3 = widths
     convs = nn.ModuleList(
         [
-            nn.Conv2d(N_INPUTS, w1, 3, padding=1),
+            nn.Conv2d(N_INPUTS, w1, 3, padding=1, stride=2 if stride_first else 1),
             nn.Conv2d(w1, w2, 3, padding=1),
             nn.Conv2d(w2, w3, 3, padding=2, dilation=2),
             nn.Conv2d(w3, 1, 1),
         ]
     )
-    pools = (False, True, False, False)
+    # a 2x2 max-pool before the second layer, or (stride_first) the first layer at every second
+    # pixel of every second row instead: it costs a quarter (no pool)
+    pools = (False, not stride_first, False, False)
 
     def forward(x, up=True):
         for i, c in enumerate(convs):
@@ -168,6 +185,14 @@ def fit(paths: list[Path], out: Path, widths: tuple[int, ...], steps: int, seed:
     opt = torch.optim.Adam(convs.parameters(), lr=3e-3)
     N, _, h, w = inputs.shape
     small_pix = np.argwhere(labs == 1)
+    # uniform draws, or (lamp_share) lamp_share of the crops from the lamp-lit sites' frames
+    # (and of the small-rock-centred crops from their small rocks' pixels)
+    pf = ps = None
+    if lamp_share is not None and lamps.any() and (~lamps).any():
+        pf = np.where(lamps, lamp_share / lamps.sum(), (1 - lamp_share) / (~lamps).sum())
+        lp = lamps[small_pix[:, 0]]
+        ps = np.where(lp, lamp_share / max(lp.sum(), 1), (1 - lamp_share) / max((~lp).sum(), 1))
+        pf, ps = np.cumsum(pf / pf.sum()), np.cumsum(ps / ps.sum())  # drawn by inverse CDF
     B = 16
     t0 = time.process_time()
     for step in range(steps):
@@ -177,11 +202,12 @@ def fit(paths: list[Path], out: Path, widths: tuple[int, ...], steps: int, seed:
         xb, yb = [], []
         for b in range(B):
             if b % 2 == 0 and len(small_pix):
-                n, y, x = small_pix[rng.integers(len(small_pix))]
+                i = rng.integers(len(small_pix)) if ps is None else _draw(ps, rng)
+                n, y, x = small_pix[i]
                 y0 = int(np.clip(y - rng.integers(8, CROP - 8), 0, h - CROP))
                 x0 = int(np.clip(x - rng.integers(8, CROP - 8), 0, w - CROP))
             else:
-                n = rng.integers(N)
+                n = rng.integers(N) if pf is None else _draw(pf, rng)
                 y0, x0 = int(rng.integers(0, h - CROP + 1)), int(rng.integers(0, w - CROP + 1))
             xb.append(inputs[n, :, y0 : y0 + CROP, x0 : x0 + CROP])
             yb.append(labs[n, y0 : y0 + CROP, x0 : x0 + CROP])
@@ -206,6 +232,7 @@ def fit(paths: list[Path], out: Path, widths: tuple[int, ...], steps: int, seed:
                 c.bias.detach().numpy(),
                 dilation=c.dilation[0],
                 pool=pools[i],
+                stride=c.stride[0],
             )
         )
     net = RockNet(layers)
@@ -272,6 +299,12 @@ def main(argv=None) -> None:
     f.add_argument("--widths", type=int, nargs=3, default=(8, 12, 12))
     f.add_argument("--steps", type=int, default=1500)
     f.add_argument("--seed", type=int, default=0)
+    f.add_argument(
+        "--stride-first", action="store_true", help="the first layer at stride 2 (no max-pool)"
+    )
+    f.add_argument(
+        "--lamp-share", type=float, default=None, help="share of crops from lamp-lit sites"
+    )
     c = sub.add_parser("check")
     c.add_argument("caches", nargs="+", type=Path)
     c.add_argument("--model", type=Path)
@@ -280,7 +313,7 @@ def main(argv=None) -> None:
         for p in a.archives:
             extract(p, a.cache)
     elif a.cmd == "fit":
-        fit(a.caches, a.out, tuple(a.widths), a.steps, a.seed)
+        fit(a.caches, a.out, tuple(a.widths), a.steps, a.seed, a.stride_first, a.lamp_share)
     else:
         check(a.caches, a.model)
 

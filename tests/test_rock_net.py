@@ -20,8 +20,9 @@ from lunarloc.perception.rock_net import (
 from lunarloc.perception.small_rocks import SmallRockConfig
 
 
-def _ref_conv(x, W, b, d):
-    """A direct 'same' convolution (cross-correlation, as torch's Conv2d), zero padded."""
+def _ref_conv(x, W, b, d, s=1):
+    """A direct 'same' convolution (cross-correlation, as torch's Conv2d), zero padded, at
+    stride s (the outputs at every s-th row and column)."""
     cout, cin, k, _ = W.shape
     _, h, w = x.shape
     p = d * (k // 2)
@@ -33,7 +34,7 @@ def _ref_conv(x, W, b, d):
                 for j in range(k):
                     y[o] += W[o, c, i, j] * xp[c, i * d : i * d + h, j * d : j * d + w]
         y[o] += b[o]
-    return y
+    return y[:, ::s, ::s]
 
 
 def _tiny(rng) -> RockNet:
@@ -47,10 +48,29 @@ def _tiny(rng) -> RockNet:
     )
 
 
-def test_inference_matches_a_reference_convolution():
+def _strided(rng) -> RockNet:
+    """The packaged network's form: the first layer at stride 2, no max-pool, wider layers
+    (their products run in several runs of columns)."""
+    return RockNet(
+        [
+            make_layer(rng.normal(size=(5, N_INPUTS, 3, 3)), rng.normal(size=5), stride=2),
+            make_layer(rng.normal(size=(6, 5, 3, 3)), rng.normal(size=6)),
+            make_layer(rng.normal(size=(6, 6, 3, 3)), rng.normal(size=6), dilation=2),
+            make_layer(rng.normal(size=(1, 6, 1, 1)), rng.normal(size=1)),
+        ]
+    )
+
+
+@pytest.mark.parametrize(
+    "make, shape, out", [(_tiny, (13, 18), (6, 9)), (_strided, (13, 18), (7, 9))]
+)
+def test_inference_matches_a_reference_convolution(make, shape, out, monkeypatch):
+    import lunarloc.perception.rock_net as rn
+
+    monkeypatch.setattr(rn, "_COLUMNS", 40)  # several runs of columns per product
     rng = np.random.default_rng(0)
-    net = _tiny(rng)
-    x = rng.normal(size=(N_INPUTS, 13, 18)).astype(np.float32)
+    net = make(rng)
+    x = rng.normal(size=(N_INPUTS,) + shape).astype(np.float32)
     ref = x.astype(float)
     for i, L in enumerate(net.layers):
         if L.pool:
@@ -58,11 +78,11 @@ def test_inference_matches_a_reference_convolution():
             ref = (
                 ref[:, : h // 2 * 2, : w // 2 * 2].reshape(c, h // 2, 2, w // 2, 2).max(axis=(2, 4))
             )
-        ref = _ref_conv(ref, L.W.astype(float), L.b.astype(float), L.dilation)
+        ref = _ref_conv(ref, L.W.astype(float), L.b.astype(float), L.dilation, L.stride)
         if i < len(net.layers) - 1:
             ref = np.maximum(ref, 0)
     got = net.logits(x)
-    assert got.shape == (6, 9)
+    assert got.shape == out
     np.testing.assert_allclose(got, ref[0], rtol=1e-4, atol=1e-4)
 
 
@@ -77,6 +97,12 @@ def test_probability_has_the_image_size_and_round_trips_through_a_file(tmp_path)
     again = load_rock_net(tmp_path / "n.npz")
     np.testing.assert_array_equal(again.probability(img), p)
     assert net_inputs(img).shape == (N_INPUTS, 40, 64)
+    strided = _strided(rng)
+    strided.save(tmp_path / "s.npz")
+    assert [L.stride for L in load_rock_net(tmp_path / "s.npz").layers] == [2, 1, 1, 1]
+    np.testing.assert_array_equal(
+        load_rock_net(tmp_path / "s.npz").probability(img), strided.probability(img)
+    )
 
 
 def test_the_packaged_network_loads_and_runs():
@@ -109,6 +135,18 @@ def test_bad_model_files_give_a_clear_error(tmp_path):
     )
     with pytest.raises(InputError, match="take 2 inputs"):
         load_rock_net(tmp_path / "shape.npz")
+    np.savez(  # a stride of 0
+        tmp_path / "stride.npz",
+        format=np.array(1),
+        n_layers=np.array(1),
+        W0=rng.normal(size=(1, 2, 3, 3)),
+        b0=np.zeros(1),
+        dilation0=np.array(1),
+        pool0=np.array(False),
+        stride0=np.array(0),
+    )
+    with pytest.raises(InputError, match="stride"):
+        load_rock_net(tmp_path / "stride.npz")
     with pytest.raises(InputError, match="at least 4x4"):
         net_inputs(np.zeros((2, 50)))
 
@@ -126,6 +164,7 @@ def test_the_config_round_trips_and_checks_its_range(tmp_path):
                         "net_min_score": 0.7,
                         "net_max_range_m": 3.5,
                         "net_path": "x.npz",
+                        "net_window_margin": 1.0,
                     }
                 }
             }
@@ -134,17 +173,20 @@ def test_the_config_round_trips_and_checks_its_range(tmp_path):
     cfg = load_config_file(p)[0]
     sr = cfg.detector.small_rocks
     assert RunConfig.from_dict(cfg.to_dict()).detector.small_rocks == sr
-    assert (sr.net_candidates, sr.net_min_score, sr.net_max_range_m, sr.net_path) == (
-        12,
-        0.7,
-        3.5,
-        "x.npz",
-    )
+    assert (
+        sr.net_candidates,
+        sr.net_min_score,
+        sr.net_max_range_m,
+        sr.net_path,
+        sr.net_window_margin,
+    ) == (12, 0.7, 3.5, "x.npz", 1.0)
     assert SmallRockConfig().net_candidates == 0  # off by default
     from lunarloc.core.errors import ConfigError
 
     with pytest.raises(ConfigError):
         SmallRockConfig(net_min_score=1.0)
+    with pytest.raises(ConfigError):
+        SmallRockConfig(net_window_margin=0.0)
 
 
 def test_the_stage_takes_candidates_from_the_network_only_when_asked(tmp_path):
@@ -177,3 +219,36 @@ def test_the_stage_takes_candidates_from_the_network_only_when_asked(tmp_path):
     blind = RockNet(net.layers[:-1] + [make_layer(net.layers[-1].W, [-30.0])])
     blind.save(tmp_path / "blind.npz")
     assert centres(replace(cfg, net_path=str(tmp_path / "blind.npz"))) == []
+
+
+def test_the_network_candidates_windows_take_their_own_margin(monkeypatch):
+    """net_window_margin sizes the windows of the network's candidates, window_margin the
+    others' (bright and dark)."""
+    from test_small_rocks import BASELINE_M, CAM, _render
+
+    import lunarloc.perception.small_rocks as sr
+    from lunarloc.perception.camera import ipex_rig
+    from lunarloc.perception.detector import Detector, DetectorConfig
+
+    L, R = _render(0.0, (0.3, 2.0, 0.025, 0.025), seed=3)
+    T_ro = ipex_rig(CAM)["FrontLeft"].T_rover_optical
+    hm = Detector(DetectorConfig(), CAM).height_map(L, R, T_ro)
+    seen = []
+    real = sr._local_heights
+
+    def spy(*args):
+        seen.append(args[-1])  # the margin
+        return real(*args)
+
+    monkeypatch.setattr(sr, "_local_heights", spy)
+    for net, bright in ((5, 0), (0, 40)):
+        seen.clear()
+        cfg = SmallRockConfig(
+            max_candidates=bright,
+            dark_contrast_z=0.0,
+            net_candidates=net,
+            net_window_margin=0.8,
+            judge_min_score=0.0,
+        )
+        sr.detect_small_rocks(L, R, hm.disparity, hm.scale, CAM, BASELINE_M, cfg)
+        assert seen and set(seen) == ({0.8} if net else {cfg.window_margin})

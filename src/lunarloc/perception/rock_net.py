@@ -37,9 +37,10 @@ N_INPUTS = 2
 #: resolution); the stage brings other images to it
 NET_WIDTH_PX = 640
 _FORMAT = 1
-#: products of at most this many multiply-adds stay on one BLAS thread (OpenBLAS's threshold is
-#: 65536 x 4)
-_BLAS_ONE_THREAD = 200_000
+#: the products' runs of output pixels (columns): long enough for the BLAS's fast kernels,
+#: short enough that it keeps to one thread (a wide, thin product split over threads costs
+#: several times its single-thread CPU on a loaded machine)
+_COLUMNS = 4096
 #: layers of at most this many input x output channels run as OpenCV correlations
 _FILTER2D_MAX_PAIRS = 16
 
@@ -94,45 +95,73 @@ class _Layer:
     b: np.ndarray  # (out,) float32
     dilation: int
     pool: bool  # a 2x2 max-pool before the convolution
+    stride: int = 1  # the convolution at every stride-th pixel of every stride-th row
+
+
+def _matmul(A: np.ndarray, B: np.ndarray, out: np.ndarray) -> None:
+    """out += A @ B (A (m, k), B (k, n), out (m, n), float32) in runs of columns small enough
+    that the BLAS keeps to one thread (a wide, thin product split over threads costs several
+    times its single-thread CPU on a loaded machine)."""
+    n = B.shape[1]
+    for a in range(0, n, _COLUMNS):
+        b = min(a + _COLUMNS, n)
+        out[:, a:b] += A @ B[:, a:b]
 
 
 def _conv(x: np.ndarray, layer: _Layer) -> np.ndarray:
-    """One 'same' convolution of x ((h, w, in) float32, channels last) with zero padding: per
-    kernel tap one matrix product over the zero-padded image flattened row by row, where a
-    tap's shift is a contiguous run of rows of the flattened image (no copy per tap); the
-    outputs on the padded columns are dropped. Returns (h, w, out)."""
+    """One 'same' convolution of x ((in, h, w) float32, channels first) with zero padding, as
+    torch's Conv2d computes it (a cross-correlation). Stride 1: per kernel tap one matrix
+    product over the zero-padded image flattened row by row, where a tap's shift is a
+    contiguous run of each channel's flattened plane (no copy per tap); the outputs on the
+    padded columns are dropped. Stride s: the taps' strided samples gathered once (s x s times
+    fewer outputs) and one product. Returns (out, h', w'), h' = ceil(h / s)."""
     cout, cin, k, _ = layer.W.shape
-    h, w, _ = x.shape
-    if k == 1:  # one product per image row (x may be a view with padded rows)
-        y = x @ np.ascontiguousarray(layer.W.reshape(cout, cin).T)
-        y += layer.b
-        return y
+    _, h, w = x.shape
+    s = layer.stride
+    if k == 1 and s == 1:
+        y = np.empty((cout, h * w), np.float32)
+        y[:] = layer.b[:, None]
+        _matmul(layer.W.reshape(cout, cin), np.ascontiguousarray(x).reshape(cin, h * w), y)
+        return y.reshape(cout, h, w)
     d = layer.dilation
     p = d * (k // 2)
     wp = w + 2 * p
+    if s > 1:
+        ho, wo = (h - 1) // s + 1, (w - 1) // s + 1
+        xp = np.zeros((cin, h + 2 * p, wp), np.float32)
+        xp[:, p : p + h, p : p + w] = x
+        cols = np.empty((cin, k, k, ho, wo), np.float32)
+        for i in range(k):
+            for j in range(k):
+                cols[:, i, j] = xp[
+                    :, i * d : i * d + s * (ho - 1) + 1 : s, j * d : j * d + s * (wo - 1) + 1 : s
+                ]
+        y = np.empty((cout, ho * wo), np.float32)
+        y[:] = layer.b[:, None]
+        _matmul(layer.W.reshape(cout, cin * k * k), cols.reshape(cin * k * k, ho * wo), y)
+        return y.reshape(cout, ho, wo)
     # padding above and below, plus one more row below so that every tap's run fits
-    xp = np.zeros((h + 2 * p + 1, wp, cin), np.float32)
-    xp[p : p + h, p : p + w] = x
-    flat = xp.reshape(-1, cin)
+    xp = np.zeros((cin, h + 2 * p + 1, wp), np.float32)
+    xp[:, p : p + h, p : p + w] = x
+    flat = xp.reshape(cin, -1)
     n = h * wp  # outputs on the padded width; the columns >= w are dropped
-    taps = np.ascontiguousarray(layer.W.transpose(2, 3, 1, 0))  # (k, k, in, out)
-    y = np.empty((n, cout), np.float32)
-    y[:] = layer.b
-    # in runs of rows small enough that the BLAS keeps to one thread (a tall, thin product
-    # split over threads costs several times its single-thread CPU on a loaded machine)
-    step = max(_BLAS_ONE_THREAD // (cin * cout), 256)
-    for a in range(0, n, step):
-        b = min(a + step, n)
-        ya = y[a:b]
+    taps = np.ascontiguousarray(layer.W.transpose(2, 3, 0, 1))  # (k, k, out, in)
+    y = np.empty((cout, n), np.float32)
+    y[:] = layer.b[:, None]
+    tmp = np.empty((cout, min(_COLUMNS, n)), np.float32)  # each tap's product, reused
+    for a in range(0, n, _COLUMNS):
+        b = min(a + _COLUMNS, n)
+        ya, t = y[:, a:b], tmp[:, : b - a]
         for i in range(k):
             for j in range(k):
                 off = i * d * wp + j * d
-                ya += flat[off + a : off + b] @ taps[i, j]
-    return y.reshape(h, wp, cout)[:, :w]
+                np.matmul(taps[i, j], flat[:, off + a : off + b], out=t)
+                ya += t
+    return y.reshape(cout, h, wp)[:, :, :w]
 
 
 def _conv_planes(x: np.ndarray, layer: _Layer) -> np.ndarray:
-    """_conv of x in planes ((in, h, w), channels first) by one OpenCV correlation per input
+    """_conv of x ((in, h, w)) at stride 1 by one OpenCV correlation per input
     and output channel (cheaper for a layer of few channels, the first one: its inputs are
     wide images of 2 channels); returns (out, h, w)."""
     import cv2
@@ -147,18 +176,12 @@ def _conv_planes(x: np.ndarray, layer: _Layer) -> np.ndarray:
     return y
 
 
-def _pool(x: np.ndarray, planes: bool) -> np.ndarray:
-    """2x2 max-pool of an (h, w, c) array, or of (c, h, w) planes (an odd last row or column
-    dropped)."""
-    if planes:
-        h2, w2 = x.shape[1] // 2, x.shape[2] // 2
-        r = (slice(None), slice(0, 2 * h2, 2), slice(1, 2 * h2, 2))
-        a = np.maximum(x[:, r[1], 0 : 2 * w2 : 2], x[:, r[2], 0 : 2 * w2 : 2])
-        b = np.maximum(x[:, r[1], 1 : 2 * w2 : 2], x[:, r[2], 1 : 2 * w2 : 2])
-        return np.maximum(a, b, out=a)
-    h2, w2 = x.shape[0] // 2, x.shape[1] // 2
-    a = np.maximum(x[0 : 2 * h2 : 2, 0 : 2 * w2 : 2], x[1 : 2 * h2 : 2, 0 : 2 * w2 : 2])
-    b = np.maximum(x[0 : 2 * h2 : 2, 1 : 2 * w2 : 2], x[1 : 2 * h2 : 2, 1 : 2 * w2 : 2])
+def _pool(x: np.ndarray) -> np.ndarray:
+    """2x2 max-pool of (c, h, w) planes (an odd last row or column dropped)."""
+    h2, w2 = x.shape[1] // 2, x.shape[2] // 2
+    r0, r1 = slice(0, 2 * h2, 2), slice(1, 2 * h2, 2)
+    a = np.maximum(x[:, r0, 0 : 2 * w2 : 2], x[:, r1, 0 : 2 * w2 : 2])
+    b = np.maximum(x[:, r0, 1 : 2 * w2 : 2], x[:, r1, 1 : 2 * w2 : 2])
     return np.maximum(a, b, out=a)
 
 
@@ -174,8 +197,13 @@ class RockNet:
                 raise InputError(
                     f"rock net layer {i}: weights {L.W.shape} do not take {cin} inputs"
                 )
-            if L.W.shape[2] % 2 == 0 or L.b.shape != (L.W.shape[0],) or L.dilation < 1:
-                raise InputError(f"rock net layer {i}: bad kernel, bias or dilation")
+            if (
+                L.W.shape[2] % 2 == 0
+                or L.b.shape != (L.W.shape[0],)
+                or L.dilation < 1
+                or L.stride < 1
+            ):
+                raise InputError(f"rock net layer {i}: bad kernel, bias, dilation or stride")
             if not (np.isfinite(L.W).all() and np.isfinite(L.b).all()):
                 raise InputError(f"rock net layer {i}: non-finite weights")
             cin = L.W.shape[0]
@@ -189,27 +217,24 @@ class RockNet:
 
     def logits(self, x: np.ndarray) -> np.ndarray:
         """The last layer's output ((h', w') float32) for input channels x ((N_INPUTS, h, w))."""
-        x = np.asarray(x, np.float32)
-        planes = True  # (c, h, w) while the layers run as OpenCV correlations, then (h, w, c)
+        x = np.asarray(x, np.float32)  # (c, h, w) planes throughout
         n = len(self.layers)
         for i, L in enumerate(self.layers):
             if L.pool:
-                x = _pool(x, planes)
+                x = _pool(x)
             cout, cin = L.W.shape[:2]
             if (
-                planes
+                L.stride == 1
                 and L.dilation == 1
                 and L.W.shape[2] > 1
                 and cin * cout <= _FILTER2D_MAX_PAIRS
             ):
                 x = _conv_planes(np.ascontiguousarray(x), L)
             else:
-                if planes:
-                    x, planes = np.ascontiguousarray(x.transpose(1, 2, 0)), False
                 x = _conv(x, L)
             if i < n - 1:
                 np.maximum(x, 0.0, out=x)
-        return np.ascontiguousarray(x[0] if planes else x[:, :, 0])
+        return np.ascontiguousarray(x[0])
 
     def probability(self, small: np.ndarray, contrast: np.ndarray | None = None) -> np.ndarray:
         """Rock probability ((h, w) float32, 0-1) of each pixel of a half-resolution grey image
@@ -234,13 +259,18 @@ class RockNet:
             arr[f"b{i}"] = L.b.astype(np.float32)
             arr[f"dilation{i}"] = np.array(int(L.dilation))
             arr[f"pool{i}"] = np.array(bool(L.pool))
+            arr[f"stride{i}"] = np.array(int(L.stride))
         np.savez_compressed(Path(path), **arr)
 
 
-def make_layer(W, b, dilation: int = 1, pool: bool = False) -> _Layer:
+def make_layer(W, b, dilation: int = 1, pool: bool = False, stride: int = 1) -> _Layer:
     """A layer from arrays (float32 copies)."""
     return _Layer(
-        np.array(W, np.float32), np.array(b, np.float32).reshape(-1), int(dilation), bool(pool)
+        np.array(W, np.float32),
+        np.array(b, np.float32).reshape(-1),
+        int(dilation),
+        bool(pool),
+        int(stride),
     )
 
 
@@ -253,7 +283,13 @@ def load_rock_net(path: Path) -> RockNet:
                 raise ValueError(f"format {int(z['format'])}, this version reads {_FORMAT}")
             n = int(z["n_layers"])
             layers = [
-                make_layer(z[f"W{i}"], z[f"b{i}"], int(z[f"dilation{i}"]), bool(z[f"pool{i}"]))
+                make_layer(
+                    z[f"W{i}"],
+                    z[f"b{i}"],
+                    int(z[f"dilation{i}"]),
+                    bool(z[f"pool{i}"]),
+                    int(z[f"stride{i}"]) if f"stride{i}" in z.files else 1,  # (older files)
+                )
                 for i in range(n)
             ]
     except (OSError, KeyError, ValueError, TypeError) as e:

@@ -254,6 +254,10 @@ class SmallRockConfig:
     # a network candidate's blob (its pixels of at least net_min_score, and of half its peak,
     # connected to the peak) is at most this wide (m)
     net_max_width_m: float = setting(0.1, gt=0.0)
+    # a network candidate's full-resolution window: its box plus this many box sizes each side
+    # (window_margin for the others; the network's candidates are near and their blobs the
+    # whole rock, so their windows would be the largest and costliest)
+    net_window_margin: float = setting(1.5, gt=0.0)
     # the network's file (None: the packaged rock_net.npz; else one written by
     # benchmarks/train_rock_net.py)
     net_path: str | None = None
@@ -360,9 +364,10 @@ def small_rock_candidates(
 
 
 def _candidates(
-    left, disparity_lowres, scale, fx, baseline_m, cfg, exclude=None, height_lowres=None
+    left, disparity_lowres, scale, fx, baseline_m, cfg, exclude=None, height_lowres=None, marks=None
 ) -> list:
-    """small_rock_candidates' blobs, each with its peak contrast (local contrasts) last."""
+    """small_rock_candidates' blobs, each with its peak contrast (local contrasts) last.
+    `marks` (a dict, if given) gets "net": the index of the network's first candidate."""
     import cv2
 
     H, W = left.shape
@@ -392,6 +397,8 @@ def _candidates(
     out = _blobs(z, sky, grid, cfg, cfg.contrast_z, cfg.max_candidates, False)
     if cfg.dark_contrast_z > 0:
         out += _blobs(-z, sky, grid, cfg, cfg.dark_contrast_z, cfg.max_dark_candidates, True)
+    if marks is not None:
+        marks["net"] = len(out)
     if cfg.net_candidates > 0:
         out += _net_candidates(roi, small, z, sky, grid, cfg, D * kd, out)
     return out
@@ -424,14 +431,16 @@ def _net_candidates(roi, small, z, sky, grid: _Grid, cfg, Dfull, cands) -> list:
         f = NET_WIDTH_PX / sub.shape[1]
         size = (NET_WIDTH_PX, max(round(sub.shape[0] * f), 4))
         p = net.probability(sub if f == 1 else cv2.resize(sub, size, interpolation=cv2.INTER_AREA))
-    prob = np.zeros_like(z)
-    prob[a:] = p if p.shape == (h - a, w) else cv2.resize(p, (w, h - a))
+    prob = p if p.shape == (h - a, w) else cv2.resize(p, (w, h - a))
+    # the search image's rows from a (the blobs' full-resolution rows from r0 + a k)
+    sub = _Grid(grid.D, grid.kd, k, grid.r0 + a * k, grid.fx, grid.fb, grid.pad)
+    sub.exclude, sub.height = grid.exclude, grid.height
     boxes = [(u, v, u + c.shape[1], v + c.shape[0]) for u, v, c, *_ in cands]
     out = []
     for u0, v0, crop, d0, _, _ in _blobs(
         prob,
-        sky,
-        grid,
+        sky[a:],
+        sub,
         cfg,
         cfg.net_min_score,
         cfg.net_candidates,
@@ -802,7 +811,7 @@ class _Window:
 
 
 def _local_heights(
-    L, R, disparity_lowres, scale, camera, fb, cfg, mt, u0, v0, crop, d0, dark=False
+    L, R, disparity_lowres, scale, camera, fb, cfg, mt, u0, v0, crop, d0, dark=False, margin=None
 ):
     """A :class:`_Window` around the candidate blob `crop` at (u0, v0), or None when the window
     cannot be matched or holds too few valid ring or blob points. Heights and points are
@@ -814,7 +823,8 @@ def _local_heights(
     H, W = L.shape
     fx, cx, cy = camera.fx, camera.cx, camera.cy
     bh, bw = crop.shape
-    M = int(max(cfg.window_min_margin_px, cfg.window_margin * max(bw, bh)))
+    margin = cfg.window_margin if margin is None else margin
+    M = int(max(cfg.window_min_margin_px, margin * max(bw, bh)))
     a0, b0 = max(u0 - M, 0), max(v0 - M, 0)
     a1, b1 = min(u0 + bw + M, W), min(v0 + bh + M, H)
     # the height map's disparities over the window (full-resolution pixels)
@@ -1031,10 +1041,12 @@ def detect_small_rocks(
     cos_tilt = np.cos(np.radians(cfg.max_tilt_deg))
     out: list[SmallRock] = []
     taken = np.zeros((H, W), bool) if exclude is None else exclude.copy()
+    marks: dict = {}
     cands = _candidates(
-        left, disparity_lowres, scale, camera.fx, baseline_m, cfg, taken, height_lowres
+        left, disparity_lowres, scale, camera.fx, baseline_m, cfg, taken, height_lowres, marks
     )
     n_appearance = len(cands)
+    n_net = marks.get("net", n_appearance)  # the network's candidates: n_net..n_appearance - 1
     if cfg.height_candidates > 0 and height_lowres is not None:
         cands += _height_candidates(
             height_lowres, disparity_lowres, int(scale), camera.fx, fb, cfg, taken, cands
@@ -1065,8 +1077,9 @@ def detect_small_rocks(
                 continue
             if use_judge:
                 low_m = float(np.fmax.reduce(hh, axis=None))  # np.nanmax (hh has a number)
+        margin = cfg.net_window_margin if n_net <= i < n_appearance else cfg.window_margin
         w = _local_heights(
-            left, right, disparity_lowres, scale, intr, fb, cfg, mt, u0, v0, crop, d0, dark
+            left, right, disparity_lowres, scale, intr, fb, cfg, mt, u0, v0, crop, d0, dark, margin
         )
         if w is None:
             continue
