@@ -19,6 +19,7 @@ resolution) are resized bilinearly to the input's size and passed through a sigm
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -41,6 +42,8 @@ _FORMAT = 1
 #: short enough that it keeps to one thread (a wide, thin product split over threads costs
 #: several times its single-thread CPU on a loaded machine)
 _COLUMNS = 4096
+#: per thread, the layers' intermediate arrays (see _work)
+_WORK = threading.local()
 #: layers of at most this many input x output channels run as OpenCV correlations
 _FILTER2D_MAX_PAIRS = 16
 
@@ -98,57 +101,88 @@ class _Layer:
     stride: int = 1  # the convolution at every stride-th pixel of every stride-th row
 
 
-def _matmul(A: np.ndarray, B: np.ndarray, out: np.ndarray) -> None:
-    """out += A @ B (A (m, k), B (k, n), out (m, n), float32) in runs of columns small enough
-    that the BLAS keeps to one thread (a wide, thin product split over threads costs several
-    times its single-thread CPU on a loaded machine)."""
+def _work(key, shape) -> np.ndarray:
+    """A float32 array of `shape` for the intermediate result `key`, kept by this thread for the
+    next image (its memory reused: the fresh pages of new arrays cost as much as a layer's
+    products on the real pairs); grown when an image needs more."""
+    bufs = getattr(_WORK, "bufs", None)
+    if bufs is None:
+        bufs = _WORK.bufs = {}
+    size = int(np.prod(shape))
+    buf = bufs.get(key)
+    if buf is None or buf.size < size:
+        buf = bufs[key] = np.empty(size + size // 4, np.float32)
+    return buf[:size].reshape(shape)
+
+
+def _padded(x: np.ndarray, p: int, extra: int, key) -> np.ndarray:
+    """x ((c, h, w)) zero padded by p each side and `extra` more rows below, in a work array."""
+    c, h, w = x.shape
+    xp = _work(key, (c, h + 2 * p + extra, w + 2 * p))
+    xp[:, :p] = 0.0
+    xp[:, p + h :] = 0.0
+    xp[:, p : p + h, :p] = 0.0
+    xp[:, p : p + h, p + w :] = 0.0
+    xp[:, p : p + h, p : p + w] = x
+    return xp
+
+
+def _matmul(A: np.ndarray, B: np.ndarray, out: np.ndarray, key) -> None:
+    """out += A @ B (A (m, k), B (k, n), out (m, n), float32) in runs of _COLUMNS columns
+    (one work array for a run's product)."""
     n = B.shape[1]
+    tmp = _work(key, (A.shape[0], min(_COLUMNS, n)))
     for a in range(0, n, _COLUMNS):
         b = min(a + _COLUMNS, n)
-        out[:, a:b] += A @ B[:, a:b]
+        t = tmp[:, : b - a]
+        np.matmul(A, B[:, a:b], out=t)
+        out[:, a:b] += t
 
 
-def _conv(x: np.ndarray, layer: _Layer) -> np.ndarray:
-    """One 'same' convolution of x ((in, h, w) float32, channels first) with zero padding, as
-    torch's Conv2d computes it (a cross-correlation). Stride 1: per kernel tap one matrix
-    product over the zero-padded image flattened row by row, where a tap's shift is a
-    contiguous run of each channel's flattened plane (no copy per tap); the outputs on the
+def _conv(x: np.ndarray, layer: _Layer, i_layer: int = 0) -> np.ndarray:
+    """One 'same' convolution of x ((in, h, w) float32, channels first; may be a view) with
+    zero padding, as torch's Conv2d computes it (a cross-correlation). Stride 1: per kernel tap
+    one matrix product over the zero-padded image flattened row by row, where a tap's shift is
+    a contiguous run of each channel's flattened plane (no copy per tap); the outputs on the
     padded columns are dropped. Stride s: the taps' strided samples gathered once (s x s times
-    fewer outputs) and one product. Returns (out, h', w'), h' = ceil(h / s)."""
+    fewer outputs) and one product. A 1x1 layer: its sums of channels. Returns (out, h', w'),
+    h' = ceil(h / s), a view of this thread's work arrays (overwritten by the next image)."""
     cout, cin, k, _ = layer.W.shape
     _, h, w = x.shape
     s = layer.stride
+    key = ("y", i_layer)
     if k == 1 and s == 1:
-        y = np.empty((cout, h * w), np.float32)
-        y[:] = layer.b[:, None]
-        _matmul(layer.W.reshape(cout, cin), np.ascontiguousarray(x).reshape(cin, h * w), y)
-        return y.reshape(cout, h, w)
+        y = _work(key, (cout, h, w))
+        for o in range(cout):
+            y[o] = layer.b[o]
+            for c in range(cin):
+                y[o] += layer.W[o, c, 0, 0] * x[c]
+        return y
     d = layer.dilation
     p = d * (k // 2)
-    wp = w + 2 * p
     if s > 1:
         ho, wo = (h - 1) // s + 1, (w - 1) // s + 1
-        xp = np.zeros((cin, h + 2 * p, wp), np.float32)
-        xp[:, p : p + h, p : p + w] = x
-        cols = np.empty((cin, k, k, ho, wo), np.float32)
+        xp = _padded(x, p, 0, ("xp", i_layer))
+        cols = _work(("cols", i_layer), (cin, k, k, ho, wo))
         for i in range(k):
             for j in range(k):
                 cols[:, i, j] = xp[
                     :, i * d : i * d + s * (ho - 1) + 1 : s, j * d : j * d + s * (wo - 1) + 1 : s
                 ]
-        y = np.empty((cout, ho * wo), np.float32)
+        y = _work(key, (cout, ho * wo))
         y[:] = layer.b[:, None]
-        _matmul(layer.W.reshape(cout, cin * k * k), cols.reshape(cin * k * k, ho * wo), y)
+        W = layer.W.reshape(cout, cin * k * k)
+        _matmul(W, cols.reshape(cin * k * k, ho * wo), y, ("tmp", i_layer))
         return y.reshape(cout, ho, wo)
     # padding above and below, plus one more row below so that every tap's run fits
-    xp = np.zeros((cin, h + 2 * p + 1, wp), np.float32)
-    xp[:, p : p + h, p : p + w] = x
+    xp = _padded(x, p, 1, ("xp", i_layer))
+    wp = w + 2 * p
     flat = xp.reshape(cin, -1)
     n = h * wp  # outputs on the padded width; the columns >= w are dropped
     taps = np.ascontiguousarray(layer.W.transpose(2, 3, 0, 1))  # (k, k, out, in)
-    y = np.empty((cout, n), np.float32)
+    y = _work(key, (cout, n))
     y[:] = layer.b[:, None]
-    tmp = np.empty((cout, min(_COLUMNS, n)), np.float32)  # each tap's product, reused
+    tmp = _work(("tmp", i_layer), (cout, min(_COLUMNS, n)))  # each tap's product
     for a in range(0, n, _COLUMNS):
         b = min(a + _COLUMNS, n)
         ya, t = y[:, a:b], tmp[:, : b - a]
@@ -231,10 +265,10 @@ class RockNet:
             ):
                 x = _conv_planes(np.ascontiguousarray(x), L)
             else:
-                x = _conv(x, L)
+                x = _conv(x, L, i)
             if i < n - 1:
                 np.maximum(x, 0.0, out=x)
-        return np.ascontiguousarray(x[0])
+        return np.array(x[0], np.float32)  # a copy (x may be a work array)
 
     def probability(self, small: np.ndarray, contrast: np.ndarray | None = None) -> np.ndarray:
         """Rock probability ((h, w) float32, 0-1) of each pixel of a half-resolution grey image
@@ -246,7 +280,10 @@ class RockNet:
         if z.shape != (h, w):  # the logits resized, as in training
             z = cv2.resize(z, (w, h), interpolation=cv2.INTER_LINEAR)
         np.clip(z, -30.0, 30.0, out=z)
-        return 1.0 / (1.0 + np.exp(-z))
+        np.negative(z, out=z)  # the sigmoid in place: 1 / (1 + exp(-z))
+        np.exp(z, out=z)
+        z += 1.0
+        return np.reciprocal(z, out=z)
 
     def save(self, path: Path) -> None:
         """Write the layers as plain arrays (read back by :func:`load_rock_net`)."""
