@@ -11,7 +11,7 @@ Usage
     python benchmarks/train_rock_net.py extract TRAIN/*.lac --cache CACHE
     # 3. fit (needs torch, CPU build: pip install torch numpy, in a scratch environment; the
     #    package itself never imports torch) and write the model (plain arrays)
-    python benchmarks/train_rock_net.py fit CACHE/site4*.npz CACHE/site5*.npz --out MODEL.npz
+    python benchmarks/train_rock_net.py fit CACHE/site4*.npz CACHE/site53*.npz --out MODEL.npz
     # 4. offline check on other sites' images (numpy inference, the package's code): pixel
     #    precision / recall and the share of small rocks with a peak above the threshold
     python benchmarks/train_rock_net.py check DEVCACHE/site30*.npz [--model MODEL.npz]
@@ -34,11 +34,11 @@ and 2) against ground, the small rocks' pixels weighted SMALL_WEIGHT, Adam; torc
 one thread, seeded (``--seed``). The exported file's logits are checked against torch's on one
 frame (the numpy inference is what the package runs).
 
-The packaged ``perception/rock_net.npz``: ``fit CACHE/site4*.npz CACHE/site5*.npz --steps 6000``
-with the defaults (widths 8 12 12, 2349 parameters, seed 0; torch 2.13.0 CPU build, about 200 s
-CPU): 1023 frames of 33 sites (430-452, 530-539), the bottom 264 rows of each (the fewest any
-site keeps). Offline (``check``) and in the detector: docs/perception-status.md, "The rock
-network".
+The packaged ``perception/rock_net.npz``: ``fit CACHE/site4[3-5]*.npz CACHE/site53*.npz --steps
+6000 --stride-first --lamp-share 0.5`` (widths 8 12 12, the first layer at stride 2, half the crops
+from the 10 lamp-lit sites, 2349 parameters, seed 0; torch 2.13.0 CPU build, about 140 s CPU):
+1023 frames of 33 sites (430-452, 530-539), the bottom 264 rows of each (the fewest any site
+keeps). Offline (``check``) and in the detector: docs/perception-status.md, "The rock network".
 """
 
 from __future__ import annotations

@@ -180,7 +180,7 @@ def test_the_config_round_trips_and_checks_its_range(tmp_path):
         sr.net_path,
         sr.net_window_margin,
     ) == (12, 0.7, 3.5, "x.npz", 1.0)
-    assert SmallRockConfig().net_candidates == 0  # off by default
+    assert SmallRockConfig().net_candidates == 10  # on by default (0: off)
     from lunarloc.core.errors import ConfigError
 
     with pytest.raises(ConfigError):

@@ -12,9 +12,10 @@ cannot come down. This stage finds such rocks in two steps:
    contrast of the image (textured and flat regolith alike), whose size at the range the
    height map gives lies in [min_width_m, max_width_m], are candidates: the strongest
    ``max_candidates`` bright ones, then (``dark_contrast_z`` > 0) the strongest
-   ``max_dark_candidates`` dark ones. Opt-in (``net_candidates`` > 0): the peaks of a tiny
-   rock-segmentation network's probability (``rock_net.py``, trained on the simulator's
-   labelled images) are candidates too, measured and judged as the bright ones.
+   ``max_dark_candidates`` dark ones. By default (``net_candidates`` 10; 0 turns it off) the
+   peaks of a tiny rock-segmentation network's probability (``rock_net.py``, trained on the
+   simulator's labelled images) are candidates too, measured and judged as the bright ones
+   (in smaller windows, ``net_window_margin``).
 2. **Height from full-resolution stereo, against a local plane.** SGBM at full resolution
    runs on a window around each candidate (a 32-disparity band around the height map's
    disparity). A plane is fitted (least squares, once more without outliers beyond 3 MADs)
@@ -243,11 +244,11 @@ class SmallRockConfig:
     # benchmarks/train_small_rocks.py, e.g. a refit compared before it is packaged)
     judge_path: str | None = None
 
-    # -- candidates from the rock network (perception/rock_net.py; opt-in)
+    # -- candidates from the rock network (perception/rock_net.py; on by default)
     # at most this many candidates per image from the network's rock probability (after the
     # appearance candidates; 0 = off): its peaks of at least net_min_score, each blob the
     # pixels above half its peak; judged as bright candidates are
-    net_candidates: int = setting(0, ge=0)
+    net_candidates: int = setting(10, ge=0)
     net_min_score: float = setting(0.5, gt=0.0, lt=1.0)
     # the network runs on the rows whose ground lies within this optical depth (m)
     net_max_range_m: float = setting(4.0, gt=0.0)
@@ -257,7 +258,7 @@ class SmallRockConfig:
     # a network candidate's full-resolution window: its box plus this many box sizes each side
     # (window_margin for the others; the network's candidates are near and their blobs the
     # whole rock, so their windows would be the largest and costliest)
-    net_window_margin: float = setting(1.5, gt=0.0)
+    net_window_margin: float = setting(0.75, gt=0.0)
     # the network's file (None: the packaged rock_net.npz; else one written by
     # benchmarks/train_rock_net.py)
     net_path: str | None = None
