@@ -4,8 +4,8 @@ The network maps the left image at half resolution to a per-pixel rock probabili
 trained here on the simulator's labelled (semantic) images by ``benchmarks/train_rock_net.py``
 (the data recipe is in its docstring; docs/perception-status.md, "The rock network") and is
 shipped as plain arrays (``rock_net.npz`` beside this module; no pickle, never downloaded).
-Inference is numpy and OpenCV only: each 3x3 convolution is one matrix product over the
-image's 3x3 neighbourhoods.
+Inference is numpy and OpenCV only: each 3x3 convolution is one matrix product per kernel tap
+over the zero-padded image (channels first), its intermediate arrays kept per thread.
 
 Input channels (:func:`net_inputs`, the same function the trainer uses): the image's local
 contrast (difference of Gaussians over its local RMS, as the small-rock stage's candidate
@@ -13,8 +13,10 @@ search measures it) and its brightness relative to a wider local mean (a lit fac
 
 Architecture (read from the file, so a retrained model may change widths): a list of layers,
 each a 3x3 (or 1x1) convolution with ReLU except the last; a layer may be preceded by a 2x2
-max-pool (``pool``) and may be dilated (``dilation``). The output (logits at the last layer's
-resolution) are resized bilinearly to the input's size and passed through a sigmoid.
+max-pool (``pool``), may be dilated (``dilation``) and may run at a stride (``stride``; the
+packaged network's first layer at 2, no pool). The output (logits at the last layer's
+resolution) are resized bilinearly to the input's size and passed through a sigmoid. Files
+written before strides existed read with stride 1.
 """
 
 from __future__ import annotations
