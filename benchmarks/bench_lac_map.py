@@ -99,6 +99,65 @@ def _scores(mapper, frames, T, truth, seen):
     return est, all_, s_seen
 
 
+#: what ``score --dump`` records of each detection (beyond what the mapper keeps)
+DETECTION_FIELDS = (
+    "x_rover",
+    "y_rover",
+    "z_rover",
+    "radius_m",
+    "depth_m",
+    "area_px",
+    "sigma_px",
+    "height_m",
+    "small_rock",
+    "verifier_score",
+    "tentative",
+    "needs_confirmation",
+    "ground_noise_m",
+    "image_gradient",
+)
+
+
+class _record_detections:
+    """While alive, every frame the runner adds to a mapper also has its detections'
+    :data:`DETECTION_FIELDS` recorded in ``rows`` ({frame id: (M, F) float array})."""
+
+    def __init__(self) -> None:
+        from lunarloc.pipeline import runner
+
+        self.rows: dict = {}
+        self._runner = runner
+        self._orig = orig = runner.add_to_mapper
+
+        def add(mapper, frame_id, T_map_rover, fd, detector, images):
+            rows = [
+                [
+                    *np.asarray(d.p_rover, float)[:3],
+                    d.radius_m,
+                    d.depth_m,
+                    d.area_px,
+                    d.sigma_px,
+                    d.height_m,
+                    float(d.small_rock),
+                    d.verifier_score,
+                    float(bool(d.tentative)),
+                    float(d.needs_confirmation),
+                    d.ground_noise_m,
+                    d.image_gradient,
+                ]
+                for d in fd.detections
+            ]
+            arr = np.array(rows, float).reshape(-1, len(DETECTION_FIELDS))
+            old = self.rows.get(frame_id)
+            self.rows[frame_id] = arr if old is None else np.concatenate([old, arr])
+            return orig(mapper, frame_id, T_map_rover, fd, detector, images)
+
+        runner.add_to_mapper = add
+
+    def stop(self) -> None:
+        self._runner.add_to_mapper = self._orig
+
+
 def score(a) -> None:
     from lunarloc.config.run import RunConfig
     from lunarloc.io.overhead import site_geometric_map
@@ -121,6 +180,7 @@ def score(a) -> None:
             cfg = load_config_file(a.config)[0]
         cfg = _small_rocks(cfg, a.small_rocks)
         mapper = LacMapper(mcfg)
+        detections = _record_detections() if a.dump else None
         t0 = time.perf_counter()
         res = run(
             ArchiveSource(d / "traverse.lac", cfg.odometry, cfg.detector.pairs),
@@ -129,6 +189,8 @@ def score(a) -> None:
             mapper=mapper,
         )
         wall = time.perf_counter() - t0
+        if detections is not None:
+            detections.stop()
         if a.dump:  # the mapper and the three pose sets, to re-score other mapper settings without re-running
             import pickle
 
@@ -140,6 +202,10 @@ def score(a) -> None:
                         "gt": res.T_map_rover_true,
                         "odometry": res.T_odo_rover,
                         "corrected": res.T_map_rover,
+                        # per frame id: every detection's DETECTION_FIELDS (the mapper keeps
+                        # only centre and radius), to study the rock map's errors
+                        "detections": detections.rows,
+                        "detection_fields": DETECTION_FIELDS,
                     },
                     fh,
                 )
