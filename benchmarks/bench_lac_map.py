@@ -307,12 +307,26 @@ def _site_rows(seed, light, mapper, frames, poses, truth, extra=None):
     return rows, out, seen
 
 
+def _load_dump(d: Path) -> dict:
+    """A site's ``score --dump`` (our own benchmark's pickle), its mapper brought up to date:
+    frozen detections from before the viewing directions (0) or the ranges (NaN)."""
+    import pickle
+
+    with open(d / "mapper_dump.pkl", "rb") as fh:
+        dump = pickle.load(fh)
+    m = dump["mapper"]
+    fz = m._frozen_rocks
+    if fz.shape[1] < 7:
+        pad = [np.zeros((len(fz), 6 - fz.shape[1]))] if fz.shape[1] < 6 else []
+        m._frozen_rocks = np.column_stack([fz, *pad, np.full(len(fz), np.nan)])
+    return dump
+
+
 def rescore(a) -> None:
     """Re-score recorded runs (``score --dump``'s ``mapper_dump.pkl`` per site) with mapper
     settings: the same frames, detections and three pose sets, placed again and scored; no
     detection or loop is re-run. Each ``--mapper-config`` (JSON of LacMapperConfig fields,
     ``{}`` the defaults) gives its own rows and summary."""
-    import pickle
 
     from lunarloc.io.overhead import site_geometric_map
     from lunarloc.mapping.lac_map import LacMapperConfig
@@ -323,12 +337,8 @@ def rescore(a) -> None:
     for seed in a.seeds:
         d = a.out / f"seed_{seed}"
         light = (d / "lighting.txt").read_text().strip() if (d / "lighting.txt").is_file() else "?"
-        with open(d / "mapper_dump.pkl", "rb") as fh:
-            dump = pickle.load(fh)  # our own benchmark's file (score --dump)
+        dump = _load_dump(d)
         mapper = dump["mapper"]
-        if mapper._frozen_rocks.shape[1] == 4:  # a dump from before the viewing directions
-            fz = mapper._frozen_rocks
-            mapper._frozen_rocks = np.column_stack([fz, np.zeros((len(fz), 2))])
         truth = site_geometric_map(simulate_site(seed))
         poses = {k: np.asarray(dump[k]) for k in ("gt", "odometry", "corrected")}
         for c in configs:
@@ -344,13 +354,132 @@ def rescore(a) -> None:
         )
 
 
+def _rock_cell_rows(mapper, frames, poses, truth):
+    """Per pose set of `poses`: the per-cell rock model's candidate cells, features and labels
+    (the truth's rock flag), the footprint rule's flags and the seen cells (ground truth)."""
+    from lunarloc.pipeline.runner import place_mapper
+
+    out, seen = {}, None
+    for name, T in poses.items():
+        place_mapper(mapper, frames, T)
+        est = mapper.grid()
+        if seen is None:
+            seen = est.observed.reshape(-1)
+        cells, X = mapper.rock_cell_features(est.array[:, :, 2], est.height_sigma_m, est.weight)
+        out[name] = {
+            "cells": cells,
+            "X": X,
+            "y": truth[:, :, 3].reshape(-1)[cells] > 0.5,
+            "truth": truth[:, :, 3].reshape(-1) > 0.5,
+            "footprint": est.array[:, :, 3].reshape(-1) > 0.5,
+        }
+    for v in out.values():
+        v["seen"] = seen
+    return out
+
+
+def _export_trees(clf, path, features) -> None:
+    """A fitted binary HistGradientBoostingClassifier as plain arrays (lac_map's
+    rock_cell_probability evaluates them; no pickle)."""
+    trees = [pred[0].nodes for pred in clf._predictors]
+    m = max(len(t) for t in trees)
+    arr = {
+        k: np.zeros((len(trees), m), dt)
+        for k, dt in (
+            ("feature", np.int64),
+            ("threshold", float),
+            ("left", np.int64),
+            ("right", np.int64),
+            ("is_leaf", bool),
+            ("value", float),
+        )
+    }
+    for i, t in enumerate(trees):
+        k = len(t)
+        leaf = t["is_leaf"].astype(bool)
+        arr["feature"][i, :k] = np.where(leaf, 0, t["feature_idx"])
+        arr["threshold"][i, :k] = t["num_threshold"]
+        arr["left"][i, :k] = t["left"]
+        arr["right"][i, :k] = t["right"]
+        arr["is_leaf"][i, :k] = leaf
+        arr["is_leaf"][i, k:] = True
+        arr["value"][i, :k] = t["value"]
+    np.savez(
+        path,
+        baseline=float(np.ravel(clf._baseline_prediction)[0]),
+        max_depth=max(int(t["depth"].max()) for t in trees),
+        features=np.array(features),
+        **arr,
+    )
+
+
+def train_rock_cells(a) -> None:
+    """Train the per-cell rock model on recorded development runs (``score --dump``), both
+    pose sets (ground truth and corrected) of every site; with ``--cv`` first score it
+    leave-one-site-out (pooled rock F1 over the seen cells per threshold, against the
+    footprint rule). Writes the model with ``--model-out``."""
+
+    from sklearn.ensemble import HistGradientBoostingClassifier
+
+    from lunarloc.io.overhead import site_geometric_map
+    from lunarloc.mapping.lac_map import ROCK_CELL_FEATURES, LacMapperConfig
+    from lunarloc.sim.simulate import simulate_site
+
+    def fit(X, y):
+        return HistGradientBoostingClassifier(
+            max_depth=3, max_iter=150, learning_rate=0.05, random_state=0
+        ).fit(X, y)
+
+    data = {}
+    for seed in a.seeds:
+        dump = _load_dump(a.out / f"seed_{seed}")
+        mapper = dump["mapper"]
+        mapper.config = LacMapperConfig()
+        truth = site_geometric_map(simulate_site(seed))
+        poses = {k: np.asarray(dump[k]) for k in ("gt", "corrected")}
+        data[seed] = _rock_cell_rows(mapper, dump["frames"], poses, truth)
+        print(f"seed {seed}: {len(data[seed]['gt']['cells'])} candidate cells", flush=True)
+    if a.cv:
+        ths = np.round(np.arange(0.25, 0.61, 0.05), 2)
+        for pose in ("gt", "corrected"):
+            base, tot = np.zeros(3), {t: np.zeros(3) for t in ths}
+            for seed in a.seeds:
+                tr = [data[s][p] for s in a.seeds if s != seed for p in ("gt", "corrected")]
+                clf = fit(
+                    np.concatenate([v["X"] for v in tr]), np.concatenate([v["y"] for v in tr])
+                )
+                v = data[seed][pose]
+                seen, y = v["seen"], v["truth"]
+                P = np.zeros(len(seen))
+                P[v["cells"]] = clf.predict_proba(v["X"])[:, 1]
+                f = v["footprint"]
+                base += [(seen & y & f).sum(), (seen & ~y & f).sum(), (seen & y & ~f).sum()]
+                for t in ths:
+                    f = P >= t
+                    tot[t] += [(seen & y & f).sum(), (seen & ~y & f).sum(), (seen & y & ~f).sum()]
+
+            def f1(v):
+                return 2 * v[0] / max(2 * v[0] + v[1] + v[2], 1)
+
+            print(
+                f"{pose}: footprint rule pooled F1 {f1(base):.4f} ({base.astype(int)} right / "
+                f"false / missed); model, leave one site out: "
+                + ", ".join(f"{t:.2f}: {f1(tot[t]):.4f}" for t in ths),
+                flush=True,
+            )
+    if a.model_out:
+        allv = [data[s][p] for s in a.seeds for p in ("gt", "corrected")]
+        clf = fit(np.concatenate([v["X"] for v in allv]), np.concatenate([v["y"] for v in allv]))
+        _export_trees(clf, a.model_out, ROCK_CELL_FEATURES)
+        print(f"wrote {a.model_out}")
+
+
 def decompose(a) -> None:
     """Where the corrected poses lose (or gain) map points against the ground truth, from
     recorded runs (``score --dump``): the seen geo + rock points with the ground-truth poses
     taking one component of the corrected poses at a time (x and y, z, roll and pitch, yaw;
     then all), and the corrected poses' mean error in the rover frame (along / across track,
     moving frames) with their xy error's median and p90."""
-    import pickle
 
     from lunarloc.core.geometry import matrix_to_pose, pose_to_matrix
     from lunarloc.io.overhead import score_geometric_map, site_geometric_map
@@ -359,8 +488,7 @@ def decompose(a) -> None:
 
     parts = (("xy", [0, 1]), ("z", [2]), ("roll+pitch", [3, 4]), ("yaw", [5]), ("all", range(6)))
     for seed in a.seeds:
-        with open(a.out / f"seed_{seed}" / "mapper_dump.pkl", "rb") as fh:
-            dump = pickle.load(fh)  # our own benchmark's file (score --dump)
+        dump = _load_dump(a.out / f"seed_{seed}")
         m, frames = dump["mapper"], np.asarray(dump["frames"])
         G, C = np.asarray(dump["gt"]), np.asarray(dump["corrected"])
         site = simulate_site(seed)
@@ -885,6 +1013,11 @@ def main() -> None:
         default=None,
         help="JSON of LacMapperConfig fields, one set per argument ({} the defaults)",
     )
+    s = sub.add_parser("train-rock-cells")
+    s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--seeds", type=int, nargs="+", required=True)
+    s.add_argument("--cv", action="store_true", help="leave-one-site-out scores first")
+    s.add_argument("--model-out", type=Path, default=None)
     s = sub.add_parser("decompose")
     s.add_argument("--out", type=Path, required=True)
     s.add_argument("--seeds", type=int, nargs="+", required=True)
@@ -927,6 +1060,7 @@ def main() -> None:
         "score": score,
         "rescore": rescore,
         "decompose": decompose,
+        "train-rock-cells": train_rock_cells,
         "range-bias": range_bias,
         "disparity-bias": disparity_bias,
         "cost": cost,

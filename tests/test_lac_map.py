@@ -188,8 +188,15 @@ def test_bounded_memory_freezes_the_oldest_frames(rng):
 
 def test_rocks_need_two_sightings_and_mark_the_cells_any_ray_reaches(rng):
     m = LacMapper(
-        LacMapperConfig(size_m=9.0, fill="none", rock_min_sightings=2, rock_recentre_min_m=None)
-    )  # the default is 3; the 0.2 m rock stays where it was seen (see the recentring test)
+        LacMapperConfig(
+            size_m=9.0,
+            fill="none",
+            rock_min_sightings=2,
+            rock_recentre_min_m=None,
+            rock_cells="footprint",
+        )
+    )  # the default is 3; the 0.2 m rock stays where it was seen (see the recentring test);
+    # the footprint rule's cells (the per-cell model: its own test)
     T0 = pose_to_matrix(-2.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     T1 = pose_to_matrix(-1.5, 0.5, 0.0, 0.0, 0.0, 0.0)
     rock_map = np.array([1.0, 0.2, 0.05])
@@ -637,3 +644,76 @@ def test_large_rocks_move_away_from_where_they_were_seen():
     assert both[0.42] == pytest.approx((2.0, 0.0), abs=1e-6)
     with pytest.raises(ConfigError):
         LacMapperConfig(rock_recentre_min_m=-0.1)
+
+
+def test_rock_cell_probability_evaluates_boosted_trees(tmp_path):
+    """rock_cell_probability sums the trees' leaves (left when feature <= threshold) onto the
+    baseline log-odds; a model file with other features is refused."""
+    from lunarloc.mapping.lac_map import ROCK_CELL_FEATURES, rock_cell_probability
+
+    F = len(ROCK_CELL_FEATURES)
+    tree = dict(
+        feature=np.array([[2, 0, 0]]),
+        threshold=np.array([[0.5, 0.0, 0.0]]),
+        left=np.array([[1, 0, 0]]),
+        right=np.array([[2, 0, 0]]),
+        is_leaf=np.array([[False, True, True]]),
+        value=np.array([[0.0, 2.0, -2.0]]),
+    )
+    path = tmp_path / "m.npz"
+    np.savez(path, baseline=-0.5, max_depth=1, features=np.array(ROCK_CELL_FEATURES), **tree)
+    X = np.zeros((3, F))
+    X[:, 2] = [0.0, 0.5, 0.6]  # left, left (at the threshold), right
+    p = rock_cell_probability(X, path)
+    assert p == pytest.approx(1 / (1 + np.exp(-np.array([1.5, 1.5, -2.5]))))
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, baseline=0.0, max_depth=1, features=np.array(["x"] * F), **tree)
+    with pytest.raises(ConfigError, match="features"):
+        rock_cell_probability(X, bad)
+    with pytest.raises(ConfigError, match="cannot be read"):
+        rock_cell_probability(X, tmp_path / "missing.npz")
+
+
+def test_the_per_cell_model_flags_a_rock_seen_often_and_not_one_seen_once(rng):
+    """rock_cells="model": cells near detection clusters get P(rock) from the shipped model;
+    a 15 cm rock detected in ten frames is flagged at its centre, a detection seen once 4.5 m
+    away is not; the flags are P >= rock_cell_min_p; the footprint rule gives no P."""
+    from lunarloc.mapping.lac_map import ROCK_CELL_FEATURES
+
+    with pytest.raises(ConfigError):
+        LacMapperConfig(rock_cells="votes")
+    with pytest.raises(ConfigError):
+        LacMapperConfig(rock_cell_min_p=1.0)
+    rock, lone = np.array([1.0, 0.5, 0.1]), np.array([3.5, 0.0, 0.05])
+    maps = {}
+    for mode in ("footprint", "model"):
+        m = LacMapper(LacMapperConfig(size_m=9.0, rock_cells=mode))
+        for k in range(10):
+            T = pose_to_matrix(-1.0 + 0.1 * k, -0.5, 0.0, 0.0, 0.0, 0.3)
+            Ti = invert_transform(T)
+            dets = [[*(Ti @ np.r_[rock, 1.0])[:3] + rng.normal(0, 0.01, 3), 0.15]]
+            if k == 0:
+                dets.append([*(Ti @ np.r_[lone, 1.0])[:3], 0.12])
+            m.add_frame(k, T, frame_points(T, rng, n=3000, max_range=3.0), np.array(dets))
+        maps[mode] = m.grid()
+        if mode == "model":
+            est = maps[mode]
+            cells, X = m.rock_cell_features(est.array[:, :, 2], est.height_sigma_m, est.weight)
+            assert X.shape == (len(cells), len(ROCK_CELL_FEATURES)) and np.all(np.isfinite(X))
+    est = maps["model"]
+    assert maps["footprint"].rock_probability is None
+    n = est.array.shape[0]
+    cell = lambda p: (  # noqa: E731
+        int((p[0] - est.array[0, 0, 0]) / LAC_CELL_M + 0.5),
+        int((p[1] - est.array[0, 0, 1]) / LAC_CELL_M + 0.5),
+    )
+    P = est.rock_probability
+    assert P.shape == (n, n) and np.all((P >= 0) & (P <= 1))
+    assert est.array[cell(rock)][3] == 1 and P[cell(rock)] >= 0.4
+    assert est.array[cell(lone)][3] == 0 and P[cell(lone)] < 0.4
+    assert np.array_equal(est.array[:, :, 3] == 1, P >= est.array.dtype.type(0.4))
+    # both rules map the same rocks; the model's flags stay near them
+    assert len(est.rocks) == len(maps["footprint"].rocks) == 1
+    i, j = np.nonzero(est.array[:, :, 3] == 1)
+    d = np.hypot(est.array[i, j, 0] - rock[0], est.array[i, j, 1] - rock[1])
+    assert d.max() < 0.15 + 0.1 + LAC_CELL_M

@@ -24,8 +24,11 @@ the rays hits a rock. The mapper estimates both:
   ``rock_merge_m`` of each other are one rock, kept with the median centre and radius when
   enough frames detected it: ``rock_min_sightings`` for a rock of ``small_rock_m`` radius or
   more, ``small_rock_min_sightings`` for a smaller one (the detector's small-rock stage finds
-  those; the any-ray rule flags them). Every cell with **any** of its 16 ray points within
-  the footprint of the centre is flagged (the LAC's any-ray rule); the footprint radius is
+  those; the any-ray rule flags them). With ``rock_cells="footprint"`` every cell with
+  **any** of its 16 ray points within the footprint of the centre is flagged (the LAC's any-ray
+  rule); with ``rock_cells="model"`` (default) a cell is flagged when its P(rock) reaches
+  ``rock_cell_min_p``: boosted trees (:data:`ROCK_CELL_MODEL_PATH`) over the detection clusters
+  near it, mapped or not, and its stereo (:data:`ROCK_CELL_FEATURES`). The footprint radius is
   ``rock_radius_scale x radius + rock_radius_margin_m``, for a small rock
   ``radius + small_rock_margin_m``. A large rock (``rock_recentre_min_m``) is moved
   ``rock_recentre_scale x radius`` away from the rover along its sightings' mean viewing
@@ -63,6 +66,8 @@ import logging
 import math
 from collections import OrderedDict
 from dataclasses import asdict, dataclass
+from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 
@@ -84,9 +89,33 @@ __all__ = [
     "load_observed_cells",
     "frame_inputs",
     "LANDER_EXCLUSION_M",
+    "ROCK_CELL_FEATURES",
+    "ROCK_CELL_MODEL_PATH",
+    "rock_cell_probability",
 ]
 
 FILL_MODES = ("all", "near", "none")
+ROCK_CELL_MODES = ("footprint", "model")
+
+#: the per-cell rock model (``LacMapperConfig.rock_cells = "model"``): boosted trees as plain
+#: arrays, trained by ``benchmarks/bench_lac_map.py train-rock-cells`` on development sites
+ROCK_CELL_MODEL_PATH = Path(__file__).with_name("lac_rock_cells.npz")
+#: the model's per-cell features (:meth:`LacMapper.rock_cell_features`), in its column order
+ROCK_CELL_FEATURES = (
+    "margin_m",  # nearest ray point's distance to the cell's cluster, minus its footprint radius
+    "dnorm",  # that distance over the cluster's radius
+    "log_r",  # log of the cluster's median radius (m, at least 1 cm)
+    "log_s",  # log of its sightings (distinct frames)
+    "kept",  # 1 when the sightings rule maps it (the footprint rule's rock)
+    "rspread",  # its radii's interquartile range over the median
+    "cspread",  # its detections' median distance from their median centre (m)
+    "rng_med",  # its detections' median range (m)
+    "rng_min",  # ... and smallest
+    "ncov",  # clusters within reach of the cell
+    "bump",  # the cell's height above its local ground (30 % quantile over 1.05 m; m)
+    "hsig",  # the cell's height_sigma_m (0 unobserved)
+    "logw",  # log(1 + the cell's stereo weight)
+)
 
 #: the lander's exclusion disc radius (m) callers pass to :meth:`LacMapper.exclude_disc`: its
 #: body and legs are not terrain (the detector's ``on_lander`` drops detections within it too)
@@ -132,6 +161,12 @@ class LacMapperConfig:
         1.05  # the local ground: a low quantile of the heights in this square
     )
     rock_ground_quantile: float = 30.0  # ... this percentile
+    # how rock cells are decided: "footprint" (any ray point inside a mapped rock's disc) or
+    # "model" (a per-cell P(rock) from the detection clusters near the cell and the stereo
+    # heights, ROCK_CELL_MODEL_PATH; flagged from rock_cell_min_p); docs/lac-map.md
+    rock_cells: str = "model"
+    rock_cell_min_p: float = 0.4
+    rock_cell_reach_m: float = 0.10  # cells this far beyond a cluster's footprint are candidates
     fill: str = "all"  # unseen cells: all | near | none (module docstring)
     fill_max_m: float = 1.0  # `near`: fill within this distance of a seen cell
 
@@ -158,6 +193,12 @@ class LacMapperConfig:
             raise ConfigError(
                 "rock_merge_m and rock_radius_scale must be >= 0, rock_max_range_m > 0"
             )
+        if self.rock_cells not in ROCK_CELL_MODES:
+            raise ConfigError(
+                f"rock_cells={self.rock_cells!r}: one of {', '.join(ROCK_CELL_MODES)}"
+            )
+        if not (0 < self.rock_cell_min_p < 1 and self.rock_cell_reach_m >= 0):
+            raise ConfigError("rock_cell_min_p must lie in (0, 1), rock_cell_reach_m be >= 0")
         if self.fill not in FILL_MODES:
             raise ConfigError(f"fill={self.fill!r}: one of {', '.join(FILL_MODES)}")
         if self.fill_max_m < 0:
@@ -196,6 +237,8 @@ class LacMapEstimate:
     fill_distance_m : distance from the cell centre to the nearest observed cell centre (0
         observed).
     rocks : (K, 3) the mapped rocks: x, y (map frame), footprint radius (m).
+    rock_probability : P(rock) per cell from the per-cell model (``rock_cells="model"``; 0
+        where no detection cluster is near), None with the footprint rule.
     """
 
     array: np.ndarray
@@ -205,6 +248,7 @@ class LacMapEstimate:
     weight: np.ndarray
     fill_distance_m: np.ndarray
     rocks: np.ndarray
+    rock_probability: np.ndarray | None = None
 
     @property
     def filled(self) -> np.ndarray:
@@ -240,8 +284,9 @@ class LacMapper:
         self._frozen_w = np.zeros((n, n))
         self._frozen_wz = np.zeros((n, n))
         self._frozen_wz2 = np.zeros((n, n))
-        # map-frame x, y, radius, seq, viewing direction (unit x, y: rover -> rock)
-        self._frozen_rocks = np.zeros((0, 6))
+        # map-frame x, y, radius, seq, viewing direction (unit x, y: rover -> rock), range
+        # (horizontal, rover frame)
+        self._frozen_rocks = np.zeros((0, 7))
         self._discs: list[tuple[float, float, float]] = []
         self.frozen_frames = 0
         # the live layer (live_cells): per-cell running sums at the poses frames were added
@@ -336,7 +381,7 @@ class LacMapper:
             np.add.at(self._live_w, c, w)
             np.add.at(self._live_wz, c, w * z)
             self._live_dirty[c] = True
-        xy, r, _ = self._place_rocks(fr)
+        xy, r, _, _ = self._place_rocks(fr)
         if len(r):
             cfg = self.config
             r_fp = np.where(
@@ -435,11 +480,9 @@ class LacMapper:
         self._frozen_w += np.bincount(c, w, minlength=n * n).reshape(n, n)
         self._frozen_wz += np.bincount(c, w * z, minlength=n * n).reshape(n, n)
         self._frozen_wz2 += np.bincount(c, w * z * z, minlength=n * n).reshape(n, n)
-        xy, r, view = self._place_rocks(fr)
-        if len(xy):
-            self._frozen_rocks = np.concatenate(
-                [self._frozen_rocks, np.column_stack([xy, r, np.full(len(r), fr.seq), view])]
-            )
+        D = self._rock_rows(fr)
+        if len(D):
+            self._frozen_rocks = np.concatenate([self._frozen_rocks, D])
         self.frozen_frames += 1
         log.debug("mapper: froze frame %s (%d bins)", frame_id, len(fr.bins))
 
@@ -466,17 +509,24 @@ class LacMapper:
         return (i * n + j)[ok], P[ok, 2], fr.bins[ok, 3].astype(np.float64)
 
     def _place_rocks(self, fr: _Frame):
-        """Map-frame centres (x, y), radii and viewing directions (unit x, y, from the rover
-        towards the rock) of a frame's detections at its pose (outside the excluded discs)."""
+        """Map-frame centres (x, y), radii, viewing directions (unit x, y, from the rover
+        towards the rock) and ranges (horizontal, rover frame) of a frame's detections at its
+        pose (outside the excluded discs)."""
         if len(fr.rocks) == 0:
-            return np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2))
+            return np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2)), np.zeros(0)
         T = fr.T_map_rover
         p = fr.rocks[:, :3].astype(np.float64)
         P = p @ T[:3, :3].T + T[:3, 3]
         keep = self._keep_outside_discs(P[:, :2]) if self._discs else np.ones(len(P), bool)
         d = np.column_stack([p[:, :2], np.zeros(len(p))]) @ T[:3, :3].T
         d = d[:, :2] / np.maximum(np.linalg.norm(d[:, :2], axis=1, keepdims=True), 1e-9)
-        return P[keep, :2], fr.rocks[keep, 3].astype(np.float64), d[keep]
+        rng = np.hypot(p[:, 0], p[:, 1])
+        return P[keep, :2], fr.rocks[keep, 3].astype(np.float64), d[keep], rng[keep]
+
+    def _rock_rows(self, fr: _Frame) -> np.ndarray:
+        """A frame's placed detections as rows of x, y, radius, seq, view x, view y, range."""
+        xy, r, view, rng = self._place_rocks(fr)
+        return np.column_stack([xy, r, np.full(len(r), fr.seq), view, rng])
 
     # ------------------------------------------------------------------ the map
     def grid(self) -> LacMapEstimate:
@@ -524,7 +574,16 @@ class LacMapper:
         out[:, :, 2] = filled_h
         out[:, :, 3] = np.where(np.isfinite(filled_h), 0.0, UNFILLED)
         rocks = self._fused_rocks()
-        flags = _rock_cells(rocks, self._grid0, cfg.cell_m)
+        prob = None
+        if cfg.rock_cells == "model":
+            cells, X = self.rock_cell_features(filled_h, sigma, weight.reshape(n, n))
+            prob = np.zeros(n * n)
+            if len(cells):
+                prob[cells] = rock_cell_probability(X)
+            prob = prob.reshape(n, n)
+            flags = prob >= cfg.rock_cell_min_p
+        else:
+            flags = _rock_cells(rocks, self._grid0, cfg.cell_m)
         if cfg.rock_bump_m is not None and observed.any():
             flags |= self._bumps(filled_h, observed)
         out[:, :, 3] = np.where(flags, 1.0, out[:, :, 3])
@@ -533,7 +592,76 @@ class LacMapper:
         out[:, :, 2] = np.where(
             flags & ~np.isfinite(out[:, :, 2]), _nearest_fill(out[:, :, 2]), out[:, :, 2]
         )
-        return LacMapEstimate(out, observed, interpolated, sigma, weight.reshape(n, n), dist, rocks)
+        return LacMapEstimate(
+            out, observed, interpolated, sigma, weight.reshape(n, n), dist, rocks, prob
+        )
+
+    def rock_cell_features(self, height, height_sigma, weight):
+        """The per-cell rock model's inputs (:data:`ROCK_CELL_FEATURES`): the cells within
+        ``rock_cell_reach_m`` of a detection cluster's footprint (any ray point; every cluster,
+        mapped or not, :meth:`_clusters`), each described by the cluster that covers it best (a
+        mapped one first, then the one reaching furthest over it) and by its own stereo:
+        `height` (N, N; unfilled cells take the nearest filled one's), `height_sigma`,
+        `weight` as :class:`LacMapEstimate` has them. Returns flat cell ids (C,) and (C, F)."""
+        from scipy import ndimage
+
+        cfg = self.config
+        n = cfg.cells
+        cl = self._clusters()
+        xs, ys = self._grid0[:, 0, 0], self._grid0[0, :, 1]
+        off = LAC_RAY_OFFSETS * cfg.cell_m
+        lo_x, lo_y = xs[0] - cfg.cell_m / 2, ys[0] - cfg.cell_m / 2
+        ids, qs, ds = [], [], []
+        for q in range(len(cl["x"])):
+            x, y, reach = cl["x"][q], cl["y"][q], cl["fp"][q] + cfg.rock_cell_reach_m
+            i0 = max(int(math.floor((x - reach - lo_x) / cfg.cell_m)), 0)
+            i1 = min(int(math.floor((x + reach - lo_x) / cfg.cell_m)) + 1, n)
+            j0 = max(int(math.floor((y - reach - lo_y) / cfg.cell_m)), 0)
+            j1 = min(int(math.floor((y + reach - lo_y) / cfg.cell_m)) + 1, n)
+            if i1 <= i0 or j1 <= j0:
+                continue
+            dx = np.min(np.abs(xs[i0:i1, None] + off[None, :] - x), axis=1)
+            dy = np.min(np.abs(ys[j0:j1, None] + off[None, :] - y), axis=1)
+            d = np.sqrt(dx[:, None] ** 2 + dy[None, :] ** 2)
+            a, b = np.nonzero(d <= reach)
+            ids.append((i0 + a) * n + (j0 + b))
+            qs.append(np.full(len(a), q))
+            ds.append(d[a, b])
+        if not ids:
+            return np.zeros(0, np.int64), np.zeros((0, len(ROCK_CELL_FEATURES)))
+        cid, q, d = np.concatenate(ids), np.concatenate(qs), np.concatenate(ds)
+        margin = d - cl["fp"][q]
+        # per cell: a mapped cluster first, then the smallest margin, then the first cluster
+        order = np.lexsort((q, margin, ~cl["kept"][q], cid))
+        cid, q, d, margin = cid[order], q[order], d[order], margin[order]
+        cells, first, ncov = np.unique(cid, return_index=True, return_counts=True)
+        q, d, margin = q[first], d[first], margin[first]
+        h = np.where(np.isfinite(height), height, _nearest_fill(height))
+        h = np.where(np.isfinite(h), h, 0.0)
+        k = max(3, int(round(1.05 / cfg.cell_m)) | 1)
+        bump = (h - ndimage.percentile_filter(h, 30, size=k, mode="nearest")).reshape(-1)
+        hsig = np.nan_to_num(np.asarray(height_sigma, float).reshape(-1), nan=0.0)
+        logw = np.log1p(np.asarray(weight, float).reshape(-1))
+        r = cl["r"][q]
+        X = np.column_stack(
+            [
+                margin,
+                d / np.maximum(r, 0.01),
+                np.log(np.maximum(r, 0.01)),
+                np.log(cl["s"][q]),
+                cl["kept"][q].astype(float),
+                cl["rspread"][q],
+                cl["cspread"][q],
+                cl["rng_med"][q],
+                cl["rng_min"][q],
+                ncov.astype(float),
+                bump[cells],
+                hsig[cells],
+                logw[cells],
+            ]
+        )
+        X[~np.isfinite(X)] = 0.0
+        return cells.astype(np.int64), X
 
     def _bumps(self, h: np.ndarray, observed: np.ndarray) -> np.ndarray:
         """Observed cells at least ``rock_bump_m`` above their local ground (a low percentile
@@ -549,16 +677,31 @@ class LacMapper:
         return observed & (hh - ground >= cfg.rock_bump_m)
 
     def _fused_rocks(self) -> np.ndarray:
-        """Detections of all frames merged into rocks: (K, 3) x, y, footprint radius."""
+        """Detections of all frames merged into rocks: (K, 3) x, y, footprint radius of the
+        rocks detected often enough (:meth:`_clusters`' ``kept``)."""
+        cl = self._clusters()
+        k = cl["kept"]
+        return np.column_stack([cl["x"][k], cl["y"][k], cl["fp"][k]]).reshape(-1, 3)
+
+    def _clusters(self) -> dict:
+        """Detections of all frames merged into clusters (those of different frames within
+        ``rock_merge_m`` of each other, chained). Per cluster (arrays of length K): ``x``, ``y``
+        (the members' median, large rocks recentred), ``r`` (median radius), ``s`` (distinct
+        frames), ``kept`` (enough sightings: a mapped rock), ``fp`` (footprint radius),
+        ``rspread`` (the radii's interquartile range over the median), ``cspread`` (the
+        members' median distance from their median centre, m), ``rng_med`` / ``rng_min`` (the
+        detections' median / smallest range, m)."""
         cfg = self.config
         parts = [self._frozen_rocks]
         for fr in self._frames.values():
-            xy, r, view = self._place_rocks(fr)
-            if len(r):
-                parts.append(np.column_stack([xy, r, np.full(len(r), fr.seq), view]))
+            if len(fr.rocks):
+                parts.append(self._rock_rows(fr))
         D = np.concatenate(parts)
+        names = ("x", "y", "r", "s", "fp", "rspread", "cspread", "rng_med", "rng_min")
         if len(D) == 0:
-            return np.zeros((0, 3))
+            out = {k: np.zeros(0) for k in names}
+            out["kept"] = np.zeros(0, bool)
+            return out
         from scipy.sparse import coo_matrix
         from scipy.sparse.csgraph import connected_components
         from scipy.spatial import cKDTree
@@ -582,13 +725,13 @@ class LacMapper:
         order = np.argsort(labels, kind="stable")
         starts = np.searchsorted(labels[order], np.arange(k))
         ends = np.searchsorted(labels[order], np.arange(k), side="right")
-        out = []
-        for q in np.flatnonzero(
-            sightings >= min(cfg.rock_min_sightings, cfg.small_rock_min_sightings)
-        ):
+        rows = np.zeros((k, len(names)))
+        kept = np.zeros(k, bool)
+        for q in range(k):
             g = D[order[starts[q] : ends[q]]]
             r = float(np.median(g[:, 2]))
-            x, y = float(np.median(g[:, 0])), float(np.median(g[:, 1]))
+            x0, y0 = float(np.median(g[:, 0])), float(np.median(g[:, 1]))
+            x, y = x0, y0
             if cfg.rock_recentre_min_m is not None and r >= cfg.rock_recentre_min_m:
                 # away from the rover along the mean of the sightings' unit viewing directions
                 # (its length < 1 where they differ: seen from all sides, the median is centred)
@@ -596,15 +739,62 @@ class LacMapper:
                 x += cfg.rock_recentre_scale * r * float(v[0])
                 y += cfg.rock_recentre_scale * r * float(v[1])
             if r < cfg.small_rock_m:
-                if sightings[q] < cfg.small_rock_min_sightings:
-                    continue
+                kept[q] = sightings[q] >= cfg.small_rock_min_sightings
                 r_fp = r + cfg.small_rock_margin_m
             else:
-                if sightings[q] < cfg.rock_min_sightings:
-                    continue
+                kept[q] = sightings[q] >= cfg.rock_min_sightings
                 r_fp = cfg.rock_radius_scale * r + cfg.rock_radius_margin_m
-            out.append((x, y, max(r_fp, 0.0)))
-        return np.array(out, float).reshape(-1, 3)
+            q25, q75 = np.percentile(g[:, 2], [25, 75])
+            rng = g[:, 6]
+            rng_ok = rng[np.isfinite(rng)]
+            rows[q] = (
+                x,
+                y,
+                r,
+                sightings[q],
+                max(r_fp, 0.0),
+                (q75 - q25) / max(r, 1e-3),
+                float(np.median(np.hypot(g[:, 0] - x0, g[:, 1] - y0))),
+                float(np.median(rng_ok)) if len(rng_ok) else np.nan,
+                float(np.min(rng_ok)) if len(rng_ok) else np.nan,
+            )
+        out = {n: rows[:, j] for j, n in enumerate(names)}
+        out["kept"] = kept
+        return out
+
+
+@lru_cache(maxsize=1)
+def _rock_cell_model(path: str):
+    """The per-cell rock model's arrays (``ROCK_CELL_MODEL_PATH``)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            m = {k: z[k] for k in z.files}
+    except (OSError, ValueError) as e:
+        raise ConfigError(f"the per-cell rock model {path} cannot be read: {e}") from e
+    if tuple(str(f) for f in m["features"]) != ROCK_CELL_FEATURES:
+        raise ConfigError(f"{path}: its features are not ROCK_CELL_FEATURES")
+    return m
+
+
+def rock_cell_probability(X: np.ndarray, path=None) -> np.ndarray:
+    """P(rock) of cells from their :data:`ROCK_CELL_FEATURES` rows (C, F): boosted trees (each
+    node: go left when the feature is at most the threshold), summed onto the baseline
+    log-odds, through the logistic function."""
+    m = _rock_cell_model(str(path or ROCK_CELL_MODEL_PATH))
+    X = np.asarray(X, float)
+    feat, thr, left, right, leaf, value = (
+        m[k] for k in ("feature", "threshold", "left", "right", "is_leaf", "value")
+    )
+    raw = np.full(len(X), float(m["baseline"]))
+    rows = np.arange(len(X))
+    for t in range(feat.shape[0]):
+        node = np.zeros(len(X), np.int64)
+        for _ in range(int(m["max_depth"]) + 1):
+            f = feat[t, node]
+            go_left = X[rows, f] <= thr[t, node]
+            node = np.where(leaf[t, node], node, np.where(go_left, left[t, node], right[t, node]))
+        raw += value[t, node]
+    return 1.0 / (1.0 + np.exp(-raw))
 
 
 def _weighted_median(c: np.ndarray, z: np.ndarray, w: np.ndarray, size: int) -> np.ndarray:
@@ -808,9 +998,8 @@ def save_lac_map(estimate: LacMapEstimate, path) -> tuple:
     """Write the map as ``PATH`` (``np.save`` of the (N, N, 4) LAC array; -inf where
     unfilled) and its per-cell side data as ``PATH`` with suffix ``.cells.npz``
     (``observed``, ``interpolated``, ``height_sigma_m``, ``weight``, ``fill_distance_m``,
-    ``rocks``; what ``lunarloc score --seen-only`` reads). Returns both paths."""
-    from pathlib import Path
-
+    ``rocks``, and ``rock_probability`` with the per-cell rock model; what ``lunarloc score
+    --seen-only`` reads). Returns both paths."""
     from lunarloc.io.outputs import atomic_open
 
     path = Path(path)
@@ -826,6 +1015,11 @@ def save_lac_map(estimate: LacMapEstimate, path) -> tuple:
             weight=estimate.weight,
             fill_distance_m=estimate.fill_distance_m,
             rocks=estimate.rocks,
+            **(
+                {"rock_probability": estimate.rock_probability}
+                if estimate.rock_probability is not None
+                else {}
+            ),
         )
     return path, side
 
