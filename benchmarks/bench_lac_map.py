@@ -13,6 +13,10 @@ Usage
     # 2b. re-score recorded runs (score --dump) with other mapper settings, nothing re-run:
     python benchmarks/bench_lac_map.py rescore --out DIR --seeds 281 282 \
         --mapper-config '{"rock_recentre_min_m": null}' '{}' [--json OUT.json]
+    # 2b'. the per-cell rock model (LacMapperConfig.rock_cells="model") trained on recorded
+    #      development runs (score --dump), leave-one-site-out scores first with --cv:
+    python benchmarks/bench_lac_map.py train-rock-cells --out DEV --seeds 286 287 --cv \
+        [--model-out src/lunarloc/mapping/lac_rock_cells.npz]
     # 2c. where the corrected poses lose points against ground truth (recorded runs, score --dump):
     #     one pose component at a time taken from the corrected poses
     python benchmarks/bench_lac_map.py decompose --out DIR --seeds 292 294
