@@ -61,6 +61,17 @@ or a 8-/16-unit MLP, was no better on development sites 300-304 at the detector'
 thresholds (0.7 firm, 0.5 tentative and large): precision 0.926-0.939 against 0.932, and
 103-105 sightings of r >= 0.1 m within 5 m against 107 of 142; so the sunlit model stayed
 then (the 14 sunlit sites of the packaged model are 430-443).
+
+The low-ground model (``verifier_model_low_ground.npz``, ``rules.verifier_model``
+"low_ground", opt-in with ``ground.quantile`` 0.4): the same 24 sites and recipe, blobs
+extracted on the lower ground, rocks of r >= 0.1 m weighted 4 (``--big-weight 4``; 2631 firm
+blobs, 1939 rocks)::
+
+    echo '{"detector": {"ground": {"quantile": 0.4}, "classical": {"height_split_step_m": 0},
+           "rules": {"verifier_min_score": 0}, "small_rocks": {"judge_min_score": 0}}}' > Q40off.json
+    python benchmarks/train_verifier.py extract TRAIN/*.lac --cache CACHE40 --config Q40off.json
+    python benchmarks/train_verifier.py fit CACHE40/site4*.npz CACHE40/site5*.npz --firm-only \
+        --big-weight 4 --out src/lunarloc/perception/verifier_model_low_ground.npz
 """
 
 from __future__ import annotations
@@ -239,13 +250,14 @@ def fit(
     alpha: float = 0.3,
     firm_only: bool = False,
     seed: int = 0,
+    big_weight: float = 2.0,
 ):
     d = load(paths)
     keep = d["y"] >= 0
     if firm_only:
         keep &= ~d["tentative"]
     X, y = d["X"][keep], d["y"][keep]
-    w = np.where((y == 1) & (d["rock_radius_m"][keep] >= 0.1), 2.0, 1.0)
+    w = np.where((y == 1) & (d["rock_radius_m"][keep] >= 0.1), big_weight, 1.0)
     model = fit_model(X, y, FEATURE_NAMES, hidden, alpha, seed, max_iter=500, weight=w)
     model.save(out)
     print(
@@ -286,6 +298,9 @@ def main(argv=None) -> int:
     ap.add_argument("--hidden", type=int, default=0, help="hidden units (0: logistic regression)")
     ap.add_argument("--alpha", type=float, default=0.3, help="L2 penalty (1 / C for logistic)")
     ap.add_argument("--firm-only", action="store_true", help="fit on firm blobs only")
+    ap.add_argument(
+        "--big-weight", type=float, default=2.0, help="fit: weight of rocks of r >= 0.1 m"
+    )
     ap.add_argument("--config", type=Path, default=None, help="extract: a run config's detector")
     a = ap.parse_args(argv)
     if a.mode == "extract":
@@ -297,7 +312,7 @@ def main(argv=None) -> int:
         for p in a.paths:
             extract(p, a.cache, base)
     elif a.mode == "fit":
-        fit(a.paths, a.out, a.hidden, a.alpha, a.firm_only)
+        fit(a.paths, a.out, a.hidden, a.alpha, a.firm_only, big_weight=a.big_weight)
     else:
         check(a.paths, BlobVerifier.load(a.model))
     return 0

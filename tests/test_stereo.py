@@ -362,3 +362,38 @@ def test_ground_footprint_min_drop_keeps_the_plain_ground_off_the_rock():
     np.testing.assert_array_equal(hyb.height[far_off], plain.height[far_off])
     with pytest.raises(ConfigError):
         GroundConfig(footprint_min_drop_m=-0.01)
+
+
+def test_ground_far_quantile_lowers_the_far_cells_only():
+    """far_quantile: cells whose centre lies far_range_m or more from the camera take the lower
+    quantile, so the far rock that lifts its cells' median stands higher above its ground;
+    near the camera (well inside far_range_m, beyond the bilinear reach of one cell) the
+    heights are the plain ground's, bit for bit."""
+    from lunarloc.perception.camera import ipex_rig
+    from lunarloc.perception.stereo import GroundConfig, ground_height_map
+
+    cam = PinholeCamera()
+    T = ipex_rig(cam)["FrontLeft"].T_rover_optical
+    box = (4.3, 4.55, -0.2, 0.2, 0.12)
+    disp = _ray_cast_disparity(cam, T, 2, box)
+    disp = disp + np.random.default_rng(5).normal(0, 0.02, disp.shape).astype(np.float32)
+    plain = ground_height_map(disp, 2, cam, 0.162, T, GroundConfig())
+    low = ground_height_map(
+        disp, 2, cam, 0.162, T, GroundConfig(far_quantile=0.4, far_range_m=3.0)
+    )
+    assert GroundConfig().far_quantile == 0.0  # off by default
+    P = plain.points_rover
+    on_box = (
+        (P[..., 0] > box[0] - 0.01)
+        & (P[..., 0] < box[1] + 0.01)
+        & (np.abs(P[..., 1]) < 0.19)
+        & (P[..., 2] > T[2, 3] - 0.331 + 0.001)
+    )
+    assert np.nanmax(low.height[on_box]) > np.nanmax(plain.height[on_box]) + 0.005
+    rng = np.hypot(P[..., 0] - T[0, 3], P[..., 1] - T[1, 3])
+    near = np.isfinite(plain.height) & (rng < 2.0)
+    assert near.sum() > 1000
+    np.testing.assert_array_equal(low.height[near], plain.height[near])
+    for bad in ({"far_quantile": 1.0}, {"far_quantile": -0.1}, {"far_range_m": -1.0}):
+        with pytest.raises(ConfigError, match="far_"):
+            GroundConfig(**bad)

@@ -20,9 +20,11 @@ from lunarloc.perception.small_rocks import SmallRockConfig
 from lunarloc.perception.verifier import (
     FEATURE_NAMES,
     MODEL_PATH,
+    PACKAGED_MODELS,
     BlobVerifier,
     blob_features,
     default_verifier,
+    verifier_named,
     verifier_threshold,
 )
 
@@ -182,6 +184,37 @@ def test_the_packaged_model_loads_is_small_and_keeps_a_plain_rock():
     T = rig["FrontLeft"].T_rover_optical
     pr = _scene_detector(0.01).detect_pair(left, right, T)
     assert len(pr.detections) == 1 and 0.01 <= pr.detections[0].verifier_score <= 1.0
+
+
+def test_the_low_ground_model_is_packaged_and_chosen_by_the_config(monkeypatch):
+    # rules.verifier_model names a packaged model; "low_ground" (fitted on blobs of a lower
+    # ground) loads, is small, has this version's features and is the one the detector asks for
+    assert PACKAGED_MODELS["default"] == MODEL_PATH
+    assert PACKAGED_MODELS["low_ground"].stat().st_size < 1_000_000
+    low = verifier_named("low_ground")
+    assert low.feature_names == FEATURE_NAMES and verifier_named("default") is default_verifier()
+    assert not np.allclose(low.mean, default_verifier().mean)
+    with pytest.raises(InputError, match="no packaged verifier model"):
+        verifier_named("nope")
+    c = config_from_dict(DetectorConfig, {"rules": {"verifier_model": "low_ground"}})
+    assert c.rules.verifier_model == "low_ground"
+    assert DetectorConfig().rules.verifier_model in PACKAGED_MODELS
+    with pytest.raises(ConfigError, match="verifier_model"):
+        replace(DetectorConfig().rules, verifier_model="nope")
+    # the detector scores with the named model: one that says "terrain" under that name
+    # rejects the rendered rock that the default model's stand-in keeps
+    left, right, rig = ground_scene((3.0, 0.0, -0.15), 0.12)
+    T = rig["FrontLeft"].T_rover_optical
+    monkeypatch.setattr(detector_mod, "default_verifier", lambda: tiny_model(5.0, 5.0))
+    monkeypatch.setattr(
+        detector_mod,
+        "verifier_named",
+        lambda name: tiny_model(0.0, -5.0) if name == "low_ground" else None,
+    )
+    det = _scene_detector(0.5)
+    assert len(det.detect_pair(left, right, T).detections) == 1
+    cfg = replace(det.config, rules=replace(det.config.rules, verifier_model="low_ground"))
+    assert Detector(cfg, CAM).detect_pair(left, right, T).detections == []
 
 
 def test_a_tentative_blob_is_left_to_cross_frame_confirmation(monkeypatch):

@@ -87,7 +87,12 @@ from lunarloc.perception.stereo import (
     refine_disparity,
     to_gray_u8,
 )
-from lunarloc.perception.verifier import blob_features, default_verifier, verifier_threshold
+from lunarloc.perception.verifier import (
+    blob_features,
+    default_verifier,
+    verifier_named,
+    verifier_threshold,
+)
 
 __all__ = [
     "PoseSource",
@@ -777,7 +782,9 @@ class Detector:
                 cfg.rules, bool(det.tentative), blob.radius_m, det.depth_m
             )
             if min_score > 0:
-                score = float(default_verifier().score(blob_features(det, scene.L, m)))
+                name = cfg.rules.verifier_model
+                model = default_verifier() if name == "default" else verifier_named(name)
+                score = float(model.score(blob_features(det, scene.L, m)))
                 if score < min_score:
                     rec.reason = RejectReason.NOT_A_ROCK
                     rec.rejected_by = "verifier"

@@ -331,6 +331,11 @@ class RulesConfig:
     # hidden at 2-5 m is often tentative frame after frame, never firm beside it; 0 = off;
     # only while verifier_min_score > 0)
     verifier_confirm_score: float = setting(0.95, ge=0.0, le=1.0)
+    # verifier: which packaged model judges the blobs: "default" (verifier_model.npz, fitted on
+    # blobs of the median ground) or "low_ground" (verifier_model_low_ground.npz, fitted on
+    # blobs of a ground at cell quantile 0.4: goes with ground.quantile 0.4; opt-in,
+    # docs/perception-status.md, "The lower ground")
+    verifier_model: str = setting("default", choices=("default", "low_ground"))
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "off", tuple(self.off))

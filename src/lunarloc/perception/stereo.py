@@ -466,12 +466,24 @@ class GroundConfig:
     # the blobs of near rocks too; 0.02 keeps the repeatability (2.0 cm) but not the weights'
     # precision gain, and gains little recall (docs/perception-status.md).
     footprint_min_drop_m: float = 0.0
+    # Cells whose centre lies at least far_range_m (horizontal, from the camera) away take
+    # far_quantile instead of quantile (0: off, one quantile everywhere). Beyond ~3 m a rock's
+    # face fills much of a cell's pixels and lifts its median under the rock; a lower quantile
+    # there lets partly hidden rocks reach the seed while the near ground, and the near
+    # blobs, stay as they are (docs/perception-status.md, "The lower ground").
+    far_quantile: float = 0.0
+    far_range_m: float = 3.0
 
     def __post_init__(self) -> None:
         if not (self.max_range_m > 0 and self.cell_m > 0):
             raise ConfigError("max_range_m and cell_m must be > 0")
         if not 0.0 < self.quantile < 1.0:
             raise ConfigError("quantile must be in (0, 1)")
+        if not (0.0 <= self.far_quantile < 1.0 and self.far_range_m >= 0):
+            raise ConfigError(
+                f"far_quantile={self.far_quantile} must be in [0, 1) (0: off) and "
+                f"far_range_m={self.far_range_m} >= 0"
+            )
         if self.min_points < 1:
             raise ConfigError("min_points must be >= 1")
         if not self.footprint_min_drop_m >= 0:
@@ -663,6 +675,14 @@ def fill_ground_heights(hm: HeightMap) -> HeightMap:
     keys = keys.astype(np.int32) if nx * ny * zs < 1 << 31 else keys
     good = cnt >= cfg.min_points
     g = np.zeros(nx * ny, np.float32)
+    q = cfg.quantile
+    if cfg.far_quantile > 0:
+        # per cell: far_quantile where the cell's centre lies far_range_m or more from the camera
+        cam = np.asarray(hm.T_rover_optical, float)[:3, 3]
+        cxs = x_lo + (np.arange(nx) + 0.5) * c - cam[0]
+        cys = y_lo + (np.arange(ny) + 0.5) * c - cam[1]
+        far = np.hypot(cxs[None, :], cys[:, None]).ravel() >= cfg.far_range_m
+        q = np.where(far, cfg.far_quantile, cfg.quantile)
     if cfg.footprint_weights:
         wts = _range_footprints(hm, flat[fit], X, Y, Z, cfg, rad_per_px).astype(np.float64)
         # the keys sorted with each point's index packed below them (one sort, no argsort)
@@ -678,8 +698,8 @@ def fill_ground_heights(hm: HeightMap) -> HeightMap:
         before = np.where(start > 0, cw[np.maximum(start - 1, 0)], 0.0)
         # first point of the cell whose cumulative weight reaches the quantile's share; a cell
         # without weight (a face seen square-on, no ground) takes the unweighted quantile
-        pos = np.searchsorted(cw, before + cfg.quantile * total, side="left")
-        plain = start + (cnt * cfg.quantile).astype(np.int64)
+        pos = np.searchsorted(cw, before + q * total, side="left")
+        plain = start + (cnt * q).astype(np.int64)
         pos = np.where(total > 0, np.clip(pos, start, start + np.maximum(cnt - 1, 0)), plain)
         sel = keys[pos[good]]
         if cfg.footprint_min_drop_m > 0:
@@ -690,7 +710,8 @@ def fill_ground_heights(hm: HeightMap) -> HeightMap:
             sel = np.where(drop_mm > cfg.footprint_min_drop_m * 1000.0, sel, sel_p)
     else:
         keys = np.sort(keys)
-        sel = keys[start[good] + (cnt[good] * cfg.quantile).astype(np.int64)]
+        qg = q[good] if cfg.far_quantile > 0 else q
+        sel = keys[start[good] + (cnt[good] * qg).astype(np.int64)]
     g[good] = (sel % zs).astype(np.float32) / 1000.0 + z_lo
     G = g.reshape(ny, nx)
     W = good.reshape(ny, nx).astype(np.float32)

@@ -43,11 +43,13 @@ __all__ = [
     "FEATURE_NAMES",
     "GEOMETRIC_FIELDS",
     "MODEL_PATH",
+    "PACKAGED_MODELS",
     "Z_CLIP",
     "BlobVerifier",
     "appearance_features",
     "blob_features",
     "default_verifier",
+    "verifier_named",
     "verifier_threshold",
 ]
 
@@ -307,6 +309,29 @@ class BlobVerifier:
 def default_verifier() -> BlobVerifier:
     """The packaged model (read once)."""
     return BlobVerifier.load(MODEL_PATH)
+
+
+#: The packaged models by name (``DetectorConfig.rules.verifier_model``).
+PACKAGED_MODELS = {
+    "default": MODEL_PATH,
+    "low_ground": MODEL_PATH.with_name("verifier_model_low_ground.npz"),
+}
+
+
+@lru_cache(maxsize=4)
+def _packaged(name: str) -> BlobVerifier:
+    return BlobVerifier.load(PACKAGED_MODELS[name])
+
+
+def verifier_named(name: str) -> BlobVerifier:
+    """The packaged model `name` (read once): ``"default"`` is :func:`default_verifier`."""
+    if name == "default":
+        return default_verifier()
+    if name not in PACKAGED_MODELS:
+        raise InputError(
+            f"no packaged verifier model {name!r} (models: {', '.join(PACKAGED_MODELS)})"
+        )
+    return _packaged(name)
 
 
 def verifier_threshold(
