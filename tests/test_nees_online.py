@@ -16,6 +16,7 @@ from lunarloc.online.loop import (
     fix_model_yaw_variance,
     fix_stated_covariance,
     fix_stated_yaw_variance,
+    window_carried_path_m,
     window_centre_bias_covariance,
     window_ray_geometry,
     window_yaw_bias_variance,
@@ -184,6 +185,37 @@ def test_the_window_bias_along_the_heading_widens_that_axis_only():
     assert S[0, 0] == pytest.approx(1e-6 + 0.02**2) and S[1, 1] == pytest.approx(1e-6)
     with pytest.raises(ConfigError):
         LoopConfig(fix_centre_bias_along_m=-0.01)
+
+
+def test_the_odometry_scale_term_grows_with_the_carried_path_along_the_heading():
+    cfg = LoopConfig(fix_odometry_scale_sigma=0.01)
+    # heading along y: 2 m carried at 1 % is 2 cm along y only
+    T = fix_model_terms(math.nan, 0, cfg, math.pi / 2, 2.0)
+    assert np.allclose(T, np.diag([0.0, 0.02**2, 0.0]))
+    # nothing carried, no path known or no heading: no term
+    for c, h in ((0.0, 0.0), (math.nan, 0.0), (2.0, math.nan)):
+        assert np.allclose(fix_model_terms(math.nan, 0, cfg, h, c), 0.0)
+    C = np.diag([1e-6, 1e-6, 1e-6, 0.0, 0.0, 0.0])
+    S = fix_stated_covariance(_Res(C, 0.0), [0.0, 0.0, 0.0], 0, cfg, 0.0, 3.0)
+    assert S[0, 0] == pytest.approx(1e-6 + 0.03**2) and S[1, 1] == pytest.approx(1e-6)
+    with pytest.raises(ConfigError):
+        LoopConfig(fix_odometry_scale_sigma=-0.01)
+
+
+def test_the_carried_path_counts_the_sightings_after_the_last_fix_per_rock():
+    inliers = np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0]])
+    # rock 0 seen from keyframes at path 1 m (before the last fix) and 6 m (after); rock 1 from
+    # 8 m (after); a detection of no inlier is left out; the rover is at 10 m
+    P = np.array([[0.01, 0.0, 0.0], [0.0, 0.01, 0.0], [5.0, 0.01, 0.0], [20.0, 0.0, 0.0]])
+    path = np.array([1.0, 6.0, 8.0, 9.0])
+    carried = np.array([False, True, True, True])
+    # rock 0: (0 + 4) / 2 = 2 m, rock 1: 2 m
+    assert window_carried_path_m(inliers, P, path, carried, 10.0, 0.3) == pytest.approx(2.0)
+    # before a first fix all are carried: rock 0 (9 + 4) / 2, rock 1 2 m
+    assert window_carried_path_m(inliers, P, path, np.ones(4, bool), 10.0, 0.3) == pytest.approx(
+        (6.5 + 2.0) / 2
+    )
+    assert math.isnan(window_carried_path_m(inliers, P[3:], path[3:], carried[3:], 10.0, 0.3))
 
 
 def test_yaw_nees_shares_use_the_one_dof_quantiles():

@@ -220,6 +220,12 @@ class LoopConfig:
     # a bias per second of motion carried through a slow stretch turns the prediction where the
     # odometry's drift (per metre) did not
     fix_heading_turn_factor: float = 0.0
+    # the odometry's scale error (fraction, one sigma) over the path its prediction alone carried
+    # the window's inlier sightings to the rover (Attempt.fix_carried_path_m: the sightings from
+    # keyframes after the pose graph's last accepted fix, all of them before a first fix), along
+    # the fix's heading: the graph corrects the keyframes up to that fix, not the odometry's
+    # scale after it (docs/calibration.md, "The image loop's fixes on LAC-look sites")
+    fix_odometry_scale_sigma: float = 0.0
 
     def __post_init__(self) -> None:
         for name in (
@@ -244,6 +250,7 @@ class LoopConfig:
             "fix_centre_bias_spread_m",
             "fix_heading_rate_sigma_rad_s",
             "fix_heading_turn_factor",
+            "fix_odometry_scale_sigma",
         ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v < math.inf):
@@ -409,6 +416,11 @@ class Attempt:
     # horizontal range (m) of those detections (window_ray_geometry)
     fix_ray_xy_m: list | None = None
     fix_range_m: float = float("nan")
+    # the path (m) the odometry's prediction alone carried the inliers' sightings to the rover:
+    # per inlier rock the mean over its detections from keyframes after the last accepted fix
+    # (all before a first fix) of the path from that keyframe to the rover (0 for the others),
+    # averaged over the rocks (window_carried_path_m)
+    fix_carried_path_m: float = float("nan")
     time_mapping_s: float = 0.0
     time_association_s: float = 0.0
     # window length used: window_m, or longer where the adaptive window grew
@@ -869,11 +881,20 @@ class LoopState:
         att.inlier_reference_xyz = ref.positions_xyz[inl[:, 1]].round(4).tolist()
         att.fix_distortion_m = float(res.distortion_error_m)
         att.fix_maps_from_detections = sum(m.sightings is not None for m in (ref, veh))
+        last = next((a for a in reversed(self.attempts) if a.accepted), None)
+        path = np.array([kf.path_m for kf in self.graph.keyframes], float)
+        att.fix_carried_path_m = window_carried_path_m(
+            Vp,
+            P,
+            path[F] if len(F) else np.zeros(0),
+            F > (last.keyframe if last is not None else -1),
+            float(path[k]),
+            self.config.aggregation.radius_m,
+        )
         att.fix_covariance_xyz = fix_stated_covariance(
-            res, fix4[:3], att.fix_maps_from_detections, cfg, fix4[3]
+            res, fix4[:3], att.fix_maps_from_detections, cfg, fix4[3], att.fix_carried_path_m
         ).tolist()
         att.fix_distortion_yaw_rad = math.radians(float(res.distortion_rotation_deg))
-        last = next((a for a in reversed(self.attempts) if a.accepted), None)
         att.fix_since_fix_s = t - last.time_s if last is not None else math.nan
         if last is not None:
             gb, gp = self.graph.predicted_heading_variance(k)
@@ -1078,20 +1099,34 @@ def fix_model_terms(
     maps_from_detections: int,
     config: LoopConfig,
     heading_yaw_rad: float = math.nan,
+    carried_path_m: float = math.nan,
 ) -> np.ndarray:
     """What :func:`fix_stated_covariance` adds to localize()'s covariance at the rover (3x3,
-    m^2): the distortion allowance re-counted in ``fix_distortion_sigmas`` sigmas and the
-    window's centre bias (:func:`window_centre_bias_covariance`, along `heading_yaw_rad`)."""
+    m^2): the distortion allowance re-counted in ``fix_distortion_sigmas`` sigmas, the
+    window's centre bias (:func:`window_centre_bias_covariance`, along `heading_yaw_rad`) and
+    the odometry's scale error ``fix_odometry_scale_sigma`` over `carried_path_m`, the path its
+    prediction alone carried the inliers' sightings (along the heading; none where either is
+    not finite)."""
     d = float(distortion_m)
     k = 1.0 / config.fix_distortion_sigmas**2 - 1.0
     dd = k * d * d / 2 if math.isfinite(d) and d > 0 else 0.0
-    return np.diag([dd, dd, 0.0]) + window_centre_bias_covariance(
+    out = np.diag([dd, dd, 0.0]) + window_centre_bias_covariance(
         maps_from_detections, config, heading_yaw_rad
     )
+    s, c, h = config.fix_odometry_scale_sigma, float(carried_path_m), float(heading_yaw_rad)
+    if s > 0 and math.isfinite(c) and c > 0 and math.isfinite(h):
+        u = np.array([math.cos(h), math.sin(h), 0.0])
+        out = out + (s * c) ** 2 * np.outer(u, u)
+    return out
 
 
 def fix_stated_covariance(
-    res, point_xyz, maps_from_detections: int, config: LoopConfig, heading_yaw_rad=math.nan
+    res,
+    point_xyz,
+    maps_from_detections: int,
+    config: LoopConfig,
+    heading_yaw_rad=math.nan,
+    carried_path_m=math.nan,
 ) -> np.ndarray:
     """The 3x3 position covariance (m^2) a loop fix is stated with at the rover (map-frame
     `point_xyz`, heading `heading_yaw_rad`): localize()'s covariance there
@@ -1099,10 +1134,12 @@ def fix_stated_covariance(
     split over x and y at the rover) counted as ``config.fix_distortion_sigmas`` sigmas instead
     of one, plus the window's shared centre bias (``fix_centre_bias_m`` per horizontal axis,
     ``fix_centre_bias_along_m`` along the heading, ``fix_centre_bias_z_m`` vertical) times half
-    the number of the two maps built from detections."""
+    the number of the two maps built from detections, and the odometry's scale error over the
+    path its prediction carried the inliers' sightings, `carried_path_m`
+    (:func:`fix_model_terms`)."""
     C = fix_position_covariance(res.covariance, point_xyz)
     return C + fix_model_terms(
-        res.distortion_error_m, maps_from_detections, config, heading_yaw_rad
+        res.distortion_error_m, maps_from_detections, config, heading_yaw_rad, carried_path_m
     )
 
 
@@ -1143,6 +1180,32 @@ def window_ray_geometry(
     rng = np.linalg.norm(ray, axis=1)
     per_rng = np.array([rng[j[ok] == r].mean() for r in rocks])
     return per_ray.mean(axis=0), float(per_rng.mean())
+
+
+def window_carried_path_m(
+    inliers_xyz, points_xyz, path_m, carried, rover_path_m: float, radius_m: float
+) -> float:
+    """The path (m) the odometry's prediction alone carried a window's inlier sightings to the
+    rover: each window detection (`points_xyz` (N, 3)) within `radius_m` of an inlier (`inliers_xyz`
+    (n, 3)) belongs to it; a detection from a keyframe the odometry carried (`carried` (N,),
+    bool: after the pose graph's last accepted fix) counts the path from its keyframe
+    (`path_m` (N,), the odometry path at it) to the rover (`rover_path_m`), the others 0; the
+    mean per rock, averaged over the rocks. NaN where no detection belongs to an inlier."""
+    from scipy.spatial import cKDTree
+
+    V = np.asarray(inliers_xyz, float).reshape(-1, 3)
+    P = np.asarray(points_xyz, float).reshape(-1, 3)
+    if not len(V) or not len(P):
+        return math.nan
+    d, j = cKDTree(V).query(P, distance_upper_bound=radius_m)
+    ok = np.isfinite(d)
+    if not np.any(ok):
+        return math.nan
+    back = np.where(
+        np.asarray(carried, bool), float(rover_path_m) - np.asarray(path_m, float), 0.0
+    )[ok]
+    rocks = j[ok]
+    return float(np.mean([back[rocks == r].mean() for r in np.unique(rocks)]))
 
 
 def inlier_radius_m(inliers_xyz) -> float:

@@ -88,7 +88,11 @@ def _fix_record(a, loop_config, **extra) -> dict:
 
     e, C = np.array(a.fix_error_xyz), np.array(a.fix_covariance_xyz)
     C0 = C - fix_model_terms(
-        a.fix_distortion_m, a.fix_maps_from_detections, loop_config, a.fix_yaw_rad
+        a.fix_distortion_m,
+        a.fix_maps_from_detections,
+        loop_config,
+        a.fix_yaw_rad,
+        a.fix_carried_path_m,
     )
     ey, sy = float(a.fix_error_yaw_rad), float(a.fix_sigma_yaw_rad)
     inl = np.asarray(a.inlier_vehicle_xyz or np.zeros((0, 3)), float).reshape(-1, 3)
@@ -137,6 +141,8 @@ def _fix_record(a, loop_config, **extra) -> dict:
         "since_fix_m": a.fix_since_fix_m,
         "ray_xy_m": a.fix_ray_xy_m,
         "range_m": a.fix_range_m,
+        # the path (m) the odometry's prediction alone carried the inliers' sightings
+        "carried_path_m": a.fix_carried_path_m,
     }
 
 
