@@ -330,30 +330,43 @@ def test_ground_footprint_weights_keep_a_far_rock_off_the_ground():
         GroundConfig(footprint_span_px=0)
 
 
-def test_ground_footprint_min_drop_keeps_the_plain_ground_off_the_rock():
-    """footprint_min_drop_m: the weighted level replaces the plain one only in cells where it
-    lies that much lower (the far rock's cells); on noisy open ground, where the two differ by
-    millimetres, the heights are the plain ground's, bit for bit, while the rock's top stands
-    higher above its ground than over the plain one."""
+def _far_rock_scene(seed):
+    """The front camera over level ground with a 12 cm box rock 4.3-4.55 m ahead: the camera,
+    its mount, the box and the ray-cast half-resolution disparity with 0.02 px of noise."""
     from lunarloc.perception.camera import ipex_rig
-    from lunarloc.perception.stereo import GroundConfig, ground_height_map
 
     cam = PinholeCamera()
     T = ipex_rig(cam)["FrontLeft"].T_rover_optical
     box = (4.3, 4.55, -0.2, 0.2, 0.12)
     disp = _ray_cast_disparity(cam, T, 2, box)
-    disp = disp + np.random.default_rng(3).normal(0, 0.02, disp.shape).astype(np.float32)
-    plain = ground_height_map(disp, 2, cam, 0.162, T, GroundConfig())
-    fw = ground_height_map(disp, 2, cam, 0.162, T, GroundConfig(footprint_weights=True))
-    cfg = GroundConfig(footprint_weights=True, footprint_min_drop_m=0.02)
-    hyb = ground_height_map(disp, 2, cam, 0.162, T, cfg)
-    P = plain.points_rover
-    on_box = (
+    disp = disp + np.random.default_rng(seed).normal(0, 0.02, disp.shape).astype(np.float32)
+    return cam, T, box, disp
+
+
+def _on_far_rock(P, T, box):
+    """The rover-frame points of `_far_rock_scene`'s box (above the level ground by 1 mm)."""
+    return (
         (P[..., 0] > box[0] - 0.01)
         & (P[..., 0] < box[1] + 0.01)
         & (np.abs(P[..., 1]) < 0.19)
         & (P[..., 2] > T[2, 3] - 0.331 + 0.001)
     )
+
+
+def test_ground_footprint_min_drop_keeps_the_plain_ground_off_the_rock():
+    """footprint_min_drop_m: the weighted level replaces the plain one only in cells where it
+    lies that much lower (the far rock's cells); on noisy open ground, where the two differ by
+    millimetres, the heights are the plain ground's, bit for bit, while the rock's top stands
+    higher above its ground than over the plain one."""
+    from lunarloc.perception.stereo import GroundConfig, ground_height_map
+
+    cam, T, box, disp = _far_rock_scene(seed=3)
+    plain = ground_height_map(disp, 2, cam, 0.162, T, GroundConfig())
+    fw = ground_height_map(disp, 2, cam, 0.162, T, GroundConfig(footprint_weights=True))
+    cfg = GroundConfig(footprint_weights=True, footprint_min_drop_m=0.02)
+    hyb = ground_height_map(disp, 2, cam, 0.162, T, cfg)
+    P = plain.points_rover
+    on_box = _on_far_rock(P, T, box)
     assert np.nanmax(hyb.height[on_box]) > np.nanmax(plain.height[on_box]) + 0.01
     # open ground well clear of the rock's cells (bilinear interpolation reaches one cell)
     far_off = np.isfinite(plain.height) & (np.hypot(P[..., 0] - 4.4, P[..., 1]) > 1.2)
@@ -369,26 +382,14 @@ def test_ground_far_quantile_lowers_the_far_cells_only():
     quantile, so the far rock that lifts its cells' median stands higher above its ground;
     near the camera (well inside far_range_m, beyond the bilinear reach of one cell) the
     heights are the plain ground's, bit for bit."""
-    from lunarloc.perception.camera import ipex_rig
     from lunarloc.perception.stereo import GroundConfig, ground_height_map
 
-    cam = PinholeCamera()
-    T = ipex_rig(cam)["FrontLeft"].T_rover_optical
-    box = (4.3, 4.55, -0.2, 0.2, 0.12)
-    disp = _ray_cast_disparity(cam, T, 2, box)
-    disp = disp + np.random.default_rng(5).normal(0, 0.02, disp.shape).astype(np.float32)
+    cam, T, box, disp = _far_rock_scene(seed=5)
     plain = ground_height_map(disp, 2, cam, 0.162, T, GroundConfig())
-    low = ground_height_map(
-        disp, 2, cam, 0.162, T, GroundConfig(far_quantile=0.4, far_range_m=3.0)
-    )
+    low = ground_height_map(disp, 2, cam, 0.162, T, GroundConfig(far_quantile=0.4, far_range_m=3.0))
     assert GroundConfig().far_quantile == 0.0  # off by default
     P = plain.points_rover
-    on_box = (
-        (P[..., 0] > box[0] - 0.01)
-        & (P[..., 0] < box[1] + 0.01)
-        & (np.abs(P[..., 1]) < 0.19)
-        & (P[..., 2] > T[2, 3] - 0.331 + 0.001)
-    )
+    on_box = _on_far_rock(P, T, box)
     assert np.nanmax(low.height[on_box]) > np.nanmax(plain.height[on_box]) + 0.005
     rng = np.hypot(P[..., 0] - T[0, 3], P[..., 1] - T[1, 3])
     near = np.isfinite(plain.height) & (rng < 2.0)
