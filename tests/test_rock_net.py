@@ -124,29 +124,26 @@ def test_bad_model_files_give_a_clear_error(tmp_path):
     with pytest.raises(InputError, match="rock net"):
         load_rock_net(tmp_path / "nolayers.npz")
     rng = np.random.default_rng(2)
-    np.savez(  # a first layer that takes 3 inputs
-        tmp_path / "shape.npz",
-        format=np.array(1),
-        n_layers=np.array(1),
-        W0=rng.normal(size=(1, 3, 3, 3)),
-        b0=np.zeros(1),
-        dilation0=np.array(1),
-        pool0=np.array(False),
-    )
+
+    def one_layer(name, n_inputs=2, **extra):
+        path = tmp_path / name
+        np.savez(
+            path,
+            format=np.array(1),
+            n_layers=np.array(1),
+            W0=rng.normal(size=(1, n_inputs, 3, 3)),
+            b0=np.zeros(1),
+            dilation0=np.array(1),
+            pool0=np.array(False),
+            **extra,
+        )
+        return path
+
     with pytest.raises(InputError, match="take 2 inputs"):
-        load_rock_net(tmp_path / "shape.npz")
-    np.savez(  # a stride of 0
-        tmp_path / "stride.npz",
-        format=np.array(1),
-        n_layers=np.array(1),
-        W0=rng.normal(size=(1, 2, 3, 3)),
-        b0=np.zeros(1),
-        dilation0=np.array(1),
-        pool0=np.array(False),
-        stride0=np.array(0),
-    )
+        load_rock_net(one_layer("shape.npz", n_inputs=3))
     with pytest.raises(InputError, match="stride"):
-        load_rock_net(tmp_path / "stride.npz")
+        load_rock_net(one_layer("stride.npz", stride0=np.array(0)))
+    assert load_rock_net(one_layer("good.npz")) is not None  # the same file, well formed
     with pytest.raises(InputError, match="at least 4x4"):
         net_inputs(np.zeros((2, 50)))
 
