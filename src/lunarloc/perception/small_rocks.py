@@ -434,8 +434,7 @@ def _net_candidates(roi, small, z, sky, grid: _Grid, cfg, Dfull, cands) -> list:
         p = net.probability(sub if f == 1 else cv2.resize(sub, size, interpolation=cv2.INTER_AREA))
     prob = p if p.shape == (h - a, w) else cv2.resize(p, (w, h - a))
     # the search image's rows from a (the blobs' full-resolution rows from r0 + a k)
-    sub = _Grid(grid.D, grid.kd, k, grid.r0 + a * k, grid.fx, grid.fb, grid.pad)
-    sub.exclude, sub.height = grid.exclude, grid.height
+    sub = replace(grid, r0=grid.r0 + a * k)
     boxes = [(u, v, u + c.shape[1], v + c.shape[0]) for u, v, c, *_ in cands]
     out = []
     for u0, v0, crop, d0, _, _ in _blobs(
